@@ -1,0 +1,116 @@
+//! Relative-pose factor between two SE(2) poses (g2o `EDGE_SE2`, TORO/course `EDGE2`).
+//!
+//! With `X_i = (t_i, θ_i)`, `X_j = (t_j, θ_j)` and the measurement `Z = (t_ij, θ_ij)` (the pose of
+//! j in the frame of i), the error is the course's
+//!
+//! ```text
+//! e = [ R_ijᵀ (R_iᵀ (t_j − t_i) − t_ij) ]
+//!     [ wrap(θ_j − θ_i − θ_ij)           ]
+//! ```
+//!
+//! which equals `t2v(Z⁻¹ X_i⁻¹ X_j)`. For the additive SE(2) retraction the Jacobians are
+//!
+//! ```text
+//! A_i = ∂e/∂x_i = [ −R_ijᵀ R_iᵀ   R_ijᵀ (∂R_iᵀ/∂θ_i)(t_j − t_i) ]    B_i = ∂e/∂x_j = [ R_ijᵀ R_iᵀ  0 ]
+//!                 [  0  0          −1                          ]                     [ 0  0       1 ]
+//! ```
+
+use std::any::Any;
+
+use super::{expect_kind, EvaluationError, Factor};
+use crate::geometry::{wrap_angle, Se2};
+use crate::problem::{Key, Variable};
+
+#[derive(Clone, Debug)]
+pub struct BetweenSe2 {
+    keys: [Key; 2],
+    pub measurement: Se2,
+}
+
+impl BetweenSe2 {
+    pub fn new(from: Key, to: Key, measurement: Se2) -> Self {
+        Self { keys: [from, to], measurement }
+    }
+}
+
+impl Factor for BetweenSe2 {
+    fn name(&self) -> &'static str {
+        "between_se2"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn residual_dim(&self) -> usize {
+        3
+    }
+    fn variable_kinds(&self) -> &[&'static str] {
+        &["se2", "se2"]
+    }
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
+        let xi: &Se2 = expect_kind(variables, 0, "se2")?;
+        let xj: &Se2 = expect_kind(variables, 1, "se2")?;
+        let z = &self.measurement;
+        let (si, ci) = xi.theta.sin_cos();
+        let (sz, cz) = z.theta.sin_cos();
+        let dx = xj.x - xi.x;
+        let dy = xj.y - xi.y;
+        // a = R_iᵀ (t_j − t_i)
+        let ax = ci * dx + si * dy;
+        let ay = -si * dx + ci * dy;
+        let ux = ax - z.x;
+        let uy = ay - z.y;
+        error[0] = cz * ux + sz * uy;
+        error[1] = -sz * ux + cz * uy;
+        error[2] = wrap_angle(xj.theta - xi.theta - z.theta);
+        if let Some(j) = jacobian {
+            // M = R_ijᵀ R_iᵀ = R(θ_i + θ_ij)ᵀ
+            let (sm, cm) = (xi.theta + z.theta).sin_cos();
+            // (∂R_iᵀ/∂θ)(t_j − t_i) = [−s dx + c dy, −c dx − s dy] = [a_y, −a_x]
+            let gx = cz * ay - sz * ax;
+            let gy = -sz * ay - cz * ax;
+            j.copy_from_slice(&[
+                -cm, -sm, gx, cm, sm, 0.0, //
+                sm, -cm, gy, -sm, cm, 0.0, //
+                0.0, 0.0, -1.0, 0.0, 0.0, 1.0,
+            ]);
+        }
+        Ok(())
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::testing::{assert_jacobians_match, Rng};
+
+    #[test]
+    fn jacobians_match_numeric() {
+        let mut rng = Rng::new(7);
+        for _ in 0..200 {
+            let f = BetweenSe2::new(0, 1, rng.se2());
+            assert_jacobians_match(&f, &[Box::new(rng.se2()), Box::new(rng.se2())]);
+        }
+    }
+
+    #[test]
+    fn error_matches_group_formula() {
+        let mut rng = Rng::new(3);
+        for _ in 0..50 {
+            let (xi, xj, z) = (rng.se2(), rng.se2(), rng.se2());
+            let f = BetweenSe2::new(0, 1, z);
+            let mut e = [0.0; 3];
+            f.evaluate(&[&xi, &xj], &mut e, None).unwrap();
+            let g = z.inverse().compose(&xi.inverse().compose(&xj));
+            assert!((e[0] - g.x).abs() < 1e-9 && (e[1] - g.y).abs() < 1e-9);
+            assert!(wrap_angle(e[2] - g.theta).abs() < 1e-9);
+        }
+    }
+}

@@ -1,0 +1,93 @@
+//! Factors: residual functions of a few variables, with analytic Jacobians.
+//!
+//! A factor only computes its *unwhitened* error `e(x)` and `∂e/∂δ` for each variable it touches
+//! (δ in that variable's tangent space, as defined by its retraction). Weighting by the square-root
+//! information and robust kernels is applied uniformly by [`FactorEntry`], so every factor file
+//! contains only its own mathematics.
+
+pub mod between_se2;
+pub mod between_se3;
+pub mod noise;
+pub mod prior_se2;
+pub mod prior_se3;
+pub mod robust;
+pub mod testing;
+
+use std::any::Any;
+use std::fmt::Debug;
+
+pub use between_se2::BetweenSe2;
+pub use between_se3::BetweenSe3;
+pub use noise::SqrtInformation;
+pub use prior_se2::PriorSe2;
+pub use prior_se3::PriorSe3;
+pub use robust::RobustKernel;
+
+use crate::problem::{Key, Variable};
+
+/// Why a factor could not be evaluated at the given variables.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum EvaluationError {
+    #[error("factor expects a variable of kind {expected} at position {position}, found {found}")]
+    WrongKind { position: usize, expected: &'static str, found: &'static str },
+}
+
+pub trait Factor: Debug + Send + Sync {
+    /// Short name for errors and summaries (`"between_se2"`).
+    fn name(&self) -> &'static str;
+    fn keys(&self) -> &[Key];
+    fn residual_dim(&self) -> usize;
+    /// The kind expected at each key, checked when the factor is added to a problem.
+    fn variable_kinds(&self) -> &[&'static str];
+    /// Writes `e(x)` into `error` and, when asked, `∂e/∂δ_k` for every variable `k` into
+    /// `jacobian`, laid out row-major as `[J_0 | J_1 | …]` (residual_dim × Σ tangent dims).
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError>;
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// Downcasts variable `position` to `T`, or says which kind was expected.
+pub(crate) fn expect_kind<'a, T: Variable>(
+    variables: &[&'a dyn Variable],
+    position: usize,
+    expected: &'static str,
+) -> Result<&'a T, EvaluationError> {
+    let v = variables[position];
+    v.as_any().downcast_ref::<T>().ok_or(EvaluationError::WrongKind {
+        position,
+        expected,
+        found: v.kind(),
+    })
+}
+
+/// A factor in a problem: the residual function, its weight, its kernel, and a label naming it in
+/// errors (e.g. `EDGE_SE2 3 7 (intel-e.dat:12)`).
+#[derive(Debug)]
+pub struct FactorEntry {
+    pub factor: Box<dyn Factor>,
+    pub sqrt_information: SqrtInformation,
+    pub robust: Option<RobustKernel>,
+    pub label: String,
+}
+
+impl FactorEntry {
+    /// Whitened, robustified squared error `ρ(‖R e‖²)` at `variables` (the chi2 contribution).
+    pub fn chi2(
+        &self,
+        variables: &[&dyn Variable],
+        error_buffer: &mut [f64],
+        whitened: &mut [f64],
+    ) -> Result<f64, EvaluationError> {
+        self.factor.evaluate(variables, error_buffer, None)?;
+        self.sqrt_information.whiten_vector(error_buffer, whitened);
+        let s: f64 = whitened.iter().map(|v| v * v).sum();
+        Ok(match &self.robust {
+            Some(k) => k.evaluate(s).rho,
+            None => s,
+        })
+    }
+}

@@ -1,0 +1,130 @@
+//! Square-root information: `Ω = Rᵀ R` with `R` upper triangular, so `‖R e‖² = eᵀ Ω e`.
+
+use nalgebra::DMatrix;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum InformationError {
+    #[error("information matrix is {rows}×{cols}, expected {expected}×{expected}")]
+    WrongSize { rows: usize, cols: usize, expected: usize },
+    #[error("information matrix has a non-finite entry")]
+    NotFinite,
+    #[error("information matrix is not symmetric")]
+    NotSymmetric,
+    #[error("information matrix is not positive definite")]
+    NotPositiveDefinite,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct SqrtInformation {
+    dim: usize,
+    /// Row-major upper-triangular `R`.
+    r: Vec<f64>,
+}
+
+impl SqrtInformation {
+    /// From an information matrix `Ω`, by Cholesky `Ω = L Lᵀ`, `R = Lᵀ`.
+    pub fn from_information(information: &DMatrix<f64>) -> Result<Self, InformationError> {
+        let dim = information.nrows();
+        if information.ncols() != dim {
+            return Err(InformationError::WrongSize {
+                rows: dim,
+                cols: information.ncols(),
+                expected: dim,
+            });
+        }
+        if information.iter().any(|v| !v.is_finite()) {
+            return Err(InformationError::NotFinite);
+        }
+        let scale = information.amax().max(f64::MIN_POSITIVE);
+        if (information - information.transpose()).amax() > 1e-9 * scale {
+            return Err(InformationError::NotSymmetric);
+        }
+        let chol = information.clone().cholesky().ok_or(InformationError::NotPositiveDefinite)?;
+        let l = chol.l();
+        // A pivot that is tiny relative to the matrix means "numerically semidefinite".
+        if (0..dim).any(|i| !(l[(i, i)] > 1e-12 * scale.sqrt())) {
+            return Err(InformationError::NotPositiveDefinite);
+        }
+        let mut r = vec![0.0; dim * dim];
+        for i in 0..dim {
+            for j in i..dim {
+                r[i * dim + j] = l[(j, i)];
+            }
+        }
+        Ok(Self { dim, r })
+    }
+
+    pub fn identity(dim: usize) -> Self {
+        let mut r = vec![0.0; dim * dim];
+        for i in 0..dim {
+            r[i * dim + i] = 1.0;
+        }
+        Self { dim, r }
+    }
+
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// `Ω = Rᵀ R`.
+    pub fn information(&self) -> DMatrix<f64> {
+        let r = DMatrix::from_row_slice(self.dim, self.dim, &self.r);
+        r.transpose() * r
+    }
+
+    /// `out = R e`.
+    pub fn whiten_vector(&self, e: &[f64], out: &mut [f64]) {
+        let d = self.dim;
+        for i in 0..d {
+            let row = &self.r[i * d..(i + 1) * d];
+            out[i] = (i..d).map(|j| row[j] * e[j]).sum();
+        }
+    }
+
+    /// `out = R J` for a row-major `J` with `cols` columns.
+    pub fn whiten_jacobian(&self, jacobian: &[f64], cols: usize, out: &mut [f64]) {
+        let d = self.dim;
+        for i in 0..d {
+            let out_row = &mut out[i * cols..(i + 1) * cols];
+            out_row.fill(0.0);
+            for j in i..d {
+                let rij = self.r[i * d + j];
+                if rij != 0.0 {
+                    let in_row = &jacobian[j * cols..(j + 1) * cols];
+                    for (o, v) in out_row.iter_mut().zip(in_row) {
+                        *o += rij * v;
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn whitened_norm_is_mahalanobis() {
+        let omega = DMatrix::from_row_slice(3, 3, &[4.0, 1.0, 0.5, 1.0, 3.0, 0.2, 0.5, 0.2, 2.0]);
+        let s = SqrtInformation::from_information(&omega).unwrap();
+        let e = [0.3, -1.2, 0.7];
+        let mut w = [0.0; 3];
+        s.whiten_vector(&e, &mut w);
+        let ev = nalgebra::DVector::from_row_slice(&e);
+        let expected = (ev.transpose() * &omega * &ev)[(0, 0)];
+        let got: f64 = w.iter().map(|v| v * v).sum();
+        assert!((got - expected).abs() < 1e-12);
+        assert!((s.information() - omega).amax() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_bad_matrices() {
+        let bad = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
+        assert_eq!(SqrtInformation::from_information(&bad), Err(InformationError::NotPositiveDefinite));
+        let nan = DMatrix::from_row_slice(2, 2, &[1.0, f64::NAN, f64::NAN, 1.0]);
+        assert_eq!(SqrtInformation::from_information(&nan), Err(InformationError::NotFinite));
+        let zero = DMatrix::zeros(3, 3);
+        assert_eq!(SqrtInformation::from_information(&zero), Err(InformationError::NotPositiveDefinite));
+    }
+}

@@ -1,0 +1,10 @@
+//! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3).
+
+pub mod se2;
+pub mod se3;
+pub mod so2;
+pub mod so3;
+
+pub use se2::Se2;
+pub use se3::Se3;
+pub use so2::{rotation_matrix_2d, wrap_angle};

@@ -1,0 +1,230 @@
+//! g2o files: `VERTEX_SE2`, `EDGE_SE2`, `VERTEX_SE3:QUAT`, `EDGE_SE3:QUAT`, `FIX`.
+//!
+//! Information matrices are the upper triangle, row-major. For 3D the file's Ω (order t, R) is
+//! defined on g2o's error `[t; vec(q)]`, where `vec(q) ≈ Log(R)/2`; our SE(3) factor's rotation
+//! error is `Log(R)` (the angle), so Ω is mapped to `D Ω D`, `D = diag(1, 1, 1, ½, ½, ½)`, and back
+//! on writing. [`chi2_g2o_convention`] scores a 3D graph exactly as g2o does, for comparisons.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
+
+use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
+use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry};
+use crate::geometry::{Se2, Se3};
+use crate::problem::{Key, Problem, Values};
+
+/// Symmetric n×n from its upper triangle, row-major.
+fn upper_triangle(n: usize, f: &[f64]) -> DMatrix<f64> {
+    let mut m = DMatrix::zeros(n, n);
+    let mut k = 0;
+    for i in 0..n {
+        for j in i..n {
+            m[(i, j)] = f[k];
+            m[(j, i)] = f[k];
+            k += 1;
+        }
+    }
+    m
+}
+
+/// `D = diag(1, 1, 1, ½, ½, ½)` maps g2o's 3D information onto our error.
+fn rotation_scaling(half: bool) -> DMatrix<f64> {
+    let s = if half { 0.5 } else { 2.0 };
+    DMatrix::from_diagonal(&nalgebra::DVector::from_row_slice(&[1.0, 1.0, 1.0, s, s, s]))
+}
+
+fn quaternion(path: &Path, number: usize, f: &[f64]) -> Result<UnitQuaternion<f64>, IoError> {
+    let q = Quaternion::new(f[3], f[0], f[1], f[2]);
+    let norm = q.norm();
+    if !(0.5..=2.0).contains(&norm) {
+        return Err(parse_error(path, number, format!("quaternion norm {norm} is far from 1")));
+    }
+    Ok(UnitQuaternion::from_quaternion(q))
+}
+
+pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
+    let mut problem = Problem::new();
+    let mut order = Vec::new();
+    let mut edges = Vec::new();
+    let mut fixes = Vec::new();
+    let mut dimension = None;
+    for &(path, text) in files {
+        for line in lines(text) {
+            let dim_here = match line.tokens[0] {
+                "VERTEX_SE2" => {
+                    let f = numbers(path, &line, 4)?;
+                    let key = id(path, &line, f[0], 1)?;
+                    problem
+                        .add_variable(key, Box::new(Se2::new(f[1], f[2], f[3])))
+                        .map_err(|e| problem_error(path, line.number, e))?;
+                    order.push(key);
+                    Some(Dimension::Two)
+                }
+                "VERTEX_SE3:QUAT" => {
+                    let f = numbers(path, &line, 8)?;
+                    let key = id(path, &line, f[0], 1)?;
+                    let q = quaternion(path, line.number, &f[4..8])?;
+                    problem
+                        .add_variable(key, Box::new(Se3::new(q, Vector3::new(f[1], f[2], f[3]))))
+                        .map_err(|e| problem_error(path, line.number, e))?;
+                    order.push(key);
+                    Some(Dimension::Three)
+                }
+                "EDGE_SE2" => {
+                    edges.push((path, line.number, numbers(path, &line, 11)?, Dimension::Two));
+                    Some(Dimension::Two)
+                }
+                "EDGE_SE3:QUAT" => {
+                    edges.push((path, line.number, numbers(path, &line, 30)?, Dimension::Three));
+                    Some(Dimension::Three)
+                }
+                "FIX" => {
+                    for (k, t) in line.tokens[1..].iter().enumerate() {
+                        let v: f64 = t
+                            .parse()
+                            .map_err(|_| parse_error(path, line.number, format!("FIX field {} (`{t}`) is not an id", k + 1)))?;
+                        fixes.push((path, line.number, id(path, &line, v, k + 1)?));
+                    }
+                    None
+                }
+                other => {
+                    return Err(parse_error(path, line.number, format!("unsupported record `{other}`")));
+                }
+            };
+            if let Some(d) = dim_here {
+                if dimension.is_some_and(|seen| seen != d) {
+                    return Err(parse_error(path, line.number, "mixes 2D and 3D records"));
+                }
+                dimension = Some(d);
+            }
+        }
+    }
+    let Some(dimension) = dimension else {
+        return Err(super::IoError::Invalid { file: files[0].0.to_path_buf(), reason: "no vertices or edges".into() });
+    };
+    for (path, number, f, dim) in edges {
+        let line = super::Line { number, tokens: vec![""] };
+        let (i, j) = (id(path, &line, f[0], 1)?, id(path, &line, f[1], 2)?);
+        let result = match dim {
+            Dimension::Two => problem.add_factor(
+                Box::new(BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]))),
+                &upper_triangle(3, &f[5..11]),
+                None,
+                format!("EDGE_SE2 {i} {j} ({}:{number})", path.display()),
+            ),
+            Dimension::Three => {
+                let z = Se3::new(quaternion(path, number, &f[5..9])?, Vector3::new(f[2], f[3], f[4]));
+                let d = rotation_scaling(true);
+                problem.add_factor(
+                    Box::new(BetweenSe3::new(i, j, z)),
+                    &(&d * upper_triangle(6, &f[9..30]) * &d),
+                    None,
+                    format!("EDGE_SE3:QUAT {i} {j} ({}:{number})", path.display()),
+                )
+            }
+        };
+        result.map_err(|e| problem_error(path, number, e))?;
+    }
+    for (path, number, key) in fixes {
+        problem.set_fixed(key, true).map_err(|e| problem_error(path, number, e))?;
+    }
+    if problem.values.is_empty() {
+        return Err(super::IoError::Invalid { file: files[0].0.to_path_buf(), reason: "no vertices".into() });
+    }
+    Ok(PoseGraph { problem, dimension, vertex_order: order })
+}
+
+fn information_upper(m: &DMatrix<f64>) -> String {
+    let mut s = String::new();
+    for i in 0..m.nrows() {
+        for j in i..m.ncols() {
+            let _ = write!(s, " {}", m[(i, j)]);
+        }
+    }
+    s
+}
+
+/// The graph as g2o text, vertices with their current values.
+pub fn to_string(graph: &PoseGraph) -> String {
+    let values = &graph.problem.values;
+    let mut out = String::new();
+    for &key in &graph.vertex_order {
+        if let Some(p) = values.get_as::<Se2>(key) {
+            let _ = writeln!(out, "VERTEX_SE2 {key} {} {} {}", p.x, p.y, p.theta);
+        } else if let Some(p) = values.get_as::<Se3>(key) {
+            let (t, q) = (p.translation, p.rotation);
+            let _ = writeln!(out, "VERTEX_SE3:QUAT {key} {} {} {} {} {} {} {}", t.x, t.y, t.z, q.i, q.j, q.k, q.w);
+        }
+    }
+    for f in graph.problem.factors() {
+        let keys = f.factor.keys();
+        let info = f.sqrt_information.information();
+        if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe2>() {
+            let z = b.measurement;
+            let _ = writeln!(out, "EDGE_SE2 {} {} {} {} {}{}", keys[0], keys[1], z.x, z.y, z.theta, information_upper(&info));
+        } else if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe3>() {
+            let (t, q) = (b.measurement.translation, b.measurement.rotation);
+            let d = rotation_scaling(false);
+            let _ = writeln!(
+                out,
+                "EDGE_SE3:QUAT {} {} {} {} {} {} {} {} {}{}",
+                keys[0],
+                keys[1],
+                t.x,
+                t.y,
+                t.z,
+                q.i,
+                q.j,
+                q.k,
+                q.w,
+                information_upper(&(&d * info * &d))
+            );
+        }
+    }
+    let fixed: Vec<Key> = (0..values.len()).filter(|&v| values.is_fixed(v)).map(|v| values.key(v)).collect();
+    if !fixed.is_empty() {
+        let ids: Vec<String> = fixed.iter().map(|k| k.to_string()).collect();
+        let _ = writeln!(out, "FIX {}", ids.join(" "));
+    }
+    out
+}
+
+pub fn write(graph: &PoseGraph, path: &Path) -> Result<(), IoError> {
+    std::fs::write(path, to_string(graph)).map_err(|source| IoError::Write { file: path.to_path_buf(), source })
+}
+
+/// chi2 as g2o computes it: 2D is identical to ours; for 3D the error is `[t_E; vec(q_E)]` with
+/// `q_E` taken with w ≥ 0 and the file's (unmapped) information.
+pub fn chi2_g2o_convention(factors: &[FactorEntry], values: &Values) -> f64 {
+    let d = rotation_scaling(false);
+    let mut total = 0.0;
+    for f in factors {
+        let keys = f.factor.keys();
+        if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe3>() {
+            let (Some(xi), Some(xj)) = (values.get_as::<Se3>(keys[0]), values.get_as::<Se3>(keys[1])) else {
+                continue;
+            };
+            let e = b.measurement.inverse().compose(&xi.between(xj));
+            let q = e.rotation.quaternion();
+            let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+            let err = nalgebra::DVector::from_row_slice(&[
+                e.translation.x,
+                e.translation.y,
+                e.translation.z,
+                s * q.i,
+                s * q.j,
+                s * q.k,
+            ]);
+            let info = &d * f.sqrt_information.information() * &d;
+            total += (err.transpose() * info * &err)[(0, 0)];
+        } else {
+            let refs: Vec<&dyn crate::problem::Variable> = keys.iter().filter_map(|&k| values.get(k)).collect();
+            let dim = f.factor.residual_dim();
+            let (mut e, mut w) = (vec![0.0; dim], vec![0.0; dim]);
+            total += f.chi2(&refs, &mut e, &mut w).unwrap_or(f64::NAN);
+        }
+    }
+    total
+}

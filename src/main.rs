@@ -1,0 +1,186 @@
+//! `factord`: command-line entry point.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use clap::{Parser, Subcommand};
+
+use factord::factors::RobustKernel;
+use factord::io::{self, Dimension};
+use factord::solver::{self, Initialization, IterationReport, Method, SolverOptions};
+
+#[derive(Parser)]
+#[command(name = "factord", version, about = "Sparse nonlinear least-squares back-end for pose graphs")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Optimise a pose graph file (g2o, TORO, or a course vertices/edges pair).
+    Solve(SolveArgs),
+    /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
+    /// the matrix in Matrix Market form for comparison with other libraries.
+    BenchCholesky(BenchCholeskyArgs),
+}
+
+#[derive(clap::Args)]
+struct SolveArgs {
+    /// Graph file (g2o or TORO), or the vertices file of a pair.
+    graph: PathBuf,
+    /// Edges file, when vertices and edges are in two files (course `-v.dat` / `-e.dat`).
+    #[arg(long)]
+    edges: Option<PathBuf>,
+    /// gn | lm | dogleg
+    #[arg(long, default_value = "lm", value_parser = parse_method)]
+    method: Method,
+    #[arg(long, default_value_t = 100)]
+    max_iterations: usize,
+    /// none | chordal | auto (chordal when it lowers the initial chi2)
+    #[arg(long, default_value = "auto", value_parser = parse_init)]
+    init: Initialization,
+    /// Robust kernel on every factor, e.g. huber:1.0 or cauchy:0.5
+    #[arg(long, value_parser = parse_robust)]
+    robust: Option<RobustKernel>,
+    #[arg(long, default_value_t = 1e-6)]
+    function_tolerance: f64,
+    /// Write the optimised graph (g2o format).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the optimised trajectory in TUM format.
+    #[arg(long)]
+    tum: Option<PathBuf>,
+    /// Write the Summary as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// Print only errors.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct BenchCholeskyArgs {
+    graph: PathBuf,
+    #[arg(long)]
+    edges: Option<PathBuf>,
+    #[arg(long, default_value_t = 50)]
+    repeat: usize,
+    /// Matrix Market output of H (lower triangle, symmetric).
+    #[arg(long)]
+    write_mtx: Option<PathBuf>,
+}
+
+fn parse_method(s: &str) -> Result<Method, String> {
+    Method::parse(s).ok_or_else(|| format!("unknown method `{s}` (gn, lm, dogleg)"))
+}
+
+fn parse_init(s: &str) -> Result<Initialization, String> {
+    match s {
+        "none" => Ok(Initialization::None),
+        "chordal" => Ok(Initialization::Chordal),
+        "auto" => Ok(Initialization::Auto),
+        _ => Err(format!("unknown initialisation `{s}` (none, chordal, auto)")),
+    }
+}
+
+fn parse_robust(s: &str) -> Result<RobustKernel, String> {
+    RobustKernel::parse(s).map_err(|e| e.to_string())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Solve(args) => solve(args),
+        Command::BenchCholesky(args) => factord::solver::cholesky_bench::run(
+            &args.graph,
+            args.edges.as_deref(),
+            args.repeat,
+            args.write_mtx.as_deref(),
+        )
+        .map(|report| println!("{report}"))
+        .map_err(|e| e.to_string()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(message) => {
+            eprintln!("error: {message}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn print_iteration(r: &IterationReport) {
+    let damping = match (r.lambda, r.trust_radius) {
+        (Some(l), _) => format!("lambda {l:9.3e}"),
+        (_, Some(t)) => format!("radius {t:9.3e}"),
+        _ => " ".repeat(16),
+    };
+    println!(
+        "iter {:3}  chi2 {:14.6e}  rel.decr {:10.3e}  |g|inf {:9.3e}  |dx|inf {:9.3e}  {damping}  {}  lin {:.2}ms fact {:.2}ms solve {:.2}ms",
+        r.iteration,
+        r.chi2,
+        r.relative_decrease,
+        r.gradient_max_norm,
+        r.step_norm,
+        if r.accepted { "accepted" } else { "rejected" },
+        r.linearize_seconds * 1e3,
+        r.factorize_seconds * 1e3,
+        r.solve_seconds * 1e3,
+    );
+}
+
+fn solve(args: SolveArgs) -> Result<(), String> {
+    let load_start = Instant::now();
+    let mut graph = io::load(&args.graph, args.edges.as_deref()).map_err(|e| e.to_string())?;
+    let load_seconds = load_start.elapsed().as_secs_f64();
+    if args.robust.is_some() {
+        graph.problem.set_robust_kernel(args.robust);
+    }
+    let options = SolverOptions {
+        method: args.method,
+        max_iterations: args.max_iterations,
+        initialization: args.init,
+        function_tolerance: args.function_tolerance,
+        ..SolverOptions::default()
+    };
+    if !args.quiet {
+        println!(
+            "loaded {} ({} variables, {} factors) in {:.3}s",
+            args.graph.display(),
+            graph.problem.values.len(),
+            graph.problem.factors().len(),
+            load_seconds
+        );
+    }
+    let quiet = args.quiet;
+    let summary = solver::optimize(&mut graph.problem, &options, &mut |r| {
+        if !quiet {
+            print_iteration(r)
+        }
+    })
+    .map_err(|e| e.to_string())?;
+    if !quiet {
+        print!("{}", summary.report());
+    }
+    if let Some(path) = &args.summary_json {
+        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
+        let map = json.as_object_mut().expect("Summary serialises as an object");
+        map.insert("input".into(), args.graph.display().to_string().into());
+        map.insert("load_seconds".into(), load_seconds.into());
+        if graph.dimension == Dimension::Three {
+            let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
+            map.insert("final_chi2_g2o".into(), g2o.into());
+        }
+        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    if let Some(path) = &args.out {
+        io::g2o::write(&graph, path).map_err(|e| e.to_string())?;
+    }
+    if let Some(path) = &args.tum {
+        io::tum::write(&graph, path).map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}

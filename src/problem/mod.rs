@@ -1,0 +1,132 @@
+//! A nonlinear least-squares problem: variables under 64-bit keys, and factors over them.
+//!
+//! Everything that enters is validated here once (keys exist, kinds match, dimensions agree,
+//! information is positive definite, numbers are finite), so the solver can trust what it gets.
+
+mod values;
+mod variable;
+
+pub use values::Values;
+pub use variable::Variable;
+
+use nalgebra::DMatrix;
+
+use crate::factors::{Factor, FactorEntry, RobustKernel, SqrtInformation};
+
+/// Variables are addressed by a 64-bit key chosen by the client (g2o vertex ids, say).
+pub type Key = u64;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ProblemError {
+    #[error("variable {key} already exists")]
+    DuplicateVariable { key: Key },
+    #[error("variable {key} has a non-finite value")]
+    NonFiniteVariable { key: Key },
+    #[error("unknown variable {key}")]
+    UnknownVariable { key: Key },
+    #[error("{factor}: refers to unknown variable {key}")]
+    FactorUnknownVariable { factor: String, key: Key },
+    #[error("{factor}: variable {key} is of kind {found}, the factor needs {expected}")]
+    FactorWrongKind { factor: String, key: Key, expected: &'static str, found: &'static str },
+    #[error("{factor}: touches variable {key} twice")]
+    FactorRepeatedVariable { factor: String, key: Key },
+    #[error("{factor}: information matrix is invalid: {reason}")]
+    BadInformation { factor: String, reason: crate::factors::noise::InformationError },
+    #[error("{factor}: measurement is not finite")]
+    NonFiniteMeasurement { factor: String },
+}
+
+#[derive(Debug, Default)]
+pub struct Problem {
+    pub values: Values,
+    factors: Vec<FactorEntry>,
+}
+
+impl Problem {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    pub fn add_variable(&mut self, key: Key, variable: Box<dyn Variable>) -> Result<usize, ProblemError> {
+        if !variable.is_finite() {
+            return Err(ProblemError::NonFiniteVariable { key });
+        }
+        self.values.insert(key, variable).ok_or(ProblemError::DuplicateVariable { key })
+    }
+
+    pub fn set_fixed(&mut self, key: Key, fixed: bool) -> Result<(), ProblemError> {
+        let idx = self.values.index_of(key).ok_or(ProblemError::UnknownVariable { key })?;
+        self.values.set_fixed(idx, fixed);
+        Ok(())
+    }
+
+    /// Adds a factor weighted by the information matrix `information` (residual_dim × residual_dim).
+    pub fn add_factor(
+        &mut self,
+        factor: Box<dyn Factor>,
+        information: &DMatrix<f64>,
+        robust: Option<RobustKernel>,
+        label: impl Into<String>,
+    ) -> Result<usize, ProblemError> {
+        let label = label.into();
+        let sqrt_information = SqrtInformation::from_information(information)
+            .map_err(|reason| ProblemError::BadInformation { factor: label.clone(), reason })?;
+        if sqrt_information.dim() != factor.residual_dim() {
+            return Err(ProblemError::BadInformation {
+                factor: label,
+                reason: crate::factors::noise::InformationError::WrongSize {
+                    rows: information.nrows(),
+                    cols: information.ncols(),
+                    expected: factor.residual_dim(),
+                },
+            });
+        }
+        self.add_factor_sqrt(factor, sqrt_information, robust, label)
+    }
+
+    pub fn add_factor_sqrt(
+        &mut self,
+        factor: Box<dyn Factor>,
+        sqrt_information: SqrtInformation,
+        robust: Option<RobustKernel>,
+        label: String,
+    ) -> Result<usize, ProblemError> {
+        let keys = factor.keys();
+        for (pos, (&key, &expected)) in keys.iter().zip(factor.variable_kinds()).enumerate() {
+            if keys[..pos].contains(&key) {
+                return Err(ProblemError::FactorRepeatedVariable { factor: label, key });
+            }
+            let var = self
+                .values
+                .get(key)
+                .ok_or_else(|| ProblemError::FactorUnknownVariable { factor: label.clone(), key })?;
+            if var.kind() != expected {
+                return Err(ProblemError::FactorWrongKind { factor: label, key, expected, found: var.kind() });
+            }
+        }
+        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
+        let vars: Vec<&dyn Variable> = keys.iter().map(|&k| self.values.get(k).expect("checked above")).collect();
+        let mut e = vec![0.0; factor.residual_dim()];
+        if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
+            return Err(ProblemError::NonFiniteMeasurement { factor: label });
+        }
+        self.factors.push(FactorEntry { factor, sqrt_information, robust, label });
+        Ok(self.factors.len() - 1)
+    }
+
+    pub fn factors(&self) -> &[FactorEntry] {
+        &self.factors
+    }
+
+    /// Sets every factor's robust kernel (the CLI's `--robust`).
+    pub fn set_robust_kernel(&mut self, kernel: Option<RobustKernel>) {
+        for f in &mut self.factors {
+            f.robust = kernel;
+        }
+    }
+
+    /// Total chi2 `Σ ρ(eᵀ Ω e)` at the current values.
+    pub fn chi2(&self) -> f64 {
+        crate::solver::evaluate_chi2(self.factors(), &self.values, None).unwrap_or(f64::NAN)
+    }
+}

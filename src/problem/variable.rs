@@ -1,0 +1,96 @@
+//! Variables: anything with a tangent space and a retraction `x ⊕ δ`.
+//!
+//! The solver only ever asks a variable for its tangent dimension and to retract; factors downcast
+//! to the concrete kind they need. New kinds (points, cameras, navigation states) implement this
+//! trait in their own file and the solver does not change.
+
+use std::any::Any;
+use std::fmt::Debug;
+
+use nalgebra::Vector3;
+
+use crate::geometry::{so3, wrap_angle, Se2, Se3};
+
+pub trait Variable: Any + Debug + Send + Sync {
+    /// Short stable name, used in errors and on the wire (`"se2"`, `"se3"`).
+    fn kind(&self) -> &'static str;
+    fn tangent_dim(&self) -> usize;
+    /// `self ← self ⊕ delta`, with `delta.len() == tangent_dim()`.
+    fn retract(&mut self, delta: &[f64]);
+    fn clone_box(&self) -> Box<dyn Variable>;
+    /// Overwrites `self` with `other` without allocating; `false` if the kinds differ.
+    fn assign_from(&mut self, other: &dyn Variable) -> bool;
+    fn is_finite(&self) -> bool;
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// SE(2) retraction is additive on (x, y, θ) with θ re-wrapped, as in g2o's `VertexSE2` and the
+/// course; the between-factor Jacobians below are derived for exactly this retraction.
+impl Variable for Se2 {
+    fn kind(&self) -> &'static str {
+        "se2"
+    }
+    fn tangent_dim(&self) -> usize {
+        3
+    }
+    fn retract(&mut self, delta: &[f64]) {
+        self.x += delta[0];
+        self.y += delta[1];
+        self.theta = wrap_angle(self.theta + delta[2]);
+    }
+    fn clone_box(&self) -> Box<dyn Variable> {
+        Box::new(*self)
+    }
+    fn assign_from(&mut self, other: &dyn Variable) -> bool {
+        match other.as_any().downcast_ref::<Se2>() {
+            Some(o) => {
+                *self = *o;
+                true
+            }
+            None => false,
+        }
+    }
+    fn is_finite(&self) -> bool {
+        self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// SE(3) retraction on the right, translation in the body frame:
+/// `(R, t) ⊕ (v, ω) = (R Exp(ω), t + R v)`. Tangent order is (v, ω), the g2o files' (t, R) order.
+impl Variable for Se3 {
+    fn kind(&self) -> &'static str {
+        "se3"
+    }
+    fn tangent_dim(&self) -> usize {
+        6
+    }
+    fn retract(&mut self, delta: &[f64]) {
+        let v = Vector3::new(delta[0], delta[1], delta[2]);
+        let w = Vector3::new(delta[3], delta[4], delta[5]);
+        self.translation += self.rotation * v;
+        self.rotation = self.rotation * so3::exp(&w);
+        self.rotation.renormalize();
+    }
+    fn clone_box(&self) -> Box<dyn Variable> {
+        Box::new(*self)
+    }
+    fn assign_from(&mut self, other: &dyn Variable) -> bool {
+        match other.as_any().downcast_ref::<Se3>() {
+            Some(o) => {
+                *self = *o;
+                true
+            }
+            None => false,
+        }
+    }
+    fn is_finite(&self) -> bool {
+        self.translation.iter().all(|v| v.is_finite())
+            && self.rotation.coords.iter().all(|v| v.is_finite())
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}

@@ -1,0 +1,62 @@
+//! Gauge freedom: a pose graph with only relative measurements can slide and turn as a whole.
+//! Every connected component of the factor graph that has neither a fixed variable nor a unary
+//! factor (a prior) gets its lowest key fixed for the solve, and the Summary says which.
+
+use crate::factors::FactorEntry;
+use crate::problem::{Key, Values};
+
+/// Returns the per-variable fixed flags to solve with, and the keys fixed automatically.
+pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>, Vec<Key>) {
+    let n = values.len();
+    let mut parent: Vec<usize> = (0..n).collect();
+    fn find(parent: &mut [usize], mut x: usize) -> usize {
+        while parent[x] != x {
+            parent[x] = parent[parent[x]];
+            x = parent[x];
+        }
+        x
+    }
+    let mut anchored = vec![false; n];
+    for v in 0..n {
+        anchored[v] = values.is_fixed(v);
+    }
+    let mut unary_anchor = Vec::new();
+    for f in factors {
+        let idx: Vec<usize> = f.factor.keys().iter().filter_map(|&k| values.index_of(k)).collect();
+        if idx.len() == 1 {
+            unary_anchor.push(idx[0]);
+        }
+        for w in idx.windows(2) {
+            let (a, b) = (find(&mut parent, w[0]), find(&mut parent, w[1]));
+            if a != b {
+                parent[a] = b;
+            }
+        }
+    }
+    for v in unary_anchor {
+        anchored[v] = true;
+    }
+    let mut root_anchored = vec![false; n];
+    for v in 0..n {
+        if anchored[v] {
+            let r = find(&mut parent, v);
+            root_anchored[r] = true;
+        }
+    }
+    // Lowest key of each unanchored component.
+    let mut lowest: Vec<Option<usize>> = vec![None; n];
+    for v in 0..n {
+        let r = find(&mut parent, v);
+        if !root_anchored[r] && lowest[r].is_none_or(|u| values.key(v) < values.key(u)) {
+            lowest[r] = Some(v);
+        }
+    }
+    let mut fixed: Vec<bool> = (0..n).map(|v| values.is_fixed(v)).collect();
+    let mut keys = Vec::new();
+    for v in lowest.into_iter().flatten() {
+        fixed[v] = true;
+        keys.push(values.key(v));
+    }
+    keys.sort_unstable();
+    (fixed, keys)
+}

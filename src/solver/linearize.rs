@@ -1,0 +1,227 @@
+//! Evaluation and linearisation: whitened, robustified residuals and Jacobians accumulated
+//! straight into `H = JᵀJ` (lower triangle, in the fixed [`BlockPattern`]) and `b = −Jᵀr`.
+
+use crate::factors::{EvaluationError, FactorEntry};
+use crate::problem::{Key, Values, Variable};
+
+use super::structure::BlockPattern;
+
+/// Maps problem variables to blocks of the linear system; fixed variables get none.
+#[derive(Debug)]
+pub struct SystemLayout {
+    /// Elimination position of each variable (indexed like `Values`), `None` when fixed.
+    pub position_of_var: Vec<Option<usize>>,
+    /// Variable index at each elimination position.
+    pub var_at: Vec<usize>,
+    pub pattern: BlockPattern,
+    /// Per factor, its variables' indices: `factor_vars[factor_start[f]..factor_start[f + 1]]`.
+    factor_start: Vec<usize>,
+    factor_vars: Vec<usize>,
+    /// Per factor, the H blocks it contributes: (local i, local j, pair) with pos(i) ≥ pos(j).
+    slot_start: Vec<usize>,
+    slots: Vec<(u8, u8, usize)>,
+    max_residual: usize,
+    max_cols: usize,
+}
+
+impl SystemLayout {
+    /// `fixed[v]` says whether variable `v` is held constant in this solve.
+    pub fn new(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Self {
+        let free: Vec<usize> = (0..values.len()).filter(|&v| !fixed[v]).collect();
+        let mut block_of_var = vec![None; values.len()];
+        for (b, &v) in free.iter().enumerate() {
+            block_of_var[v] = Some(b);
+        }
+        let mut factor_start = Vec::with_capacity(factors.len() + 1);
+        let mut factor_vars = Vec::new();
+        let mut adjacency: Vec<Vec<usize>> = vec![Vec::new(); free.len()];
+        let (mut max_residual, mut max_cols) = (0, 0);
+        factor_start.push(0);
+        for f in factors {
+            let vars: Vec<usize> =
+                f.factor.keys().iter().map(|&k| values.index_of(k).expect("factor keys were validated")).collect();
+            let blocks: Vec<usize> = vars.iter().filter_map(|&v| block_of_var[v]).collect();
+            for &a in &blocks {
+                for &b in &blocks {
+                    if a != b {
+                        adjacency[a].push(b);
+                    }
+                }
+            }
+            max_residual = max_residual.max(f.factor.residual_dim());
+            max_cols = max_cols.max(vars.iter().map(|&v| values.variable(v).tangent_dim()).sum());
+            factor_vars.extend(vars);
+            factor_start.push(factor_vars.len());
+        }
+        let dims: Vec<usize> = free.iter().map(|&v| values.variable(v).tangent_dim()).collect();
+        let pattern = BlockPattern::new(&dims, &adjacency);
+        let position_of_var: Vec<Option<usize>> = block_of_var.iter().map(|b| b.map(|b| pattern.position[b])).collect();
+        let var_at: Vec<usize> = pattern.block_at.iter().map(|&b| free[b]).collect();
+        let mut slot_start = Vec::with_capacity(factors.len() + 1);
+        let mut slots = Vec::new();
+        slot_start.push(0);
+        for f in 0..factors.len() {
+            let vars = &factor_vars[factor_start[f]..factor_start[f + 1]];
+            for (li, &vi) in vars.iter().enumerate() {
+                for (lj, &vj) in vars.iter().enumerate() {
+                    if let (Some(a), Some(b)) = (position_of_var[vi], position_of_var[vj]) {
+                        if a >= b {
+                            let pair = pattern.pair(a, b).expect("pattern holds every factor's pairs");
+                            slots.push((li as u8, lj as u8, pair));
+                        }
+                    }
+                }
+            }
+            slot_start.push(slots.len());
+        }
+        Self {
+            position_of_var,
+            var_at,
+            pattern,
+            factor_start,
+            factor_vars,
+            slot_start,
+            slots,
+            max_residual,
+            max_cols,
+        }
+    }
+
+    pub fn n(&self) -> usize {
+        self.pattern.n
+    }
+
+    pub fn key_at_row(&self, values: &Values, row: usize) -> Key {
+        values.key(self.var_at[self.pattern.block_of_row(row)])
+    }
+
+    fn factor_vars(&self, f: usize) -> &[usize] {
+        &self.factor_vars[self.factor_start[f]..self.factor_start[f + 1]]
+    }
+
+    /// Applies the step `delta` (in elimination order) to the free variables of `values`.
+    pub fn retract(&self, values: &mut Values, delta: &[f64]) {
+        for (p, &v) in self.var_at.iter().enumerate() {
+            let o = self.pattern.offset[p];
+            values.variable_mut(v).retract(&delta[o..o + self.pattern.dim[p]]);
+        }
+    }
+}
+
+/// Reusable per-evaluation scratch buffers.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    error: Vec<f64>,
+    residual: Vec<f64>,
+    jacobian: Vec<f64>,
+    whitened: Vec<f64>,
+}
+
+impl Scratch {
+    pub fn new(layout: &SystemLayout) -> Self {
+        let (d, c) = (layout.max_residual, layout.max_cols);
+        Self { error: vec![0.0; d], residual: vec![0.0; d], jacobian: vec![0.0; d * c], whitened: vec![0.0; d * c] }
+    }
+}
+
+/// `Σ ρ(eᵀΩe)` over all factors. `layout` (when given) saves the key lookups.
+pub fn chi2_with_layout(
+    factors: &[FactorEntry],
+    values: &Values,
+    layout: &SystemLayout,
+    scratch: &mut Scratch,
+) -> Result<f64, EvaluationError> {
+    let mut total = 0.0;
+    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
+    for (f, entry) in factors.iter().enumerate() {
+        refs.clear();
+        refs.extend(layout.factor_vars(f).iter().map(|&v| values.variable(v)));
+        let d = entry.factor.residual_dim();
+        total += entry.chi2(&refs, &mut scratch.error[..d], &mut scratch.residual[..d])?;
+    }
+    Ok(total)
+}
+
+/// Linearises every factor at `values`; fills `h` (pattern values) and `b = −Jᵀr`, returns chi2.
+pub fn linearize(
+    factors: &[FactorEntry],
+    values: &Values,
+    layout: &SystemLayout,
+    scratch: &mut Scratch,
+    h: &mut [f64],
+    b: &mut [f64],
+) -> Result<f64, EvaluationError> {
+    h.fill(0.0);
+    b.fill(0.0);
+    let pattern = &layout.pattern;
+    let mut total = 0.0;
+    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
+    let mut col_offsets = [0usize; 16];
+    for (f, entry) in factors.iter().enumerate() {
+        let vars = layout.factor_vars(f);
+        refs.clear();
+        refs.extend(vars.iter().map(|&v| values.variable(v)));
+        let d = entry.factor.residual_dim();
+        let mut cols = 0;
+        for (k, r) in refs.iter().enumerate() {
+            col_offsets[k] = cols;
+            cols += r.tangent_dim();
+        }
+        let Scratch { error, residual, jacobian, whitened } = scratch;
+        let (e, r, jac, wj) = (&mut error[..d], &mut residual[..d], &mut jacobian[..d * cols], &mut whitened[..d * cols]);
+        entry.factor.evaluate(&refs, e, Some(jac))?;
+        entry.sqrt_information.whiten_vector(e, r);
+        entry.sqrt_information.whiten_jacobian(jac, cols, wj);
+        total += match &entry.robust {
+            Some(kernel) => kernel.correct(r, wj, cols),
+            None => r.iter().map(|v| v * v).sum(),
+        };
+        // b_i −= J_iᵀ r
+        for (li, &v) in vars.iter().enumerate() {
+            if let Some(p) = layout.position_of_var[v] {
+                let (o, c0) = (pattern.offset[p], col_offsets[li]);
+                for q in 0..pattern.dim[p] {
+                    let mut acc = 0.0;
+                    for k in 0..d {
+                        acc += wj[k * cols + c0 + q] * r[k];
+                    }
+                    b[o + q] -= acc;
+                }
+            }
+        }
+        // H_ab += J_iᵀ J_j
+        for &(li, lj, pair) in &layout.slots[layout.slot_start[f]..layout.slot_start[f + 1]] {
+            let (vi, vj) = (vars[li as usize], vars[lj as usize]);
+            let (a, bpos) = (layout.position_of_var[vi].unwrap_or(0), layout.position_of_var[vj].unwrap_or(0));
+            let diagonal = a == bpos;
+            let (ci, cj) = (col_offsets[li as usize], col_offsets[lj as usize]);
+            let (da, db) = (pattern.dim[a], pattern.dim[bpos]);
+            for q in 0..db {
+                let rows = if diagonal { q } else { 0 };
+                let base = pattern.value_index(pair, diagonal, rows, q);
+                for rr in rows..da {
+                    let mut acc = 0.0;
+                    for k in 0..d {
+                        acc += wj[k * cols + ci + rr] * wj[k * cols + cj + q];
+                    }
+                    h[base + rr - rows] += acc;
+                }
+            }
+        }
+    }
+    Ok(total)
+}
+
+/// `y = H x` for the symmetric matrix stored as its lower triangle.
+pub fn symmetric_multiply(pattern: &BlockPattern, h: &[f64], x: &[f64], y: &mut [f64]) {
+    y.fill(0.0);
+    for c in 0..pattern.n {
+        for k in pattern.col_ptr[c]..pattern.col_ptr[c + 1] {
+            let r = pattern.row_idx[k];
+            y[r] += h[k] * x[c];
+            if r != c {
+                y[c] += h[k] * x[r];
+            }
+        }
+    }
+}

@@ -1,0 +1,51 @@
+//! The sparse nonlinear least-squares solver: layout, linearisation, sparse Cholesky, GN / LM /
+//! Dogleg, initialisation and the Summary. Nothing here knows about files or networks.
+
+pub mod cholesky;
+pub mod cholesky_bench;
+mod gauge;
+pub mod initialize;
+pub mod linearize;
+mod optimizer;
+pub mod options;
+pub mod structure;
+pub mod summary;
+
+pub use optimizer::optimize;
+pub use options::{Initialization, Method, SolverOptions};
+pub use summary::{IterationReport, Summary, Termination, TerminationReason};
+
+use crate::factors::{EvaluationError, FactorEntry};
+use crate::problem::{Key, Values, Variable};
+
+#[derive(Debug, thiserror::Error)]
+pub enum SolverError {
+    /// The normal equations are singular or indefinite at the named variables: they are not
+    /// constrained enough (missing measurements, a gauge freedom, or degenerate information).
+    #[error("indeterminate system: the linear system is not positive definite at variable(s) {keys:?} (check that these variables are constrained by enough factors)")]
+    IndeterminateSystem { keys: Vec<Key> },
+    #[error("evaluation failed: {0}")]
+    Evaluation(#[from] EvaluationError),
+    #[error("the cost became non-finite at iteration {iteration} (Gauss-Newton diverged); try Levenberg-Marquardt")]
+    Diverged { iteration: usize },
+    #[error("the initial values give a non-finite cost")]
+    NonFiniteInitialCost,
+    #[error("{0}")]
+    Symbolic(#[from] cholesky::SymbolicError),
+}
+
+/// `Σ ρ(eᵀΩe)` over `factors` at `values`, looking keys up by hash (for one-off evaluations).
+pub fn evaluate_chi2(factors: &[FactorEntry], values: &Values, _hint: Option<()>) -> Result<f64, EvaluationError> {
+    let mut total = 0.0;
+    let mut e = Vec::new();
+    let mut w = Vec::new();
+    for f in factors {
+        let refs: Vec<&dyn Variable> =
+            f.factor.keys().iter().map(|&k| values.get(k).expect("factor keys were validated")).collect();
+        let d = f.factor.residual_dim();
+        e.resize(d, 0.0);
+        w.resize(d, 0.0);
+        total += f.chi2(&refs, &mut e, &mut w)?;
+    }
+    Ok(total)
+}

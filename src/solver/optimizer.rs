@@ -1,0 +1,394 @@
+//! The iteration loop: Gauss-Newton, Levenberg-Marquardt (Nielsen's gain-ratio damping) and
+//! Powell's Dogleg over one cached linear system.
+//!
+//! Costs are chi2 = Σ ρ(‖r‖²) (no ½). For a step Δ solving (H + λD)Δ = b with b = −Jᵀr the
+//! model decrease is L(0) − L(Δ) = 2Δᵀb − ΔᵀHΔ = Δᵀb + λΔᵀDΔ; the gain ratio
+//! ρ = (F(x) − F(x ⊕ Δ)) / (L(0) − L(Δ)) decides acceptance and the next λ or radius.
+
+use std::time::Instant;
+
+use faer::sparse::linalg::SupernodalThreshold;
+
+use super::cholesky::{NotPositiveDefinite, SparseCholesky};
+use super::gauge::anchor_components;
+use super::initialize;
+use super::linearize::{chi2_with_layout, linearize, symmetric_multiply, Scratch, SystemLayout};
+use super::options::{Initialization, Method, SolverOptions};
+use super::summary::{IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions};
+use super::{evaluate_chi2, SolverError};
+use crate::problem::{Problem, Values};
+
+/// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes.
+pub fn optimize(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport),
+) -> Result<Summary, SolverError> {
+    let start = Instant::now();
+    let mut timings = Timings::default();
+    let (fixed, gauge_fixed) = anchor_components(problem.factors(), &problem.values);
+    let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values, None)?;
+    if !initial_chi2.is_finite() {
+        return Err(SolverError::NonFiniteInitialCost);
+    }
+    timings.preprocess_seconds = start.elapsed().as_secs_f64();
+
+    let init_start = Instant::now();
+    let (init_label, initialized_chi2) = run_initialization(problem, &fixed, options.initialization, initial_chi2)?;
+    timings.initialization_seconds = init_start.elapsed().as_secs_f64();
+
+    let prep = Instant::now();
+    let layout = SystemLayout::new(problem.factors(), &problem.values, &fixed);
+    let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::AUTO)?;
+    timings.preprocess_seconds += prep.elapsed().as_secs_f64();
+
+    let n = layout.n();
+    let mut values = std::mem::take(&mut problem.values);
+    let factors = problem.factors();
+    let mut solver = Iterations {
+        layout: &layout,
+        scratch: Scratch::new(&layout),
+        h: vec![0.0; layout.pattern.nnz()],
+        damped: vec![0.0; layout.pattern.nnz()],
+        b: vec![0.0; n],
+        delta: vec![0.0; n],
+        work: vec![0.0; n],
+        trial: values.clone(),
+        chol,
+        timings,
+        log: Vec::new(),
+    };
+    let outcome = solver.run(factors, &mut values, options, on_iteration);
+    problem.values = values;
+    let (chi2, termination) = outcome?;
+    let Iterations { log, timings, chol, .. } = solver;
+
+    let successful = log.iter().filter(|r| r.accepted).count();
+    let free = layout.var_at.len();
+    Ok(Summary {
+        method: options.method.name().into(),
+        given_options: options.clone(),
+        used: UsedOptions {
+            method: options.method.name().into(),
+            linear_solver: "sparse Cholesky (faer)".into(),
+            factorization: chol.kind().into(),
+            ordering: "AMD on the variable graph".into(),
+            threads: 1,
+            initialization: init_label,
+            gauge_fixed,
+        },
+        num_variables: problem.values.len(),
+        num_free_variables: free,
+        num_factors: problem.factors().len(),
+        num_residuals: problem.factors().iter().map(|f| f.factor.residual_dim()).sum(),
+        num_parameters: n,
+        jacobian_nnz_blocks: problem.factors().iter().map(|f| f.factor.keys().len()).sum(),
+        hessian_nnz: layout.pattern.nnz(),
+        factor_nnz: chol.factor_nnz(),
+        initial_chi2,
+        initialized_chi2,
+        final_chi2: chi2,
+        iterations: log.len(),
+        successful_steps: successful,
+        unsuccessful_steps: log.len() - successful,
+        converged: termination.converged(),
+        termination,
+        solve_seconds: start.elapsed().as_secs_f64(),
+        timings,
+        iteration_log: log,
+    })
+}
+
+fn run_initialization(
+    problem: &mut Problem,
+    fixed: &[bool],
+    mode: Initialization,
+    initial_chi2: f64,
+) -> Result<(String, Option<f64>), SolverError> {
+    if mode == Initialization::None {
+        return Ok(("none".into(), None));
+    }
+    let Some(estimate) = initialize::chordal(problem.factors(), &problem.values, fixed) else {
+        return Ok(("none (not a pose graph)".into(), None));
+    };
+    let chi2 = evaluate_chi2(problem.factors(), &estimate, None)?;
+    let take = match mode {
+        Initialization::Chordal => chi2.is_finite(),
+        _ => chi2.is_finite() && chi2 < initial_chi2,
+    };
+    if take {
+        problem.values = estimate;
+        Ok(("chordal".into(), Some(chi2)))
+    } else {
+        Ok((format!("given values (chordal chi2 {chi2:.6e} was not lower)"), Some(initial_chi2)))
+    }
+}
+
+struct Iterations<'a> {
+    layout: &'a SystemLayout,
+    scratch: Scratch,
+    h: Vec<f64>,
+    damped: Vec<f64>,
+    b: Vec<f64>,
+    delta: Vec<f64>,
+    work: Vec<f64>,
+    trial: Values,
+    chol: SparseCholesky,
+    timings: Timings,
+    log: Vec<IterationReport>,
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+type Factors = [crate::factors::FactorEntry];
+
+/// Per-iteration times of the linear algebra, for the report.
+#[derive(Default, Clone, Copy)]
+struct StepTimes {
+    linearize: f64,
+    factorize: f64,
+    solve: f64,
+}
+
+impl Iterations<'_> {
+    fn indeterminate(&self, values: &Values, e: NotPositiveDefinite) -> SolverError {
+        SolverError::IndeterminateSystem { keys: vec![self.layout.key_at_row(values, e.row)] }
+    }
+
+    fn linearize_at(&mut self, factors: &Factors, values: &Values, times: &mut StepTimes) -> Result<f64, SolverError> {
+        let t = Instant::now();
+        let chi2 = linearize(factors, values, self.layout, &mut self.scratch, &mut self.h, &mut self.b)?;
+        let s = t.elapsed().as_secs_f64();
+        self.timings.linearize_seconds += s;
+        times.linearize += s;
+        Ok(chi2)
+    }
+
+    /// chi2 at `values ⊕ delta`, leaving that point in `self.trial`.
+    fn evaluate_trial(&mut self, factors: &Factors, values: &Values) -> Result<f64, SolverError> {
+        let t = Instant::now();
+        self.trial.assign_from(values);
+        self.layout.retract(&mut self.trial, &self.delta);
+        let chi2 = chi2_with_layout(factors, &self.trial, self.layout, &mut self.scratch)?;
+        self.timings.evaluate_seconds += t.elapsed().as_secs_f64();
+        Ok(if chi2.is_finite() { chi2 } else { f64::INFINITY })
+    }
+
+    /// Factorises H + λ·diag(H) (H itself when λ = 0) and solves for `delta` = (H + λD)⁻¹ b.
+    fn solve_damped(&mut self, lambda: f64, times: &mut StepTimes) -> Result<(), NotPositiveDefinite> {
+        let pattern = &self.layout.pattern;
+        let t = Instant::now();
+        let result = if lambda > 0.0 {
+            self.damped.copy_from_slice(&self.h);
+            for c in 0..pattern.n {
+                let k = pattern.diagonal_index(c);
+                self.damped[k] += lambda * self.h[k].clamp(1e-6, 1e32);
+            }
+            self.chol.factorize(pattern, &self.damped)
+        } else {
+            self.chol.factorize(pattern, &self.h)
+        };
+        let s = t.elapsed().as_secs_f64();
+        self.timings.factorize_seconds += s;
+        times.factorize += s;
+        result?;
+        let t = Instant::now();
+        self.delta.copy_from_slice(&self.b);
+        self.chol.solve_in_place(&mut self.delta);
+        let s = t.elapsed().as_secs_f64();
+        self.timings.linear_solve_seconds += s;
+        times.solve += s;
+        Ok(())
+    }
+
+    /// λ·ΔᵀDΔ with D the clamped diagonal of H.
+    fn damping_term(&self, lambda: f64) -> f64 {
+        let p = &self.layout.pattern;
+        (0..p.n).map(|c| lambda * self.h[p.diagonal_index(c)].clamp(1e-6, 1e32) * self.delta[c] * self.delta[c]).sum()
+    }
+
+    fn run(
+        &mut self,
+        factors: &Factors,
+        values: &mut Values,
+        options: &SolverOptions,
+        on_iteration: &mut dyn FnMut(&IterationReport),
+    ) -> Result<(f64, Termination), SolverError> {
+        let mut times = StepTimes::default();
+        let mut chi2 = self.linearize_at(factors, values, &mut times)?;
+        if self.layout.n() == 0 || factors.is_empty() {
+            return Ok((chi2, termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise")));
+        }
+        let mut lambda = options.initial_lambda;
+        let mut nu = 2.0;
+        let mut radius = options.initial_trust_radius;
+        let mut have_gn_step = false;
+        for iteration in 1..=options.max_iterations {
+            let gradient = max_abs(&self.b);
+            if gradient <= options.gradient_tolerance {
+                return Ok((chi2, termination(TerminationReason::GradientTolerance, gradient, options.gradient_tolerance,
+                    &format!("gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}", options.gradient_tolerance))));
+            }
+            let (accepted, trial_chi2, predicted) = match options.method {
+                Method::GaussNewton => {
+                    self.solve_damped(0.0, &mut times).map_err(|e| self.indeterminate(values, e))?;
+                    let trial = self.evaluate_trial(factors, values)?;
+                    if !trial.is_finite() {
+                        return Err(SolverError::Diverged { iteration });
+                    }
+                    (true, trial, dot(&self.delta, &self.b))
+                }
+                Method::LevenbergMarquardt => match self.solve_damped(lambda, &mut times) {
+                    Ok(()) => {
+                        let predicted = dot(&self.delta, &self.b) + self.damping_term(lambda);
+                        let trial = self.evaluate_trial(factors, values)?;
+                        let rho = (chi2 - trial) / predicted;
+                        if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
+                            lambda *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
+                            lambda = lambda.max(1e-12);
+                            nu = 2.0;
+                            (true, trial, predicted)
+                        } else {
+                            lambda *= nu;
+                            nu *= 2.0;
+                            (false, trial, predicted)
+                        }
+                    }
+                    Err(_) => {
+                        // Not positive definite even with damping: more damping.
+                        lambda *= nu;
+                        nu *= 2.0;
+                        self.delta.fill(0.0);
+                        (false, f64::INFINITY, 0.0)
+                    }
+                },
+                Method::Dogleg => {
+                    if !have_gn_step {
+                        self.dogleg_gauss_newton_step(values, &mut times)?;
+                        have_gn_step = true;
+                    }
+                    let predicted = self.dogleg_step(radius);
+                    let trial = self.evaluate_trial(factors, values)?;
+                    let rho = (chi2 - trial) / predicted;
+                    let step = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
+                    if rho > 0.75 {
+                        radius = radius.max(3.0 * step);
+                    } else if rho < 0.25 || !trial.is_finite() {
+                        radius = 0.5 * step.min(radius);
+                    }
+                    if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
+                        (true, trial, predicted)
+                    } else {
+                        (false, trial, predicted)
+                    }
+                }
+            };
+            let _ = predicted;
+            let step_norm = max_abs(&self.delta);
+            let previous = chi2;
+            if accepted {
+                std::mem::swap(values, &mut self.trial);
+                have_gn_step = false;
+            }
+            let relative_decrease = if accepted { (previous - trial_chi2) / previous.max(f64::MIN_POSITIVE) } else { 0.0 };
+            // Relinearise at the new point now: its gradient feeds the next iteration's test.
+            if accepted {
+                chi2 = self.linearize_at(factors, values, &mut times)?;
+            }
+            let report = IterationReport {
+                iteration,
+                chi2,
+                trial_chi2,
+                relative_decrease,
+                gradient_max_norm: gradient,
+                step_norm,
+                lambda: (options.method == Method::LevenbergMarquardt).then_some(lambda),
+                trust_radius: (options.method == Method::Dogleg).then_some(radius),
+                accepted,
+                linearize_seconds: times.linearize,
+                factorize_seconds: times.factorize,
+                solve_seconds: times.solve,
+            };
+            times = StepTimes::default();
+            on_iteration(&report);
+            self.log.push(report);
+            if accepted {
+                if relative_decrease.abs() <= options.function_tolerance {
+                    return Ok((chi2, termination(TerminationReason::FunctionTolerance, relative_decrease, options.function_tolerance,
+                        &format!("function tolerance reached: relative decrease {relative_decrease:.3e} <= {:.3e}", options.function_tolerance))));
+                }
+                if step_norm <= options.parameter_tolerance {
+                    return Ok((chi2, termination(TerminationReason::ParameterTolerance, step_norm, options.parameter_tolerance,
+                        &format!("parameter tolerance reached: |dx|inf = {step_norm:.3e} <= {:.3e}", options.parameter_tolerance))));
+                }
+            }
+            if lambda > 1e16 || radius < 1e-16 {
+                let (value, threshold) = if lambda > 1e16 { (lambda, 1e16) } else { (radius, 1e-16) };
+                return Ok((chi2, termination(TerminationReason::NoProgress, value, threshold,
+                    "no acceptable step: damping / trust region out of range")));
+            }
+        }
+        let n = options.max_iterations as f64;
+        Ok((chi2, termination(TerminationReason::MaxIterations, n, n,
+            &format!("maximum number of iterations reached ({})", options.max_iterations))))
+    }
+
+    /// Gauss-Newton step for Dogleg into `work`; a singular H gets the smallest damping that works.
+    fn dogleg_gauss_newton_step(&mut self, values: &Values, times: &mut StepTimes) -> Result<(), SolverError> {
+        let mut mu = 0.0;
+        loop {
+            match self.solve_damped(mu, times) {
+                Ok(()) => break,
+                Err(e) if mu > 1e8 => return Err(self.indeterminate(values, e)),
+                Err(_) => mu = if mu == 0.0 { 1e-10 } else { mu * 100.0 },
+            }
+        }
+        std::mem::swap(&mut self.work, &mut self.delta);
+        Ok(())
+    }
+
+    /// Powell's dogleg inside `radius` from the GN step (in `work`) and the Cauchy point; writes
+    /// the step to `delta` and returns the model decrease 2Δᵀb − ΔᵀHΔ.
+    fn dogleg_step(&mut self, radius: f64) -> f64 {
+        let pattern = &self.layout.pattern;
+        let gn_norm = dot(&self.work, &self.work).sqrt();
+        if gn_norm <= radius {
+            self.delta.copy_from_slice(&self.work);
+        } else {
+            let mut hb = vec![0.0; pattern.n];
+            symmetric_multiply(pattern, &self.h, &self.b, &mut hb);
+            let bb = dot(&self.b, &self.b);
+            let alpha = bb / dot(&self.b, &hb).max(f64::MIN_POSITIVE);
+            let sd_norm = alpha * bb.sqrt();
+            if sd_norm >= radius {
+                let s = radius / bb.sqrt();
+                for (d, b) in self.delta.iter_mut().zip(&self.b) {
+                    *d = s * b;
+                }
+            } else {
+                // h = a + β (g − a), |h| = radius, a = α b (Cauchy point), g = GN step.
+                let a: Vec<f64> = self.b.iter().map(|v| alpha * v).collect();
+                let diff: Vec<f64> = self.work.iter().zip(&a).map(|(g, a)| g - a).collect();
+                let (aa, ad, dd) = (dot(&a, &a), dot(&a, &diff), dot(&diff, &diff));
+                let c = aa - radius * radius;
+                let beta = (-ad + (ad * ad - dd * c).max(0.0).sqrt()) / dd.max(f64::MIN_POSITIVE);
+                for i in 0..pattern.n {
+                    self.delta[i] = a[i] + beta * diff[i];
+                }
+            }
+        }
+        let mut hd = vec![0.0; pattern.n];
+        symmetric_multiply(pattern, &self.h, &self.delta, &mut hd);
+        2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &hd)
+    }
+}
+
+fn termination(reason: TerminationReason, value: f64, threshold: f64, message: &str) -> Termination {
+    Termination { reason, value, threshold, message: message.to_string() }
+}

@@ -1,0 +1,158 @@
+//! What the optimiser did: per-iteration reports and a final Summary in the spirit of Ceres'.
+
+use serde::Serialize;
+
+use super::options::SolverOptions;
+use crate::problem::Key;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct IterationReport {
+    pub iteration: usize,
+    /// chi2 after this iteration (the trial chi2 when the step was rejected is in `trial_chi2`).
+    pub chi2: f64,
+    pub trial_chi2: f64,
+    pub relative_decrease: f64,
+    pub gradient_max_norm: f64,
+    pub step_norm: f64,
+    pub lambda: Option<f64>,
+    pub trust_radius: Option<f64>,
+    pub accepted: bool,
+    pub linearize_seconds: f64,
+    pub factorize_seconds: f64,
+    pub solve_seconds: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TerminationReason {
+    FunctionTolerance,
+    GradientTolerance,
+    ParameterTolerance,
+    MaxIterations,
+    /// LM's λ or Dogleg's radius ran out of range without an acceptable step.
+    NoProgress,
+    /// Nothing to optimise (no free variables or no factors).
+    Trivial,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Termination {
+    pub reason: TerminationReason,
+    /// The measured value that triggered it, and the threshold it crossed.
+    pub value: f64,
+    pub threshold: f64,
+    pub message: String,
+}
+
+impl Termination {
+    pub fn converged(&self) -> bool {
+        !matches!(self.reason, TerminationReason::MaxIterations | TerminationReason::NoProgress)
+    }
+}
+
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Timings {
+    pub preprocess_seconds: f64,
+    pub initialization_seconds: f64,
+    pub linearize_seconds: f64,
+    pub factorize_seconds: f64,
+    pub linear_solve_seconds: f64,
+    pub evaluate_seconds: f64,
+}
+
+/// What was actually used, next to what was given.
+#[derive(Clone, Debug, Serialize)]
+pub struct UsedOptions {
+    pub method: String,
+    pub linear_solver: String,
+    pub factorization: String,
+    pub ordering: String,
+    pub threads: usize,
+    pub initialization: String,
+    /// Variables fixed automatically to remove gauge freedom (one per unanchored component).
+    pub gauge_fixed: Vec<Key>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Summary {
+    pub method: String,
+    pub given_options: SolverOptions,
+    pub used: UsedOptions,
+    pub num_variables: usize,
+    pub num_free_variables: usize,
+    pub num_factors: usize,
+    pub num_residuals: usize,
+    pub num_parameters: usize,
+    pub jacobian_nnz_blocks: usize,
+    pub hessian_nnz: usize,
+    pub factor_nnz: usize,
+    /// chi2 = Σ ρ(eᵀΩe) of the given initial values.
+    pub initial_chi2: f64,
+    /// chi2 after initialisation, where one ran.
+    pub initialized_chi2: Option<f64>,
+    pub final_chi2: f64,
+    pub iterations: usize,
+    pub successful_steps: usize,
+    pub unsuccessful_steps: usize,
+    pub termination: Termination,
+    pub converged: bool,
+    /// Wall time of the optimisation itself (preprocessing, initialisation and iterations).
+    pub solve_seconds: f64,
+    pub timings: Timings,
+    pub iteration_log: Vec<IterationReport>,
+}
+
+impl Summary {
+    /// A multi-line human report, like Ceres' FullReport.
+    pub fn report(&self) -> String {
+        let t = &self.timings;
+        let mut s = String::new();
+        use std::fmt::Write;
+        let _ = writeln!(s, "factord solver summary");
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "", "given", "used");
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "method", self.given_options.method.name(), self.used.method);
+        let _ = writeln!(
+            s,
+            "{:<28}{:>20}{:>24}",
+            "initialization",
+            format!("{:?}", self.given_options.initialization).to_lowercase(),
+            self.used.initialization
+        );
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "linear solver", "", self.used.linear_solver);
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "factorization", "", self.used.factorization);
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "ordering", "", self.used.ordering);
+        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "threads", "", self.used.threads);
+        if !self.used.gauge_fixed.is_empty() {
+            let _ = writeln!(s, "gauge: no anchor given, fixed variable(s) {:?}", self.used.gauge_fixed);
+        }
+        let _ = writeln!(
+            s,
+            "variables {} ({} free, {} parameters), factors {} ({} residuals)",
+            self.num_variables, self.num_free_variables, self.num_parameters, self.num_factors, self.num_residuals
+        );
+        let _ = writeln!(s, "H nnz (lower) {}, L nnz {}", self.hessian_nnz, self.factor_nnz);
+        let _ = writeln!(s, "initial chi2 {:.6e}", self.initial_chi2);
+        if let Some(c) = self.initialized_chi2 {
+            let _ = writeln!(s, "after init   {c:.6e}");
+        }
+        let _ = writeln!(s, "final chi2   {:.6e}", self.final_chi2);
+        let _ = writeln!(
+            s,
+            "iterations {} ({} successful, {} unsuccessful)",
+            self.iterations, self.successful_steps, self.unsuccessful_steps
+        );
+        let _ = writeln!(
+            s,
+            "time (s): total {:.6}  preprocess {:.6}  init {:.6}  linearize {:.6}  factorize {:.6}  solve {:.6}  evaluate {:.6}",
+            self.solve_seconds,
+            t.preprocess_seconds,
+            t.initialization_seconds,
+            t.linearize_seconds,
+            t.factorize_seconds,
+            t.linear_solve_seconds,
+            t.evaluate_seconds
+        );
+        let _ = writeln!(s, "termination: {}", self.termination.message);
+        s
+    }
+}
