@@ -34,7 +34,7 @@ struct SolveArgs {
     #[arg(long)]
     edges: Option<PathBuf>,
     /// gn | lm | dogleg
-    #[arg(long, default_value = "lm", value_parser = parse_method)]
+    #[arg(long, default_value = "gn", value_parser = parse_method)]
     method: Method,
     #[arg(long, default_value_t = 100)]
     max_iterations: usize,

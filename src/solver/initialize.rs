@@ -222,6 +222,7 @@ fn chordal_2d(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Optio
             None => {}
         }
     }
+    // Breadth-first: shortest paths accumulate the least rotation noise into the unwrapping.
     while let Some(i) = queue.pop_front() {
         let ti = tree[i]?;
         for &(j, d) in &adjacency[i] {

@@ -99,6 +99,9 @@ pub fn optimize(
     })
 }
 
+/// How much lower the chordal chi2 must be for `Initialization::Auto` to start from it.
+const AUTO_INIT_GAIN: f64 = 10.0;
+
 fn run_initialization(
     problem: &mut Problem,
     fixed: &[bool],
@@ -114,13 +117,13 @@ fn run_initialization(
     let chi2 = evaluate_chi2(problem.factors(), &estimate, None)?;
     let take = match mode {
         Initialization::Chordal => chi2.is_finite(),
-        _ => chi2.is_finite() && chi2 < initial_chi2,
+        _ => chi2.is_finite() && chi2 * AUTO_INIT_GAIN < initial_chi2,
     };
     if take {
         problem.values = estimate;
         Ok(("chordal".into(), Some(chi2)))
     } else {
-        Ok((format!("given values (chordal chi2 {chi2:.6e} was not lower)"), Some(initial_chi2)))
+        Ok((format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"), Some(initial_chi2)))
     }
 }
 
@@ -225,7 +228,8 @@ impl Iterations<'_> {
         if self.layout.n() == 0 || factors.is_empty() {
             return Ok((chi2, termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise")));
         }
-        let mut lambda = options.initial_lambda;
+        // LM tries an undamped (Gauss-Newton) step first; damping starts at the first rejection.
+        let mut lambda = if options.method == Method::LevenbergMarquardt { 0.0 } else { options.initial_lambda };
         let mut nu = 2.0;
         let mut radius = options.initial_trust_radius;
         let mut have_gn_step = false;
@@ -251,19 +255,19 @@ impl Iterations<'_> {
                         let rho = (chi2 - trial) / predicted;
                         if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
                             lambda *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
-                            lambda = lambda.max(1e-12);
+                            if lambda < LAMBDA_SNAP_TO_ZERO {
+                                lambda = 0.0;
+                            }
                             nu = 2.0;
                             (true, trial, predicted)
                         } else {
-                            lambda *= nu;
-                            nu *= 2.0;
+                            lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
                             (false, trial, predicted)
                         }
                     }
                     Err(_) => {
-                        // Not positive definite even with damping: more damping.
-                        lambda *= nu;
-                        nu *= 2.0;
+                        // Not positive definite at this damping: damp more.
+                        lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
                         self.delta.fill(0.0);
                         (false, f64::INFINITY, 0.0)
                     }
@@ -387,6 +391,21 @@ impl Iterations<'_> {
         symmetric_multiply(pattern, &self.h, &self.delta, &mut hd);
         2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &hd)
     }
+}
+
+/// Below this, LM damping is dropped altogether: on pose graphs H is so ill-conditioned that even
+/// λ = 1e-9·diag(H) slows the long-wavelength modes, and a full Gauss-Newton step is what converges.
+const LAMBDA_SNAP_TO_ZERO: f64 = 1e-9;
+
+/// Nielsen's rejection rule λ ← λν, ν ← 2ν, starting from `restart` when λ was 0.
+fn increase_damping(lambda: f64, nu: &mut f64, restart: f64) -> f64 {
+    if lambda == 0.0 {
+        *nu = 2.0;
+        return restart;
+    }
+    let next = lambda * *nu;
+    *nu *= 2.0;
+    next
 }
 
 fn termination(reason: TerminationReason, value: f64, threshold: f64, message: &str) -> Termination {

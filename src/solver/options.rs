@@ -36,8 +36,8 @@ pub enum Initialization {
     None,
     /// Replace the given values by the chordal-relaxation estimate (pose graphs).
     Chordal,
-    /// Compute the chordal estimate and start from whichever of it and the given values has the
-    /// lower chi2.
+    /// Compute the chordal estimate and start from it when its chi2 is at least 10× lower than
+    /// the given values' (a marginal gain is not worth leaving the basin the given guess is in).
     Auto,
 }
 
@@ -52,7 +52,8 @@ pub struct SolverOptions {
     pub gradient_tolerance: f64,
     /// Stop when ‖Δx‖∞ falls below this.
     pub parameter_tolerance: f64,
-    /// Initial LM damping λ, relative to diag(JᵀJ).
+    /// LM damping λ (relative to diag(JᵀJ)) used from the first rejected step on; LM starts
+    /// undamped.
     pub initial_lambda: f64,
     /// Initial Dogleg trust-region radius.
     pub initial_trust_radius: f64,
@@ -62,12 +63,12 @@ pub struct SolverOptions {
 impl Default for SolverOptions {
     fn default() -> Self {
         Self {
-            method: Method::LevenbergMarquardt,
+            method: Method::GaussNewton,
             max_iterations: 100,
             function_tolerance: 1e-6,
             gradient_tolerance: 1e-10,
             parameter_tolerance: 1e-10,
-            initial_lambda: 1e-5,
+            initial_lambda: 1e-4,
             initial_trust_radius: 1e4,
             initialization: Initialization::Auto,
         }

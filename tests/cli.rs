@@ -1,0 +1,60 @@
+//! The `factord solve` command end to end: real files in, real files out.
+
+mod common;
+
+use std::process::Command;
+
+fn factord() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_factord"))
+}
+
+#[test]
+fn solve_writes_summary_json_graph_and_trajectory() {
+    let dir = common::temp_dir("cli");
+    let input = dir.join("in.g2o");
+    std::fs::write(&input, common::synthetic_manhattan(120, 9)).unwrap();
+    let (summary, out, tum) = (dir.join("s.json"), dir.join("out.g2o"), dir.join("t.txt"));
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--method", "lm", "--max-iterations", "50", "--summary-json"])
+        .arg(&summary)
+        .arg("--out")
+        .arg(&out)
+        .arg("--tum")
+        .arg(&tum)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(stdout.contains("iter   1") && stdout.contains("termination:"), "{stdout}");
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    for field in ["initial_chi2", "final_chi2", "iterations", "solve_seconds", "method", "termination"] {
+        assert!(json.get(field).is_some(), "summary lacks {field}");
+    }
+    assert_eq!(json["method"], "levenberg_marquardt");
+    let final_chi2 = json["final_chi2"].as_f64().unwrap();
+    assert!(final_chi2 < json["initial_chi2"].as_f64().unwrap());
+    // The written graph re-reads with the optimised chi2, and the trajectory has one line a pose.
+    let mut reread = factord::io::load(&out, None).unwrap();
+    assert!((reread.problem.chi2() - final_chi2).abs() <= 1e-6 * final_chi2);
+    assert_eq!(std::fs::read_to_string(&tum).unwrap().lines().count(), 120);
+    let again = factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {}).unwrap();
+    assert!(again.final_chi2 <= final_chi2 * (1.0 + 1e-6));
+}
+
+#[test]
+fn bad_input_exits_with_an_error_not_a_panic() {
+    let dir = common::temp_dir("cli-bad");
+    let input = dir.join("bad.g2o");
+    std::fs::write(&input, "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n").unwrap();
+    let output = factord().arg("solve").arg(&input).output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("bad.g2o:2:") && stderr.contains("unknown variable 1"), "{stderr}");
+    assert!(!stderr.contains("panicked"));
+    let output = factord().args(["solve", "/nonexistent/file.g2o"]).output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let output = factord().arg("solve").arg(&input).args(["--method", "newton"]).output().unwrap();
+    assert!(!output.status.success());
+}

@@ -1,0 +1,71 @@
+//! Shared test support: where the benchmark data lives, and synthetic fixtures made by code.
+#![allow(dead_code)]
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+
+use factord::factors::testing::Rng;
+use factord::geometry::Se2;
+
+/// The shared data directory (`FACTORD_DATA`, default `../shared/data` next to the checkout).
+/// Returns `None` (after saying why) when it is missing; under `CI=true` a missing dataset fails.
+pub fn data_file(relative: &str) -> Option<PathBuf> {
+    let dir = std::env::var_os("FACTORD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
+    let path = dir.join(relative);
+    if path.is_file() {
+        return Some(path);
+    }
+    if std::env::var("CI").is_ok_and(|v| v == "true") {
+        panic!("dataset {} is missing and CI=true", path.display());
+    }
+    eprintln!("skipping: dataset {} not found (set FACTORD_DATA)", path.display());
+    None
+}
+
+/// A noisy 2D "Manhattan" pose graph as g2o text: a random walk on a grid with odometry and
+/// loop closures to earlier poses nearby, measured with noise; initial guess from odometry.
+pub fn synthetic_manhattan(poses: usize, seed: u64) -> String {
+    let mut rng = Rng::new(seed);
+    let mut truth = vec![Se2::identity()];
+    for _ in 1..poses {
+        let turn = match rng.next_u64() % 4 {
+            0 => std::f64::consts::FRAC_PI_2,
+            1 => -std::f64::consts::FRAC_PI_2,
+            _ => 0.0,
+        };
+        let last = *truth.last().unwrap();
+        truth.push(last.compose(&Se2::new(1.0, 0.0, turn)));
+    }
+    let (sigma_t, sigma_r) = (0.05, 0.01);
+    let noisy = |rng: &mut Rng, z: Se2| {
+        Se2::new(z.x + sigma_t * rng.normal(), z.y + sigma_t * rng.normal(), z.theta + sigma_r * rng.normal())
+    };
+    let info = format!("{} 0 0 {} 0 {}", 1.0 / (sigma_t * sigma_t), 1.0 / (sigma_t * sigma_t), 1.0 / (sigma_r * sigma_r));
+    let mut edges = String::new();
+    let mut guess = vec![Se2::identity()];
+    for i in 1..poses {
+        let z = noisy(&mut rng, truth[i - 1].between(&truth[i]));
+        guess.push(guess[i - 1].compose(&z));
+        let _ = writeln!(edges, "EDGE_SE2 {} {} {} {} {} {info}", i - 1, i, z.x, z.y, z.theta);
+        for j in 0..i.saturating_sub(3) {
+            let d = truth[j].between(&truth[i]);
+            if d.x.hypot(d.y) < 1.1 && rng.uniform() < 0.5 {
+                let z = noisy(&mut rng, d);
+                let _ = writeln!(edges, "EDGE_SE2 {j} {i} {} {} {} {info}", z.x, z.y, z.theta);
+            }
+        }
+    }
+    let mut out = String::new();
+    for (i, p) in guess.iter().enumerate() {
+        let _ = writeln!(out, "VERTEX_SE2 {i} {} {} {}", p.x, p.y, p.theta);
+    }
+    out + &edges
+}
+
+pub fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("factord-test-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
