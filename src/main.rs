@@ -11,7 +11,11 @@ use factord::io::{self, Dimension};
 use factord::solver::{self, Initialization, IterationReport, Method, SolverOptions};
 
 #[derive(Parser)]
-#[command(name = "factord", version, about = "Sparse nonlinear least-squares back-end for pose graphs")]
+#[command(
+    name = "factord",
+    version,
+    about = "Sparse nonlinear least-squares back-end for pose graphs"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -81,7 +85,9 @@ fn parse_init(s: &str) -> Result<Initialization, String> {
         "none" => Ok(Initialization::None),
         "chordal" => Ok(Initialization::Chordal),
         "auto" => Ok(Initialization::Auto),
-        _ => Err(format!("unknown initialisation `{s}` (none, chordal, auto)")),
+        _ => Err(format!(
+            "unknown initialisation `{s}` (none, chordal, auto)"
+        )),
     }
 }
 
@@ -166,7 +172,9 @@ fn solve(args: SolveArgs) -> Result<(), String> {
     }
     if let Some(path) = &args.summary_json {
         let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
-        let map = json.as_object_mut().expect("Summary serialises as an object");
+        let map = json
+            .as_object_mut()
+            .expect("Summary serialises as an object");
         map.insert("input".into(), args.graph.display().to_string().into());
         map.insert("load_seconds".into(), load_seconds.into());
         if graph.dimension == Dimension::Three {

@@ -31,29 +31,103 @@ fn load_error(name: &str, vertices: &str, edges: Option<&str>) -> String {
 fn malformed_files_are_reported_with_line_and_reason() {
     let two = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n";
     let cases = [
-        ("truncated", format!("{two}EDGE_SE2 0 1 1 0\n"), ":3:", "expects 11 fields"),
-        ("nan", format!("{two}EDGE_SE2 0 1 NaN 0 0 {INFO}\n"), ":3:", "not finite"),
-        ("inf", format!("VERTEX_SE2 0 inf 0 0\n"), ":1:", "not finite"),
-        ("word", format!("{two}EDGE_SE2 0 1 abc 0 0 {INFO}\n"), ":3:", "not a number"),
-        ("unknown id", format!("{two}EDGE_SE2 0 7 1 0 0 {INFO}\n"), ":3:", "unknown variable 7"),
-        ("duplicate", format!("{two}VERTEX_SE2 1 2 0 0\n"), ":3:", "already exists"),
-        ("non-pd", format!("{two}EDGE_SE2 0 1 1 0 0 1 2 0 1 0 1\n"), ":3:", "not positive definite"),
-        ("negative id", format!("VERTEX_SE2 -1 0 0 0\n"), ":1:", "not a valid id"),
-        ("unknown tag", format!("{two}EDGE_FOO 0 1\n"), ":3:", "unsupported record"),
-        ("mixed", format!("{two}VERTEX_SE3:QUAT 5 0 0 0 0 0 0 1\n"), ":3:", "mixes 2D and 3D"),
-        ("bad quaternion", "VERTEX_SE3:QUAT 5 0 0 0 0 0 0 0\n".to_string(), ":1:", "quaternion"),
+        (
+            "truncated",
+            format!("{two}EDGE_SE2 0 1 1 0\n"),
+            ":3:",
+            "expects 11 fields",
+        ),
+        (
+            "nan",
+            format!("{two}EDGE_SE2 0 1 NaN 0 0 {INFO}\n"),
+            ":3:",
+            "not finite",
+        ),
+        (
+            "inf",
+            format!("VERTEX_SE2 0 inf 0 0\n"),
+            ":1:",
+            "not finite",
+        ),
+        (
+            "word",
+            format!("{two}EDGE_SE2 0 1 abc 0 0 {INFO}\n"),
+            ":3:",
+            "not a number",
+        ),
+        (
+            "unknown id",
+            format!("{two}EDGE_SE2 0 7 1 0 0 {INFO}\n"),
+            ":3:",
+            "unknown variable 7",
+        ),
+        (
+            "duplicate",
+            format!("{two}VERTEX_SE2 1 2 0 0\n"),
+            ":3:",
+            "already exists",
+        ),
+        (
+            "non-pd",
+            format!("{two}EDGE_SE2 0 1 1 0 0 1 2 0 1 0 1\n"),
+            ":3:",
+            "not positive definite",
+        ),
+        (
+            "negative id",
+            format!("VERTEX_SE2 -1 0 0 0\n"),
+            ":1:",
+            "not a valid id",
+        ),
+        (
+            "unknown tag",
+            format!("{two}EDGE_FOO 0 1\n"),
+            ":3:",
+            "unsupported record",
+        ),
+        (
+            "mixed",
+            format!("{two}VERTEX_SE3:QUAT 5 0 0 0 0 0 0 1\n"),
+            ":3:",
+            "mixes 2D and 3D",
+        ),
+        (
+            "bad quaternion",
+            "VERTEX_SE3:QUAT 5 0 0 0 0 0 0 0\n".to_string(),
+            ":1:",
+            "quaternion",
+        ),
         ("empty", String::new(), "", "no vertices"),
-        ("comments only", "# nothing\n\n".to_string(), "", "no vertices"),
+        (
+            "comments only",
+            "# nothing\n\n".to_string(),
+            "",
+            "no vertices",
+        ),
     ];
     for (name, text, line, reason) in cases {
         let msg = load_error(name, &text, None);
         assert!(msg.contains(line) && msg.contains(reason), "{name}: {msg}");
     }
     // TORO / course pair: edge file errors name the edge file and its line.
-    let msg = load_error("toro", "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n", Some("EDGE2 1 0 1 0 0 20 0 20\n"));
-    assert!(msg.contains("e.g2o:1:") && msg.contains("expects 11"), "{msg}");
-    let msg = load_error("toro-pd", "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n", Some("EDGE2 1 0 1 0 0 20 0 20 0 0 0\n"));
-    assert!(msg.contains("EDGE2 1 0") && msg.contains("not positive definite"), "{msg}");
+    let msg = load_error(
+        "toro",
+        "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n",
+        Some("EDGE2 1 0 1 0 0 20 0 20\n"),
+    );
+    assert!(
+        msg.contains("e.g2o:1:") && msg.contains("expects 11"),
+        "{msg}"
+    );
+    let msg = load_error(
+        "toro-pd",
+        "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n",
+        Some("EDGE2 1 0 1 0 0 20 0 20 0 0 0\n"),
+    );
+    assert!(
+        msg.contains("EDGE2 1 0") && msg.contains("not positive definite"),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -93,7 +167,12 @@ impl Factor for IgnoresSecond {
     fn variable_kinds(&self) -> &[&'static str] {
         &["se2", "se2"]
     }
-    fn evaluate(&self, v: &[&dyn Variable], e: &mut [f64], j: Option<&mut [f64]>) -> Result<(), EvaluationError> {
+    fn evaluate(
+        &self,
+        v: &[&dyn Variable],
+        e: &mut [f64],
+        j: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
         let x = v[0].as_any().downcast_ref::<Se2>().unwrap();
         e.copy_from_slice(&[x.x - 1.0, x.y, x.theta]);
         if let Some(j) = j {
@@ -112,13 +191,29 @@ impl Factor for IgnoresSecond {
 #[test]
 fn a_singular_system_is_a_typed_error_naming_the_variable() {
     let mut problem = Problem::new();
-    problem.add_variable(10, Box::new(Se2::new(0.0, 0.0, 0.0))).unwrap();
-    problem.add_variable(42, Box::new(Se2::new(0.0, 0.0, 0.0))).unwrap();
+    problem
+        .add_variable(10, Box::new(Se2::new(0.0, 0.0, 0.0)))
+        .unwrap();
+    problem
+        .add_variable(42, Box::new(Se2::new(0.0, 0.0, 0.0)))
+        .unwrap();
     let info = nalgebra::DMatrix::identity(3, 3);
     // A prior anchors 10 (so no gauge fixing happens); 42 is touched but never constrained.
-    problem.add_factor(Box::new(factord::factors::PriorSe2::new(10, Se2::identity())), &info, None, "prior").unwrap();
-    problem.add_factor(Box::new(IgnoresSecond([10, 42])), &info, None, "test").unwrap();
-    let options = SolverOptions { initialization: factord::solver::Initialization::None, ..Default::default() };
+    problem
+        .add_factor(
+            Box::new(factord::factors::PriorSe2::new(10, Se2::identity())),
+            &info,
+            None,
+            "prior",
+        )
+        .unwrap();
+    problem
+        .add_factor(Box::new(IgnoresSecond([10, 42])), &info, None, "test")
+        .unwrap();
+    let options = SolverOptions {
+        initialization: factord::solver::Initialization::None,
+        ..Default::default()
+    };
     match optimize(&mut problem, &options, &mut |_| {}) {
         Err(SolverError::IndeterminateSystem { keys }) => assert_eq!(keys, vec![42]),
         other => panic!("expected IndeterminateSystem, got {other:?}"),
@@ -132,12 +227,28 @@ fn problem_rejects_bad_factors_without_changing_what_it_holds() {
     let mut problem = Problem::new();
     problem.add_variable(0, Box::new(Se2::identity())).unwrap();
     problem.add_variable(1, Box::new(Se2::identity())).unwrap();
-    let between = || Box::new(factord::factors::BetweenSe2::new(0, 1, Se2::new(1.0, 0.0, 0.0)));
+    let between = || {
+        Box::new(factord::factors::BetweenSe2::new(
+            0,
+            1,
+            Se2::new(1.0, 0.0, 0.0),
+        ))
+    };
     let id3 = nalgebra::DMatrix::identity(3, 3);
-    assert!(problem.add_factor(between(), &nalgebra::DMatrix::identity(2, 2), None, "e").is_err());
-    assert!(problem.add_variable(2, Box::new(Se2::new(f64::NAN, 0.0, 0.0))).is_err());
-    let nan_measurement = Box::new(factord::factors::BetweenSe2::new(0, 1, Se2::new(f64::INFINITY, 0.0, 0.0)));
-    assert!(problem.add_factor(nan_measurement, &id3, None, "e").is_err());
+    assert!(problem
+        .add_factor(between(), &nalgebra::DMatrix::identity(2, 2), None, "e")
+        .is_err());
+    assert!(problem
+        .add_variable(2, Box::new(Se2::new(f64::NAN, 0.0, 0.0)))
+        .is_err());
+    let nan_measurement = Box::new(factord::factors::BetweenSe2::new(
+        0,
+        1,
+        Se2::new(f64::INFINITY, 0.0, 0.0),
+    ));
+    assert!(problem
+        .add_factor(nan_measurement, &id3, None, "e")
+        .is_err());
     let repeated = Box::new(factord::factors::BetweenSe2::new(1, 1, Se2::identity()));
     assert!(problem.add_factor(repeated, &id3, None, "e").is_err());
     assert_eq!(problem.factors().len(), 0);

@@ -25,11 +25,26 @@ fn solve_writes_summary_json_graph_and_trajectory() {
         .arg(&tum)
         .output()
         .unwrap();
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     let stdout = String::from_utf8_lossy(&output.stdout);
-    assert!(stdout.contains("iter   1") && stdout.contains("termination:"), "{stdout}");
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
-    for field in ["initial_chi2", "final_chi2", "iterations", "solve_seconds", "method", "termination"] {
+    assert!(
+        stdout.contains("iter   1") && stdout.contains("termination:"),
+        "{stdout}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    for field in [
+        "initial_chi2",
+        "final_chi2",
+        "iterations",
+        "solve_seconds",
+        "method",
+        "termination",
+    ] {
         assert!(json.get(field).is_some(), "summary lacks {field}");
     }
     assert_eq!(json["method"], "levenberg_marquardt");
@@ -39,7 +54,8 @@ fn solve_writes_summary_json_graph_and_trajectory() {
     let mut reread = factord::io::load(&out, None).unwrap();
     assert!((reread.problem.chi2() - final_chi2).abs() <= 1e-6 * final_chi2);
     assert_eq!(std::fs::read_to_string(&tum).unwrap().lines().count(), 120);
-    let again = factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {}).unwrap();
+    let again =
+        factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {}).unwrap();
     assert!(again.final_chi2 <= final_chi2 * (1.0 + 1e-6));
 }
 
@@ -47,14 +63,29 @@ fn solve_writes_summary_json_graph_and_trajectory() {
 fn bad_input_exits_with_an_error_not_a_panic() {
     let dir = common::temp_dir("cli-bad");
     let input = dir.join("bad.g2o");
-    std::fs::write(&input, "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n").unwrap();
+    std::fs::write(
+        &input,
+        "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n",
+    )
+    .unwrap();
     let output = factord().arg("solve").arg(&input).output().unwrap();
     assert_eq!(output.status.code(), Some(2));
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(stderr.contains("bad.g2o:2:") && stderr.contains("unknown variable 1"), "{stderr}");
+    assert!(
+        stderr.contains("bad.g2o:2:") && stderr.contains("unknown variable 1"),
+        "{stderr}"
+    );
     assert!(!stderr.contains("panicked"));
-    let output = factord().args(["solve", "/nonexistent/file.g2o"]).output().unwrap();
+    let output = factord()
+        .args(["solve", "/nonexistent/file.g2o"])
+        .output()
+        .unwrap();
     assert_eq!(output.status.code(), Some(2));
-    let output = factord().arg("solve").arg(&input).args(["--method", "newton"]).output().unwrap();
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--method", "newton"])
+        .output()
+        .unwrap();
     assert!(!output.status.success());
 }

@@ -5,7 +5,11 @@ mod common;
 use factord::io::{self, g2o::chi2_g2o_convention};
 use factord::solver::{optimize, Method, SolverOptions, Summary};
 
-fn solve(relative: &str, edges: Option<&str>, options: &SolverOptions) -> Option<(Summary, io::PoseGraph)> {
+fn solve(
+    relative: &str,
+    edges: Option<&str>,
+    options: &SolverOptions,
+) -> Option<(Summary, io::PoseGraph)> {
     let path = common::data_file(relative)?;
     let edges = match edges {
         Some(e) => Some(common::data_file(e)?),
@@ -18,12 +22,19 @@ fn solve(relative: &str, edges: Option<&str>, options: &SolverOptions) -> Option
 
 fn assert_relative(actual: f64, expected: f64, tolerance: f64, what: &str) {
     let rel = (actual - expected).abs() / expected.abs();
-    assert!(rel <= tolerance, "{what}: {actual} vs {expected} (relative {rel:.2e} > {tolerance:.0e})");
+    assert!(
+        rel <= tolerance,
+        "{what}: {actual} vs {expected} (relative {rel:.2e} > {tolerance:.0e})"
+    );
 }
 
 #[test]
 fn course_intel_reaches_seed_figure_in_at_most_six_iterations() {
-    let Some((s, _)) = solve("2d/ls_slam/intel-v.dat", Some("2d/ls_slam/intel-e.dat"), &SolverOptions::default()) else {
+    let Some((s, _)) = solve(
+        "2d/ls_slam/intel-v.dat",
+        Some("2d/ls_slam/intel-e.dat"),
+        &SolverOptions::default(),
+    ) else {
         return;
     };
     assert_relative(s.initial_chi2, 2.05092e6, 1e-5, "intel initial");
@@ -34,13 +45,19 @@ fn course_intel_reaches_seed_figure_in_at_most_six_iterations() {
 
 #[test]
 fn course_killian_and_test_quadrat() {
-    if let Some((s, _)) = solve("2d/ls_slam/killian-v.dat", Some("2d/ls_slam/killian-e.dat"), &SolverOptions::default()) {
+    if let Some((s, _)) = solve(
+        "2d/ls_slam/killian-v.dat",
+        Some("2d/ls_slam/killian-e.dat"),
+        &SolverOptions::default(),
+    ) {
         assert_relative(s.initial_chi2, 3.08592e8, 1e-5, "killian initial");
         assert_relative(s.final_chi2, 10344.665262, 1e-6, "killian final");
     }
-    if let Some((s, _)) =
-        solve("2d/ls_slam/test_quadrat-v.dat", Some("2d/ls_slam/test_quadrat-e.dat"), &SolverOptions::default())
-    {
+    if let Some((s, _)) = solve(
+        "2d/ls_slam/test_quadrat-v.dat",
+        Some("2d/ls_slam/test_quadrat-e.dat"),
+        &SolverOptions::default(),
+    ) {
         assert_relative(s.final_chi2, 4.94e4, 2e-3, "test_quadrat final");
     }
 }
@@ -58,7 +75,9 @@ fn every_2d_reference_optimum_with_the_default_method() {
         ("2d/gtsam/noisyToyGraph.txt", 0.13665202),
     ];
     for (file, optimum) in cases {
-        let Some((s, _)) = solve(file, None, &SolverOptions::default()) else { continue };
+        let Some((s, _)) = solve(file, None, &SolverOptions::default()) else {
+            continue;
+        };
         // The references are printed to 8 significant digits.
         assert_relative(s.final_chi2, optimum, 1e-6, file);
         assert!(s.converged, "{file}: {}", s.termination.message);
@@ -68,7 +87,10 @@ fn every_2d_reference_optimum_with_the_default_method() {
 #[test]
 fn lm_and_dogleg_reach_the_same_optimum() {
     for method in [Method::LevenbergMarquardt, Method::Dogleg] {
-        let options = SolverOptions { method, ..SolverOptions::default() };
+        let options = SolverOptions {
+            method,
+            ..SolverOptions::default()
+        };
         if let Some((s, _)) = solve("2d/carlone/input_M3500_g2o.g2o", None, &options) {
             assert_relative(s.final_chi2, 137.91295, 1e-6, method.name());
         }
@@ -77,7 +99,9 @@ fn lm_and_dogleg_reach_the_same_optimum() {
 
 #[test]
 fn sphere2500_reaches_g2o_optimum_in_g2o_convention() {
-    let Some((s, g)) = solve("3d/sesync/sphere2500.g2o", None, &SolverOptions::default()) else { return };
+    let Some((s, g)) = solve("3d/sesync/sphere2500.g2o", None, &SolverOptions::default()) else {
+        return;
+    };
     let chi2 = chi2_g2o_convention(g.problem.factors(), &g.problem.values);
     assert_relative(chi2, 727.15, 1e-3, "sphere2500 (g2o convention)");
     assert!(s.converged);
@@ -85,7 +109,9 @@ fn sphere2500_reaches_g2o_optimum_in_g2o_convention() {
 
 #[test]
 fn torus3d_converges_from_chordal_initialisation() {
-    let Some((s, g)) = solve("3d/sesync/torus3D.g2o", None, &SolverOptions::default()) else { return };
+    let Some((s, g)) = solve("3d/sesync/torus3D.g2o", None, &SolverOptions::default()) else {
+        return;
+    };
     assert!(s.converged, "{}", s.termination.message);
     assert_eq!(s.used.initialization, "chordal");
     let chi2 = chi2_g2o_convention(g.problem.factors(), &g.problem.values);

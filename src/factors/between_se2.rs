@@ -29,7 +29,10 @@ pub struct BetweenSe2 {
 
 impl BetweenSe2 {
     pub fn new(from: Key, to: Key, measurement: Se2) -> Self {
-        Self { keys: [from, to], measurement }
+        Self {
+            keys: [from, to],
+            measurement,
+        }
     }
 }
 

@@ -35,7 +35,10 @@ pub struct BetweenSe3 {
 
 impl BetweenSe3 {
     pub fn new(from: Key, to: Key, measurement: Se3) -> Self {
-        Self { keys: [from, to], measurement }
+        Self {
+            keys: [from, to],
+            measurement,
+        }
     }
 }
 
@@ -117,7 +120,10 @@ mod tests {
             let xi = rng.se3();
             let z = rng.se3();
             let flip = Se3::new(
-                so3::exp(&(nalgebra::Vector3::new(0.2, -0.9, 0.4).normalize() * (std::f64::consts::PI - 1e-3))),
+                so3::exp(
+                    &(nalgebra::Vector3::new(0.2, -0.9, 0.4).normalize()
+                        * (std::f64::consts::PI - 1e-3)),
+                ),
                 nalgebra::Vector3::new(0.1, 0.2, 0.3),
             );
             let xj = xi.compose(&z).compose(&flip);

@@ -29,7 +29,11 @@ use crate::problem::{Key, Variable};
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum EvaluationError {
     #[error("factor expects a variable of kind {expected} at position {position}, found {found}")]
-    WrongKind { position: usize, expected: &'static str, found: &'static str },
+    WrongKind {
+        position: usize,
+        expected: &'static str,
+        found: &'static str,
+    },
 }
 
 pub trait Factor: Debug + Send + Sync {
@@ -57,11 +61,13 @@ pub(crate) fn expect_kind<'a, T: Variable>(
     expected: &'static str,
 ) -> Result<&'a T, EvaluationError> {
     let v = variables[position];
-    v.as_any().downcast_ref::<T>().ok_or(EvaluationError::WrongKind {
-        position,
-        expected,
-        found: v.kind(),
-    })
+    v.as_any()
+        .downcast_ref::<T>()
+        .ok_or(EvaluationError::WrongKind {
+            position,
+            expected,
+            found: v.kind(),
+        })
 }
 
 /// A factor in a problem: the residual function, its weight, its kernel, and a label naming it in

@@ -5,7 +5,11 @@ use nalgebra::DMatrix;
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum InformationError {
     #[error("information matrix is {rows}×{cols}, expected {expected}×{expected}")]
-    WrongSize { rows: usize, cols: usize, expected: usize },
+    WrongSize {
+        rows: usize,
+        cols: usize,
+        expected: usize,
+    },
     #[error("information matrix has a non-finite entry")]
     NotFinite,
     #[error("information matrix is not symmetric")]
@@ -39,7 +43,10 @@ impl SqrtInformation {
         if (information - information.transpose()).amax() > 1e-9 * scale {
             return Err(InformationError::NotSymmetric);
         }
-        let chol = information.clone().cholesky().ok_or(InformationError::NotPositiveDefinite)?;
+        let chol = information
+            .clone()
+            .cholesky()
+            .ok_or(InformationError::NotPositiveDefinite)?;
         let l = chol.l();
         // A pivot that is tiny relative to the matrix means "numerically semidefinite".
         if (0..dim).any(|i| !(l[(i, i)] > 1e-12 * scale.sqrt())) {
@@ -121,10 +128,19 @@ mod tests {
     #[test]
     fn rejects_bad_matrices() {
         let bad = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
-        assert_eq!(SqrtInformation::from_information(&bad), Err(InformationError::NotPositiveDefinite));
+        assert_eq!(
+            SqrtInformation::from_information(&bad),
+            Err(InformationError::NotPositiveDefinite)
+        );
         let nan = DMatrix::from_row_slice(2, 2, &[1.0, f64::NAN, f64::NAN, 1.0]);
-        assert_eq!(SqrtInformation::from_information(&nan), Err(InformationError::NotFinite));
+        assert_eq!(
+            SqrtInformation::from_information(&nan),
+            Err(InformationError::NotFinite)
+        );
         let zero = DMatrix::zeros(3, 3);
-        assert_eq!(SqrtInformation::from_information(&zero), Err(InformationError::NotPositiveDefinite));
+        assert_eq!(
+            SqrtInformation::from_information(&zero),
+            Err(InformationError::NotPositiveDefinite)
+        );
     }
 }

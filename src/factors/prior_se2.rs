@@ -15,7 +15,10 @@ pub struct PriorSe2 {
 
 impl PriorSe2 {
     pub fn new(key: Key, measurement: Se2) -> Self {
-        Self { keys: [key], measurement }
+        Self {
+            keys: [key],
+            measurement,
+        }
     }
 }
 

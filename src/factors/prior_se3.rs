@@ -17,7 +17,10 @@ pub struct PriorSe3 {
 
 impl PriorSe3 {
     pub fn new(key: Key, measurement: Se3) -> Self {
-        Self { keys: [key], measurement }
+        Self {
+            keys: [key],
+            measurement,
+        }
     }
 }
 

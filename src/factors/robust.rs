@@ -43,7 +43,9 @@ impl RobustKernel {
     /// Parses `huber:1.0` / `cauchy:0.5` (scale defaults to 1).
     pub fn parse(text: &str) -> Result<Self, KernelParseError> {
         let (name, scale) = text.split_once(':').unwrap_or((text, "1"));
-        let delta: f64 = scale.parse().map_err(|_| KernelParseError::BadScale(scale.into()))?;
+        let delta: f64 = scale
+            .parse()
+            .map_err(|_| KernelParseError::BadScale(scale.into()))?;
         if !(delta.is_finite() && delta > 0.0) {
             return Err(KernelParseError::BadScale(scale.into()));
         }
@@ -59,16 +61,28 @@ impl RobustKernel {
             Self::Huber(delta) => {
                 let d2 = delta * delta;
                 if s <= d2 {
-                    KernelValue { rho: s, rho1: 1.0, rho2: 0.0 }
+                    KernelValue {
+                        rho: s,
+                        rho1: 1.0,
+                        rho2: 0.0,
+                    }
                 } else {
                     let r = s.sqrt();
-                    KernelValue { rho: 2.0 * delta * r - d2, rho1: delta / r, rho2: -0.5 * delta / (s * r) }
+                    KernelValue {
+                        rho: 2.0 * delta * r - d2,
+                        rho1: delta / r,
+                        rho2: -0.5 * delta / (s * r),
+                    }
                 }
             }
             Self::Cauchy(delta) => {
                 let d2 = delta * delta;
                 let inv = 1.0 / (1.0 + s / d2);
-                KernelValue { rho: d2 * (1.0 + s / d2).ln(), rho1: inv, rho2: -inv * inv / d2 }
+                KernelValue {
+                    rho: d2 * (1.0 + s / d2).ln(),
+                    rho1: inv,
+                    rho2: -inv * inv / d2,
+                }
             }
         }
     }

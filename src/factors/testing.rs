@@ -59,7 +59,11 @@ impl Rng {
 ///
 /// Error differences are wrapped into (−π, π]: two errors a step apart only differ by ≈2π when an
 /// angle component crossed the branch cut, and that jump is not part of the derivative.
-pub fn numeric_jacobian(factor: &dyn Factor, variables: &[Box<dyn Variable>], step: f64) -> Vec<f64> {
+pub fn numeric_jacobian(
+    factor: &dyn Factor,
+    variables: &[Box<dyn Variable>],
+    step: f64,
+) -> Vec<f64> {
     let d = factor.residual_dim();
     let cols: usize = variables.iter().map(|v| v.tangent_dim()).sum();
     let mut out = vec![0.0; d * cols];
@@ -67,13 +71,16 @@ pub fn numeric_jacobian(factor: &dyn Factor, variables: &[Box<dyn Variable>], st
     for (k, var) in variables.iter().enumerate() {
         for c in 0..var.tangent_dim() {
             let eval = |sign: f64| {
-                let mut perturbed: Vec<Box<dyn Variable>> = variables.iter().map(|v| v.clone_box()).collect();
+                let mut perturbed: Vec<Box<dyn Variable>> =
+                    variables.iter().map(|v| v.clone_box()).collect();
                 let mut delta = vec![0.0; var.tangent_dim()];
                 delta[c] = sign * step;
                 perturbed[k].retract(&delta);
                 let refs: Vec<&dyn Variable> = perturbed.iter().map(|v| v.as_ref()).collect();
                 let mut e = vec![0.0; d];
-                factor.evaluate(&refs, &mut e, None).expect("numeric jacobian: evaluation failed");
+                factor
+                    .evaluate(&refs, &mut e, None)
+                    .expect("numeric jacobian: evaluation failed");
                 e
             };
             let plus = eval(1.0);
@@ -98,7 +105,9 @@ pub fn assert_jacobians_match(factor: &dyn Factor, variables: &[Box<dyn Variable
     let refs: Vec<&dyn Variable> = variables.iter().map(|v| v.as_ref()).collect();
     let mut e = vec![0.0; d];
     let mut analytic = vec![0.0; d * cols];
-    factor.evaluate(&refs, &mut e, Some(&mut analytic)).expect("evaluation failed");
+    factor
+        .evaluate(&refs, &mut e, Some(&mut analytic))
+        .expect("evaluation failed");
     let numeric = numeric_jacobian(factor, variables, 1e-6);
     for r in 0..d {
         for c in 0..cols {

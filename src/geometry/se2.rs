@@ -12,7 +12,11 @@ pub struct Se2 {
 
 impl Se2 {
     pub fn new(x: f64, y: f64, theta: f64) -> Self {
-        Self { x, y, theta: wrap_angle(theta) }
+        Self {
+            x,
+            y,
+            theta: wrap_angle(theta),
+        }
     }
 
     pub fn identity() -> Self {
@@ -31,7 +35,11 @@ impl Se2 {
 
     pub fn inverse(&self) -> Se2 {
         let (s, c) = self.theta.sin_cos();
-        Se2::new(-(c * self.x + s * self.y), s * self.x - c * self.y, -self.theta)
+        Se2::new(
+            -(c * self.x + s * self.y),
+            s * self.x - c * self.y,
+            -self.theta,
+        )
     }
 
     /// `self⁻¹ ∘ other`, the pose of `other` seen from `self`.
@@ -58,7 +66,11 @@ impl Se2 {
         // V⁻¹ = (1/(a² + b²)) [[a, b], [-b, a]]; with half-angle identities this is
         // [[h, w/2], [-w/2, h]] where h = (w/2)·cot(w/2), which is finite on (−π, π].
         let half = 0.5 * w;
-        let h = if w.abs() < 1e-6 { 1.0 - w * w / 12.0 } else { half * half.cos() / half.sin() };
+        let h = if w.abs() < 1e-6 {
+            1.0 - w * w / 12.0
+        } else {
+            half * half.cos() / half.sin()
+        };
         [h * self.x + half * self.y, -half * self.x + h * self.y, w]
     }
 

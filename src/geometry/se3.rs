@@ -13,7 +13,10 @@ pub struct Se3 {
 
 impl Se3 {
     pub fn new(rotation: UnitQuaternion<f64>, translation: Vector3<f64>) -> Self {
-        Self { rotation, translation }
+        Self {
+            rotation,
+            translation,
+        }
     }
 
     pub fn identity() -> Self {
@@ -21,7 +24,10 @@ impl Se3 {
     }
 
     pub fn compose(&self, other: &Se3) -> Se3 {
-        Se3::new(self.rotation * other.rotation, self.translation + self.rotation * other.translation)
+        Se3::new(
+            self.rotation * other.rotation,
+            self.translation + self.rotation * other.translation,
+        )
     }
 
     pub fn inverse(&self) -> Se3 {

@@ -31,7 +31,11 @@ pub fn exp(omega: &Vector3<f64>) -> UnitQuaternion<f64> {
 /// `Log(q)` ∈ ℝ³ with |Log(q)| ∈ [0, π]. q and −q give the same answer.
 pub fn log(q: &UnitQuaternion<f64>) -> Vector3<f64> {
     let q = q.quaternion();
-    let (w, v) = if q.w < 0.0 { (-q.w, -q.imag()) } else { (q.w, q.imag()) };
+    let (w, v) = if q.w < 0.0 {
+        (-q.w, -q.imag())
+    } else {
+        (q.w, q.imag())
+    };
     let sin_half = v.norm();
     if sin_half < SMALL_ANGLE {
         // θ = 2 atan2(s, w) ≈ 2 s / w (1 − s²/(3w²)); scale = θ / s.
@@ -50,7 +54,10 @@ pub fn right_jacobian(phi: &Vector3<f64>) -> Matrix3<f64> {
     let (a, b) = if theta < SMALL_ANGLE {
         (0.5 - theta_sq / 24.0, 1.0 / 6.0 - theta_sq / 120.0)
     } else {
-        ((1.0 - theta.cos()) / theta_sq, (theta - theta.sin()) / (theta_sq * theta))
+        (
+            (1.0 - theta.cos()) / theta_sq,
+            (theta - theta.sin()) / (theta_sq * theta),
+        )
     };
     Matrix3::identity() - k * a + k * k * b
 }
@@ -89,7 +96,10 @@ mod tests {
     fn exp_log_round_trip() {
         for phi in vectors() {
             let back = log(&exp(&phi));
-            assert!((back - phi).norm() < 1e-9 * (1.0 + phi.norm()), "{phi:?} -> {back:?}");
+            assert!(
+                (back - phi).norm() < 1e-9 * (1.0 + phi.norm()),
+                "{phi:?} -> {back:?}"
+            );
         }
     }
 
@@ -105,7 +115,10 @@ mod tests {
     fn jacobian_inverse_is_inverse() {
         for phi in vectors() {
             let prod = right_jacobian(&phi) * right_jacobian_inv(&phi);
-            assert!((prod - Matrix3::identity()).norm() < 1e-8, "{phi:?}: {prod}");
+            assert!(
+                (prod - Matrix3::identity()).norm() < 1e-8,
+                "{phi:?}: {prod}"
+            );
         }
     }
 
@@ -115,7 +128,11 @@ mod tests {
         // like 1/(π − θ)²); `jacobian_inverse_is_inverse` covers that range exactly.
         let axis = Vector3::new(0.3, -0.5, 0.8).normalize();
         let near_pi = [PI - 1e-4, PI - 1e-3].map(|t| axis * t);
-        for phi in vectors().into_iter().filter(|p| p.norm() < 3.0).chain(near_pi) {
+        for phi in vectors()
+            .into_iter()
+            .filter(|p| p.norm() < 3.0)
+            .chain(near_pi)
+        {
             let jr_inv = right_jacobian_inv(&phi);
             let h = 1e-7;
             for k in 0..3 {

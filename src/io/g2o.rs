@@ -32,14 +32,20 @@ fn upper_triangle(n: usize, f: &[f64]) -> DMatrix<f64> {
 /// `D = diag(1, 1, 1, ½, ½, ½)` maps g2o's 3D information onto our error.
 fn rotation_scaling(half: bool) -> DMatrix<f64> {
     let s = if half { 0.5 } else { 2.0 };
-    DMatrix::from_diagonal(&nalgebra::DVector::from_row_slice(&[1.0, 1.0, 1.0, s, s, s]))
+    DMatrix::from_diagonal(&nalgebra::DVector::from_row_slice(&[
+        1.0, 1.0, 1.0, s, s, s,
+    ]))
 }
 
 fn quaternion(path: &Path, number: usize, f: &[f64]) -> Result<UnitQuaternion<f64>, IoError> {
     let q = Quaternion::new(f[3], f[0], f[1], f[2]);
     let norm = q.norm();
     if !(0.5..=2.0).contains(&norm) {
-        return Err(parse_error(path, number, format!("quaternion norm {norm} is far from 1")));
+        return Err(parse_error(
+            path,
+            number,
+            format!("quaternion norm {norm} is far from 1"),
+        ));
     }
     Ok(UnitQuaternion::from_quaternion(q))
 }
@@ -77,20 +83,33 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                     Some(Dimension::Two)
                 }
                 "EDGE_SE3:QUAT" => {
-                    edges.push((path, line.number, numbers(path, &line, 30)?, Dimension::Three));
+                    edges.push((
+                        path,
+                        line.number,
+                        numbers(path, &line, 30)?,
+                        Dimension::Three,
+                    ));
                     Some(Dimension::Three)
                 }
                 "FIX" => {
                     for (k, t) in line.tokens[1..].iter().enumerate() {
-                        let v: f64 = t
-                            .parse()
-                            .map_err(|_| parse_error(path, line.number, format!("FIX field {} (`{t}`) is not an id", k + 1)))?;
+                        let v: f64 = t.parse().map_err(|_| {
+                            parse_error(
+                                path,
+                                line.number,
+                                format!("FIX field {} (`{t}`) is not an id", k + 1),
+                            )
+                        })?;
                         fixes.push((path, line.number, id(path, &line, v, k + 1)?));
                     }
                     None
                 }
                 other => {
-                    return Err(parse_error(path, line.number, format!("unsupported record `{other}`")));
+                    return Err(parse_error(
+                        path,
+                        line.number,
+                        format!("unsupported record `{other}`"),
+                    ));
                 }
             };
             if let Some(d) = dim_here {
@@ -102,10 +121,16 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
         }
     }
     let Some(dimension) = dimension else {
-        return Err(super::IoError::Invalid { file: files[0].0.to_path_buf(), reason: "no vertices or edges".into() });
+        return Err(super::IoError::Invalid {
+            file: files[0].0.to_path_buf(),
+            reason: "no vertices or edges".into(),
+        });
     };
     for (path, number, f, dim) in edges {
-        let line = super::Line { number, tokens: vec![""] };
+        let line = super::Line {
+            number,
+            tokens: vec![""],
+        };
         let (i, j) = (id(path, &line, f[0], 1)?, id(path, &line, f[1], 2)?);
         let result = match dim {
             Dimension::Two => problem.add_factor(
@@ -115,7 +140,10 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                 format!("EDGE_SE2 {i} {j} ({}:{number})", path.display()),
             ),
             Dimension::Three => {
-                let z = Se3::new(quaternion(path, number, &f[5..9])?, Vector3::new(f[2], f[3], f[4]));
+                let z = Se3::new(
+                    quaternion(path, number, &f[5..9])?,
+                    Vector3::new(f[2], f[3], f[4]),
+                );
                 let d = rotation_scaling(true);
                 problem.add_factor(
                     Box::new(BetweenSe3::new(i, j, z)),
@@ -128,12 +156,21 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
         result.map_err(|e| problem_error(path, number, e))?;
     }
     for (path, number, key) in fixes {
-        problem.set_fixed(key, true).map_err(|e| problem_error(path, number, e))?;
+        problem
+            .set_fixed(key, true)
+            .map_err(|e| problem_error(path, number, e))?;
     }
     if problem.values.is_empty() {
-        return Err(super::IoError::Invalid { file: files[0].0.to_path_buf(), reason: "no vertices".into() });
+        return Err(super::IoError::Invalid {
+            file: files[0].0.to_path_buf(),
+            reason: "no vertices".into(),
+        });
     }
-    Ok(PoseGraph { problem, dimension, vertex_order: order })
+    Ok(PoseGraph {
+        problem,
+        dimension,
+        vertex_order: order,
+    })
 }
 
 fn information_upper(m: &DMatrix<f64>) -> String {
@@ -155,7 +192,11 @@ pub fn to_string(graph: &PoseGraph) -> String {
             let _ = writeln!(out, "VERTEX_SE2 {key} {} {} {}", p.x, p.y, p.theta);
         } else if let Some(p) = values.get_as::<Se3>(key) {
             let (t, q) = (p.translation, p.rotation);
-            let _ = writeln!(out, "VERTEX_SE3:QUAT {key} {} {} {} {} {} {} {}", t.x, t.y, t.z, q.i, q.j, q.k, q.w);
+            let _ = writeln!(
+                out,
+                "VERTEX_SE3:QUAT {key} {} {} {} {} {} {} {}",
+                t.x, t.y, t.z, q.i, q.j, q.k, q.w
+            );
         }
     }
     for f in graph.problem.factors() {
@@ -163,7 +204,16 @@ pub fn to_string(graph: &PoseGraph) -> String {
         let info = f.sqrt_information.information();
         if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe2>() {
             let z = b.measurement;
-            let _ = writeln!(out, "EDGE_SE2 {} {} {} {} {}{}", keys[0], keys[1], z.x, z.y, z.theta, information_upper(&info));
+            let _ = writeln!(
+                out,
+                "EDGE_SE2 {} {} {} {} {}{}",
+                keys[0],
+                keys[1],
+                z.x,
+                z.y,
+                z.theta,
+                information_upper(&info)
+            );
         } else if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe3>() {
             let (t, q) = (b.measurement.translation, b.measurement.rotation);
             let d = rotation_scaling(false);
@@ -183,7 +233,10 @@ pub fn to_string(graph: &PoseGraph) -> String {
             );
         }
     }
-    let fixed: Vec<Key> = (0..values.len()).filter(|&v| values.is_fixed(v)).map(|v| values.key(v)).collect();
+    let fixed: Vec<Key> = (0..values.len())
+        .filter(|&v| values.is_fixed(v))
+        .map(|v| values.key(v))
+        .collect();
     if !fixed.is_empty() {
         let ids: Vec<String> = fixed.iter().map(|k| k.to_string()).collect();
         let _ = writeln!(out, "FIX {}", ids.join(" "));
@@ -192,7 +245,10 @@ pub fn to_string(graph: &PoseGraph) -> String {
 }
 
 pub fn write(graph: &PoseGraph, path: &Path) -> Result<(), IoError> {
-    std::fs::write(path, to_string(graph)).map_err(|source| IoError::Write { file: path.to_path_buf(), source })
+    std::fs::write(path, to_string(graph)).map_err(|source| IoError::Write {
+        file: path.to_path_buf(),
+        source,
+    })
 }
 
 /// chi2 as g2o computes it: 2D is identical to ours; for 3D the error is `[t_E; vec(q_E)]` with
@@ -203,7 +259,9 @@ pub fn chi2_g2o_convention(factors: &[FactorEntry], values: &Values) -> f64 {
     for f in factors {
         let keys = f.factor.keys();
         if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe3>() {
-            let (Some(xi), Some(xj)) = (values.get_as::<Se3>(keys[0]), values.get_as::<Se3>(keys[1])) else {
+            let (Some(xi), Some(xj)) =
+                (values.get_as::<Se3>(keys[0]), values.get_as::<Se3>(keys[1]))
+            else {
                 continue;
             };
             let e = b.measurement.inverse().compose(&xi.between(xj));
@@ -220,7 +278,8 @@ pub fn chi2_g2o_convention(factors: &[FactorEntry], values: &Values) -> f64 {
             let info = &d * f.sqrt_information.information() * &d;
             total += (err.transpose() * info * &err)[(0, 0)];
         } else {
-            let refs: Vec<&dyn crate::problem::Variable> = keys.iter().filter_map(|&k| values.get(k)).collect();
+            let refs: Vec<&dyn crate::problem::Variable> =
+                keys.iter().filter_map(|&k| values.get(k)).collect();
             let dim = f.factor.residual_dim();
             let (mut e, mut w) = (vec![0.0; dim], vec![0.0; dim]);
             total += f.chi2(&refs, &mut e, &mut w).unwrap_or(f64::NAN);

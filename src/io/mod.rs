@@ -14,11 +14,21 @@ use crate::problem::{Key, Problem, ProblemError};
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
     #[error("{file}: cannot read: {source}")]
-    Read { file: PathBuf, source: std::io::Error },
+    Read {
+        file: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{file}: cannot write: {source}")]
-    Write { file: PathBuf, source: std::io::Error },
+    Write {
+        file: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{file}:{line}: {reason}")]
-    Parse { file: PathBuf, line: usize, reason: String },
+    Parse {
+        file: PathBuf,
+        line: usize,
+        reason: String,
+    },
     #[error("{file}: {reason}")]
     Invalid { file: PathBuf, reason: String },
 }
@@ -46,13 +56,19 @@ pub(crate) struct Line<'a> {
 }
 
 pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
-    std::fs::read_to_string(path).map_err(|source| IoError::Read { file: path.to_path_buf(), source })
+    std::fs::read_to_string(path).map_err(|source| IoError::Read {
+        file: path.to_path_buf(),
+        source,
+    })
 }
 
 pub(crate) fn lines(text: &str) -> impl Iterator<Item = Line<'_>> {
     text.lines().enumerate().filter_map(|(i, l)| {
         let l = l.trim();
-        (!l.is_empty() && !l.starts_with('#')).then(|| Line { number: i + 1, tokens: l.split_whitespace().collect() })
+        (!l.is_empty() && !l.starts_with('#')).then(|| Line {
+            number: i + 1,
+            tokens: l.split_whitespace().collect(),
+        })
     })
 }
 
@@ -63,7 +79,11 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
         return Err(parse_error(
             path,
             line.number,
-            format!("{} expects {count} fields, found {}", line.tokens[0], fields.len()),
+            format!(
+                "{} expects {count} fields, found {}",
+                line.tokens[0],
+                fields.len()
+            ),
         ));
     }
     fields
@@ -71,8 +91,16 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
         .enumerate()
         .map(|(k, t)| match t.parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            Ok(_) => Err(parse_error(path, line.number, format!("field {} (`{t}`) is not finite", k + 1))),
-            Err(_) => Err(parse_error(path, line.number, format!("field {} (`{t}`) is not a number", k + 1))),
+            Ok(_) => Err(parse_error(
+                path,
+                line.number,
+                format!("field {} (`{t}`) is not finite", k + 1),
+            )),
+            Err(_) => Err(parse_error(
+                path,
+                line.number,
+                format!("field {} (`{t}`) is not a number", k + 1),
+            )),
         })
         .collect()
 }
@@ -80,13 +108,21 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
 /// A vertex or edge id: a non-negative integer.
 pub(crate) fn id(path: &Path, line: &Line, value: f64, field: usize) -> Result<Key, IoError> {
     if value < 0.0 || value.fract() != 0.0 || value > 2f64.powi(53) {
-        return Err(parse_error(path, line.number, format!("field {field} (`{value}`) is not a valid id")));
+        return Err(parse_error(
+            path,
+            line.number,
+            format!("field {field} (`{value}`) is not a valid id"),
+        ));
     }
     Ok(value as Key)
 }
 
 pub(crate) fn parse_error(path: &Path, line: usize, reason: impl Into<String>) -> IoError {
-    IoError::Parse { file: path.to_path_buf(), line, reason: reason.into() }
+    IoError::Parse {
+        file: path.to_path_buf(),
+        line,
+        reason: reason.into(),
+    }
 }
 
 pub(crate) fn problem_error(path: &Path, line: usize, e: ProblemError) -> IoError {
@@ -97,11 +133,17 @@ pub(crate) fn problem_error(path: &Path, line: usize, e: ProblemError) -> IoErro
 /// an optional separate edges file, as the course's `-v.dat`/`-e.dat` pairs), anything else g2o.
 pub fn load(path: &Path, edges: Option<&Path>) -> Result<PoseGraph, IoError> {
     let text = read_text(path)?;
-    let is_toro = lines(&text).next().is_some_and(|l| matches!(l.tokens[0], "VERTEX2" | "EDGE2" | "VERTEX" | "EDGE"));
+    let is_toro = lines(&text)
+        .next()
+        .is_some_and(|l| matches!(l.tokens[0], "VERTEX2" | "EDGE2" | "VERTEX" | "EDGE"));
     match edges {
         Some(edges_path) => {
             let edge_text = read_text(edges_path)?;
-            if is_toro || lines(&edge_text).next().is_some_and(|l| l.tokens[0] == "EDGE2") {
+            if is_toro
+                || lines(&edge_text)
+                    .next()
+                    .is_some_and(|l| l.tokens[0] == "EDGE2")
+            {
                 toro::parse(&[(path, &text), (edges_path, &edge_text)])
             } else {
                 g2o::parse(&[(path, &text), (edges_path, &edge_text)])

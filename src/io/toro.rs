@@ -32,23 +32,46 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                         .map_err(|e| problem_error(path, line.number, e))?;
                     order.push(key);
                 }
-                "EDGE2" | "EDGE" => edges.push((path, line.number, numbers(path, &line, 11)?, line.tokens[0])),
+                "EDGE2" | "EDGE" => {
+                    edges.push((path, line.number, numbers(path, &line, 11)?, line.tokens[0]))
+                }
                 "EQUIV" => {}
-                other => return Err(parse_error(path, line.number, format!("unknown record `{other}` in a TORO file"))),
+                other => {
+                    return Err(parse_error(
+                        path,
+                        line.number,
+                        format!("unknown record `{other}` in a TORO file"),
+                    ))
+                }
             }
         }
     }
     for (path, number, f, tag) in edges {
-        let line = super::Line { number, tokens: vec![tag] };
+        let line = super::Line {
+            number,
+            tokens: vec![tag],
+        };
         let (i, j) = (id(path, &line, f[0], 1)?, id(path, &line, f[1], 2)?);
         let factor = BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]));
         let label = format!("{tag} {i} {j} ({}:{number})", path.display());
         problem
-            .add_factor(Box::new(factor), &information_from_toro(&f[5..]), None, label)
+            .add_factor(
+                Box::new(factor),
+                &information_from_toro(&f[5..]),
+                None,
+                label,
+            )
             .map_err(|e| problem_error(path, number, e))?;
     }
     if problem.values.is_empty() {
-        return Err(IoError::Invalid { file: files[0].0.to_path_buf(), reason: "no vertices".into() });
+        return Err(IoError::Invalid {
+            file: files[0].0.to_path_buf(),
+            reason: "no vertices".into(),
+        });
     }
-    Ok(PoseGraph { problem, dimension: Dimension::Two, vertex_order: order })
+    Ok(PoseGraph {
+        problem,
+        dimension: Dimension::Two,
+        vertex_order: order,
+    })
 }

@@ -14,17 +14,27 @@ pub fn to_string(graph: &PoseGraph) -> String {
     for &key in &graph.vertex_order {
         let values = &graph.problem.values;
         let (t, q) = if let Some(p) = values.get_as::<Se2>(key) {
-            (Vector3::new(p.x, p.y, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, p.theta))
+            (
+                Vector3::new(p.x, p.y, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.0, p.theta),
+            )
         } else if let Some(p) = values.get_as::<Se3>(key) {
             (p.translation, p.rotation)
         } else {
             continue;
         };
-        let _ = writeln!(out, "{key} {} {} {} {} {} {} {}", t.x, t.y, t.z, q.i, q.j, q.k, q.w);
+        let _ = writeln!(
+            out,
+            "{key} {} {} {} {} {} {} {}",
+            t.x, t.y, t.z, q.i, q.j, q.k, q.w
+        );
     }
     out
 }
 
 pub fn write(graph: &PoseGraph, path: &Path) -> Result<(), IoError> {
-    std::fs::write(path, to_string(graph)).map_err(|source| IoError::Write { file: path.to_path_buf(), source })
+    std::fs::write(path, to_string(graph)).map_err(|source| IoError::Write {
+        file: path.to_path_buf(),
+        source,
+    })
 }

@@ -27,11 +27,19 @@ pub enum ProblemError {
     #[error("{factor}: refers to unknown variable {key}")]
     FactorUnknownVariable { factor: String, key: Key },
     #[error("{factor}: variable {key} is of kind {found}, the factor needs {expected}")]
-    FactorWrongKind { factor: String, key: Key, expected: &'static str, found: &'static str },
+    FactorWrongKind {
+        factor: String,
+        key: Key,
+        expected: &'static str,
+        found: &'static str,
+    },
     #[error("{factor}: touches variable {key} twice")]
     FactorRepeatedVariable { factor: String, key: Key },
     #[error("{factor}: information matrix is invalid: {reason}")]
-    BadInformation { factor: String, reason: crate::factors::noise::InformationError },
+    BadInformation {
+        factor: String,
+        reason: crate::factors::noise::InformationError,
+    },
     #[error("{factor}: measurement is not finite")]
     NonFiniteMeasurement { factor: String },
 }
@@ -47,15 +55,24 @@ impl Problem {
         Self::default()
     }
 
-    pub fn add_variable(&mut self, key: Key, variable: Box<dyn Variable>) -> Result<usize, ProblemError> {
+    pub fn add_variable(
+        &mut self,
+        key: Key,
+        variable: Box<dyn Variable>,
+    ) -> Result<usize, ProblemError> {
         if !variable.is_finite() {
             return Err(ProblemError::NonFiniteVariable { key });
         }
-        self.values.insert(key, variable).ok_or(ProblemError::DuplicateVariable { key })
+        self.values
+            .insert(key, variable)
+            .ok_or(ProblemError::DuplicateVariable { key })
     }
 
     pub fn set_fixed(&mut self, key: Key, fixed: bool) -> Result<(), ProblemError> {
-        let idx = self.values.index_of(key).ok_or(ProblemError::UnknownVariable { key })?;
+        let idx = self
+            .values
+            .index_of(key)
+            .ok_or(ProblemError::UnknownVariable { key })?;
         self.values.set_fixed(idx, fixed);
         Ok(())
     }
@@ -69,8 +86,13 @@ impl Problem {
         label: impl Into<String>,
     ) -> Result<usize, ProblemError> {
         let label = label.into();
-        let sqrt_information = SqrtInformation::from_information(information)
-            .map_err(|reason| ProblemError::BadInformation { factor: label.clone(), reason })?;
+        let sqrt_information =
+            SqrtInformation::from_information(information).map_err(|reason| {
+                ProblemError::BadInformation {
+                    factor: label.clone(),
+                    reason,
+                }
+            })?;
         if sqrt_information.dim() != factor.residual_dim() {
             return Err(ProblemError::BadInformation {
                 factor: label,
@@ -99,18 +121,34 @@ impl Problem {
             let var = self
                 .values
                 .get(key)
-                .ok_or_else(|| ProblemError::FactorUnknownVariable { factor: label.clone(), key })?;
+                .ok_or_else(|| ProblemError::FactorUnknownVariable {
+                    factor: label.clone(),
+                    key,
+                })?;
             if var.kind() != expected {
-                return Err(ProblemError::FactorWrongKind { factor: label, key, expected, found: var.kind() });
+                return Err(ProblemError::FactorWrongKind {
+                    factor: label,
+                    key,
+                    expected,
+                    found: var.kind(),
+                });
             }
         }
         // A factor that cannot be evaluated at a finite point has a non-finite measurement.
-        let vars: Vec<&dyn Variable> = keys.iter().map(|&k| self.values.get(k).expect("checked above")).collect();
+        let vars: Vec<&dyn Variable> = keys
+            .iter()
+            .map(|&k| self.values.get(k).expect("checked above"))
+            .collect();
         let mut e = vec![0.0; factor.residual_dim()];
         if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
             return Err(ProblemError::NonFiniteMeasurement { factor: label });
         }
-        self.factors.push(FactorEntry { factor, sqrt_information, robust, label });
+        self.factors.push(FactorEntry {
+            factor,
+            sqrt_information,
+            robust,
+            label,
+        });
         Ok(self.factors.len() - 1)
     }
 

@@ -5,8 +5,8 @@
 use dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky, SymbolicCholeskyRaw,
-    SymmetricOrdering,
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    SymbolicCholeskyRaw, SymmetricOrdering,
 };
 use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
@@ -31,7 +31,10 @@ pub struct SparseCholesky {
 
 impl std::fmt::Debug for SparseCholesky {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SparseCholesky").field("kind", &self.kind()).field("factor_nnz", &self.l_values.len()).finish()
+        f.debug_struct("SparseCholesky")
+            .field("kind", &self.kind())
+            .field("factor_nnz", &self.l_values.len())
+            .finish()
     }
 }
 
@@ -41,17 +44,28 @@ pub struct SymbolicError(faer::sparse::FaerError);
 
 impl SparseCholesky {
     /// Symbolic analysis of `pattern` (already in elimination order, lower triangle).
-    pub fn analyze(pattern: &BlockPattern, threshold: SupernodalThreshold) -> Result<Self, SymbolicError> {
-        let params = CholeskySymbolicParams { supernodal_flop_ratio_threshold: threshold, ..Default::default() };
+    pub fn analyze(
+        pattern: &BlockPattern,
+        threshold: SupernodalThreshold,
+    ) -> Result<Self, SymbolicError> {
+        let params = CholeskySymbolicParams {
+            supernodal_flop_ratio_threshold: threshold,
+            ..Default::default()
+        };
         // With the identity ordering faer analyses the pattern as given, and expects the upper
         // triangle; the numeric phase then takes our lower triangle directly (supernodal) or
         // transposes it itself (simplicial).
         let (col_ptr, row_idx) = transpose_pattern(pattern);
-        let upper = SymbolicSparseColMatRef::new_checked(pattern.n, pattern.n, &col_ptr, None, &row_idx);
+        let upper =
+            SymbolicSparseColMatRef::new_checked(pattern.n, pattern.n, &col_ptr, None, &row_idx);
         let symbolic =
-            factorize_symbolic_cholesky(upper, Side::Upper, SymmetricOrdering::Identity, params).map_err(SymbolicError)?;
+            factorize_symbolic_cholesky(upper, Side::Upper, SymmetricOrdering::Identity, params)
+                .map_err(SymbolicError)?;
         let factor_req = symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Spec::default());
-        let solve_req = StackReq::or(symbolic.solve_in_place_scratch::<f64>(1, Par::Seq), factor_req);
+        let solve_req = StackReq::or(
+            symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
+            factor_req,
+        );
         Ok(Self {
             l_values: vec![0.0; symbolic.len_val()],
             factor_mem: MemBuffer::new(factor_req),
@@ -74,7 +88,11 @@ impl SparseCholesky {
     }
 
     /// Numeric LLᵀ of the matrix with `pattern` and `values`.
-    pub fn factorize(&mut self, pattern: &BlockPattern, values: &[f64]) -> Result<(), NotPositiveDefinite> {
+    pub fn factorize(
+        &mut self,
+        pattern: &BlockPattern,
+        values: &[f64],
+    ) -> Result<(), NotPositiveDefinite> {
         self.factorized = false;
         let a = SparseColMatRef::new(pattern.symbolic(), values);
         let stack = MemStack::new(&mut self.factor_mem);
@@ -100,7 +118,10 @@ impl SparseCholesky {
 
     /// Solves `A x = rhs` in place with the last successful factorisation.
     pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
-        assert!(self.factorized, "solve before a successful factorisation is a bug");
+        assert!(
+            self.factorized,
+            "solve before a successful factorisation is a bug"
+        );
         let n = rhs.len();
         let llt = LltRef::new(&self.symbolic, &self.l_values);
         let rhs = MatMut::from_column_major_slice_mut(rhs, n, 1);
@@ -144,7 +165,11 @@ mod tests {
         for c in 0..p.n {
             for k in p.col_ptr[c]..p.col_ptr[c + 1] {
                 let r = p.row_idx[k];
-                values[k] = if r == c { 10.0 } else { ((r * 7 + c * 3) % 5) as f64 * 0.3 - 0.6 };
+                values[k] = if r == c {
+                    10.0
+                } else {
+                    ((r * 7 + c * 3) % 5) as f64 * 0.3 - 0.6
+                };
             }
         }
         let mut dense = nalgebra::DMatrix::zeros(p.n, p.n);

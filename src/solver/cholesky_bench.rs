@@ -11,25 +11,45 @@ use super::cholesky::SparseCholesky;
 use super::linearize::{linearize, Scratch, SystemLayout};
 use super::{optimize, SolverOptions};
 
-pub fn run(graph: &Path, edges: Option<&Path>, repeat: usize, write_mtx: Option<&Path>) -> Result<String, Box<dyn std::error::Error>> {
+pub fn run(
+    graph: &Path,
+    edges: Option<&Path>,
+    repeat: usize,
+    write_mtx: Option<&Path>,
+) -> Result<String, Box<dyn std::error::Error>> {
     let mut g = crate::io::load(graph, edges)?;
     let summary = optimize(&mut g.problem, &SolverOptions::default(), &mut |_| {})?;
     let fixed: Vec<bool> = (0..g.problem.values.len())
-        .map(|v| g.problem.values.is_fixed(v) || summary.used.gauge_fixed.contains(&g.problem.values.key(v)))
+        .map(|v| {
+            g.problem.values.is_fixed(v)
+                || summary.used.gauge_fixed.contains(&g.problem.values.key(v))
+        })
         .collect();
     let layout = SystemLayout::new(g.problem.factors(), &g.problem.values, &fixed);
     let mut h = vec![0.0; layout.pattern.nnz()];
     let mut b = vec![0.0; layout.n()];
-    linearize(g.problem.factors(), &g.problem.values, &layout, &mut Scratch::new(&layout), &mut h, &mut b)?;
+    linearize(
+        g.problem.factors(),
+        &g.problem.values,
+        &layout,
+        &mut Scratch::new(&layout),
+        &mut h,
+        &mut b,
+    )?;
     let mut report = String::from("{");
-    for (name, threshold) in [("auto", SupernodalThreshold::AUTO), ("supernodal", SupernodalThreshold::FORCE_SUPERNODAL), ("simplicial", SupernodalThreshold::FORCE_SIMPLICIAL)] {
+    for (name, threshold) in [
+        ("auto", SupernodalThreshold::AUTO),
+        ("supernodal", SupernodalThreshold::FORCE_SUPERNODAL),
+        ("simplicial", SupernodalThreshold::FORCE_SIMPLICIAL),
+    ] {
         let t = Instant::now();
         let mut chol = SparseCholesky::analyze(&layout.pattern, threshold)?;
         let analyze = t.elapsed().as_secs_f64();
         let mut runs = Vec::with_capacity(repeat);
         for _ in 0..repeat.max(1) {
             let t = Instant::now();
-            chol.factorize(&layout.pattern, &h).map_err(|e| format!("not positive definite at row {}", e.row))?;
+            chol.factorize(&layout.pattern, &h)
+                .map_err(|e| format!("not positive definite at row {}", e.row))?;
             runs.push(t.elapsed().as_secs_f64());
         }
         runs.sort_by(f64::total_cmp);
@@ -42,10 +62,20 @@ pub fn run(graph: &Path, edges: Option<&Path>, repeat: usize, write_mtx: Option<
             chol.factor_nnz()
         );
     }
-    let _ = write!(report, "\"system\": \"factord\", \"n\": {}, \"nnz_lower\": {}}}", layout.n(), layout.pattern.nnz());
+    let _ = write!(
+        report,
+        "\"system\": \"factord\", \"n\": {}, \"nnz_lower\": {}}}",
+        layout.n(),
+        layout.pattern.nnz()
+    );
     if let Some(path) = write_mtx {
         let p = &layout.pattern;
-        let mut text = format!("%%MatrixMarket matrix coordinate real symmetric\n{} {} {}\n", p.n, p.n, p.nnz());
+        let mut text = format!(
+            "%%MatrixMarket matrix coordinate real symmetric\n{} {} {}\n",
+            p.n,
+            p.n,
+            p.nnz()
+        );
         for c in 0..p.n {
             for k in p.col_ptr[c]..p.col_ptr[c + 1] {
                 let _ = writeln!(text, "{} {} {:e}", p.row_idx[k] + 1, c + 1, h[k]);

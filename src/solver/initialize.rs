@@ -18,25 +18,33 @@ use std::collections::VecDeque;
 use std::f64::consts::PI;
 
 use faer::sparse::linalg::SupernodalThreshold;
-use nalgebra::{DMatrix, Matrix2, Matrix3, UnitQuaternion, Vector3};
+use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, UnitQuaternion, Vector2, Vector3};
 
 use super::cholesky::SparseCholesky;
-use super::structure::BlockPattern;
+use super::structure::{BlockOrdering, BlockPattern};
 use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3};
 use crate::geometry::{rotation_matrix_2d, Se2, Se3};
+
 use crate::problem::Values;
 
 /// The chordal estimate, or `None` when the problem is not a pure SE(2) or SE(3) pose graph, or a
 /// linear system turned out singular (then the given values are used).
-pub fn chordal(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Option<Values> {
+///
+/// `ordering` is an elimination order of the free variables' graph ([`super::linearize::free_adjacency`]).
+pub fn chordal(
+    factors: &[FactorEntry],
+    values: &Values,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+) -> Option<Values> {
     if values.is_empty() {
         return None;
     }
     let all = |kind: &str| (0..values.len()).all(|v| values.variable(v).kind() == kind);
     if all("se2") {
-        chordal_2d(factors, values, fixed)
+        chordal_2d(factors, values, fixed, ordering)
     } else if all("se3") {
-        chordal_3d(factors, values, fixed)
+        chordal_3d(factors, values, fixed, ordering)
     } else {
         None
     }
@@ -68,7 +76,12 @@ fn collect_edges<M: Copy>(
                 information,
             });
         } else if let Some(m) = prior(f) {
-            edges.push(Edge { from: None, to: values.index_of(keys[0])?, measurement: m, information });
+            edges.push(Edge {
+                from: None,
+                to: values.index_of(keys[0])?,
+                measurement: m,
+                information,
+            });
         } else {
             return None;
         }
@@ -76,26 +89,37 @@ fn collect_edges<M: Copy>(
     Some(edges)
 }
 
-/// Marginal information of the sub-block `range` of an information matrix (1 / covariance block).
-fn marginal_information(information: &DMatrix<f64>, start: usize, len: usize) -> Option<DMatrix<f64>> {
+/// Marginal information of the sub-block `start..start+len` of an information matrix
+/// (the inverse of the matching covariance block).
+fn marginal_information<const L: usize>(
+    information: &DMatrix<f64>,
+    start: usize,
+) -> Option<SMatrix<f64, L, L>> {
     let cov = information.clone().try_inverse()?;
-    cov.view((start, start), (len, len)).into_owned().try_inverse()
+    cov.fixed_view::<L, L>(start, start)
+        .into_owned()
+        .try_inverse()
 }
 
-/// Dense-block linear least squares `min Σ ‖Σ_k J_k x_k + r0‖²_W` over the free variables, with
-/// several right-hand sides (columns of r0 and x). Fixed variables' contributions are folded into
-/// r0 as terms are added.
-struct LinearLeastSquares<'a> {
-    dim: usize,
-    nrhs: usize,
-    fixed_value: &'a [Option<DMatrix<f64>>],
+/// One term `‖Σ_k J_k x_k + r0‖²_W` of a linear least-squares problem, with one or two
+/// variables, D-dimensional residuals and variables, and R right-hand sides.
+struct Term<const D: usize, const R: usize> {
+    vars: [(usize, SMatrix<f64, D, D>); 2],
+    count: usize,
+    r0: SMatrix<f64, D, R>,
+    weight: SMatrix<f64, D, D>,
+}
+
+/// Dense-block linear least squares over the free variables, several right-hand sides at once.
+/// Fixed variables' contributions are folded into r0 as terms are added.
+struct LinearLeastSquares<'a, const D: usize, const R: usize> {
+    fixed_value: &'a [Option<SMatrix<f64, D, R>>],
     block: Vec<Option<usize>>,
-    /// (variables, Jacobian blocks dim_r × dim, r0 dim_r × nrhs, W dim_r × dim_r)
-    terms: Vec<(Vec<usize>, Vec<DMatrix<f64>>, DMatrix<f64>, DMatrix<f64>)>,
+    terms: Vec<Term<D, R>>,
 }
 
-impl<'a> LinearLeastSquares<'a> {
-    fn new(dim: usize, nrhs: usize, fixed_value: &'a [Option<DMatrix<f64>>]) -> Self {
+impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
+    fn new(fixed_value: &'a [Option<SMatrix<f64, D, R>>], capacity: usize) -> Self {
         let mut block = vec![None; fixed_value.len()];
         let mut next = 0;
         for (v, f) in fixed_value.iter().enumerate() {
@@ -104,81 +128,94 @@ impl<'a> LinearLeastSquares<'a> {
                 next += 1;
             }
         }
-        Self { dim, nrhs, fixed_value, block, terms: Vec::new() }
+        Self {
+            fixed_value,
+            block,
+            terms: Vec::with_capacity(capacity),
+        }
     }
 
-    fn add(&mut self, vars: &[(usize, DMatrix<f64>)], mut r0: DMatrix<f64>, weight: DMatrix<f64>) {
-        let mut free_vars = Vec::new();
-        let mut jacobians = Vec::new();
-        for (v, j) in vars {
-            match &self.fixed_value[*v] {
+    fn add(
+        &mut self,
+        vars: &[(usize, SMatrix<f64, D, D>)],
+        mut r0: SMatrix<f64, D, R>,
+        weight: SMatrix<f64, D, D>,
+    ) {
+        let mut term = Term {
+            vars: [(0, SMatrix::zeros()); 2],
+            count: 0,
+            r0,
+            weight,
+        };
+        for &(v, j) in vars {
+            match &self.fixed_value[v] {
                 Some(x) => r0 += j * x,
                 None => {
-                    free_vars.push(*v);
-                    jacobians.push(j.clone());
+                    term.vars[term.count] = (v, j);
+                    term.count += 1;
                 }
             }
         }
-        if !free_vars.is_empty() {
-            self.terms.push((free_vars, jacobians, r0, weight));
+        term.r0 = r0;
+        if term.count > 0 {
+            self.terms.push(term);
         }
     }
 
-    /// Solution per variable (dim × nrhs); fixed variables get their fixed value.
-    fn solve(self) -> Option<Vec<DMatrix<f64>>> {
+    /// Solution per variable; fixed variables get their fixed value.
+    fn solve(self, ordering: &BlockOrdering) -> Option<Vec<SMatrix<f64, D, R>>> {
         let nb = self.block.iter().flatten().count();
         let mut adjacency = vec![Vec::new(); nb];
-        for (vars, ..) in &self.terms {
-            for &a in vars {
-                for &b in vars {
-                    if a != b {
-                        adjacency[self.block[a]?].push(self.block[b]?);
-                    }
-                }
+        for t in &self.terms {
+            if t.count == 2 {
+                let (a, b) = (self.block[t.vars[0].0]?, self.block[t.vars[1].0]?);
+                adjacency[a].push(b);
+                adjacency[b].push(a);
             }
         }
-        let pattern = BlockPattern::new(&vec![self.dim; nb], &adjacency);
-        let d = self.dim;
+        let pattern = BlockPattern::with_ordering(&vec![D; nb], &adjacency, ordering);
         let mut h = vec![0.0; pattern.nnz()];
-        let mut rhs = vec![DMatrix::<f64>::zeros(pattern.n, 1); self.nrhs];
-        for (vars, jacobians, r0, w) in &self.terms {
-            let wj: Vec<DMatrix<f64>> = jacobians.iter().map(|j| w * j).collect();
-            for (ka, &va) in vars.iter().enumerate() {
+        let mut rhs = vec![vec![0.0; pattern.n]; R];
+        for t in &self.terms {
+            let vars = &t.vars[..t.count];
+            for &(va, ja) in vars {
                 let pa = pattern.position[self.block[va]?];
-                let g = -(jacobians[ka].transpose() * w * r0);
-                for c in 0..self.nrhs {
-                    for q in 0..d {
+                let jtw = ja.transpose() * t.weight;
+                let g = -(jtw * t.r0);
+                for c in 0..R {
+                    for q in 0..D {
                         rhs[c][pattern.offset[pa] + q] += g[(q, c)];
                     }
                 }
-                for (kb, &vb) in vars.iter().enumerate() {
+                for &(vb, jb) in vars {
                     let pb = pattern.position[self.block[vb]?];
                     if pa < pb {
                         continue;
                     }
-                    let hab = jacobians[ka].transpose() * &wj[kb];
+                    let hab = jtw * jb;
                     let pair = pattern.pair(pa, pb)?;
-                    for q in 0..d {
-                        let rows = if pa == pb { q..d } else { 0..d };
-                        for r in rows {
+                    for q in 0..D {
+                        let rows = if pa == pb { q } else { 0 };
+                        for r in rows..D {
                             h[pattern.value_index(pair, pa == pb, r, q)] += hab[(r, q)];
                         }
                     }
                 }
             }
         }
-        let mut chol = SparseCholesky::analyze(&pattern, SupernodalThreshold::AUTO).ok()?;
+        let mut chol =
+            SparseCholesky::analyze(&pattern, SupernodalThreshold::FORCE_SUPERNODAL).ok()?;
         chol.factorize(&pattern, &h).ok()?;
         for r in rhs.iter_mut() {
-            chol.solve_in_place(r.as_mut_slice());
+            chol.solve_in_place(r);
         }
         let mut out = Vec::with_capacity(self.fixed_value.len());
         for (v, fixed) in self.fixed_value.iter().enumerate() {
             out.push(match fixed {
-                Some(x) => x.clone(),
+                Some(x) => *x,
                 None => {
-                    let p = pattern.position[self.block[v]?];
-                    DMatrix::from_fn(d, self.nrhs, |q, c| rhs[c][pattern.offset[p] + q])
+                    let o = pattern.offset[pattern.position[self.block[v]?]];
+                    SMatrix::<f64, D, R>::from_fn(|q, c| rhs[c][o + q])
                 }
             });
         }
@@ -186,19 +223,36 @@ impl<'a> LinearLeastSquares<'a> {
     }
 }
 
-fn scalar(v: f64) -> DMatrix<f64> {
-    DMatrix::from_element(1, 1, v)
-}
-
-fn chordal_2d(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Option<Values> {
+fn chordal_2d(
+    factors: &[FactorEntry],
+    values: &Values,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+) -> Option<Values> {
     let edges = collect_edges(
         factors,
         values,
-        |f| f.factor.as_any().downcast_ref::<BetweenSe2>().map(|b| b.measurement),
-        |f| f.factor.as_any().downcast_ref::<PriorSe2>().map(|p| p.measurement),
+        |f| {
+            f.factor
+                .as_any()
+                .downcast_ref::<BetweenSe2>()
+                .map(|b| b.measurement)
+        },
+        |f| {
+            f.factor
+                .as_any()
+                .downcast_ref::<PriorSe2>()
+                .map(|p| p.measurement)
+        },
     )?;
     let n = values.len();
-    let pose = |v: usize| *values.variable(v).as_any().downcast_ref::<Se2>().expect("checked kind");
+    let pose = |v: usize| {
+        *values
+            .variable(v)
+            .as_any()
+            .downcast_ref::<Se2>()
+            .expect("checked kind")
+    };
     // Unwrapped tree orientations by BFS from the anchors (fixed variables, then priors).
     let mut adjacency: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
     let mut tree: Vec<Option<f64>> = vec![None; n];
@@ -233,116 +287,139 @@ fn chordal_2d(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Optio
         }
     }
     let tree: Vec<f64> = tree.into_iter().map(|t| t.unwrap_or(0.0)).collect();
-    let fixed_theta: Vec<Option<DMatrix<f64>>> =
-        (0..n).map(|v| fixed[v].then(|| scalar(tree[v]))).collect();
-    let mut rot = LinearLeastSquares::new(1, 1, &fixed_theta);
-    for e in &edges {
-        let w = marginal_information(&e.information, 2, 1)?;
+    let one = SMatrix::<f64, 1, 1>::identity();
+    let fixed_theta: Vec<Option<SMatrix<f64, 1, 1>>> = (0..n)
+        .map(|v| fixed[v].then(|| SMatrix::from_element(tree[v])))
+        .collect();
+    let mut rot = LinearLeastSquares::new(&fixed_theta, edges.len());
+    let weights: Vec<(SMatrix<f64, 1, 1>, Matrix2<f64>)> = edges
+        .iter()
+        .map(|e| {
+            Some((
+                marginal_information::<1>(&e.information, 2)?,
+                marginal_information::<2>(&e.information, 0)?,
+            ))
+        })
+        .collect::<Option<_>>()?;
+    for (e, (w, _)) in edges.iter().zip(&weights) {
+        let unwrap = |from_theta: f64| {
+            let k = ((tree[e.to] - from_theta - e.measurement.theta) / (2.0 * PI)).round();
+            SMatrix::from_element(-(e.measurement.theta + 2.0 * PI * k))
+        };
         match e.from {
-            Some(i) => {
-                let k = ((tree[e.to] - tree[i] - e.measurement.theta) / (2.0 * PI)).round();
-                let target = e.measurement.theta + 2.0 * PI * k;
-                rot.add(&[(e.to, scalar(1.0)), (i, scalar(-1.0))], scalar(-target), w);
-            }
-            None => {
-                let k = ((tree[e.to] - e.measurement.theta) / (2.0 * PI)).round();
-                rot.add(&[(e.to, scalar(1.0))], scalar(-(e.measurement.theta + 2.0 * PI * k)), w);
-            }
+            Some(i) => rot.add(&[(e.to, one), (i, -one)], unwrap(tree[i]), *w),
+            None => rot.add(&[(e.to, one)], unwrap(0.0), *w),
         }
     }
-    let theta: Vec<f64> = rot.solve()?.iter().map(|m| m[(0, 0)]).collect();
+    let theta: Vec<f64> = rot.solve(ordering)?.iter().map(|m| m[(0, 0)]).collect();
 
-    let fixed_t: Vec<Option<DMatrix<f64>>> =
-        (0..n).map(|v| fixed[v].then(|| DMatrix::from_column_slice(2, 1, &[pose(v).x, pose(v).y]))).collect();
-    let mut trans = LinearLeastSquares::new(2, 1, &fixed_t);
-    for e in &edges {
-        let w = marginal_information(&e.information, 0, 2)?;
-        let z = DMatrix::from_column_slice(2, 1, &[e.measurement.x, e.measurement.y]);
-        let frame = e.from.map(|i| theta[i]).unwrap_or(0.0);
-        let rt = to_dmatrix2(&rotation_matrix_2d(frame).transpose());
+    let fixed_t: Vec<Option<Vector2<f64>>> = (0..n)
+        .map(|v| fixed[v].then(|| Vector2::new(pose(v).x, pose(v).y)))
+        .collect();
+    let mut trans = LinearLeastSquares::new(&fixed_t, edges.len());
+    for (e, (_, w)) in edges.iter().zip(&weights) {
+        let z = Vector2::new(e.measurement.x, e.measurement.y);
         match e.from {
             // R_iᵀ(t_j − t_i) − t_ij
-            Some(i) => trans.add(&[(e.to, rt.clone()), (i, -rt)], -z, w),
-            None => {
-                let target = to_dmatrix2(&rotation_matrix_2d(0.0)) * z;
-                trans.add(&[(e.to, rt)], -target, w)
+            Some(i) => {
+                let rt = rotation_matrix_2d(theta[i]).transpose();
+                trans.add(&[(e.to, rt), (i, -rt)], -z, *w)
             }
+            None => trans.add(&[(e.to, Matrix2::identity())], -z, *w),
         }
     }
-    let t = trans.solve()?;
+    let t = trans.solve(ordering)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {
-            out.set(v, &Se2::new(t[v][(0, 0)], t[v][(1, 0)], theta[v]));
+            out.set(v, &Se2::new(t[v].x, t[v].y, theta[v]));
         }
     }
     Some(out)
 }
 
-fn to_dmatrix2(m: &Matrix2<f64>) -> DMatrix<f64> {
-    DMatrix::from_column_slice(2, 2, m.as_slice())
-}
-
-fn to_dmatrix3(m: &Matrix3<f64>) -> DMatrix<f64> {
-    DMatrix::from_column_slice(3, 3, m.as_slice())
-}
-
-fn chordal_3d(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Option<Values> {
+fn chordal_3d(
+    factors: &[FactorEntry],
+    values: &Values,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+) -> Option<Values> {
     let edges = collect_edges(
         factors,
         values,
-        |f| f.factor.as_any().downcast_ref::<BetweenSe3>().map(|b| b.measurement),
-        |f| f.factor.as_any().downcast_ref::<PriorSe3>().map(|p| p.measurement),
+        |f| {
+            f.factor
+                .as_any()
+                .downcast_ref::<BetweenSe3>()
+                .map(|b| b.measurement)
+        },
+        |f| {
+            f.factor
+                .as_any()
+                .downcast_ref::<PriorSe3>()
+                .map(|p| p.measurement)
+        },
     )?;
     let n = values.len();
-    let pose = |v: usize| *values.variable(v).as_any().downcast_ref::<Se3>().expect("checked kind");
-    let identity = DMatrix::<f64>::identity(3, 3);
+    let pose = |v: usize| {
+        *values
+            .variable(v)
+            .as_any()
+            .downcast_ref::<Se3>()
+            .expect("checked kind")
+    };
+    let identity = Matrix3::identity();
     // Unknown per pose: Rᵀ (its columns are the rows of R), one right-hand side per row.
-    let fixed_r: Vec<Option<DMatrix<f64>>> =
-        (0..n).map(|v| fixed[v].then(|| to_dmatrix3(&pose(v).rotation_matrix().transpose()))).collect();
-    let mut rot = LinearLeastSquares::new(3, 3, &fixed_r);
+    let fixed_r: Vec<Option<Matrix3<f64>>> = (0..n)
+        .map(|v| fixed[v].then(|| pose(v).rotation_matrix().transpose()))
+        .collect();
+    let mut rot = LinearLeastSquares::new(&fixed_r, edges.len());
     let weight = |info: &DMatrix<f64>, start: usize| {
         let trace: f64 = (start..start + 3).map(|k| info[(k, k)]).sum();
-        DMatrix::<f64>::identity(3, 3) * (trace / 3.0)
+        Matrix3::identity() * (trace / 3.0)
     };
     for e in &edges {
-        let rz = to_dmatrix3(&e.measurement.rotation_matrix());
+        let rz = e.measurement.rotation_matrix();
         let w = weight(&e.information, 3);
         match e.from {
             // R_j − R_i R_ij = 0, row k: x_j − R_ijᵀ x_i = 0 with x = (row k of R)ᵀ.
-            Some(i) => rot.add(&[(e.to, identity.clone()), (i, -rz.transpose())], DMatrix::zeros(3, 3), w),
-            None => rot.add(&[(e.to, identity.clone())], -rz.transpose(), w),
+            Some(i) => rot.add(
+                &[(e.to, identity), (i, -rz.transpose())],
+                Matrix3::zeros(),
+                w,
+            ),
+            None => rot.add(&[(e.to, identity)], -rz.transpose(), w),
         }
     }
     let rotations: Vec<Matrix3<f64>> = rot
-        .solve()?
+        .solve(ordering)?
         .iter()
-        .map(|rt| project_to_so3(&Matrix3::from_iterator(rt.iter().copied()).transpose()))
+        .map(|rt| project_to_so3(&rt.transpose()))
         .collect();
 
-    let fixed_t: Vec<Option<DMatrix<f64>>> =
-        (0..n).map(|v| fixed[v].then(|| DMatrix::from_column_slice(3, 1, pose(v).translation.as_slice()))).collect();
-    let mut trans = LinearLeastSquares::new(3, 1, &fixed_t);
+    let fixed_t: Vec<Option<Vector3<f64>>> = (0..n)
+        .map(|v| fixed[v].then(|| pose(v).translation))
+        .collect();
+    let mut trans = LinearLeastSquares::new(&fixed_t, edges.len());
     for e in &edges {
         let w = weight(&e.information, 0);
         match e.from {
-            Some(i) => {
-                let rel = rotations[i] * e.measurement.translation;
-                trans.add(&[(e.to, identity.clone()), (i, -identity.clone())], -DMatrix::from_column_slice(3, 1, rel.as_slice()), w)
-            }
-            None => trans.add(
-                &[(e.to, identity.clone())],
-                -DMatrix::from_column_slice(3, 1, e.measurement.translation.as_slice()),
+            Some(i) => trans.add(
+                &[(e.to, identity), (i, -identity)],
+                -(rotations[i] * e.measurement.translation),
                 w,
             ),
+            None => trans.add(&[(e.to, identity)], -e.measurement.translation, w),
         }
     }
-    let t = trans.solve()?;
+    let t = trans.solve(ordering)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {
-            let rotation = UnitQuaternion::from_matrix(&rotations[v]);
-            out.set(v, &Se3::new(rotation, Vector3::new(t[v][(0, 0)], t[v][(1, 0)], t[v][(2, 0)])));
+            out.set(
+                v,
+                &Se3::new(UnitQuaternion::from_matrix(&rotations[v]), t[v]),
+            );
         }
     }
     Some(out)

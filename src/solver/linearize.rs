@@ -4,7 +4,38 @@
 use crate::factors::{EvaluationError, FactorEntry};
 use crate::problem::{Key, Values, Variable};
 
-use super::structure::BlockPattern;
+use super::structure::{BlockOrdering, BlockPattern};
+
+/// The graph of free variables (numbered in index order, fixed ones skipped) that share a factor.
+pub fn free_adjacency(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Vec<Vec<usize>> {
+    let mut block = vec![None; values.len()];
+    let mut next = 0;
+    for v in 0..values.len() {
+        if !fixed[v] {
+            block[v] = Some(next);
+            next += 1;
+        }
+    }
+    let mut adjacency = vec![Vec::new(); next];
+    let mut blocks = Vec::with_capacity(8);
+    for f in factors {
+        blocks.clear();
+        blocks.extend(
+            f.factor
+                .keys()
+                .iter()
+                .filter_map(|&k| block[values.index_of(k).expect("validated")]),
+        );
+        for &a in &blocks {
+            for &b in &blocks {
+                if a != b {
+                    adjacency[a].push(b);
+                }
+            }
+        }
+    }
+    adjacency
+}
 
 /// Maps problem variables to blocks of the linear system; fixed variables get none.
 #[derive(Debug)]
@@ -27,6 +58,17 @@ pub struct SystemLayout {
 impl SystemLayout {
     /// `fixed[v]` says whether variable `v` is held constant in this solve.
     pub fn new(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Self {
+        let ordering = BlockOrdering::amd(&free_adjacency(factors, values, fixed));
+        Self::with_ordering(factors, values, fixed, &ordering)
+    }
+
+    /// As [`SystemLayout::new`] with an ordering of [`free_adjacency`]'s graph computed earlier.
+    pub fn with_ordering(
+        factors: &[FactorEntry],
+        values: &Values,
+        fixed: &[bool],
+        ordering: &BlockOrdering,
+    ) -> Self {
         let free: Vec<usize> = (0..values.len()).filter(|&v| !fixed[v]).collect();
         let mut block_of_var = vec![None; values.len()];
         for (b, &v) in free.iter().enumerate() {
@@ -38,8 +80,12 @@ impl SystemLayout {
         let (mut max_residual, mut max_cols) = (0, 0);
         factor_start.push(0);
         for f in factors {
-            let vars: Vec<usize> =
-                f.factor.keys().iter().map(|&k| values.index_of(k).expect("factor keys were validated")).collect();
+            let vars: Vec<usize> = f
+                .factor
+                .keys()
+                .iter()
+                .map(|&k| values.index_of(k).expect("factor keys were validated"))
+                .collect();
             let blocks: Vec<usize> = vars.iter().filter_map(|&v| block_of_var[v]).collect();
             for &a in &blocks {
                 for &b in &blocks {
@@ -53,9 +99,15 @@ impl SystemLayout {
             factor_vars.extend(vars);
             factor_start.push(factor_vars.len());
         }
-        let dims: Vec<usize> = free.iter().map(|&v| values.variable(v).tangent_dim()).collect();
-        let pattern = BlockPattern::new(&dims, &adjacency);
-        let position_of_var: Vec<Option<usize>> = block_of_var.iter().map(|b| b.map(|b| pattern.position[b])).collect();
+        let dims: Vec<usize> = free
+            .iter()
+            .map(|&v| values.variable(v).tangent_dim())
+            .collect();
+        let pattern = BlockPattern::with_ordering(&dims, &adjacency, ordering);
+        let position_of_var: Vec<Option<usize>> = block_of_var
+            .iter()
+            .map(|b| b.map(|b| pattern.position[b]))
+            .collect();
         let var_at: Vec<usize> = pattern.block_at.iter().map(|&b| free[b]).collect();
         let mut slot_start = Vec::with_capacity(factors.len() + 1);
         let mut slots = Vec::new();
@@ -66,7 +118,9 @@ impl SystemLayout {
                 for (lj, &vj) in vars.iter().enumerate() {
                     if let (Some(a), Some(b)) = (position_of_var[vi], position_of_var[vj]) {
                         if a >= b {
-                            let pair = pattern.pair(a, b).expect("pattern holds every factor's pairs");
+                            let pair = pattern
+                                .pair(a, b)
+                                .expect("pattern holds every factor's pairs");
                             slots.push((li as u8, lj as u8, pair));
                         }
                     }
@@ -103,7 +157,9 @@ impl SystemLayout {
     pub fn retract(&self, values: &mut Values, delta: &[f64]) {
         for (p, &v) in self.var_at.iter().enumerate() {
             let o = self.pattern.offset[p];
-            values.variable_mut(v).retract(&delta[o..o + self.pattern.dim[p]]);
+            values
+                .variable_mut(v)
+                .retract(&delta[o..o + self.pattern.dim[p]]);
         }
     }
 }
@@ -120,7 +176,12 @@ pub struct Scratch {
 impl Scratch {
     pub fn new(layout: &SystemLayout) -> Self {
         let (d, c) = (layout.max_residual, layout.max_cols);
-        Self { error: vec![0.0; d], residual: vec![0.0; d], jacobian: vec![0.0; d * c], whitened: vec![0.0; d * c] }
+        Self {
+            error: vec![0.0; d],
+            residual: vec![0.0; d],
+            jacobian: vec![0.0; d * c],
+            whitened: vec![0.0; d * c],
+        }
     }
 }
 
@@ -167,8 +228,18 @@ pub fn linearize(
             col_offsets[k] = cols;
             cols += r.tangent_dim();
         }
-        let Scratch { error, residual, jacobian, whitened } = scratch;
-        let (e, r, jac, wj) = (&mut error[..d], &mut residual[..d], &mut jacobian[..d * cols], &mut whitened[..d * cols]);
+        let Scratch {
+            error,
+            residual,
+            jacobian,
+            whitened,
+        } = scratch;
+        let (e, r, jac, wj) = (
+            &mut error[..d],
+            &mut residual[..d],
+            &mut jacobian[..d * cols],
+            &mut whitened[..d * cols],
+        );
         entry.factor.evaluate(&refs, e, Some(jac))?;
         entry.sqrt_information.whiten_vector(e, r);
         entry.sqrt_information.whiten_jacobian(jac, cols, wj);
@@ -192,7 +263,10 @@ pub fn linearize(
         // H_ab += J_iᵀ J_j
         for &(li, lj, pair) in &layout.slots[layout.slot_start[f]..layout.slot_start[f + 1]] {
             let (vi, vj) = (vars[li as usize], vars[lj as usize]);
-            let (a, bpos) = (layout.position_of_var[vi].unwrap_or(0), layout.position_of_var[vj].unwrap_or(0));
+            let (a, bpos) = (
+                layout.position_of_var[vi].unwrap_or(0),
+                layout.position_of_var[vj].unwrap_or(0),
+            );
             let diagonal = a == bpos;
             let (ci, cj) = (col_offsets[li as usize], col_offsets[lj as usize]);
             let (da, db) = (pattern.dim[a], pattern.dim[bpos]);

@@ -35,13 +35,21 @@ pub enum SolverError {
 }
 
 /// `Σ ρ(eᵀΩe)` over `factors` at `values`, looking keys up by hash (for one-off evaluations).
-pub fn evaluate_chi2(factors: &[FactorEntry], values: &Values, _hint: Option<()>) -> Result<f64, EvaluationError> {
+pub fn evaluate_chi2(
+    factors: &[FactorEntry],
+    values: &Values,
+    _hint: Option<()>,
+) -> Result<f64, EvaluationError> {
     let mut total = 0.0;
     let mut e = Vec::new();
     let mut w = Vec::new();
     for f in factors {
-        let refs: Vec<&dyn Variable> =
-            f.factor.keys().iter().map(|&k| values.get(k).expect("factor keys were validated")).collect();
+        let refs: Vec<&dyn Variable> = f
+            .factor
+            .keys()
+            .iter()
+            .map(|&k| values.get(k).expect("factor keys were validated"))
+            .collect();
         let d = f.factor.residual_dim();
         e.resize(d, 0.0);
         w.resize(d, 0.0);

@@ -12,9 +12,14 @@ use faer::sparse::linalg::SupernodalThreshold;
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::gauge::anchor_components;
 use super::initialize;
-use super::linearize::{chi2_with_layout, linearize, symmetric_multiply, Scratch, SystemLayout};
+use super::linearize::{
+    chi2_with_layout, free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout,
+};
 use super::options::{Initialization, Method, SolverOptions};
-use super::summary::{IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions};
+use super::structure::BlockOrdering;
+use super::summary::{
+    IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions,
+};
 use super::{evaluate_chi2, SolverError};
 use crate::problem::{Problem, Values};
 
@@ -31,15 +36,26 @@ pub fn optimize(
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
     }
+
+    // One fill-reducing order of the variable graph serves the initialisation and the solve.
+    let ordering = BlockOrdering::amd(&free_adjacency(problem.factors(), &problem.values, &fixed));
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
-    let (init_label, initialized_chi2) = run_initialization(problem, &fixed, options.initialization, initial_chi2)?;
+    let (init_label, initialized_chi2) = run_initialization(
+        problem,
+        &fixed,
+        &ordering,
+        options.initialization,
+        initial_chi2,
+    )?;
     timings.initialization_seconds = init_start.elapsed().as_secs_f64();
 
     let prep = Instant::now();
-    let layout = SystemLayout::new(problem.factors(), &problem.values, &fixed);
-    let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::AUTO)?;
+    let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &ordering);
+    // Supernodal on every pattern we measured: the block ordering makes variables supernodes
+    // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
+    let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::FORCE_SUPERNODAL)?;
     timings.preprocess_seconds += prep.elapsed().as_secs_f64();
 
     let n = layout.n();
@@ -61,7 +77,9 @@ pub fn optimize(
     let outcome = solver.run(factors, &mut values, options, on_iteration);
     problem.values = values;
     let (chi2, termination) = outcome?;
-    let Iterations { log, timings, chol, .. } = solver;
+    let Iterations {
+        log, timings, chol, ..
+    } = solver;
 
     let successful = log.iter().filter(|r| r.accepted).count();
     let free = layout.var_at.len();
@@ -80,9 +98,17 @@ pub fn optimize(
         num_variables: problem.values.len(),
         num_free_variables: free,
         num_factors: problem.factors().len(),
-        num_residuals: problem.factors().iter().map(|f| f.factor.residual_dim()).sum(),
+        num_residuals: problem
+            .factors()
+            .iter()
+            .map(|f| f.factor.residual_dim())
+            .sum(),
         num_parameters: n,
-        jacobian_nnz_blocks: problem.factors().iter().map(|f| f.factor.keys().len()).sum(),
+        jacobian_nnz_blocks: problem
+            .factors()
+            .iter()
+            .map(|f| f.factor.keys().len())
+            .sum(),
         hessian_nnz: layout.pattern.nnz(),
         factor_nnz: chol.factor_nnz(),
         initial_chi2,
@@ -105,13 +131,15 @@ const AUTO_INIT_GAIN: f64 = 10.0;
 fn run_initialization(
     problem: &mut Problem,
     fixed: &[bool],
+    ordering: &BlockOrdering,
     mode: Initialization,
     initial_chi2: f64,
 ) -> Result<(String, Option<f64>), SolverError> {
     if mode == Initialization::None {
         return Ok(("none".into(), None));
     }
-    let Some(estimate) = initialize::chordal(problem.factors(), &problem.values, fixed) else {
+    let Some(estimate) = initialize::chordal(problem.factors(), &problem.values, fixed, ordering)
+    else {
         return Ok(("none (not a pose graph)".into(), None));
     };
     let chi2 = evaluate_chi2(problem.factors(), &estimate, None)?;
@@ -123,7 +151,10 @@ fn run_initialization(
         problem.values = estimate;
         Ok(("chordal".into(), Some(chi2)))
     } else {
-        Ok((format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"), Some(initial_chi2)))
+        Ok((
+            format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"),
+            Some(initial_chi2),
+        ))
     }
 }
 
@@ -161,12 +192,26 @@ struct StepTimes {
 
 impl Iterations<'_> {
     fn indeterminate(&self, values: &Values, e: NotPositiveDefinite) -> SolverError {
-        SolverError::IndeterminateSystem { keys: vec![self.layout.key_at_row(values, e.row)] }
+        SolverError::IndeterminateSystem {
+            keys: vec![self.layout.key_at_row(values, e.row)],
+        }
     }
 
-    fn linearize_at(&mut self, factors: &Factors, values: &Values, times: &mut StepTimes) -> Result<f64, SolverError> {
+    fn linearize_at(
+        &mut self,
+        factors: &Factors,
+        values: &Values,
+        times: &mut StepTimes,
+    ) -> Result<f64, SolverError> {
         let t = Instant::now();
-        let chi2 = linearize(factors, values, self.layout, &mut self.scratch, &mut self.h, &mut self.b)?;
+        let chi2 = linearize(
+            factors,
+            values,
+            self.layout,
+            &mut self.scratch,
+            &mut self.h,
+            &mut self.b,
+        )?;
         let s = t.elapsed().as_secs_f64();
         self.timings.linearize_seconds += s;
         times.linearize += s;
@@ -180,11 +225,19 @@ impl Iterations<'_> {
         self.layout.retract(&mut self.trial, &self.delta);
         let chi2 = chi2_with_layout(factors, &self.trial, self.layout, &mut self.scratch)?;
         self.timings.evaluate_seconds += t.elapsed().as_secs_f64();
-        Ok(if chi2.is_finite() { chi2 } else { f64::INFINITY })
+        Ok(if chi2.is_finite() {
+            chi2
+        } else {
+            f64::INFINITY
+        })
     }
 
     /// Factorises H + λ·diag(H) (H itself when λ = 0) and solves for `delta` = (H + λD)⁻¹ b.
-    fn solve_damped(&mut self, lambda: f64, times: &mut StepTimes) -> Result<(), NotPositiveDefinite> {
+    fn solve_damped(
+        &mut self,
+        lambda: f64,
+        times: &mut StepTimes,
+    ) -> Result<(), NotPositiveDefinite> {
         let pattern = &self.layout.pattern;
         let t = Instant::now();
         let result = if lambda > 0.0 {
@@ -213,7 +266,14 @@ impl Iterations<'_> {
     /// λ·ΔᵀDΔ with D the clamped diagonal of H.
     fn damping_term(&self, lambda: f64) -> f64 {
         let p = &self.layout.pattern;
-        (0..p.n).map(|c| lambda * self.h[p.diagonal_index(c)].clamp(1e-6, 1e32) * self.delta[c] * self.delta[c]).sum()
+        (0..p.n)
+            .map(|c| {
+                lambda
+                    * self.h[p.diagonal_index(c)].clamp(1e-6, 1e32)
+                    * self.delta[c]
+                    * self.delta[c]
+            })
+            .sum()
     }
 
     fn run(
@@ -226,22 +286,40 @@ impl Iterations<'_> {
         let mut times = StepTimes::default();
         let mut chi2 = self.linearize_at(factors, values, &mut times)?;
         if self.layout.n() == 0 || factors.is_empty() {
-            return Ok((chi2, termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise")));
+            return Ok((
+                chi2,
+                termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise"),
+            ));
         }
         // LM tries an undamped (Gauss-Newton) step first; damping starts at the first rejection.
-        let mut lambda = if options.method == Method::LevenbergMarquardt { 0.0 } else { options.initial_lambda };
+        let mut lambda = if options.method == Method::LevenbergMarquardt {
+            0.0
+        } else {
+            options.initial_lambda
+        };
         let mut nu = 2.0;
         let mut radius = options.initial_trust_radius;
         let mut have_gn_step = false;
         for iteration in 1..=options.max_iterations {
             let gradient = max_abs(&self.b);
             if gradient <= options.gradient_tolerance {
-                return Ok((chi2, termination(TerminationReason::GradientTolerance, gradient, options.gradient_tolerance,
-                    &format!("gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}", options.gradient_tolerance))));
+                return Ok((
+                    chi2,
+                    termination(
+                        TerminationReason::GradientTolerance,
+                        gradient,
+                        options.gradient_tolerance,
+                        &format!(
+                            "gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}",
+                            options.gradient_tolerance
+                        ),
+                    ),
+                ));
             }
             let (accepted, trial_chi2, predicted) = match options.method {
                 Method::GaussNewton => {
-                    self.solve_damped(0.0, &mut times).map_err(|e| self.indeterminate(values, e))?;
+                    self.solve_damped(0.0, &mut times)
+                        .map_err(|e| self.indeterminate(values, e))?;
                     let trial = self.evaluate_trial(factors, values)?;
                     if !trial.is_finite() {
                         return Err(SolverError::Diverged { iteration });
@@ -300,7 +378,11 @@ impl Iterations<'_> {
                 std::mem::swap(values, &mut self.trial);
                 have_gn_step = false;
             }
-            let relative_decrease = if accepted { (previous - trial_chi2) / previous.max(f64::MIN_POSITIVE) } else { 0.0 };
+            let relative_decrease = if accepted {
+                (previous - trial_chi2) / previous.max(f64::MIN_POSITIVE)
+            } else {
+                0.0
+            };
             // Relinearise at the new point now: its gradient feeds the next iteration's test.
             if accepted {
                 chi2 = self.linearize_at(factors, values, &mut times)?;
@@ -328,23 +410,58 @@ impl Iterations<'_> {
                         &format!("function tolerance reached: relative decrease {relative_decrease:.3e} <= {:.3e}", options.function_tolerance))));
                 }
                 if step_norm <= options.parameter_tolerance {
-                    return Ok((chi2, termination(TerminationReason::ParameterTolerance, step_norm, options.parameter_tolerance,
-                        &format!("parameter tolerance reached: |dx|inf = {step_norm:.3e} <= {:.3e}", options.parameter_tolerance))));
+                    return Ok((
+                        chi2,
+                        termination(
+                            TerminationReason::ParameterTolerance,
+                            step_norm,
+                            options.parameter_tolerance,
+                            &format!(
+                                "parameter tolerance reached: |dx|inf = {step_norm:.3e} <= {:.3e}",
+                                options.parameter_tolerance
+                            ),
+                        ),
+                    ));
                 }
             }
             if lambda > 1e16 || radius < 1e-16 {
-                let (value, threshold) = if lambda > 1e16 { (lambda, 1e16) } else { (radius, 1e-16) };
-                return Ok((chi2, termination(TerminationReason::NoProgress, value, threshold,
-                    "no acceptable step: damping / trust region out of range")));
+                let (value, threshold) = if lambda > 1e16 {
+                    (lambda, 1e16)
+                } else {
+                    (radius, 1e-16)
+                };
+                return Ok((
+                    chi2,
+                    termination(
+                        TerminationReason::NoProgress,
+                        value,
+                        threshold,
+                        "no acceptable step: damping / trust region out of range",
+                    ),
+                ));
             }
         }
         let n = options.max_iterations as f64;
-        Ok((chi2, termination(TerminationReason::MaxIterations, n, n,
-            &format!("maximum number of iterations reached ({})", options.max_iterations))))
+        Ok((
+            chi2,
+            termination(
+                TerminationReason::MaxIterations,
+                n,
+                n,
+                &format!(
+                    "maximum number of iterations reached ({})",
+                    options.max_iterations
+                ),
+            ),
+        ))
     }
 
     /// Gauss-Newton step for Dogleg into `work`; a singular H gets the smallest damping that works.
-    fn dogleg_gauss_newton_step(&mut self, values: &Values, times: &mut StepTimes) -> Result<(), SolverError> {
+    fn dogleg_gauss_newton_step(
+        &mut self,
+        values: &Values,
+        times: &mut StepTimes,
+    ) -> Result<(), SolverError> {
         let mut mu = 0.0;
         loop {
             match self.solve_damped(mu, times) {
@@ -408,6 +525,16 @@ fn increase_damping(lambda: f64, nu: &mut f64, restart: f64) -> f64 {
     next
 }
 
-fn termination(reason: TerminationReason, value: f64, threshold: f64, message: &str) -> Termination {
-    Termination { reason, value, threshold, message: message.to_string() }
+fn termination(
+    reason: TerminationReason,
+    value: f64,
+    threshold: f64,
+    message: &str,
+) -> Termination {
+    Termination {
+        reason,
+        value,
+        threshold,
+        message: message.to_string(),
+    }
 }

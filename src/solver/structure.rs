@@ -35,8 +35,22 @@ impl BlockPattern {
     /// `dims[i]` is the dimension of original block `i`; `adjacency[i]` lists the blocks it shares
     /// a factor with (either direction, duplicates allowed).
     pub fn new(dims: &[usize], adjacency: &[Vec<usize>]) -> Self {
+        Self::with_ordering(dims, adjacency, &BlockOrdering::amd(adjacency))
+    }
+
+    /// As [`BlockPattern::new`] with an ordering computed earlier for the same block graph.
+    pub fn with_ordering(
+        dims: &[usize],
+        adjacency: &[Vec<usize>],
+        ordering: &BlockOrdering,
+    ) -> Self {
         let nb = dims.len();
-        let (position, block_at) = block_amd(adjacency);
+        assert_eq!(
+            ordering.position.len(),
+            nb,
+            "ordering is for another block graph"
+        );
+        let (position, block_at) = (ordering.position.clone(), ordering.block_at.clone());
         let mut dim = vec![0; nb];
         let mut offset = vec![0; nb];
         let mut n = 0;
@@ -89,7 +103,17 @@ impl BlockPattern {
             }
             col_blocks.push(blocks);
         }
-        Self { position, block_at, dim, offset, n, col_ptr, row_idx, col_blocks, pair_cols }
+        Self {
+            position,
+            block_at,
+            dim,
+            offset,
+            n,
+            col_ptr,
+            row_idx,
+            col_blocks,
+            pair_cols,
+        }
     }
 
     pub fn nnz(&self) -> usize {
@@ -99,7 +123,10 @@ impl BlockPattern {
     /// Index into `pair_cols` of block (a, b), a ≥ b in elimination positions.
     pub fn pair(&self, a: usize, b: usize) -> Option<usize> {
         let blocks = &self.col_blocks[b];
-        blocks.binary_search_by_key(&a, |&(row, _)| row).ok().map(|k| blocks[k].1)
+        blocks
+            .binary_search_by_key(&a, |&(row, _)| row)
+            .ok()
+            .map(|k| blocks[k].1)
     }
 
     /// Value index of element (row r of block a, column q of block b) for a pair found by
@@ -125,6 +152,21 @@ impl BlockPattern {
             Ok(p) => p,
             Err(p) => p - 1,
         }
+    }
+}
+
+/// An elimination order of blocks: `position[block]` and its inverse `block_at[position]`.
+#[derive(Debug, Clone)]
+pub struct BlockOrdering {
+    pub position: Vec<usize>,
+    pub block_at: Vec<usize>,
+}
+
+impl BlockOrdering {
+    /// Approximate minimum degree on the block graph.
+    pub fn amd(adjacency: &[Vec<usize>]) -> Self {
+        let (position, block_at) = block_amd(adjacency);
+        Self { position, block_at }
     }
 }
 
@@ -159,7 +201,13 @@ fn block_amd(adjacency: &[Vec<usize>]) -> (Vec<usize>, Vec<usize>) {
     let mut fwd = vec![0usize; nb];
     let mut inv = vec![0usize; nb];
     let mut mem = MemBuffer::new(amd::order_scratch::<usize>(nb, row_idx.len()));
-    match amd::order(&mut fwd, &mut inv, pattern, amd::Control::default(), MemStack::new(&mut mem)) {
+    match amd::order(
+        &mut fwd,
+        &mut inv,
+        pattern,
+        amd::Control::default(),
+        MemStack::new(&mut mem),
+    ) {
         // fwd[new] = old, inv[old] = new.
         Ok(_) => (inv, fwd),
         Err(_) => identity(),
@@ -180,14 +228,20 @@ mod tests {
         let mut seen = vec![false; p.nnz()];
         for (i, nb) in adjacency.iter().enumerate() {
             for &j in nb.iter().chain(std::iter::once(&i)) {
-                let (a, b) = (p.position[i].max(p.position[j]), p.position[i].min(p.position[j]));
+                let (a, b) = (
+                    p.position[i].max(p.position[j]),
+                    p.position[i].min(p.position[j]),
+                );
                 let pair = p.pair(a, b).expect("pair present");
                 for q in 0..p.dim[b] {
                     let rows = if a == b { q..p.dim[a] } else { 0..p.dim[a] };
                     for r in rows {
                         let idx = p.value_index(pair, a == b, r, q);
                         assert_eq!(p.row_idx[idx], p.offset[a] + r);
-                        assert!(idx >= p.col_ptr[p.offset[b] + q] && idx < p.col_ptr[p.offset[b] + q + 1]);
+                        assert!(
+                            idx >= p.col_ptr[p.offset[b] + q]
+                                && idx < p.col_ptr[p.offset[b] + q + 1]
+                        );
                         seen[idx] = true;
                     }
                 }

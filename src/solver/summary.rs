@@ -46,7 +46,10 @@ pub struct Termination {
 
 impl Termination {
     pub fn converged(&self) -> bool {
-        !matches!(self.reason, TerminationReason::MaxIterations | TerminationReason::NoProgress)
+        !matches!(
+            self.reason,
+            TerminationReason::MaxIterations | TerminationReason::NoProgress
+        )
     }
 }
 
@@ -110,7 +113,13 @@ impl Summary {
         use std::fmt::Write;
         let _ = writeln!(s, "factord solver summary");
         let _ = writeln!(s, "{:<28}{:>20}{:>24}", "", "given", "used");
-        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "method", self.given_options.method.name(), self.used.method);
+        let _ = writeln!(
+            s,
+            "{:<28}{:>20}{:>24}",
+            "method",
+            self.given_options.method.name(),
+            self.used.method
+        );
         let _ = writeln!(
             s,
             "{:<28}{:>20}{:>24}",
@@ -118,19 +127,39 @@ impl Summary {
             format!("{:?}", self.given_options.initialization).to_lowercase(),
             self.used.initialization
         );
-        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "linear solver", "", self.used.linear_solver);
-        let _ = writeln!(s, "{:<28}{:>20}{:>24}", "factorization", "", self.used.factorization);
+        let _ = writeln!(
+            s,
+            "{:<28}{:>20}{:>24}",
+            "linear solver", "", self.used.linear_solver
+        );
+        let _ = writeln!(
+            s,
+            "{:<28}{:>20}{:>24}",
+            "factorization", "", self.used.factorization
+        );
         let _ = writeln!(s, "{:<28}{:>20}{:>24}", "ordering", "", self.used.ordering);
         let _ = writeln!(s, "{:<28}{:>20}{:>24}", "threads", "", self.used.threads);
         if !self.used.gauge_fixed.is_empty() {
-            let _ = writeln!(s, "gauge: no anchor given, fixed variable(s) {:?}", self.used.gauge_fixed);
+            let _ = writeln!(
+                s,
+                "gauge: no anchor given, fixed variable(s) {:?}",
+                self.used.gauge_fixed
+            );
         }
         let _ = writeln!(
             s,
             "variables {} ({} free, {} parameters), factors {} ({} residuals)",
-            self.num_variables, self.num_free_variables, self.num_parameters, self.num_factors, self.num_residuals
+            self.num_variables,
+            self.num_free_variables,
+            self.num_parameters,
+            self.num_factors,
+            self.num_residuals
         );
-        let _ = writeln!(s, "H nnz (lower) {}, L nnz {}", self.hessian_nnz, self.factor_nnz);
+        let _ = writeln!(
+            s,
+            "H nnz (lower) {}, L nnz {}",
+            self.hessian_nnz, self.factor_nnz
+        );
         let _ = writeln!(s, "initial chi2 {:.6e}", self.initial_chi2);
         if let Some(c) = self.initialized_chi2 {
             let _ = writeln!(s, "after init   {c:.6e}");

@@ -20,7 +20,10 @@ pub fn data_file(relative: &str) -> Option<PathBuf> {
     if std::env::var("CI").is_ok_and(|v| v == "true") {
         panic!("dataset {} is missing and CI=true", path.display());
     }
-    eprintln!("skipping: dataset {} not found (set FACTORD_DATA)", path.display());
+    eprintln!(
+        "skipping: dataset {} not found (set FACTORD_DATA)",
+        path.display()
+    );
     None
 }
 
@@ -40,15 +43,32 @@ pub fn synthetic_manhattan(poses: usize, seed: u64) -> String {
     }
     let (sigma_t, sigma_r) = (0.05, 0.01);
     let noisy = |rng: &mut Rng, z: Se2| {
-        Se2::new(z.x + sigma_t * rng.normal(), z.y + sigma_t * rng.normal(), z.theta + sigma_r * rng.normal())
+        Se2::new(
+            z.x + sigma_t * rng.normal(),
+            z.y + sigma_t * rng.normal(),
+            z.theta + sigma_r * rng.normal(),
+        )
     };
-    let info = format!("{} 0 0 {} 0 {}", 1.0 / (sigma_t * sigma_t), 1.0 / (sigma_t * sigma_t), 1.0 / (sigma_r * sigma_r));
+    let info = format!(
+        "{} 0 0 {} 0 {}",
+        1.0 / (sigma_t * sigma_t),
+        1.0 / (sigma_t * sigma_t),
+        1.0 / (sigma_r * sigma_r)
+    );
     let mut edges = String::new();
     let mut guess = vec![Se2::identity()];
     for i in 1..poses {
         let z = noisy(&mut rng, truth[i - 1].between(&truth[i]));
         guess.push(guess[i - 1].compose(&z));
-        let _ = writeln!(edges, "EDGE_SE2 {} {} {} {} {} {info}", i - 1, i, z.x, z.y, z.theta);
+        let _ = writeln!(
+            edges,
+            "EDGE_SE2 {} {} {} {} {} {info}",
+            i - 1,
+            i,
+            z.x,
+            z.y,
+            z.theta
+        );
         for j in 0..i.saturating_sub(3) {
             let d = truth[j].between(&truth[i]);
             if d.x.hypot(d.y) < 1.1 && rng.uniform() < 0.5 {
