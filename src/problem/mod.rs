@@ -165,6 +165,6 @@ impl Problem {
 
     /// Total chi2 `Σ ρ(eᵀ Ω e)` at the current values.
     pub fn chi2(&self) -> f64 {
-        crate::solver::evaluate_chi2(self.factors(), &self.values, None).unwrap_or(f64::NAN)
+        crate::solver::evaluate_chi2(self.factors(), &self.values).unwrap_or(f64::NAN)
     }
 }

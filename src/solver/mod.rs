@@ -35,11 +35,7 @@ pub enum SolverError {
 }
 
 /// `Σ ρ(eᵀΩe)` over `factors` at `values`, looking keys up by hash (for one-off evaluations).
-pub fn evaluate_chi2(
-    factors: &[FactorEntry],
-    values: &Values,
-    _hint: Option<()>,
-) -> Result<f64, EvaluationError> {
+pub fn evaluate_chi2(factors: &[FactorEntry], values: &Values) -> Result<f64, EvaluationError> {
     let mut total = 0.0;
     let mut e = Vec::new();
     let mut w = Vec::new();

@@ -32,7 +32,7 @@ pub fn optimize(
     let start = Instant::now();
     let mut timings = Timings::default();
     let (fixed, gauge_fixed) = anchor_components(problem.factors(), &problem.values);
-    let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values, None)?;
+    let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values)?;
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
     }
@@ -142,7 +142,7 @@ fn run_initialization(
     else {
         return Ok(("none (not a pose graph)".into(), None));
     };
-    let chi2 = evaluate_chi2(problem.factors(), &estimate, None)?;
+    let chi2 = evaluate_chi2(problem.factors(), &estimate)?;
     let take = match mode {
         Initialization::Chordal => chi2.is_finite(),
         _ => chi2.is_finite() && chi2 * AUTO_INIT_GAIN < initial_chi2,
@@ -316,7 +316,7 @@ impl Iterations<'_> {
                     ),
                 ));
             }
-            let (accepted, trial_chi2, predicted) = match options.method {
+            let (accepted, trial_chi2, _predicted) = match options.method {
                 Method::GaussNewton => {
                     self.solve_damped(0.0, &mut times)
                         .map_err(|e| self.indeterminate(values, e))?;
@@ -371,7 +371,6 @@ impl Iterations<'_> {
                     }
                 }
             };
-            let _ = predicted;
             let step_norm = max_abs(&self.delta);
             let previous = chi2;
             if accepted {
