@@ -14,7 +14,8 @@ What is timed (all times are medians over --repeat runs from the file's initial 
   factord  `factord solve FILE [--edges E] --summary-json T --quiet [--factord-args ...]`, run
            --repeat times as separate processes; the summary's `solve_seconds` (optimisation
            only: preprocessing, initialisation and iterations, not file loading).
-  g2o      benches/reference/g2o_solve.py: initialize_optimization() + optimize(); gain 1e-6.
+  g2o      benches/reference/g2o_solve.py: optimize() (initialize_optimization() is reported
+           separately, not included); stop on relative chi2 gain < 1e-6.
   gtsam    benches/reference/gtsam_solve.py: optimizer construction + optimize(); relTol 1e-6.
            3D runs use --se3-info g2o (rotation information scaled so GTSAM minimises the same
            cost as g2o and factord up to O(theta^3)); otherwise the optima are not comparable.
