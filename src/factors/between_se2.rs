@@ -25,6 +25,8 @@ use crate::problem::{Key, Variable};
 pub struct BetweenSe2 {
     keys: [Key; 2],
     pub measurement: Se2,
+    /// sin θ_ij and cos θ_ij, so an evaluation needs one `sin_cos` instead of three.
+    measurement_sin_cos: (f64, f64),
 }
 
 impl BetweenSe2 {
@@ -32,6 +34,7 @@ impl BetweenSe2 {
         Self {
             keys: [from, to],
             measurement,
+            measurement_sin_cos: measurement.theta.sin_cos(),
         }
     }
 }
@@ -59,7 +62,7 @@ impl Factor for BetweenSe2 {
         let xj: &Se2 = expect_kind(variables, 1, "se2")?;
         let z = &self.measurement;
         let (si, ci) = xi.theta.sin_cos();
-        let (sz, cz) = z.theta.sin_cos();
+        let (sz, cz) = self.measurement_sin_cos;
         let dx = xj.x - xi.x;
         let dy = xj.y - xi.y;
         // a = R_iᵀ (t_j − t_i)
@@ -72,7 +75,7 @@ impl Factor for BetweenSe2 {
         error[2] = wrap_angle(xj.theta - xi.theta - z.theta);
         if let Some(j) = jacobian {
             // M = R_ijᵀ R_iᵀ = R(θ_i + θ_ij)ᵀ
-            let (sm, cm) = (xi.theta + z.theta).sin_cos();
+            let (sm, cm) = (si * cz + ci * sz, ci * cz - si * sz);
             // (∂R_iᵀ/∂θ)(t_j − t_i) = [−s dx + c dy, −c dx − s dy] = [a_y, −a_x]
             let gx = cz * ay - sz * ax;
             let gy = -sz * ay - cz * ax;

@@ -78,9 +78,17 @@ pub struct FactorEntry {
     pub sqrt_information: SqrtInformation,
     pub robust: Option<RobustKernel>,
     pub label: String,
+    /// Dense indices (into the problem's `Values`) of `factor.keys()`, resolved once on insertion
+    /// so the solver never hashes a key.
+    pub(crate) variables: Vec<usize>,
 }
 
 impl FactorEntry {
+    /// Indices into the problem's `Values` of the variables this factor touches, in key order.
+    pub fn variables(&self) -> &[usize] {
+        &self.variables
+    }
+
     /// Whitened, robustified squared error `ρ(‖R e‖²)` at `variables` (the chi2 contribution).
     pub fn chi2(
         &self,

@@ -23,6 +23,8 @@ pub struct SqrtInformation {
     dim: usize,
     /// Row-major upper-triangular `R`.
     r: Vec<f64>,
+    /// `R` is diagonal (most files' information is): whitening scales rows.
+    diagonal: bool,
 }
 
 impl SqrtInformation {
@@ -58,7 +60,17 @@ impl SqrtInformation {
                 r[i * dim + j] = l[(j, i)];
             }
         }
-        Ok(Self { dim, r })
+        Ok(Self::from_upper(dim, r))
+    }
+
+    fn from_upper(dim: usize, r: Vec<f64>) -> Self {
+        let diagonal = (0..dim).all(|i| (i + 1..dim).all(|j| r[i * dim + j] == 0.0));
+        Self { dim, r, diagonal }
+    }
+
+    /// `R`, row-major upper triangular.
+    pub fn upper(&self) -> &[f64] {
+        &self.r
     }
 
     pub fn identity(dim: usize) -> Self {
@@ -66,7 +78,7 @@ impl SqrtInformation {
         for i in 0..dim {
             r[i * dim + i] = 1.0;
         }
-        Self { dim, r }
+        Self::from_upper(dim, r)
     }
 
     pub fn dim(&self) -> usize {
@@ -82,6 +94,12 @@ impl SqrtInformation {
     /// `out = R e`.
     pub fn whiten_vector(&self, e: &[f64], out: &mut [f64]) {
         let d = self.dim;
+        if self.diagonal {
+            for i in 0..d {
+                out[i] = self.r[i * d + i] * e[i];
+            }
+            return;
+        }
         for i in 0..d {
             let row = &self.r[i * d..(i + 1) * d];
             out[i] = (i..d).map(|j| row[j] * e[j]).sum();
@@ -91,6 +109,18 @@ impl SqrtInformation {
     /// `out = R J` for a row-major `J` with `cols` columns.
     pub fn whiten_jacobian(&self, jacobian: &[f64], cols: usize, out: &mut [f64]) {
         let d = self.dim;
+        if self.diagonal {
+            for i in 0..d {
+                let rii = self.r[i * d + i];
+                for (o, v) in out[i * cols..(i + 1) * cols]
+                    .iter_mut()
+                    .zip(&jacobian[i * cols..(i + 1) * cols])
+                {
+                    *o = rii * v;
+                }
+            }
+            return;
+        }
         for i in 0..d {
             let out_row = &mut out[i * cols..(i + 1) * cols];
             out_row.fill(0.0);
@@ -123,6 +153,28 @@ mod tests {
         let got: f64 = w.iter().map(|v| v * v).sum();
         assert!((got - expected).abs() < 1e-12);
         assert!((s.information() - omega).amax() < 1e-12);
+    }
+
+    #[test]
+    fn diagonal_fast_path_matches_general_whitening() {
+        let diag = DMatrix::from_diagonal(&nalgebra::DVector::from_row_slice(&[4.0, 9.0, 0.25]));
+        let almost =
+            DMatrix::from_row_slice(3, 3, &[4.0, 1e-300, 0.0, 1e-300, 9.0, 0.0, 0.0, 0.0, 0.25]);
+        let (d, g) = (
+            SqrtInformation::from_information(&diag).unwrap(),
+            SqrtInformation::from_information(&almost).unwrap(),
+        );
+        assert!(d.diagonal && !g.diagonal);
+        let j: Vec<f64> = (0..12).map(|k| k as f64 * 0.7 - 3.0).collect();
+        let (mut jd, mut jg) = (vec![0.0; 12], vec![0.0; 12]);
+        d.whiten_jacobian(&j, 4, &mut jd);
+        g.whiten_jacobian(&j, 4, &mut jg);
+        assert!(jd.iter().zip(&jg).all(|(a, b)| (a - b).abs() < 1e-12));
+        let (mut ed, mut eg) = ([0.0; 3], [0.0; 3]);
+        d.whiten_vector(&[1.0, -2.0, 3.0], &mut ed);
+        g.whiten_vector(&[1.0, -2.0, 3.0], &mut eg);
+        assert_eq!(ed, [2.0, -6.0, 1.5]);
+        assert!(ed.iter().zip(&eg).all(|(a, b)| (a - b).abs() < 1e-12));
     }
 
     #[test]

@@ -134,11 +134,12 @@ impl Problem {
                 });
             }
         }
-        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
-        let vars: Vec<&dyn Variable> = keys
+        let variables: Vec<usize> = keys
             .iter()
-            .map(|&k| self.values.get(k).expect("checked above"))
+            .map(|&k| self.values.index_of(k).expect("checked above"))
             .collect();
+        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
+        let vars: Vec<&dyn Variable> = variables.iter().map(|&v| self.values.variable(v)).collect();
         let mut e = vec![0.0; factor.residual_dim()];
         if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
             return Err(ProblemError::NonFiniteMeasurement { factor: label });
@@ -148,6 +149,7 @@ impl Problem {
             sqrt_information,
             robust,
             label,
+            variables,
         });
         Ok(self.factors.len() - 1)
     }

@@ -22,12 +22,7 @@ pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>
     }
     let mut unary_anchor = Vec::new();
     for f in factors {
-        let idx: Vec<usize> = f
-            .factor
-            .keys()
-            .iter()
-            .filter_map(|&k| values.index_of(k))
-            .collect();
+        let idx = f.variables();
         if idx.len() == 1 {
             unary_anchor.push(idx[0]);
         }

@@ -18,11 +18,11 @@ use std::collections::VecDeque;
 use std::f64::consts::PI;
 
 use faer::sparse::linalg::SupernodalThreshold;
-use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{Matrix3, RowVector2, RowVector3, SMatrix, UnitQuaternion, Vector2};
 
 use super::cholesky::SparseCholesky;
 use super::structure::{BlockOrdering, BlockPattern};
-use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3};
+use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3, SqrtInformation};
 use crate::geometry::{rotation_matrix_2d, Se2, Se3};
 
 use crate::problem::Values;
@@ -30,7 +30,8 @@ use crate::problem::Values;
 /// The chordal estimate, or `None` when the problem is not a pure SE(2) or SE(3) pose graph, or a
 /// linear system turned out singular (then the given values are used).
 ///
-/// `ordering` is an elimination order of the free variables' graph ([`super::linearize::free_adjacency`]).
+/// `ordering` is the free variables' graph ([`super::linearize::free_adjacency`]) with its
+/// elimination order.
 pub fn chordal(
     factors: &[FactorEntry],
     values: &Values,
@@ -51,36 +52,35 @@ pub fn chordal(
 }
 
 /// A relative (or, with `from = None`, absolute) measurement between variable indices.
-struct Edge<M> {
+struct Edge<'a, M> {
     from: Option<usize>,
     to: usize,
     measurement: M,
-    information: DMatrix<f64>,
+    sqrt_information: &'a SqrtInformation,
 }
 
 fn collect_edges<M: Copy>(
     factors: &[FactorEntry],
-    values: &Values,
     between: impl Fn(&FactorEntry) -> Option<M>,
     prior: impl Fn(&FactorEntry) -> Option<M>,
-) -> Option<Vec<Edge<M>>> {
+) -> Option<Vec<Edge<'_, M>>> {
     let mut edges = Vec::with_capacity(factors.len());
     for f in factors {
-        let keys = f.factor.keys();
-        let information = f.sqrt_information.information();
+        let vars = f.variables();
+        let sqrt_information = &f.sqrt_information;
         if let Some(m) = between(f) {
             edges.push(Edge {
-                from: Some(values.index_of(keys[0])?),
-                to: values.index_of(keys[1])?,
+                from: Some(vars[0]),
+                to: vars[1],
                 measurement: m,
-                information,
+                sqrt_information,
             });
         } else if let Some(m) = prior(f) {
             edges.push(Edge {
                 from: None,
-                to: values.index_of(keys[0])?,
+                to: vars[0],
                 measurement: m,
-                information,
+                sqrt_information,
             });
         } else {
             return None;
@@ -89,16 +89,31 @@ fn collect_edges<M: Copy>(
     Some(edges)
 }
 
-/// Marginal information of the sub-block `start..start+len` of an information matrix
-/// (the inverse of the matching covariance block).
-fn marginal_information<const L: usize>(
-    information: &DMatrix<f64>,
+/// Marginal information of the sub-block `start..start+L` of an N×N information `RᵀR` (the
+/// inverse of the matching covariance block), in fixed-size arithmetic.
+fn marginal_information<const N: usize, const L: usize>(
+    sqrt: &SqrtInformation,
     start: usize,
 ) -> Option<SMatrix<f64, L, L>> {
-    let cov = information.clone().try_inverse()?;
+    let r = SMatrix::<f64, N, N>::from_row_slice(sqrt.upper());
+    let cov = (r.transpose() * r).try_inverse()?;
     cov.fixed_view::<L, L>(start, start)
         .into_owned()
         .try_inverse()
+}
+
+/// Mean of the diagonal of `RᵀR` over `start..start+3`: an isotropic weight for that block.
+fn mean_information(sqrt: &SqrtInformation, start: usize) -> f64 {
+    let (r, n) = (sqrt.upper(), sqrt.dim());
+    let diagonal = |k: usize| (0..=k).map(|i| r[i * n + k] * r[i * n + k]).sum::<f64>();
+    (start..start + 3).map(diagonal).sum::<f64>() / 3.0
+}
+
+/// A pattern and its symbolic Cholesky, shared by the systems of one initialisation.
+struct SymbolicCache {
+    dim: usize,
+    pattern: BlockPattern,
+    chol: SparseCholesky,
 }
 
 /// One term `‖Σ_k J_k x_k + r0‖²_W` of a linear least-squares problem, with one or two
@@ -163,17 +178,24 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
     }
 
     /// Solution per variable; fixed variables get their fixed value.
-    fn solve(self, ordering: &BlockOrdering) -> Option<Vec<SMatrix<f64, D, R>>> {
+    fn solve(
+        self,
+        ordering: &BlockOrdering,
+        cache: &mut Option<SymbolicCache>,
+    ) -> Option<Vec<SMatrix<f64, D, R>>> {
         let nb = self.block.iter().flatten().count();
-        let mut adjacency = vec![Vec::new(); nb];
-        for t in &self.terms {
-            if t.count == 2 {
-                let (a, b) = (self.block[t.vars[0].0]?, self.block[t.vars[1].0]?);
-                adjacency[a].push(b);
-                adjacency[b].push(a);
-            }
+        if cache.as_ref().is_none_or(|c| c.dim != D) {
+            let pattern = BlockPattern::with_ordering(&vec![D; nb], ordering);
+            let chol =
+                SparseCholesky::analyze(&pattern, SupernodalThreshold::FORCE_SUPERNODAL).ok()?;
+            *cache = Some(SymbolicCache {
+                dim: D,
+                pattern,
+                chol,
+            });
         }
-        let pattern = BlockPattern::with_ordering(&vec![D; nb], &adjacency, ordering);
+        let SymbolicCache { pattern, chol, .. } = cache.as_mut()?;
+        let pattern = &*pattern;
         let mut h = vec![0.0; pattern.nnz()];
         let mut rhs = vec![vec![0.0; pattern.n]; R];
         for t in &self.terms {
@@ -203,9 +225,7 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
                 }
             }
         }
-        let mut chol =
-            SparseCholesky::analyze(&pattern, SupernodalThreshold::FORCE_SUPERNODAL).ok()?;
-        chol.factorize(&pattern, &h).ok()?;
+        chol.factorize(pattern, &h).ok()?;
         for r in rhs.iter_mut() {
             chol.solve_in_place(r);
         }
@@ -231,7 +251,6 @@ fn chordal_2d(
 ) -> Option<Values> {
     let edges = collect_edges(
         factors,
-        values,
         |f| {
             f.factor
                 .as_any()
@@ -292,15 +311,20 @@ fn chordal_2d(
         .map(|v| fixed[v].then(|| SMatrix::from_element(tree[v])))
         .collect();
     let mut rot = LinearLeastSquares::new(&fixed_theta, edges.len());
-    let weights: Vec<(SMatrix<f64, 1, 1>, Matrix2<f64>)> = edges
+    // Rotation: marginal information of θ. Translation: isotropic, the mean eigenvalue of the
+    // marginal translation information, so both steps are scalar Laplacians over one graph and
+    // share one symbolic factorisation.
+    let weights: Vec<(SMatrix<f64, 1, 1>, SMatrix<f64, 1, 1>)> = edges
         .iter()
         .map(|e| {
+            let wt = marginal_information::<3, 2>(e.sqrt_information, 0)?.trace() / 2.0;
             Some((
-                marginal_information::<1>(&e.information, 2)?,
-                marginal_information::<2>(&e.information, 0)?,
+                marginal_information::<3, 1>(e.sqrt_information, 2)?,
+                SMatrix::from_element(wt),
             ))
         })
         .collect::<Option<_>>()?;
+    let mut cache = None;
     for (e, (w, _)) in edges.iter().zip(&weights) {
         let unwrap = |from_theta: f64| {
             let k = ((tree[e.to] - from_theta - e.measurement.theta) / (2.0 * PI)).round();
@@ -311,28 +335,34 @@ fn chordal_2d(
             None => rot.add(&[(e.to, one)], unwrap(0.0), *w),
         }
     }
-    let theta: Vec<f64> = rot.solve(ordering)?.iter().map(|m| m[(0, 0)]).collect();
+    let theta: Vec<f64> = rot
+        .solve(ordering, &mut cache)?
+        .iter()
+        .map(|m| m[(0, 0)])
+        .collect();
 
-    let fixed_t: Vec<Option<Vector2<f64>>> = (0..n)
-        .map(|v| fixed[v].then(|| Vector2::new(pose(v).x, pose(v).y)))
+    // Unknown per pose: tᵀ, with x and y as two right-hand sides.
+    let fixed_t: Vec<Option<RowVector2<f64>>> = (0..n)
+        .map(|v| fixed[v].then(|| RowVector2::new(pose(v).x, pose(v).y)))
         .collect();
     let mut trans = LinearLeastSquares::new(&fixed_t, edges.len());
     for (e, (_, w)) in edges.iter().zip(&weights) {
         let z = Vector2::new(e.measurement.x, e.measurement.y);
         match e.from {
-            // R_iᵀ(t_j − t_i) − t_ij
-            Some(i) => {
-                let rt = rotation_matrix_2d(theta[i]).transpose();
-                trans.add(&[(e.to, rt), (i, -rt)], -z, *w)
-            }
-            None => trans.add(&[(e.to, Matrix2::identity())], -z, *w),
+            // ‖R_iᵀ(t_j − t_i) − t_ij‖² = ‖t_j − t_i − R_i t_ij‖² under an isotropic weight.
+            Some(i) => trans.add(
+                &[(e.to, one), (i, -one)],
+                -(rotation_matrix_2d(theta[i]) * z).transpose(),
+                *w,
+            ),
+            None => trans.add(&[(e.to, one)], -z.transpose(), *w),
         }
     }
-    let t = trans.solve(ordering)?;
+    let t = trans.solve(ordering, &mut cache)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {
-            out.set(v, &Se2::new(t[v].x, t[v].y, theta[v]));
+            out.set(v, &Se2::new(t[v][(0, 0)], t[v][(0, 1)], theta[v]));
         }
     }
     Some(out)
@@ -346,7 +376,6 @@ fn chordal_3d(
 ) -> Option<Values> {
     let edges = collect_edges(
         factors,
-        values,
         |f| {
             f.factor
                 .as_any()
@@ -374,13 +403,9 @@ fn chordal_3d(
         .map(|v| fixed[v].then(|| pose(v).rotation_matrix().transpose()))
         .collect();
     let mut rot = LinearLeastSquares::new(&fixed_r, edges.len());
-    let weight = |info: &DMatrix<f64>, start: usize| {
-        let trace: f64 = (start..start + 3).map(|k| info[(k, k)]).sum();
-        Matrix3::identity() * (trace / 3.0)
-    };
     for e in &edges {
         let rz = e.measurement.rotation_matrix();
-        let w = weight(&e.information, 3);
+        let w = Matrix3::identity() * mean_information(e.sqrt_information, 3);
         match e.from {
             // R_j − R_i R_ij = 0, row k: x_j − R_ijᵀ x_i = 0 with x = (row k of R)ᵀ.
             Some(i) => rot.add(
@@ -391,34 +416,37 @@ fn chordal_3d(
             None => rot.add(&[(e.to, identity)], -rz.transpose(), w),
         }
     }
+    let mut cache = None;
     let rotations: Vec<Matrix3<f64>> = rot
-        .solve(ordering)?
+        .solve(ordering, &mut cache)?
         .iter()
         .map(|rt| project_to_so3(&rt.transpose()))
         .collect();
 
-    let fixed_t: Vec<Option<Vector3<f64>>> = (0..n)
-        .map(|v| fixed[v].then(|| pose(v).translation))
+    // Translations: a scalar Laplacian with x, y, z as three right-hand sides.
+    let fixed_t: Vec<Option<RowVector3<f64>>> = (0..n)
+        .map(|v| fixed[v].then(|| pose(v).translation.transpose()))
         .collect();
     let mut trans = LinearLeastSquares::new(&fixed_t, edges.len());
+    let one = SMatrix::<f64, 1, 1>::identity();
     for e in &edges {
-        let w = weight(&e.information, 0);
+        let w = SMatrix::from_element(mean_information(e.sqrt_information, 0));
         match e.from {
             Some(i) => trans.add(
-                &[(e.to, identity), (i, -identity)],
-                -(rotations[i] * e.measurement.translation),
+                &[(e.to, one), (i, -one)],
+                -(rotations[i] * e.measurement.translation).transpose(),
                 w,
             ),
-            None => trans.add(&[(e.to, identity)], -e.measurement.translation, w),
+            None => trans.add(&[(e.to, one)], -e.measurement.translation.transpose(), w),
         }
     }
-    let t = trans.solve(ordering)?;
+    let t = trans.solve(ordering, &mut cache)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {
             out.set(
                 v,
-                &Se3::new(UnitQuaternion::from_matrix(&rotations[v]), t[v]),
+                &Se3::new(UnitQuaternion::from_matrix(&rotations[v]), t[v].transpose()),
             );
         }
     }

@@ -20,12 +20,7 @@ pub fn free_adjacency(factors: &[FactorEntry], values: &Values, fixed: &[bool]) 
     let mut blocks = Vec::with_capacity(8);
     for f in factors {
         blocks.clear();
-        blocks.extend(
-            f.factor
-                .keys()
-                .iter()
-                .filter_map(|&k| block[values.index_of(k).expect("validated")]),
-        );
+        blocks.extend(f.variables().iter().filter_map(|&v| block[v]));
         for &a in &blocks {
             for &b in &blocks {
                 if a != b {
@@ -58,7 +53,7 @@ pub struct SystemLayout {
 impl SystemLayout {
     /// `fixed[v]` says whether variable `v` is held constant in this solve.
     pub fn new(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Self {
-        let ordering = BlockOrdering::amd(&free_adjacency(factors, values, fixed));
+        let ordering = BlockOrdering::amd(free_adjacency(factors, values, fixed));
         Self::with_ordering(factors, values, fixed, &ordering)
     }
 
@@ -76,24 +71,10 @@ impl SystemLayout {
         }
         let mut factor_start = Vec::with_capacity(factors.len() + 1);
         let mut factor_vars = Vec::new();
-        let mut adjacency: Vec<Vec<usize>> = vec![Vec::new(); free.len()];
         let (mut max_residual, mut max_cols) = (0, 0);
         factor_start.push(0);
         for f in factors {
-            let vars: Vec<usize> = f
-                .factor
-                .keys()
-                .iter()
-                .map(|&k| values.index_of(k).expect("factor keys were validated"))
-                .collect();
-            let blocks: Vec<usize> = vars.iter().filter_map(|&v| block_of_var[v]).collect();
-            for &a in &blocks {
-                for &b in &blocks {
-                    if a != b {
-                        adjacency[a].push(b);
-                    }
-                }
-            }
+            let vars = f.variables();
             max_residual = max_residual.max(f.factor.residual_dim());
             max_cols = max_cols.max(vars.iter().map(|&v| values.variable(v).tangent_dim()).sum());
             factor_vars.extend(vars);
@@ -103,7 +84,7 @@ impl SystemLayout {
             .iter()
             .map(|&v| values.variable(v).tangent_dim())
             .collect();
-        let pattern = BlockPattern::with_ordering(&dims, &adjacency, ordering);
+        let pattern = BlockPattern::with_ordering(&dims, ordering);
         let position_of_var: Vec<Option<usize>> = block_of_var
             .iter()
             .map(|b| b.map(|b| pattern.position[b]))

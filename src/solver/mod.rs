@@ -34,18 +34,15 @@ pub enum SolverError {
     Symbolic(#[from] cholesky::SymbolicError),
 }
 
-/// `Σ ρ(eᵀΩe)` over `factors` at `values`, looking keys up by hash (for one-off evaluations).
+/// `Σ ρ(eᵀΩe)` over `factors` at `values`.
 pub fn evaluate_chi2(factors: &[FactorEntry], values: &Values) -> Result<f64, EvaluationError> {
     let mut total = 0.0;
     let mut e = Vec::new();
     let mut w = Vec::new();
+    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     for f in factors {
-        let refs: Vec<&dyn Variable> = f
-            .factor
-            .keys()
-            .iter()
-            .map(|&k| values.get(k).expect("factor keys were validated"))
-            .collect();
+        refs.clear();
+        refs.extend(f.variables().iter().map(|&v| values.variable(v)));
         let d = f.factor.residual_dim();
         e.resize(d, 0.0);
         w.resize(d, 0.0);

@@ -38,7 +38,7 @@ pub fn optimize(
     }
 
     // One fill-reducing order of the variable graph serves the initialisation and the solve.
-    let ordering = BlockOrdering::amd(&free_adjacency(problem.factors(), &problem.values, &fixed));
+    let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &problem.values, &fixed));
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
@@ -382,9 +382,15 @@ impl Iterations<'_> {
             } else {
                 0.0
             };
-            // Relinearise at the new point now: its gradient feeds the next iteration's test.
-            if accepted {
+            // Relinearise at the new point, unless this step ends the solve: then its chi2 (already
+            // evaluated) is all that is needed.
+            let stops = accepted
+                && (relative_decrease.abs() <= options.function_tolerance
+                    || step_norm <= options.parameter_tolerance);
+            if accepted && !stops {
                 chi2 = self.linearize_at(factors, values, &mut times)?;
+            } else if accepted {
+                chi2 = trial_chi2;
             }
             let report = IterationReport {
                 iteration,
