@@ -68,6 +68,11 @@ impl SqrtInformation {
         Self { dim, r, diagonal }
     }
 
+    /// Whether `R` (hence `Ω`) is diagonal.
+    pub fn is_diagonal(&self) -> bool {
+        self.diagonal
+    }
+
     /// `R`, row-major upper triangular.
     pub fn upper(&self) -> &[f64] {
         &self.r

@@ -95,6 +95,17 @@ fn marginal_information<const N: usize, const L: usize>(
     sqrt: &SqrtInformation,
     start: usize,
 ) -> Option<SMatrix<f64, L, L>> {
+    if sqrt.is_diagonal() {
+        // Independent components: the marginal is the block itself.
+        let r = sqrt.upper();
+        return Some(SMatrix::from_fn(|i, j| {
+            if i == j {
+                r[(start + i) * (N + 1)].powi(2)
+            } else {
+                0.0
+            }
+        }));
+    }
     let r = SMatrix::<f64, N, N>::from_row_slice(sqrt.upper());
     let cov = (r.transpose() * r).try_inverse()?;
     cov.fixed_view::<L, L>(start, start)
