@@ -286,6 +286,9 @@ def main() -> int:
     p.add_argument("--ceres", type=Path, default=DEFAULT_CERES, help=f"Ceres driver ({DEFAULT_CERES})")
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"data directory ({DEFAULT_DATA})")
     p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=1,
+                   help="run every system this many times per dataset, interleaved, and take the median over "
+                        "all rounds' runs (spreads slow periods of a shared machine over all systems)")
     p.add_argument("--only", default="", help="comma-separated dataset names: " + ",".join(d.name for d in DATASETS))
     p.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated subset of: " + ",".join(SYSTEMS))
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds per driver invocation (all repeats)")
@@ -322,7 +325,7 @@ def main() -> int:
             log(f"[skip] {ds.name}: missing {', '.join(missing)} under {args.data}")
             continue
         results: Dict[str, Dict[str, Any]] = {}
-        for key in systems:
+        for key in [k for _ in range(max(1, args.rounds)) for k in systems]:
             log(f"[run ] {ds.name:<20} {SYSTEMS[key]}")
             if key == "factord":
                 r = run_factord(args.factord, ds, args.data, args.repeat, shlex.split(args.factord_args), args.timeout)
@@ -336,7 +339,14 @@ def main() -> int:
             chi2 = comparable_chi2(r, ds.dim)
             log(f"       -> {cell(r)} ms, chi2 {chi2 if chi2 is not None else '-'}, "
                 f"iterations {r.get('iterations', '-')}{', error: ' + r['error'] if r.get('error') else ''}")
-            results[key] = r
+            previous = results.get(key)
+            if previous and not previous.get("error") and not r.get("error"):
+                # Later rounds pool their runs into the first result.
+                runs = previous.get("solve_seconds_runs", []) + r.get("solve_seconds_runs", [])
+                previous["solve_seconds_runs"] = runs
+                previous["solve_seconds"] = statistics.median(runs)
+            elif previous is None or r.get("error"):
+                results[key] = r
         report.append({"dataset": ds.name, "dim": ds.dim, "results": results,
                        "evaluation": evaluate(ds, results)})
 
