@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduces BENCHMARKS.md: builds factord and the reference drivers, then times factord, g2o,
 # GTSAM and Ceres on the same files in one run, and the numeric Cholesky against CHOLMOD.
-#   benches/run.sh [--repeat N] [--only intel,sphere2500]      (extra args go to run_benchmarks.py)
+#   benches/run.sh [--repeat N] [--rounds K] [--only intel,sphere2500]   (extra args go to run_benchmarks.py)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 data="${FACTORD_BENCH_DATA:-$(pwd)/../shared/data}"
