@@ -109,25 +109,26 @@ fn malformed_files_are_reported_with_line_and_reason() {
         let msg = load_error(name, &text, None);
         assert!(msg.contains(line) && msg.contains(reason), "{name}: {msg}");
     }
-    // TORO / course pair: edge file errors name the edge file and its line.
-    let msg = load_error(
-        "toro",
-        "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n",
-        Some("EDGE2 1 0 1 0 0 20 0 20\n"),
-    );
-    assert!(
-        msg.contains("e.g2o:1:") && msg.contains("expects 11"),
-        "{msg}"
-    );
-    let msg = load_error(
-        "toro-pd",
-        "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n",
-        Some("EDGE2 1 0 1 0 0 20 0 20 0 0 0\n"),
-    );
-    assert!(
-        msg.contains("EDGE2 1 0") && msg.contains("not positive definite"),
-        "{msg}"
-    );
+    // TORO / course pair: edge-file errors name the edge file and line, or the edge itself.
+    let vertices = "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n";
+    let pair_cases = [
+        (
+            "toro",
+            "EDGE2 1 0 1 0 0 20 0 20\n",
+            "e.g2o:1:",
+            "expects 11",
+        ),
+        (
+            "toro-pd",
+            "EDGE2 1 0 1 0 0 20 0 20 0 0 0\n",
+            "EDGE2 1 0",
+            "not positive definite",
+        ),
+    ];
+    for (name, edges, place, reason) in pair_cases {
+        let msg = load_error(name, vertices, Some(edges));
+        assert!(msg.contains(place) && msg.contains(reason), "{name}: {msg}");
+    }
 }
 
 #[test]

@@ -61,7 +61,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             let dim_here = match line.tokens[0] {
                 "VERTEX_SE2" => {
                     let f = numbers(path, &line, 4)?;
-                    let key = id(path, &line, f[0], 1)?;
+                    let key = id(path, line.number, f[0], 1)?;
                     problem
                         .add_variable(key, Box::new(Se2::new(f[1], f[2], f[3])))
                         .map_err(|e| problem_error(path, line.number, e))?;
@@ -70,7 +70,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                 }
                 "VERTEX_SE3:QUAT" => {
                     let f = numbers(path, &line, 8)?;
-                    let key = id(path, &line, f[0], 1)?;
+                    let key = id(path, line.number, f[0], 1)?;
                     let q = quaternion(path, line.number, &f[4..8])?;
                     problem
                         .add_variable(key, Box::new(Se3::new(q, Vector3::new(f[1], f[2], f[3]))))
@@ -100,7 +100,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                                 format!("FIX field {} (`{t}`) is not an id", k + 1),
                             )
                         })?;
-                        fixes.push((path, line.number, id(path, &line, v, k + 1)?));
+                        fixes.push((path, line.number, id(path, line.number, v, k + 1)?));
                     }
                     None
                 }
@@ -127,11 +127,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
         });
     };
     for (path, number, f, dim) in edges {
-        let line = super::Line {
-            number,
-            tokens: vec![""],
-        };
-        let (i, j) = (id(path, &line, f[0], 1)?, id(path, &line, f[1], 2)?);
+        let (i, j) = (id(path, number, f[0], 1)?, id(path, number, f[1], 2)?);
         let result = match dim {
             Dimension::Two => problem.add_factor(
                 Box::new(BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]))),

@@ -106,11 +106,12 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
 }
 
 /// A vertex or edge id: a non-negative integer.
-pub(crate) fn id(path: &Path, line: &Line, value: f64, field: usize) -> Result<Key, IoError> {
+/// `line` is the 1-based line number, for the error.
+pub(crate) fn id(path: &Path, line: usize, value: f64, field: usize) -> Result<Key, IoError> {
     if value < 0.0 || value.fract() != 0.0 || value > 2f64.powi(53) {
         return Err(parse_error(
             path,
-            line.number,
+            line,
             format!("field {field} (`{value}`) is not a valid id"),
         ));
     }

@@ -26,7 +26,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             match line.tokens[0] {
                 "VERTEX2" | "VERTEX" => {
                     let f = numbers(path, &line, 4)?;
-                    let key = id(path, &line, f[0], 1)?;
+                    let key = id(path, line.number, f[0], 1)?;
                     problem
                         .add_variable(key, Box::new(Se2::new(f[1], f[2], f[3])))
                         .map_err(|e| problem_error(path, line.number, e))?;
@@ -47,11 +47,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
         }
     }
     for (path, number, f, tag) in edges {
-        let line = super::Line {
-            number,
-            tokens: vec![tag],
-        };
-        let (i, j) = (id(path, &line, f[0], 1)?, id(path, &line, f[1], 2)?);
+        let (i, j) = (id(path, number, f[0], 1)?, id(path, number, f[1], 2)?);
         let factor = BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]));
         let label = format!("{tag} {i} {j} ({}:{number})", path.display());
         problem

@@ -16,15 +16,12 @@ pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>
         }
         x
     }
-    let mut anchored = vec![false; n];
-    for v in 0..n {
-        anchored[v] = values.is_fixed(v);
-    }
-    let mut unary_anchor = Vec::new();
+    // A fixed variable or a unary factor (a prior) anchors its component.
+    let mut anchored: Vec<bool> = (0..n).map(|v| values.is_fixed(v)).collect();
     for f in factors {
         let idx = f.variables();
-        if idx.len() == 1 {
-            unary_anchor.push(idx[0]);
+        if let [only] = idx {
+            anchored[*only] = true;
         }
         for w in idx.windows(2) {
             let (a, b) = (find(&mut parent, w[0]), find(&mut parent, w[1]));
@@ -32,9 +29,6 @@ pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>
                 parent[a] = b;
             }
         }
-    }
-    for v in unary_anchor {
-        anchored[v] = true;
     }
     let mut root_anchored = vec![false; n];
     for v in 0..n {

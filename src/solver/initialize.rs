@@ -6,11 +6,15 @@
 //! * 2D: orientations first. A breadth-first spanning tree from the anchors fixes each edge's
 //!   2π ambiguity, `k_ij = round((θ̃_j − θ̃_i − θ_ij)/2π)`; then `min Σ w_ij (θ_j − θ_i − θ_ij − 2πk_ij)²`
 //!   with `w_ij` the marginal rotation information. Positions follow from
-//!   `min Σ ‖R(θ_i)ᵀ(t_j − t_i) − t_ij‖²_Ω_tt` with the orientations held (Carlone et al.'s LAGO idea).
+//!   `min Σ w_t ‖t_j − t_i − R(θ_i) t_ij‖²` with the orientations held (Carlone et al.'s LAGO
+//!   idea), `w_t` the mean eigenvalue of the marginal translation information: isotropic weights
+//!   make both steps scalar Laplacians sharing one symbolic factorisation, and anisotropic ones
+//!   (condition numbers up to 2.4e11 on input_INTEL) gave a far worse start.
 //! * 3D: chordal relaxation (Martinec & Pajdla; Carlone et al. 2015): `min Σ w_ij ‖R_j − R_i R_ij‖²_F`
 //!   over unconstrained 3×3 matrices — three independent systems (one per row of R) sharing one
 //!   matrix — then each R is projected onto SO(3) by SVD, and translations come from
-//!   `min Σ w ‖t_j − t_i − R_i t_ij‖²`.
+//!   `min Σ w ‖t_j − t_i − R_i t_ij‖²`. In 3D both weights are the mean diagonal information of
+//!   the block (rotation, translation).
 //!
 //! Priors act as edges to a fixed world frame. Graphs with any other factor kind are left alone.
 
@@ -21,6 +25,7 @@ use faer::sparse::linalg::SupernodalThreshold;
 use nalgebra::{Matrix3, RowVector2, RowVector3, SMatrix, UnitQuaternion, Vector2};
 
 use super::cholesky::SparseCholesky;
+use super::linearize::free_blocks;
 use super::structure::{BlockOrdering, BlockPattern};
 use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3, SqrtInformation};
 use crate::geometry::{rotation_matrix_2d, Se2, Se3};
@@ -146,14 +151,8 @@ struct LinearLeastSquares<'a, const D: usize, const R: usize> {
 
 impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
     fn new(fixed_value: &'a [Option<SMatrix<f64, D, R>>], capacity: usize) -> Self {
-        let mut block = vec![None; fixed_value.len()];
-        let mut next = 0;
-        for (v, f) in fixed_value.iter().enumerate() {
-            if f.is_none() {
-                block[v] = Some(next);
-                next += 1;
-            }
-        }
+        // The ordering's graph numbers free variables this way; the systems must agree with it.
+        let (block, _) = free_blocks(fixed_value.iter().map(Option::is_some));
         Self {
             fixed_value,
             block,
@@ -164,7 +163,7 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
     fn add(
         &mut self,
         vars: &[(usize, SMatrix<f64, D, D>)],
-        mut r0: SMatrix<f64, D, R>,
+        r0: SMatrix<f64, D, R>,
         weight: SMatrix<f64, D, D>,
     ) {
         let mut term = Term {
@@ -175,14 +174,13 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
         };
         for &(v, j) in vars {
             match &self.fixed_value[v] {
-                Some(x) => r0 += j * x,
+                Some(x) => term.r0 += j * x,
                 None => {
                     term.vars[term.count] = (v, j);
                     term.count += 1;
                 }
             }
         }
-        term.r0 = r0;
         if term.count > 0 {
             self.terms.push(term);
         }

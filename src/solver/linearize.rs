@@ -6,17 +6,27 @@ use crate::problem::{Key, Values, Variable};
 
 use super::structure::{BlockOrdering, BlockPattern};
 
-/// The graph of free variables (numbered in index order, fixed ones skipped) that share a factor.
-pub fn free_adjacency(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Vec<Vec<usize>> {
-    let mut block = vec![None; values.len()];
+/// The block number of each variable when free variables are numbered in index order and fixed
+/// ones are skipped — the numbering of [`free_adjacency`]'s graph, which every system sharing its
+/// ordering (the solve and the chordal initialisation) must use. Also returns the block count.
+pub fn free_blocks(fixed: impl IntoIterator<Item = bool>) -> (Vec<Option<usize>>, usize) {
     let mut next = 0;
-    for v in 0..values.len() {
-        if !fixed[v] {
-            block[v] = Some(next);
-            next += 1;
-        }
-    }
-    let mut adjacency = vec![Vec::new(); next];
+    let blocks = fixed
+        .into_iter()
+        .map(|is_fixed| {
+            (!is_fixed).then(|| {
+                next += 1;
+                next - 1
+            })
+        })
+        .collect();
+    (blocks, next)
+}
+
+/// The graph of free variables (numbered by [`free_blocks`]) that share a factor.
+pub fn free_adjacency(factors: &[FactorEntry], fixed: &[bool]) -> Vec<Vec<usize>> {
+    let (block, count) = free_blocks(fixed.iter().copied());
+    let mut adjacency = vec![Vec::new(); count];
     let mut blocks = Vec::with_capacity(8);
     for f in factors {
         blocks.clear();
@@ -40,9 +50,6 @@ pub struct SystemLayout {
     /// Variable index at each elimination position.
     pub var_at: Vec<usize>,
     pub pattern: BlockPattern,
-    /// Per factor, its variables' indices: `factor_vars[factor_start[f]..factor_start[f + 1]]`.
-    factor_start: Vec<usize>,
-    factor_vars: Vec<usize>,
     /// Per factor, the H blocks it contributes: (local i, local j, pair) with pos(i) ≥ pos(j).
     slot_start: Vec<usize>,
     slots: Vec<(u8, u8, usize)>,
@@ -53,7 +60,7 @@ pub struct SystemLayout {
 impl SystemLayout {
     /// `fixed[v]` says whether variable `v` is held constant in this solve.
     pub fn new(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Self {
-        let ordering = BlockOrdering::amd(free_adjacency(factors, values, fixed));
+        let ordering = BlockOrdering::amd(free_adjacency(factors, fixed));
         Self::with_ordering(factors, values, fixed, &ordering)
     }
 
@@ -64,21 +71,17 @@ impl SystemLayout {
         fixed: &[bool],
         ordering: &BlockOrdering,
     ) -> Self {
+        let (block_of_var, _) = free_blocks(fixed.iter().copied());
         let free: Vec<usize> = (0..values.len()).filter(|&v| !fixed[v]).collect();
-        let mut block_of_var = vec![None; values.len()];
-        for (b, &v) in free.iter().enumerate() {
-            block_of_var[v] = Some(b);
-        }
-        let mut factor_start = Vec::with_capacity(factors.len() + 1);
-        let mut factor_vars = Vec::new();
         let (mut max_residual, mut max_cols) = (0, 0);
-        factor_start.push(0);
         for f in factors {
-            let vars = f.variables();
             max_residual = max_residual.max(f.factor.residual_dim());
-            max_cols = max_cols.max(vars.iter().map(|&v| values.variable(v).tangent_dim()).sum());
-            factor_vars.extend(vars);
-            factor_start.push(factor_vars.len());
+            max_cols = max_cols.max(
+                f.variables()
+                    .iter()
+                    .map(|&v| values.variable(v).tangent_dim())
+                    .sum(),
+            );
         }
         let dims: Vec<usize> = free
             .iter()
@@ -93,8 +96,8 @@ impl SystemLayout {
         let mut slot_start = Vec::with_capacity(factors.len() + 1);
         let mut slots = Vec::new();
         slot_start.push(0);
-        for f in 0..factors.len() {
-            let vars = &factor_vars[factor_start[f]..factor_start[f + 1]];
+        for f in factors {
+            let vars = f.variables();
             for (li, &vi) in vars.iter().enumerate() {
                 for (lj, &vj) in vars.iter().enumerate() {
                     if let (Some(a), Some(b)) = (position_of_var[vi], position_of_var[vj]) {
@@ -113,8 +116,6 @@ impl SystemLayout {
             position_of_var,
             var_at,
             pattern,
-            factor_start,
-            factor_vars,
             slot_start,
             slots,
             max_residual,
@@ -128,10 +129,6 @@ impl SystemLayout {
 
     pub fn key_at_row(&self, values: &Values, row: usize) -> Key {
         values.key(self.var_at[self.pattern.block_of_row(row)])
-    }
-
-    fn factor_vars(&self, f: usize) -> &[usize] {
-        &self.factor_vars[self.factor_start[f]..self.factor_start[f + 1]]
     }
 
     /// Applies the step `delta` (in elimination order) to the free variables of `values`.
@@ -166,24 +163,6 @@ impl Scratch {
     }
 }
 
-/// `Σ ρ(eᵀΩe)` over all factors. `layout` (when given) saves the key lookups.
-pub fn chi2_with_layout(
-    factors: &[FactorEntry],
-    values: &Values,
-    layout: &SystemLayout,
-    scratch: &mut Scratch,
-) -> Result<f64, EvaluationError> {
-    let mut total = 0.0;
-    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
-    for (f, entry) in factors.iter().enumerate() {
-        refs.clear();
-        refs.extend(layout.factor_vars(f).iter().map(|&v| values.variable(v)));
-        let d = entry.factor.residual_dim();
-        total += entry.chi2(&refs, &mut scratch.error[..d], &mut scratch.residual[..d])?;
-    }
-    Ok(total)
-}
-
 /// Linearises every factor at `values`; fills `h` (pattern values) and `b = −Jᵀr`, returns chi2.
 pub fn linearize(
     factors: &[FactorEntry],
@@ -200,7 +179,7 @@ pub fn linearize(
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     let mut col_offsets = [0usize; 16];
     for (f, entry) in factors.iter().enumerate() {
-        let vars = layout.factor_vars(f);
+        let vars = entry.variables();
         refs.clear();
         refs.extend(vars.iter().map(|&v| values.variable(v)));
         let d = entry.factor.residual_dim();

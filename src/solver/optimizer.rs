@@ -12,9 +12,7 @@ use faer::sparse::linalg::SupernodalThreshold;
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::gauge::anchor_components;
 use super::initialize;
-use super::linearize::{
-    chi2_with_layout, free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout,
-};
+use super::linearize::{free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout};
 use super::options::{Initialization, Method, SolverOptions};
 use super::structure::BlockOrdering;
 use super::summary::{
@@ -38,7 +36,7 @@ pub fn optimize(
     }
 
     // One fill-reducing order of the variable graph serves the initialisation and the solve.
-    let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &problem.values, &fixed));
+    let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &fixed));
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
@@ -69,6 +67,7 @@ pub fn optimize(
         b: vec![0.0; n],
         delta: vec![0.0; n],
         work: vec![0.0; n],
+        product: vec![0.0; n],
         trial: values.clone(),
         chol,
         timings,
@@ -165,7 +164,9 @@ struct Iterations<'a> {
     damped: Vec<f64>,
     b: Vec<f64>,
     delta: Vec<f64>,
+    /// Dogleg: the Gauss-Newton step, and a product H·v.
     work: Vec<f64>,
+    product: Vec<f64>,
     trial: Values,
     chol: SparseCholesky,
     timings: Timings,
@@ -223,7 +224,7 @@ impl Iterations<'_> {
         let t = Instant::now();
         self.trial.assign_from(values);
         self.layout.retract(&mut self.trial, &self.delta);
-        let chi2 = chi2_with_layout(factors, &self.trial, self.layout, &mut self.scratch)?;
+        let chi2 = evaluate_chi2(factors, &self.trial)?;
         self.timings.evaluate_seconds += t.elapsed().as_secs_f64();
         Ok(if chi2.is_finite() {
             chi2
@@ -232,7 +233,13 @@ impl Iterations<'_> {
         })
     }
 
-    /// Factorises H + λ·diag(H) (H itself when λ = 0) and solves for `delta` = (H + λD)⁻¹ b.
+    /// D's entry for scalar column `c`: the diagonal of H, clamped as Ceres does so that a zero
+    /// or huge curvature still gives a usable damping.
+    fn damping_diagonal(&self, c: usize) -> f64 {
+        self.h[self.layout.pattern.diagonal_index(c)].clamp(1e-6, 1e32)
+    }
+
+    /// Factorises H + λD (H itself when λ = 0) and solves for `delta` = (H + λD)⁻¹ b.
     fn solve_damped(
         &mut self,
         lambda: f64,
@@ -243,8 +250,7 @@ impl Iterations<'_> {
         let result = if lambda > 0.0 {
             self.damped.copy_from_slice(&self.h);
             for c in 0..pattern.n {
-                let k = pattern.diagonal_index(c);
-                self.damped[k] += lambda * self.h[k].clamp(1e-6, 1e32);
+                self.damped[pattern.diagonal_index(c)] += lambda * self.damping_diagonal(c);
             }
             self.chol.factorize(pattern, &self.damped)
         } else {
@@ -263,16 +269,10 @@ impl Iterations<'_> {
         Ok(())
     }
 
-    /// λ·ΔᵀDΔ with D the clamped diagonal of H.
+    /// λ·ΔᵀDΔ.
     fn damping_term(&self, lambda: f64) -> f64 {
-        let p = &self.layout.pattern;
-        (0..p.n)
-            .map(|c| {
-                lambda
-                    * self.h[p.diagonal_index(c)].clamp(1e-6, 1e32)
-                    * self.delta[c]
-                    * self.delta[c]
-            })
+        (0..self.layout.n())
+            .map(|c| lambda * self.damping_diagonal(c) * self.delta[c] * self.delta[c])
             .sum()
     }
 
@@ -292,11 +292,7 @@ impl Iterations<'_> {
             ));
         }
         // LM tries an undamped (Gauss-Newton) step first; damping starts at the first rejection.
-        let mut lambda = if options.method == Method::LevenbergMarquardt {
-            0.0
-        } else {
-            options.initial_lambda
-        };
+        let mut lambda = 0.0;
         let mut nu = 2.0;
         let mut radius = options.initial_trust_radius;
         let mut have_gn_step = false;
@@ -316,7 +312,7 @@ impl Iterations<'_> {
                     ),
                 ));
             }
-            let (accepted, trial_chi2, _predicted) = match options.method {
+            let (accepted, trial_chi2) = match options.method {
                 Method::GaussNewton => {
                     self.solve_damped(0.0, &mut times)
                         .map_err(|e| self.indeterminate(values, e))?;
@@ -324,7 +320,7 @@ impl Iterations<'_> {
                     if !trial.is_finite() {
                         return Err(SolverError::Diverged { iteration });
                     }
-                    (true, trial, dot(&self.delta, &self.b))
+                    (true, trial)
                 }
                 Method::LevenbergMarquardt => match self.solve_damped(lambda, &mut times) {
                     Ok(()) => {
@@ -337,17 +333,17 @@ impl Iterations<'_> {
                                 lambda = 0.0;
                             }
                             nu = 2.0;
-                            (true, trial, predicted)
+                            (true, trial)
                         } else {
                             lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
-                            (false, trial, predicted)
+                            (false, trial)
                         }
                     }
                     Err(_) => {
                         // Not positive definite at this damping: damp more.
                         lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
                         self.delta.fill(0.0);
-                        (false, f64::INFINITY, 0.0)
+                        (false, f64::INFINITY)
                     }
                 },
                 Method::Dogleg => {
@@ -364,11 +360,7 @@ impl Iterations<'_> {
                     } else if rho < 0.25 || !trial.is_finite() {
                         radius = 0.5 * step.min(radius);
                     }
-                    if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
-                        (true, trial, predicted)
-                    } else {
-                        (false, trial, predicted)
-                    }
+                    (trial.is_finite() && rho > 0.0 && predicted > 0.0, trial)
                 }
             };
             let step_norm = max_abs(&self.delta);
@@ -382,15 +374,38 @@ impl Iterations<'_> {
             } else {
                 0.0
             };
+            let stop = if !accepted {
+                None
+            } else if relative_decrease.abs() <= options.function_tolerance {
+                Some(termination(
+                    TerminationReason::FunctionTolerance,
+                    relative_decrease,
+                    options.function_tolerance,
+                    &format!(
+                        "function tolerance reached: relative decrease {relative_decrease:.3e} <= {:.3e}",
+                        options.function_tolerance
+                    ),
+                ))
+            } else if step_norm <= options.parameter_tolerance {
+                Some(termination(
+                    TerminationReason::ParameterTolerance,
+                    step_norm,
+                    options.parameter_tolerance,
+                    &format!(
+                        "parameter tolerance reached: |dx|inf = {step_norm:.3e} <= {:.3e}",
+                        options.parameter_tolerance
+                    ),
+                ))
+            } else {
+                None
+            };
             // Relinearise at the new point, unless this step ends the solve: then its chi2 (already
             // evaluated) is all that is needed.
-            let stops = accepted
-                && (relative_decrease.abs() <= options.function_tolerance
-                    || step_norm <= options.parameter_tolerance);
-            if accepted && !stops {
-                chi2 = self.linearize_at(factors, values, &mut times)?;
-            } else if accepted {
-                chi2 = trial_chi2;
+            if accepted {
+                chi2 = match stop {
+                    Some(_) => trial_chi2,
+                    None => self.linearize_at(factors, values, &mut times)?,
+                };
             }
             let report = IterationReport {
                 iteration,
@@ -409,25 +424,8 @@ impl Iterations<'_> {
             times = StepTimes::default();
             on_iteration(&report);
             self.log.push(report);
-            if accepted {
-                if relative_decrease.abs() <= options.function_tolerance {
-                    return Ok((chi2, termination(TerminationReason::FunctionTolerance, relative_decrease, options.function_tolerance,
-                        &format!("function tolerance reached: relative decrease {relative_decrease:.3e} <= {:.3e}", options.function_tolerance))));
-                }
-                if step_norm <= options.parameter_tolerance {
-                    return Ok((
-                        chi2,
-                        termination(
-                            TerminationReason::ParameterTolerance,
-                            step_norm,
-                            options.parameter_tolerance,
-                            &format!(
-                                "parameter tolerance reached: |dx|inf = {step_norm:.3e} <= {:.3e}",
-                                options.parameter_tolerance
-                            ),
-                        ),
-                    ));
-                }
+            if let Some(stop) = stop {
+                return Ok((chi2, stop));
             }
             if lambda > 1e16 || radius < 1e-16 {
                 let (value, threshold) = if lambda > 1e16 {
@@ -487,10 +485,9 @@ impl Iterations<'_> {
         if gn_norm <= radius {
             self.delta.copy_from_slice(&self.work);
         } else {
-            let mut hb = vec![0.0; pattern.n];
-            symmetric_multiply(pattern, &self.h, &self.b, &mut hb);
+            symmetric_multiply(pattern, &self.h, &self.b, &mut self.product);
             let bb = dot(&self.b, &self.b);
-            let alpha = bb / dot(&self.b, &hb).max(f64::MIN_POSITIVE);
+            let alpha = bb / dot(&self.b, &self.product).max(f64::MIN_POSITIVE);
             let sd_norm = alpha * bb.sqrt();
             if sd_norm >= radius {
                 let s = radius / bb.sqrt();
@@ -499,19 +496,20 @@ impl Iterations<'_> {
                 }
             } else {
                 // h = a + β (g − a), |h| = radius, a = α b (Cauchy point), g = GN step.
-                let a: Vec<f64> = self.b.iter().map(|v| alpha * v).collect();
-                let diff: Vec<f64> = self.work.iter().zip(&a).map(|(g, a)| g - a).collect();
-                let (aa, ad, dd) = (dot(&a, &a), dot(&a, &diff), dot(&diff, &diff));
+                let (mut aa, mut ad, mut dd) = (0.0, 0.0, 0.0);
+                for (g, b) in self.work.iter().zip(&self.b) {
+                    let (a, diff) = (alpha * b, g - alpha * b);
+                    (aa, ad, dd) = (aa + a * a, ad + a * diff, dd + diff * diff);
+                }
                 let c = aa - radius * radius;
                 let beta = (-ad + (ad * ad - dd * c).max(0.0).sqrt()) / dd.max(f64::MIN_POSITIVE);
-                for i in 0..pattern.n {
-                    self.delta[i] = a[i] + beta * diff[i];
+                for ((d, g), b) in self.delta.iter_mut().zip(&self.work).zip(&self.b) {
+                    *d = alpha * b + beta * (g - alpha * b);
                 }
             }
         }
-        let mut hd = vec![0.0; pattern.n];
-        symmetric_multiply(pattern, &self.h, &self.delta, &mut hd);
-        2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &hd)
+        symmetric_multiply(pattern, &self.h, &self.delta, &mut self.product);
+        2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &self.product)
     }
 }
 

@@ -86,14 +86,9 @@ impl BlockPattern {
                 let col_start = row_idx.len();
                 // Diagonal block: rows q..dim, then every off-diagonal block whole.
                 for (k, &a) in list.iter().enumerate() {
-                    let p = first_pair + k * dim[b];
-                    if a == b {
-                        pair_cols[p + q] = row_idx.len();
-                        row_idx.extend(offset[b] + q..offset[b] + dim[b]);
-                    } else {
-                        pair_cols[p + q] = row_idx.len();
-                        row_idx.extend(offset[a]..offset[a] + dim[a]);
-                    }
+                    pair_cols[first_pair + k * dim[b] + q] = row_idx.len();
+                    let first_row = if a == b { offset[b] + q } else { offset[a] };
+                    row_idx.extend(first_row..offset[a] + dim[a]);
                 }
                 debug_assert!(row_idx.len() > col_start);
                 col_ptr.push(row_idx.len());
