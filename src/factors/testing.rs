@@ -36,8 +36,12 @@ impl Rng {
     }
     /// An angle: one time in four within 1e-3 of ±π, otherwise uniform.
     pub fn angle(&mut self) -> f64 {
-        if self.next_u64() % 4 == 0 {
-            let sign = if self.next_u64() % 2 == 0 { 1.0 } else { -1.0 };
+        if self.next_u64().is_multiple_of(4) {
+            let sign = if self.next_u64().is_multiple_of(2) {
+                1.0
+            } else {
+                -1.0
+            };
             sign * (PI - 1e-3 * self.uniform())
         } else {
             (2.0 * self.uniform() - 1.0) * PI

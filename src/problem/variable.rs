@@ -71,7 +71,7 @@ impl Variable for Se3 {
         let v = Vector3::new(delta[0], delta[1], delta[2]);
         let w = Vector3::new(delta[3], delta[4], delta[5]);
         self.translation += self.rotation * v;
-        self.rotation = self.rotation * so3::exp(&w);
+        self.rotation *= so3::exp(&w);
         self.rotation.renormalize();
     }
     fn clone_box(&self) -> Box<dyn Variable> {

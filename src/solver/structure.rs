@@ -80,7 +80,7 @@ impl BlockPattern {
             let first_pair = pair_cols.len();
             for &a in list.iter() {
                 blocks.push((a, pair_cols.len()));
-                pair_cols.extend(std::iter::repeat(0).take(dim[b]));
+                pair_cols.extend(std::iter::repeat_n(0, dim[b]));
             }
             for q in 0..dim[b] {
                 let col_start = row_idx.len();
