@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 use factord::factors::RobustKernel;
 use factord::io::{self, Dimension};
+use factord::server::{self, ServeConfig};
 use factord::solver::{self, Initialization, IterationReport, Method, SolverOptions};
 
 #[derive(Parser)]
@@ -25,6 +26,8 @@ struct Cli {
 enum Command {
     /// Optimise a pose graph file (g2o, TORO, or a course vertices/edges pair).
     Solve(SolveArgs),
+    /// Run the service: HTTP API, zenoh peer, worker pool (see README).
+    Serve(ServeArgs),
     /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
     /// the matrix in Matrix Market form for comparison with other libraries.
     BenchCholesky(BenchCholeskyArgs),
@@ -69,6 +72,93 @@ struct SolveArgs {
     quiet: bool,
 }
 
+/// Settings come from defaults, then `--config`, then `FACTORD_*` environment variables, then
+/// flags.
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// JSON config file (the fields of `ServeConfig`, see README).
+    #[arg(long, env = "FACTORD_CONFIG")]
+    config: Option<PathBuf>,
+    /// HTTP address [default: 127.0.0.1:8080]
+    #[arg(long, env = "FACTORD_LISTEN")]
+    listen: Option<String>,
+    /// State directory [default: ./factord-state]
+    #[arg(long, env = "FACTORD_STATE_DIR")]
+    state_dir: Option<PathBuf>,
+    /// zenoh endpoints to listen on (repeatable) [default: tcp/127.0.0.1:7447]
+    #[arg(long, env = "FACTORD_ZENOH_LISTEN", value_delimiter = ',')]
+    zenoh_listen: Option<Vec<String>>,
+    /// zenoh routers or peers to connect to (repeatable)
+    #[arg(long, env = "FACTORD_ZENOH_CONNECT", value_delimiter = ',')]
+    zenoh_connect: Option<Vec<String>>,
+    /// Multicast scouting: on | off [default: off]
+    #[arg(long, env = "FACTORD_ZENOH_MULTICAST", value_parser = parse_on_off)]
+    zenoh_multicast: Option<bool>,
+    /// Do not start the zenoh peer (HTTP only).
+    #[arg(long, env = "FACTORD_NO_ZENOH")]
+    no_zenoh: bool,
+    /// Solver worker threads [default: number of cores]
+    #[arg(long, env = "FACTORD_WORKERS")]
+    workers: Option<usize>,
+    /// Largest request body in bytes [default: 268435456]
+    #[arg(long, env = "FACTORD_MAX_BODY_BYTES")]
+    max_body_bytes: Option<usize>,
+    /// Log filter level: error | warn | info | debug | trace [default: info]
+    #[arg(long, env = "FACTORD_LOG", default_value = "info")]
+    log: tracing::Level,
+}
+
+fn parse_on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" | "true" | "1" => Ok(true),
+        "off" | "false" | "0" => Ok(false),
+        _ => Err(format!("expected on or off, got `{s}`")),
+    }
+}
+
+fn serve(args: ServeArgs) -> Result<(), String> {
+    tracing_subscriber::fmt()
+        .with_max_level(args.log)
+        .with_writer(std::io::stderr)
+        .init();
+    let mut config = match &args.config {
+        Some(path) => ServeConfig::from_file(path).map_err(|e| e.to_string())?,
+        None => ServeConfig::default(),
+    };
+    if let Some(v) = args.listen {
+        config.listen = v;
+    }
+    if let Some(v) = args.state_dir {
+        config.state_dir = v;
+    }
+    if let Some(v) = args.zenoh_listen {
+        config.zenoh.listen = v;
+    }
+    if let Some(v) = args.zenoh_connect {
+        config.zenoh.connect = v;
+    }
+    if let Some(v) = args.zenoh_multicast {
+        config.zenoh.multicast = v;
+    }
+    if args.no_zenoh {
+        config.zenoh_enabled = false;
+    }
+    if let Some(v) = args.workers {
+        config.limits.workers = v.max(1);
+    }
+    if let Some(v) = args.max_body_bytes {
+        config.max_body_bytes = v;
+    }
+    // zenoh needs the multi-threaded runtime.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| e.to_string())?;
+    runtime
+        .block_on(server::run(config, server::shutdown_signal()))
+        .map_err(|e| e.to_string())
+}
+
 #[derive(clap::Args)]
 struct BenchCholeskyArgs {
     graph: PathBuf,
@@ -104,6 +194,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Solve(args) => solve(args),
+        Command::Serve(args) => serve(args),
         Command::BenchCholesky(args) => factord::solver::cholesky_bench::run(
             &args.graph,
             args.edges.as_deref(),
@@ -176,6 +267,7 @@ fn solve(args: SolveArgs) -> Result<(), String> {
             if !quiet && last {
                 print_iteration(r)
             }
+            std::ops::ControlFlow::Continue(())
         })
         .map_err(|e| e.to_string())?;
         runs.push(s.solve_seconds);

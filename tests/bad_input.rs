@@ -138,7 +138,10 @@ fn a_graph_without_anchor_gets_its_first_pose_fixed_and_says_so() {
     std::fs::write(&path, common::synthetic_manhattan(60, 4)).unwrap();
     let mut graph = io::load(&path, None).unwrap();
     let before = *graph.problem.values.get_as::<Se2>(0).unwrap();
-    let summary = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {}).unwrap();
+    let summary = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     assert_eq!(summary.used.gauge_fixed, vec![0]);
     assert!(summary.report().contains("fixed variable(s) [0]"));
     assert_eq!(*graph.problem.values.get_as::<Se2>(0).unwrap(), before);
@@ -146,7 +149,10 @@ fn a_graph_without_anchor_gets_its_first_pose_fixed_and_says_so() {
     // With FIX present nothing is fixed automatically.
     std::fs::write(&path, common::synthetic_manhattan(60, 4) + "FIX 5\n").unwrap();
     let mut graph = io::load(&path, None).unwrap();
-    let summary = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {}).unwrap();
+    let summary = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     assert!(summary.used.gauge_fixed.is_empty());
 }
 
@@ -215,7 +221,9 @@ fn a_singular_system_is_a_typed_error_naming_the_variable() {
         initialization: factord::solver::Initialization::None,
         ..Default::default()
     };
-    match optimize(&mut problem, &options, &mut |_| {}) {
+    match optimize(&mut problem, &options, &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    }) {
         Err(SolverError::IndeterminateSystem { keys }) => assert_eq!(keys, vec![42]),
         other => panic!("expected IndeterminateSystem, got {other:?}"),
     }

@@ -54,8 +54,10 @@ fn solve_writes_summary_json_graph_and_trajectory() {
     let mut reread = factord::io::load(&out, None).unwrap();
     assert!((reread.problem.chi2() - final_chi2).abs() <= 1e-6 * final_chi2);
     assert_eq!(std::fs::read_to_string(&tum).unwrap().lines().count(), 120);
-    let again =
-        factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {}).unwrap();
+    let again = factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
     assert!(again.final_chi2 <= final_chi2 * (1.0 + 1e-6));
 }
 

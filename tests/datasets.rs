@@ -16,7 +16,10 @@ fn solve(
         None => None,
     };
     let mut graph = io::load(&path, edges.as_deref()).expect("dataset loads");
-    let summary = optimize(&mut graph.problem, options, &mut |_| {}).expect("solve succeeds");
+    let summary = optimize(&mut graph.problem, options, &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .expect("solve succeeds");
     Some((summary, graph))
 }
 

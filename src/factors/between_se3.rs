@@ -96,6 +96,13 @@ impl Factor for BetweenSe3 {
     fn as_any(&self) -> &dyn Any {
         self
     }
+    fn predict(&self, known: &[Option<&dyn Variable>], target: usize) -> Option<Box<dyn Variable>> {
+        let other = known[1 - target]?.as_any().downcast_ref::<Se3>()?;
+        Some(Box::new(match target {
+            1 => other.compose(&self.measurement),
+            _ => other.compose(&self.measurement.inverse()),
+        }))
+    }
 }
 
 #[cfg(test)]

@@ -52,6 +52,17 @@ pub trait Factor: Debug + Send + Sync {
         jacobian: Option<&mut [f64]>,
     ) -> Result<(), EvaluationError>;
     fn as_any(&self) -> &dyn Any;
+    /// The value of the variable at position `target` that makes this factor's error zero given
+    /// the others (`known[k]` is `None` only at `target`), when the measurement determines it: a
+    /// between factor's far end, a prior's pose. Used to predict initial guesses for new
+    /// variables a client sends without one.
+    fn predict(
+        &self,
+        _known: &[Option<&dyn Variable>],
+        _target: usize,
+    ) -> Option<Box<dyn Variable>> {
+        None
+    }
 }
 
 /// Downcasts variable `position` to `T`, or says which kind was expected.

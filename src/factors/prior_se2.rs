@@ -56,6 +56,13 @@ impl Factor for PriorSe2 {
     fn as_any(&self) -> &dyn Any {
         self
     }
+    fn predict(
+        &self,
+        _known: &[Option<&dyn Variable>],
+        _target: usize,
+    ) -> Option<Box<dyn Variable>> {
+        Some(Box::new(self.measurement))
+    }
 }
 
 #[cfg(test)]

@@ -102,8 +102,10 @@ pub fn numeric_jacobian(
     out
 }
 
-/// Panics with a readable report when analytic and numeric Jacobians disagree.
+/// Panics with a readable report when analytic and numeric Jacobians disagree, or when a value
+/// the factor predicts for one of its variables does not zero its error.
 pub fn assert_jacobians_match(factor: &dyn Factor, variables: &[Box<dyn Variable>]) {
+    assert_predictions_zero_error(factor, variables);
     let d = factor.residual_dim();
     let cols: usize = variables.iter().map(|v| v.tangent_dim()).sum();
     let refs: Vec<&dyn Variable> = variables.iter().map(|v| v.as_ref()).collect();
@@ -122,5 +124,34 @@ pub fn assert_jacobians_match(factor: &dyn Factor, variables: &[Box<dyn Variable
                 factor.name()
             );
         }
+    }
+}
+
+fn assert_predictions_zero_error(factor: &dyn Factor, variables: &[Box<dyn Variable>]) {
+    for target in 0..variables.len() {
+        let known: Vec<Option<&dyn Variable>> = (0..variables.len())
+            .map(|k| (k != target).then(|| variables[k].as_ref()))
+            .collect();
+        let Some(predicted) = factor.predict(&known, target) else {
+            continue;
+        };
+        let refs: Vec<&dyn Variable> = (0..variables.len())
+            .map(|k| {
+                if k == target {
+                    predicted.as_ref()
+                } else {
+                    variables[k].as_ref()
+                }
+            })
+            .collect();
+        let mut e = vec![0.0; factor.residual_dim()];
+        factor
+            .evaluate(&refs, &mut e, None)
+            .expect("evaluation failed");
+        assert!(
+            e.iter().all(|v| v.abs() < 1e-9),
+            "{}: predicting variable {target} leaves error {e:?}",
+            factor.name()
+        );
     }
 }

@@ -130,13 +130,48 @@ pub(crate) fn problem_error(path: &Path, line: usize, e: ProblemError) -> IoErro
     parse_error(path, line, e.to_string())
 }
 
+/// Graph file formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    G2o,
+    Toro,
+}
+
+impl Format {
+    pub fn parse(name: &str) -> Option<Self> {
+        match name {
+            "g2o" => Some(Self::G2o),
+            "toro" => Some(Self::Toro),
+            _ => None,
+        }
+    }
+}
+
+/// Parses a whole graph held in memory (`name` labels errors), in `format` or, when `None`,
+/// detected as [`load`] does.
+pub fn parse_text(text: &str, name: &Path, format: Option<Format>) -> Result<PoseGraph, IoError> {
+    let format = format.unwrap_or(if is_toro(text) {
+        Format::Toro
+    } else {
+        Format::G2o
+    });
+    match format {
+        Format::Toro => toro::parse(&[(name, text)]),
+        Format::G2o => g2o::parse(&[(name, text)]),
+    }
+}
+
+fn is_toro(text: &str) -> bool {
+    lines(text)
+        .next()
+        .is_some_and(|l| matches!(l.tokens[0], "VERTEX2" | "EDGE2" | "VERTEX" | "EDGE"))
+}
+
 /// Loads a pose graph, choosing the reader by content: `VERTEX2`/`EDGE2` records are TORO (with
 /// an optional separate edges file, as the course's `-v.dat`/`-e.dat` pairs), anything else g2o.
 pub fn load(path: &Path, edges: Option<&Path>) -> Result<PoseGraph, IoError> {
     let text = read_text(path)?;
-    let is_toro = lines(&text)
-        .next()
-        .is_some_and(|l| matches!(l.tokens[0], "VERTEX2" | "EDGE2" | "VERTEX" | "EDGE"));
+    let is_toro = is_toro(&text);
     match edges {
         Some(edges_path) => {
             let edge_text = read_text(edges_path)?;

@@ -158,6 +158,15 @@ impl Problem {
         &self.factors
     }
 
+    /// Keeps the factors for which `keep(index)` is true, in order.
+    pub fn retain_factors(&mut self, mut keep: impl FnMut(usize) -> bool) {
+        let mut index = 0;
+        self.factors.retain(|_| {
+            index += 1;
+            keep(index - 1)
+        });
+    }
+
     /// Sets every factor's robust kernel (the CLI's `--robust`).
     pub fn set_robust_kernel(&mut self, kernel: Option<RobustKernel>) {
         for f in &mut self.factors {

@@ -18,7 +18,9 @@ pub fn run(
     write_mtx: Option<&Path>,
 ) -> Result<String, Box<dyn std::error::Error>> {
     let mut g = crate::io::load(graph, edges)?;
-    let summary = optimize(&mut g.problem, &SolverOptions::default(), &mut |_| {})?;
+    let summary = optimize(&mut g.problem, &SolverOptions::default(), &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })?;
     let fixed: Vec<bool> = (0..g.problem.values.len())
         .map(|v| {
             g.problem.values.is_fixed(v)

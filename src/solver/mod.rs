@@ -32,6 +32,8 @@ pub enum SolverError {
     NonFiniteInitialCost,
     #[error("{0}")]
     Symbolic(#[from] cholesky::SymbolicError),
+    #[error("internal error: {0}")]
+    Internal(String),
 }
 
 /// `Σ ρ(eᵀΩe)` over `factors` at `values`.

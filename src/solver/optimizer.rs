@@ -5,6 +5,7 @@
 //! model decrease is L(0) − L(Δ) = 2Δᵀb − ΔᵀHΔ = Δᵀb + λΔᵀDΔ; the gain ratio
 //! ρ = (F(x) − F(x ⊕ Δ)) / (L(0) − L(Δ)) decides acceptance and the next λ or radius.
 
+use std::ops::ControlFlow;
 use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
@@ -21,11 +22,13 @@ use super::summary::{
 use super::{evaluate_chi2, SolverError};
 use crate::problem::{Problem, Values};
 
-/// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes.
+/// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes and
+/// may stop the solve there (`ControlFlow::Break`): the values are then those of the last accepted
+/// step and the termination reason is [`TerminationReason::Interrupted`].
 pub fn optimize(
     problem: &mut Problem,
     options: &SolverOptions,
-    on_iteration: &mut dyn FnMut(&IterationReport),
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
     let start = Instant::now();
     let mut timings = Timings::default();
@@ -281,7 +284,7 @@ impl Iterations<'_> {
         factors: &Factors,
         values: &mut Values,
         options: &SolverOptions,
-        on_iteration: &mut dyn FnMut(&IterationReport),
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ) -> Result<(f64, Termination), SolverError> {
         let mut times = StepTimes::default();
         let mut chi2 = self.linearize_at(factors, values, &mut times)?;
@@ -422,10 +425,21 @@ impl Iterations<'_> {
                 solve_seconds: times.solve,
             };
             times = StepTimes::default();
-            on_iteration(&report);
+            let control = on_iteration(&report);
             self.log.push(report);
             if let Some(stop) = stop {
                 return Ok((chi2, stop));
+            }
+            if control.is_break() {
+                return Ok((
+                    chi2,
+                    termination(
+                        TerminationReason::Interrupted,
+                        iteration as f64,
+                        0.0,
+                        "interrupted by the caller after this iteration",
+                    ),
+                ));
             }
             if lambda > 1e16 || radius < 1e-16 {
                 let (value, threshold) = if lambda > 1e16 {

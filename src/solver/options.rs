@@ -42,7 +42,7 @@ pub enum Initialization {
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct SolverOptions {
     pub method: Method,
     pub max_iterations: usize,
@@ -72,5 +72,32 @@ impl Default for SolverOptions {
             initial_trust_radius: 1e4,
             initialization: Initialization::Auto,
         }
+    }
+}
+
+impl SolverOptions {
+    /// Checks every field's range; on failure names the field and says why.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        if self.max_iterations == 0 || self.max_iterations > 100_000 {
+            return Err(("max_iterations", "must be between 1 and 100000".into()));
+        }
+        for (name, value) in [
+            ("function_tolerance", self.function_tolerance),
+            ("gradient_tolerance", self.gradient_tolerance),
+            ("parameter_tolerance", self.parameter_tolerance),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err((name, format!("must be a finite number >= 0, got {value}")));
+            }
+        }
+        for (name, value) in [
+            ("initial_lambda", self.initial_lambda),
+            ("initial_trust_radius", self.initial_trust_radius),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err((name, format!("must be a finite number > 0, got {value}")));
+            }
+        }
+        Ok(())
     }
 }

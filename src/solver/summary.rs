@@ -33,6 +33,8 @@ pub enum TerminationReason {
     NoProgress,
     /// Nothing to optimise (no free variables or no factors).
     Trivial,
+    /// The caller stopped the solve (cancelled, preempted or shut down).
+    Interrupted,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -48,7 +50,9 @@ impl Termination {
     pub fn converged(&self) -> bool {
         !matches!(
             self.reason,
-            TerminationReason::MaxIterations | TerminationReason::NoProgress
+            TerminationReason::MaxIterations
+                | TerminationReason::NoProgress
+                | TerminationReason::Interrupted
         )
     }
 }

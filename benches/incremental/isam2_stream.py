@@ -1,0 +1,242 @@
+#!/usr/bin/env python3
+"""GTSAM iSAM2 on a streaming 2D pose graph: per-step latency and final chi2.
+
+    isam2_stream.py <g2o file> [--json out.json] [--dump-latencies f] [--limit N]
+                    [--relinearize-threshold 0.1] [--relinearize-skip 10]
+
+Run it with the gtsam venv's python (benches/reference/setup.sh creates it):
+    ~/.cache/factord/venvs/gtsam/bin/python benches/incremental/isam2_stream.py \
+        /work/shared/data/2d/carlone/input_M3500_g2o.g2o
+
+The file is parsed by benches/reference/posegraph_io.py, the reader the batch reference drivers use.
+Only 2D graphs (VERTEX_SE2/EDGE_SE2, or TORO VERTEX2/EDGE2) are supported.
+
+Streaming protocol
+------------------
+Vertices are processed in increasing id order (with --limit N, only the first N ids and the edges
+among them).  Step k:
+  1. new factors = every edge (i, j) whose larger endpoint max(i, j) is k, i.e. the edges that
+     become complete when pose k arrives, as BetweenFactorPose2 with the file's full 3x3
+     information matrix (gtsam.noiseModel.Gaussian.Information).  The first pose also gets a
+     PriorFactorPose2 at its file value with sigma 1e-6 on x, y and theta (the gauge; it is a
+     prior, not a hard constraint).
+  2. initial guess for pose k = previous estimate of pose j composed with the edge measurement,
+     where the edge is the one between k and the previous vertex (odometry), or failing that any
+     new edge to an already-present pose (measurement inverted if the edge is stored as (k, j));
+     a pose with no such edge gets the file's vertex value.  The number of poses initialised
+     each way is reported in "initial_guess".
+  3. isam.update(new_factors, new_values), then isam.calculateEstimate(): the full estimate is
+     available after every step, and it is the "previous estimate" used by the next step.
+The timed region of a step (time.perf_counter) is all of 1-3: building the factors and values,
+update and estimate.  Parsing the file and grouping the edges by step happen before the loop and
+are not timed.  total_seconds is the sum of the per-step times; percentiles are numpy's linear
+interpolation over the per-step times.
+
+iSAM2: ISAM2Params() defaults (Gauss-Newton, CHOLESKY, wildfire 0.001) except the relinearize
+threshold and skip, which default to GTSAM's own 0.1 and 10 and can be changed by the flags.
+
+chi2 (prior excluded; no 1/2):
+  final_chi2      2 * graph.error(estimate) over all streamed edges = sum e^T Omega e with GTSAM's
+                  Pose2 between error e = Logmap(Z^-1 Xi^-1 Xj) = (V(theta)^-1 t, theta).
+  final_chi2_t2v  the same estimate in g2o's / factord's convention, e = t2v(Z^-1 Xi^-1 Xj)
+                  (posegraph_io.chi2_g2o_convention).  It differs slightly from final_chi2
+                  because the translation part of Logmap is not t2v's.
+  batch_chi2      the same two numbers after a plain GaussNewtonOptimizer on the full graph (with
+  batch_chi2_t2v  the same prior) from the file's initial values: the batch optimum, for reference.
+  batch_from_isam2_chi2   GaussNewtonOptimizer started from the final iSAM2 estimate instead.
+Batch GN settings are those of benches/reference/gtsam_solve.py (relative tolerance 1e-6,
+absolute 1e-9, at most 100 iterations, MULTIFRONTAL_CHOLESKY).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import sys
+import time
+from typing import Dict, List, Tuple
+
+import numpy as np
+
+import gtsam
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir, "reference"))
+from posegraph_io import Edge, PoseGraph, chi2_g2o_convention, read_pose_graph  # noqa: E402
+
+PRIOR_SIGMA = 1e-6
+
+
+def parse_args() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description="GTSAM iSAM2 streaming pose-graph benchmark (prints one JSON object)")
+    p.add_argument("file", help="2D g2o (VERTEX_SE2/EDGE_SE2) or TORO pose-graph file")
+    p.add_argument("--json", metavar="OUT", help="also write the JSON object to this file")
+    p.add_argument("--dump-latencies", metavar="FILE", help="write one step latency (ms) per line")
+    p.add_argument("--limit", type=int, metavar="N", help="stream only the first N poses (lowest ids)")
+    p.add_argument("--relinearize-threshold", type=float, default=0.1, help="ISAM2Params relinearizeThreshold (0.1)")
+    p.add_argument("--relinearize-skip", type=int, default=10, help="ISAM2Params relinearizeSkip (10)")
+    args = p.parse_args()
+    if args.limit is not None and args.limit < 1:
+        p.error("--limit must be >= 1")
+    return args
+
+
+def restrict(graph: PoseGraph, limit: int | None) -> PoseGraph:
+    """The first `limit` poses (by id) and the edges among them."""
+    ids = sorted(graph.vertices)[:limit]
+    keep = set(ids)
+    return PoseGraph(graph.dim, {k: graph.vertices[k] for k in ids},
+                     [e for e in graph.edges if e.i in keep and e.j in keep])
+
+
+def edges_by_step(graph: PoseGraph) -> Dict[int, List[Edge]]:
+    """Vertex id -> the edges whose larger endpoint is that id (file order kept)."""
+    steps: Dict[int, List[Edge]] = {k: [] for k in graph.vertices}
+    for e in graph.edges:
+        steps[max(e.i, e.j)].append(e)
+    return steps
+
+
+def between_factor(e: Edge) -> gtsam.BetweenFactorPose2:
+    noise = gtsam.noiseModel.Gaussian.Information(np.array(e.information, dtype=float))
+    return gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.measurement), noise)
+
+
+def initial_guess(k: int, prev: int | None, new_edges: List[Edge], estimate: gtsam.Values,
+                  file_value) -> Tuple[gtsam.Pose2, str]:
+    """Initial value of pose k and how it was obtained ('odometry', 'other edge' or 'file')."""
+    chosen, how = None, None
+    for e in new_edges:
+        other = e.i if e.j == k else e.j
+        if other == k:  # self-loop: says nothing about where k is
+            continue
+        if other == prev:
+            chosen, how = e, "odometry"
+            break
+        if chosen is None:
+            chosen, how = e, "other edge"
+    if chosen is None:
+        return gtsam.Pose2(*file_value), "file"
+    z = gtsam.Pose2(*chosen.measurement)  # z = X_i^-1 X_j
+    if chosen.j == k:
+        return estimate.atPose2(chosen.i).compose(z), how
+    return estimate.atPose2(chosen.j).compose(z.inverse()), how
+
+
+def batch_gn(factors: gtsam.NonlinearFactorGraph, prior: gtsam.PriorFactorPose2,
+             start: gtsam.Values) -> Tuple[gtsam.Values, int]:
+    """Plain Gauss-Newton on the full graph plus the gauge prior (gtsam_solve.py's settings)."""
+    graph = gtsam.NonlinearFactorGraph(factors)
+    graph.add(prior)
+    params = gtsam.GaussNewtonParams()
+    params.setMaxIterations(100)
+    params.setRelativeErrorTol(1e-6)
+    params.setAbsoluteErrorTol(1e-9)
+    params.setErrorTol(0.0)
+    params.setLinearSolverType("MULTIFRONTAL_CHOLESKY")
+    optimizer = gtsam.GaussNewtonOptimizer(graph, start, params)
+    values = optimizer.optimize()
+    return values, optimizer.iterations()
+
+
+def as_tuples(values: gtsam.Values, ids) -> Dict[int, Tuple[float, float, float]]:
+    out = {}
+    for k in ids:
+        p = values.atPose2(k)
+        out[k] = (p.x(), p.y(), p.theta())
+    return out
+
+
+def main() -> int:
+    args = parse_args()
+    full = read_pose_graph(args.file)
+    if full.dim != 2:
+        print(f"{args.file}: only 2D pose graphs are supported", file=sys.stderr)
+        return 2
+    graph = restrict(full, args.limit)
+    ids = sorted(graph.vertices)
+    steps = edges_by_step(graph)
+    first = ids[0]
+
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(args.relinearize_threshold)
+    params.relinearizeSkip = args.relinearize_skip
+    isam = gtsam.ISAM2(params)
+    prior = gtsam.PriorFactorPose2(first, gtsam.Pose2(*graph.vertices[first]),
+                                   gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA))
+
+    # ---- the stream -------------------------------------------------------------------------
+    latencies = []
+    guess_sources = {"odometry": 0, "other edge": 0, "file": 0}
+    estimate = gtsam.Values()
+    prev = None
+    for k in ids:
+        t0 = time.perf_counter()
+        new_factors = gtsam.NonlinearFactorGraph()
+        if k == first:
+            new_factors.add(prior)
+        for e in steps[k]:
+            new_factors.add(between_factor(e))
+        pose, how = initial_guess(k, prev, steps[k], estimate, graph.vertices[k])
+        new_values = gtsam.Values()
+        new_values.insert(k, pose)
+        isam.update(new_factors, new_values)
+        estimate = isam.calculateEstimate()
+        latencies.append(time.perf_counter() - t0)
+        guess_sources[how] += 1
+        prev = k
+
+    # ---- chi2 of the final estimate and of the batch optimum (not timed) ----------------------
+    factors = gtsam.NonlinearFactorGraph()
+    for e in graph.edges:
+        factors.add(between_factor(e))
+    file_values = gtsam.Values()
+    for k in ids:
+        file_values.insert(k, gtsam.Pose2(*graph.vertices[k]))
+    batch, batch_iterations = batch_gn(factors, prior, file_values)
+    polished, polished_iterations = batch_gn(factors, prior, estimate)
+
+    ms = np.array(latencies) * 1e3
+    result = {
+        "system": "gtsam-isam2",
+        "gtsam_version": importlib.metadata.version("gtsam"),
+        "dataset": os.path.splitext(os.path.basename(args.file))[0],
+        "file": os.path.abspath(args.file),
+        "limit": args.limit,
+        "steps": len(ids),
+        "edges": len(graph.edges),
+        "total_seconds": float(ms.sum() / 1e3),
+        "mean_ms": float(ms.mean()),
+        "p50_ms": float(np.percentile(ms, 50)),
+        "p90_ms": float(np.percentile(ms, 90)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
+        "final_chi2": 2.0 * factors.error(estimate),
+        "final_chi2_t2v": chi2_g2o_convention(graph, as_tuples(estimate, ids)),
+        "batch_chi2": 2.0 * factors.error(batch),
+        "batch_chi2_t2v": chi2_g2o_convention(graph, as_tuples(batch, ids)),
+        "batch_iterations": batch_iterations,
+        "batch_from_isam2_chi2": 2.0 * factors.error(polished),
+        "batch_from_isam2_iterations": polished_iterations,
+        "initial_chi2_file": 2.0 * factors.error(file_values),
+        "prior": "prior sigma 1e-6",
+        "relinearize_threshold": args.relinearize_threshold,
+        "relinearize_skip": args.relinearize_skip,
+        "factorization": str(params.getFactorization()),
+        "initial_guess": guess_sources,
+        "timed": "per step: build factors+values, isam.update, isam.calculateEstimate",
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+    if args.dump_latencies:
+        with open(args.dump_latencies, "w") as fh:
+            fh.writelines(f"{v:.6f}\n" for v in ms)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

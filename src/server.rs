@@ -1,0 +1,217 @@
+//! `factord serve`: configuration (file < environment < flags), the state directory, starting
+//! HTTP and zenoh over one [`Service`], and graceful shutdown.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use crate::service::{Limits, Service};
+use crate::transport::zenoh::ZenohConfig;
+use crate::transport::{http, zenoh};
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServeConfig {
+    /// HTTP address.
+    pub listen: String,
+    pub state_dir: PathBuf,
+    /// Largest accepted request body.
+    pub max_body_bytes: usize,
+    /// Run the zenoh peer.
+    pub zenoh_enabled: bool,
+    pub zenoh: ZenohConfig,
+    pub limits: Limits,
+    /// How long shutdown waits for running solves to stop.
+    pub shutdown_timeout_ms: u64,
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        Self {
+            listen: "127.0.0.1:8080".into(),
+            state_dir: PathBuf::from("factord-state"),
+            max_body_bytes: 256 << 20,
+            zenoh_enabled: true,
+            zenoh: ZenohConfig {
+                listen: vec!["tcp/127.0.0.1:7447".into()],
+                connect: Vec::new(),
+                multicast: false,
+                prefix: "factord".into(),
+            },
+            limits: Limits::default(),
+            shutdown_timeout_ms: 10_000,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("config file {file}: {message}")]
+    Config { file: PathBuf, message: String },
+    #[error("state directory {dir}: {message}")]
+    StateDir { dir: PathBuf, message: String },
+    #[error("cannot listen on {addr}: {source}")]
+    Listen {
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Zenoh(#[from] zenoh::ZenohError),
+    #[error("HTTP server: {0}")]
+    Http(std::io::Error),
+}
+
+impl ServeConfig {
+    pub fn from_file(path: &Path) -> Result<Self, ServeError> {
+        let text = std::fs::read_to_string(path).map_err(|e| ServeError::Config {
+            file: path.into(),
+            message: e.to_string(),
+        })?;
+        crate::service::parse_json(text.as_bytes()).map_err(|e| ServeError::Config {
+            file: path.into(),
+            message: match e.body.field {
+                Some(f) => format!("{f}: {}", e.body.message),
+                None => e.body.message,
+            },
+        })
+    }
+}
+
+/// What a running server tells the world, written to `<state_dir>/server.json`.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct ServerInfo {
+    pub pid: u32,
+    pub http: String,
+    pub zenoh_listen: Vec<String>,
+    pub zenoh_prefix: String,
+}
+
+/// An exclusive hold on the state directory, released on drop.
+struct StateDir {
+    lock: PathBuf,
+}
+
+impl StateDir {
+    fn open(dir: &Path) -> Result<Self, ServeError> {
+        let err = |message: String| ServeError::StateDir {
+            dir: dir.into(),
+            message,
+        };
+        std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        let lock = dir.join("factord.lock");
+        if let Ok(pid) = std::fs::read_to_string(&lock) {
+            let alive = Path::new(&format!("/proc/{}", pid.trim())).exists();
+            if alive && pid.trim() != std::process::id().to_string() {
+                return Err(err(format!(
+                    "in use by process {} (remove {} if that is stale)",
+                    pid.trim(),
+                    lock.display()
+                )));
+            }
+        }
+        std::fs::write(&lock, std::process::id().to_string()).map_err(|e| err(e.to_string()))?;
+        Ok(Self { lock })
+    }
+}
+
+impl Drop for StateDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.lock);
+    }
+}
+
+/// Runs until `shutdown` resolves, then stops accepting, stops running solves after their
+/// current iteration, closes zenoh and releases the state directory.
+pub async fn run(
+    config: ServeConfig,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<(), ServeError> {
+    let state = StateDir::open(&config.state_dir)?;
+    let service = Service::new(config.limits.clone());
+    let listener = tokio::net::TcpListener::bind(&config.listen)
+        .await
+        .map_err(|source| ServeError::Listen {
+            addr: config.listen.clone(),
+            source,
+        })?;
+    let http_addr: SocketAddr = listener.local_addr().map_err(ServeError::Http)?;
+    let zenoh = if config.zenoh_enabled {
+        Some(zenoh::start(Arc::clone(&service), &config.zenoh).await?)
+    } else {
+        None
+    };
+    let info = ServerInfo {
+        pid: std::process::id(),
+        http: http_addr.to_string(),
+        zenoh_listen: if config.zenoh_enabled {
+            config.zenoh.listen.clone()
+        } else {
+            Vec::new()
+        },
+        zenoh_prefix: config.zenoh.prefix.clone(),
+    };
+    let info_path = config.state_dir.join("server.json");
+    std::fs::write(
+        &info_path,
+        serde_json::to_string_pretty(&info).expect("serialisable"),
+    )
+    .map_err(|e| ServeError::StateDir {
+        dir: config.state_dir.clone(),
+        message: e.to_string(),
+    })?;
+    tracing::info!(
+        "factord {} serving HTTP on http://{http_addr} ({} workers)",
+        env!("CARGO_PKG_VERSION"),
+        service.limits().workers
+    );
+
+    let app = http::router(Arc::clone(&service), config.max_body_bytes);
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    tokio::spawn(async move {
+        shutdown.await;
+        let _ = stop_tx.send(true);
+    });
+    let mut http_stop = stop_rx.clone();
+    let result = axum::serve(listener, app)
+        .with_graceful_shutdown(async move {
+            let _ = http_stop.wait_for(|s| *s).await;
+            tracing::info!("shutting down: no new requests");
+        })
+        .await;
+    // Solves stop after their current iteration; their sessions keep the last good estimate.
+    let timeout = Duration::from_millis(config.shutdown_timeout_ms);
+    let svc = Arc::clone(&service);
+    let _ = tokio::task::spawn_blocking(move || svc.shutdown(timeout)).await;
+    if let Some(z) = zenoh {
+        z.close().await;
+    }
+    let _ = std::fs::remove_file(&info_path);
+    drop(state);
+    tracing::info!("stopped");
+    result.map_err(ServeError::Http)
+}
+
+/// Resolves on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

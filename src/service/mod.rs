@@ -1,0 +1,439 @@
+//! The service: the session registry, the worker pool, and the one command API that every
+//! transport calls. HTTP and zenoh only translate their requests into a [`Command`] and render the
+//! [`Reply`] or [`ServiceError`]; no behaviour lives in an adapter.
+
+pub mod error;
+pub mod jobs;
+pub mod pool;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+use tokio::sync::broadcast;
+
+pub use error::{parse_json, ErrorBody, ServiceError};
+use jobs::{Job, JobAnswer, JobParams};
+use pool::WorkerPool;
+
+use crate::problem::Key;
+use crate::session::catalogue;
+use crate::session::wire::*;
+use crate::session::Session;
+
+/// Capacity limits.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// Solver threads (default: the number of cores).
+    pub workers: usize,
+    pub max_sessions: usize,
+    /// Factors a session may have waiting for its running solve before batches get 429.
+    pub max_pending_factors: usize,
+    /// Batch jobs running or queued at once before new ones get 503.
+    pub max_jobs: usize,
+    /// How long `wait` requests wait for a solve.
+    pub wait_timeout_ms: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
+        Self {
+            workers: cores,
+            max_sessions: 1024,
+            max_pending_factors: 200_000,
+            max_jobs: 2 * cores,
+            wait_timeout_ms: 120_000,
+        }
+    }
+}
+
+/// Every operation of the API, as both transports send it (zenoh: this JSON on `factord/rpc`).
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Command {
+    Health,
+    ListSessions,
+    CreateSession(CreateSession),
+    DeleteSession {
+        session: String,
+    },
+    /// Add variables and factors, remove factors, fix/unfix, set guesses — atomically.
+    /// With `wait`, answers once the estimate reflects the batch (when a solve is due).
+    ApplyBatch {
+        session: String,
+        batch: Batch,
+        #[serde(default)]
+        wait: bool,
+    },
+    /// Solve now whatever the policy; with `wait`, answer when it has finished.
+    Optimize {
+        session: String,
+        #[serde(default)]
+        wait: bool,
+    },
+    SetAutoOptimize {
+        session: String,
+        auto_optimize: AutoOptimize,
+    },
+    GetEstimate {
+        session: String,
+        #[serde(default)]
+        since: Option<u64>,
+        #[serde(default)]
+        from: Option<Key>,
+        #[serde(default)]
+        to: Option<Key>,
+    },
+    GetStats {
+        session: String,
+    },
+    Cancel {
+        session: String,
+    },
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Health {
+    pub status: &'static str,
+    pub version: &'static str,
+    pub workers: usize,
+    pub busy_workers: usize,
+    pub queued: usize,
+    pub sessions: usize,
+    pub session_kinds: Vec<&'static str>,
+    pub uptime_seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Accepted {
+    #[serde(flatten)]
+    pub ack: BatchAck,
+    /// With `wait`: whether the estimate now reflects this batch (false when no solve was due
+    /// under the auto-optimise policy, or the wait timed out).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub solved: Option<bool>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+#[serde(untagged)]
+pub enum Reply {
+    Health(Health),
+    Sessions {
+        sessions: Vec<SessionInfo>,
+    },
+    Created(SessionInfo),
+    Deleted {
+        deleted: String,
+    },
+    Accepted(Accepted),
+    Optimizing {
+        session: String,
+        sequence: u64,
+        /// With `wait`: the session's statistics after the solve.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        stats: Option<Box<SessionStats>>,
+    },
+    AutoOptimize {
+        session: String,
+        auto_optimize: AutoOptimize,
+    },
+    Estimate(Estimate),
+    Stats(Box<SessionStats>),
+    Cancelled {
+        session: String,
+        cancelled: bool,
+    },
+}
+
+/// A session appeared or went away (the zenoh adapter follows these).
+#[derive(Clone)]
+pub enum Lifecycle {
+    Created(Arc<Session>),
+    Deleted(String),
+}
+
+pub struct Service {
+    sessions: RwLock<HashMap<String, Arc<Session>>>,
+    pool: WorkerPool,
+    limits: Limits,
+    runtime: tokio::runtime::Handle,
+    lifecycle: broadcast::Sender<Lifecycle>,
+    next_id: AtomicU64,
+    jobs_in_flight: AtomicUsize,
+    started: Instant,
+}
+
+/// Session names are zenoh key chunks and URL path segments.
+fn valid_session_name(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+impl Service {
+    /// Must be called inside a tokio runtime (timers of `every_ms` sessions run on it).
+    pub fn new(limits: Limits) -> Arc<Self> {
+        let workers = limits.workers.max(1);
+        Arc::new(Self {
+            sessions: RwLock::new(HashMap::new()),
+            pool: WorkerPool::new(workers),
+            limits,
+            runtime: tokio::runtime::Handle::current(),
+            lifecycle: broadcast::channel(1024).0,
+            next_id: AtomicU64::new(1),
+            jobs_in_flight: AtomicUsize::new(0),
+            started: Instant::now(),
+        })
+    }
+
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    pub fn lifecycle(&self) -> broadcast::Receiver<Lifecycle> {
+        self.lifecycle.subscribe()
+    }
+
+    pub fn session(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
+        self.sessions
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(name)
+            .cloned()
+            .ok_or_else(|| ServiceError::not_found("session", name))
+    }
+
+    pub fn sessions(&self) -> Vec<Arc<Session>> {
+        let mut all: Vec<_> = self
+            .sessions
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .values()
+            .cloned()
+            .collect();
+        all.sort_by(|a, b| a.name.cmp(&b.name));
+        all
+    }
+
+    /// Stops the pool: running solves stop after their current iteration.
+    pub fn shutdown(&self, timeout: Duration) {
+        self.pool.shutdown(timeout);
+    }
+
+    fn wait_timeout(&self) -> Duration {
+        Duration::from_millis(self.limits.wait_timeout_ms)
+    }
+
+    pub async fn execute(&self, command: Command) -> Result<Reply, ServiceError> {
+        if self.pool.handle().is_stopping() && !matches!(command, Command::Health) {
+            return Err(ServiceError::unavailable(
+                "shutting_down",
+                "the service is shutting down",
+                5,
+            ));
+        }
+        match command {
+            Command::Health => Ok(Reply::Health(self.health())),
+            Command::ListSessions => Ok(Reply::Sessions {
+                sessions: self.sessions().iter().map(|s| s.info()).collect(),
+            }),
+            Command::CreateSession(request) => self.create_session(request).map(Reply::Created),
+            Command::DeleteSession { session } => {
+                let removed = self
+                    .sessions
+                    .write()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .remove(&session)
+                    .ok_or_else(|| ServiceError::not_found("session", &session))?;
+                removed.mark_deleted();
+                let _ = self.lifecycle.send(Lifecycle::Deleted(session.clone()));
+                Ok(Reply::Deleted { deleted: session })
+            }
+            Command::ApplyBatch {
+                session,
+                batch,
+                wait,
+            } => {
+                let session = self.session(&session)?;
+                let (ack, will_solve) = session.apply_batch(batch)?;
+                let solved = if wait && will_solve {
+                    Some(session.wait_solved(ack.sequence, self.wait_timeout()).await)
+                } else if wait {
+                    Some(session.stats().solved_sequence >= ack.sequence)
+                } else {
+                    None
+                };
+                Ok(Reply::Accepted(Accepted { ack, solved }))
+            }
+            Command::Optimize { session, wait } => {
+                let session = self.session(&session)?;
+                let sequence = session.optimize_now()?;
+                let stats = if wait {
+                    session.wait_solved(sequence, self.wait_timeout()).await;
+                    Some(Box::new(session.stats()))
+                } else {
+                    None
+                };
+                Ok(Reply::Optimizing {
+                    session: session.name.clone(),
+                    sequence,
+                    stats,
+                })
+            }
+            Command::SetAutoOptimize {
+                session,
+                auto_optimize,
+            } => {
+                let session = self.session(&session)?;
+                session.set_auto_optimize(auto_optimize)?;
+                Ok(Reply::AutoOptimize {
+                    session: session.name.clone(),
+                    auto_optimize,
+                })
+            }
+            Command::GetEstimate {
+                session,
+                since,
+                from,
+                to,
+            } => Ok(Reply::Estimate(
+                self.session(&session)?
+                    .estimate(&EstimateQuery { since, from, to }),
+            )),
+            Command::GetStats { session } => {
+                Ok(Reply::Stats(Box::new(self.session(&session)?.stats())))
+            }
+            Command::Cancel { session } => {
+                let session = self.session(&session)?;
+                Ok(Reply::Cancelled {
+                    cancelled: session.cancel(),
+                    session: session.name.clone(),
+                })
+            }
+        }
+    }
+
+    pub fn health(&self) -> Health {
+        let pool = self.pool.handle();
+        Health {
+            status: if pool.is_stopping() { "stopping" } else { "ok" },
+            version: env!("CARGO_PKG_VERSION"),
+            workers: self.pool.workers,
+            busy_workers: pool.busy(),
+            queued: pool.waiting(),
+            sessions: self
+                .sessions
+                .read()
+                .unwrap_or_else(|p| p.into_inner())
+                .len(),
+            session_kinds: catalogue::SESSION_KINDS.iter().map(|k| k.name).collect(),
+            uptime_seconds: self.started.elapsed().as_secs_f64(),
+        }
+    }
+
+    fn create_session(&self, request: CreateSession) -> Result<SessionInfo, ServiceError> {
+        let kind = catalogue::session_kind(&request.kind).ok_or_else(|| {
+            let known: Vec<_> = catalogue::SESSION_KINDS.iter().map(|k| k.name).collect();
+            ServiceError::bad_request(
+                "unknown_kind",
+                "kind",
+                format!("unknown session kind `{}` (known: {known:?})", request.kind),
+            )
+        })?;
+        request.options.validate().map_err(|(field, m)| {
+            ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
+        })?;
+        let name = match request.session {
+            Some(name) if valid_session_name(&name) => name,
+            Some(name) => {
+                return Err(ServiceError::bad_request(
+                    "invalid_session_name",
+                    "session",
+                    format!("`{name}` is not 1-64 characters of [A-Za-z0-9_-]"),
+                ))
+            }
+            None => format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst)),
+        };
+        let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
+        if sessions.contains_key(&name) {
+            return Err(ServiceError::conflict(
+                "session_exists",
+                format!("session `{name}` already exists"),
+            ));
+        }
+        if sessions.len() >= self.limits.max_sessions {
+            return Err(ServiceError::unavailable(
+                "too_many_sessions",
+                format!(
+                    "the service holds its maximum of {} sessions",
+                    self.limits.max_sessions
+                ),
+                10,
+            ));
+        }
+        let session = Session::new(
+            name.clone(),
+            kind,
+            request.options,
+            request.auto_optimize,
+            self.runtime.clone(),
+            self.pool.handle(),
+            self.limits.max_pending_factors,
+        );
+        session.set_auto_optimize(request.auto_optimize)?;
+        sessions.insert(name, Arc::clone(&session));
+        drop(sessions);
+        let info = session.info();
+        let _ = self.lifecycle.send(Lifecycle::Created(session));
+        Ok(info)
+    }
+
+    /// Runs a batch job on the pool; 503 when `max_jobs` are already in flight.
+    pub async fn run_job(
+        &self,
+        text: String,
+        params: JobParams,
+    ) -> Result<JobAnswer, ServiceError> {
+        let job = Job::new(text, params)?;
+        let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
+        let _slot = JobSlot(&self.jobs_in_flight);
+        if previous >= self.limits.max_jobs {
+            return Err(ServiceError::unavailable(
+                "too_many_jobs",
+                format!(
+                    "{} batch jobs are already running or queued",
+                    self.limits.max_jobs
+                ),
+                1,
+            ));
+        }
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let pool = self.pool.handle();
+        let submitted = pool.clone().submit(Box::new(move || {
+            let _ = tx.send(job.run(&pool));
+        }));
+        if !submitted {
+            return Err(ServiceError::unavailable(
+                "shutting_down",
+                "the service is shutting down",
+                5,
+            ));
+        }
+        rx.await.map_err(|_| {
+            ServiceError::unavailable("shutting_down", "the job was dropped at shutdown", 5)
+        })?
+    }
+}
+
+struct JobSlot<'a>(&'a AtomicUsize);
+
+impl Drop for JobSlot<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}

@@ -1,0 +1,427 @@
+//! Validating a batch against a session before anything of it is applied.
+//!
+//! [`prepare`] checks every element against the session's catalogue and its current keys (the
+//! estimate mirror, which already includes batches waiting for a running solve), predicts missing
+//! initial guesses, and returns typed, ready-to-apply parts. Applying them to the problem cannot
+//! fail afterwards, so a batch is applied whole or, when `prepare` errs, not at all.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+
+use nalgebra::DMatrix;
+
+use super::catalogue::{self, SessionKind};
+use super::wire::{Batch, FactorId, FactorSpec};
+use super::MirrorEntry;
+use crate::factors::{Factor, RobustKernel, SqrtInformation};
+use crate::problem::{Key, Variable};
+use crate::service::ServiceError;
+
+pub(crate) struct PreparedFactor {
+    pub factor: Box<dyn Factor>,
+    pub sqrt_information: SqrtInformation,
+    pub robust: Option<RobustKernel>,
+    pub label: String,
+}
+
+pub(crate) struct PreparedBatch {
+    pub variables: Vec<(Key, Box<dyn Variable>, bool)>,
+    pub factors: Vec<PreparedFactor>,
+    pub remove: Vec<FactorId>,
+    /// (key, fixed) changes.
+    pub fix: Vec<(Key, bool)>,
+    pub guesses: Vec<(Key, Box<dyn Variable>)>,
+    /// Keys whose value was predicted rather than given.
+    pub predicted: Vec<Key>,
+}
+
+impl PreparedBatch {
+    pub fn factor_count(&self) -> usize {
+        self.factors.len()
+    }
+}
+
+/// What `prepare` needs to know about the session.
+pub(crate) struct SessionView<'a> {
+    pub kind: &'static SessionKind,
+    pub mirror: &'a BTreeMap<Key, MirrorEntry>,
+    pub live_factors: &'a HashSet<FactorId>,
+}
+
+fn finite(values: &[f64], field: &str) -> Result<(), ServiceError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(k) => Err(ServiceError::bad_request(
+            "non_finite",
+            format!("{field}[{k}]"),
+            format!("{field}[{k}] is not a finite number"),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn decode_value(kind: &str, value: &[f64], field: &str) -> Result<Box<dyn Variable>, ServiceError> {
+    let codec = catalogue::variable_codec(kind).expect("kind checked against the catalogue");
+    if value.len() != codec.len {
+        return Err(ServiceError::bad_request(
+            "wrong_dimension",
+            field,
+            format!(
+                "a {kind} value has {} numbers, got {}",
+                codec.len,
+                value.len()
+            ),
+        ));
+    }
+    finite(value, field)?;
+    (codec.decode)(value).map_err(|m| ServiceError::bad_request("invalid_value", field, m))
+}
+
+fn information(
+    spec: &FactorSpec,
+    dim: usize,
+    field: &str,
+) -> Result<SqrtInformation, ServiceError> {
+    let matrix = match (&spec.information, &spec.sigmas) {
+        (Some(_), Some(_)) | (None, None) => {
+            return Err(ServiceError::bad_request(
+                "missing_noise",
+                field,
+                "give exactly one of `information` and `sigmas`",
+            ))
+        }
+        (Some(info), None) => {
+            let field = format!("{field}.information");
+            finite(info, &field)?;
+            if info.len() == dim * dim {
+                DMatrix::from_row_slice(dim, dim, info)
+            } else if info.len() == dim * (dim + 1) / 2 {
+                let mut m = DMatrix::zeros(dim, dim);
+                let mut k = 0;
+                for i in 0..dim {
+                    for j in i..dim {
+                        m[(i, j)] = info[k];
+                        m[(j, i)] = info[k];
+                        k += 1;
+                    }
+                }
+                m
+            } else {
+                return Err(ServiceError::bad_request(
+                    "wrong_dimension",
+                    field,
+                    format!(
+                        "information needs {} (full) or {} (upper triangle) numbers, got {}",
+                        dim * dim,
+                        dim * (dim + 1) / 2,
+                        info.len()
+                    ),
+                ));
+            }
+        }
+        (None, Some(sigmas)) => {
+            let field = format!("{field}.sigmas");
+            finite(sigmas, &field)?;
+            if sigmas.len() != dim {
+                return Err(ServiceError::bad_request(
+                    "wrong_dimension",
+                    field,
+                    format!("sigmas needs {dim} numbers, got {}", sigmas.len()),
+                ));
+            }
+            if let Some(k) = sigmas.iter().position(|s| *s <= 0.0) {
+                return Err(ServiceError::bad_request(
+                    "bad_information",
+                    format!("{field}[{k}]"),
+                    "sigmas must be positive",
+                ));
+            }
+            DMatrix::from_diagonal(&nalgebra::DVector::from_iterator(
+                dim,
+                sigmas.iter().map(|s| 1.0 / (s * s)),
+            ))
+        }
+    };
+    SqrtInformation::from_information(&matrix).map_err(|e| {
+        ServiceError::bad_request(
+            "bad_information",
+            format!("{field}.information"),
+            e.to_string(),
+        )
+    })
+}
+
+/// Validates `batch` whole against the session; nothing is changed.
+pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch, ServiceError> {
+    let kind = view.kind;
+    // New variables: kind, uniqueness, value.
+    let mut new_kind: HashMap<Key, &'static str> = HashMap::new();
+    let mut values: Vec<Option<Box<dyn Variable>>> = Vec::with_capacity(batch.variables.len());
+    for (i, spec) in batch.variables.iter().enumerate() {
+        let field = format!("variables[{i}]");
+        let Some(&var_kind) = kind.variable_kinds.iter().find(|k| **k == spec.kind) else {
+            return Err(ServiceError::bad_request(
+                "wrong_kind",
+                format!("{field}.kind"),
+                format!(
+                    "a {} session holds variables of kind {:?}, not `{}`",
+                    kind.name, kind.variable_kinds, spec.kind
+                ),
+            ));
+        };
+        if view.mirror.contains_key(&spec.key) || new_kind.insert(spec.key, var_kind).is_some() {
+            return Err(ServiceError::invalid(
+                "duplicate_variable",
+                format!("{field}.key"),
+                format!("variable {} already exists", spec.key),
+            ));
+        }
+        values.push(match &spec.value {
+            Some(v) => Some(decode_value(var_kind, v, &format!("{field}.value"))?),
+            None => None,
+        });
+    }
+    let kind_of = |key: Key| -> Option<&'static str> {
+        new_kind
+            .get(&key)
+            .copied()
+            .or_else(|| view.mirror.get(&key).map(|e| e.kind))
+    };
+
+    // Factors.
+    let mut factors = Vec::with_capacity(batch.factors.len());
+    for (i, spec) in batch.factors.iter().enumerate() {
+        let field = format!("factors[{i}]");
+        let codec = kind
+            .factor_types
+            .contains(&spec.factor_type.as_str())
+            .then(|| catalogue::factor_codec(&spec.factor_type))
+            .flatten()
+            .ok_or_else(|| {
+                ServiceError::bad_request(
+                    "unknown_factor_type",
+                    format!("{field}.type"),
+                    format!(
+                        "a {} session accepts factors {:?}, not `{}`",
+                        kind.name, kind.factor_types, spec.factor_type
+                    ),
+                )
+            })?;
+        if spec.keys.len() != codec.variable_kinds.len() {
+            return Err(ServiceError::bad_request(
+                "wrong_dimension",
+                format!("{field}.keys"),
+                format!(
+                    "{} connects {} variables, got {} keys",
+                    codec.name,
+                    codec.variable_kinds.len(),
+                    spec.keys.len()
+                ),
+            ));
+        }
+        for (k, (&key, &expected)) in spec.keys.iter().zip(codec.variable_kinds).enumerate() {
+            let key_field = format!("{field}.keys[{k}]");
+            if spec.keys[..k].contains(&key) {
+                return Err(ServiceError::bad_request(
+                    "repeated_variable",
+                    key_field,
+                    format!("variable {key} appears twice"),
+                ));
+            }
+            match kind_of(key) {
+                None => {
+                    return Err(ServiceError::invalid(
+                        "unknown_variable",
+                        key_field,
+                        format!(
+                            "variable {key} does not exist (add it in this or an earlier batch)"
+                        ),
+                    ))
+                }
+                Some(found) if found != expected => {
+                    return Err(ServiceError::invalid(
+                        "wrong_kind",
+                        key_field,
+                        format!(
+                            "{} needs a {expected} here, variable {key} is a {found}",
+                            codec.name
+                        ),
+                    ))
+                }
+                Some(_) => {}
+            }
+        }
+        if spec.measurement.len() != codec.measurement_len {
+            return Err(ServiceError::bad_request(
+                "wrong_dimension",
+                format!("{field}.measurement"),
+                format!(
+                    "{} measurement has {} numbers, got {}",
+                    codec.name,
+                    codec.measurement_len,
+                    spec.measurement.len()
+                ),
+            ));
+        }
+        finite(&spec.measurement, &format!("{field}.measurement"))?;
+        let factor = (codec.build)(&spec.keys, &spec.measurement).map_err(|m| {
+            ServiceError::bad_request("invalid_value", format!("{field}.measurement"), m)
+        })?;
+        let sqrt_information = information(spec, codec.residual_dim, &field)?;
+        if let Some(RobustKernel::Huber(s) | RobustKernel::Cauchy(s)) = spec.robust {
+            if !(s.is_finite() && s > 0.0) {
+                return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    format!("{field}.robust.scale"),
+                    "robust kernel scale must be a positive finite number",
+                ));
+            }
+        }
+        let label = format!("{field} ({} {:?})", codec.name, spec.keys);
+        factors.push(PreparedFactor {
+            factor,
+            sqrt_information,
+            robust: spec.robust,
+            label,
+        });
+    }
+
+    let predicted = predict_missing(&batch, &mut values, &factors, view)?;
+
+    // Removals.
+    let mut removed = HashSet::new();
+    for (i, &id) in batch.remove_factors.iter().enumerate() {
+        if !view.live_factors.contains(&id) || !removed.insert(id) {
+            return Err(ServiceError::invalid(
+                "unknown_factor",
+                format!("remove_factors[{i}]"),
+                format!("factor {id} does not exist (or is removed twice)"),
+            ));
+        }
+    }
+
+    // Fix / unfix.
+    let mut fix = Vec::new();
+    for (list, fixed, name) in [(&batch.fix, true, "fix"), (&batch.unfix, false, "unfix")] {
+        for (i, &key) in list.iter().enumerate() {
+            if kind_of(key).is_none() {
+                return Err(ServiceError::invalid(
+                    "unknown_variable",
+                    format!("{name}[{i}]"),
+                    format!("variable {key} does not exist"),
+                ));
+            }
+            if !fixed && batch.fix.contains(&key) {
+                return Err(ServiceError::bad_request(
+                    "conflicting_fix",
+                    format!("unfix[{i}]"),
+                    format!("variable {key} is both fixed and unfixed"),
+                ));
+            }
+            fix.push((key, fixed));
+        }
+    }
+
+    // Guesses for existing (or this batch's) variables.
+    let mut guesses = Vec::with_capacity(batch.guesses.len());
+    for (i, g) in batch.guesses.iter().enumerate() {
+        let field = format!("guesses[{i}]");
+        let Some(var_kind) = kind_of(g.key) else {
+            return Err(ServiceError::invalid(
+                "unknown_variable",
+                format!("{field}.key"),
+                format!("variable {} does not exist", g.key),
+            ));
+        };
+        guesses.push((
+            g.key,
+            decode_value(var_kind, &g.value, &format!("{field}.value"))?,
+        ));
+    }
+
+    let variables = batch
+        .variables
+        .iter()
+        .zip(values)
+        .map(|(spec, v)| (spec.key, v.expect("predicted above"), spec.fixed))
+        .collect();
+    Ok(PreparedBatch {
+        variables,
+        factors,
+        remove: batch.remove_factors,
+        fix,
+        guesses,
+        predicted,
+    })
+}
+
+/// Fills in values the client left out, by walking factors of the batch from known variables
+/// (existing ones, or new ones with a value) outwards: odometry chains are predicted in one pass
+/// each.
+fn predict_missing(
+    batch: &Batch,
+    values: &mut [Option<Box<dyn Variable>>],
+    factors: &[PreparedFactor],
+    view: &SessionView,
+) -> Result<Vec<Key>, ServiceError> {
+    let mut predicted = Vec::new();
+    if values.iter().all(Option::is_some) {
+        return Ok(predicted);
+    }
+    let position: HashMap<Key, usize> = batch
+        .variables
+        .iter()
+        .enumerate()
+        .map(|(i, v)| (v.key, i))
+        .collect();
+    // Existing variables that the factors touch, decoded once.
+    let mut existing: HashMap<Key, Box<dyn Variable>> = HashMap::new();
+    for f in factors {
+        for &key in f.factor.keys() {
+            if let (None, Some(entry)) = (position.get(&key), view.mirror.get(&key)) {
+                existing.entry(key).or_insert_with(|| entry.decode());
+            }
+        }
+    }
+    loop {
+        let mut progress = false;
+        for f in factors {
+            let keys = f.factor.keys();
+            let missing: Vec<usize> = (0..keys.len())
+                .filter(|&k| position.get(&keys[k]).is_some_and(|&p| values[p].is_none()))
+                .collect();
+            let [target] = missing[..] else { continue };
+            let known: Vec<Option<&dyn Variable>> = keys
+                .iter()
+                .enumerate()
+                .map(|(k, key)| {
+                    if k == target {
+                        return None;
+                    }
+                    match position.get(key) {
+                        Some(&p) => values[p].as_deref(),
+                        None => existing.get(key).map(|v| v.as_ref()),
+                    }
+                })
+                .collect();
+            if let Some(v) = f.factor.predict(&known, target) {
+                let p = position[&keys[target]];
+                values[p] = Some(v);
+                predicted.push(keys[target]);
+                progress = true;
+            }
+        }
+        if !progress {
+            break;
+        }
+    }
+    match values.iter().position(Option::is_none) {
+        Some(i) => Err(ServiceError::invalid(
+            "missing_value",
+            format!("variables[{i}].value"),
+            format!(
+                "variable {} has no value and no factor in the batch connects it to a known variable",
+                batch.variables[i].key
+            ),
+        )),
+        None => Ok(predicted),
+    }
+}

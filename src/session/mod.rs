@@ -1,0 +1,579 @@
+//! A session: one incrementally growing problem, its solver options and auto-optimise policy, the
+//! estimate clients read, and the events it streams.
+//!
+//! Concurrency: the problem moves to a pool worker for a solve. Batches that arrive meanwhile are
+//! validated against the *mirror* (every accepted variable's kind and wire value), acknowledged
+//! with their sequence number, and queued; the worker applies them when it hands the problem back
+//! and they are coalesced into the next solve. Reads are always served from the mirror, so they
+//! never wait for a solve.
+
+pub mod batch;
+pub mod catalogue;
+pub mod wire;
+
+use std::collections::{BTreeMap, HashSet, VecDeque};
+use std::ops::ControlFlow;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use tokio::sync::{broadcast, watch};
+
+use crate::problem::{Key, Problem, Variable};
+use crate::service::pool::PoolHandle;
+use crate::service::ServiceError;
+use crate::solver::{self, Initialization, SolverOptions};
+use batch::{PreparedBatch, SessionView};
+use catalogue::SessionKind;
+use wire::*;
+
+/// A variable as clients see it.
+#[derive(Clone, Debug)]
+pub struct MirrorEntry {
+    pub kind: &'static str,
+    pub value: Vec<f64>,
+    pub changed: u64,
+    pub fixed: bool,
+}
+
+impl MirrorEntry {
+    pub fn decode(&self) -> Box<dyn Variable> {
+        let codec =
+            catalogue::variable_codec(self.kind).expect("mirror kinds come from the catalogue");
+        (codec.decode)(&self.value).expect("mirror values were encoded by the codec")
+    }
+}
+
+/// How long a solve may hold a worker while other sessions wait before it yields (it resumes
+/// from where it stopped at the back of the queue).
+const TIME_SLICE: Duration = Duration::from_millis(200);
+
+pub struct Session {
+    pub name: String,
+    pub kind: &'static SessionKind,
+    state: Mutex<State>,
+    events: broadcast::Sender<Arc<SessionEvent>>,
+    /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
+    solved: watch::Sender<u64>,
+    cancel: AtomicBool,
+    runtime: tokio::runtime::Handle,
+    pool: PoolHandle,
+    max_pending_factors: usize,
+}
+
+struct State {
+    options: SolverOptions,
+    auto: AutoOptimize,
+    /// `None` while a worker has it.
+    problem: Option<Problem>,
+    /// Id of each factor of the problem, parallel to `problem.factors()`.
+    factor_ids: Vec<FactorId>,
+    mirror: BTreeMap<Key, MirrorEntry>,
+    live_factors: HashSet<FactorId>,
+    next_factor_id: FactorId,
+    sequence: u64,
+    solved_sequence: u64,
+    pending: VecDeque<(u64, PreparedBatch, Vec<FactorId>)>,
+    pending_factors: usize,
+    factors_since_solve: usize,
+    /// Changed since the last solve in a way a solve could improve.
+    dirty: bool,
+    /// Queued on or running in the pool.
+    scheduled: bool,
+    solving: bool,
+    timer_armed: bool,
+    deleted: bool,
+    solves: u64,
+    skipped_solves: u64,
+    chi2: Option<f64>,
+    converged: bool,
+    last_error: Option<String>,
+    last_summary: Option<solver::Summary>,
+}
+
+impl Session {
+    pub(crate) fn new(
+        name: String,
+        kind: &'static SessionKind,
+        options: SolverOptions,
+        auto: AutoOptimize,
+        runtime: tokio::runtime::Handle,
+        pool: PoolHandle,
+        max_pending_factors: usize,
+    ) -> Arc<Self> {
+        Arc::new(Self {
+            name,
+            kind,
+            state: Mutex::new(State {
+                options,
+                auto,
+                problem: Some(Problem::new()),
+                factor_ids: Vec::new(),
+                mirror: BTreeMap::new(),
+                live_factors: HashSet::new(),
+                next_factor_id: 0,
+                sequence: 0,
+                solved_sequence: 0,
+                pending: VecDeque::new(),
+                pending_factors: 0,
+                factors_since_solve: 0,
+                dirty: false,
+                scheduled: false,
+                solving: false,
+                timer_armed: false,
+                deleted: false,
+                solves: 0,
+                skipped_solves: 0,
+                chi2: None,
+                converged: true,
+                last_error: None,
+                last_summary: None,
+            }),
+            events: broadcast::channel(4096).0,
+            solved: watch::channel(0).0,
+            cancel: AtomicBool::new(false),
+            runtime,
+            pool,
+            max_pending_factors,
+        })
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A panic while holding the lock would be a bug; the state is still consistent at every
+        // await-free step, so keep serving.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    pub fn subscribe(&self) -> broadcast::Receiver<Arc<SessionEvent>> {
+        self.events.subscribe()
+    }
+
+    fn emit(&self, event: SessionEvent) {
+        // No subscribers is fine.
+        let _ = self.events.send(Arc::new(event));
+    }
+
+    pub fn info(&self) -> SessionInfo {
+        let st = self.lock();
+        SessionInfo {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            options: st.options.clone(),
+            auto_optimize: st.auto,
+        }
+    }
+
+    /// Validates and accepts a batch; returns its acknowledgement and whether a solve reflecting
+    /// it is scheduled (so a caller may wait for it).
+    pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
+        let mut st = self.lock();
+        if st.deleted {
+            return Err(ServiceError::not_found("session", &self.name));
+        }
+        let prepared = batch::prepare(
+            batch,
+            &SessionView {
+                kind: self.kind,
+                mirror: &st.mirror,
+                live_factors: &st.live_factors,
+            },
+        )?;
+        if st.problem.is_none()
+            && st.pending_factors + prepared.factor_count() > self.max_pending_factors
+        {
+            return Err(ServiceError::too_many(
+                format!(
+                    "session `{}` has {} factors waiting for the running solve (limit {})",
+                    self.name, st.pending_factors, self.max_pending_factors
+                ),
+                1,
+            ));
+        }
+        st.sequence += 1;
+        let sequence = st.sequence;
+        let factor_ids: Vec<FactorId> = (0..prepared.factors.len() as u64)
+            .map(|k| st.next_factor_id + k)
+            .collect();
+        st.next_factor_id += prepared.factors.len() as u64;
+        // Mirror first: later batches validate against it even while this one waits.
+        let mut new_values = Vec::new();
+        for (key, v, fixed) in &prepared.variables {
+            let entry = MirrorEntry {
+                kind: v.kind(),
+                value: catalogue::encode_variable(v.as_ref()),
+                changed: sequence,
+                fixed: *fixed,
+            };
+            new_values.push(value_of(*key, &entry));
+            st.mirror.insert(*key, entry);
+        }
+        for (key, v) in &prepared.guesses {
+            let value = catalogue::encode_variable(v.as_ref());
+            let entry = st.mirror.get_mut(key).expect("validated");
+            entry.value = value;
+            entry.changed = sequence;
+            new_values.push(value_of(*key, entry));
+        }
+        for &(key, fixed) in &prepared.fix {
+            st.mirror.get_mut(&key).expect("validated").fixed = fixed;
+        }
+        st.live_factors.extend(factor_ids.iter().copied());
+        for id in &prepared.remove {
+            st.live_factors.remove(id);
+        }
+        let ack = BatchAck {
+            session: self.name.clone(),
+            sequence,
+            factor_ids: factor_ids.clone(),
+            predicted: prepared.predicted.clone(),
+        };
+        self.emit(SessionEvent::Ack(ack.clone()));
+        if !new_values.is_empty() {
+            self.emit(SessionEvent::Estimate(Estimate {
+                session: self.name.clone(),
+                sequence,
+                variables: new_values,
+            }));
+        }
+        if st.problem.is_some() {
+            self.apply_prepared(&mut st, sequence, prepared, factor_ids);
+        } else {
+            st.pending_factors += prepared.factor_count();
+            st.pending.push_back((sequence, prepared, factor_ids));
+            st.dirty = true;
+        }
+        self.maybe_schedule(&mut st);
+        let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
+        Ok((ack, will_solve))
+    }
+
+    /// Applies a validated batch to the problem (present in `st`).
+    fn apply_prepared(
+        &self,
+        st: &mut State,
+        sequence: u64,
+        prepared: PreparedBatch,
+        factor_ids: Vec<FactorId>,
+    ) {
+        let State {
+            problem,
+            factor_ids: ids,
+            ..
+        } = st;
+        let problem = problem.as_mut().expect("caller checked");
+        let first_new_factor = problem.factors().len();
+        let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
+        for (key, v, fixed) in prepared.variables {
+            problem.add_variable(key, v).expect("validated");
+            if fixed {
+                problem.set_fixed(key, true).expect("validated");
+            }
+        }
+        let added = prepared.factors.len();
+        for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
+            problem
+                .add_factor_sqrt(f.factor, f.sqrt_information, f.robust, f.label)
+                .expect("validated");
+            ids.push(id);
+        }
+        // chi2 the new factors add at the current estimate, before removals shift indices.
+        let new_chi2 =
+            solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
+                .unwrap_or(f64::INFINITY);
+        if !prepared.remove.is_empty() {
+            let remove: HashSet<FactorId> = prepared.remove.into_iter().collect();
+            let keep: Vec<bool> = ids.iter().map(|id| !remove.contains(id)).collect();
+            problem.retain_factors(|i| keep[i]);
+            ids.retain(|id| !remove.contains(id));
+        }
+        for (key, fixed) in prepared.fix {
+            problem.set_fixed(key, fixed).expect("validated");
+        }
+        for (key, v) in &prepared.guesses {
+            let idx = problem.values.index_of(*key).expect("validated");
+            problem.values.set(idx, v.as_ref());
+            structural = true;
+        }
+        st.factors_since_solve += added;
+        // A batch that only adds factors whose total chi2 at the current (converged) estimate is
+        // below the function tolerance of the whole cannot make a solve gain more than that
+        // tolerance: the estimate stays the optimum to within what a solve would reach. This is
+        // what makes appending an odometry-predicted pose free.
+        let total = st.chi2.unwrap_or(0.0) + new_chi2;
+        let negligible = new_chi2 <= st.options.function_tolerance * total || new_chi2 == 0.0;
+        if st.converged && !st.dirty && !structural && negligible && st.chi2.is_some() {
+            st.chi2 = Some(total);
+            st.solved_sequence = sequence;
+            st.skipped_solves += 1;
+            self.solved.send_replace(sequence);
+        } else {
+            st.dirty = true;
+            st.converged = false;
+        }
+    }
+
+    fn maybe_schedule(self: &Arc<Self>, st: &mut State) {
+        if !st.dirty || st.scheduled || st.deleted {
+            return;
+        }
+        match st.auto {
+            AutoOptimize::EveryBatch => self.schedule(st),
+            AutoOptimize::EveryNFactors { factors } => {
+                if st.factors_since_solve >= factors {
+                    self.schedule(st)
+                }
+            }
+            AutoOptimize::EveryMs { milliseconds } => {
+                if !st.timer_armed {
+                    st.timer_armed = true;
+                    let session = Arc::clone(self);
+                    self.runtime.spawn(async move {
+                        tokio::time::sleep(Duration::from_millis(milliseconds)).await;
+                        let mut st = session.lock();
+                        st.timer_armed = false;
+                        if st.dirty && !st.scheduled && !st.deleted {
+                            session.schedule(&mut st);
+                        }
+                    });
+                }
+            }
+            AutoOptimize::Manual => {}
+        }
+    }
+
+    fn schedule(self: &Arc<Self>, st: &mut State) {
+        st.scheduled = true;
+        let session = Arc::clone(self);
+        if !self.pool.submit(Box::new(move || session.solve_once())) {
+            st.scheduled = false; // the pool is shutting down
+        }
+    }
+
+    /// Asks for a solve now, whatever the policy. Returns the sequence it will reflect.
+    pub fn optimize_now(self: &Arc<Self>) -> Result<u64, ServiceError> {
+        let mut st = self.lock();
+        if st.deleted {
+            return Err(ServiceError::not_found("session", &self.name));
+        }
+        st.dirty = true;
+        st.converged = false;
+        if !st.scheduled {
+            self.schedule(&mut st);
+        }
+        Ok(st.sequence)
+    }
+
+    /// Waits until a solve reflecting `sequence` finished, at most `timeout`.
+    pub async fn wait_solved(&self, sequence: u64, timeout: Duration) -> bool {
+        let mut rx = self.solved.subscribe();
+        tokio::time::timeout(timeout, rx.wait_for(|s| *s >= sequence))
+            .await
+            .is_ok_and(|r| r.is_ok())
+    }
+
+    pub fn set_auto_optimize(self: &Arc<Self>, auto: AutoOptimize) -> Result<(), ServiceError> {
+        if let AutoOptimize::EveryNFactors { factors: 0 } = auto {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "factors",
+                "every_n_factors needs factors >= 1",
+            ));
+        }
+        if let AutoOptimize::EveryMs { milliseconds: 0 } = auto {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "milliseconds",
+                "every_ms needs milliseconds >= 1",
+            ));
+        }
+        let mut st = self.lock();
+        st.auto = auto;
+        self.maybe_schedule(&mut st);
+        Ok(())
+    }
+
+    /// Stops the running solve after its current iteration; returns whether one was running.
+    pub fn cancel(&self) -> bool {
+        let st = self.lock();
+        if st.solving {
+            self.cancel.store(true, Ordering::SeqCst);
+        }
+        st.solving
+    }
+
+    pub(crate) fn mark_deleted(&self) {
+        let mut st = self.lock();
+        st.deleted = true;
+        self.cancel.store(true, Ordering::SeqCst);
+        self.solved.send_replace(u64::MAX);
+    }
+
+    pub fn estimate(&self, query: &EstimateQuery) -> Estimate {
+        let st = self.lock();
+        let range = query.from.unwrap_or(0)..=query.to.unwrap_or(Key::MAX);
+        let since = query.since.unwrap_or(0);
+        let variables = if range.start() > range.end() {
+            Vec::new()
+        } else {
+            st.mirror
+                .range(range)
+                .filter(|(_, e)| query.since.is_none() || e.changed > since)
+                .map(|(&k, e)| value_of(k, e))
+                .collect()
+        };
+        Estimate {
+            session: self.name.clone(),
+            sequence: st.sequence,
+            variables,
+        }
+    }
+
+    pub fn stats(&self) -> SessionStats {
+        let st = self.lock();
+        SessionStats {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            sequence: st.sequence,
+            solved_sequence: st.solved_sequence,
+            num_variables: st.mirror.len(),
+            num_factors: st.live_factors.len(),
+            pending_batches: st.pending.len(),
+            solving: st.solving,
+            solves: st.solves,
+            skipped_solves: st.skipped_solves,
+            chi2: st.chi2,
+            converged: st.converged,
+            auto_optimize: st.auto,
+            options: st.options.clone(),
+            last_error: st.last_error.clone(),
+            last_summary: st.last_summary.clone(),
+        }
+    }
+
+    /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
+    /// apply what arrived meanwhile, and reschedule if that needs another solve.
+    fn solve_once(self: Arc<Self>) {
+        let (mut problem, mut options, sequence, solve_number) = {
+            let mut st = self.lock();
+            if st.deleted || !st.dirty {
+                st.scheduled = false;
+                return;
+            }
+            let problem = st.problem.take().expect("one solve per session at a time");
+            st.solving = true;
+            st.dirty = false;
+            st.factors_since_solve = 0;
+            st.solves += 1;
+            self.cancel.store(false, Ordering::SeqCst);
+            // Batches are applied as they come while the problem is here, so it reflects them all.
+            (problem, st.options.clone(), st.sequence, st.solves)
+        };
+        // Later solves warm-start from the current estimate; initialisation is for the first.
+        if solve_number > 1 {
+            options.initialization = Initialization::None;
+        }
+        let start = Instant::now();
+        let mut preempted = false;
+        let solve = std::panic::AssertUnwindSafe(|| {
+            solver::optimize(&mut problem, &options, &mut |report| {
+                self.emit(SessionEvent::Iteration {
+                    session: self.name.clone(),
+                    solve: solve_number,
+                    sequence,
+                    report: report.clone(),
+                });
+                if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
+                    return ControlFlow::Break(());
+                }
+                if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
+                    preempted = true;
+                    return ControlFlow::Break(());
+                }
+                ControlFlow::Continue(())
+            })
+        });
+        // A panic inside the solver is a bug; report it as a failed solve and keep the session.
+        let result = std::panic::catch_unwind(solve)
+            .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
+
+        let mut st = self.lock();
+        st.solving = false;
+        self.cancel.store(false, Ordering::SeqCst);
+        match result {
+            Ok(summary) => {
+                st.chi2 = Some(summary.final_chi2);
+                st.converged = summary.converged;
+                st.last_error = None;
+                // A preempted solve continues in its next turn; a cancelled one waits for news.
+                if preempted {
+                    st.dirty = true;
+                }
+                let changed = refresh_mirror(&mut st.mirror, &problem, sequence);
+                if !changed.is_empty() {
+                    self.emit(SessionEvent::Estimate(Estimate {
+                        session: self.name.clone(),
+                        sequence,
+                        variables: changed,
+                    }));
+                }
+                self.emit(SessionEvent::Summary {
+                    session: self.name.clone(),
+                    solve: solve_number,
+                    sequence,
+                    summary: Box::new(summary.clone()),
+                });
+                st.last_summary = Some(summary);
+            }
+            Err(e) => {
+                st.converged = false;
+                let message = e.to_string();
+                st.last_error = Some(message.clone());
+                // Keep the last good values: the mirror is not refreshed from a failed solve.
+                self.emit(SessionEvent::Error {
+                    session: self.name.clone(),
+                    sequence: Some(sequence),
+                    error: ServiceError::new(422, "solve_failed", message).body,
+                });
+            }
+        }
+        st.solved_sequence = st.solved_sequence.max(sequence);
+        st.problem = Some(problem);
+        while let Some((seq, prepared, ids)) = st.pending.pop_front() {
+            st.pending_factors -= prepared.factor_count();
+            self.apply_prepared(&mut st, seq, prepared, ids);
+        }
+        st.scheduled = false;
+        self.solved.send_replace(st.solved_sequence);
+        self.maybe_schedule(&mut st);
+    }
+}
+
+fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
+    VariableValue {
+        key,
+        kind: e.kind.into(),
+        value: e.value.clone(),
+        changed: e.changed,
+    }
+}
+
+/// Copies the problem's values into the mirror; returns those that changed.
+fn refresh_mirror(
+    mirror: &mut BTreeMap<Key, MirrorEntry>,
+    problem: &Problem,
+    sequence: u64,
+) -> Vec<VariableValue> {
+    let mut changed = Vec::new();
+    for (idx, &key) in problem.values.keys().iter().enumerate() {
+        let value = catalogue::encode_variable(problem.values.variable(idx));
+        if let Some(entry) = mirror.get_mut(&key) {
+            // A batch accepted during the solve set a newer guess; it is applied next.
+            if entry.changed <= sequence && entry.value != value {
+                entry.value = value;
+                entry.changed = sequence;
+                changed.push(value_of(key, entry));
+            }
+        }
+    }
+    changed
+}

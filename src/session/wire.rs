@@ -1,0 +1,213 @@
+//! The JSON messages of the session API, shared by every transport (schemas in `proto/v1/`).
+
+use serde::{Deserialize, Serialize};
+
+use crate::factors::RobustKernel;
+use crate::problem::Key;
+use crate::solver::{SolverOptions, Summary};
+
+/// Server-assigned id of an accepted factor, used to remove it.
+pub type FactorId = u64;
+
+/// When a session re-optimises by itself.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(tag = "policy", rename_all = "snake_case", deny_unknown_fields)]
+pub enum AutoOptimize {
+    /// After every accepted batch (updates arriving during a solve are coalesced into the next).
+    #[default]
+    EveryBatch,
+    /// Once at least `factors` factors have arrived since the last solve.
+    EveryNFactors { factors: usize },
+    /// At most once every `milliseconds` while updates keep arriving.
+    EveryMs { milliseconds: u64 },
+    /// Only when asked (`optimize`).
+    Manual,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateSession {
+    /// Session name: 1–64 characters of `[A-Za-z0-9_-]`; generated when absent.
+    #[serde(default)]
+    pub session: Option<String>,
+    pub kind: String,
+    #[serde(default)]
+    pub options: SolverOptions,
+    #[serde(default)]
+    pub auto_optimize: AutoOptimize,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct VariableSpec {
+    pub key: Key,
+    pub kind: String,
+    /// Initial guess in the kind's wire encoding; when absent it is predicted from a factor of the
+    /// same batch that connects it to a known variable (odometry), else the batch is rejected.
+    #[serde(default)]
+    pub value: Option<Vec<f64>>,
+    #[serde(default)]
+    pub fixed: bool,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct FactorSpec {
+    #[serde(rename = "type")]
+    pub factor_type: String,
+    pub keys: Vec<Key>,
+    pub measurement: Vec<f64>,
+    /// Information matrix, row-major n×n or its upper triangle row by row (n(n+1)/2 values, g2o's
+    /// order). Exactly one of `information` and `sigmas` must be given.
+    #[serde(default)]
+    pub information: Option<Vec<f64>>,
+    /// Standard deviations (diagonal noise), one per residual.
+    #[serde(default)]
+    pub sigmas: Option<Vec<f64>>,
+    #[serde(default)]
+    pub robust: Option<RobustKernel>,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct GuessSpec {
+    pub key: Key,
+    pub value: Vec<f64>,
+}
+
+/// One atomic update: validated whole, applied whole or not at all.
+#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Batch {
+    #[serde(default)]
+    pub variables: Vec<VariableSpec>,
+    #[serde(default)]
+    pub factors: Vec<FactorSpec>,
+    #[serde(default)]
+    pub remove_factors: Vec<FactorId>,
+    #[serde(default)]
+    pub fix: Vec<Key>,
+    #[serde(default)]
+    pub unfix: Vec<Key>,
+    /// New values for existing variables.
+    #[serde(default)]
+    pub guesses: Vec<GuessSpec>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct BatchAck {
+    pub session: String,
+    pub sequence: u64,
+    /// Ids of the batch's factors, in the order given.
+    pub factor_ids: Vec<FactorId>,
+    /// Keys whose initial guess was predicted from a factor.
+    pub predicted: Vec<Key>,
+}
+
+/// Which part of the estimate to read.
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct EstimateQuery {
+    /// Only variables changed after this sequence number.
+    #[serde(default)]
+    pub since: Option<u64>,
+    /// Key range, inclusive.
+    #[serde(default)]
+    pub from: Option<Key>,
+    #[serde(default)]
+    pub to: Option<Key>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct VariableValue {
+    pub key: Key,
+    pub kind: String,
+    pub value: Vec<f64>,
+    /// Sequence number of the update that last changed this value.
+    pub changed: u64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Estimate {
+    pub session: String,
+    /// Every accepted batch up to this sequence number is reflected.
+    pub sequence: u64,
+    pub variables: Vec<VariableValue>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionStats {
+    pub session: String,
+    pub kind: String,
+    /// Last accepted batch.
+    pub sequence: u64,
+    /// Last batch reflected by a finished solve.
+    pub solved_sequence: u64,
+    pub num_variables: usize,
+    pub num_factors: usize,
+    /// Batches accepted during the running solve, waiting to be applied.
+    pub pending_batches: usize,
+    pub solving: bool,
+    pub solves: u64,
+    /// Updates whose new factors could not lower chi2 by more than the function tolerance, so
+    /// no solve was needed.
+    pub skipped_solves: u64,
+    pub chi2: Option<f64>,
+    pub converged: bool,
+    pub auto_optimize: AutoOptimize,
+    pub options: SolverOptions,
+    pub last_error: Option<String>,
+    pub last_summary: Option<Summary>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionInfo {
+    pub session: String,
+    pub kind: String,
+    pub options: SolverOptions,
+    pub auto_optimize: AutoOptimize,
+}
+
+/// What a session streams out (SSE events, zenoh publications).
+#[derive(Clone, Debug, Serialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum SessionEvent {
+    /// A batch was accepted.
+    Ack(BatchAck),
+    /// One solver iteration finished.
+    Iteration {
+        session: String,
+        /// The solve's number within the session, and the sequence it works on.
+        solve: u64,
+        sequence: u64,
+        #[serde(flatten)]
+        report: crate::solver::IterationReport,
+    },
+    /// Variables whose value changed, with the sequence they reflect.
+    Estimate(Estimate),
+    Summary {
+        session: String,
+        solve: u64,
+        sequence: u64,
+        summary: Box<Summary>,
+    },
+    /// A solve failed (the estimate keeps its last good values), or a streamed batch was rejected.
+    Error {
+        session: String,
+        sequence: Option<u64>,
+        error: crate::service::ErrorBody,
+    },
+}
+
+impl SessionEvent {
+    /// The zenoh topic (`factord/<session>/out/<topic>`) and SSE event name.
+    pub fn topic(&self) -> &'static str {
+        match self {
+            Self::Ack(_) => "acks",
+            Self::Iteration { .. } => "stats",
+            Self::Estimate(_) => "poses",
+            Self::Summary { .. } => "summary",
+            Self::Error { .. } => "errors",
+        }
+    }
+}

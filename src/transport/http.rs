@@ -1,0 +1,298 @@
+//! HTTP adapter (axum): REST routes onto [`Command`]s, Server-Sent Events for the streams, and
+//! the batch-job shortcut. Errors are `{"error": {"code", "message", "field"?, "status"}}` with
+//! the matching status code (and `Retry-After` under back-pressure).
+
+use std::convert::Infallible;
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::rejection::{BytesRejection, QueryRejection};
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures_util::Stream;
+use serde::Deserialize;
+use tokio::sync::broadcast::error::RecvError;
+use tower_http::trace::TraceLayer;
+
+use crate::service::jobs::{JobAnswer, JobParams};
+use crate::service::{parse_json, Command, Reply, Service, ServiceError};
+use crate::session::wire::{AutoOptimize, Batch, CreateSession};
+
+type Shared = State<Arc<Service>>;
+
+/// The router, with request bodies limited to `max_body_bytes`.
+pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
+    Router::new()
+        .route("/v1/health", get(health))
+        .route("/v1/sessions", post(create_session).get(list_sessions))
+        .route("/v1/sessions/{session}", get(stats).delete(delete_session))
+        .route("/v1/sessions/{session}/batches", post(apply_batch))
+        .route("/v1/sessions/{session}/optimize", post(optimize))
+        .route(
+            "/v1/sessions/{session}/auto_optimize",
+            axum::routing::put(set_auto_optimize),
+        )
+        .route("/v1/sessions/{session}/estimate", get(estimate))
+        .route("/v1/sessions/{session}/summary", get(summary))
+        .route("/v1/sessions/{session}/cancel", post(cancel))
+        .route("/v1/sessions/{session}/events", get(events))
+        .route("/v1/jobs", post(job))
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(DefaultBodyLimit::max(max_body_bytes))
+        .layer(TraceLayer::new_for_http())
+        .with_state(service)
+}
+
+/// An error as an HTTP response.
+pub struct HttpError(ServiceError);
+
+impl From<ServiceError> for HttpError {
+    fn from(e: ServiceError) -> Self {
+        Self(e)
+    }
+}
+
+impl IntoResponse for HttpError {
+    fn into_response(self) -> Response {
+        let body = self.0.body;
+        let status = StatusCode::from_u16(body.status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
+        let retry = body.retry_after;
+        let mut response = (status, Json(serde_json::json!({ "error": body }))).into_response();
+        if let Some(seconds) = retry {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(seconds));
+        }
+        response
+    }
+}
+
+type HttpResult = Result<Response, HttpError>;
+
+fn body_error(rejection: BytesRejection) -> HttpError {
+    let status = rejection.status();
+    let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
+        "body_too_large"
+    } else {
+        "unreadable_body"
+    };
+    HttpError(ServiceError::new(status.as_u16(), code, rejection.body_text()).at("body"))
+}
+
+fn query_error(rejection: QueryRejection) -> HttpError {
+    HttpError(ServiceError::new(400, "invalid_query", rejection.body_text()).at("query"))
+}
+
+async fn run(service: &Service, command: Command, status: StatusCode) -> HttpResult {
+    let reply = service.execute(command).await?;
+    Ok((status, Json(reply)).into_response())
+}
+
+async fn health(State(service): Shared) -> HttpResult {
+    run(&service, Command::Health, StatusCode::OK).await
+}
+
+async fn list_sessions(State(service): Shared) -> HttpResult {
+    run(&service, Command::ListSessions, StatusCode::OK).await
+}
+
+async fn create_session(State(service): Shared, body: Result<Bytes, BytesRejection>) -> HttpResult {
+    let request: CreateSession = parse_json(&body.map_err(body_error)?)?;
+    run(
+        &service,
+        Command::CreateSession(request),
+        StatusCode::CREATED,
+    )
+    .await
+}
+
+async fn stats(State(service): Shared, Path(session): Path<String>) -> HttpResult {
+    run(&service, Command::GetStats { session }, StatusCode::OK).await
+}
+
+async fn delete_session(State(service): Shared, Path(session): Path<String>) -> HttpResult {
+    run(&service, Command::DeleteSession { session }, StatusCode::OK).await
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct WaitParam {
+    #[serde(default)]
+    wait: bool,
+}
+
+async fn apply_batch(
+    State(service): Shared,
+    Path(session): Path<String>,
+    query: Result<Query<WaitParam>, QueryRejection>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
+    let Query(WaitParam { wait }) = query.map_err(query_error)?;
+    let batch: Batch = parse_json(&body.map_err(body_error)?)?;
+    run(
+        &service,
+        Command::ApplyBatch {
+            session,
+            batch,
+            wait,
+        },
+        StatusCode::OK,
+    )
+    .await
+}
+
+async fn optimize(
+    State(service): Shared,
+    Path(session): Path<String>,
+    query: Result<Query<WaitParam>, QueryRejection>,
+) -> HttpResult {
+    let Query(WaitParam { wait }) = query.map_err(query_error)?;
+    let status = if wait {
+        StatusCode::OK
+    } else {
+        StatusCode::ACCEPTED
+    };
+    run(&service, Command::Optimize { session, wait }, status).await
+}
+
+async fn set_auto_optimize(
+    State(service): Shared,
+    Path(session): Path<String>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
+    let auto_optimize: AutoOptimize = parse_json(&body.map_err(body_error)?)?;
+    run(
+        &service,
+        Command::SetAutoOptimize {
+            session,
+            auto_optimize,
+        },
+        StatusCode::OK,
+    )
+    .await
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct EstimateParams {
+    since: Option<u64>,
+    from: Option<u64>,
+    to: Option<u64>,
+}
+
+async fn estimate(
+    State(service): Shared,
+    Path(session): Path<String>,
+    query: Result<Query<EstimateParams>, QueryRejection>,
+) -> HttpResult {
+    let Query(EstimateParams { since, from, to }) = query.map_err(query_error)?;
+    run(
+        &service,
+        Command::GetEstimate {
+            session,
+            since,
+            from,
+            to,
+        },
+        StatusCode::OK,
+    )
+    .await
+}
+
+async fn summary(State(service): Shared, Path(session): Path<String>) -> HttpResult {
+    let Reply::Stats(stats) = service.execute(Command::GetStats { session }).await? else {
+        unreachable!("GetStats answers with Stats");
+    };
+    match stats.last_summary {
+        Some(summary) => Ok(Json(summary).into_response()),
+        None => {
+            Err(ServiceError::new(404, "no_summary", "this session has not been solved yet").into())
+        }
+    }
+}
+
+async fn cancel(State(service): Shared, Path(session): Path<String>) -> HttpResult {
+    run(&service, Command::Cancel { session }, StatusCode::OK).await
+}
+
+/// Server-Sent Events: every session event, named by its topic (`acks`, `stats`, `poses`,
+/// `summary`, `errors`); `lagged` when this client fell behind and missed some.
+async fn events(
+    State(service): Shared,
+    Path(session): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, HttpError> {
+    let session = service.session(&session)?;
+    let receiver = session.subscribe();
+    drop(session);
+    let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
+        loop {
+            let event = match rx.recv().await {
+                Ok(event) => Event::default()
+                    .event(event.topic())
+                    .json_data(&*event)
+                    .unwrap_or_else(|_| {
+                        Event::default()
+                            .event("errors")
+                            .data("unserialisable event")
+                    }),
+                Err(RecvError::Lagged(missed)) => Event::default()
+                    .event("lagged")
+                    .data(format!("{{\"missed\":{missed}}}")),
+                Err(RecvError::Closed) => return None,
+            };
+            return Some((Ok(event), rx));
+        }
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+async fn job(
+    State(service): Shared,
+    headers: HeaderMap,
+    query: Result<Query<JobParams>, QueryRejection>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
+    let Query(mut params) = query.map_err(query_error)?;
+    let body = body.map_err(body_error)?;
+    let text = String::from_utf8(body.to_vec()).map_err(|_| {
+        ServiceError::bad_request(
+            "unreadable_body",
+            "body",
+            "the graph file is not UTF-8 text",
+        )
+    })?;
+    let wants_text = headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("text/plain"));
+    if wants_text && params.output.is_none() {
+        params.output = Some("g2o".into());
+    }
+    match service.run_job(text, params).await? {
+        JobAnswer::Json(result) => Ok(Json(result).into_response()),
+        JobAnswer::Text(text) => {
+            Ok(([(header::CONTENT_TYPE, "text/plain; charset=utf-8")], text).into_response())
+        }
+    }
+}
+
+async fn not_found() -> HttpError {
+    HttpError(ServiceError::new(
+        404,
+        "no_route",
+        "no such route (the API is under /v1/)",
+    ))
+}
+
+async fn method_not_allowed() -> HttpError {
+    HttpError(ServiceError::new(
+        405,
+        "method_not_allowed",
+        "this route does not take that method",
+    ))
+}

@@ -1,0 +1,295 @@
+//! zenoh adapter: an in-process peer that maps key expressions onto [`Command`]s and publishes
+//! every session's events.
+//!
+//! Key expressions (`<p>` is the prefix, `factord` by default; payloads are JSON, the messages
+//! of `proto/v1/`):
+//! - `<p>/rpc` — queryable: the payload is any [`Command`] (`{"op": "create_session", …}`); the
+//!   reply is the command's answer, or an error reply with `{"error": {…}}`.
+//! - `<p>/<session>/estimate` — queryable: the current estimate; selector parameters `since`,
+//!   `from`, `to` as on HTTP.
+//! - `<p>/<session>/in/batch` — subscriber: a [`Batch`] (robots publish here). Acknowledgements
+//!   go to `out/acks`, rejections to `out/errors`.
+//! - `<p>/<session>/in/optimize` — subscriber: solve now.
+//! - `<p>/<session>/out/{acks,stats,poses,summary,errors}` — publications of the session events.
+
+use std::sync::Arc;
+
+use zenoh::qos::CongestionControl;
+use zenoh::query::Query;
+
+use crate::service::{parse_json, Command, Lifecycle, Service, ServiceError};
+use crate::session::wire::{Batch, SessionEvent};
+
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ZenohConfig {
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`.
+    pub listen: Vec<String>,
+    /// Routers or peers to connect to.
+    pub connect: Vec<String>,
+    /// Multicast scouting for other peers on the LAN.
+    pub multicast: bool,
+    /// First chunk of every key expression.
+    pub prefix: String,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ZenohError {
+    #[error("zenoh configuration `{key}`: {message}")]
+    Config { key: String, message: String },
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+fn zenoh_error(e: impl std::fmt::Display) -> ZenohError {
+    ZenohError::Zenoh(e.to_string())
+}
+
+fn config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
+    let mut config = zenoh::Config::default();
+    let json = |v: &Vec<String>| serde_json::to_string(v).expect("strings serialise");
+    for (key, value) in [
+        ("mode", "\"peer\"".to_string()),
+        ("scouting/multicast/enabled", cfg.multicast.to_string()),
+        ("scouting/gossip/enabled", "true".to_string()),
+        ("listen/endpoints", json(&cfg.listen)),
+        ("connect/endpoints", json(&cfg.connect)),
+    ] {
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| ZenohError::Config {
+                key: key.into(),
+                message: e.to_string(),
+            })?;
+    }
+    Ok(config)
+}
+
+/// The running adapter; dropping it does not close the session, [`ZenohAdapter::close`] does.
+pub struct ZenohAdapter {
+    session: zenoh::Session,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+}
+
+impl ZenohAdapter {
+    pub async fn close(self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+        let _ = self.session.close().await;
+    }
+}
+
+fn prefix(cfg: &ZenohConfig) -> String {
+    if cfg.prefix.is_empty() {
+        "factord".into()
+    } else {
+        cfg.prefix.trim_end_matches('/').into()
+    }
+}
+
+pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdapter, ZenohError> {
+    let prefix = prefix(cfg);
+    let session = zenoh::open(config(cfg)?).await.map_err(zenoh_error)?;
+    let mut tasks = Vec::new();
+
+    let rpc = session
+        .declare_queryable(format!("{prefix}/rpc"))
+        .await
+        .map_err(zenoh_error)?;
+    let svc = Arc::clone(&service);
+    tasks.push(tokio::spawn(async move {
+        while let Ok(query) = rpc.recv_async().await {
+            let svc = Arc::clone(&svc);
+            // Commands with `wait` may take a while: never block the queryable.
+            tokio::spawn(async move {
+                let result = match parse_json::<Command>(&payload(&query)) {
+                    Ok(command) => svc.execute(command).await,
+                    Err(e) => Err(e),
+                };
+                reply(&query, result.map(|r| serde_json::to_vec(&r))).await;
+            });
+        }
+    }));
+
+    let estimates = session
+        .declare_queryable(format!("{prefix}/*/estimate"))
+        .await
+        .map_err(zenoh_error)?;
+    let svc = Arc::clone(&service);
+    tasks.push(tokio::spawn(async move {
+        while let Ok(query) = estimates.recv_async().await {
+            let result = estimate_command(&query).map(|c| async { svc.execute(c).await });
+            let result = match result {
+                Ok(fut) => fut.await,
+                Err(e) => Err(e),
+            };
+            reply(&query, result.map(|r| serde_json::to_vec(&r))).await;
+        }
+    }));
+
+    let inputs = session
+        .declare_subscriber(format!("{prefix}/*/in/*"))
+        .await
+        .map_err(zenoh_error)?;
+    let svc = Arc::clone(&service);
+    let publisher = session.clone();
+    let in_prefix = prefix.clone();
+    tasks.push(tokio::spawn(async move {
+        while let Ok(sample) = inputs.recv_async().await {
+            let key = sample.key_expr().as_str().to_string();
+            let mut parts = key[in_prefix.len() + 1..].split('/');
+            let (Some(name), Some("in"), Some(what)) = (parts.next(), parts.next(), parts.next())
+            else {
+                continue;
+            };
+            let bytes = sample.payload().to_bytes();
+            let outcome = match what {
+                "batch" => match parse_json::<Batch>(&bytes) {
+                    Ok(batch) => svc
+                        .execute(Command::ApplyBatch {
+                            session: name.into(),
+                            batch,
+                            wait: false,
+                        })
+                        .await
+                        .map(|_| ()),
+                    Err(e) => Err(e),
+                },
+                "optimize" => svc
+                    .execute(Command::Optimize {
+                        session: name.into(),
+                        wait: false,
+                    })
+                    .await
+                    .map(|_| ()),
+                other => Err(ServiceError::bad_request(
+                    "unknown_topic",
+                    "key",
+                    format!("nothing listens on `in/{other}` (batch, optimize)"),
+                )),
+            };
+            if let Err(error) = outcome {
+                // Puts have no reply: the rejection is published where the robot listens.
+                let event = SessionEvent::Error {
+                    session: name.into(),
+                    sequence: None,
+                    error: error.body,
+                };
+                let body = serde_json::to_vec(&event).expect("events serialise");
+                let _ = publisher
+                    .put(format!("{in_prefix}/{name}/out/errors"), body)
+                    .await;
+            }
+        }
+    }));
+
+    // Forward every session's events, for the sessions that exist and those created later.
+    let mut lifecycle = service.lifecycle();
+    for s in service.sessions() {
+        tasks.push(forward(session.clone(), prefix.clone(), s));
+    }
+    let publisher = session.clone();
+    let fwd_prefix = prefix.clone();
+    tasks.push(tokio::spawn(async move {
+        loop {
+            match lifecycle.recv().await {
+                Ok(Lifecycle::Created(s)) => {
+                    forward(publisher.clone(), fwd_prefix.clone(), s);
+                }
+                Ok(Lifecycle::Deleted(_)) => {}
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
+                    tracing::warn!("zenoh adapter missed {n} session lifecycle events");
+                }
+                Err(_) => return,
+            }
+        }
+    }));
+    tracing::info!("zenoh peer {} serving `{prefix}/**`", session.zid());
+    Ok(ZenohAdapter { session, tasks })
+}
+
+/// Publishes a session's events until it is deleted (its event channel closes).
+fn forward(
+    zenoh: zenoh::Session,
+    prefix: String,
+    session: Arc<crate::session::Session>,
+) -> tokio::task::JoinHandle<()> {
+    let mut rx = session.subscribe();
+    let name = session.name.clone();
+    drop(session);
+    tokio::spawn(async move {
+        loop {
+            let event = match rx.recv().await {
+                Ok(event) => event,
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
+                    tracing::warn!("zenoh publisher of session {name} skipped {n} events");
+                    continue;
+                }
+                Err(_) => return,
+            };
+            let body = serde_json::to_vec(&*event).expect("events serialise");
+            let key = format!("{prefix}/{name}/out/{}", event.topic());
+            // Iteration statistics may be dropped under congestion; estimates and the rest not.
+            let congestion = match *event {
+                SessionEvent::Iteration { .. } => CongestionControl::Drop,
+                _ => CongestionControl::Block,
+            };
+            if let Err(e) = zenoh.put(key, body).congestion_control(congestion).await {
+                tracing::warn!("zenoh publication for session {name} failed: {e}");
+            }
+        }
+    })
+}
+
+fn payload(query: &Query) -> Vec<u8> {
+    query
+        .payload()
+        .map(|p| p.to_bytes().to_vec())
+        .unwrap_or_default()
+}
+
+fn estimate_command(query: &Query) -> Result<Command, ServiceError> {
+    let key = query.key_expr().as_str();
+    let name = key.rsplit('/').nth(1).ok_or_else(|| {
+        ServiceError::bad_request("invalid_key", "key", "expected <prefix>/<session>/estimate")
+    })?;
+    let params = query.parameters();
+    let number = |field: &str| -> Result<Option<u64>, ServiceError> {
+        params
+            .get(field)
+            .map(|v| {
+                v.parse().map_err(|_| {
+                    ServiceError::bad_request(
+                        "invalid_query",
+                        field,
+                        format!("`{field}` must be a non-negative integer, got `{v}`"),
+                    )
+                })
+            })
+            .transpose()
+    };
+    Ok(Command::GetEstimate {
+        session: name.into(),
+        since: number("since")?,
+        from: number("from")?,
+        to: number("to")?,
+    })
+}
+
+async fn reply(query: &Query, result: Result<serde_json::Result<Vec<u8>>, ServiceError>) {
+    let outcome = match result {
+        Ok(Ok(body)) => query.reply(query.key_expr().clone(), body).await,
+        Ok(Err(e)) => {
+            let body = serde_json::json!({ "error": ServiceError::internal(e.to_string()).body });
+            query.reply_err(body.to_string()).await
+        }
+        Err(e) => {
+            let body = serde_json::json!({ "error": e.body });
+            query.reply_err(body.to_string()).await
+        }
+    };
+    if let Err(e) = outcome {
+        tracing::warn!("zenoh reply failed: {e}");
+    }
+}
