@@ -89,8 +89,26 @@ impl ServiceError {
     }
 }
 
-/// Parses a JSON request body, naming the offending field on failure.
+/// Parses a JSON request body (an object), naming the offending field on failure.
 pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, ServiceError> {
+    // serde would also fill a struct from an array by position; the API only speaks objects.
+    match bytes.iter().find(|b| !b.is_ascii_whitespace()) {
+        Some(b'{') => {}
+        Some(_) => {
+            return Err(ServiceError::new(
+                400,
+                "malformed_json",
+                "the body must be a JSON object",
+            ))
+        }
+        None => {
+            return Err(ServiceError::new(
+                400,
+                "malformed_json",
+                "the body is empty",
+            ))
+        }
+    }
     let de = &mut serde_json::Deserializer::from_slice(bytes);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
@@ -106,5 +124,26 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, Ser
         } else {
             err.at(path)
         }
+    })
+}
+
+/// Parses query parameters (`a=1&b=2`; zenoh selectors separate them with `;`), naming the
+/// offending parameter on failure.
+pub fn parse_query<T: serde::de::DeserializeOwned>(query: &str) -> Result<T, ServiceError> {
+    let query = query.replace(';', "&");
+    let de = serde_urlencoded::Deserializer::new(form_urlencoded::parse(query.as_bytes()));
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        let message = e.into_inner().to_string();
+        // An unknown parameter is named in the message, not the path.
+        let field = match message.split('`').nth(1) {
+            Some(name) if path == "." => name.to_string(),
+            _ => path,
+        };
+        ServiceError::bad_request(
+            "invalid_query",
+            field,
+            format!("invalid query parameter: {message}"),
+        )
     })
 }

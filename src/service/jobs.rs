@@ -3,10 +3,11 @@
 
 use std::ops::ControlFlow;
 use std::path::Path;
+use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use super::pool::PoolHandle;
+use super::pool::{PoolHandle, TIME_SLICE};
 use super::ServiceError;
 use crate::factors::RobustKernel;
 use crate::io::{self, Format};
@@ -28,6 +29,8 @@ pub struct JobParams {
     /// e.g. huber:1.0
     pub robust: Option<String>,
     pub function_tolerance: Option<f64>,
+    pub gradient_tolerance: Option<f64>,
+    pub parameter_tolerance: Option<f64>,
     /// json (default) | g2o | tum
     pub output: Option<String>,
 }
@@ -105,6 +108,12 @@ impl Job {
         if let Some(t) = params.function_tolerance {
             options.function_tolerance = t;
         }
+        if let Some(t) = params.gradient_tolerance {
+            options.gradient_tolerance = t;
+        }
+        if let Some(t) = params.parameter_tolerance {
+            options.parameter_tolerance = t;
+        }
         options.validate().map_err(|(field, m)| bad(field, m))?;
         let robust = params
             .robust
@@ -132,24 +141,84 @@ impl Job {
         })
     }
 
-    /// Parses and solves (on a pool worker); stops early when the pool shuts down.
-    pub fn run(self, pool: &PoolHandle) -> Result<JobAnswer, ServiceError> {
-        let mut graph = io::parse_text(&self.text, Path::new("request body"), self.format)
-            .map_err(|e| ServiceError::bad_request("invalid_graph", "body", e.to_string()))?;
-        if self.robust.is_some() {
-            graph.problem.set_robust_kernel(self.robust);
-        }
-        let summary = solver::optimize(&mut graph.problem, &self.options, &mut |_| {
-            if pool.is_stopping() {
-                ControlFlow::Break(())
-            } else {
-                ControlFlow::Continue(())
+    /// Queues the job on the pool; the answer arrives on `reply`. Like session solves, a long
+    /// job yields its worker after a time slice when others wait, and continues at the back of
+    /// the queue. `false` when the pool is shutting down.
+    pub fn submit(self, pool: &PoolHandle, reply: Reply) -> bool {
+        let handle = pool.clone();
+        pool.submit(Box::new(move || {
+            match io::parse_text(&self.text, Path::new("request body"), self.format) {
+                Ok(mut graph) => {
+                    if self.robust.is_some() {
+                        graph.problem.set_robust_kernel(self.robust);
+                    }
+                    let running = Running {
+                        graph,
+                        options: self.options,
+                        output: self.output,
+                        previous: None,
+                    };
+                    running.slice(handle, reply);
+                }
+                Err(e) => {
+                    let _ = reply.send(Err(ServiceError::bad_request(
+                        "invalid_graph",
+                        "body",
+                        e.to_string(),
+                    )));
+                }
             }
-        })
-        .map_err(|e| ServiceError::new(422, "solve_failed", e.to_string()))?;
-        Ok(match self.output {
-            JobOutput::G2o => JobAnswer::Text(io::g2o::to_string(&graph)),
-            JobOutput::Tum => JobAnswer::Text(io::tum::to_string(&graph)),
+        }))
+    }
+}
+
+pub type Reply = tokio::sync::oneshot::Sender<Result<JobAnswer, ServiceError>>;
+
+struct Running {
+    graph: io::PoseGraph,
+    options: SolverOptions,
+    output: JobOutput,
+    /// What the earlier slices did.
+    previous: Option<Summary>,
+}
+
+impl Running {
+    fn slice(mut self, pool: PoolHandle, reply: Reply) {
+        let start = Instant::now();
+        let mut preempted = false;
+        let result = solver::optimize(&mut self.graph.problem, &self.options, &mut |_| {
+            if pool.is_stopping() {
+                return ControlFlow::Break(());
+            }
+            if pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
+                preempted = true;
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
+        });
+        let summary = match result {
+            Ok(summary) => merge(self.previous.take(), summary),
+            Err(e) => {
+                let _ = reply.send(Err(ServiceError::new(422, "solve_failed", e.to_string())));
+                return;
+            }
+        };
+        if preempted {
+            self.previous = Some(summary);
+            self.options.initialization = Initialization::None;
+            // At shutdown the task (and with it `reply`) is dropped: the caller hears so.
+            let handle = pool.clone();
+            pool.submit(Box::new(move || self.slice(handle, reply)));
+            return;
+        }
+        let _ = reply.send(Ok(self.answer(summary)));
+    }
+
+    fn answer(self, summary: Summary) -> JobAnswer {
+        let graph = &self.graph;
+        match self.output {
+            JobOutput::G2o => JobAnswer::Text(io::g2o::to_string(graph)),
+            JobOutput::Tum => JobAnswer::Text(io::tum::to_string(graph)),
             JobOutput::Json => {
                 let values = &graph.problem.values;
                 let variables = graph
@@ -172,6 +241,33 @@ impl Job {
                     estimate: JobEstimate { variables },
                 }))
             }
-        })
+        }
     }
+}
+
+/// One Summary for a solve that ran in several slices.
+fn merge(previous: Option<Summary>, mut next: Summary) -> Summary {
+    let Some(p) = previous else { return next };
+    next.given_options = p.given_options;
+    next.initial_chi2 = p.initial_chi2;
+    next.initialized_chi2 = p.initialized_chi2;
+    next.used.initialization = p.used.initialization;
+    for r in &mut next.iteration_log {
+        r.iteration += p.iterations;
+    }
+    let mut log = p.iteration_log;
+    log.append(&mut next.iteration_log);
+    next.iteration_log = log;
+    next.iterations += p.iterations;
+    next.successful_steps += p.successful_steps;
+    next.unsuccessful_steps += p.unsuccessful_steps;
+    next.solve_seconds += p.solve_seconds;
+    let (t, q) = (&mut next.timings, &p.timings);
+    t.preprocess_seconds += q.preprocess_seconds;
+    t.initialization_seconds += q.initialization_seconds;
+    t.linearize_seconds += q.linearize_seconds;
+    t.factorize_seconds += q.factorize_seconds;
+    t.linear_solve_seconds += q.linear_solve_seconds;
+    t.evaluate_seconds += q.evaluate_seconds;
+    next
 }

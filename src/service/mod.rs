@@ -12,9 +12,8 @@ use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
-use tokio::sync::broadcast;
 
-pub use error::{parse_json, ErrorBody, ServiceError};
+pub use error::{parse_json, parse_query, ErrorBody, ServiceError};
 use jobs::{Job, JobAnswer, JobParams};
 use pool::WorkerPool;
 
@@ -113,7 +112,8 @@ pub struct Accepted {
     #[serde(flatten)]
     pub ack: BatchAck,
     /// With `wait`: whether the estimate now reflects this batch (false when no solve was due
-    /// under the auto-optimise policy, or the wait timed out).
+    /// under the auto-optimise policy, the solve failed — see `last_error` —, or the wait
+    /// timed out).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solved: Option<bool>,
 }
@@ -149,19 +149,16 @@ pub enum Reply {
     },
 }
 
-/// A session appeared or went away (the zenoh adapter follows these).
-#[derive(Clone)]
-pub enum Lifecycle {
-    Created(Arc<Session>),
-    Deleted(String),
-}
+/// Called for every new session before its creation is acknowledged, so an adapter can follow
+/// its events from the first one.
+pub type SessionObserver = Box<dyn Fn(&Arc<Session>) + Send + Sync>;
 
 pub struct Service {
     sessions: RwLock<HashMap<String, Arc<Session>>>,
     pool: WorkerPool,
     limits: Limits,
     runtime: tokio::runtime::Handle,
-    lifecycle: broadcast::Sender<Lifecycle>,
+    observers: RwLock<Vec<SessionObserver>>,
     next_id: AtomicU64,
     jobs_in_flight: AtomicUsize,
     started: Instant,
@@ -184,7 +181,7 @@ impl Service {
             pool: WorkerPool::new(workers),
             limits,
             runtime: tokio::runtime::Handle::current(),
-            lifecycle: broadcast::channel(1024).0,
+            observers: RwLock::new(Vec::new()),
             next_id: AtomicU64::new(1),
             jobs_in_flight: AtomicUsize::new(0),
             started: Instant::now(),
@@ -195,8 +192,15 @@ impl Service {
         &self.limits
     }
 
-    pub fn lifecycle(&self) -> broadcast::Receiver<Lifecycle> {
-        self.lifecycle.subscribe()
+    /// Registers `observer` and calls it for every existing session.
+    pub fn observe_sessions(&self, observer: SessionObserver) {
+        for s in self.sessions() {
+            observer(&s);
+        }
+        self.observers
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(observer);
     }
 
     pub fn session(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
@@ -220,9 +224,13 @@ impl Service {
         all
     }
 
-    /// Stops the pool: running solves stop after their current iteration.
+    /// Stops the pool (running solves stop after their current iteration, queued work is
+    /// dropped) and wakes every request waiting for a solve.
     pub fn shutdown(&self, timeout: Duration) {
         self.pool.shutdown(timeout);
+        for s in self.sessions() {
+            s.release_waiters();
+        }
     }
 
     fn wait_timeout(&self) -> Duration {
@@ -251,7 +259,6 @@ impl Service {
                     .remove(&session)
                     .ok_or_else(|| ServiceError::not_found("session", &session))?;
                 removed.mark_deleted();
-                let _ = self.lifecycle.send(Lifecycle::Deleted(session.clone()));
                 Ok(Reply::Deleted { deleted: session })
             }
             Command::ApplyBatch {
@@ -262,7 +269,8 @@ impl Service {
                 let session = self.session(&session)?;
                 let (ack, will_solve) = session.apply_batch(batch)?;
                 let solved = if wait && will_solve {
-                    Some(session.wait_solved(ack.sequence, self.wait_timeout()).await)
+                    let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;
+                    Some(done && session.stats().last_error.is_none())
                 } else if wait {
                     Some(session.stats().solved_sequence >= ack.sequence)
                 } else {
@@ -272,9 +280,9 @@ impl Service {
             }
             Command::Optimize { session, wait } => {
                 let session = self.session(&session)?;
-                let sequence = session.optimize_now()?;
+                let (sequence, solve) = session.optimize_now()?;
                 let stats = if wait {
-                    session.wait_solved(sequence, self.wait_timeout()).await;
+                    session.wait_solve(solve, self.wait_timeout()).await;
                     Some(Box::new(session.stats()))
                 } else {
                     None
@@ -385,12 +393,22 @@ impl Service {
             self.pool.handle(),
             self.limits.max_pending_factors,
         );
-        session.set_auto_optimize(request.auto_optimize)?;
+        session
+            .set_auto_optimize(request.auto_optimize)
+            .map_err(|mut e| {
+                e.body.field = e.body.field.map(|f| format!("auto_optimize.{f}"));
+                e
+            })?;
+        for observe in self
+            .observers
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+        {
+            observe(&session);
+        }
         sessions.insert(name, Arc::clone(&session));
-        drop(sessions);
-        let info = session.info();
-        let _ = self.lifecycle.send(Lifecycle::Created(session));
-        Ok(info)
+        Ok(session.info())
     }
 
     /// Runs a batch job on the pool; 503 when `max_jobs` are already in flight.
@@ -413,11 +431,7 @@ impl Service {
             ));
         }
         let (tx, rx) = tokio::sync::oneshot::channel();
-        let pool = self.pool.handle();
-        let submitted = pool.clone().submit(Box::new(move || {
-            let _ = tx.send(job.run(&pool));
-        }));
-        if !submitted {
+        if !job.submit(&self.pool.handle(), tx) {
             return Err(ServiceError::unavailable(
                 "shutting_down",
                 "the service is shutting down",

@@ -14,6 +14,10 @@ use std::time::{Duration, Instant};
 
 pub type Task = Box<dyn FnOnce() + Send>;
 
+/// How long a solve may hold a worker while others wait before it yields (it resumes where it
+/// stopped, at the back of the queue).
+pub const TIME_SLICE: Duration = Duration::from_millis(200);
+
 struct Shared {
     queue: Mutex<VecDeque<Task>>,
     ready: Condvar,

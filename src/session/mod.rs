@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::{broadcast, watch};
 
 use crate::problem::{Key, Problem, Variable};
-use crate::service::pool::PoolHandle;
+use crate::service::pool::{PoolHandle, TIME_SLICE};
 use crate::service::ServiceError;
 use crate::solver::{self, Initialization, SolverOptions};
 use batch::{PreparedBatch, SessionView};
@@ -44,10 +44,6 @@ impl MirrorEntry {
     }
 }
 
-/// How long a solve may hold a worker while other sessions wait before it yields (it resumes
-/// from where it stopped at the back of the queue).
-const TIME_SLICE: Duration = Duration::from_millis(200);
-
 pub struct Session {
     pub name: String,
     pub kind: &'static SessionKind,
@@ -55,6 +51,8 @@ pub struct Session {
     events: broadcast::Sender<Arc<SessionEvent>>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
     solved: watch::Sender<u64>,
+    /// Number of finished solves (successful, failed or interrupted).
+    completed: watch::Sender<u64>,
     cancel: AtomicBool,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
@@ -131,6 +129,7 @@ impl Session {
             }),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,
+            completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
             runtime,
             pool,
@@ -146,6 +145,16 @@ impl Session {
 
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<SessionEvent>> {
         self.events.subscribe()
+    }
+
+    /// Publishes a rejection of something sent to this session without a reply channel (a
+    /// zenoh put), so subscribers of its stream see it.
+    pub fn report_rejection(&self, error: ServiceError) {
+        self.emit(SessionEvent::Error {
+            session: self.name.clone(),
+            sequence: None,
+            error: error.body,
+        });
     }
 
     fn emit(&self, event: SessionEvent) {
@@ -183,8 +192,11 @@ impl Session {
         {
             return Err(ServiceError::too_many(
                 format!(
-                    "session `{}` has {} factors waiting for the running solve (limit {})",
-                    self.name, st.pending_factors, self.max_pending_factors
+                    "session `{}` has {} factors waiting for the running solve; {} more would exceed the limit of {}",
+                    self.name,
+                    st.pending_factors,
+                    prepared.factor_count(),
+                    self.max_pending_factors
                 ),
                 1,
             ));
@@ -349,8 +361,9 @@ impl Session {
         }
     }
 
-    /// Asks for a solve now, whatever the policy. Returns the sequence it will reflect.
-    pub fn optimize_now(self: &Arc<Self>) -> Result<u64, ServiceError> {
+    /// Asks for a solve now, whatever the policy. Returns the sequence it will reflect and the
+    /// number the solve will have (for [`Session::wait_solve`]).
+    pub fn optimize_now(self: &Arc<Self>) -> Result<(u64, u64), ServiceError> {
         let mut st = self.lock();
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
@@ -360,7 +373,8 @@ impl Session {
         if !st.scheduled {
             self.schedule(&mut st);
         }
-        Ok(st.sequence)
+        // A running solve started before this request; the one asked for is the next.
+        Ok((st.sequence, st.solves + 1))
     }
 
     /// Waits until a solve reflecting `sequence` finished, at most `timeout`.
@@ -369,6 +383,20 @@ impl Session {
         tokio::time::timeout(timeout, rx.wait_for(|s| *s >= sequence))
             .await
             .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Waits until solve number `solve` finished, at most `timeout`.
+    pub async fn wait_solve(&self, solve: u64, timeout: Duration) -> bool {
+        let mut rx = self.completed.subscribe();
+        tokio::time::timeout(timeout, rx.wait_for(|n| *n >= solve))
+            .await
+            .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Wakes every waiter (the session is going away or the service is stopping).
+    pub(crate) fn release_waiters(&self) {
+        self.solved.send_replace(u64::MAX);
+        self.completed.send_replace(u64::MAX);
     }
 
     pub fn set_auto_optimize(self: &Arc<Self>, auto: AutoOptimize) -> Result<(), ServiceError> {
@@ -405,7 +433,8 @@ impl Session {
         let mut st = self.lock();
         st.deleted = true;
         self.cancel.store(true, Ordering::SeqCst);
-        self.solved.send_replace(u64::MAX);
+        drop(st);
+        self.release_waiters();
     }
 
     pub fn estimate(&self, query: &EstimateQuery) -> Estimate {
@@ -544,6 +573,7 @@ impl Session {
         }
         st.scheduled = false;
         self.solved.send_replace(st.solved_sequence);
+        self.completed.send_modify(|n| *n = (*n).max(solve_number));
         self.maybe_schedule(&mut st);
     }
 }

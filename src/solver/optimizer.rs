@@ -301,7 +301,7 @@ impl Iterations<'_> {
         let mut have_gn_step = false;
         for iteration in 1..=options.max_iterations {
             let gradient = max_abs(&self.b);
-            if gradient <= options.gradient_tolerance {
+            if options.gradient_tolerance > 0.0 && gradient <= options.gradient_tolerance {
                 return Ok((
                     chi2,
                     termination(
@@ -379,7 +379,9 @@ impl Iterations<'_> {
             };
             let stop = if !accepted {
                 None
-            } else if relative_decrease.abs() <= options.function_tolerance {
+            } else if options.function_tolerance > 0.0
+                && relative_decrease.abs() <= options.function_tolerance
+            {
                 Some(termination(
                     TerminationReason::FunctionTolerance,
                     relative_decrease,
@@ -389,7 +391,8 @@ impl Iterations<'_> {
                         options.function_tolerance
                     ),
                 ))
-            } else if step_norm <= options.parameter_tolerance {
+            } else if options.parameter_tolerance > 0.0 && step_norm <= options.parameter_tolerance
+            {
                 Some(termination(
                     TerminationReason::ParameterTolerance,
                     step_norm,

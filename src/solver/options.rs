@@ -43,6 +43,8 @@ pub enum Initialization {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
+/// A tolerance of 0 disables its criterion: with all three at 0 a solve runs exactly
+/// `max_iterations` iterations (g2o's behaviour), unless LM/Dogleg run out of damping range.
 pub struct SolverOptions {
     pub method: Method,
     pub max_iterations: usize,

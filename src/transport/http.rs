@@ -6,8 +6,8 @@ use std::convert::Infallible;
 use std::sync::Arc;
 
 use axum::body::Bytes;
-use axum::extract::rejection::{BytesRejection, QueryRejection};
-use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::extract::rejection::BytesRejection;
+use axum::extract::{DefaultBodyLimit, Path, RawQuery, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -19,8 +19,8 @@ use tokio::sync::broadcast::error::RecvError;
 use tower_http::trace::TraceLayer;
 
 use crate::service::jobs::{JobAnswer, JobParams};
-use crate::service::{parse_json, Command, Reply, Service, ServiceError};
-use crate::session::wire::{AutoOptimize, Batch, CreateSession};
+use crate::service::{parse_json, parse_query, Command, Reply, Service, ServiceError};
+use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 
 type Shared = State<Arc<Service>>;
 
@@ -84,8 +84,8 @@ fn body_error(rejection: BytesRejection) -> HttpError {
     HttpError(ServiceError::new(status.as_u16(), code, rejection.body_text()).at("body"))
 }
 
-fn query_error(rejection: QueryRejection) -> HttpError {
-    HttpError(ServiceError::new(400, "invalid_query", rejection.body_text()).at("query"))
+fn query<T: serde::de::DeserializeOwned>(raw: RawQuery) -> Result<T, HttpError> {
+    Ok(parse_query(raw.0.as_deref().unwrap_or(""))?)
 }
 
 async fn run(service: &Service, command: Command, status: StatusCode) -> HttpResult {
@@ -129,10 +129,10 @@ struct WaitParam {
 async fn apply_batch(
     State(service): Shared,
     Path(session): Path<String>,
-    query: Result<Query<WaitParam>, QueryRejection>,
+    raw: RawQuery,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
-    let Query(WaitParam { wait }) = query.map_err(query_error)?;
+    let WaitParam { wait } = query(raw)?;
     let batch: Batch = parse_json(&body.map_err(body_error)?)?;
     run(
         &service,
@@ -149,9 +149,9 @@ async fn apply_batch(
 async fn optimize(
     State(service): Shared,
     Path(session): Path<String>,
-    query: Result<Query<WaitParam>, QueryRejection>,
+    raw: RawQuery,
 ) -> HttpResult {
-    let Query(WaitParam { wait }) = query.map_err(query_error)?;
+    let WaitParam { wait } = query(raw)?;
     let status = if wait {
         StatusCode::OK
     } else {
@@ -177,20 +177,12 @@ async fn set_auto_optimize(
     .await
 }
 
-#[derive(Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-struct EstimateParams {
-    since: Option<u64>,
-    from: Option<u64>,
-    to: Option<u64>,
-}
-
 async fn estimate(
     State(service): Shared,
     Path(session): Path<String>,
-    query: Result<Query<EstimateParams>, QueryRejection>,
+    raw: RawQuery,
 ) -> HttpResult {
-    let Query(EstimateParams { since, from, to }) = query.map_err(query_error)?;
+    let EstimateQuery { since, from, to } = query(raw)?;
     run(
         &service,
         Command::GetEstimate {
@@ -254,10 +246,10 @@ async fn events(
 async fn job(
     State(service): Shared,
     headers: HeaderMap,
-    query: Result<Query<JobParams>, QueryRejection>,
+    raw: RawQuery,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
-    let Query(mut params) = query.map_err(query_error)?;
+    let mut params: JobParams = query(raw)?;
     let body = body.map_err(body_error)?;
     let text = String::from_utf8(body.to_vec()).map_err(|_| {
         ServiceError::bad_request(

@@ -17,8 +17,8 @@ use std::sync::Arc;
 use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
-use crate::service::{parse_json, Command, Lifecycle, Service, ServiceError};
-use crate::session::wire::{Batch, SessionEvent};
+use crate::service::{parse_json, parse_query, Command, Service, ServiceError};
+use crate::session::wire::{Batch, EstimateQuery, SessionEvent};
 
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -170,54 +170,43 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
                 )),
             };
             if let Err(error) = outcome {
-                // Puts have no reply: the rejection is published where the robot listens.
-                let event = SessionEvent::Error {
-                    session: name.into(),
-                    sequence: None,
-                    error: error.body,
-                };
-                let body = serde_json::to_vec(&event).expect("events serialise");
-                let _ = publisher
-                    .put(format!("{in_prefix}/{name}/out/errors"), body)
-                    .await;
+                // Puts have no reply: the rejection goes to the session's stream (SSE and
+                // `out/errors`), or straight to `out/errors` when there is no such session.
+                match svc.session(name) {
+                    Ok(session) => session.report_rejection(error),
+                    Err(_) => {
+                        let event = SessionEvent::Error {
+                            session: name.into(),
+                            sequence: None,
+                            error: error.body,
+                        };
+                        let body = serde_json::to_vec(&event).expect("events serialise");
+                        let _ = publisher
+                            .put(format!("{in_prefix}/{name}/out/errors"), body)
+                            .await;
+                    }
+                }
             }
         }
     }));
 
-    // Forward every session's events, for the sessions that exist and those created later.
-    let mut lifecycle = service.lifecycle();
-    for s in service.sessions() {
-        tasks.push(forward(session.clone(), prefix.clone(), s));
-    }
+    // Forward every session's events, for the sessions that exist and those created later
+    // (subscribed before the creation is acknowledged, so no event is missed).
     let publisher = session.clone();
     let fwd_prefix = prefix.clone();
-    tasks.push(tokio::spawn(async move {
-        loop {
-            match lifecycle.recv().await {
-                Ok(Lifecycle::Created(s)) => {
-                    forward(publisher.clone(), fwd_prefix.clone(), s);
-                }
-                Ok(Lifecycle::Deleted(_)) => {}
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    tracing::warn!("zenoh adapter missed {n} session lifecycle events");
-                }
-                Err(_) => return,
-            }
-        }
+    let runtime = tokio::runtime::Handle::current();
+    service.observe_sessions(Box::new(move |s| {
+        let _guard = runtime.enter();
+        forward(publisher.clone(), fwd_prefix.clone(), s);
     }));
     tracing::info!("zenoh peer {} serving `{prefix}/**`", session.zid());
     Ok(ZenohAdapter { session, tasks })
 }
 
 /// Publishes a session's events until it is deleted (its event channel closes).
-fn forward(
-    zenoh: zenoh::Session,
-    prefix: String,
-    session: Arc<crate::session::Session>,
-) -> tokio::task::JoinHandle<()> {
+fn forward(zenoh: zenoh::Session, prefix: String, session: &Arc<crate::session::Session>) {
     let mut rx = session.subscribe();
     let name = session.name.clone();
-    drop(session);
     tokio::spawn(async move {
         loop {
             let event = match rx.recv().await {
@@ -239,7 +228,7 @@ fn forward(
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
             }
         }
-    })
+    });
 }
 
 fn payload(query: &Query) -> Vec<u8> {
@@ -254,26 +243,12 @@ fn estimate_command(query: &Query) -> Result<Command, ServiceError> {
     let name = key.rsplit('/').nth(1).ok_or_else(|| {
         ServiceError::bad_request("invalid_key", "key", "expected <prefix>/<session>/estimate")
     })?;
-    let params = query.parameters();
-    let number = |field: &str| -> Result<Option<u64>, ServiceError> {
-        params
-            .get(field)
-            .map(|v| {
-                v.parse().map_err(|_| {
-                    ServiceError::bad_request(
-                        "invalid_query",
-                        field,
-                        format!("`{field}` must be a non-negative integer, got `{v}`"),
-                    )
-                })
-            })
-            .transpose()
-    };
+    let EstimateQuery { since, from, to } = parse_query(query.parameters().as_str())?;
     Ok(Command::GetEstimate {
         session: name.into(),
-        since: number("since")?,
-        from: number("from")?,
-        to: number("to")?,
+        since,
+        from,
+        to,
     })
 }
 

@@ -1,6 +1,8 @@
 //! Shared test support: where the benchmark data lives, and synthetic fixtures made by code.
 #![allow(dead_code)]
 
+pub mod server;
+
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
@@ -84,8 +86,67 @@ pub fn synthetic_manhattan(poses: usize, seed: u64) -> String {
     out + &edges
 }
 
+/// A fresh directory, unique within this test process.
 pub fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("factord-test-{}-{name}", std::process::id()));
+    static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let dir = std::env::temp_dir().join(format!("factord-test-{}-{name}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// A noisy 3D pose graph as g2o text: a rising helix with odometry and loop closures between
+/// poses one turn apart; initial guess from composing the noisy odometry.
+pub fn synthetic_helix_3d(poses: usize, seed: u64) -> String {
+    use factord::geometry::Se3;
+    use nalgebra::{UnitQuaternion, Vector3, Vector6};
+    let mut rng = Rng::new(seed);
+    let per_turn = 20;
+    let step = Se3::new(
+        UnitQuaternion::from_euler_angles(0.0, 0.02, 2.0 * std::f64::consts::PI / per_turn as f64),
+        Vector3::new(1.0, 0.0, 0.05),
+    );
+    let mut truth = vec![Se3::identity()];
+    for i in 1..poses {
+        truth.push(truth[i - 1].compose(&step));
+    }
+    let (sigma_t, sigma_r) = (0.02, 0.005);
+    let mut noisy = |z: Se3| {
+        let n = Vector6::from_fn(|i, _| {
+            if i < 3 {
+                sigma_t * rng.normal()
+            } else {
+                sigma_r * rng.normal()
+            }
+        });
+        z.compose(&Se3::exp(&n))
+    };
+    // Information for our (translation, angle) error, written in g2o's half-angle convention.
+    let (it, ir) = (1.0 / (sigma_t * sigma_t), 4.0 / (sigma_r * sigma_r));
+    let info = format!("{it} 0 0 0 0 0 {it} 0 0 0 0 {it} 0 0 0 {ir} 0 0 {ir} 0 {ir}");
+    let fmt = |p: &Se3| {
+        let q = p.rotation.quaternion();
+        format!(
+            "{} {} {} {} {} {} {}",
+            p.translation.x, p.translation.y, p.translation.z, q.i, q.j, q.k, q.w
+        )
+    };
+    let mut edges = String::new();
+    let mut guess = vec![Se3::identity()];
+    for i in 1..poses {
+        let z = noisy(truth[i - 1].between(&truth[i]));
+        guess.push(guess[i - 1].compose(&z));
+        let _ = writeln!(edges, "EDGE_SE3:QUAT {} {i} {} {info}", i - 1, fmt(&z));
+        if i >= per_turn {
+            let j = i - per_turn;
+            let z = noisy(truth[j].between(&truth[i]));
+            let _ = writeln!(edges, "EDGE_SE3:QUAT {j} {i} {} {info}", fmt(&z));
+        }
+    }
+    let mut out = String::new();
+    for (i, p) in guess.iter().enumerate() {
+        let _ = writeln!(out, "VERTEX_SE3:QUAT {i} {}", fmt(p));
+    }
+    out + &edges
 }

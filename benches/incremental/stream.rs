@@ -1,0 +1,176 @@
+//! Streams a 2D g2o pose graph into a session one pose at a time (each pose with every edge
+//! whose later end is that pose; no value for a pose with an odometry edge, so the service
+//! predicts it) and measures, per update, the time until the estimate reflects it: the same
+//! protocol as `isam2_stream.py`. Runs the service in-process through its command API (no
+//! transport), so this measures the session engine.
+//!
+//! `cargo bench --bench incremental_stream -- <file.g2o> [--json out.json] [--limit N]`
+
+use std::time::Instant;
+
+use factord::service::{Command, Limits, Reply, Service};
+use factord::session::wire::{Batch, CreateSession, FactorSpec, VariableSpec};
+use factord::solver::{optimize, SolverOptions};
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    let idx = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted[idx]
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
+    let path = args
+        .first()
+        .expect("usage: incremental_stream <file.g2o> [--json out] [--limit N]");
+    let flag = |name: &str| {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
+    let limit: usize = flag("--limit").map_or(usize::MAX, |v| v.parse().expect("--limit N"));
+    let text = std::fs::read_to_string(path).expect("readable graph");
+
+    // Parse into streaming batches.
+    let mut vertices = Vec::new();
+    let mut edges = Vec::new();
+    for line in text.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        let num = |i: usize| t[i].parse::<f64>().expect("number");
+        match t.first() {
+            Some(&"VERTEX_SE2") => vertices.push((num(1) as u64, [num(2), num(3), num(4)])),
+            Some(&"EDGE_SE2") => edges.push((
+                num(1) as u64,
+                num(2) as u64,
+                vec![num(3), num(4), num(5)],
+                (6..12).map(num).collect::<Vec<f64>>(),
+            )),
+            _ => {}
+        }
+    }
+    vertices.sort_by_key(|v| v.0);
+    vertices.truncate(limit);
+    let mut batches = Vec::new();
+    for (i, (key, value)) in vertices.iter().enumerate() {
+        let factors: Vec<FactorSpec> = edges
+            .iter()
+            .filter(|(a, b, _, _)| (*a).max(*b) == *key)
+            .map(|(a, b, z, info)| FactorSpec {
+                factor_type: "between_se2".into(),
+                keys: vec![*a, *b],
+                measurement: z.clone(),
+                information: Some(info.clone()),
+                sigmas: None,
+                robust: None,
+            })
+            .collect();
+        let has_odometry = edges
+            .iter()
+            .any(|(a, b, _, _)| *b == *key && *a + 1 == *key);
+        batches.push(Batch {
+            variables: vec![VariableSpec {
+                key: *key,
+                kind: "se2".into(),
+                value: (i == 0 || !has_odometry).then(|| value.to_vec()),
+                fixed: false,
+            }],
+            factors,
+            ..Batch::default()
+        });
+    }
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let report = runtime.block_on(async {
+        let service = Service::new(Limits::default());
+        service
+            .execute(Command::CreateSession(CreateSession {
+                session: Some("bench".into()),
+                kind: "pose_graph_2d".into(),
+                options: SolverOptions::default(),
+                auto_optimize: Default::default(),
+            }))
+            .await
+            .expect("session");
+        let mut latencies = Vec::with_capacity(batches.len());
+        let start = Instant::now();
+        for batch in batches {
+            let t = Instant::now();
+            let reply = service
+                .execute(Command::ApplyBatch {
+                    session: "bench".into(),
+                    batch,
+                    wait: true,
+                })
+                .await
+                .expect("batch accepted");
+            latencies.push(t.elapsed().as_secs_f64() * 1e3);
+            if let Reply::Accepted(a) = reply {
+                assert_eq!(a.solved, Some(true), "estimate reflects the update");
+            }
+        }
+        let total = start.elapsed().as_secs_f64();
+        let Reply::Stats(stats) = service
+            .execute(Command::GetStats {
+                session: "bench".into(),
+            })
+            .await
+            .unwrap()
+        else {
+            unreachable!()
+        };
+        (latencies, total, stats)
+    });
+    let (mut latencies, total, stats) = report;
+
+    // The batch optimum of the same (possibly truncated) graph, for the chi2 comparison.
+    let kept: std::collections::HashSet<u64> = vertices.iter().map(|v| v.0).collect();
+    let truncated: String = text
+        .lines()
+        .filter(|l| {
+            let t: Vec<&str> = l.split_whitespace().collect();
+            match t.first() {
+                Some(&"VERTEX_SE2") => kept.contains(&t[1].parse().unwrap()),
+                Some(&"EDGE_SE2") => {
+                    kept.contains(&t[1].parse().unwrap()) && kept.contains(&t[2].parse().unwrap())
+                }
+                _ => false,
+            }
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let mut graph =
+        factord::io::parse_text(&truncated, std::path::Path::new(path), None).expect("graph");
+    let batch = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .expect("batch solve");
+
+    let mean = latencies.iter().sum::<f64>() / latencies.len() as f64;
+    latencies.sort_by(f64::total_cmp);
+    let final_chi2 = stats.chi2.unwrap_or(f64::NAN);
+    let json = serde_json::json!({
+        "dataset": path,
+        "steps": latencies.len(),
+        "total_seconds": total,
+        "mean_ms": mean,
+        "p50_ms": percentile(&latencies, 0.5),
+        "p90_ms": percentile(&latencies, 0.9),
+        "p99_ms": percentile(&latencies, 0.99),
+        "max_ms": latencies.last(),
+        "solves": stats.solves,
+        "skipped_solves": stats.skipped_solves,
+        "final_chi2": final_chi2,
+        "batch_chi2": batch.final_chi2,
+        "chi2_excess": final_chi2 / batch.final_chi2 - 1.0,
+    });
+    println!("{}", serde_json::to_string_pretty(&json).unwrap());
+    if let Some(out) = flag("--json") {
+        std::fs::write(out, json.to_string()).expect("writable --json");
+    }
+}

@@ -1,0 +1,654 @@
+#!/usr/bin/env python3
+"""Checks the factord wire schemas (proto/v1) and, optionally, a running server against them.
+
+Usage:
+    python proto/validate.py [--server http://127.0.0.1:8080] [--save-examples]
+
+Without --server:
+  (a) every proto/v1/*.schema.json is a valid draft 2020-12 schema whose $refs resolve, and every
+      proto/v1/examples/<name>.example.json validates against the schema its name starts with
+      (longest match; when the rest of the name is one of that schema's $defs, e.g.
+      `reply-deleted`, against that definition);
+  (b) proto/v1/openapi.json's $refs resolve to existing schema files (and definitions in them),
+      and its routes are exactly the `.route("...", ...)` routes of src/transport/http.rs, with
+      the same methods.
+With --server it also (c) drives that server through a scripted sequence (sessions, batches,
+estimates, events over SSE, a batch job, error cases) and validates every real response body and
+SSE event against the schema it should match. --save-examples then rewrites the examples the
+sequence captures (proto/v1/examples/).
+
+Prints one line per check; exits 1 listing every mismatch. Needs the PyPI packages `jsonschema`
+and `referencing`; HTTP uses only the standard library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import secrets
+import sys
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+try:
+    from jsonschema import Draft202012Validator
+    from referencing import Registry, Resource
+    from referencing.exceptions import Unresolvable
+except ImportError:  # pragma: no cover - a hint, not a check
+    sys.exit("validate.py needs `pip install jsonschema referencing`")
+
+PROTO = Path(__file__).resolve().parent
+V1 = PROTO / "v1"
+EXAMPLES = V1 / "examples"
+HTTP_RS = PROTO.parent / "src" / "transport" / "http.rs"
+BASE = "https://factord.invalid/proto/v1/"
+HTTP_METHODS = ("get", "put", "post", "delete", "patch", "head", "options", "trace")
+
+
+# --------------------------------------------------------------------------------------------
+# Reporting
+
+
+class Report:
+    def __init__(self) -> None:
+        self.passed = 0
+        self.failures: list[str] = []
+
+    def check(self, name: str, ok: bool, detail: str = "") -> bool:
+        if ok:
+            self.passed += 1
+            print(f"ok    {name}")
+        else:
+            self.failures.append(f"{name}: {detail}" if detail else name)
+            print(f"FAIL  {name}" + (f": {detail}" if detail else ""))
+        return ok
+
+    def finish(self) -> int:
+        print(f"\n{self.passed} passed, {len(self.failures)} failed")
+        if self.failures:
+            print("\nMismatches:")
+            for f in self.failures:
+                print(f"  - {f}")
+            return 1
+        return 0
+
+
+def compact(value: Any, indent: int = 0, width: int = 120) -> str:
+    """JSON with short containers kept on one line (how the files in proto/ are laid out)."""
+    flat = json.dumps(value, ensure_ascii=False)
+    if not isinstance(value, (dict, list)) or len(flat) + indent <= width or not value:
+        return flat
+    pad = " " * (indent + 2)
+    if isinstance(value, dict):
+        items = [f"{pad}{json.dumps(k, ensure_ascii=False)}: {compact(v, indent + 2, width)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
+    items = [pad + compact(v, indent + 2, width) for v in value]
+    return "[\n" + ",\n".join(items) + "\n" + " " * indent + "]"
+
+
+# --------------------------------------------------------------------------------------------
+# Schemas
+
+
+class Schemas:
+    def __init__(self, report: Report) -> None:
+        self.report = report
+        self.docs: dict[str, dict] = {}  # file name -> schema
+        resources = []
+        for path in sorted(V1.glob("*.schema.json")):
+            try:
+                doc = json.loads(path.read_text())
+            except json.JSONDecodeError as e:
+                report.check(f"schema {path.name} parses", False, str(e))
+                continue
+            self.docs[path.name] = doc
+            resources.append((doc.get("$id", BASE + path.name), Resource.from_contents(doc)))
+        self.registry = Registry().with_resources(resources)
+
+    def validator(self, ref: str) -> Draft202012Validator:
+        """`ref` is `file.schema.json` or `file.schema.json#/$defs/x`."""
+        return Draft202012Validator({"$ref": BASE + ref}, registry=self.registry)
+
+    def errors(self, ref: str, instance: Any) -> list[str]:
+        try:
+            errs = sorted(self.validator(ref).iter_errors(instance), key=lambda e: list(e.absolute_path))
+        except Unresolvable as e:
+            return [f"unresolvable reference {e}"]
+        out = []
+        for e in errs:
+            where = "/".join(str(p) for p in e.absolute_path) or "(root)"
+            # oneOf/anyOf failures: name the closest sub-error too.
+            best = min(e.context, key=lambda c: len(list(c.relative_path)), default=None) if e.context else None
+            extra = f" [{'/'.join(str(p) for p in best.absolute_path) or '(root)'}: {best.message[:160]}]" if best else ""
+            out.append(f"{where}: {e.message[:200]}{extra}")
+        return out
+
+    def resolves(self, ref: str) -> str | None:
+        """None when `ref` (absolute URI) resolves, else the reason."""
+        try:
+            self.registry.resolver().lookup(ref)
+            return None
+        except Unresolvable as e:
+            return str(e) or type(e).__name__
+
+    def check_all(self) -> None:
+        r = self.report
+        for name, doc in self.docs.items():
+            try:
+                Draft202012Validator.check_schema(doc)
+                ok, detail = True, ""
+            except Exception as e:  # SchemaError
+                ok, detail = False, str(e).splitlines()[0]
+            r.check(f"schema {name} is valid draft 2020-12", ok, detail)
+            r.check(f"schema {name} $id", doc.get("$id") == BASE + name, f"$id is {doc.get('$id')!r}, expected {BASE + name!r}")
+            bad = []
+            for ref in refs_in(doc):
+                target = urllib.parse.urljoin(BASE + name, ref)
+                why = self.resolves(target)
+                if why:
+                    bad.append(f"{ref} ({why})")
+            r.check(f"schema {name} $refs resolve", not bad, "; ".join(bad))
+
+    def schema_for_example(self, example: str) -> tuple[str | None, str | None]:
+        """Maps `batch-ack-x.example.json` to (`batch-ack.schema.json`, def or None)."""
+        stem = example[: -len(".example.json")]
+        best = None
+        for name in self.docs:
+            base = name[: -len(".schema.json")]
+            if (stem == base or stem.startswith(base + "-")) and (best is None or len(base) > len(best)):
+                best = base
+        if best is None:
+            return None, None
+        rest = stem[len(best) + 1 :].replace("-", "_")
+        defs = self.docs[best + ".schema.json"].get("$defs", {})
+        return best + ".schema.json", (rest if rest in defs else None)
+
+    def check_examples(self) -> None:
+        r = self.report
+        covered = set()
+        for path in sorted(EXAMPLES.glob("*.example.json")):
+            schema, definition = self.schema_for_example(path.name)
+            if not r.check(f"example {path.name} names a schema", schema is not None, "no schema name is a prefix of it"):
+                continue
+            covered.add(schema)
+            ref = schema + (f"#/$defs/{definition}" if definition else "")
+            try:
+                instance = json.loads(path.read_text())
+            except json.JSONDecodeError as e:
+                r.check(f"example {path.name} parses", False, str(e))
+                continue
+            errs = self.errors(ref, instance)
+            r.check(f"example {path.name} validates against {ref}", not errs, "; ".join(errs[:5]))
+        for name in self.docs:
+            if name != "common.schema.json":
+                r.check(f"schema {name} has an example", name in covered, "add examples/" + name.replace(".schema.json", ".example.json"))
+
+
+def values_of(node: Any, key: str):
+    """Every string value of `key` anywhere in a JSON document."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            if k == key and isinstance(v, str):
+                yield v
+            else:
+                yield from values_of(v, key)
+    elif isinstance(node, list):
+        for v in node:
+            yield from values_of(v, key)
+
+
+def refs_in(node: Any):
+    return values_of(node, "$ref")
+
+
+# --------------------------------------------------------------------------------------------
+# OpenAPI
+
+
+def code_routes() -> dict[str, set[str]]:
+    """Routes and methods of src/transport/http.rs, from its `.route("...", ...)` calls."""
+    text = HTTP_RS.read_text()
+    routes: dict[str, set[str]] = {}
+    calls = list(re.finditer(r'\.route\(\s*"([^"]+)"\s*,', text))
+    for i, m in enumerate(calls):
+        end = calls[i + 1].start() if i + 1 < len(calls) else text.find(".fallback", m.end())
+        handlers = text[m.end() : end if end > 0 else len(text)]
+        methods = set(re.findall(r"\b(get|post|put|delete|patch)\(", handlers))
+        routes.setdefault(m.group(1), set()).update(methods)
+    return routes
+
+
+def check_openapi(schemas: Schemas, report: Report) -> dict | None:
+    r = report
+    path = V1 / "openapi.json"
+    try:
+        api = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        r.check("openapi.json parses", False, str(e))
+        return None
+    r.check("openapi.json is OpenAPI 3.1", str(api.get("openapi", "")).startswith("3.1"), f"openapi: {api.get('openapi')!r}")
+    try:  # optional, when installed
+        from openapi_spec_validator import validate as validate_spec
+
+        try:
+            validate_spec(api, base_uri=path.as_uri())
+            r.check("openapi.json passes openapi-spec-validator", True)
+        except Exception as e:
+            r.check("openapi.json passes openapi-spec-validator", False, str(e).splitlines()[0][:300])
+    except ImportError:
+        print("skip  openapi-spec-validator not installed (optional)")
+
+    bad = []
+    for ref in sorted(set(refs_in(api))):
+        if ref.startswith("#"):
+            target: Any = api
+            try:
+                for part in ref[2:].split("/"):
+                    target = target[part.replace("~1", "/").replace("~0", "~")]
+            except (KeyError, TypeError):
+                bad.append(ref)
+            continue
+        file, _, fragment = ref.partition("#")
+        if not (V1 / file).is_file():
+            bad.append(f"{ref} (no file {file})")
+        elif schemas.resolves(BASE + ref):
+            bad.append(f"{ref} ({schemas.resolves(BASE + ref)})")
+    r.check("openapi.json $refs resolve to schema files", not bad, "; ".join(bad))
+    missing = sorted(v for v in values_of(api, "externalValue") if not (V1 / v).is_file())
+    r.check("openapi.json example files (externalValue) exist", not missing, ", ".join(missing))
+
+    in_code = code_routes()
+    r.check("http.rs routes found", len(in_code) > 0, f"no .route(...) in {HTTP_RS}")
+    in_api = {p: {m for m in ops if m in HTTP_METHODS} for p, ops in api.get("paths", {}).items()}
+    for route, methods in sorted(in_code.items()):
+        documented = in_api.get(route)
+        r.check(f"route {route} ({', '.join(sorted(methods))}) is in openapi.json", documented is not None and methods <= documented,
+                "missing" if documented is None else f"documented methods {sorted(documented)}")
+    for route, methods in sorted(in_api.items()):
+        code = in_code.get(route)
+        r.check(f"openapi path {route} ({', '.join(sorted(methods))}) exists in http.rs", code is not None and methods <= code,
+                "no such route" if code is None else f"code methods {sorted(code)}")
+    return api
+
+
+# --------------------------------------------------------------------------------------------
+# Live server
+
+
+class Response:
+    def __init__(self, status: int, headers, body: bytes) -> None:
+        self.status = status
+        self.headers = headers
+        self.body = body
+
+    @property
+    def content_type(self) -> str:
+        return self.headers.get("Content-Type", "") if self.headers else ""
+
+    def json(self) -> Any:
+        return json.loads(self.body)
+
+
+class Live:
+    def __init__(self, url: str, schemas: Schemas, report: Report, save: bool) -> None:
+        self.url = url.rstrip("/")
+        self.schemas = schemas
+        self.report = report
+        self.save = save
+        self.saved: list[str] = []
+        # Fixed names when saving examples (so they read well), else unique ones.
+        tag = "" if save else "-" + secrets.token_hex(3)
+        self.s2 = f"robot-2d{tag}"
+        self.s3 = f"robot-3d{tag}"
+        self.sx = f"diverging{tag}"
+        self.created: list[str] = []
+
+    # -- plumbing ------------------------------------------------------------------------------
+
+    def request(self, method: str, path: str, body: Any = None, raw: bytes | None = None,
+                headers: dict | None = None, timeout: float = 60) -> Response:
+        data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
+        req = urllib.request.Request(self.url + path, data=data, method=method, headers=headers or {})
+        if data is not None and "Content-Type" not in (headers or {}):
+            req.add_header("Content-Type", "application/json")
+        try:
+            with urllib.request.urlopen(req, timeout=timeout) as resp:
+                return Response(resp.status, resp.headers, resp.read())
+        except urllib.error.HTTPError as e:
+            return Response(e.code, e.headers, e.read())
+
+    def example(self, name: str | None, value: Any) -> None:
+        if self.save and name:
+            (EXAMPLES / f"{name}.example.json").write_text(compact(value) + "\n")
+            self.saved.append(name)
+
+    def validate(self, label: str, ref: str, value: Any, example: str | None = None) -> bool:
+        errs = self.schemas.errors(ref, value)
+        ok = self.report.check(f"{label}: body matches {ref}", not errs, "; ".join(errs[:5]) + f" (body: {json.dumps(value)[:300]})")
+        if ok:
+            self.example(example, value)
+        return ok
+
+    def call(self, label: str, method: str, path: str, status: int, ref: str, body: Any = None,
+             raw: bytes | None = None, example: str | None = None, request_example: str | None = None,
+             error_code: str | None = None, headers: dict | None = None) -> Any:
+        """One request; checks status, content type and body schema. Returns the parsed body."""
+        if request_example and body is not None:
+            self.example(request_example, body)
+        r = self.request(method, path, body=body, raw=raw, headers=headers)
+        name = f"{method} {path} {label}".strip()
+        self.report.check(f"{name}: status {status}", r.status == status, f"got {r.status}: {r.body[:300]!r}")
+        if not self.report.check(f"{name}: application/json", r.content_type.startswith("application/json"), f"Content-Type {r.content_type!r}"):
+            return None
+        try:
+            value = r.json()
+        except json.JSONDecodeError as e:
+            self.report.check(f"{name}: JSON body", False, str(e))
+            return None
+        if self.validate(name, ref, value, example) and ref.startswith("error.schema.json"):
+            err = value["error"]
+            if error_code is not None:
+                self.report.check(f"{name}: error code {error_code}", err["code"] == error_code, f"got {err['code']!r}")
+            self.report.check(f"{name}: error.status equals the HTTP status", err["status"] == r.status, f"{err['status']} vs {r.status}")
+            if "retry_after" in err:
+                self.report.check(f"{name}: Retry-After header", r.headers.get("Retry-After") == str(err["retry_after"]),
+                                  f"header {r.headers.get('Retry-After')!r}")
+        return value
+
+    # -- SSE -----------------------------------------------------------------------------------
+
+    def open_events(self, session: str, want: set[str], timeout: float = 30.0):
+        """Subscribes to a session's SSE stream; returns (thread, events list, error list).
+
+        The subscription exists once this returns (the server subscribes before it answers)."""
+        events: list[tuple[str, str]] = []
+        problems: list[str] = []
+        req = urllib.request.Request(f"{self.url}/v1/sessions/{session}/events", headers={"Accept": "text/event-stream"})
+        resp = urllib.request.urlopen(req, timeout=timeout)
+        ctype = resp.headers.get("Content-Type", "")
+        self.report.check(f"GET /v1/sessions/{session}/events: text/event-stream", ctype.startswith("text/event-stream"), f"Content-Type {ctype!r}")
+
+        def reader() -> None:
+            deadline = time.monotonic() + timeout
+            name, data = None, []
+            seen: set[str] = set()
+            try:
+                while time.monotonic() < deadline and not want <= seen:
+                    line = resp.readline()
+                    if not line:
+                        break
+                    line = line.decode().rstrip("\r\n")
+                    if line.startswith(":"):
+                        continue  # keep-alive comment
+                    if line == "":
+                        if data:
+                            events.append((name or "message", "\n".join(data)))
+                            seen.add(name or "message")
+                        name, data = None, []
+                    elif line.startswith("event:"):
+                        name = line[6:].strip()
+                    elif line.startswith("data:"):
+                        data.append(line[5:].lstrip(" "))
+            except Exception as e:  # timeouts end the read
+                problems.append(f"{type(e).__name__}: {e}")
+            finally:
+                resp.close()
+
+        thread = threading.Thread(target=reader, daemon=True)
+        thread.start()
+        return thread, events, problems
+
+    def check_events(self, label: str, events: list[tuple[str, str]], want: set[str], examples: dict[str, str]) -> None:
+        topic_type = {"acks": "ack", "stats": "iteration", "poses": "estimate", "summary": "summary", "errors": "error"}
+        seen = {n for n, _ in events}
+        self.report.check(f"SSE {label}: received {', '.join(sorted(want))}", want <= seen, f"got {sorted(seen)}")
+        saved = set()
+        for name, data in events:
+            try:
+                value = json.loads(data)
+            except json.JSONDecodeError as e:
+                self.report.check(f"SSE {label} `{name}` data is JSON", False, f"{e}: {data[:200]}")
+                continue
+            if name == "lagged":
+                self.validate(f"SSE {label} `lagged`", "event.schema.json#/$defs/lagged", value)
+                continue
+            expected = topic_type.get(name)
+            if not self.report.check(f"SSE {label}: event name `{name}` is a known topic", expected is not None):
+                continue
+            self.report.check(f"SSE {label} `{name}`: type is {expected}", isinstance(value, dict) and value.get("type") == expected,
+                              f"type {value.get('type') if isinstance(value, dict) else value!r}")
+            ex = examples.get(expected) if expected not in saved else None
+            if self.validate(f"SSE {label} `{name}`", "event.schema.json", value, ex) and ex:
+                saved.add(expected)
+
+    # -- the scripted sequence -----------------------------------------------------------------
+
+    def run(self) -> None:
+        try:
+            self.sequence()
+        finally:
+            for s in self.created:  # leave the server as found
+                self.request("DELETE", f"/v1/sessions/{s}")
+
+    def sequence(self) -> None:
+        r = self.report
+        health = self.call("", "GET", "/v1/health", 200, "health.schema.json", example="health")
+        if health is None:
+            return
+        r.check("health lists pose_graph_2d and pose_graph_3d", {"pose_graph_2d", "pose_graph_3d"} <= set(health.get("session_kinds", [])))
+
+        # Sessions.
+        self.call("2D", "POST", "/v1/sessions", 201, "session-info.schema.json",
+                  body={"session": self.s2, "kind": "pose_graph_2d"}, example="session-info", request_example="create-session")
+        self.created.append(self.s2)
+        create3 = {"session": self.s3, "kind": "pose_graph_3d",
+                   "options": {"method": "levenberg_marquardt", "max_iterations": 50, "initialization": "chordal"},
+                   "auto_optimize": {"policy": "manual"}}
+        info3 = self.call("3D manual", "POST", "/v1/sessions", 201, "session-info.schema.json", body=create3,
+                          example="session-info-3d", request_example="create-session-3d")
+        if info3:
+            self.example("solver-options", info3["options"])
+        self.created.append(self.s3)
+        self.call("", "GET", "/v1/sessions", 200, "session-list.schema.json", example="session-list")
+        self.call("no summary yet", "GET", f"/v1/sessions/{self.s2}/summary", 404, "error.schema.json",
+                  error_code="no_summary", example="error-no-summary")
+
+        # 2D: a square with a loop closure, values predicted from odometry, events watched.
+        batch2 = {
+            "variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0], "fixed": True}] + [{"key": k, "kind": "se2"} for k in range(1, 5)],
+            "factors": [
+                {"type": "between_se2", "keys": [0, 1], "measurement": [1.0, 0.02, 1.5708], "sigmas": [0.1, 0.1, 0.05]},
+                {"type": "between_se2", "keys": [1, 2], "measurement": [1.05, -0.01, 1.55], "sigmas": [0.1, 0.1, 0.05]},
+                {"type": "between_se2", "keys": [2, 3], "measurement": [0.97, 0.03, 1.6], "information": [100, 0, 0, 100, 0, 400]},
+                {"type": "between_se2", "keys": [3, 4], "measurement": [1.02, 0.0, 1.5708], "information": [100, 0, 0, 0, 100, 0, 0, 0, 400]},
+                {"type": "between_se2", "keys": [4, 0], "measurement": [0.0, 0.0, 0.0], "sigmas": [0.05, 0.05, 0.02],
+                 "robust": {"kind": "huber", "scale": 1.0}},
+            ],
+        }
+        want = {"acks", "poses", "stats", "summary"}
+        thread, events, problems = self.open_events(self.s2, want)
+        ack = self.call("wait", "POST", f"/v1/sessions/{self.s2}/batches?wait=true", 200, "batch-ack.schema.json",
+                        body=batch2, example="batch-ack", request_example="batch")
+        thread.join(35)
+        r.check("SSE reader ended cleanly", not problems, "; ".join(problems))
+        self.check_events("2D batch", events, want, {"ack": "event-ack", "estimate": "event", "iteration": "event-iteration", "summary": "event-summary"})
+        if ack:
+            r.check("batch-ack: one factor id per factor", len(ack["factor_ids"]) == len(batch2["factors"]))
+            r.check("batch-ack: predicted keys 1..4", sorted(ack["predicted"]) == [1, 2, 3, 4], f"{ack['predicted']}")
+            r.check("batch-ack: solved is true (every_batch, wait)", ack.get("solved") is True, f"{ack.get('solved')!r}")
+        seq = ack["sequence"] if ack else 1
+
+        est = self.call("", "GET", f"/v1/sessions/{self.s2}/estimate", 200, "estimate.schema.json", example="estimate")
+        if est:
+            r.check("estimate has the 5 variables, sorted", [v["key"] for v in est["variables"]] == [0, 1, 2, 3, 4])
+        self.example("estimate-query", {"since": seq, "from": 0, "to": 99})
+        since = self.call("since", "GET", f"/v1/sessions/{self.s2}/estimate?since={seq}&from=0&to=99", 200, "estimate.schema.json",
+                          example="estimate-since")
+        if since is not None:
+            r.check("estimate?since=<its sequence> is empty", since["variables"] == [], f"{since['variables']}")
+        self.call("range", "GET", f"/v1/sessions/{self.s2}/estimate?from=1&to=2", 200, "estimate.schema.json")
+        stats = self.call("", "GET", f"/v1/sessions/{self.s2}", 200, "session-stats.schema.json", example="session-stats")
+        if stats:
+            r.check("stats: solved_sequence == sequence after wait", stats["solved_sequence"] == stats["sequence"])
+        self.call("", "GET", f"/v1/sessions/{self.s2}/summary", 200, "summary.schema.json", example="summary")
+
+        # A second 2D batch: guesses, fix/unfix, removal, with no wait (no `solved`).
+        batch2b = {"variables": [{"key": 5, "kind": "se2", "value": [1.0, 0.1, 0.0]}],
+                   "factors": [{"type": "prior_se2", "keys": [5], "measurement": [1.0, 0.0, 0.0], "sigmas": [0.5, 0.5, 0.2]},
+                               {"type": "between_se2", "keys": [0, 5], "measurement": [1.0, 0.0, 0.0], "sigmas": [0.2, 0.2, 0.1]}],
+                   "remove_factors": [ack["factor_ids"][-1]] if ack else [],
+                   "fix": [5], "unfix": [0], "guesses": [{"key": 3, "value": [0.0, 1.0, -1.5708]}]}
+        self.call("no wait", "POST", f"/v1/sessions/{self.s2}/batches", 200, "batch-ack.schema.json", body=batch2b,
+                  example="batch-ack-no-wait", request_example="batch-edit")
+
+        # Policies.
+        for policy, ex in (({"policy": "every_n_factors", "factors": 10}, "auto-optimize"),
+                           ({"policy": "every_ms", "milliseconds": 250}, "auto-optimize-every-ms"),
+                           ({"policy": "every_batch"}, None)):
+            self.call(policy["policy"], "PUT", f"/v1/sessions/{self.s2}/auto_optimize", 200, "reply.schema.json#/$defs/auto_optimize_set",
+                      body=policy, request_example=ex, example="reply-auto-optimize-set" if ex == "auto-optimize" else None)
+        self.call("", "POST", f"/v1/sessions/{self.s2}/optimize", 202, "reply.schema.json#/$defs/optimizing", example="reply-optimizing")
+        self.call("", "POST", f"/v1/sessions/{self.s2}/cancel", 200, "reply.schema.json#/$defs/cancelled", example="reply-cancelled")
+
+        # 3D, manual policy: wait answers solved=false, then optimize?wait=true solves.
+        batch3 = {
+            "variables": [
+                {"key": 10, "kind": "se3", "value": [0, 0, 0, 0, 0, 0, 1], "fixed": True},
+                {"key": 11, "kind": "se3"},
+                {"key": 12, "kind": "se3", "value": [2.0, 0.2, 0.0, 0.0, 0.0, 0.0998, 0.995]},
+            ],
+            "factors": [
+                {"type": "between_se3", "keys": [10, 11], "measurement": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0499792, 0.9987503],
+                 "sigmas": [0.1, 0.1, 0.1, 0.05, 0.05, 0.05]},
+                {"type": "between_se3", "keys": [11, 12], "measurement": [1.0, 0.05, 0.0, 0.0, 0.0, 0.0499792, 0.9987503],
+                 "information": [100, 0, 0, 0, 0, 0, 100, 0, 0, 0, 0, 100, 0, 0, 0, 400, 0, 0, 400, 0, 400]},
+                {"type": "prior_se3", "keys": [12], "measurement": [2.0, 0.1, 0.0, 0.0, 0.0, 0.0998, 0.995],
+                 "sigmas": [1, 1, 1, 0.5, 0.5, 0.5], "robust": {"kind": "cauchy", "scale": 2.0}},
+            ],
+        }
+        ack3 = self.call("3D manual wait", "POST", f"/v1/sessions/{self.s3}/batches?wait=true", 200, "batch-ack.schema.json",
+                         body=batch3, request_example="batch-3d", example="batch-ack-manual")
+        if ack3:
+            r.check("batch-ack (manual policy, wait): solved is false", ack3.get("solved") is False, f"{ack3.get('solved')!r}")
+        opt = self.call("wait", "POST", f"/v1/sessions/{self.s3}/optimize?wait=true", 200, "reply.schema.json#/$defs/optimizing",
+                        example="reply-optimizing-wait")
+        if opt:
+            st = opt.get("stats") or {}
+            r.check("optimize?wait=true: stats present and solved", st.get("solved_sequence") == opt["sequence"] and st.get("last_summary") is not None,
+                    f"stats {json.dumps(st)[:200]}")
+        self.call("3D", "GET", f"/v1/sessions/{self.s3}/estimate", 200, "estimate.schema.json", example="estimate-3d")
+        self.call("3D (LM)", "GET", f"/v1/sessions/{self.s3}/summary", 200, "summary.schema.json", example="summary-lm")
+
+        # Error cases.
+        self.call("malformed JSON", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
+                  raw=b'{"variables": [', error_code="malformed_json", example="error-malformed-json")
+        self.call("unknown session", "POST", "/v1/sessions/no-such-session/batches", 404, "error.schema.json",
+                  body={}, error_code="unknown_session", example="error")
+        self.call("unknown key", "POST", f"/v1/sessions/{self.s2}/batches", 422, "error.schema.json",
+                  body={"factors": [{"type": "between_se2", "keys": [0, 999], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}]},
+                  error_code="unknown_variable", example="error-unknown-variable")
+        self.call("wrong dimension", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
+                  body={"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0], "sigmas": [1, 1, 1]}]},
+                  error_code="wrong_dimension", example="error-wrong-dimension")
+        self.call("non-PD information", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
+                  body={"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "information": [1, 0, 0, -1, 0, 1]}]},
+                  error_code="bad_information", example="error-bad-information")
+        self.call("unknown field", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
+                  body={"variable": []}, error_code="invalid_field", example="error-invalid-field")
+        self.call("wrong kind", "POST", f"/v1/sessions/{self.s3}/batches", 400, "error.schema.json",
+                  body={"variables": [{"key": 20, "kind": "se2", "value": [0, 0, 0]}]}, error_code="wrong_kind")
+        self.call("duplicate variable", "POST", f"/v1/sessions/{self.s2}/batches", 422, "error.schema.json",
+                  body={"variables": [{"key": 1, "kind": "se2", "value": [0, 0, 0]}]}, error_code="duplicate_variable")
+        self.call("bad query", "GET", f"/v1/sessions/{self.s2}/estimate?since=yesterday", 400, "error.schema.json",
+                  error_code="invalid_query", example="error-invalid-query")
+        self.call("session exists", "POST", "/v1/sessions", 409, "error.schema.json",
+                  body={"session": self.s2, "kind": "pose_graph_2d"}, error_code="session_exists", example="error-session-exists")
+        self.call("unknown kind", "POST", "/v1/sessions", 400, "error.schema.json",
+                  body={"kind": "bundle_adjustment"}, error_code="unknown_kind")
+        self.call("bad option", "POST", "/v1/sessions", 400, "error.schema.json",
+                  body={"kind": "pose_graph_2d", "options": {"max_iterations": 0}}, error_code="invalid_value")
+        self.call("bad policy", "PUT", f"/v1/sessions/{self.s2}/auto_optimize", 400, "error.schema.json",
+                  body={"policy": "every_n_factors", "factors": 0}, error_code="invalid_value")
+        self.call("unknown route", "GET", "/v1/nothing-here", 404, "error.schema.json", error_code="no_route")
+        self.call("wrong method", "DELETE", "/v1/health", 405, "error.schema.json", error_code="method_not_allowed",
+                  example="error-method-not-allowed")
+        self.call("unknown session", "GET", "/v1/sessions/no-such-session/events", 404, "error.schema.json", error_code="unknown_session")
+
+        # A failing solve streams an `error` event (the cost overflows to infinity).
+        self.call("failing", "POST", "/v1/sessions", 201, "session-info.schema.json", body={"session": self.sx, "kind": "pose_graph_2d"})
+        self.created.append(self.sx)
+        thread, events, problems = self.open_events(self.sx, {"errors"})
+        self.call("non-finite cost", "POST", f"/v1/sessions/{self.sx}/batches?wait=true", 200, "batch-ack.schema.json",
+                  body={"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}, {"key": 1, "kind": "se2", "value": [1e10, 0, 0]}],
+                        "factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [0, 0, 0], "information": [1e300, 0, 0, 1e300, 0, 1e300]}]})
+        thread.join(35)
+        r.check("SSE reader ended cleanly (failing solve)", not problems, "; ".join(problems))
+        self.check_events("failing solve", events, {"errors"}, {"error": "event-error"})
+        failed = self.call("after a failed solve", "GET", f"/v1/sessions/{self.sx}", 200, "session-stats.schema.json", example="session-stats-failed")
+        if failed:
+            r.check("stats after a failed solve: last_error set, chi2 null", failed["last_error"] is not None and failed["chi2"] is None)
+
+        # Batch jobs.
+        g2o = (b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.1 0.1 0.05\nVERTEX_SE2 2 2.0 -0.1 0.1\n"
+               b"EDGE_SE2 0 1 1 0 0 100 0 0 100 0 400\nEDGE_SE2 1 2 1 0 0 100 0 0 100 0 400\n"
+               b"EDGE_SE2 0 2 2 0.05 0 100 0 0 100 0 400\nFIX 0\n")
+        text = {"Content-Type": "text/plain"}
+        self.call("g2o", "POST", "/v1/jobs", 200, "job-result.schema.json", raw=g2o, headers=text, example="job-result")
+        self.call("g2o lm huber", "POST", "/v1/jobs?method=lm&robust=huber:1&max_iterations=20&init=none", 200, "job-result.schema.json",
+                  raw=g2o, headers=text)
+        toro = b"VERTEX2 0 0 0 0\nVERTEX2 1 1.2 0.1 0\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n"
+        self.call("toro", "POST", "/v1/jobs?format=toro", 200, "job-result.schema.json", raw=toro, headers=text)
+        for label, query, accept, first in (("Accept text/plain", "", "text/plain", b"VERTEX_SE2"),
+                                            ("output=tum", "?output=tum", None, b"0 ")):
+            hdrs = dict(text, **({"Accept": accept} if accept else {}))
+            resp = self.request("POST", "/v1/jobs" + query, raw=g2o, headers=hdrs)
+            name = f"POST /v1/jobs{query} {label}"
+            r.check(f"{name}: status 200", resp.status == 200, f"got {resp.status}: {resp.body[:200]!r}")
+            r.check(f"{name}: text/plain", resp.content_type.startswith("text/plain"), f"Content-Type {resp.content_type!r}")
+            r.check(f"{name}: body is the optimised graph", resp.body.startswith(first), f"{resp.body[:80]!r}")
+        self.call("bad parameter", "POST", "/v1/jobs?method=newton", 400, "error.schema.json", raw=g2o, headers=text,
+                  error_code="invalid_parameter", example="error-invalid-parameter")
+        self.call("unknown parameter", "POST", "/v1/jobs?iterations=3", 400, "error.schema.json", raw=g2o, headers=text, error_code="invalid_query")
+        self.call("bad graph", "POST", "/v1/jobs", 400, "error.schema.json", raw=b"VERTEX_SE2 0 0 0\n", headers=text,
+                  error_code="invalid_graph", example="error-invalid-graph")
+
+        # Delete.
+        for s in list(self.created):
+            self.call("", "DELETE", f"/v1/sessions/{s}", 200, "reply.schema.json#/$defs/deleted",
+                      example="reply-deleted" if s == self.s2 else None)
+            self.created.remove(s)
+        self.call("deleted", "GET", f"/v1/sessions/{self.s2}", 404, "error.schema.json", error_code="unknown_session")
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--server", metavar="URL", help="also drive this running server, e.g. http://127.0.0.1:8080")
+    parser.add_argument("--save-examples", action="store_true", help="with --server: rewrite the examples it captures")
+    args = parser.parse_args()
+    report = Report()
+    schemas = Schemas(report)
+    schemas.check_all()
+    if args.server:
+        live = Live(args.server, schemas, report, args.save_examples)
+        try:
+            live.run()
+        except (urllib.error.URLError, OSError) as e:
+            report.check(f"server {args.server} reachable", False, str(e))
+        if live.saved:
+            print(f"saved {len(live.saved)} examples to {EXAMPLES}")
+    schemas.check_examples()
+    check_openapi(schemas, report)
+    return report.finish()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+//! Starts the real `factord serve` binary on free loopback ports (HTTP and zenoh, scouting off)
+//! and talks to it over real sockets.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+pub struct TestServer {
+    pub http: String,
+    pub zenoh: String,
+    pub state_dir: PathBuf,
+    stderr_path: PathBuf,
+    child: Option<Child>,
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port()
+}
+
+impl TestServer {
+    /// `factord serve` with its own state directory, plus `extra` flags.
+    pub fn start(extra: &[&str]) -> Self {
+        Self::start_with_env(extra, &[])
+    }
+
+    pub fn start_with_env(extra: &[&str], env: &[(&str, &str)]) -> Self {
+        let state_dir = super::temp_dir("server");
+        let zenoh = format!("tcp/127.0.0.1:{}", free_port());
+        let stderr_path = state_dir.with_extension("stderr");
+        let stderr = std::fs::File::create(&stderr_path).expect("stderr file");
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
+        cmd.args(["serve", "--listen", "127.0.0.1:0", "--zenoh-listen", &zenoh])
+            .arg("--state-dir")
+            .arg(&state_dir)
+            .args(["--zenoh-multicast", "off"])
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(stderr);
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let child = cmd.spawn().expect("factord starts");
+        let info = state_dir.join("server.json");
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let http = loop {
+            if let Ok(text) = std::fs::read_to_string(&info) {
+                if let Ok(v) = serde_json::from_str::<Value>(&text) {
+                    break format!("http://{}", v["http"].as_str().expect("http address"));
+                }
+            }
+            assert!(
+                Instant::now() < deadline,
+                "server did not start: {}",
+                read(&stderr_path)
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        Self {
+            http,
+            zenoh,
+            state_dir,
+            stderr_path,
+            child: Some(child),
+        }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.http, path)
+    }
+
+    pub fn stderr(&self) -> String {
+        read(&self.stderr_path)
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().expect("running").id()
+    }
+
+    /// SIGTERM, then wait (at most `timeout`); returns the exit status and the log.
+    pub fn terminate(mut self, timeout: Duration) -> (Option<ExitStatus>, String) {
+        let mut child = self.child.take().expect("running");
+        let _ = Command::new("kill").arg(child.id().to_string()).status();
+        let deadline = Instant::now() + timeout;
+        let status = loop {
+            if let Ok(Some(status)) = child.try_wait() {
+                break Some(status);
+            }
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        (status, read(&self.stderr_path))
+    }
+
+    /// Asserts the server never panicked.
+    pub fn assert_no_panic(&self) {
+        let log = self.stderr();
+        assert!(!log.contains("panicked"), "server panicked:\n{log}");
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_default()
+}
+
+pub fn client() -> reqwest::Client {
+    reqwest::Client::builder()
+        .timeout(Duration::from_secs(120))
+        .build()
+        .expect("client")
+}
+
+/// Sends `body` (JSON) and returns the status and the parsed JSON answer.
+pub async fn send(
+    client: &reqwest::Client,
+    method: reqwest::Method,
+    url: &str,
+    body: Option<&Value>,
+) -> (u16, Value) {
+    let mut req = client.request(method, url);
+    if let Some(b) = body {
+        req = req
+            .header("content-type", "application/json")
+            .body(b.to_string());
+    }
+    let resp = req.send().await.expect("request sent");
+    let status = resp.status().as_u16();
+    let text = resp.text().await.expect("body");
+    let value = serde_json::from_str(&text).unwrap_or(Value::String(text));
+    (status, value)
+}
+
+pub async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
+    send(client, reqwest::Method::POST, url, Some(body)).await
+}
+
+pub async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
+    send(client, reqwest::Method::GET, url, None).await
+}
+
+/// A g2o pose graph (2D or 3D) as streaming batches: pose k with every edge whose later end is
+/// k. A pose with an odometry edge from k−1 is sent without a value (the server predicts it).
+pub fn g2o_batches(text: &str) -> Vec<Value> {
+    let mut vertices: Vec<(u64, &str, Vec<f64>)> = Vec::new();
+    let mut edges: Vec<(u64, u64, &str, Vec<f64>, Vec<f64>)> = Vec::new();
+    for line in text.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        let nums =
+            |from: usize| -> Vec<f64> { t[from..].iter().map(|v| v.parse().unwrap()).collect() };
+        match t.first() {
+            Some(&"VERTEX_SE2") => vertices.push((t[1].parse().unwrap(), "se2", nums(2))),
+            Some(&"VERTEX_SE3:QUAT") => vertices.push((t[1].parse().unwrap(), "se3", nums(2))),
+            Some(&"EDGE_SE2") => {
+                let n = nums(3);
+                edges.push((
+                    t[1].parse().unwrap(),
+                    t[2].parse().unwrap(),
+                    "between_se2",
+                    n[..3].to_vec(),
+                    n[3..].to_vec(),
+                ));
+            }
+            Some(&"EDGE_SE3:QUAT") => {
+                let n = nums(3);
+                // g2o's rotation error is half the angle: Ω' = D Ω D, D = diag(1,1,1,½,½,½).
+                let mut info = n[7..].to_vec();
+                let mut k = 0;
+                for i in 0..6 {
+                    for j in i..6 {
+                        let d = |r: usize| if r < 3 { 1.0 } else { 0.5 };
+                        info[k] *= d(i) * d(j);
+                        k += 1;
+                    }
+                }
+                edges.push((
+                    t[1].parse().unwrap(),
+                    t[2].parse().unwrap(),
+                    "between_se3",
+                    n[..7].to_vec(),
+                    info,
+                ));
+            }
+            _ => {}
+        }
+    }
+    vertices.sort_by_key(|v| v.0);
+    let mut by_later: std::collections::BTreeMap<u64, Vec<Value>> = Default::default();
+    let mut odometry = std::collections::HashSet::new();
+    for (a, b, ty, z, info) in &edges {
+        if a + 1 == *b {
+            odometry.insert(*b);
+        }
+        by_later.entry(*a.max(b)).or_default().push(json!({
+            "type": ty, "keys": [a, b], "measurement": z, "information": info
+        }));
+    }
+    vertices
+        .iter()
+        .enumerate()
+        .map(|(i, (key, kind, value))| {
+            let variable = if i > 0 && odometry.contains(key) {
+                json!({"key": key, "kind": kind})
+            } else {
+                json!({"key": key, "kind": kind, "value": value})
+            };
+            json!({
+                "variables": [variable],
+                "factors": by_later.remove(key).unwrap_or_default(),
+            })
+        })
+        .collect()
+}
