@@ -1,0 +1,121 @@
+//! The Python side, run by the one test command: the scripted client (HTTP and zenoh, the robot
+//! example) and the wire-schema check of `proto/` against a live server.
+//!
+//! Both need a virtual environment with the client package, `eclipse-zenoh` and `jsonschema`;
+//! this test creates it once under `~/.cache/factord/venvs/client` (PyPI must be reachable).
+//! Without Python or PyPI it skips with the reason, except under `CI=true`, where it fails.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+use common::server::TestServer;
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn skip_or_fail(reason: &str) -> Option<PathBuf> {
+    if std::env::var("CI").is_ok_and(|v| v == "true") {
+        panic!("{reason} (CI=true)");
+    }
+    eprintln!("skipping: {reason}");
+    None
+}
+
+/// The venv's python, created and filled on first use.
+fn python() -> Option<PathBuf> {
+    static PYTHON: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    let result = PYTHON.get_or_init(|| {
+        let home = std::env::var_os("HOME").ok_or("HOME is not set")?;
+        let venv = Path::new(&home).join(".cache/factord/venvs/client");
+        let python = venv.join("bin/python");
+        let run = |cmd: &mut Command| -> Result<(), String> {
+            let out = cmd.output().map_err(|e| format!("{cmd:?}: {e}"))?;
+            if out.status.success() {
+                Ok(())
+            } else {
+                Err(format!(
+                    "{cmd:?} failed:\n{}{}",
+                    String::from_utf8_lossy(&out.stdout),
+                    String::from_utf8_lossy(&out.stderr)
+                ))
+            }
+        };
+        if !python.exists() {
+            run(Command::new("python3").args(["-m", "venv"]).arg(&venv))?;
+        }
+        // Reinstalling the local package is cheap and keeps the venv in step with the checkout.
+        run(Command::new(&python).args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "jsonschema>=4.18",
+            "referencing",
+        ]))?;
+        run(Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ])
+            .arg(repo().join("clients/python")))?;
+        Ok(python)
+    });
+    match result {
+        Ok(p) => Some(p.clone()),
+        Err(reason) => skip_or_fail(&format!("no Python environment for the client: {reason}")),
+    }
+}
+
+fn data_dir() -> PathBuf {
+    std::env::var_os("FACTORD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join("../shared/data"))
+}
+
+fn run_script(python: &Path, args: &[&str]) {
+    let out = Command::new(python)
+        .args(args)
+        .current_dir(repo())
+        .output()
+        .expect("python runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    println!("{stdout}");
+    assert!(out.status.success(), "{args:?} failed:\n{stdout}\n{stderr}");
+}
+
+#[test]
+fn python_client_over_http_and_zenoh() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    let data = data_dir();
+    run_script(
+        &python,
+        &[
+            "clients/python/tests/test_client.py",
+            "--http",
+            &server.http,
+            "--zenoh",
+            &server.zenoh,
+            "--data-dir",
+            data.to_str().expect("utf-8 path"),
+        ],
+    );
+    server.assert_no_panic();
+}
+
+#[test]
+fn wire_schema_matches_the_server() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &["proto/validate.py", "--server", &server.http]);
+    server.assert_no_panic();
+}
