@@ -969,3 +969,49 @@ async fn configuration_flags_override_environment_override_file() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("limits.workerz"), "{err}");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn optimize_requests_run_whatever_the_policy() {
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    for (name, policy) in [
+        ("manual", json!({"policy": "manual"})),
+        (
+            "every-n",
+            json!({"policy": "every_n_factors", "factors": 1000000}),
+        ),
+    ] {
+        create(
+            &c,
+            &s,
+            json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy}),
+        )
+        .await;
+        for b in g2o_batches(&synthetic_manhattan(300, 8)) {
+            let (status, v) = batch(&c, &s, name, &b, true).await;
+            assert_eq!(
+                (status, &v["solved"]),
+                (200, &json!(false)),
+                "no solve is due: {v}"
+            );
+        }
+        // Several concurrent requests: each answers after a solve that started after it.
+        let url = s.url(&format!("/v1/sessions/{name}/optimize?wait=true"));
+        let requests: Vec<_> = (0..4)
+            .map(|_| {
+                let (c, url) = (c.clone(), url.clone());
+                tokio::spawn(async move { post(&c, &url, &json!({})).await })
+            })
+            .collect();
+        for r in requests {
+            let (status, v) = tokio::time::timeout(Duration::from_secs(30), r)
+                .await
+                .expect("answered")
+                .unwrap();
+            assert_eq!(status, 200, "{v}");
+            assert!(v["stats"]["solves"].as_u64().unwrap() >= 1);
+            assert_eq!(v["stats"]["solved_sequence"], 300, "{v}");
+        }
+    }
+    s.assert_no_panic();
+}

@@ -9,7 +9,7 @@
 use std::time::Instant;
 
 use factord::service::{Command, Limits, Reply, Service};
-use factord::session::wire::{Batch, CreateSession, FactorSpec, VariableSpec};
+use factord::session::wire::{Batch, CreateSession, FactorSpec, SessionEvent, VariableSpec};
 use factord::solver::{optimize, SolverOptions};
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -97,6 +97,28 @@ fn main() {
             }))
             .await
             .expect("session");
+        // Where solve time goes: every Summary the session streams.
+        let mut events = service.session("bench").expect("created").subscribe();
+        let phases = tokio::spawn(async move {
+            let mut totals = serde_json::Map::new();
+            let mut add = |k: &str, v: f64| {
+                let e = totals.entry(k.to_string()).or_insert(0.0.into());
+                *e = (e.as_f64().unwrap() + v).into();
+            };
+            while let Ok(event) = events.recv().await {
+                if let SessionEvent::Summary { summary, .. } = &*event {
+                    let t = &summary.timings;
+                    add("solve", summary.solve_seconds);
+                    add("iterations", summary.iterations as f64);
+                    add("preprocess", t.preprocess_seconds);
+                    add("linearize", t.linearize_seconds);
+                    add("factorize", t.factorize_seconds);
+                    add("linear_solve", t.linear_solve_seconds);
+                    add("evaluate", t.evaluate_seconds);
+                }
+            }
+            totals
+        });
         let mut latencies = Vec::with_capacity(batches.len());
         let start = Instant::now();
         for batch in batches {
@@ -124,9 +146,17 @@ fn main() {
         else {
             unreachable!()
         };
-        (latencies, total, stats)
+        service
+            .execute(Command::DeleteSession {
+                session: "bench".into(),
+            })
+            .await
+            .expect("deleted");
+        drop(service);
+        let phases = phases.await.expect("phase totals");
+        (latencies, total, stats, phases)
     });
-    let (mut latencies, total, stats) = report;
+    let (mut latencies, total, stats, phases) = report;
 
     // The batch optimum of the same (possibly truncated) graph, for the chi2 comparison.
     let kept: std::collections::HashSet<u64> = vertices.iter().map(|v| v.0).collect();
@@ -168,6 +198,7 @@ fn main() {
         "final_chi2": final_chi2,
         "batch_chi2": batch.final_chi2,
         "chi2_excess": final_chi2 / batch.final_chi2 - 1.0,
+        "solve_phase_seconds": phases,
     });
     println!("{}", serde_json::to_string_pretty(&json).unwrap());
     if let Some(out) = flag("--json") {

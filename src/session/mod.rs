@@ -22,7 +22,7 @@ use tokio::sync::{broadcast, watch};
 use crate::problem::{Key, Problem, Variable};
 use crate::service::pool::{PoolHandle, TIME_SLICE};
 use crate::service::ServiceError;
-use crate::solver::{self, Initialization, SolverOptions};
+use crate::solver::{self, SolverOptions};
 use batch::{PreparedBatch, SessionView};
 use catalogue::SessionKind;
 use wire::*;
@@ -78,6 +78,8 @@ struct State {
     dirty: bool,
     /// Queued on or running in the pool.
     scheduled: bool,
+    /// A solve was asked for (`optimize`): it runs whatever the policy.
+    forced: bool,
     solving: bool,
     timer_armed: bool,
     deleted: bool,
@@ -117,6 +119,7 @@ impl Session {
                 factors_since_solve: 0,
                 dirty: false,
                 scheduled: false,
+                forced: false,
                 solving: false,
                 timer_armed: false,
                 deleted: false,
@@ -233,11 +236,21 @@ impl Session {
         for id in &prepared.remove {
             st.live_factors.remove(id);
         }
+        let predicted = prepared.predicted.clone();
+        if st.problem.is_some() {
+            self.apply_prepared(&mut st, sequence, prepared, factor_ids.clone());
+        } else {
+            st.pending_factors += prepared.factor_count();
+            st.pending
+                .push_back((sequence, prepared, factor_ids.clone()));
+            st.dirty = true;
+        }
         let ack = BatchAck {
             session: self.name.clone(),
             sequence,
-            factor_ids: factor_ids.clone(),
-            predicted: prepared.predicted.clone(),
+            factor_ids,
+            predicted,
+            reflected: st.solved_sequence >= sequence,
         };
         self.emit(SessionEvent::Ack(ack.clone()));
         if !new_values.is_empty() {
@@ -246,13 +259,6 @@ impl Session {
                 sequence,
                 variables: new_values,
             }));
-        }
-        if st.problem.is_some() {
-            self.apply_prepared(&mut st, sequence, prepared, factor_ids);
-        } else {
-            st.pending_factors += prepared.factor_count();
-            st.pending.push_back((sequence, prepared, factor_ids));
-            st.dirty = true;
         }
         self.maybe_schedule(&mut st);
         let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
@@ -328,6 +334,9 @@ impl Session {
         if !st.dirty || st.scheduled || st.deleted {
             return;
         }
+        if st.forced {
+            return self.schedule(st);
+        }
         match st.auto {
             AutoOptimize::EveryBatch => self.schedule(st),
             AutoOptimize::EveryNFactors { factors } => {
@@ -370,6 +379,7 @@ impl Session {
         }
         st.dirty = true;
         st.converged = false;
+        st.forced = true;
         if !st.scheduled {
             self.schedule(&mut st);
         }
@@ -482,7 +492,7 @@ impl Session {
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
     /// apply what arrived meanwhile, and reschedule if that needs another solve.
     fn solve_once(self: Arc<Self>) {
-        let (mut problem, mut options, sequence, solve_number) = {
+        let (mut problem, options, sequence, solve_number) = {
             let mut st = self.lock();
             if st.deleted || !st.dirty {
                 st.scheduled = false;
@@ -491,20 +501,23 @@ impl Session {
             let problem = st.problem.take().expect("one solve per session at a time");
             st.solving = true;
             st.dirty = false;
+            st.forced = false;
             st.factors_since_solve = 0;
             st.solves += 1;
             self.cancel.store(false, Ordering::SeqCst);
             // Batches are applied as they come while the problem is here, so it reflects them all.
             (problem, st.options.clone(), st.sequence, st.solves)
         };
-        // Later solves warm-start from the current estimate; initialisation is for the first.
-        if solve_number > 1 {
-            options.initialization = Initialization::None;
-        }
         let start = Instant::now();
         let mut preempted = false;
+        // Later solves warm-start from the current estimate; initialisation is for the first.
+        let run = if solve_number > 1 {
+            solver::optimize_warm
+        } else {
+            solver::optimize
+        };
         let solve = std::panic::AssertUnwindSafe(|| {
-            solver::optimize(&mut problem, &options, &mut |report| {
+            run(&mut problem, &options, &mut |report| {
                 self.emit(SessionEvent::Iteration {
                     session: self.name.clone(),
                     solve: solve_number,
@@ -536,6 +549,7 @@ impl Session {
                 // A preempted solve continues in its next turn; a cancelled one waits for news.
                 if preempted {
                     st.dirty = true;
+                    st.forced = true;
                 }
                 let changed = refresh_mirror(&mut st.mirror, &problem, sequence);
                 if !changed.is_empty() {

@@ -102,6 +102,10 @@ pub struct BatchAck {
     pub factor_ids: Vec<FactorId>,
     /// Keys whose initial guess was predicted from a factor.
     pub predicted: Vec<Key>,
+    /// The estimate already reflects this batch: its new factors could not lower chi2 by more
+    /// than the function tolerance, so no solve is needed (otherwise a `summary` event with a
+    /// sequence at least this one follows the solve).
+    pub reflected: bool,
 }
 
 /// Which part of the estimate to read.

@@ -11,7 +11,7 @@ pub mod options;
 pub mod structure;
 pub mod summary;
 
-pub use optimizer::optimize;
+pub use optimizer::{optimize, optimize_warm};
 pub use options::{Initialization, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 

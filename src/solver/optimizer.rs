@@ -30,6 +30,32 @@ pub fn optimize(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
+    optimize_from(problem, options, on_iteration, false)
+}
+
+/// [`optimize`] for values already near the optimum (a session re-solving after a small update).
+/// It may also stop after a step whose actual decrease matched the quadratic model's prediction
+/// to within `function_tolerance × chi2`: the model was then accurate over the step, so the
+/// step landed at the model's minimum and a further one cannot gain more than that tolerance.
+/// This saves the confirming iteration a cold solve needs; the initialisation option is ignored.
+pub fn optimize_warm(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+) -> Result<Summary, SolverError> {
+    let options = SolverOptions {
+        initialization: Initialization::None,
+        ..options.clone()
+    };
+    optimize_from(problem, &options, on_iteration, true)
+}
+
+fn optimize_from(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    warm: bool,
+) -> Result<Summary, SolverError> {
     let start = Instant::now();
     let mut timings = Timings::default();
     let (fixed, gauge_fixed) = anchor_components(problem.factors(), &problem.values);
@@ -75,6 +101,7 @@ pub fn optimize(
         chol,
         timings,
         log: Vec::new(),
+        warm,
     };
     let outcome = solver.run(factors, &mut values, options, on_iteration);
     problem.values = values;
@@ -174,6 +201,8 @@ struct Iterations<'a> {
     chol: SparseCholesky,
     timings: Timings,
     log: Vec<IterationReport>,
+    /// Started near the optimum: see [`optimize_warm`].
+    warm: bool,
 }
 
 fn max_abs(v: &[f64]) -> f64 {
@@ -315,10 +344,13 @@ impl Iterations<'_> {
                     ),
                 ));
             }
+            // Model decrease L(0) − L(Δ) of the step, for LM/Dogleg's gain ratio and the warm stop.
+            let mut predicted = f64::NAN;
             let (accepted, trial_chi2) = match options.method {
                 Method::GaussNewton => {
                     self.solve_damped(0.0, &mut times)
                         .map_err(|e| self.indeterminate(values, e))?;
+                    predicted = dot(&self.delta, &self.b);
                     let trial = self.evaluate_trial(factors, values)?;
                     if !trial.is_finite() {
                         return Err(SolverError::Diverged { iteration });
@@ -327,7 +359,7 @@ impl Iterations<'_> {
                 }
                 Method::LevenbergMarquardt => match self.solve_damped(lambda, &mut times) {
                     Ok(()) => {
-                        let predicted = dot(&self.delta, &self.b) + self.damping_term(lambda);
+                        predicted = dot(&self.delta, &self.b) + self.damping_term(lambda);
                         let trial = self.evaluate_trial(factors, values)?;
                         let rho = (chi2 - trial) / predicted;
                         if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
@@ -354,7 +386,7 @@ impl Iterations<'_> {
                         self.dogleg_gauss_newton_step(values, &mut times)?;
                         have_gn_step = true;
                     }
-                    let predicted = self.dogleg_step(radius);
+                    predicted = self.dogleg_step(radius);
                     let trial = self.evaluate_trial(factors, values)?;
                     let rho = (chi2 - trial) / predicted;
                     let step = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -388,6 +420,21 @@ impl Iterations<'_> {
                     options.function_tolerance,
                     &format!(
                         "function tolerance reached: relative decrease {relative_decrease:.3e} <= {:.3e}",
+                        options.function_tolerance
+                    ),
+                ))
+            } else if self.warm
+                && options.function_tolerance > 0.0
+                && ((previous - trial_chi2) - predicted).abs()
+                    <= options.function_tolerance * trial_chi2
+            {
+                let mismatch = ((previous - trial_chi2) - predicted).abs() / trial_chi2;
+                Some(termination(
+                    TerminationReason::FunctionTolerance,
+                    mismatch,
+                    options.function_tolerance,
+                    &format!(
+                        "function tolerance reached: the step's decrease matched the quadratic model to {mismatch:.3e} of chi2 <= {:.3e} (warm start)",
                         options.function_tolerance
                     ),
                 ))
