@@ -9,6 +9,7 @@
 
 pub mod batch;
 pub mod catalogue;
+mod incremental;
 pub mod wire;
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
@@ -25,6 +26,7 @@ use crate::service::ServiceError;
 use crate::solver::{self, SolverOptions};
 use batch::{PreparedBatch, SessionView};
 use catalogue::SessionKind;
+use incremental::FactorIndex;
 use wire::*;
 
 /// A variable as clients see it.
@@ -62,8 +64,16 @@ pub struct Session {
 struct State {
     options: SolverOptions,
     auto: AutoOptimize,
-    /// `None` while a worker has it.
+    /// `None` while a worker has it (with `index`).
     problem: Option<Problem>,
+    index: Option<FactorIndex>,
+    /// Variables (dense indices) touched by factors added since the last solve.
+    seeds: Vec<usize>,
+    /// Since the last solve, something other than additions changed (removals, fixes, guesses):
+    /// the next solve is of the whole problem.
+    structural: bool,
+    /// What region re-solves left unsolved at their boundaries (see `incremental`).
+    region_debt: f64,
     /// Id of each factor of the problem, parallel to `problem.factors()`.
     factor_ids: Vec<FactorId>,
     mirror: BTreeMap<Key, MirrorEntry>,
@@ -108,6 +118,10 @@ impl Session {
                 options,
                 auto,
                 problem: Some(Problem::new()),
+                index: Some(FactorIndex::default()),
+                seeds: Vec::new(),
+                structural: true,
+                region_debt: 0.0,
                 factor_ids: Vec::new(),
                 mirror: BTreeMap::new(),
                 live_factors: HashSet::new(),
@@ -275,10 +289,13 @@ impl Session {
     ) {
         let State {
             problem,
+            index,
             factor_ids: ids,
+            seeds,
             ..
         } = st;
         let problem = problem.as_mut().expect("caller checked");
+        let index = index.as_mut().expect("kept with the problem");
         let first_new_factor = problem.factors().len();
         let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
         for (key, v, fixed) in prepared.variables {
@@ -298,11 +315,16 @@ impl Session {
         let new_chi2 =
             solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
                 .unwrap_or(f64::INFINITY);
+        index.extend(problem, first_new_factor);
+        for f in &problem.factors()[first_new_factor..] {
+            seeds.extend_from_slice(f.variables());
+        }
         if !prepared.remove.is_empty() {
             let remove: HashSet<FactorId> = prepared.remove.into_iter().collect();
             let keep: Vec<bool> = ids.iter().map(|id| !remove.contains(id)).collect();
             problem.retain_factors(|i| keep[i]);
             ids.retain(|id| !remove.contains(id));
+            index.rebuild(problem);
         }
         for (key, fixed) in prepared.fix {
             problem.set_fixed(key, fixed).expect("validated");
@@ -313,14 +335,17 @@ impl Session {
             structural = true;
         }
         st.factors_since_solve += added;
+        st.structural |= structural;
         // A batch that only adds factors whose total chi2 at the current (converged) estimate is
         // below the function tolerance of the whole cannot make a solve gain more than that
         // tolerance: the estimate stays the optimum to within what a solve would reach. This is
         // what makes appending an odometry-predicted pose free.
         let total = st.chi2.unwrap_or(0.0) + new_chi2;
         let negligible = new_chi2 <= st.options.function_tolerance * total || new_chi2 == 0.0;
-        if st.converged && !st.dirty && !structural && negligible && st.chi2.is_some() {
-            st.chi2 = Some(total);
+        let was_converged = st.converged && !st.dirty && st.chi2.is_some();
+        st.chi2 = st.chi2.map(|_| total);
+        if was_converged && !structural && negligible {
+            st.seeds.clear();
             st.solved_sequence = sequence;
             st.skipped_solves += 1;
             self.solved.send_replace(sequence);
@@ -492,13 +517,26 @@ impl Session {
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
     /// apply what arrived meanwhile, and reschedule if that needs another solve.
     fn solve_once(self: Arc<Self>) {
-        let (mut problem, options, sequence, solve_number) = {
+        let (
+            mut problem,
+            index,
+            options,
+            sequence,
+            solve_number,
+            seeds,
+            structural,
+            chi2,
+            mut debt,
+        ) = {
             let mut st = self.lock();
             if st.deleted || !st.dirty {
                 st.scheduled = false;
                 return;
             }
             let problem = st.problem.take().expect("one solve per session at a time");
+            let index = st.index.take().expect("kept with the problem");
+            let seeds = std::mem::take(&mut st.seeds);
+            let structural = std::mem::replace(&mut st.structural, false);
             st.solving = true;
             st.dirty = false;
             st.forced = false;
@@ -506,33 +544,68 @@ impl Session {
             st.solves += 1;
             self.cancel.store(false, Ordering::SeqCst);
             // Batches are applied as they come while the problem is here, so it reflects them all.
-            (problem, st.options.clone(), st.sequence, st.solves)
+            (
+                problem,
+                index,
+                st.options.clone(),
+                st.sequence,
+                st.solves,
+                seeds,
+                structural,
+                st.chi2,
+                st.region_debt,
+            )
         };
         let start = Instant::now();
         let mut preempted = false;
-        // Later solves warm-start from the current estimate; initialisation is for the first.
-        let run = if solve_number > 1 {
-            solver::optimize_warm
-        } else {
-            solver::optimize
+        let mut on_iteration = |report: &solver::IterationReport| {
+            self.emit(SessionEvent::Iteration {
+                session: self.name.clone(),
+                solve: solve_number,
+                sequence,
+                report: report.clone(),
+            });
+            if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
+                return ControlFlow::Break(());
+            }
+            if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
+                preempted = true;
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
         };
-        let solve = std::panic::AssertUnwindSafe(|| {
-            run(&mut problem, &options, &mut |report| {
-                self.emit(SessionEvent::Iteration {
-                    session: self.name.clone(),
-                    solve: solve_number,
-                    sequence,
-                    report: report.clone(),
-                });
-                if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
-                    return ControlFlow::Break(());
-                }
-                if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
-                    preempted = true;
-                    return ControlFlow::Break(());
-                }
-                ControlFlow::Continue(())
-            })
+        let solve = std::panic::AssertUnwindSafe(|| match chi2 {
+            // After additions only, re-solve as far as they reach.
+            Some(total) if !structural && solve_number > 1 => {
+                let (anchors, _) =
+                    solver::gauge::anchor_components(problem.factors(), &problem.values);
+                incremental::resolve(
+                    &mut problem,
+                    &index,
+                    &seeds,
+                    &anchors,
+                    total,
+                    &mut debt,
+                    &options,
+                    &mut on_iteration,
+                )
+            }
+            // Later solves warm-start from the current estimate; initialisation is for the first.
+            _ => {
+                debt = 0.0;
+                let run = if solve_number > 1 {
+                    solver::optimize_warm
+                } else {
+                    solver::optimize
+                };
+                run(&mut problem, &options, &mut on_iteration).map(|summary| {
+                    incremental::Resolved {
+                        total_chi2: summary.final_chi2,
+                        converged: summary.converged,
+                        summary,
+                    }
+                })
+            }
         });
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
@@ -542,9 +615,10 @@ impl Session {
         st.solving = false;
         self.cancel.store(false, Ordering::SeqCst);
         match result {
-            Ok(summary) => {
-                st.chi2 = Some(summary.final_chi2);
-                st.converged = summary.converged;
+            Ok(resolved) => {
+                let summary = resolved.summary;
+                st.chi2 = Some(resolved.total_chi2);
+                st.converged = resolved.converged;
                 st.last_error = None;
                 // A preempted solve continues in its next turn; a cancelled one waits for news.
                 if preempted {
@@ -569,6 +643,8 @@ impl Session {
             }
             Err(e) => {
                 st.converged = false;
+                // Whatever moved, the next solve starts from a clean slate.
+                st.structural = true;
                 let message = e.to_string();
                 st.last_error = Some(message.clone());
                 // Keep the last good values: the mirror is not refreshed from a failed solve.
@@ -581,6 +657,8 @@ impl Session {
         }
         st.solved_sequence = st.solved_sequence.max(sequence);
         st.problem = Some(problem);
+        st.index = Some(index);
+        st.region_debt = debt;
         while let Some((seq, prepared, ids)) = st.pending.pop_front() {
             st.pending_factors -= prepared.factor_count();
             self.apply_prepared(&mut st, seq, prepared, ids);

@@ -1,6 +1,8 @@
 //! Evaluation and linearisation: whitened, robustified residuals and Jacobians accumulated
 //! straight into `H = JᵀJ` (lower triangle, in the fixed [`BlockPattern`]) and `b = −Jᵀr`.
 
+use std::borrow::Borrow;
+
 use crate::factors::{EvaluationError, FactorEntry};
 use crate::problem::{Key, Values, Variable};
 
@@ -24,11 +26,12 @@ pub fn free_blocks(fixed: impl IntoIterator<Item = bool>) -> (Vec<Option<usize>>
 }
 
 /// The graph of free variables (numbered by [`free_blocks`]) that share a factor.
-pub fn free_adjacency(factors: &[FactorEntry], fixed: &[bool]) -> Vec<Vec<usize>> {
+pub fn free_adjacency<E: Borrow<FactorEntry>>(factors: &[E], fixed: &[bool]) -> Vec<Vec<usize>> {
     let (block, count) = free_blocks(fixed.iter().copied());
     let mut adjacency = vec![Vec::new(); count];
     let mut blocks = Vec::with_capacity(8);
     for f in factors {
+        let f = f.borrow();
         blocks.clear();
         blocks.extend(f.variables().iter().filter_map(|&v| block[v]));
         for &a in &blocks {
@@ -59,14 +62,14 @@ pub struct SystemLayout {
 
 impl SystemLayout {
     /// `fixed[v]` says whether variable `v` is held constant in this solve.
-    pub fn new(factors: &[FactorEntry], values: &Values, fixed: &[bool]) -> Self {
+    pub fn new<E: Borrow<FactorEntry>>(factors: &[E], values: &Values, fixed: &[bool]) -> Self {
         let ordering = BlockOrdering::amd(free_adjacency(factors, fixed));
         Self::with_ordering(factors, values, fixed, &ordering)
     }
 
     /// As [`SystemLayout::new`] with an ordering of [`free_adjacency`]'s graph computed earlier.
-    pub fn with_ordering(
-        factors: &[FactorEntry],
+    pub fn with_ordering<E: Borrow<FactorEntry>>(
+        factors: &[E],
         values: &Values,
         fixed: &[bool],
         ordering: &BlockOrdering,
@@ -75,6 +78,7 @@ impl SystemLayout {
         let free: Vec<usize> = (0..values.len()).filter(|&v| !fixed[v]).collect();
         let (mut max_residual, mut max_cols) = (0, 0);
         for f in factors {
+            let f = f.borrow();
             max_residual = max_residual.max(f.factor.residual_dim());
             max_cols = max_cols.max(
                 f.variables()
@@ -97,7 +101,7 @@ impl SystemLayout {
         let mut slots = Vec::new();
         slot_start.push(0);
         for f in factors {
-            let vars = f.variables();
+            let vars = f.borrow().variables();
             for (li, &vi) in vars.iter().enumerate() {
                 for (lj, &vj) in vars.iter().enumerate() {
                     if let (Some(a), Some(b)) = (position_of_var[vi], position_of_var[vj]) {
@@ -164,8 +168,8 @@ impl Scratch {
 }
 
 /// Linearises every factor at `values`; fills `h` (pattern values) and `b = −Jᵀr`, returns chi2.
-pub fn linearize(
-    factors: &[FactorEntry],
+pub fn linearize<E: Borrow<FactorEntry>>(
+    factors: &[E],
     values: &Values,
     layout: &SystemLayout,
     scratch: &mut Scratch,
@@ -179,6 +183,7 @@ pub fn linearize(
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     let mut col_offsets = [0usize; 16];
     for (f, entry) in factors.iter().enumerate() {
+        let entry = entry.borrow();
         let vars = entry.variables();
         refs.clear();
         refs.extend(vars.iter().map(|&v| values.variable(v)));

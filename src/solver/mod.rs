@@ -3,7 +3,7 @@
 
 pub mod cholesky;
 pub mod cholesky_bench;
-mod gauge;
+pub mod gauge;
 pub mod initialize;
 pub mod linearize;
 mod optimizer;
@@ -11,12 +11,13 @@ pub mod options;
 pub mod structure;
 pub mod summary;
 
-pub use optimizer::{optimize, optimize_warm};
+pub use optimizer::{newton_decrement, optimize, optimize_region, optimize_warm};
 pub use options::{Initialization, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 
 use crate::factors::{EvaluationError, FactorEntry};
 use crate::problem::{Key, Values, Variable};
+use std::borrow::Borrow;
 
 #[derive(Debug, thiserror::Error)]
 pub enum SolverError {
@@ -37,12 +38,16 @@ pub enum SolverError {
 }
 
 /// `Σ ρ(eᵀΩe)` over `factors` at `values`.
-pub fn evaluate_chi2(factors: &[FactorEntry], values: &Values) -> Result<f64, EvaluationError> {
+pub fn evaluate_chi2<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+) -> Result<f64, EvaluationError> {
     let mut total = 0.0;
     let mut e = Vec::new();
     let mut w = Vec::new();
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     for f in factors {
+        let f = f.borrow();
         refs.clear();
         refs.extend(f.variables().iter().map(|&v| values.variable(v)));
         let d = f.factor.residual_dim();

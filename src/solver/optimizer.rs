@@ -5,6 +5,7 @@
 //! model decrease is L(0) − L(Δ) = 2Δᵀb − ΔᵀHΔ = Δᵀb + λΔᵀDΔ; the gain ratio
 //! ρ = (F(x) − F(x ⊕ Δ)) / (L(0) − L(Δ)) decides acceptance and the next λ or radius.
 
+use std::borrow::Borrow;
 use std::ops::ControlFlow;
 use std::time::Instant;
 
@@ -20,7 +21,8 @@ use super::summary::{
     IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions,
 };
 use super::{evaluate_chi2, SolverError};
-use crate::problem::{Problem, Values};
+use crate::factors::FactorEntry;
+use crate::problem::{Key, Problem, Values};
 
 /// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes and
 /// may stop the solve there (`ControlFlow::Break`): the values are then those of the last accepted
@@ -85,12 +87,129 @@ fn optimize_from(
     let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::FORCE_SUPERNODAL)?;
     timings.preprocess_seconds += prep.elapsed().as_secs_f64();
 
-    let n = layout.n();
     let mut values = std::mem::take(&mut problem.values);
-    let factors = problem.factors();
+    let outcome = iterate(
+        &mut values,
+        problem.factors(),
+        &layout,
+        chol,
+        timings,
+        options,
+        on_iteration,
+        warm,
+    );
+    problem.values = values;
+    let run = outcome?;
+    Ok(run.summary(
+        options,
+        &layout,
+        problem.factors(),
+        &problem.values,
+        Context {
+            start,
+            initialization: init_label,
+            gauge_fixed,
+            initial_chi2,
+            initialized_chi2,
+            region: None,
+        },
+    ))
+}
+
+/// Optimises only the variables not marked in `fixed` (indexed like `problem.values`), over
+/// the factors listed in `factors` (indices into `problem.factors()`): a session re-solving the
+/// neighbourhood of an update. Chi2 values in the Summary are those of these factors only. The
+/// caller fixes the gauge (the region's boundary, or the problem's anchors). Warm start as
+/// [`optimize_warm`].
+pub fn optimize_region(
+    problem: &mut Problem,
+    fixed: &[bool],
+    factors: &[usize],
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+) -> Result<Summary, SolverError> {
+    let start = Instant::now();
+    let options = SolverOptions {
+        initialization: Initialization::None,
+        ..options.clone()
+    };
+    let mut timings = Timings::default();
+    let mut values = std::mem::take(&mut problem.values);
+    let all = problem.factors();
+    let subset: Vec<&FactorEntry> = factors.iter().map(|&f| &all[f]).collect();
+    let result = (|| {
+        let initial_chi2 = evaluate_chi2(&subset, &values)?;
+        if !initial_chi2.is_finite() {
+            return Err(SolverError::NonFiniteInitialCost);
+        }
+        let layout = SystemLayout::new(&subset, &values, fixed);
+        let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::FORCE_SUPERNODAL)?;
+        timings.preprocess_seconds = start.elapsed().as_secs_f64();
+        let run = iterate(
+            &mut values,
+            &subset,
+            &layout,
+            chol,
+            timings,
+            &options,
+            on_iteration,
+            true,
+        )?;
+        let free = layout.var_at.len();
+        Ok(run.summary(
+            &options,
+            &layout,
+            &subset,
+            &values,
+            Context {
+                start,
+                initialization: "none (warm start)".into(),
+                gauge_fixed: Vec::new(),
+                initial_chi2,
+                initialized_chi2: None,
+                region: Some(free),
+            },
+        ))
+    })();
+    problem.values = values;
+    result
+}
+
+/// What a finished iteration loop hands back.
+struct Run {
+    chi2: f64,
+    termination: Termination,
+    log: Vec<IterationReport>,
+    timings: Timings,
+    factorization: &'static str,
+    factor_nnz: usize,
+}
+
+/// Facts about the solve that the iteration loop does not know.
+struct Context {
+    start: Instant,
+    initialization: String,
+    gauge_fixed: Vec<Key>,
+    initial_chi2: f64,
+    initialized_chi2: Option<f64>,
+    region: Option<usize>,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn iterate<E: Borrow<FactorEntry>>(
+    values: &mut Values,
+    factors: &[E],
+    layout: &SystemLayout,
+    chol: SparseCholesky,
+    timings: Timings,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    warm: bool,
+) -> Result<Run, SolverError> {
+    let n = layout.n();
     let mut solver = Iterations {
-        layout: &layout,
-        scratch: Scratch::new(&layout),
+        layout,
+        scratch: Scratch::new(layout),
         h: vec![0.0; layout.pattern.nnz()],
         damped: vec![0.0; layout.pattern.nnz()],
         b: vec![0.0; n],
@@ -103,55 +222,65 @@ fn optimize_from(
         log: Vec::new(),
         warm,
     };
-    let outcome = solver.run(factors, &mut values, options, on_iteration);
-    problem.values = values;
-    let (chi2, termination) = outcome?;
-    let Iterations {
-        log, timings, chol, ..
-    } = solver;
-
-    let successful = log.iter().filter(|r| r.accepted).count();
-    let free = layout.var_at.len();
-    Ok(Summary {
-        method: options.method.name().into(),
-        given_options: options.clone(),
-        used: UsedOptions {
-            method: options.method.name().into(),
-            linear_solver: "sparse Cholesky (faer)".into(),
-            factorization: chol.kind().into(),
-            ordering: "AMD on the variable graph".into(),
-            threads: 1,
-            initialization: init_label,
-            gauge_fixed,
-        },
-        num_variables: problem.values.len(),
-        num_free_variables: free,
-        num_factors: problem.factors().len(),
-        num_residuals: problem
-            .factors()
-            .iter()
-            .map(|f| f.factor.residual_dim())
-            .sum(),
-        num_parameters: n,
-        jacobian_nnz_blocks: problem
-            .factors()
-            .iter()
-            .map(|f| f.factor.keys().len())
-            .sum(),
-        hessian_nnz: layout.pattern.nnz(),
-        factor_nnz: chol.factor_nnz(),
-        initial_chi2,
-        initialized_chi2,
-        final_chi2: chi2,
-        iterations: log.len(),
-        successful_steps: successful,
-        unsuccessful_steps: log.len() - successful,
-        converged: termination.converged(),
+    let (chi2, termination) = solver.run(factors, values, options, on_iteration)?;
+    Ok(Run {
+        chi2,
         termination,
-        solve_seconds: start.elapsed().as_secs_f64(),
-        timings,
-        iteration_log: log,
+        factorization: solver.chol.kind(),
+        factor_nnz: solver.chol.factor_nnz(),
+        log: solver.log,
+        timings: solver.timings,
     })
+}
+
+impl Run {
+    fn summary<E: Borrow<FactorEntry>>(
+        self,
+        options: &SolverOptions,
+        layout: &SystemLayout,
+        factors: &[E],
+        values: &Values,
+        context: Context,
+    ) -> Summary {
+        let successful = self.log.iter().filter(|r| r.accepted).count();
+        let iterations = self.log.len();
+        Summary {
+            method: options.method.name().into(),
+            given_options: options.clone(),
+            used: UsedOptions {
+                method: options.method.name().into(),
+                linear_solver: "sparse Cholesky (faer)".into(),
+                factorization: self.factorization.into(),
+                ordering: "AMD on the variable graph".into(),
+                threads: 1,
+                initialization: context.initialization,
+                gauge_fixed: context.gauge_fixed,
+                region_variables: context.region,
+            },
+            num_variables: values.len(),
+            num_free_variables: layout.var_at.len(),
+            num_factors: factors.len(),
+            num_residuals: factors
+                .iter()
+                .map(|f| f.borrow().factor.residual_dim())
+                .sum(),
+            num_parameters: layout.n(),
+            jacobian_nnz_blocks: factors.iter().map(|f| f.borrow().factor.keys().len()).sum(),
+            hessian_nnz: layout.pattern.nnz(),
+            factor_nnz: self.factor_nnz,
+            initial_chi2: context.initial_chi2,
+            initialized_chi2: context.initialized_chi2,
+            final_chi2: self.chi2,
+            iterations,
+            successful_steps: successful,
+            unsuccessful_steps: iterations - successful,
+            converged: self.termination.converged(),
+            termination: self.termination,
+            solve_seconds: context.start.elapsed().as_secs_f64(),
+            timings: self.timings,
+            iteration_log: self.log,
+        }
+    }
 }
 
 /// How much lower the chordal chi2 must be for `Initialization::Auto` to start from it.
@@ -213,8 +342,6 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-type Factors = [crate::factors::FactorEntry];
-
 /// Per-iteration times of the linear algebra, for the report.
 #[derive(Default, Clone, Copy)]
 struct StepTimes {
@@ -230,9 +357,9 @@ impl Iterations<'_> {
         }
     }
 
-    fn linearize_at(
+    fn linearize_at<E: Borrow<FactorEntry>>(
         &mut self,
-        factors: &Factors,
+        factors: &[E],
         values: &Values,
         times: &mut StepTimes,
     ) -> Result<f64, SolverError> {
@@ -252,7 +379,11 @@ impl Iterations<'_> {
     }
 
     /// chi2 at `values ⊕ delta`, leaving that point in `self.trial`.
-    fn evaluate_trial(&mut self, factors: &Factors, values: &Values) -> Result<f64, SolverError> {
+    fn evaluate_trial<E: Borrow<FactorEntry>>(
+        &mut self,
+        factors: &[E],
+        values: &Values,
+    ) -> Result<f64, SolverError> {
         let t = Instant::now();
         self.trial.assign_from(values);
         self.layout.retract(&mut self.trial, &self.delta);
@@ -308,9 +439,9 @@ impl Iterations<'_> {
             .sum()
     }
 
-    fn run(
+    fn run<E: Borrow<FactorEntry>>(
         &mut self,
-        factors: &Factors,
+        factors: &[E],
         values: &mut Values,
         options: &SolverOptions,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
@@ -604,4 +735,39 @@ fn termination(
         threshold,
         message: message.to_string(),
     }
+}
+
+/// The chi2 decrease one Gauss-Newton step would bring if only the variables not in `fixed`
+/// moved, over the factors listed (indices into `problem.factors()`): `bᵀH⁻¹b` at the current
+/// values. A session uses it on the ring of variables just outside a re-solved region to decide
+/// whether the region was large enough. Infinite when that system is singular.
+pub fn newton_decrement(
+    problem: &Problem,
+    fixed: &[bool],
+    factors: &[usize],
+) -> Result<f64, SolverError> {
+    let all = problem.factors();
+    let subset: Vec<&FactorEntry> = factors.iter().map(|&f| &all[f]).collect();
+    let layout = SystemLayout::new(&subset, &problem.values, fixed);
+    if layout.n() == 0 {
+        return Ok(0.0);
+    }
+    let mut chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::AUTO)?;
+    let mut scratch = Scratch::new(&layout);
+    let mut h = vec![0.0; layout.pattern.nnz()];
+    let mut b = vec![0.0; layout.n()];
+    linearize(
+        &subset,
+        &problem.values,
+        &layout,
+        &mut scratch,
+        &mut h,
+        &mut b,
+    )?;
+    if chol.factorize(&layout.pattern, &h).is_err() {
+        return Ok(f64::INFINITY);
+    }
+    let mut step = b.clone();
+    chol.solve_in_place(&mut step);
+    Ok(dot(&step, &b))
 }

@@ -78,6 +78,10 @@ pub struct UsedOptions {
     pub initialization: String,
     /// Variables fixed automatically to remove gauge freedom (one per unanchored component).
     pub gauge_fixed: Vec<Key>,
+    /// For a session's local re-solve: how many variables the region let move (the rest of the
+    /// problem held fixed).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub region_variables: Option<usize>,
 }
 
 #[derive(Clone, Debug, Serialize)]

@@ -1,0 +1,182 @@
+//! Re-solving only as far as an update reaches.
+//!
+//! After an update that only added variables and factors to a converged problem, the estimate
+//! needs to change mostly near the new factors. So a re-solve starts with a small *region*: the
+//! variables within reach of the new factors (breadth-first over the factor graph), optimised
+//! with everything else held fixed. Then the ring of variables just outside the region is
+//! checked: the Newton decrement `bᵀH⁻¹b` of letting that ring move (with the region held at its
+//! new values) is the chi2 a further, larger solve could still gain at the boundary. When it is
+//! below the function tolerance of the total chi2, the region was large enough; otherwise the
+//! region grows fourfold, up to the whole problem. iSAM2 makes the same bet with its wildfire
+//! threshold (only variables whose update exceeds it are recomputed); here the test is on the
+//! cost, the same criterion as the solver's own convergence test.
+
+use std::collections::VecDeque;
+use std::ops::ControlFlow;
+
+use crate::problem::Problem;
+use crate::solver::{self, IterationReport, SolverError, SolverOptions, Summary};
+
+/// Problems smaller than this are always re-solved whole: a region would not pay off.
+const MIN_VARIABLES_FOR_REGIONS: usize = 400;
+/// First region size (variables); each retry is four times larger.
+const FIRST_REGION: usize = 48;
+/// Region solves leave up to `function_tolerance × chi2` each at their boundary; once what they
+/// left adds up to this many tolerances, the next re-solve is of the whole problem.
+const DEBT_LIMIT: f64 = 10.0;
+
+/// For every variable (dense index), the factors (indices) that touch it.
+#[derive(Debug, Default)]
+pub(crate) struct FactorIndex {
+    by_variable: Vec<Vec<usize>>,
+}
+
+impl FactorIndex {
+    /// Records factors `from..` of `problem` (call after appending them).
+    pub fn extend(&mut self, problem: &Problem, from: usize) {
+        self.by_variable.resize(problem.values.len(), Vec::new());
+        for (f, entry) in problem.factors().iter().enumerate().skip(from) {
+            for &v in entry.variables() {
+                self.by_variable[v].push(f);
+            }
+        }
+    }
+
+    /// Rebuilds from scratch (after factors were removed, which renumbers them).
+    pub fn rebuild(&mut self, problem: &Problem) {
+        self.by_variable.clear();
+        self.extend(problem, 0);
+    }
+}
+
+/// How a re-solve went.
+pub(crate) struct Resolved {
+    /// The summary of the last solve that ran (a region's or the whole problem's).
+    pub summary: Summary,
+    /// chi2 of the whole problem afterwards.
+    pub total_chi2: f64,
+    pub converged: bool,
+}
+
+/// Re-solves `problem` after an additions-only update touching variables `seeds`.
+/// `anchors[v]` says whether variable `v` is held fixed in any solve (fixed by the client, or the
+/// gauge anchor of its component); `total_chi2` is the whole problem's chi2 now. `debt` carries
+/// the boundary gains that accepted regions left behind, between calls.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn resolve(
+    problem: &mut Problem,
+    index: &FactorIndex,
+    seeds: &[usize],
+    anchors: &[bool],
+    total_chi2: f64,
+    debt: &mut f64,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+) -> Result<Resolved, SolverError> {
+    let n = problem.values.len();
+    let mut size = FIRST_REGION;
+    // The whole problem's chi2 as regions move things (each region solve reports its own).
+    let mut total = total_chi2;
+    let in_debt = *debt > DEBT_LIMIT * options.function_tolerance * total_chi2;
+    if n >= MIN_VARIABLES_FOR_REGIONS && !seeds.is_empty() && !in_debt {
+        while size * 3 < n {
+            let region = grow_region(problem, index, seeds, size);
+            let mut fixed: Vec<bool> = anchors.to_vec();
+            let mut inside = vec![false; n];
+            for &v in &region {
+                inside[v] = true;
+            }
+            for (v, f) in fixed.iter_mut().enumerate() {
+                *f |= !inside[v];
+            }
+            let factors = factors_touching(index, &region, n);
+            let summary =
+                solver::optimize_region(problem, &fixed, &factors, options, on_iteration)?;
+            total -= summary.initial_chi2 - summary.final_chi2;
+            if summary.termination.reason == solver::TerminationReason::Interrupted {
+                return Ok(Resolved {
+                    converged: false,
+                    total_chi2: total,
+                    summary,
+                });
+            }
+            // The ring just outside the region, free in the whole problem.
+            let ring: Vec<usize> = factors
+                .iter()
+                .flat_map(|&f| problem.factors()[f].variables().iter().copied())
+                .filter(|&v| !inside[v] && !anchors[v])
+                .collect();
+            let mut ring_fixed = vec![true; n];
+            for &v in &ring {
+                ring_fixed[v] = false;
+            }
+            let ring_factors = factors_touching(index, &ring, n);
+            let gain = solver::newton_decrement(problem, &ring_fixed, &ring_factors)?;
+            if gain <= options.function_tolerance * total {
+                *debt += gain;
+                // Report the whole problem's chi2 (the iteration log keeps the region's).
+                let mut summary = summary;
+                summary.initial_chi2 = total_chi2;
+                summary.final_chi2 = total;
+                return Ok(Resolved {
+                    converged: summary.converged,
+                    total_chi2: total,
+                    summary,
+                });
+            }
+            size *= 4;
+        }
+    }
+    let summary = solver::optimize_warm(problem, options, on_iteration)?;
+    *debt = 0.0;
+    Ok(Resolved {
+        total_chi2: summary.final_chi2,
+        converged: summary.converged,
+        summary,
+    })
+}
+
+/// Up to about `size` variables, breadth-first from `seeds` (whole layers, so the region is a
+/// ball in the factor graph).
+fn grow_region(problem: &Problem, index: &FactorIndex, seeds: &[usize], size: usize) -> Vec<usize> {
+    let n = problem.values.len();
+    let mut seen = vec![false; n];
+    let mut region = Vec::with_capacity(size * 2);
+    let mut queue: VecDeque<(usize, usize)> = VecDeque::new();
+    for &s in seeds {
+        if !seen[s] {
+            seen[s] = true;
+            queue.push_back((s, 0));
+        }
+    }
+    let mut layer_done = usize::MAX;
+    while let Some((v, depth)) = queue.pop_front() {
+        if depth > layer_done {
+            break;
+        }
+        region.push(v);
+        if region.len() >= size {
+            layer_done = depth;
+        }
+        for &f in &index.by_variable[v] {
+            for &w in problem.factors()[f].variables() {
+                if !seen[w] {
+                    seen[w] = true;
+                    queue.push_back((w, depth + 1));
+                }
+            }
+        }
+    }
+    region
+}
+
+/// Every factor touching one of `variables`, once, in index order.
+fn factors_touching(index: &FactorIndex, variables: &[usize], _n: usize) -> Vec<usize> {
+    let mut factors: Vec<usize> = variables
+        .iter()
+        .flat_map(|&v| index.by_variable[v].iter().copied())
+        .collect();
+    factors.sort_unstable();
+    factors.dedup();
+    factors
+}
