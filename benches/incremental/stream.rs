@@ -109,6 +109,17 @@ fn main() {
                 if let SessionEvent::Summary { summary, .. } = &*event {
                     let t = &summary.timings;
                     add("solve", summary.solve_seconds);
+                    match summary.used.region_variables {
+                        Some(n) => {
+                            add("region_solves", 1.0);
+                            add("region_solve_seconds", summary.solve_seconds);
+                            add("region_variables", n as f64);
+                        }
+                        None => {
+                            add("full_solves", 1.0);
+                            add("full_solve_seconds", summary.solve_seconds);
+                        }
+                    }
                     add("iterations", summary.iterations as f64);
                     add("preprocess", t.preprocess_seconds);
                     add("linearize", t.linearize_seconds);

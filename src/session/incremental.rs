@@ -18,20 +18,22 @@ use crate::problem::Problem;
 use crate::solver::{self, IterationReport, SolverError, SolverOptions, Summary};
 
 /// Problems smaller than this are always re-solved whole: a region would not pay off.
-const MIN_VARIABLES_FOR_REGIONS: usize = 400;
+const MIN_VARIABLES_FOR_REGIONS: usize = 150;
 /// First region size (variables); each retry is four times larger.
-const FIRST_REGION: usize = 48;
+const FIRST_REGION: usize = 128;
 /// Region solves leave up to `function_tolerance × chi2` each at their boundary; once what they
 /// left adds up to this many tolerances, the next re-solve is of the whole problem.
 const DEBT_LIMIT: f64 = 10.0;
 
-/// For every variable (dense index), the factors (indices) that touch it.
+/// What a session keeps between re-solves, next to its problem: for every variable (dense
+/// index) the factors (indices) that touch it, and the elimination order of full re-solves.
 #[derive(Debug, Default)]
-pub(crate) struct FactorIndex {
+pub(crate) struct Engine {
     by_variable: Vec<Vec<usize>>,
+    ordering: solver::OrderingCache,
 }
 
-impl FactorIndex {
+impl Engine {
     /// Records factors `from..` of `problem` (call after appending them).
     pub fn extend(&mut self, problem: &Problem, from: usize) {
         self.by_variable.resize(problem.values.len(), Vec::new());
@@ -40,6 +42,16 @@ impl FactorIndex {
                 self.by_variable[v].push(f);
             }
         }
+    }
+
+    /// A full re-solve of the whole problem from its current values, reusing the ordering.
+    pub fn solve_whole(
+        &mut self,
+        problem: &mut Problem,
+        options: &SolverOptions,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ) -> Result<Summary, SolverError> {
+        solver::optimize_warm(problem, options, on_iteration, &mut self.ordering)
     }
 
     /// Rebuilds from scratch (after factors were removed, which renumbers them).
@@ -56,6 +68,8 @@ pub(crate) struct Resolved {
     /// chi2 of the whole problem afterwards.
     pub total_chi2: f64,
     pub converged: bool,
+    /// The variables that may have moved (a region), or `None` for all.
+    pub moved: Option<Vec<usize>>,
 }
 
 /// Re-solves `problem` after an additions-only update touching variables `seeds`.
@@ -65,7 +79,7 @@ pub(crate) struct Resolved {
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn resolve(
     problem: &mut Problem,
-    index: &FactorIndex,
+    index: &mut Engine,
     seeds: &[usize],
     anchors: &[bool],
     total_chi2: f64,
@@ -91,12 +105,18 @@ pub(crate) fn resolve(
             }
             let factors = factors_touching(index, &region, n);
             let summary =
-                solver::optimize_region(problem, &fixed, &factors, options, on_iteration)?;
+                match solver::optimize_region(problem, &fixed, &factors, options, on_iteration) {
+                    Ok(summary) => summary,
+                    // A region without an anchor (a new component): solve the whole problem.
+                    Err(SolverError::IndeterminateSystem { .. }) => break,
+                    Err(e) => return Err(e),
+                };
             total -= summary.initial_chi2 - summary.final_chi2;
             if summary.termination.reason == solver::TerminationReason::Interrupted {
                 return Ok(Resolved {
                     converged: false,
                     total_chi2: total,
+                    moved: Some(region),
                     summary,
                 });
             }
@@ -121,24 +141,26 @@ pub(crate) fn resolve(
                 return Ok(Resolved {
                     converged: summary.converged,
                     total_chi2: total,
+                    moved: Some(region),
                     summary,
                 });
             }
             size *= 4;
         }
     }
-    let summary = solver::optimize_warm(problem, options, on_iteration)?;
+    let summary = index.solve_whole(problem, options, on_iteration)?;
     *debt = 0.0;
     Ok(Resolved {
         total_chi2: summary.final_chi2,
         converged: summary.converged,
+        moved: None,
         summary,
     })
 }
 
 /// Up to about `size` variables, breadth-first from `seeds` (whole layers, so the region is a
 /// ball in the factor graph).
-fn grow_region(problem: &Problem, index: &FactorIndex, seeds: &[usize], size: usize) -> Vec<usize> {
+fn grow_region(problem: &Problem, index: &Engine, seeds: &[usize], size: usize) -> Vec<usize> {
     let n = problem.values.len();
     let mut seen = vec![false; n];
     let mut region = Vec::with_capacity(size * 2);
@@ -171,7 +193,7 @@ fn grow_region(problem: &Problem, index: &FactorIndex, seeds: &[usize], size: us
 }
 
 /// Every factor touching one of `variables`, once, in index order.
-fn factors_touching(index: &FactorIndex, variables: &[usize], _n: usize) -> Vec<usize> {
+fn factors_touching(index: &Engine, variables: &[usize], _n: usize) -> Vec<usize> {
     let mut factors: Vec<usize> = variables
         .iter()
         .flat_map(|&v| index.by_variable[v].iter().copied())

@@ -26,7 +26,7 @@ use crate::service::ServiceError;
 use crate::solver::{self, SolverOptions};
 use batch::{PreparedBatch, SessionView};
 use catalogue::SessionKind;
-use incremental::FactorIndex;
+use incremental::Engine;
 use wire::*;
 
 /// A variable as clients see it.
@@ -66,7 +66,7 @@ struct State {
     auto: AutoOptimize,
     /// `None` while a worker has it (with `index`).
     problem: Option<Problem>,
-    index: Option<FactorIndex>,
+    index: Option<Engine>,
     /// Variables (dense indices) touched by factors added since the last solve.
     seeds: Vec<usize>,
     /// Since the last solve, something other than additions changed (removals, fixes, guesses):
@@ -74,6 +74,8 @@ struct State {
     structural: bool,
     /// What region re-solves left unsolved at their boundaries (see `incremental`).
     region_debt: f64,
+    /// Variables the last full solve fixed to remove the gauge freedom.
+    gauge: Vec<Key>,
     /// Id of each factor of the problem, parallel to `problem.factors()`.
     factor_ids: Vec<FactorId>,
     mirror: BTreeMap<Key, MirrorEntry>,
@@ -101,6 +103,20 @@ struct State {
     last_summary: Option<solver::Summary>,
 }
 
+/// What a solve takes out of the session state (the problem moves to the worker).
+struct SolveWork {
+    problem: Problem,
+    index: Engine,
+    options: SolverOptions,
+    sequence: u64,
+    solve_number: u64,
+    seeds: Vec<usize>,
+    structural: bool,
+    chi2: Option<f64>,
+    debt: f64,
+    gauge: Vec<Key>,
+}
+
 impl Session {
     pub(crate) fn new(
         name: String,
@@ -118,10 +134,11 @@ impl Session {
                 options,
                 auto,
                 problem: Some(Problem::new()),
-                index: Some(FactorIndex::default()),
+                index: Some(Engine::default()),
                 seeds: Vec::new(),
                 structural: true,
                 region_debt: 0.0,
+                gauge: Vec::new(),
                 factor_ids: Vec::new(),
                 mirror: BTreeMap::new(),
                 live_factors: HashSet::new(),
@@ -514,12 +531,44 @@ impl Session {
         }
     }
 
+    /// Takes the problem and what the next solve needs out of the state, or `None` when
+    /// there is nothing to do.
+    fn take_work(&self) -> Option<SolveWork> {
+        let mut st = self.lock();
+        if st.deleted || !st.dirty {
+            st.scheduled = false;
+            return None;
+        }
+        st.solving = true;
+        st.dirty = false;
+        st.forced = false;
+        st.factors_since_solve = 0;
+        st.solves += 1;
+        self.cancel.store(false, Ordering::SeqCst);
+        Some(SolveWork {
+            problem: st.problem.take().expect("one solve per session at a time"),
+            index: st.index.take().expect("kept with the problem"),
+            options: st.options.clone(),
+            // Batches are applied as they come while the problem is here: it reflects them all.
+            sequence: st.sequence,
+            solve_number: st.solves,
+            seeds: std::mem::take(&mut st.seeds),
+            structural: std::mem::replace(&mut st.structural, false),
+            chi2: st.chi2,
+            debt: st.region_debt,
+            gauge: st.gauge.clone(),
+        })
+    }
+
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
     /// apply what arrived meanwhile, and reschedule if that needs another solve.
     fn solve_once(self: Arc<Self>) {
-        let (
+        let Some(work) = self.take_work() else {
+            return;
+        };
+        let SolveWork {
             mut problem,
-            index,
+            mut index,
             options,
             sequence,
             solve_number,
@@ -527,35 +576,8 @@ impl Session {
             structural,
             chi2,
             mut debt,
-        ) = {
-            let mut st = self.lock();
-            if st.deleted || !st.dirty {
-                st.scheduled = false;
-                return;
-            }
-            let problem = st.problem.take().expect("one solve per session at a time");
-            let index = st.index.take().expect("kept with the problem");
-            let seeds = std::mem::take(&mut st.seeds);
-            let structural = std::mem::replace(&mut st.structural, false);
-            st.solving = true;
-            st.dirty = false;
-            st.forced = false;
-            st.factors_since_solve = 0;
-            st.solves += 1;
-            self.cancel.store(false, Ordering::SeqCst);
-            // Batches are applied as they come while the problem is here, so it reflects them all.
-            (
-                problem,
-                index,
-                st.options.clone(),
-                st.sequence,
-                st.solves,
-                seeds,
-                structural,
-                st.chi2,
-                st.region_debt,
-            )
-        };
+            gauge,
+        } = work;
         let start = Instant::now();
         let mut preempted = false;
         let mut on_iteration = |report: &solver::IterationReport| {
@@ -577,11 +599,20 @@ impl Session {
         let solve = std::panic::AssertUnwindSafe(|| match chi2 {
             // After additions only, re-solve as far as they reach.
             Some(total) if !structural && solve_number > 1 => {
-                let (anchors, _) =
-                    solver::gauge::anchor_components(problem.factors(), &problem.values);
+                // Held fixed: what the client fixed, and the gauge anchors of the last full
+                // solve (a region never reaches a component without one: it would be singular
+                // and the re-solve falls back to the whole problem).
+                let mut anchors: Vec<bool> = (0..problem.values.len())
+                    .map(|v| problem.values.is_fixed(v))
+                    .collect();
+                for key in &gauge {
+                    if let Some(v) = problem.values.index_of(*key) {
+                        anchors[v] = true;
+                    }
+                }
                 incremental::resolve(
                     &mut problem,
-                    &index,
+                    &mut index,
                     &seeds,
                     &anchors,
                     total,
@@ -593,17 +624,16 @@ impl Session {
             // Later solves warm-start from the current estimate; initialisation is for the first.
             _ => {
                 debt = 0.0;
-                let run = if solve_number > 1 {
-                    solver::optimize_warm
+                let solved = if solve_number > 1 {
+                    index.solve_whole(&mut problem, &options, &mut on_iteration)
                 } else {
-                    solver::optimize
+                    solver::optimize(&mut problem, &options, &mut on_iteration)
                 };
-                run(&mut problem, &options, &mut on_iteration).map(|summary| {
-                    incremental::Resolved {
-                        total_chi2: summary.final_chi2,
-                        converged: summary.converged,
-                        summary,
-                    }
+                solved.map(|summary| incremental::Resolved {
+                    total_chi2: summary.final_chi2,
+                    converged: summary.converged,
+                    moved: None,
+                    summary,
                 })
             }
         });
@@ -617,6 +647,9 @@ impl Session {
         match result {
             Ok(resolved) => {
                 let summary = resolved.summary;
+                if summary.used.region_variables.is_none() {
+                    st.gauge = summary.used.gauge_fixed.clone();
+                }
                 st.chi2 = Some(resolved.total_chi2);
                 st.converged = resolved.converged;
                 st.last_error = None;
@@ -625,7 +658,12 @@ impl Session {
                     st.dirty = true;
                     st.forced = true;
                 }
-                let changed = refresh_mirror(&mut st.mirror, &problem, sequence);
+                let changed = refresh_mirror(
+                    &mut st.mirror,
+                    &problem,
+                    resolved.moved.as_deref(),
+                    sequence,
+                );
                 if !changed.is_empty() {
                     self.emit(SessionEvent::Estimate(Estimate {
                         session: self.name.clone(),
@@ -680,13 +718,25 @@ fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
 }
 
 /// Copies the problem's values into the mirror; returns those that changed.
+/// Copies the values of the variables that may have moved (`None`: all) into the mirror;
+/// returns those that changed.
 fn refresh_mirror(
     mirror: &mut BTreeMap<Key, MirrorEntry>,
     problem: &Problem,
+    moved: Option<&[usize]>,
     sequence: u64,
 ) -> Vec<VariableValue> {
     let mut changed = Vec::new();
-    for (idx, &key) in problem.values.keys().iter().enumerate() {
+    let all: Vec<usize>;
+    let moved = match moved {
+        Some(m) => m,
+        None => {
+            all = (0..problem.values.len()).collect();
+            &all
+        }
+    };
+    for &idx in moved {
+        let key = problem.values.key(idx);
         let value = catalogue::encode_variable(problem.values.variable(idx));
         if let Some(entry) = mirror.get_mut(&key) {
             // A batch accepted during the solve set a newer guess; it is applied next.

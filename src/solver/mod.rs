@@ -11,7 +11,7 @@ pub mod options;
 pub mod structure;
 pub mod summary;
 
-pub use optimizer::{newton_decrement, optimize, optimize_region, optimize_warm};
+pub use optimizer::{newton_decrement, optimize, optimize_region, optimize_warm, OrderingCache};
 pub use options::{Initialization, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 

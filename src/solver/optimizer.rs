@@ -32,7 +32,7 @@ pub fn optimize(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
-    optimize_from(problem, options, on_iteration, false)
+    optimize_from(problem, options, on_iteration, None)
 }
 
 /// [`optimize`] for values already near the optimum (a session re-solving after a small update).
@@ -40,24 +40,85 @@ pub fn optimize(
 /// to within `function_tolerance × chi2`: the model was then accurate over the step, so the
 /// step landed at the model's minimum and a further one cannot gain more than that tolerance.
 /// This saves the confirming iteration a cold solve needs; the initialisation option is ignored.
+/// `ordering` carries the elimination order between the re-solves of a growing problem.
 pub fn optimize_warm(
     problem: &mut Problem,
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ordering: &mut OrderingCache,
 ) -> Result<Summary, SolverError> {
     let options = SolverOptions {
         initialization: Initialization::None,
         ..options.clone()
     };
-    optimize_from(problem, &options, on_iteration, true)
+    optimize_from(problem, &options, on_iteration, Some(ordering))
+}
+
+/// The elimination order of a problem's last solve, reused while the problem only grows: new
+/// variables go to the end of the order (they are usually the newest poses, eliminated last as
+/// iSAM does), and a fresh AMD runs once the problem has grown by a quarter since the last one,
+/// or when the set of fixed variables changed.
+#[derive(Debug, Default)]
+pub struct OrderingCache {
+    /// Per variable at the last AMD: fixed in the solve or not, and its elimination position.
+    fixed: Vec<bool>,
+    position: Vec<Option<usize>>,
+    variables_at_amd: usize,
+}
+
+impl OrderingCache {
+    fn ordering(&mut self, factors: &[FactorEntry], fixed: &[bool]) -> BlockOrdering {
+        let adjacency = free_adjacency(factors, fixed);
+        let old = self.fixed.len();
+        let reusable = old > 0
+            && fixed.len() >= old
+            && fixed[..old] == self.fixed[..]
+            && 4 * fixed.len() <= 5 * self.variables_at_amd;
+        if !reusable {
+            let ordering = BlockOrdering::amd(adjacency);
+            let (block, _) = super::linearize::free_blocks(fixed.iter().copied());
+            self.position = block
+                .iter()
+                .map(|b| b.map(|b| ordering.position[b]))
+                .collect();
+            self.fixed = fixed.to_vec();
+            self.variables_at_amd = fixed.len();
+            return ordering;
+        }
+        // Old free variables keep their positions; new ones follow in index order.
+        let mut next = self.position.iter().flatten().count();
+        let mut position = Vec::with_capacity(adjacency.len());
+        for (v, &is_fixed) in fixed.iter().enumerate() {
+            if is_fixed {
+                continue;
+            }
+            position.push(match self.position.get(v) {
+                Some(&Some(p)) => p,
+                _ => {
+                    next += 1;
+                    next - 1
+                }
+            });
+        }
+        let mut block_at = vec![0; position.len()];
+        for (b, &p) in position.iter().enumerate() {
+            block_at[p] = b;
+        }
+        BlockOrdering {
+            adjacency,
+            position,
+            block_at,
+        }
+    }
 }
 
 fn optimize_from(
     problem: &mut Problem,
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
-    warm: bool,
+    cache: Option<&mut OrderingCache>,
 ) -> Result<Summary, SolverError> {
+    let warm = cache.is_some();
     let start = Instant::now();
     let mut timings = Timings::default();
     let (fixed, gauge_fixed) = anchor_components(problem.factors(), &problem.values);
@@ -67,7 +128,10 @@ fn optimize_from(
     }
 
     // One fill-reducing order of the variable graph serves the initialisation and the solve.
-    let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &fixed));
+    let ordering = match cache {
+        Some(cache) => cache.ordering(problem.factors(), &fixed),
+        None => BlockOrdering::amd(free_adjacency(problem.factors(), &fixed)),
+    };
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
