@@ -559,14 +559,12 @@ async fn back_pressure_answers_429_and_503_with_retry_after() {
     start_long_solve(&c, &s, "busy").await;
 
     // Batches during the solve are accepted and queued until the pending limit, then 429.
-    let mut next_key = 5000u64;
     let mut statuses = Vec::new();
-    for _ in 0..10 {
+    for next_key in 5000u64..5010 {
         let factors: Vec<Value> = (0..10)
             .map(|_| json!({"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}))
             .collect();
         let b = json!({"variables": [{"key": next_key, "kind": "se2", "value": [0, 0, 0]}], "factors": factors});
-        next_key += 1;
         let resp = c
             .post(s.url("/v1/sessions/busy/batches"))
             .body(b.to_string())

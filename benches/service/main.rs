@@ -12,7 +12,6 @@
 //! `cargo bench --bench service -- <file.g2o> [--rounds N] [--json out.json]`
 
 #[path = "../../tests/common/mod.rs"]
-#[allow(dead_code)]
 mod common;
 
 use std::process::Command;

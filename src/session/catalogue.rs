@@ -19,12 +19,17 @@ use crate::factors::{BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3};
 use crate::geometry::{wrap_angle, Se2, Se3};
 use crate::problem::{Key, Variable};
 
+/// Builds a variable from its wire encoding (length already checked), or says why not.
+pub type DecodeVariable = fn(&[f64]) -> Result<Box<dyn Variable>, String>;
+/// Builds a factor from its keys and measurement (lengths already checked), or says why not.
+pub type BuildFactor = fn(&[Key], &[f64]) -> Result<Box<dyn Factor>, String>;
+
 /// How one variable kind travels on the wire.
 pub struct VariableCodec {
     pub kind: &'static str,
     /// Number of values in the wire encoding.
     pub len: usize,
-    pub decode: fn(&[f64]) -> Result<Box<dyn Variable>, String>,
+    pub decode: DecodeVariable,
     pub encode: fn(&dyn Variable) -> Vec<f64>,
 }
 
@@ -35,7 +40,7 @@ pub struct FactorCodec {
     pub variable_kinds: &'static [&'static str],
     pub measurement_len: usize,
     pub residual_dim: usize,
-    pub build: fn(&[Key], &[f64]) -> Result<Box<dyn Factor>, String>,
+    pub build: BuildFactor,
 }
 
 /// A kind of session: which variables and factors it accepts.

@@ -222,23 +222,21 @@ async fn events(
     let receiver = session.subscribe();
     drop(session);
     let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
-        loop {
-            let event = match rx.recv().await {
-                Ok(event) => Event::default()
-                    .event(event.topic())
-                    .json_data(&*event)
-                    .unwrap_or_else(|_| {
-                        Event::default()
-                            .event("errors")
-                            .data("unserialisable event")
-                    }),
-                Err(RecvError::Lagged(missed)) => Event::default()
-                    .event("lagged")
-                    .data(format!("{{\"missed\":{missed}}}")),
-                Err(RecvError::Closed) => return None,
-            };
-            return Some((Ok(event), rx));
-        }
+        let event = match rx.recv().await {
+            Ok(event) => Event::default()
+                .event(event.topic())
+                .json_data(&*event)
+                .unwrap_or_else(|_| {
+                    Event::default()
+                        .event("errors")
+                        .data("unserialisable event")
+                }),
+            Err(RecvError::Lagged(missed)) => Event::default()
+                .event("lagged")
+                .data(format!("{{\"missed\":{missed}}}")),
+            Err(RecvError::Closed) => return None,
+        };
+        Some((Ok(event), rx))
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }

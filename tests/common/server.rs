@@ -159,8 +159,10 @@ pub async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
 /// A g2o pose graph (2D or 3D) as streaming batches: pose k with every edge whose later end is
 /// k. A pose with an odometry edge from k−1 is sent without a value (the server predicts it).
 pub fn g2o_batches(text: &str) -> Vec<Value> {
+    /// (from, to, factor type, measurement, information upper triangle)
+    type Edge<'a> = (u64, u64, &'a str, Vec<f64>, Vec<f64>);
     let mut vertices: Vec<(u64, &str, Vec<f64>)> = Vec::new();
-    let mut edges: Vec<(u64, u64, &str, Vec<f64>, Vec<f64>)> = Vec::new();
+    let mut edges: Vec<Edge> = Vec::new();
     for line in text.lines() {
         let t: Vec<&str> = line.split_whitespace().collect();
         let nums =
