@@ -3,7 +3,8 @@
 //! 1. `job`: an HTTP batch job of a g2o file, client-measured wall time (upload, solve, JSON
 //!    answer received), against the wall time of `factord solve` on the same file (process
 //!    start, load, solve, exit). Rounds interleave the two.
-//! 2. `ingest`: factors/s of a whole graph published over zenoh in batches (manual policy, so
+//! 2. `ingest`: factors/s of a whole graph (its factors ten times) published over zenoh in
+//!    batches (manual policy, so
 //!    this is validation and bookkeeping, not solving), timed until the last batch's ack.
 //! 3. `latency`: the graph streamed over zenoh pose by pose, each pose published once the
 //!    previous one's estimate is available; publish-to-estimate latency per pose (ack with
@@ -57,14 +58,20 @@ async fn rpc(z: &zenoh::Session, command: Value) -> Value {
     panic!("no rpc reply");
 }
 
-/// Events of one session topic, timestamped on arrival.
-type Inbox = Arc<Mutex<Vec<(Instant, Value)>>>;
+/// Events of one session topic, timestamped on arrival, and a wake-up for whoever waits.
+#[derive(Default)]
+struct Events {
+    list: Mutex<Vec<(Instant, Value)>>,
+    arrived: tokio::sync::Notify,
+}
+type Inbox = Arc<Events>;
 
 async fn subscribe(z: &zenoh::Session, key: &str, inbox: Inbox) -> zenoh::pubsub::Subscriber<()> {
     z.declare_subscriber(key)
         .callback(move |sample| {
             let v: Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            inbox.lock().unwrap().push((Instant::now(), v));
+            inbox.list.lock().unwrap().push((Instant::now(), v));
+            inbox.arrived.notify_waiters();
         })
         .await
         .unwrap()
@@ -131,6 +138,8 @@ async fn ingest(s: &TestServer, z: &zenoh::Session, text: &str, batch_factors: u
         }
         factors.extend(b["factors"].as_array().unwrap().clone());
     }
+    // The graph's factors ten times over (duplicates are valid factors), for a stable rate.
+    let factors: Vec<Value> = std::iter::repeat_n(factors, 10).flatten().collect();
     let mut batches = vec![json!({"variables": variables}).to_string()];
     for chunk in factors.chunks(batch_factors) {
         batches.push(json!({"factors": chunk}).to_string());
@@ -151,7 +160,9 @@ async fn ingest(s: &TestServer, z: &zenoh::Session, text: &str, batch_factors: u
     let published = start.elapsed().as_secs_f64();
     let deadline = Instant::now() + Duration::from_secs(120);
     let done = loop {
+        let arrived = acks.arrived.notified();
         if let Some((t, _)) = acks
+            .list
             .lock()
             .unwrap()
             .iter()
@@ -160,7 +171,7 @@ async fn ingest(s: &TestServer, z: &zenoh::Session, text: &str, batch_factors: u
             break *t;
         }
         assert!(Instant::now() < deadline, "ingest did not finish");
-        tokio::time::sleep(Duration::from_millis(1)).await;
+        let _ = tokio::time::timeout(Duration::from_millis(50), arrived).await;
     };
     let seconds = (done - start).as_secs_f64();
     let c = reqwest::Client::new();
@@ -205,24 +216,35 @@ async fn latency(z: &zenoh::Session, text: &str) -> Value {
         publisher.put(b.to_string()).await.unwrap();
         let deadline = Instant::now() + Duration::from_secs(60);
         let available = loop {
+            // Register for wake-ups before looking, so no arrival is missed in between.
+            let (ack_arrived, summary_arrived) =
+                (acks.arrived.notified(), summaries.arrived.notified());
             let reflected = acks
+                .list
                 .lock()
                 .unwrap()
-                .iter()
-                .rev()
-                .find(|(_, v)| v["sequence"] == sequence && v["reflected"] == true)
+                .last()
+                .filter(|(_, v)| v["sequence"] == sequence && v["reflected"] == true)
                 .map(|(t, _)| *t);
+            // Summaries arrive in sequence order: the latest is the one that may cover this pose.
             let solved = summaries
+                .list
                 .lock()
                 .unwrap()
-                .iter()
-                .find(|(_, v)| v["sequence"].as_u64().unwrap() >= sequence)
+                .last()
+                .filter(|(_, v)| v["sequence"].as_u64().unwrap() >= sequence)
                 .map(|(t, _)| *t);
             if let Some(at) = reflected.or(solved) {
                 break at;
             }
             assert!(Instant::now() < deadline, "no estimate for pose {i}");
-            tokio::task::yield_now().await;
+            let _ = tokio::time::timeout(Duration::from_millis(50), async {
+                tokio::select! {
+                    _ = ack_arrived => {},
+                    _ = summary_arrived => {},
+                }
+            })
+            .await;
         };
         latencies.push((available - t).as_secs_f64() * 1e3);
     }
