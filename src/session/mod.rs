@@ -10,18 +10,18 @@
 pub mod batch;
 pub mod catalogue;
 mod incremental;
+mod solve;
 pub mod wire;
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
-use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use tokio::sync::{broadcast, watch};
 
 use crate::problem::{Key, Problem, Variable};
-use crate::service::pool::{PoolHandle, TIME_SLICE};
+use crate::service::pool::PoolHandle;
 use crate::service::ServiceError;
 use crate::solver::{self, SolverOptions};
 use batch::{PreparedBatch, SessionView};
@@ -101,20 +101,6 @@ struct State {
     converged: bool,
     last_error: Option<String>,
     last_summary: Option<solver::Summary>,
-}
-
-/// What a solve takes out of the session state (the problem moves to the worker).
-struct SolveWork {
-    problem: Problem,
-    index: Engine,
-    options: SolverOptions,
-    sequence: u64,
-    solve_number: u64,
-    seeds: Vec<usize>,
-    structural: bool,
-    chi2: Option<f64>,
-    debt: f64,
-    gauge: Vec<Key>,
 }
 
 impl Session {
@@ -530,182 +516,6 @@ impl Session {
             last_summary: st.last_summary.clone(),
         }
     }
-
-    /// Takes the problem and what the next solve needs out of the state, or `None` when
-    /// there is nothing to do.
-    fn take_work(&self) -> Option<SolveWork> {
-        let mut st = self.lock();
-        if st.deleted || !st.dirty {
-            st.scheduled = false;
-            return None;
-        }
-        st.solving = true;
-        st.dirty = false;
-        st.forced = false;
-        st.factors_since_solve = 0;
-        st.solves += 1;
-        self.cancel.store(false, Ordering::SeqCst);
-        Some(SolveWork {
-            problem: st.problem.take().expect("one solve per session at a time"),
-            index: st.index.take().expect("kept with the problem"),
-            options: st.options.clone(),
-            // Batches are applied as they come while the problem is here: it reflects them all.
-            sequence: st.sequence,
-            solve_number: st.solves,
-            seeds: std::mem::take(&mut st.seeds),
-            structural: std::mem::replace(&mut st.structural, false),
-            chi2: st.chi2,
-            debt: st.region_debt,
-            gauge: st.gauge.clone(),
-        })
-    }
-
-    /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
-    /// apply what arrived meanwhile, and reschedule if that needs another solve.
-    fn solve_once(self: Arc<Self>) {
-        let Some(work) = self.take_work() else {
-            return;
-        };
-        let SolveWork {
-            mut problem,
-            mut index,
-            options,
-            sequence,
-            solve_number,
-            seeds,
-            structural,
-            chi2,
-            mut debt,
-            gauge,
-        } = work;
-        let start = Instant::now();
-        let mut preempted = false;
-        let mut on_iteration = |report: &solver::IterationReport| {
-            self.emit(SessionEvent::Iteration {
-                session: self.name.clone(),
-                solve: solve_number,
-                sequence,
-                report: report.clone(),
-            });
-            if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
-                return ControlFlow::Break(());
-            }
-            if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
-                preempted = true;
-                return ControlFlow::Break(());
-            }
-            ControlFlow::Continue(())
-        };
-        let solve = std::panic::AssertUnwindSafe(|| match chi2 {
-            // After additions only, re-solve as far as they reach.
-            Some(total) if !structural && solve_number > 1 => {
-                // Held fixed: what the client fixed, and the gauge anchors of the last full
-                // solve (a region never reaches a component without one: it would be singular
-                // and the re-solve falls back to the whole problem).
-                let mut anchors: Vec<bool> = (0..problem.values.len())
-                    .map(|v| problem.values.is_fixed(v))
-                    .collect();
-                for key in &gauge {
-                    if let Some(v) = problem.values.index_of(*key) {
-                        anchors[v] = true;
-                    }
-                }
-                incremental::resolve(
-                    &mut problem,
-                    &mut index,
-                    &seeds,
-                    &anchors,
-                    total,
-                    &mut debt,
-                    &options,
-                    &mut on_iteration,
-                )
-            }
-            // Later solves warm-start from the current estimate; initialisation is for the first.
-            _ => {
-                debt = 0.0;
-                let solved = if solve_number > 1 {
-                    index.solve_whole(&mut problem, &options, &mut on_iteration)
-                } else {
-                    solver::optimize(&mut problem, &options, &mut on_iteration)
-                };
-                solved.map(|summary| incremental::Resolved {
-                    total_chi2: summary.final_chi2,
-                    converged: summary.converged,
-                    moved: None,
-                    summary,
-                })
-            }
-        });
-        // A panic inside the solver is a bug; report it as a failed solve and keep the session.
-        let result = std::panic::catch_unwind(solve)
-            .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
-
-        let mut st = self.lock();
-        st.solving = false;
-        self.cancel.store(false, Ordering::SeqCst);
-        match result {
-            Ok(resolved) => {
-                let summary = resolved.summary;
-                if summary.used.region_variables.is_none() {
-                    st.gauge = summary.used.gauge_fixed.clone();
-                }
-                st.chi2 = Some(resolved.total_chi2);
-                st.converged = resolved.converged;
-                st.last_error = None;
-                // A preempted solve continues in its next turn; a cancelled one waits for news.
-                if preempted {
-                    st.dirty = true;
-                    st.forced = true;
-                }
-                let changed = refresh_mirror(
-                    &mut st.mirror,
-                    &problem,
-                    resolved.moved.as_deref(),
-                    sequence,
-                );
-                if !changed.is_empty() {
-                    self.emit(SessionEvent::Estimate(Estimate {
-                        session: self.name.clone(),
-                        sequence,
-                        variables: changed,
-                    }));
-                }
-                self.emit(SessionEvent::Summary {
-                    session: self.name.clone(),
-                    solve: solve_number,
-                    sequence,
-                    summary: Box::new(summary.clone()),
-                });
-                st.last_summary = Some(summary);
-            }
-            Err(e) => {
-                st.converged = false;
-                // Whatever moved, the next solve starts from a clean slate.
-                st.structural = true;
-                let message = e.to_string();
-                st.last_error = Some(message.clone());
-                // Keep the last good values: the mirror is not refreshed from a failed solve.
-                self.emit(SessionEvent::Error {
-                    session: self.name.clone(),
-                    sequence: Some(sequence),
-                    error: ServiceError::new(422, "solve_failed", message).body,
-                });
-            }
-        }
-        st.solved_sequence = st.solved_sequence.max(sequence);
-        st.problem = Some(problem);
-        st.index = Some(index);
-        st.region_debt = debt;
-        while let Some((seq, prepared, ids)) = st.pending.pop_front() {
-            st.pending_factors -= prepared.factor_count();
-            self.apply_prepared(&mut st, seq, prepared, ids);
-        }
-        st.scheduled = false;
-        self.solved.send_replace(st.solved_sequence);
-        self.completed.send_modify(|n| *n = (*n).max(solve_number));
-        self.maybe_schedule(&mut st);
-    }
 }
 
 fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
@@ -715,37 +525,4 @@ fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
         value: e.value.clone(),
         changed: e.changed,
     }
-}
-
-/// Copies the problem's values into the mirror; returns those that changed.
-/// Copies the values of the variables that may have moved (`None`: all) into the mirror;
-/// returns those that changed.
-fn refresh_mirror(
-    mirror: &mut BTreeMap<Key, MirrorEntry>,
-    problem: &Problem,
-    moved: Option<&[usize]>,
-    sequence: u64,
-) -> Vec<VariableValue> {
-    let mut changed = Vec::new();
-    let all: Vec<usize>;
-    let moved = match moved {
-        Some(m) => m,
-        None => {
-            all = (0..problem.values.len()).collect();
-            &all
-        }
-    };
-    for &idx in moved {
-        let key = problem.values.key(idx);
-        let value = catalogue::encode_variable(problem.values.variable(idx));
-        if let Some(entry) = mirror.get_mut(&key) {
-            // A batch accepted during the solve set a newer guess; it is applied next.
-            if entry.changed <= sequence && entry.value != value {
-                entry.value = value;
-                entry.changed = sequence;
-                changed.push(value_of(key, entry));
-            }
-        }
-    }
-    changed
 }

@@ -10,10 +10,12 @@ mod optimizer;
 pub mod options;
 pub mod structure;
 pub mod summary;
+mod warm;
 
-pub use optimizer::{newton_decrement, optimize, optimize_region, optimize_warm, OrderingCache};
+pub use optimizer::{optimize, optimize_warm};
 pub use options::{Initialization, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
+pub use warm::{newton_decrement, optimize_region, OrderingCache};
 
 use crate::factors::{EvaluationError, FactorEntry};
 use crate::problem::{Key, Values, Variable};
