@@ -1013,3 +1013,57 @@ async fn optimize_requests_run_whatever_the_policy() {
     }
     s.assert_no_panic();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn websocket_carries_batches_in_and_events_out() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::Message;
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    create(&c, &s, json!({"session": "ws", "kind": "pose_graph_2d"})).await;
+    let url = s.url("/v1/sessions/ws/ws").replace("http://", "ws://");
+    let (mut socket, _) = tokio_tungstenite::connect_async(&url)
+        .await
+        .expect("upgrade");
+    let text = synthetic_manhattan(60, 13);
+    let batches = g2o_batches(&text);
+    for b in &batches {
+        socket.send(Message::text(b.to_string())).await.unwrap();
+    }
+    socket
+        .send(Message::text(
+            json!({"variables": [{"key": 7, "kind": "se2", "value": [0, 0, 0]}]}).to_string(),
+        ))
+        .await
+        .unwrap();
+    let (mut acked, mut summaries, mut rejected) = (0, 0, None);
+    while rejected.is_none() {
+        let message = tokio::time::timeout(Duration::from_secs(30), socket.next())
+            .await
+            .expect("events keep coming")
+            .expect("open")
+            .unwrap();
+        let Message::Text(text) = message else {
+            continue;
+        };
+        let v: Value = serde_json::from_str(&text).unwrap();
+        match v["type"].as_str().unwrap() {
+            "ack" => acked += 1,
+            "summary" => summaries += 1,
+            "error" => rejected = Some(v),
+            _ => {}
+        }
+    }
+    assert_eq!(acked, batches.len());
+    assert!(summaries > 0);
+    let rejected = rejected.unwrap();
+    assert_eq!(
+        rejected["error"]["code"], "duplicate_variable",
+        "{rejected}"
+    );
+    assert_eq!(stats(&c, &s, "ws").await["sequence"], batches.len() as u64);
+    // Unknown session: no upgrade.
+    let bad = s.url("/v1/sessions/nope/ws").replace("http://", "ws://");
+    assert!(tokio_tungstenite::connect_async(&bad).await.is_err());
+    s.assert_no_panic();
+}

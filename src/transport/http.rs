@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{DefaultBodyLimit, Path, RawQuery, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -40,6 +41,7 @@ pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions/{session}/summary", get(summary))
         .route("/v1/sessions/{session}/cancel", post(cancel))
         .route("/v1/sessions/{session}/events", get(events))
+        .route("/v1/sessions/{session}/ws", get(websocket))
         .route("/v1/jobs", post(job))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
@@ -239,6 +241,63 @@ async fn events(
         Some((Ok(event), rx))
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// WebSocket: the same events as the SSE stream (one JSON text message each, tagged by `type`;
+/// `{"type": "lagged", "missed": n}` when this client fell behind), and text messages from the
+/// client are batches for the session, acknowledged by the `ack` event or rejected by an `error`
+/// event naming the problem.
+async fn websocket(
+    State(service): Shared,
+    Path(session): Path<String>,
+    upgrade: WebSocketUpgrade,
+) -> Result<Response, HttpError> {
+    let events = service.session(&session)?.subscribe();
+    Ok(upgrade.on_upgrade(move |socket| serve_websocket(socket, service, session, events)))
+}
+
+async fn serve_websocket(
+    mut socket: WebSocket,
+    service: Arc<Service>,
+    session: String,
+    mut events: tokio::sync::broadcast::Receiver<Arc<crate::session::wire::SessionEvent>>,
+) {
+    loop {
+        tokio::select! {
+            event = events.recv() => {
+                let text = match event {
+                    Ok(event) => serde_json::to_string(&*event).expect("events serialise"),
+                    Err(RecvError::Lagged(missed)) => format!("{{\"type\":\"lagged\",\"missed\":{missed}}}"),
+                    Err(RecvError::Closed) => break,
+                };
+                if socket.send(Message::Text(text.into())).await.is_err() {
+                    break;
+                }
+            }
+            incoming = socket.recv() => {
+                let bytes = match incoming {
+                    Some(Ok(Message::Text(text))) => text.as_bytes().to_vec(),
+                    Some(Ok(Message::Binary(bytes))) => bytes.to_vec(),
+                    Some(Ok(_)) => continue,
+                    Some(Err(_)) | None => break,
+                };
+                let outcome = match parse_json::<Batch>(&bytes) {
+                    Ok(batch) => service
+                        .execute(Command::ApplyBatch { session: session.clone(), batch, wait: false })
+                        .await
+                        .map(|_| ()),
+                    Err(e) => Err(e),
+                };
+                // Accepted batches are acknowledged on the event stream; rejections too.
+                if let Err(error) = outcome {
+                    match service.session(&session) {
+                        Ok(s) => s.report_rejection(error),
+                        Err(_) => break,
+                    }
+                }
+            }
+        }
+    }
 }
 
 async fn job(
