@@ -19,7 +19,7 @@ use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use common::server::{g2o_batches, TestServer};
+use common::server::{g2o_batches, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 fn median(v: &mut [f64]) -> f64 {
@@ -31,31 +31,10 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
 }
 
-async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"peer\"").unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    c.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zenoh::open(c).await.unwrap()
-}
-
 async fn rpc(z: &zenoh::Session, command: Value) -> Value {
-    for _ in 0..200 {
-        let replies = z
-            .get("factord/rpc")
-            .payload(command.to_string())
-            .timeout(Duration::from_secs(60))
-            .await
-            .unwrap();
-        if let Ok(reply) = replies.recv_async().await {
-            let sample = reply.result().expect("rpc succeeds");
-            return serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    panic!("no rpc reply");
+    zenoh_get(z, "factord/rpc", Some(&command))
+        .await
+        .expect("rpc succeeds")
 }
 
 /// Events of one session topic, timestamped on arrival, and a wake-up for whoever waits.

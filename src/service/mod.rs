@@ -326,6 +326,48 @@ impl Service {
         }
     }
 
+    /// A message sent to a session without a reply channel (a zenoh put, a WebSocket message):
+    /// `kind` is `batch` (a JSON [`Batch`]) or `optimize`. A rejection goes to the session's
+    /// event stream, where its sender listens; it is returned only when there is no such session
+    /// (and so no stream to put it on).
+    pub async fn deliver(
+        &self,
+        session: &str,
+        kind: &str,
+        payload: &[u8],
+    ) -> Result<(), ServiceError> {
+        let target = self.session(session)?;
+        let outcome = match kind {
+            "batch" => match parse_json::<Batch>(payload) {
+                Ok(batch) => {
+                    let command = Command::ApplyBatch {
+                        session: session.into(),
+                        batch,
+                        wait: false,
+                    };
+                    self.execute(command).await.map(|_| ())
+                }
+                Err(e) => Err(e),
+            },
+            "optimize" => {
+                let command = Command::Optimize {
+                    session: session.into(),
+                    wait: false,
+                };
+                self.execute(command).await.map(|_| ())
+            }
+            other => Err(ServiceError::bad_request(
+                "unknown_topic",
+                "key",
+                format!("nothing listens on `in/{other}` (batch, optimize)"),
+            )),
+        };
+        if let Err(error) = outcome {
+            target.report_rejection(error);
+        }
+        Ok(())
+    }
+
     pub fn health(&self) -> Health {
         let pool = self.pool.handle();
         Health {

@@ -281,19 +281,9 @@ async fn serve_websocket(
                     Some(Ok(_)) => continue,
                     Some(Err(_)) | None => break,
                 };
-                let outcome = match parse_json::<Batch>(&bytes) {
-                    Ok(batch) => service
-                        .execute(Command::ApplyBatch { session: session.clone(), batch, wait: false })
-                        .await
-                        .map(|_| ()),
-                    Err(e) => Err(e),
-                };
                 // Accepted batches are acknowledged on the event stream; rejections too.
-                if let Err(error) = outcome {
-                    match service.session(&session) {
-                        Ok(s) => s.report_rejection(error),
-                        Err(_) => break,
-                    }
+                if service.deliver(&session, "batch", &bytes).await.is_err() {
+                    break; // the session is gone
                 }
             }
         }

@@ -18,7 +18,7 @@ use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
 use crate::service::{parse_json, parse_query, Command, Service, ServiceError};
-use crate::session::wire::{Batch, EstimateQuery, SessionEvent};
+use crate::session::wire::{EstimateQuery, SessionEvent};
 
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -144,48 +144,18 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
                 continue;
             };
             let bytes = sample.payload().to_bytes();
-            let outcome = match what {
-                "batch" => match parse_json::<Batch>(&bytes) {
-                    Ok(batch) => svc
-                        .execute(Command::ApplyBatch {
-                            session: name.into(),
-                            batch,
-                            wait: false,
-                        })
-                        .await
-                        .map(|_| ()),
-                    Err(e) => Err(e),
-                },
-                "optimize" => svc
-                    .execute(Command::Optimize {
-                        session: name.into(),
-                        wait: false,
-                    })
-                    .await
-                    .map(|_| ()),
-                other => Err(ServiceError::bad_request(
-                    "unknown_topic",
-                    "key",
-                    format!("nothing listens on `in/{other}` (batch, optimize)"),
-                )),
-            };
-            if let Err(error) = outcome {
-                // Puts have no reply: the rejection goes to the session's stream (SSE and
-                // `out/errors`), or straight to `out/errors` when there is no such session.
-                match svc.session(name) {
-                    Ok(session) => session.report_rejection(error),
-                    Err(_) => {
-                        let event = SessionEvent::Error {
-                            session: name.into(),
-                            sequence: None,
-                            error: error.body,
-                        };
-                        let body = serde_json::to_vec(&event).expect("events serialise");
-                        let _ = publisher
-                            .put(format!("{in_prefix}/{name}/out/errors"), body)
-                            .await;
-                    }
-                }
+            // Puts have no reply: rejections go to the session's stream (SSE and `out/errors`),
+            // or straight to `out/errors` when there is no such session.
+            if let Err(error) = svc.deliver(name, what, &bytes).await {
+                let event = SessionEvent::Error {
+                    session: name.into(),
+                    sequence: None,
+                    error: error.body,
+                };
+                let body = serde_json::to_vec(&event).expect("events serialise");
+                let _ = publisher
+                    .put(format!("{in_prefix}/{name}/out/errors"), body)
+                    .await;
             }
         }
     }));

@@ -141,7 +141,10 @@ pub async fn send(
             .header("content-type", "application/json")
             .body(b.to_string());
     }
-    let resp = req.send().await.expect("request sent");
+    let resp = req
+        .send()
+        .await
+        .unwrap_or_else(|e| panic!("{url}: request failed: {e:?}"));
     let status = resp.status().as_u16();
     let text = resp.text().await.expect("body");
     let value = serde_json::from_str(&text).unwrap_or(Value::String(text));
@@ -229,4 +232,47 @@ pub fn g2o_batches(text: &str) -> Vec<Value> {
             })
         })
         .collect()
+}
+
+/// A zenoh peer on loopback connected to `endpoint`, scouting off.
+pub async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"peer\"").unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    c.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    zenoh::open(c).await.expect("zenoh peer opens")
+}
+
+/// A zenoh query, retried until the server's queryable is known to this peer.
+pub async fn zenoh_get(
+    z: &zenoh::Session,
+    selector: &str,
+    payload: Option<&Value>,
+) -> Result<Value, Value> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let mut get = z.get(selector).timeout(Duration::from_secs(10));
+        if let Some(p) = payload {
+            get = get.payload(p.to_string());
+        }
+        let replies = get.await.expect("query sent");
+        if let Ok(reply) = replies.recv_async().await {
+            let parse = |bytes: &[u8]| -> Value {
+                serde_json::from_slice(bytes).unwrap_or_else(|e| {
+                    panic!(
+                        "{selector}: reply is not JSON ({e}): {:?}",
+                        String::from_utf8_lossy(bytes)
+                    )
+                })
+            };
+            return match reply.result() {
+                Ok(sample) => Ok(parse(&sample.payload().to_bytes())),
+                Err(err) => Err(parse(&err.payload().to_bytes())),
+            };
+        }
+        assert!(Instant::now() < deadline, "no reply to {selector}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
 }
