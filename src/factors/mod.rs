@@ -10,6 +10,7 @@ pub mod between_se3;
 pub mod noise;
 pub mod prior_se2;
 pub mod prior_se3;
+pub mod reprojection_snavely;
 pub mod robust;
 pub mod testing;
 
@@ -21,6 +22,7 @@ pub use between_se3::BetweenSe3;
 pub use noise::SqrtInformation;
 pub use prior_se2::PriorSe2;
 pub use prior_se3::PriorSe3;
+pub use reprojection_snavely::ReprojectionSnavely;
 pub use robust::RobustKernel;
 
 use crate::problem::{Key, Variable};

@@ -1,10 +1,12 @@
-//! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3).
+//! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3); the BAL camera and 3D points.
 
+pub mod camera;
 pub mod se2;
 pub mod se3;
 pub mod so2;
 pub mod so3;
 
+pub use camera::{Point3, SnavelyCamera};
 pub use se2::Se2;
 pub use se3::Se3;
 pub use so2::{rotation_matrix_2d, wrap_angle};

@@ -3,6 +3,7 @@
 //! Files are parsed whole into records first (every malformed line is reported with file, line
 //! number and reason), then vertices are added before edges, so record order does not matter.
 
+pub mod bal;
 pub mod g2o;
 pub mod toro;
 pub mod tum;

@@ -9,7 +9,7 @@ use std::fmt::Debug;
 
 use nalgebra::Vector3;
 
-use crate::geometry::{so3, wrap_angle, Se2, Se3};
+use crate::geometry::{so3, wrap_angle, Point3, Se2, Se3, SnavelyCamera};
 
 pub trait Variable: Any + Debug + Send + Sync {
     /// Short stable name, used in errors and on the wire (`"se2"`, `"se3"`).
@@ -89,6 +89,78 @@ impl Variable for Se3 {
     fn is_finite(&self) -> bool {
         self.translation.iter().all(|v| v.is_finite())
             && self.rotation.coords.iter().all(|v| v.is_finite())
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// The BAL camera: rotation on SO(3) perturbed on the left, the rest additive:
+/// `(R, t, f, k1, k2) ⊕ (ω, v, δf, δk1, δk2) = (Exp(ω) R, t + v, f + δf, k1 + δk1, k2 + δk2)`.
+/// Tangent order: rotation, translation, f, k1, k2 (BAL's parameter order).
+impl Variable for SnavelyCamera {
+    fn kind(&self) -> &'static str {
+        "snavely_camera"
+    }
+    fn tangent_dim(&self) -> usize {
+        9
+    }
+    fn retract(&mut self, delta: &[f64]) {
+        let w = Vector3::new(delta[0], delta[1], delta[2]);
+        self.rotation = so3::exp(&w) * self.rotation;
+        self.rotation.renormalize();
+        self.translation += Vector3::new(delta[3], delta[4], delta[5]);
+        self.focal += delta[6];
+        self.k1 += delta[7];
+        self.k2 += delta[8];
+    }
+    fn clone_box(&self) -> Box<dyn Variable> {
+        Box::new(*self)
+    }
+    fn assign_from(&mut self, other: &dyn Variable) -> bool {
+        match other.as_any().downcast_ref::<SnavelyCamera>() {
+            Some(o) => {
+                *self = *o;
+                true
+            }
+            None => false,
+        }
+    }
+    fn is_finite(&self) -> bool {
+        self.translation.iter().all(|v| v.is_finite())
+            && self.rotation.coords.iter().all(|v| v.is_finite())
+            && [self.focal, self.k1, self.k2].iter().all(|v| v.is_finite())
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+/// A 3D point, additive.
+impl Variable for Point3 {
+    fn kind(&self) -> &'static str {
+        "point3"
+    }
+    fn tangent_dim(&self) -> usize {
+        3
+    }
+    fn retract(&mut self, delta: &[f64]) {
+        self.0 += Vector3::new(delta[0], delta[1], delta[2]);
+    }
+    fn clone_box(&self) -> Box<dyn Variable> {
+        Box::new(*self)
+    }
+    fn assign_from(&mut self, other: &dyn Variable) -> bool {
+        match other.as_any().downcast_ref::<Point3>() {
+            Some(o) => {
+                *self = *o;
+                true
+            }
+            None => false,
+        }
+    }
+    fn is_finite(&self) -> bool {
+        self.0.iter().all(|v| v.is_finite())
     }
     fn as_any(&self) -> &dyn Any {
         self
