@@ -77,10 +77,41 @@ fn bad_bal_input_is_a_clear_error() {
     assert!(error_of(&point_out_of_range).contains("point"));
     let nan = good.replacen("500", "nan", 1);
     let e = error_of(&nan);
-    assert!(e.contains("bad.txt:9") && e.contains("parameter 6") && e.contains("not finite"), "{e}");
+    assert!(
+        e.contains("bad.txt:9") && e.contains("parameter 6") && e.contains("not finite"),
+        "{e}"
+    );
     let word = good.replacen("3.25", "three", 1);
     assert!(error_of(&word).contains("not a number"));
     let negative = good.replacen("1 1 1", "1 -1 1", 1);
     assert!(error_of(&negative).contains("number of points"));
     assert!(error_of("").contains("number of cameras"));
+}
+
+#[test]
+fn levenberg_marquardt_reaches_the_ceres_optimum() {
+    use factord::solver::{optimize, Initialization, Method, SolverOptions};
+    let options = SolverOptions {
+        method: Method::LevenbergMarquardt,
+        initialization: Initialization::None,
+        ..SolverOptions::default()
+    };
+    // Ceres' optima (½Σ‖r‖²) from its docs / our Ceres 2.1 runs.
+    for (file, optimum) in [
+        ("bal/problem-16-22106-pre.txt", 18033.90),
+        ("bal/problem-49-7776-pre.txt", 13344.32),
+    ] {
+        let Some(path) = common::data_file(file) else {
+            return;
+        };
+        let mut b = bal::load(&path).unwrap();
+        let summary = optimize(&mut b.problem, &options, &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap();
+        // The gauge (a similarity) is left to the damping, as Ceres does: nothing is fixed.
+        assert!(summary.used.gauge_fixed.is_empty());
+        assert_relative(b.cost(), optimum, 1e-3, file);
+        assert_relative(summary.final_chi2 / 2.0, b.cost(), 1e-12, file);
+    }
 }

@@ -11,7 +11,7 @@ use nalgebra::{DMatrix, Vector2, Vector3};
 use super::{parse_error, problem_error, read_text, IoError};
 use crate::factors::ReprojectionSnavely;
 use crate::geometry::{Point3, SnavelyCamera};
-use crate::problem::{Key, Problem};
+use crate::problem::{Gauge, Key, Problem};
 
 /// A BAL problem: camera `i` has key `i`, point `j` has key `num_cameras + j`.
 #[derive(Debug)]
@@ -137,6 +137,7 @@ pub fn parse(path: &Path, text: &str) -> Result<BalProblem, IoError> {
         observations.push((camera, point, Vector2::new(x, y)));
     }
     let mut problem = Problem::new();
+    problem.gauge = Gauge::Free;
     for i in 0..num_cameras {
         let mut p = [0.0; 9];
         for (c, v) in p.iter_mut().enumerate() {

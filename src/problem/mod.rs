@@ -7,6 +7,7 @@ mod values;
 mod variable;
 
 pub use values::Values;
+
 pub use variable::Variable;
 
 use nalgebra::DMatrix;
@@ -48,6 +49,21 @@ pub enum ProblemError {
 pub struct Problem {
     pub values: Values,
     factors: Vec<FactorEntry>,
+    /// How the solver removes gauge freedom.
+    pub gauge: Gauge,
+}
+
+/// What the solver does about directions in which the cost is flat as a whole (a pose graph
+/// without priors can slide and turn; a bundle adjustment can also scale).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Gauge {
+    /// Fix the lowest key of every connected component that has no fixed variable and no prior
+    /// (pose graphs: the result is then reproducible and Gauss-Newton well posed).
+    #[default]
+    AnchorComponents,
+    /// Fix nothing: damping (LM, Dogleg) keeps the flat directions in check, as Ceres does for
+    /// bundle adjustment, where fixing a whole camera would also freeze its intrinsics.
+    Free,
 }
 
 impl Problem {

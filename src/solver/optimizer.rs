@@ -23,7 +23,7 @@ use super::summary::{
 use super::warm::OrderingCache;
 use super::{evaluate_chi2, SolverError};
 use crate::factors::FactorEntry;
-use crate::problem::{Key, Problem, Values};
+use crate::problem::{Gauge, Key, Problem, Values};
 
 /// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes and
 /// may stop the solve there (`ControlFlow::Break`): the values are then those of the last accepted
@@ -64,7 +64,15 @@ fn optimize_from(
     let warm = cache.is_some();
     let start = Instant::now();
     let mut timings = Timings::default();
-    let (fixed, gauge_fixed) = anchor_components(problem.factors(), &problem.values);
+    let (fixed, gauge_fixed) = match problem.gauge {
+        Gauge::AnchorComponents => anchor_components(problem.factors(), &problem.values),
+        Gauge::Free => (
+            (0..problem.values.len())
+                .map(|v| problem.values.is_fixed(v))
+                .collect(),
+            Vec::new(),
+        ),
+    };
     let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values)?;
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
