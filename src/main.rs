@@ -28,6 +28,8 @@ enum Command {
     Solve(SolveArgs),
     /// Run the service: HTTP API, zenoh peer, worker pool (see README).
     Serve(ServeArgs),
+    /// Bundle adjustment of a BAL problem (optionally normalised and perturbed, as the course).
+    Ba(BaArgs),
     /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
     /// the matrix in Matrix Market form for comparison with other libraries.
     BenchCholesky(BenchCholeskyArgs),
@@ -70,6 +72,123 @@ struct SolveArgs {
     /// Print only errors.
     #[arg(long)]
     quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct BaArgs {
+    /// BAL problem file.
+    problem: PathBuf,
+    /// gn | lm | dogleg
+    #[arg(long, default_value = "lm", value_parser = parse_method)]
+    method: Method,
+    #[arg(long, default_value_t = 100)]
+    max_iterations: usize,
+    #[arg(long, default_value_t = 1e-6)]
+    function_tolerance: f64,
+    /// Robust kernel on every observation, e.g. huber:1.0 (pixels)
+    #[arg(long, value_parser = parse_robust)]
+    robust: Option<RobustKernel>,
+    /// Centre on the median point and scale to a median absolute deviation of 100 (as Ceres).
+    #[arg(long)]
+    normalize: bool,
+    /// Gaussian noise std for rotation (rad, angle-axis), camera centre and points: r,t,p.
+    #[arg(long, value_parser = parse_perturb)]
+    perturb: Option<[f64; 3]>,
+    /// Seed of the perturbation.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Write the Summary (plus initial_cost and final_cost in BAL's ½Σ‖r‖²) as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// Point clouds (points and camera centres) before and after, as PLY.
+    #[arg(long)]
+    ply_initial: Option<PathBuf>,
+    #[arg(long)]
+    ply_final: Option<PathBuf>,
+    /// Write the optimised problem in BAL format.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{s}`: {e} (expected r,t,p, e.g. 0.1,0.5,0.5)"))?;
+    match v[..] {
+        [r, t, p] if v.iter().all(|x| x.is_finite() && *x >= 0.0) => Ok([r, t, p]),
+        _ => Err(format!("`{s}`: expected three non-negative numbers r,t,p")),
+    }
+}
+
+fn bundle_adjust(args: BaArgs) -> Result<(), String> {
+    let start = Instant::now();
+    let mut bal = io::bal::load(&args.problem).map_err(|e| e.to_string())?;
+    let load_seconds = start.elapsed().as_secs_f64();
+    if args.normalize {
+        bal.normalize();
+    }
+    if let Some([r, t, p]) = args.perturb {
+        bal.perturb(r, t, p, args.seed);
+    }
+    if args.robust.is_some() {
+        bal.problem.set_robust_kernel(args.robust);
+    }
+    if let Some(path) = &args.ply_initial {
+        io::ply::write(path, &bal.points(), &bal.camera_centres()).map_err(|e| e.to_string())?;
+    }
+    let initial_cost = bal.cost();
+    if !args.quiet {
+        println!(
+            "loaded {} ({} cameras, {} points, {} observations) in {load_seconds:.3}s; initial cost {initial_cost:.6e}",
+            args.problem.display(),
+            bal.num_cameras,
+            bal.num_points,
+            bal.problem.factors().len()
+        );
+    }
+    let options = SolverOptions {
+        method: args.method,
+        max_iterations: args.max_iterations,
+        function_tolerance: args.function_tolerance,
+        initialization: Initialization::None,
+        ..SolverOptions::default()
+    };
+    let quiet = args.quiet;
+    let summary = solver::optimize(&mut bal.problem, &options, &mut |r| {
+        if !quiet {
+            print_iteration(r);
+        }
+        std::ops::ControlFlow::Continue(())
+    })
+    .map_err(|e| e.to_string())?;
+    let final_cost = bal.cost();
+    if !quiet {
+        print!("{}", summary.report());
+        println!("cost (½Σ‖r‖²): {initial_cost:.6e} -> {final_cost:.6e}");
+    }
+    if let Some(path) = &args.summary_json {
+        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
+        let map = json
+            .as_object_mut()
+            .expect("Summary serialises as an object");
+        map.insert("input".into(), args.problem.display().to_string().into());
+        map.insert("load_seconds".into(), load_seconds.into());
+        map.insert("initial_cost".into(), initial_cost.into());
+        map.insert("final_cost".into(), final_cost.into());
+        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    if let Some(path) = &args.ply_final {
+        io::ply::write(path, &bal.points(), &bal.camera_centres()).map_err(|e| e.to_string())?;
+    }
+    if let Some(path) = &args.out {
+        io::bal::write(&bal, path).map_err(|e| e.to_string())?;
+    }
+    Ok(())
 }
 
 /// Settings come from defaults, then `--config`, then `FACTORD_*` environment variables, then
@@ -195,6 +314,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Solve(args) => solve(args),
         Command::Serve(args) => serve(args),
+        Command::Ba(args) => bundle_adjust(args),
         Command::BenchCholesky(args) => factord::solver::cholesky_bench::run(
             &args.graph,
             args.edges.as_deref(),

@@ -91,3 +91,82 @@ fn bad_input_exits_with_an_error_not_a_panic() {
         .unwrap();
     assert!(!output.status.success());
 }
+
+#[test]
+fn ba_runs_the_course_workflow_and_writes_point_clouds() {
+    let Some(input) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let dir = common::temp_dir("ba");
+    let (summary, before, after, out) = (
+        dir.join("s.json"),
+        dir.join("before.ply"),
+        dir.join("after.ply"),
+        dir.join("out.txt"),
+    );
+    let output = factord()
+        .arg("ba")
+        .arg(&input)
+        .args([
+            "--normalize",
+            "--perturb",
+            "0.1,0.5,0.5",
+            "--seed",
+            "3",
+            "--robust",
+            "huber:1.0",
+        ])
+        .args(["--quiet", "--summary-json"])
+        .arg(&summary)
+        .arg("--ply-initial")
+        .arg(&before)
+        .arg("--ply-final")
+        .arg(&after)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let (initial, last) = (
+        s["initial_cost"].as_f64().unwrap(),
+        s["final_cost"].as_f64().unwrap(),
+    );
+    assert!(last < 0.05 * initial, "{initial} -> {last}");
+    assert!(s["converged"].as_bool().unwrap(), "{s}");
+    for ply in [&before, &after] {
+        let text = std::fs::read_to_string(ply).unwrap();
+        assert!(
+            text.contains("element vertex 7825"),
+            "7776 points + 49 cameras"
+        );
+        assert_eq!(text.lines().count(), 7825 + 11);
+    }
+    // The written BAL file reads back at the final cost.
+    let back = factord::io::bal::load(&out).unwrap();
+    let mut with_kernel = back;
+    with_kernel
+        .problem
+        .set_robust_kernel(Some(factord::factors::RobustKernel::Huber(1.0)));
+    assert!((with_kernel.cost() - last).abs() <= 1e-6 * last);
+}
+
+#[test]
+fn ba_rejects_a_bad_file_with_a_clear_error() {
+    let dir = common::temp_dir("ba-bad");
+    let input = dir.join("bad.txt");
+    std::fs::write(&input, "2 1 1\n0 3 1.0 2.0\n").unwrap();
+    let output = factord().arg("ba").arg(&input).output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        err.contains("bad.txt") && err.contains("the file has"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"));
+}

@@ -10,7 +10,7 @@ use nalgebra::{DMatrix, Vector2, Vector3};
 
 use super::{parse_error, problem_error, read_text, IoError};
 use crate::factors::ReprojectionSnavely;
-use crate::geometry::{Point3, SnavelyCamera};
+use crate::geometry::{so3, Point3, SnavelyCamera};
 use crate::problem::{Gauge, Key, Problem};
 
 /// A BAL problem: camera `i` has key `i`, point `j` has key `num_cameras + j`.
@@ -33,6 +33,109 @@ impl BalProblem {
     pub fn cost(&self) -> f64 {
         0.5 * self.problem.chi2()
     }
+
+    fn update<T: crate::problem::Variable + Copy>(
+        &mut self,
+        key: Key,
+        change: impl FnOnce(&mut T),
+    ) {
+        let idx = self.problem.values.index_of(key).expect("BAL keys exist");
+        let mut value = *self
+            .problem
+            .values
+            .get_as::<T>(key)
+            .expect("BAL keys hold their kind");
+        change(&mut value);
+        self.problem.values.set(idx, &value);
+    }
+
+    pub fn points(&self) -> Vec<Vector3<f64>> {
+        (0..self.num_points)
+            .map(|j| {
+                self.problem
+                    .values
+                    .get_as::<Point3>(self.point_key(j))
+                    .expect("point keys hold points")
+                    .0
+            })
+            .collect()
+    }
+
+    pub fn camera_centres(&self) -> Vec<Vector3<f64>> {
+        (0..self.num_cameras)
+            .map(|i| {
+                self.problem
+                    .values
+                    .get_as::<SnavelyCamera>(self.camera_key(i))
+                    .expect("camera keys hold cameras")
+                    .centre()
+            })
+            .collect()
+    }
+
+    /// Ceres' `BALProblem::Normalize`: centre the points on their per-coordinate median and scale
+    /// the scene so that the median L1 distance of the points to it is 100; cameras keep their
+    /// orientation, their centres move with the points.
+    pub fn normalize(&mut self) {
+        let points = self.points();
+        if points.is_empty() {
+            return;
+        }
+        let centre = Vector3::from_fn(|c, _| median(points.iter().map(|p| p[c]).collect()));
+        let deviation = median(points.iter().map(|p| (p - centre).lp_norm(1)).collect());
+        let scale = if deviation > 0.0 {
+            100.0 / deviation
+        } else {
+            1.0
+        };
+        for j in 0..self.num_points {
+            self.update(self.point_key(j), |p: &mut Point3| {
+                p.0 = (p.0 - centre) * scale
+            });
+        }
+        for i in 0..self.num_cameras {
+            self.update(self.camera_key(i), |camera: &mut SnavelyCamera| {
+                camera.translation = -(camera.rotation * ((camera.centre() - centre) * scale));
+            });
+        }
+    }
+
+    /// Ceres' `BALProblem::Perturb`: Gaussian noise of the given standard deviations on each
+    /// camera's angle-axis rotation and centre, and on each point (zero skips that part).
+    pub fn perturb(
+        &mut self,
+        rotation_sigma: f64,
+        translation_sigma: f64,
+        point_sigma: f64,
+        seed: u64,
+    ) {
+        let mut rng = crate::factors::testing::Rng::new(seed);
+        let mut noise = |sigma: f64| Vector3::new(rng.normal(), rng.normal(), rng.normal()) * sigma;
+        for j in 0..self.num_points {
+            if point_sigma > 0.0 {
+                let n = noise(point_sigma);
+                self.update(self.point_key(j), |p: &mut Point3| p.0 += n);
+            }
+        }
+        for i in 0..self.num_cameras {
+            let (dr, dc) = (noise(rotation_sigma), noise(translation_sigma));
+            self.update(self.camera_key(i), |camera: &mut SnavelyCamera| {
+                let mut centre = camera.centre();
+                if rotation_sigma > 0.0 {
+                    camera.rotation = so3::exp(&(so3::log(&camera.rotation) + dr));
+                }
+                if translation_sigma > 0.0 {
+                    centre += dc;
+                }
+                camera.translation = -(camera.rotation * centre);
+            });
+        }
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Whitespace-separated numbers with the line each came from.
