@@ -29,18 +29,23 @@ pub enum RobustKernel {
     Huber(f64),
     /// ρ(s) = δ² ln(1 + s/δ²).
     Cauchy(f64),
+    /// Tukey's biweight: ρ(s) = δ²/3 (1 − (1 − s/δ²)³) for s ≤ δ², δ²/3 beyond (outliers get
+    /// no weight at all).
+    Tukey(f64),
+    /// Geman-McClure: ρ(s) = δ² s / (δ² + s), bounded by δ².
+    GemanMcclure(f64),
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum KernelParseError {
-    #[error("unknown robust kernel `{0}` (expected huber:<scale> or cauchy:<scale>)")]
+    #[error("unknown robust kernel `{0}` (expected huber, cauchy, tukey or geman_mcclure, as <name>:<scale>)")]
     Unknown(String),
     #[error("robust kernel scale `{0}` must be a positive finite number")]
     BadScale(String),
 }
 
 impl RobustKernel {
-    /// Parses `huber:1.0` / `cauchy:0.5` (scale defaults to 1).
+    /// Parses `huber:1.0`, `cauchy:0.5`, `tukey:4.685`, `geman_mcclure:1` (scale defaults to 1).
     pub fn parse(text: &str) -> Result<Self, KernelParseError> {
         let (name, scale) = text.split_once(':').unwrap_or((text, "1"));
         let delta: f64 = scale
@@ -52,7 +57,16 @@ impl RobustKernel {
         match name.to_ascii_lowercase().as_str() {
             "huber" => Ok(Self::Huber(delta)),
             "cauchy" => Ok(Self::Cauchy(delta)),
+            "tukey" => Ok(Self::Tukey(delta)),
+            "geman_mcclure" | "geman-mcclure" | "gm" => Ok(Self::GemanMcclure(delta)),
             _ => Err(KernelParseError::Unknown(name.into())),
+        }
+    }
+
+    /// The scale δ (in whitened residual units).
+    pub fn scale(&self) -> f64 {
+        match *self {
+            Self::Huber(d) | Self::Cauchy(d) | Self::Tukey(d) | Self::GemanMcclure(d) => d,
         }
     }
 
@@ -82,6 +96,32 @@ impl RobustKernel {
                     rho: d2 * (1.0 + s / d2).ln(),
                     rho1: inv,
                     rho2: -inv * inv / d2,
+                }
+            }
+            Self::Tukey(delta) => {
+                let d2 = delta * delta;
+                if s <= d2 {
+                    let v = 1.0 - s / d2;
+                    KernelValue {
+                        rho: d2 / 3.0 * (1.0 - v * v * v),
+                        rho1: v * v,
+                        rho2: -2.0 * v / d2,
+                    }
+                } else {
+                    KernelValue {
+                        rho: d2 / 3.0,
+                        rho1: 0.0,
+                        rho2: 0.0,
+                    }
+                }
+            }
+            Self::GemanMcclure(delta) => {
+                let d2 = delta * delta;
+                let q = d2 / (d2 + s);
+                KernelValue {
+                    rho: s * q,
+                    rho1: q * q,
+                    rho2: -2.0 * q * q / (d2 + s),
                 }
             }
         }
@@ -126,7 +166,12 @@ mod tests {
 
     #[test]
     fn derivatives_match_numeric() {
-        for kernel in [RobustKernel::Huber(1.3), RobustKernel::Cauchy(0.7)] {
+        for kernel in [
+            RobustKernel::Huber(1.3),
+            RobustKernel::Cauchy(0.7),
+            RobustKernel::Tukey(2.5),
+            RobustKernel::GemanMcclure(0.8),
+        ] {
             for &s in &[0.1, 0.5, 2.0, 10.0, 100.0] {
                 let h = 1e-6 * s;
                 let k = kernel.evaluate(s);
@@ -142,7 +187,15 @@ mod tests {
     fn parses_and_rejects() {
         assert_eq!(RobustKernel::parse("huber:2"), Ok(RobustKernel::Huber(2.0)));
         assert_eq!(RobustKernel::parse("Cauchy"), Ok(RobustKernel::Cauchy(1.0)));
-        assert!(RobustKernel::parse("tukey:1").is_err());
+        assert_eq!(
+            RobustKernel::parse("tukey:4.685"),
+            Ok(RobustKernel::Tukey(4.685))
+        );
+        assert_eq!(
+            RobustKernel::parse("geman_mcclure:2"),
+            Ok(RobustKernel::GemanMcclure(2.0))
+        );
+        assert!(RobustKernel::parse("welsch:1").is_err());
         assert!(RobustKernel::parse("huber:-1").is_err());
         assert!(RobustKernel::parse("huber:nan").is_err());
     }

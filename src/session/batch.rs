@@ -266,7 +266,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             ServiceError::bad_request("invalid_value", format!("{field}.measurement"), m)
         })?;
         let sqrt_information = information(spec, codec.residual_dim, &field)?;
-        if let Some(RobustKernel::Huber(s) | RobustKernel::Cauchy(s)) = spec.robust {
+        if let Some(s) = spec.robust.map(|k| k.scale()) {
             if !(s.is_finite() && s > 0.0) {
                 return Err(ServiceError::bad_request(
                     "invalid_value",
