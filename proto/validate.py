@@ -570,7 +570,7 @@ class Live:
         self.call("session exists", "POST", "/v1/sessions", 409, "error.schema.json",
                   body={"session": self.s2, "kind": "pose_graph_2d"}, error_code="session_exists", example="error-session-exists")
         self.call("unknown kind", "POST", "/v1/sessions", 400, "error.schema.json",
-                  body={"kind": "bundle_adjustment"}, error_code="unknown_kind")
+                  body={"kind": "no_such_kind"}, error_code="unknown_kind")
         self.call("bad option", "POST", "/v1/sessions", 400, "error.schema.json",
                   body={"kind": "pose_graph_2d", "options": {"max_iterations": 0}}, error_code="invalid_value")
         self.call("bad policy", "PUT", f"/v1/sessions/{self.s2}/auto_optimize", 400, "error.schema.json",

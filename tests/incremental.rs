@@ -24,7 +24,7 @@ async fn streamed_pose_graph_is_resolved_in_regions_and_reaches_the_batch_optimu
         .execute(Command::CreateSession(CreateSession {
             session: Some("walk".into()),
             kind: "pose_graph_2d".into(),
-            options: SolverOptions::default(),
+            options: None,
             auto_optimize: Default::default(),
         }))
         .await

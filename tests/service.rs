@@ -124,7 +124,9 @@ async fn curl_style_batch_job() {
     }
     // Bad jobs.
     for (query, body, field) in [
-        ("?format=bal", "x", "format"),
+        ("?format=bal", "x", "body"),
+        ("?format=pcd", "x", "format"),
+        ("?output=bal", "VERTEX_SE2 0 0 0 0", "output"),
         ("?method=newton", "VERTEX_SE2 0 0 0 0", "method"),
         ("", "VERTEX_SE2 0 0 zero 0", "body"),
         ("?max_iterations=0", "VERTEX_SE2 0 0 0 0", "max_iterations"),
@@ -801,12 +803,7 @@ async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
         "{v}"
     );
     // Bad session requests.
-    let (status, v) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"kind": "bundle_adjustment"}),
-    )
-    .await;
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &json!({"kind": "no_such_kind"})).await;
     assert_eq!((status, v["error"]["field"].as_str()), (400, Some("kind")));
     let (status, v) = post(
         &c,
@@ -1045,5 +1042,101 @@ async fn websocket_carries_batches_in_and_events_out() {
     // Unknown session: no upgrade.
     let bad = s.url("/v1/sessions/nope/ws").replace("http://", "ws://");
     assert!(tokio_tungstenite::connect_async(&bad).await.is_err());
+    s.assert_no_panic();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn bundle_adjustment_as_a_job_and_as_a_session() {
+    let Some(path) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    let text = std::fs::read_to_string(&path).unwrap();
+    // A BAL batch job: LM by default (the gauge is free), Ceres' optimum.
+    let resp = c
+        .post(s.url("/v1/jobs?format=bal"))
+        .body(text.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 200);
+    let v: Value = resp.json().await.unwrap();
+    let cost = v["summary"]["final_chi2"].as_f64().unwrap() / 2.0;
+    assert!((cost - 13344.32).abs() < 1e-3 * 13344.32, "{cost}");
+    assert_eq!(v["summary"]["method"], "levenberg_marquardt");
+    assert_eq!(
+        v["estimate"]["variables"].as_array().unwrap().len(),
+        49 + 7776
+    );
+    assert_eq!(v["estimate"]["variables"][0]["kind"], "snavely_camera");
+    let resp = c
+        .post(s.url("/v1/jobs?format=bal&output=g2o"))
+        .body("1 1 1")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 400);
+    let resp = c
+        .post(s.url("/v1/jobs?format=bal"))
+        .body("2 1 1\n0 3 1 2\n")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 400);
+    let v: Value = resp.json().await.unwrap();
+    assert_eq!(v["error"]["field"], "body");
+
+    // The same problem streamed into a bundle_adjustment session: cameras and points, then the
+    // observations in a few batches; the session solves with LM and reaches the same optimum.
+    let bal = factord::io::bal::parse(std::path::Path::new("p49"), &text).unwrap();
+    let values = &bal.problem.values;
+    let variables: Vec<Value> = values
+        .keys()
+        .iter()
+        .map(|&k| {
+            let v = values.get(k).unwrap();
+            json!({"key": k, "kind": v.kind(), "value": factord::session::catalogue::encode_variable(v)})
+        })
+        .collect();
+    let factors: Vec<Value> = bal
+        .problem
+        .factors()
+        .iter()
+        .map(|f| {
+            let z = f.factor.as_any().downcast_ref::<factord::factors::ReprojectionSnavely>().unwrap().observed;
+            json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
+        })
+        .collect();
+    create(&c, &s, json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"}})).await;
+    let (status, v) = batch(&c, &s, "ba", &json!({"variables": variables}), false).await;
+    assert_eq!(status, 200, "{v}");
+    for chunk in factors.chunks(10_000) {
+        let (status, v) = batch(&c, &s, "ba", &json!({"factors": chunk}), false).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    let (status, done) = post(&c, &s.url("/v1/sessions/ba/optimize?wait=true"), &json!({})).await;
+    assert_eq!(status, 200, "{done}");
+    let st = &done["stats"];
+    assert_eq!(
+        st["options"]["method"], "levenberg_marquardt",
+        "kind default"
+    );
+    assert!(st["converged"].as_bool().unwrap(), "{st}");
+    let cost = st["chi2"].as_f64().unwrap() / 2.0;
+    assert!((cost - 13344.32).abs() < 1e-3 * 13344.32, "{cost}");
+    // A pose-graph variable does not belong in a BA session.
+    let (status, v) = batch(
+        &c,
+        &s,
+        "ba",
+        &json!({"variables": [{"key": 999999, "kind": "se2", "value": [0, 0, 0]}]}),
+        false,
+    )
+    .await;
+    assert_eq!(
+        (status, v["error"]["code"].as_str()),
+        (400, Some("wrong_kind"))
+    );
     s.assert_no_panic();
 }

@@ -92,7 +92,7 @@ fn main() {
             .execute(Command::CreateSession(CreateSession {
                 session: Some("bench".into()),
                 kind: "pose_graph_2d".into(),
-                options: SolverOptions::default(),
+                options: None,
                 auto_optimize: Default::default(),
             }))
             .await

@@ -71,6 +71,13 @@ impl Problem {
         Self::default()
     }
 
+    pub fn with_gauge(gauge: Gauge) -> Self {
+        Self {
+            gauge,
+            ..Self::default()
+        }
+    }
+
     pub fn add_variable(
         &mut self,
         key: Key,

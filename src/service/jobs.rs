@@ -40,12 +40,29 @@ pub enum JobOutput {
     Json,
     G2o,
     Tum,
+    Bal,
+}
+
+/// What a job parsed: a pose graph or a bundle-adjustment problem.
+enum Parsed {
+    PoseGraph(io::PoseGraph),
+    Bal(io::bal::BalProblem),
+}
+
+impl Parsed {
+    fn problem_mut(&mut self) -> &mut crate::problem::Problem {
+        match self {
+            Self::PoseGraph(g) => &mut g.problem,
+            Self::Bal(b) => &mut b.problem,
+        }
+    }
 }
 
 /// A validated job, ready to run.
 pub struct Job {
     text: String,
     format: Option<Format>,
+    bal: bool,
     options: SolverOptions,
     robust: Option<RobustKernel>,
     pub output: JobOutput,
@@ -70,21 +87,25 @@ pub enum JobAnswer {
 impl Job {
     pub fn new(text: String, params: JobParams) -> Result<Self, ServiceError> {
         let bad = |field: &str, m: String| ServiceError::bad_request("invalid_parameter", field, m);
-        let format = match params.format.as_deref() {
-            None => None,
-            Some("bal") => {
-                return Err(ServiceError::bad_request(
-                    "unsupported_format",
-                    "format",
-                    "bundle-adjustment (BAL) jobs are not supported yet; formats: g2o, toro",
-                ))
+        let format =
+            match params.format.as_deref() {
+                None => None,
+                Some("bal") => None,
+                Some(f) => Some(Format::parse(f).ok_or_else(|| {
+                    bad("format", format!("unknown format `{f}` (g2o, toro, bal)"))
+                })?),
+            };
+        let bal = params.format.as_deref() == Some("bal");
+        // Bundle adjustment leaves the gauge free: it needs LM's damping by default.
+        let mut options = if bal {
+            SolverOptions {
+                method: Method::LevenbergMarquardt,
+                initialization: Initialization::None,
+                ..SolverOptions::default()
             }
-            Some(f) => Some(
-                Format::parse(f)
-                    .ok_or_else(|| bad("format", format!("unknown format `{f}` (g2o, toro)")))?,
-            ),
+        } else {
+            SolverOptions::default()
         };
-        let mut options = SolverOptions::default();
         if let Some(m) = &params.method {
             options.method = Method::parse(m)
                 .ok_or_else(|| bad("method", format!("unknown method `{m}` (gn, lm, dogleg)")))?;
@@ -125,16 +146,25 @@ impl Job {
             None | Some("json") => JobOutput::Json,
             Some("g2o") => JobOutput::G2o,
             Some("tum") => JobOutput::Tum,
+            Some("bal") => JobOutput::Bal,
             Some(o) => {
                 return Err(bad(
                     "output",
-                    format!("unknown output `{o}` (json, g2o, tum)"),
+                    format!("unknown output `{o}` (json, g2o, tum, bal)"),
                 ))
             }
         };
+        let pose_output = matches!(output, JobOutput::G2o | JobOutput::Tum);
+        if (bal && pose_output) || (!bal && output == JobOutput::Bal) {
+            return Err(bad(
+                "output",
+                "g2o and tum output is for pose graphs, bal output for bal input".into(),
+            ));
+        }
         Ok(Self {
             text,
             format,
+            bal,
             options,
             robust,
             output,
@@ -147,10 +177,16 @@ impl Job {
     pub fn submit(self, pool: &PoolHandle, reply: Reply) -> bool {
         let handle = pool.clone();
         pool.submit(Box::new(move || {
-            match io::parse_text(&self.text, Path::new("request body"), self.format) {
+            let name = Path::new("request body");
+            let parsed = if self.bal {
+                io::bal::parse(name, &self.text).map(Parsed::Bal)
+            } else {
+                io::parse_text(&self.text, name, self.format).map(Parsed::PoseGraph)
+            };
+            match parsed {
                 Ok(mut graph) => {
                     if self.robust.is_some() {
-                        graph.problem.set_robust_kernel(self.robust);
+                        graph.problem_mut().set_robust_kernel(self.robust);
                     }
                     let running = Running {
                         graph,
@@ -175,7 +211,7 @@ impl Job {
 pub type Reply = tokio::sync::oneshot::Sender<Result<JobAnswer, ServiceError>>;
 
 struct Running {
-    graph: io::PoseGraph,
+    graph: Parsed,
     options: SolverOptions,
     output: JobOutput,
     /// What the earlier slices did.
@@ -186,7 +222,7 @@ impl Running {
     fn slice(mut self, pool: PoolHandle, reply: Reply) {
         let start = Instant::now();
         let mut preempted = false;
-        let result = solver::optimize(&mut self.graph.problem, &self.options, &mut |_| {
+        let result = solver::optimize(self.graph.problem_mut(), &self.options, &mut |_| {
             if pool.is_stopping() {
                 return ControlFlow::Break(());
             }
@@ -214,15 +250,18 @@ impl Running {
         let _ = reply.send(Ok(self.answer(summary)));
     }
 
-    fn answer(self, summary: Summary) -> JobAnswer {
-        let graph = &self.graph;
-        match self.output {
-            JobOutput::G2o => JobAnswer::Text(io::g2o::to_string(graph)),
-            JobOutput::Tum => JobAnswer::Text(io::tum::to_string(graph)),
-            JobOutput::Json => {
-                let values = &graph.problem.values;
-                let variables = graph
-                    .vertex_order
+    fn answer(mut self, summary: Summary) -> JobAnswer {
+        match (&self.graph, self.output) {
+            (Parsed::PoseGraph(g), JobOutput::G2o) => JobAnswer::Text(io::g2o::to_string(g)),
+            (Parsed::PoseGraph(g), JobOutput::Tum) => JobAnswer::Text(io::tum::to_string(g)),
+            (Parsed::Bal(b), JobOutput::Bal) => JobAnswer::Text(io::bal::to_string(b)),
+            _ => {
+                let order: Vec<crate::problem::Key> = match &self.graph {
+                    Parsed::PoseGraph(g) => g.vertex_order.clone(),
+                    Parsed::Bal(b) => b.problem.values.keys().to_vec(),
+                };
+                let values = &self.graph.problem_mut().values;
+                let variables = order
                     .iter()
                     .map(|&key| {
                         let v = values

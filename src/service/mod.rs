@@ -395,7 +395,8 @@ impl Service {
                 format!("unknown session kind `{}` (known: {known:?})", request.kind),
             )
         })?;
-        request.options.validate().map_err(|(field, m)| {
+        let options = request.options.unwrap_or_else(kind.default_options);
+        options.validate().map_err(|(field, m)| {
             ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
         })?;
         let name = match request.session {
@@ -429,7 +430,7 @@ impl Service {
         let session = Session::new(
             name.clone(),
             kind,
-            request.options,
+            options,
             request.auto_optimize,
             self.runtime.clone(),
             self.pool.handle(),

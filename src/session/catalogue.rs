@@ -9,15 +9,18 @@
 //! - `se2`: `[x, y, θ]`.
 //! - `se3`: `[x, y, z, qx, qy, qz, qw]` (g2o order); the quaternion must have unit norm within
 //!   1e-3 and is normalised.
+//! - `snavely_camera`: BAL's nine parameters `[rx, ry, rz, tx, ty, tz, f, k1, k2]` (angle-axis).
+//! - `point3`: `[x, y, z]`; `reprojection_snavely` measures the pixel `[x, y]` (BAL convention).
 //! - Factor measurements use the same encoding as the variable they relate; information matrices
 //!   are in the factor's residual order (`between_se3`: translation then rotation angle, GTSAM's
 //!   convention, not g2o's half-angle).
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Quaternion, UnitQuaternion, Vector2, Vector3};
 
-use crate::factors::{BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3};
-use crate::geometry::{wrap_angle, Se2, Se3};
-use crate::problem::{Key, Variable};
+use crate::factors::{BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, ReprojectionSnavely};
+use crate::geometry::{wrap_angle, Point3, Se2, Se3, SnavelyCamera};
+use crate::problem::{Gauge, Key, Variable};
+use crate::solver::{Initialization, Method, SolverOptions};
 
 /// Builds a variable from its wire encoding (length already checked), or says why not.
 pub type DecodeVariable = fn(&[f64]) -> Result<Box<dyn Variable>, String>;
@@ -43,12 +46,15 @@ pub struct FactorCodec {
     pub build: BuildFactor,
 }
 
-/// A kind of session: which variables and factors it accepts.
+/// A kind of session: which variables and factors it accepts, and how it is solved by default.
 pub struct SessionKind {
     pub name: &'static str,
     pub description: &'static str,
     pub variable_kinds: &'static [&'static str],
     pub factor_types: &'static [&'static str],
+    pub gauge: Gauge,
+    /// Options when the client gives none.
+    pub default_options: fn() -> SolverOptions,
 }
 
 pub const SESSION_KINDS: &[SessionKind] = &[
@@ -57,14 +63,35 @@ pub const SESSION_KINDS: &[SessionKind] = &[
         description: "SE(2) poses with relative-pose and prior factors",
         variable_kinds: &["se2"],
         factor_types: &["between_se2", "prior_se2"],
+        gauge: Gauge::AnchorComponents,
+        default_options: SolverOptions::default,
     },
     SessionKind {
         name: "pose_graph_3d",
         description: "SE(3) poses with relative-pose and prior factors",
         variable_kinds: &["se3"],
         factor_types: &["between_se3", "prior_se3"],
+        gauge: Gauge::AnchorComponents,
+        default_options: SolverOptions::default,
+    },
+    SessionKind {
+        name: "bundle_adjustment",
+        description: "BAL (Snavely) cameras and 3D points with reprojection factors; the gauge is left to LM's damping",
+        variable_kinds: &["snavely_camera", "point3"],
+        factor_types: &["reprojection_snavely"],
+        gauge: Gauge::Free,
+        default_options: bundle_adjustment_options,
     },
 ];
+
+/// LM: with a free gauge the undamped normal equations are singular.
+fn bundle_adjustment_options() -> SolverOptions {
+    SolverOptions {
+        method: Method::LevenbergMarquardt,
+        initialization: Initialization::None,
+        ..SolverOptions::default()
+    }
+}
 
 const VARIABLES: &[VariableCodec] = &[
     VariableCodec {
@@ -84,6 +111,21 @@ const VARIABLES: &[VariableCodec] = &[
                 vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
             })
         },
+    },
+    VariableCodec {
+        kind: "snavely_camera",
+        len: 9,
+        decode: |v| {
+            let p: [f64; 9] = v.try_into().expect("length checked");
+            Ok(Box::new(SnavelyCamera::from_bal(&p)))
+        },
+        encode: |v| encode_as::<SnavelyCamera>(v, |c| c.to_bal().to_vec()),
+    },
+    VariableCodec {
+        kind: "point3",
+        len: 3,
+        decode: |v| Ok(Box::new(Point3(Vector3::new(v[0], v[1], v[2])))),
+        encode: |v| encode_as::<Point3>(v, |p| p.0.iter().copied().collect()),
     },
 ];
 
@@ -126,6 +168,19 @@ const FACTORS: &[FactorCodec] = &[
         measurement_len: 7,
         residual_dim: 6,
         build: |k, m| Ok(Box::new(PriorSe3::new(k[0], decode_se3(m)?))),
+    },
+    FactorCodec {
+        name: "reprojection_snavely",
+        variable_kinds: &["snavely_camera", "point3"],
+        measurement_len: 2,
+        residual_dim: 2,
+        build: |k, m| {
+            Ok(Box::new(ReprojectionSnavely::new(
+                k[0],
+                k[1],
+                Vector2::new(m[0], m[1]),
+            )))
+        },
     },
 ];
 

@@ -31,8 +31,9 @@ pub struct CreateSession {
     #[serde(default)]
     pub session: Option<String>,
     pub kind: String,
+    /// Solver options; the kind's defaults when absent (LM for bundle adjustment).
     #[serde(default)]
-    pub options: SolverOptions,
+    pub options: Option<SolverOptions>,
     #[serde(default)]
     pub auto_optimize: AutoOptimize,
 }
