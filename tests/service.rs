@@ -4,7 +4,9 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, get, post, send, zenoh_get, zenoh_peer, TestServer};
+use common::server::{
+    client, g2o_batches, get, post, post_raw, send, zenoh_get, zenoh_peer, TestServer,
+};
 use common::{synthetic_helix_3d, synthetic_manhattan};
 use serde_json::{json, Value};
 
@@ -63,14 +65,8 @@ async fn curl_style_batch_job() {
     assert_eq!(health.1["status"], "ok");
 
     let text = synthetic_manhattan(300, 11);
-    let resp = c
-        .post(s.url("/v1/jobs"))
-        .body(text.clone())
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), 200);
-    let v: Value = resp.json().await.unwrap();
+    let (status, v) = post_raw(&c, &s.url("/v1/jobs"), text.clone()).await;
+    assert_eq!(status, 200);
     assert_close(
         v["summary"]["final_chi2"].as_f64().unwrap(),
         batch_optimum(&text),
@@ -131,14 +127,8 @@ async fn curl_style_batch_job() {
         ("", "VERTEX_SE2 0 0 zero 0", "body"),
         ("?max_iterations=0", "VERTEX_SE2 0 0 0 0", "max_iterations"),
     ] {
-        let resp = c
-            .post(s.url(&format!("/v1/jobs{query}")))
-            .body(body)
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(resp.status(), 400, "{query}");
-        let v: Value = resp.json().await.unwrap();
+        let (status, v) = post_raw(&c, &s.url(&format!("/v1/jobs{query}")), body).await;
+        assert_eq!(status, 400, "{query}");
         assert_eq!(v["error"]["field"], field, "{v}");
     }
     s.assert_no_panic();
@@ -735,23 +725,21 @@ async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
             .is_some_and(|m| !m.is_empty()));
     }
     // NaN is not JSON: malformed.
-    let resp = c
-        .post(s.url("/v1/sessions/g/batches"))
-        .body(r#"{"variables": [{"key": 3, "kind": "se2", "value": [NaN, 0, 0]}]}"#)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), 400);
-    let v: Value = resp.json().await.unwrap();
+    let (status, v) = post_raw(
+        &c,
+        &s.url("/v1/sessions/g/batches"),
+        r#"{"variables": [{"key": 3, "kind": "se2", "value": [NaN, 0, 0]}]}"#,
+    )
+    .await;
+    assert_eq!(status, 400);
     assert_eq!(v["error"]["code"], "malformed_json");
-    let resp = c
-        .post(s.url("/v1/sessions/g/batches"))
-        .body(r#"{"variables": [{"key": 3, "kind": "se2", "value": [0, 1e400, 0]}]}"#)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), 400, "infinite number");
-    let v: Value = resp.json().await.unwrap();
+    let (status, v) = post_raw(
+        &c,
+        &s.url("/v1/sessions/g/batches"),
+        r#"{"variables": [{"key": 3, "kind": "se2", "value": [0, 1e400, 0]}]}"#,
+    )
+    .await;
+    assert_eq!(status, 400, "infinite number");
     assert!(
         v["error"]["message"]
             .as_str()
@@ -1054,14 +1042,8 @@ async fn bundle_adjustment_as_a_job_and_as_a_session() {
     let c = client();
     let text = std::fs::read_to_string(&path).unwrap();
     // A BAL batch job: LM by default (the gauge is free), Ceres' optimum.
-    let resp = c
-        .post(s.url("/v1/jobs?format=bal"))
-        .body(text.clone())
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), 200);
-    let v: Value = resp.json().await.unwrap();
+    let (status, v) = post_raw(&c, &s.url("/v1/jobs?format=bal"), text.clone()).await;
+    assert_eq!(status, 200);
     let cost = v["summary"]["final_chi2"].as_f64().unwrap() / 2.0;
     assert!((cost - 13344.32).abs() < 1e-3 * 13344.32, "{cost}");
     assert_eq!(v["summary"]["method"], "levenberg_marquardt");
@@ -1077,14 +1059,8 @@ async fn bundle_adjustment_as_a_job_and_as_a_session() {
         .await
         .unwrap();
     assert_eq!(resp.status(), 400);
-    let resp = c
-        .post(s.url("/v1/jobs?format=bal"))
-        .body("2 1 1\n0 3 1 2\n")
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(resp.status(), 400);
-    let v: Value = resp.json().await.unwrap();
+    let (status, v) = post_raw(&c, &s.url("/v1/jobs?format=bal"), "2 1 1\n0 3 1 2\n").await;
+    assert_eq!(status, 400);
     assert_eq!(v["error"]["field"], "body");
 
     // The same problem streamed into a bundle_adjustment session: cameras and points, then the

@@ -5,11 +5,17 @@
 //! transport), so this measures the session engine.
 //!
 //! `cargo bench --bench incremental_stream -- <file.g2o> [--json out.json] [--limit N]`
+//! (2D or 3D g2o).
+
+#[path = "../../tests/common/mod.rs"]
+mod common;
 
 use std::time::Instant;
 
+use common::server::g2o_batches;
+
 use factord::service::{Command, Limits, Reply, Service};
-use factord::session::wire::{Batch, CreateSession, FactorSpec, SessionEvent, VariableSpec};
+use factord::session::wire::{Batch, CreateSession, SessionEvent};
 use factord::solver::{optimize, SolverOptions};
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -34,54 +40,21 @@ fn main() {
     let limit: usize = flag("--limit").map_or(usize::MAX, |v| v.parse().expect("--limit N"));
     let text = std::fs::read_to_string(path).expect("readable graph");
 
-    // Parse into streaming batches.
-    let mut vertices = Vec::new();
-    let mut edges = Vec::new();
-    for line in text.lines() {
-        let t: Vec<&str> = line.split_whitespace().collect();
-        let num = |i: usize| t[i].parse::<f64>().expect("number");
-        match t.first() {
-            Some(&"VERTEX_SE2") => vertices.push((num(1) as u64, [num(2), num(3), num(4)])),
-            Some(&"EDGE_SE2") => edges.push((
-                num(1) as u64,
-                num(2) as u64,
-                vec![num(3), num(4), num(5)],
-                (6..12).map(num).collect::<Vec<f64>>(),
-            )),
-            _ => {}
-        }
-    }
-    vertices.sort_by_key(|v| v.0);
-    vertices.truncate(limit);
-    let mut batches = Vec::new();
-    for (i, (key, value)) in vertices.iter().enumerate() {
-        let factors: Vec<FactorSpec> = edges
-            .iter()
-            .filter(|(a, b, _, _)| (*a).max(*b) == *key)
-            .map(|(a, b, z, info)| FactorSpec {
-                factor_type: "between_se2".into(),
-                keys: vec![*a, *b],
-                measurement: z.clone(),
-                information: Some(info.clone()),
-                sigmas: None,
-                robust: None,
-            })
-            .collect();
-        let has_odometry = edges
-            .iter()
-            .any(|(a, b, _, _)| *b == *key && *a + 1 == *key);
-        batches.push(Batch {
-            variables: vec![VariableSpec {
-                key: *key,
-                kind: "se2".into(),
-                value: (i == 0 || !has_odometry).then(|| value.to_vec()),
-                fixed: false,
-            }],
-            factors,
-            ..Batch::default()
-        });
-    }
+    // The streaming order shared with the tests: pose k with the edges whose later end is k.
+    let mut batches: Vec<Batch> = g2o_batches(&text)
+        .into_iter()
+        .map(|b| serde_json::from_value(b).expect("g2o_batches makes valid batches"))
+        .collect();
+    batches.truncate(limit);
+    let kept: std::collections::HashSet<u64> = batches
+        .iter()
+        .flat_map(|b| b.variables.iter().map(|v| v.key))
+        .collect();
 
+    let kind = match batches.first().map(|b| b.variables[0].kind.as_str()) {
+        Some("se3") => "pose_graph_3d",
+        _ => "pose_graph_2d",
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -91,7 +64,7 @@ fn main() {
         service
             .execute(Command::CreateSession(CreateSession {
                 session: Some("bench".into()),
-                kind: "pose_graph_2d".into(),
+                kind: kind.into(),
                 options: None,
                 auto_optimize: Default::default(),
             }))
@@ -186,14 +159,13 @@ fn main() {
     let (mut latencies, total, stats, phases, check) = report;
 
     // The batch optimum of the same (possibly truncated) graph, for the chi2 comparison.
-    let kept: std::collections::HashSet<u64> = vertices.iter().map(|v| v.0).collect();
     let truncated: String = text
         .lines()
         .filter(|l| {
             let t: Vec<&str> = l.split_whitespace().collect();
             match t.first() {
-                Some(&"VERTEX_SE2") => kept.contains(&t[1].parse().unwrap()),
-                Some(&"EDGE_SE2") => {
+                Some(tag) if tag.starts_with("VERTEX") => kept.contains(&t[1].parse().unwrap()),
+                Some(tag) if tag.starts_with("EDGE") => {
                     kept.contains(&t[1].parse().unwrap()) && kept.contains(&t[2].parse().unwrap())
                 }
                 _ => false,

@@ -24,6 +24,27 @@ pub trait Variable: Any + Debug + Send + Sync {
     fn as_any(&self) -> &dyn Any;
 }
 
+/// `clone_box`, `assign_from` and `as_any`, the same for every `Copy` variable kind.
+macro_rules! copy_variable_plumbing {
+    () => {
+        fn clone_box(&self) -> Box<dyn Variable> {
+            Box::new(*self)
+        }
+        fn assign_from(&mut self, other: &dyn Variable) -> bool {
+            match other.as_any().downcast_ref::<Self>() {
+                Some(o) => {
+                    *self = *o;
+                    true
+                }
+                None => false,
+            }
+        }
+        fn as_any(&self) -> &dyn Any {
+            self
+        }
+    };
+}
+
 /// SE(2) retraction is additive on (x, y, θ) with θ re-wrapped, as in g2o's `VertexSE2` and the
 /// course; the between-factor Jacobians below are derived for exactly this retraction.
 impl Variable for Se2 {
@@ -38,24 +59,10 @@ impl Variable for Se2 {
         self.y += delta[1];
         self.theta = wrap_angle(self.theta + delta[2]);
     }
-    fn clone_box(&self) -> Box<dyn Variable> {
-        Box::new(*self)
-    }
-    fn assign_from(&mut self, other: &dyn Variable) -> bool {
-        match other.as_any().downcast_ref::<Se2>() {
-            Some(o) => {
-                *self = *o;
-                true
-            }
-            None => false,
-        }
-    }
     fn is_finite(&self) -> bool {
         self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
     }
-    fn as_any(&self) -> &dyn Any {
-        self
-    }
+    copy_variable_plumbing!();
 }
 
 /// SE(3) retraction on the right, translation in the body frame:
@@ -74,25 +81,11 @@ impl Variable for Se3 {
         self.rotation *= so3::exp(&w);
         self.rotation.renormalize();
     }
-    fn clone_box(&self) -> Box<dyn Variable> {
-        Box::new(*self)
-    }
-    fn assign_from(&mut self, other: &dyn Variable) -> bool {
-        match other.as_any().downcast_ref::<Se3>() {
-            Some(o) => {
-                *self = *o;
-                true
-            }
-            None => false,
-        }
-    }
     fn is_finite(&self) -> bool {
         self.translation.iter().all(|v| v.is_finite())
             && self.rotation.coords.iter().all(|v| v.is_finite())
     }
-    fn as_any(&self) -> &dyn Any {
-        self
-    }
+    copy_variable_plumbing!();
 }
 
 /// The BAL camera: rotation on SO(3) perturbed on the left, the rest additive:
@@ -114,26 +107,12 @@ impl Variable for SnavelyCamera {
         self.k1 += delta[7];
         self.k2 += delta[8];
     }
-    fn clone_box(&self) -> Box<dyn Variable> {
-        Box::new(*self)
-    }
-    fn assign_from(&mut self, other: &dyn Variable) -> bool {
-        match other.as_any().downcast_ref::<SnavelyCamera>() {
-            Some(o) => {
-                *self = *o;
-                true
-            }
-            None => false,
-        }
-    }
     fn is_finite(&self) -> bool {
         self.translation.iter().all(|v| v.is_finite())
             && self.rotation.coords.iter().all(|v| v.is_finite())
             && [self.focal, self.k1, self.k2].iter().all(|v| v.is_finite())
     }
-    fn as_any(&self) -> &dyn Any {
-        self
-    }
+    copy_variable_plumbing!();
 }
 
 /// A 3D point, additive.
@@ -147,22 +126,8 @@ impl Variable for Point3 {
     fn retract(&mut self, delta: &[f64]) {
         self.0 += Vector3::new(delta[0], delta[1], delta[2]);
     }
-    fn clone_box(&self) -> Box<dyn Variable> {
-        Box::new(*self)
-    }
-    fn assign_from(&mut self, other: &dyn Variable) -> bool {
-        match other.as_any().downcast_ref::<Point3>() {
-            Some(o) => {
-                *self = *o;
-                true
-            }
-            None => false,
-        }
-    }
     fn is_finite(&self) -> bool {
         self.0.iter().all(|v| v.is_finite())
     }
-    fn as_any(&self) -> &dyn Any {
-        self
-    }
+    copy_variable_plumbing!();
 }

@@ -56,6 +56,21 @@ impl Parsed {
             Self::Bal(b) => &mut b.problem,
         }
     }
+
+    /// The keys in the order the input listed them (vertices; BAL cameras then points).
+    fn keys(&self) -> &[crate::problem::Key] {
+        match self {
+            Self::PoseGraph(g) => &g.vertex_order,
+            Self::Bal(b) => b.problem.values.keys(),
+        }
+    }
+
+    fn values(&self) -> &crate::problem::Values {
+        match self {
+            Self::PoseGraph(g) => &g.problem.values,
+            Self::Bal(b) => &b.problem.values,
+        }
+    }
 }
 
 /// A validated job, ready to run.
@@ -250,18 +265,16 @@ impl Running {
         let _ = reply.send(Ok(self.answer(summary)));
     }
 
-    fn answer(mut self, summary: Summary) -> JobAnswer {
+    fn answer(self, summary: Summary) -> JobAnswer {
         match (&self.graph, self.output) {
             (Parsed::PoseGraph(g), JobOutput::G2o) => JobAnswer::Text(io::g2o::to_string(g)),
             (Parsed::PoseGraph(g), JobOutput::Tum) => JobAnswer::Text(io::tum::to_string(g)),
             (Parsed::Bal(b), JobOutput::Bal) => JobAnswer::Text(io::bal::to_string(b)),
             _ => {
-                let order: Vec<crate::problem::Key> = match &self.graph {
-                    Parsed::PoseGraph(g) => g.vertex_order.clone(),
-                    Parsed::Bal(b) => b.problem.values.keys().to_vec(),
-                };
-                let values = &self.graph.problem_mut().values;
-                let variables = order
+                let values = self.graph.values();
+                let variables = self
+                    .graph
+                    .keys()
                     .iter()
                     .map(|&key| {
                         let v = values

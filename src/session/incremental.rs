@@ -103,7 +103,7 @@ pub(crate) fn resolve(
             for (v, f) in fixed.iter_mut().enumerate() {
                 *f |= !inside[v];
             }
-            let factors = factors_touching(index, &region, n);
+            let factors = factors_touching(index, &region);
             let summary =
                 match solver::optimize_region(problem, &fixed, &factors, options, on_iteration) {
                     Ok(summary) => summary,
@@ -130,7 +130,7 @@ pub(crate) fn resolve(
             for &v in &ring {
                 ring_fixed[v] = false;
             }
-            let ring_factors = factors_touching(index, &ring, n);
+            let ring_factors = factors_touching(index, &ring);
             let gain = solver::newton_decrement(problem, &ring_fixed, &ring_factors)?;
             if gain <= options.function_tolerance * total {
                 *debt += gain;
@@ -193,7 +193,7 @@ fn grow_region(problem: &Problem, index: &Engine, seeds: &[usize], size: usize) 
 }
 
 /// Every factor touching one of `variables`, once, in index order.
-fn factors_touching(index: &Engine, variables: &[usize], _n: usize) -> Vec<usize> {
+fn factors_touching(index: &Engine, variables: &[usize]) -> Vec<usize> {
     let mut factors: Vec<usize> = variables
         .iter()
         .flat_map(|&v| index.by_variable[v].iter().copied())

@@ -151,6 +151,26 @@ pub async fn send(
     (status, value)
 }
 
+/// Posts a body as is (a graph file, deliberately broken JSON) and parses the JSON answer.
+pub async fn post_raw(
+    client: &reqwest::Client,
+    url: &str,
+    body: impl Into<reqwest::Body>,
+) -> (u16, Value) {
+    let resp = client
+        .post(url)
+        .body(body)
+        .send()
+        .await
+        .unwrap_or_else(|e| panic!("{url}: request failed: {e:?}"));
+    let status = resp.status().as_u16();
+    let text = resp.text().await.expect("body");
+    (
+        status,
+        serde_json::from_str(&text).unwrap_or(Value::String(text)),
+    )
+}
+
 pub async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
     send(client, reqwest::Method::POST, url, Some(body)).await
 }
