@@ -241,6 +241,7 @@ pub fn parse(path: &Path, text: &str) -> Result<BalProblem, IoError> {
     }
     let mut problem = Problem::new();
     problem.gauge = Gauge::Free;
+    problem.eliminate = vec!["point3"];
     for i in 0..num_cameras {
         let mut p = [0.0; 9];
         for (c, v) in p.iter_mut().enumerate() {

@@ -51,6 +51,9 @@ pub struct Problem {
     factors: Vec<FactorEntry>,
     /// How the solver removes gauge freedom.
     pub gauge: Gauge,
+    /// Kinds of landmark-like variables the linear solver eliminates first by Schur complement
+    /// (`"point3"` in bundle adjustment). Empty: none.
+    pub eliminate: Vec<&'static str>,
 }
 
 /// What the solver does about directions in which the cost is flat as a whole (a pose graph
@@ -76,6 +79,12 @@ impl Problem {
             gauge,
             ..Self::default()
         }
+    }
+
+    /// This problem with `kinds` eliminated first by the linear solver (see [`Problem::eliminate`]).
+    pub fn eliminating(mut self, kinds: &[&'static str]) -> Self {
+        self.eliminate = kinds.to_vec();
+        self
     }
 
     pub fn add_variable(

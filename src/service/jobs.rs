@@ -13,7 +13,7 @@ use crate::factors::RobustKernel;
 use crate::io::{self, Format};
 use crate::session::catalogue::encode_variable;
 use crate::session::wire::VariableValue;
-use crate::solver::{self, Initialization, Method, SolverOptions, Summary};
+use crate::solver::{self, Initialization, LinearSolverChoice, Method, SolverOptions, Summary};
 
 /// Job parameters (HTTP query parameters).
 #[derive(Clone, Debug, Default, Deserialize, Serialize)]
@@ -31,6 +31,8 @@ pub struct JobParams {
     pub function_tolerance: Option<f64>,
     pub gradient_tolerance: Option<f64>,
     pub parameter_tolerance: Option<f64>,
+    /// auto | sparse_cholesky | dense_schur | sparse_schur
+    pub linear_solver: Option<String>,
     /// json (default) | g2o | tum
     pub output: Option<String>,
 }
@@ -113,11 +115,7 @@ impl Job {
         let bal = params.format.as_deref() == Some("bal");
         // Bundle adjustment leaves the gauge free: it needs LM's damping by default.
         let mut options = if bal {
-            SolverOptions {
-                method: Method::LevenbergMarquardt,
-                initialization: Initialization::None,
-                ..SolverOptions::default()
-            }
+            SolverOptions::bundle_adjustment()
         } else {
             SolverOptions::default()
         };
@@ -149,6 +147,16 @@ impl Job {
         }
         if let Some(t) = params.parameter_tolerance {
             options.parameter_tolerance = t;
+        }
+        if let Some(l) = &params.linear_solver {
+            options.linear_solver = LinearSolverChoice::parse(l).ok_or_else(|| {
+                bad(
+                    "linear_solver",
+                    format!(
+                        "unknown linear solver `{l}` (auto, sparse_cholesky, dense_schur, sparse_schur)"
+                    ),
+                )
+            })?;
         }
         options.validate().map_err(|(field, m)| bad(field, m))?;
         let robust = params

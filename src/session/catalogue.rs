@@ -20,7 +20,7 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector2, Vector3};
 use crate::factors::{BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, ReprojectionSnavely};
 use crate::geometry::{wrap_angle, Point3, Se2, Se3, SnavelyCamera};
 use crate::problem::{Gauge, Key, Variable};
-use crate::solver::{Initialization, Method, SolverOptions};
+use crate::solver::SolverOptions;
 
 /// Builds a variable from its wire encoding (length already checked), or says why not.
 pub type DecodeVariable = fn(&[f64]) -> Result<Box<dyn Variable>, String>;
@@ -53,6 +53,8 @@ pub struct SessionKind {
     pub variable_kinds: &'static [&'static str],
     pub factor_types: &'static [&'static str],
     pub gauge: Gauge,
+    /// Variable kinds the linear solver eliminates first (Schur complement).
+    pub eliminate: &'static [&'static str],
     /// Options when the client gives none.
     pub default_options: fn() -> SolverOptions,
 }
@@ -64,6 +66,7 @@ pub const SESSION_KINDS: &[SessionKind] = &[
         variable_kinds: &["se2"],
         factor_types: &["between_se2", "prior_se2"],
         gauge: Gauge::AnchorComponents,
+        eliminate: &[],
         default_options: SolverOptions::default,
     },
     SessionKind {
@@ -72,6 +75,7 @@ pub const SESSION_KINDS: &[SessionKind] = &[
         variable_kinds: &["se3"],
         factor_types: &["between_se3", "prior_se3"],
         gauge: Gauge::AnchorComponents,
+        eliminate: &[],
         default_options: SolverOptions::default,
     },
     SessionKind {
@@ -80,18 +84,11 @@ pub const SESSION_KINDS: &[SessionKind] = &[
         variable_kinds: &["snavely_camera", "point3"],
         factor_types: &["reprojection_snavely"],
         gauge: Gauge::Free,
-        default_options: bundle_adjustment_options,
+        eliminate: &["point3"],
+        default_options: SolverOptions::bundle_adjustment,
     },
 ];
 
-/// LM: with a free gauge the undamped normal equations are singular.
-fn bundle_adjustment_options() -> SolverOptions {
-    SolverOptions {
-        method: Method::LevenbergMarquardt,
-        initialization: Initialization::None,
-        ..SolverOptions::default()
-    }
-}
 
 const VARIABLES: &[VariableCodec] = &[
     VariableCodec {

@@ -119,7 +119,7 @@ impl Session {
             state: Mutex::new(State {
                 options,
                 auto,
-                problem: Some(Problem::with_gauge(kind.gauge)),
+                problem: Some(Problem::with_gauge(kind.gauge).eliminating(kind.eliminate)),
                 index: Some(Engine::default()),
                 seeds: Vec::new(),
                 structural: true,

@@ -5,15 +5,18 @@ pub mod cholesky;
 pub mod cholesky_bench;
 pub mod gauge;
 pub mod initialize;
+pub mod linear;
 pub mod linearize;
 mod optimizer;
 pub mod options;
+pub mod schur;
+mod simd;
 pub mod structure;
 pub mod summary;
 mod warm;
 
 pub use optimizer::{optimize, optimize_warm};
-pub use options::{Initialization, Method, SolverOptions};
+pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 pub use warm::{newton_decrement, optimize_region, OrderingCache};
 

@@ -12,6 +12,8 @@ use std::time::Instant;
 use faer::sparse::linalg::SupernodalThreshold;
 
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
+use super::linear::{LinearSolver, SchurReport};
+use super::schur::{self, SchurSolver};
 use super::gauge::anchor_components;
 use super::initialize;
 use super::linearize::{free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout};
@@ -78,10 +80,19 @@ fn optimize_from(
         return Err(SolverError::NonFiniteInitialCost);
     }
 
-    // One fill-reducing order of the variable graph serves the initialisation and the solve.
-    let ordering = match cache {
-        Some(cache) => cache.ordering(problem.factors(), &fixed),
-        None => BlockOrdering::amd(free_adjacency(problem.factors(), &fixed)),
+    // One fill-reducing order of the variable graph serves the initialisation and the solve;
+    // with a Schur complement the eliminated variables come first.
+    let schur_plan = schur::plan(
+        problem.factors(),
+        &problem.values,
+        &fixed,
+        &problem.eliminate,
+        options.linear_solver,
+    );
+    let ordering = match (&schur_plan, cache) {
+        (Some(plan), _) => plan.ordering.clone(),
+        (None, Some(cache)) => cache.ordering(problem.factors(), &fixed),
+        (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), &fixed)),
     };
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
@@ -97,9 +108,15 @@ fn optimize_from(
 
     let prep = Instant::now();
     let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &ordering);
-    // Supernodal on every pattern we measured: the block ordering makes variables supernodes
-    // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
-    let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::FORCE_SUPERNODAL)?;
+    let chol = match &schur_plan {
+        Some(plan) => LinearSolver::Schur(Box::new(SchurSolver::new(&layout.pattern, plan)?)),
+        // Supernodal on every pattern we measured: the block ordering makes variables supernodes
+        // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
+        None => LinearSolver::Sparse(SparseCholesky::analyze(
+            &layout.pattern,
+            SupernodalThreshold::FORCE_SUPERNODAL,
+        )?),
+    };
     timings.preprocess_seconds += prep.elapsed().as_secs_f64();
 
     let mut values = std::mem::take(&mut problem.values);
@@ -139,6 +156,9 @@ pub(super) struct Run {
     timings: Timings,
     factorization: &'static str,
     factor_nnz: usize,
+    linear_solver: &'static str,
+    ordering: &'static str,
+    schur: Option<SchurReport>,
 }
 
 /// Facts about the solve that the iteration loop does not know.
@@ -156,7 +176,7 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     values: &mut Values,
     factors: &[E],
     layout: &SystemLayout,
-    chol: SparseCholesky,
+    chol: LinearSolver,
     timings: Timings,
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
@@ -167,7 +187,14 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
         layout,
         scratch: Scratch::new(layout),
         h: vec![0.0; layout.pattern.nnz()],
-        damped: vec![0.0; layout.pattern.nnz()],
+        damped: vec![
+            0.0;
+            if chol.shifts_in_place() {
+                n
+            } else {
+                layout.pattern.nnz()
+            }
+        ],
         b: vec![0.0; n],
         delta: vec![0.0; n],
         work: vec![0.0; n],
@@ -182,8 +209,11 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     Ok(Run {
         chi2,
         termination,
-        factorization: solver.chol.kind(),
+        factorization: solver.chol.factorization(),
         factor_nnz: solver.chol.factor_nnz(),
+        linear_solver: solver.chol.label(),
+        ordering: solver.chol.ordering(),
+        schur: solver.chol.schur_report(),
         log: solver.log,
         timings: solver.timings,
     })
@@ -205,12 +235,13 @@ impl Run {
             given_options: options.clone(),
             used: UsedOptions {
                 method: options.method.name().into(),
-                linear_solver: "sparse Cholesky (faer)".into(),
+                linear_solver: self.linear_solver.into(),
                 factorization: self.factorization.into(),
-                ordering: "AMD on the variable graph".into(),
+                ordering: self.ordering.into(),
                 threads: 1,
                 initialization: context.initialization,
                 gauge_fixed: context.gauge_fixed,
+                schur: self.schur,
                 region_variables: context.region,
             },
             num_variables: values.len(),
@@ -283,7 +314,7 @@ struct Iterations<'a> {
     work: Vec<f64>,
     product: Vec<f64>,
     trial: Values,
-    chol: SparseCholesky,
+    chol: LinearSolver,
     timings: Timings,
     log: Vec<IterationReport>,
     /// Started near the optimum: see [`optimize_warm`].
@@ -366,7 +397,14 @@ impl Iterations<'_> {
     ) -> Result<(), NotPositiveDefinite> {
         let pattern = &self.layout.pattern;
         let t = Instant::now();
-        let result = if lambda > 0.0 {
+        let result = if lambda > 0.0 && self.chol.shifts_in_place() {
+            self.damped.truncate(pattern.n);
+            for c in 0..pattern.n {
+                self.damped[c] = lambda * self.damping_diagonal(c);
+            }
+            self.chol.factorize_shifted(pattern, &self.h, &self.damped)
+        } else if lambda > 0.0 {
+            self.damped.resize(self.h.len(), 0.0);
             self.damped.copy_from_slice(&self.h);
             for c in 0..pattern.n {
                 self.damped[pattern.diagonal_index(c)] += lambda * self.damping_diagonal(c);
@@ -410,8 +448,14 @@ impl Iterations<'_> {
                 termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise"),
             ));
         }
-        // LM tries an undamped (Gauss-Newton) step first; damping starts at the first rejection.
-        let mut lambda = 0.0;
+        // LM tries an undamped (Gauss-Newton) step first unless told otherwise; damping starts at
+        // the first rejection.
+        let mut lambda = if options.method == Method::LevenbergMarquardt && options.damp_first_step
+        {
+            options.initial_lambda
+        } else {
+            0.0
+        };
         let mut nu = 2.0;
         let mut radius = options.initial_trust_radius;
         let mut have_gn_step = false;

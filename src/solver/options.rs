@@ -41,6 +41,31 @@ pub enum Initialization {
     Auto,
 }
 
+/// How the normal equations are solved.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LinearSolverChoice {
+    /// Schur complement when the problem names variables to eliminate (dense reduced system up
+    /// to 1000 unknowns, sparse beyond), sparse Cholesky of the whole system otherwise.
+    #[default]
+    Auto,
+    SparseCholesky,
+    DenseSchur,
+    SparseSchur,
+}
+
+impl LinearSolverChoice {
+    pub fn parse(text: &str) -> Option<Self> {
+        match text.to_ascii_lowercase().replace('-', "_").as_str() {
+            "auto" => Some(Self::Auto),
+            "sparse_cholesky" | "sparse_normal_cholesky" => Some(Self::SparseCholesky),
+            "dense_schur" => Some(Self::DenseSchur),
+            "sparse_schur" => Some(Self::SparseSchur),
+            _ => None,
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 /// A tolerance of 0 disables its criterion: with all three at 0 a solve runs exactly
@@ -54,12 +79,17 @@ pub struct SolverOptions {
     pub gradient_tolerance: f64,
     /// Stop when ‖Δx‖∞ falls below this.
     pub parameter_tolerance: f64,
-    /// LM damping λ (relative to diag(JᵀJ)) used from the first rejected step on; LM starts
-    /// undamped.
+    /// LM damping λ (relative to diag(JᵀJ)) used from the first rejected step on, or from the
+    /// start with `damp_first_step`.
     pub initial_lambda: f64,
+    /// LM: damp the first step with `initial_lambda` (Ceres' behaviour) instead of trying an
+    /// undamped Gauss-Newton step first. A free gauge (bundle adjustment) makes the undamped
+    /// system singular, so the undamped attempt there only costs a factorisation.
+    pub damp_first_step: bool,
     /// Initial Dogleg trust-region radius.
     pub initial_trust_radius: f64,
     pub initialization: Initialization,
+    pub linear_solver: LinearSolverChoice,
 }
 
 impl Default for SolverOptions {
@@ -71,13 +101,26 @@ impl Default for SolverOptions {
             gradient_tolerance: 1e-10,
             parameter_tolerance: 1e-10,
             initial_lambda: 1e-4,
+            damp_first_step: false,
             initial_trust_radius: 1e4,
             initialization: Initialization::Auto,
+            linear_solver: LinearSolverChoice::Auto,
         }
     }
 }
 
 impl SolverOptions {
+    /// Defaults for bundle adjustment: LM damped from the first step (the gauge is free, so
+    /// Gauss-Newton's system is singular), no pose-graph initialisation.
+    pub fn bundle_adjustment() -> Self {
+        Self {
+            method: Method::LevenbergMarquardt,
+            damp_first_step: true,
+            initialization: Initialization::None,
+            ..Self::default()
+        }
+    }
+
     /// Checks every field's range; on failure names the field and says why.
     pub fn validate(&self) -> Result<(), (&'static str, String)> {
         if self.max_iterations == 0 || self.max_iterations > 100_000 {

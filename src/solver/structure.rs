@@ -112,6 +112,12 @@ impl BlockPattern {
         self.row_idx.len()
     }
 
+    /// The lower blocks of column block `b` (elimination positions): `(a, pair)` for every `a ≥ b`
+    /// in increasing order, the diagonal block first.
+    pub fn column_blocks(&self, b: usize) -> &[(usize, usize)] {
+        &self.col_blocks[b]
+    }
+
     /// Index into `pair_cols` of block (a, b), a ≥ b in elimination positions.
     pub fn pair(&self, a: usize, b: usize) -> Option<usize> {
         let blocks = &self.col_blocks[b];

@@ -2,6 +2,7 @@
 
 use serde::Serialize;
 
+use super::linear::SchurReport;
 use super::options::SolverOptions;
 use crate::problem::Key;
 
@@ -78,6 +79,9 @@ pub struct UsedOptions {
     pub initialization: String,
     /// Variables fixed automatically to remove gauge freedom (one per unanchored component).
     pub gauge_fixed: Vec<Key>,
+    /// Present when landmark-like variables were eliminated by Schur complement.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub schur: Option<SchurReport>,
     /// For a session's local re-solve: how many variables the region let move (the rest of the
     /// problem held fixed).
     #[serde(skip_serializing_if = "Option::is_none")]

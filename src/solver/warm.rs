@@ -8,6 +8,7 @@ use std::time::Instant;
 use faer::sparse::linalg::SupernodalThreshold;
 
 use super::cholesky::SparseCholesky;
+use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, free_blocks, linearize, Scratch, SystemLayout};
 use super::optimizer::{dot, iterate, Context};
 use super::options::{Initialization, SolverOptions};
@@ -102,7 +103,10 @@ pub fn optimize_region(
             return Err(SolverError::NonFiniteInitialCost);
         }
         let layout = SystemLayout::new(&subset, &values, fixed);
-        let chol = SparseCholesky::analyze(&layout.pattern, SupernodalThreshold::FORCE_SUPERNODAL)?;
+        let chol = LinearSolver::Sparse(SparseCholesky::analyze(
+            &layout.pattern,
+            SupernodalThreshold::FORCE_SUPERNODAL,
+        )?);
         timings.preprocess_seconds = start.elapsed().as_secs_f64();
         let run = iterate(
             &mut values,

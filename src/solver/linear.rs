@@ -1,0 +1,110 @@
+//! The linear solver an iteration loop factorises with: sparse Cholesky of the whole system, or
+//! the Schur complement of its landmark-like variables.
+
+use serde::Serialize;
+
+use super::cholesky::{NotPositiveDefinite, SparseCholesky};
+use super::schur::SchurSolver;
+use super::structure::BlockPattern;
+
+#[derive(Debug)]
+pub enum LinearSolver {
+    Sparse(SparseCholesky),
+    Schur(Box<SchurSolver>),
+}
+
+/// What the Schur complement did, for the Summary.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct SchurReport {
+    pub eliminated_variables: usize,
+    pub reduced_variables: usize,
+    /// Scalar unknowns of the reduced system S.
+    pub reduced_dimension: usize,
+    /// `"dense"` or `"sparse"`: how S was factorised.
+    pub reduced_factorization: &'static str,
+}
+
+impl LinearSolver {
+    /// Factorises the matrix with lower triangle `values` in `pattern`'s layout.
+    pub fn factorize(
+        &mut self,
+        pattern: &BlockPattern,
+        values: &[f64],
+    ) -> Result<(), NotPositiveDefinite> {
+        match self {
+            Self::Sparse(chol) => chol.factorize(pattern, values),
+            Self::Schur(schur) => schur.factorize(pattern, values, None),
+        }
+    }
+
+    /// Whether [`LinearSolver::factorize_shifted`] works without a damped copy of the matrix.
+    pub fn shifts_in_place(&self) -> bool {
+        matches!(self, Self::Schur(_))
+    }
+
+    /// Factorises `values + diag(shift)` for a solver that [`LinearSolver::shifts_in_place`].
+    pub fn factorize_shifted(
+        &mut self,
+        pattern: &BlockPattern,
+        values: &[f64],
+        shift: &[f64],
+    ) -> Result<(), NotPositiveDefinite> {
+        match self {
+            Self::Sparse(_) => unreachable!("sparse Cholesky factorises a damped copy"),
+            Self::Schur(schur) => schur.factorize(pattern, values, Some(shift)),
+        }
+    }
+
+    pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
+        match self {
+            Self::Sparse(chol) => chol.solve_in_place(rhs),
+            Self::Schur(schur) => schur.solve_in_place(rhs),
+        }
+    }
+
+    pub fn label(&self) -> &'static str {
+        match self {
+            Self::Sparse(_) => "sparse Cholesky (faer)",
+            Self::Schur(s) if s.is_dense() => {
+                "Schur complement, dense Cholesky (faer) of the reduced system"
+            }
+            Self::Schur(_) => "Schur complement, sparse Cholesky (faer) of the reduced system",
+        }
+    }
+
+    /// "supernodal", "simplicial" or "dense": the factorisation of the system actually factorised.
+    pub fn factorization(&self) -> &'static str {
+        match self {
+            Self::Sparse(chol) => chol.kind(),
+            Self::Schur(s) if s.is_dense() => "dense",
+            Self::Schur(_) => "supernodal",
+        }
+    }
+
+    pub fn factor_nnz(&self) -> usize {
+        match self {
+            Self::Sparse(chol) => chol.factor_nnz(),
+            Self::Schur(s) => s.factor_nnz(),
+        }
+    }
+
+    pub fn ordering(&self) -> &'static str {
+        match self {
+            Self::Sparse(_) => "AMD on the variable graph",
+            Self::Schur(s) if s.is_dense() => "eliminated variables first, then the rest as given",
+            Self::Schur(_) => "eliminated variables first, then AMD on the reduced graph",
+        }
+    }
+
+    pub fn schur_report(&self) -> Option<SchurReport> {
+        match self {
+            Self::Sparse(_) => None,
+            Self::Schur(s) => Some(SchurReport {
+                eliminated_variables: s.eliminated_blocks(),
+                reduced_variables: s.reduced_blocks(),
+                reduced_dimension: s.reduced_dim(),
+                reduced_factorization: if s.is_dense() { "dense" } else { "sparse" },
+            }),
+        }
+    }
+}
