@@ -7,9 +7,12 @@ use std::time::Instant;
 use clap::{Parser, Subcommand};
 
 use factord::factors::RobustKernel;
+use factord::geometry::image::Pinhole;
 use factord::io::{self, Dimension};
 use factord::server::{self, ServeConfig};
-use factord::solver::{self, Initialization, IterationReport, Method, SolverOptions};
+use factord::solver::{
+    self, Initialization, IterationReport, LinearSolverChoice, Method, SolverOptions,
+};
 
 #[derive(Parser)]
 #[command(
@@ -30,6 +33,8 @@ enum Command {
     Serve(ServeArgs),
     /// Bundle adjustment of a BAL problem (optionally normalised and perturbed, as the course).
     Ba(BaArgs),
+    /// Direct (photometric) bundle adjustment of the course's images, poses and point patches.
+    DirectBa(DirectBaArgs),
     /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
     /// the matrix in Matrix Market form for comparison with other libraries.
     BenchCholesky(BenchCholeskyArgs),
@@ -85,6 +90,10 @@ struct BaArgs {
     max_iterations: usize,
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
+    /// auto | sparse_cholesky | dense_schur | sparse_schur (auto: Schur complement of the
+    /// points, dense reduced camera system up to 1000 unknowns)
+    #[arg(long, default_value = "auto", value_parser = parse_linear_solver)]
+    linear_solver: LinearSolverChoice,
     /// Robust kernel on every observation, e.g. huber:1.0 (pixels)
     #[arg(long, value_parser = parse_robust)]
     robust: Option<RobustKernel>,
@@ -110,6 +119,143 @@ struct BaArgs {
     out: Option<PathBuf>,
     #[arg(long)]
     quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct DirectBaArgs {
+    /// Directory with poses.txt, points.txt and 0.png, 1.png, …
+    dir: PathBuf,
+    /// Pinhole intrinsics fx,fy,cx,cy [default: the course's 277.34,291.402,312.234,239.777]
+    #[arg(long, value_parser = parse_intrinsics)]
+    intrinsics: Option<Pinhole>,
+    /// Robust kernel on every patch residual (16 gray levels), e.g. huber:40 or none
+    #[arg(long, default_value = "huber:40", value_parser = parse_optional_robust)]
+    robust: OptionalRobust,
+    #[arg(long, default_value_t = 100)]
+    max_iterations: usize,
+    #[arg(long, default_value_t = 1e-6)]
+    function_tolerance: f64,
+    /// Write the Summary plus the per-image patch agreement before and after as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// Points and camera trajectory before and after, as PLY.
+    #[arg(long)]
+    ply_initial: Option<PathBuf>,
+    #[arg(long)]
+    ply_final: Option<PathBuf>,
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_intrinsics(s: &str) -> Result<Pinhole, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{s}`: {e} (expected fx,fy,cx,cy)"))?;
+    match v[..] {
+        [fx, fy, cx, cy] if v.iter().all(|x| x.is_finite()) && fx > 0.0 && fy > 0.0 => {
+            Ok(Pinhole { fx, fy, cx, cy })
+        }
+        _ => Err(format!(
+            "`{s}`: expected four finite numbers fx,fy,cx,cy with fx, fy > 0"
+        )),
+    }
+}
+
+/// A robust kernel or `none` (clap reads a bare `Option` field as "flag may be absent").
+#[derive(Clone, Copy)]
+struct OptionalRobust(Option<RobustKernel>);
+
+fn parse_optional_robust(s: &str) -> Result<OptionalRobust, String> {
+    if s == "none" {
+        return Ok(OptionalRobust(None));
+    }
+    parse_robust(s).map(|k| OptionalRobust(Some(k)))
+}
+
+fn direct_bundle_adjust(args: DirectBaArgs) -> Result<(), String> {
+    let start = Instant::now();
+    let camera = args.intrinsics.unwrap_or(io::direct_ba::COURSE_CAMERA);
+    let mut problem =
+        io::direct_ba::load(&args.dir, camera, args.robust.0).map_err(|e| e.to_string())?;
+    let load_seconds = start.elapsed().as_secs_f64();
+    let before = problem.agreement();
+    if let Some(path) = &args.ply_initial {
+        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())
+            .map_err(|e| e.to_string())?;
+    }
+    let quiet = args.quiet;
+    if !quiet {
+        println!(
+            "loaded {} ({} images, {} points, {} point-image factors, {} points seen by no image) in {load_seconds:.3}s",
+            args.dir.display(),
+            problem.num_poses(),
+            problem.num_points(),
+            problem.problem.factors().len(),
+            problem.unseen_points,
+        );
+    }
+    let options = SolverOptions {
+        max_iterations: args.max_iterations,
+        function_tolerance: args.function_tolerance,
+        ..SolverOptions::bundle_adjustment()
+    };
+    let summary = solver::optimize(&mut problem.problem, &options, &mut |r| {
+        if !quiet {
+            print_iteration(r);
+        }
+        std::ops::ControlFlow::Continue(())
+    })
+    .map_err(|e| e.to_string())?;
+    let after = problem.agreement();
+    if !quiet {
+        print!("{}", summary.report());
+        println!(
+            "cost (Σρ(‖r‖²), gray levels²): {:.6e} -> {:.6e}, {} accepted steps",
+            summary.initial_chi2, summary.final_chi2, summary.successful_steps
+        );
+        println!("mean |patch − image| per image (gray levels), before -> after:");
+        for (b, a) in before.iter().zip(&after) {
+            println!(
+                "  image {}: {:.2} ({} points) -> {:.2} ({} points)",
+                b.image,
+                b.mean_abs_patch_difference,
+                b.points_visible,
+                a.mean_abs_patch_difference,
+                a.points_visible
+            );
+        }
+    }
+    if let Some(path) = &args.summary_json {
+        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
+        let map = json
+            .as_object_mut()
+            .expect("Summary serialises as an object");
+        map.insert("input".into(), args.dir.display().to_string().into());
+        map.insert("load_seconds".into(), load_seconds.into());
+        map.insert(
+            "agreement_before".into(),
+            serde_json::to_value(&before).map_err(|e| e.to_string())?,
+        );
+        map.insert(
+            "agreement_after".into(),
+            serde_json::to_value(&after).map_err(|e| e.to_string())?,
+        );
+        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    if let Some(path) = &args.ply_final {
+        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())
+            .map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
+fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
+    LinearSolverChoice::parse(s).ok_or_else(|| {
+        format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
+    })
 }
 
 fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
@@ -154,8 +300,8 @@ fn bundle_adjust(args: BaArgs) -> Result<(), String> {
         method: args.method,
         max_iterations: args.max_iterations,
         function_tolerance: args.function_tolerance,
-        initialization: Initialization::None,
-        ..SolverOptions::default()
+        linear_solver: args.linear_solver,
+        ..SolverOptions::bundle_adjustment()
     };
     let quiet = args.quiet;
     let summary = solver::optimize(&mut bal.problem, &options, &mut |r| {
@@ -315,6 +461,7 @@ fn main() -> ExitCode {
         Command::Solve(args) => solve(args),
         Command::Serve(args) => serve(args),
         Command::Ba(args) => bundle_adjust(args),
+        Command::DirectBa(args) => direct_bundle_adjust(args),
         Command::BenchCholesky(args) => factord::solver::cholesky_bench::run(
             &args.graph,
             args.edges.as_deref(),

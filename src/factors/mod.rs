@@ -8,6 +8,7 @@
 pub mod between_se2;
 pub mod between_se3;
 pub mod noise;
+pub mod photometric_patch;
 pub mod prior_se2;
 pub mod prior_se3;
 pub mod reprojection_snavely;
@@ -20,6 +21,7 @@ use std::fmt::Debug;
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
 pub use noise::SqrtInformation;
+pub use photometric_patch::PhotometricPatch;
 pub use prior_se2::PriorSe2;
 pub use prior_se3::PriorSe3;
 pub use reprojection_snavely::ReprojectionSnavely;

@@ -1,6 +1,7 @@
 //! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3); the BAL camera and 3D points.
 
 pub mod camera;
+pub mod image;
 pub mod se2;
 pub mod se3;
 pub mod so2;

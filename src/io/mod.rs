@@ -4,6 +4,7 @@
 //! number and reason), then vertices are added before edges, so record order does not matter.
 
 pub mod bal;
+pub mod direct_ba;
 pub mod g2o;
 pub mod ply;
 pub mod toro;
