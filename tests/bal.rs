@@ -90,28 +90,58 @@ fn bad_bal_input_is_a_clear_error() {
 
 #[test]
 fn levenberg_marquardt_reaches_the_ceres_optimum() {
-    use factord::solver::{optimize, Initialization, Method, SolverOptions};
-    let options = SolverOptions {
-        method: Method::LevenbergMarquardt,
-        initialization: Initialization::None,
-        ..SolverOptions::default()
-    };
-    // Ceres' optima (½Σ‖r‖²) from its docs / our Ceres 2.1 runs.
-    for (file, optimum) in [
-        ("bal/problem-16-22106-pre.txt", 18033.90),
-        ("bal/problem-49-7776-pre.txt", 13344.32),
+    use factord::solver::{optimize, LinearSolverChoice, SolverOptions};
+    // Ceres' optima (½Σ‖r‖²) from its docs / our Ceres 2.1 runs; each problem through the dense
+    // and the sparse reduced camera system, and problem-16 also without a Schur complement.
+    for (file, optimum, choices) in [
+        (
+            "bal/problem-16-22106-pre.txt",
+            18033.90,
+            &[
+                LinearSolverChoice::Auto,
+                LinearSolverChoice::SparseSchur,
+                LinearSolverChoice::SparseCholesky,
+            ][..],
+        ),
+        (
+            "bal/problem-49-7776-pre.txt",
+            13344.32,
+            &[LinearSolverChoice::Auto, LinearSolverChoice::SparseSchur][..],
+        ),
     ] {
         let Some(path) = common::data_file(file) else {
             return;
         };
-        let mut b = bal::load(&path).unwrap();
-        let summary = optimize(&mut b.problem, &options, &mut |_| {
-            std::ops::ControlFlow::Continue(())
-        })
-        .unwrap();
-        // The gauge (a similarity) is left to the damping, as Ceres does: nothing is fixed.
-        assert!(summary.used.gauge_fixed.is_empty());
-        assert_relative(b.cost(), optimum, 1e-3, file);
-        assert_relative(summary.final_chi2 / 2.0, b.cost(), 1e-12, file);
+        for &choice in choices {
+            let mut b = bal::load(&path).unwrap();
+            let options = SolverOptions {
+                linear_solver: choice,
+                ..SolverOptions::bundle_adjustment()
+            };
+            let summary = optimize(&mut b.problem, &options, &mut |_| {
+                std::ops::ControlFlow::Continue(())
+            })
+            .unwrap();
+            let what = format!("{file} with {choice:?}");
+            // The gauge (a similarity) is left to the damping, as Ceres does: nothing is fixed.
+            assert!(summary.used.gauge_fixed.is_empty());
+            assert_relative(b.cost(), optimum, 1e-3, &what);
+            assert_relative(summary.final_chi2 / 2.0, b.cost(), 1e-12, &what);
+            let schur = summary.used.schur.as_ref();
+            match choice {
+                LinearSolverChoice::SparseCholesky => assert!(schur.is_none(), "{what}"),
+                _ => {
+                    let schur = schur.expect("points eliminated");
+                    assert_eq!(schur.eliminated_variables, b.num_points, "{what}");
+                    assert_eq!(schur.reduced_dimension, 9 * b.num_cameras, "{what}");
+                    let dense = choice == LinearSolverChoice::Auto;
+                    assert_eq!(
+                        schur.reduced_factorization,
+                        if dense { "dense" } else { "sparse" },
+                        "{what}"
+                    );
+                }
+            }
+        }
     }
 }
