@@ -103,7 +103,15 @@ impl SystemLayout {
             .collect();
         let var_at: Vec<usize> = pattern.block_at.iter().map(|&b| free[b]).collect();
         let mut slot_start = Vec::with_capacity(factors.len() + 1);
-        let mut slots = Vec::new();
+        let mut slots = Vec::with_capacity(
+            factors
+                .iter()
+                .map(|f| {
+                    let k = f.borrow().variables().len();
+                    k * (k + 1) / 2
+                })
+                .sum(),
+        );
         slot_start.push(0);
         for f in factors {
             let vars = f.borrow().variables();
@@ -267,19 +275,13 @@ fn linearize_with<E: Borrow<FactorEntry>>(
         // The factor's own JᵀJ and Jᵀr as rank-1 updates row by row (contiguous, vectorisable),
         // then scattered block by block into H and b.
         let (gram, gradient) = (&mut gram[..cols * cols], &mut gradient[..cols]);
-        let (first_row, other_rows) = wj.split_at(cols);
-        for (i, (out, g)) in gram.chunks_exact_mut(cols).zip(gradient.iter_mut()).enumerate() {
-            // Row i of JᵀJ: the first residual row stores, the others accumulate.
-            let ji = first_row[i];
-            *g = ji * r[0];
-            for (o, &jj) in out.iter_mut().zip(first_row) {
-                *o = ji * jj;
-            }
-            for (row, &rk) in other_rows.chunks_exact(cols).zip(&r[1..]) {
-                let ji = row[i];
-                *g += ji * rk;
-                for (o, &jj) in out.iter_mut().zip(row) {
-                    *o += ji * jj;
+        gram.fill(0.0);
+        gradient.fill(0.0);
+        for (row, &rk) in wj.chunks_exact(cols).zip(r.iter()) {
+            for (i, &ji) in row.iter().enumerate() {
+                gradient[i] += ji * rk;
+                for (g, &jj) in gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
+                    *g += ji * jj;
                 }
             }
         }

@@ -67,15 +67,23 @@ impl BlockPattern {
                 }
             }
         }
+        // Sized up front: BA patterns hold millions of entries, and growing by doubling costs
+        // copies and page faults of the same order as a whole iteration.
+        let (mut entries, mut pairs) = (0, 0);
+        for (b, list) in col_lists.iter_mut().enumerate() {
+            list.sort_unstable();
+            list.dedup();
+            let below: usize = list.iter().filter(|&&a| a != b).map(|&a| dim[a]).sum();
+            entries += dim[b] * below + dim[b] * (dim[b] + 1) / 2;
+            pairs += list.len() * dim[b];
+        }
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
-        let mut pair_cols = Vec::new();
+        let mut row_idx = Vec::with_capacity(entries);
+        let mut pair_cols = Vec::with_capacity(pairs);
         let mut col_blocks = Vec::with_capacity(nb);
         col_ptr.push(0);
         for b in 0..nb {
-            let list = &mut col_lists[b];
-            list.sort_unstable();
-            list.dedup();
+            let list = &col_lists[b];
             let mut blocks = Vec::with_capacity(list.len());
             let first_pair = pair_cols.len();
             for &a in list.iter() {
