@@ -87,8 +87,15 @@ fn bad_direct_ba_input_is_a_clear_error() {
     std::fs::write(dir.join("poses.txt"), "0 0 0 0 0 0 0 1\n").unwrap();
     std::fs::write(dir.join("points.txt"), "0 0 1 1 2 3\n").unwrap();
     let e = run(&dir);
-    assert!(e.contains("points.txt:1") && e.contains("expected 19 numbers"), "{e}");
-    std::fs::write(dir.join("points.txt"), format!("0 0 1{}\n", " 5".repeat(16))).unwrap();
+    assert!(
+        e.contains("points.txt:1") && e.contains("expected 19 numbers"),
+        "{e}"
+    );
+    std::fs::write(
+        dir.join("points.txt"),
+        format!("0 0 1{}\n", " 5".repeat(16)),
+    )
+    .unwrap();
     std::fs::write(dir.join("poses.txt"), "0 0 0 nan 0 0 0 1\n").unwrap();
     let e = run(&dir);
     assert!(e.contains("poses.txt:1") && e.contains("not finite"), "{e}");
@@ -97,5 +104,8 @@ fn bad_direct_ba_input_is_a_clear_error() {
     assert!(e.contains("0.png"), "{e}");
     std::fs::write(dir.join("0.png"), "not a png").unwrap();
     let e = run(&dir);
-    assert!(e.contains("0.png") && e.contains("not a readable PNG"), "{e}");
+    assert!(
+        e.contains("0.png") && e.contains("not a readable PNG"),
+        "{e}"
+    );
 }

@@ -60,7 +60,7 @@ impl PhotometricPatch {
     /// The projection of world point `x` by `pose` when its whole patch is inside the image.
     pub fn visible_at(&self, pose: &Se3, x: &Vector3<f64>) -> Option<(Vector3<f64>, f64, f64)> {
         let p = pose.rotation * x + pose.translation;
-        if !(p.z > 0.0) {
+        if p.z.is_nan() || p.z <= 0.0 {
             return None;
         }
         let uv = self.camera.project(&p);
@@ -121,8 +121,8 @@ impl Factor for PhotometricPatch {
             *e = s.value - self.patch[k];
             if let Some(j) = jacobian.as_deref_mut() {
                 // ∂e/∂P, then through P = R X + t.
-                let de_dp: RowVector3<f64> = RowVector3::new(s.dx, s.dy, 0.0).columns(0, 2)
-                    * projection;
+                let de_dp: RowVector3<f64> =
+                    RowVector3::new(s.dx, s.dy, 0.0).columns(0, 2) * projection;
                 let de_dx = de_dp * rotation;
                 let de_dw = -(de_dx * so3::hat(&point.0));
                 let row = &mut j[k * 9..(k + 1) * 9];
@@ -205,12 +205,20 @@ mod tests {
         // k = 4 (du + 2) + (dv + 2): entry 1 is (du, dv) = (−2, −1), entry 4 is (−1, −2).
         for (k, (du, dv)) in [(0, (-2, -2)), (1, (-2, -1)), (4, (-1, -2)), (15, (1, 1))] {
             let expected = image.pixel((100 + du) as usize, (50 + dv) as usize);
-            assert!((e[k] - expected).abs() < 1e-6, "entry {k}: {} vs {expected}", e[k]);
+            assert!(
+                (e[k] - expected).abs() < 1e-6,
+                "entry {k}: {} vs {expected}",
+                e[k]
+            );
         }
         // Behind the camera, and too close to the border: zero error, zero Jacobian.
         let mut j = [1.0; PATCH_PIXELS * 9];
-        for x in [-world, Vector3::new((1.5 - CAMERA.cx) * z / CAMERA.fx, 0.0, z)] {
-            f.evaluate(&[&pose, &Point3(x)], &mut e, Some(&mut j)).unwrap();
+        for x in [
+            -world,
+            Vector3::new((1.5 - CAMERA.cx) * z / CAMERA.fx, 0.0, z),
+        ] {
+            f.evaluate(&[&pose, &Point3(x)], &mut e, Some(&mut j))
+                .unwrap();
             assert!(e.iter().chain(j.iter()).all(|&v| v == 0.0));
         }
     }

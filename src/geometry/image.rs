@@ -77,10 +77,7 @@ pub struct Pinhole {
 impl Pinhole {
     /// The pixel of camera-frame point `p` (no check that `p.z > 0`).
     pub fn project(&self, p: &Vector3<f64>) -> Vector2<f64> {
-        Vector2::new(
-            self.fx * p.x / p.z + self.cx,
-            self.fy * p.y / p.z + self.cy,
-        )
+        Vector2::new(self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy)
     }
 
     /// ∂(u, v)/∂p at camera-frame point `p`.

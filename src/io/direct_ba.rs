@@ -69,13 +69,25 @@ impl DirectBaProblem {
 
     pub fn poses(&self) -> Vec<Se3> {
         (0..self.num_poses())
-            .map(|i| *self.problem.values.get_as::<Se3>(self.pose_key(i)).expect("pose keys hold poses"))
+            .map(|i| {
+                *self
+                    .problem
+                    .values
+                    .get_as::<Se3>(self.pose_key(i))
+                    .expect("pose keys hold poses")
+            })
             .collect()
     }
 
     pub fn points(&self) -> Vec<Vector3<f64>> {
         (0..self.num_points())
-            .map(|j| self.problem.values.get_as::<Point3>(self.point_key(j)).expect("point keys hold points").0)
+            .map(|j| {
+                self.problem
+                    .values
+                    .get_as::<Point3>(self.point_key(j))
+                    .expect("point keys hold points")
+                    .0
+            })
             .collect()
     }
 
@@ -104,8 +116,7 @@ impl DirectBaProblem {
                     let mut e = [0.0f64; PATCH_PIXELS];
                     let point = Point3(*x);
                     let variables: [&dyn Variable; 2] = [&poses[i], &point];
-                    f.evaluate(&variables, &mut e, None)
-                        .expect("kinds match");
+                    f.evaluate(&variables, &mut e, None).expect("kinds match");
                     sum += e.iter().map(|v| v.abs()).sum::<f64>() / PATCH_PIXELS as f64;
                     visible += 1;
                 }
@@ -149,8 +160,14 @@ fn numbers(path: &Path, line: usize, text: &str, count: usize) -> Result<Vec<f64
         .enumerate()
         .map(|(k, token)| match token.parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
-            Ok(_) => Err(parse_error(format!("field {} is not finite: `{token}`", k + 1))),
-            Err(_) => Err(parse_error(format!("field {} is not a number: `{token}`", k + 1))),
+            Ok(_) => Err(parse_error(format!(
+                "field {} is not finite: `{token}`",
+                k + 1
+            ))),
+            Err(_) => Err(parse_error(format!(
+                "field {} is not a number: `{token}`",
+                k + 1
+            ))),
         })
         .collect::<Result<Vec<_>, _>>()?;
     if values.len() != count {
@@ -189,11 +206,11 @@ pub fn parse_poses(path: &Path, text: &str) -> Result<Vec<Se3>, IoError> {
     Ok(poses)
 }
 
+/// A world point and its reference patch.
+pub type PatchPoint = (Vector3<f64>, [f64; PATCH_PIXELS]);
+
 /// (world point, patch) per line of `points.txt`.
-pub fn parse_points(
-    path: &Path,
-    text: &str,
-) -> Result<Vec<(Vector3<f64>, [f64; PATCH_PIXELS])>, IoError> {
+pub fn parse_points(path: &Path, text: &str) -> Result<Vec<PatchPoint>, IoError> {
     let mut points = Vec::new();
     for (index, line) in text.lines().enumerate() {
         if line.trim().is_empty() {
@@ -262,7 +279,7 @@ pub fn load(
 /// The problem from parsed parts (also used by tests with synthetic images).
 pub fn build(
     poses: Vec<Se3>,
-    points: Vec<(Vector3<f64>, [f64; PATCH_PIXELS])>,
+    points: Vec<PatchPoint>,
     images: Vec<Arc<GrayImage>>,
     camera: Pinhole,
     robust: Option<RobustKernel>,
@@ -301,9 +318,7 @@ pub fn build(
         }
         if !seen {
             unseen_points += 1;
-            problem
-                .set_fixed(key, true)
-                .map_err(|e| e.to_string())?;
+            problem.set_fixed(key, true).map_err(|e| e.to_string())?;
         }
         patches.push(patch);
     }

@@ -89,7 +89,6 @@ pub const SESSION_KINDS: &[SessionKind] = &[
     },
 ];
 
-
 const VARIABLES: &[VariableCodec] = &[
     VariableCodec {
         kind: "se2",

@@ -7,10 +7,12 @@ use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::schur::SchurSolver;
 use super::structure::BlockPattern;
 
+/// One solver per solve, so the variants' sizes do not matter.
 #[derive(Debug)]
+#[allow(clippy::large_enum_variant)]
 pub enum LinearSolver {
     Sparse(SparseCholesky),
-    Schur(Box<SchurSolver>),
+    Schur(SchurSolver),
 }
 
 /// What the Schur complement did, for the Summary.

@@ -12,12 +12,12 @@ use std::time::Instant;
 use faer::sparse::linalg::SupernodalThreshold;
 
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
-use super::linear::{LinearSolver, SchurReport};
-use super::schur::{self, SchurSolver};
 use super::gauge::anchor_components;
 use super::initialize;
+use super::linear::{LinearSolver, SchurReport};
 use super::linearize::{free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout};
 use super::options::{Initialization, Method, SolverOptions};
+use super::schur::{self, SchurSolver};
 use super::structure::BlockOrdering;
 use super::summary::{
     IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions,
@@ -109,7 +109,7 @@ fn optimize_from(
     let prep = Instant::now();
     let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &ordering);
     let chol = match &schur_plan {
-        Some(plan) => LinearSolver::Schur(Box::new(SchurSolver::new(&layout.pattern, plan)?)),
+        Some(plan) => LinearSolver::Schur(SchurSolver::new(&layout.pattern, plan)?),
         // Supernodal on every pattern we measured: the block ordering makes variables supernodes
         // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
         None => LinearSolver::Sparse(SparseCholesky::analyze(

@@ -186,6 +186,8 @@ pub struct SchurSolver {
     v_inverse: Vec<f64>,
     neighbour_start: Vec<usize>,
     neighbours: Vec<Neighbour>,
+    /// Per eliminated block: whether all its neighbours are [`CAMERA`]-sized (fixed-size kernels).
+    camera_neighbours: Vec<bool>,
     /// Per eliminated block, the S block of every neighbour pair (k, l ≤ k), row by row: a pair
     /// of the reduced pattern (sparse) or the index of the block's (0, 0) entry (dense).
     s_block_start: Vec<usize>,
@@ -283,6 +285,13 @@ impl SchurSolver {
         v_start.push(v_len);
         neighbour_start.push(neighbours.len());
         s_block_start.push(s_blocks.len());
+        let camera_neighbours = (0..ne)
+            .map(|e| {
+                neighbours[neighbour_start[e]..neighbour_start[e + 1]]
+                    .iter()
+                    .all(|n| reduced.dim[n.block] == CAMERA)
+            })
+            .collect();
         let mut u_map = Vec::new();
         for b in ne..full.dim.len() {
             for &(a, pair) in full.column_blocks(b) {
@@ -324,6 +333,7 @@ impl SchurSolver {
             v_inverse: vec![0.0; v_len],
             neighbour_start,
             neighbours,
+            camera_neighbours,
             s_block_start,
             s_blocks,
             y_values: vec![0.0; y_len],
@@ -451,7 +461,10 @@ impl SchurSolver {
             let w = &mut self.w_local[local..local + dk * d];
             for t in 0..d {
                 let start = full.value_index(nb.w_pair, false, 0, t);
-                for (to, from) in w[t * dk..(t + 1) * dk].iter_mut().zip(&values[start..start + dk]) {
+                for (to, from) in w[t * dk..(t + 1) * dk]
+                    .iter_mut()
+                    .zip(&values[start..start + dk])
+                {
                     *to = *from;
                 }
             }
@@ -515,23 +528,14 @@ impl SchurSolver {
 
     /// Solves with the last successful [`SchurSolver::factorize`]; `rhs` in the full layout.
     pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
-        let reduced = &self.reduced;
-        let n = reduced.n;
+        let n = self.reduced.n;
         let base = self.eliminated_rows;
         self.rhs.copy_from_slice(&rhs[base..base + n]);
-        // rhs_r −= Y b_e
-        for e in 0..self.eliminated {
-            let (d, o) = (self.dim[e], self.offset[e]);
-            let be = &rhs[o..o + d];
-            for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
-                let (dk, ok) = (reduced.dim[nb.block], reduced.offset[nb.block]);
-                let y = &self.y_values[nb.y_offset..nb.y_offset + dk * d];
-                for t in 0..d {
-                    for r in 0..dk {
-                        self.rhs[ok + r] -= y[t * dk + r] * be[t];
-                    }
-                }
-            }
+        if has_wide_vectors() {
+            // SAFETY: the CPU has the features `reduce_rhs_wide` is compiled for.
+            unsafe { reduce_rhs_wide(self, rhs) }
+        } else {
+            reduce_rhs(self, rhs)
         }
         match &mut self.backend {
             Backend::Dense { mem } => {
@@ -547,31 +551,102 @@ impl SchurSolver {
             Backend::Sparse(chol) => chol.solve_in_place(&mut self.rhs),
         }
         rhs[base..base + n].copy_from_slice(&self.rhs);
-        // Δe = V⁻¹ b_e − Σ Yᵀ Δr
-        let (head, tail) = rhs.split_at_mut(base);
-        let mut be = [0.0; 16];
-        for e in 0..self.eliminated {
-            let (d, o) = (self.dim[e], self.offset[e]);
-            let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
-            let xe = &mut head[o..o + d];
-            be[..d].copy_from_slice(xe);
-            for (i, x) in xe.iter_mut().enumerate() {
-                *x = (0..d).map(|j| v[i * d + j] * be[j]).sum();
-            }
-            for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
-                let (dk, ok) = (reduced.dim[nb.block], reduced.offset[nb.block]);
-                let y = &self.y_values[nb.y_offset..nb.y_offset + dk * d];
-                let xr = &tail[ok..ok + dk];
-                for (t, x) in xe.iter_mut().enumerate() {
-                    *x -= y[t * dk..(t + 1) * dk]
-                        .iter()
-                        .zip(xr)
-                        .map(|(a, b)| a * b)
-                        .sum::<f64>();
+        if has_wide_vectors() {
+            // SAFETY: as above.
+            unsafe { back_substitute_wide(self, rhs) }
+        } else {
+            back_substitute(self, rhs)
+        }
+    }
+
+    /// rhs_r −= Σ_k Y_k b_e for eliminated block `e` (dimensions as in [`Self::eliminate`]).
+    #[inline(always)]
+    fn reduce_one<const D: usize, const K: usize>(&mut self, e: usize, rhs: &[f64]) {
+        let d = if D > 0 { D } else { self.dim[e] };
+        let o = self.offset[e];
+        let be = &rhs[o..o + d];
+        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+            let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
+            let ok = self.reduced.offset[nb.block];
+            let y = &self.y_values[nb.y_offset..nb.y_offset + dk * d];
+            let out = &mut self.rhs[ok..ok + dk];
+            for t in 0..d {
+                let b = be[t];
+                for (x, yr) in out.iter_mut().zip(&y[t * dk..(t + 1) * dk]) {
+                    *x -= yr * b;
                 }
             }
         }
     }
+
+    /// Δe = V⁻¹ b_e − Σ_k Y_kᵀ Δr_k for eliminated block `e`; `head` holds b_e on entry.
+    #[inline(always)]
+    fn back_substitute_one<const D: usize, const K: usize>(
+        &self,
+        e: usize,
+        head: &mut [f64],
+        tail: &[f64],
+    ) {
+        let d = if D > 0 { D } else { self.dim[e] };
+        let o = self.offset[e];
+        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let xe = &mut head[o..o + d];
+        let mut be = [0.0; 16];
+        be[..d].copy_from_slice(xe);
+        for (i, x) in xe.iter_mut().enumerate() {
+            *x = (0..d).map(|j| v[i * d + j] * be[j]).sum();
+        }
+        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+            let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
+            let ok = self.reduced.offset[nb.block];
+            let y = &self.y_values[nb.y_offset..nb.y_offset + dk * d];
+            let xr = &tail[ok..ok + dk];
+            for (t, x) in xe.iter_mut().enumerate() {
+                *x -= y[t * dk..(t + 1) * dk]
+                    .iter()
+                    .zip(xr)
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>();
+            }
+        }
+    }
+}
+
+/// Which compiled kernel serves eliminated block `e`: (point, all cameras) or the general one.
+#[inline(always)]
+fn kernel_of(solver: &SchurSolver, e: usize) -> (usize, bool) {
+    (solver.dim[e], solver.camera_neighbours[e])
+}
+
+#[inline(always)]
+fn reduce_rhs(solver: &mut SchurSolver, rhs: &[f64]) {
+    for e in 0..solver.eliminated {
+        match kernel_of(solver, e) {
+            (3, true) => solver.reduce_one::<3, CAMERA>(e, rhs),
+            _ => solver.reduce_one::<0, 0>(e, rhs),
+        }
+    }
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn reduce_rhs_wide(solver: &mut SchurSolver, rhs: &[f64]) {
+    reduce_rhs(solver, rhs)
+}
+
+#[inline(always)]
+fn back_substitute(solver: &SchurSolver, rhs: &mut [f64]) {
+    let (head, tail) = rhs.split_at_mut(solver.eliminated_rows);
+    for e in 0..solver.eliminated {
+        match kernel_of(solver, e) {
+            (3, true) => solver.back_substitute_one::<3, CAMERA>(e, head, tail),
+            _ => solver.back_substitute_one::<0, 0>(e, head, tail),
+        }
+    }
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn back_substitute_wide(solver: &SchurSolver, rhs: &mut [f64]) {
+    back_substitute(solver, rhs)
 }
 
 /// Eliminates every block of `solver` into S; errs at the first V that is not positive definite.
@@ -583,11 +658,7 @@ fn eliminate_all(
     shift: Option<&[f64]>,
 ) -> Result<(), NotPositiveDefinite> {
     for e in 0..solver.eliminated {
-        let around = &solver.neighbours[solver.neighbour_start[e]..solver.neighbour_start[e + 1]];
-        let cameras = around
-            .iter()
-            .all(|n| solver.reduced.dim[n.block] == CAMERA);
-        let result = match (solver.dim[e], cameras) {
+        let result = match kernel_of(solver, e) {
             (3, true) => solver.eliminate::<3, CAMERA>(e, full, values, shift),
             (3, false) => solver.eliminate::<3, 0>(e, full, values, shift),
             _ => solver.eliminate::<0, 0>(e, full, values, shift),
