@@ -7,7 +7,7 @@ use std::f64::consts::PI;
 use nalgebra::Vector3;
 
 use super::Factor;
-use crate::geometry::{so3, wrap_angle, Se2, Se3};
+use crate::geometry::{so3, wrap_angle, NavState, Se2, Se3};
 use crate::problem::Variable;
 
 /// SplitMix64: deterministic, dependency-free randomness for tests and synthetic fixtures.
@@ -49,6 +49,20 @@ impl Rng {
     }
     pub fn se2(&mut self) -> Se2 {
         Se2::new(4.0 * self.normal(), 4.0 * self.normal(), self.angle())
+    }
+    pub fn vector3(&mut self, scale: f64) -> Vector3<f64> {
+        Vector3::new(self.normal(), self.normal(), self.normal()) * scale
+    }
+    /// A random navigation state: any pose, velocity of a few m/s, small biases.
+    pub fn nav_state(&mut self) -> NavState {
+        let pose = self.se3();
+        NavState {
+            position: pose.translation,
+            rotation: pose.rotation,
+            velocity: self.vector3(2.0),
+            accel_bias: self.vector3(0.1),
+            gyro_bias: self.vector3(0.01),
+        }
     }
     pub fn se3(&mut self) -> Se3 {
         let axis = Vector3::new(self.normal(), self.normal(), self.normal()).normalize();

@@ -2,12 +2,14 @@
 
 pub mod camera;
 pub mod image;
+pub mod nav_state;
 pub mod se2;
 pub mod se3;
 pub mod so2;
 pub mod so3;
 
 pub use camera::{Point3, SnavelyCamera};
+pub use nav_state::NavState;
 pub use se2::Se2;
 pub use se3::Se3;
 pub use so2::{rotation_matrix_2d, wrap_angle};

@@ -9,7 +9,7 @@ use std::fmt::Debug;
 
 use nalgebra::Vector3;
 
-use crate::geometry::{so3, wrap_angle, Point3, Se2, Se3, SnavelyCamera};
+use crate::geometry::{so3, wrap_angle, NavState, Point3, Se2, Se3, SnavelyCamera};
 
 pub trait Variable: Any + Debug + Send + Sync {
     /// Short stable name, used in errors and on the wire (`"se2"`, `"se3"`).
@@ -128,6 +128,23 @@ impl Variable for Point3 {
     }
     fn is_finite(&self) -> bool {
         self.0.iter().all(|v| v.is_finite())
+    }
+    copy_variable_plumbing!();
+}
+
+/// The sliding-window state; see [`NavState`] for the retraction.
+impl Variable for NavState {
+    fn kind(&self) -> &'static str {
+        "nav_state"
+    }
+    fn tangent_dim(&self) -> usize {
+        15
+    }
+    fn retract(&mut self, delta: &[f64]) {
+        NavState::retract(self, delta);
+    }
+    fn is_finite(&self) -> bool {
+        NavState::is_finite(self)
     }
     copy_variable_plumbing!();
 }
