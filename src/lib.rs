@@ -9,6 +9,7 @@
 //! over that API).
 
 pub mod factors;
+pub mod fusion;
 pub mod geometry;
 pub mod io;
 pub mod problem;

@@ -7,6 +7,7 @@
 
 pub mod between_se2;
 pub mod between_se3;
+pub mod marginal_prior;
 pub mod noise;
 pub mod photometric_patch;
 pub mod prior_nav;
@@ -22,6 +23,7 @@ use std::fmt::Debug;
 
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
+pub use marginal_prior::MarginalPrior;
 pub use noise::SqrtInformation;
 pub use photometric_patch::PhotometricPatch;
 pub use prior_nav::{PosePriorNav, PositionPriorNav};

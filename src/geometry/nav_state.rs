@@ -52,6 +52,21 @@ impl NavState {
         self.gyro_bias += block(BG);
     }
 
+    /// `δ` with `origin ⊕ δ = self`: the inverse of [`NavState::retract`].
+    pub fn local(&self, origin: &NavState) -> nalgebra::SVector<f64, 15> {
+        let mut delta = nalgebra::SVector::<f64, 15>::zeros();
+        let mut put = |k: usize, v: Vector3<f64>| delta.fixed_rows_mut::<3>(k).copy_from(&v);
+        put(P, self.position - origin.position);
+        put(
+            THETA,
+            so3::log(&(origin.rotation.inverse() * self.rotation)),
+        );
+        put(V, self.velocity - origin.velocity);
+        put(BA, self.accel_bias - origin.accel_bias);
+        put(BG, self.gyro_bias - origin.gyro_bias);
+        delta
+    }
+
     pub fn is_finite(&self) -> bool {
         [
             &self.position,

@@ -22,6 +22,12 @@ pub trait Variable: Any + Debug + Send + Sync {
     fn assign_from(&mut self, other: &dyn Variable) -> bool;
     fn is_finite(&self) -> bool;
     fn as_any(&self) -> &dyn Any;
+    /// The inverse of the retraction: `δ` with `origin ⊕ δ = self`, written to `out`
+    /// (`tangent_dim()` long). `false` when this kind does not provide it or `origin` is of
+    /// another kind. Marginalisation priors need it for the variables they touch.
+    fn local(&self, _origin: &dyn Variable, _out: &mut [f64]) -> bool {
+        false
+    }
 }
 
 /// `clone_box`, `assign_from` and `as_any`, the same for every `Copy` variable kind.
@@ -145,6 +151,15 @@ impl Variable for NavState {
     }
     fn is_finite(&self) -> bool {
         NavState::is_finite(self)
+    }
+    fn local(&self, origin: &dyn Variable, out: &mut [f64]) -> bool {
+        match origin.as_any().downcast_ref::<NavState>() {
+            Some(origin) => {
+                out.copy_from_slice(NavState::local(self, origin).as_slice());
+                true
+            }
+            None => false,
+        }
     }
     copy_variable_plumbing!();
 }

@@ -1,0 +1,6 @@
+//! Sliding-window fusion: marginalisation of old states into linear priors (and, next, IMU
+//! pre-integration and the window estimator of the `sliding_window` session kind).
+
+pub mod marginalize;
+
+pub use marginalize::{marginalize, MarginalizeError};
