@@ -7,6 +7,7 @@
 
 pub mod between_se2;
 pub mod between_se3;
+pub mod imu_preintegration;
 pub mod marginal_prior;
 pub mod noise;
 pub mod photometric_patch;
@@ -23,6 +24,7 @@ use std::fmt::Debug;
 
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
+pub use imu_preintegration::ImuFactor;
 pub use marginal_prior::MarginalPrior;
 pub use noise::SqrtInformation;
 pub use photometric_patch::PhotometricPatch;

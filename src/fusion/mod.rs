@@ -2,5 +2,6 @@
 //! pre-integration and the window estimator of the `sliding_window` session kind).
 
 pub mod marginalize;
+pub mod preintegration;
 
 pub use marginalize::{marginalize, MarginalizeError};
