@@ -17,60 +17,24 @@ fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-fn skip_or_fail(reason: &str) -> Option<PathBuf> {
-    if std::env::var("CI").is_ok_and(|v| v == "true") {
-        panic!("{reason} (CI=true)");
-    }
-    eprintln!("skipping: {reason}");
-    None
-}
-
 /// The venv's python, created and filled on first use.
 fn python() -> Option<PathBuf> {
     static PYTHON: OnceLock<Result<PathBuf, String>> = OnceLock::new();
     let result = PYTHON.get_or_init(|| {
-        let home = std::env::var_os("HOME").ok_or("HOME is not set")?;
-        let venv = Path::new(&home).join(".cache/factord/venvs/client");
-        let python = venv.join("bin/python");
-        let run = |cmd: &mut Command| -> Result<(), String> {
-            let out = cmd.output().map_err(|e| format!("{cmd:?}: {e}"))?;
-            if out.status.success() {
-                Ok(())
-            } else {
-                Err(format!(
-                    "{cmd:?} failed:\n{}{}",
-                    String::from_utf8_lossy(&out.stdout),
-                    String::from_utf8_lossy(&out.stderr)
-                ))
-            }
-        };
-        if !python.exists() {
-            run(Command::new("python3").args(["-m", "venv"]).arg(&venv))?;
-        }
         // Reinstalling the local package is cheap and keeps the venv in step with the checkout.
-        run(Command::new(&python).args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "jsonschema>=4.18",
-            "referencing",
-        ]))?;
-        run(Command::new(&python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--disable-pip-version-check",
-            ])
-            .arg(repo().join("clients/python")))?;
-        Ok(python)
+        common::python_venv(
+            "client",
+            &[
+                vec!["jsonschema>=4.18".into(), "referencing".into()],
+                vec![repo().join("clients/python").into()],
+            ],
+        )
     });
     match result {
         Ok(p) => Some(p.clone()),
-        Err(reason) => skip_or_fail(&format!("no Python environment for the client: {reason}")),
+        Err(reason) => {
+            common::skip_or_fail(&format!("no Python environment for the client: {reason}"))
+        }
     }
 }
 

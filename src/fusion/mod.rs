@@ -3,5 +3,6 @@
 
 pub mod marginalize;
 pub mod preintegration;
+pub mod window;
 
 pub use marginalize::{marginalize, MarginalizeError};

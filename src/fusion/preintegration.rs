@@ -33,9 +33,15 @@ pub struct ImuNoise {
     pub accel_random_walk: f64,
     /// Gyroscope bias random walk, rad/s²/√Hz.
     pub gyro_random_walk: f64,
-    /// Extra position-integration noise, m/√Hz (GTSAM's integrationCovariance; 0 by default).
-    #[serde(default)]
+    /// Position-integration noise, m/s/√Hz (GTSAM's integrationCovariance). Without it one
+    /// sample's position and velocity noise come from the same accelerometer noise and their
+    /// joint covariance is singular; 1e-4 is GTSAM's examples' value.
+    #[serde(default = "default_integration_sigma")]
     pub integration_sigma: f64,
+}
+
+fn default_integration_sigma() -> f64 {
+    1e-4
 }
 
 impl ImuNoise {
@@ -45,7 +51,7 @@ impl ImuNoise {
         gyro_noise_density: 1.6968e-4,
         accel_random_walk: 3.0e-3,
         gyro_random_walk: 1.9393e-5,
-        integration_sigma: 0.0,
+        integration_sigma: 1e-4,
     };
 
     pub fn validate(&self) -> Result<(), String> {
@@ -140,7 +146,18 @@ impl Preintegrated {
         self.samples += 1;
     }
 
-    /// Covariance propagation; replaced by GTSAM's exact form in `propagate_covariance`.
+    /// `P ← F P Fᵀ + Q` for one step, GTSAM's manifold form (benches/fusion/GTSAM_PREINTEGRATION.md
+    /// §6–7), in the order (δθ, δp, δv, δb_a, δb_g) with the right-perturbation chart of
+    /// (ΔR, Δp, Δv). With δR = Exp(w dt), b_v = ΔRᵀ Δv, ξ_P = b_v dt + ½ a dt², ξ_V = a dt:
+    ///
+    /// ```text
+    /// A = [[δRᵀ, 0, 0], [−δRᵀ[ξ_P]× + dt δRᵀ[b_v]×, δRᵀ, dt δRᵀ], [−δRᵀ[ξ_V]×, 0, δRᵀ]]
+    /// B = [0; ½dt² δRᵀ; dt δRᵀ]   C = [J_r(w dt) dt; 0; 0]   F = [[A, B, C], [0, I, 0], [0, 0, I]]
+    /// Q = B Σ_a/dt Bᵀ + C Σ_g/dt Cᵀ + dt Σ_i (position) + dt Σ_ba + dt Σ_bg (bias blocks)
+    /// ```
+    ///
+    /// (+B and +C although the samples enter as a − b_a, ω − b_g: GTSAM's sign, which fixes the
+    /// sign of the state–bias cross-covariance.)
     fn propagate_covariance(
         &mut self,
         r: &Matrix3<f64>,
@@ -149,6 +166,59 @@ impl Preintegrated {
         jr: &Matrix3<f64>,
         dt: f64,
     ) {
-        let _ = (r, a, incr, jr, dt);
+        let dt22 = 0.5 * dt * dt;
+        let incr_t = incr.transpose();
+        let body_velocity = r.transpose() * self.delta_velocity;
+        let xi_p = body_velocity * dt + a * dt22;
+        let xi_v = a * dt;
+        let mut f = Matrix15::identity();
+        let mut put = |row: usize, col: usize, m: &Matrix3<f64>| {
+            f.fixed_view_mut::<3, 3>(row, col).copy_from(m);
+        };
+        put(0, 0, &incr_t);
+        put(
+            3,
+            0,
+            &(-incr_t * so3::hat(&xi_p) + incr_t * so3::hat(&body_velocity) * dt),
+        );
+        put(3, 3, &incr_t);
+        put(3, 6, &(incr_t * dt));
+        put(6, 0, &(-incr_t * so3::hat(&xi_v)));
+        put(6, 6, &incr_t);
+        put(3, 9, &(incr_t * dt22));
+        put(6, 9, &(incr_t * dt));
+        put(0, 12, &(jr * dt));
+        let n = &self.noise;
+        let (sa, sg) = (
+            n.accel_noise_density * n.accel_noise_density / dt,
+            n.gyro_noise_density * n.gyro_noise_density / dt,
+        );
+        let (b1, b2, c0) = (incr_t * dt22, incr_t * dt, jr * dt);
+        let mut q = Matrix15::zeros();
+        let mut put_q = |row: usize, col: usize, m: &Matrix3<f64>| {
+            q.fixed_view_mut::<3, 3>(row, col).copy_from(m);
+        };
+        put_q(0, 0, &(c0 * c0.transpose() * sg));
+        put_q(
+            3,
+            3,
+            &(b1 * b1.transpose() * sa
+                + Matrix3::identity() * (dt * n.integration_sigma * n.integration_sigma)),
+        );
+        put_q(3, 6, &(b1 * b2.transpose() * sa));
+        put_q(6, 3, &(b2 * b1.transpose() * sa));
+        put_q(6, 6, &(b2 * b2.transpose() * sa));
+        put_q(
+            9,
+            9,
+            &(Matrix3::identity() * (dt * n.accel_random_walk * n.accel_random_walk)),
+        );
+        put_q(
+            12,
+            12,
+            &(Matrix3::identity() * (dt * n.gyro_random_walk * n.gyro_random_walk)),
+        );
+        let p = f * self.covariance * f.transpose() + q;
+        self.covariance = (p + p.transpose()) * 0.5;
     }
 }

@@ -150,3 +150,50 @@ pub fn synthetic_helix_3d(poses: usize, seed: u64) -> String {
     }
     out + &edges
 }
+
+/// Under `CI=true` a missing prerequisite is a failure; otherwise the test is skipped.
+#[allow(dead_code)]
+pub fn skip_or_fail<T>(reason: &str) -> Option<T> {
+    if std::env::var("CI").is_ok_and(|v| v == "true") {
+        panic!("{reason} (CI=true)");
+    }
+    eprintln!("skipping: {reason}");
+    None
+}
+
+/// The python of the venv `~/.cache/factord/venvs/<name>`, created if missing, after
+/// `pip install <args>` of each entry of `installs` (PyPI must be reachable the first time).
+#[allow(dead_code)]
+pub fn python_venv(name: &str, installs: &[Vec<std::ffi::OsString>]) -> Result<PathBuf, String> {
+    use std::process::Command;
+    let home = std::env::var_os("HOME").ok_or("HOME is not set")?;
+    let venv = PathBuf::from(home).join(".cache/factord/venvs").join(name);
+    let python = venv.join("bin/python");
+    let run = |cmd: &mut Command| -> Result<(), String> {
+        let out = cmd.output().map_err(|e| format!("{cmd:?}: {e}"))?;
+        if out.status.success() {
+            Ok(())
+        } else {
+            Err(format!(
+                "{cmd:?} failed:\n{}{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            ))
+        }
+    };
+    if !python.exists() {
+        run(Command::new("python3").args(["-m", "venv"]).arg(&venv))?;
+    }
+    for args in installs {
+        run(Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ])
+            .args(args))?;
+    }
+    Ok(python)
+}

@@ -1,0 +1,348 @@
+//! The sliding-window estimator: keyframes joined by pre-integrated IMU factors, relative-pose
+//! (lidar odometry) factors and absolute priors (map matching, GNSS); at most `size`
+//! keyframes stay free, older ones are marginalised into a prior.
+//!
+//! IMU samples are held until the next one (zero-order hold, as GTSAM's pre-integration): a
+//! keyframe at time t closes the pre-integration with the last sample held up to t, and the
+//! next pre-integration starts at t with that same sample.
+
+use std::collections::VecDeque;
+
+use nalgebra::{DMatrix, DVector, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::marginalize::{marginalize, MarginalizeError};
+use super::preintegration::{ImuNoise, Preintegrated};
+use crate::factors::{ImuFactor, MarginalPrior, PosePriorNav, PositionPriorNav, RelativePoseNav};
+use crate::geometry::NavState;
+use crate::problem::{Key, Problem, ProblemError};
+use crate::solver::{optimize, SolverError, SolverOptions, Summary};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WindowOptions {
+    /// Keyframes kept free (N ≥ 2).
+    pub size: usize,
+    /// Gravity magnitude, m/s²; the world's z axis points up.
+    pub gravity: f64,
+    pub imu_noise: ImuNoise,
+    pub solver: SolverOptions,
+}
+
+impl Default for WindowOptions {
+    fn default() -> Self {
+        Self {
+            size: 10,
+            gravity: 9.81,
+            imu_noise: ImuNoise::EUROC,
+            solver: SolverOptions {
+                max_iterations: 20,
+                ..SolverOptions::bundle_adjustment()
+            },
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FusionError {
+    #[error("IMU sample at t = {t}: not after the previous sample (t = {previous})")]
+    ImuOutOfOrder { t: f64, previous: f64 },
+    #[error("IMU sample at t = {t}: a value is not finite")]
+    ImuNotFinite { t: f64 },
+    #[error("IMU sample at t = {t}: before the last keyframe (t = {keyframe})")]
+    ImuBeforeKeyframe { t: f64, keyframe: f64 },
+    #[error("keyframe at t = {t}: not after the previous keyframe (t = {previous})")]
+    KeyframeOutOfOrder { t: f64, previous: f64 },
+    #[error("keyframe at t = {t}: no IMU sample since the previous keyframe (t = {previous})")]
+    KeyframeWithoutImu { t: f64, previous: f64 },
+    #[error("keyframe {key} is not in the window (marginalised, or never created)")]
+    NotInWindow { key: Key },
+    #[error("{field}: {reason}")]
+    Invalid { field: &'static str, reason: String },
+    #[error(transparent)]
+    Problem(#[from] ProblemError),
+    #[error(transparent)]
+    Solver(#[from] SolverError),
+    #[error(transparent)]
+    Marginalize(#[from] MarginalizeError),
+}
+
+#[derive(Debug)]
+pub struct SlidingWindow {
+    pub options: WindowOptions,
+    problem: Problem,
+    /// Free keyframes, oldest first: key and time.
+    keyframes: VecDeque<(Key, f64)>,
+    /// Pre-integration since the newest keyframe, and the last sample (time, acc, gyro).
+    pending: Preintegrated,
+    last_sample: Option<(f64, Vector3<f64>, Vector3<f64>)>,
+    /// Samples received since the newest keyframe.
+    samples_since_keyframe: usize,
+    next_key: Key,
+}
+
+fn check_information(field: &'static str, m: &DMatrix<f64>, dim: usize) -> Result<(), FusionError> {
+    if m.nrows() != dim || m.ncols() != dim {
+        return Err(FusionError::Invalid {
+            field,
+            reason: format!("expected {dim}×{dim}, got {}×{}", m.nrows(), m.ncols()),
+        });
+    }
+    Ok(())
+}
+
+impl SlidingWindow {
+    /// Starts with keyframe 0 at `t0` in state `first`, held by a prior of `information`
+    /// (15×15, tangent order (p, θ, v, b_a, b_g)).
+    pub fn new(
+        options: WindowOptions,
+        first: NavState,
+        t0: f64,
+        information: &DMatrix<f64>,
+    ) -> Result<Self, FusionError> {
+        if options.size < 2 {
+            return Err(FusionError::Invalid {
+                field: "size",
+                reason: format!(
+                    "the window needs at least 2 keyframes, got {}",
+                    options.size
+                ),
+            });
+        }
+        if !(options.gravity.is_finite() && options.gravity > 0.0) {
+            return Err(FusionError::Invalid {
+                field: "gravity",
+                reason: format!("must be a finite number > 0, got {}", options.gravity),
+            });
+        }
+        options
+            .imu_noise
+            .validate()
+            .map_err(|reason| FusionError::Invalid {
+                field: "imu_noise",
+                reason,
+            })?;
+        check_information("information", information, 15)?;
+        let mut problem = Problem::new();
+        problem.add_variable(0, Box::new(first))?;
+        let sqrt = information
+            .clone()
+            .cholesky()
+            .ok_or(FusionError::Invalid {
+                field: "information",
+                reason: "not positive definite".into(),
+            })?
+            .l()
+            .transpose();
+        let prior = MarginalPrior::new(vec![0], vec![Box::new(first)], sqrt, DVector::zeros(15));
+        problem.add_factor(
+            Box::new(prior),
+            &DMatrix::identity(15, 15),
+            None,
+            "initial state",
+        )?;
+        let pending = Preintegrated::new(options.imu_noise, first.accel_bias, first.gyro_bias);
+        Ok(Self {
+            options,
+            problem,
+            keyframes: VecDeque::from([(0, t0)]),
+            pending,
+            last_sample: None,
+            samples_since_keyframe: 0,
+            next_key: 1,
+        })
+    }
+
+    fn gravity(&self) -> Vector3<f64> {
+        Vector3::new(0.0, 0.0, -self.options.gravity)
+    }
+
+    fn newest(&self) -> (Key, f64) {
+        *self.keyframes.back().expect("the window is never empty")
+    }
+
+    pub fn state(&self, key: Key) -> Option<NavState> {
+        self.problem.values.get_as::<NavState>(key).copied()
+    }
+
+    /// The free keyframes, oldest first: (key, time, state).
+    pub fn window(&self) -> Vec<(Key, f64, NavState)> {
+        self.keyframes
+            .iter()
+            .map(|&(k, t)| (k, t, self.state(k).expect("window keys hold states")))
+            .collect()
+    }
+
+    pub fn latest(&self) -> (Key, f64, NavState) {
+        let (k, t) = self.newest();
+        (k, t, self.state(k).expect("window keys hold states"))
+    }
+
+    pub fn problem(&self) -> &Problem {
+        &self.problem
+    }
+
+    /// One IMU sample (accelerometer m/s², gyroscope rad/s, body frame) at time `t` seconds.
+    pub fn add_imu(
+        &mut self,
+        t: f64,
+        accel: Vector3<f64>,
+        gyro: Vector3<f64>,
+    ) -> Result<(), FusionError> {
+        if !(t.is_finite() && accel.iter().chain(gyro.iter()).all(|v| v.is_finite())) {
+            return Err(FusionError::ImuNotFinite { t });
+        }
+        let (_, keyframe_t) = self.newest();
+        if t < keyframe_t {
+            return Err(FusionError::ImuBeforeKeyframe {
+                t,
+                keyframe: keyframe_t,
+            });
+        }
+        if let Some((previous, a, w)) = self.last_sample {
+            if t <= previous {
+                return Err(FusionError::ImuOutOfOrder { t, previous });
+            }
+            let start = previous.max(keyframe_t);
+            if t > start {
+                self.pending.integrate(&a, &w, t - start);
+            }
+        }
+        self.last_sample = Some((t, accel, gyro));
+        self.samples_since_keyframe += 1;
+        Ok(())
+    }
+
+    /// Creates the keyframe at time `t` from the IMU samples since the previous one; returns
+    /// its key. Its state is predicted by dead reckoning from the previous keyframe.
+    pub fn add_keyframe(&mut self, t: f64) -> Result<Key, FusionError> {
+        let (previous_key, previous_t) = self.newest();
+        if !(t.is_finite() && t > previous_t) {
+            return Err(FusionError::KeyframeOutOfOrder {
+                t,
+                previous: previous_t,
+            });
+        }
+        let Some((sample_t, a, w)) = self.last_sample.filter(|_| self.samples_since_keyframe > 0)
+        else {
+            return Err(FusionError::KeyframeWithoutImu {
+                t,
+                previous: previous_t,
+            });
+        };
+        if t < sample_t {
+            return Err(FusionError::KeyframeOutOfOrder {
+                t,
+                previous: sample_t,
+            });
+        }
+        // Hold the last sample up to the keyframe.
+        let mut preintegrated = self.pending.clone();
+        let start = sample_t.max(previous_t);
+        if t > start {
+            preintegrated.integrate(&a, &w, t - start);
+        }
+        let previous = self.state(previous_key).expect("window keys hold states");
+        let factor = ImuFactor::new(previous_key, self.next_key, preintegrated, self.gravity());
+        let information = factor.information().ok_or(FusionError::Invalid {
+            field: "imu",
+            reason: "the pre-integration covariance is singular".into(),
+        })?;
+        let key = self.next_key;
+        self.problem
+            .add_variable(key, Box::new(factor.predict_from(&previous)))?;
+        self.problem.add_factor(
+            Box::new(factor),
+            &information,
+            None,
+            format!("imu {previous_key}-{key}"),
+        )?;
+        self.next_key += 1;
+        self.keyframes.push_back((key, t));
+        let current = self.state(key).expect("just added");
+        self.pending = Preintegrated::new(
+            self.options.imu_noise,
+            current.accel_bias,
+            current.gyro_bias,
+        );
+        // The last sample is held on past the keyframe until the next one arrives.
+        self.samples_since_keyframe = 0;
+        Ok(key)
+    }
+
+    fn require_in_window(&self, key: Key) -> Result<(), FusionError> {
+        if self.keyframes.iter().any(|&(k, _)| k == key) {
+            Ok(())
+        } else {
+            Err(FusionError::NotInWindow { key })
+        }
+    }
+
+    /// Lidar odometry: the pose of `to` in the frame of `from`, with its 6×6 information
+    /// (order: position, rotation).
+    pub fn add_relative_pose(
+        &mut self,
+        from: Key,
+        to: Key,
+        delta_position: Vector3<f64>,
+        delta_rotation: UnitQuaternion<f64>,
+        information: &DMatrix<f64>,
+    ) -> Result<usize, FusionError> {
+        self.require_in_window(from)?;
+        self.require_in_window(to)?;
+        check_information("information", information, 6)?;
+        let f = RelativePoseNav::new(from, to, delta_position, delta_rotation);
+        Ok(self.problem.add_factor(
+            Box::new(f),
+            information,
+            None,
+            format!("relative pose {from}-{to}"),
+        )?)
+    }
+
+    /// Map matching: the world pose of `key`, with its 6×6 information (position, rotation).
+    pub fn add_pose_prior(
+        &mut self,
+        key: Key,
+        position: Vector3<f64>,
+        rotation: UnitQuaternion<f64>,
+        information: &DMatrix<f64>,
+    ) -> Result<usize, FusionError> {
+        self.require_in_window(key)?;
+        check_information("information", information, 6)?;
+        let f = PosePriorNav::new(key, position, rotation);
+        Ok(self
+            .problem
+            .add_factor(Box::new(f), information, None, format!("pose prior {key}"))?)
+    }
+
+    /// GNSS: the world position of `key`, with its 3×3 information.
+    pub fn add_position_prior(
+        &mut self,
+        key: Key,
+        position: Vector3<f64>,
+        information: &DMatrix<f64>,
+    ) -> Result<usize, FusionError> {
+        self.require_in_window(key)?;
+        check_information("information", information, 3)?;
+        let f = PositionPriorNav::new(key, position);
+        Ok(self.problem.add_factor(
+            Box::new(f),
+            information,
+            None,
+            format!("position prior {key}"),
+        )?)
+    }
+
+    /// Optimises the window, then marginalises the oldest keyframes beyond `size`.
+    pub fn optimize(&mut self) -> Result<Summary, FusionError> {
+        let summary = optimize(&mut self.problem, &self.options.solver, &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })?;
+        while self.keyframes.len() > self.options.size {
+            let (oldest, _) = self.keyframes.pop_front().expect("longer than size ≥ 2");
+            marginalize(&mut self.problem, oldest)?;
+        }
+        Ok(summary)
+    }
+}
