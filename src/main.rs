@@ -35,6 +35,8 @@ enum Command {
     Ba(BaArgs),
     /// Direct (photometric) bundle adjustment of the course's images, poses and point patches.
     DirectBa(DirectBaArgs),
+    /// The sliding-window fusion experiment on EuRoC: make the inputs, run the window, report APE.
+    FusionEval(FusionEvalArgs),
     /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
     /// the matrix in Matrix Market form for comparison with other libraries.
     BenchCholesky(BenchCholeskyArgs),
@@ -252,6 +254,106 @@ fn direct_bundle_adjust(args: DirectBaArgs) -> Result<(), String> {
     Ok(())
 }
 
+#[derive(clap::Args)]
+struct FusionEvalArgs {
+    /// EuRoC directory with imu0.csv and the ground truth
+    #[arg(long, default_value = "../shared/data/imu/euroc_V1_01_easy")]
+    data: PathBuf,
+    /// Ground-truth file in that directory (TUM format)
+    #[arg(long, default_value = "groundtruth_20hz_tum.txt")]
+    truth: String,
+    /// Run on these inputs (as written by --inputs-out) instead of making new ones
+    #[arg(long)]
+    inputs: Option<PathBuf>,
+    /// Keyframes in the window
+    #[arg(long, default_value_t = 10)]
+    window: usize,
+    /// Seconds of the sequence to use
+    #[arg(long, default_value_t = 140.0)]
+    seconds: f64,
+    #[arg(long, default_value_t = 2024)]
+    seed: u64,
+    /// Leave out the IMU (keyframes linked by relative poses and priors only)
+    #[arg(long)]
+    no_imu: bool,
+    /// Leave out the map-matching priors
+    #[arg(long)]
+    no_priors: bool,
+    /// Leave out the lidar relative poses
+    #[arg(long)]
+    no_relative: bool,
+    /// Write the inputs (for GTSAM: benches/fusion/gtsam_fixed_lag.py)
+    #[arg(long)]
+    inputs_out: Option<PathBuf>,
+    /// Write the estimated trajectory (newest state after each keyframe) in TUM format
+    #[arg(long)]
+    tum_out: Option<PathBuf>,
+    /// Print the result as JSON
+    #[arg(long)]
+    json: bool,
+}
+
+fn fusion_eval(args: FusionEvalArgs) -> Result<(), String> {
+    use factord::fusion::experiment::{self, Generation};
+    let inputs = match &args.inputs {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?
+        }
+        None => {
+            let data = io::euroc::load(&args.data, &args.truth).map_err(|e| e.to_string())?;
+            let generation = Generation {
+                seconds: args.seconds,
+                prior_every: if args.no_priors { 0 } else { 10 },
+                use_relative: !args.no_relative,
+                use_imu: !args.no_imu,
+                window: args.window,
+                seed: args.seed,
+                ..Generation::default()
+            };
+            experiment::generate(&data, &generation)?
+        }
+    };
+    if let Some(path) = &args.inputs_out {
+        let text = serde_json::to_string(&inputs).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    let estimates = experiment::run(&inputs).map_err(|e| e.to_string())?;
+    let (full, trans) = experiment::ape(&inputs, &estimates);
+    let mut solve: Vec<f64> = estimates.iter().map(|e| e.solve_seconds * 1e3).collect();
+    solve.sort_by(f64::total_cmp);
+    let percentile = |p: f64| {
+        solve
+            .get(((solve.len() as f64 - 1.0) * p).round() as usize)
+            .copied()
+    };
+    if let Some(path) = &args.tum_out {
+        std::fs::write(path, experiment::tum(&inputs, &estimates))
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    let result = serde_json::json!({
+        "generation": inputs.generation,
+        "window": inputs.window,
+        "use_imu": inputs.use_imu,
+        "keyframes": estimates.len(),
+        "relative_poses": inputs.relative_poses.len(),
+        "pose_priors": inputs.pose_priors.len(),
+        "ape_full": full,
+        "ape_trans": trans,
+        "update_ms": {"p50": percentile(0.5), "p99": percentile(0.99)},
+    });
+    if args.json {
+        println!("{result}");
+    } else {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&result).map_err(|e| e.to_string())?
+        );
+    }
+    Ok(())
+}
+
 fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
     LinearSolverChoice::parse(s).ok_or_else(|| {
         format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
@@ -462,6 +564,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => serve(args),
         Command::Ba(args) => bundle_adjust(args),
         Command::DirectBa(args) => direct_bundle_adjust(args),
+        Command::FusionEval(args) => fusion_eval(args),
         Command::BenchCholesky(args) => factord::solver::cholesky_bench::run(
             &args.graph,
             args.edges.as_deref(),

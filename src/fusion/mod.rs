@@ -1,6 +1,7 @@
 //! Sliding-window fusion: marginalisation of old states into linear priors (and, next, IMU
 //! pre-integration and the window estimator of the `sliding_window` session kind).
 
+pub mod experiment;
 pub mod marginalize;
 pub mod preintegration;
 pub mod window;

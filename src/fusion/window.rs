@@ -270,6 +270,38 @@ impl SlidingWindow {
         Ok(key)
     }
 
+    /// A keyframe at time `t` with no IMU factor (a robot without an IMU, or an evaluation of
+    /// the other factors alone): its state starts at `guess` and only the relative-pose and
+    /// prior factors added next constrain it (velocity and biases stay where LM's damping
+    /// holds them, and marginalisation drops them as unobserved).
+    pub fn add_keyframe_without_imu(
+        &mut self,
+        t: f64,
+        guess: NavState,
+    ) -> Result<Key, FusionError> {
+        let (_, previous_t) = self.newest();
+        if !(t.is_finite() && t > previous_t) {
+            return Err(FusionError::KeyframeOutOfOrder {
+                t,
+                previous: previous_t,
+            });
+        }
+        if !guess.is_finite() {
+            return Err(FusionError::Invalid {
+                field: "guess",
+                reason: "not finite".into(),
+            });
+        }
+        let key = self.next_key;
+        self.problem.add_variable(key, Box::new(guess))?;
+        self.next_key += 1;
+        self.keyframes.push_back((key, t));
+        self.pending =
+            Preintegrated::new(self.options.imu_noise, guess.accel_bias, guess.gyro_bias);
+        self.samples_since_keyframe = 0;
+        Ok(key)
+    }
+
     fn require_in_window(&self, key: Key) -> Result<(), FusionError> {
         if self.keyframes.iter().any(|&(k, _)| k == key) {
             Ok(())

@@ -5,6 +5,7 @@
 
 pub mod bal;
 pub mod direct_ba;
+pub mod euroc;
 pub mod g2o;
 pub mod ply;
 pub mod toro;
