@@ -342,6 +342,8 @@ fn fusion_eval(args: FusionEvalArgs) -> Result<(), String> {
         "ape_full": full,
         "ape_trans": trans,
         "update_ms": {"p50": percentile(0.5), "p99": percentile(0.99)},
+        "iterations_mean": estimates.iter().map(|e| e.iterations as f64).sum::<f64>()
+            / estimates.len().max(1) as f64,
     });
     if args.json {
         println!("{result}");

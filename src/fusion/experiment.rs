@@ -258,7 +258,9 @@ pub struct Estimate {
     pub key: Key,
     pub t: f64,
     pub pose: PoseJson,
+    /// The whole update: adding the measurements, optimising, marginalising.
     pub solve_seconds: f64,
+    pub iterations: usize,
 }
 
 fn diagonal_information(sigmas: &[(f64, usize)]) -> DMatrix<f64> {
@@ -291,12 +293,19 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
         (s.accel_bias, 3),
         (s.gyro_bias, 3),
     ]);
-    let options = WindowOptions {
+    let mut options = WindowOptions {
         size: inputs.window,
         gravity: inputs.gravity,
         imu_noise: inputs.imu_noise,
         ..WindowOptions::default()
     };
+    if !inputs.use_imu {
+        // Velocities and biases are then unobserved: LM's damping holds them.
+        options.solver = crate::solver::SolverOptions {
+            max_iterations: options.solver.max_iterations,
+            ..crate::solver::SolverOptions::bundle_adjustment()
+        };
+    }
     let mut window = SlidingWindow::new(options, first, i.t, &information)?;
     let mut keys = std::collections::HashMap::from([(i.key, 0)]);
     let mut samples = inputs.imu.iter().peekable();
@@ -353,13 +362,14 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
             let information = diagonal_information(&[(p.sigma_position, 3), (p.sigma_rotation, 3)]);
             window.add_pose_prior(key, prior.position(), prior.rotation(), &information)?;
         }
-        window.optimize()?;
+        let summary = window.optimize()?;
         let (_, t, state) = window.latest();
         estimates.push(Estimate {
             key: keyframe.key,
             t,
             pose: PoseJson::new(&state.position, &state.rotation),
             solve_seconds: start.elapsed().as_secs_f64(),
+            iterations: summary.iterations,
         });
     }
     Ok(estimates)
