@@ -9,6 +9,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 
+use factord::factors::ImuFactor;
 use factord::fusion::preintegration::{ImuNoise, Preintegrated};
 use nalgebra::{Matrix3, Vector3};
 use serde_json::Value;

@@ -1,12 +1,13 @@
 #!/usr/bin/env python3
-"""GTSAM's fixed-lag smoother on a fusion inputs file (`factord fusion-eval --inputs-out FILE`,
-or benches/fusion/make_inputs.py), fed as a robot would: IMU samples and keyframes in time order,
+"""GTSAM's fixed-lag smoother on a fusion inputs file (`factord fusion-eval --inputs-out FILE`),
+fed as a robot would: IMU samples and keyframes in time order,
 one smoother update per keyframe. Records the newest keyframe's pose right after its update and
 prints JSON with the trajectory, evo-style APE statistics and the update times.
 
     PY=~/.cache/factord/venvs/gtsam/bin/python
     $PY benches/fusion/gtsam_fixed_lag.py INPUTS.json [--smoother incremental|batch]
-        [--error-mode componentwise|logmap] [--tum-out FILE] [--summary-only]
+        [--error-mode componentwise|logmap] [--preint-bias latest|predicted]
+        [--factorization cholesky|qr] [--tum-out FILE] [--summary-only] [--compact]
 
 Model (GTSAM 4.3.0 Python; see GTSAM_PREINTEGRATION.md):
 * use_imu: keys X(k) Pose3, V(k) Vector3 (world), B(k) imuBias.ConstantBias per keyframe;
@@ -26,7 +27,14 @@ Model (GTSAM 4.3.0 Python; see GTSAM_PREINTEGRATION.md):
   optimisation of that update (both smoothers: optimise, then marginalise). Keeping `window`
   keyframes after the update (window + 1 during its solve, as our SlidingWindow::optimize) needs
   (window - 1)/hz <= lag < window/hz; we take lag = (window - 1 + 0.5)/keyframe_hz, the middle of
-  that interval, which is robust to the +-1 ms jitter of the EuRoC ground-truth stamps.
+  that interval: any jitter of the keyframe stamps (here +-1.5e-7 s, from the f64 ground-truth
+  stamps) or of keyframe_hz then leaves the kept count at exactly `window` (the JSON reports it).
+* Timing (solve_ms): the smoother.update() call(s) of each keyframe only (optimise + marginalise),
+  not building factors or pre-integrating.
+* --factorization qr: Cholesky (GTSAM's default, both smoothers) throws IndeterminantLinearSystem
+  when there are no pose priors with the IMU on (the global position/yaw information decays while
+  the bias random-walk information is ~1e10); QR gets through. On a throw the JSON has "failed"
+  and statistics up to that keyframe, exit status 2.
 """
 import argparse
 import json
@@ -107,9 +115,11 @@ def make_smoother(kind, lag, args):
         p = gtsam.ISAM2Params()
         p.setRelinearizeThreshold(args.relinearize_threshold)
         p.relinearizeSkip = args.relinearize_skip
+        p.setFactorization({"cholesky": "CHOLESKY", "qr": "QR"}[args.factorization])
         return gtsam.IncrementalFixedLagSmoother(lag, p)
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(args.lm_max_iterations)
+    lm.setLinearSolverType({"cholesky": "MULTIFRONTAL_CHOLESKY", "qr": "MULTIFRONTAL_QR"}[args.factorization])
     return gtsam.BatchFixedLagSmoother(lag, lm)
 
 
@@ -157,10 +167,6 @@ def run(inputs, args):
         values.insert(B(k0), bias0)
         stamps[V(k0)] = t0
         stamps[B(k0)] = t0
-    smoother.update(graph, values, stamps)
-    for _ in range(args.extra_updates):
-        smoother.update()
-
     # Measurements by the keyframe at which a robot has them (the later keyframe of a relative pose).
     keyframes = sorted(inputs["keyframes"], key=lambda k: k["t"])
     time_of = {k0: t0, **{int(k["key"]): float(k["t"]) for k in keyframes}}
@@ -170,8 +176,12 @@ def run(inputs, args):
         rel_at.setdefault(later, []).append(r)
     for p in inputs.get("pose_priors", []):
         prior_at.setdefault(int(p["key"]), []).append(p)
-    if k0 in prior_at:  # a prior on the initial keyframe: add it with the first keyframe
-        pass
+    for p in prior_at.pop(k0, []):  # a pose prior on the initial keyframe
+        graph.add(gtsam.PriorFactorPose3(X(k0), pose3(p["position"], p["rotation_xyzw"]),
+                                         pose_noise(p["sigma_position"], p["sigma_rotation"])))
+    smoother.update(graph, values, stamps)
+    for _ in range(args.extra_updates):
+        smoother.update()
 
     imu = inputs.get("imu", []) if use_imu else []
     next_sample = 0
@@ -180,7 +190,8 @@ def run(inputs, args):
     prev_pose, prev_vel, prev_bias = pose0, vel0, bias0
     prev_bias_initial = bias0  # B(prev)'s initial value (= B(prev-1)'s estimate when it was created)
     in_window = {k0}
-    trajectory, solve_ms, kept = [], [], []
+    trajectory, solve_ms, kept, iterations = [], [], [], []
+    failure = None
 
     for kf in keyframes:
         key, t = int(kf["key"]), float(kf["t"])
@@ -231,7 +242,7 @@ def run(inputs, args):
                     raise ValueError(f"relative pose {a}-{b}: keyframe {k} is not in the window")
             graph.add(gtsam.BetweenFactorPose3(X(a), X(b), pose3(r["position"], r["rotation_xyzw"]),
                                                pose_noise(r["sigma_position"], r["sigma_rotation"])))
-        for p in prior_at.get(key, []) + (prior_at.pop(k0, []) if key == keyframes[0]["key"] else []):
+        for p in prior_at.get(key, []):
             kp = int(p["key"])
             if kp not in in_window:
                 raise ValueError(f"pose prior on keyframe {kp}: not in the window")
@@ -239,10 +250,17 @@ def run(inputs, args):
                                              pose_noise(p["sigma_position"], p["sigma_rotation"])))
 
         start_clock = time.perf_counter()
-        smoother.update(graph, values, stamps)
-        for _ in range(args.extra_updates):
-            smoother.update()
+        try:
+            res = smoother.update(graph, values, stamps)
+            its = res.getIterations()
+            for _ in range(args.extra_updates):
+                its += smoother.update().getIterations()
+        except RuntimeError as e:  # e.g. GTSAM's IndeterminantLinearSystemException
+            message = " ".join(str(e).split())
+            failure = {"key": key, "t": t, "error": message[:300]}
+            break
         solve_ms.append((time.perf_counter() - start_clock) * 1e3)
+        iterations.append(its)
 
         est_pose = smoother.calculateEstimatePose3(X(key))
         if use_imu:
@@ -254,13 +272,14 @@ def run(inputs, args):
         in_window &= remaining
         kept.append(len(remaining))
         entry = {"key": key, "t": t, "position": [float(c) for c in est_pose.translation()],
-                 "rotation_xyzw": xyzw_from_rot3(est_pose.rotation()), "solve_ms": solve_ms[-1]}
+                 "rotation_xyzw": xyzw_from_rot3(est_pose.rotation()), "solve_ms": solve_ms[-1],
+                 "iterations": iterations[-1]}
         if use_imu:
             entry["velocity"] = [float(c) for c in prev_vel]
             entry["accel_bias"] = [float(c) for c in prev_bias.accelerometer()]
             entry["gyro_bias"] = [float(c) for c in prev_bias.gyroscope()]
         trajectory.append(entry)
-    return lag, trajectory, solve_ms, kept
+    return lag, trajectory, solve_ms, kept, iterations, failure
 
 
 def write_tum(path, inputs, trajectory):
@@ -291,6 +310,9 @@ def main():
     ap.add_argument("--relinearize-skip", type=int, default=1)
     ap.add_argument("--extra-updates", type=int, default=0,
                     help="empty update() calls after each keyframe (more iSAM2 relinearisation steps)")
+    ap.add_argument("--factorization", choices=["cholesky", "qr"], default="cholesky",
+                    help="linear solver: iSAM2 CHOLESKY/QR, batch MULTIFRONTAL_CHOLESKY/MULTIFRONTAL_QR. "
+                         "QR survives the ill-conditioned no-prior IMU case where Cholesky throws")
     ap.add_argument("--lm-max-iterations", type=int, default=100, help="batch smoother's LM iterations")
     ap.add_argument("--tum-out", help="write the estimated trajectory (TUM: t x y z qx qy qz qw, t + origin)")
     ap.add_argument("--summary-only", action="store_true", help="leave the trajectory out of the JSON")
@@ -303,7 +325,7 @@ def main():
         with open(args.inputs) as f:
             inputs = json.load(f)
 
-    lag, trajectory, solve_ms, kept = run(inputs, args)
+    lag, trajectory, solve_ms, kept, iterations, failure = run(inputs, args)
     full, trans = ape(inputs, trajectory)
     if args.tum_out:
         write_tum(args.tum_out, inputs, trajectory)
@@ -317,22 +339,31 @@ def main():
         "window": int(inputs["window"]),
         "keyframe_hz": float(inputs["keyframe_hz"]),
         "lag_seconds": lag,
-        "keyframes_kept_after_update": {"min": int(min(kept)) if kept else 0, "max": int(max(kept)) if kept else 0},
+        # keyframes (X keys) left in the smoother after each update -> number of updates; the solve
+        # of each update sees one more (the one it then marginalises), as our window does.
+        "keyframes_kept_after_update": {str(n): kept.count(n) for n in sorted(set(kept))},
         "settings": ({"relinearizeThreshold": args.relinearize_threshold,
-                      "relinearizeSkip": args.relinearize_skip, "extra_updates": args.extra_updates}
-                     if args.smoother == "incremental" else {"lm_max_iterations": args.lm_max_iterations}),
+                      "relinearizeSkip": args.relinearize_skip, "extra_updates": args.extra_updates,
+                      "factorization": args.factorization}
+                     if args.smoother == "incremental" else
+                     {"lm_max_iterations": args.lm_max_iterations, "factorization": args.factorization}),
         "keyframes": len(trajectory),
+        # Set when an update threw (statistics then cover the keyframes before it); exit status 2.
+        "failed": failure,
         "relative_poses": len(inputs.get("relative_poses", [])),
         "pose_priors": len(inputs.get("pose_priors", [])),
         "ape_full": full,
         "ape_trans": trans,
         "solve_ms": {"p50": float(np.percentile(sm, 50)), "p99": float(np.percentile(sm, 99)),
                      "mean": float(np.mean(sm)), "max": float(np.max(sm))},
+        "iterations_mean": float(np.mean(iterations)) if iterations else 0.0,
         "trajectory_tum": args.tum_out,
     }
     if not args.summary_only:
         result["trajectory"] = trajectory
     print(json.dumps(result, separators=(",", ":")) if args.compact else json.dumps(result, indent=2))
+    if failure is not None:
+        sys.exit(2)
 
 
 if __name__ == "__main__":

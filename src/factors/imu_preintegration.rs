@@ -57,12 +57,16 @@ impl ImuFactor {
         }
     }
 
-    /// The pre-integration covariance in this factor's residual order.
+    /// The covariance of this factor's residual, in its order. The pre-integration propagates
+    /// the bias deviation with GTSAM's sign (+B, +C: its bias state is b_i − b, the opposite
+    /// of the residual's b_j − b_i), so the state–bias cross blocks change sign: S P S with
+    /// S = diag(I₉, −I₆), GTSAM's `residualCovariance` for the manifold backend.
     pub fn covariance(&self) -> DMatrix<f64> {
         let c = &self.preintegrated.covariance;
         DMatrix::from_fn(15, 15, |r, col| {
             let map = |k: usize| GTSAM_BLOCK[k / 3] + k % 3;
-            c[(map(r), map(col))]
+            let sign = if (r < 9) == (col < 9) { 1.0 } else { -1.0 };
+            sign * c[(map(r), map(col))]
         })
     }
 
