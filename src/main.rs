@@ -203,13 +203,7 @@ fn direct_bundle_adjust(args: DirectBaArgs) -> Result<(), String> {
         function_tolerance: args.function_tolerance,
         ..SolverOptions::bundle_adjustment()
     };
-    let summary = solver::optimize(&mut problem.problem, &options, &mut |r| {
-        if !quiet {
-            print_iteration(r);
-        }
-        std::ops::ControlFlow::Continue(())
-    })
-    .map_err(|e| e.to_string())?;
+    let summary = optimize_verbose(&mut problem.problem, &options, quiet)?;
     let after = problem.agreement();
     if !quiet {
         print!("{}", summary.report());
@@ -230,22 +224,19 @@ fn direct_bundle_adjust(args: DirectBaArgs) -> Result<(), String> {
         }
     }
     if let Some(path) = &args.summary_json {
-        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
-        let map = json
-            .as_object_mut()
-            .expect("Summary serialises as an object");
-        map.insert("input".into(), args.dir.display().to_string().into());
-        map.insert("load_seconds".into(), load_seconds.into());
-        map.insert(
-            "agreement_before".into(),
-            serde_json::to_value(&before).map_err(|e| e.to_string())?,
-        );
-        map.insert(
-            "agreement_after".into(),
-            serde_json::to_value(&after).map_err(|e| e.to_string())?,
-        );
-        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
-        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let value = |v: &Vec<io::direct_ba::ImageAgreement>| {
+            serde_json::to_value(v).map_err(|e| e.to_string())
+        };
+        write_summary_json(
+            path,
+            &summary,
+            vec![
+                ("input", args.dir.display().to_string().into()),
+                ("load_seconds", load_seconds.into()),
+                ("agreement_before", value(&before)?),
+                ("agreement_after", value(&after)?),
+            ],
+        )?;
     }
     if let Some(path) = &args.ply_final {
         io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())
@@ -356,6 +347,38 @@ fn fusion_eval(args: FusionEvalArgs) -> Result<(), String> {
     Ok(())
 }
 
+/// Optimises, printing each iteration unless `quiet`.
+fn optimize_verbose(
+    problem: &mut factord::problem::Problem,
+    options: &SolverOptions,
+    quiet: bool,
+) -> Result<solver::Summary, String> {
+    solver::optimize(problem, options, &mut |r| {
+        if !quiet {
+            print_iteration(r);
+        }
+        std::ops::ControlFlow::Continue(())
+    })
+    .map_err(|e| e.to_string())
+}
+
+/// Writes the Summary as JSON with `extra` fields added at its top level.
+fn write_summary_json(
+    path: &std::path::Path,
+    summary: &solver::Summary,
+    extra: Vec<(&str, serde_json::Value)>,
+) -> Result<(), String> {
+    let mut json = serde_json::to_value(summary).map_err(|e| e.to_string())?;
+    let map = json
+        .as_object_mut()
+        .expect("Summary serialises as an object");
+    for (key, value) in extra {
+        map.insert(key.into(), value);
+    }
+    let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
+    std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))
+}
+
 fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
     LinearSolverChoice::parse(s).ok_or_else(|| {
         format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
@@ -408,29 +431,23 @@ fn bundle_adjust(args: BaArgs) -> Result<(), String> {
         ..SolverOptions::bundle_adjustment()
     };
     let quiet = args.quiet;
-    let summary = solver::optimize(&mut bal.problem, &options, &mut |r| {
-        if !quiet {
-            print_iteration(r);
-        }
-        std::ops::ControlFlow::Continue(())
-    })
-    .map_err(|e| e.to_string())?;
+    let summary = optimize_verbose(&mut bal.problem, &options, quiet)?;
     let final_cost = bal.cost();
     if !quiet {
         print!("{}", summary.report());
         println!("cost (½Σ‖r‖²): {initial_cost:.6e} -> {final_cost:.6e}");
     }
     if let Some(path) = &args.summary_json {
-        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
-        let map = json
-            .as_object_mut()
-            .expect("Summary serialises as an object");
-        map.insert("input".into(), args.problem.display().to_string().into());
-        map.insert("load_seconds".into(), load_seconds.into());
-        map.insert("initial_cost".into(), initial_cost.into());
-        map.insert("final_cost".into(), final_cost.into());
-        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
-        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        write_summary_json(
+            path,
+            &summary,
+            vec![
+                ("input", args.problem.display().to_string().into()),
+                ("load_seconds", load_seconds.into()),
+                ("initial_cost", initial_cost.into()),
+                ("final_cost", final_cost.into()),
+            ],
+        )?;
     }
     if let Some(path) = &args.ply_final {
         io::ply::write(path, &bal.points(), &bal.camera_centres()).map_err(|e| e.to_string())?;
@@ -652,19 +669,16 @@ fn solve(args: SolveArgs) -> Result<(), String> {
         print!("{}", summary.report());
     }
     if let Some(path) = &args.summary_json {
-        let mut json = serde_json::to_value(&summary).map_err(|e| e.to_string())?;
-        let map = json
-            .as_object_mut()
-            .expect("Summary serialises as an object");
-        map.insert("input".into(), args.graph.display().to_string().into());
-        map.insert("load_seconds".into(), load_seconds.into());
-        map.insert("solve_seconds_runs".into(), runs.clone().into());
+        let mut extra = vec![
+            ("input", args.graph.display().to_string().into()),
+            ("load_seconds", load_seconds.into()),
+            ("solve_seconds_runs", runs.clone().into()),
+        ];
         if graph.dimension == Dimension::Three {
             let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
-            map.insert("final_chi2_g2o".into(), g2o.into());
+            extra.push(("final_chi2_g2o", g2o.into()));
         }
-        let text = serde_json::to_string_pretty(&json).map_err(|e| e.to_string())?;
-        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        write_summary_json(path, &summary, extra)?;
     }
     if let Some(path) = &args.out {
         io::g2o::write(&graph, path).map_err(|e| e.to_string())?;
