@@ -132,3 +132,59 @@ fn bad_fusion_input_is_refused_and_the_window_stays_intact() {
     ));
     assert_eq!(w.window().len(), 2);
 }
+
+/// A keyframe from deltas pre-integrated on the robot equals one from the raw samples.
+#[test]
+fn preintegrated_deltas_and_raw_samples_give_the_same_keyframe() {
+    use factord::fusion::preintegration::{ImuNoise, Preintegrated};
+    let information = DMatrix::identity(15, 15) * 100.0;
+    let first = NavState::at_pose(&factord::geometry::Se3::identity());
+    let samples: Vec<(f64, Vector3<f64>, Vector3<f64>)> = (1..=20)
+        .map(|k| {
+            let t = 0.005 * k as f64;
+            let s = t * 7.0;
+            (
+                t,
+                Vector3::new(0.3 * s.sin(), 0.1, 9.81 + 0.2 * s.cos()),
+                Vector3::new(0.01, -0.02 * s, 0.05),
+            )
+        })
+        .collect();
+    let mut raw = SlidingWindow::new(WindowOptions::default(), first, 0.0, &information).unwrap();
+    // The window holds sample k from t_k to t_{k+1} (and the first one from the keyframe).
+    let mut on_robot = Preintegrated::new(ImuNoise::EUROC, Vector3::zeros(), Vector3::zeros());
+    let mut previous: Option<(f64, Vector3<f64>, Vector3<f64>)> = None;
+    for &(t, acc, gyro) in &samples {
+        raw.add_imu(t, acc, gyro).unwrap();
+        if let Some((tp, a, w)) = previous {
+            on_robot.integrate(&a, &w, t - tp);
+        }
+        previous = Some((t, acc, gyro));
+    }
+    let end = 0.105;
+    let (tp, a, w) = previous.unwrap();
+    on_robot.integrate(&a, &w, end - tp);
+    let a_key = raw.add_keyframe(end).unwrap();
+    // The robot's integration starts at its first sample (0.005 s): a window whose previous
+    // keyframe is at 0 refuses the 0.1 s it spans, one whose keyframe is at 0.005 takes it.
+    let mut early = SlidingWindow::new(WindowOptions::default(), first, 0.0, &information).unwrap();
+    assert!(matches!(
+        early.add_keyframe_preintegrated(end, on_robot.clone()),
+        Err(FusionError::Invalid {
+            field: "delta_t",
+            ..
+        })
+    ));
+    let mut delta =
+        SlidingWindow::new(WindowOptions::default(), first, 0.005, &information).unwrap();
+    let b_key = delta.add_keyframe_preintegrated(end, on_robot).unwrap();
+    let (a, b) = (raw.state(a_key).unwrap(), delta.state(b_key).unwrap());
+    assert!((a.position - b.position).norm() < 1e-12 && (a.velocity - b.velocity).norm() < 1e-12);
+    assert!(matches!(
+        delta.add_keyframe_preintegrated(
+            0.2,
+            Preintegrated::new(ImuNoise::EUROC, Vector3::zeros(), Vector3::zeros())
+        ),
+        Err(FusionError::KeyframeWithoutImu { .. })
+    ));
+}

@@ -221,7 +221,7 @@ impl SlidingWindow {
     /// Creates the keyframe at time `t` from the IMU samples since the previous one; returns
     /// its key. Its state is predicted by dead reckoning from the previous keyframe.
     pub fn add_keyframe(&mut self, t: f64) -> Result<Key, FusionError> {
-        let (previous_key, previous_t) = self.newest();
+        let (_, previous_t) = self.newest();
         if !(t.is_finite() && t > previous_t) {
             return Err(FusionError::KeyframeOutOfOrder {
                 t,
@@ -247,6 +247,50 @@ impl SlidingWindow {
         if t > start {
             preintegrated.integrate(&a, &w, t - start);
         }
+        self.push_imu_keyframe(t, preintegrated)
+    }
+
+    /// Creates the keyframe at time `t` from a measurement pre-integrated elsewhere (a robot
+    /// that integrates on board), since the previous keyframe; the window's own IMU samples
+    /// are not used. Its Δt must match the keyframe interval to a microsecond.
+    pub fn add_keyframe_preintegrated(
+        &mut self,
+        t: f64,
+        preintegrated: Preintegrated,
+    ) -> Result<Key, FusionError> {
+        let (_, previous_t) = self.newest();
+        if !(t.is_finite() && t > previous_t) {
+            return Err(FusionError::KeyframeOutOfOrder {
+                t,
+                previous: previous_t,
+            });
+        }
+        if preintegrated.samples == 0 {
+            return Err(FusionError::KeyframeWithoutImu {
+                t,
+                previous: previous_t,
+            });
+        }
+        if (preintegrated.delta_t - (t - previous_t)).abs() > 1e-6 {
+            return Err(FusionError::Invalid {
+                field: "delta_t",
+                reason: format!(
+                    "the pre-integration spans {} s, the keyframes {} s",
+                    preintegrated.delta_t,
+                    t - previous_t
+                ),
+            });
+        }
+        self.push_imu_keyframe(t, preintegrated)
+    }
+
+    /// Adds the keyframe state (dead-reckoned) and its IMU factor to the previous keyframe.
+    fn push_imu_keyframe(
+        &mut self,
+        t: f64,
+        preintegrated: Preintegrated,
+    ) -> Result<Key, FusionError> {
+        let (previous_key, _) = self.newest();
         let previous = self.state(previous_key).expect("window keys hold states");
         let factor = ImuFactor::new(previous_key, self.next_key, preintegrated, self.gravity());
         let information = factor.information().ok_or(FusionError::Invalid {
