@@ -405,7 +405,8 @@ class Live:
         return thread, events, problems
 
     def check_events(self, label: str, events: list[tuple[str, str]], want: set[str], examples: dict[str, str]) -> None:
-        topic_type = {"acks": "ack", "stats": "iteration", "poses": "estimate", "summary": "summary", "errors": "error"}
+        topic_type = {"acks": "ack", "stats": "iteration", "poses": "estimate", "summary": "summary", "errors": "error",
+                      "state": "state", "window": "window"}
         seen = {n for n, _ in events}
         self.report.check(f"SSE {label}: received {', '.join(sorted(want))}", want <= seen, f"got {sorted(seen)}")
         saved = set()
@@ -593,6 +594,26 @@ class Live:
         failed = self.call("after a failed solve", "GET", f"/v1/sessions/{self.sx}", 200, "session-stats.schema.json", example="session-stats-failed")
         if failed:
             r.check("stats after a failed solve: last_error set, chi2 null", failed["last_error"] is not None and failed["chi2"] is None)
+
+        # A sliding window: start, IMU samples, a keyframe with a prior; `state` and `window` events.
+        sw = self.sx + "-window"
+        self.call("sliding window", "POST", "/v1/sessions", 201, "session-info.schema.json", body={"session": sw, "kind": "sliding_window"})
+        self.created.append(sw)
+        thread, events, problems = self.open_events(sw, {"state", "window"})
+        start = {"type": "start", "t": 0.0, "position": [0, 0, 0], "rotation_xyzw": [0, 0, 0, 1],
+                 "sigmas": {"position": 0.01, "rotation": 0.01, "velocity": 0.1, "accel_bias": 0.1, "gyro_bias": 0.01}}
+        self.call("start", "POST", f"/v1/sessions/{sw}/fusion", 200, "fusion.schema.json#/$defs/ack", body={"messages": [start]})
+        imu = [{"type": "imu", "t": 0.005 * k, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]} for k in range(1, 21)]
+        prior = {"type": "pose_prior", "key": 1, "position": [0, 0, 0], "rotation_xyzw": [0, 0, 0, 1], "sigma_position": 0.1, "sigma_rotation": 0.02}
+        self.call("keyframe", "POST", f"/v1/sessions/{sw}/fusion", 200, "fusion.schema.json#/$defs/ack",
+                  body={"messages": imu + [{"type": "keyframe", "t": 0.1}, prior]})
+        thread.join(35)
+        r.check("SSE reader ended cleanly (sliding window)", not problems, "; ".join(problems))
+        self.check_events("sliding window", events, {"state", "window"}, {"state": "event-state", "window": "event-window"})
+        self.call("IMU out of order", "POST", f"/v1/sessions/{sw}/fusion", 422, "error.schema.json",
+                  body={"messages": [{"type": "imu", "t": 0.05, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]}]}, error_code="rejected_message")
+        self.call("batch to a sliding window", "POST", f"/v1/sessions/{sw}/batches", 400, "error.schema.json",
+                  body={"variables": []}, error_code="wrong_kind")
 
         # Batch jobs.
         g2o = (b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.1 0.1 0.05\nVERTEX_SE2 2 2.0 -0.1 0.1\n"

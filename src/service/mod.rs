@@ -93,6 +93,11 @@ pub enum Command {
     Cancel {
         session: String,
     },
+    /// IMU samples, keyframes, relative poses and priors for a `sliding_window` session.
+    Fusion {
+        session: String,
+        messages: Vec<crate::session::fusion::FusionMessage>,
+    },
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -147,6 +152,7 @@ pub enum Reply {
         session: String,
         cancelled: bool,
     },
+    Fusion(crate::session::fusion::FusionAck),
 }
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
@@ -261,6 +267,15 @@ impl Service {
                 removed.mark_deleted();
                 Ok(Reply::Deleted { deleted: session })
             }
+            Command::Fusion { session, messages } => {
+                let session = self.session(&session)?;
+                let batch = crate::session::fusion::FusionBatch { messages };
+                // A keyframe's optimisation takes about a millisecond: off the async threads.
+                let ack = tokio::task::spawn_blocking(move || session.apply_fusion(batch))
+                    .await
+                    .map_err(|e| ServiceError::internal(format!("fusion update failed: {e}")))??;
+                Ok(Reply::Fusion(ack))
+            }
             Command::ApplyBatch {
                 session,
                 batch,
@@ -356,10 +371,20 @@ impl Service {
                 };
                 self.execute(command).await.map(|_| ())
             }
+            "fusion" => match parse_json::<crate::session::fusion::FusionBatch>(payload) {
+                Ok(batch) => {
+                    let command = Command::Fusion {
+                        session: session.into(),
+                        messages: batch.messages,
+                    };
+                    self.execute(command).await.map(|_| ())
+                }
+                Err(e) => Err(e),
+            },
             other => Err(ServiceError::bad_request(
                 "unknown_topic",
                 "key",
-                format!("nothing listens on `in/{other}` (batch, optimize)"),
+                format!("nothing listens on `in/{other}` (batch, optimize, fusion)"),
             )),
         };
         if let Err(error) = outcome {

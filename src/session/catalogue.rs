@@ -59,6 +59,14 @@ pub struct SessionKind {
     pub default_options: fn() -> SolverOptions,
 }
 
+/// The kind fed with fusion messages (`session::fusion`) instead of variables and factors.
+pub const SLIDING_WINDOW: &str = "sliding_window";
+
+/// Gauss-Newton: what the window runs at every keyframe (see `fusion::window`).
+fn sliding_window_options() -> SolverOptions {
+    crate::fusion::window::WindowOptions::default().solver
+}
+
 pub const SESSION_KINDS: &[SessionKind] = &[
     SessionKind {
         name: "pose_graph_2d",
@@ -86,6 +94,21 @@ pub const SESSION_KINDS: &[SessionKind] = &[
         gauge: Gauge::Free,
         eliminate: &["point3"],
         default_options: SolverOptions::bundle_adjustment,
+    },
+    SessionKind {
+        name: SLIDING_WINDOW,
+        description: "15-dof navigation states in a window of N keyframes, fed with IMU samples, keyframes, relative poses and priors (POST …/fusion, zenoh in/fusion); publishes out/state and out/window",
+        variable_kinds: &["nav_state"],
+        factor_types: &[
+            "imu_preintegration",
+            "relative_pose_nav",
+            "pose_prior_nav",
+            "position_prior_nav",
+            "marginal_prior",
+        ],
+        gauge: Gauge::AnchorComponents,
+        eliminate: &[],
+        default_options: sliding_window_options,
     },
 ];
 

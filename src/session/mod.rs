@@ -9,6 +9,7 @@
 
 pub mod batch;
 pub mod catalogue;
+pub mod fusion;
 mod incremental;
 mod solve;
 pub mod wire;
@@ -56,6 +57,8 @@ pub struct Session {
     /// Number of finished solves (successful, failed or interrupted).
     completed: watch::Sender<u64>,
     cancel: AtomicBool,
+    /// The window of a `sliding_window` session, from its `start` message on.
+    fusion: Mutex<Option<crate::fusion::window::SlidingWindow>>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     max_pending_factors: usize,
@@ -151,6 +154,7 @@ impl Session {
             solved: watch::channel(0).0,
             completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
+            fusion: Mutex::new(None),
             runtime,
             pool,
             max_pending_factors,
@@ -195,6 +199,16 @@ impl Session {
     /// Validates and accepts a batch; returns its acknowledgement and whether a solve reflecting
     /// it is scheduled (so a caller may wait for it).
     pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
+        if self.kind.name == catalogue::SLIDING_WINDOW {
+            return Err(ServiceError::bad_request(
+                "wrong_kind",
+                "session",
+                format!(
+                    "session `{}` is a sliding window: send fusion messages (POST …/fusion, zenoh in/fusion)",
+                    self.name
+                ),
+            ));
+        }
         let mut st = self.lock();
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));

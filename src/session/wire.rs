@@ -196,6 +196,19 @@ pub enum SessionEvent {
         sequence: u64,
         summary: Box<Summary>,
     },
+    /// A sliding window's newest state after a keyframe's optimisation.
+    State {
+        session: String,
+        state: super::fusion::StateReport,
+        iterations: usize,
+        /// From the keyframe's arrival to its optimised state, marginalisation included.
+        update_seconds: f64,
+    },
+    /// A sliding window's free keyframes, oldest first, after a keyframe's optimisation.
+    Window {
+        session: String,
+        keyframes: Vec<super::fusion::StateReport>,
+    },
     /// A solve failed (the estimate keeps its last good values), or a streamed batch was rejected.
     Error {
         session: String,
@@ -212,6 +225,8 @@ impl SessionEvent {
             Self::Iteration { .. } => "stats",
             Self::Estimate(_) => "poses",
             Self::Summary { .. } => "summary",
+            Self::State { .. } => "state",
+            Self::Window { .. } => "window",
             Self::Error { .. } => "errors",
         }
     }

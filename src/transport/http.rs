@@ -21,6 +21,7 @@ use tower_http::trace::TraceLayer;
 
 use crate::service::jobs::{JobAnswer, JobParams};
 use crate::service::{parse_json, parse_query, Command, Reply, Service, ServiceError};
+use crate::session::fusion::FusionBatch;
 use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 
 type Shared = State<Arc<Service>>;
@@ -32,6 +33,7 @@ pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{session}", get(stats).delete(delete_session))
         .route("/v1/sessions/{session}/batches", post(apply_batch))
+        .route("/v1/sessions/{session}/fusion", post(fusion))
         .route("/v1/sessions/{session}/optimize", post(optimize))
         .route(
             "/v1/sessions/{session}/auto_optimize",
@@ -143,6 +145,21 @@ async fn apply_batch(
             batch,
             wait,
         },
+        StatusCode::OK,
+    )
+    .await
+}
+
+async fn fusion(
+    State(service): Shared,
+    Path(session): Path<String>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
+    let batch: FusionBatch = parse_json(&body.map_err(body_error)?)?;
+    let messages = batch.messages;
+    run(
+        &service,
+        Command::Fusion { session, messages },
         StatusCode::OK,
     )
     .await

@@ -1,0 +1,369 @@
+//! The `sliding_window` session kind: a robot streams IMU samples, keyframes, lidar relative
+//! poses and map-matching / GNSS priors; the session keeps a [`SlidingWindow`], optimises it at
+//! every keyframe and publishes the newest state (`out/state`) and the whole window
+//! (`out/window`).
+//!
+//! Messages are applied in order. A refused message (out-of-order IMU, a prior on a
+//! marginalised keyframe, …) stops the batch there: the messages before it stay applied, the
+//! error names its index, and the window is as it was before that message.
+
+use std::time::Instant;
+
+use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::wire::SessionEvent;
+use super::Session;
+use crate::fusion::experiment::InitialSigmas;
+use crate::fusion::preintegration::ImuNoise;
+use crate::fusion::window::{FusionError, SlidingWindow, WindowOptions};
+use crate::geometry::NavState;
+use crate::problem::Key;
+use crate::service::ServiceError;
+
+/// A batch of fusion messages (`POST /v1/sessions/{s}/fusion`, zenoh `…/in/fusion`).
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct FusionBatch {
+    pub messages: Vec<FusionMessage>,
+}
+
+fn default_window() -> usize {
+    10
+}
+fn default_gravity() -> f64 {
+    9.81
+}
+fn default_noise() -> ImuNoise {
+    ImuNoise::EUROC
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum FusionMessage {
+    /// The first keyframe (key 0) and the window's parameters; once per session.
+    Start {
+        t: f64,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        #[serde(default)]
+        velocity: [f64; 3],
+        #[serde(default)]
+        accel_bias: [f64; 3],
+        #[serde(default)]
+        gyro_bias: [f64; 3],
+        sigmas: InitialSigmas,
+        #[serde(default = "default_window")]
+        window: usize,
+        #[serde(default = "default_gravity")]
+        gravity: f64,
+        #[serde(default = "default_noise")]
+        imu_noise: ImuNoise,
+    },
+    /// One IMU sample: accelerometer m/s², gyroscope rad/s, body frame.
+    Imu {
+        t: f64,
+        accel: [f64; 3],
+        gyro: [f64; 3],
+    },
+    /// A keyframe at `t` from the samples since the previous one; the window is then optimised.
+    Keyframe { t: f64 },
+    /// Lidar odometry: the pose of `to` in the frame of `from`.
+    RelativePose {
+        from: Key,
+        to: Key,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        sigma_position: f64,
+        sigma_rotation: f64,
+    },
+    /// Map matching: the world pose of `key`.
+    PosePrior {
+        key: Key,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        sigma_position: f64,
+        sigma_rotation: f64,
+    },
+    /// GNSS: the world position of `key`.
+    PositionPrior {
+        key: Key,
+        position: [f64; 3],
+        sigma: f64,
+    },
+}
+
+/// One keyframe's state on the wire.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct StateReport {
+    pub key: Key,
+    pub t: f64,
+    pub position: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
+    pub velocity: [f64; 3],
+    pub accel_bias: [f64; 3],
+    pub gyro_bias: [f64; 3],
+}
+
+impl StateReport {
+    fn new(key: Key, t: f64, s: &NavState) -> Self {
+        let q = s.rotation.quaternion();
+        let a = |v: &Vector3<f64>| [v.x, v.y, v.z];
+        Self {
+            key,
+            t,
+            position: a(&s.position),
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+            velocity: a(&s.velocity),
+            accel_bias: a(&s.accel_bias),
+            gyro_bias: a(&s.gyro_bias),
+        }
+    }
+}
+
+/// What a fusion batch did.
+#[derive(Clone, Debug, Serialize)]
+pub struct FusionAck {
+    pub session: String,
+    pub applied: usize,
+    /// Keys of the keyframes the batch created, in order.
+    pub keyframes: Vec<Key>,
+    /// The newest state after the batch (after its last keyframe's optimisation).
+    pub latest: Option<StateReport>,
+}
+
+fn rotation(q: &[f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_quaternion(Quaternion::new(q[3], q[0], q[1], q[2]))
+}
+
+fn information(sigmas: &[(f64, usize)]) -> Result<DMatrix<f64>, FusionError> {
+    let mut values = Vec::new();
+    for &(s, n) in sigmas {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(FusionError::Invalid {
+                field: "sigma",
+                reason: format!("must be a finite number > 0, got {s}"),
+            });
+        }
+        values.extend(std::iter::repeat_n(1.0 / (s * s), n));
+    }
+    Ok(DMatrix::from_diagonal(&nalgebra::DVector::from_vec(values)))
+}
+
+fn finite(values: &[f64]) -> Result<(), FusionError> {
+    if values.iter().all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(FusionError::Invalid {
+            field: "values",
+            reason: "a number is not finite".into(),
+        })
+    }
+}
+
+/// Applies one message; `Ok(Some(key))` when it created a keyframe.
+fn apply(
+    window: &mut Option<SlidingWindow>,
+    message: FusionMessage,
+) -> Result<Option<Key>, FusionError> {
+    if let FusionMessage::Start {
+        t,
+        position,
+        rotation_xyzw,
+        velocity,
+        accel_bias,
+        gyro_bias,
+        sigmas,
+        window: size,
+        gravity,
+        imu_noise,
+    } = message
+    {
+        if window.is_some() {
+            return Err(FusionError::Invalid {
+                field: "type",
+                reason: "the session has already started".into(),
+            });
+        }
+        finite(&[t])?;
+        finite(&position)?;
+        finite(&rotation_xyzw)?;
+        let first = NavState {
+            position: Vector3::from(position),
+            rotation: rotation(&rotation_xyzw),
+            velocity: Vector3::from(velocity),
+            accel_bias: Vector3::from(accel_bias),
+            gyro_bias: Vector3::from(gyro_bias),
+        };
+        let s = &sigmas;
+        let info = information(&[
+            (s.position, 3),
+            (s.rotation, 3),
+            (s.velocity, 3),
+            (s.accel_bias, 3),
+            (s.gyro_bias, 3),
+        ])?;
+        let options = WindowOptions {
+            size,
+            gravity,
+            imu_noise,
+            ..WindowOptions::default()
+        };
+        *window = Some(SlidingWindow::new(options, first, t, &info)?);
+        return Ok(Some(0));
+    }
+    let w = window.as_mut().ok_or(FusionError::Invalid {
+        field: "type",
+        reason: "the first message of a sliding_window session must be `start`".into(),
+    })?;
+    match message {
+        FusionMessage::Start { .. } => unreachable!("handled above"),
+        FusionMessage::Imu { t, accel, gyro } => {
+            w.add_imu(t, Vector3::from(accel), Vector3::from(gyro))?;
+            Ok(None)
+        }
+        FusionMessage::Keyframe { t } => {
+            let key = w.add_keyframe(t)?;
+            Ok(Some(key))
+        }
+        FusionMessage::RelativePose {
+            from,
+            to,
+            position,
+            rotation_xyzw,
+            sigma_position,
+            sigma_rotation,
+        } => {
+            finite(&position)?;
+            finite(&rotation_xyzw)?;
+            let info = information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
+            let q = rotation(&rotation_xyzw);
+            w.add_relative_pose(from, to, Vector3::from(position), q, &info)?;
+            Ok(None)
+        }
+        FusionMessage::PosePrior {
+            key,
+            position,
+            rotation_xyzw,
+            sigma_position,
+            sigma_rotation,
+        } => {
+            finite(&position)?;
+            finite(&rotation_xyzw)?;
+            let info = information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
+            w.add_pose_prior(
+                key,
+                Vector3::from(position),
+                rotation(&rotation_xyzw),
+                &info,
+            )?;
+            Ok(None)
+        }
+        FusionMessage::PositionPrior {
+            key,
+            position,
+            sigma,
+        } => {
+            finite(&position)?;
+            let info = information(&[(sigma, 3)])?;
+            w.add_position_prior(key, Vector3::from(position), &info)?;
+            Ok(None)
+        }
+    }
+}
+
+impl Session {
+    /// Applies a fusion batch (see the module documentation). Keyframes are optimised as they
+    /// arrive, after the batch's later messages for the same keyframe have been added: the
+    /// window is optimised once per keyframe, when the next keyframe or the batch's end comes.
+    pub fn apply_fusion(&self, batch: FusionBatch) -> Result<FusionAck, ServiceError> {
+        if self.kind.name != super::catalogue::SLIDING_WINDOW {
+            return Err(ServiceError::bad_request(
+                "wrong_kind",
+                "session",
+                format!(
+                    "session `{}` is of kind {}; fusion messages go to sliding_window sessions",
+                    self.name, self.kind.name
+                ),
+            ));
+        }
+        let mut guard = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+        let mut keyframes = Vec::new();
+        let mut applied = 0;
+        let mut pending = false;
+        let mut started = Instant::now();
+        for (index, message) in batch.messages.into_iter().enumerate() {
+            let is_keyframe = matches!(message, FusionMessage::Keyframe { .. });
+            if is_keyframe && pending {
+                self.optimize_window(&mut guard, started)?;
+                pending = false;
+            }
+            if is_keyframe {
+                started = Instant::now();
+            }
+            match apply(&mut guard, message) {
+                Ok(Some(key)) => {
+                    keyframes.push(key);
+                    pending = is_keyframe;
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    if pending {
+                        self.optimize_window(&mut guard, started)?;
+                    }
+                    let field = format!("messages[{index}]");
+                    let message = format!("{e} (the {index} message(s) before it were applied)");
+                    // Malformed values are the request's fault (400); a message that does not
+                    // fit the window's current state (order, marginalised keys) is 422.
+                    return Err(match e {
+                        FusionError::Invalid { .. } => {
+                            ServiceError::bad_request("invalid_message", field, message)
+                        }
+                        _ => ServiceError::invalid("rejected_message", field, message),
+                    });
+                }
+            }
+            applied += 1;
+        }
+        if pending {
+            self.optimize_window(&mut guard, started)?;
+        }
+        let latest = guard.as_ref().map(|w| {
+            let (key, t, state) = w.latest();
+            StateReport::new(key, t, &state)
+        });
+        Ok(FusionAck {
+            session: self.name.clone(),
+            applied,
+            keyframes,
+            latest,
+        })
+    }
+
+    fn optimize_window(
+        &self,
+        window: &mut Option<SlidingWindow>,
+        started: Instant,
+    ) -> Result<(), ServiceError> {
+        let w = window.as_mut().expect("a keyframe exists only after start");
+        let summary = w
+            .optimize()
+            .map_err(|e| ServiceError::invalid("solve_failed", "messages", e.to_string()))?;
+        let (key, t, state) = w.latest();
+        self.emit(SessionEvent::State {
+            session: self.name.clone(),
+            state: StateReport::new(key, t, &state),
+            iterations: summary.iterations,
+            update_seconds: started.elapsed().as_secs_f64(),
+        });
+        self.emit(SessionEvent::Window {
+            session: self.name.clone(),
+            keyframes: w
+                .window()
+                .iter()
+                .map(|(k, t, s)| StateReport::new(*k, *t, s))
+                .collect(),
+        });
+        Ok(())
+    }
+}

@@ -1,0 +1,262 @@
+//! The `sliding_window` session kind end to end: a robot's stream (EuRoC V1_01 IMU samples,
+//! keyframes, relative poses and map priors made by `fusion::experiment`) over HTTP and over
+//! zenoh, the states it publishes, and its refusals.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::server::{client, post, zenoh_get, zenoh_peer, TestServer};
+use factord::fusion::experiment::{self, FusionInputs, Generation};
+use factord::io::euroc;
+use serde_json::{json, Value};
+
+fn inputs(seconds: f64, window: usize) -> Option<FusionInputs> {
+    let imu = common::data_file("imu/euroc_V1_01_easy/imu0.csv")?;
+    let data = euroc::load(imu.parent().unwrap(), "groundtruth_20hz_tum.txt").unwrap();
+    let generation = Generation {
+        seconds,
+        window,
+        ..Generation::default()
+    };
+    Some(experiment::generate(&data, &generation).unwrap())
+}
+
+fn start_message(inputs: &FusionInputs) -> Value {
+    let i = &inputs.initial;
+    json!({
+        "type": "start", "t": i.t, "position": i.position, "rotation_xyzw": i.rotation_xyzw,
+        "velocity": i.velocity, "sigmas": i.sigmas, "window": inputs.window,
+        "gravity": inputs.gravity, "imu_noise": inputs.imu_noise,
+    })
+}
+
+/// One message batch per keyframe: the IMU samples up to it, the keyframe, its relative pose
+/// and its prior, as a robot would send them.
+fn keyframe_batches(inputs: &FusionInputs) -> Vec<Vec<Value>> {
+    let mut samples = inputs.imu.iter().peekable();
+    inputs
+        .keyframes
+        .iter()
+        .map(|k| {
+            let mut messages = Vec::new();
+            while let Some(s) = samples.next_if(|s| s[0] <= k.t) {
+                messages
+                    .push(json!({"type": "imu", "t": s[0], "accel": &s[1..4], "gyro": &s[4..7]}));
+            }
+            messages.push(json!({"type": "keyframe", "t": k.t}));
+            for r in inputs.relative_poses.iter().filter(|r| r.to == k.key) {
+                messages.push(json!({"type": "relative_pose", "from": r.from, "to": r.to,
+                    "position": r.position, "rotation_xyzw": r.rotation_xyzw,
+                    "sigma_position": r.sigma_position, "sigma_rotation": r.sigma_rotation}));
+            }
+            for p in inputs.pose_priors.iter().filter(|p| p.key == k.key) {
+                messages.push(
+                    json!({"type": "pose_prior", "key": p.key, "position": p.position,
+                    "rotation_xyzw": p.rotation_xyzw, "sigma_position": p.sigma_position,
+                    "sigma_rotation": p.sigma_rotation}),
+                );
+            }
+            messages
+        })
+        .collect()
+}
+
+fn position_error(inputs: &FusionInputs, state: &Value) -> f64 {
+    let key = state["key"].as_u64().unwrap();
+    let truth = &inputs
+        .keyframes
+        .iter()
+        .find(|k| k.key == key)
+        .unwrap()
+        .truth;
+    (0..3)
+        .map(|i| (state["position"][i].as_f64().unwrap() - truth.position[i]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sliding_window_over_http_tracks_and_refuses_bad_input() {
+    let Some(inputs) = inputs(10.0, 10) else {
+        return;
+    };
+    let s = TestServer::start(&[]);
+    let c = client();
+    let (status, created) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "robot", "kind": "sliding_window"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{created}");
+    let url = s.url("/v1/sessions/robot/fusion");
+    let (status, reply) = post(&c, &url, &json!({"messages": [start_message(&inputs)]})).await;
+    assert_eq!(status, 200, "{reply}");
+    assert_eq!(reply["keyframes"], json!([0]));
+    let mut errors = Vec::new();
+    for batch in keyframe_batches(&inputs) {
+        let (status, reply) = post(&c, &url, &json!({"messages": batch})).await;
+        assert_eq!(status, 200, "{reply}");
+        assert_eq!(reply["applied"], batch.len());
+        errors.push(position_error(&inputs, &reply["latest"]));
+    }
+    assert_eq!(errors.len(), 100);
+    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    assert!(rmse < 0.2, "APE rmse {rmse}");
+
+    // Refusals name the message, keep what came before it, and leave the window usable.
+    let last_t = inputs.keyframes.last().unwrap().t;
+    let (status, e) = post(
+        &c,
+        &url,
+        &json!({"messages": [
+            {"type": "imu", "t": last_t + 0.01, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]},
+            {"type": "imu", "t": last_t + 0.01, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]},
+        ]}),
+    )
+    .await;
+    assert_eq!(status, 422, "{e}");
+    assert_eq!(e["error"]["field"], "messages[1]");
+    assert!(
+        e["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("not after"),
+        "{e}"
+    );
+    let (status, e) = post(
+        &c,
+        &url,
+        &json!({"messages": [
+            {"type": "imu", "t": last_t + 0.02, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]},
+            {"type": "pose_prior", "key": 1, "position": [0, 0, 0], "rotation_xyzw": [0, 0, 0, 1],
+             "sigma_position": 0.1, "sigma_rotation": 0.1},
+        ]}),
+    )
+    .await;
+    assert_eq!(status, 422, "{e}");
+    assert!(
+        e["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("not in the window"),
+        "{e}"
+    );
+    let (status, e) = post(
+        &c,
+        &url,
+        &json!({"messages": [{"type": "keyframe", "t": last_t + 0.1},
+        {"type": "position_prior", "key": 101, "position": [0, 0, 0], "sigma": -1}]}),
+    )
+    .await;
+    assert_eq!(status, 400, "{e}");
+    assert_eq!(e["error"]["field"], "messages[1]");
+    let (status, e) = post(&c, &url, &json!({"messages": [start_message(&inputs)]})).await;
+    assert_eq!(status, 400, "{e}");
+    let (status, e) = post(
+        &c,
+        &url,
+        &json!({"messages": [{"type": "imu", "t": 1.0, "accel": [0, 0, "x"], "gyro": [0, 0, 0]}]}),
+    )
+    .await;
+    assert_eq!(status, 400, "{e}");
+    let (status, e) = post(
+        &c,
+        &s.url("/v1/sessions/robot/batches"),
+        &json!({"variables": []}),
+    )
+    .await;
+    assert_eq!(status, 400, "{e}");
+    assert_eq!(e["error"]["code"], "wrong_kind");
+    // The keyframe accepted before the bad prior is in the window; the session still works.
+    let (status, reply) = post(
+        &c,
+        &url,
+        &json!({"messages": [
+        {"type": "imu", "t": last_t + 0.15, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]},
+        {"type": "keyframe", "t": last_t + 0.2}]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{reply}");
+    assert_eq!(reply["keyframes"], json!([102]));
+    s.assert_no_panic();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sliding_window_over_zenoh_publishes_states_and_windows() {
+    let Some(inputs) = inputs(20.0, 20) else {
+        return;
+    };
+    let s = TestServer::start(&[]);
+    let z = zenoh_peer(&s.zenoh).await;
+    let created = zenoh_get(
+        &z,
+        "factord/rpc",
+        Some(&json!({"op": "create_session", "session": "rover", "kind": "sliding_window"})),
+    )
+    .await;
+    assert!(created.is_ok(), "{created:?}");
+    let (state_tx, states) = std::sync::mpsc::channel::<(Instant, Value)>();
+    let (window_tx, windows) = std::sync::mpsc::channel::<Value>();
+    let state_tx = std::sync::Mutex::new(state_tx);
+    let window_tx = std::sync::Mutex::new(window_tx);
+    let _state_sub = z
+        .declare_subscriber("factord/rover/out/state")
+        .callback(move |sample| {
+            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            let _ = state_tx.lock().unwrap().send((Instant::now(), v));
+        })
+        .await
+        .unwrap();
+    let _window_sub = z
+        .declare_subscriber("factord/rover/out/window")
+        .callback(move |sample| {
+            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            let _ = window_tx.lock().unwrap().send(v);
+        })
+        .await
+        .unwrap();
+    zenoh_get(&z, "factord/rpc", Some(&json!({"op": "health"})))
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let put = |messages: Vec<Value>| {
+        let z = z.clone();
+        async move {
+            z.put(
+                "factord/rover/in/fusion",
+                serde_json::to_vec(&json!({"messages": messages})).unwrap(),
+            )
+            .await
+            .unwrap();
+        }
+    };
+    put(vec![start_message(&inputs)]).await;
+    // A robot publishing at its own pace: one batch per keyframe, then wait for the state.
+    let mut latencies = Vec::new();
+    let mut errors = Vec::new();
+    for batch in keyframe_batches(&inputs) {
+        let sent = Instant::now();
+        put(batch).await;
+        let (arrived, state) = states
+            .recv_timeout(Duration::from_secs(5))
+            .expect("a state per keyframe");
+        latencies.push(arrived.duration_since(sent).as_secs_f64() * 1e3);
+        errors.push(position_error(&inputs, &state["state"]));
+    }
+    assert_eq!(errors.len(), 200);
+    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    assert!(rmse < 0.2, "APE rmse {rmse}");
+    latencies.sort_by(f64::total_cmp);
+    println!(
+        "zenoh keyframe -> state latency over {} keyframes, window 20: p50 {:.2} ms, p99 {:.2} ms",
+        latencies.len(),
+        latencies[latencies.len() / 2],
+        latencies[(latencies.len() * 99) / 100]
+    );
+    let last_window = windows.try_iter().last().expect("window events");
+    assert_eq!(last_window["keyframes"].as_array().unwrap().len(), 20);
+    s.assert_no_panic();
+}
