@@ -1,6 +1,8 @@
 //! Shared test support: where the benchmark data lives, and synthetic fixtures made by code.
 #![allow(dead_code)]
 
+#[allow(dead_code)]
+pub mod fusion;
 pub mod server;
 
 use std::fmt::Write as _;
