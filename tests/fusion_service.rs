@@ -194,3 +194,54 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
     assert_eq!(last_window["keyframes"].as_array().unwrap().len(), 20);
     s.assert_no_panic();
 }
+
+/// `factord fusion-eval --zenoh`: the experiment streamed to a running server as a robot would,
+/// with evo's statistics and a TUM trajectory from the published states.
+#[test]
+fn fusion_eval_streams_to_a_running_server() {
+    let Some(_) = inputs(1.0, 2) else {
+        return;
+    };
+    let s = TestServer::start(&[]);
+    let dir = common::temp_dir("fusion-eval");
+    let tum = dir.join("estimate.tum");
+    let imu = common::data_file("imu/euroc_V1_01_easy/imu0.csv").unwrap();
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_factord"))
+        .args([
+            "fusion-eval",
+            "--seconds",
+            "10",
+            "--window",
+            "5",
+            "--json",
+            "--zenoh",
+        ])
+        .arg(&s.zenoh)
+        .arg("--data")
+        .arg(imu.parent().unwrap())
+        .arg("--tum-out")
+        .arg(&tum)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let result: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(result["through"], "zenoh");
+    assert_eq!(result["keyframes"], 100);
+    for stat in ["max", "mean", "median", "min", "rmse", "sse", "std"] {
+        assert!(result["ape_trans"][stat].is_number(), "{result}");
+        assert!(result["ape_full"][stat].is_number(), "{result}");
+    }
+    assert!(
+        result["ape_trans"]["rmse"].as_f64().unwrap() < 0.2,
+        "{result}"
+    );
+    let text = std::fs::read_to_string(&tum).unwrap();
+    assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 100);
+    // The session is deleted afterwards.
+    s.assert_no_panic();
+}

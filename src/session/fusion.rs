@@ -93,6 +93,63 @@ pub enum FusionMessage {
     },
 }
 
+/// The experiment's inputs as a robot sends them: the `start` message, then one batch per
+/// keyframe (its IMU samples, the keyframe, its relative poses and priors).
+pub fn experiment_messages(
+    inputs: &crate::fusion::experiment::FusionInputs,
+) -> (FusionMessage, Vec<Vec<FusionMessage>>) {
+    let i = &inputs.initial;
+    let start = FusionMessage::Start {
+        t: i.t,
+        position: i.position,
+        rotation_xyzw: i.rotation_xyzw,
+        velocity: i.velocity,
+        accel_bias: i.accel_bias,
+        gyro_bias: i.gyro_bias,
+        sigmas: i.sigmas.clone(),
+        window: inputs.window,
+        gravity: inputs.gravity,
+        imu_noise: inputs.imu_noise,
+    };
+    let mut samples = inputs.imu.iter().peekable();
+    let batches = inputs
+        .keyframes
+        .iter()
+        .map(|k| {
+            let mut messages = Vec::new();
+            while let Some(s) = samples.next_if(|s| s[0] <= k.t) {
+                messages.push(FusionMessage::Imu {
+                    t: s[0],
+                    accel: [s[1], s[2], s[3]],
+                    gyro: [s[4], s[5], s[6]],
+                });
+            }
+            messages.push(FusionMessage::Keyframe { t: k.t });
+            for r in inputs.relative_poses.iter().filter(|r| r.to == k.key) {
+                messages.push(FusionMessage::RelativePose {
+                    from: r.from,
+                    to: r.to,
+                    position: r.position,
+                    rotation_xyzw: r.rotation_xyzw,
+                    sigma_position: r.sigma_position,
+                    sigma_rotation: r.sigma_rotation,
+                });
+            }
+            for p in inputs.pose_priors.iter().filter(|p| p.key == k.key) {
+                messages.push(FusionMessage::PosePrior {
+                    key: p.key,
+                    position: p.position,
+                    rotation_xyzw: p.rotation_xyzw,
+                    sigma_position: p.sigma_position,
+                    sigma_rotation: p.sigma_rotation,
+                });
+            }
+            messages
+        })
+        .collect();
+    (start, batches)
+}
+
 /// One keyframe's state on the wire.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct StateReport {
