@@ -98,14 +98,10 @@ pub const SESSION_KINDS: &[SessionKind] = &[
     SessionKind {
         name: SLIDING_WINDOW,
         description: "15-dof navigation states in a window of N keyframes, fed with IMU samples, keyframes, relative poses and priors (POST …/fusion, zenoh in/fusion); publishes out/state and out/window",
-        variable_kinds: &["nav_state"],
-        factor_types: &[
-            "imu_preintegration",
-            "relative_pose_nav",
-            "pose_prior_nav",
-            "position_prior_nav",
-            "marginal_prior",
-        ],
+        // Fed with fusion messages, not batches: no batch codecs (the window builds its
+        // nav_state variables and IMU, relative-pose, prior and marginal factors itself).
+        variable_kinds: &[],
+        factor_types: &[],
         gauge: Gauge::AnchorComponents,
         eliminate: &[],
         default_options: sliding_window_options,
