@@ -245,3 +245,88 @@ fn fusion_eval_streams_to_a_running_server() {
     // The session is deleted afterwards.
     s.assert_no_panic();
 }
+
+/// A keyframe from deltas pre-integrated on the robot, over HTTP: the same state as from the
+/// raw samples.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn preintegrated_keyframes_over_http() {
+    use factord::fusion::preintegration::{ImuNoise, Preintegrated};
+    use nalgebra::Vector3;
+    let s = TestServer::start(&[]);
+    let c = client();
+    let start = json!({"type": "start", "t": 0.005, "position": [0, 0, 0], "rotation_xyzw": [0, 0, 0, 1],
+        "sigmas": {"position": 0.01, "rotation": 0.01, "velocity": 0.1, "accel_bias": 0.1, "gyro_bias": 0.01}});
+    let samples: Vec<(f64, [f64; 3], [f64; 3])> = (1..=20)
+        .map(|k| {
+            (
+                0.005 * k as f64,
+                [0.1 * k as f64, 0.0, 9.81],
+                [0.0, 0.01, 0.02],
+            )
+        })
+        .collect();
+    let end = 0.105;
+    let mut on_robot = Preintegrated::new(ImuNoise::EUROC, Vector3::zeros(), Vector3::zeros());
+    for (k, (t, a, w)) in samples.iter().enumerate() {
+        let next = samples.get(k + 1).map_or(end, |s| s.0);
+        on_robot.integrate(&Vector3::from(*a), &Vector3::from(*w), next - t);
+    }
+    let row_major = |m: &nalgebra::Matrix3<f64>| -> Vec<f64> {
+        (0..3)
+            .flat_map(|r| (0..3).map(move |c| m[(r, c)]))
+            .collect()
+    };
+    let q = nalgebra::UnitQuaternion::from_matrix(&on_robot.delta_rotation);
+    let keyframe = json!({"type": "preintegrated_keyframe", "t": end, "delta_t": on_robot.delta_t,
+        "delta_rotation_xyzw": [q.i, q.j, q.k, q.w],
+        "delta_velocity": on_robot.delta_velocity.as_slice(), "delta_position": on_robot.delta_position.as_slice(),
+        "accel_bias": [0, 0, 0], "gyro_bias": [0, 0, 0],
+        "d_rotation_d_gyro_bias": row_major(&on_robot.d_rotation_d_gyro_bias),
+        "d_velocity_d_accel_bias": row_major(&on_robot.d_velocity_d_accel_bias),
+        "d_velocity_d_gyro_bias": row_major(&on_robot.d_velocity_d_gyro_bias),
+        "d_position_d_accel_bias": row_major(&on_robot.d_position_d_accel_bias),
+        "d_position_d_gyro_bias": row_major(&on_robot.d_position_d_gyro_bias),
+        "covariance": (0..15).flat_map(|r| (0..15).map(move |c| (r, c))).map(|(r, c)| on_robot.covariance[(r, c)]).collect::<Vec<_>>()});
+    let raw: Vec<Value> = samples
+        .iter()
+        .map(|(t, a, w)| json!({"type": "imu", "t": t, "accel": a, "gyro": w}))
+        .chain([json!({"type": "keyframe", "t": end})])
+        .collect();
+    let mut latest = Vec::new();
+    for (name, messages) in [("raw", raw), ("delta", vec![keyframe.clone()])] {
+        post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"session": name, "kind": "sliding_window"}),
+        )
+        .await;
+        let url = s.url(&format!("/v1/sessions/{name}/fusion"));
+        let (status, reply) = post(&c, &url, &json!({"messages": [start.clone()]})).await;
+        assert_eq!(status, 200, "{reply}");
+        let (status, reply) = post(&c, &url, &json!({"messages": messages})).await;
+        assert_eq!(status, 200, "{reply}");
+        latest.push(reply["latest"].clone());
+    }
+    for field in ["position", "velocity"] {
+        for i in 0..3 {
+            let (a, b) = (
+                latest[0][field][i].as_f64().unwrap(),
+                latest[1][field][i].as_f64().unwrap(),
+            );
+            assert!((a - b).abs() < 1e-9, "{field}: {a} vs {b}");
+        }
+    }
+    let mut short = keyframe;
+    short["covariance"] = json!([1.0, 2.0]);
+    let (status, e) = post(
+        &c,
+        &s.url("/v1/sessions/delta/fusion"),
+        &json!({"messages": [short]}),
+    )
+    .await;
+    assert_eq!(status, 400, "{e}");
+    assert!(
+        e["error"]["message"].as_str().unwrap().contains("225"),
+        "{e}"
+    );
+}

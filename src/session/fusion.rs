@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::wire::SessionEvent;
 use super::Session;
 use crate::fusion::experiment::InitialSigmas;
-use crate::fusion::preintegration::ImuNoise;
+use crate::fusion::preintegration::{ImuNoise, Matrix15, Preintegrated};
 use crate::fusion::window::{FusionError, SlidingWindow, WindowOptions};
 use crate::geometry::NavState;
 use crate::problem::Key;
@@ -68,6 +68,25 @@ pub enum FusionMessage {
     },
     /// A keyframe at `t` from the samples since the previous one; the window is then optimised.
     Keyframe { t: f64 },
+    /// A keyframe at `t` from a measurement pre-integrated on the robot since the previous
+    /// keyframe (GTSAM's manifold pre-integration: matrices row-major, the covariance 15×15 in
+    /// the order rotation, position, velocity, accelerometer bias, gyroscope bias).
+    PreintegratedKeyframe {
+        t: f64,
+        delta_t: f64,
+        delta_rotation_xyzw: [f64; 4],
+        delta_velocity: [f64; 3],
+        delta_position: [f64; 3],
+        /// The bias the samples were corrected with.
+        accel_bias: [f64; 3],
+        gyro_bias: [f64; 3],
+        d_rotation_d_gyro_bias: [f64; 9],
+        d_velocity_d_accel_bias: [f64; 9],
+        d_velocity_d_gyro_bias: [f64; 9],
+        d_position_d_accel_bias: [f64; 9],
+        d_position_d_gyro_bias: [f64; 9],
+        covariance: Vec<f64>,
+    },
     /// Lidar odometry: the pose of `to` in the frame of `from`.
     RelativePose {
         from: Key,
@@ -283,6 +302,65 @@ fn apply(
             let key = w.add_keyframe(t)?;
             Ok(Some(key))
         }
+        FusionMessage::PreintegratedKeyframe {
+            t,
+            delta_t,
+            delta_rotation_xyzw,
+            delta_velocity,
+            delta_position,
+            accel_bias,
+            gyro_bias,
+            d_rotation_d_gyro_bias,
+            d_velocity_d_accel_bias,
+            d_velocity_d_gyro_bias,
+            d_position_d_accel_bias,
+            d_position_d_gyro_bias,
+            covariance,
+        } => {
+            if covariance.len() != 225 {
+                return Err(FusionError::Invalid {
+                    field: "covariance",
+                    reason: format!("expected 225 numbers (15×15), got {}", covariance.len()),
+                });
+            }
+            for values in [
+                &[t, delta_t][..],
+                &delta_rotation_xyzw,
+                &delta_velocity,
+                &delta_position,
+                &accel_bias,
+                &gyro_bias,
+                &d_rotation_d_gyro_bias,
+                &d_velocity_d_accel_bias,
+                &d_velocity_d_gyro_bias,
+                &d_position_d_accel_bias,
+                &d_position_d_gyro_bias,
+                &covariance,
+            ] {
+                finite(values)?;
+            }
+            let matrix = |m: &[f64; 9]| nalgebra::Matrix3::from_row_slice(m);
+            let mut measurement = Preintegrated::new(
+                w.options.imu_noise,
+                Vector3::from(accel_bias),
+                Vector3::from(gyro_bias),
+            );
+            measurement.delta_t = delta_t;
+            measurement.delta_rotation = rotation(&delta_rotation_xyzw)
+                .to_rotation_matrix()
+                .into_inner();
+            measurement.delta_velocity = Vector3::from(delta_velocity);
+            measurement.delta_position = Vector3::from(delta_position);
+            measurement.d_rotation_d_gyro_bias = matrix(&d_rotation_d_gyro_bias);
+            measurement.d_velocity_d_accel_bias = matrix(&d_velocity_d_accel_bias);
+            measurement.d_velocity_d_gyro_bias = matrix(&d_velocity_d_gyro_bias);
+            measurement.d_position_d_accel_bias = matrix(&d_position_d_accel_bias);
+            measurement.d_position_d_gyro_bias = matrix(&d_position_d_gyro_bias);
+            measurement.covariance = Matrix15::from_row_slice(&covariance);
+            measurement.samples = 1;
+            let key = w.add_keyframe_preintegrated(t, measurement)?;
+            Ok(Some(key))
+        }
         FusionMessage::RelativePose {
             from,
             to,
@@ -350,7 +428,10 @@ impl Session {
         let mut pending = false;
         let mut started = Instant::now();
         for (index, message) in batch.messages.into_iter().enumerate() {
-            let is_keyframe = matches!(message, FusionMessage::Keyframe { .. });
+            let is_keyframe = matches!(
+                message,
+                FusionMessage::Keyframe { .. } | FusionMessage::PreintegratedKeyframe { .. }
+            );
             if is_keyframe && pending {
                 self.optimize_window(&mut guard, started)?;
                 pending = false;
