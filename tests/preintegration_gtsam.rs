@@ -164,6 +164,25 @@ fn preintegration_matches_gtsam_manifold() {
             &covariance,
             &numbers(&g["preintMeasCov"]),
         );
+        // The factor's residual covariance: ours, mapped back to GTSAM's order (position and
+        // rotation blocks swapped), is GTSAM's residualCovariance (cross blocks with the biases
+        // change sign).
+        let residual =
+            ImuFactor::new(0, 1, ours.clone(), Vector3::new(0.0, 0.0, -9.81)).covariance();
+        let gtsam_to_ours = |k: usize| match k / 3 {
+            0 => 3 + k % 3,
+            1 => k % 3,
+            _ => k,
+        };
+        let residual: Vec<f64> = (0..15)
+            .flat_map(|r| (0..15).map(move |c| (r, c)))
+            .map(|(r, c)| residual[(gtsam_to_ours(r), gtsam_to_ours(c))])
+            .collect();
+        assert_agrees(
+            &what("residual covariance"),
+            &residual,
+            &numbers(&g["residualCovariance"]),
+        );
         for (name, m) in [
             ("delRdelBiasOmega", &ours.d_rotation_d_gyro_bias),
             ("delPdelBiasAcc", &ours.d_position_d_accel_bias),
