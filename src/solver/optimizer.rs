@@ -398,13 +398,11 @@ impl Iterations<'_> {
         let pattern = &self.layout.pattern;
         let t = Instant::now();
         let result = if lambda > 0.0 && self.chol.shifts_in_place() {
-            self.damped.truncate(pattern.n);
             for c in 0..pattern.n {
                 self.damped[c] = lambda * self.damping_diagonal(c);
             }
             self.chol.factorize_shifted(pattern, &self.h, &self.damped)
         } else if lambda > 0.0 {
-            self.damped.resize(self.h.len(), 0.0);
             self.damped.copy_from_slice(&self.h);
             for c in 0..pattern.n {
                 self.damped[pattern.diagonal_index(c)] += lambda * self.damping_diagonal(c);
