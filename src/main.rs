@@ -331,13 +331,16 @@ fn fusion_eval(args: FusionEvalArgs) -> Result<(), String> {
         None => experiment::run(&inputs).map_err(|e| e.to_string())?,
     };
     let (full, trans) = experiment::ape(&inputs, &estimates);
-    let mut solve: Vec<f64> = estimates.iter().map(|e| e.solve_seconds * 1e3).collect();
-    solve.sort_by(f64::total_cmp);
-    let percentile = |p: f64| {
-        solve
-            .get(((solve.len() as f64 - 1.0) * p).round() as usize)
-            .copied()
-    };
+    let update = experiment::Percentiles::of(
+        &estimates
+            .iter()
+            .map(|e| e.update_seconds * 1e3)
+            .collect::<Vec<_>>(),
+    );
+    let latency: Option<Vec<f64>> = estimates
+        .iter()
+        .map(|e| e.latency_seconds.map(|s| s * 1e3))
+        .collect();
     if let Some(path) = &args.tum_out {
         std::fs::write(path, experiment::tum(&inputs, &estimates))
             .map_err(|e| format!("{}: {e}", path.display()))?;
@@ -351,8 +354,9 @@ fn fusion_eval(args: FusionEvalArgs) -> Result<(), String> {
         "pose_priors": inputs.pose_priors.len(),
         "ape_full": full,
         "ape_trans": trans,
-        // In-process: the window's update; over zenoh: publication to the state's arrival.
-        "update_ms": {"p50": percentile(0.5), "p99": percentile(0.99)},
+        "update_ms": update,
+        // Over zenoh: from publishing a keyframe's messages to its state's arrival.
+        "latency_ms": latency.map(|l| experiment::Percentiles::of(&l)),
         "through": if args.zenoh.is_some() { "zenoh" } else { "in-process" },
         "iterations_mean": estimates.iter().map(|e| e.iterations as f64).sum::<f64>()
             / estimates.len().max(1) as f64,

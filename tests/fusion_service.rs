@@ -4,10 +4,12 @@
 
 mod common;
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use common::fusion::{inputs, keyframe_batches, position_error, start_message};
 use common::server::{client, post, zenoh_get, zenoh_peer, TestServer};
+use factord::fusion::experiment::ape;
+use factord::fusion::stream::run_over_zenoh;
 use serde_json::{json, Value};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -123,26 +125,10 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
         return;
     };
     let s = TestServer::start(&[]);
+    // Window events, next to the states the robot side (`fusion::stream`) waits for.
     let z = zenoh_peer(&s.zenoh).await;
-    let created = zenoh_get(
-        &z,
-        "factord/rpc",
-        Some(&json!({"op": "create_session", "session": "rover", "kind": "sliding_window"})),
-    )
-    .await;
-    assert!(created.is_ok(), "{created:?}");
-    let (state_tx, states) = std::sync::mpsc::channel::<(Instant, Value)>();
     let (window_tx, windows) = std::sync::mpsc::channel::<Value>();
-    let state_tx = std::sync::Mutex::new(state_tx);
     let window_tx = std::sync::Mutex::new(window_tx);
-    let _state_sub = z
-        .declare_subscriber("factord/rover/out/state")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = state_tx.lock().unwrap().send((Instant::now(), v));
-        })
-        .await
-        .unwrap();
     let _window_sub = z
         .declare_subscriber("factord/rover/out/window")
         .callback(move |sample| {
@@ -155,43 +141,22 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
         .await
         .unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
-
-    let put = |messages: Vec<Value>| {
-        let z = z.clone();
-        async move {
-            z.put(
-                "factord/rover/in/fusion",
-                serde_json::to_vec(&json!({"messages": messages})).unwrap(),
-            )
-            .await
-            .unwrap();
-        }
-    };
-    put(vec![start_message(&inputs)]).await;
-    // A robot publishing at its own pace: one batch per keyframe, then wait for the state.
-    let mut latencies = Vec::new();
-    let mut errors = Vec::new();
-    for batch in keyframe_batches(&inputs) {
-        let sent = Instant::now();
-        put(batch).await;
-        let (arrived, state) = states
-            .recv_timeout(Duration::from_secs(5))
-            .expect("a state per keyframe");
-        latencies.push(arrived.duration_since(sent).as_secs_f64() * 1e3);
-        errors.push(position_error(&inputs, &state["state"]));
-    }
-    assert_eq!(errors.len(), 200);
-    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
-    assert!(rmse < 0.2, "APE rmse {rmse}");
-    latencies.sort_by(f64::total_cmp);
-    println!(
-        "zenoh keyframe -> state latency over {} keyframes, window 20: p50 {:.2} ms, p99 {:.2} ms",
-        latencies.len(),
-        latencies[latencies.len() / 2],
-        latencies[(latencies.len() * 99) / 100]
+    let estimates = run_over_zenoh(&s.zenoh, "rover", &inputs).await.unwrap();
+    assert_eq!(estimates.len(), 200);
+    let (_, trans) = ape(&inputs, &estimates);
+    assert!(trans.rmse < 0.2, "APE rmse {}", trans.rmse);
+    assert!(estimates
+        .iter()
+        .all(|e| e.latency_seconds.is_some() && e.update_seconds > 0.0 && e.iterations > 0));
+    let windows: Vec<Value> = windows.try_iter().collect();
+    assert_eq!(windows.len(), 200);
+    assert_eq!(
+        windows.last().unwrap()["keyframes"]
+            .as_array()
+            .unwrap()
+            .len(),
+        20
     );
-    let last_window = windows.try_iter().last().expect("window events");
-    assert_eq!(last_window["keyframes"].as_array().unwrap().len(), 20);
     s.assert_no_panic();
 }
 

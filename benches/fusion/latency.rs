@@ -10,21 +10,11 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
-use std::time::{Duration, Instant};
-
-use common::fusion::{inputs, keyframe_batches, position_error, start_message};
-use common::server::{zenoh_get, zenoh_peer, TestServer};
-use serde_json::{json, Value};
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
-}
-
-fn stats(mut v: Vec<f64>) -> Value {
-    v.sort_by(f64::total_cmp);
-    json!({"p50": percentile(&v, 0.5), "p90": percentile(&v, 0.9), "p99": percentile(&v, 0.99),
-           "max": v[v.len() - 1], "count": v.len()})
-}
+use common::fusion::inputs;
+use common::server::TestServer;
+use factord::fusion::experiment::{ape, Percentiles};
+use factord::fusion::stream::run_over_zenoh;
+use serde_json::json;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() {
@@ -44,54 +34,18 @@ async fn main() {
         return;
     };
     let server = TestServer::start(&[]);
-    let z = zenoh_peer(&server.zenoh).await;
-    zenoh_get(
-        &z,
-        "factord/rpc",
-        Some(&json!({"op": "create_session", "session": "bench", "kind": "sliding_window"})),
-    )
-    .await
-    .expect("session created");
-    let (tx, states) = std::sync::mpsc::channel::<(Instant, Value)>();
-    let tx = std::sync::Mutex::new(tx);
-    let _subscriber = z
-        .declare_subscriber("factord/bench/out/state")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = tx.lock().unwrap().send((Instant::now(), v));
-        })
+    let estimates = run_over_zenoh(&server.zenoh, "bench", &inputs)
         .await
-        .unwrap();
-    zenoh_get(&z, "factord/rpc", Some(&json!({"op": "health"})))
-        .await
-        .unwrap();
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    let put = |messages: Vec<Value>| {
-        let z = z.clone();
-        async move {
-            let body = serde_json::to_vec(&json!({ "messages": messages })).unwrap();
-            z.put("factord/bench/in/fusion", body).await.unwrap();
-        }
+        .expect("the stream runs");
+    let ms = |f: &dyn Fn(&factord::fusion::experiment::Estimate) -> f64| {
+        Percentiles::of(&estimates.iter().map(|e| f(e) * 1e3).collect::<Vec<_>>())
     };
-    put(vec![start_message(&inputs)]).await;
-    let (mut latency, mut update, mut errors) = (Vec::new(), Vec::new(), Vec::new());
-    for batch in keyframe_batches(&inputs) {
-        let sent = Instant::now();
-        put(batch).await;
-        let (arrived, state) = states
-            .recv_timeout(Duration::from_secs(5))
-            .expect("a state per keyframe");
-        latency.push(arrived.duration_since(sent).as_secs_f64() * 1e3);
-        update.push(state["update_seconds"].as_f64().unwrap() * 1e3);
-        errors.push(position_error(&inputs, &state["state"]));
-    }
-    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     let result = json!({
         "window": window,
-        "keyframes": errors.len(),
-        "publish_to_state_ms": stats(latency),
-        "server_update_ms": stats(update),
-        "ape_trans_rmse": rmse,
+        "keyframes": estimates.len(),
+        "publish_to_state_ms": ms(&|e| e.latency_seconds.expect("streamed")),
+        "server_update_ms": ms(&|e| e.update_seconds),
+        "ape_trans_rmse": ape(&inputs, &estimates).1.rmse,
     });
     println!("{}", serde_json::to_string_pretty(&result).unwrap());
     if let Some(path) = value("--json") {

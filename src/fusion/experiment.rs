@@ -6,11 +6,13 @@
 
 use std::time::Instant;
 
-use nalgebra::{DMatrix, Matrix4, Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Matrix4, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::preintegration::ImuNoise;
-use super::window::{FusionError, SlidingWindow, WindowOptions};
+use super::window::{
+    diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
+};
 use crate::factors::testing::Rng;
 use crate::geometry::{so3, NavState};
 use crate::io::euroc::Euroc;
@@ -35,8 +37,7 @@ impl PoseJson {
         Vector3::from(self.position)
     }
     pub fn rotation(&self) -> UnitQuaternion<f64> {
-        let [x, y, z, w] = self.rotation_xyzw;
-        UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))
+        quaternion_xyzw(&self.rotation_xyzw)
     }
 }
 
@@ -258,17 +259,12 @@ pub struct Estimate {
     pub key: Key,
     pub t: f64,
     pub pose: PoseJson,
-    /// The whole update: adding the measurements, optimising, marginalising.
-    pub solve_seconds: f64,
+    /// The window's update: adding the keyframe's measurements, optimising, marginalising
+    /// (measured in this process, or by the server and reported in its `state` event).
+    pub update_seconds: f64,
     pub iterations: usize,
-}
-
-fn diagonal_information(sigmas: &[(f64, usize)]) -> DMatrix<f64> {
-    let values: Vec<f64> = sigmas
-        .iter()
-        .flat_map(|&(s, n)| std::iter::repeat_n(1.0 / (s * s), n))
-        .collect();
-    DMatrix::from_diagonal(&nalgebra::DVector::from_vec(values))
+    /// Over zenoh: from publishing the keyframe's messages to its state's arrival.
+    pub latency_seconds: Option<f64>,
 }
 
 /// Runs our sliding window over `inputs` as a robot would feed it, in time order.
@@ -292,7 +288,7 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
         (s.velocity, 3),
         (s.accel_bias, 3),
         (s.gyro_bias, 3),
-    ]);
+    ])?;
     let mut options = WindowOptions {
         size: inputs.window,
         gravity: inputs.gravity,
@@ -351,7 +347,8 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
                 position: r.position,
                 rotation_xyzw: r.rotation_xyzw,
             };
-            let information = diagonal_information(&[(r.sigma_position, 3), (r.sigma_rotation, 3)]);
+            let information =
+                diagonal_information(&[(r.sigma_position, 3), (r.sigma_rotation, 3)])?;
             window.add_relative_pose(from, key, rel.position(), rel.rotation(), &information)?;
         }
         for p in inputs.pose_priors.iter().filter(|p| p.key == keyframe.key) {
@@ -359,7 +356,8 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
                 position: p.position,
                 rotation_xyzw: p.rotation_xyzw,
             };
-            let information = diagonal_information(&[(p.sigma_position, 3), (p.sigma_rotation, 3)]);
+            let information =
+                diagonal_information(&[(p.sigma_position, 3), (p.sigma_rotation, 3)])?;
             window.add_pose_prior(key, prior.position(), prior.rotation(), &information)?;
         }
         let summary = window.optimize()?;
@@ -368,11 +366,42 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
             key: keyframe.key,
             t,
             pose: PoseJson::new(&state.position, &state.rotation),
-            solve_seconds: start.elapsed().as_secs_f64(),
+            update_seconds: start.elapsed().as_secs_f64(),
             iterations: summary.iterations,
+            latency_seconds: None,
         });
     }
     Ok(estimates)
+}
+
+/// Percentiles of durations (or anything), nearest rank.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p90: f64,
+    pub p99: f64,
+    pub max: f64,
+    pub count: usize,
+}
+
+impl Percentiles {
+    pub fn of(values: &[f64]) -> Self {
+        let mut sorted = values.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let at = |p: f64| {
+            sorted
+                .get(((sorted.len() as f64 - 1.0) * p).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        Self {
+            p50: at(0.5),
+            p90: at(0.9),
+            p99: at(0.99),
+            max: at(1.0),
+            count: sorted.len(),
+        }
+    }
 }
 
 /// `evo_ape`'s statistics of a list of errors (std is the population standard deviation).

@@ -52,7 +52,7 @@ async fn rpc(z: &zenoh::Session, command: &Value) -> Result<Value, String> {
 }
 
 /// Creates `session` (kind sliding_window), streams `inputs` and returns the published states,
-/// one per keyframe, with the publication-to-state time as `solve_seconds`.
+/// one per keyframe, with the server's update time and the publication-to-state latency.
 pub async fn run_over_zenoh(
     endpoint: &str,
     session: &str,
@@ -114,8 +114,9 @@ pub async fn run_over_zenoh(
             key: keyframe.key,
             t: state["t"].as_f64().unwrap_or(keyframe.t),
             pose,
-            solve_seconds: arrived.duration_since(sent).as_secs_f64(),
+            update_seconds: event["update_seconds"].as_f64().unwrap_or(f64::NAN),
             iterations: event["iterations"].as_u64().unwrap_or(0) as usize,
+            latency_seconds: Some(arrived.duration_since(sent).as_secs_f64()),
         });
     }
     drop(subscriber);

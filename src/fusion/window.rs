@@ -86,6 +86,26 @@ pub struct SlidingWindow {
     next_key: Key,
 }
 
+/// The diagonal information of independent measurements: `1/σ²` for each (σ, count).
+pub fn diagonal_information(sigmas: &[(f64, usize)]) -> Result<DMatrix<f64>, FusionError> {
+    let mut values = Vec::new();
+    for &(s, n) in sigmas {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(FusionError::Invalid {
+                field: "sigma",
+                reason: format!("must be a finite number > 0, got {s}"),
+            });
+        }
+        values.extend(std::iter::repeat_n(1.0 / (s * s), n));
+    }
+    Ok(DMatrix::from_diagonal(&nalgebra::DVector::from_vec(values)))
+}
+
+/// A rotation from a Hamilton quaternion written x y z w (normalised).
+pub fn quaternion_xyzw(q: &[f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2]))
+}
+
 fn check_information(field: &'static str, m: &DMatrix<f64>, dim: usize) -> Result<(), FusionError> {
     if m.nrows() != dim || m.ncols() != dim {
         return Err(FusionError::Invalid {
@@ -221,13 +241,7 @@ impl SlidingWindow {
     /// Creates the keyframe at time `t` from the IMU samples since the previous one; returns
     /// its key. Its state is predicted by dead reckoning from the previous keyframe.
     pub fn add_keyframe(&mut self, t: f64) -> Result<Key, FusionError> {
-        let (_, previous_t) = self.newest();
-        if !(t.is_finite() && t > previous_t) {
-            return Err(FusionError::KeyframeOutOfOrder {
-                t,
-                previous: previous_t,
-            });
-        }
+        let previous_t = self.check_keyframe_time(t)?;
         let Some((sample_t, a, w)) = self.last_sample.filter(|_| self.samples_since_keyframe > 0)
         else {
             return Err(FusionError::KeyframeWithoutImu {
@@ -258,13 +272,7 @@ impl SlidingWindow {
         t: f64,
         preintegrated: Preintegrated,
     ) -> Result<Key, FusionError> {
-        let (_, previous_t) = self.newest();
-        if !(t.is_finite() && t > previous_t) {
-            return Err(FusionError::KeyframeOutOfOrder {
-                t,
-                previous: previous_t,
-            });
-        }
+        let previous_t = self.check_keyframe_time(t)?;
         if preintegrated.samples == 0 {
             return Err(FusionError::KeyframeWithoutImu {
                 t,
@@ -297,24 +305,35 @@ impl SlidingWindow {
             field: "imu",
             reason: "the pre-integration covariance is singular".into(),
         })?;
-        let key = self.next_key;
-        self.problem
-            .add_variable(key, Box::new(factor.predict_from(&previous)))?;
+        let key = self.push_keyframe(t, factor.predict_from(&previous))?;
         self.problem.add_factor(
             Box::new(factor),
             &information,
             None,
             format!("imu {previous_key}-{key}"),
         )?;
+        Ok(key)
+    }
+
+    /// `t` for a new keyframe: finite and after the newest one, which it returns the time of.
+    fn check_keyframe_time(&self, t: f64) -> Result<f64, FusionError> {
+        let (_, previous) = self.newest();
+        if t.is_finite() && t > previous {
+            Ok(previous)
+        } else {
+            Err(FusionError::KeyframeOutOfOrder { t, previous })
+        }
+    }
+
+    /// Adds keyframe `state` at `t` to the window; the next pre-integration starts from its
+    /// biases (the last IMU sample is held on past it until the next one arrives).
+    fn push_keyframe(&mut self, t: f64, state: NavState) -> Result<Key, FusionError> {
+        let key = self.next_key;
+        self.problem.add_variable(key, Box::new(state))?;
         self.next_key += 1;
         self.keyframes.push_back((key, t));
-        let current = self.state(key).expect("just added");
-        self.pending = Preintegrated::new(
-            self.options.imu_noise,
-            current.accel_bias,
-            current.gyro_bias,
-        );
-        // The last sample is held on past the keyframe until the next one arrives.
+        self.pending =
+            Preintegrated::new(self.options.imu_noise, state.accel_bias, state.gyro_bias);
         self.samples_since_keyframe = 0;
         Ok(key)
     }
@@ -328,27 +347,14 @@ impl SlidingWindow {
         t: f64,
         guess: NavState,
     ) -> Result<Key, FusionError> {
-        let (_, previous_t) = self.newest();
-        if !(t.is_finite() && t > previous_t) {
-            return Err(FusionError::KeyframeOutOfOrder {
-                t,
-                previous: previous_t,
-            });
-        }
+        self.check_keyframe_time(t)?;
         if !guess.is_finite() {
             return Err(FusionError::Invalid {
                 field: "guess",
                 reason: "not finite".into(),
             });
         }
-        let key = self.next_key;
-        self.problem.add_variable(key, Box::new(guess))?;
-        self.next_key += 1;
-        self.keyframes.push_back((key, t));
-        self.pending =
-            Preintegrated::new(self.options.imu_noise, guess.accel_bias, guess.gyro_bias);
-        self.samples_since_keyframe = 0;
-        Ok(key)
+        self.push_keyframe(t, guess)
     }
 
     fn require_in_window(&self, key: Key) -> Result<(), FusionError> {

@@ -9,14 +9,16 @@
 
 use std::time::Instant;
 
-use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::wire::SessionEvent;
 use super::Session;
 use crate::fusion::experiment::InitialSigmas;
 use crate::fusion::preintegration::{ImuNoise, Matrix15, Preintegrated};
-use crate::fusion::window::{FusionError, SlidingWindow, WindowOptions};
+use crate::fusion::window::{
+    diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
+};
 use crate::geometry::NavState;
 use crate::problem::Key;
 use crate::service::ServiceError;
@@ -208,24 +210,6 @@ pub struct FusionAck {
     pub latest: Option<StateReport>,
 }
 
-fn rotation(q: &[f64; 4]) -> UnitQuaternion<f64> {
-    UnitQuaternion::from_quaternion(Quaternion::new(q[3], q[0], q[1], q[2]))
-}
-
-fn information(sigmas: &[(f64, usize)]) -> Result<DMatrix<f64>, FusionError> {
-    let mut values = Vec::new();
-    for &(s, n) in sigmas {
-        if !(s.is_finite() && s > 0.0) {
-            return Err(FusionError::Invalid {
-                field: "sigma",
-                reason: format!("must be a finite number > 0, got {s}"),
-            });
-        }
-        values.extend(std::iter::repeat_n(1.0 / (s * s), n));
-    }
-    Ok(DMatrix::from_diagonal(&nalgebra::DVector::from_vec(values)))
-}
-
 fn finite(values: &[f64]) -> Result<(), FusionError> {
     if values.iter().all(|v| v.is_finite()) {
         Ok(())
@@ -266,13 +250,13 @@ fn apply(
         finite(&rotation_xyzw)?;
         let first = NavState {
             position: Vector3::from(position),
-            rotation: rotation(&rotation_xyzw),
+            rotation: quaternion_xyzw(&rotation_xyzw),
             velocity: Vector3::from(velocity),
             accel_bias: Vector3::from(accel_bias),
             gyro_bias: Vector3::from(gyro_bias),
         };
         let s = &sigmas;
-        let info = information(&[
+        let info = diagonal_information(&[
             (s.position, 3),
             (s.rotation, 3),
             (s.velocity, 3),
@@ -346,7 +330,7 @@ fn apply(
                 Vector3::from(gyro_bias),
             );
             measurement.delta_t = delta_t;
-            measurement.delta_rotation = rotation(&delta_rotation_xyzw)
+            measurement.delta_rotation = quaternion_xyzw(&delta_rotation_xyzw)
                 .to_rotation_matrix()
                 .into_inner();
             measurement.delta_velocity = Vector3::from(delta_velocity);
@@ -371,8 +355,8 @@ fn apply(
         } => {
             finite(&position)?;
             finite(&rotation_xyzw)?;
-            let info = information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
-            let q = rotation(&rotation_xyzw);
+            let info = diagonal_information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
+            let q = quaternion_xyzw(&rotation_xyzw);
             w.add_relative_pose(from, to, Vector3::from(position), q, &info)?;
             Ok(None)
         }
@@ -385,11 +369,11 @@ fn apply(
         } => {
             finite(&position)?;
             finite(&rotation_xyzw)?;
-            let info = information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
+            let info = diagonal_information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
             w.add_pose_prior(
                 key,
                 Vector3::from(position),
-                rotation(&rotation_xyzw),
+                quaternion_xyzw(&rotation_xyzw),
                 &info,
             )?;
             Ok(None)
@@ -400,7 +384,7 @@ fn apply(
             sigma,
         } => {
             finite(&position)?;
-            let info = information(&[(sigma, 3)])?;
+            let info = diagonal_information(&[(sigma, 3)])?;
             w.add_position_prior(key, Vector3::from(position), &info)?;
             Ok(None)
         }
