@@ -98,6 +98,17 @@ pub enum Command {
         session: String,
         messages: Vec<crate::session::fusion::FusionMessage>,
     },
+    /// What the web view draws: positions, initial guesses and pose-to-pose edges.
+    GetGraph {
+        session: String,
+    },
+    /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
+    GetMarginals {
+        session: String,
+        keys: Vec<Key>,
+        #[serde(default)]
+        joint: bool,
+    },
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -153,6 +164,8 @@ pub enum Reply {
         cancelled: bool,
     },
     Fusion(crate::session::fusion::FusionAck),
+    Graph(Box<crate::session::wire::Graph>),
+    Marginals(Box<crate::session::wire::Marginals>),
 }
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
@@ -331,6 +344,20 @@ impl Service {
             Command::GetStats { session } => {
                 Ok(Reply::Stats(Box::new(self.session(&session)?.stats())))
             }
+            Command::GetGraph { session } => {
+                Ok(Reply::Graph(Box::new(self.session(&session)?.graph())))
+            }
+            Command::GetMarginals {
+                session,
+                keys,
+                joint,
+            } => {
+                let session = self.session(&session)?;
+                let query = crate::session::wire::MarginalsQuery { keys, joint };
+                self.marginals(session, query)
+                    .await
+                    .map(|m| Reply::Marginals(Box::new(m)))
+            }
             Command::Cancel { session } => {
                 let session = self.session(&session)?;
                 Ok(Reply::Cancelled {
@@ -338,6 +365,37 @@ impl Service {
                     session: session.name.clone(),
                 })
             }
+        }
+    }
+
+    /// Marginals off the async threads; while a solve holds the problem, asks again after it
+    /// (polling: a queued solve may find nothing to do and finish without a trace).
+    async fn marginals(
+        &self,
+        session: Arc<Session>,
+        query: crate::session::wire::MarginalsQuery,
+    ) -> Result<crate::session::wire::Marginals, ServiceError> {
+        let deadline = Instant::now() + self.wait_timeout();
+        let query = Arc::new(query);
+        loop {
+            let (s, q) = (Arc::clone(&session), Arc::clone(&query));
+            let answer = tokio::task::spawn_blocking(move || s.marginals(&q))
+                .await
+                .map_err(|e| ServiceError::internal(format!("marginals failed: {e}")))??;
+            if let Some(marginals) = answer {
+                return Ok(marginals);
+            }
+            if Instant::now() >= deadline {
+                return Err(ServiceError::unavailable(
+                    "solving",
+                    format!(
+                        "session `{}` is being solved; ask again when the solve finishes",
+                        session.name
+                    ),
+                    1,
+                ));
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
 

@@ -34,6 +34,17 @@ pub struct VariableCodec {
     pub len: usize,
     pub decode: DecodeVariable,
     pub encode: fn(&dyn Variable) -> Vec<f64>,
+    /// How the web view draws it.
+    pub shape: Shape,
+    /// Its position in the world, from the wire encoding (a camera's centre, a pose's origin).
+    pub position: fn(&[f64]) -> [f64; 3],
+}
+
+/// What a variable is when drawn: a pose of the trajectory or a landmark of a point cloud.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shape {
+    Pose,
+    Landmark,
 }
 
 /// How one factor type is built from its wire form.
@@ -114,6 +125,8 @@ const VARIABLES: &[VariableCodec] = &[
         len: 3,
         decode: |v| Ok(Box::new(Se2::new(v[0], v[1], wrap_angle(v[2])))),
         encode: |v| encode_as::<Se2>(v, |p| p.to_array().to_vec()),
+        shape: Shape::Pose,
+        position: |v| [v[0], v[1], 0.0],
     },
     VariableCodec {
         kind: "se3",
@@ -126,6 +139,8 @@ const VARIABLES: &[VariableCodec] = &[
                 vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
             })
         },
+        shape: Shape::Pose,
+        position: |v| [v[0], v[1], v[2]],
     },
     VariableCodec {
         kind: "snavely_camera",
@@ -135,12 +150,19 @@ const VARIABLES: &[VariableCodec] = &[
             Ok(Box::new(SnavelyCamera::from_bal(&p)))
         },
         encode: |v| encode_as::<SnavelyCamera>(v, |c| c.to_bal().to_vec()),
+        shape: Shape::Pose,
+        position: |v| {
+            let p: [f64; 9] = v.try_into().expect("mirror values have the codec's length");
+            SnavelyCamera::from_bal(&p).centre().into()
+        },
     },
     VariableCodec {
         kind: "point3",
         len: 3,
         decode: |v| Ok(Box::new(Point3(Vector3::new(v[0], v[1], v[2])))),
         encode: |v| encode_as::<Point3>(v, |p| p.0.iter().copied().collect()),
+        shape: Shape::Landmark,
+        position: |v| [v[0], v[1], v[2]],
     },
 ];
 

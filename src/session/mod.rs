@@ -11,6 +11,7 @@ pub mod batch;
 pub mod catalogue;
 pub mod fusion;
 mod incremental;
+mod inspect;
 mod solve;
 pub mod wire;
 
@@ -37,6 +38,8 @@ pub struct MirrorEntry {
     pub value: Vec<f64>,
     pub changed: u64,
     pub fixed: bool,
+    /// Position of the value the client last sent (the web view's initial guess).
+    pub initial: [f64; 3],
 }
 
 impl MirrorEntry {
@@ -59,6 +62,9 @@ pub struct Session {
     cancel: AtomicBool,
     /// The window of a `sliding_window` session, from its `start` message on.
     fusion: Mutex<Option<crate::fusion::window::SlidingWindow>>,
+    /// The last factorisation for marginal covariances, with the (sequence, solves) of the
+    /// estimate it was taken at.
+    marginals: Mutex<Option<((u64, u64), crate::solver::marginals::Marginals)>>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     max_pending_factors: usize,
@@ -83,6 +89,8 @@ struct State {
     factor_ids: Vec<FactorId>,
     mirror: BTreeMap<Key, MirrorEntry>,
     live_factors: HashSet<FactorId>,
+    /// Live factors between two pose-shaped variables (what the web view draws as edges).
+    edges: BTreeMap<FactorId, [Key; 2]>,
     next_factor_id: FactorId,
     sequence: u64,
     solved_sequence: u64,
@@ -131,6 +139,7 @@ impl Session {
                 factor_ids: Vec::new(),
                 mirror: BTreeMap::new(),
                 live_factors: HashSet::new(),
+                edges: BTreeMap::new(),
                 next_factor_id: 0,
                 sequence: 0,
                 solved_sequence: 0,
@@ -155,6 +164,7 @@ impl Session {
             completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
             fusion: Mutex::new(None),
+            marginals: Mutex::new(None),
             runtime,
             pool,
             max_pending_factors,
@@ -244,9 +254,11 @@ impl Session {
         // Mirror first: later batches validate against it even while this one waits.
         let mut new_values = Vec::new();
         for (key, v, fixed) in &prepared.variables {
+            let value = catalogue::encode_variable(v.as_ref());
             let entry = MirrorEntry {
                 kind: v.kind(),
-                value: catalogue::encode_variable(v.as_ref()),
+                initial: inspect::position(v.kind(), &value),
+                value,
                 changed: sequence,
                 fixed: *fixed,
             };
@@ -256,6 +268,7 @@ impl Session {
         for (key, v) in &prepared.guesses {
             let value = catalogue::encode_variable(v.as_ref());
             let entry = st.mirror.get_mut(key).expect("validated");
+            entry.initial = inspect::position(entry.kind, &value);
             entry.value = value;
             entry.changed = sequence;
             new_values.push(value_of(*key, entry));
@@ -264,8 +277,14 @@ impl Session {
             st.mirror.get_mut(&key).expect("validated").fixed = fixed;
         }
         st.live_factors.extend(factor_ids.iter().copied());
+        for (f, &id) in prepared.factors.iter().zip(&factor_ids) {
+            if let Some(edge) = inspect::edge(&st.mirror, f.factor.keys()) {
+                st.edges.insert(id, edge);
+            }
+        }
         for id in &prepared.remove {
             st.live_factors.remove(id);
+            st.edges.remove(id);
         }
         let predicted = prepared.predicted.clone();
         if st.problem.is_some() {

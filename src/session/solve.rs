@@ -194,17 +194,25 @@ impl Session {
             }
         }
         st.solved_sequence = st.solved_sequence.max(sequence);
-        st.problem = Some(problem);
-        st.index = Some(index);
         st.region_debt = debt;
-        while let Some((seq, prepared, ids)) = st.pending.pop_front() {
-            st.pending_factors -= prepared.factor_count();
-            self.apply_prepared(&mut st, seq, prepared, ids);
-        }
+        self.hand_back(&mut st, problem, index);
         st.scheduled = false;
         self.solved.send_replace(st.solved_sequence);
         self.completed.send_modify(|n| *n = (*n).max(solve_number));
         self.maybe_schedule(&mut st);
+    }
+}
+
+impl Session {
+    /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
+    /// that were queued meanwhile.
+    pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: Engine) {
+        st.problem = Some(problem);
+        st.index = Some(index);
+        while let Some((seq, prepared, ids)) = st.pending.pop_front() {
+            st.pending_factors -= prepared.factor_count();
+            self.apply_prepared(st, seq, prepared, ids);
+        }
     }
 }
 

@@ -123,6 +123,67 @@ pub struct EstimateQuery {
     pub to: Option<Key>,
 }
 
+/// The drawable graph of a session (the web view's data): pose positions in key order with the
+/// client's initial guesses, landmark positions, and pose-to-pose factors as key pairs.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Graph {
+    pub session: String,
+    pub kind: String,
+    pub sequence: u64,
+    /// 2 for planar sessions (z is 0), else 3.
+    pub dimension: u8,
+    pub poses: Vec<DrawnVariable>,
+    pub points: Vec<DrawnVariable>,
+    pub edges: Vec<[Key; 2]>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DrawnVariable {
+    pub key: Key,
+    pub position: [f64; 3],
+    /// Where the client last put it (its initial guess, or a later `guesses` entry).
+    pub initial: [f64; 3],
+}
+
+/// Which variables' marginal covariance to compute.
+#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarginalsQuery {
+    pub keys: Vec<Key>,
+    /// Also return the joint covariance of all of them (cross-covariances included).
+    #[serde(default)]
+    pub joint: bool,
+}
+
+/// Marginal covariances at the estimate of `sequence`, in each variable's tangent space.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Marginals {
+    pub session: String,
+    /// The sequence and solve count of the estimate the factorisation was taken at.
+    pub sequence: u64,
+    pub solves: u64,
+    pub variables: Vec<MarginalCovariance>,
+    /// Row-major joint covariance, in the order of `variables`, when asked for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub joint: Option<Vec<Vec<f64>>>,
+    /// Variables held fixed (by the client or as gauge anchors): zero covariance, and the
+    /// others are conditioned on them.
+    pub gauge_fixed: Vec<Key>,
+    /// Whether H was factorised for this request or an earlier factorisation at the same
+    /// estimate was reused; the factorisation's time, and the whole request's.
+    pub reused_factorization: bool,
+    pub factorize_seconds: f64,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct MarginalCovariance {
+    pub key: Key,
+    pub kind: String,
+    pub fixed: bool,
+    pub covariance: Vec<Vec<f64>>,
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct VariableValue {
     pub key: Key,

@@ -7,6 +7,7 @@ pub mod gauge;
 pub mod initialize;
 pub mod linear;
 pub mod linearize;
+pub mod marginals;
 mod optimizer;
 pub mod options;
 pub mod schur;

@@ -1,0 +1,186 @@
+//! Read-only views of a session beyond its estimate: the drawable graph (what the web view
+//! shows) and marginal covariances of selected variables.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+use super::catalogue::{self, Shape};
+use super::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
+use super::{MirrorEntry, Session};
+use crate::problem::Key;
+use crate::service::ServiceError;
+use crate::solver::marginals::{self, MarginalsError};
+
+/// Most variables one marginals request may name (each costs a solve per tangent direction).
+pub const MAX_MARGINAL_KEYS: usize = 256;
+
+/// World position of a wire value of `kind` (kinds come from the catalogue).
+pub(super) fn position(kind: &str, value: &[f64]) -> [f64; 3] {
+    let codec = catalogue::variable_codec(kind).expect("mirror kinds come from the catalogue");
+    (codec.position)(value)
+}
+
+fn shape(kind: &str) -> Shape {
+    catalogue::variable_codec(kind)
+        .expect("mirror kinds come from the catalogue")
+        .shape
+}
+
+/// The edge a factor over `keys` draws: only factors between two poses (odometry, loop
+/// closures), not observations of landmarks.
+pub(super) fn edge(mirror: &BTreeMap<Key, MirrorEntry>, keys: &[Key]) -> Option<[Key; 2]> {
+    let [a, b] = keys else { return None };
+    let is_pose = |k: &Key| mirror.get(k).is_some_and(|e| shape(e.kind) == Shape::Pose);
+    (is_pose(a) && is_pose(b)).then_some([*a, *b])
+}
+
+impl Session {
+    pub fn graph(&self) -> Graph {
+        let st = self.lock();
+        let (mut poses, mut points) = (Vec::new(), Vec::new());
+        for (&key, entry) in &st.mirror {
+            let drawn = DrawnVariable {
+                key,
+                position: position(entry.kind, &entry.value),
+                initial: entry.initial,
+            };
+            match shape(entry.kind) {
+                Shape::Pose => poses.push(drawn),
+                Shape::Landmark => points.push(drawn),
+            }
+        }
+        Graph {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            sequence: st.sequence,
+            dimension: if self.kind.name == "pose_graph_2d" {
+                2
+            } else {
+                3
+            },
+            poses,
+            points,
+            edges: st.edges.values().copied().collect(),
+        }
+    }
+
+    /// Marginal covariances at the current estimate. `Ok(None)` when a solve holds the problem
+    /// and no factorisation of the current estimate is cached: ask again after it.
+    ///
+    /// Runs the factorisation on the calling thread (call it off the async runtime). Batches
+    /// that arrive meanwhile are queued as during a solve, so they are never refused for it.
+    pub fn marginals(
+        self: &Arc<Self>,
+        query: &MarginalsQuery,
+    ) -> Result<Option<Marginals>, ServiceError> {
+        let start = Instant::now();
+        if self.kind.name == catalogue::SLIDING_WINDOW {
+            return Err(ServiceError::bad_request(
+                "wrong_kind",
+                "session",
+                "marginal covariances are served for pose-graph and bundle-adjustment sessions",
+            ));
+        }
+        if query.keys.is_empty() || query.keys.len() > MAX_MARGINAL_KEYS {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "keys",
+                format!(
+                    "name between 1 and {MAX_MARGINAL_KEYS} variables, got {}",
+                    query.keys.len()
+                ),
+            ));
+        }
+        // Lock order: the cached factorisation, then the state.
+        let mut cache = self.marginals.lock().unwrap_or_else(|p| p.into_inner());
+        let mut st = self.lock();
+        if st.deleted {
+            return Err(ServiceError::not_found("session", &self.name));
+        }
+        let mut kinds = Vec::with_capacity(query.keys.len());
+        for (i, key) in query.keys.iter().enumerate() {
+            match st.mirror.get(key) {
+                Some(entry) => kinds.push(entry.kind),
+                None => {
+                    return Err(ServiceError::invalid(
+                        "unknown_variable",
+                        format!("keys[{i}]"),
+                        format!("variable {key} does not exist"),
+                    ))
+                }
+            }
+            if query.keys[..i].contains(key) {
+                return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    format!("keys[{i}]"),
+                    format!("variable {key} is named twice"),
+                ));
+            }
+        }
+        let version = (st.sequence, st.solves);
+        let reused = matches!(&*cache, Some((v, _)) if *v == version);
+        if !reused {
+            // While the problem is here its values are the estimate clients read (the mirror).
+            if st.problem.is_none() || st.scheduled {
+                return Ok(None);
+            }
+            let problem = st.problem.take().expect("checked above");
+            let index = st.index.take().expect("kept with the problem");
+            st.scheduled = true; // no solve takes the problem while it is out
+            drop(st);
+            let factorized = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                marginals::Marginals::new(&problem)
+            }));
+            let mut st = self.lock();
+            self.hand_back(&mut st, problem, index);
+            st.scheduled = false;
+            self.maybe_schedule(&mut st);
+            drop(st);
+            let factorized = factorized
+                .map_err(|_| ServiceError::internal("the factorisation panicked"))?
+                .map_err(|e| ServiceError::new(422, "indeterminate_system", e.to_string()))?;
+            *cache = Some((version, factorized));
+        } else {
+            drop(st);
+        }
+        let (_, held) = cache.as_mut().expect("filled above");
+        let covariance = held.covariance(&query.keys).map_err(|e| match e {
+            MarginalsError::UnknownVariable { key } | MarginalsError::Repeated { key } => {
+                ServiceError::internal(format!(
+                    "variable {key}: the factorisation disagrees with the estimate"
+                ))
+            }
+        })?;
+        let variables = query
+            .keys
+            .iter()
+            .zip(&kinds)
+            .enumerate()
+            .map(|(i, (&key, kind))| MarginalCovariance {
+                key,
+                kind: (*kind).into(),
+                fixed: held.gauge_fixed.binary_search(&key).is_ok(),
+                covariance: rows(&covariance.block(i, i), covariance.dims[i]),
+            })
+            .collect();
+        let joint = query
+            .joint
+            .then(|| rows(&covariance.joint, covariance.dimension()));
+        Ok(Some(Marginals {
+            session: self.name.clone(),
+            sequence: version.0,
+            solves: version.1,
+            variables,
+            joint,
+            gauge_fixed: held.gauge_fixed.clone(),
+            reused_factorization: reused,
+            factorize_seconds: held.factorize_seconds,
+            seconds: start.elapsed().as_secs_f64(),
+        }))
+    }
+}
+
+fn rows(row_major: &[f64], n: usize) -> Vec<Vec<f64>> {
+    row_major.chunks(n.max(1)).map(<[f64]>::to_vec).collect()
+}
