@@ -44,7 +44,10 @@ pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
         .route("/v1/sessions/{session}/cancel", post(cancel))
         .route("/v1/sessions/{session}/events", get(events))
         .route("/v1/sessions/{session}/ws", get(websocket))
+        .route("/v1/sessions/{session}/graph", get(graph))
+        .route("/v1/sessions/{session}/marginals", get(marginals))
         .route("/v1/jobs", post(job))
+        .merge(super::web::routes())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(max_body_bytes))
@@ -209,6 +212,50 @@ async fn estimate(
             since,
             from,
             to,
+        },
+        StatusCode::OK,
+    )
+    .await
+}
+
+async fn graph(State(service): Shared, Path(session): Path<String>) -> HttpResult {
+    run(&service, Command::GetGraph { session }, StatusCode::OK).await
+}
+
+/// `?keys=3,17&joint=true`: keys as one comma-separated list.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MarginalsParams {
+    keys: String,
+    #[serde(default)]
+    joint: bool,
+}
+
+async fn marginals(
+    State(service): Shared,
+    Path(session): Path<String>,
+    raw: RawQuery,
+) -> HttpResult {
+    let MarginalsParams { keys, joint } = query(raw)?;
+    let keys = keys
+        .split(',')
+        .enumerate()
+        .map(|(i, k)| {
+            k.trim().parse::<u64>().map_err(|_| {
+                ServiceError::bad_request(
+                    "invalid_query",
+                    format!("keys[{i}]"),
+                    format!("`{k}` is not a variable key (a non-negative integer)"),
+                )
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    run(
+        &service,
+        Command::GetMarginals {
+            session,
+            keys,
+            joint,
         },
         StatusCode::OK,
     )

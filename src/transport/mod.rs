@@ -1,4 +1,5 @@
 //! Transports: thin adapters that turn requests into [`crate::service::Command`]s.
 
 pub mod http;
+mod web;
 pub mod zenoh;

@@ -1,0 +1,48 @@
+//! The live web view: static pages compiled into the binary (no CDN, nothing to install), which
+//! read the JSON API and the session's event stream from the same origin.
+//!
+//! `/` lists sessions; `/sessions/<id>` draws the trajectory, initial guess, loop closures, point
+//! cloud and a live convergence plot. The pages are plain HTML, CSS and JS in `web/`.
+
+use std::sync::Arc;
+
+use axum::http::header;
+use axum::response::IntoResponse;
+use axum::routing::get;
+use axum::Router;
+
+use crate::service::Service;
+
+const INDEX: &str = include_str!("web/index.html");
+const SESSION: &str = include_str!("web/session.html");
+const SCRIPT: &str = include_str!("web/factord.js");
+const STYLE: &str = include_str!("web/factord.css");
+
+fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
+    (
+        [
+            (header::CONTENT_TYPE, content_type),
+            // The pages change with the binary; always revalidate.
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        body,
+    )
+}
+
+pub fn routes() -> Router<Arc<Service>> {
+    let html = "text/html; charset=utf-8";
+    Router::new()
+        .route("/", get(move || async move { page(INDEX, html) }))
+        .route(
+            "/sessions/{session}",
+            get(move || async move { page(SESSION, html) }),
+        )
+        .route(
+            "/assets/factord.js",
+            get(|| async { page(SCRIPT, "text/javascript; charset=utf-8") }),
+        )
+        .route(
+            "/assets/factord.css",
+            get(|| async { page(STYLE, "text/css; charset=utf-8") }),
+        )
+}
