@@ -10,11 +10,12 @@ Without --server:
       (longest match; when the rest of the name is one of that schema's $defs, e.g.
       `reply-deleted`, against that definition);
   (b) proto/v1/openapi.json's $refs resolve to existing schema files (and definitions in them),
-      and its routes are exactly the `.route("...", ...)` routes of src/transport/http.rs, with
-      the same methods.
+      and its routes are exactly the `.route("...", ...)` routes of src/transport/http.rs and
+      src/transport/web.rs (the web view), with the same methods.
 With --server it also (c) drives that server through a scripted sequence (sessions, batches,
-estimates, events over SSE, a batch job, error cases) and validates every real response body and
-SSE event against the schema it should match. --save-examples then rewrites the examples the
+estimates, graphs, marginal covariances, events over SSE, a batch job, error cases, the web
+view's pages) and validates every real JSON response body and SSE event against the schema it
+should match (the web view's pages: status and content type). --save-examples then rewrites the examples the
 sequence captures (proto/v1/examples/).
 
 Prints one line per check; exits 1 listing every mismatch. Needs the PyPI packages `jsonschema`
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import secrets
 import sys
@@ -47,6 +49,7 @@ PROTO = Path(__file__).resolve().parent
 V1 = PROTO / "v1"
 EXAMPLES = V1 / "examples"
 HTTP_RS = PROTO.parent / "src" / "transport" / "http.rs"
+WEB_RS = PROTO.parent / "src" / "transport" / "web.rs"  # merged into http.rs's router
 BASE = "https://factord.invalid/proto/v1/"
 HTTP_METHODS = ("get", "put", "post", "delete", "patch", "head", "options", "trace")
 
@@ -212,15 +215,18 @@ def refs_in(node: Any):
 
 
 def code_routes() -> dict[str, set[str]]:
-    """Routes and methods of src/transport/http.rs, from its `.route("...", ...)` calls."""
-    text = HTTP_RS.read_text()
+    """Routes and methods of src/transport/http.rs and web.rs, from their `.route("...", ...)` calls."""
     routes: dict[str, set[str]] = {}
-    calls = list(re.finditer(r'\.route\(\s*"([^"]+)"\s*,', text))
-    for i, m in enumerate(calls):
-        end = calls[i + 1].start() if i + 1 < len(calls) else text.find(".fallback", m.end())
-        handlers = text[m.end() : end if end > 0 else len(text)]
-        methods = set(re.findall(r"\b(get|post|put|delete|patch)\(", handlers))
-        routes.setdefault(m.group(1), set()).update(methods)
+    for source in (HTTP_RS, WEB_RS):
+        if not source.is_file():
+            continue
+        text = source.read_text()
+        calls = list(re.finditer(r'\.route\(\s*"([^"]+)"\s*,', text))
+        for i, m in enumerate(calls):
+            end = calls[i + 1].start() if i + 1 < len(calls) else text.find(".fallback", m.end())
+            handlers = text[m.end() : end if end > 0 else len(text)]
+            methods = set(re.findall(r"\b(get|post|put|delete|patch)\(", handlers))
+            routes.setdefault(m.group(1), set()).update(methods)
     return routes
 
 
@@ -265,6 +271,7 @@ def check_openapi(schemas: Schemas, report: Report) -> dict | None:
 
     in_code = code_routes()
     r.check("http.rs routes found", len(in_code) > 0, f"no .route(...) in {HTTP_RS}")
+    r.check("web.rs routes found", "/" in in_code, f"no .route(\"/\", ...) in {WEB_RS}")
     in_api = {p: {m for m in ops if m in HTTP_METHODS} for p, ops in api.get("paths", {}).items()}
     for route, methods in sorted(in_code.items()):
         documented = in_api.get(route)
@@ -272,7 +279,7 @@ def check_openapi(schemas: Schemas, report: Report) -> dict | None:
                 "missing" if documented is None else f"documented methods {sorted(documented)}")
     for route, methods in sorted(in_api.items()):
         code = in_code.get(route)
-        r.check(f"openapi path {route} ({', '.join(sorted(methods))}) exists in http.rs", code is not None and methods <= code,
+        r.check(f"openapi path {route} ({', '.join(sorted(methods))}) exists in http.rs/web.rs", code is not None and methods <= code,
                 "no such route" if code is None else f"code methods {sorted(code)}")
     return api
 
@@ -337,8 +344,9 @@ class Live:
 
     def call(self, label: str, method: str, path: str, status: int, ref: str, body: Any = None,
              raw: bytes | None = None, example: str | None = None, request_example: str | None = None,
-             error_code: str | None = None, headers: dict | None = None) -> Any:
-        """One request; checks status, content type and body schema. Returns the parsed body."""
+             error_code: str | None = None, headers: dict | None = None, error_field: str | None = None) -> Any:
+        """One request; checks status, content type and body schema (and, for errors, the code and
+        `field` when given). Returns the parsed body."""
         if request_example and body is not None:
             self.example(request_example, body)
         r = self.request(method, path, body=body, raw=raw, headers=headers)
@@ -355,6 +363,8 @@ class Live:
             err = value["error"]
             if error_code is not None:
                 self.report.check(f"{name}: error code {error_code}", err["code"] == error_code, f"got {err['code']!r}")
+            if error_field is not None:
+                self.report.check(f"{name}: error field {error_field}", err.get("field") == error_field, f"got {err.get('field')!r}")
             self.report.check(f"{name}: error.status equals the HTTP status", err["status"] == r.status, f"{err['status']} vs {r.status}")
             if "retry_after" in err:
                 self.report.check(f"{name}: Retry-After header", r.headers.get("Retry-After") == str(err["retry_after"]),
@@ -428,6 +438,73 @@ class Live:
             if self.validate(f"SSE {label} `{name}`", "event.schema.json", value, ex) and ex:
                 saved.add(expected)
 
+    # -- graph, marginals, web view ------------------------------------------------------------
+
+    def check_covariances(self, label: str, m: dict, keys: list[int], dims: list[int]) -> None:
+        """Marginals answer: variables in the order asked, d×d symmetric blocks, zero when fixed,
+        a positive diagonal otherwise, and `joint` (when present) made of them."""
+        r = self.report
+        got = [v["key"] for v in m["variables"]]
+        r.check(f"{label}: variables in the order asked", got == keys, f"{got} vs {keys}")
+        bad = []
+        for v, d in zip(m["variables"], dims):
+            c = v["covariance"]
+            if len(c) != d or any(len(row) != d for row in c):
+                bad.append(f"{v['key']}: not {d}x{d}")
+                continue
+            if any(abs(c[i][j] - c[j][i]) > 1e-9 * max(1.0, abs(c[i][j])) for i in range(d) for j in range(d)):
+                bad.append(f"{v['key']}: not symmetric")
+            if v["fixed"] != (v["key"] in m["gauge_fixed"]):
+                bad.append(f"{v['key']}: fixed={v['fixed']} but gauge_fixed={m['gauge_fixed']}")
+            if v["fixed"] and any(x != 0 for row in c for x in row):
+                bad.append(f"{v['key']}: fixed but its covariance is not zero")
+            if not v["fixed"] and not all(c[i][i] > 0 for i in range(d)):
+                bad.append(f"{v['key']}: free but its diagonal is not positive")
+        r.check(f"{label}: covariances are d×d, symmetric, zero exactly when fixed", not bad, "; ".join(bad))
+        if "joint" in m:
+            n, joint = sum(dims), m["joint"]
+            ok = len(joint) == n and all(len(row) == n for row in joint)
+            if ok:
+                starts = [sum(dims[:i]) for i in range(len(dims))]
+                ok = all(joint[starts[i] + a][starts[i] + b] == v["covariance"][a][b]
+                         for i, v in enumerate(m["variables"]) for a in range(dims[i]) for b in range(dims[i]))
+            r.check(f"{label}: joint is {n}×{n} with the variables' covariances as diagonal blocks", ok)
+            if ok:
+                r.check(f"{label}: joint is symmetric",
+                        all(abs(joint[i][j] - joint[j][i]) <= 1e-9 * max(1.0, abs(joint[i][j])) for i in range(n) for j in range(i)))
+
+    def web_page(self, path: str, content_type: str, contains: bytes) -> None:
+        resp = self.request("GET", path)
+        name = f"GET {path}"
+        r = self.report
+        r.check(f"{name}: status 200", resp.status == 200, f"got {resp.status}: {resp.body[:200]!r}")
+        r.check(f"{name}: {content_type}", resp.content_type.startswith(content_type), f"Content-Type {resp.content_type!r}")
+        r.check(f"{name}: body has {contains.decode()!r}", contains in resp.body, f"{resp.body[:120]!r}")
+
+    @staticmethod
+    def bal_batch() -> dict:
+        """Three Snavely cameras looking at 25 points, measurements exact (BAL's model, no distortion)."""
+        def rotate(w, x):
+            th = (w[0] ** 2 + w[1] ** 2 + w[2] ** 2) ** 0.5
+            k = [a / th for a in w]
+            c, s = math.cos(th), math.sin(th)
+            kx = [k[1] * x[2] - k[2] * x[1], k[2] * x[0] - k[0] * x[2], k[0] * x[1] - k[1] * x[0]]
+            kd = sum(k[i] * x[i] for i in range(3))
+            return [x[i] * c + kx[i] * s + k[i] * kd * (1 - c) for i in range(3)]
+
+        cameras = [[0.01, 0.0, 0.0, 0, 0, -10, 500, 0, 0], [0.02, 0.05, 0.01, -1, 0, -10, 500, 0, 0],
+                   [-0.03, -0.04, 0.01, 1, 0.5, -10.5, 500, 0, 0]]
+        points = [[-2 + i, -2 + j, 0.25 * ((i + 2 * j) % 5) - 0.5] for i in range(5) for j in range(5)]
+        factors = []
+        for ci, cam in enumerate(cameras):
+            for pj, x in enumerate(points):
+                q = [a + b for a, b in zip(rotate(cam[0:3], x), cam[3:6])]
+                factors.append({"type": "reprojection_snavely", "keys": [ci, 100 + pj],
+                                "measurement": [-cam[6] * q[0] / q[2], -cam[6] * q[1] / q[2]], "sigmas": [1.0, 1.0]})
+        variables = [{"key": i, "kind": "snavely_camera", "value": c} for i, c in enumerate(cameras)]
+        variables += [{"key": 100 + j, "kind": "point3", "value": x} for j, x in enumerate(points)]
+        return {"variables": variables, "factors": factors}
+
     # -- the scripted sequence -----------------------------------------------------------------
 
     def run(self) -> None:
@@ -499,6 +576,43 @@ class Live:
             r.check("stats: solved_sequence == sequence after wait", stats["solved_sequence"] == stats["sequence"])
         self.call("", "GET", f"/v1/sessions/{self.s2}/summary", 200, "summary.schema.json", example="summary")
 
+        # What the web view draws, and marginal covariances, of the solved square.
+        base2 = f"/v1/sessions/{self.s2}"
+        graph = self.call("", "GET", f"{base2}/graph", 200, "graph.schema.json", example="graph")
+        if graph and est:
+            r.check("graph: dimension 2, the 5 poses sorted, no points",
+                    graph["dimension"] == 2 and [p["key"] for p in graph["poses"]] == [0, 1, 2, 3, 4] and graph["points"] == [],
+                    f"dimension {graph['dimension']}, poses {[p['key'] for p in graph['poses']]}, {len(graph['points'])} points")
+            r.check("graph: one edge per between factor, keys as given", graph["edges"] == [f["keys"] for f in batch2["factors"]], f"{graph['edges']}")
+            r.check("graph: positions are the estimate's (x, y, 0)",
+                    [p["position"] for p in graph["poses"]] == [[v["value"][0], v["value"][1], 0.0] for v in est["variables"]])
+            r.check("graph: the initial position of key 0 is its given value", graph["poses"][0]["initial"] == [0.0, 0.0, 0.0],
+                    f"{graph['poses'][0]['initial']}")
+        marg = self.call("", "GET", f"{base2}/marginals?keys=4,1", 200, "marginals.schema.json", example="marginals")
+        if marg:
+            self.check_covariances("marginals 4,1", marg, [4, 1], [3, 3])
+            r.check("marginals: no `joint` unless asked", "joint" not in marg)
+            r.check("marginals: gauge_fixed is the client-fixed key 0", marg["gauge_fixed"] == [0], f"{marg['gauge_fixed']}")
+            if stats:
+                r.check("marginals: at the stats' sequence and solves", (marg["sequence"], marg["solves"]) == (stats["sequence"], stats["solves"]),
+                        f"{(marg['sequence'], marg['solves'])} vs {(stats['sequence'], stats['solves'])}")
+        joint = self.call("joint", "GET", f"{base2}/marginals?keys=0,1,2&joint=true", 200, "marginals.schema.json", example="marginals-joint")
+        if joint:
+            self.check_covariances("marginals 0,1,2 joint", joint, [0, 1, 2], [3, 3, 3])
+            r.check("marginals: key 0 is fixed", joint["variables"][0]["fixed"] is True)
+            r.check("marginals: the same estimate reuses the factorisation", joint["reused_factorization"] is True)
+        self.call("not an integer", "GET", f"{base2}/marginals?keys=1,x", 400, "error.schema.json", error_code="invalid_query", error_field="keys[1]")
+        self.call("no keys", "GET", f"{base2}/marginals", 400, "error.schema.json", error_code="invalid_query", error_field="keys")
+        self.call("bad joint", "GET", f"{base2}/marginals?keys=1&joint=yes", 400, "error.schema.json", error_code="invalid_query", error_field="joint")
+        self.call("unknown parameter", "GET", f"{base2}/marginals?keys=1&depth=2", 400, "error.schema.json", error_code="invalid_query", error_field="depth")
+        self.call("repeated key", "GET", f"{base2}/marginals?keys=1,1", 400, "error.schema.json", error_code="invalid_value",
+                  error_field="keys[1]", example="error-invalid-value")
+        self.call("257 keys", "GET", f"{base2}/marginals?keys=" + ",".join(str(k) for k in range(257)), 400, "error.schema.json",
+                  error_code="invalid_value", error_field="keys")
+        self.call("unknown key", "GET", f"{base2}/marginals?keys=1,999", 422, "error.schema.json", error_code="unknown_variable", error_field="keys[1]")
+        self.call("unknown session", "GET", "/v1/sessions/no-such-session/graph", 404, "error.schema.json", error_code="unknown_session")
+        self.call("unknown session", "GET", "/v1/sessions/no-such-session/marginals?keys=0", 404, "error.schema.json", error_code="unknown_session")
+
         # A second 2D batch: guesses, fix/unfix, removal, with no wait (no `solved`).
         batch2b = {"variables": [{"key": 5, "kind": "se2", "value": [1.0, 0.1, 0.0]}],
                    "factors": [{"type": "prior_se2", "keys": [5], "measurement": [1.0, 0.0, 0.0], "sigmas": [0.5, 0.5, 0.2]},
@@ -507,6 +621,13 @@ class Live:
                    "fix": [5], "unfix": [0], "guesses": [{"key": 3, "value": [0.0, 1.0, -1.5708]}]}
         self.call("no wait", "POST", f"/v1/sessions/{self.s2}/batches", 200, "batch-ack.schema.json", body=batch2b,
                   example="batch-ack-no-wait", request_example="batch-edit")
+        edited = self.call("after an edit", "GET", f"{base2}/graph", 200, "graph.schema.json")
+        if edited:
+            want = [f["keys"] for f in batch2["factors"][:-1]] + [[0, 5]]
+            r.check("graph: a removed factor's edge is gone, a new between is an edge, a prior is not", edited["edges"] == want, f"{edited['edges']}")
+            initial = {p["key"]: p["initial"] for p in edited["poses"]}
+            r.check("graph: `initial` follows a later guess (key 3) and a given value (key 5)",
+                    initial.get(3) == [0.0, 1.0, 0.0] and initial.get(5) == [1.0, 0.1, 0.0], f"3: {initial.get(3)}, 5: {initial.get(5)}")
 
         # Policies.
         for policy, ex in (({"policy": "every_n_factors", "factors": 10}, "auto-optimize"),
@@ -545,6 +666,14 @@ class Live:
                     f"stats {json.dumps(st)[:200]}")
         self.call("3D", "GET", f"/v1/sessions/{self.s3}/estimate", 200, "estimate.schema.json", example="estimate-3d")
         self.call("3D (LM)", "GET", f"/v1/sessions/{self.s3}/summary", 200, "summary.schema.json", example="summary-lm")
+        graph3 = self.call("3D", "GET", f"/v1/sessions/{self.s3}/graph", 200, "graph.schema.json")
+        if graph3:
+            r.check("graph 3D: dimension 3, edges without the prior", graph3["dimension"] == 3 and graph3["edges"] == [[10, 11], [11, 12]],
+                    f"dimension {graph3['dimension']}, edges {graph3['edges']}")
+        marg3 = self.call("3D", "GET", f"/v1/sessions/{self.s3}/marginals?keys=12,11,10&joint=true", 200, "marginals.schema.json")
+        if marg3:
+            self.check_covariances("marginals 3D", marg3, [12, 11, 10], [6, 6, 6])
+            r.check("marginals 3D: gauge_fixed is the client-fixed key 10", marg3["gauge_fixed"] == [10], f"{marg3['gauge_fixed']}")
 
         # Error cases.
         self.call("malformed JSON", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
@@ -614,6 +743,30 @@ class Live:
                   body={"messages": [{"type": "imu", "t": 0.05, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]}]}, error_code="rejected_message")
         self.call("batch to a sliding window", "POST", f"/v1/sessions/{sw}/batches", 400, "error.schema.json",
                   body={"variables": []}, error_code="wrong_kind")
+        self.call("sliding window", "GET", f"/v1/sessions/{sw}/marginals?keys=1", 400, "error.schema.json", error_code="wrong_kind",
+                  error_field="session", example="error-wrong-kind")
+        graph_sw = self.call("sliding window", "GET", f"/v1/sessions/{sw}/graph", 200, "graph.schema.json")
+        if graph_sw:
+            r.check("graph of a sliding window: dimension 3", graph_sw["dimension"] == 3, f"{graph_sw['dimension']}")
+
+        # Bundle adjustment: cameras are poses, points are points, observations are no edges; with
+        # nothing fixed the gauge is free and H singular; fixing a camera and two points makes it regular.
+        ba = self.sx + "-ba"
+        self.call("bundle adjustment", "POST", "/v1/sessions", 201, "session-info.schema.json", body={"session": ba, "kind": "bundle_adjustment"})
+        self.created.append(ba)
+        self.call("bundle adjustment", "POST", f"/v1/sessions/{ba}/batches?wait=true", 200, "batch-ack.schema.json", body=self.bal_batch())
+        graph_ba = self.call("bundle adjustment", "GET", f"/v1/sessions/{ba}/graph", 200, "graph.schema.json")
+        if graph_ba:
+            r.check("graph BA: 3 camera poses, 25 points, no edges",
+                    (len(graph_ba["poses"]), len(graph_ba["points"]), graph_ba["edges"], graph_ba["dimension"]) == (3, 25, [], 3),
+                    f"{len(graph_ba['poses'])} poses, {len(graph_ba['points'])} points, edges {graph_ba['edges']}")
+        self.call("free gauge", "GET", f"/v1/sessions/{ba}/marginals?keys=1,105", 422, "error.schema.json", error_code="indeterminate_system",
+                  example="error-indeterminate-system")
+        self.call("fix the gauge", "POST", f"/v1/sessions/{ba}/batches?wait=true", 200, "batch-ack.schema.json", body={"fix": [0, 100, 101]})
+        marg_ba = self.call("bundle adjustment", "GET", f"/v1/sessions/{ba}/marginals?keys=1,105,100&joint=true", 200, "marginals.schema.json")
+        if marg_ba:
+            self.check_covariances("marginals BA", marg_ba, [1, 105, 100], [9, 3, 3])
+            r.check("marginals BA: gauge_fixed is what the client fixed", marg_ba["gauge_fixed"] == [0, 100, 101], f"{marg_ba['gauge_fixed']}")
 
         # Batch jobs.
         g2o = (b"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.1 0.1 0.05\nVERTEX_SE2 2 2.0 -0.1 0.1\n"
@@ -638,6 +791,12 @@ class Live:
         self.call("unknown parameter", "POST", "/v1/jobs?iterations=3", 400, "error.schema.json", raw=g2o, headers=text, error_code="invalid_query")
         self.call("bad graph", "POST", "/v1/jobs", 400, "error.schema.json", raw=b"VERTEX_SE2 0 0 0\n", headers=text,
                   error_code="invalid_graph", example="error-invalid-graph")
+
+        # The web view (while the sessions exist).
+        self.web_page("/", "text/html", b'src="/assets/factord.js"')
+        self.web_page(f"/sessions/{self.s2}", "text/html", b'src="/assets/factord.js"')
+        self.web_page("/assets/factord.js", "text/javascript", b"/graph")
+        self.web_page("/assets/factord.css", "text/css", b"{")
 
         # Delete.
         for s in list(self.created):

@@ -6,6 +6,11 @@ use std::time::Instant;
 
 use clap::{Parser, Subcommand};
 
+mod cli {
+    pub mod progress;
+}
+use cli::progress::Progress;
+
 use factord::factors::RobustKernel;
 use factord::geometry::image::Pinhole;
 use factord::io::{self, Dimension};
@@ -71,6 +76,10 @@ struct SolveArgs {
     /// Write the Summary as JSON.
     #[arg(long)]
     summary_json: Option<PathBuf>,
+    /// Draw the initial guess, the optimum, its loop closures and the convergence plot as SVG
+    /// (3D graphs from above).
+    #[arg(long)]
+    plot: Option<PathBuf>,
     /// Solve this many times from the same initial values (as the reference benchmarks do, in
     /// one process); the Summary's `solve_seconds` is then the median, all runs are in
     /// `solve_seconds_runs`.
@@ -179,8 +188,10 @@ fn parse_optional_robust(s: &str) -> Result<OptionalRobust, String> {
 fn direct_bundle_adjust(args: DirectBaArgs) -> Result<(), String> {
     let start = Instant::now();
     let camera = args.intrinsics.unwrap_or(io::direct_ba::COURSE_CAMERA);
-    let mut problem =
-        io::direct_ba::load(&args.dir, camera, args.robust.0).map_err(|e| e.to_string())?;
+    let loading = Progress::loading(&args.dir, args.quiet);
+    let problem = io::direct_ba::load(&args.dir, camera, args.robust.0).map_err(|e| e.to_string());
+    loading.finish();
+    let mut problem = problem?;
     let load_seconds = start.elapsed().as_secs_f64();
     let before = problem.agreement();
     if let Some(path) = &args.ply_initial {
@@ -378,13 +389,16 @@ fn optimize_verbose(
     options: &SolverOptions,
     quiet: bool,
 ) -> Result<solver::Summary, String> {
-    solver::optimize(problem, options, &mut |r| {
+    let progress = Progress::solving(options.max_iterations, quiet);
+    let summary = solver::optimize(problem, options, &mut |r| {
+        progress.iteration(r);
         if !quiet {
-            print_iteration(r);
+            progress.suspend(|| print_iteration(r));
         }
         std::ops::ControlFlow::Continue(())
-    })
-    .map_err(|e| e.to_string())
+    });
+    progress.finish();
+    summary.map_err(|e| e.to_string())
 }
 
 /// Writes the Summary as JSON with `extra` fields added at its top level.
@@ -424,7 +438,10 @@ fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
 
 fn bundle_adjust(args: BaArgs) -> Result<(), String> {
     let start = Instant::now();
-    let mut bal = io::bal::load(&args.problem).map_err(|e| e.to_string())?;
+    let loading = Progress::loading(&args.problem, args.quiet);
+    let bal = io::bal::load(&args.problem).map_err(|e| e.to_string());
+    loading.finish();
+    let mut bal = bal?;
     let load_seconds = start.elapsed().as_secs_f64();
     if args.normalize {
         bal.normalize();
@@ -603,6 +620,15 @@ fn parse_robust(s: &str) -> Result<RobustKernel, String> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Serve(_)) {
+        // Batch commands piped into `head` should stop quietly when the reader goes away, as
+        // Unix tools do, not panic on the failed write. The server keeps Rust's default
+        // (SIGPIPE ignored) so a client hanging up never kills it.
+        // SAFETY: called before any other thread exists; SIG_DFL is a valid disposition.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let result = match cli.command {
         Command::Solve(args) => solve(args),
         Command::Serve(args) => serve(args),
@@ -649,7 +675,10 @@ fn print_iteration(r: &IterationReport) {
 
 fn solve(args: SolveArgs) -> Result<(), String> {
     let load_start = Instant::now();
-    let mut graph = io::load(&args.graph, args.edges.as_deref()).map_err(|e| e.to_string())?;
+    let loading = Progress::loading(&args.graph, args.quiet);
+    let graph = io::load(&args.graph, args.edges.as_deref()).map_err(|e| e.to_string());
+    loading.finish();
+    let mut graph = graph?;
     let load_seconds = load_start.elapsed().as_secs_f64();
     if args.robust.is_some() {
         graph.problem.set_robust_kernel(args.robust);
@@ -677,13 +706,16 @@ fn solve(args: SolveArgs) -> Result<(), String> {
     for run in 0..args.repeat {
         graph.problem.values.clone_from(&initial);
         let last = run + 1 == args.repeat;
+        let progress = Progress::solving(options.max_iterations, quiet || !last);
         let s = solver::optimize(&mut graph.problem, &options, &mut |r| {
+            progress.iteration(r);
             if !quiet && last {
-                print_iteration(r)
+                progress.suspend(|| print_iteration(r));
             }
             std::ops::ControlFlow::Continue(())
-        })
-        .map_err(|e| e.to_string())?;
+        });
+        progress.finish();
+        let s = s.map_err(|e| e.to_string())?;
         runs.push(s.solve_seconds);
         summary = Some(s);
     }
@@ -710,6 +742,22 @@ fn solve(args: SolveArgs) -> Result<(), String> {
     }
     if let Some(path) = &args.tum {
         io::tum::write(&graph, path).map_err(|e| e.to_string())?;
+    }
+    if let Some(path) = &args.plot {
+        let title = format!(
+            "{}: {} variables, {} factors",
+            args.graph.file_name().unwrap_or_default().to_string_lossy(),
+            graph.problem.values.len(),
+            graph.problem.factors().len()
+        );
+        let svg = io::svg::before_after(
+            &initial,
+            &graph.problem.values,
+            graph.problem.factors(),
+            &summary,
+            &title,
+        );
+        io::svg::write(path, &svg).map_err(|e| e.to_string())?;
     }
     Ok(())
 }

@@ -170,3 +170,134 @@ fn ba_rejects_a_bad_file_with_a_clear_error() {
     );
     assert!(!err.contains("panicked"));
 }
+
+#[test]
+fn solve_plot_draws_initial_guess_optimum_loop_closures_and_convergence() {
+    let dir = common::temp_dir("cli-plot");
+    let input = dir.join("in.g2o");
+    let text = common::synthetic_manhattan(150, 4);
+    std::fs::write(&input, &text).unwrap();
+    let (plot, summary) = (dir.join("before_after.svg"), dir.join("s.json"));
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--init", "none", "--quiet", "--plot"])
+        .arg(&plot)
+        .arg("--summary-json")
+        .arg(&summary)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let svg = std::fs::read_to_string(&plot).unwrap();
+    assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    // Two trajectories, with one vertex per pose each.
+    let polylines: Vec<&str> = svg.lines().filter(|l| l.starts_with("<polyline")).collect();
+    assert_eq!(polylines.len(), 2);
+    for p in &polylines {
+        let points = p
+            .split("points=\"")
+            .nth(1)
+            .unwrap()
+            .split_whitespace()
+            .count();
+        assert_eq!(points, 150, "{}", &p[..80]);
+    }
+    let loops = text
+        .lines()
+        .filter(|l| {
+            let t: Vec<u64> = l
+                .split_whitespace()
+                .skip(1)
+                .take(2)
+                .map(|k| k.parse().unwrap_or(0))
+                .collect();
+            l.starts_with("EDGE_SE2") && t[0].abs_diff(t[1]) != 1
+        })
+        .count();
+    assert!(loops > 10);
+    assert!(svg.contains(&format!("loop closures ({loops})")), "{loops}");
+    // One marker per iteration and one for the initial guess (plus hollow ones for rejections).
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let log = json["iteration_log"].as_array().unwrap();
+    let rejected = log.iter().filter(|r| r["accepted"] == false).count();
+    assert_eq!(svg.matches("<circle").count(), 1 + log.len() + rejected);
+
+    // A path that cannot be written is an error naming it, not a panic.
+    let bad = dir.join("missing-dir/x.svg");
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--quiet", "--plot"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("missing-dir/x.svg") && !stderr.contains("panicked"),
+        "{stderr}"
+    );
+}
+
+/// Progress shows on a terminal (a pseudo-terminal from util-linux `script`) and nothing of
+/// it appears when the output is piped.
+#[test]
+fn progress_shows_on_a_terminal_and_stays_quiet_when_piped() {
+    let dir = common::temp_dir("cli-progress");
+    let input = dir.join("in.g2o");
+    std::fs::write(&input, common::synthetic_manhattan(300, 5)).unwrap();
+    let command = format!(
+        "{} solve {}",
+        env!("CARGO_BIN_EXE_factord"),
+        input.display()
+    );
+
+    let piped = Command::new(env!("CARGO_BIN_EXE_factord"))
+        .arg("solve")
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert!(piped.status.success());
+    assert!(
+        piped.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&piped.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&piped.stdout);
+    assert!(stdout.contains("iter   1"));
+    assert!(!stdout.contains('\r') && !stdout.contains('\u{1b}') && !stdout.contains("solving ["));
+
+    let typescript = dir.join("typescript");
+    let tty = match Command::new("script")
+        .args(["-qfec", &command])
+        .arg(&typescript)
+        .output()
+    {
+        Ok(out) => out,
+        Err(e) => {
+            common::skip_or_fail::<()>(&format!("no `script` (util-linux) for a terminal: {e}"));
+            return;
+        }
+    };
+    assert!(
+        tty.status.success(),
+        "{}",
+        String::from_utf8_lossy(&tty.stderr)
+    );
+    let screen = std::fs::read_to_string(&typescript).unwrap();
+    assert!(
+        screen.contains("loading ") && screen.contains("solving ["),
+        "{screen}"
+    );
+    assert!(screen.contains("iteration 1/100 chi2"), "{screen}");
+    // The iteration lines still reach the terminal, above the bar.
+    assert!(
+        screen.contains("iter   1") && screen.contains("termination:"),
+        "{screen}"
+    );
+}

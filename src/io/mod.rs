@@ -8,6 +8,7 @@ pub mod direct_ba;
 pub mod euroc;
 pub mod g2o;
 pub mod ply;
+pub mod svg;
 pub mod toro;
 pub mod tum;
 

@@ -28,6 +28,10 @@ pub trait Variable: Any + Debug + Send + Sync {
     fn local(&self, _origin: &dyn Variable, _out: &mut [f64]) -> bool {
         false
     }
+    /// Where it is in the world, for drawing: a pose's origin, a camera's centre, a point.
+    fn position(&self) -> Option<[f64; 3]> {
+        None
+    }
 }
 
 /// `clone_box`, `assign_from` and `as_any`, the same for every `Copy` variable kind.
@@ -68,6 +72,9 @@ impl Variable for Se2 {
     fn is_finite(&self) -> bool {
         self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
     }
+    fn position(&self) -> Option<[f64; 3]> {
+        Some([self.x, self.y, 0.0])
+    }
     copy_variable_plumbing!();
 }
 
@@ -90,6 +97,9 @@ impl Variable for Se3 {
     fn is_finite(&self) -> bool {
         self.translation.iter().all(|v| v.is_finite())
             && self.rotation.coords.iter().all(|v| v.is_finite())
+    }
+    fn position(&self) -> Option<[f64; 3]> {
+        Some(self.translation.into())
     }
     copy_variable_plumbing!();
 }
@@ -118,6 +128,9 @@ impl Variable for SnavelyCamera {
             && self.rotation.coords.iter().all(|v| v.is_finite())
             && [self.focal, self.k1, self.k2].iter().all(|v| v.is_finite())
     }
+    fn position(&self) -> Option<[f64; 3]> {
+        Some(self.centre().into())
+    }
     copy_variable_plumbing!();
 }
 
@@ -135,6 +148,9 @@ impl Variable for Point3 {
     fn is_finite(&self) -> bool {
         self.0.iter().all(|v| v.is_finite())
     }
+    fn position(&self) -> Option<[f64; 3]> {
+        Some(self.0.into())
+    }
     copy_variable_plumbing!();
 }
 
@@ -151,6 +167,9 @@ impl Variable for NavState {
     }
     fn is_finite(&self) -> bool {
         NavState::is_finite(self)
+    }
+    fn position(&self) -> Option<[f64; 3]> {
+        Some(self.position.into())
     }
     fn local(&self, origin: &dyn Variable, out: &mut [f64]) -> bool {
         match origin.as_any().downcast_ref::<NavState>() {

@@ -36,8 +36,6 @@ pub struct VariableCodec {
     pub encode: fn(&dyn Variable) -> Vec<f64>,
     /// How the web view draws it.
     pub shape: Shape,
-    /// Its position in the world, from the wire encoding (a camera's centre, a pose's origin).
-    pub position: fn(&[f64]) -> [f64; 3],
 }
 
 /// What a variable is when drawn: a pose of the trajectory or a landmark of a point cloud.
@@ -126,7 +124,6 @@ const VARIABLES: &[VariableCodec] = &[
         decode: |v| Ok(Box::new(Se2::new(v[0], v[1], wrap_angle(v[2])))),
         encode: |v| encode_as::<Se2>(v, |p| p.to_array().to_vec()),
         shape: Shape::Pose,
-        position: |v| [v[0], v[1], 0.0],
     },
     VariableCodec {
         kind: "se3",
@@ -140,7 +137,6 @@ const VARIABLES: &[VariableCodec] = &[
             })
         },
         shape: Shape::Pose,
-        position: |v| [v[0], v[1], v[2]],
     },
     VariableCodec {
         kind: "snavely_camera",
@@ -151,10 +147,6 @@ const VARIABLES: &[VariableCodec] = &[
         },
         encode: |v| encode_as::<SnavelyCamera>(v, |c| c.to_bal().to_vec()),
         shape: Shape::Pose,
-        position: |v| {
-            let p: [f64; 9] = v.try_into().expect("mirror values have the codec's length");
-            SnavelyCamera::from_bal(&p).centre().into()
-        },
     },
     VariableCodec {
         kind: "point3",
@@ -162,7 +154,6 @@ const VARIABLES: &[VariableCodec] = &[
         decode: |v| Ok(Box::new(Point3(Vector3::new(v[0], v[1], v[2])))),
         encode: |v| encode_as::<Point3>(v, |p| p.0.iter().copied().collect()),
         shape: Shape::Landmark,
-        position: |v| [v[0], v[1], v[2]],
     },
 ];
 

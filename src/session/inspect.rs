@@ -15,10 +15,14 @@ use crate::solver::marginals::{self, MarginalsError};
 /// Most variables one marginals request may name (each costs a solve per tangent direction).
 pub const MAX_MARGINAL_KEYS: usize = 256;
 
-/// World position of a wire value of `kind` (kinds come from the catalogue).
+/// World position of a wire value of `kind` (kinds come from the catalogue; every one of them
+/// has a position).
 pub(super) fn position(kind: &str, value: &[f64]) -> [f64; 3] {
     let codec = catalogue::variable_codec(kind).expect("mirror kinds come from the catalogue");
-    (codec.position)(value)
+    let variable = (codec.decode)(value).expect("mirror values were encoded by the codec");
+    variable
+        .position()
+        .expect("every catalogue kind has a position")
 }
 
 fn shape(kind: &str) -> Shape {
@@ -37,6 +41,9 @@ pub(super) fn edge(mirror: &BTreeMap<Key, MirrorEntry>, keys: &[Key]) -> Option<
 
 impl Session {
     pub fn graph(&self) -> Graph {
+        if self.kind.name == catalogue::SLIDING_WINDOW {
+            return self.window_graph();
+        }
         let st = self.lock();
         let (mut poses, mut points) = (Vec::new(), Vec::new());
         for (&key, entry) in &st.mirror {
@@ -62,6 +69,41 @@ impl Session {
             poses,
             points,
             edges: st.edges.values().copied().collect(),
+        }
+    }
+
+    /// A sliding window's keyframes (marginalised ones stay, fixed) and the factors between two
+    /// of them. The window keeps no initial guesses: `initial` is the current position.
+    fn window_graph(&self) -> Graph {
+        let sequence = self.lock().sequence;
+        let guard = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+        let (mut poses, mut edges) = (Vec::new(), Vec::new());
+        if let Some(window) = guard.as_ref() {
+            let values = &window.problem().values;
+            for v in 0..values.len() {
+                if let Some(position) = values.variable(v).position() {
+                    poses.push(DrawnVariable {
+                        key: values.key(v),
+                        position,
+                        initial: position,
+                    });
+                }
+            }
+            poses.sort_by_key(|p| p.key);
+            for f in window.problem().factors() {
+                if let &[a, b] = f.variables() {
+                    edges.push([values.key(a), values.key(b)]);
+                }
+            }
+        }
+        Graph {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            sequence,
+            dimension: 3,
+            poses,
+            points: Vec::new(),
+            edges,
         }
     }
 

@@ -6,8 +6,9 @@
 
 use std::sync::Arc;
 
-use axum::http::header;
-use axum::response::IntoResponse;
+use axum::extract::{Path, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 
@@ -29,14 +30,38 @@ fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
     )
 }
 
+/// The session page, or a 404 page naming the session when there is none (the page itself
+/// would only find out from its first request).
+async fn session_page(
+    State(service): State<Arc<Service>>,
+    Path(session): Path<String>,
+) -> Response {
+    match service.session(&session) {
+        Ok(_) => page(SESSION, "text/html; charset=utf-8").into_response(),
+        Err(_) => (
+            StatusCode::NOT_FOUND,
+            [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
+            format!(
+                "<!doctype html><title>factord: no session</title><p>There is no session <code>{}</code>. <a href=\"/\">All sessions</a></p>",
+                escape_html(&session)
+            ),
+        )
+            .into_response(),
+    }
+}
+
+fn escape_html(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
 pub fn routes() -> Router<Arc<Service>> {
     let html = "text/html; charset=utf-8";
     Router::new()
         .route("/", get(move || async move { page(INDEX, html) }))
-        .route(
-            "/sessions/{session}",
-            get(move || async move { page(SESSION, html) }),
-        )
+        .route("/sessions/{session}", get(session_page))
         .route(
             "/assets/factord.js",
             get(|| async { page(SCRIPT, "text/javascript; charset=utf-8") }),

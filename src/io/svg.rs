@@ -1,0 +1,281 @@
+//! The before/after picture of a batch solve as one SVG, the static twin of the web view: the
+//! trajectory (initial guess and optimum, loop closures of the optimum) next to the convergence
+//! plot (χ² per iteration on a log scale).
+//!
+//! Positions come from [`Variable::position`]; 3D graphs are drawn from above (x-y). Loop
+//! closures are factors between two drawn variables whose keys are not consecutive.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use super::IoError;
+use crate::factors::FactorEntry;
+use crate::problem::Values;
+use crate::solver::Summary;
+
+const PANEL: f64 = 560.0;
+const MARGIN: f64 = 48.0;
+const INITIAL: &str = "#e8a33d";
+const OPTIMUM: &str = "#1f4e9c";
+const LOOP: &str = "#c0392b";
+
+/// The picture of `initial` → `optimum` with `summary`'s iterations.
+pub fn before_after(
+    initial: &Values,
+    optimum: &Values,
+    factors: &[FactorEntry],
+    summary: &Summary,
+    title: &str,
+) -> String {
+    let width = 2.0 * PANEL + 3.0 * MARGIN;
+    let height = PANEL + 2.0 * MARGIN;
+    let mut svg = String::new();
+    let _ = writeln!(
+        svg,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" viewBox="0 0 {width} {height}" font-family="sans-serif" font-size="13">"#
+    );
+    let _ = writeln!(svg, r#"<rect width="100%" height="100%" fill="white"/>"#);
+    let _ = writeln!(
+        svg,
+        r#"<text x="{MARGIN}" y="24" font-size="15">{}</text>"#,
+        escape(title)
+    );
+    trajectory(&mut svg, initial, optimum, factors, MARGIN, MARGIN);
+    convergence(&mut svg, summary, 2.0 * MARGIN + PANEL, MARGIN);
+    svg.push_str("</svg>\n");
+    svg
+}
+
+pub fn write(path: &Path, svg: &str) -> Result<(), IoError> {
+    std::fs::write(path, svg).map_err(|source| IoError::Write {
+        file: path.into(),
+        source,
+    })
+}
+
+fn escape(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+fn positions(values: &Values) -> Vec<Option<[f64; 2]>> {
+    (0..values.len())
+        .map(|v| values.variable(v).position().map(|p| [p[0], p[1]]))
+        .collect()
+}
+
+/// Maps world x-y into a square panel at (`left`, `top`) with equal scales, y up.
+struct Frame {
+    left: f64,
+    top: f64,
+    min: [f64; 2],
+    scale: f64,
+}
+
+impl Frame {
+    fn fit(points: impl Iterator<Item = [f64; 2]>, left: f64, top: f64) -> Self {
+        let (mut min, mut max) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in points {
+            for a in 0..2 {
+                min[a] = min[a].min(p[a]);
+                max[a] = max[a].max(p[a]);
+            }
+        }
+        if !min[0].is_finite() {
+            (min, max) = ([0.0; 2], [1.0; 2]);
+        }
+        let span = (max[0] - min[0]).max(max[1] - min[1]).max(1e-9);
+        // Centre the shorter axis.
+        let pad = |a: usize| (span - (max[a] - min[a])) / 2.0;
+        Self {
+            left,
+            top,
+            min: [min[0] - pad(0), min[1] - pad(1)],
+            scale: PANEL / span,
+        }
+    }
+
+    fn map(&self, p: [f64; 2]) -> (f64, f64) {
+        (
+            self.left + (p[0] - self.min[0]) * self.scale,
+            self.top + PANEL - (p[1] - self.min[1]) * self.scale,
+        )
+    }
+}
+
+fn polyline(svg: &mut String, frame: &Frame, points: &[Option<[f64; 2]>], style: &str) {
+    let mut path = String::new();
+    for p in points.iter().flatten() {
+        let (x, y) = frame.map(*p);
+        let _ = write!(path, "{x:.1},{y:.1} ");
+    }
+    let _ = writeln!(
+        svg,
+        r#"<polyline fill="none" {style} points="{}"/>"#,
+        path.trim_end()
+    );
+}
+
+fn trajectory(
+    svg: &mut String,
+    initial: &Values,
+    optimum: &Values,
+    factors: &[FactorEntry],
+    left: f64,
+    top: f64,
+) {
+    let (before, after) = (positions(initial), positions(optimum));
+    let frame = Frame::fit(before.iter().chain(&after).flatten().copied(), left, top);
+    let _ = writeln!(
+        svg,
+        r##"<rect x="{left}" y="{top}" width="{PANEL}" height="{PANEL}" fill="none" stroke="#ccc"/>"##
+    );
+    polyline(
+        svg,
+        &frame,
+        &before,
+        &format!(r#"stroke="{INITIAL}" stroke-width="1""#),
+    );
+    let mut loops = 0;
+    let mut path = String::new();
+    for f in factors {
+        let &[a, b] = f.variables() else { continue };
+        if optimum.key(a).abs_diff(optimum.key(b)) == 1 {
+            continue;
+        }
+        if let (Some(pa), Some(pb)) = (after[a], after[b]) {
+            let ((x1, y1), (x2, y2)) = (frame.map(pa), frame.map(pb));
+            let _ = write!(path, "M{x1:.1},{y1:.1}L{x2:.1},{y2:.1}");
+            loops += 1;
+        }
+    }
+    if loops > 0 {
+        let _ = writeln!(
+            svg,
+            r#"<path d="{path}" stroke="{LOOP}" stroke-opacity="0.25" stroke-width="0.6" fill="none"/>"#
+        );
+    }
+    polyline(
+        svg,
+        &frame,
+        &after,
+        &format!(r#"stroke="{OPTIMUM}" stroke-width="1.2""#),
+    );
+    // Legend and scale bar.
+    let y = top + PANEL + 20.0;
+    let _ = writeln!(
+        svg,
+        r#"<text x="{left}" y="{y}"><tspan fill="{INITIAL}">━ initial guess</tspan>  <tspan fill="{OPTIMUM}">━ optimum</tspan>  <tspan fill="{LOOP}">━ loop closures ({loops})</tspan></text>"#
+    );
+    let metres = nice_length(PANEL / frame.scale / 5.0);
+    let bar = metres * frame.scale;
+    let (x0, y0) = (left + PANEL - bar - 10.0, top + PANEL - 12.0);
+    let _ = writeln!(
+        svg,
+        r#"<path d="M{x0:.1},{y0:.1}h{bar:.1}" stroke="black" stroke-width="2"/><text x="{:.1}" y="{:.1}" text-anchor="middle">{} m</text>"#,
+        x0 + bar / 2.0,
+        y0 - 5.0,
+        format_number(metres)
+    );
+}
+
+/// 1, 2 or 5 times a power of ten, at most `upper`.
+fn nice_length(upper: f64) -> f64 {
+    let power = 10f64.powf(upper.log10().floor());
+    [5.0, 2.0, 1.0]
+        .into_iter()
+        .map(|m| m * power)
+        .find(|&l| l <= upper)
+        .unwrap_or(power)
+}
+
+fn format_number(x: f64) -> String {
+    if x >= 1.0 {
+        format!("{x:.0}")
+    } else {
+        format!("{x}")
+    }
+}
+
+fn convergence(svg: &mut String, summary: &Summary, left: f64, top: f64) {
+    // Iteration 0 is the initial cost; then each iteration's accepted cost.
+    let mut costs = vec![(0usize, summary.initial_chi2, true)];
+    for r in &summary.iteration_log {
+        costs.push((r.iteration, r.chi2, true));
+        if !r.accepted {
+            costs.push((r.iteration, r.trial_chi2, false));
+        }
+    }
+    let positive = costs.iter().filter(|c| c.1 > 0.0 && c.1.is_finite());
+    let lo = positive.clone().map(|c| c.1).fold(f64::INFINITY, f64::min);
+    let hi = positive.map(|c| c.1).fold(f64::NEG_INFINITY, f64::max);
+    let (lo, hi) = if lo.is_finite() {
+        (lo, hi)
+    } else {
+        (1.0, 10.0)
+    };
+    let (d0, d1) = (
+        lo.log10().floor(),
+        hi.log10().ceil().max(lo.log10().floor() + 1.0),
+    );
+    let last = costs.iter().map(|c| c.0).max().unwrap_or(0).max(1);
+    let x = |i: usize| left + PANEL * i as f64 / last as f64;
+    let y = |c: f64| top + PANEL - PANEL * (c.max(10f64.powf(d0)).log10() - d0) / (d1 - d0);
+    let _ = writeln!(
+        svg,
+        r##"<rect x="{left}" y="{top}" width="{PANEL}" height="{PANEL}" fill="none" stroke="#ccc"/>"##
+    );
+    for d in d0 as i32..=d1 as i32 {
+        let yy = y(10f64.powi(d));
+        let _ = writeln!(
+            svg,
+            r##"<path d="M{left},{yy:.1}h{PANEL}" stroke="#eee"/><text x="{:.1}" y="{:.1}" text-anchor="end" font-size="11">1e{d}</text>"##,
+            left - 4.0,
+            yy + 4.0
+        );
+    }
+    let mut path = String::new();
+    for (i, c, accepted) in &costs {
+        if *accepted {
+            let _ = write!(
+                path,
+                "{}{:.1},{:.1}",
+                if path.is_empty() { "M" } else { "L" },
+                x(*i),
+                y(*c)
+            );
+        }
+    }
+    let _ = writeln!(
+        svg,
+        r#"<path d="{path}" stroke="{OPTIMUM}" stroke-width="1.5" fill="none"/>"#
+    );
+    for (i, c, accepted) in &costs {
+        let (fill, stroke) = if *accepted {
+            (OPTIMUM, OPTIMUM)
+        } else {
+            ("white", LOOP)
+        };
+        let _ = writeln!(
+            svg,
+            r#"<circle cx="{:.1}" cy="{:.1}" r="3" fill="{fill}" stroke="{stroke}"/>"#,
+            x(*i),
+            y(*c)
+        );
+    }
+    let _ = writeln!(
+        svg,
+        r#"<text x="{:.1}" y="{:.1}" text-anchor="middle">iteration (0 = initial guess; hollow red: rejected trial)</text>"#,
+        left + PANEL / 2.0,
+        top + PANEL + 20.0
+    );
+    let _ = writeln!(
+        svg,
+        r#"<text x="{left}" y="{:.1}">cost χ² (log scale): {:.6e} → {:.6e} in {} iterations</text>"#,
+        top - 8.0,
+        summary.initial_chi2,
+        summary.final_chi2,
+        summary.iterations
+    );
+}
