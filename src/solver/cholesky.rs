@@ -116,6 +116,21 @@ impl SparseCholesky {
         }
     }
 
+    /// Solves `A X = B` in place for the `columns` column-major columns of `rhs` in one pass
+    /// over the factor (marginal covariances solve for several unit vectors at once).
+    pub fn solve_columns_in_place(&self, rhs: &mut [f64], columns: usize) {
+        assert!(
+            self.factorized,
+            "solve before a successful factorisation is a bug"
+        );
+        let n = rhs.len() / columns.max(1);
+        let llt = LltRef::new(&self.symbolic, &self.l_values);
+        let mut scratch =
+            MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(columns, Par::Seq));
+        let rhs = MatMut::from_column_major_slice_mut(rhs, n, columns);
+        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut scratch));
+    }
+
     /// Solves `A x = rhs` in place with the last successful factorisation.
     pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
         assert!(

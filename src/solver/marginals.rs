@@ -132,7 +132,7 @@ impl Marginals {
     }
 
     /// The joint covariance of `keys`: one solve of L Lᵀ x = e per free tangent direction.
-    pub fn covariance(&mut self, keys: &[Key]) -> Result<Covariance, MarginalsError> {
+    pub fn covariance(&self, keys: &[Key]) -> Result<Covariance, MarginalsError> {
         let mut dims = Vec::with_capacity(keys.len());
         let mut rows = Vec::with_capacity(keys.len());
         for (i, &key) in keys.iter().enumerate() {
@@ -147,29 +147,30 @@ impl Marginals {
             rows.push(row);
         }
         let total: usize = dims.iter().sum();
-        let mut joint = vec![0.0; total * total];
-        let mut column = vec![0.0; self.n];
+        // One right-hand side per free tangent direction, solved together.
+        let mut directions = Vec::new(); // (joint column, row of H)
         let mut col = 0;
-        for (a, &dim_a) in dims.iter().enumerate() {
-            let Some(row_a) = rows[a] else {
-                col += dim_a; // fixed: a zero column
-                continue;
-            };
-            for d in 0..dim_a {
-                column.iter_mut().for_each(|x| *x = 0.0);
-                column[row_a + d] = 1.0;
-                self.cholesky.solve_in_place(&mut column);
-                // Column `col` of the joint matrix: the rows of every selected free variable.
-                let mut r = 0;
-                for (b, &dim_b) in dims.iter().enumerate() {
-                    if let Some(row_b) = rows[b] {
-                        for e in 0..dim_b {
-                            joint[(r + e) * total + col] = column[row_b + e];
-                        }
-                    }
-                    r += dim_b;
-                }
-                col += 1;
+        for (&dim, row) in dims.iter().zip(&rows) {
+            if let Some(row) = row {
+                directions.extend((0..dim).map(|d| (col + d, row + d)));
+            }
+            col += dim;
+        }
+        let n = self.n;
+        let mut columns = vec![0.0; n * directions.len()];
+        for (c, &(_, row)) in directions.iter().enumerate() {
+            columns[c * n + row] = 1.0;
+        }
+        if !directions.is_empty() {
+            self.cholesky
+                .solve_columns_in_place(&mut columns, directions.len());
+        }
+        let mut joint = vec![0.0; total * total];
+        for (c, &(joint_col, _)) in directions.iter().enumerate() {
+            let column = &columns[c * n..(c + 1) * n];
+            // Column `joint_col` of the joint matrix: the rows of every selected free variable.
+            for &(joint_row, row) in &directions {
+                joint[joint_row * total + joint_col] = column[row];
             }
         }
         // H⁻¹ is symmetric; the solves agree to rounding. Symmetrise so clients get an exact one.
