@@ -12,6 +12,7 @@ pub mod factors;
 pub mod fusion;
 pub mod geometry;
 pub mod io;
+pub mod journal;
 pub mod problem;
 pub mod server;
 pub mod service;

@@ -418,6 +418,15 @@ fn write_summary_json(
     std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))
 }
 
+fn parse_fsync(s: &str) -> Result<factord::journal::Fsync, String> {
+    match s {
+        "always" => Ok(factord::journal::Fsync::Always),
+        "interval" => Ok(factord::journal::Fsync::Interval),
+        "never" => Ok(factord::journal::Fsync::Never),
+        _ => Err(format!("`{s}`: expected always, interval or never")),
+    }
+}
+
 fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
     LinearSolverChoice::parse(s).ok_or_else(|| {
         format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
@@ -525,6 +534,13 @@ struct ServeArgs {
     /// Do not start the zenoh peer (HTTP only).
     #[arg(long, env = "FACTORD_NO_ZENOH")]
     no_zenoh: bool,
+    /// When journal appends reach the disk: always (fsync before every acknowledgement) |
+    /// interval (fsync in the background every journal.interval_ms) | never [default: always]
+    #[arg(long, env = "FACTORD_FSYNC", value_parser = parse_fsync)]
+    fsync: Option<factord::journal::Fsync>,
+    /// Keep sessions in memory only (no journal, nothing recovered at start).
+    #[arg(long, env = "FACTORD_NO_JOURNAL")]
+    no_journal: bool,
     /// Solver worker threads [default: number of cores]
     #[arg(long, env = "FACTORD_WORKERS")]
     workers: Option<usize>,
@@ -576,6 +592,12 @@ fn serve(args: ServeArgs) -> Result<(), String> {
     }
     if let Some(v) = args.max_body_bytes {
         config.max_body_bytes = v;
+    }
+    if let Some(v) = args.fsync {
+        config.journal.fsync = v;
+    }
+    if args.no_journal {
+        config.journal.enabled = false;
     }
     // zenoh needs the multi-threaded runtime.
     let runtime = tokio::runtime::Builder::new_multi_thread()

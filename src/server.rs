@@ -24,6 +24,8 @@ pub struct ServeConfig {
     pub zenoh_enabled: bool,
     pub zenoh: ZenohConfig,
     pub limits: Limits,
+    /// Durable sessions: the write-ahead journal and snapshots under `state_dir/sessions`.
+    pub journal: crate::journal::JournalConfig,
     /// How long shutdown waits for running solves to stop.
     pub shutdown_timeout_ms: u64,
 }
@@ -42,6 +44,7 @@ impl Default for ServeConfig {
                 prefix: "factord".into(),
             },
             limits: Limits::default(),
+            journal: crate::journal::JournalConfig::default(),
             shutdown_timeout_ms: 10_000,
         }
     }
@@ -130,7 +133,22 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
     let state = StateDir::open(&config.state_dir)?;
-    let service = Service::new(config.limits.clone());
+    let service = Service::with_journal(
+        config.limits.clone(),
+        Some((config.state_dir.clone(), config.journal.clone())),
+    );
+    let recovering = service
+        .recover_sessions()
+        .map_err(|e| ServeError::StateDir {
+            dir: config.state_dir.clone(),
+            message: e.to_string(),
+        })?;
+    if recovering > 0 {
+        tracing::info!(
+            "recovering {recovering} session(s) from {}",
+            config.state_dir.display()
+        );
+    }
     let listener = tokio::net::TcpListener::bind(&config.listen)
         .await
         .map_err(|source| ServeError::Listen {

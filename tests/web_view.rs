@@ -338,18 +338,30 @@ async fn web_view_draws_sessions_being_fed() {
 
     // A bundle-adjustment session's point cloud and camera centres (variables only: drawing
     // needs no observations).
-    let (status, v) = post(&c, &s.url("/v1/sessions"), &json!({"session": "cloud", "kind": "bundle_adjustment"})).await;
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "cloud", "kind": "bundle_adjustment"}),
+    )
+    .await;
     assert_eq!(status, 201, "{v}");
     let mut variables: Vec<Value> = (0..8)
-        .map(|i| json!({"key": i, "kind": "snavely_camera",
-            "value": [0.0, 0.3 * i as f64, 0.0, i as f64 * 0.5, 0.0, 4.0, 500.0, 0.0, 0.0]}))
+        .map(|i| {
+            json!({"key": i, "kind": "snavely_camera",
+            "value": [0.0, 0.3 * i as f64, 0.0, i as f64 * 0.5, 0.0, 4.0, 500.0, 0.0, 0.0]})
+        })
         .collect();
     for j in 0..3000u64 {
         let (a, b) = (j as f64 * 0.618_034, j as f64 * 0.001);
         variables.push(json!({"key": 100 + j, "kind": "point3",
             "value": [3.0 * a.cos() * (1.0 + b), 3.0 * a.sin(), 2.0 * (b - 1.5)]}));
     }
-    let (status, v) = post(&c, &s.url("/v1/sessions/cloud/batches"), &json!({"variables": variables})).await;
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions/cloud/batches"),
+        &json!({"variables": variables}),
+    )
+    .await;
     assert_eq!(status, 200, "{v}");
     browser.open(&s.url("/sessions/cloud")).await;
     let hooks = browser
@@ -360,7 +372,9 @@ async fn web_view_draws_sessions_being_fed() {
         .await;
     println!("bundle adjustment: {hooks}");
     assert!(browser.inked_pixels("trajectory").await > 2_000);
-    browser.screenshot(&shots.join("session-ba-points.png")).await;
+    browser
+        .screenshot(&shots.join("session-ba-points.png"))
+        .await;
 
     // The list of sessions.
     browser.open(&s.url("/")).await;

@@ -26,7 +26,10 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).filter(|a| a != "--bench").collect();
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
     let file = args
         .first()
         .expect("usage: marginals <file.g2o> [--rounds N] [--key K]")
@@ -70,14 +73,21 @@ fn main() {
     let gtsam = match common::python_venv("gtsam", &[vec!["gtsam".into()]]) {
         Ok(python) => {
             let out = Command::new(python)
-                .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/benches/marginals/gtsam_marginals.py"))
+                .arg(concat!(
+                    env!("CARGO_MANIFEST_DIR"),
+                    "/benches/marginals/gtsam_marginals.py"
+                ))
                 .arg(&file)
                 .arg(&estimate)
                 .args(["--keys", &key.to_string(), "--factor", "gtsam", "--repeat"])
                 .arg(rounds.min(10).to_string())
                 .output()
                 .unwrap();
-            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+            assert!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
             let v: Value = serde_json::from_slice(&out.stdout).unwrap();
             let build: Vec<f64> = serde_json::from_value(v["build_seconds"].clone()).unwrap();
             json!({"marginals_constructor_seconds": median(build),
@@ -87,11 +97,15 @@ fn main() {
     };
 
     // Over HTTP: the session's first request at an estimate factorises, later ones reuse.
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap();
     let http = runtime.block_on(async {
         let s = TestServer::start(&["--log", "warn", "--no-zenoh"]);
         let c = client();
-        let create = json!({"session": "m", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
+        let create =
+            json!({"session": "m", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
         assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
         let (mut variables, mut factors) = (Vec::new(), Vec::new());
         for b in g2o_batches(&text) {
@@ -99,19 +113,42 @@ fn main() {
             factors.extend(b["factors"].as_array().unwrap().iter().cloned());
         }
         let batch = json!({"variables": variables, "factors": factors});
-        assert_eq!(post(&c, &s.url("/v1/sessions/m/batches"), &batch).await.0, 200);
-        assert_eq!(post(&c, &s.url("/v1/sessions/m/optimize?wait=true"), &json!(null)).await.0, 200);
+        assert_eq!(
+            post(&c, &s.url("/v1/sessions/m/batches"), &batch).await.0,
+            200
+        );
+        assert_eq!(
+            post(
+                &c,
+                &s.url("/v1/sessions/m/optimize?wait=true"),
+                &json!(null)
+            )
+            .await
+            .0,
+            200
+        );
         let url = s.url(&format!("/v1/sessions/m/marginals?keys={key}"));
         let (mut first, mut again, mut server_first) = (Vec::new(), Vec::new(), Vec::new());
         for _ in 0..rounds {
             // Re-setting a guess to its own value changes the estimate's version, not its values.
-            let (_, est) = get(&c, &s.url(&format!("/v1/sessions/m/estimate?from={key}&to={key}"))).await;
+            let (_, est) = get(
+                &c,
+                &s.url(&format!("/v1/sessions/m/estimate?from={key}&to={key}")),
+            )
+            .await;
             let guess = json!({"guesses": [{"key": key, "value": est["variables"][0]["value"]}]});
-            assert_eq!(post(&c, &s.url("/v1/sessions/m/batches"), &guess).await.0, 200);
+            assert_eq!(
+                post(&c, &s.url("/v1/sessions/m/batches"), &guess).await.0,
+                200
+            );
             let start = Instant::now();
             let (status, v) = get(&c, &url).await;
             first.push(start.elapsed().as_secs_f64());
-            assert_eq!((status, &v["reused_factorization"]), (200, &json!(false)), "{v}");
+            assert_eq!(
+                (status, &v["reused_factorization"]),
+                (200, &json!(false)),
+                "{v}"
+            );
             server_first.push(v["seconds"].as_f64().unwrap());
             let start = Instant::now();
             let (_, v) = get(&c, &url).await;

@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod jobs;
+pub mod metrics;
 pub mod pool;
 
 use std::collections::HashMap;
@@ -181,6 +182,8 @@ pub struct Service {
     next_id: AtomicU64,
     jobs_in_flight: AtomicUsize,
     started: Instant,
+    /// Where durable sessions live, and how.
+    journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
 }
 
 /// Session names are zenoh key chunks and URL path segments.
@@ -193,7 +196,17 @@ fn valid_session_name(name: &str) -> bool {
 
 impl Service {
     /// Must be called inside a tokio runtime (timers of `every_ms` sessions run on it).
+    /// Sessions live in memory only.
     pub fn new(limits: Limits) -> Arc<Self> {
+        Self::with_journal(limits, None)
+    }
+
+    /// Sessions are journalled under `state_dir` (when `journal.enabled`).
+    pub fn with_journal(
+        limits: Limits,
+        journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
+    ) -> Arc<Self> {
+        let journal = journal.filter(|(_, config)| config.enabled);
         let workers = limits.workers.max(1);
         Arc::new(Self {
             sessions: RwLock::new(HashMap::new()),
@@ -204,7 +217,86 @@ impl Service {
             next_id: AtomicU64::new(1),
             jobs_in_flight: AtomicUsize::new(0),
             started: Instant::now(),
+            journal,
         })
+    }
+
+    /// Rebuilds every session found in the state directory, each in the background: it is
+    /// listed at once (with `recovering` in its statistics, writes refused with 503) and
+    /// optimised when its journal has been replayed. Returns how many there are.
+    pub fn recover_sessions(self: &Arc<Self>) -> Result<usize, crate::journal::JournalError> {
+        let Some((state_dir, config)) = self.journal.clone() else {
+            return Ok(0);
+        };
+        let found = crate::journal::SessionDir::list(&state_dir)?;
+        let count = found.len();
+        for (name, dir) in found {
+            let recovered = dir.load()?;
+            let request = recovered.request.clone();
+            let session = self.build_session(name.clone(), request).map_err(|e| {
+                crate::journal::JournalError::Corrupt {
+                    path: dir.path().join("session.json"),
+                    message: e.body.message,
+                }
+            })?;
+            session.mark_recovering();
+            let journal = dir.open_journal(config.fsync)?;
+            let durability = crate::session::Durability {
+                dir,
+                journal,
+                config: config.clone(),
+            };
+            self.register(name.clone(), Arc::clone(&session));
+            tokio::task::spawn_blocking(move || {
+                let _span = tracing::info_span!("session", session = %name).entered();
+                match session.recover(recovered, durability) {
+                    Ok(r) => tracing::info!(
+                        entries = r.entries,
+                        truncated_bytes = r.truncated_bytes,
+                        seconds = r.seconds,
+                        "recovered from snapshot {:?} and journal",
+                        r.snapshot_sequence
+                    ),
+                    Err(e) => {
+                        tracing::error!("recovery failed, session kept as far as it got: {e}")
+                    }
+                }
+            });
+        }
+        if config.fsync == crate::journal::Fsync::Interval {
+            let service = Arc::downgrade(self);
+            let period = Duration::from_millis(config.interval_ms.max(1));
+            self.runtime.spawn(async move {
+                loop {
+                    tokio::time::sleep(period).await;
+                    let Some(service) = service.upgrade() else {
+                        return;
+                    };
+                    let sessions = service.sessions();
+                    drop(service);
+                    let _ = tokio::task::spawn_blocking(move || {
+                        for s in sessions {
+                            s.sync_journal();
+                        }
+                    })
+                    .await;
+                }
+            });
+        }
+        Ok(count)
+    }
+
+    /// A session that takes writes: 503 while it is being rebuilt from its journal.
+    fn writable(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
+        let session = self.session(name)?;
+        if session.is_recovering() {
+            return Err(ServiceError::unavailable(
+                "recovering",
+                format!("session `{name}` is being rebuilt from its journal; try again shortly"),
+                1,
+            ));
+        }
+        Ok(session)
     }
 
     pub fn limits(&self) -> &Limits {
@@ -271,6 +363,7 @@ impl Service {
             }),
             Command::CreateSession(request) => self.create_session(request).map(Reply::Created),
             Command::DeleteSession { session } => {
+                self.writable(&session)?;
                 let removed = self
                     .sessions
                     .write()
@@ -278,10 +371,11 @@ impl Service {
                     .remove(&session)
                     .ok_or_else(|| ServiceError::not_found("session", &session))?;
                 removed.mark_deleted();
+                removed.remove_files();
                 Ok(Reply::Deleted { deleted: session })
             }
             Command::Fusion { session, messages } => {
-                let session = self.session(&session)?;
+                let session = self.writable(&session)?;
                 let batch = crate::session::fusion::FusionBatch { messages };
                 // A keyframe's optimisation takes about a millisecond: off the async threads.
                 let ack = tokio::task::spawn_blocking(move || session.apply_fusion(batch))
@@ -294,8 +388,9 @@ impl Service {
                 batch,
                 wait,
             } => {
-                let session = self.session(&session)?;
+                let session = self.writable(&session)?;
                 let (ack, will_solve) = session.apply_batch(batch)?;
+                metrics::count_accepted_batch();
                 let solved = if wait && will_solve {
                     let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;
                     Some(done && session.stats().last_error.is_none())
@@ -307,7 +402,7 @@ impl Service {
                 Ok(Reply::Accepted(Accepted { ack, solved }))
             }
             Command::Optimize { session, wait } => {
-                let session = self.session(&session)?;
+                let session = self.writable(&session)?;
                 let (sequence, solve) = session.optimize_now()?;
                 let stats = if wait {
                     session.wait_solve(solve, self.wait_timeout()).await;
@@ -325,7 +420,7 @@ impl Service {
                 session,
                 auto_optimize,
             } => {
-                let session = self.session(&session)?;
+                let session = self.writable(&session)?;
                 session.set_auto_optimize(auto_optimize)?;
                 Ok(Reply::AutoOptimize {
                     session: session.name.clone(),
@@ -352,7 +447,7 @@ impl Service {
                 keys,
                 joint,
             } => {
-                let session = self.session(&session)?;
+                let session = self.writable(&session)?;
                 let query = crate::session::wire::MarginalsQuery { keys, joint };
                 self.marginals(session, query)
                     .await
@@ -470,20 +565,8 @@ impl Service {
     }
 
     fn create_session(&self, request: CreateSession) -> Result<SessionInfo, ServiceError> {
-        let kind = catalogue::session_kind(&request.kind).ok_or_else(|| {
-            let known: Vec<_> = catalogue::SESSION_KINDS.iter().map(|k| k.name).collect();
-            ServiceError::bad_request(
-                "unknown_kind",
-                "kind",
-                format!("unknown session kind `{}` (known: {known:?})", request.kind),
-            )
-        })?;
-        let options = request.options.unwrap_or_else(kind.default_options);
-        options.validate().map_err(|(field, m)| {
-            ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
-        })?;
-        let name = match request.session {
-            Some(name) if valid_session_name(&name) => name,
+        let name = match &request.session {
+            Some(name) if valid_session_name(name) => name.clone(),
             Some(name) => {
                 return Err(ServiceError::bad_request(
                     "invalid_session_name",
@@ -493,6 +576,8 @@ impl Service {
             }
             None => format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst)),
         };
+        let session = self.build_session(name.clone(), request.clone())?;
+        // Held across the directory's creation so two creations of one name cannot race.
         let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
         if sessions.contains_key(&name) {
             return Err(ServiceError::conflict(
@@ -510,8 +595,58 @@ impl Service {
                 10,
             ));
         }
+        if let Some((state_dir, config)) = &self.journal {
+            // What recovery needs to build it again: the resolved name, options and policy.
+            let info = session.info();
+            let record = CreateSession {
+                session: Some(name.clone()),
+                kind: info.kind,
+                options: Some(info.options),
+                auto_optimize: info.auto_optimize,
+            };
+            let durability = crate::journal::SessionDir::create(state_dir, &name, &record)
+                .and_then(|dir| {
+                    let journal = dir.open_journal(config.fsync)?;
+                    Ok(crate::session::Durability {
+                        dir,
+                        journal,
+                        config: config.clone(),
+                    })
+                })
+                .map_err(|e| {
+                    ServiceError::unavailable(
+                        "journal_failed",
+                        format!("cannot create the session's journal: {e}"),
+                        5,
+                    )
+                })?;
+            session.attach(durability);
+        }
+        self.notify_observers(&session);
+        sessions.insert(name, Arc::clone(&session));
+        Ok(session.info())
+    }
+
+    /// A validated, empty session (not yet listed).
+    fn build_session(
+        &self,
+        name: String,
+        request: CreateSession,
+    ) -> Result<Arc<Session>, ServiceError> {
+        let kind = catalogue::session_kind(&request.kind).ok_or_else(|| {
+            let known: Vec<_> = catalogue::SESSION_KINDS.iter().map(|k| k.name).collect();
+            ServiceError::bad_request(
+                "unknown_kind",
+                "kind",
+                format!("unknown session kind `{}` (known: {known:?})", request.kind),
+            )
+        })?;
+        let options = request.options.unwrap_or_else(kind.default_options);
+        options.validate().map_err(|(field, m)| {
+            ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
+        })?;
         let session = Session::new(
-            name.clone(),
+            name,
             kind,
             options,
             request.auto_optimize,
@@ -525,16 +660,27 @@ impl Service {
                 e.body.field = e.body.field.map(|f| format!("auto_optimize.{f}"));
                 e
             })?;
+        Ok(session)
+    }
+
+    fn notify_observers(&self, session: &Arc<Session>) {
         for observe in self
             .observers
             .read()
             .unwrap_or_else(|p| p.into_inner())
             .iter()
         {
-            observe(&session);
+            observe(session);
         }
-        sessions.insert(name, Arc::clone(&session));
-        Ok(session.info())
+    }
+
+    /// Lists a recovered session.
+    fn register(&self, name: String, session: Arc<Session>) {
+        self.notify_observers(&session);
+        self.sessions
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(name, session);
     }
 
     /// Runs a batch job on the pool; 503 when `max_jobs` are already in flight.

@@ -395,7 +395,13 @@ impl Session {
     /// Applies a fusion batch (see the module documentation). Keyframes are optimised as they
     /// arrive, after the batch's later messages for the same keyframe have been added: the
     /// window is optimised once per keyframe, when the next keyframe or the batch's end comes.
-    pub fn apply_fusion(&self, batch: FusionBatch) -> Result<FusionAck, ServiceError> {
+    /// Applies `batch`'s messages in order; `applied` counts those the window took, also when a
+    /// later one is rejected (they stay applied).
+    pub(super) fn apply_fusion_counted(
+        &self,
+        batch: FusionBatch,
+        applied: &mut usize,
+    ) -> Result<FusionAck, ServiceError> {
         if self.kind.name != super::catalogue::SLIDING_WINDOW {
             return Err(ServiceError::bad_request(
                 "wrong_kind",
@@ -408,7 +414,7 @@ impl Session {
         }
         let mut guard = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
         let mut keyframes = Vec::new();
-        let mut applied = 0;
+        *applied = 0;
         let mut pending = false;
         let mut started = Instant::now();
         for (index, message) in batch.messages.into_iter().enumerate() {
@@ -445,7 +451,7 @@ impl Session {
                     });
                 }
             }
-            applied += 1;
+            *applied += 1;
         }
         if pending {
             self.optimize_window(&mut guard, started)?;
@@ -456,7 +462,7 @@ impl Session {
         });
         Ok(FusionAck {
             session: self.name.clone(),
-            applied,
+            applied: *applied,
             keyframes,
             latest,
         })

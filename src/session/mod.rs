@@ -9,6 +9,7 @@
 
 pub mod batch;
 pub mod catalogue;
+mod durable;
 pub mod fusion;
 mod incremental;
 mod inspect;
@@ -17,6 +18,8 @@ pub mod wire;
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
+
+pub use durable::{Durability, Recovery};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -65,6 +68,10 @@ pub struct Session {
     /// The last factorisation for marginal covariances, with the (sequence, solves) of the
     /// estimate it was taken at.
     marginals: Mutex<Option<((u64, u64), crate::solver::marginals::Marginals)>>,
+    /// Where the session is kept on disk, when it is durable.
+    durable: Mutex<Option<durable::Durable>>,
+    /// Being rebuilt from its journal: writes are refused until it is done.
+    recovering: AtomicBool,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     max_pending_factors: usize,
@@ -112,6 +119,27 @@ struct State {
     converged: bool,
     last_error: Option<String>,
     last_summary: Option<solver::Summary>,
+    /// The problem's size when it was last here (it is on a worker during solves).
+    problem_bytes: usize,
+}
+
+/// Estimated bytes of a problem: variables (boxed, with their key index) and factors (boxed,
+/// with keys, square-root information and label).
+fn problem_bytes(problem: &Problem) -> usize {
+    use std::mem::size_of;
+    let values = problem.values.len() * (size_of::<Box<dyn Variable>>() + 128);
+    let factors: usize = problem
+        .factors()
+        .iter()
+        .map(|f| {
+            let r = f.factor.residual_dim();
+            size_of::<crate::factors::FactorEntry>()
+                + 96
+                + 8 * (r * r + f.variables().len())
+                + f.label.len()
+        })
+        .sum();
+    values + factors
 }
 
 impl Session {
@@ -158,6 +186,7 @@ impl Session {
                 converged: true,
                 last_error: None,
                 last_summary: None,
+                problem_bytes: 0,
             }),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,
@@ -165,6 +194,8 @@ impl Session {
             cancel: AtomicBool::new(false),
             fusion: Mutex::new(None),
             marginals: Mutex::new(None),
+            durable: Mutex::new(None),
+            recovering: AtomicBool::new(false),
             runtime,
             pool,
             max_pending_factors,
@@ -184,6 +215,7 @@ impl Session {
     /// Publishes a rejection of something sent to this session without a reply channel (a
     /// zenoh put), so subscribers of its stream see it.
     pub fn report_rejection(&self, error: ServiceError) {
+        crate::service::metrics::count_rejection(&error.body.code);
         self.emit(SessionEvent::Error {
             session: self.name.clone(),
             sequence: None,
@@ -206,9 +238,21 @@ impl Session {
         }
     }
 
-    /// Validates and accepts a batch; returns its acknowledgement and whether a solve reflecting
-    /// it is scheduled (so a caller may wait for it).
+    /// Validates and accepts a batch, journals it (durable sessions) and only then acknowledges
+    /// it; returns the acknowledgement and whether a solve reflecting it is scheduled (so a
+    /// caller may wait for it).
     pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
+        self.accept_batch(batch, None, true)
+    }
+
+    /// `ids`: the factor ids to give the batch's factors (a snapshot's), else the next ones.
+    /// `journal`: append it to the journal (not when it is being replayed from there).
+    fn accept_batch(
+        self: &Arc<Self>,
+        batch: Batch,
+        ids: Option<Vec<FactorId>>,
+        journal: bool,
+    ) -> Result<(BatchAck, bool), ServiceError> {
         if self.kind.name == catalogue::SLIDING_WINDOW {
             return Err(ServiceError::bad_request(
                 "wrong_kind",
@@ -223,6 +267,8 @@ impl Session {
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
         }
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        let wire_copy = durable.is_some().then(|| batch.clone());
         let prepared = batch::prepare(
             batch,
             &SessionView {
@@ -245,12 +291,24 @@ impl Session {
                 1,
             ));
         }
-        st.sequence += 1;
-        let sequence = st.sequence;
-        let factor_ids: Vec<FactorId> = (0..prepared.factors.len() as u64)
-            .map(|k| st.next_factor_id + k)
-            .collect();
-        st.next_factor_id += prepared.factors.len() as u64;
+        let sequence = st.sequence + 1;
+        if let (Some(d), Some(copy), true) = (durable.as_mut(), &wire_copy, journal) {
+            d.append_batch(&self.name, sequence, copy, &prepared)?;
+        }
+        st.sequence = sequence;
+        let factor_ids: Vec<FactorId> = match ids {
+            Some(ids) => ids,
+            None => (0..prepared.factors.len() as u64)
+                .map(|k| st.next_factor_id + k)
+                .collect(),
+        };
+        st.next_factor_id = factor_ids
+            .iter()
+            .map(|id| id + 1)
+            .fold(st.next_factor_id, u64::max);
+        if let (Some(d), Some(copy)) = (durable.as_mut(), wire_copy) {
+            d.track_factors(copy.factors, &factor_ids, &prepared.remove);
+        }
         // Mirror first: later batches validate against it even while this one waits.
         let mut new_values = Vec::new();
         for (key, v, fixed) in &prepared.variables {
@@ -312,6 +370,9 @@ impl Session {
         }
         self.maybe_schedule(&mut st);
         let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
+        if let (Some(d), true) = (durable.as_mut(), journal) {
+            d.maybe_snapshot(&self.name, self.kind.name, &st);
+        }
         Ok((ack, will_solve))
     }
 
@@ -486,6 +547,7 @@ impl Session {
             ));
         }
         let mut st = self.lock();
+        self.journal_auto_optimize(auto)?;
         st.auto = auto;
         self.maybe_schedule(&mut st);
         Ok(())
@@ -547,7 +609,32 @@ impl Session {
             options: st.options.clone(),
             last_error: st.last_error.clone(),
             last_summary: st.last_summary.clone(),
+            recovering: self.is_recovering(),
+            memory_bytes: self.memory_bytes_locked(&st),
         }
+    }
+
+    /// Estimated bytes this session holds: the estimate clients read, the problem (variables,
+    /// factors with their square-root information), queued batches and the wire copies kept for
+    /// snapshots. An estimate from sizes, not an allocator count.
+    pub fn memory_bytes(&self) -> usize {
+        let st = self.lock();
+        self.memory_bytes_locked(&st)
+    }
+
+    fn memory_bytes_locked(&self, st: &State) -> usize {
+        use std::mem::size_of;
+        const NODE: usize = 48; // map/set node and allocation overhead
+        let mirror: usize = st
+            .mirror
+            .values()
+            .map(|e| size_of::<MirrorEntry>() + size_of::<Key>() + NODE + 8 * e.value.len())
+            .sum();
+        let factors = st.live_factors.len() * (size_of::<FactorId>() + NODE)
+            + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
+            + st.factor_ids.len() * size_of::<FactorId>();
+        let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
+        mirror + factors + problem + self.durable_memory_bytes()
     }
 }
 

@@ -78,6 +78,8 @@ impl Session {
             mut debt,
             gauge,
         } = work;
+        let _span =
+            tracing::info_span!("session", session = %self.name, solve = solve_number).entered();
         let start = Instant::now();
         let mut preempted = false;
         let mut on_iteration = |report: &solver::IterationReport| {
@@ -141,6 +143,18 @@ impl Session {
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
 
+        match &result {
+            Ok(r) => {
+                crate::service::metrics::observe_solve(start.elapsed(), r.summary.iterations);
+                tracing::debug!(
+                    chi2 = r.summary.final_chi2,
+                    iterations = r.summary.iterations,
+                    seconds = start.elapsed().as_secs_f64(),
+                    "solve finished"
+                );
+            }
+            Err(e) => tracing::warn!("solve failed: {e}"),
+        }
         let mut st = self.lock();
         st.solving = false;
         self.cancel.store(false, Ordering::SeqCst);
@@ -207,6 +221,7 @@ impl Session {
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
     pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: Engine) {
+        st.problem_bytes = super::problem_bytes(&problem);
         st.problem = Some(problem);
         st.index = Some(index);
         while let Some((seq, prepared, ids)) = st.pending.pop_front() {

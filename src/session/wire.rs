@@ -224,6 +224,10 @@ pub struct SessionStats {
     pub options: SolverOptions,
     pub last_error: Option<String>,
     pub last_summary: Option<Summary>,
+    /// Being rebuilt from its journal after a restart (writes get 503 until it is done).
+    pub recovering: bool,
+    /// Estimated memory this session holds, in bytes.
+    pub memory_bytes: usize,
 }
 
 #[derive(Clone, Debug, Serialize)]

@@ -125,8 +125,10 @@ impl SparseCholesky {
         );
         let n = rhs.len() / columns.max(1);
         let llt = LltRef::new(&self.symbolic, &self.l_values);
-        let mut scratch =
-            MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(columns, Par::Seq));
+        let mut scratch = MemBuffer::new(
+            self.symbolic
+                .solve_in_place_scratch::<f64>(columns, Par::Seq),
+        );
         let rhs = MatMut::from_column_major_slice_mut(rhs, n, columns);
         llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut scratch));
     }

@@ -30,6 +30,7 @@ type Shared = State<Arc<Service>>;
 pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
     Router::new()
         .route("/v1/health", get(health))
+        .route("/metrics", get(metrics))
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{session}", get(stats).delete(delete_session))
         .route("/v1/sessions/{session}/batches", post(apply_batch))
@@ -67,6 +68,9 @@ impl From<ServiceError> for HttpError {
 impl IntoResponse for HttpError {
     fn into_response(self) -> Response {
         let body = self.0.body;
+        if (400..500).contains(&body.status) {
+            crate::service::metrics::count_rejection(&body.code);
+        }
         let status = StatusCode::from_u16(body.status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
         let retry = body.retry_after;
         let mut response = (status, Json(serde_json::json!({ "error": body }))).into_response();
@@ -98,6 +102,18 @@ fn query<T: serde::de::DeserializeOwned>(raw: RawQuery) -> Result<T, HttpError> 
 async fn run(service: &Service, command: Command, status: StatusCode) -> HttpResult {
     let reply = service.execute(command).await?;
     Ok((status, Json(reply)).into_response())
+}
+
+/// Prometheus text exposition.
+async fn metrics(State(service): Shared) -> Response {
+    (
+        [(
+            header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        crate::service::metrics::render(&service),
+    )
+        .into_response()
 }
 
 async fn health(State(service): Shared) -> HttpResult {

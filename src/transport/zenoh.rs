@@ -230,6 +230,9 @@ async fn reply(query: &Query, result: Result<serde_json::Result<Vec<u8>>, Servic
             query.reply_err(body.to_string()).await
         }
         Err(e) => {
+            if (400..500).contains(&e.body.status) {
+                crate::service::metrics::count_rejection(&e.body.code);
+            }
             let body = serde_json::json!({ "error": e.body });
             query.reply_err(body.to_string()).await
         }

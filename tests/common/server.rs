@@ -30,10 +30,21 @@ impl TestServer {
     }
 
     pub fn start_with_env(extra: &[&str], env: &[(&str, &str)]) -> Self {
-        let state_dir = super::temp_dir("server");
+        Self::start_at(&super::temp_dir("server"), extra, env)
+    }
+
+    /// `factord serve` on an existing state directory (a restart after a crash).
+    pub fn start_at(state_dir: &Path, extra: &[&str], env: &[(&str, &str)]) -> Self {
+        let state_dir = state_dir.to_path_buf();
+        // A killed server leaves its address file behind; wait for the new one.
+        let _ = std::fs::remove_file(state_dir.join("server.json"));
         let zenoh = format!("tcp/127.0.0.1:{}", free_port());
         let stderr_path = state_dir.with_extension("stderr");
-        let stderr = std::fs::File::create(&stderr_path).expect("stderr file");
+        let stderr = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&stderr_path)
+            .expect("stderr file");
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
         cmd.args(["serve", "--listen", "127.0.0.1:0", "--zenoh-listen", &zenoh])
             .arg("--state-dir")
@@ -99,6 +110,14 @@ impl TestServer {
             std::thread::sleep(Duration::from_millis(20));
         };
         (status, read(&self.stderr_path))
+    }
+
+    /// SIGKILL: no shutdown at all, as in a crash or power cut of the process.
+    pub fn kill(mut self) -> String {
+        let mut child = self.child.take().expect("running");
+        let _ = child.kill();
+        let _ = child.wait();
+        read(&self.stderr_path)
     }
 
     /// Asserts the server never panicked.

@@ -1,0 +1,325 @@
+//! A session on disk: its journal entries are appended (under the session lock, so in sequence
+//! order) before updates are acknowledged, snapshots compact the journal, and a session is
+//! rebuilt at start from its snapshot plus the entries after it (see `crate::journal`).
+
+use std::collections::BTreeMap;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::batch::PreparedBatch;
+use super::fusion::FusionBatch;
+use super::wire::{AutoOptimize, Batch, FactorId, FactorSpec, VariableSpec};
+use super::{catalogue, Session, State};
+use crate::journal::{Entry, JournalConfig, LogWriter, Recovered, SessionDir, Snapshot};
+use crate::service::ServiceError;
+
+/// What makes a session durable: its directory, its open journal and the policy.
+pub struct Durability {
+    pub dir: SessionDir,
+    pub journal: LogWriter,
+    pub config: JournalConfig,
+}
+
+/// How a session came back at start.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Recovery {
+    pub snapshot_sequence: Option<u64>,
+    pub entries: usize,
+    pub truncated_bytes: u64,
+    pub seconds: f64,
+}
+
+pub(super) struct Durable {
+    dir: SessionDir,
+    journal: LogWriter,
+    config: JournalConfig,
+    /// Wire form of every live factor, for snapshots.
+    factor_specs: BTreeMap<FactorId, FactorSpec>,
+    entries_since_snapshot: u64,
+    /// Time the last append spent in fsync.
+    pub(super) last_fsync: Duration,
+}
+
+fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
+    // The update was not made durable, so it is neither applied nor acknowledged.
+    ServiceError::unavailable(
+        "journal_failed",
+        format!("session `{name}`: the update could not be written to its journal: {e}"),
+        5,
+    )
+}
+
+impl Durable {
+    pub(super) fn append(&mut self, name: &str, entry: &Entry) -> Result<(), ServiceError> {
+        let bytes = serde_json::to_vec(entry).expect("journal entries serialise");
+        self.last_fsync = self
+            .journal
+            .append(&bytes)
+            .map_err(|e| journal_failed(name, e))?;
+        self.entries_since_snapshot += 1;
+        crate::service::metrics::observe_fsync(self.last_fsync);
+        Ok(())
+    }
+
+    /// Journals a validated batch as `sequence`, with the values the server predicted for
+    /// variables sent without one.
+    pub(super) fn append_batch(
+        &mut self,
+        name: &str,
+        sequence: u64,
+        batch: &Batch,
+        prepared: &PreparedBatch,
+    ) -> Result<(), ServiceError> {
+        let mut batch = batch.clone();
+        for v in batch.variables.iter_mut().filter(|v| v.value.is_none()) {
+            let predicted = prepared
+                .variables
+                .iter()
+                .find(|(key, _, _)| *key == v.key)
+                .expect("prepare gives every new variable a value");
+            v.value = Some(catalogue::encode_variable(predicted.1.as_ref()));
+        }
+        self.append(name, &Entry::Batch { sequence, batch })
+    }
+
+    pub(super) fn track_factors(
+        &mut self,
+        specs: Vec<FactorSpec>,
+        ids: &[FactorId],
+        removed: &[FactorId],
+    ) {
+        self.factor_specs.extend(ids.iter().copied().zip(specs));
+        for id in removed {
+            self.factor_specs.remove(id);
+        }
+    }
+
+    /// Writes a snapshot once enough entries have accumulated. A failure leaves the journal
+    /// (which holds everything) in place and is only logged.
+    pub(super) fn maybe_snapshot(&mut self, name: &str, kind: &str, st: &State) {
+        // A sliding window's state is more than variables and factors (its pre-integration,
+        // marginalisation priors): it is rebuilt by replaying its messages, never snapshotted.
+        if kind == catalogue::SLIDING_WINDOW
+            || self.entries_since_snapshot < self.config.snapshot_every
+        {
+            return;
+        }
+        let snapshot = Snapshot {
+            sequence: st.sequence,
+            next_factor_id: st.next_factor_id,
+            auto_optimize: st.auto,
+            variables: st
+                .mirror
+                .iter()
+                .map(|(&key, e)| VariableSpec {
+                    key,
+                    kind: e.kind.into(),
+                    value: Some(e.value.clone()),
+                    fixed: e.fixed,
+                })
+                .collect(),
+            factors: self
+                .factor_specs
+                .iter()
+                .map(|(&id, spec)| (id, spec.clone()))
+                .collect(),
+        };
+        match self.dir.write_snapshot(&snapshot, &mut self.journal) {
+            Ok(()) => self.entries_since_snapshot = 0,
+            Err(e) => tracing::warn!(
+                session = name,
+                "snapshot failed (the journal keeps everything): {e}"
+            ),
+        }
+    }
+
+    /// Bytes this keeps in memory (the factors' wire form).
+    pub(super) fn memory_bytes(&self) -> usize {
+        self.factor_specs
+            .values()
+            .map(|f| {
+                std::mem::size_of::<FactorSpec>()
+                    + 8 * (f.keys.len()
+                        + f.measurement.len()
+                        + f.information.as_ref().map_or(0, Vec::len)
+                        + f.sigmas.as_ref().map_or(0, Vec::len))
+                    + f.factor_type.len()
+            })
+            .sum()
+    }
+}
+
+impl Session {
+    /// Makes the session durable from now on (its directory and journal exist).
+    pub fn attach(&self, durability: Durability) {
+        *self.durable.lock().unwrap_or_else(|p| p.into_inner()) = Some(Durable {
+            dir: durability.dir,
+            journal: durability.journal,
+            config: durability.config,
+            factor_specs: BTreeMap::new(),
+            entries_since_snapshot: 0,
+            last_fsync: Duration::ZERO,
+        });
+    }
+
+    pub fn is_recovering(&self) -> bool {
+        self.recovering.load(Ordering::SeqCst)
+    }
+
+    pub fn mark_recovering(&self) {
+        self.recovering.store(true, Ordering::SeqCst);
+    }
+
+    /// Rebuilds the session from what its directory held: the snapshot, then every journal
+    /// entry after it, with solves held back until the end; then optimises once. Blocking.
+    pub fn recover(
+        self: &Arc<Self>,
+        recovered: Recovered,
+        durability: Durability,
+    ) -> Result<Recovery, String> {
+        let start = Instant::now();
+        let mut auto = recovered.request.auto_optimize;
+        self.lock().auto = AutoOptimize::Manual;
+        self.attach(durability);
+        let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
+        if let Some(snapshot) = recovered.snapshot {
+            auto = snapshot.auto_optimize;
+            let (ids, factors): (Vec<FactorId>, Vec<FactorSpec>) =
+                snapshot.factors.into_iter().unzip();
+            let batch = Batch {
+                variables: snapshot.variables,
+                factors,
+                ..Batch::default()
+            };
+            self.accept_batch(batch, Some(ids), false)
+                .map_err(|e| format!("snapshot: {}", e.body.message))?;
+            let mut st = self.lock();
+            st.sequence = snapshot.sequence;
+            st.next_factor_id = st.next_factor_id.max(snapshot.next_factor_id);
+        }
+        let entries = recovered.entries.len();
+        for (i, entry) in recovered.entries.into_iter().enumerate() {
+            match entry {
+                Entry::Batch { sequence, batch } => {
+                    let current = self.lock().sequence;
+                    if sequence <= current {
+                        continue; // already in the snapshot
+                    }
+                    if sequence != current + 1 {
+                        return Err(format!(
+                            "journal entry {i} has sequence {sequence}, expected {}",
+                            current + 1
+                        ));
+                    }
+                    self.accept_batch(batch, None, false)
+                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
+                }
+                Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
+                Entry::Fusion { messages } => {
+                    let mut applied = 0;
+                    self.apply_fusion_counted(FusionBatch { messages }, &mut applied)
+                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
+                }
+            }
+        }
+        if let Some(d) = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_mut()
+        {
+            d.entries_since_snapshot = entries as u64;
+        }
+        self.lock().auto = auto;
+        self.recovering.store(false, Ordering::SeqCst);
+        if self.kind.name != catalogue::SLIDING_WINDOW && self.lock().sequence > 0 {
+            self.optimize_now().map_err(|e| e.body.message)?;
+        }
+        Ok(Recovery {
+            snapshot_sequence,
+            entries,
+            truncated_bytes: recovered.truncated_bytes,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Journals a policy change (durable sessions).
+    pub(super) fn journal_auto_optimize(&self, auto: AutoOptimize) -> Result<(), ServiceError> {
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        match durable.as_mut() {
+            Some(d) => d.append(
+                &self.name,
+                &Entry::AutoOptimize {
+                    auto_optimize: auto,
+                },
+            ),
+            None => Ok(()),
+        }
+    }
+
+    /// Validates and applies fusion messages, journalling the ones the window accepted (all of
+    /// them, or those before a rejected one) before answering.
+    pub fn apply_fusion(
+        &self,
+        batch: FusionBatch,
+    ) -> Result<super::fusion::FusionAck, ServiceError> {
+        let copy = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .is_some()
+            .then(|| batch.messages.clone());
+        let mut applied = 0;
+        let result = self.apply_fusion_counted(batch, &mut applied);
+        if let Some(mut messages) = copy {
+            messages.truncate(applied);
+            if !messages.is_empty() {
+                let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+                if let Some(d) = durable.as_mut() {
+                    d.append(&self.name, &Entry::Fusion { messages })?;
+                }
+            }
+        }
+        result
+    }
+
+    /// Under `fsync: interval`: makes what was appended so far durable.
+    pub fn sync_journal(&self) {
+        let handle = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map(|d| d.journal.handle());
+        if let Some(file) = handle {
+            let start = Instant::now();
+            if let Err(e) = file.sync_data() {
+                tracing::warn!(session = self.name, "journal fsync failed: {e}");
+            }
+            crate::service::metrics::observe_fsync(start.elapsed());
+        }
+    }
+
+    /// Deletes the session's files (after it was deleted).
+    pub fn remove_files(&self) {
+        if let Some(d) = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take()
+        {
+            if let Err(e) = d.dir.remove() {
+                tracing::warn!(session = self.name, "cannot remove its files: {e}");
+            }
+        }
+    }
+
+    pub(super) fn durable_memory_bytes(&self) -> usize {
+        self.durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map_or(0, Durable::memory_bytes)
+    }
+}

@@ -1,0 +1,226 @@
+//! Durable sessions against the real binary: `kill -9` during streaming, restart on the same
+//! state directory, and every acknowledged batch is there and the estimate re-converges.
+
+mod common;
+
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use common::server::{client, g2o_batches, get, post, TestServer};
+use serde_json::{json, Value};
+
+/// Polls the session's statistics until it is no longer recovering; returns them and how long
+/// that took since `since`.
+async fn recovered(
+    c: &reqwest::Client,
+    s: &TestServer,
+    name: &str,
+    since: Instant,
+) -> (Value, f64) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (status, v) = get(c, &s.url(&format!("/v1/sessions/{name}"))).await;
+        if status == 200 && v["recovering"] == false {
+            return (v, since.elapsed().as_secs_f64());
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{name} still recovering: {status} {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+fn config_file(dir: &Path, snapshot_every: u64) -> String {
+    let path = dir.join("factord.json");
+    std::fs::write(
+        &path,
+        json!({"journal": {"snapshot_every": snapshot_every}}).to_string(),
+    )
+    .unwrap();
+    path.display().to_string()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn kill_9_while_streaming_loses_no_acknowledged_batch() {
+    const KILLS: usize = 20;
+    let text = common::synthetic_manhattan(3000, 11);
+    let batches = g2o_batches(&text);
+    // The optimum an uninterrupted solve reaches, for the re-convergence check.
+    let reference = {
+        let path = common::temp_dir("durability-ref").join("g.g2o");
+        std::fs::write(&path, &text).unwrap();
+        let mut g = factord::io::load(&path, None).unwrap();
+        factord::solver::optimize(&mut g.problem, &Default::default(), &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap()
+        .final_chi2
+    };
+    let state = common::temp_dir("durability-state");
+    let config = config_file(state.parent().unwrap(), 150);
+    let extra = ["--no-zenoh", "--config", config.as_str(), "--log", "info"];
+    let c = client();
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next_random = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    let acked: Arc<Mutex<Vec<u64>>> = Arc::new(Mutex::new(Vec::new()));
+    let (mut worst_recovery, mut recovered_sizes) = (0.0f64, Vec::new());
+    let mut kills_mid_stream = 0;
+    for cycle in 0..=KILLS {
+        let started = Instant::now();
+        let s = TestServer::start_at(&state, &extra, &[]);
+        let resume = if cycle == 0 {
+            let (status, v) = post(
+                &c,
+                &s.url("/v1/sessions"),
+                &json!({"session": "robot", "kind": "pose_graph_2d"}),
+            )
+            .await;
+            assert_eq!(status, 201, "{v}");
+            0
+        } else {
+            let (stats, seconds) = recovered(&c, &s, "robot", started).await;
+            let sequence = stats["sequence"].as_u64().unwrap();
+            let last_acked = acked.lock().unwrap().last().copied().unwrap_or(0);
+            // Everything acknowledged is there (a batch journalled but not yet acknowledged
+            // when the kill came may be there too: the client resumes after the server's).
+            assert!(
+                sequence >= last_acked,
+                "cycle {cycle}: sequence {sequence} < acked {last_acked}"
+            );
+            let (_, estimate) = get(&c, &s.url("/v1/sessions/robot/estimate")).await;
+            let keys: Vec<u64> = estimate["variables"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v["key"].as_u64().unwrap())
+                .collect();
+            assert_eq!(keys, (0..sequence).collect::<Vec<_>>(), "cycle {cycle}");
+            worst_recovery = worst_recovery.max(seconds);
+            recovered_sizes.push((sequence, stats["num_factors"].as_u64().unwrap(), seconds));
+            sequence as usize
+        };
+        if cycle == KILLS {
+            // Stream the rest, and the estimate converges to the uninterrupted optimum.
+            for b in &batches[resume..] {
+                let (status, v) = post(&c, &s.url("/v1/sessions/robot/batches"), b).await;
+                assert_eq!(status, 200, "{v}");
+            }
+            let (status, v) = post(
+                &c,
+                &s.url("/v1/sessions/robot/optimize?wait=true"),
+                &json!(null),
+            )
+            .await;
+            assert_eq!(status, 200, "{v}");
+            let chi2 = v["stats"]["chi2"].as_f64().unwrap();
+            assert!(
+                (chi2 - reference).abs() <= 1e-6 * reference,
+                "{chi2} vs {reference}"
+            );
+            assert_eq!(v["stats"]["num_variables"], 3000);
+            s.assert_no_panic();
+            assert_eq!(kills_mid_stream, KILLS);
+            println!(
+                "{KILLS} kills; acknowledged batches {}; lost 0; recovery (restart to writable) worst {:.3}s; per restart (sequence, factors, seconds): {recovered_sizes:?}",
+                acked.lock().unwrap().len(),
+                worst_recovery
+            );
+            return;
+        }
+        // Stream from where the server is, and kill it at a random moment.
+        let feeder = {
+            let (c, url, acked) = (
+                c.clone(),
+                s.url("/v1/sessions/robot/batches"),
+                Arc::clone(&acked),
+            );
+            let todo: Vec<Value> = batches[resume..].to_vec();
+            tokio::spawn(async move {
+                for b in todo {
+                    match c.post(&url).json(&b).send().await {
+                        Ok(r) if r.status() == 200 => {
+                            let v: Value = match r.json().await {
+                                Ok(v) => v,
+                                Err(_) => return, // killed while answering: not acknowledged
+                            };
+                            acked.lock().unwrap().push(v["sequence"].as_u64().unwrap());
+                        }
+                        _ => return,
+                    }
+                }
+            })
+        };
+        // Kill after a random number of further acknowledgements, mid-stream.
+        let target = acked.lock().unwrap().len() + 20 + (next_random() % 130) as usize;
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while acked.lock().unwrap().len() < target && !feeder.is_finished() {
+            assert!(Instant::now() < deadline, "streaming stalled");
+            tokio::time::sleep(Duration::from_micros(200)).await;
+        }
+        let log = s.kill();
+        assert!(!log.contains("panicked"), "{log}");
+        let _ = feeder.await;
+        kills_mid_stream += usize::from(resume + 20 < batches.len());
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_torn_journal_tail_is_cut_and_the_rest_recovered() {
+    let state = common::temp_dir("durability-torn");
+    let c = client();
+    let batches = g2o_batches(&common::synthetic_manhattan(60, 5));
+    {
+        let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+        let (status, _) = post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"session": "torn", "kind": "pose_graph_2d"}),
+        )
+        .await;
+        assert_eq!(status, 201);
+        for b in &batches {
+            assert_eq!(
+                post(&c, &s.url("/v1/sessions/torn/batches"), b).await.0,
+                200
+            );
+        }
+        s.kill();
+    }
+    // A crash in the middle of the last append: half of its record is on disk.
+    let journal = state.join("sessions/torn/journal.log");
+    let bytes = std::fs::read(&journal).unwrap();
+    let last_len = {
+        // Walk the records to find where the last one starts.
+        let (mut at, mut last) = (0usize, 0usize);
+        while at < bytes.len() {
+            let len = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+            last = at;
+            at += 8 + len;
+        }
+        bytes.len() - last
+    };
+    std::fs::write(&journal, &bytes[..bytes.len() - last_len / 2]).unwrap();
+    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+    let (stats, _) = recovered(&c, &s, "torn", Instant::now()).await;
+    assert_eq!(stats["sequence"], 59, "{stats}");
+    assert_eq!(stats["num_variables"], 59);
+    assert!(s.stderr().contains("truncated_bytes"), "{}", s.stderr());
+    // The session goes on from there, and deleting it removes its files.
+    assert_eq!(
+        post(&c, &s.url("/v1/sessions/torn/batches"), &batches[59])
+            .await
+            .0,
+        200
+    );
+    let deleted = c.delete(s.url("/v1/sessions/torn")).send().await.unwrap();
+    assert_eq!(deleted.status(), 200);
+    assert!(!state.join("sessions/torn").exists());
+    s.assert_no_panic();
+}
