@@ -14,8 +14,9 @@ Without --server:
       src/transport/web.rs (the web view), with the same methods.
 With --server it also (c) drives that server through a scripted sequence (sessions, batches,
 estimates, graphs, marginal covariances, events over SSE, a batch job, error cases, the web
-view's pages) and validates every real JSON response body and SSE event against the schema it
-should match (the web view's pages: status and content type). --save-examples then rewrites the examples the
+view's pages, Prometheus metrics) and validates every real JSON response body and SSE event against the schema it
+should match (the web view's pages: status and content type; /metrics: content type, exposition
+format, every documented metric, and its counters moving after an accepted and a rejected batch). --save-examples then rewrites the examples the
 sequence captures (proto/v1/examples/).
 
 Prints one line per check; exits 1 listing every mismatch. Needs the PyPI packages `jsonschema`
@@ -473,6 +474,66 @@ class Live:
                 r.check(f"{label}: joint is symmetric",
                         all(abs(joint[i][j] - joint[j][i]) <= 1e-9 * max(1.0, abs(joint[i][j])) for i in range(n) for j in range(i)))
 
+    # -- Prometheus metrics --------------------------------------------------------------------
+
+    METRICS_CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+    METRICS = {  # name -> TYPE
+        "factord_sessions": "gauge", "factord_sessions_recovering": "gauge", "factord_queue_depth": "gauge",
+        "factord_busy_workers": "gauge", "factord_workers": "gauge", "factord_session_memory_bytes": "gauge",
+        "factord_uptime_seconds": "gauge", "factord_solves_total": "counter", "factord_solver_iterations_total": "counter",
+        "factord_batches_accepted_total": "counter", "factord_rejected_inputs_total": "counter",
+        "factord_solve_duration_seconds": "histogram", "factord_journal_fsync_seconds": "histogram",
+    }
+    SAMPLE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{(?:[a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\]|\\.)*",?)*\})? (\S+)(?: -?\d+)?$')
+
+    def scrape(self, label: str, check_format: bool = False) -> dict[str, float] | None:
+        """GET /metrics: checks status and content type; returns {`name{labels}`: value}. With
+        check_format also the exposition format, every documented metric and the histograms."""
+        r = self.report
+        resp = self.request("GET", "/metrics")
+        name = f"GET /metrics ({label})"
+        if not r.check(f"{name}: status 200", resp.status == 200, f"got {resp.status}: {resp.body[:200]!r}"):
+            return None
+        r.check(f"{name}: {self.METRICS_CONTENT_TYPE}", resp.content_type.replace(" ", "") == self.METRICS_CONTENT_TYPE.replace(" ", ""),
+                f"Content-Type {resp.content_type!r}")
+        samples: dict[str, float] = {}
+        types: dict[str, str] = {}
+        bad = []
+        for line in resp.body.decode("utf-8", "replace").splitlines():
+            if line.startswith("# TYPE "):
+                parts = line.split()
+                if len(parts) == 4:
+                    types[parts[2]] = parts[3]
+                continue
+            if not line or line.startswith("#"):
+                continue
+            m = self.SAMPLE.match(line)
+            try:
+                samples[m.group(1) + (m.group(2) or "")] = float(m.group(3)) if m else math.nan
+            except ValueError:
+                m = None
+            if not m:
+                bad.append(line[:120])
+        if not check_format:
+            return samples
+        r.check(f"{name}: every line is a comment or `name{{labels}} value`", not bad, "; ".join(bad[:5]))
+        for metric, kind in self.METRICS.items():
+            r.check(f"{name}: {metric} is a {kind}", types.get(metric) == kind, f"TYPE {types.get(metric)!r}")
+            if kind == "histogram":
+                buckets = [(k, v) for k, v in samples.items() if k.startswith(metric + "_bucket{")]
+                counts = [v for _, v in buckets]
+                ok = (bool(buckets) and buckets[-1][0].endswith('le="+Inf"}') and counts == sorted(counts)
+                      and samples.get(metric + "_count") == counts[-1] and metric + "_sum" in samples)
+                r.check(f"{name}: {metric} has cumulative buckets up to +Inf, _sum and _count", ok,
+                        f"{len(buckets)} buckets, _count {samples.get(metric + '_count')}")
+            elif metric != "factord_rejected_inputs_total":  # its samples appear with their first reason
+                r.check(f"{name}: {metric} has a sample", metric in samples)
+        return samples
+
+    @staticmethod
+    def rejected(samples: dict[str, float] | None, reason: str) -> float | None:
+        return None if samples is None else samples.get(f'factord_rejected_inputs_total{{reason="{reason}"}}')
+
     def web_page(self, path: str, content_type: str, contains: bytes) -> None:
         resp = self.request("GET", path)
         name = f"GET {path}"
@@ -521,6 +582,14 @@ class Live:
             return
         r.check("health lists pose_graph_2d and pose_graph_3d", {"pose_graph_2d", "pose_graph_3d"} <= set(health.get("session_kinds", [])))
 
+        # Prometheus metrics.
+        before = self.scrape("format", check_format=True)
+        if before:
+            r.check("metrics: factord_workers >= 1", before.get("factord_workers", 0) >= 1, f"{before.get('factord_workers')}")
+            r.check("metrics: factord_busy_workers <= factord_workers",
+                    before.get("factord_busy_workers", 0) <= before.get("factord_workers", 0))
+            r.check("metrics: factord_uptime_seconds > 0", before.get("factord_uptime_seconds", 0) > 0)
+
         # Sessions.
         self.call("2D", "POST", "/v1/sessions", 201, "session-info.schema.json",
                   body={"session": self.s2, "kind": "pose_graph_2d"}, example="session-info", request_example="create-session")
@@ -551,8 +620,22 @@ class Live:
         }
         want = {"acks", "poses", "stats", "summary"}
         thread, events, problems = self.open_events(self.s2, want)
+        before = self.scrape("before a batch")
         ack = self.call("wait", "POST", f"/v1/sessions/{self.s2}/batches?wait=true", 200, "batch-ack.schema.json",
                         body=batch2, example="batch-ack", request_example="batch")
+        after = self.scrape("after a batch")
+        if before is not None and after is not None and ack:
+            accepted = "factord_batches_accepted_total"
+            r.check(f"metrics: {accepted} increases after an accepted batch", after.get(accepted, 0) >= before.get(accepted, 0) + 1,
+                    f"{before.get(accepted)} -> {after.get(accepted)}")
+            solves = "factord_solves_total"
+            if ack.get("solved") is True:
+                r.check(f"metrics: {solves} increases after a batch solved with wait", after.get(solves, 0) >= before.get(solves, 0) + 1,
+                        f"{before.get(solves)} -> {after.get(solves)}")
+            r.check("metrics: factord_sessions counts the sessions created", after.get("factord_sessions", 0) >= 2,
+                    f"{after.get('factord_sessions')}")
+            r.check("metrics: factord_session_memory_bytes > 0 with a session holding a graph",
+                    after.get("factord_session_memory_bytes", 0) > 0)
         thread.join(35)
         r.check("SSE reader ended cleanly", not problems, "; ".join(problems))
         self.check_events("2D batch", events, want, {"ack": "event-ack", "estimate": "event", "iteration": "event-iteration", "summary": "event-summary"})
@@ -574,6 +657,8 @@ class Live:
         stats = self.call("", "GET", f"/v1/sessions/{self.s2}", 200, "session-stats.schema.json", example="session-stats")
         if stats:
             r.check("stats: solved_sequence == sequence after wait", stats["solved_sequence"] == stats["sequence"])
+            r.check("stats: a live session is not recovering", stats["recovering"] is False)
+            r.check("stats: memory_bytes > 0 for a session holding a graph", stats["memory_bytes"] > 0, f"{stats['memory_bytes']}")
         self.call("", "GET", f"/v1/sessions/{self.s2}/summary", 200, "summary.schema.json", example="summary")
 
         # What the web view draws, and marginal covariances, of the solved square.
@@ -676,8 +761,17 @@ class Live:
             r.check("marginals 3D: gauge_fixed is the client-fixed key 10", marg3["gauge_fixed"] == [10], f"{marg3['gauge_fixed']}")
 
         # Error cases.
+        before = self.scrape("before a rejected batch")
         self.call("malformed JSON", "POST", f"/v1/sessions/{self.s2}/batches", 400, "error.schema.json",
                   raw=b'{"variables": [', error_code="malformed_json", example="error-malformed-json")
+        after = self.scrape("after a rejected batch")
+        if before is not None and after is not None:
+            was, now = self.rejected(before, "malformed_json"), self.rejected(after, "malformed_json")
+            r.check('metrics: factord_rejected_inputs_total{reason="malformed_json"} after a malformed batch',
+                    now is not None and now >= (was or 0) + 1, f"{was} -> {now}")
+            accepted = "factord_batches_accepted_total"
+            r.check(f"metrics: a rejected batch does not count in {accepted}", after.get(accepted) == before.get(accepted),
+                    f"{before.get(accepted)} -> {after.get(accepted)}")
         self.call("unknown session", "POST", "/v1/sessions/no-such-session/batches", 404, "error.schema.json",
                   body={}, error_code="unknown_session", example="error")
         self.call("unknown key", "POST", f"/v1/sessions/{self.s2}/batches", 422, "error.schema.json",

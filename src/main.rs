@@ -538,6 +538,10 @@ struct ServeArgs {
     /// interval (fsync in the background every journal.interval_ms) | never [default: always]
     #[arg(long, env = "FACTORD_FSYNC", value_parser = parse_fsync)]
     fsync: Option<factord::journal::Fsync>,
+    /// Bearer tokens for HTTP, `label token` or `token` per line (FACTORD_TOKENS adds
+    /// comma-separated ones); required automatically when --listen is beyond loopback.
+    #[arg(long, env = "FACTORD_TOKENS_FILE")]
+    tokens_file: Option<PathBuf>,
     /// Keep sessions in memory only (no journal, nothing recovered at start).
     #[arg(long, env = "FACTORD_NO_JOURNAL")]
     no_journal: bool,
@@ -598,6 +602,9 @@ fn serve(args: ServeArgs) -> Result<(), String> {
     }
     if args.no_journal {
         config.journal.enabled = false;
+    }
+    if let Some(v) = args.tokens_file {
+        config.auth.tokens_file = Some(v);
     }
     // zenoh needs the multi-threaded runtime.
     let runtime = tokio::runtime::Builder::new_multi_thread()

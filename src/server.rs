@@ -24,6 +24,7 @@ pub struct ServeConfig {
     pub zenoh_enabled: bool,
     pub zenoh: ZenohConfig,
     pub limits: Limits,
+    pub auth: AuthConfig,
     /// Durable sessions: the write-ahead journal and snapshots under `state_dir/sessions`.
     pub journal: crate::journal::JournalConfig,
     /// How long shutdown waits for running solves to stop.
@@ -45,13 +46,27 @@ impl Default for ServeConfig {
             },
             limits: Limits::default(),
             journal: crate::journal::JournalConfig::default(),
+            auth: AuthConfig::default(),
             shutdown_timeout_ms: 10_000,
         }
     }
 }
 
+/// Bearer tokens for HTTP (see `transport::auth`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AuthConfig {
+    /// `label token` or `token` per line; `FACTORD_TOKENS` (comma-separated) adds more.
+    pub tokens_file: Option<PathBuf>,
+    /// Require tokens: `true`, `false`, or absent for "when HTTP listens beyond loopback".
+    /// `false` beyond loopback is refused: an open back-end on the network is never the intent.
+    pub required: Option<bool>,
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
+    #[error("authentication: {0}")]
+    Auth(String),
     #[error("config file {file}: {message}")]
     Config { file: PathBuf, message: String },
     #[error("state directory {dir}: {message}")]
@@ -156,6 +171,7 @@ pub async fn run(
             source,
         })?;
     let http_addr: SocketAddr = listener.local_addr().map_err(ServeError::Http)?;
+    let tokens = tokens_for(&config.auth, &http_addr)?;
     let zenoh = if config.zenoh_enabled {
         Some(zenoh::start(Arc::clone(&service), &config.zenoh).await?)
     } else {
@@ -186,7 +202,7 @@ pub async fn run(
         service.limits().workers
     );
 
-    let app = http::router(Arc::clone(&service), config.max_body_bytes);
+    let app = http::router(Arc::clone(&service), config.max_body_bytes, tokens);
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
         shutdown.await;
@@ -210,6 +226,40 @@ pub async fn run(
     drop(state);
     tracing::info!("stopped");
     result.map_err(ServeError::Http)
+}
+
+/// The tokens HTTP requires, if any: always beyond loopback, and wherever configured.
+fn tokens_for(
+    auth: &AuthConfig,
+    addr: &SocketAddr,
+) -> Result<Option<Arc<crate::transport::auth::Tokens>>, ServeError> {
+    use crate::transport::auth::Tokens;
+    let mut tokens = match &auth.tokens_file {
+        Some(file) => Tokens::load(file).map_err(|e| ServeError::Auth(e.to_string()))?,
+        None => Tokens::default(),
+    };
+    if let Ok(list) = std::env::var("FACTORD_TOKENS") {
+        tokens
+            .extend_from_list(&list)
+            .map_err(|e| ServeError::Auth(e.to_string()))?;
+    }
+    let beyond_loopback = !addr.ip().is_loopback();
+    match auth.required {
+        Some(false) if beyond_loopback => Err(ServeError::Auth(format!(
+            "HTTP listens on {addr}, beyond loopback: tokens cannot be switched off there"
+        ))),
+        Some(false) => Ok(None),
+        required if (required == Some(true) || beyond_loopback) && tokens.is_empty() => {
+            Err(ServeError::Auth(format!(
+                "HTTP on {addr} requires bearer tokens: give --tokens-file or FACTORD_TOKENS"
+            )))
+        }
+        _ if tokens.is_empty() => Ok(None),
+        _ => {
+            tracing::info!("HTTP requires bearer tokens ({} configured)", tokens.len());
+            Ok(Some(Arc::new(tokens)))
+        }
+    }
 }
 
 /// Resolves on Ctrl-C or SIGTERM.

@@ -6,6 +6,7 @@
 //!
 //! ```text
 //! sessions/<name>/session.json    the creation request (kind, options, policy), written once
+//! sessions/<name>/owner           the label of the token that created it (when there was one)
 //! sessions/<name>/snapshot.json   the last snapshot (written to a temporary file, fsynced, renamed)
 //! sessions/<name>/journal.log     checksummed entries since that snapshot (see `log`)
 //! ```
@@ -90,6 +91,7 @@ pub struct Snapshot {
 #[derive(Debug)]
 pub struct Recovered {
     pub request: CreateSession,
+    pub owner: Option<String>,
     pub snapshot: Option<Snapshot>,
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
@@ -129,6 +131,7 @@ impl SessionDir {
         state_dir: &Path,
         name: &str,
         request: &CreateSession,
+        owner: Option<&str>,
     ) -> Result<Self, JournalError> {
         let root = Self::sessions_root(state_dir);
         let dir = root.join(name);
@@ -136,6 +139,10 @@ impl SessionDir {
             std::fs::remove_dir_all(&dir).map_err(io_at(&dir))?;
         }
         std::fs::create_dir_all(&dir).map_err(io_at(&dir))?;
+        if let Some(owner) = owner {
+            write_atomically(&dir.join("owner"), owner.as_bytes())?;
+        }
+        // Written last: a directory without it is an unfinished creation and is ignored.
         let text = serde_json::to_vec_pretty(request).expect("serialisable");
         write_atomically(&dir.join("session.json"), &text)?;
         sync_dir(&root)?;
@@ -185,6 +192,12 @@ impl SessionDir {
                 path: request_path.clone(),
                 message: e.to_string(),
             })?;
+        let owner_path = self.dir.join("owner");
+        let owner = match std::fs::read_to_string(&owner_path) {
+            Ok(text) => Some(text),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => None,
+            Err(e) => return Err(io_at(&owner_path)(e)),
+        };
         let snapshot_path = self.dir.join("snapshot.json");
         let snapshot = match std::fs::read(&snapshot_path) {
             Ok(bytes) => {
@@ -213,6 +226,7 @@ impl SessionDir {
         }
         Ok(Recovered {
             request,
+            owner,
             snapshot,
             entries,
             truncated_bytes: contents.truncated_bytes,

@@ -240,6 +240,9 @@ impl Service {
                 }
             })?;
             session.mark_recovering();
+            if let Some(owner) = &recovered.owner {
+                session.set_owner(owner.as_str().into());
+            }
             let journal = dir.open_journal(config.fsync)?;
             let durability = crate::session::Durability {
                 dir,
@@ -361,7 +364,9 @@ impl Service {
             Command::ListSessions => Ok(Reply::Sessions {
                 sessions: self.sessions().iter().map(|s| s.info()).collect(),
             }),
-            Command::CreateSession(request) => self.create_session(request).map(Reply::Created),
+            Command::CreateSession(request) => {
+                self.create_session(request, None).map(Reply::Created)
+            }
             Command::DeleteSession { session } => {
                 self.writable(&session)?;
                 let removed = self
@@ -564,7 +569,12 @@ impl Service {
         }
     }
 
-    fn create_session(&self, request: CreateSession) -> Result<SessionInfo, ServiceError> {
+    /// Creates a session owned by the token labelled `owner` (see `transport::auth`).
+    pub fn create_session(
+        &self,
+        request: CreateSession,
+        owner: Option<Arc<str>>,
+    ) -> Result<SessionInfo, ServiceError> {
         let name = match &request.session {
             Some(name) if valid_session_name(name) => name.clone(),
             Some(name) => {
@@ -577,6 +587,9 @@ impl Service {
             None => format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst)),
         };
         let session = self.build_session(name.clone(), request.clone())?;
+        if let Some(owner) = &owner {
+            session.set_owner(Arc::clone(owner));
+        }
         // Held across the directory's creation so two creations of one name cannot race.
         let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
         if sessions.contains_key(&name) {
@@ -604,22 +617,23 @@ impl Service {
                 options: Some(info.options),
                 auto_optimize: info.auto_optimize,
             };
-            let durability = crate::journal::SessionDir::create(state_dir, &name, &record)
-                .and_then(|dir| {
-                    let journal = dir.open_journal(config.fsync)?;
-                    Ok(crate::session::Durability {
-                        dir,
-                        journal,
-                        config: config.clone(),
+            let durability =
+                crate::journal::SessionDir::create(state_dir, &name, &record, owner.as_deref())
+                    .and_then(|dir| {
+                        let journal = dir.open_journal(config.fsync)?;
+                        Ok(crate::session::Durability {
+                            dir,
+                            journal,
+                            config: config.clone(),
+                        })
                     })
-                })
-                .map_err(|e| {
-                    ServiceError::unavailable(
-                        "journal_failed",
-                        format!("cannot create the session's journal: {e}"),
-                        5,
-                    )
-                })?;
+                    .map_err(|e| {
+                        ServiceError::unavailable(
+                            "journal_failed",
+                            format!("cannot create the session's journal: {e}"),
+                            5,
+                        )
+                    })?;
             session.attach(durability);
         }
         self.notify_observers(&session);

@@ -72,6 +72,8 @@ pub struct Session {
     durable: Mutex<Option<durable::Durable>>,
     /// Being rebuilt from its journal: writes are refused until it is done.
     recovering: AtomicBool,
+    /// The label of the bearer token that created it (HTTP with tokens), else nobody.
+    owner: std::sync::OnceLock<Arc<str>>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     max_pending_factors: usize,
@@ -196,6 +198,7 @@ impl Session {
             marginals: Mutex::new(None),
             durable: Mutex::new(None),
             recovering: AtomicBool::new(false),
+            owner: std::sync::OnceLock::new(),
             runtime,
             pool,
             max_pending_factors,
@@ -206,6 +209,24 @@ impl Session {
         // A panic while holding the lock would be a bug; the state is still consistent at every
         // await-free step, so keep serving.
         self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Gives the session to the token labelled `owner` (once, at creation or recovery).
+    pub fn set_owner(&self, owner: Arc<str>) {
+        let _ = self.owner.set(owner);
+    }
+
+    pub fn owner(&self) -> Option<&Arc<str>> {
+        self.owner.get()
+    }
+
+    /// Whether a caller holding the token labelled `principal` may see this session: its
+    /// owner, or anyone when it has none.
+    pub fn visible_to(&self, principal: Option<&Arc<str>>) -> bool {
+        match self.owner.get() {
+            None => true,
+            Some(owner) => principal == Some(owner),
+        }
     }
 
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<SessionEvent>> {

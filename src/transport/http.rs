@@ -26,9 +26,14 @@ use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 
 type Shared = State<Arc<Service>>;
 
-/// The router, with request bodies limited to `max_body_bytes`.
-pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
-    Router::new()
+/// The router, with request bodies limited to `max_body_bytes`, and bearer tokens required
+/// when `tokens` is given.
+pub fn router(
+    service: Arc<Service>,
+    max_body_bytes: usize,
+    tokens: Option<Arc<super::auth::Tokens>>,
+) -> Router {
+    let routes = Router::new()
         .route("/v1/health", get(health))
         .route("/metrics", get(metrics))
         .route("/v1/sessions", post(create_session).get(list_sessions))
@@ -51,9 +56,15 @@ pub fn router(service: Arc<Service>, max_body_bytes: usize) -> Router {
         .merge(super::web::routes())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
-        .layer(DefaultBodyLimit::max(max_body_bytes))
-        .layer(TraceLayer::new_for_http())
-        .with_state(service)
+        .layer(DefaultBodyLimit::max(max_body_bytes));
+    let routes = match tokens {
+        Some(tokens) => routes.layer(axum::middleware::from_fn_with_state(
+            (Arc::clone(&service), tokens),
+            super::auth::require_token,
+        )),
+        None => routes,
+    };
+    routes.layer(TraceLayer::new_for_http()).with_state(service)
 }
 
 /// An error as an HTTP response.
@@ -120,18 +131,43 @@ async fn health(State(service): Shared) -> HttpResult {
     run(&service, Command::Health, StatusCode::OK).await
 }
 
-async fn list_sessions(State(service): Shared) -> HttpResult {
-    run(&service, Command::ListSessions, StatusCode::OK).await
+type Caller = Option<axum::Extension<super::auth::Principal>>;
+
+async fn list_sessions(State(service): Shared, caller: Caller) -> HttpResult {
+    let reply = service.execute(Command::ListSessions).await?;
+    let reply = match (reply, caller) {
+        (Reply::Sessions { sessions }, Some(axum::Extension(principal))) => Reply::Sessions {
+            sessions: sessions
+                .into_iter()
+                .filter(|info| {
+                    service
+                        .session(&info.session)
+                        .is_ok_and(|s| s.visible_to(principal.0.as_ref()))
+                })
+                .collect(),
+        },
+        (reply, _) => reply,
+    };
+    Ok((StatusCode::OK, Json(reply)).into_response())
 }
 
-async fn create_session(State(service): Shared, body: Result<Bytes, BytesRejection>) -> HttpResult {
+async fn create_session(
+    State(service): Shared,
+    caller: Caller,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
     let request: CreateSession = parse_json(&body.map_err(body_error)?)?;
-    run(
-        &service,
-        Command::CreateSession(request),
-        StatusCode::CREATED,
-    )
-    .await
+    if service.health().status != "ok" {
+        return run(
+            &service,
+            Command::CreateSession(request),
+            StatusCode::CREATED,
+        )
+        .await;
+    }
+    let owner = caller.and_then(|axum::Extension(p)| p.0);
+    let info = service.create_session(request, owner)?;
+    Ok((StatusCode::CREATED, Json(Reply::Created(info))).into_response())
 }
 
 async fn stats(State(service): Shared, Path(session): Path<String>) -> HttpResult {

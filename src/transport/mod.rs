@@ -1,5 +1,6 @@
 //! Transports: thin adapters that turn requests into [`crate::service::Command`]s.
 
+pub mod auth;
 pub mod http;
 mod web;
 pub mod zenoh;

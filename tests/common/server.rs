@@ -46,7 +46,11 @@ impl TestServer {
             .open(&stderr_path)
             .expect("stderr file");
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
-        cmd.args(["serve", "--listen", "127.0.0.1:0", "--zenoh-listen", &zenoh])
+        cmd.arg("serve");
+        if !extra.contains(&"--listen") {
+            cmd.args(["--listen", "127.0.0.1:0"]);
+        }
+        cmd.args(["--zenoh-listen", &zenoh])
             .arg("--state-dir")
             .arg(&state_dir)
             .args(["--zenoh-multicast", "off"])

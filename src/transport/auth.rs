@@ -1,0 +1,159 @@
+//! Bearer-token authentication for HTTP, and session ownership.
+//!
+//! Tokens come from a file (`auth.tokens_file`, one `label token` or bare `token` per line, `#`
+//! comments) and/or `FACTORD_TOKENS` (comma-separated). They are required automatically when
+//! HTTP listens beyond loopback. With tokens in force every route but `GET /v1/health` and the
+//! web pages needs `Authorization: Bearer <token>` (401 otherwise), and a session belongs to the
+//! token that created it: to any other token it does not exist (404), nor is it listed.
+//! Sessions created over zenoh (governed by zenoh's own access control) or before tokens were
+//! configured belong to nobody and are reachable with any valid token.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderValue};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+
+use crate::service::{Service, ServiceError};
+
+/// The caller, once its token was checked: the token's label.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Principal(pub Option<Arc<str>>);
+
+#[derive(Debug, Default)]
+pub struct Tokens {
+    /// token → label
+    by_token: HashMap<String, Arc<str>>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TokensError {
+    #[error("tokens file {file}: {message}")]
+    File { file: PathBuf, message: String },
+}
+
+impl Tokens {
+    /// From a file's text: `label token` or `token` per line.
+    pub fn parse(text: &str, file: &Path) -> Result<Self, TokensError> {
+        let mut tokens = Self::default();
+        for (n, line) in text.lines().enumerate() {
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') {
+                continue;
+            }
+            let (label, token) = match line.split_whitespace().collect::<Vec<_>>()[..] {
+                [token] => (format!("{}:{}", file.display(), n + 1), token),
+                [label, token] => (label.to_string(), token),
+                _ => {
+                    return Err(TokensError::File {
+                        file: file.into(),
+                        message: format!("line {}: expected `token` or `label token`", n + 1),
+                    })
+                }
+            };
+            tokens.add(label, token, file)?;
+        }
+        Ok(tokens)
+    }
+
+    pub fn load(file: &Path) -> Result<Self, TokensError> {
+        let text = std::fs::read_to_string(file).map_err(|e| TokensError::File {
+            file: file.into(),
+            message: e.to_string(),
+        })?;
+        Self::parse(&text, file)
+    }
+
+    /// Adds `FACTORD_TOKENS`-style comma-separated tokens.
+    pub fn extend_from_list(&mut self, list: &str) -> Result<(), TokensError> {
+        for (i, token) in list.split(',').map(str::trim).enumerate() {
+            if !token.is_empty() {
+                self.add(format!("env-{i}"), token, Path::new("FACTORD_TOKENS"))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn add(&mut self, label: String, token: &str, source: &Path) -> Result<(), TokensError> {
+        // Short tokens are guessable; refuse them rather than run with one.
+        if token.len() < 16 || !token.bytes().all(|b| b.is_ascii_graphic()) {
+            return Err(TokensError::File {
+                file: source.into(),
+                message: format!("token `{label}` must be at least 16 printable characters"),
+            });
+        }
+        self.by_token.insert(token.to_string(), label.into());
+        Ok(())
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.by_token.is_empty()
+    }
+
+    pub fn len(&self) -> usize {
+        self.by_token.len()
+    }
+
+    fn check(&self, header: Option<&HeaderValue>) -> Option<Arc<str>> {
+        let value = header?.to_str().ok()?;
+        let token = value.strip_prefix("Bearer ")?.trim();
+        self.by_token.get(token).cloned()
+    }
+}
+
+fn unauthorized(message: &str) -> Response {
+    let mut response = super::http::HttpError::from(
+        ServiceError::new(401, "unauthorized", message).at("authorization"),
+    )
+    .into_response();
+    response
+        .headers_mut()
+        .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+    response
+}
+
+/// The session a request path names (`/v1/sessions/<name>/…`), if any.
+fn session_in_path(path: &str) -> Option<&str> {
+    let rest = path.strip_prefix("/v1/sessions/")?;
+    let name = rest.split('/').next()?;
+    (!name.is_empty()).then_some(name)
+}
+
+/// Checks the bearer token, then that a session named in the path belongs to it (404
+/// otherwise, exactly as for a session that does not exist); leaves the [`Principal`] in the
+/// request for handlers that create or list sessions.
+pub async fn require_token(
+    State((service, tokens)): State<(Arc<Service>, Arc<Tokens>)>,
+    mut request: Request,
+    next: Next,
+) -> Response {
+    let path = request.uri().path();
+    let open = path == "/v1/health"
+        || path == "/"
+        || path.starts_with("/sessions/")
+        || path.starts_with("/assets/");
+    if open {
+        return next.run(request).await;
+    }
+    let Some(label) = tokens.check(request.headers().get(header::AUTHORIZATION)) else {
+        let message = if request.headers().contains_key(header::AUTHORIZATION) {
+            "the bearer token is not valid"
+        } else {
+            "this server requires `Authorization: Bearer <token>`"
+        };
+        return unauthorized(message);
+    };
+    if let Some(name) = session_in_path(path) {
+        if let Ok(session) = service.session(name) {
+            if !session.visible_to(Some(&label)) {
+                return super::http::HttpError::from(ServiceError::not_found("session", name))
+                    .into_response();
+            }
+        }
+    }
+    request.extensions_mut().insert(Principal(Some(label)));
+    next.run(request).await
+}

@@ -1,0 +1,214 @@
+//! Bearer tokens over real sockets: 401 without one, sessions owned by the token that created
+//! them (404 to every other token, also after a restart), required beyond loopback.
+
+mod common;
+
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use common::server::{client, TestServer};
+use serde_json::{json, Value};
+
+const ALICE: &str = "alice-0123456789abcdef";
+const BOB: &str = "bob-fedcba9876543210xyz";
+
+async fn call(
+    c: &reqwest::Client,
+    method: reqwest::Method,
+    url: &str,
+    token: Option<&str>,
+    body: Option<Value>,
+) -> (u16, Value, reqwest::header::HeaderMap) {
+    let mut request = c.request(method, url);
+    if let Some(t) = token {
+        request = request.bearer_auth(t);
+    }
+    if let Some(b) = body {
+        request = request.json(&b);
+    }
+    let response = request.send().await.unwrap();
+    let status = response.status().as_u16();
+    let headers = response.headers().clone();
+    let text = response.text().await.unwrap();
+    (
+        status,
+        serde_json::from_str(&text).unwrap_or(Value::String(text)),
+        headers,
+    )
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn tokens_guard_every_route_and_sessions_belong_to_their_token() {
+    let dir = common::temp_dir("auth");
+    let tokens = dir.join("tokens");
+    std::fs::write(&tokens, format!("# who\nalice {ALICE}\nbob {BOB}\n")).unwrap();
+    let tokens = tokens.display().to_string();
+    let state = dir.join("state");
+    let s = TestServer::start_at(&state, &["--no-zenoh", "--tokens-file", &tokens], &[]);
+    let c = client();
+    use reqwest::Method as M;
+
+    // Health stays open (liveness probes); everything else needs a valid token.
+    assert_eq!(
+        call(&c, M::GET, &s.url("/v1/health"), None, None).await.0,
+        200
+    );
+    for (method, path) in [
+        (M::GET, "/v1/sessions"),
+        (M::POST, "/v1/sessions"),
+        (M::GET, "/v1/sessions/x/estimate"),
+        (M::POST, "/v1/jobs"),
+        (M::GET, "/metrics"),
+    ] {
+        let (status, v, headers) = call(&c, method.clone(), &s.url(path), None, None).await;
+        assert_eq!(status, 401, "{method} {path}: {v}");
+        assert_eq!(v["error"]["code"], "unauthorized");
+        assert_eq!(headers["www-authenticate"], "Bearer");
+        let (status, v, _) = call(
+            &c,
+            method.clone(),
+            &s.url(path),
+            Some("wrong-token-0000000000"),
+            None,
+        )
+        .await;
+        assert_eq!(status, 401, "{method} {path}: {v}");
+        assert!(v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("not valid"));
+    }
+
+    let create = json!({"session": "alices", "kind": "pose_graph_2d"});
+    let (status, v, _) = call(
+        &c,
+        M::POST,
+        &s.url("/v1/sessions"),
+        Some(ALICE),
+        Some(create),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
+    let url = s.url("/v1/sessions/alices/batches");
+    assert_eq!(
+        call(&c, M::POST, &url, Some(ALICE), Some(batch.clone()))
+            .await
+            .0,
+        200
+    );
+
+    // To bob, alice's session is exactly like one that does not exist.
+    let (status, theirs, _) =
+        call(&c, M::GET, &s.url("/v1/sessions/alices"), Some(BOB), None).await;
+    let (_, missing, _) = call(&c, M::GET, &s.url("/v1/sessions/nobody"), Some(BOB), None).await;
+    assert_eq!(status, 404);
+    assert_eq!(
+        theirs["error"]["message"]
+            .as_str()
+            .unwrap()
+            .replace("alices", "X"),
+        missing["error"]["message"]
+            .as_str()
+            .unwrap()
+            .replace("nobody", "X")
+    );
+    assert_eq!(
+        call(&c, M::POST, &url, Some(BOB), Some(batch.clone()))
+            .await
+            .0,
+        404
+    );
+    let delete = s.url("/v1/sessions/alices");
+    assert_eq!(call(&c, M::DELETE, &delete, Some(BOB), None).await.0, 404);
+    let (_, list, _) = call(&c, M::GET, &s.url("/v1/sessions"), Some(BOB), None).await;
+    assert_eq!(list["sessions"], json!([]));
+    let (_, list, _) = call(&c, M::GET, &s.url("/v1/sessions"), Some(ALICE), None).await;
+    assert_eq!(list["sessions"][0]["session"], "alices");
+    let (status, metrics, _) = call(&c, M::GET, &s.url("/metrics"), Some(BOB), None).await;
+    assert_eq!(status, 200);
+    assert!(metrics
+        .as_str()
+        .unwrap()
+        .contains("factord_rejected_inputs_total{reason=\"unauthorized\"}"));
+    s.assert_no_panic();
+    s.kill();
+
+    // Ownership is part of the session's durable record.
+    let s = TestServer::start_at(&state, &["--no-zenoh", "--tokens-file", &tokens], &[]);
+    let stats = s.url("/v1/sessions/alices");
+    let mut waited = 0;
+    loop {
+        let (status, v, _) = call(&c, M::GET, &stats, Some(ALICE), None).await;
+        assert_eq!(status, 200, "{v}");
+        if v["recovering"] == false {
+            assert_eq!(v["num_variables"], 1);
+            break;
+        }
+        waited += 1;
+        assert!(waited < 500, "still recovering");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(call(&c, M::GET, &stats, Some(BOB), None).await.0, 404);
+    s.assert_no_panic();
+}
+
+#[test]
+fn beyond_loopback_tokens_are_required() {
+    let state = common::temp_dir("auth-open");
+    let out = Command::new(env!("CARGO_BIN_EXE_factord"))
+        .args([
+            "serve",
+            "--listen",
+            "0.0.0.0:0",
+            "--no-zenoh",
+            "--state-dir",
+        ])
+        .arg(&state)
+        .env_remove("FACTORD_TOKENS")
+        .stdout(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("requires bearer tokens"), "{stderr}");
+    // A token too short to be safe is refused as well.
+    let out = Command::new(env!("CARGO_BIN_EXE_factord"))
+        .args([
+            "serve",
+            "--listen",
+            "0.0.0.0:0",
+            "--no-zenoh",
+            "--state-dir",
+        ])
+        .arg(&state)
+        .env("FACTORD_TOKENS", "short")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("at least 16"));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn tokens_from_the_environment_beyond_loopback() {
+    let state = common::temp_dir("auth-env");
+    // Listening on every interface; reached over loopback here.
+    let s = TestServer::start_at(
+        &state,
+        &["--no-zenoh", "--listen", "0.0.0.0:0"],
+        &[("FACTORD_TOKENS", ALICE)],
+    );
+    let port = s.http.rsplit(':').next().unwrap().to_string();
+    let url = format!("http://127.0.0.1:{port}/v1/sessions");
+    let c = client();
+    assert_eq!(
+        call(&c, reqwest::Method::GET, &url, None, None).await.0,
+        401
+    );
+    assert_eq!(
+        call(&c, reqwest::Method::GET, &url, Some(ALICE), None)
+            .await
+            .0,
+        200
+    );
+}
