@@ -224,3 +224,67 @@ async fn a_torn_journal_tail_is_cut_and_the_rest_recovered() {
     assert!(!state.join("sessions/torn").exists());
     s.assert_no_panic();
 }
+
+/// A factor whose residual is not finite where it would start is refused before anything is
+/// journalled or applied (it used to pass validation and then fail inside the problem), over
+/// HTTP and zenoh; the session and its journal stay good across a restart.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_non_finite_residual_is_refused_before_the_journal() {
+    let state = common::temp_dir("durability-nonfinite");
+    let c = client();
+    let s = TestServer::start_at(&state, &[], &[]);
+    for (name, kind) in [("ba", "bundle_adjustment"), ("pg", "pose_graph_2d")] {
+        let (status, v) = post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"session": name, "kind": kind}),
+        )
+        .await;
+        assert_eq!(status, 201, "{v}");
+    }
+    // A point exactly at the camera's centre: depth 0.
+    let ba = json!({
+        "variables": [
+            {"key": 0, "kind": "snavely_camera", "value": [0, 0, 0, 0, 0, 0, 500, 0, 0]},
+            {"key": 1, "kind": "point3", "value": [0, 0, 0]}],
+        "factors": [{"type": "reprojection_snavely", "keys": [0, 1], "measurement": [1, 2], "sigmas": [1, 1]}]});
+    // Poses so far apart that their difference overflows.
+    let pg = json!({
+        "variables": [
+            {"key": 0, "kind": "se2", "value": [1e308, 0, 0]},
+            {"key": 1, "kind": "se2", "value": [-1e308, 0, 0]}],
+        "factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}]});
+    for (name, batch) in [("ba", &ba), ("pg", &pg)] {
+        let (status, v) = post(&c, &s.url(&format!("/v1/sessions/{name}/batches")), batch).await;
+        assert_eq!(status, 422, "{name}: {v}");
+        assert_eq!(v["error"]["code"], "non_finite_residual");
+        assert_eq!(v["error"]["field"], "factors[0]");
+    }
+    let z = common::server::zenoh_peer(&s.zenoh).await;
+    let err = common::server::zenoh_get(
+        &z,
+        "factord/rpc",
+        Some(&json!({"op": "apply_batch", "session": "pg", "batch": pg})),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(err["error"]["code"], "non_finite_residual");
+    z.close().await.unwrap();
+    // Nothing was applied; good batches still are.
+    let good = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
+    assert_eq!(
+        post(&c, &s.url("/v1/sessions/pg/batches"), &good).await.0,
+        200
+    );
+    let (_, stats) = get(&c, &s.url("/v1/sessions/pg")).await;
+    assert_eq!(
+        (stats["sequence"].as_u64(), stats["num_variables"].as_u64()),
+        (Some(1), Some(1))
+    );
+    s.assert_no_panic();
+    s.kill();
+    let s = TestServer::start_at(&state, &[], &[]);
+    let (stats, _) = recovered(&c, &s, "pg", Instant::now()).await;
+    assert_eq!(stats["num_variables"], 1);
+    s.assert_no_panic();
+}

@@ -10,7 +10,8 @@
 //!    previous one's estimate is available; publish-to-estimate latency per pose (ack with
 //!    `reflected`, or the summary of the solve that includes it).
 //!
-//! `cargo bench --bench service -- <file.g2o> [--rounds N] [--json out.json]`
+//! `cargo bench --bench service -- <file.g2o> [--rounds N] [--json out.json] [--fsync always|interval|never]
+//! [--ingest-only]`
 
 #[path = "../../tests/common/mod.rs"]
 mod common;
@@ -149,8 +150,19 @@ async fn ingest(s: &TestServer, z: &zenoh::Session, text: &str, batch_factors: u
         {
             break *t;
         }
+        // The ack stream may skip events under load (a lagging subscriber); the session's
+        // sequence is authoritative.
+        let stats: Value = reqwest::get(s.url(&format!("/v1/sessions/{session}")))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if stats["sequence"] == last {
+            break Instant::now();
+        }
         assert!(Instant::now() < deadline, "ingest did not finish");
-        let _ = tokio::time::timeout(Duration::from_millis(50), arrived).await;
+        let _ = tokio::time::timeout(Duration::from_millis(20), arrived).await;
     };
     let seconds = (done - start).as_secs_f64();
     let c = reqwest::Client::new();
@@ -259,17 +271,28 @@ fn main() {
         .build()
         .unwrap();
     let report = runtime.block_on(async {
-        let s = TestServer::start(&["--log", "warn"]);
-        let job = job_vs_cli(&s, &file, rounds).await;
+        // `--fsync always|interval|never`: the journal policy of the server under test.
+        let fsync = flag("--fsync").unwrap_or_else(|| "always".into());
+        let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
+        let only_ingest = args.iter().any(|a| a == "--ingest-only");
+        let job = if only_ingest {
+            Value::Null
+        } else {
+            job_vs_cli(&s, &file, rounds).await
+        };
         let z = zenoh_peer(&s.zenoh).await;
         let mut ingest_runs = Vec::new();
         for batch in [1, 100, 1000] {
             ingest_runs.push(ingest(&s, &z, &text, batch).await);
         }
-        let stream = latency(&z, &text).await;
+        let stream = if only_ingest {
+            Value::Null
+        } else {
+            latency(&z, &text).await
+        };
         z.close().await.unwrap();
         s.assert_no_panic();
-        json!({"dataset": file, "http_job_vs_cli": job, "zenoh_ingest": ingest_runs,
+        json!({"dataset": file, "fsync": fsync, "http_job_vs_cli": job, "zenoh_ingest": ingest_runs,
                "zenoh_publish_to_estimate": stream})
     });
     println!("{}", serde_json::to_string_pretty(&report).unwrap());

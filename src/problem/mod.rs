@@ -145,21 +145,69 @@ impl Problem {
         robust: Option<RobustKernel>,
         label: String,
     ) -> Result<usize, ProblemError> {
+        let variables = self.resolve(factor.as_ref(), &label)?;
+        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
+        let vars: Vec<&dyn Variable> = variables.iter().map(|&v| self.values.variable(v)).collect();
+        let mut e = vec![0.0; factor.residual_dim()];
+        if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
+            return Err(ProblemError::NonFiniteMeasurement { factor: label });
+        }
+        self.push_factor(factor, sqrt_information, robust, label, variables);
+        Ok(self.factors.len() - 1)
+    }
+
+    /// As [`Problem::add_factor_sqrt`] without evaluating the factor: for a session's factors,
+    /// which were checked at the client's values and must be added even if a solve has since
+    /// moved them somewhere the residual is not finite (that solve then fails, visibly).
+    pub fn add_checked_factor_sqrt(
+        &mut self,
+        factor: Box<dyn Factor>,
+        sqrt_information: SqrtInformation,
+        robust: Option<RobustKernel>,
+        label: String,
+    ) -> Result<usize, ProblemError> {
+        let variables = self.resolve(factor.as_ref(), &label)?;
+        self.push_factor(factor, sqrt_information, robust, label, variables);
+        Ok(self.factors.len() - 1)
+    }
+
+    fn push_factor(
+        &mut self,
+        factor: Box<dyn Factor>,
+        sqrt_information: SqrtInformation,
+        robust: Option<RobustKernel>,
+        label: String,
+        variables: Vec<usize>,
+    ) {
+        self.factors.push(FactorEntry {
+            factor,
+            sqrt_information,
+            robust,
+            label,
+            variables,
+        });
+    }
+
+    /// Checks the variables `factor` touches (exist, distinct, right kinds); their indices.
+    fn resolve(&self, factor: &dyn Factor, label: &str) -> Result<Vec<usize>, ProblemError> {
         let keys = factor.keys();
         for (pos, (&key, &expected)) in keys.iter().zip(factor.variable_kinds()).enumerate() {
             if keys[..pos].contains(&key) {
-                return Err(ProblemError::FactorRepeatedVariable { factor: label, key });
+                return Err(ProblemError::FactorRepeatedVariable {
+                    factor: label.to_string(),
+                    key,
+                });
             }
             let var = self
                 .values
                 .get(key)
                 .ok_or_else(|| ProblemError::FactorUnknownVariable {
-                    factor: label.clone(),
+                    factor: label.to_string(),
                     key,
                 })?;
             if var.kind() != expected {
                 return Err(ProblemError::FactorWrongKind {
-                    factor: label,
+                    factor: label.to_string(),
                     key,
                     expected,
                     found: var.kind(),
@@ -170,20 +218,7 @@ impl Problem {
             .iter()
             .map(|&k| self.values.index_of(k).expect("checked above"))
             .collect();
-        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
-        let vars: Vec<&dyn Variable> = variables.iter().map(|&v| self.values.variable(v)).collect();
-        let mut e = vec![0.0; factor.residual_dim()];
-        if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
-            return Err(ProblemError::NonFiniteMeasurement { factor: label });
-        }
-        self.factors.push(FactorEntry {
-            factor,
-            sqrt_information,
-            robust,
-            label,
-            variables,
-        });
-        Ok(self.factors.len() - 1)
+        Ok(variables)
     }
 
     pub fn factors(&self) -> &[FactorEntry] {

@@ -337,12 +337,13 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         ));
     }
 
-    let variables = batch
+    let variables: Vec<(Key, Box<dyn Variable>, bool)> = batch
         .variables
         .iter()
         .zip(values)
         .map(|(spec, v)| (spec.key, v.expect("predicted above"), spec.fixed))
         .collect();
+    check_residuals(&factors, &variables, &guesses, view)?;
     Ok(PreparedBatch {
         variables,
         factors,
@@ -351,6 +352,56 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         guesses,
         predicted,
     })
+}
+
+/// Every new factor must have a finite residual at the values it will start from (a camera
+/// looking at a point in its own centre, poses at 1e308): the solver could do nothing with it.
+fn check_residuals(
+    factors: &[PreparedFactor],
+    variables: &[(Key, Box<dyn Variable>, bool)],
+    guesses: &[(Key, Box<dyn Variable>)],
+    view: &SessionView,
+) -> Result<(), ServiceError> {
+    let mut decoded: HashMap<Key, Box<dyn Variable>> = HashMap::new();
+    for (i, f) in factors.iter().enumerate() {
+        let keys = f.factor.keys();
+        for key in keys {
+            let known = guesses.iter().rev().any(|(k, _)| k == key)
+                || variables.iter().any(|(k, _, _)| k == key);
+            if !known && !decoded.contains_key(key) {
+                let entry = view.mirror.get(key).expect("keys were checked above");
+                decoded.insert(*key, entry.decode());
+            }
+        }
+        let vars: Vec<&dyn Variable> = keys
+            .iter()
+            .map(|key| {
+                guesses
+                    .iter()
+                    .rev()
+                    .find(|(k, _)| k == key)
+                    .map(|(_, v)| v.as_ref())
+                    .or_else(|| {
+                        variables
+                            .iter()
+                            .find(|(k, _, _)| k == key)
+                            .map(|(_, v, _)| v.as_ref())
+                    })
+                    .unwrap_or_else(|| decoded[key].as_ref())
+            })
+            .collect();
+        let mut e = vec![0.0; f.factor.residual_dim()];
+        let ok = f.factor.evaluate(&vars, &mut e, None).is_ok() && e.iter().all(|v| v.is_finite());
+        if !ok {
+            return Err(ServiceError::invalid(
+                "non_finite_residual",
+                format!("factors[{i}]"),
+                "the factor's residual is not finite at the values it would start from \
+                 (a point at a camera's centre, values so large they overflow)",
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Fills in values the client left out, by walking factors of the batch from known variables

@@ -425,7 +425,7 @@ impl Session {
         let added = prepared.factors.len();
         for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
             problem
-                .add_factor_sqrt(f.factor, f.sqrt_information, f.robust, f.label)
+                .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, f.label)
                 .expect("validated");
             ids.push(id);
         }
