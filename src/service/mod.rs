@@ -36,6 +36,17 @@ pub struct Limits {
     pub max_jobs: usize,
     /// How long `wait` requests wait for a solve.
     pub wait_timeout_ms: u64,
+    /// Largest batch: variables + factors + removals + fixes + guesses (413 beyond).
+    pub max_batch_items: usize,
+    /// Variables and live factors one session may hold (422 `session_full` beyond).
+    pub max_variables_per_session: usize,
+    pub max_factors_per_session: usize,
+    /// A session's solve stops after this long (its preempted turns added up), keeping the
+    /// best estimate it reached; `last_error` says so.
+    pub max_solve_ms: u64,
+    /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
+    /// counts as one) before new ones get 429.
+    pub max_subscribers: usize,
 }
 
 impl Default for Limits {
@@ -47,6 +58,11 @@ impl Default for Limits {
             max_pending_factors: 200_000,
             max_jobs: 2 * cores,
             wait_timeout_ms: 120_000,
+            max_batch_items: 1_000_000,
+            max_variables_per_session: 10_000_000,
+            max_factors_per_session: 50_000_000,
+            max_solve_ms: 600_000,
+            max_subscribers: 64,
         }
     }
 }
@@ -666,7 +682,7 @@ impl Service {
             request.auto_optimize,
             self.runtime.clone(),
             self.pool.handle(),
-            self.limits.max_pending_factors,
+            self.limits.clone(),
         );
         session
             .set_auto_optimize(request.auto_optimize)

@@ -76,7 +76,7 @@ pub struct Session {
     owner: std::sync::OnceLock<Arc<str>>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
-    max_pending_factors: usize,
+    limits: crate::service::Limits,
 }
 
 struct State {
@@ -123,6 +123,8 @@ struct State {
     last_summary: Option<solver::Summary>,
     /// The problem's size when it was last here (it is on a worker during solves).
     problem_bytes: usize,
+    /// Time the current solve spent in earlier (preempted) turns.
+    solve_carried: Duration,
 }
 
 /// Estimated bytes of a problem: variables (boxed, with their key index) and factors (boxed,
@@ -152,7 +154,7 @@ impl Session {
         auto: AutoOptimize,
         runtime: tokio::runtime::Handle,
         pool: PoolHandle,
-        max_pending_factors: usize,
+        limits: crate::service::Limits,
     ) -> Arc<Self> {
         Arc::new(Self {
             name,
@@ -189,6 +191,7 @@ impl Session {
                 last_error: None,
                 last_summary: None,
                 problem_bytes: 0,
+                solve_carried: Duration::ZERO,
             }),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,
@@ -201,7 +204,7 @@ impl Session {
             owner: std::sync::OnceLock::new(),
             runtime,
             pool,
-            max_pending_factors,
+            limits,
         })
     }
 
@@ -288,6 +291,10 @@ impl Session {
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
         }
+        // Limits hold for what clients send; a journal replay restores what was accepted.
+        if journal {
+            self.check_batch_size(&batch)?;
+        }
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         let wire_copy = durable.is_some().then(|| batch.clone());
         let prepared = batch::prepare(
@@ -299,7 +306,7 @@ impl Session {
             },
         )?;
         if st.problem.is_none()
-            && st.pending_factors + prepared.factor_count() > self.max_pending_factors
+            && st.pending_factors + prepared.factor_count() > self.limits.max_pending_factors
         {
             return Err(ServiceError::too_many(
                 format!(
@@ -307,10 +314,13 @@ impl Session {
                     self.name,
                     st.pending_factors,
                     prepared.factor_count(),
-                    self.max_pending_factors
+                    self.limits.max_pending_factors
                 ),
                 1,
             ));
+        }
+        if journal {
+            self.check_session_size(&st, &prepared)?;
         }
         let sequence = st.sequence + 1;
         if let (Some(d), Some(copy), true) = (durable.as_mut(), &wire_copy, journal) {
@@ -395,6 +405,79 @@ impl Session {
             d.maybe_snapshot(&self.name, self.kind.name, &st);
         }
         Ok((ack, will_solve))
+    }
+
+    fn check_batch_size(&self, batch: &Batch) -> Result<(), ServiceError> {
+        let items = batch.variables.len()
+            + batch.factors.len()
+            + batch.remove_factors.len()
+            + batch.fix.len()
+            + batch.unfix.len()
+            + batch.guesses.len();
+        if items > self.limits.max_batch_items {
+            return Err(ServiceError::new(
+                413,
+                "batch_too_large",
+                format!(
+                    "the batch has {items} items (variables, factors, removals, fixes, guesses); the limit is {} (limits.max_batch_items): split it",
+                    self.limits.max_batch_items
+                ),
+            )
+            .at("batch"));
+        }
+        Ok(())
+    }
+
+    fn check_session_size(&self, st: &State, prepared: &PreparedBatch) -> Result<(), ServiceError> {
+        let variables = st.mirror.len() + prepared.variables.len();
+        if variables > self.limits.max_variables_per_session {
+            return Err(ServiceError::invalid(
+                "session_full",
+                "variables",
+                format!(
+                    "session `{}` would hold {variables} variables; the limit is {} (limits.max_variables_per_session)",
+                    self.name, self.limits.max_variables_per_session
+                ),
+            ));
+        }
+        let factors =
+            (st.live_factors.len() + prepared.factors.len()).saturating_sub(prepared.remove.len());
+        if factors > self.limits.max_factors_per_session {
+            return Err(ServiceError::invalid(
+                "session_full",
+                "factors",
+                format!(
+                    "session `{}` would hold {factors} factors; the limit is {} (limits.max_factors_per_session)",
+                    self.name, self.limits.max_factors_per_session
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Event-stream subscribers now (the zenoh publisher included).
+    pub fn subscribers(&self) -> usize {
+        self.events.receiver_count()
+    }
+
+    /// A new event-stream subscriber, or 429 at `limits.max_subscribers`.
+    pub fn subscribe_limited(
+        &self,
+    ) -> Result<broadcast::Receiver<Arc<SessionEvent>>, ServiceError> {
+        if self.subscribers() >= self.limits.max_subscribers {
+            let mut e = ServiceError::new(
+                429,
+                "too_many_subscribers",
+                format!(
+                    "session `{}` has {} event subscribers, the limit (limits.max_subscribers)",
+                    self.name, self.limits.max_subscribers
+                ),
+            )
+            .at("session");
+            e.body.retry_after = Some(5);
+            return Err(e);
+        }
+        Ok(self.subscribe())
     }
 
     /// Applies a validated batch to the problem (present in `st`).

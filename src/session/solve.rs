@@ -82,6 +82,9 @@ impl Session {
             tracing::info_span!("session", session = %self.name, solve = solve_number).entered();
         let start = Instant::now();
         let mut preempted = false;
+        let mut timed_out = false;
+        let max_solve = std::time::Duration::from_millis(self.limits.max_solve_ms);
+        let carried = self.lock().solve_carried;
         let mut on_iteration = |report: &solver::IterationReport| {
             self.emit(SessionEvent::Iteration {
                 session: self.name.clone(),
@@ -90,6 +93,10 @@ impl Session {
                 report: report.clone(),
             });
             if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
+                return ControlFlow::Break(());
+            }
+            if carried + start.elapsed() >= max_solve {
+                timed_out = true;
                 return ControlFlow::Break(());
             }
             if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
@@ -167,10 +174,21 @@ impl Session {
                 st.chi2 = Some(resolved.total_chi2);
                 st.converged = resolved.converged;
                 st.last_error = None;
-                // A preempted solve continues in its next turn; a cancelled one waits for news.
-                if preempted {
+                // A preempted solve continues in its next turn (its time counts towards the
+                // limit); a cancelled or timed-out one waits for news.
+                if preempted && !timed_out {
                     st.dirty = true;
                     st.forced = true;
+                    st.solve_carried = carried + start.elapsed();
+                } else {
+                    st.solve_carried = std::time::Duration::ZERO;
+                }
+                if timed_out {
+                    st.converged = false;
+                    st.last_error = Some(format!(
+                        "the solve stopped at the time limit of {} ms (limits.max_solve_ms) after {} iterations; the estimate is the best it reached",
+                        self.limits.max_solve_ms, summary.iterations
+                    ));
                 }
                 let changed = refresh_mirror(
                     &mut st.mirror,

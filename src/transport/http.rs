@@ -337,7 +337,7 @@ async fn events(
     Path(session): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, HttpError> {
     let session = service.session(&session)?;
-    let receiver = session.subscribe();
+    let receiver = session.subscribe_limited()?;
     drop(session);
     let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
         let event = match rx.recv().await {
@@ -368,7 +368,7 @@ async fn websocket(
     Path(session): Path<String>,
     upgrade: WebSocketUpgrade,
 ) -> Result<Response, HttpError> {
-    let events = service.session(&session)?.subscribe();
+    let events = service.session(&session)?.subscribe_limited()?;
     Ok(upgrade.on_upgrade(move |socket| serve_websocket(socket, service, session, events)))
 }
 
