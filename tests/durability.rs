@@ -288,3 +288,55 @@ async fn a_non_finite_residual_is_refused_before_the_journal() {
     assert_eq!(stats["num_variables"], 1);
     s.assert_no_panic();
 }
+
+/// A sliding window is rebuilt by replaying its fusion messages: after `kill -9` its keyframes
+/// and newest state are those acknowledged before the kill.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_sliding_window_comes_back_after_kill_9() {
+    let Some(inputs) = common::fusion::inputs(6.0, 10) else {
+        return;
+    };
+    let state = common::temp_dir("durability-window");
+    let c = client();
+    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "robot", "kind": "sliding_window"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    let url = s.url("/v1/sessions/robot/fusion");
+    let start = json!({"messages": [common::fusion::start_message(&inputs)]});
+    assert_eq!(post(&c, &url, &start).await.0, 200);
+    let mut latest = Value::Null;
+    for batch in common::fusion::keyframe_batches(&inputs) {
+        let (status, reply) = post(&c, &url, &json!({"messages": batch})).await;
+        assert_eq!(status, 200, "{reply}");
+        latest = reply["latest"].clone();
+    }
+    let (_, before) = get(&c, &s.url("/v1/sessions/robot/graph")).await;
+    s.kill();
+
+    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+    recovered(&c, &s, "robot", Instant::now()).await;
+    let (_, after) = get(&c, &s.url("/v1/sessions/robot/graph")).await;
+    assert_eq!(
+        after["poses"].as_array().unwrap().len(),
+        before["poses"].as_array().unwrap().len()
+    );
+    let newest = after["poses"].as_array().unwrap().last().unwrap();
+    assert_eq!(newest["key"], latest["key"]);
+    for axis in 0..3 {
+        let (a, b) = (
+            newest["position"][axis].as_f64().unwrap(),
+            latest["position"][axis].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 1e-9, "axis {axis}: {a} vs {b}");
+    }
+    // And it goes on taking messages.
+    let url = s.url("/v1/sessions/robot/fusion");
+    let (status, v) = post(&c, &url, &json!({"messages": []})).await;
+    assert_eq!(status, 200, "{v}");
+    s.assert_no_panic();
+}
