@@ -531,6 +531,10 @@ struct ServeArgs {
     /// Multicast scouting: on | off [default: off]
     #[arg(long, env = "FACTORD_ZENOH_MULTICAST", value_parser = parse_on_off)]
     zenoh_multicast: Option<bool>,
+    /// A zenoh JSON5 configuration to start from (access control, TLS endpoints); the
+    /// --zenoh-* settings apply on top of it.
+    #[arg(long, env = "FACTORD_ZENOH_CONFIG")]
+    zenoh_config: Option<PathBuf>,
     /// Do not start the zenoh peer (HTTP only).
     #[arg(long, env = "FACTORD_NO_ZENOH")]
     no_zenoh: bool,
@@ -590,6 +594,9 @@ fn serve(args: ServeArgs) -> Result<(), String> {
     }
     if args.no_zenoh {
         config.zenoh_enabled = false;
+    }
+    if let Some(v) = args.zenoh_config {
+        config.zenoh.config_file = Some(v);
     }
     if let Some(v) = args.workers {
         config.limits.workers = v.max(1);

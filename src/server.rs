@@ -43,6 +43,7 @@ impl Default for ServeConfig {
                 connect: Vec::new(),
                 multicast: false,
                 prefix: "factord".into(),
+                config_file: None,
             },
             limits: Limits::default(),
             journal: crate::journal::JournalConfig::default(),

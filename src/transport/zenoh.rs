@@ -31,6 +31,9 @@ pub struct ZenohConfig {
     pub multicast: bool,
     /// First chunk of every key expression.
     pub prefix: String,
+    /// A zenoh JSON5 configuration to start from (access control, TLS, authentication: see
+    /// `docker/zenoh-secure.json5`); the settings above are applied on top of it.
+    pub config_file: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -46,7 +49,13 @@ fn zenoh_error(e: impl std::fmt::Display) -> ZenohError {
 }
 
 fn config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
-    let mut config = zenoh::Config::default();
+    let mut config = match &cfg.config_file {
+        Some(path) => zenoh::Config::from_file(path).map_err(|e| ZenohError::Config {
+            key: path.display().to_string(),
+            message: e.to_string(),
+        })?,
+        None => zenoh::Config::default(),
+    };
     let json = |v: &Vec<String>| serde_json::to_string(v).expect("strings serialise");
     for (key, value) in [
         ("mode", "\"peer\"".to_string()),
