@@ -120,8 +120,10 @@ async fn kill_9_while_streaming_loses_no_acknowledged_batch() {
             .await;
             assert_eq!(status, 200, "{v}");
             let chi2 = v["stats"]["chi2"].as_f64().unwrap();
+            // Both stop at the default function tolerance (1e-6 relative decrease) from
+            // different starting points: equal to within a few of those.
             assert!(
-                (chi2 - reference).abs() <= 1e-6 * reference,
+                (chi2 - reference).abs() <= 1e-5 * reference,
                 "{chi2} vs {reference}"
             );
             assert_eq!(v["stats"]["num_variables"], 3000);
