@@ -202,6 +202,46 @@ pub struct Service {
     journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
 }
 
+/// Decodes an rpc command. A tagged enum hides where inside it a field was wrong, so when the
+/// command does not decode, the part that failed is decoded again on its own (a batch, a
+/// creation request) to name the field, as HTTP does (`batch.variables[0].kind`).
+pub fn parse_command(bytes: &[u8]) -> Result<Command, ServiceError> {
+    let error = match parse_json::<Command>(bytes) {
+        Ok(command) => return Ok(command),
+        Err(e) => e,
+    };
+    let Ok(serde_json::Value::Object(mut object)) = serde_json::from_slice(bytes) else {
+        return Err(error);
+    };
+    let located = match object.get("op").and_then(|op| op.as_str()) {
+        Some("apply_batch") => object.get("batch").map(|batch| {
+            parse_json::<Batch>(batch.to_string().as_bytes())
+                .map(|_| ())
+                .map_err(|mut e| {
+                    e.body.field = Some(match e.body.field.take() {
+                        Some(f) => format!("batch.{f}"),
+                        None => "batch".into(),
+                    });
+                    e
+                })
+        }),
+        Some("create_session") => {
+            object.remove("op");
+            Some(
+                parse_json::<CreateSession>(
+                    serde_json::Value::Object(object).to_string().as_bytes(),
+                )
+                .map(|_| ()),
+            )
+        }
+        _ => None,
+    };
+    match located {
+        Some(Err(e)) if e.body.field.is_some() => Err(e),
+        _ => Err(error),
+    }
+}
+
 /// Session names are zenoh key chunks and URL path segments.
 fn valid_session_name(name: &str) -> bool {
     (1..=64).contains(&name.len())

@@ -180,7 +180,7 @@ impl Session {
     ) -> Result<Recovery, String> {
         let start = Instant::now();
         let mut auto = recovered.request.auto_optimize;
-        self.lock().auto = AutoOptimize::Manual;
+        self.lock().auto = AutoOptimize::Manual {};
         self.attach(durability);
         let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
         if let Some(snapshot) = recovered.snapshot {

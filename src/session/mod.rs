@@ -564,7 +564,7 @@ impl Session {
             return self.schedule(st);
         }
         match st.auto {
-            AutoOptimize::EveryBatch => self.schedule(st),
+            AutoOptimize::EveryBatch {} => self.schedule(st),
             AutoOptimize::EveryNFactors { factors } => {
                 if st.factors_since_solve >= factors {
                     self.schedule(st)
@@ -584,7 +584,7 @@ impl Session {
                     });
                 }
             }
-            AutoOptimize::Manual => {}
+            AutoOptimize::Manual {} => {}
         }
     }
 

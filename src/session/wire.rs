@@ -9,19 +9,25 @@ use crate::solver::{SolverOptions, Summary};
 /// Server-assigned id of an accepted factor, used to remove it.
 pub type FactorId = u64;
 
-/// When a session re-optimises by itself.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+/// When a session re-optimises by itself. (The field-less policies are empty struct variants:
+/// serde lets unit variants of a tagged enum through with any extra fields.)
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(tag = "policy", rename_all = "snake_case", deny_unknown_fields)]
 pub enum AutoOptimize {
     /// After every accepted batch (updates arriving during a solve are coalesced into the next).
-    #[default]
-    EveryBatch,
+    EveryBatch {},
     /// Once at least `factors` factors have arrived since the last solve.
     EveryNFactors { factors: usize },
     /// At most once every `milliseconds` while updates keep arriving.
     EveryMs { milliseconds: u64 },
     /// Only when asked (`optimize`).
-    Manual,
+    Manual {},
+}
+
+impl Default for AutoOptimize {
+    fn default() -> Self {
+        Self::EveryBatch {}
+    }
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize)]

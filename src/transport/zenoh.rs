@@ -17,7 +17,7 @@ use std::sync::Arc;
 use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
-use crate::service::{parse_json, parse_query, Command, Service, ServiceError};
+use crate::service::{parse_query, Command, Service, ServiceError};
 use crate::session::wire::{EstimateQuery, SessionEvent};
 
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
@@ -112,7 +112,7 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
             let svc = Arc::clone(&svc);
             // Commands with `wait` may take a while: never block the queryable.
             tokio::spawn(async move {
-                let result = match parse_json::<Command>(&payload(&query)) {
+                let result = match crate::service::parse_command(&payload(&query)) {
                     Ok(command) => svc.execute(command).await,
                     Err(e) => Err(e),
                 };

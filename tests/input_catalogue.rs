@@ -1,0 +1,467 @@
+//! The rows of docs/INPUT_CATALOGUE.md about sessions (S) and batches (B), each sent over HTTP
+//! and over zenoh's rpc to a real server: the same status, code and field both ways, and the
+//! session unchanged afterwards.
+
+mod common;
+
+use common::server::{client, get, post, zenoh_get, zenoh_peer, TestServer};
+use serde_json::{json, Value};
+
+/// One rule: what is sent where, and the error it must produce.
+struct Case {
+    row: &'static str,
+    /// `create` (a session creation) or the session a batch goes to.
+    target: &'static str,
+    body: Value,
+    status: u16,
+    code: &'static str,
+    field: Option<&'static str>,
+}
+
+fn case(
+    row: &'static str,
+    target: &'static str,
+    body: Value,
+    status: u16,
+    code: &'static str,
+    field: Option<&'static str>,
+) -> Case {
+    Case {
+        row,
+        target,
+        body,
+        status,
+        code,
+        field,
+    }
+}
+
+fn cases() -> Vec<Case> {
+    let se2 = |k: u64| json!({"key": k, "kind": "se2", "value": [0, 0, 0]});
+    let between = |a: u64, b: u64| json!({"type": "between_se2", "keys": [a, b], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]});
+    vec![
+        case(
+            "S3",
+            "pg",
+            json!({"variable": []}),
+            400,
+            "invalid_field",
+            Some("variable"),
+        ),
+        case(
+            "S4",
+            "pg",
+            json!({"variables": [{"key": -1, "kind": "se2"}]}),
+            400,
+            "invalid_field",
+            Some("variables[0].key"),
+        ),
+        case(
+            "S7",
+            "create",
+            json!({"session": "bad name!", "kind": "pose_graph_2d"}),
+            400,
+            "invalid_session_name",
+            Some("session"),
+        ),
+        case(
+            "S9",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_4d"}),
+            400,
+            "unknown_kind",
+            Some("kind"),
+        ),
+        case(
+            "S10",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_2d", "options": {"max_iterations": 0}}),
+            400,
+            "invalid_value",
+            Some("options.max_iterations"),
+        ),
+        case(
+            "S11",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_2d", "options": {"function_tolerance": -1.0}}),
+            400,
+            "invalid_value",
+            Some("options.function_tolerance"),
+        ),
+        case(
+            "S12",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_2d", "options": {"initial_lambda": 0.0}}),
+            400,
+            "invalid_value",
+            Some("options.initial_lambda"),
+        ),
+        case(
+            "S13",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_2d", "options": {"method": "newton"}}),
+            400,
+            "invalid_field",
+            Some("options.method"),
+        ),
+        case(
+            "S14",
+            "create",
+            json!({"session": "k", "kind": "pose_graph_2d", "auto_optimize": {"policy": "every_n_factors", "factors": 0}}),
+            400,
+            "invalid_value",
+            Some("auto_optimize.factors"),
+        ),
+        case("S6", "nobody", json!({}), 404, "unknown_session", None),
+        case(
+            "B1",
+            "window",
+            json!({"variables": [se2(5)]}),
+            400,
+            "wrong_kind",
+            Some("session"),
+        ),
+        case(
+            "B2",
+            "pg",
+            json!({"variables": [{"key": 5, "kind": "se3", "value": [0, 0, 0, 0, 0, 0, 1]}]}),
+            400,
+            "wrong_kind",
+            Some("variables[0].kind"),
+        ),
+        case(
+            "B3",
+            "pg",
+            json!({"variables": [se2(0)]}),
+            422,
+            "duplicate_variable",
+            Some("variables[0].key"),
+        ),
+        case(
+            "B3",
+            "pg",
+            json!({"variables": [se2(7), se2(7)]}),
+            422,
+            "duplicate_variable",
+            Some("variables[1].key"),
+        ),
+        case(
+            "B4",
+            "pg",
+            json!({"variables": [{"key": 5, "kind": "se2", "value": [0, 0]}]}),
+            400,
+            "wrong_dimension",
+            Some("variables[0].value"),
+        ),
+        case(
+            "B5",
+            "pg3",
+            json!({"variables": [{"key": 5, "kind": "se3", "value": [0, 0, 0, 0, 0, 0, 2]}]}),
+            400,
+            "invalid_value",
+            Some("variables[0].value"),
+        ),
+        case(
+            "B7",
+            "pg",
+            json!({"factors": [{"type": "between_se3", "keys": [0, 1], "measurement": [0, 0, 0, 0, 0, 0, 1], "sigmas": [1, 1, 1, 1, 1, 1]}]}),
+            400,
+            "unknown_factor_type",
+            Some("factors[0].type"),
+        ),
+        case(
+            "B8",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}]}),
+            400,
+            "wrong_dimension",
+            Some("factors[0].keys"),
+        ),
+        case(
+            "B9",
+            "pg",
+            json!({"factors": [between(1, 1)]}),
+            400,
+            "repeated_variable",
+            Some("factors[0].keys[1]"),
+        ),
+        case(
+            "B10",
+            "pg",
+            json!({"factors": [between(0, 99)]}),
+            422,
+            "unknown_variable",
+            Some("factors[0].keys[1]"),
+        ),
+        case(
+            "B11",
+            "ba",
+            json!({"factors": [{"type": "reprojection_snavely", "keys": [1000, 1], "measurement": [1, 2], "sigmas": [1, 1]}]}),
+            422,
+            "wrong_kind",
+            Some("factors[0].keys[0]"),
+        ),
+        case(
+            "B12",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0], "sigmas": [1, 1, 1]}]}),
+            400,
+            "wrong_dimension",
+            Some("factors[0].measurement"),
+        ),
+        case(
+            "B13",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0]}]}),
+            400,
+            "missing_noise",
+            Some("factors[0]"),
+        ),
+        case(
+            "B14",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "information": [1, 0, 1]}]}),
+            400,
+            "wrong_dimension",
+            Some("factors[0].information"),
+        ),
+        case(
+            "B15",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "information": [1, 0.5, 0, 0, 1, 0, 0, 0, 1]}]}),
+            400,
+            "bad_information",
+            Some("factors[0].information"),
+        ),
+        case(
+            "B16",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "information": [1, 0, 0, -1, 0, 1]}]}),
+            400,
+            "bad_information",
+            Some("factors[0].information"),
+        ),
+        case(
+            "B17",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1]}]}),
+            400,
+            "wrong_dimension",
+            Some("factors[0].sigmas"),
+        ),
+        case(
+            "B18",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 0, 1]}]}),
+            400,
+            "bad_information",
+            Some("factors[0].sigmas[1]"),
+        ),
+        case(
+            "B20",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1], "robust": {"kind": "huber", "scale": -1.0}}]}),
+            400,
+            "invalid_value",
+            Some("factors[0].robust.scale"),
+        ),
+        case(
+            "B21",
+            "pg",
+            json!({"variables": [{"key": 50, "kind": "se2"}]}),
+            422,
+            "missing_value",
+            Some("variables[0].value"),
+        ),
+        case(
+            "B22",
+            "pg",
+            json!({"remove_factors": [12345]}),
+            422,
+            "unknown_factor",
+            Some("remove_factors[0]"),
+        ),
+        case(
+            "B23",
+            "pg",
+            json!({"fix": [77]}),
+            422,
+            "unknown_variable",
+            Some("fix[0]"),
+        ),
+        case(
+            "B23",
+            "pg",
+            json!({"unfix": [77]}),
+            422,
+            "unknown_variable",
+            Some("unfix[0]"),
+        ),
+        case(
+            "B24",
+            "pg",
+            json!({"fix": [1], "unfix": [1]}),
+            400,
+            "conflicting_fix",
+            Some("unfix[0]"),
+        ),
+        case(
+            "B25",
+            "pg",
+            json!({"guesses": [{"key": 77, "value": [0, 0, 0]}]}),
+            422,
+            "unknown_variable",
+            Some("guesses[0].key"),
+        ),
+        case(
+            "B26",
+            "pg",
+            json!({"guesses": [{"key": 1, "value": [0, 0]}]}),
+            400,
+            "wrong_dimension",
+            Some("guesses[0].value"),
+        ),
+        case(
+            "B27",
+            "ba",
+            json!({"variables": [{"key": 2000, "kind": "point3", "value": [0, 0, 0]}],
+            "factors": [{"type": "reprojection_snavely", "keys": [1, 2000], "measurement": [1, 2], "sigmas": [1, 1]}]}),
+            422,
+            "non_finite_residual",
+            Some("factors[0]"),
+        ),
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_session_and_batch_rule_answers_the_same_over_http_and_zenoh() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    let setup = [
+        (
+            "pg",
+            "pose_graph_2d",
+            json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}, {"key": 1, "kind": "se2", "value": [1, 0, 0]}],
+            "factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}]}),
+        ),
+        (
+            "pg3",
+            "pose_graph_3d",
+            json!({"variables": [{"key": 0, "kind": "se3", "value": [0, 0, 0, 0, 0, 0, 1]}]}),
+        ),
+        // A camera at the origin (key 1) and a point in front of it (key 1000).
+        (
+            "ba",
+            "bundle_adjustment",
+            json!({"variables": [{"key": 1, "kind": "snavely_camera", "value": [0, 0, 0, 0, 0, 0, 500, 0, 0]},
+            {"key": 1000, "kind": "point3", "value": [0, 0, -5]}]}),
+        ),
+        ("window", "sliding_window", Value::Null),
+    ];
+    for (name, kind, batch) in &setup {
+        let (status, v) = post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"session": name, "kind": kind, "auto_optimize": {"policy": "manual"}}),
+        )
+        .await;
+        assert_eq!(status, 201, "{v}");
+        if !batch.is_null() {
+            let (status, v) =
+                post(&c, &s.url(&format!("/v1/sessions/{name}/batches")), batch).await;
+            assert_eq!(status, 200, "{v}");
+        }
+    }
+    let z = zenoh_peer(&s.zenoh).await;
+    let mut checked = Vec::new();
+    for case in cases() {
+        let (url, command) = if case.target == "create" {
+            let mut command = case.body.clone();
+            command["op"] = json!("create_session");
+            (s.url("/v1/sessions"), command)
+        } else {
+            (
+                s.url(&format!("/v1/sessions/{}/batches", case.target)),
+                json!({"op": "apply_batch", "session": case.target, "batch": case.body}),
+            )
+        };
+        let before = if case.target == "create" || case.target == "nobody" {
+            Value::Null
+        } else {
+            get(&c, &s.url(&format!("/v1/sessions/{}", case.target)))
+                .await
+                .1
+        };
+        let (status, http) = post(&c, &url, &case.body).await;
+        let what = format!("{} {}", case.row, case.body);
+        assert_eq!(status, case.status, "HTTP {what}: {http}");
+        assert_eq!(http["error"]["code"], case.code, "HTTP {what}: {http}");
+        assert_eq!(
+            http["error"]["field"].as_str(),
+            case.field,
+            "HTTP {what}: {http}"
+        );
+        let zenoh = zenoh_get(&z, "factord/rpc", Some(&command))
+            .await
+            .expect_err(&what);
+        assert_eq!(
+            zenoh["error"]["status"], case.status,
+            "zenoh {what}: {zenoh}"
+        );
+        assert_eq!(zenoh["error"]["code"], case.code, "zenoh {what}: {zenoh}");
+        // The rpc wraps the batch in a command: a serde path starts one level deeper.
+        let zenoh_field = zenoh["error"]["field"]
+            .as_str()
+            .map(|f| f.trim_start_matches("batch.").to_string());
+        assert_eq!(zenoh_field.as_deref(), case.field, "zenoh {what}: {zenoh}");
+        if !before.is_null() {
+            let after = get(&c, &s.url(&format!("/v1/sessions/{}", case.target)))
+                .await
+                .1;
+            assert_eq!(
+                (
+                    after["sequence"].clone(),
+                    after["num_variables"].clone(),
+                    after["num_factors"].clone()
+                ),
+                (
+                    before["sequence"].clone(),
+                    before["num_variables"].clone(),
+                    before["num_factors"].clone()
+                ),
+                "{what} changed the session"
+            );
+        }
+        checked.push(case.row);
+    }
+    println!("rows checked over HTTP and zenoh: {checked:?}");
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn auto_optimize_policies_refuse_fields_they_do_not_have() {
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    for policy in [
+        json!({"policy": "manual", "bogus": 1}),
+        json!({"policy": "every_batch", "factors": 3}),
+    ] {
+        let (status, v) = post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"kind": "pose_graph_2d", "auto_optimize": policy}),
+        )
+        .await;
+        assert_eq!(status, 400, "{policy}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_field");
+    }
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "p", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    assert_eq!(v["auto_optimize"], json!({"policy": "manual"}));
+}
