@@ -17,6 +17,12 @@ use libfuzzer_sys::fuzz_target;
 
 const SESSION: &str = "fuzz";
 
+/// `FUZZ_VERBOSE=1` prints each input's outcome (for checking seeds and triaging).
+fn verbose() -> bool {
+    static V: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *V.get_or_init(|| std::env::var_os("FUZZ_VERBOSE").is_some())
+}
+
 struct Ctx {
     runtime: tokio::runtime::Runtime,
     service: Arc<Service>,
@@ -36,6 +42,7 @@ thread_local! {
                 max_pending_factors: 200_000,
                 max_jobs: 1,
                 wait_timeout_ms: 1_000,
+                ..Limits::default()
             })
         };
         Ctx { runtime, service }
@@ -74,13 +81,16 @@ fn validate_batch(batch: Batch) {
             session: Some(SESSION.into()),
             kind: kind_for(&batch).into(),
             options: None,
-            auto_optimize: AutoOptimize::Manual,
+            auto_optimize: AutoOptimize::Manual {},
         };
         ctx.service
             .create_session(request, None)
             .expect("creating an empty session");
         let session = ctx.service.session(SESSION).expect("the session just created");
-        let _ = session.apply_batch(batch);
+        let result = session.apply_batch(batch);
+        if verbose() {
+            eprintln!("  apply_batch on an empty {}: {:?}", session.kind.name, result.map(|(ack, _)| ack));
+        }
         drop(session);
         ctx.delete(SESSION.into());
     });
@@ -88,23 +98,44 @@ fn validate_batch(batch: Batch) {
 
 fn try_create(request: CreateSession) {
     CTX.with(|ctx| {
-        if let Ok(info) = ctx.service.create_session(request, None) {
+        let result = ctx.service.create_session(request, None);
+        if verbose() {
+            eprintln!("  create_session: {result:?}");
+        }
+        if let Ok(info) = result {
             ctx.delete(info.session);
         }
     });
 }
 
+fn outcome<T>(result: &Result<T, factord::service::ServiceError>) -> String {
+    match result {
+        Ok(_) => "ok".into(),
+        Err(e) => format!("{}: {}", e.body.code, e.body.message),
+    }
+}
+
 fuzz_target!(|data: &[u8]| {
-    if let Ok(batch) = parse_json::<Batch>(data) {
+    let batch = parse_json::<Batch>(data);
+    let command = parse_json::<Command>(data);
+    let fusion = parse_json::<FusionBatch>(data);
+    let create = parse_json::<CreateSession>(data);
+    if verbose() {
+        eprintln!(
+            "json: Batch {} | Command {} | FusionBatch {} | CreateSession {}",
+            outcome(&batch),
+            outcome(&command),
+            outcome(&fusion),
+            outcome(&create)
+        );
+    }
+    if let Ok(batch) = batch {
         validate_batch(batch);
     }
-    if let Ok(command) = parse_json::<Command>(data) {
-        if let Command::ApplyBatch { batch, .. } = command {
-            validate_batch(batch);
-        }
+    if let Ok(Command::ApplyBatch { batch, .. }) = command {
+        validate_batch(batch);
     }
-    let _ = parse_json::<FusionBatch>(data);
-    if let Ok(request) = parse_json::<CreateSession>(data) {
+    if let Ok(request) = create {
         try_create(request);
     }
 });

@@ -606,6 +606,9 @@ impl Session {
         st.dirty = true;
         st.converged = false;
         st.forced = true;
+        // Asked for explicitly: the whole problem, not only the region the last updates reach
+        // (region solves stop within their tolerance of the optimum; this one goes all the way).
+        st.structural = true;
         if !st.scheduled {
             self.schedule(&mut st);
         }
