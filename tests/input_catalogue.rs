@@ -465,3 +465,38 @@ async fn auto_optimize_policies_refuse_fields_they_do_not_have() {
     assert_eq!(status, 201, "{v}");
     assert_eq!(v["auto_optimize"], json!({"policy": "manual"}));
 }
+
+/// Errors axum's extractors raise themselves come back in the same JSON shape as ours.
+#[tokio::test(flavor = "multi_thread")]
+async fn extractor_errors_are_json_too() {
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "w", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    for path in [
+        "/v1/sessions/%FF",
+        "/v1/sessions/%FF/estimate",
+        "/v1/sessions/w/ws",
+    ] {
+        let response = c.get(s.url(path)).send().await.unwrap();
+        let status = response.status().as_u16();
+        let content_type = response.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .to_string();
+        let v: Value = response.json().await.unwrap_or(Value::Null);
+        assert!((400..500).contains(&status), "{path}: {status}");
+        assert!(
+            content_type.starts_with("application/json"),
+            "{path}: {content_type}"
+        );
+        assert_eq!(v["error"]["code"], "invalid_request", "{path}: {v}");
+        assert_eq!(v["error"]["status"], status, "{path}: {v}");
+    }
+    s.assert_no_panic();
+}

@@ -64,7 +64,37 @@ pub fn router(
         )),
         None => routes,
     };
-    routes.layer(TraceLayer::new_for_http()).with_state(service)
+    routes
+        .layer(axum::middleware::from_fn(json_errors))
+        .layer(TraceLayer::new_for_http())
+        .with_state(service)
+}
+
+/// Errors axum's own extractors answer in plain text (a path segment that is not UTF-8, a
+/// WebSocket request without its upgrade headers) become our JSON error body, so every API
+/// error has the same shape.
+async fn json_errors(request: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    let api = request.uri().path().starts_with("/v1/");
+    let response = next.run(request).await;
+    let status = response.status();
+    let plain = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("text/plain"));
+    if !api || !plain || !(status.is_client_error() || status.is_server_error()) {
+        return response;
+    }
+    let bytes = axum::body::to_bytes(response.into_body(), 64 << 10)
+        .await
+        .unwrap_or_default();
+    let message = String::from_utf8_lossy(&bytes).into_owned();
+    let code = if status.is_client_error() {
+        "invalid_request"
+    } else {
+        "internal"
+    };
+    HttpError(ServiceError::new(status.as_u16(), code, message)).into_response()
 }
 
 /// An error as an HTTP response.
