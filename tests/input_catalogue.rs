@@ -500,3 +500,215 @@ async fn extractor_errors_are_json_too() {
     }
     s.assert_no_panic();
 }
+
+fn start(overrides: Value) -> Value {
+    let mut m = json!({"type": "start", "t": 0.0, "position": [0, 0, 0], "rotation_xyzw": [0, 0, 0, 1],
+        "sigmas": {"position": 0.01, "rotation": 0.01, "velocity": 0.1, "accel_bias": 0.1, "gyro_bias": 0.01}});
+    for (k, v) in overrides.as_object().unwrap() {
+        m[k] = v.clone();
+    }
+    m
+}
+
+fn imu(t: f64) -> Value {
+    json!({"type": "imu", "t": t, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]})
+}
+
+fn preintegrated(delta_t: f64, covariance: Vec<f64>) -> Value {
+    let eye = [1, 0, 0, 0, 1, 0, 0, 0, 1];
+    json!({"type": "preintegrated_keyframe", "t": 0.5, "delta_t": delta_t,
+        "delta_rotation_xyzw": [0, 0, 0, 1], "delta_velocity": [0, 0, 0], "delta_position": [0, 0, 0],
+        "accel_bias": [0, 0, 0], "gyro_bias": [0, 0, 0],
+        "d_rotation_d_gyro_bias": eye, "d_velocity_d_accel_bias": eye, "d_velocity_d_gyro_bias": eye,
+        "d_position_d_accel_bias": eye, "d_position_d_gyro_bias": eye, "covariance": covariance})
+}
+
+/// The fusion rows (F): each message alone, over HTTP and zenoh rpc; nothing it touches changes.
+#[tokio::test(flavor = "multi_thread")]
+async fn every_fusion_rule_answers_the_same_over_http_and_zenoh() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    let identity_cov: Vec<f64> = (0..225)
+        .map(|i| if i % 16 == 0 { 1e-4 } else { 0.0 })
+        .collect();
+    // `win`: keyframes 0 (t 0) and 1 (t 0.01), then a sample at 0.015; `bare`: started, no
+    // samples; `fresh`: not started; `pg`: not a window.
+    let setup: [(&str, &str, Vec<Value>); 4] = [
+        (
+            "win",
+            "sliding_window",
+            vec![
+                start(json!({})),
+                imu(0.005),
+                imu(0.01),
+                json!({"type": "keyframe", "t": 0.01}),
+                imu(0.015),
+            ],
+        ),
+        ("bare", "sliding_window", vec![start(json!({}))]),
+        ("fresh", "sliding_window", vec![]),
+        ("pg", "pose_graph_2d", vec![]),
+    ];
+    for (name, kind, messages) in &setup {
+        let (status, v) = post(
+            &c,
+            &s.url("/v1/sessions"),
+            &json!({"session": name, "kind": kind}),
+        )
+        .await;
+        assert_eq!(status, 201, "{v}");
+        if !messages.is_empty() {
+            let (status, v) = post(
+                &c,
+                &s.url(&format!("/v1/sessions/{name}/fusion")),
+                &json!({"messages": messages}),
+            )
+            .await;
+            assert_eq!(status, 200, "{v}");
+        }
+    }
+    let rel = |from: u64, to: u64, sigma: f64| {
+        json!({"type": "relative_pose", "from": from, "to": to,
+        "position": [0.01, 0, 0], "rotation_xyzw": [0, 0, 0, 1], "sigma_position": sigma, "sigma_rotation": 0.01})
+    };
+    let cases: Vec<(&str, &str, Value, u16, &str)> = vec![
+        ("F1", "pg", imu(0.1), 400, "wrong_kind"),
+        ("F2", "fresh", imu(0.1), 400, "invalid_message"),
+        ("F3", "win", start(json!({})), 400, "invalid_message"),
+        (
+            "F4",
+            "fresh",
+            start(
+                json!({"sigmas": {"position": 0, "rotation": 0.01, "velocity": 0.1, "accel_bias": 0.1, "gyro_bias": 0.01}}),
+            ),
+            400,
+            "invalid_message",
+        ),
+        (
+            "F5",
+            "fresh",
+            start(json!({"window": 1})),
+            400,
+            "invalid_message",
+        ),
+        (
+            "F6",
+            "fresh",
+            start(json!({"gravity": -9.81})),
+            400,
+            "invalid_message",
+        ),
+        (
+            "F7",
+            "fresh",
+            start(
+                json!({"imu_noise": {"accel_noise_density": 0, "gyro_noise_density": 1e-4, "accel_random_walk": 1e-3, "gyro_random_walk": 1e-5}}),
+            ),
+            400,
+            "invalid_message",
+        ),
+        ("F8", "win", imu(0.005), 422, "rejected_message"),
+        ("F9", "win", imu(0.015), 422, "rejected_message"),
+        (
+            "F10",
+            "win",
+            json!({"type": "keyframe", "t": 0.01}),
+            422,
+            "rejected_message",
+        ),
+        (
+            "F11",
+            "bare",
+            json!({"type": "keyframe", "t": 0.1}),
+            422,
+            "rejected_message",
+        ),
+        (
+            "F12",
+            "win",
+            json!({"type": "keyframe", "t": 0.012}),
+            422,
+            "rejected_message",
+        ),
+        (
+            "F13",
+            "bare",
+            preintegrated(0.5, vec![1.0, 0.0, 1.0]),
+            400,
+            "invalid_message",
+        ),
+        (
+            "F14",
+            "bare",
+            preintegrated(0.25, identity_cov.clone()),
+            400,
+            "invalid_message",
+        ),
+        (
+            "F15",
+            "bare",
+            preintegrated(0.5, vec![0.0; 225]),
+            400,
+            "invalid_message",
+        ),
+        ("F16", "win", rel(0, 1, 0.0), 400, "invalid_message"),
+        (
+            "F17",
+            "win",
+            json!({"type": "position_prior", "key": 99, "position": [0, 0, 0], "sigma": 0.1}),
+            422,
+            "rejected_message",
+        ),
+        ("F18", "win", rel(1, 1, 0.02), 422, "rejected_message"),
+        (
+            "F22",
+            "win",
+            json!({"type": "teleport", "t": 1.0}),
+            400,
+            "invalid_field",
+        ),
+    ];
+    let z = zenoh_peer(&s.zenoh).await;
+    for (row, session, message, status, code) in cases {
+        let what = format!("{row} {message}");
+        let field = match row {
+            "F1" => "session",
+            "F22" => "messages[0].type",
+            _ => "messages[0]",
+        };
+        let before = get(&c, &s.url(&format!("/v1/sessions/{session}/graph")))
+            .await
+            .1;
+        let (got, http) = post(
+            &c,
+            &s.url(&format!("/v1/sessions/{session}/fusion")),
+            &json!({"messages": [message.clone()]}),
+        )
+        .await;
+        assert_eq!(
+            (got, http["error"]["code"].as_str()),
+            (status, Some(code)),
+            "HTTP {what}: {http}"
+        );
+        assert_eq!(http["error"]["field"], field, "HTTP {what}: {http}");
+        let command = json!({"op": "fusion", "session": session, "messages": [message]});
+        let zenoh = zenoh_get(&z, "factord/rpc", Some(&command))
+            .await
+            .expect_err(&what);
+        assert_eq!(
+            (
+                zenoh["error"]["status"].as_u64(),
+                zenoh["error"]["code"].as_str()
+            ),
+            (Some(status as u64), Some(code)),
+            "zenoh {what}: {zenoh}"
+        );
+        assert_eq!(zenoh["error"]["field"], field, "zenoh {what}: {zenoh}");
+        let after = get(&c, &s.url(&format!("/v1/sessions/{session}/graph")))
+            .await
+            .1;
+        assert_eq!(before["poses"], after["poses"], "{what} changed the window");
+    }
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}

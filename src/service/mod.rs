@@ -225,6 +225,10 @@ pub fn parse_command(bytes: &[u8]) -> Result<Command, ServiceError> {
                     e
                 })
         }),
+        Some("fusion") => object.get("messages").map(|messages| {
+            let batch = serde_json::json!({ "messages": messages }).to_string();
+            parse_json::<crate::session::fusion::FusionBatch>(batch.as_bytes()).map(|_| ())
+        }),
         Some("create_session") => {
             object.remove("op");
             Some(
