@@ -130,3 +130,25 @@ async fn a_solve_stops_at_the_time_limit_and_says_so() {
     assert_eq!(v["stats"]["converged"], false);
     s.assert_no_panic();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_batch_job_stops_at_the_time_limit_with_its_best_estimate() {
+    let s = server_with_limits(json!({"max_solve_ms": 1}));
+    let c = client();
+    let text = common::synthetic_manhattan(3000, 8);
+    let response = c
+        .post(s.url("/v1/jobs?method=lm&init=none"))
+        .body(text)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 200);
+    let v: Value = response.json().await.unwrap();
+    assert_eq!(
+        v["summary"]["termination"]["reason"], "interrupted",
+        "{}",
+        v["summary"]
+    );
+    assert_eq!(v["estimate"]["variables"].as_array().unwrap().len(), 3000);
+    s.assert_no_panic();
+}

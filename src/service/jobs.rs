@@ -83,6 +83,9 @@ pub struct Job {
     options: SolverOptions,
     robust: Option<RobustKernel>,
     pub output: JobOutput,
+    /// The solve stops after this long (its preempted slices added up) and answers with the
+    /// best estimate it reached; the Summary's termination is then `interrupted`.
+    pub max_solve: std::time::Duration,
 }
 
 #[derive(Debug, Serialize)]
@@ -191,6 +194,7 @@ impl Job {
             options,
             robust,
             output,
+            max_solve: std::time::Duration::from_millis(super::Limits::default().max_solve_ms),
         })
     }
 
@@ -216,6 +220,8 @@ impl Job {
                         options: self.options,
                         output: self.output,
                         previous: None,
+                        max_solve: self.max_solve,
+                        spent: std::time::Duration::ZERO,
                     };
                     running.slice(handle, reply);
                 }
@@ -239,14 +245,18 @@ struct Running {
     output: JobOutput,
     /// What the earlier slices did.
     previous: Option<Summary>,
+    max_solve: std::time::Duration,
+    /// Time the earlier slices took.
+    spent: std::time::Duration,
 }
 
 impl Running {
     fn slice(mut self, pool: PoolHandle, reply: Reply) {
         let start = Instant::now();
         let mut preempted = false;
+        let (spent, max_solve) = (self.spent, self.max_solve);
         let result = solver::optimize(self.graph.problem_mut(), &self.options, &mut |_| {
-            if pool.is_stopping() {
+            if pool.is_stopping() || spent + start.elapsed() >= max_solve {
                 return ControlFlow::Break(());
             }
             if pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
@@ -263,6 +273,7 @@ impl Running {
             }
         };
         if preempted {
+            self.spent += start.elapsed();
             self.previous = Some(summary);
             self.options.initialization = Initialization::None;
             // At shutdown the task (and with it `reply`) is dropped: the caller hears so.

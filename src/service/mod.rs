@@ -41,8 +41,9 @@ pub struct Limits {
     /// Variables and live factors one session may hold (422 `session_full` beyond).
     pub max_variables_per_session: usize,
     pub max_factors_per_session: usize,
-    /// A session's solve stops after this long (its preempted turns added up), keeping the
-    /// best estimate it reached; `last_error` says so.
+    /// A session's solve or a batch job stops after this long (its preempted turns added up),
+    /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
+    /// `interrupted` termination (jobs) says so.
     pub max_solve_ms: u64,
     /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
     /// counts as one) before new ones get 429.
@@ -763,7 +764,8 @@ impl Service {
         text: String,
         params: JobParams,
     ) -> Result<JobAnswer, ServiceError> {
-        let job = Job::new(text, params)?;
+        let mut job = Job::new(text, params)?;
+        job.max_solve = Duration::from_millis(self.limits.max_solve_ms);
         let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
         let _slot = JobSlot(&self.jobs_in_flight);
         if previous >= self.limits.max_jobs {
