@@ -350,6 +350,17 @@ impl Service {
         Ok(count)
     }
 
+    fn refuse_when_stopping(&self) -> Result<(), ServiceError> {
+        if self.pool.handle().is_stopping() {
+            return Err(ServiceError::unavailable(
+                "shutting_down",
+                "the service is shutting down",
+                5,
+            ));
+        }
+        Ok(())
+    }
+
     /// A session that takes writes: 503 while it is being rebuilt from its journal.
     fn writable(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
         let session = self.session(name)?;
@@ -413,12 +424,8 @@ impl Service {
     }
 
     pub async fn execute(&self, command: Command) -> Result<Reply, ServiceError> {
-        if self.pool.handle().is_stopping() && !matches!(command, Command::Health) {
-            return Err(ServiceError::unavailable(
-                "shutting_down",
-                "the service is shutting down",
-                5,
-            ));
+        if !matches!(command, Command::Health) {
+            self.refuse_when_stopping()?;
         }
         match command {
             Command::Health => Ok(Reply::Health(self.health())),
@@ -636,6 +643,7 @@ impl Service {
         request: CreateSession,
         owner: Option<Arc<str>>,
     ) -> Result<SessionInfo, ServiceError> {
+        self.refuse_when_stopping()?;
         let name = match &request.session {
             Some(name) if valid_session_name(name) => name.clone(),
             Some(name) => {

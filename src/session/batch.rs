@@ -362,31 +362,33 @@ fn check_residuals(
     guesses: &[(Key, Box<dyn Variable>)],
     view: &SessionView,
 ) -> Result<(), ServiceError> {
+    // The value each key starts from: a guess (the last one wins), else the batch's new
+    // variable; mirror values are decoded on first use.
+    let mut given: HashMap<Key, &dyn Variable> = HashMap::new();
+    for (key, v, _) in variables {
+        given.insert(*key, v.as_ref());
+    }
+    for (key, v) in guesses {
+        given.insert(*key, v.as_ref());
+    }
     let mut decoded: HashMap<Key, Box<dyn Variable>> = HashMap::new();
-    for (i, f) in factors.iter().enumerate() {
-        let keys = f.factor.keys();
-        for key in keys {
-            let known = guesses.iter().rev().any(|(k, _)| k == key)
-                || variables.iter().any(|(k, _, _)| k == key);
-            if !known && !decoded.contains_key(key) {
+    for f in factors {
+        for key in f.factor.keys() {
+            if !given.contains_key(key) && !decoded.contains_key(key) {
                 let entry = view.mirror.get(key).expect("keys were checked above");
                 decoded.insert(*key, entry.decode());
             }
         }
-        let vars: Vec<&dyn Variable> = keys
+    }
+    for (i, f) in factors.iter().enumerate() {
+        let vars: Vec<&dyn Variable> = f
+            .factor
+            .keys()
             .iter()
             .map(|key| {
-                guesses
-                    .iter()
-                    .rev()
-                    .find(|(k, _)| k == key)
-                    .map(|(_, v)| v.as_ref())
-                    .or_else(|| {
-                        variables
-                            .iter()
-                            .find(|(k, _, _)| k == key)
-                            .map(|(_, v, _)| v.as_ref())
-                    })
+                given
+                    .get(key)
+                    .copied()
                     .unwrap_or_else(|| decoded[key].as_ref())
             })
             .collect();

@@ -62,16 +62,16 @@ impl Durable {
         Ok(())
     }
 
-    /// Journals a validated batch as `sequence`, with the values the server predicted for
-    /// variables sent without one.
+    /// Fills in the values the server predicted for variables sent without one (so a replay
+    /// does not depend on the estimate it meets), then journals `batch` as `sequence`.
     pub(super) fn append_batch(
         &mut self,
         name: &str,
         sequence: u64,
-        batch: &Batch,
+        batch: Batch,
         prepared: &PreparedBatch,
-    ) -> Result<(), ServiceError> {
-        let mut batch = batch.clone();
+    ) -> Result<Batch, ServiceError> {
+        let mut batch = batch;
         for v in batch.variables.iter_mut().filter(|v| v.value.is_none()) {
             let predicted = prepared
                 .variables
@@ -80,7 +80,12 @@ impl Durable {
                 .expect("prepare gives every new variable a value");
             v.value = Some(catalogue::encode_variable(predicted.1.as_ref()));
         }
-        self.append(name, &Entry::Batch { sequence, batch })
+        let entry = Entry::Batch { sequence, batch };
+        self.append(name, &entry)?;
+        let Entry::Batch { batch, .. } = entry else {
+            unreachable!("built above")
+        };
+        Ok(batch)
     }
 
     pub(super) fn track_factors(

@@ -323,9 +323,12 @@ impl Session {
             self.check_session_size(&st, &prepared)?;
         }
         let sequence = st.sequence + 1;
-        if let (Some(d), Some(copy), true) = (durable.as_mut(), &wire_copy, journal) {
-            d.append_batch(&self.name, sequence, copy, &prepared)?;
-        }
+        let wire_copy = match (durable.as_mut(), wire_copy, journal) {
+            (Some(d), Some(copy), true) => {
+                Some(d.append_batch(&self.name, sequence, copy, &prepared)?)
+            }
+            (_, copy, _) => copy,
+        };
         st.sequence = sequence;
         let factor_ids: Vec<FactorId> = match ids {
             Some(ids) => ids,

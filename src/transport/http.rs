@@ -187,14 +187,6 @@ async fn create_session(
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let request: CreateSession = parse_json(&body.map_err(body_error)?)?;
-    if service.health().status != "ok" {
-        return run(
-            &service,
-            Command::CreateSession(request),
-            StatusCode::CREATED,
-        )
-        .await;
-    }
     let owner = caller.and_then(|axum::Extension(p)| p.0);
     let info = service.create_session(request, owner)?;
     Ok((StatusCode::CREATED, Json(Reply::Created(info))).into_response())
