@@ -21,6 +21,7 @@ use pool::WorkerPool;
 use crate::problem::Key;
 use crate::session::catalogue;
 use crate::session::wire::*;
+use crate::session::wire_number;
 use crate::session::Session;
 
 /// Capacity limits.
@@ -98,11 +99,11 @@ pub enum Command {
     },
     GetEstimate {
         session: String,
-        #[serde(default)]
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
         since: Option<u64>,
-        #[serde(default)]
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
         from: Option<Key>,
-        #[serde(default)]
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
         to: Option<Key>,
     },
     GetStats {
@@ -123,6 +124,7 @@ pub enum Command {
     /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
     GetMarginals {
         session: String,
+        #[serde(deserialize_with = "wire_number::u64_list")]
         keys: Vec<Key>,
         #[serde(default)]
         joint: bool,
@@ -239,12 +241,35 @@ pub fn parse_command(bytes: &[u8]) -> Result<Command, ServiceError> {
                 .map(|_| ()),
             )
         }
+        Some("set_auto_optimize") => object.get("auto_optimize").map(|policy| {
+            parse_json::<AutoOptimize>(policy.to_string().as_bytes())
+                .map(|_| ())
+                .map_err(|mut e| {
+                    e.body.field = e.body.field.take().map(|f| format!("auto_optimize.{f}"));
+                    e
+                })
+        }),
         _ => None,
     };
     match located {
         Some(Err(e)) if e.body.field.is_some() => Err(e),
-        _ => Err(error),
+        _ => Err(with_named_field(error)),
     }
+}
+
+/// serde names a missing or unknown field in its message (`missing field `keys``) even where
+/// the path is lost; that name becomes the error's field.
+fn with_named_field(mut error: ServiceError) -> ServiceError {
+    if error.body.field.is_none() {
+        let message = &error.body.message;
+        let named = ["missing field `", "unknown field `"]
+            .iter()
+            .find_map(|prefix| message.split_once(prefix))
+            .and_then(|(_, rest)| rest.split_once('`'))
+            .map(|(name, _)| name.to_string());
+        error.body.field = named;
+    }
+    error
 }
 
 /// Session names are zenoh key chunks and URL path segments.

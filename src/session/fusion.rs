@@ -13,6 +13,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use super::wire::SessionEvent;
+use super::wire_number;
 use super::Session;
 use crate::fusion::experiment::InitialSigmas;
 use crate::fusion::preintegration::{ImuNoise, Matrix15, Preintegrated};
@@ -55,7 +56,7 @@ pub enum FusionMessage {
         #[serde(default)]
         gyro_bias: [f64; 3],
         sigmas: InitialSigmas,
-        #[serde(default = "default_window")]
+        #[serde(default = "default_window", deserialize_with = "wire_number::usize")]
         window: usize,
         #[serde(default = "default_gravity")]
         gravity: f64,
@@ -91,7 +92,9 @@ pub enum FusionMessage {
     },
     /// Lidar odometry: the pose of `to` in the frame of `from`.
     RelativePose {
+        #[serde(deserialize_with = "wire_number::u64")]
         from: Key,
+        #[serde(deserialize_with = "wire_number::u64")]
         to: Key,
         position: [f64; 3],
         rotation_xyzw: [f64; 4],
@@ -100,6 +103,7 @@ pub enum FusionMessage {
     },
     /// Map matching: the world pose of `key`.
     PosePrior {
+        #[serde(deserialize_with = "wire_number::u64")]
         key: Key,
         position: [f64; 3],
         rotation_xyzw: [f64; 4],
@@ -108,6 +112,7 @@ pub enum FusionMessage {
     },
     /// GNSS: the world position of `key`.
     PositionPrior {
+        #[serde(deserialize_with = "wire_number::u64")]
         key: Key,
         position: [f64; 3],
         sigma: f64,

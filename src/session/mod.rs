@@ -15,6 +15,7 @@ mod incremental;
 mod inspect;
 mod solve;
 pub mod wire;
+pub mod wire_number;
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -4,6 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::factors::RobustKernel;
 use crate::problem::Key;
+use crate::session::wire_number;
 use crate::solver::{SolverOptions, Summary};
 
 /// Server-assigned id of an accepted factor, used to remove it.
@@ -17,9 +18,15 @@ pub enum AutoOptimize {
     /// After every accepted batch (updates arriving during a solve are coalesced into the next).
     EveryBatch {},
     /// Once at least `factors` factors have arrived since the last solve.
-    EveryNFactors { factors: usize },
+    EveryNFactors {
+        #[serde(deserialize_with = "wire_number::usize")]
+        factors: usize,
+    },
     /// At most once every `milliseconds` while updates keep arriving.
-    EveryMs { milliseconds: u64 },
+    EveryMs {
+        #[serde(deserialize_with = "wire_number::u64")]
+        milliseconds: u64,
+    },
     /// Only when asked (`optimize`).
     Manual {},
 }
@@ -47,6 +54,7 @@ pub struct CreateSession {
 #[derive(Clone, Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct VariableSpec {
+    #[serde(deserialize_with = "wire_number::u64")]
     pub key: Key,
     pub kind: String,
     /// Initial guess in the kind's wire encoding; when absent it is predicted from a factor of the
@@ -62,6 +70,7 @@ pub struct VariableSpec {
 pub struct FactorSpec {
     #[serde(rename = "type")]
     pub factor_type: String,
+    #[serde(deserialize_with = "wire_number::u64_list")]
     pub keys: Vec<Key>,
     pub measurement: Vec<f64>,
     /// Information matrix, row-major n×n or its upper triangle row by row (n(n+1)/2 values, g2o's
@@ -78,6 +87,7 @@ pub struct FactorSpec {
 #[derive(Clone, Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct GuessSpec {
+    #[serde(deserialize_with = "wire_number::u64")]
     pub key: Key,
     pub value: Vec<f64>,
 }
@@ -90,11 +100,11 @@ pub struct Batch {
     pub variables: Vec<VariableSpec>,
     #[serde(default)]
     pub factors: Vec<FactorSpec>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_number::u64_list")]
     pub remove_factors: Vec<FactorId>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_number::u64_list")]
     pub fix: Vec<Key>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_number::u64_list")]
     pub unfix: Vec<Key>,
     /// New values for existing variables.
     #[serde(default)]
@@ -115,7 +125,8 @@ pub struct BatchAck {
     pub reflected: bool,
 }
 
-/// Which part of the estimate to read.
+/// Which part of the estimate to read (from a query string or selector; the rpc's JSON form is
+/// `Command::GetEstimate`).
 #[derive(Clone, Copy, Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct EstimateQuery {

@@ -1,0 +1,166 @@
+//! How the wire reads integers, so that the server accepts exactly what the JSON Schemas in
+//! `proto/v1/` call an integer.
+//!
+//! - An integer field also takes a whole-number float (`3.0`, `1e3`): JSON Schema counts those as
+//!   integers, and clients that hold every number as a double (JavaScript, numpy) send them so.
+//!   Fractions, negative numbers and floats beyond the type's range are refused with the field's
+//!   path. (Above 2^53 every double is whole, so `1e19` is the integer it denotes; a client that
+//!   means an exact id there must write it as an integer.) serde_json's fast
+//!   float parser may land one unit in the last place off (`2251799813685247.0` reads as
+//!   `…247.25`), so a float within one unit in the last place of a whole number counts as that
+//!   number.
+//! - Optional fields take `null` as "absent" (serde's reading; the schemas say so), so this
+//!   module keeps that for the optional integers it reads too.
+
+use std::fmt;
+
+use serde::de::{self, Deserializer, Unexpected, Visitor};
+use serde::Deserialize;
+
+/// 2^64: the first whole double beyond `u64`.
+const BEYOND_U64: f64 = 18_446_744_073_709_551_616.0;
+
+struct WholeNumber;
+
+impl<'de> Visitor<'de> for WholeNumber {
+    type Value = u64;
+
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("a non-negative integer")
+    }
+
+    fn visit_u64<E: de::Error>(self, v: u64) -> Result<u64, E> {
+        Ok(v)
+    }
+
+    fn visit_i64<E: de::Error>(self, v: i64) -> Result<u64, E> {
+        u64::try_from(v).map_err(|_| E::invalid_value(Unexpected::Signed(v), &self))
+    }
+
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<u64, E> {
+        let whole = v.round();
+        let parser_slack = f64::EPSILON * whole;
+        if (0.0..BEYOND_U64).contains(&whole) && (v - whole).abs() <= parser_slack {
+            Ok(whole as u64)
+        } else {
+            Err(E::invalid_value(Unexpected::Float(v), &self))
+        }
+    }
+}
+
+/// A `u64` field (keys, ids, milliseconds).
+pub fn u64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<u64, D::Error> {
+    // Not `deserialize_u64`: inside internally tagged enums serde replays buffered content, and
+    // that replay refuses a float for an integer before the visitor sees it.
+    deserializer.deserialize_any(WholeNumber)
+}
+
+/// A `usize` field (counts).
+pub fn usize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D::Error> {
+    let v = u64(deserializer)?;
+    usize::try_from(v).map_err(|_| {
+        de::Error::invalid_value(Unexpected::Unsigned(v), &"an integer that fits in usize")
+    })
+}
+
+#[derive(Deserialize)]
+#[serde(transparent)]
+struct Whole(#[serde(deserialize_with = "u64")] u64);
+
+/// A list of `u64` (keys, factor ids).
+pub fn u64_list<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<u64>, D::Error> {
+    let list = Vec::<Whole>::deserialize(deserializer)?;
+    Ok(list.into_iter().map(|Whole(v)| v).collect())
+}
+
+/// An optional `u64`: absent (with `#[serde(default)]`), `null`, or a whole number.
+pub fn optional_u64<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<u64>, D::Error> {
+    Ok(Option::<Whole>::deserialize(deserializer)?.map(|Whole(v)| v))
+}
+
+#[cfg(test)]
+mod tests {
+    use serde::Deserialize;
+
+    #[derive(Debug, Deserialize)]
+    struct Fields {
+        #[serde(deserialize_with = "super::u64")]
+        key: u64,
+        #[serde(default, deserialize_with = "super::u64_list")]
+        keys: Vec<u64>,
+        #[serde(default, deserialize_with = "super::optional_u64")]
+        since: Option<u64>,
+    }
+
+    fn parse(text: &str) -> Result<Fields, String> {
+        serde_json::from_str(text).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn whole_floats_are_integers_and_fractions_are_not() {
+        let f = parse(r#"{"key": 3.0, "keys": [1, 2.0, 1e3], "since": 0.0}"#).unwrap();
+        assert_eq!((f.key, f.keys, f.since), (3, vec![1, 2, 1000], Some(0)));
+        assert_eq!(
+            parse(r#"{"key": 9007199254740992.0}"#).unwrap().key,
+            1 << 53
+        );
+        assert_eq!(
+            parse(r#"{"key": 2251799813685247.0}"#).unwrap().key,
+            2251799813685247
+        );
+        assert_eq!(
+            parse(r#"{"key": 18446744073709551615}"#).unwrap().key,
+            u64::MAX
+        );
+        assert_eq!(
+            parse(r#"{"key": 1e19}"#).unwrap().key,
+            10_000_000_000_000_000_000
+        );
+        for bad in [
+            "2.5",
+            "-1",
+            "-1.0",
+            "1e300",
+            "18446744073709551616.0",
+            "\"3\"",
+        ] {
+            let err = parse(&format!(r#"{{"key": {bad}}}"#)).unwrap_err();
+            assert!(
+                err.contains("key") || err.contains("integer"),
+                "{bad}: {err}"
+            );
+        }
+        assert!(parse(r#"{"key": 1, "keys": [1, 0.5]}"#).is_err());
+        assert!(parse(r#"{"key": 1, "keys": [1, 1000000.001]}"#).is_err());
+    }
+
+    /// Internally tagged enums replay buffered content; whole floats must get through that too.
+    #[test]
+    fn whole_floats_reach_fields_inside_tagged_enums() {
+        use crate::session::fusion::FusionMessage;
+        use crate::session::wire::AutoOptimize;
+        let policy: AutoOptimize =
+            serde_json::from_str(r#"{"policy": "every_ms", "milliseconds": 283.0}"#).unwrap();
+        assert_eq!(policy, AutoOptimize::EveryMs { milliseconds: 283 });
+        let message: FusionMessage = serde_json::from_str(
+            r#"{"type": "position_prior", "key": 4.0, "position": [0, 0, 0], "sigma": 1}"#,
+        )
+        .unwrap();
+        assert!(matches!(
+            message,
+            FusionMessage::PositionPrior { key: 4, .. }
+        ));
+        assert!(serde_json::from_str::<AutoOptimize>(
+            r#"{"policy": "every_n_factors", "factors": 2.5}"#
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn optional_integers_are_absent_null_or_whole() {
+        assert_eq!(parse(r#"{"key": 1}"#).unwrap().since, None);
+        assert_eq!(parse(r#"{"key": 1, "since": null}"#).unwrap().since, None);
+        assert_eq!(parse(r#"{"key": 1, "since": 4.0}"#).unwrap().since, Some(4));
+        assert!(parse(r#"{"key": 1, "since": 4.5}"#).is_err());
+    }
+}
