@@ -1,6 +1,7 @@
 //! `factord serve`: configuration (file < environment < flags), the state directory, starting
 //! HTTP and zenoh over one [`Service`], and graceful shutdown.
 
+use std::future::IntoFuture;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -142,6 +143,9 @@ impl Drop for StateDir {
     }
 }
 
+/// How long event streams still open after the service has stopped are kept before closing.
+const STREAM_GRACE: Duration = Duration::from_millis(500);
+
 /// Runs until `shutdown` resolves, then stops accepting, stops running solves after their
 /// current iteration, closes zenoh and releases the state directory.
 pub async fn run(
@@ -209,15 +213,43 @@ pub async fn run(
         shutdown.await;
         let _ = stop_tx.send(true);
     });
+    // The service stops first: new commands get 503 shutting_down, running solves stop after
+    // their current iteration, queued work and jobs are dropped, and waiting requests are woken
+    // with their answers. Only then can HTTP drain, because those requests are what it waits for.
+    let timeout = Duration::from_millis(config.shutdown_timeout_ms);
+    let (stopped_tx, mut stopped_rx) = tokio::sync::watch::channel(false);
+    {
+        let svc = Arc::clone(&service);
+        let mut stop = stop_rx.clone();
+        tokio::spawn(async move {
+            let _ = stop.wait_for(|s| *s).await;
+            tracing::info!("shutting down: refusing new work, stopping solves");
+            let _ = tokio::task::spawn_blocking(move || svc.shutdown(timeout)).await;
+            let _ = stopped_tx.send(true);
+        });
+    }
     let mut http_stop = stop_rx.clone();
-    let result = axum::serve(listener, app)
+    let serve = axum::serve(listener, app)
         .with_graceful_shutdown(async move {
             let _ = http_stop.wait_for(|s| *s).await;
-            tracing::info!("shutting down: no new requests");
+            tracing::info!("shutting down: no new connections");
         })
-        .await;
-    // Solves stop after their current iteration; their sessions keep the last good estimate.
-    let timeout = Duration::from_millis(config.shutdown_timeout_ms);
+        .into_future();
+    // Event streams (SSE, WebSocket) never end by themselves, and graceful shutdown would wait
+    // for them forever: once the service has stopped, whatever is still open gets
+    // `STREAM_GRACE` and is then closed.
+    let streams_closed = async move {
+        let _ = stopped_rx.wait_for(|s| *s).await;
+        tokio::time::sleep(STREAM_GRACE).await;
+    };
+    let result = tokio::select! {
+        result = serve => result,
+        () = streams_closed => {
+            tracing::info!("shutting down: closing open event streams");
+            Ok(())
+        }
+    };
+    // Idempotent: waits for the stop begun above, or stops the service if HTTP ended by itself.
     let svc = Arc::clone(&service);
     let _ = tokio::task::spawn_blocking(move || svc.shutdown(timeout)).await;
     if let Some(z) = zenoh {
