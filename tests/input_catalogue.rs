@@ -321,6 +321,15 @@ fn cases() -> Vec<Case> {
             "wrong_dimension",
             Some("guesses[0].value"),
         ),
+        // 1/σ² overflows: the field names `information` although `sigmas` was sent.
+        case(
+            "B19",
+            "pg",
+            json!({"factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1e-200, 1, 1]}]}),
+            400,
+            "bad_information",
+            Some("factors[0].information"),
+        ),
         case(
             "B27",
             "ba",
@@ -660,6 +669,21 @@ async fn every_fusion_rule_answers_the_same_over_http_and_zenoh() {
             "rejected_message",
         ),
         ("F18", "win", rel(1, 1, 0.02), 422, "rejected_message"),
+        (
+            "F20",
+            "win",
+            json!({"type": "relative_pose", "from": 0, "to": 1, "position": [0.01, 0, 0],
+                "rotation_xyzw": [0, 0, 0, 0], "sigma_position": 0.01, "sigma_rotation": 0.01}),
+            422,
+            "rejected_message",
+        ),
+        (
+            "F20",
+            "win",
+            json!({"type": "position_prior", "key": 1, "position": [0, 0, 0], "sigma": 1e-200}),
+            422,
+            "rejected_message",
+        ),
         (
             "F22",
             "win",

@@ -263,7 +263,7 @@ mod tests {
     fn joint_covariance_equals_the_dense_inverse() {
         let problem = square();
         let (inverse, layout) = dense_inverse(&problem);
-        let mut marginals = Marginals::new(&problem).unwrap();
+        let marginals = Marginals::new(&problem).unwrap();
         let keys = [3, 1];
         let cov = marginals.covariance(&keys).unwrap();
         let row = |k: Key| layout.pattern.offset[layout.position_of_var[k as usize].unwrap()];
@@ -288,7 +288,7 @@ mod tests {
     fn anchored_variables_have_zero_covariance_and_bad_keys_are_named() {
         let mut problem = square();
         problem.retain_factors(|i| i < 4); // no prior: pose 0 becomes the gauge anchor
-        let mut marginals = Marginals::new(&problem).unwrap();
+        let marginals = Marginals::new(&problem).unwrap();
         assert_eq!(marginals.gauge_fixed, vec![0]);
         let cov = marginals.covariance(&[0, 2]).unwrap();
         assert!(cov.block(0, 0).iter().all(|&x| x == 0.0));
