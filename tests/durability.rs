@@ -342,3 +342,62 @@ async fn a_sliding_window_comes_back_after_kill_9() {
     assert_eq!(status, 200, "{v}");
     s.assert_no_panic();
 }
+
+/// A journal entry that no longer replays (here: written by hand, checksum intact, naming a
+/// variable that does not exist) stops the recovery there. The session keeps what was rebuilt,
+/// stays read-only, and says why in `last_error`; other sessions recover as usual.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
+    let state = common::temp_dir("durability-stuck");
+    let c = client();
+    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+    for name in ["stuck", "fine"] {
+        let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
+        assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+        let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
+        let url = s.url(&format!("/v1/sessions/{name}/batches"));
+        assert_eq!(post(&c, &url, &batch).await.0, 200);
+    }
+    s.kill();
+    let bad: factord::journal::Entry = serde_json::from_value(json!({"op": "batch", "sequence": 2,
+        "batch": {"factors": [{"type": "prior_se2", "keys": [99], "measurement": [0, 0, 0], "sigmas": [1, 1, 1]}]}}))
+    .unwrap();
+    let journal = state.join("sessions/stuck/journal.log");
+    let mut log =
+        factord::journal::log::LogWriter::open(&journal, factord::journal::log::Fsync::Always)
+            .unwrap();
+    log.append(&serde_json::to_vec(&bad).unwrap()).unwrap();
+    drop(log);
+
+    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
+    let (fine, _) = recovered(&c, &s, "fine", Instant::now()).await;
+    assert_eq!(fine["num_variables"], 1, "{fine}");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let stuck = loop {
+        let stats = get(&c, &s.url("/v1/sessions/stuck")).await.1;
+        if stats["last_error"].is_string() {
+            break stats;
+        }
+        assert!(Instant::now() < deadline, "no recovery error: {stats}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let error = stuck["last_error"].as_str().unwrap();
+    assert!(
+        error.starts_with("recovery from the journal stopped") && error.contains("entry 1"),
+        "{stuck}"
+    );
+    assert_eq!(stuck["recovering"], true, "{stuck}");
+    assert_eq!(
+        (stuck["sequence"].as_u64(), stuck["num_variables"].as_u64()),
+        (Some(1), Some(1)),
+        "kept as far as it got: {stuck}"
+    );
+    let batch = json!({"variables": [{"key": 1, "kind": "se2", "value": [0, 0, 0]}]});
+    let (status, v) = post(&c, &s.url("/v1/sessions/stuck/batches"), &batch).await;
+    assert_eq!(
+        (status, v["error"]["code"].as_str()),
+        (503, Some("recovering")),
+        "{v}"
+    );
+    s.assert_no_panic();
+}

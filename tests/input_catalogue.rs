@@ -736,3 +736,93 @@ async fn every_fusion_rule_answers_the_same_over_http_and_zenoh() {
     z.close().await.unwrap();
     s.assert_no_panic();
 }
+
+/// F21: a window whose solve cannot start (a prior 1e300 away from the pose it pins makes the
+/// cost overflow) answers 422 solve_failed at the next keyframe, over HTTP and rpc. The keyframe
+/// stays applied, as a batch stays accepted when a session's solve fails (S22).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_window_solve_that_fails_is_422_solve_failed_over_http_and_zenoh() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    let cov: Vec<f64> = (0..225)
+        .map(|i| if i % 16 == 0 { 1e-4 } else { 0.0 })
+        .collect();
+    let keyframe = |t: f64, dx: f64| {
+        let mut m = preintegrated(0.5, cov.clone());
+        m["t"] = json!(t);
+        m["delta_position"] = json!([dx, 0, 0]);
+        m
+    };
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "far", "kind": "sliding_window"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    // The prior comes after the keyframe's solve: a keyframe optimises the window, a prior
+    // alone does not.
+    for messages in [
+        json!([start(json!({})), keyframe(0.5, 1e300)]),
+        json!([{"type": "position_prior", "key": 1, "position": [0, 0, 0], "sigma": 0.001}]),
+    ] {
+        let url = s.url("/v1/sessions/far/fusion");
+        let (status, v) = post(&c, &url, &json!({ "messages": messages })).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    let poses = |graph: &Value| graph["poses"].as_array().map_or(0, Vec::len);
+    let z = zenoh_peer(&s.zenoh).await;
+    for (attempt, t) in [(0, 1.0), (1, 1.5)] {
+        let before = poses(&get(&c, &s.url("/v1/sessions/far/graph")).await.1);
+        let messages = json!([keyframe(t, 0.0)]);
+        let v = if attempt == 0 {
+            let (status, v) = post(
+                &c,
+                &s.url("/v1/sessions/far/fusion"),
+                &json!({ "messages": messages }),
+            )
+            .await;
+            assert_eq!(status, 422, "HTTP F21: {v}");
+            v
+        } else {
+            let command = json!({"op": "fusion", "session": "far", "messages": messages});
+            zenoh_get(&z, "factord/rpc", Some(&command))
+                .await
+                .expect_err("rpc F21")
+        };
+        assert_eq!(v["error"]["status"], 422, "F21: {v}");
+        assert_eq!(v["error"]["code"], "solve_failed", "F21: {v}");
+        assert_eq!(v["error"]["field"], "messages", "F21: {v}");
+        assert!(
+            v["error"]["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("stay applied")),
+            "{v}"
+        );
+        let after = poses(&get(&c, &s.url("/v1/sessions/far/graph")).await.1);
+        assert_eq!(after, before + 1, "the keyframe stays in the window");
+    }
+    // The journal holds what stayed applied, and its replay expects the same failed solves.
+    z.close().await.unwrap();
+    let graph = get(&c, &s.url("/v1/sessions/far/graph")).await.1;
+    let state_dir = s.state_dir.clone();
+    s.kill();
+    let s = TestServer::start_at(&state_dir, &[], &[]);
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    loop {
+        let (status, stats) = get(&c, &s.url("/v1/sessions/far")).await;
+        if status == 200 && stats["recovering"] == false {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "not recovered: {status} {stats}\n{}",
+            s.stderr()
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let recovered = get(&c, &s.url("/v1/sessions/far/graph")).await.1;
+    assert_eq!(recovered["poses"], graph["poses"], "after a restart");
+    println!("rows checked over HTTP and rpc: F21 (and its journal replay)");
+    s.assert_no_panic();
+}

@@ -347,7 +347,8 @@ impl Service {
                         r.snapshot_sequence
                     ),
                     Err(e) => {
-                        tracing::error!("recovery failed, session kept as far as it got: {e}")
+                        tracing::error!("recovery failed, session kept as far as it got: {e}");
+                        session.recovery_failed(&e);
                     }
                 }
             });

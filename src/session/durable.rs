@@ -176,6 +176,13 @@ impl Session {
         self.recovering.store(true, Ordering::SeqCst);
     }
 
+    /// A recovery that stopped part way: the session keeps what was rebuilt and stays
+    /// read-only (`recovering` never clears, so writes cannot extend a journal that no longer
+    /// replays), and the reason shows in its statistics' `last_error`.
+    pub fn recovery_failed(&self, reason: &str) {
+        self.lock().last_error = Some(format!("recovery from the journal stopped: {reason}"));
+    }
+
     /// Rebuilds the session from what its directory held: the snapshot, then every journal
     /// entry after it, with solves held back until the end; then optimises once. Blocking.
     pub fn recover(
@@ -223,8 +230,19 @@ impl Session {
                 Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
                 Entry::Fusion { messages } => {
                     let mut applied = 0;
-                    self.apply_fusion_counted(FusionBatch { messages }, &mut applied)
-                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
+                    match self.apply_fusion_counted(FusionBatch { messages }, &mut applied) {
+                        Ok(_) => {}
+                        // The window's solve failed here when the messages first came too; they
+                        // were journalled because they stayed applied, and replay keeps them.
+                        Err(e) if e.body.code == "solve_failed" => {
+                            tracing::warn!(
+                                session = self.name,
+                                "journal entry {i}: {}",
+                                e.body.message
+                            );
+                        }
+                        Err(e) => return Err(format!("journal entry {i}: {}", e.body.message)),
+                    }
                 }
             }
         }

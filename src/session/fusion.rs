@@ -428,7 +428,7 @@ impl Session {
                 FusionMessage::Keyframe { .. } | FusionMessage::PreintegratedKeyframe { .. }
             );
             if is_keyframe && pending {
-                self.optimize_window(&mut guard, started)?;
+                self.optimize_window(&mut guard, started, *applied)?;
                 pending = false;
             }
             if is_keyframe {
@@ -442,7 +442,7 @@ impl Session {
                 Ok(None) => {}
                 Err(e) => {
                     if pending {
-                        self.optimize_window(&mut guard, started)?;
+                        self.optimize_window(&mut guard, started, *applied)?;
                     }
                     let field = format!("messages[{index}]");
                     let message = format!("{e} (the {index} message(s) before it were applied)");
@@ -459,7 +459,7 @@ impl Session {
             *applied += 1;
         }
         if pending {
-            self.optimize_window(&mut guard, started)?;
+            self.optimize_window(&mut guard, started, *applied)?;
         }
         let latest = guard.as_ref().map(|w| {
             let (key, t, state) = w.latest();
@@ -473,15 +473,23 @@ impl Session {
         })
     }
 
+    /// Optimises after a keyframe. A failure does not undo the messages before it (`applied`,
+    /// the keyframe included): they stay in the window and the journal, as they would in a
+    /// session whose solve fails after a batch was accepted.
     fn optimize_window(
         &self,
         window: &mut Option<SlidingWindow>,
         started: Instant,
+        applied: usize,
     ) -> Result<(), ServiceError> {
         let w = window.as_mut().expect("a keyframe exists only after start");
-        let summary = w
-            .optimize()
-            .map_err(|e| ServiceError::invalid("solve_failed", "messages", e.to_string()))?;
+        let summary = w.optimize().map_err(|e| {
+            let message = format!(
+                "{e} (the window's solve failed; the {applied} message(s) before this point, \
+                 its keyframe included, stay applied and the window keeps its last estimate)"
+            );
+            ServiceError::invalid("solve_failed", "messages", message)
+        })?;
         let (key, t, state) = w.latest();
         self.emit(SessionEvent::State {
             session: self.name.clone(),
