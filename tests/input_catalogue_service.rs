@@ -632,3 +632,43 @@ async fn shutdown_refuses_new_work_and_closes_streams() {
     println!("rows checked over rpc (HTTP: no new connections; SSE closed): S21");
     z.close().await.unwrap();
 }
+
+/// `?wait=true` on an empty batch answers at once under every policy: nothing is left to solve
+/// (found by schemathesis: under `every_ms` it waited for the timer, under `manual` it said
+/// "not solved"). After a real change, `every_ms` does wait for its timer.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_empty_batch_is_reflected_at_once() {
+    let s = TestServer::start(&["--no-zenoh"]);
+    let c = client();
+    for (name, policy) in [
+        ("manual", json!({"policy": "manual"})),
+        (
+            "timer",
+            json!({"policy": "every_ms", "milliseconds": 600000}),
+        ),
+        ("count", json!({"policy": "every_n_factors", "factors": 50})),
+    ] {
+        let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy});
+        assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+        let url = s.url(&format!("/v1/sessions/{name}/batches?wait=true"));
+        let started = Instant::now();
+        let (status, ack) = post(&c, &url, &json!({})).await;
+        assert_eq!(status, 200, "{name}: {ack}");
+        assert_eq!(
+            (&ack["reflected"], &ack["solved"]),
+            (&json!(true), &json!(true)),
+            "{name}: {ack}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(5), "{name} waited");
+    }
+    let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
+    let (status, ack) = post(&c, &s.url("/v1/sessions/manual/batches"), &batch).await;
+    assert_eq!((status, &ack["reflected"]), (200, &json!(false)), "{ack}");
+    let url = s.url("/v1/sessions/manual/batches?wait=true");
+    let (_, ack) = post(&c, &url, &json!({})).await;
+    assert_eq!(
+        ack["reflected"], false,
+        "an empty batch after an unsolved one is not reflected: {ack}"
+    );
+    s.assert_no_panic();
+}

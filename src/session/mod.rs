@@ -503,6 +503,7 @@ impl Session {
         let index = index.as_mut().expect("kept with the problem");
         let first_new_factor = problem.factors().len();
         let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
+        let adds_variables = !prepared.variables.is_empty();
         for (key, v, fixed) in prepared.variables {
             problem.add_variable(key, v).expect("validated");
             if fixed {
@@ -545,6 +546,13 @@ impl Session {
         // below the function tolerance of the whole cannot make a solve gain more than that
         // tolerance: the estimate stays the optimum to within what a solve would reach. This is
         // what makes appending an odometry-predicted pose free.
+        if !adds_variables && added == 0 && !structural && !st.dirty {
+            // An empty batch: whatever reflected the last one reflects this one (a `wait` on it
+            // must not wait for a timer, or for ever under `manual`).
+            st.solved_sequence = sequence;
+            self.solved.send_replace(sequence);
+            return;
+        }
         let total = st.chi2.unwrap_or(0.0) + new_chi2;
         let negligible = new_chi2 <= st.options.function_tolerance * total || new_chi2 == 0.0;
         let was_converged = st.converged && !st.dirty && st.chi2.is_some();
