@@ -89,7 +89,10 @@ for target in $TARGETS; do
         -max_total_time="$SECONDS_PER_TARGET" -print_final_stats=1 -timeout=10 \
         -rss_limit_mb=2048 -artifact_prefix="$artifacts/" "${dict[@]}" >"$log" 2>&1
     status=$?
-    elapsed=$(($(date +%s) - start))
+    # libFuzzer's own count of fuzzing time ("Done N runs in S second(s)"): the wall time also
+    # holds the rebuild `cargo fuzz run` does when the sources changed after the build above.
+    elapsed=$(grep -oE '^Done [0-9]+ runs in [0-9]+ second' "$log" | tail -1 | grep -oE '[0-9]+ second' | grep -oE '[0-9]+')
+    [ -n "$elapsed" ] || elapsed="$(($(date +%s) - start)) (wall)"
 
     executions=$(grep -oE 'stat::number_of_executed_units: *[0-9]+' "$log" | tail -1 | grep -oE '[0-9]+$')
     if [ -z "$executions" ]; then
