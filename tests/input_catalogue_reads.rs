@@ -8,7 +8,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, get, post, zenoh_get, zenoh_peer, TestServer};
+use common::server::{client, get, post, start_long_solve, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 /// Where one request goes, written `GET <path>` / `POST <path>` (under /v1/sessions/; POST
@@ -228,32 +228,9 @@ async fn marginals_during_a_long_solve_answer_503_solving() {
     let limits = json!({"limits": {"workers": 1, "wait_timeout_ms": 200}});
     std::fs::write(&config, limits.to_string()).unwrap();
     let s = TestServer::start(&["--config", config.to_str().unwrap()]);
-    // A 1500-pose graph with options no tolerance can stop (as `start_long_solve` in service.rs).
-    let endless = json!({"max_iterations": 100000, "function_tolerance": 0.0, "gradient_tolerance": 0.0,
-        "parameter_tolerance": 0.0, "method": "gauss_newton", "initialization": "none"});
-    create(
-        &s,
-        json!({"session": "long", "kind": "pose_graph_2d", "options": endless,
-        "auto_optimize": {"policy": "manual"}}),
-    )
-    .await;
-    let (mut variables, mut factors) = (Vec::new(), Vec::new());
-    for b in g2o_batches(&common::synthetic_manhattan(1500, 7)) {
-        variables.extend(b["variables"].as_array().unwrap().clone());
-        factors.extend(b["factors"].as_array().unwrap().clone());
-    }
-    let all = json!({"variables": variables, "factors": factors}).to_string();
-    let (status, v) = http(&s, "POST", "/v1/sessions/long/batches", Some(all)).await;
-    assert_eq!(status, 200, "{v}");
-    let (status, v) = http(&s, "POST", "/v1/sessions/long/optimize", None).await;
-    assert_eq!(status, 202, "{v}");
+    start_long_solve(&client(), &s, "long").await;
     let solving =
         || async { http(&s, "GET", "/v1/sessions/long", None).await.1["solving"] == true };
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !solving().await {
-        assert!(Instant::now() < deadline, "the solve did not start");
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
     let z = zenoh_peer(&s.zenoh).await;
     let before = fingerprint(&s, &["long"]).await;
     for request in [

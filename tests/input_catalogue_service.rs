@@ -6,7 +6,7 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, get, post, post_raw, send, zenoh_peer, TestServer};
+use common::server::{client, get, post, post_raw, send, start_long_solve, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 /// An rpc with the payload as given (broken JSON included): Ok(reply) or Err(error body).
@@ -352,30 +352,6 @@ async fn session_cap_and_journal_failure_refuse_creation() {
     println!("rows checked over HTTP and rpc: S17, S19");
     z.close().await.unwrap();
     s.assert_no_panic();
-}
-
-/// A 1500-pose session whose solve cannot stop by itself (options without tolerances), solving.
-async fn start_long_solve(c: &reqwest::Client, s: &TestServer, name: &str) {
-    let endless = json!({"max_iterations": 100000, "function_tolerance": 0.0, "gradient_tolerance": 0.0,
-        "parameter_tolerance": 0.0, "method": "gauss_newton", "initialization": "none"});
-    let create = json!({"session": name, "kind": "pose_graph_2d", "options": endless,
-        "auto_optimize": {"policy": "manual"}});
-    assert_eq!(post(c, &s.url("/v1/sessions"), &create).await.0, 201);
-    let (mut variables, mut factors) = (Vec::new(), Vec::new());
-    for b in g2o_batches(&common::synthetic_manhattan(1500, 7)) {
-        variables.extend(b["variables"].as_array().unwrap().clone());
-        factors.extend(b["factors"].as_array().unwrap().clone());
-    }
-    let all = json!({"variables": variables, "factors": factors});
-    let url = s.url(&format!("/v1/sessions/{name}/batches"));
-    assert_eq!(post(c, &url, &all).await.0, 200);
-    let url = s.url(&format!("/v1/sessions/{name}/optimize"));
-    assert_eq!(post(c, &url, &json!({})).await.0, 202);
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while get(c, &s.url(&format!("/v1/sessions/{name}"))).await.1["solving"] != true {
-        assert!(Instant::now() < deadline, "the solve did not start");
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
 }
 
 /// S18 over zenoh (HTTP: service.rs back_pressure_answers_429_and_503_with_retry_after): while a

@@ -5,7 +5,8 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::server::{
-    client, g2o_batches, get, post, post_raw, send, zenoh_get, zenoh_peer, TestServer,
+    client, g2o_batches, get, post, post_raw, send, start_long_solve, zenoh_get, zenoh_peer,
+    TestServer,
 };
 use common::{synthetic_helix_3d, synthetic_manhattan};
 use serde_json::{json, Value};
@@ -400,48 +401,6 @@ async fn twenty_sessions_in_parallel() {
     let (_, list) = get(&c, &s.url("/v1/sessions")).await;
     assert_eq!(list["sessions"].as_array().unwrap().len(), 20);
     s.assert_no_panic();
-}
-
-/// Options that keep a solve iterating for a long time (no tolerance can stop it).
-fn endless() -> Value {
-    json!({"max_iterations": 100000, "function_tolerance": 0.0, "gradient_tolerance": 0.0,
-           "parameter_tolerance": 0.0, "method": "gauss_newton", "initialization": "none"})
-}
-
-async fn start_long_solve(c: &reqwest::Client, s: &TestServer, name: &str) {
-    create(
-        c,
-        s,
-        json!({"session": name, "kind": "pose_graph_2d", "options": endless(),
-                        "auto_optimize": {"policy": "manual"}}),
-    )
-    .await;
-    let text = synthetic_manhattan(1500, 7);
-    let mut all = json!({"variables": [], "factors": []});
-    for b in g2o_batches(&text) {
-        all["variables"]
-            .as_array_mut()
-            .unwrap()
-            .extend(b["variables"].as_array().unwrap().clone());
-        all["factors"]
-            .as_array_mut()
-            .unwrap()
-            .extend(b["factors"].as_array().unwrap().clone());
-    }
-    let (status, v) = batch(c, s, name, &all, false).await;
-    assert_eq!(status, 200, "{v}");
-    let (status, _) = post(
-        c,
-        &s.url(&format!("/v1/sessions/{name}/optimize")),
-        &json!({}),
-    )
-    .await;
-    assert_eq!(status, 202);
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !stats(c, s, name).await["solving"].as_bool().unwrap() {
-        assert!(Instant::now() < deadline, "solve did not start");
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
 }
 
 #[tokio::test(flavor = "multi_thread")]

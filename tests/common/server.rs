@@ -319,3 +319,33 @@ pub async fn zenoh_get(
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
+
+/// Solver options no tolerance can stop: a solve runs until cancelled (or 100 000 iterations).
+fn endless_options() -> Value {
+    json!({"max_iterations": 100000, "function_tolerance": 0.0, "gradient_tolerance": 0.0,
+           "parameter_tolerance": 0.0, "method": "gauss_newton", "initialization": "none"})
+}
+
+/// Creates session `name` (manual policy, endless options) holding a 1500-pose synthetic graph,
+/// asks for a solve and returns once it is running.
+pub async fn start_long_solve(c: &reqwest::Client, s: &TestServer, name: &str) {
+    let create = json!({"session": name, "kind": "pose_graph_2d", "options": endless_options(),
+        "auto_optimize": {"policy": "manual"}});
+    let (status, v) = post(c, &s.url("/v1/sessions"), &create).await;
+    assert_eq!(status, 201, "{v}");
+    let (mut variables, mut factors) = (Vec::new(), Vec::new());
+    for b in g2o_batches(&super::synthetic_manhattan(1500, 7)) {
+        variables.extend(b["variables"].as_array().unwrap().clone());
+        factors.extend(b["factors"].as_array().unwrap().clone());
+    }
+    let all = json!({"variables": variables, "factors": factors});
+    let (status, v) = post(c, &s.url(&format!("/v1/sessions/{name}/batches")), &all).await;
+    assert_eq!(status, 200, "{v}");
+    let url = s.url(&format!("/v1/sessions/{name}/optimize"));
+    assert_eq!(post(c, &url, &json!({})).await.0, 202);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while get(c, &s.url(&format!("/v1/sessions/{name}"))).await.1["solving"] != true {
+        assert!(Instant::now() < deadline, "the solve did not start");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
