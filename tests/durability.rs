@@ -345,13 +345,14 @@ async fn a_sliding_window_comes_back_after_kill_9() {
 
 /// A journal entry that no longer replays (here: written by hand, checksum intact, naming a
 /// variable that does not exist) stops the recovery there. The session keeps what was rebuilt,
-/// stays read-only, and says why in `last_error`; other sessions recover as usual.
+/// stays read-only, and says why in `last_error`. A session whose `session.json` cannot be read
+/// is left on disk and not listed. Other sessions recover as usual, and the server starts.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     let state = common::temp_dir("durability-stuck");
     let c = client();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    for name in ["stuck", "fine"] {
+    for name in ["stuck", "fine", "unreadable"] {
         let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
         assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
         let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
@@ -368,6 +369,8 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
             .unwrap();
     log.append(&serde_json::to_vec(&bad).unwrap()).unwrap();
     drop(log);
+    let identity = state.join("sessions/unreadable/session.json");
+    std::fs::write(&identity, "{").unwrap();
 
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
     let (fine, _) = recovered(&c, &s, "fine", Instant::now()).await;
@@ -399,5 +402,8 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
         (503, Some("recovering")),
         "{v}"
     );
+    let (status, _) = get(&c, &s.url("/v1/sessions/unreadable")).await;
+    assert_eq!(status, 404);
+    assert!(identity.exists(), "its files are left for an operator");
     s.assert_no_panic();
 }

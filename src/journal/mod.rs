@@ -87,11 +87,16 @@ pub struct Snapshot {
     pub factors: Vec<(FactorId, FactorSpec)>,
 }
 
-/// What a session directory held at start.
+/// Who a session directory's session is: read at start, before it is listed.
 #[derive(Debug)]
-pub struct Recovered {
+pub struct Identity {
     pub request: CreateSession,
     pub owner: Option<String>,
+}
+
+/// What a session directory holds to rebuild its session from: read in the background.
+#[derive(Debug)]
+pub struct Recovered {
     pub snapshot: Option<Snapshot>,
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
@@ -183,8 +188,8 @@ impl SessionDir {
         LogWriter::open(&path, fsync).map_err(io_at(&path))
     }
 
-    /// Reads the creation request, the snapshot and the journal after it (cutting a torn tail).
-    pub fn load(&self) -> Result<Recovered, JournalError> {
+    /// Reads the creation request and the owner: what listing the session needs.
+    pub fn load_identity(&self) -> Result<Identity, JournalError> {
         let request_path = self.dir.join("session.json");
         let text = std::fs::read(&request_path).map_err(io_at(&request_path))?;
         let request: CreateSession =
@@ -198,6 +203,12 @@ impl SessionDir {
             Err(e) if e.kind() == io::ErrorKind::NotFound => None,
             Err(e) => return Err(io_at(&owner_path)(e)),
         };
+        Ok(Identity { request, owner })
+    }
+
+    /// Reads the snapshot and the journal after it (cutting a torn tail): the session's state,
+    /// possibly large.
+    pub fn load_state(&self) -> Result<Recovered, JournalError> {
         let snapshot_path = self.dir.join("snapshot.json");
         let snapshot = match std::fs::read(&snapshot_path) {
             Ok(bytes) => {
@@ -225,8 +236,6 @@ impl SessionDir {
             );
         }
         Ok(Recovered {
-            request,
-            owner,
             snapshot,
             entries,
             truncated_bytes: contents.truncated_bytes,

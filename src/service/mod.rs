@@ -315,30 +315,48 @@ impl Service {
             return Ok(0);
         };
         let found = crate::journal::SessionDir::list(&state_dir)?;
-        let count = found.len();
+        let mut count = 0;
         for (name, dir) in found {
-            let recovered = dir.load()?;
-            let request = recovered.request.clone();
-            let session = self.build_session(name.clone(), request).map_err(|e| {
-                crate::journal::JournalError::Corrupt {
-                    path: dir.path().join("session.json"),
-                    message: e.body.message,
+            // Only the small identity files are read here; a session whose identity cannot be
+            // read is left on disk, unlisted, and the others start.
+            let identity = match dir.load_identity() {
+                Ok(identity) => identity,
+                Err(e) => {
+                    tracing::error!(session = %name, "not recovered: {e}");
+                    continue;
                 }
-            })?;
+            };
+            let auto_optimize = identity.request.auto_optimize;
+            let session = match self.build_session(name.clone(), identity.request) {
+                Ok(session) => session,
+                Err(e) => {
+                    tracing::error!(session = %name, "not recovered: {}", e.body.message);
+                    continue;
+                }
+            };
             session.mark_recovering();
-            if let Some(owner) = &recovered.owner {
+            if let Some(owner) = &identity.owner {
                 session.set_owner(owner.as_str().into());
             }
-            let journal = dir.open_journal(config.fsync)?;
-            let durability = crate::session::Durability {
-                dir,
-                journal,
-                config: config.clone(),
-            };
             self.register(name.clone(), Arc::clone(&session));
+            count += 1;
+            let config = config.clone();
             tokio::task::spawn_blocking(move || {
                 let _span = tracing::info_span!("session", session = %name).entered();
-                match session.recover(recovered, durability) {
+                // The snapshot and journal are read here, off start-up: they can be large.
+                let outcome = dir
+                    .load_state()
+                    .and_then(|recovered| Ok((recovered, dir.open_journal(config.fsync)?)))
+                    .map_err(|e| e.to_string())
+                    .and_then(|(recovered, journal)| {
+                        let durability = crate::session::Durability {
+                            dir,
+                            journal,
+                            config,
+                        };
+                        session.recover(auto_optimize, recovered, durability)
+                    });
+                match outcome {
                     Ok(r) => tracing::info!(
                         entries = r.entries,
                         truncated_bytes = r.truncated_bytes,

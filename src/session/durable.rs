@@ -72,13 +72,12 @@ impl Durable {
         prepared: &PreparedBatch,
     ) -> Result<Batch, ServiceError> {
         let mut batch = batch;
-        for v in batch.variables.iter_mut().filter(|v| v.value.is_none()) {
-            let predicted = prepared
-                .variables
-                .iter()
-                .find(|(key, _, _)| *key == v.key)
-                .expect("prepare gives every new variable a value");
-            v.value = Some(catalogue::encode_variable(predicted.1.as_ref()));
+        // `prepare` keeps the batch's variables in order, each with its value.
+        for (spec, (key, value, _)) in batch.variables.iter_mut().zip(&prepared.variables) {
+            debug_assert_eq!(spec.key, *key);
+            if spec.value.is_none() {
+                spec.value = Some(catalogue::encode_variable(value.as_ref()));
+            }
         }
         let entry = Entry::Batch { sequence, batch };
         self.append(name, &entry)?;
@@ -185,13 +184,15 @@ impl Session {
 
     /// Rebuilds the session from what its directory held: the snapshot, then every journal
     /// entry after it, with solves held back until the end; then optimises once. Blocking.
+    /// `auto`: the policy it was created with.
     pub fn recover(
         self: &Arc<Self>,
+        auto: AutoOptimize,
         recovered: Recovered,
         durability: Durability,
     ) -> Result<Recovery, String> {
         let start = Instant::now();
-        let mut auto = recovered.request.auto_optimize;
+        let mut auto = auto;
         self.lock().auto = AutoOptimize::Manual {};
         self.attach(durability);
         let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
@@ -230,7 +231,9 @@ impl Session {
                 Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
                 Entry::Fusion { messages } => {
                     let mut applied = 0;
-                    match self.apply_fusion_counted(FusionBatch { messages }, &mut applied) {
+                    let mut window = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+                    let batch = FusionBatch { messages };
+                    match self.apply_fusion_counted(&mut window, batch, &mut applied) {
                         Ok(_) => {}
                         // The window's solve failed here when the messages first came too; they
                         // were journalled because they stayed applied, and replay keeps them.
@@ -282,11 +285,14 @@ impl Session {
     }
 
     /// Validates and applies fusion messages, journalling the ones the window accepted (all of
-    /// them, or those before a rejected one) before answering.
+    /// them, or those before a rejected one) before answering. The window stays locked until
+    /// they are journalled, so the journal holds concurrent batches in the order they were
+    /// applied.
     pub fn apply_fusion(
         &self,
         batch: FusionBatch,
     ) -> Result<super::fusion::FusionAck, ServiceError> {
+        let mut window = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
         let copy = self
             .durable
             .lock()
@@ -294,7 +300,7 @@ impl Session {
             .is_some()
             .then(|| batch.messages.clone());
         let mut applied = 0;
-        let result = self.apply_fusion_counted(batch, &mut applied);
+        let result = self.apply_fusion_counted(&mut window, batch, &mut applied);
         if let Some(mut messages) = copy {
             messages.truncate(applied);
             if !messages.is_empty() {

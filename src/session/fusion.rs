@@ -400,10 +400,11 @@ impl Session {
     /// Applies a fusion batch (see the module documentation). Keyframes are optimised as they
     /// arrive, after the batch's later messages for the same keyframe have been added: the
     /// window is optimised once per keyframe, when the next keyframe or the batch's end comes.
-    /// Applies `batch`'s messages in order; `applied` counts those the window took, also when a
-    /// later one is rejected (they stay applied).
+    /// Applies `batch`'s messages in order to `guard` (the locked window); `applied` counts those
+    /// the window took, also when a later one is rejected (they stay applied).
     pub(super) fn apply_fusion_counted(
         &self,
+        guard: &mut Option<SlidingWindow>,
         batch: FusionBatch,
         applied: &mut usize,
     ) -> Result<FusionAck, ServiceError> {
@@ -417,7 +418,6 @@ impl Session {
                 ),
             ));
         }
-        let mut guard = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
         let mut keyframes = Vec::new();
         *applied = 0;
         let mut pending = false;
@@ -428,13 +428,13 @@ impl Session {
                 FusionMessage::Keyframe { .. } | FusionMessage::PreintegratedKeyframe { .. }
             );
             if is_keyframe && pending {
-                self.optimize_window(&mut guard, started, *applied)?;
+                self.optimize_window(guard, started, *applied)?;
                 pending = false;
             }
             if is_keyframe {
                 started = Instant::now();
             }
-            match apply(&mut guard, message) {
+            match apply(guard, message) {
                 Ok(Some(key)) => {
                     keyframes.push(key);
                     pending = is_keyframe;
@@ -442,7 +442,7 @@ impl Session {
                 Ok(None) => {}
                 Err(e) => {
                     if pending {
-                        self.optimize_window(&mut guard, started, *applied)?;
+                        self.optimize_window(guard, started, *applied)?;
                     }
                     let field = format!("messages[{index}]");
                     let message = format!("{e} (the {index} message(s) before it were applied)");
@@ -459,7 +459,7 @@ impl Session {
             *applied += 1;
         }
         if pending {
-            self.optimize_window(&mut guard, started, *applied)?;
+            self.optimize_window(guard, started, *applied)?;
         }
         let latest = guard.as_ref().map(|w| {
             let (key, t, state) = w.latest();
