@@ -78,6 +78,13 @@ pub trait Factor: Debug + Send + Sync {
 }
 
 /// Downcasts variable `position` to `T`, or says which kind was expected.
+/// Whether `factor` can be evaluated at `values` (in its key order) with a finite residual: a
+/// factor that cannot (a point at a camera's centre, poses at 1e308) gives the solver nothing.
+pub fn residual_is_finite(factor: &dyn Factor, values: &[&dyn Variable]) -> bool {
+    let mut e = vec![0.0; factor.residual_dim()];
+    factor.evaluate(values, &mut e, None).is_ok() && e.iter().all(|v| v.is_finite())
+}
+
 pub(crate) fn expect_kind<'a, T: Variable>(
     variables: &[&'a dyn Variable],
     position: usize,

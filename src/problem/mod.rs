@@ -148,8 +148,7 @@ impl Problem {
         let variables = self.resolve(factor.as_ref(), &label)?;
         // A factor that cannot be evaluated at a finite point has a non-finite measurement.
         let vars: Vec<&dyn Variable> = variables.iter().map(|&v| self.values.variable(v)).collect();
-        let mut e = vec![0.0; factor.residual_dim()];
-        if factor.evaluate(&vars, &mut e, None).is_err() || e.iter().any(|v| !v.is_finite()) {
+        if !crate::factors::residual_is_finite(factor.as_ref(), &vars) {
             return Err(ProblemError::NonFiniteMeasurement { factor: label });
         }
         self.push_factor(factor, sqrt_information, robust, label, variables);

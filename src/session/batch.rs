@@ -392,9 +392,7 @@ fn check_residuals(
                     .unwrap_or_else(|| decoded[key].as_ref())
             })
             .collect();
-        let mut e = vec![0.0; f.factor.residual_dim()];
-        let ok = f.factor.evaluate(&vars, &mut e, None).is_ok() && e.iter().all(|v| v.is_finite());
-        if !ok {
+        if !crate::factors::residual_is_finite(f.factor.as_ref(), &vars) {
             return Err(ServiceError::invalid(
                 "non_finite_residual",
                 format!("factors[{i}]"),
