@@ -85,7 +85,7 @@ pub struct Job {
     pub output: JobOutput,
     /// The solve stops after this long (its preempted slices added up) and answers with the
     /// best estimate it reached; the Summary's termination is then `interrupted`.
-    pub max_solve: std::time::Duration,
+    max_solve: std::time::Duration,
 }
 
 #[derive(Debug, Serialize)]
@@ -105,7 +105,12 @@ pub enum JobAnswer {
 }
 
 impl Job {
-    pub fn new(text: String, params: JobParams) -> Result<Self, ServiceError> {
+    /// `max_solve`: when the solve stops (see [`Job::max_solve`]).
+    pub fn new(
+        text: String,
+        params: JobParams,
+        max_solve: std::time::Duration,
+    ) -> Result<Self, ServiceError> {
         let bad = |field: &str, m: String| ServiceError::bad_request("invalid_parameter", field, m);
         let format =
             match params.format.as_deref() {
@@ -194,7 +199,7 @@ impl Job {
             options,
             robust,
             output,
-            max_solve: std::time::Duration::from_millis(super::Limits::default().max_solve_ms),
+            max_solve,
         })
     }
 

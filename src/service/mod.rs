@@ -217,44 +217,41 @@ pub fn parse_command(bytes: &[u8]) -> Result<Command, ServiceError> {
         return Err(error);
     };
     let located = match object.get("op").and_then(|op| op.as_str()) {
-        Some("apply_batch") => object.get("batch").map(|batch| {
-            parse_json::<Batch>(batch.to_string().as_bytes())
-                .map(|_| ())
-                .map_err(|mut e| {
-                    e.body.field = Some(match e.body.field.take() {
-                        Some(f) => format!("batch.{f}"),
-                        None => "batch".into(),
-                    });
-                    e
-                })
-        }),
-        Some("fusion") => object.get("messages").map(|messages| {
-            let batch = serde_json::json!({ "messages": messages }).to_string();
-            parse_json::<crate::session::fusion::FusionBatch>(batch.as_bytes()).map(|_| ())
+        Some("apply_batch") => object
+            .get("batch")
+            .and_then(|batch| parse_part::<Batch>(batch, Some("batch"))),
+        Some("set_auto_optimize") => object
+            .get("auto_optimize")
+            .and_then(|policy| parse_part::<AutoOptimize>(policy, Some("auto_optimize"))),
+        Some("fusion") => object.get("messages").and_then(|messages| {
+            let batch = serde_json::json!({ "messages": messages });
+            parse_part::<crate::session::fusion::FusionBatch>(&batch, None)
         }),
         Some("create_session") => {
             object.remove("op");
-            Some(
-                parse_json::<CreateSession>(
-                    serde_json::Value::Object(object).to_string().as_bytes(),
-                )
-                .map(|_| ()),
-            )
+            parse_part::<CreateSession>(&serde_json::Value::Object(object), None)
         }
-        Some("set_auto_optimize") => object.get("auto_optimize").map(|policy| {
-            parse_json::<AutoOptimize>(policy.to_string().as_bytes())
-                .map(|_| ())
-                .map_err(|mut e| {
-                    e.body.field = e.body.field.take().map(|f| format!("auto_optimize.{f}"));
-                    e
-                })
-        }),
         _ => None,
     };
-    match located {
-        Some(Err(e)) if e.body.field.is_some() => Err(e),
-        _ => Err(with_named_field(error)),
+    Err(located
+        .filter(|e| e.body.field.is_some())
+        .unwrap_or_else(|| with_named_field(error)))
+}
+
+/// Decodes one part of a command on its own, where serde keeps the path: the error, with its
+/// field under `prefix` (the part itself when the error has no path).
+fn parse_part<T: serde::de::DeserializeOwned>(
+    part: &serde_json::Value,
+    prefix: Option<&str>,
+) -> Option<ServiceError> {
+    let mut error = parse_json::<T>(part.to_string().as_bytes()).err()?;
+    if let Some(prefix) = prefix {
+        error.body.field = Some(match error.body.field.take() {
+            Some(f) => format!("{prefix}.{f}"),
+            None => prefix.to_string(),
+        });
     }
+    Some(error)
 }
 
 /// serde names a missing or unknown field in its message (`missing field `keys``) even where
@@ -816,8 +813,11 @@ impl Service {
         text: String,
         params: JobParams,
     ) -> Result<JobAnswer, ServiceError> {
-        let mut job = Job::new(text, params)?;
-        job.max_solve = Duration::from_millis(self.limits.max_solve_ms);
+        let job = Job::new(
+            text,
+            params,
+            Duration::from_millis(self.limits.max_solve_ms),
+        )?;
         let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
         let _slot = JobSlot(&self.jobs_in_flight);
         if previous >= self.limits.max_jobs {
