@@ -81,9 +81,13 @@ pub fn count_accepted_batch() {
 }
 
 /// A refused input (any 4xx), by its error code.
-pub fn count_rejection(code: &str) {
+pub fn count_rejection(error: &super::error::ErrorBody) {
+    // Refusals of what a client sent (4xx); a 503 is the server's state, not bad input.
+    if !(400..500).contains(&error.status) {
+        return;
+    }
     let mut map = REJECTED.lock().unwrap_or_else(|p| p.into_inner());
-    *map.entry(code.to_string()).or_default() += 1;
+    *map.entry(error.code.clone()).or_default() += 1;
 }
 
 pub fn render(service: &Service) -> String {

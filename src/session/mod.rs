@@ -240,7 +240,7 @@ impl Session {
     /// Publishes a rejection of something sent to this session without a reply channel (a
     /// zenoh put), so subscribers of its stream see it.
     pub fn report_rejection(&self, error: ServiceError) {
-        crate::service::metrics::count_rejection(&error.body.code);
+        crate::service::metrics::count_rejection(&error.body);
         self.emit(SessionEvent::Error {
             session: self.name.clone(),
             sequence: None,

@@ -109,9 +109,7 @@ impl From<ServiceError> for HttpError {
 impl IntoResponse for HttpError {
     fn into_response(self) -> Response {
         let body = self.0.body;
-        if (400..500).contains(&body.status) {
-            crate::service::metrics::count_rejection(&body.code);
-        }
+        crate::service::metrics::count_rejection(&body);
         let status = StatusCode::from_u16(body.status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
         let retry = body.retry_after;
         let mut response = (status, Json(serde_json::json!({ "error": body }))).into_response();

@@ -239,9 +239,7 @@ async fn reply(query: &Query, result: Result<serde_json::Result<Vec<u8>>, Servic
             query.reply_err(body.to_string()).await
         }
         Err(e) => {
-            if (400..500).contains(&e.body.status) {
-                crate::service::metrics::count_rejection(&e.body.code);
-            }
+            crate::service::metrics::count_rejection(&e.body);
             let body = serde_json::json!({ "error": e.body });
             query.reply_err(body.to_string()).await
         }
