@@ -156,37 +156,31 @@ async fn tokens_guard_every_route_and_sessions_belong_to_their_token() {
 #[test]
 fn beyond_loopback_tokens_are_required() {
     let state = common::temp_dir("auth-open");
-    let out = Command::new(env!("CARGO_BIN_EXE_factord"))
-        .args([
-            "serve",
-            "--listen",
-            "0.0.0.0:0",
-            "--no-zenoh",
-            "--state-dir",
-        ])
-        .arg(&state)
-        .env_remove("FACTORD_TOKENS")
-        .stdout(Stdio::null())
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    // `factord serve` on every interface with FACTORD_TOKENS as given: it must refuse to start.
+    let refusal = |tokens: Option<&str>| {
+        let mut serve = Command::new(env!("CARGO_BIN_EXE_factord"));
+        serve
+            .args([
+                "serve",
+                "--listen",
+                "0.0.0.0:0",
+                "--no-zenoh",
+                "--state-dir",
+            ])
+            .arg(&state)
+            .stdout(Stdio::null());
+        match tokens {
+            Some(list) => serve.env("FACTORD_TOKENS", list),
+            None => serve.env_remove("FACTORD_TOKENS"),
+        };
+        let out = serve.output().unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let stderr = refusal(None);
     assert!(stderr.contains("requires bearer tokens"), "{stderr}");
     // A token too short to be safe is refused as well.
-    let out = Command::new(env!("CARGO_BIN_EXE_factord"))
-        .args([
-            "serve",
-            "--listen",
-            "0.0.0.0:0",
-            "--no-zenoh",
-            "--state-dir",
-        ])
-        .arg(&state)
-        .env("FACTORD_TOKENS", "short")
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("at least 16"));
+    assert!(refusal(Some("short")).contains("at least 16"));
 }
 
 #[tokio::test(flavor = "multi_thread")]

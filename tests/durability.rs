@@ -7,30 +7,8 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, get, post, TestServer};
+use common::server::{client, g2o_batches, get, post, recovered, TestServer};
 use serde_json::{json, Value};
-
-/// Polls the session's statistics until it is no longer recovering; returns them and how long
-/// that took since `since`.
-async fn recovered(
-    c: &reqwest::Client,
-    s: &TestServer,
-    name: &str,
-    since: Instant,
-) -> (Value, f64) {
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let (status, v) = get(c, &s.url(&format!("/v1/sessions/{name}"))).await;
-        if status == 200 && v["recovering"] == false {
-            return (v, since.elapsed().as_secs_f64());
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{name} still recovering: {status} {v}"
-        );
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
-}
 
 fn config_file(dir: &Path, snapshot_every: u64) -> String {
     let path = dir.join("factord.json");

@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::server::{client, get, post, zenoh_get, zenoh_peer, TestServer};
+use common::server::{client, get, post, recovered, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 /// One rule: what is sent where, and the error it must produce.
@@ -808,21 +808,9 @@ async fn a_window_solve_that_fails_is_422_solve_failed_over_http_and_zenoh() {
     let state_dir = s.state_dir.clone();
     s.kill();
     let s = TestServer::start_at(&state_dir, &[], &[]);
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
-    loop {
-        let (status, stats) = get(&c, &s.url("/v1/sessions/far")).await;
-        if status == 200 && stats["recovering"] == false {
-            break;
-        }
-        assert!(
-            std::time::Instant::now() < deadline,
-            "not recovered: {status} {stats}\n{}",
-            s.stderr()
-        );
-        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-    }
-    let recovered = get(&c, &s.url("/v1/sessions/far/graph")).await.1;
-    assert_eq!(recovered["poses"], graph["poses"], "after a restart");
+    recovered(&c, &s, "far", std::time::Instant::now()).await;
+    let after = get(&c, &s.url("/v1/sessions/far/graph")).await.1;
+    assert_eq!(after["poses"], graph["poses"], "after a restart");
     println!("rows checked over HTTP and rpc: F21 (and its journal replay)");
     s.assert_no_panic();
 }

@@ -6,7 +6,9 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, get, post, post_raw, send, start_long_solve, zenoh_peer, TestServer};
+use common::server::{
+    client, get, post, post_raw, recovered, send, start_long_solve, zenoh_peer, TestServer,
+};
 use serde_json::{json, Value};
 
 /// An rpc with the payload as given (broken JSON included): Ok(reply) or Err(error body).
@@ -529,16 +531,8 @@ async fn a_recovering_session_refuses_writes() {
     let v: Value = response.json().await.unwrap();
     expect_error("S20 HTTP", &v, 503, "recovering", None);
 
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let stats = get(&c, &s.url("/v1/sessions/big")).await.1;
-        if stats["recovering"] == false {
-            assert_eq!(stats["num_variables"], POSES, "{stats}");
-            break;
-        }
-        assert!(Instant::now() < deadline, "still recovering: {stats}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    let (stats, _) = recovered(&c, &s, "big", Instant::now()).await;
+    assert_eq!(stats["num_variables"], POSES, "{stats}");
     let (status, v) = post(&c, &s.url("/v1/sessions/big/batches"), &next).await;
     assert_eq!(status, 200, "the same write once rebuilt: {v}");
     assert_eq!(v["sequence"], 3, "{v}");

@@ -349,3 +349,25 @@ pub async fn start_long_solve(c: &reqwest::Client, s: &TestServer, name: &str) {
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
+
+/// Polls the session's statistics until it is no longer recovering; returns them and how long
+/// that took since `since`.
+pub async fn recovered(
+    c: &reqwest::Client,
+    s: &TestServer,
+    name: &str,
+    since: Instant,
+) -> (Value, f64) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (status, v) = get(c, &s.url(&format!("/v1/sessions/{name}"))).await;
+        if status == 200 && v["recovering"] == false {
+            return (v, since.elapsed().as_secs_f64());
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{name} still recovering: {status} {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
