@@ -29,6 +29,21 @@ struct Tally {
     garbage_unexpected: Mutex<Vec<String>>,
 }
 
+impl Tally {
+    /// A garbage HTTP request's answer: a 4xx is the intended refusal, anything else is noted.
+    fn garbage_answered(&self, answer: reqwest::Result<reqwest::StatusCode>, what: &str) {
+        let unexpected = match answer {
+            Ok(status) if status.is_client_error() => {
+                self.garbage_rejected.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            Ok(status) => format!("HTTP {status} for {what}"),
+            Err(e) => format!("HTTP: {e}"),
+        };
+        self.garbage_unexpected.lock().unwrap().push(unexpected);
+    }
+}
+
 fn percentile(v: &mut [f64], p: f64) -> f64 {
     if v.is_empty() {
         return f64::NAN;
@@ -148,47 +163,21 @@ async fn garbage_client(
         match next() % 3 {
             0 => {
                 let url = format!("{s_url}/v1/sessions/{session}/batches");
-                match c
+                let answer = c
                     .post(&url)
                     .header("content-type", "application/json")
                     .body(body.clone())
                     .send()
                     .await
-                {
-                    Ok(r) if r.status().is_client_error() => {
-                        tally.garbage_rejected.fetch_add(1, Ordering::Relaxed);
-                    }
-                    Ok(r) => tally
-                        .garbage_unexpected
-                        .lock()
-                        .unwrap()
-                        .push(format!("HTTP {} for {body}", r.status())),
-                    Err(e) => tally
-                        .garbage_unexpected
-                        .lock()
-                        .unwrap()
-                        .push(format!("HTTP: {e}")),
-                }
+                    .map(|r| r.status());
+                tally.garbage_answered(answer, body);
             }
             1 => {
-                // To a session that does not exist.
+                // To a session that does not exist: 404, or 400 when the body is refused before
+                // the session is looked up.
                 let url = format!("{s_url}/v1/sessions/nobody-{}/batches", next() % 1000);
-                match c.post(&url).body(body.clone()).send().await {
-                    // 404, or 400 when the body is refused before the session is looked up.
-                    Ok(r) if r.status().is_client_error() => {
-                        tally.garbage_rejected.fetch_add(1, Ordering::Relaxed);
-                    }
-                    Ok(r) => tally
-                        .garbage_unexpected
-                        .lock()
-                        .unwrap()
-                        .push(format!("HTTP {} for a missing session", r.status())),
-                    Err(e) => tally
-                        .garbage_unexpected
-                        .lock()
-                        .unwrap()
-                        .push(format!("HTTP: {e}")),
-                }
+                let answer = c.post(&url).body(body.clone()).send().await;
+                tally.garbage_answered(answer.map(|r| r.status()), "a missing session");
             }
             _ => {
                 let command = match serde_json::from_str::<Value>(body) {
