@@ -3,13 +3,8 @@
 
 use std::path::Path;
 
+use factord_fuzz::verbose;
 use libfuzzer_sys::fuzz_target;
-
-/// `FUZZ_VERBOSE=1` prints each input's outcome (for checking seeds and triaging).
-fn verbose() -> bool {
-    static V: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *V.get_or_init(|| std::env::var_os("FUZZ_VERBOSE").is_some())
-}
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else {

@@ -13,15 +13,10 @@ use std::sync::Arc;
 use factord::service::{parse_json, Command, Limits, Service};
 use factord::session::fusion::FusionBatch;
 use factord::session::wire::{AutoOptimize, Batch, CreateSession};
+use factord_fuzz::verbose;
 use libfuzzer_sys::fuzz_target;
 
 const SESSION: &str = "fuzz";
-
-/// `FUZZ_VERBOSE=1` prints each input's outcome (for checking seeds and triaging).
-fn verbose() -> bool {
-    static V: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *V.get_or_init(|| std::env::var_os("FUZZ_VERBOSE").is_some())
-}
 
 struct Ctx {
     runtime: tokio::runtime::Runtime,
