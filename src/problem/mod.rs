@@ -145,14 +145,7 @@ impl Problem {
         robust: Option<RobustKernel>,
         label: String,
     ) -> Result<usize, ProblemError> {
-        let variables = self.resolve(factor.as_ref(), &label)?;
-        // A factor that cannot be evaluated at a finite point has a non-finite measurement.
-        let vars: Vec<&dyn Variable> = variables.iter().map(|&v| self.values.variable(v)).collect();
-        if !crate::factors::residual_is_finite(factor.as_ref(), &vars) {
-            return Err(ProblemError::NonFiniteMeasurement { factor: label });
-        }
-        self.push_factor(factor, sqrt_information, robust, label, variables);
-        Ok(self.factors.len() - 1)
+        self.push_factor(factor, sqrt_information, robust, label, true)
     }
 
     /// As [`Problem::add_factor_sqrt`] without evaluating the factor: for a session's factors,
@@ -165,19 +158,28 @@ impl Problem {
         robust: Option<RobustKernel>,
         label: String,
     ) -> Result<usize, ProblemError> {
-        let variables = self.resolve(factor.as_ref(), &label)?;
-        self.push_factor(factor, sqrt_information, robust, label, variables);
-        Ok(self.factors.len() - 1)
+        self.push_factor(factor, sqrt_information, robust, label, false)
     }
 
+    /// Adds the factor once its variables check out and, with `evaluate`, once its residual at
+    /// the current values is finite; its index.
     fn push_factor(
         &mut self,
         factor: Box<dyn Factor>,
         sqrt_information: SqrtInformation,
         robust: Option<RobustKernel>,
         label: String,
-        variables: Vec<usize>,
-    ) {
+        evaluate: bool,
+    ) -> Result<usize, ProblemError> {
+        let variables = self.resolve(factor.as_ref(), &label)?;
+        if evaluate {
+            // A factor that cannot be evaluated at a finite point has a non-finite measurement.
+            let vars: Vec<&dyn Variable> =
+                variables.iter().map(|&v| self.values.variable(v)).collect();
+            if !crate::factors::residual_is_finite(factor.as_ref(), &vars) {
+                return Err(ProblemError::NonFiniteMeasurement { factor: label });
+            }
+        }
         self.factors.push(FactorEntry {
             factor,
             sqrt_information,
@@ -185,6 +187,7 @@ impl Problem {
             label,
             variables,
         });
+        Ok(self.factors.len() - 1)
     }
 
     /// Checks the variables `factor` touches (exist, distinct, right kinds); their indices.
