@@ -7,7 +7,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, get, post, recovered, TestServer};
+use common::server::{client, create, g2o_batches, get, post, recovered, TestServer};
 use serde_json::{json, Value};
 
 fn config_file(dir: &Path, snapshot_every: u64) -> String {
@@ -54,13 +54,12 @@ async fn kill_9_while_streaming_loses_no_acknowledged_batch() {
         let started = Instant::now();
         let s = TestServer::start_at(&state, &extra, &[]);
         let resume = if cycle == 0 {
-            let (status, v) = post(
+            create(
                 &c,
-                &s.url("/v1/sessions"),
+                &s,
                 &json!({"session": "robot", "kind": "pose_graph_2d"}),
             )
             .await;
-            assert_eq!(status, 201, "{v}");
             0
         } else {
             let (stats, seconds) = recovered(&c, &s, "robot", started).await;
@@ -214,13 +213,7 @@ async fn a_non_finite_residual_is_refused_before_the_journal() {
     let c = client();
     let s = TestServer::start_at(&state, &[], &[]);
     for (name, kind) in [("ba", "bundle_adjustment"), ("pg", "pose_graph_2d")] {
-        let (status, v) = post(
-            &c,
-            &s.url("/v1/sessions"),
-            &json!({"session": name, "kind": kind}),
-        )
-        .await;
-        assert_eq!(status, 201, "{v}");
+        create(&c, &s, &json!({"session": name, "kind": kind})).await;
     }
     // A point exactly at the camera's centre: depth 0.
     let ba = json!({
@@ -279,13 +272,12 @@ async fn a_sliding_window_comes_back_after_kill_9() {
     let state = common::temp_dir("durability-window");
     let c = client();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    let (status, v) = post(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "robot", "kind": "sliding_window"}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     let url = s.url("/v1/sessions/robot/fusion");
     let start = json!({"messages": [common::fusion::start_message(&inputs)]});
     assert_eq!(post(&c, &url, &start).await.0, 200);
@@ -331,8 +323,8 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     let c = client();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
     for name in ["stuck", "fine", "unreadable"] {
-        let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
-        assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+        let request = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
+        create(&c, &s, &request).await;
         let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
         let url = s.url(&format!("/v1/sessions/{name}/batches"));
         assert_eq!(post(&c, &url, &batch).await.0, 200);

@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::server::{client, get, post, recovered, zenoh_get, zenoh_peer, TestServer};
+use common::server::{client, create, get, post, recovered, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 /// One rule: what is sent where, and the error it must produce.
@@ -368,13 +368,12 @@ async fn every_session_and_batch_rule_answers_the_same_over_http_and_zenoh() {
         ("window", "sliding_window", Value::Null),
     ];
     for (name, kind, batch) in &setup {
-        let (status, v) = post(
+        create(
             &c,
-            &s.url("/v1/sessions"),
+            &s,
             &json!({"session": name, "kind": kind, "auto_optimize": {"policy": "manual"}}),
         )
         .await;
-        assert_eq!(status, 201, "{v}");
         if !batch.is_null() {
             let (status, v) =
                 post(&c, &s.url(&format!("/v1/sessions/{name}/batches")), batch).await;
@@ -465,13 +464,12 @@ async fn auto_optimize_policies_refuse_fields_they_do_not_have() {
         assert_eq!(status, 400, "{policy}: {v}");
         assert_eq!(v["error"]["code"], "invalid_field");
     }
-    let (status, v) = post(
+    let v = create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "p", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     assert_eq!(v["auto_optimize"], json!({"policy": "manual"}));
 }
 
@@ -480,13 +478,7 @@ async fn auto_optimize_policies_refuse_fields_they_do_not_have() {
 async fn extractor_errors_are_json_too() {
     let s = TestServer::start(&["--no-zenoh"]);
     let c = client();
-    let (status, v) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"session": "w", "kind": "pose_graph_2d"}),
-    )
-    .await;
-    assert_eq!(status, 201, "{v}");
+    create(&c, &s, &json!({"session": "w", "kind": "pose_graph_2d"})).await;
     for path in [
         "/v1/sessions/%FF",
         "/v1/sessions/%FF/estimate",
@@ -559,13 +551,7 @@ async fn every_fusion_rule_answers_the_same_over_http_and_zenoh() {
         ("pg", "pose_graph_2d", vec![]),
     ];
     for (name, kind, messages) in &setup {
-        let (status, v) = post(
-            &c,
-            &s.url("/v1/sessions"),
-            &json!({"session": name, "kind": kind}),
-        )
-        .await;
-        assert_eq!(status, 201, "{v}");
+        create(&c, &s, &json!({"session": name, "kind": kind})).await;
         if !messages.is_empty() {
             let (status, v) = post(
                 &c,
@@ -753,13 +739,7 @@ async fn a_window_solve_that_fails_is_422_solve_failed_over_http_and_zenoh() {
         m["delta_position"] = json!([dx, 0, 0]);
         m
     };
-    let (status, v) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"session": "far", "kind": "sliding_window"}),
-    )
-    .await;
-    assert_eq!(status, 201, "{v}");
+    create(&c, &s, &json!({"session": "far", "kind": "sliding_window"})).await;
     // The prior comes after the keyframe's solve: a keyframe optimises the window, a prior
     // alone does not.
     for messages in [

@@ -8,7 +8,9 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, get, post, start_long_solve, zenoh_get, zenoh_peer, TestServer};
+use common::server::{
+    client, create, get, post, start_long_solve, zenoh_get, zenoh_peer, TestServer,
+};
 use serde_json::{json, Value};
 
 /// Where one request goes, written `GET <path>` / `POST <path>` (under /v1/sessions/; POST
@@ -105,11 +107,6 @@ async fn fingerprint(s: &TestServer, sessions: &[&str]) -> Value {
 
 const SESSIONS: [&str; 3] = ["pg", "ba", "win"];
 
-async fn create(s: &TestServer, body: Value) {
-    let (status, v) = post(&client(), &s.url("/v1/sessions"), &body).await;
-    assert_eq!(status, 201, "{v}");
-}
-
 /// `pg`: poses 0–2 in a chain, never solved; `ba`: a camera and a point, no gauge fixed;
 /// `win`: a sliding window.
 async fn setup(s: &TestServer) {
@@ -126,8 +123,9 @@ async fn setup(s: &TestServer) {
         ("win", "sliding_window", None),
     ] {
         create(
+            &client(),
             s,
-            json!({"session": name, "kind": kind, "auto_optimize": {"policy": "manual"}}),
+            &json!({"session": name, "kind": kind, "auto_optimize": {"policy": "manual"}}),
         )
         .await;
         if let Some(batch) = batch {

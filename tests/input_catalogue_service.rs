@@ -7,7 +7,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::server::{
-    client, get, post, post_raw, recovered, send, start_long_solve, zenoh_peer, TestServer,
+    client, create, get, post, post_raw, recovered, send, start_long_solve, zenoh_peer, TestServer,
 };
 use serde_json::{json, Value};
 
@@ -103,13 +103,12 @@ async fn counts(c: &reqwest::Client, s: &TestServer, session: &str) -> Value {
 async fn parsing_and_session_rules_answer_the_same_over_http_and_zenoh() {
     let s = TestServer::start(&[]);
     let c = client();
-    let (status, v) = post(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "pg", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     let z = zenoh_peer(&s.zenoh).await;
     let (_subscriber, mut events) = error_events(&z).await;
     let before = counts(&c, &s, "pg").await;
@@ -299,14 +298,13 @@ async fn session_cap_and_journal_failure_refuse_creation() {
     let s = TestServer::start(&["--config", &config]);
     let c = client();
     let z = zenoh_peer(&s.zenoh).await;
-    let create = |name: &str| json!({"session": name, "kind": "pose_graph_2d"});
+    let request = |name: &str| json!({"session": name, "kind": "pose_graph_2d"});
     let rpc_create = |name: &str| {
-        let mut command = create(name);
+        let mut command = request(name);
         command["op"] = json!("create_session");
         command.to_string()
     };
-    let (status, v) = post(&c, &s.url("/v1/sessions"), &create("one")).await;
-    assert_eq!(status, 201, "{v}");
+    create(&c, &s, &request("one")).await;
 
     // S19: where the sessions' directories go is now a file, so no directory can be made.
     let sessions = s.state_dir.join("sessions");
@@ -315,7 +313,7 @@ async fn session_cap_and_journal_failure_refuse_creation() {
     std::fs::write(&sessions, b"not a directory").unwrap();
     let response = c
         .post(s.url("/v1/sessions"))
-        .json(&create("two"))
+        .json(&request("two"))
         .send()
         .await
         .unwrap();
@@ -336,11 +334,11 @@ async fn session_cap_and_journal_failure_refuse_creation() {
     std::fs::rename(&moved, &sessions).unwrap();
 
     // S17: with "one" and "two", the cap of 2 is reached.
-    let (status, v) = post(&c, &s.url("/v1/sessions"), &create("two")).await;
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &request("two")).await;
     assert_eq!(status, 201, "the journal works again: {v}");
     let response = c
         .post(s.url("/v1/sessions"))
-        .json(&create("three"))
+        .json(&request("three"))
         .send()
         .await
         .unwrap();
@@ -406,8 +404,8 @@ async fn pending_batches_beyond_the_cap_are_refused_over_zenoh() {
 async fn a_failed_solve_is_an_error_event_not_a_rejection() {
     let s = TestServer::start(&[]);
     let c = client();
-    let create = json!({"session": "ba", "kind": "bundle_adjustment", "options": {"method": "gauss_newton"}});
-    assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+    let request = json!({"session": "ba", "kind": "bundle_adjustment", "options": {"method": "gauss_newton"}});
+    create(&c, &s, &request).await;
     let z = zenoh_peer(&s.zenoh).await;
     let (_subscriber, mut events) = error_events(&z).await;
     let mut sse = c.get(s.url("/v1/sessions/ba/events")).send().await.unwrap();
@@ -483,9 +481,9 @@ async fn rpc_once(
 async fn a_recovering_session_refuses_writes() {
     let s = TestServer::start(&["--fsync", "never"]);
     let c = client();
-    let create =
+    let request =
         json!({"session": "big", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
-    assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+    create(&c, &s, &request).await;
     // 200 000 poses in two batches: replaying them takes long enough (about a second here)
     // to be caught in the act.
     const POSES: u64 = 200_000;
@@ -548,8 +546,8 @@ async fn a_recovering_session_refuses_writes() {
 async fn shutdown_refuses_new_work_and_closes_streams() {
     let s = TestServer::start(&[]);
     let c = client();
-    let create = json!({"session": "a", "kind": "pose_graph_2d"});
-    assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+    let request = json!({"session": "a", "kind": "pose_graph_2d"});
+    create(&c, &s, &request).await;
     let mut sse = c.get(s.url("/v1/sessions/a/events")).send().await.unwrap();
     assert_eq!(sse.status(), 200);
     let z = zenoh_peer(&s.zenoh).await;
@@ -618,8 +616,8 @@ async fn an_empty_batch_is_reflected_at_once() {
         ),
         ("count", json!({"policy": "every_n_factors", "factors": 50})),
     ] {
-        let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy});
-        assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+        let request = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy});
+        create(&c, &s, &request).await;
         let url = s.url(&format!("/v1/sessions/{name}/batches?wait=true"));
         let started = Instant::now();
         let (status, ack) = post(&c, &url, &json!({})).await;

@@ -6,7 +6,7 @@ mod common;
 use std::collections::BTreeMap;
 use std::process::Command;
 
-use common::server::{client, g2o_batches, get, post, zenoh_get, zenoh_peer, TestServer};
+use common::server::{client, create, g2o_batches, get, post, zenoh_get, zenoh_peer, TestServer};
 use nalgebra::Matrix3;
 use serde_json::{json, Value};
 
@@ -26,13 +26,12 @@ fn matrix3(v: &Value) -> Matrix3<f64> {
 }
 
 async fn load_session(c: &reqwest::Client, s: &TestServer, name: &str, text: &str) {
-    let (status, v) = post(
+    create(
         c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     let url = s.url(&format!("/v1/sessions/{name}/batches"));
     let (status, v) = post(c, &url, &one_batch(text)).await;
     assert_eq!(status, 200, "{v}");

@@ -5,17 +5,11 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::server::{
-    client, g2o_batches, get, post, post_raw, send, start_long_solve, zenoh_get, zenoh_peer,
-    TestServer,
+    client, create, g2o_batches, get, post, post_raw, send, start_long_solve, zenoh_get,
+    zenoh_peer, TestServer,
 };
 use common::{synthetic_helix_3d, synthetic_manhattan};
 use serde_json::{json, Value};
-
-async fn create(c: &reqwest::Client, s: &TestServer, body: Value) -> Value {
-    let (status, v) = post(c, &s.url("/v1/sessions"), &body).await;
-    assert_eq!(status, 201, "{v}");
-    v
-}
 
 async fn batch(
     c: &reqwest::Client,
@@ -141,7 +135,7 @@ async fn session_fed_over_http_is_read_over_zenoh() {
     let c = client();
     let text = synthetic_manhattan(250, 5);
     let batches = g2o_batches(&text);
-    create(&c, &s, json!({"session": "walk", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "walk", "kind": "pose_graph_2d"})).await;
 
     let z = zenoh_peer(&s.zenoh).await;
     // Collect publications without bounding them (a full FIFO would stall this peer's replies).
@@ -364,7 +358,7 @@ async fn twenty_sessions_in_parallel() {
                 2 => ("pose_graph_3d", synthetic_helix_3d(80, i), json!({"policy": "every_ms", "milliseconds": 20})),
                 _ => ("pose_graph_2d", synthetic_manhattan(200, i), json!({"policy": "manual"})),
             };
-            create(&c, &s, json!({"session": name, "kind": kind, "auto_optimize": policy})).await;
+            create(&c, &s, &json!({"session": name, "kind": kind, "auto_optimize": policy})).await;
             let batches = g2o_batches(&text);
             for (k, b) in batches.iter().enumerate() {
                 let (status, v) = batch(&c, &s, &name, b, false).await;
@@ -448,7 +442,12 @@ async fn cancel_and_delete_during_a_solve() {
         (status, v["error"]["code"].as_str()),
         (404, Some("unknown_session"))
     );
-    create(&c, &s, json!({"session": "after", "kind": "pose_graph_2d"})).await;
+    create(
+        &c,
+        &s,
+        &json!({"session": "after", "kind": "pose_graph_2d"}),
+    )
+    .await;
     let text = synthetic_manhattan(50, 1);
     for b in g2o_batches(&text) {
         let (status, v) = batch(&c, &s, "after", &b, true).await;
@@ -535,7 +534,12 @@ async fn back_pressure_answers_429_and_503_with_retry_after() {
     let v: Value = resp.json().await.unwrap();
     assert_eq!(v["error"]["code"], "too_many_jobs");
     // Fairness: the long job yields its only worker to a small session every time slice.
-    create(&c, &s, json!({"session": "small", "kind": "pose_graph_2d"})).await;
+    create(
+        &c,
+        &s,
+        &json!({"session": "small", "kind": "pose_graph_2d"}),
+    )
+    .await;
     let started = Instant::now();
     for b in g2o_batches(&synthetic_manhattan(30, 9)) {
         let (status, v) = batch(&c, &s, "small", &b, true).await;
@@ -554,7 +558,7 @@ async fn back_pressure_answers_429_and_503_with_retry_after() {
 async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
     let s = TestServer::start(&["--max-body-bytes", "100000"]);
     let c = client();
-    create(&c, &s, json!({"session": "g", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "g", "kind": "pose_graph_2d"})).await;
     let good = json!({"variables": [{"key": 1, "kind": "se2", "value": [0, 0, 0]},
                                     {"key": 2, "kind": "se2", "value": [1, 0, 0]}],
                       "factors": [{"type": "between_se2", "keys": [1, 2], "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.1]}]});
@@ -795,7 +799,7 @@ async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
 async fn removals_fixes_and_guesses_are_applied_atomically() {
     let s = TestServer::start(&["--no-zenoh"]);
     let c = client();
-    create(&c, &s, json!({"session": "edit", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "edit", "kind": "pose_graph_2d"})).await;
     let b = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0], "fixed": true},
                                  {"key": 1, "kind": "se2"}, {"key": 2, "kind": "se2"}],
                    "factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.1]},
@@ -905,7 +909,7 @@ async fn optimize_requests_run_whatever_the_policy() {
         create(
             &c,
             &s,
-            json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy}),
+            &json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": policy}),
         )
         .await;
         for b in g2o_batches(&synthetic_manhattan(300, 8)) {
@@ -943,7 +947,7 @@ async fn websocket_carries_batches_in_and_events_out() {
     use tokio_tungstenite::tungstenite::Message;
     let s = TestServer::start(&["--no-zenoh"]);
     let c = client();
-    create(&c, &s, json!({"session": "ws", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "ws", "kind": "pose_graph_2d"})).await;
     let url = s.url("/v1/sessions/ws/ws").replace("http://", "ws://");
     let (mut socket, _) = tokio_tungstenite::connect_async(&url)
         .await
@@ -1043,7 +1047,7 @@ async fn bundle_adjustment_as_a_job_and_as_a_session() {
             json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
         })
         .collect();
-    create(&c, &s, json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"}})).await;
+    create(&c, &s, &json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"}})).await;
     let (status, v) = batch(&c, &s, "ba", &json!({"variables": variables}), false).await;
     assert_eq!(status, 200, "{v}");
     for chunk in factors.chunks(10_000) {

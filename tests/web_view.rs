@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::server::{client, g2o_batches, post, TestServer};
+use common::server::{client, create, g2o_batches, post, TestServer};
 use serde_json::{json, Value};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
@@ -240,21 +240,14 @@ async fn web_view_draws_sessions_being_fed() {
     };
     let batches = g2o_batches(&text);
     let total = batches.len();
-    let (status, v) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"session": "robot", "kind": "pose_graph_2d", "options": {"method": "levenberg_marquardt"}}),
-    )
-    .await;
-    assert_eq!(status, 201, "{v}");
+    create(&c, &s, &json!({"session": "robot", "kind": "pose_graph_2d", "options": {"method": "levenberg_marquardt"}})).await;
     // A 3D session, loaded at once.
-    let (status, v) = post(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "helix", "kind": "pose_graph_3d"}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     for b in g2o_batches(&common::synthetic_helix_3d(200, 2)) {
         let (status, v) = post(&c, &s.url("/v1/sessions/helix/batches"), &b).await;
         assert_eq!(status, 200, "{v}");
@@ -338,13 +331,12 @@ async fn web_view_draws_sessions_being_fed() {
 
     // A bundle-adjustment session's point cloud and camera centres (variables only: drawing
     // needs no observations).
-    let (status, v) = post(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "cloud", "kind": "bundle_adjustment"}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     let mut variables: Vec<Value> = (0..8)
         .map(|i| {
             json!({"key": i, "kind": "snavely_camera",

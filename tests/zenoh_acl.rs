@@ -6,7 +6,7 @@ mod common;
 
 use std::time::Duration;
 
-use common::server::{client, get, post, zenoh_peer, TestServer};
+use common::server::{client, create, get, zenoh_peer, TestServer};
 use serde_json::json;
 
 /// Replies to a query on `key` within a second (a refused query gets none).
@@ -42,13 +42,7 @@ async fn the_example_acl_refuses_rpc_and_ops_sessions_from_the_lan() {
     let s = TestServer::start(&["--zenoh-config", config.to_str().unwrap()]);
     let c = client();
     for name in ["robot-1", "ops-map"] {
-        let (status, v) = post(
-            &c,
-            &s.url("/v1/sessions"),
-            &json!({"session": name, "kind": "pose_graph_2d"}),
-        )
-        .await;
-        assert_eq!(status, 201, "{v}");
+        create(&c, &s, &json!({"session": name, "kind": "pose_graph_2d"})).await;
     }
     let z = zenoh_peer(&s.zenoh).await;
     tokio::time::sleep(Duration::from_millis(500)).await;

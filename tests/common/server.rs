@@ -198,6 +198,13 @@ pub async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Va
     send(client, reqwest::Method::POST, url, Some(body)).await
 }
 
+/// Creates a session (`POST /v1/sessions` with `body`), asserting 201; returns its info.
+pub async fn create(client: &reqwest::Client, s: &TestServer, body: &Value) -> Value {
+    let (status, v) = post(client, &s.url("/v1/sessions"), body).await;
+    assert_eq!(status, 201, "{body}: {v}");
+    v
+}
+
 pub async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
     send(client, reqwest::Method::GET, url, None).await
 }
@@ -329,10 +336,9 @@ fn endless_options() -> Value {
 /// Creates session `name` (manual policy, endless options) holding a 1500-pose synthetic graph,
 /// asks for a solve and returns once it is running.
 pub async fn start_long_solve(c: &reqwest::Client, s: &TestServer, name: &str) {
-    let create = json!({"session": name, "kind": "pose_graph_2d", "options": endless_options(),
+    let request = json!({"session": name, "kind": "pose_graph_2d", "options": endless_options(),
         "auto_optimize": {"policy": "manual"}});
-    let (status, v) = post(c, &s.url("/v1/sessions"), &create).await;
-    assert_eq!(status, 201, "{v}");
+    create(c, s, &request).await;
     let (mut variables, mut factors) = (Vec::new(), Vec::new());
     for b in g2o_batches(&super::synthetic_manhattan(1500, 7)) {
         variables.extend(b["variables"].as_array().unwrap().clone());
