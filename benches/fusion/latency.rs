@@ -10,6 +10,9 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
+#[path = "../args.rs"]
+mod args;
+
 use common::fusion::inputs;
 use common::server::TestServer;
 use factord::fusion::experiment::{ape, Percentiles};
@@ -18,17 +21,9 @@ use serde_json::json;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
 async fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let value = |flag: &str| {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|i| args.get(i + 1).cloned())
-    };
-    let window: usize = value("--window").map_or(20, |v| v.parse().expect("--window N"));
-    let seconds: f64 = value("--seconds").map_or(140.0, |v| v.parse().expect("--seconds S"));
+    let args = args::Args::from_env();
+    let window: usize = args.parsed("--window", 20);
+    let seconds: f64 = args.parsed("--seconds", 140.0);
     let Some(inputs) = inputs(seconds, window) else {
         eprintln!("no EuRoC data: nothing measured");
         return;
@@ -48,7 +43,7 @@ async fn main() {
         "ape_trans_rmse": ape(&inputs, &estimates).1.rmse,
     });
     println!("{}", serde_json::to_string_pretty(&result).unwrap());
-    if let Some(path) = value("--json") {
+    if let Some(path) = args.value("--json") {
         std::fs::write(path, result.to_string()).unwrap();
     }
     server.assert_no_panic();

@@ -10,6 +10,9 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
+#[path = "../args.rs"]
+mod args;
+
 use std::time::Instant;
 
 use common::server::g2o_batches;
@@ -24,21 +27,10 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let path = args
-        .first()
-        .expect("usage: incremental_stream <file.g2o> [--json out] [--limit N]");
-    let flag = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
-    let limit: usize = flag("--limit").map_or(usize::MAX, |v| v.parse().expect("--limit N"));
-    let text = std::fs::read_to_string(path).expect("readable graph");
+    let args = args::Args::from_env();
+    let path = args.first("usage: incremental_stream <file.g2o> [--json out] [--limit N]");
+    let limit: usize = args.parsed("--limit", usize::MAX);
+    let text = std::fs::read_to_string(&path).expect("readable graph");
 
     // The streaming order shared with the tests: pose k with the edges whose later end is k.
     let mut batches: Vec<Batch> = g2o_batches(&text)
@@ -174,7 +166,7 @@ fn main() {
         .map(|l| format!("{l}\n"))
         .collect();
     let mut graph =
-        factord::io::parse_text(&truncated, std::path::Path::new(path), None).expect("graph");
+        factord::io::parse_text(&truncated, std::path::Path::new(&path), None).expect("graph");
     let batch = optimize(&mut graph.problem, &SolverOptions::default(), &mut |_| {
         std::ops::ControlFlow::Continue(())
     })
@@ -202,7 +194,7 @@ fn main() {
         "solve_phase_seconds": phases,
     });
     println!("{}", serde_json::to_string_pretty(&json).unwrap());
-    if let Some(out) = flag("--json") {
+    if let Some(out) = args.value("--json") {
         std::fs::write(out, json.to_string()).expect("writable --json");
     }
 }

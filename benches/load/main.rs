@@ -11,6 +11,9 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
+#[path = "../args.rs"]
+mod args;
+
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -209,20 +212,11 @@ async fn garbage_client(
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let flag = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
-    let sessions: usize = flag("--sessions").map_or(100, |v| v.parse().unwrap());
-    let poses: usize = flag("--poses").map_or(200, |v| v.parse().unwrap());
-    let seconds: u64 = flag("--seconds").map_or(120, |v| v.parse().unwrap());
-    let fsync = flag("--fsync").unwrap_or_else(|| "always".into());
+    let args = args::Args::from_env();
+    let sessions: usize = args.parsed("--sessions", 100);
+    let poses: usize = args.parsed("--poses", 200);
+    let seconds: u64 = args.parsed("--seconds", 120);
+    let fsync = args.value("--fsync").unwrap_or_else(|| "always".into());
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

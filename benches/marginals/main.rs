@@ -12,6 +12,9 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
+#[path = "../args.rs"]
+mod args;
+
 use std::process::Command;
 use std::time::Instant;
 
@@ -26,21 +29,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let file = args
-        .first()
-        .expect("usage: marginals <file.g2o> [--rounds N] [--key K]")
-        .clone();
-    let flag = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
-    let rounds: usize = flag("--rounds").map_or(20, |v| v.parse().unwrap());
+    let args = args::Args::from_env();
+    let file = args.first("usage: marginals <file.g2o> [--rounds N] [--key K]");
+    let rounds: usize = args.parsed("--rounds", 20);
     let text = std::fs::read_to_string(&file).unwrap();
 
     let mut graph = factord::io::load(file.as_ref(), None).unwrap();
@@ -49,7 +40,7 @@ fn main() {
     })
     .unwrap();
     let values = &graph.problem.values;
-    let key: u64 = flag("--key").map_or(values.key(values.len() - 1), |v| v.parse().unwrap());
+    let key: u64 = args.parsed("--key", values.key(values.len() - 1));
     let (mut factorize, mut query) = (Vec::new(), Vec::new());
     let mut held = None;
     for _ in 0..rounds {

@@ -16,6 +16,9 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
+#[path = "../args.rs"]
+mod args;
+
 use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -250,21 +253,9 @@ async fn latency(z: &zenoh::Session, text: &str) -> Value {
 }
 
 fn main() {
-    let args: Vec<String> = std::env::args()
-        .skip(1)
-        .filter(|a| a != "--bench")
-        .collect();
-    let file = args
-        .first()
-        .expect("usage: service <file.g2o> [--rounds N] [--json out]")
-        .clone();
-    let flag = |name: &str| {
-        args.iter()
-            .position(|a| a == name)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
-    let rounds: usize = flag("--rounds").map_or(5, |v| v.parse().unwrap());
+    let args = args::Args::from_env();
+    let file = args.first("usage: service <file.g2o> [--rounds N] [--json out]");
+    let rounds: usize = args.parsed("--rounds", 5);
     let text = std::fs::read_to_string(&file).unwrap();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -272,9 +263,9 @@ fn main() {
         .unwrap();
     let report = runtime.block_on(async {
         // `--fsync always|interval|never`: the journal policy of the server under test.
-        let fsync = flag("--fsync").unwrap_or_else(|| "always".into());
+        let fsync = args.value("--fsync").unwrap_or_else(|| "always".into());
         let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
-        let only_ingest = args.iter().any(|a| a == "--ingest-only");
+        let only_ingest = args.has("--ingest-only");
         let job = if only_ingest {
             Value::Null
         } else {
@@ -296,7 +287,7 @@ fn main() {
                "zenoh_publish_to_estimate": stream})
     });
     println!("{}", serde_json::to_string_pretty(&report).unwrap());
-    if let Some(out) = flag("--json") {
+    if let Some(out) = args.value("--json") {
         std::fs::write(out, report.to_string()).unwrap();
     }
 }
