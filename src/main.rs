@@ -535,6 +535,11 @@ struct ServeArgs {
     /// --zenoh-* settings apply on top of it.
     #[arg(long, env = "FACTORD_ZENOH_CONFIG")]
     zenoh_config: Option<PathBuf>,
+    /// The token label every zenoh peer acts as (needs zenoh's own authentication in
+    /// --zenoh-config: user/password, or mutual TLS); without it and with tokens on, zenoh
+    /// peers reach only unowned sessions.
+    #[arg(long, env = "FACTORD_ZENOH_PRINCIPAL")]
+    zenoh_principal: Option<String>,
     /// Do not start the zenoh peer (HTTP only).
     #[arg(long, env = "FACTORD_NO_ZENOH")]
     no_zenoh: bool,
@@ -597,6 +602,9 @@ fn serve(args: ServeArgs) -> Result<(), String> {
     }
     if let Some(v) = args.zenoh_config {
         config.zenoh.config_file = Some(v);
+    }
+    if let Some(v) = args.zenoh_principal {
+        config.zenoh.principal = Some(v);
     }
     if let Some(v) = args.workers {
         config.limits.workers = v.max(1);

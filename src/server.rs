@@ -1,7 +1,6 @@
 //! `factord serve`: configuration (file < environment < flags), the state directory, starting
 //! HTTP and zenoh over one [`Service`], and graceful shutdown.
 
-use std::future::IntoFuture;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -11,7 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::service::{Limits, Service};
 use crate::transport::zenoh::ZenohConfig;
-use crate::transport::{http, zenoh};
+use crate::transport::listener::{self as http_listener, HttpConfig};
+use crate::transport::{http, http_guard, zenoh};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -21,6 +21,8 @@ pub struct ServeConfig {
     pub state_dir: PathBuf,
     /// Largest accepted request body.
     pub max_body_bytes: usize,
+    /// HTTP connections (cap, timeouts) and the names and origins it answers.
+    pub http: HttpConfig,
     /// Run the zenoh peer.
     pub zenoh_enabled: bool,
     pub zenoh: ZenohConfig,
@@ -38,6 +40,7 @@ impl Default for ServeConfig {
             listen: "127.0.0.1:8080".into(),
             state_dir: PathBuf::from("factord-state"),
             max_body_bytes: 256 << 20,
+            http: HttpConfig::default(),
             zenoh_enabled: true,
             zenoh: ZenohConfig {
                 listen: vec!["tcp/127.0.0.1:7447".into()],
@@ -45,6 +48,7 @@ impl Default for ServeConfig {
                 multicast: false,
                 prefix: "factord".into(),
                 config_file: None,
+                principal: None,
             },
             limits: Limits::default(),
             journal: crate::journal::JournalConfig::default(),
@@ -109,37 +113,55 @@ pub struct ServerInfo {
     pub zenoh_prefix: String,
 }
 
-/// An exclusive hold on the state directory, released on drop.
+/// An exclusive hold on the state directory: an OS lock (`flock`) on `factord.lock`, held by the
+/// open file for the process's life and released by the kernel however the process ends, so a
+/// `kill -9` leaves no stale lock and two servers starting at once cannot both get it. The file
+/// holds the holder's pid, for the message the next one prints; it is never removed (a removal
+/// would let a third server lock a new file while a second still waits on the old one).
 struct StateDir {
-    lock: PathBuf,
+    _lock: std::fs::File,
 }
 
 impl StateDir {
     fn open(dir: &Path) -> Result<Self, ServeError> {
+        use std::io::{Read, Seek, Write};
         let err = |message: String| ServeError::StateDir {
             dir: dir.into(),
             message,
         };
         std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
-        let lock = dir.join("factord.lock");
-        if let Ok(pid) = std::fs::read_to_string(&lock) {
-            let alive = Path::new(&format!("/proc/{}", pid.trim())).exists();
-            if alive && pid.trim() != std::process::id().to_string() {
+        let path = dir.join("factord.lock");
+        let mut lock = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| err(format!("{}: {e}", path.display())))?;
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let mut holder = String::new();
+                let _ = lock.read_to_string(&mut holder);
+                let holder = match holder.trim() {
+                    "" => "another process".to_string(),
+                    pid => format!("process {pid}"),
+                };
                 return Err(err(format!(
-                    "in use by process {} (remove {} if that is stale)",
-                    pid.trim(),
-                    lock.display()
+                    "in use by {holder}, another factord serving it (it holds the lock on {})",
+                    path.display()
                 )));
             }
+            Err(std::fs::TryLockError::Error(e)) => {
+                return Err(err(format!("cannot lock {}: {e}", path.display())))
+            }
         }
-        std::fs::write(&lock, std::process::id().to_string()).map_err(|e| err(e.to_string()))?;
-        Ok(Self { lock })
-    }
-}
-
-impl Drop for StateDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.lock);
+        let pid = std::process::id().to_string();
+        lock.set_len(0)
+            .and_then(|()| lock.rewind())
+            .and_then(|()| lock.write_all(pid.as_bytes()))
+            .map_err(|e| err(format!("{}: {e}", path.display())))?;
+        Ok(Self { _lock: lock })
     }
 }
 
@@ -153,6 +175,9 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
     let state = StateDir::open(&config.state_dir)?;
+    // Every connection is a file: use all the process may have, and cap connections below it.
+    let file_limit = http_listener::raise_file_limit();
+    let connection_cap = http_listener::connection_cap(&config.http, file_limit);
     let service = Service::with_journal(
         config.limits.clone(),
         Some((config.state_dir.clone(), config.journal.clone())),
@@ -178,7 +203,11 @@ pub async fn run(
     let http_addr: SocketAddr = listener.local_addr().map_err(ServeError::Http)?;
     let tokens = tokens_for(&config.auth, &http_addr)?;
     let zenoh = if config.zenoh_enabled {
-        Some(zenoh::start(Arc::clone(&service), &config.zenoh).await?)
+        let policy = zenoh::ZenohPolicy {
+            tokens_required: tokens.is_some(),
+            max_payload_bytes: config.max_body_bytes,
+        };
+        Some(zenoh::start(Arc::clone(&service), &config.zenoh, policy).await?)
     } else {
         None
     };
@@ -202,12 +231,21 @@ pub async fn run(
         message: e.to_string(),
     })?;
     tracing::info!(
-        "factord {} serving HTTP on http://{http_addr} ({} workers)",
+        "factord {} serving HTTP on http://{http_addr} ({} workers, at most {connection_cap} \
+         connections + {} for health and metrics; open-file limit {})",
         env!("CARGO_PKG_VERSION"),
-        service.limits().workers
+        service.limits().workers,
+        http_listener::RESERVE_CONNECTIONS,
+        file_limit.map_or("unknown".into(), |l| l.to_string()),
     );
 
-    let app = http::router(Arc::clone(&service), config.max_body_bytes, tokens);
+    let guard = http_guard::HttpGuard::new(&config.listen, &http_addr, &config.http);
+    let app = http::router(
+        Arc::clone(&service),
+        config.max_body_bytes,
+        tokens,
+        Arc::new(guard),
+    );
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     tokio::spawn(async move {
         shutdown.await;
@@ -229,12 +267,9 @@ pub async fn run(
         });
     }
     let mut http_stop = stop_rx.clone();
-    let serve = axum::serve(listener, app)
-        .with_graceful_shutdown(async move {
-            let _ = http_stop.wait_for(|s| *s).await;
-            tracing::info!("shutting down: no new connections");
-        })
-        .into_future();
+    let serve = http_listener::serve(listener, app, &config.http, connection_cap, async move {
+        let _ = http_stop.wait_for(|s| *s).await;
+    });
     // Event streams (SSE, WebSocket) never end by themselves, and graceful shutdown would wait
     // for them forever: once the service has stopped, whatever is still open gets
     // `STREAM_GRACE` and is then closed.
@@ -242,8 +277,8 @@ pub async fn run(
         let _ = stopped_rx.wait_for(|s| *s).await;
         tokio::time::sleep(STREAM_GRACE).await;
     };
-    let result = tokio::select! {
-        result = serve => result,
+    let result: std::io::Result<()> = tokio::select! {
+        () = serve => Ok(()),
         () = streams_closed => {
             tracing::info!("shutting down: closing open event streams");
             Ok(())

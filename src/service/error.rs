@@ -127,6 +127,31 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, Ser
     })
 }
 
+/// Parses a JSON request body whose item lists (see `session::wire_list`) hold at most
+/// `max_items` items in all: 413 `batch_too_large` at the first item beyond, before the rest of
+/// the body is decoded.
+pub fn parse_json_within<T: serde::de::DeserializeOwned>(
+    bytes: &[u8],
+    max_items: usize,
+) -> Result<T, ServiceError> {
+    let mut beyond = None;
+    let decoded = crate::session::wire_list::decode_within(max_items, || {
+        parse_json::<T>(bytes).inspect_err(|e| beyond = e.body.field.clone())
+    });
+    decoded.unwrap_or_else(|exceeded| {
+        let error = ServiceError::new(
+            413,
+            "batch_too_large",
+            format!(
+                "the request has more than {} items (variables, factors, removals, fixes, \
+                 guesses, messages; limits.max_batch_items): split it",
+                exceeded.limit
+            ),
+        );
+        Err(error.at(beyond.unwrap_or_else(|| "batch".into())))
+    })
+}
+
 /// Parses query parameters (`a=1&b=2`; zenoh selectors separate them with `;`), naming the
 /// offending parameter on failure.
 pub fn parse_query<T: serde::de::DeserializeOwned>(query: &str) -> Result<T, ServiceError> {

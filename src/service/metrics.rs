@@ -92,7 +92,7 @@ pub fn count_rejection(error: &super::error::ErrorBody) {
 
 pub fn render(service: &Service) -> String {
     let mut out = String::new();
-    let health = service.health();
+    let health = service.health(&crate::service::Caller::Trusted);
     let sessions = service.sessions();
     let recovering = sessions.iter().filter(|s| s.is_recovering()).count();
     let memory: usize = sessions.iter().map(|s| s.memory_bytes()).sum();

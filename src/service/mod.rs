@@ -2,6 +2,8 @@
 //! transport calls. HTTP and zenoh only translate their requests into a [`Command`] and render the
 //! [`Reply`] or [`ServiceError`]; no behaviour lives in an adapter.
 
+pub mod caller;
+mod durability;
 pub mod error;
 pub mod jobs;
 pub mod metrics;
@@ -14,7 +16,8 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
-pub use error::{parse_json, parse_query, ErrorBody, ServiceError};
+pub use caller::Caller;
+pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
 use jobs::{Job, JobAnswer, JobParams};
 use pool::WorkerPool;
 
@@ -203,14 +206,21 @@ pub struct Service {
     started: Instant,
     /// Where durable sessions live, and how.
     journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
+    /// Session directories found at start that could not be loaded (see `durability`).
+    unloaded_on_disk: AtomicUsize,
 }
 
 /// Decodes an rpc command. A tagged enum hides where inside it a field was wrong, so when the
 /// command does not decode, the part that failed is decoded again on its own (a batch, a
-/// creation request) to name the field, as HTTP does (`batch.variables[0].kind`).
-pub fn parse_command(bytes: &[u8]) -> Result<Command, ServiceError> {
-    let error = match parse_json::<Command>(bytes) {
+/// creation request) to name the field, as HTTP does (`batch.variables[0].kind`). Lists hold
+/// at most `max_items` items (413 otherwise, found while decoding); a large command that does
+/// not decode is not decoded again, as a JSON tree that can take ten times its size.
+pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceError> {
+    /// Commands beyond this size are not re-read to locate their error.
+    const LOCATE_AT_MOST: usize = 4 << 20;
+    let error = match parse_json_within::<Command>(bytes, max_items) {
         Ok(command) => return Ok(command),
+        Err(e) if e.status() == 413 || bytes.len() > LOCATE_AT_MOST => return Err(e),
         Err(e) => e,
     };
     let Ok(serde_json::Value::Object(mut object)) = serde_json::from_slice(bytes) else {
@@ -301,6 +311,7 @@ impl Service {
             jobs_in_flight: AtomicUsize::new(0),
             started: Instant::now(),
             journal,
+            unloaded_on_disk: AtomicUsize::new(0),
         })
     }
 
@@ -311,15 +322,21 @@ impl Service {
         let Some((state_dir, config)) = self.journal.clone() else {
             return Ok(0);
         };
+        self.finish_deletions();
         let found = crate::journal::SessionDir::list(&state_dir)?;
+        let on_disk = crate::journal::SessionDir::names_on_disk(&state_dir)?.len();
         let mut count = 0;
         for (name, dir) in found {
             // Only the small identity files are read here; a session whose identity cannot be
-            // read is left on disk, unlisted, and the others start.
+            // read is left on disk, unlisted (its name cannot be created again), and the
+            // others start.
             let identity = match dir.load_identity() {
                 Ok(identity) => identity,
                 Err(e) => {
-                    tracing::error!(session = %name, "not recovered: {e}");
+                    tracing::error!(
+                        session = %name,
+                        "not recovered, its directory is kept for an operator: {e}"
+                    );
                     continue;
                 }
             };
@@ -354,6 +371,11 @@ impl Service {
                         session.recover(auto_optimize, recovered, durability)
                     });
                 match outcome {
+                    Ok(r) if r.corruption.is_some() => tracing::error!(
+                        entries = r.entries,
+                        "journal damaged, session recovered up to the damage and read-only: {}",
+                        r.corruption.unwrap_or_default()
+                    ),
                     Ok(r) => tracing::info!(
                         entries = r.entries,
                         truncated_bytes = r.truncated_bytes,
@@ -388,6 +410,7 @@ impl Service {
                 }
             });
         }
+        self.count_unloaded(on_disk.saturating_sub(count));
         Ok(count)
     }
 
@@ -402,9 +425,10 @@ impl Service {
         Ok(())
     }
 
-    /// A session that takes writes: 503 while it is being rebuilt from its journal.
-    fn writable(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
-        let session = self.session(name)?;
+    /// A session that takes writes, as `caller` sees it: 503 while it is being rebuilt from
+    /// its journal.
+    fn writable_as(&self, caller: &Caller, name: &str) -> Result<Arc<Session>, ServiceError> {
+        let session = self.session_as(caller, name)?;
         if session.is_recovering() {
             return Err(ServiceError::unavailable(
                 "recovering",
@@ -412,6 +436,7 @@ impl Service {
                 1,
             ));
         }
+        durability::refuse_if_corrupt(&session)?;
         Ok(session)
     }
 
@@ -430,6 +455,17 @@ impl Service {
             .push(observer);
     }
 
+    /// The session named `name` if it exists for `caller`; the same 404 as for a session that
+    /// was never created otherwise. Every command resolves its session here.
+    pub fn session_as(&self, caller: &Caller, name: &str) -> Result<Arc<Session>, ServiceError> {
+        self.session(name)
+            .ok()
+            .filter(|session| caller.may_see(session))
+            .ok_or_else(|| ServiceError::not_found("session", name))
+    }
+
+    /// The session named `name`, whoever owns it (in-process use; transports use
+    /// [`Self::session_as`]).
     pub fn session(&self, name: &str) -> Result<Arc<Session>, ServiceError> {
         self.sessions
             .read()
@@ -464,32 +500,36 @@ impl Service {
         Duration::from_millis(self.limits.wait_timeout_ms)
     }
 
+    /// Runs `command` with every session in reach (in-process callers).
     pub async fn execute(&self, command: Command) -> Result<Reply, ServiceError> {
+        self.execute_as(&Caller::Trusted, command).await
+    }
+
+    /// Runs `command` for `caller`: the sessions it names are resolved, and authorised, in
+    /// [`Self::session_as`] and nowhere else.
+    pub async fn execute_as(&self, caller: &Caller, command: Command) -> Result<Reply, ServiceError> {
         if !matches!(command, Command::Health) {
             self.refuse_when_stopping()?;
         }
         match command {
-            Command::Health => Ok(Reply::Health(self.health())),
+            Command::Health => Ok(Reply::Health(self.health(caller))),
             Command::ListSessions => Ok(Reply::Sessions {
-                sessions: self.sessions().iter().map(|s| s.info()).collect(),
+                sessions: self
+                    .sessions()
+                    .iter()
+                    .filter(|s| caller.may_see(s))
+                    .map(|s| s.info())
+                    .collect(),
             }),
-            Command::CreateSession(request) => {
-                self.create_session(request, None).map(Reply::Created)
-            }
+            Command::CreateSession(request) => self
+                .create_session(request, caller.owner_of_new())
+                .map(Reply::Created),
             Command::DeleteSession { session } => {
-                self.writable(&session)?;
-                let removed = self
-                    .sessions
-                    .write()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .remove(&session)
-                    .ok_or_else(|| ServiceError::not_found("session", &session))?;
-                removed.mark_deleted();
-                removed.remove_files();
+                self.delete_session(caller, &session)?;
                 Ok(Reply::Deleted { deleted: session })
             }
             Command::Fusion { session, messages } => {
-                let session = self.writable(&session)?;
+                let session = self.writable_as(caller, &session)?;
                 let batch = crate::session::fusion::FusionBatch { messages };
                 // A keyframe's optimisation takes about a millisecond: off the async threads.
                 let ack = tokio::task::spawn_blocking(move || session.apply_fusion(batch))
@@ -502,7 +542,7 @@ impl Service {
                 batch,
                 wait,
             } => {
-                let session = self.writable(&session)?;
+                let session = self.writable_as(caller, &session)?;
                 let (ack, will_solve) = session.apply_batch(batch)?;
                 metrics::count_accepted_batch();
                 let solved = if wait && will_solve {
@@ -516,7 +556,7 @@ impl Service {
                 Ok(Reply::Accepted(Accepted { ack, solved }))
             }
             Command::Optimize { session, wait } => {
-                let session = self.writable(&session)?;
+                let session = self.writable_as(caller, &session)?;
                 let (sequence, solve) = session.optimize_now()?;
                 let stats = if wait {
                     session.wait_solve(solve, self.wait_timeout()).await;
@@ -534,7 +574,7 @@ impl Service {
                 session,
                 auto_optimize,
             } => {
-                let session = self.writable(&session)?;
+                let session = self.writable_as(caller, &session)?;
                 session.set_auto_optimize(auto_optimize)?;
                 Ok(Reply::AutoOptimize {
                     session: session.name.clone(),
@@ -547,28 +587,28 @@ impl Service {
                 from,
                 to,
             } => Ok(Reply::Estimate(
-                self.session(&session)?
+                self.session_as(caller, &session)?
                     .estimate(&EstimateQuery { since, from, to }),
             )),
             Command::GetStats { session } => {
-                Ok(Reply::Stats(Box::new(self.session(&session)?.stats())))
+                Ok(Reply::Stats(Box::new(self.session_as(caller, &session)?.stats())))
             }
             Command::GetGraph { session } => {
-                Ok(Reply::Graph(Box::new(self.session(&session)?.graph())))
+                Ok(Reply::Graph(Box::new(self.session_as(caller, &session)?.graph())))
             }
             Command::GetMarginals {
                 session,
                 keys,
                 joint,
             } => {
-                let session = self.writable(&session)?;
+                let session = self.writable_as(caller, &session)?;
                 let query = crate::session::wire::MarginalsQuery { keys, joint };
                 self.marginals(session, query)
                     .await
                     .map(|m| Reply::Marginals(Box::new(m)))
             }
             Command::Cancel { session } => {
-                let session = self.session(&session)?;
+                let session = self.session_as(caller, &session)?;
                 Ok(Reply::Cancelled {
                     cancelled: session.cancel(),
                     session: session.name.clone(),
@@ -614,20 +654,21 @@ impl Service {
     /// (and so no stream to put it on).
     pub async fn deliver(
         &self,
+        caller: &Caller,
         session: &str,
         kind: &str,
         payload: &[u8],
     ) -> Result<(), ServiceError> {
-        let target = self.session(session)?;
+        let target = self.session_as(caller, session)?;
         let outcome = match kind {
-            "batch" => match parse_json::<Batch>(payload) {
+            "batch" => match parse_json_within::<Batch>(payload, self.limits.max_batch_items) {
                 Ok(batch) => {
                     let command = Command::ApplyBatch {
                         session: session.into(),
                         batch,
                         wait: false,
                     };
-                    self.execute(command).await.map(|_| ())
+                    self.execute_as(caller, command).await.map(|_| ())
                 }
                 Err(e) => Err(e),
             },
@@ -636,15 +677,18 @@ impl Service {
                     session: session.into(),
                     wait: false,
                 };
-                self.execute(command).await.map(|_| ())
+                self.execute_as(caller, command).await.map(|_| ())
             }
-            "fusion" => match parse_json::<crate::session::fusion::FusionBatch>(payload) {
+            "fusion" => match parse_json_within::<crate::session::fusion::FusionBatch>(
+                payload,
+                self.limits.max_batch_items,
+            ) {
                 Ok(batch) => {
                     let command = Command::Fusion {
                         session: session.into(),
                         messages: batch.messages,
                     };
-                    self.execute(command).await.map(|_| ())
+                    self.execute_as(caller, command).await.map(|_| ())
                 }
                 Err(e) => Err(e),
             },
@@ -660,7 +704,8 @@ impl Service {
         Ok(())
     }
 
-    pub fn health(&self) -> Health {
+    /// The service's health; `sessions` counts the sessions `caller` may see.
+    pub fn health(&self, caller: &Caller) -> Health {
         let pool = self.pool.handle();
         Health {
             status: if pool.is_stopping() { "stopping" } else { "ok" },
@@ -668,11 +713,10 @@ impl Service {
             workers: self.pool.workers,
             busy_workers: pool.busy(),
             queued: pool.waiting(),
-            sessions: self
-                .sessions
-                .read()
-                .unwrap_or_else(|p| p.into_inner())
-                .len(),
+            sessions: match caller {
+                Caller::Trusted => self.sessions.read().unwrap_or_else(|p| p.into_inner()).len(),
+                _ => self.sessions().iter().filter(|s| caller.may_see(s)).count(),
+            },
             session_kinds: catalogue::SESSION_KINDS.iter().map(|k| k.name).collect(),
             uptime_seconds: self.started.elapsed().as_secs_f64(),
         }
@@ -708,17 +752,23 @@ impl Service {
                 format!("session `{name}` already exists"),
             ));
         }
-        if sessions.len() >= self.limits.max_sessions {
+        // Directories on disk that were not loaded are never overwritten, and count.
+        let unloaded = self.unloaded_on_disk(&name)?;
+        if sessions.len() + unloaded >= self.limits.max_sessions {
             return Err(ServiceError::unavailable(
                 "too_many_sessions",
                 format!(
-                    "the service holds its maximum of {} sessions",
-                    self.limits.max_sessions
+                    "the service holds its maximum of {} sessions{}",
+                    self.limits.max_sessions,
+                    match unloaded {
+                        0 => String::new(),
+                        n => format!(" ({n} of them on disk but not loaded)"),
+                    }
                 ),
                 10,
             ));
         }
-        if let Some((state_dir, config)) = &self.journal {
+        if self.journal.is_some() {
             // What recovery needs to build it again: the resolved name, options and policy.
             let info = session.info();
             let record = CreateSession {
@@ -727,24 +777,9 @@ impl Service {
                 options: Some(info.options),
                 auto_optimize: info.auto_optimize,
             };
-            let durability =
-                crate::journal::SessionDir::create(state_dir, &name, &record, owner.as_deref())
-                    .and_then(|dir| {
-                        let journal = dir.open_journal(config.fsync)?;
-                        Ok(crate::session::Durability {
-                            dir,
-                            journal,
-                            config: config.clone(),
-                        })
-                    })
-                    .map_err(|e| {
-                        ServiceError::unavailable(
-                            "journal_failed",
-                            format!("cannot create the session's journal: {e}"),
-                            5,
-                        )
-                    })?;
-            session.attach(durability);
+            if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
+                session.attach(durability);
+            }
         }
         self.notify_observers(&session);
         sessions.insert(name, Arc::clone(&session));
@@ -798,8 +833,11 @@ impl Service {
         }
     }
 
-    /// Lists a recovered session.
+    /// Lists a recovered session. Unnamed creations (`s<n>`) continue after the names found.
     fn register(&self, name: String, session: Arc<Session>) {
+        if let Some(n) = name.strip_prefix('s').and_then(|n| n.parse::<u64>().ok()) {
+            self.next_id.fetch_max(n.saturating_add(1), Ordering::SeqCst);
+        }
         self.notify_observers(&session);
         self.sessions
             .write()

@@ -28,6 +28,7 @@ use crate::service::ServiceError;
 #[derive(Clone, Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct FusionBatch {
+    #[serde(deserialize_with = "super::wire_list::items")]
     pub messages: Vec<FusionMessage>,
 }
 
@@ -88,6 +89,7 @@ pub enum FusionMessage {
         d_velocity_d_gyro_bias: [f64; 9],
         d_position_d_accel_bias: [f64; 9],
         d_position_d_gyro_bias: [f64; 9],
+        #[serde(deserialize_with = "super::wire_list::numbers")]
         covariance: Vec<f64>,
     },
     /// Lidar odometry: the pose of `to` in the frame of `from`.

@@ -15,6 +15,7 @@ mod incremental;
 mod inspect;
 mod solve;
 pub mod wire;
+pub mod wire_list;
 pub mod wire_number;
 
 use std::collections::{BTreeMap, HashSet, VecDeque};
@@ -73,6 +74,8 @@ pub struct Session {
     durable: Mutex<Option<durable::Durable>>,
     /// Being rebuilt from its journal: writes are refused until it is done.
     recovering: AtomicBool,
+    /// Why its files could not be recovered whole (set once, never cleared): it is read-only.
+    corruption: std::sync::OnceLock<String>,
     /// The label of the bearer token that created it (HTTP with tokens), else nobody.
     owner: std::sync::OnceLock<Arc<str>>,
     runtime: tokio::runtime::Handle,
@@ -202,6 +205,7 @@ impl Session {
             marginals: Mutex::new(None),
             durable: Mutex::new(None),
             recovering: AtomicBool::new(false),
+            corruption: std::sync::OnceLock::new(),
             owner: std::sync::OnceLock::new(),
             runtime,
             pool,
@@ -726,9 +730,11 @@ impl Session {
             converged: st.converged,
             auto_optimize: st.auto,
             options: st.options.clone(),
-            last_error: st.last_error.clone(),
+            // A damaged recovery outranks solve errors, and a later solve does not clear it.
+            last_error: self.corruption().or(st.last_error.as_ref()).cloned(),
             last_summary: st.last_summary.clone(),
             recovering: self.is_recovering(),
+            corrupt: self.corruption().is_some(),
             memory_bytes: self.memory_bytes_locked(&st),
         }
     }

@@ -4,7 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::factors::RobustKernel;
 use crate::problem::Key;
-use crate::session::wire_number;
+use crate::session::{wire_list, wire_number};
 use crate::solver::{SolverOptions, Summary};
 
 /// Server-assigned id of an accepted factor, used to remove it.
@@ -59,7 +59,7 @@ pub struct VariableSpec {
     pub kind: String,
     /// Initial guess in the kind's wire encoding; when absent it is predicted from a factor of the
     /// same batch that connects it to a known variable (odometry), else the batch is rejected.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
     pub value: Option<Vec<f64>>,
     #[serde(default)]
     pub fixed: bool,
@@ -70,15 +70,16 @@ pub struct VariableSpec {
 pub struct FactorSpec {
     #[serde(rename = "type")]
     pub factor_type: String,
-    #[serde(deserialize_with = "wire_number::u64_list")]
+    #[serde(deserialize_with = "wire_list::keys")]
     pub keys: Vec<Key>,
+    #[serde(deserialize_with = "wire_list::numbers")]
     pub measurement: Vec<f64>,
     /// Information matrix, row-major n×n or its upper triangle row by row (n(n+1)/2 values, g2o's
     /// order). Exactly one of `information` and `sigmas` must be given.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
     pub information: Option<Vec<f64>>,
     /// Standard deviations (diagonal noise), one per residual.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
     pub sigmas: Option<Vec<f64>>,
     #[serde(default)]
     pub robust: Option<RobustKernel>,
@@ -89,6 +90,7 @@ pub struct FactorSpec {
 pub struct GuessSpec {
     #[serde(deserialize_with = "wire_number::u64")]
     pub key: Key,
+    #[serde(deserialize_with = "wire_list::numbers")]
     pub value: Vec<f64>,
 }
 
@@ -96,18 +98,18 @@ pub struct GuessSpec {
 #[derive(Clone, Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Batch {
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::items")]
     pub variables: Vec<VariableSpec>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::items")]
     pub factors: Vec<FactorSpec>,
-    #[serde(default, deserialize_with = "wire_number::u64_list")]
+    #[serde(default, deserialize_with = "wire_list::key_items")]
     pub remove_factors: Vec<FactorId>,
-    #[serde(default, deserialize_with = "wire_number::u64_list")]
+    #[serde(default, deserialize_with = "wire_list::key_items")]
     pub fix: Vec<Key>,
-    #[serde(default, deserialize_with = "wire_number::u64_list")]
+    #[serde(default, deserialize_with = "wire_list::key_items")]
     pub unfix: Vec<Key>,
     /// New values for existing variables.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "wire_list::items")]
     pub guesses: Vec<GuessSpec>,
 }
 
@@ -243,6 +245,10 @@ pub struct SessionStats {
     pub last_summary: Option<Summary>,
     /// Being rebuilt from its journal after a restart (writes get 503 until it is done).
     pub recovering: bool,
+    /// Its files could not be recovered whole (a damaged journal or snapshot, an entry that did
+    /// not replay): it holds what was recovered, is read-only (409 `session_corrupt`) and says
+    /// why in `last_error`; DELETE removes it.
+    pub corrupt: bool,
     /// Estimated memory this session holds, in bytes.
     pub memory_bytes: usize,
 }

@@ -63,9 +63,16 @@ pub fn usize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D::Err
     })
 }
 
+/// A `u64` read as [`u64`] reads it, as a list element.
 #[derive(Deserialize)]
 #[serde(transparent)]
-struct Whole(#[serde(deserialize_with = "u64")] u64);
+pub(crate) struct Whole(#[serde(deserialize_with = "u64")] u64);
+
+impl From<Whole> for u64 {
+    fn from(Whole(v): Whole) -> u64 {
+        v
+    }
+}
 
 /// A list of `u64` (keys, factor ids).
 pub fn u64_list<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<u64>, D::Error> {

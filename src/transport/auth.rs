@@ -4,9 +4,9 @@
 //! comments) and/or `FACTORD_TOKENS` (comma-separated). They are required automatically when
 //! HTTP listens beyond loopback. With tokens in force every route but `GET /v1/health` and the
 //! web pages needs `Authorization: Bearer <token>` (401 otherwise), and a session belongs to the
-//! token that created it: to any other token it does not exist (404), nor is it listed.
-//! Sessions created over zenoh (governed by zenoh's own access control) or before tokens were
-//! configured belong to nobody and are reachable with any valid token.
+//! label of the token that created it: to any other caller it does not exist (404), nor is it
+//! listed or counted (see `service::caller`). Sessions created over an unauthenticated zenoh or
+//! before tokens were configured belong to nobody and are reachable with any valid token.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -17,11 +17,7 @@ use axum::http::{header, HeaderValue};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
-use crate::service::{Service, ServiceError};
-
-/// The caller, once its token was checked: the token's label.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Principal(pub Option<Arc<str>>);
+use crate::service::{Caller, ServiceError};
 
 #[derive(Debug, Default)]
 pub struct Tokens {
@@ -115,18 +111,12 @@ fn unauthorized(message: &str) -> Response {
     response
 }
 
-/// The session a request path names (`/v1/sessions/<name>/…`), if any.
-fn session_in_path(path: &str) -> Option<&str> {
-    let rest = path.strip_prefix("/v1/sessions/")?;
-    let name = rest.split('/').next()?;
-    (!name.is_empty()).then_some(name)
-}
-
-/// Checks the bearer token, then that a session named in the path belongs to it (404
-/// otherwise, exactly as for a session that does not exist); leaves the [`Principal`] in the
-/// request for handlers that create or list sessions.
+/// Checks the bearer token and leaves the [`Caller`] in the request: the token's principal,
+/// or [`Caller::Anonymous`] on the open routes (health, the pages) without a valid token; 401
+/// elsewhere. Which sessions the caller may reach is decided by the service where it resolves
+/// the session name, not here from the URL's text.
 pub async fn require_token(
-    State((service, tokens)): State<(Arc<Service>, Arc<Tokens>)>,
+    State(tokens): State<Arc<Tokens>>,
     mut request: Request,
     next: Next,
 ) -> Response {
@@ -135,25 +125,24 @@ pub async fn require_token(
         || path == "/"
         || path.starts_with("/sessions/")
         || path.starts_with("/assets/");
-    if open {
-        return next.run(request).await;
-    }
-    let Some(label) = tokens.check(request.headers().get(header::AUTHORIZATION)) else {
-        let message = if request.headers().contains_key(header::AUTHORIZATION) {
-            "the bearer token is not valid"
-        } else {
-            "this server requires `Authorization: Bearer <token>`"
-        };
-        return unauthorized(message);
-    };
-    if let Some(name) = session_in_path(path) {
-        if let Ok(session) = service.session(name) {
-            if !session.visible_to(Some(&label)) {
-                return super::http::HttpError::from(ServiceError::not_found("session", name))
-                    .into_response();
-            }
+    let caller = match tokens.check(request.headers().get(header::AUTHORIZATION)) {
+        Some(label) => Caller::Principal(label),
+        None if open => Caller::Anonymous,
+        None => {
+            let message = if request.headers().contains_key(header::AUTHORIZATION) {
+                "the bearer token is not valid"
+            } else {
+                "this server requires `Authorization: Bearer <token>`"
+            };
+            return unauthorized(message);
         }
-    }
-    request.extensions_mut().insert(Principal(Some(label)));
+    };
+    request.extensions_mut().insert(caller);
+    next.run(request).await
+}
+
+/// Without tokens every HTTP caller is trusted (HTTP then listens on loopback only).
+pub async fn trust_everyone(mut request: Request, next: Next) -> Response {
+    request.extensions_mut().insert(Caller::Trusted);
     next.run(request).await
 }

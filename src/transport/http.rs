@@ -20,18 +20,21 @@ use tokio::sync::broadcast::error::RecvError;
 use tower_http::trace::TraceLayer;
 
 use crate::service::jobs::{JobAnswer, JobParams};
-use crate::service::{parse_json, parse_query, Command, Reply, Service, ServiceError};
+use crate::service::{
+    parse_json, parse_json_within, parse_query, Command, Reply, Service, ServiceError,
+};
 use crate::session::fusion::FusionBatch;
 use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 
 type Shared = State<Arc<Service>>;
 
-/// The router, with request bodies limited to `max_body_bytes`, and bearer tokens required
-/// when `tokens` is given.
+/// The router, with request bodies limited to `max_body_bytes`, bearer tokens required when
+/// `tokens` is given, and cross-site requests refused by `guard` before anything else.
 pub fn router(
     service: Arc<Service>,
     max_body_bytes: usize,
     tokens: Option<Arc<super::auth::Tokens>>,
+    guard: Arc<super::http_guard::HttpGuard>,
 ) -> Router {
     let routes = Router::new()
         .route("/v1/health", get(health))
@@ -57,14 +60,19 @@ pub fn router(
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(max_body_bytes));
+    // Every request carries its `Caller` from here on; a handler without one fails closed.
     let routes = match tokens {
         Some(tokens) => routes.layer(axum::middleware::from_fn_with_state(
-            (Arc::clone(&service), tokens),
+            tokens,
             super::auth::require_token,
         )),
-        None => routes,
+        None => routes.layer(axum::middleware::from_fn(super::auth::trust_everyone)),
     };
     routes
+        .layer(axum::middleware::from_fn_with_state(
+            guard,
+            super::http_guard::guard,
+        ))
         .layer(axum::middleware::from_fn(json_errors))
         .layer(TraceLayer::new_for_http())
         .with_state(service)
@@ -138,8 +146,16 @@ fn query<T: serde::de::DeserializeOwned>(raw: RawQuery) -> Result<T, HttpError> 
     Ok(parse_query(raw.0.as_deref().unwrap_or(""))?)
 }
 
-async fn run(service: &Service, command: Command, status: StatusCode) -> HttpResult {
-    let reply = service.execute(command).await?;
+/// The request's caller, left by the auth layer (see `router`).
+type Caller = axum::Extension<crate::service::Caller>;
+
+async fn run(
+    service: &Service,
+    caller: &Caller,
+    command: Command,
+    status: StatusCode,
+) -> HttpResult {
+    let reply = service.execute_as(&caller.0, command).await?;
     Ok((status, Json(reply)).into_response())
 }
 
@@ -155,28 +171,12 @@ async fn metrics(State(service): Shared) -> Response {
         .into_response()
 }
 
-async fn health(State(service): Shared) -> HttpResult {
-    run(&service, Command::Health, StatusCode::OK).await
+async fn health(State(service): Shared, caller: Caller) -> HttpResult {
+    run(&service, &caller, Command::Health, StatusCode::OK).await
 }
 
-type Caller = Option<axum::Extension<super::auth::Principal>>;
-
 async fn list_sessions(State(service): Shared, caller: Caller) -> HttpResult {
-    let reply = service.execute(Command::ListSessions).await?;
-    let reply = match (reply, caller) {
-        (Reply::Sessions { sessions }, Some(axum::Extension(principal))) => Reply::Sessions {
-            sessions: sessions
-                .into_iter()
-                .filter(|info| {
-                    service
-                        .session(&info.session)
-                        .is_ok_and(|s| s.visible_to(principal.0.as_ref()))
-                })
-                .collect(),
-        },
-        (reply, _) => reply,
-    };
-    Ok((StatusCode::OK, Json(reply)).into_response())
+    run(&service, &caller, Command::ListSessions, StatusCode::OK).await
 }
 
 async fn create_session(
@@ -185,17 +185,32 @@ async fn create_session(
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let request: CreateSession = parse_json(&body.map_err(body_error)?)?;
-    let owner = caller.and_then(|axum::Extension(p)| p.0);
-    let info = service.create_session(request, owner)?;
-    Ok((StatusCode::CREATED, Json(Reply::Created(info))).into_response())
+    let command = Command::CreateSession(request);
+    run(&service, &caller, command, StatusCode::CREATED).await
 }
 
-async fn stats(State(service): Shared, Path(session): Path<String>) -> HttpResult {
-    run(&service, Command::GetStats { session }, StatusCode::OK).await
+async fn stats(State(service): Shared, caller: Caller, Path(session): Path<String>) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::GetStats { session },
+        StatusCode::OK,
+    )
+    .await
 }
 
-async fn delete_session(State(service): Shared, Path(session): Path<String>) -> HttpResult {
-    run(&service, Command::DeleteSession { session }, StatusCode::OK).await
+async fn delete_session(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::DeleteSession { session },
+        StatusCode::OK,
+    )
+    .await
 }
 
 #[derive(Deserialize, Default)]
@@ -207,14 +222,17 @@ struct WaitParam {
 
 async fn apply_batch(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     raw: RawQuery,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let WaitParam { wait } = query(raw)?;
-    let batch: Batch = parse_json(&body.map_err(body_error)?)?;
+    let max_items = service.limits().max_batch_items;
+    let batch: Batch = parse_json_within(&body.map_err(body_error)?, max_items)?;
     run(
         &service,
+        &caller,
         Command::ApplyBatch {
             session,
             batch,
@@ -227,13 +245,16 @@ async fn apply_batch(
 
 async fn fusion(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
-    let batch: FusionBatch = parse_json(&body.map_err(body_error)?)?;
+    let max_items = service.limits().max_batch_items;
+    let batch: FusionBatch = parse_json_within(&body.map_err(body_error)?, max_items)?;
     let messages = batch.messages;
     run(
         &service,
+        &caller,
         Command::Fusion { session, messages },
         StatusCode::OK,
     )
@@ -242,6 +263,7 @@ async fn fusion(
 
 async fn optimize(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     raw: RawQuery,
 ) -> HttpResult {
@@ -251,17 +273,25 @@ async fn optimize(
     } else {
         StatusCode::ACCEPTED
     };
-    run(&service, Command::Optimize { session, wait }, status).await
+    run(
+        &service,
+        &caller,
+        Command::Optimize { session, wait },
+        status,
+    )
+    .await
 }
 
 async fn set_auto_optimize(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let auto_optimize: AutoOptimize = parse_json(&body.map_err(body_error)?)?;
     run(
         &service,
+        &caller,
         Command::SetAutoOptimize {
             session,
             auto_optimize,
@@ -273,12 +303,14 @@ async fn set_auto_optimize(
 
 async fn estimate(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     raw: RawQuery,
 ) -> HttpResult {
     let EstimateQuery { since, from, to } = query(raw)?;
     run(
         &service,
+        &caller,
         Command::GetEstimate {
             session,
             since,
@@ -290,8 +322,14 @@ async fn estimate(
     .await
 }
 
-async fn graph(State(service): Shared, Path(session): Path<String>) -> HttpResult {
-    run(&service, Command::GetGraph { session }, StatusCode::OK).await
+async fn graph(State(service): Shared, caller: Caller, Path(session): Path<String>) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::GetGraph { session },
+        StatusCode::OK,
+    )
+    .await
 }
 
 /// `?keys=3,17&joint=true`: keys as one comma-separated list.
@@ -305,6 +343,7 @@ struct MarginalsParams {
 
 async fn marginals(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     raw: RawQuery,
 ) -> HttpResult {
@@ -324,6 +363,7 @@ async fn marginals(
         .collect::<Result<Vec<_>, _>>()?;
     run(
         &service,
+        &caller,
         Command::GetMarginals {
             session,
             keys,
@@ -334,8 +374,13 @@ async fn marginals(
     .await
 }
 
-async fn summary(State(service): Shared, Path(session): Path<String>) -> HttpResult {
-    let Reply::Stats(stats) = service.execute(Command::GetStats { session }).await? else {
+async fn summary(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    let command = Command::GetStats { session };
+    let Reply::Stats(stats) = service.execute_as(&caller.0, command).await? else {
         unreachable!("GetStats answers with Stats");
     };
     match stats.last_summary {
@@ -346,17 +391,24 @@ async fn summary(State(service): Shared, Path(session): Path<String>) -> HttpRes
     }
 }
 
-async fn cancel(State(service): Shared, Path(session): Path<String>) -> HttpResult {
-    run(&service, Command::Cancel { session }, StatusCode::OK).await
+async fn cancel(State(service): Shared, caller: Caller, Path(session): Path<String>) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::Cancel { session },
+        StatusCode::OK,
+    )
+    .await
 }
 
 /// Server-Sent Events: every session event, named by its topic (`acks`, `stats`, `poses`,
 /// `summary`, `errors`); `lagged` when this client fell behind and missed some.
 async fn events(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, HttpError> {
-    let session = service.session(&session)?;
+    let session = service.session_as(&caller.0, &session)?;
     let receiver = session.subscribe_limited()?;
     drop(session);
     let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
@@ -385,16 +437,21 @@ async fn events(
 /// event naming the problem.
 async fn websocket(
     State(service): Shared,
+    caller: Caller,
     Path(session): Path<String>,
     upgrade: WebSocketUpgrade,
 ) -> Result<Response, HttpError> {
-    let events = service.session(&session)?.subscribe_limited()?;
-    Ok(upgrade.on_upgrade(move |socket| serve_websocket(socket, service, session, events)))
+    let events = service
+        .session_as(&caller.0, &session)?
+        .subscribe_limited()?;
+    let caller = caller.0;
+    Ok(upgrade.on_upgrade(move |socket| serve_websocket(socket, service, caller, session, events)))
 }
 
 async fn serve_websocket(
     mut socket: WebSocket,
     service: Arc<Service>,
+    caller: crate::service::Caller,
     session: String,
     mut events: tokio::sync::broadcast::Receiver<Arc<crate::session::wire::SessionEvent>>,
 ) {
@@ -418,7 +475,7 @@ async fn serve_websocket(
                     Some(Err(_)) | None => break,
                 };
                 // Accepted batches are acknowledged on the event stream; rejections too.
-                if service.deliver(&session, "batch", &bytes).await.is_err() {
+                if service.deliver(&caller, &session, "batch", &bytes).await.is_err() {
                     break; // the session is gone
                 }
             }

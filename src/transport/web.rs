@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 
-use crate::service::Service;
+use crate::service::{Caller, Service};
 
 const INDEX: &str = include_str!("web/index.html");
 const SESSION: &str = include_str!("web/session.html");
@@ -31,14 +31,19 @@ fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
 }
 
 /// The session page, or a 404 page naming the session when there is none (the page itself
-/// would only find out from its first request).
+/// would only find out from its first request). With tokens the page is open to anyone and the
+/// browser sends no token for it, so it is served whatever the name: the API calls it makes
+/// answer 404 for a session the token may not see, and the page says so; answering 404 here
+/// would tell strangers which sessions exist.
 async fn session_page(
     State(service): State<Arc<Service>>,
+    axum::Extension(caller): axum::Extension<Caller>,
     Path(session): Path<String>,
 ) -> Response {
-    match service.session(&session) {
-        Ok(_) => page(SESSION, "text/html; charset=utf-8").into_response(),
-        Err(_) => (
+    let exists = !caller.sees_everything() || service.session_as(&caller, &session).is_ok();
+    match exists {
+        true => page(SESSION, "text/html; charset=utf-8").into_response(),
+        false => (
             StatusCode::NOT_FOUND,
             [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
             format!(

@@ -17,7 +17,7 @@ use std::sync::Arc;
 use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
-use crate::service::{parse_query, Command, Service, ServiceError};
+use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 use crate::session::wire::{EstimateQuery, SessionEvent};
 
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
@@ -34,6 +34,13 @@ pub struct ZenohConfig {
     /// A zenoh JSON5 configuration to start from (access control, TLS, authentication: see
     /// `docker/zenoh-secure.json5`); the settings above are applied on top of it.
     pub config_file: Option<std::path::PathBuf>,
+    /// The principal (a token label, as in the tokens file) that every zenoh peer acts as: it
+    /// reaches the sessions that label owns, and owns the sessions it creates. Only with
+    /// zenoh's own authentication in `config_file` (user/password, or mutual TLS on every
+    /// endpoint): zenoh then decides who is a peer at all, and its ACL what each may do.
+    /// Without it, and with HTTP tokens on, zenoh peers are anonymous: they reach only unowned
+    /// sessions (see `service::caller`).
+    pub principal: Option<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -74,6 +81,54 @@ fn config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
     Ok(config)
 }
 
+/// Whether zenoh authenticates every peer before it may send anything: user/password on every
+/// link, or mutual TLS with only TLS endpoints (a plain `tcp/` endpoint beside it is open).
+fn authenticated(config: &zenoh::Config, cfg: &ZenohConfig) -> bool {
+    let set = |key: &str| {
+        config
+            .get_json(key)
+            .is_ok_and(|v| v != "null" && v != "false" && v != "\"\"")
+    };
+    let usrpwd = set("transport/auth/usrpwd/dictionary_file");
+    let mtls = set("transport/link/tls/enable_mtls")
+        && !cfg.listen.is_empty()
+        && cfg
+            .listen
+            .iter()
+            .chain(&cfg.connect)
+            .all(|e| e.starts_with("tls/"));
+    usrpwd || mtls
+}
+
+/// Who zenoh peers are: see [`ZenohConfig::principal`]. With HTTP tokens on and zenoh open,
+/// peers are anonymous, and the operator is told so.
+fn caller(
+    config: &zenoh::Config,
+    cfg: &ZenohConfig,
+    tokens_required: bool,
+) -> Result<Caller, ZenohError> {
+    match (&cfg.principal, authenticated(config, cfg)) {
+        (Some(label), true) => Ok(Caller::Principal(label.as_str().into())),
+        (Some(_), false) => Err(ZenohError::Config {
+            key: "zenoh.principal".into(),
+            message: "needs zenoh's own authentication in zenoh.config_file \
+                      (transport/auth/usrpwd/dictionary_file, or transport/link/tls/enable_mtls \
+                      with only tls/ endpoints): otherwise any peer would act as that principal"
+                .into(),
+        }),
+        (None, _) if tokens_required => {
+            tracing::warn!(
+                "HTTP requires bearer tokens but zenoh peers are anonymous: any zenoh peer can \
+                 create, read, write and delete the sessions created over zenoh, and sessions \
+                 created with a token are invisible over zenoh (404, not published). Secure \
+                 zenoh (user/password or mutual TLS) and set zenoh.principal to reach them"
+            );
+            Ok(Caller::Anonymous)
+        }
+        (None, _) => Ok(Caller::Trusted),
+    }
+}
+
 /// The running adapter; dropping it does not close the session, [`ZenohAdapter::close`] does.
 pub struct ZenohAdapter {
     session: zenoh::Session,
@@ -97,9 +152,34 @@ fn prefix(cfg: &ZenohConfig) -> String {
     }
 }
 
-pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdapter, ZenohError> {
+/// What the rest of the server's configuration decides for zenoh.
+#[derive(Clone, Copy, Debug)]
+pub struct ZenohPolicy {
+    /// HTTP requires bearer tokens: decides who zenoh peers are ([`ZenohConfig::principal`]).
+    pub tokens_required: bool,
+    /// The largest rpc or put payload, as HTTP's `max_body_bytes`: 413 `body_too_large`.
+    pub max_payload_bytes: usize,
+}
+
+/// The size refusal of a payload beyond the limit, before it is copied or decoded.
+fn oversized(payload: Option<&zenoh::bytes::ZBytes>, limit: usize) -> Option<ServiceError> {
+    let len = payload.map_or(0, |p| p.len());
+    (len > limit).then(|| {
+        let message = format!("the payload has {len} bytes; the limit is {limit} (max_body_bytes)");
+        ServiceError::new(413, "body_too_large", message).at("payload")
+    })
+}
+
+pub async fn start(
+    service: Arc<Service>,
+    cfg: &ZenohConfig,
+    policy: ZenohPolicy,
+) -> Result<ZenohAdapter, ZenohError> {
     let prefix = prefix(cfg);
-    let session = zenoh::open(config(cfg)?).await.map_err(zenoh_error)?;
+    let config = config(cfg)?;
+    let caller = Arc::new(caller(&config, cfg, policy.tokens_required)?);
+    let max_payload = policy.max_payload_bytes;
+    let session = zenoh::open(config).await.map_err(zenoh_error)?;
     let mut tasks = Vec::new();
 
     let rpc = session
@@ -107,14 +187,19 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
         .await
         .map_err(zenoh_error)?;
     let svc = Arc::clone(&service);
+    let who = Arc::clone(&caller);
     tasks.push(tokio::spawn(async move {
         while let Ok(query) = rpc.recv_async().await {
-            let svc = Arc::clone(&svc);
+            let (svc, who) = (Arc::clone(&svc), Arc::clone(&who));
             // Commands with `wait` may take a while: never block the queryable.
             tokio::spawn(async move {
-                let result = match crate::service::parse_command(&payload(&query)) {
-                    Ok(command) => svc.execute(command).await,
-                    Err(e) => Err(e),
+                let max_items = svc.limits().max_batch_items;
+                let result = match oversized(query.payload(), max_payload) {
+                    Some(refusal) => Err(refusal),
+                    None => match crate::service::parse_command(&payload(&query), max_items) {
+                        Ok(command) => svc.execute_as(&who, command).await,
+                        Err(e) => Err(e),
+                    },
                 };
                 reply(&query, result.map(|r| serde_json::to_vec(&r))).await;
             });
@@ -126,9 +211,10 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
         .await
         .map_err(zenoh_error)?;
     let svc = Arc::clone(&service);
+    let who = Arc::clone(&caller);
     tasks.push(tokio::spawn(async move {
         while let Ok(query) = estimates.recv_async().await {
-            let result = estimate_command(&query).map(|c| async { svc.execute(c).await });
+            let result = estimate_command(&query).map(|c| async { svc.execute_as(&who, c).await });
             let result = match result {
                 Ok(fut) => fut.await,
                 Err(e) => Err(e),
@@ -142,6 +228,7 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
         .await
         .map_err(zenoh_error)?;
     let svc = Arc::clone(&service);
+    let who = Arc::clone(&caller);
     let publisher = session.clone();
     let in_prefix = prefix.clone();
     tasks.push(tokio::spawn(async move {
@@ -152,10 +239,17 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
             else {
                 continue;
             };
-            let bytes = sample.payload().to_bytes();
             // Puts have no reply: rejections go to the session's stream (SSE and `out/errors`),
-            // or straight to `out/errors` when there is no such session.
-            if let Err(error) = svc.deliver(name, what, &bytes).await {
+            // or straight to `out/errors` when there is no such session or the put is too
+            // large to read (that refusal tells the sender nothing of the session).
+            let outcome = match oversized(Some(sample.payload()), max_payload) {
+                Some(refusal) => Err(refusal),
+                None => {
+                    let bytes = sample.payload().to_bytes();
+                    svc.deliver(&who, name, what, &bytes).await
+                }
+            };
+            if let Err(error) = outcome {
                 let event = SessionEvent::Error {
                     session: name.into(),
                     sequence: None,
@@ -170,13 +264,16 @@ pub async fn start(service: Arc<Service>, cfg: &ZenohConfig) -> Result<ZenohAdap
     }));
 
     // Forward every session's events, for the sessions that exist and those created later
-    // (subscribed before the creation is acknowledged, so no event is missed).
+    // (subscribed before the creation is acknowledged, so no event is missed); only those
+    // zenoh peers may see: any peer can subscribe to what is published.
     let publisher = session.clone();
     let fwd_prefix = prefix.clone();
     let runtime = tokio::runtime::Handle::current();
     service.observe_sessions(Box::new(move |s| {
-        let _guard = runtime.enter();
-        forward(publisher.clone(), fwd_prefix.clone(), s);
+        if caller.may_see(s) {
+            let _guard = runtime.enter();
+            forward(publisher.clone(), fwd_prefix.clone(), s);
+        }
     }));
     tracing::info!("zenoh peer {} serving `{prefix}/**`", session.zid());
     Ok(ZenohAdapter { session, tasks })
