@@ -315,8 +315,10 @@ async fn a_sliding_window_comes_back_after_kill_9() {
 
 /// A journal entry that no longer replays (here: written by hand, checksum intact, naming a
 /// variable that does not exist) stops the recovery there. The session keeps what was rebuilt,
-/// stays read-only, and says why in `last_error`. A session whose `session.json` cannot be read
-/// is left on disk and not listed. Other sessions recover as usual, and the server starts.
+/// is read-only for good (409 `session_corrupt`, `corrupt` in its statistics; before, it stayed
+/// `recovering` and answered 503 "try again shortly" forever, DELETE included), says why in
+/// `last_error`, and can be deleted. A session whose `session.json` cannot be read is left on
+/// disk and not listed. Other sessions recover as usual, and the server starts.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     let state = common::temp_dir("durability-stuck");
@@ -348,7 +350,7 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     let deadline = Instant::now() + Duration::from_secs(20);
     let stuck = loop {
         let stats = get(&c, &s.url("/v1/sessions/stuck")).await.1;
-        if stats["last_error"].is_string() {
+        if stats["corrupt"] == true {
             break stats;
         }
         assert!(Instant::now() < deadline, "no recovery error: {stats}");
@@ -356,10 +358,10 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     };
     let error = stuck["last_error"].as_str().unwrap();
     assert!(
-        error.starts_with("recovery from the journal stopped") && error.contains("entry 1"),
+        error.starts_with("recovery stopped") && error.contains("entry 1"),
         "{stuck}"
     );
-    assert_eq!(stuck["recovering"], true, "{stuck}");
+    assert_eq!(stuck["recovering"], false, "{stuck}");
     assert_eq!(
         (stuck["sequence"].as_u64(), stuck["num_variables"].as_u64()),
         (Some(1), Some(1)),
@@ -369,11 +371,14 @@ async fn a_journal_entry_that_does_not_replay_leaves_the_session_read_only() {
     let (status, v) = post(&c, &s.url("/v1/sessions/stuck/batches"), &batch).await;
     assert_eq!(
         (status, v["error"]["code"].as_str()),
-        (503, Some("recovering")),
+        (409, Some("session_corrupt")),
         "{v}"
     );
     let (status, _) = get(&c, &s.url("/v1/sessions/unreadable")).await;
     assert_eq!(status, 404);
     assert!(identity.exists(), "its files are left for an operator");
+    let deleted = c.delete(s.url("/v1/sessions/stuck")).send().await.unwrap();
+    assert_eq!(deleted.status(), 200);
+    assert!(!state.join("sessions/stuck").exists());
     s.assert_no_panic();
 }

@@ -5,6 +5,11 @@
 //! checksum does not match; reading stops at the first such record and the file is truncated
 //! there, so a torn tail is dropped, never misread. Everything before it was acknowledged only
 //! after its append (and, under `fsync always`, its fsync) returned.
+//!
+//! A bad record with an intact record anywhere after it is not a torn tail: an append only ever
+//! tears the last record, so what follows was acknowledged and the file was damaged later (a bad
+//! sector, a stray write). Cutting there would drop acknowledged records without a trace, so the
+//! file is then left exactly as it is and the damage is reported ([`Corruption`]).
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read, Write};
@@ -43,9 +48,35 @@ pub struct LogWriter {
 /// What reading a record file found.
 #[derive(Debug)]
 pub struct LogContents {
+    /// The intact records before the first bad one (all of them when there is none).
     pub records: Vec<Vec<u8>>,
-    /// Bytes of a torn or corrupt tail that were cut off.
+    /// Bytes of a torn tail that were cut off.
     pub truncated_bytes: u64,
+    /// A bad record followed by intact ones: the file was left untouched.
+    pub corruption: Option<Corruption>,
+}
+
+/// Where a record file is damaged: the first bad record, and the first intact record after it
+/// (which proves the damage is not a torn tail).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Corruption {
+    /// Byte offset of the first record whose length or checksum is wrong.
+    pub offset: u64,
+    /// Byte offset of the first intact record after it.
+    pub next_intact: u64,
+    /// Size of the file.
+    pub file_bytes: u64,
+}
+
+impl std::fmt::Display for Corruption {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "the record at byte {} is damaged (its length or checksum does not match) and intact \
+             records follow from byte {} (file size {} bytes): not a torn tail",
+            self.offset, self.next_intact, self.file_bytes
+        )
+    }
 }
 
 impl LogWriter {
@@ -113,8 +144,9 @@ impl LogWriter {
     }
 }
 
-/// Reads every intact record of `path` and truncates the file after the last one. A missing
-/// file has no records.
+/// Reads every intact record of `path`. A torn tail (a bad record with nothing intact after it)
+/// is cut off; a bad record with intact records after it is reported as [`Corruption`] and the
+/// file is not changed. A missing file has no records.
 pub fn read_log(path: &Path) -> io::Result<LogContents> {
     let mut data = Vec::new();
     match File::open(path) {
@@ -125,11 +157,25 @@ pub fn read_log(path: &Path) -> io::Result<LogContents> {
             return Ok(LogContents {
                 records: Vec::new(),
                 truncated_bytes: 0,
+                corruption: None,
             })
         }
         Err(e) => return Err(e),
     }
     let (records, valid) = parse(&data);
+    if valid < data.len() {
+        if let Some(next_intact) = next_intact_record(&data, valid + 1) {
+            return Ok(LogContents {
+                records,
+                truncated_bytes: 0,
+                corruption: Some(Corruption {
+                    offset: valid as u64,
+                    next_intact: next_intact as u64,
+                    file_bytes: data.len() as u64,
+                }),
+            });
+        }
+    }
     let truncated_bytes = (data.len() - valid) as u64;
     if truncated_bytes > 0 {
         let file = OpenOptions::new().write(true).open(path)?;
@@ -139,28 +185,41 @@ pub fn read_log(path: &Path) -> io::Result<LogContents> {
     Ok(LogContents {
         records,
         truncated_bytes,
+        corruption: None,
     })
+}
+
+/// The intact record starting at `at`, if there is one: its payload and where it ends.
+fn record_at(data: &[u8], at: usize) -> Option<(&[u8], usize)> {
+    let header = data.get(at..at.checked_add(HEADER)?)?;
+    let len = u32::from_le_bytes([header[0], header[1], header[2], header[3]]) as usize;
+    let crc = u32::from_le_bytes([header[4], header[5], header[6], header[7]]);
+    if len > MAX_RECORD {
+        return None;
+    }
+    let start = at + HEADER;
+    let payload = data.get(start..start.checked_add(len)?)?;
+    (crc32fast::hash(payload) == crc).then_some((payload, start + len))
 }
 
 /// The intact records at the start of `data`, and how many bytes they span.
 fn parse(data: &[u8]) -> (Vec<Vec<u8>>, usize) {
     let mut records = Vec::new();
     let mut at = 0;
-    while data.len() - at >= HEADER {
-        let len = u32::from_le_bytes(data[at..at + 4].try_into().expect("4 bytes")) as usize;
-        let crc = u32::from_le_bytes(data[at + 4..at + 8].try_into().expect("4 bytes"));
-        let start = at + HEADER;
-        if len > MAX_RECORD || data.len() - start < len {
-            break;
-        }
-        let payload = &data[start..start + len];
-        if crc32fast::hash(payload) != crc {
-            break;
-        }
+    while let Some((payload, end)) = record_at(data, at) {
         records.push(payload.to_vec());
-        at = start + len;
+        at = end;
     }
     (records, at)
+}
+
+/// The first offset from `from` on where an intact, non-empty record starts. Empty records are
+/// never written, and eight zero bytes (what a file system may leave in a torn tail) would pass
+/// as one: the empty payload's CRC is zero. A false match on damaged bytes needs a length that
+/// fits and a 32-bit checksum that matches by chance.
+fn next_intact_record(data: &[u8], from: usize) -> Option<usize> {
+    (from..data.len().saturating_sub(HEADER))
+        .find(|&at| record_at(data, at).is_some_and(|(payload, _)| !payload.is_empty()))
 }
 
 #[cfg(test)]
@@ -210,26 +269,71 @@ mod tests {
     }
 
     #[test]
-    fn a_flipped_bit_ends_the_log_at_that_record() {
+    fn a_flipped_bit_with_intact_records_after_it_is_corruption_and_the_file_is_kept() {
         let path = temp("flip");
         let mut w = LogWriter::open(&path, Fsync::Never).unwrap();
         for i in 0..4 {
             w.append(format!("record {i}").as_bytes()).unwrap();
         }
         drop(w);
+        let record = HEADER + 8;
         let mut bytes = std::fs::read(&path).unwrap();
-        let third = 2 * (HEADER + 8) + HEADER + 3;
-        bytes[third] ^= 0x10;
+        bytes[2 * record + HEADER + 3] ^= 0x10;
         std::fs::write(&path, &bytes).unwrap();
         let read = read_log(&path).unwrap();
         assert_eq!(
             read.records,
             vec![b"record 0".to_vec(), b"record 1".to_vec()]
         );
+        assert_eq!(
+            read.corruption,
+            Some(Corruption {
+                offset: 2 * record as u64,
+                next_intact: 3 * record as u64,
+                file_bytes: 4 * record as u64,
+            })
+        );
+        assert_eq!(read.truncated_bytes, 0);
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            bytes,
+            "the file is not changed"
+        );
+        // A damaged length field is found the same way.
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[2 * record + HEADER + 3] ^= 0x10;
+        bytes[record] = 0xff;
+        std::fs::write(&path, &bytes).unwrap();
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 1);
+        assert_eq!(
+            read.corruption.map(|c| c.next_intact),
+            Some(2 * record as u64)
+        );
+    }
+
+    #[test]
+    fn a_flipped_bit_in_the_last_record_is_a_torn_tail() {
+        let path = temp("flip-last");
+        let mut w = LogWriter::open(&path, Fsync::Never).unwrap();
+        for i in 0..4 {
+            w.append(format!("record {i}").as_bytes()).unwrap();
+        }
+        drop(w);
+        let mut bytes = std::fs::read(&path).unwrap();
+        let third = 3 * (HEADER + 8) + HEADER + 3;
+        bytes[third] ^= 0x10;
+        // Zeros after it (a file system's torn tail) are not an intact (empty) record.
+        bytes.extend_from_slice(&[0; 24]);
+        std::fs::write(&path, &bytes).unwrap();
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 3);
+        assert_eq!(read.corruption, None);
+        assert_eq!(read.truncated_bytes, HEADER as u64 + 8 + 24);
         // Appending after recovery continues a valid log.
         let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
         w.append(b"after").unwrap();
-        assert_eq!(read_log(&path).unwrap().records.len(), 3);
+        assert_eq!(read_log(&path).unwrap().records.len(), 4);
         // A header claiming an absurd length is a torn header, not an allocation.
         let mut bytes = std::fs::read(&path).unwrap();
         bytes.extend_from_slice(&u32::MAX.to_le_bytes());

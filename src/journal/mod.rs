@@ -9,7 +9,14 @@
 //! sessions/<name>/owner           the label of the token that created it (when there was one)
 //! sessions/<name>/snapshot.json   the last snapshot (written to a temporary file, fsynced, renamed)
 //! sessions/<name>/journal.log     checksummed entries since that snapshot (see `log`)
+//! sessions/.deleted-<name>-<n>/   a deleted session's directory, renamed before it is removed
 //! ```
+//!
+//! A directory is never overwritten: creating a session whose name has a directory (one that
+//! could not be loaded at start, say) is refused, and a creation that fails part way removes
+//! what it made. A deletion first renames the directory to a tombstone and fsyncs `sessions/`
+//! (from then on the session is gone, whatever happens), then removes the tombstone; one left by
+//! a crash or a failed removal is removed at the next start.
 //!
 //! Why files and not an embedded store: the journal is append-only with one writer per session
 //! and is only ever read whole at start; a checksummed record file does exactly that with one
@@ -101,6 +108,9 @@ pub struct Recovered {
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
     pub truncated_bytes: u64,
+    /// The journal is damaged before its end: `entries` are those before the damage, the file
+    /// is unchanged, and this says where (file and byte offset).
+    pub corruption: Option<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -109,6 +119,32 @@ pub enum JournalError {
     Io { path: PathBuf, source: io::Error },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
+    /// A directory of that name is on disk already (never overwritten).
+    #[error("{path} already exists")]
+    Exists { path: PathBuf },
+    /// A creation failed (`cause`) and its directory could not be removed either.
+    #[error("{cause}; removing the unfinished directory failed too: {removal}")]
+    RollBackFailed {
+        cause: Box<JournalError>,
+        removal: Box<JournalError>,
+    },
+}
+
+/// Where deleted sessions' directories are renamed to (session names never start with `.`).
+const TOMBSTONE_PREFIX: &str = ".deleted-";
+
+/// A deleted session's directory under its tombstone name: the deletion is durable already.
+#[derive(Debug)]
+pub struct Tombstone {
+    dir: PathBuf,
+}
+
+impl Tombstone {
+    /// Removes the directory for good. A failure leaves the tombstone, which the next start
+    /// removes.
+    pub fn purge(self) -> Result<(), JournalError> {
+        std::fs::remove_dir_all(&self.dir).map_err(io_at(&self.dir))
+    }
 }
 
 fn io_at(path: &Path) -> impl Fn(io::Error) -> JournalError + '_ {
@@ -129,9 +165,9 @@ impl SessionDir {
         state_dir.join("sessions")
     }
 
-    /// Creates the directory of a new session and records how it was created. A leftover
-    /// directory of the same name (a session deleted while the disk refused the removal) is
-    /// replaced.
+    /// Creates the directory of a new session and records how it was created. A directory of
+    /// that name already on disk is never touched: [`JournalError::Exists`]. When a later step
+    /// fails, the new directory is removed again, so a refused creation leaves nothing behind.
     pub fn create(
         state_dir: &Path,
         name: &str,
@@ -139,19 +175,110 @@ impl SessionDir {
         owner: Option<&str>,
     ) -> Result<Self, JournalError> {
         let root = Self::sessions_root(state_dir);
+        std::fs::create_dir_all(&root).map_err(io_at(&root))?;
         let dir = root.join(name);
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir).map_err(io_at(&dir))?;
+        // `create_dir`, not `create_dir_all`: it fails on an existing directory, atomically.
+        match std::fs::create_dir(&dir) {
+            Ok(()) => {}
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+                return Err(JournalError::Exists { path: dir })
+            }
+            Err(e) => return Err(io_at(&dir)(e)),
         }
-        std::fs::create_dir_all(&dir).map_err(io_at(&dir))?;
-        if let Some(owner) = owner {
-            write_atomically(&dir.join("owner"), owner.as_bytes())?;
+        let created = Self { dir };
+        let fill = || -> Result<(), JournalError> {
+            if let Some(owner) = owner {
+                write_atomically(&created.dir.join("owner"), owner.as_bytes())?;
+            }
+            // Written last: a directory without it is an unfinished creation, not listed.
+            let text = serde_json::to_vec_pretty(request).expect("serialisable");
+            write_atomically(&created.dir.join("session.json"), &text)?;
+            sync_dir(&root)
+        };
+        match fill() {
+            Ok(()) => Ok(created),
+            Err(e) => Err(created.roll_back(e)),
         }
-        // Written last: a directory without it is an unfinished creation and is ignored.
-        let text = serde_json::to_vec_pretty(request).expect("serialisable");
-        write_atomically(&dir.join("session.json"), &text)?;
+    }
+
+    /// Removes the directory of a creation that failed part way; returns `cause`, with the
+    /// removal's own failure added to it.
+    pub fn roll_back(&self, cause: JournalError) -> JournalError {
+        // `remove_dir` first: it needs no file descriptor, and running out of those (EMFILE) is
+        // one way a creation fails. The fsync after it is best effort: the directory has no
+        // `session.json` yet, so it would not come back as a session.
+        let removed = std::fs::remove_dir(&self.dir)
+            .or_else(|_| std::fs::remove_dir_all(&self.dir))
+            .map_err(io_at(&self.dir));
+        if removed.is_ok() {
+            let _ = sync_dir(self.dir.parent().unwrap_or(&self.dir));
+        }
+        match removed {
+            Ok(()) => cause,
+            Err(removal) => JournalError::RollBackFailed {
+                cause: Box::new(cause),
+                removal: Box::new(removal),
+            },
+        }
+    }
+
+    /// Makes the deletion of session `name` durable: renames its directory to a tombstone and
+    /// fsyncs `sessions/`. `None` when it has no directory (nothing to delete).
+    pub fn bury(state_dir: &Path, name: &str) -> Result<Option<Tombstone>, JournalError> {
+        let root = Self::sessions_root(state_dir);
+        let dir = root.join(name);
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let tombstone = root.join(format!("{TOMBSTONE_PREFIX}{name}-{nanos}"));
+        match std::fs::rename(&dir, &tombstone) {
+            Ok(()) => {}
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io_at(&dir)(e)),
+        }
         sync_dir(&root)?;
-        Ok(Self { dir })
+        Ok(Some(Tombstone { dir: tombstone }))
+    }
+
+    /// Removes the tombstones a crash or a failed removal left (their sessions were deleted);
+    /// returns the paths it could not remove, with why.
+    pub fn finish_deletions(state_dir: &Path) -> Vec<JournalError> {
+        let root = Self::sessions_root(state_dir);
+        let Ok(entries) = std::fs::read_dir(&root) else {
+            return Vec::new();
+        };
+        entries
+            .flatten()
+            .filter(|e| {
+                e.file_name()
+                    .to_string_lossy()
+                    .starts_with(TOMBSTONE_PREFIX)
+            })
+            .filter_map(|e| {
+                let dir = e.path();
+                tracing::info!("removing {} (a session deleted earlier)", dir.display());
+                Tombstone { dir }.purge().err()
+            })
+            .collect()
+    }
+
+    /// The name of every session directory on disk, loadable or not (tombstones excluded).
+    pub fn names_on_disk(state_dir: &Path) -> Result<Vec<String>, JournalError> {
+        let root = Self::sessions_root(state_dir);
+        let entries = match std::fs::read_dir(&root) {
+            Ok(e) => e,
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(io_at(&root)(e)),
+        };
+        let mut names = Vec::new();
+        for entry in entries {
+            let entry = entry.map_err(io_at(&root))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if entry.path().is_dir() && !name.starts_with(TOMBSTONE_PREFIX) {
+                names.push(name);
+            }
+        }
+        Ok(names)
     }
 
     /// The directories of every session under `state_dir`, by name.
@@ -166,8 +293,8 @@ impl SessionDir {
         for entry in entries {
             let entry = entry.map_err(io_at(&root))?;
             let path = entry.path();
-            if path.join("session.json").exists() {
-                let name = entry.file_name().to_string_lossy().into_owned();
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if path.join("session.json").exists() && !name.starts_with(TOMBSTONE_PREFIX) {
                 out.push((name, Self { dir: path }));
             }
         }
@@ -206,8 +333,8 @@ impl SessionDir {
         Ok(Identity { request, owner })
     }
 
-    /// Reads the snapshot and the journal after it (cutting a torn tail): the session's state,
-    /// possibly large.
+    /// Reads the snapshot and the journal after it (cutting a torn tail, keeping a damaged
+    /// journal as it is): the session's state, possibly large.
     pub fn load_state(&self) -> Result<Recovered, JournalError> {
         let snapshot_path = self.dir.join("snapshot.json");
         let snapshot = match std::fs::read(&snapshot_path) {
@@ -239,6 +366,9 @@ impl SessionDir {
             snapshot,
             entries,
             truncated_bytes: contents.truncated_bytes,
+            corruption: contents
+                .corruption
+                .map(|c| format!("{}: {c}", journal.display())),
         })
     }
 
@@ -253,11 +383,6 @@ impl SessionDir {
         write_atomically(&self.dir.join("snapshot.json"), &bytes)?;
         journal.clear().map_err(io_at(journal.path()))?;
         Ok(())
-    }
-
-    /// Removes the session's files (the session was deleted).
-    pub fn remove(&self) -> Result<(), JournalError> {
-        std::fs::remove_dir_all(&self.dir).map_err(io_at(&self.dir))
     }
 }
 

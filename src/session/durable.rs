@@ -11,7 +11,9 @@ use super::batch::PreparedBatch;
 use super::fusion::FusionBatch;
 use super::wire::{AutoOptimize, Batch, FactorId, FactorSpec, VariableSpec};
 use super::{catalogue, Session, State};
-use crate::journal::{Entry, JournalConfig, LogWriter, Recovered, SessionDir, Snapshot};
+use crate::journal::{
+    Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir, Snapshot,
+};
 use crate::service::ServiceError;
 
 /// What makes a session durable: its directory, its open journal and the policy.
@@ -28,6 +30,9 @@ pub struct Recovery {
     pub entries: usize,
     pub truncated_bytes: u64,
     pub seconds: f64,
+    /// The journal was damaged before its end: the session holds the entries before the damage
+    /// and is read-only (see [`Session::corruption`]).
+    pub corruption: Option<String>,
 }
 
 pub(super) struct Durable {
@@ -175,11 +180,27 @@ impl Session {
         self.recovering.store(true, Ordering::SeqCst);
     }
 
-    /// A recovery that stopped part way: the session keeps what was rebuilt and stays
-    /// read-only (`recovering` never clears, so writes cannot extend a journal that no longer
-    /// replays), and the reason shows in its statistics' `last_error`.
+    /// A recovery that stopped part way (a damaged snapshot, an entry that does not replay):
+    /// the session keeps what was rebuilt and becomes read-only for good, so writes cannot
+    /// extend a journal that no longer replays; its statistics say why. DELETE still works.
     pub fn recovery_failed(&self, reason: &str) {
-        self.lock().last_error = Some(format!("recovery from the journal stopped: {reason}"));
+        self.mark_corrupt(format!(
+            "recovery stopped: {reason}; the session keeps what was rebuilt and is read-only \
+             (its files are kept unchanged; DELETE removes them)"
+        ));
+    }
+
+    /// Makes the session read-only for good, with `reason` as its `last_error`. Set before
+    /// `recovering` clears, so no write slips in between.
+    fn mark_corrupt(&self, reason: String) {
+        let _ = self.corruption.set(reason);
+        self.recovering.store(false, Ordering::SeqCst);
+    }
+
+    /// Why the session's files could not be recovered whole, when they could not: it then
+    /// refuses writes (409 `session_corrupt`).
+    pub fn corruption(&self) -> Option<&String> {
+        self.corruption.get()
     }
 
     /// Rebuilds the session from what its directory held: the snapshot, then every journal
@@ -196,6 +217,7 @@ impl Session {
         self.lock().auto = AutoOptimize::Manual {};
         self.attach(durability);
         let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
+        let corruption = recovered.corruption;
         if let Some(snapshot) = recovered.snapshot {
             auto = snapshot.auto_optimize;
             let (ids, factors): (Vec<FactorId>, Vec<FactorSpec>) =
@@ -257,9 +279,20 @@ impl Session {
         {
             d.entries_since_snapshot = entries as u64;
         }
-        self.lock().auto = auto;
-        self.recovering.store(false, Ordering::SeqCst);
-        if self.kind.name != catalogue::SLIDING_WINDOW && self.lock().sequence > 0 {
+        let sequence = {
+            let mut st = self.lock();
+            st.auto = auto;
+            st.sequence
+        };
+        match &corruption {
+            Some(reason) => self.mark_corrupt(format!(
+                "journal damaged: {reason}; the session holds what precedes the damage (up to \
+                 sequence {sequence}) and is read-only (its files are kept unchanged; DELETE \
+                 removes them)"
+            )),
+            None => self.recovering.store(false, Ordering::SeqCst),
+        }
+        if self.kind.name != catalogue::SLIDING_WINDOW && sequence > 0 {
             self.optimize_now().map_err(|e| e.body.message)?;
         }
         Ok(Recovery {
@@ -267,6 +300,7 @@ impl Session {
             entries,
             truncated_bytes: recovered.truncated_bytes,
             seconds: start.elapsed().as_secs_f64(),
+            corruption,
         })
     }
 
@@ -330,18 +364,17 @@ impl Session {
         }
     }
 
-    /// Deletes the session's files (after it was deleted).
-    pub fn remove_files(&self) {
-        if let Some(d) = self
-            .durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .take()
-        {
-            if let Err(e) = d.dir.remove() {
-                tracing::warn!(session = self.name, "cannot remove its files: {e}");
-            }
-        }
+    /// Deletes the session's files through `bury` (which makes the deletion durable, see
+    /// [`SessionDir::bury`]) with the journal held, so no append runs meanwhile; closes the
+    /// journal once they are buried. On failure nothing changed and the session stays durable.
+    pub fn bury_files<T>(
+        &self,
+        bury: impl FnOnce() -> Result<T, JournalError>,
+    ) -> Result<T, JournalError> {
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        let buried = bury()?;
+        durable.take();
+        Ok(buried)
     }
 
     pub(super) fn durable_memory_bytes(&self) -> usize {

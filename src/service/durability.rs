@@ -1,0 +1,162 @@
+//! The service's side of durable sessions: creating a session's directory without ever
+//! overwriting one, deleting it durably, and refusing writes to a session whose files could not
+//! be recovered whole. The files themselves are `crate::journal`'s.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+
+use super::{Caller, Service, ServiceError};
+use crate::journal::{JournalError, SessionDir};
+use crate::session::wire::CreateSession;
+use crate::session::{Durability, Session};
+
+/// 409 `session_corrupt` for a session whose recovery found damaged files: it stays read-only
+/// until an operator deletes it (retrying cannot help, so no Retry-After).
+pub(super) fn refuse_if_corrupt(session: &Session) -> Result<(), ServiceError> {
+    match session.corruption() {
+        Some(reason) => Err(ServiceError::conflict(
+            "session_corrupt",
+            format!("session `{}` is read-only: {reason}", session.name),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn journal_failed(name: &str, e: &JournalError) -> ServiceError {
+    ServiceError::unavailable(
+        "journal_failed",
+        format!("cannot create the journal of session `{name}`: {e}"),
+        5,
+    )
+}
+
+/// 409 `session_on_disk`: the name has a directory that was not loaded (unreadable at start,
+/// or an unfinished creation). It is never overwritten; an operator repairs or removes it.
+fn on_disk(name: &str, dir: &std::path::Path) -> ServiceError {
+    tracing::warn!(
+        session = name,
+        "creation refused: {} exists on disk but is not loaded (see the start-up log); \
+         it is kept for an operator to repair or remove",
+        dir.display()
+    );
+    ServiceError::conflict(
+        "session_on_disk",
+        format!(
+            "session `{name}` cannot be created: its directory exists on disk but could not be \
+             loaded; it is kept unchanged for an operator to repair or remove"
+        ),
+    )
+}
+
+impl Service {
+    /// At start: `n` session directories could not be loaded. They count against
+    /// `max_sessions` (as the sessions they hold would after a repair) until the next start.
+    pub(super) fn count_unloaded(&self, n: usize) {
+        self.unloaded_on_disk.store(n, Ordering::SeqCst);
+        if n > 0 {
+            tracing::error!(
+                "{n} session director{} could not be loaded: kept for an operator, their names \
+                 cannot be created, and they count against max_sessions",
+                if n == 1 { "y" } else { "ies" }
+            );
+        }
+    }
+
+    /// Before creating `name` (a name not loaded): refuses it when its directory is on disk
+    /// (found unloadable at start, or an unfinished creation), and returns how many directories
+    /// on disk were not loaded at start, which count against `max_sessions`. A `stat`, no file
+    /// descriptor: the atomic check is [`SessionDir::create`]'s.
+    pub(super) fn unloaded_on_disk(&self, name: &str) -> Result<usize, ServiceError> {
+        let Some((state_dir, _)) = &self.journal else {
+            return Ok(0);
+        };
+        let dir = SessionDir::sessions_root(state_dir).join(name);
+        if std::fs::symlink_metadata(&dir).is_ok() {
+            return Err(on_disk(name, &dir));
+        }
+        Ok(self.unloaded_on_disk.load(Ordering::SeqCst))
+    }
+
+    /// Creates the directory and journal of new session `name` (journal enabled). Nothing is
+    /// left on disk when this fails, and an existing directory is never touched.
+    pub(super) fn create_files(
+        &self,
+        name: &str,
+        record: &CreateSession,
+        owner: Option<&str>,
+    ) -> Result<Option<Durability>, ServiceError> {
+        let Some((state_dir, config)) = &self.journal else {
+            return Ok(None);
+        };
+        let created = SessionDir::create(state_dir, name, record, owner).and_then(|dir| {
+            let journal = dir.open_journal(config.fsync);
+            match journal {
+                Ok(journal) => Ok(Durability {
+                    dir,
+                    journal,
+                    config: config.clone(),
+                }),
+                Err(e) => Err(dir.roll_back(e)),
+            }
+        });
+        match created {
+            Ok(durability) => Ok(Some(durability)),
+            Err(JournalError::Exists { path }) => Err(on_disk(name, &path)),
+            Err(e) => {
+                tracing::error!(session = name, "creation refused: {e}");
+                Err(journal_failed(name, &e))
+            }
+        }
+    }
+
+    /// Deletes session `name`. A durable session's directory is first renamed to a tombstone
+    /// (fsynced: from then on it stays deleted across a crash), then removed; when the rename
+    /// fails the session is not deleted (503 `delete_failed`). A failed removal of the tombstone
+    /// is only logged: the deletion is durable already and the next start removes it. A session
+    /// being recovered cannot be deleted yet (503 `recovering`); a corrupt one can.
+    pub(super) fn delete_session(&self, caller: &Caller, name: &str) -> Result<(), ServiceError> {
+        let session = match self.writable_as(caller, name) {
+            Ok(session) => session,
+            Err(e) if e.body.code == "session_corrupt" => self.session_as(caller, name)?,
+            Err(e) => return Err(e),
+        };
+        // Under the registry's lock, as creation is: the name cannot be created again between
+        // the rename and the removal from the registry.
+        let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
+        if !sessions.get(name).is_some_and(|s| Arc::ptr_eq(s, &session)) {
+            return Err(ServiceError::not_found("session", name));
+        }
+        let tombstone = match &self.journal {
+            Some((state_dir, _)) => session
+                .bury_files(|| SessionDir::bury(state_dir, name))
+                .map_err(|e| {
+                    tracing::error!(session = name, "delete refused: {e}");
+                    ServiceError::unavailable(
+                        "delete_failed",
+                        format!("session `{name}` was not deleted: its directory could not be moved aside: {e}"),
+                        5,
+                    )
+                })?,
+            None => None,
+        };
+        sessions.remove(name);
+        drop(sessions);
+        session.mark_deleted();
+        if let Some(Err(e)) = tombstone.map(|t| t.purge()) {
+            tracing::warn!(
+                session = name,
+                "deleted, but its files could not be removed (the next start removes them): {e}"
+            );
+        }
+        Ok(())
+    }
+
+    /// At start: removes the directories of sessions deleted before a crash or a failed removal.
+    pub(super) fn finish_deletions(&self) {
+        if let Some((state_dir, _)) = &self.journal {
+            for e in SessionDir::finish_deletions(state_dir) {
+                tracing::warn!("a deleted session's files could not be removed: {e}");
+            }
+        }
+    }
+}
