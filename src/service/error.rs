@@ -134,8 +134,18 @@ pub fn parse_json_within<T: serde::de::DeserializeOwned>(
     bytes: &[u8],
     max_items: usize,
 ) -> Result<T, ServiceError> {
+    use crate::session::wire_list::{check_shape, decode_within, ShapeError};
+    match check_shape(bytes, max_items) {
+        Ok(()) => {}
+        Err(e @ ShapeError::TooManyItems { .. }) => {
+            return Err(ServiceError::new(413, "batch_too_large", e.to_string()).at("batch"))
+        }
+        Err(e @ ShapeError::TooManyNumbers) => {
+            return Err(ServiceError::new(413, "list_too_long", e.to_string()).at("body"))
+        }
+    }
     let mut beyond = None;
-    let decoded = crate::session::wire_list::decode_within(max_items, || {
+    let decoded = decode_within(max_items, || {
         parse_json::<T>(bytes).inspect_err(|e| beyond = e.body.field.clone())
     });
     decoded.unwrap_or_else(|exceeded| {

@@ -49,6 +49,9 @@ pub struct Limits {
     /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
     /// `interrupted` termination (jobs) says so.
     pub max_solve_ms: u64,
+    /// A batch job whose solve is estimated (from the graph and its symbolic factorisation) to
+    /// need more memory than this is refused with 413 `job_too_large` before it starts.
+    pub max_job_memory_bytes: u64,
     /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
     /// counts as one) before new ones get 429.
     pub max_subscribers: usize,
@@ -67,6 +70,8 @@ impl Default for Limits {
             max_variables_per_session: 10_000_000,
             max_factors_per_session: 50_000_000,
             max_solve_ms: 600_000,
+            // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
+            max_job_memory_bytes: 4 << 30,
             max_subscribers: 64,
         }
     }
@@ -218,6 +223,26 @@ pub struct Service {
 pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceError> {
     /// Commands beyond this size are not re-read to locate their error.
     const LOCATE_AT_MOST: usize = 4 << 20;
+    // serde buffers a tagged enum whole before decoding its variant: the two commands that
+    // carry many items are decoded as their own structs, streaming, with the item budget.
+    match parse_json::<OpOnly>(bytes).map(|o| o.op) {
+        Ok(Some(op)) if op == "apply_batch" => {
+            let rpc = parse_json_within::<ApplyBatchRpc>(bytes, max_items).map_err(with_named_field)?;
+            return Ok(Command::ApplyBatch {
+                session: rpc.session,
+                batch: rpc.batch,
+                wait: rpc.wait,
+            });
+        }
+        Ok(Some(op)) if op == "fusion" => {
+            let rpc = parse_json_within::<FusionRpc>(bytes, max_items).map_err(with_named_field)?;
+            return Ok(Command::Fusion {
+                session: rpc.session,
+                messages: rpc.messages,
+            });
+        }
+        _ => {}
+    }
     let error = match parse_json_within::<Command>(bytes, max_items) {
         Ok(command) => return Ok(command),
         Err(e) if e.status() == 413 || bytes.len() > LOCATE_AT_MOST => return Err(e),
@@ -246,6 +271,36 @@ pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceE
     Err(located
         .filter(|e| e.body.field.is_some())
         .unwrap_or_else(|| with_named_field(error)))
+}
+
+/// The `op` of a command, every other field skipped unread.
+#[derive(Deserialize)]
+struct OpOnly {
+    #[serde(default)]
+    op: Option<String>,
+}
+
+/// [`Command::ApplyBatch`] as its own struct (see [`parse_command`]).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ApplyBatchRpc {
+    #[allow(dead_code)]
+    op: serde::de::IgnoredAny,
+    session: String,
+    batch: Batch,
+    #[serde(default)]
+    wait: bool,
+}
+
+/// [`Command::Fusion`] as its own struct (see [`parse_command`]).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FusionRpc {
+    #[allow(dead_code)]
+    op: serde::de::IgnoredAny,
+    session: String,
+    #[serde(deserialize_with = "crate::session::wire_list::items")]
+    messages: Vec<crate::session::fusion::FusionMessage>,
 }
 
 /// Decodes one part of a command on its own, where serde keeps the path: the error, with its
@@ -855,6 +910,7 @@ impl Service {
             text,
             params,
             Duration::from_millis(self.limits.max_solve_ms),
+            self.limits.max_job_memory_bytes,
         )?;
         let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
         let _slot = JobSlot(&self.jobs_in_flight);

@@ -89,7 +89,6 @@ pub enum FusionMessage {
         d_velocity_d_gyro_bias: [f64; 9],
         d_position_d_accel_bias: [f64; 9],
         d_position_d_gyro_bias: [f64; 9],
-        #[serde(deserialize_with = "super::wire_list::numbers")]
         covariance: Vec<f64>,
     },
     /// Lidar odometry: the pose of `to` in the frame of `from`.

@@ -59,7 +59,7 @@ pub struct VariableSpec {
     pub kind: String,
     /// Initial guess in the kind's wire encoding; when absent it is predicted from a factor of the
     /// same batch that connects it to a known variable (odometry), else the batch is rejected.
-    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
+    #[serde(default)]
     pub value: Option<Vec<f64>>,
     #[serde(default)]
     pub fixed: bool,
@@ -70,16 +70,15 @@ pub struct VariableSpec {
 pub struct FactorSpec {
     #[serde(rename = "type")]
     pub factor_type: String,
-    #[serde(deserialize_with = "wire_list::keys")]
+    #[serde(deserialize_with = "wire_number::u64_list")]
     pub keys: Vec<Key>,
-    #[serde(deserialize_with = "wire_list::numbers")]
     pub measurement: Vec<f64>,
     /// Information matrix, row-major n×n or its upper triangle row by row (n(n+1)/2 values, g2o's
     /// order). Exactly one of `information` and `sigmas` must be given.
-    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
+    #[serde(default)]
     pub information: Option<Vec<f64>>,
     /// Standard deviations (diagonal noise), one per residual.
-    #[serde(default, deserialize_with = "wire_list::optional_numbers")]
+    #[serde(default)]
     pub sigmas: Option<Vec<f64>>,
     #[serde(default)]
     pub robust: Option<RobustKernel>,
@@ -90,7 +89,6 @@ pub struct FactorSpec {
 pub struct GuessSpec {
     #[serde(deserialize_with = "wire_number::u64")]
     pub key: Key,
-    #[serde(deserialize_with = "wire_list::numbers")]
     pub value: Vec<f64>,
 }
 

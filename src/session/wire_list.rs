@@ -7,8 +7,9 @@
 //!   guesses; a fusion batch's messages) draw on one budget per decoding, set by
 //!   [`decode_within`] from `limits.max_batch_items`. The element past the budget stops the
 //!   decoding, and [`decode_within`] reports [`ItemsExceeded`];
-//! - the number lists inside an item (values, measurements, information matrices) are at most
-//!   [`MAX_NUMBERS`] long: no variable or factor kind has more.
+//! - before any of that, [`check_shape`] bounds every list in the text in one pass over its
+//!   bytes: item lists by the same limit, the lists inside an item (values, measurements,
+//!   information matrices) by [`MAX_NUMBERS`]: no variable or factor kind has more.
 
 use std::cell::Cell;
 use std::fmt;
@@ -62,49 +63,26 @@ fn take_item<E: de::Error>() -> Result<(), E> {
     })
 }
 
-/// A list read element by element, each element decoded as `W` and kept as `T`, and counted.
-struct Bounded<W, T> {
-    /// Counts against the item budget (else: at most [`MAX_NUMBERS`]).
-    items: bool,
-    kept: PhantomData<fn(W) -> T>,
-}
+/// A list of items read element by element, each decoded as `W`, kept as `T` and counted.
+struct Items<W, T>(PhantomData<fn(W) -> T>);
 
-impl<'de, W: Deserialize<'de> + Into<T>, T> Visitor<'de> for Bounded<W, T> {
+impl<'de, W: Deserialize<'de> + Into<T>, T> Visitor<'de> for Items<W, T> {
     type Value = Vec<T>;
 
     fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
-        match self.items {
-            true => f.write_str("a list"),
-            false => write!(f, "a list of at most {MAX_NUMBERS} numbers"),
-        }
+        f.write_str("a list")
     }
 
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<T>, A::Error> {
         let mut list = Vec::new();
-        // Each element is small (number lists inside it are bounded too): decode it, then
+        // Each element is small (the shape check bounds the lists inside it): decode it, then
         // count it before keeping it.
         while let Some(element) = seq.next_element::<W>()? {
-            if self.items {
-                take_item::<A::Error>()?;
-            } else if list.len() == MAX_NUMBERS {
-                return Err(de::Error::invalid_length(MAX_NUMBERS + 1, &self));
-            }
+            take_item::<A::Error>()?;
             list.push(element.into());
         }
         Ok(list)
     }
-}
-
-fn bounded<'de, D, W, T>(deserializer: D, items: bool) -> Result<Vec<T>, D::Error>
-where
-    D: Deserializer<'de>,
-    W: Deserialize<'de> + Into<T>,
-{
-    let visitor = Bounded::<W, T> {
-        items,
-        kept: PhantomData,
-    };
-    deserializer.deserialize_seq(visitor)
 }
 
 /// A list of a request's items (variables, factors, guesses, messages).
@@ -113,32 +91,87 @@ where
     D: Deserializer<'de>,
     T: Deserialize<'de>,
 {
-    bounded::<D, T, T>(deserializer, true)
+    deserializer.deserialize_seq(Items::<T, T>(PhantomData))
 }
 
-/// A list of items that are keys or factor ids (removals, fixes), read as
+/// A list of items that are keys or factor ids (removals, fixes), each read as
 /// [`super::wire_number::u64`] reads one.
 pub fn key_items<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<u64>, D::Error> {
-    bounded::<D, super::wire_number::Whole, u64>(deserializer, true)
+    deserializer.deserialize_seq(Items::<super::wire_number::Whole, u64>(PhantomData))
 }
 
-/// A factor's keys: at most [`MAX_NUMBERS`], each read as [`super::wire_number::u64`] reads one.
-pub fn keys<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<u64>, D::Error> {
-    bounded::<D, super::wire_number::Whole, u64>(deserializer, false)
+/// A list in a JSON text longer than its place allows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum ShapeError {
+    #[error("a list of the request has more than {limit} elements (limits.max_batch_items)")]
+    TooManyItems { limit: usize },
+    #[error("a list inside an item has more than {MAX_NUMBERS} elements")]
+    TooManyNumbers,
 }
 
-/// A list of at most [`MAX_NUMBERS`] numbers.
-pub fn numbers<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<f64>, D::Error> {
-    bounded::<D, f64, f64>(deserializer, false)
+/// Checks the lists of a JSON text before it is parsed, in one pass over its bytes: lists that
+/// are not inside another list (a request's item lists, at any object depth) hold at most
+/// `max_items` elements, lists inside a list at most [`MAX_NUMBERS`]. serde buffers a whole
+/// internally tagged enum before it decodes it, so a bound applied while decoding comes too
+/// late for those; this one comes first. Malformed JSON passes: the parser names its error.
+pub fn check_shape(bytes: &[u8], max_items: usize) -> Result<(), ShapeError> {
+    // Per open container: `Some(elements so far)` for a list, `None` for an object.
+    let mut open: Vec<Option<usize>> = Vec::new();
+    let mut lists_open = 0usize;
+    let mut in_string = false;
+    let mut escaped = false;
+    for &b in bytes {
+        if in_string {
+            match (escaped, b) {
+                (true, _) => escaped = false,
+                (false, b'\\') => escaped = true,
+                (false, b'"') => in_string = false,
+                _ => {}
+            }
+            continue;
+        }
+        // The first element of a list counts when it starts.
+        if let Some(Some(0)) = open.last() {
+            if !b.is_ascii_whitespace() && b != b']' {
+                count_element(&mut open, lists_open, max_items)?;
+            }
+        }
+        match b {
+            b'"' => in_string = true,
+            b'[' => {
+                open.push(Some(0));
+                lists_open += 1;
+            }
+            b'{' => open.push(None),
+            b']' | b'}' => {
+                if let Some(Some(_)) = open.pop() {
+                    lists_open -= 1;
+                }
+            }
+            b',' if matches!(open.last(), Some(Some(_))) => {
+                count_element(&mut open, lists_open, max_items)?
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
-/// An optional list of at most [`MAX_NUMBERS`] numbers (`null` is absent).
-pub fn optional_numbers<'de, D: Deserializer<'de>>(
-    deserializer: D,
-) -> Result<Option<Vec<f64>>, D::Error> {
-    #[derive(Deserialize)]
-    struct Numbers(#[serde(deserialize_with = "numbers")] Vec<f64>);
-    Ok(Option::<Numbers>::deserialize(deserializer)?.map(|Numbers(v)| v))
+fn count_element(
+    open: &mut [Option<usize>],
+    lists_open: usize,
+    max_items: usize,
+) -> Result<(), ShapeError> {
+    let Some(Some(elements)) = open.last_mut() else {
+        return Ok(());
+    };
+    *elements += 1;
+    match lists_open {
+        1 if *elements > max_items => Err(ShapeError::TooManyItems { limit: max_items }),
+        1 => Ok(()),
+        _ if *elements > MAX_NUMBERS => Err(ShapeError::TooManyNumbers),
+        _ => Ok(()),
+    }
 }
 
 #[cfg(test)]
@@ -151,8 +184,6 @@ mod tests {
         things: Vec<serde_json::Value>,
         #[serde(default, deserialize_with = "key_items")]
         keys: Vec<u64>,
-        #[serde(default, deserialize_with = "optional_numbers")]
-        value: Option<Vec<f64>>,
     }
 
     fn decode(text: &str, max: usize) -> Result<Result<Request, String>, ItemsExceeded> {
@@ -178,16 +209,27 @@ mod tests {
     }
 
     #[test]
-    fn number_lists_stop_past_their_maximum() {
-        let at = |n: usize| format!("{{\"value\": [{}]}}", vec!["0.5"; n].join(","));
-        let ok = decode(&at(MAX_NUMBERS), 10).unwrap().unwrap();
-        assert_eq!(ok.value.unwrap().len(), MAX_NUMBERS);
-        let refused = decode(&at(MAX_NUMBERS + 1), 10).unwrap().unwrap_err();
-        assert!(refused.contains("at most 1024 numbers"), "{refused}");
-        assert!(decode(r#"{"value": null}"#, 1)
-            .unwrap()
-            .unwrap()
-            .value
-            .is_none());
+    fn the_shape_check_bounds_item_lists_and_the_lists_inside_them() {
+        let numbers = |n: usize| vec!["0.5"; n].join(",");
+        let inside = |n: usize| format!(r#"{{"factors": [{{"information": [{}]}}]}}"#, numbers(n));
+        assert_eq!(check_shape(inside(MAX_NUMBERS).as_bytes(), 10), Ok(()));
+        assert_eq!(
+            check_shape(inside(MAX_NUMBERS + 1).as_bytes(), 10),
+            Err(ShapeError::TooManyNumbers)
+        );
+        let outer = |n: usize| format!(r#"{{"op": "x", "batch": {{"fix": [{}]}}}}"#, numbers(n));
+        assert_eq!(check_shape(outer(7).as_bytes(), 7), Ok(()));
+        assert_eq!(
+            check_shape(outer(8).as_bytes(), 7),
+            Err(ShapeError::TooManyItems { limit: 7 })
+        );
+        // Brackets and commas inside strings are text; empty lists hold nothing.
+        let text = r#"{"a": ["[,,,]", "\"[,]"], "b": [], "c": [ ]}"#;
+        assert_eq!(check_shape(text.as_bytes(), 2), Ok(()));
+        assert_eq!(check_shape(b"[[]]", 1), Ok(()));
+        assert_eq!(
+            check_shape(b"[1,2", 1),
+            Err(ShapeError::TooManyItems { limit: 1 })
+        );
     }
 }
