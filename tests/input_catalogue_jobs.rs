@@ -961,3 +961,33 @@ async fn j13_jobs_at_shutdown_get_503_shutting_down() {
     assert!(!log.contains("panicked"), "server panicked:\n{log}");
     println!("rows checked over HTTP: [\"J13\"] ({dropped} of 2 long jobs dropped, the late one refused)");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn j32_a_job_beyond_max_job_memory_bytes_gets_413_job_too_large() {
+    // 2000 poses need a few MiB; 1 MiB refuses them, while two poses fit.
+    let s = server_with_limits(json!({"max_job_memory_bytes": 1 << 20}));
+    let c = client();
+    let a = post_job(&c, &s.url("/v1/jobs"), g2o_pair(), None).await;
+    assert_eq!(a.status, 200, "J32 control: {}", a.text);
+    let start = Instant::now();
+    let a = post_job(&c, &s.url("/v1/jobs"), synthetic_manhattan(2000, 1), None).await;
+    assert_error(
+        "J32",
+        &a,
+        413,
+        "job_too_large",
+        Some("body"),
+        "more than limits.max_job_memory_bytes (1 MiB)",
+        None,
+    );
+    // Refused from the symbolic factorisation, before any numeric work.
+    assert_eq!(
+        a.json["error"]["message"]
+            .as_str()
+            .map(|m| m.contains("MiB of memory")),
+        Some(true)
+    );
+    assert!(start.elapsed() < Duration::from_secs(5));
+    s.assert_no_panic();
+    println!("rows checked over HTTP: [\"J32\"]");
+}

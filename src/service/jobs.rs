@@ -1,19 +1,23 @@
 //! One-shot batch jobs: a whole graph file in, the optimised result out (the `POST /v1/jobs`
-//! shortcut). The job runs on the worker pool like any solve.
+//! shortcut). A job runs on a thread of its own, computing only in turns lent by the worker
+//! pool (see `pool`), and gives its turn back at the solver's fine-grained checkpoints.
 
+use std::cell::{Cell, RefCell};
 use std::ops::ControlFlow;
 use std::path::Path;
-use std::time::Instant;
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use super::pool::{PoolHandle, TIME_SLICE};
+use super::pool::{PoolHandle, Turn};
 use super::ServiceError;
 use crate::factors::RobustKernel;
 use crate::io::{self, Format};
 use crate::session::catalogue::encode_variable;
 use crate::session::wire::VariableValue;
-use crate::solver::{self, Initialization, LinearSolverChoice, Method, SolverOptions, Summary};
+use crate::solver::{
+    self, Budget as _, Initialization, LinearSolverChoice, Method, SolverOptions, Summary,
+};
 
 /// Job parameters (HTTP query parameters).
 #[derive(Clone, Debug, Default, Deserialize, Serialize)]
@@ -83,9 +87,11 @@ pub struct Job {
     options: SolverOptions,
     robust: Option<RobustKernel>,
     pub output: JobOutput,
-    /// The solve stops after this long (its preempted slices added up) and answers with the
-    /// best estimate it reached; the Summary's termination is then `interrupted`.
-    max_solve: std::time::Duration,
+    /// The solve stops after this long (its turns added up) and answers with the best
+    /// estimate it reached; the Summary's termination is then `interrupted`.
+    max_solve: Duration,
+    /// A job whose solve is estimated to need more is refused (413 `job_too_large`).
+    max_memory_bytes: u64,
 }
 
 #[derive(Debug, Serialize)]
@@ -105,11 +111,13 @@ pub enum JobAnswer {
 }
 
 impl Job {
-    /// `max_solve`: when the solve stops (see [`Job::max_solve`]).
+    /// `max_solve`: when the solve stops (see [`Job::max_solve`]); `max_memory_bytes`: the
+    /// largest solve accepted (see [`Job::max_memory_bytes`]).
     pub fn new(
         text: String,
         params: JobParams,
-        max_solve: std::time::Duration,
+        max_solve: Duration,
+        max_memory_bytes: u64,
     ) -> Result<Self, ServiceError> {
         let bad = |field: &str, m: String| ServiceError::bad_request("invalid_parameter", field, m);
         let format =
@@ -200,95 +208,151 @@ impl Job {
             robust,
             output,
             max_solve,
+            max_memory_bytes,
         })
     }
 
-    /// Queues the job on the pool; the answer arrives on `reply`. Like session solves, a long
-    /// job yields its worker after a time slice when others wait, and continues at the back of
-    /// the queue. `false` when the pool is shutting down.
+    /// Starts the job on a thread of its own; it waits for a turn on the pool and the answer
+    /// arrives on `reply`. `false` when the pool is shutting down (or no thread could start).
     pub fn submit(self, pool: &PoolHandle, reply: Reply) -> bool {
-        let handle = pool.clone();
-        pool.submit(Box::new(move || {
-            let name = Path::new("request body");
-            let parsed = if self.bal {
-                io::bal::parse(name, &self.text).map(Parsed::Bal)
-            } else {
-                io::parse_text(&self.text, name, self.format).map(Parsed::PoseGraph)
-            };
-            match parsed {
-                Ok(mut graph) => {
-                    if self.robust.is_some() {
-                        graph.problem_mut().set_robust_kernel(self.robust);
-                    }
-                    let running = Running {
-                        graph,
-                        options: self.options,
-                        output: self.output,
-                        previous: None,
-                        max_solve: self.max_solve,
-                        spent: std::time::Duration::ZERO,
-                    };
-                    running.slice(handle, reply);
-                }
-                Err(e) => {
-                    let _ = reply.send(Err(ServiceError::bad_request(
-                        "invalid_graph",
-                        "body",
-                        e.to_string(),
-                    )));
-                }
+        if pool.is_stopping() {
+            return false;
+        }
+        let pool = pool.clone();
+        std::thread::Builder::new()
+            .name("factord-job".into())
+            .spawn(move || self.run(pool, reply))
+            .is_ok()
+    }
+
+    fn run(self, pool: PoolHandle, reply: Reply) {
+        // At shutdown the job is dropped unparsed, and with it `reply`: the caller hears so.
+        let Some(turn) = pool.lend_turn() else { return };
+        // Parsing cannot stop part way; the body size limit bounds it.
+        let name = Path::new("request body");
+        let parsed = if self.bal {
+            io::bal::parse(name, &self.text).map(Parsed::Bal)
+        } else {
+            io::parse_text(&self.text, name, self.format).map(Parsed::PoseGraph)
+        };
+        drop(self.text);
+        let mut graph = match parsed {
+            Ok(graph) => graph,
+            Err(e) => {
+                let _ = reply.send(Err(ServiceError::bad_request(
+                    "invalid_graph",
+                    "body",
+                    e.to_string(),
+                )));
+                return;
             }
-        }))
+        };
+        if self.robust.is_some() {
+            graph.problem_mut().set_robust_kernel(self.robust);
+        }
+        let budget = JobBudget {
+            pool,
+            turn: RefCell::new(Some(turn)),
+            spent: Cell::new(Duration::ZERO),
+            max_solve: self.max_solve,
+            max_memory_bytes: self.max_memory_bytes,
+        };
+        let result = solver::optimize_within(
+            graph.problem_mut(),
+            &self.options,
+            &mut |_| budget.checkpoint(),
+            &budget,
+        );
+        let answer = match result {
+            Ok(summary) => Ok(Finished {
+                graph,
+                output: self.output,
+            }
+            .answer(summary)),
+            Err(solver::SolverError::MemoryLimit {
+                estimated, limit, ..
+            }) => Err(ServiceError::new(
+                413,
+                "job_too_large",
+                format!(
+                    "the job's solve would need about {} MiB of memory, more than limits.max_job_memory_bytes ({} MiB)",
+                    estimated.div_ceil(1 << 20),
+                    limit / (1 << 20)
+                ),
+            )
+            .at("body")),
+            Err(e) => Err(ServiceError::new(422, "solve_failed", e.to_string())),
+        };
+        // The turn goes back before the answer is sent: the caller may submit more at once.
+        drop(budget);
+        let _ = reply.send(answer);
     }
 }
 
 pub type Reply = tokio::sync::oneshot::Sender<Result<JobAnswer, ServiceError>>;
 
-struct Running {
-    graph: Parsed,
-    options: SolverOptions,
-    output: JobOutput,
-    /// What the earlier slices did.
-    previous: Option<Summary>,
-    max_solve: std::time::Duration,
-    /// Time the earlier slices took.
-    spent: std::time::Duration,
+/// A job's solve budget: its time limit counts the turns it held; at every solver checkpoint it
+/// stops (time limit, shutdown) or gives its turn back when it has held it for a time slice while
+/// others wait, keeping every buffer of the solve for when its next turn comes.
+struct JobBudget {
+    pool: PoolHandle,
+    /// `None` only when the pool shut down while the job waited for a turn.
+    turn: RefCell<Option<Turn>>,
+    /// Time held in earlier turns.
+    spent: Cell<Duration>,
+    max_solve: Duration,
+    max_memory_bytes: u64,
 }
 
-impl Running {
-    fn slice(mut self, pool: PoolHandle, reply: Reply) {
-        let start = Instant::now();
-        let mut preempted = false;
-        let (spent, max_solve) = (self.spent, self.max_solve);
-        let result = solver::optimize(self.graph.problem_mut(), &self.options, &mut |_| {
-            if pool.is_stopping() || spent + start.elapsed() >= max_solve {
-                return ControlFlow::Break(());
-            }
-            if pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
-                preempted = true;
-                return ControlFlow::Break(());
-            }
-            ControlFlow::Continue(())
-        });
-        let summary = match result {
-            Ok(summary) => merge(self.previous.take(), summary),
-            Err(e) => {
-                let _ = reply.send(Err(ServiceError::new(422, "solve_failed", e.to_string())));
-                return;
-            }
-        };
-        if preempted {
-            self.spent += start.elapsed();
-            self.previous = Some(summary);
-            self.options.initialization = Initialization::None;
-            // At shutdown the task (and with it `reply`) is dropped: the caller hears so.
-            let handle = pool.clone();
-            pool.submit(Box::new(move || self.slice(handle, reply)));
-            return;
+impl JobBudget {
+    fn spent(&self) -> Duration {
+        self.spent.get()
+            + self
+                .turn
+                .borrow()
+                .as_ref()
+                .map_or(Duration::ZERO, Turn::held)
+    }
+}
+
+impl solver::Budget for JobBudget {
+    fn checkpoint(&self) -> ControlFlow<()> {
+        if self.pool.is_stopping() || self.spent() >= self.max_solve {
+            return ControlFlow::Break(());
         }
-        let _ = reply.send(Ok(self.answer(summary)));
+        let mut turn = self.turn.borrow_mut();
+        let Some(held) = turn.take_if(|t| t.should_yield()) else {
+            return if turn.is_some() {
+                ControlFlow::Continue(())
+            } else {
+                ControlFlow::Break(())
+            };
+        };
+        self.spent.set(self.spent.get() + held.held());
+        *turn = held.requeue();
+        if turn.is_some() {
+            ControlFlow::Continue(())
+        } else {
+            ControlFlow::Break(())
+        }
     }
 
+    fn remaining(&self) -> Option<Duration> {
+        Some(self.max_solve.saturating_sub(self.spent()))
+    }
+
+    fn max_memory_bytes(&self) -> Option<u64> {
+        Some(self.max_memory_bytes)
+    }
+}
+
+/// A solved job, to be answered in the requested output.
+struct Finished {
+    graph: Parsed,
+    output: JobOutput,
+}
+
+impl Finished {
     fn answer(self, summary: Summary) -> JobAnswer {
         match (&self.graph, self.output) {
             (Parsed::PoseGraph(g), JobOutput::G2o) => JobAnswer::Text(io::g2o::to_string(g)),
@@ -319,31 +383,4 @@ impl Running {
             }
         }
     }
-}
-
-/// One Summary for a solve that ran in several slices.
-fn merge(previous: Option<Summary>, mut next: Summary) -> Summary {
-    let Some(p) = previous else { return next };
-    next.given_options = p.given_options;
-    next.initial_chi2 = p.initial_chi2;
-    next.initialized_chi2 = p.initialized_chi2;
-    next.used.initialization = p.used.initialization;
-    for r in &mut next.iteration_log {
-        r.iteration += p.iterations;
-    }
-    let mut log = p.iteration_log;
-    log.append(&mut next.iteration_log);
-    next.iteration_log = log;
-    next.iterations += p.iterations;
-    next.successful_steps += p.successful_steps;
-    next.unsuccessful_steps += p.unsuccessful_steps;
-    next.solve_seconds += p.solve_seconds;
-    let (t, q) = (&mut next.timings, &p.timings);
-    t.preprocess_seconds += q.preprocess_seconds;
-    t.initialization_seconds += q.initialization_seconds;
-    t.linearize_seconds += q.linearize_seconds;
-    t.factorize_seconds += q.factorize_seconds;
-    t.linear_solve_seconds += q.linear_solve_seconds;
-    t.evaluate_seconds += q.evaluate_seconds;
-    next
 }

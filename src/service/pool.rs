@@ -5,10 +5,18 @@
 //! that has run for a time slice while others wait yields and requeues at the back. So a huge
 //! problem delays a small session by at most one slice per worker, never indefinitely.
 //! The queue is bounded by construction (one entry per session plus at most `max_jobs` jobs).
+//!
+//! Batch jobs run on threads of their own but compute only during a *turn* a worker lends them
+//! ([`PoolHandle::lend_turn`]): the lending worker blocks, so the pool's concurrency is unchanged,
+//! and a job gives its turn back at any of the solver's fine-grained checkpoints without losing
+//! its state (factorisations, buffers), then queues for the next one. With two workers or more,
+//! jobs are lent at most `workers - 1` turns at once: one worker always serves sessions, so a
+//! session's small solve never waits behind giant jobs, even behind a factorisation that cannot
+//! be interrupted.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{mpsc, Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -18,12 +26,21 @@ pub type Task = Box<dyn FnOnce() + Send>;
 /// stopped, at the back of the queue).
 pub const TIME_SLICE: Duration = Duration::from_millis(200);
 
+/// A queued task; `lent` marks a turn lent to a job, which counts against `max_lent`.
+struct Queued {
+    task: Task,
+    lent: bool,
+}
+
 struct Shared {
-    queue: Mutex<VecDeque<Task>>,
+    queue: Mutex<VecDeque<Queued>>,
     ready: Condvar,
     stopping: AtomicBool,
     busy: AtomicUsize,
     idle: Condvar,
+    /// Turns lent to jobs now, and how many may be at once (changed under the queue's lock).
+    lent: AtomicUsize,
+    max_lent: usize,
 }
 
 /// A cheap handle tasks use to submit work and to ask whether they should yield.
@@ -35,6 +52,10 @@ pub struct PoolHandle {
 impl PoolHandle {
     /// Queues a task; `false` when the pool is shutting down.
     pub fn submit(&self, task: Task) -> bool {
+        self.enqueue(Queued { task, lent: false })
+    }
+
+    fn enqueue(&self, entry: Queued) -> bool {
         if self.is_stopping() {
             return false;
         }
@@ -42,9 +63,33 @@ impl PoolHandle {
             .queue
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .push_back(task);
-        self.shared.ready.notify_one();
+            .push_back(entry);
+        // A lent turn may be the only runnable entry for a worker other than the one woken.
+        self.shared.ready.notify_all();
         true
+    }
+
+    /// Blocks the calling thread (not a worker) until a worker lends it a turn, in queue order
+    /// with the other tasks; `None` when the pool is shutting down (or shut down meanwhile).
+    pub fn lend_turn(&self) -> Option<Turn> {
+        let (go, granted) = mpsc::sync_channel::<mpsc::Sender<()>>(1);
+        let task: Task = Box::new(move || {
+            let (end, ended) = mpsc::channel::<()>();
+            if go.send(end).is_ok() {
+                // The worker waits here, idle, until the turn is dropped.
+                let _ = ended.recv();
+            }
+        });
+        if !self.enqueue(Queued { task, lent: true }) {
+            return None;
+        }
+        // A task dropped unrun (shutdown) drops `go`: the wait ends with an error.
+        let end = granted.recv().ok()?;
+        Some(Turn {
+            pool: self.clone(),
+            _end: end,
+            started: Instant::now(),
+        })
     }
 
     /// Tasks waiting for a worker.
@@ -65,6 +110,35 @@ impl PoolHandle {
     }
 }
 
+/// A worker's turn lent to a job's thread (see [`PoolHandle::lend_turn`]); dropping it gives
+/// the worker back.
+pub struct Turn {
+    pool: PoolHandle,
+    /// Dropping it wakes the lending worker.
+    _end: mpsc::Sender<()>,
+    started: Instant,
+}
+
+impl Turn {
+    /// How long this turn has been held.
+    pub fn held(&self) -> Duration {
+        self.started.elapsed()
+    }
+
+    /// Whether to give the turn back: held for a time slice while other work waits.
+    pub fn should_yield(&self) -> bool {
+        self.held() > TIME_SLICE && self.pool.waiting() > 0
+    }
+
+    /// Gives the worker back and queues for another turn (at the back, behind the work that was
+    /// waiting). `None` when the pool shuts down meanwhile.
+    pub fn requeue(self) -> Option<Turn> {
+        let pool = self.pool.clone();
+        drop(self);
+        pool.lend_turn()
+    }
+}
+
 pub struct WorkerPool {
     handle: PoolHandle,
     threads: Mutex<Vec<JoinHandle<()>>>,
@@ -79,6 +153,9 @@ impl WorkerPool {
             stopping: AtomicBool::new(false),
             busy: AtomicUsize::new(0),
             idle: Condvar::new(),
+            lent: AtomicUsize::new(0),
+            // One worker stays for sessions when there is more than one.
+            max_lent: workers.saturating_sub(1).max(1),
         });
         let threads = (0..workers)
             .map(|i| {
@@ -105,7 +182,7 @@ impl WorkerPool {
     pub fn shutdown(&self, timeout: Duration) {
         let shared = &self.handle.shared;
         shared.stopping.store(true, Ordering::SeqCst);
-        let dropped: Vec<Task> = shared
+        let dropped: Vec<Queued> = shared
             .queue
             .lock()
             .unwrap_or_else(|p| p.into_inner())
@@ -138,26 +215,37 @@ impl WorkerPool {
 
 fn worker(shared: &Shared) {
     loop {
-        let task = {
+        let entry = {
             let mut queue = shared.queue.lock().unwrap_or_else(|p| p.into_inner());
             loop {
                 if shared.stopping.load(Ordering::SeqCst) {
                     return;
                 }
-                if let Some(task) = queue.pop_front() {
+                // The first entry that may run: a lent turn waits while jobs hold `max_lent`.
+                let lend_allowed = shared.lent.load(Ordering::SeqCst) < shared.max_lent;
+                if let Some(at) = queue.iter().position(|q| !q.lent || lend_allowed) {
+                    let entry = queue.remove(at).expect("position is in the queue");
                     shared.busy.fetch_add(1, Ordering::SeqCst);
-                    break task;
+                    if entry.lent {
+                        shared.lent.fetch_add(1, Ordering::SeqCst);
+                    }
+                    break entry;
                 }
                 queue = shared.ready.wait(queue).unwrap_or_else(|p| p.into_inner());
             }
         };
         // A panicking task is a bug; it must not take the worker down with it.
-        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(task));
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(entry.task));
         if outcome.is_err() {
             tracing::error!("a pool task panicked");
         }
         let _guard = shared.queue.lock().unwrap_or_else(|p| p.into_inner());
         shared.busy.fetch_sub(1, Ordering::SeqCst);
+        if entry.lent {
+            shared.lent.fetch_sub(1, Ordering::SeqCst);
+            // A lent turn queued behind the cap may run now.
+            shared.ready.notify_all();
+        }
         shared.idle.notify_all();
     }
 }

@@ -26,6 +26,8 @@ pub struct SparseCholesky {
     l_values: Vec<f64>,
     factor_mem: MemBuffer,
     solve_mem: MemBuffer,
+    /// Bytes of the two workspaces (for the memory estimate).
+    workspace_bytes: usize,
     factorized: bool,
 }
 
@@ -70,6 +72,7 @@ impl SparseCholesky {
             l_values: vec![0.0; symbolic.len_val()],
             factor_mem: MemBuffer::new(factor_req),
             solve_mem: MemBuffer::new(solve_req),
+            workspace_bytes: factor_req.size_bytes() + solve_req.size_bytes(),
             symbolic,
             factorized: false,
         })
@@ -85,6 +88,38 @@ impl SparseCholesky {
 
     pub fn factor_nnz(&self) -> usize {
         self.l_values.len()
+    }
+
+    /// Bytes the numeric factorisation holds: L's values and indices, and faer's workspaces.
+    pub fn numeric_bytes(&self) -> u64 {
+        let indices = match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(s) => s.row_idx().len() + s.col_ptr().len(),
+            SymbolicCholeskyRaw::Supernodal(s) => s.row_idx().len() + s.col_ptr_for_val().len(),
+        };
+        (8 * (self.l_values.len() + indices) + self.workspace_bytes) as u64
+    }
+
+    /// Floating-point operations of one numeric factorisation, from the symbolic structure:
+    /// per supernode of c columns and r rows below it, c³/3 for its diagonal block, c²·r for
+    /// the panel and c·r² for its update of the later columns (a simplicial column is c = 1).
+    pub fn factor_flops(&self) -> f64 {
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(s) => s
+                .col_ptr()
+                .windows(2)
+                .map(|w| {
+                    let below = (w[1] - w[0]).saturating_sub(1) as f64;
+                    1.0 + 2.0 * below + below * below
+                })
+                .sum(),
+            SymbolicCholeskyRaw::Supernodal(s) => (0..s.n_supernodes())
+                .map(|k| {
+                    let c = (s.supernode_end()[k] - s.supernode_begin()[k]) as f64;
+                    let r = s.supernode(k).pattern().len() as f64;
+                    c * c * c / 3.0 + c * c * r + c * r * r
+                })
+                .sum(),
+        }
     }
 
     /// Numeric LLᵀ of the matrix with `pattern` and `values`.

@@ -18,19 +18,96 @@
 //!
 //! Priors act as edges to a fixed world frame. Graphs with any other factor kind are left alone.
 
+use std::cell::Cell;
 use std::collections::VecDeque;
 use std::f64::consts::PI;
 
 use faer::sparse::linalg::SupernodalThreshold;
 use nalgebra::{Matrix3, RowVector2, RowVector3, SMatrix, UnitQuaternion, Vector2};
 
+use super::budget::{Budget, FactorCost};
 use super::cholesky::SparseCholesky;
 use super::linearize::free_blocks;
+use super::options::Initialization;
 use super::structure::{BlockOrdering, BlockPattern};
+use super::{evaluate_chi2, SolverError};
 use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3, SqrtInformation};
 use crate::geometry::{rotation_matrix_2d, Se2, Se3};
 
-use crate::problem::Values;
+use crate::problem::{Problem, Values};
+
+/// How much lower the chordal chi2 must be for `Initialization::Auto` to start from it.
+const AUTO_INIT_GAIN: f64 = 10.0;
+
+/// Replaces `problem.values` by the chordal estimate as `mode` says; returns how the solve was
+/// initialised and the chi2 it starts from. A budget that stops the initialisation leaves the
+/// given values (the iterations then stop at their first check).
+pub(super) fn run_initialization(
+    problem: &mut Problem,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+    mode: Initialization,
+    initial_chi2: f64,
+    budget: &dyn Budget,
+) -> Result<(String, Option<f64>), SolverError> {
+    if mode == Initialization::None {
+        return Ok(("none".into(), None));
+    }
+    let stopped = Cell::new(false);
+    let Some(estimate) = chordal(
+        problem.factors(),
+        &problem.values,
+        fixed,
+        ordering,
+        &Stoppable {
+            budget,
+            stopped: &stopped,
+        },
+    ) else {
+        let why = if stopped.get() {
+            "stopped by the solve's budget"
+        } else {
+            "not a pose graph"
+        };
+        return Ok((format!("none ({why})"), None));
+    };
+    let chi2 = evaluate_chi2(problem.factors(), &estimate)?;
+    let take = match mode {
+        Initialization::Chordal => chi2.is_finite(),
+        _ => chi2.is_finite() && chi2 * AUTO_INIT_GAIN < initial_chi2,
+    };
+    if take {
+        problem.values = estimate;
+        Ok(("chordal".into(), Some(chi2)))
+    } else {
+        Ok((
+            format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"),
+            Some(initial_chi2),
+        ))
+    }
+}
+
+/// The budget as the initialisation sees it: it remembers having stopped the work, to tell that
+/// apart from a graph the chordal estimate does not apply to (both give `None`).
+pub struct Stoppable<'a> {
+    pub budget: &'a dyn Budget,
+    pub stopped: &'a Cell<bool>,
+}
+
+impl Stoppable<'_> {
+    /// Whether a factorisation of `flops` may start now.
+    fn may_factorize(&self, flops: f64) -> bool {
+        let cost = FactorCost {
+            flops,
+            measured_rate: None,
+        };
+        let go = self.budget.checkpoint().is_continue() && cost.fits(self.budget);
+        if !go {
+            self.stopped.set(true);
+        }
+        go
+    }
+}
 
 /// The chordal estimate, or `None` when the problem is not a pure SE(2) or SE(3) pose graph, or a
 /// linear system turned out singular (then the given values are used).
@@ -42,15 +119,16 @@ pub fn chordal(
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    budget: &Stoppable,
 ) -> Option<Values> {
     if values.is_empty() {
         return None;
     }
     let all = |kind: &str| (0..values.len()).all(|v| values.variable(v).kind() == kind);
     if all("se2") {
-        chordal_2d(factors, values, fixed, ordering)
+        chordal_2d(factors, values, fixed, ordering, budget)
     } else if all("se3") {
-        chordal_3d(factors, values, fixed, ordering)
+        chordal_3d(factors, values, fixed, ordering, budget)
     } else {
         None
     }
@@ -191,6 +269,7 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
         self,
         ordering: &BlockOrdering,
         cache: &mut Option<SymbolicCache>,
+        budget: &Stoppable,
     ) -> Option<Vec<SMatrix<f64, D, R>>> {
         let nb = self.block.iter().flatten().count();
         if cache.as_ref().is_none_or(|c| c.dim != D) {
@@ -236,6 +315,9 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
                 }
             }
         }
+        if !budget.may_factorize(chol.factor_flops()) {
+            return None;
+        }
         chol.factorize(pattern, &h).ok()?;
         for r in rhs.iter_mut() {
             chol.solve_in_place(r);
@@ -259,6 +341,7 @@ fn chordal_2d(
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    budget: &Stoppable,
 ) -> Option<Values> {
     let edges = collect_edges(
         factors,
@@ -347,7 +430,7 @@ fn chordal_2d(
         }
     }
     let theta: Vec<f64> = rot
-        .solve(ordering, &mut cache)?
+        .solve(ordering, &mut cache, budget)?
         .iter()
         .map(|m| m[(0, 0)])
         .collect();
@@ -369,7 +452,7 @@ fn chordal_2d(
             None => trans.add(&[(e.to, one)], -z.transpose(), *w),
         }
     }
-    let t = trans.solve(ordering, &mut cache)?;
+    let t = trans.solve(ordering, &mut cache, budget)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {
@@ -384,6 +467,7 @@ fn chordal_3d(
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    budget: &Stoppable,
 ) -> Option<Values> {
     let edges = collect_edges(
         factors,
@@ -429,7 +513,7 @@ fn chordal_3d(
     }
     let mut cache = None;
     let rotations: Vec<Matrix3<f64>> = rot
-        .solve(ordering, &mut cache)?
+        .solve(ordering, &mut cache, budget)?
         .iter()
         .map(|rt| project_to_so3(&rt.transpose()))
         .collect();
@@ -451,7 +535,7 @@ fn chordal_3d(
             None => trans.add(&[(e.to, one)], -e.measurement.translation.transpose(), w),
         }
     }
-    let t = trans.solve(ordering, &mut cache)?;
+    let t = trans.solve(ordering, &mut cache, budget)?;
     let mut out = values.clone();
     for v in 0..n {
         if !fixed[v] {

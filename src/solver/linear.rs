@@ -83,6 +83,24 @@ impl LinearSolver {
         }
     }
 
+    /// Floating-point operations of one factorisation, when known before it runs (the Schur
+    /// complement's depends on the elimination it does first).
+    pub fn factor_flops(&self) -> Option<f64> {
+        match self {
+            Self::Sparse(chol) => Some(chol.factor_flops()),
+            Self::Schur(_) => None,
+        }
+    }
+
+    /// Bytes the factorisation holds (the Schur complement's reduced system counted as its
+    /// factor's nonzeros).
+    pub fn numeric_bytes(&self) -> u64 {
+        match self {
+            Self::Sparse(chol) => chol.numeric_bytes(),
+            Self::Schur(s) => 8 * s.factor_nnz() as u64,
+        }
+    }
+
     pub fn factor_nnz(&self) -> usize {
         match self {
             Self::Sparse(chol) => chol.factor_nnz(),

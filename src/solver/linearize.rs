@@ -2,10 +2,12 @@
 //! straight into `H = JᵀJ` (lower triangle, in the fixed [`BlockPattern`]) and `b = −Jᵀr`.
 
 use std::borrow::Borrow;
+use std::ops::ControlFlow;
 
 use crate::factors::{EvaluationError, FactorEntry};
 use crate::problem::{Key, Values, Variable};
 
+use super::budget::{Budget, Unlimited, FACTORS_PER_CHECK};
 use super::simd::has_wide_vectors;
 use super::structure::{BlockOrdering, BlockPattern};
 
@@ -205,11 +207,28 @@ pub fn linearize<E: Borrow<FactorEntry>>(
     h: &mut [f64],
     b: &mut [f64],
 ) -> Result<f64, EvaluationError> {
+    match linearize_within(factors, values, layout, scratch, h, b, &Unlimited)? {
+        ControlFlow::Continue(chi2) => Ok(chi2),
+        ControlFlow::Break(()) => unreachable!("an unlimited budget never stops"),
+    }
+}
+
+/// [`linearize`] that checks `budget` every [`FACTORS_PER_CHECK`] factors; `Break` leaves `h`
+/// and `b` partly filled.
+pub fn linearize_within<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    layout: &SystemLayout,
+    scratch: &mut Scratch,
+    h: &mut [f64],
+    b: &mut [f64],
+    budget: &dyn Budget,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
     if has_wide_vectors() {
         // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide(factors, values, layout, scratch, h, b) }
+        unsafe { linearize_wide(factors, values, layout, scratch, h, b, budget) }
     } else {
-        linearize_with(factors, values, layout, scratch, h, b)
+        linearize_with(factors, values, layout, scratch, h, b, budget)
     }
 }
 
@@ -221,8 +240,9 @@ fn linearize_wide<E: Borrow<FactorEntry>>(
     scratch: &mut Scratch,
     h: &mut [f64],
     b: &mut [f64],
-) -> Result<f64, EvaluationError> {
-    linearize_with(factors, values, layout, scratch, h, b)
+    budget: &dyn Budget,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
+    linearize_with(factors, values, layout, scratch, h, b, budget)
 }
 
 #[inline(always)]
@@ -233,14 +253,18 @@ fn linearize_with<E: Borrow<FactorEntry>>(
     scratch: &mut Scratch,
     h: &mut [f64],
     b: &mut [f64],
-) -> Result<f64, EvaluationError> {
+    budget: &dyn Budget,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
     h.fill(0.0);
     b.fill(0.0);
     let pattern = &layout.pattern;
     let mut total = 0.0;
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     let mut col_offsets = [0usize; 16];
-    for &f in &layout.visit_order {
+    for (k, &f) in layout.visit_order.iter().enumerate() {
+        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 && budget.checkpoint().is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
         let entry = factors[f].borrow();
         let vars = entry.variables();
         refs.clear();
@@ -313,7 +337,7 @@ fn linearize_with<E: Borrow<FactorEntry>>(
             }
         }
     }
-    Ok(total)
+    Ok(ControlFlow::Continue(total))
 }
 
 /// `y = H x` for the symmetric matrix stored as its lower triangle.

@@ -1,6 +1,7 @@
 //! The sparse nonlinear least-squares solver: layout, linearisation, sparse Cholesky, GN / LM /
 //! Dogleg, initialisation and the Summary. Nothing here knows about files or networks.
 
+pub mod budget;
 pub mod cholesky;
 pub mod cholesky_bench;
 pub mod gauge;
@@ -16,7 +17,8 @@ pub mod structure;
 pub mod summary;
 mod warm;
 
-pub use optimizer::{optimize, optimize_warm};
+pub use budget::{Budget, Unlimited};
+pub use optimizer::{optimize, optimize_warm, optimize_within};
 pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 pub use warm::{newton_decrement, optimize_region, OrderingCache};
@@ -39,6 +41,14 @@ pub enum SolverError {
     NonFiniteInitialCost,
     #[error("{0}")]
     Symbolic(#[from] cholesky::SymbolicError),
+    /// Refused before any numeric work: the symbolic factorisation says the solve would need
+    /// more memory than its budget allows.
+    #[error("the solve would need about {estimated} bytes ({} MiB) of memory, more than the limit of {limit} bytes ({} MiB): the graph's factorisation has {factor_nnz} nonzeros", estimated / (1 << 20), limit / (1 << 20))]
+    MemoryLimit {
+        estimated: u64,
+        limit: u64,
+        factor_nnz: usize,
+    },
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -48,11 +58,28 @@ pub fn evaluate_chi2<E: Borrow<FactorEntry>>(
     factors: &[E],
     values: &Values,
 ) -> Result<f64, EvaluationError> {
+    match evaluate_chi2_within(factors, values, &Unlimited)? {
+        std::ops::ControlFlow::Continue(chi2) => Ok(chi2),
+        std::ops::ControlFlow::Break(()) => unreachable!("an unlimited budget never stops"),
+    }
+}
+
+/// [`evaluate_chi2`] that checks `budget` every [`budget::FACTORS_PER_CHECK`] factors.
+pub fn evaluate_chi2_within<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    budget: &dyn Budget,
+) -> Result<std::ops::ControlFlow<(), f64>, EvaluationError> {
     let mut total = 0.0;
     let mut e = Vec::new();
     let mut w = Vec::new();
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
-    for f in factors {
+    for (k, f) in factors.iter().enumerate() {
+        if k % budget::FACTORS_PER_CHECK == budget::FACTORS_PER_CHECK - 1
+            && budget.checkpoint().is_break()
+        {
+            return Ok(std::ops::ControlFlow::Break(()));
+        }
         let f = f.borrow();
         refs.clear();
         refs.extend(f.variables().iter().map(|&v| values.variable(v)));
@@ -61,5 +88,5 @@ pub fn evaluate_chi2<E: Borrow<FactorEntry>>(
         w.resize(d, 0.0);
         total += f.chi2(&refs, &mut e, &mut w)?;
     }
-    Ok(total)
+    Ok(std::ops::ControlFlow::Continue(total))
 }

@@ -11,11 +11,14 @@ use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
 
+use super::budget::{Budget, FactorCost, Unlimited};
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::gauge::anchor_components;
-use super::initialize;
+use super::initialize::run_initialization;
 use super::linear::{LinearSolver, SchurReport};
-use super::linearize::{free_adjacency, linearize, symmetric_multiply, Scratch, SystemLayout};
+use super::linearize::{
+    free_adjacency, linearize_within, symmetric_multiply, Scratch, SystemLayout,
+};
 use super::options::{Initialization, Method, SolverOptions};
 use super::schur::{self, SchurSolver};
 use super::structure::BlockOrdering;
@@ -23,7 +26,7 @@ use super::summary::{
     IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions,
 };
 use super::warm::OrderingCache;
-use super::{evaluate_chi2, SolverError};
+use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
 use crate::factors::FactorEntry;
 use crate::problem::{Gauge, Key, Problem, Values};
 
@@ -35,7 +38,20 @@ pub fn optimize(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
-    optimize_from(problem, options, on_iteration, None)
+    optimize_from(problem, options, on_iteration, None, &Unlimited)
+}
+
+/// [`optimize`] within a [`Budget`]: the solve checks it between small pieces of work (not only
+/// between iterations) and stops there with an `interrupted` termination and the last accepted
+/// estimate; a solve whose factorisation needs more memory than the budget allows is refused
+/// before any numeric work ([`SolverError::MemoryLimit`]).
+pub fn optimize_within(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    budget: &dyn Budget,
+) -> Result<Summary, SolverError> {
+    optimize_from(problem, options, on_iteration, None, budget)
 }
 
 /// [`optimize`] for values already near the optimum (a session re-solving after a small update).
@@ -54,7 +70,7 @@ pub fn optimize_warm(
         initialization: Initialization::None,
         ..options.clone()
     };
-    optimize_from(problem, &options, on_iteration, Some(ordering))
+    optimize_from(problem, &options, on_iteration, Some(ordering), &Unlimited)
 }
 
 fn optimize_from(
@@ -62,6 +78,7 @@ fn optimize_from(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     cache: Option<&mut OrderingCache>,
+    budget: &dyn Budget,
 ) -> Result<Summary, SolverError> {
     let warm = cache.is_some();
     let start = Instant::now();
@@ -94,19 +111,9 @@ fn optimize_from(
         (None, Some(cache)) => cache.ordering(problem.factors(), &fixed),
         (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), &fixed)),
     };
-    timings.preprocess_seconds = start.elapsed().as_secs_f64();
-
-    let init_start = Instant::now();
-    let (init_label, initialized_chi2) = run_initialization(
-        problem,
-        &fixed,
-        &ordering,
-        options.initialization,
-        initial_chi2,
-    )?;
-    timings.initialization_seconds = init_start.elapsed().as_secs_f64();
-
-    let prep = Instant::now();
+    // The system's layout and symbolic factorisation only need the structure, so they come
+    // before the initialisation: a solve too big for its memory budget is refused before any
+    // numeric work.
     let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &ordering);
     let chol = match &schur_plan {
         Some(plan) => LinearSolver::Schur(SchurSolver::new(&layout.pattern, plan)?),
@@ -117,7 +124,28 @@ fn optimize_from(
             SupernodalThreshold::FORCE_SUPERNODAL,
         )?),
     };
-    timings.preprocess_seconds += prep.elapsed().as_secs_f64();
+    if let Some(limit) = budget.max_memory_bytes() {
+        let estimated = super::budget::estimate_memory(problem, &layout, &chol, options);
+        if estimated > limit {
+            return Err(SolverError::MemoryLimit {
+                estimated,
+                limit,
+                factor_nnz: chol.factor_nnz(),
+            });
+        }
+    }
+    timings.preprocess_seconds = start.elapsed().as_secs_f64();
+
+    let init_start = Instant::now();
+    let (init_label, initialized_chi2) = run_initialization(
+        problem,
+        &fixed,
+        &ordering,
+        options.initialization,
+        initial_chi2,
+        budget,
+    )?;
+    timings.initialization_seconds = init_start.elapsed().as_secs_f64();
 
     let mut values = std::mem::take(&mut problem.values);
     let outcome = iterate(
@@ -129,6 +157,7 @@ fn optimize_from(
         options,
         on_iteration,
         warm,
+        budget,
     );
     problem.values = values;
     let run = outcome?;
@@ -181,8 +210,13 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     warm: bool,
+    budget: &dyn Budget,
 ) -> Result<Run, SolverError> {
     let n = layout.n();
+    let cost = chol.factor_flops().map(|flops| FactorCost {
+        flops,
+        measured_rate: None,
+    });
     let mut solver = Iterations {
         layout,
         scratch: Scratch::new(layout),
@@ -204,6 +238,8 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
         timings,
         log: Vec::new(),
         warm,
+        budget,
+        cost,
     };
     let (chi2, termination) = solver.run(factors, values, options, on_iteration)?;
     Ok(Run {
@@ -270,39 +306,6 @@ impl Run {
     }
 }
 
-/// How much lower the chordal chi2 must be for `Initialization::Auto` to start from it.
-const AUTO_INIT_GAIN: f64 = 10.0;
-
-fn run_initialization(
-    problem: &mut Problem,
-    fixed: &[bool],
-    ordering: &BlockOrdering,
-    mode: Initialization,
-    initial_chi2: f64,
-) -> Result<(String, Option<f64>), SolverError> {
-    if mode == Initialization::None {
-        return Ok(("none".into(), None));
-    }
-    let Some(estimate) = initialize::chordal(problem.factors(), &problem.values, fixed, ordering)
-    else {
-        return Ok(("none (not a pose graph)".into(), None));
-    };
-    let chi2 = evaluate_chi2(problem.factors(), &estimate)?;
-    let take = match mode {
-        Initialization::Chordal => chi2.is_finite(),
-        _ => chi2.is_finite() && chi2 * AUTO_INIT_GAIN < initial_chi2,
-    };
-    if take {
-        problem.values = estimate;
-        Ok(("chordal".into(), Some(chi2)))
-    } else {
-        Ok((
-            format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"),
-            Some(initial_chi2),
-        ))
-    }
-}
-
 struct Iterations<'a> {
     layout: &'a SystemLayout,
     scratch: Scratch,
@@ -319,6 +322,10 @@ struct Iterations<'a> {
     log: Vec<IterationReport>,
     /// Started near the optimum: see [`optimize_warm`].
     warm: bool,
+    budget: &'a dyn Budget,
+    /// What one factorisation costs, to not start one the budget has no time left for
+    /// (`None`: not known for this linear solver).
+    cost: Option<FactorCost>,
 }
 
 fn max_abs(v: &[f64]) -> f64 {
@@ -349,15 +356,16 @@ impl Iterations<'_> {
         factors: &[E],
         values: &Values,
         times: &mut StepTimes,
-    ) -> Result<f64, SolverError> {
+    ) -> Result<ControlFlow<(), f64>, SolverError> {
         let t = Instant::now();
-        let chi2 = linearize(
+        let chi2 = linearize_within(
             factors,
             values,
             self.layout,
             &mut self.scratch,
             &mut self.h,
             &mut self.b,
+            self.budget,
         )?;
         let s = t.elapsed().as_secs_f64();
         self.timings.linearize_seconds += s;
@@ -370,17 +378,19 @@ impl Iterations<'_> {
         &mut self,
         factors: &[E],
         values: &Values,
-    ) -> Result<f64, SolverError> {
+    ) -> Result<ControlFlow<(), f64>, SolverError> {
         let t = Instant::now();
         self.trial.assign_from(values);
         self.layout.retract(&mut self.trial, &self.delta);
-        let chi2 = evaluate_chi2(factors, &self.trial)?;
+        let chi2 = evaluate_chi2_within(factors, &self.trial, self.budget)?;
         self.timings.evaluate_seconds += t.elapsed().as_secs_f64();
-        Ok(if chi2.is_finite() {
-            chi2
-        } else {
-            f64::INFINITY
-        })
+        Ok(chi2.map_continue(|chi2| {
+            if chi2.is_finite() {
+                chi2
+            } else {
+                f64::INFINITY
+            }
+        }))
     }
 
     /// D's entry for scalar column `c`: the diagonal of H, clamped as Ceres does so that a zero
@@ -390,11 +400,18 @@ impl Iterations<'_> {
     }
 
     /// Factorises H + λD (H itself when λ = 0) and solves for `delta` = (H + λD)⁻¹ b.
+    /// `Break`: the budget stopped the solve first (a factorisation is one uninterruptible call:
+    /// it is not started when its predicted time exceeds the time left).
     fn solve_damped(
         &mut self,
         lambda: f64,
         times: &mut StepTimes,
-    ) -> Result<(), NotPositiveDefinite> {
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        if self.budget.checkpoint().is_break()
+            || self.cost.is_some_and(|cost| !cost.fits(self.budget))
+        {
+            return Ok(ControlFlow::Break(()));
+        }
         let pattern = &self.layout.pattern;
         let t = Instant::now();
         let result = if lambda > 0.0 && self.chol.shifts_in_place() {
@@ -411,7 +428,11 @@ impl Iterations<'_> {
         } else {
             self.chol.factorize(pattern, &self.h)
         };
-        let s = t.elapsed().as_secs_f64();
+        let took = t.elapsed();
+        if let Some(cost) = &mut self.cost {
+            cost.measure(took);
+        }
+        let s = took.as_secs_f64();
         self.timings.factorize_seconds += s;
         times.factorize += s;
         result?;
@@ -421,7 +442,7 @@ impl Iterations<'_> {
         let s = t.elapsed().as_secs_f64();
         self.timings.linear_solve_seconds += s;
         times.solve += s;
-        Ok(())
+        Ok(ControlFlow::Continue(()))
     }
 
     /// λ·ΔᵀDΔ.
@@ -439,7 +460,11 @@ impl Iterations<'_> {
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ) -> Result<(f64, Termination), SolverError> {
         let mut times = StepTimes::default();
-        let mut chi2 = self.linearize_at(factors, values, &mut times)?;
+        let mut chi2 = match self.linearize_at(factors, values, &mut times)? {
+            ControlFlow::Continue(chi2) => chi2,
+            // Stopped before anything was computed: the report still needs the start's chi2.
+            ControlFlow::Break(()) => return Ok((evaluate_chi2(factors, values)?, stopped(0))),
+        };
         if self.layout.n() == 0 || factors.is_empty() {
             return Ok((
                 chi2,
@@ -475,21 +500,33 @@ impl Iterations<'_> {
             }
             // Model decrease L(0) − L(Δ) of the step, for LM/Dogleg's gain ratio and the warm stop.
             let mut predicted = f64::NAN;
+            // Inside an iteration the budget is checked before each factorisation and every few
+            // thousand factors; stopping there keeps the last accepted values.
+            macro_rules! or_stop {
+                ($flow:expr) => {
+                    match $flow {
+                        ControlFlow::Continue(v) => v,
+                        ControlFlow::Break(()) => return Ok((chi2, stopped(iteration))),
+                    }
+                };
+            }
             let (accepted, trial_chi2) = match options.method {
                 Method::GaussNewton => {
-                    self.solve_damped(0.0, &mut times)
-                        .map_err(|e| self.indeterminate(values, e))?;
+                    or_stop!(self
+                        .solve_damped(0.0, &mut times)
+                        .map_err(|e| self.indeterminate(values, e))?);
                     predicted = dot(&self.delta, &self.b);
-                    let trial = self.evaluate_trial(factors, values)?;
+                    let trial = or_stop!(self.evaluate_trial(factors, values)?);
                     if !trial.is_finite() {
                         return Err(SolverError::Diverged { iteration });
                     }
                     (true, trial)
                 }
                 Method::LevenbergMarquardt => match self.solve_damped(lambda, &mut times) {
-                    Ok(()) => {
+                    Ok(ControlFlow::Break(())) => return Ok((chi2, stopped(iteration))),
+                    Ok(ControlFlow::Continue(())) => {
                         predicted = dot(&self.delta, &self.b) + self.damping_term(lambda);
-                        let trial = self.evaluate_trial(factors, values)?;
+                        let trial = or_stop!(self.evaluate_trial(factors, values)?);
                         let rho = (chi2 - trial) / predicted;
                         if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
                             lambda *= (1.0f64 / 3.0).max(1.0 - (2.0 * rho - 1.0).powi(3));
@@ -512,11 +549,11 @@ impl Iterations<'_> {
                 },
                 Method::Dogleg => {
                     if !have_gn_step {
-                        self.dogleg_gauss_newton_step(values, &mut times)?;
+                        or_stop!(self.dogleg_gauss_newton_step(values, &mut times)?);
                         have_gn_step = true;
                     }
                     predicted = self.dogleg_step(radius);
-                    let trial = self.evaluate_trial(factors, values)?;
+                    let trial = or_stop!(self.evaluate_trial(factors, values)?);
                     let rho = (chi2 - trial) / predicted;
                     let step = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
                     if rho > 0.75 {
@@ -582,13 +619,22 @@ impl Iterations<'_> {
                 None
             };
             // Relinearise at the new point, unless this step ends the solve: then its chi2 (already
-            // evaluated) is all that is needed.
+            // evaluated) is all that is needed. A budget that stops the relinearisation ends the
+            // solve at the accepted point after this iteration's report.
+            let mut budget_stop = None;
             if accepted {
                 chi2 = match stop {
                     Some(_) => trial_chi2,
-                    None => self.linearize_at(factors, values, &mut times)?,
+                    None => match self.linearize_at(factors, values, &mut times)? {
+                        ControlFlow::Continue(chi2) => chi2,
+                        ControlFlow::Break(()) => {
+                            budget_stop = Some(stopped(iteration));
+                            trial_chi2
+                        }
+                    },
                 };
             }
+            let stop = stop.or(budget_stop);
             let report = IterationReport {
                 iteration,
                 chi2,
@@ -657,17 +703,18 @@ impl Iterations<'_> {
         &mut self,
         values: &Values,
         times: &mut StepTimes,
-    ) -> Result<(), SolverError> {
+    ) -> Result<ControlFlow<()>, SolverError> {
         let mut mu = 0.0;
         loop {
             match self.solve_damped(mu, times) {
-                Ok(()) => break,
+                Ok(ControlFlow::Break(())) => return Ok(ControlFlow::Break(())),
+                Ok(ControlFlow::Continue(())) => break,
                 Err(e) if mu > 1e8 => return Err(self.indeterminate(values, e)),
                 Err(_) => mu = if mu == 0.0 { 1e-10 } else { mu * 100.0 },
             }
         }
         std::mem::swap(&mut self.work, &mut self.delta);
-        Ok(())
+        Ok(ControlFlow::Continue(()))
     }
 
     /// Powell's dogleg inside `radius` from the GN step (in `work`) and the Cauchy point; writes
@@ -719,6 +766,16 @@ fn increase_damping(lambda: f64, nu: &mut f64, restart: f64) -> f64 {
     let next = lambda * *nu;
     *nu *= 2.0;
     next
+}
+
+/// The solve's budget stopped it inside iteration `iteration` (0: before the first).
+fn stopped(iteration: usize) -> Termination {
+    termination(
+        TerminationReason::Interrupted,
+        iteration as f64,
+        0.0,
+        &format!("interrupted by the solve's budget (time limit, cancellation or shutdown) during iteration {iteration}; the estimate is the last accepted step"),
+    )
 }
 
 fn termination(

@@ -117,6 +117,7 @@ pub fn optimize_region(
             &options,
             on_iteration,
             true,
+            &super::Unlimited,
         )?;
         let free = layout.var_at.len();
         Ok(run.summary(
