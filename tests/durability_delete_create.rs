@@ -199,6 +199,13 @@ fn set_fd_limit(pid: u32, soft: &str) {
 /// `journal_failed` and leaves no directory behind, and nothing comes back after a restart.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_creation_refused_part_way_leaves_no_directory() {
+    if std::process::Command::new("prlimit")
+        .arg("--version")
+        .output()
+        .is_err()
+    {
+        return common::skip_or_fail("prlimit (util-linux) is not installed").unwrap_or(());
+    }
     let state = common::temp_dir("create-rollback");
     let c = client();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
