@@ -85,6 +85,23 @@ pub fn residual_is_finite(factor: &dyn Factor, values: &[&dyn Variable]) -> bool
     factor.evaluate(values, &mut e, None).is_ok() && e.iter().all(|v| v.is_finite())
 }
 
+/// Whether the factor's cost `|R e|²` is finite at `values`: a finite residual can still
+/// overflow once weighted and squared (a prior 1e155 away), and one infinite cost makes the
+/// whole problem's χ² infinite, so no step could ever be accepted.
+pub fn cost_is_finite(
+    factor: &dyn Factor,
+    sqrt_information: &SqrtInformation,
+    values: &[&dyn Variable],
+) -> bool {
+    let mut e = vec![0.0; factor.residual_dim()];
+    if factor.evaluate(values, &mut e, None).is_err() {
+        return false;
+    }
+    let mut whitened = vec![0.0; e.len()];
+    sqrt_information.whiten_vector(&e, &mut whitened);
+    whitened.iter().map(|v| v * v).sum::<f64>().is_finite()
+}
+
 pub(crate) fn expect_kind<'a, T: Variable>(
     variables: &[&'a dyn Variable],
     position: usize,

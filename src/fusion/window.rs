@@ -18,10 +18,14 @@ use crate::geometry::NavState;
 use crate::problem::{Key, Problem, ProblemError};
 use crate::solver::{optimize, Initialization, Method, SolverError, SolverOptions, Summary};
 
+/// The largest window: a window that never fills never marginalises, and its solve grows with
+/// every keyframe (a client's `window` of 2^64 - 1 was accepted once).
+pub const MAX_WINDOW: usize = 1000;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WindowOptions {
-    /// Keyframes kept free (N ≥ 2).
+    /// Keyframes kept free (2 ≤ N ≤ [`MAX_WINDOW`]).
     pub size: usize,
     /// Gravity magnitude, m/s²; the world's z axis points up.
     pub gravity: f64,
@@ -125,11 +129,11 @@ impl SlidingWindow {
         t0: f64,
         information: &DMatrix<f64>,
     ) -> Result<Self, FusionError> {
-        if options.size < 2 {
+        if !(2..=MAX_WINDOW).contains(&options.size) {
             return Err(FusionError::Invalid {
                 field: "size",
                 reason: format!(
-                    "the window needs at least 2 keyframes, got {}",
+                    "the window holds 2 to {MAX_WINDOW} keyframes, got {}",
                     options.size
                 ),
             });

@@ -392,12 +392,12 @@ fn check_residuals(
                     .unwrap_or_else(|| decoded[key].as_ref())
             })
             .collect();
-        if !crate::factors::residual_is_finite(f.factor.as_ref(), &vars) {
+        if !crate::factors::cost_is_finite(f.factor.as_ref(), &f.sqrt_information, &vars) {
             return Err(ServiceError::invalid(
                 "non_finite_residual",
                 format!("factors[{i}]"),
-                "the factor's residual is not finite at the values it would start from \
-                 (a point at a camera's centre, values so large they overflow)",
+                "the factor's residual or its weighted cost is not finite at the values it \
+                 would start from (a point at a camera's centre, values so large they overflow)",
             ));
         }
     }

@@ -70,6 +70,8 @@ pub struct Session {
     /// The last factorisation for marginal covariances, with the (sequence, solves) of the
     /// estimate it was taken at.
     marginals: Mutex<Option<((u64, u64), crate::solver::marginals::Marginals)>>,
+    /// What that factorisation holds, read by `memory_bytes` without its lock.
+    marginals_bytes: std::sync::atomic::AtomicU64,
     /// Where the session is kept on disk, when it is durable.
     durable: Mutex<Option<durable::Durable>>,
     /// Being rebuilt from its journal: writes are refused until it is done.
@@ -203,6 +205,7 @@ impl Session {
             cancel: AtomicBool::new(false),
             fusion: Mutex::new(None),
             marginals: Mutex::new(None),
+            marginals_bytes: std::sync::atomic::AtomicU64::new(0),
             durable: Mutex::new(None),
             recovering: AtomicBool::new(false),
             corruption: std::sync::OnceLock::new(),
@@ -759,7 +762,8 @@ impl Session {
             + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
             + st.factor_ids.len() * size_of::<FactorId>();
         let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
-        mirror + factors + problem + self.durable_memory_bytes()
+        let marginals = self.marginals_bytes.load(std::sync::atomic::Ordering::Relaxed) as usize;
+        mirror + factors + problem + marginals + self.durable_memory_bytes()
     }
 }
 

@@ -45,6 +45,16 @@ pub struct Covariance {
     pub joint: Vec<f64>,
 }
 
+impl Marginals {
+    /// Bytes this factorisation holds (counted in its session's `memory_bytes`).
+    pub fn memory_bytes(&self) -> u64 {
+        const ENTRY: u64 = 48; // key, dimension, row, and the map's overhead
+        self.cholesky.numeric_bytes()
+            + ENTRY * self.rows.len() as u64
+            + 8 * self.gauge_fixed.len() as u64
+    }
+}
+
 impl Covariance {
     pub fn dimension(&self) -> usize {
         self.dims.iter().sum()

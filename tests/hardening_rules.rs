@@ -1,0 +1,120 @@
+//! The smaller holes of issue 14 (item 10), each over the wire: an overflowing cost, an endless
+//! window, an inexact float key, unnamed sessions after a restart, and marginal factorisations
+//! counted in `memory_bytes`.
+
+mod common;
+
+use common::server::{client, create, g2o_batches, get, post, TestServer};
+use serde_json::{json, Value};
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_factor_whose_weighted_cost_overflows_is_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "p", "kind": "pose_graph_2d"})).await;
+    // The residual (1e155) is finite; its square is not.
+    let batch = json!({
+        "variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}],
+        "factors": [{"type": "prior_se2", "keys": [0], "measurement": [1e155, 0, 0],
+                     "information": [1, 0, 0, 1, 0, 1]}]});
+    let (status, v) = post(&c, &s.url("/v1/sessions/p/batches"), &batch).await;
+    assert_eq!(status, 422, "{v}");
+    assert_eq!(v["error"]["code"], "non_finite_residual", "{v}");
+    assert_eq!(v["error"]["field"], "factors[0]", "{v}");
+    let (_, stats) = get(&c, &s.url("/v1/sessions/p")).await;
+    assert_eq!(
+        stats["num_variables"], 0,
+        "nothing of the batch applied: {stats}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn integer_fields_refuse_floats_that_cannot_be_exact() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "k", "kind": "pose_graph_2d"})).await;
+    // 2^53 + 1 written as a float reads as 2^53: which key was meant cannot be told.
+    let text = r#"{"variables": [{"key": 9007199254740993.0, "kind": "se2", "value": [0, 0, 0]}]}"#;
+    let r = c
+        .post(s.url("/v1/sessions/k/batches"))
+        .header("content-type", "application/json")
+        .body(text)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["error"]["field"], "variables[0].key", "{v}");
+    // Written as an integer, the same key is exact and accepted.
+    let exact = r#"{"variables": [{"key": 9007199254740993, "kind": "se2", "value": [0, 0, 0]}]}"#;
+    let r = c
+        .post(s.url("/v1/sessions/k/batches"))
+        .header("content-type", "application/json")
+        .body(exact)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_window_beyond_its_maximum_is_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "w", "kind": "sliding_window"})).await;
+    let start = |window: Value| {
+        json!({"messages": [{"type": "start", "t": 0.0, "position": [0, 0, 0],
+            "rotation_xyzw": [0, 0, 0, 1], "window": window,
+            "sigmas": {"position": 0.1, "rotation": 0.1, "velocity": 0.1,
+                       "accel_bias": 0.1, "gyro_bias": 0.1}}]})
+    };
+    let url = s.url("/v1/sessions/w/fusion");
+    let (status, v) = post(&c, &url, &start(json!(18446744073709551615u64))).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["error"]["code"], "invalid_message", "{v}");
+    assert_eq!(v["error"]["field"], "messages[0]", "{v}");
+    let (status, v) = post(&c, &url, &start(json!(1001))).await;
+    assert_eq!(status, 400, "{v}");
+    let (status, v) = post(&c, &url, &start(json!(1000))).await;
+    assert_eq!(status, 200, "the largest window is accepted: {v}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unnamed_sessions_after_a_restart_take_fresh_names() {
+    let dir = common::temp_dir("unnamed");
+    let c = client();
+    let s = TestServer::start_at(&dir, &["--no-zenoh"], &[]);
+    for expected in ["s1", "s2"] {
+        let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+        assert_eq!(v["session"], expected, "{v}");
+    }
+    s.kill();
+    let s = TestServer::start_at(&dir, &["--no-zenoh"], &[]);
+    let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+    assert_eq!(v["session"], "s3", "{v}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn marginal_factorisations_count_in_memory_bytes() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "m", "kind": "pose_graph_2d"})).await;
+    let (mut variables, mut factors) = (Vec::new(), Vec::new());
+    for b in g2o_batches(&common::synthetic_manhattan(3000, 3)) {
+        variables.extend(b["variables"].as_array().unwrap().clone());
+        factors.extend(b["factors"].as_array().unwrap().clone());
+    }
+    let all = json!({"variables": variables, "factors": factors});
+    let (status, v) = post(&c, &s.url("/v1/sessions/m/batches?wait=true"), &all).await;
+    assert_eq!(status, 200, "{v}");
+    let (_, before) = get(&c, &s.url("/v1/sessions/m")).await;
+    let (status, v) = get(&c, &s.url("/v1/sessions/m/marginals?keys=1500")).await;
+    assert_eq!(status, 200, "{v}");
+    let (_, after) = get(&c, &s.url("/v1/sessions/m")).await;
+    let grown = after["memory_bytes"].as_u64().unwrap() - before["memory_bytes"].as_u64().unwrap();
+    // The factor of 3000 SE(2) poses holds at least its 9000 diagonal entries.
+    assert!(
+        grown >= 8 * 9000,
+        "memory_bytes grew {grown} bytes: {before} → {after}"
+    );
+}
