@@ -302,7 +302,9 @@ async fn http_transport_rules() {
         // writing may see the reset instead, so try again (a fresh client: no reused connection).
         let mut answer = None;
         for _ in 0..10 {
-            let req = client().request(method.parse().unwrap(), s.url(path));
+            let req = client()
+                .request(method.parse().unwrap(), s.url(path))
+                .header("content-type", "application/json");
             if let Ok(resp) = req.body(format!("{at_limit} ")).send().await {
                 answer = Some((resp.status().as_u16(), resp.json::<Value>().await.unwrap()));
                 break;

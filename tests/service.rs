@@ -479,6 +479,7 @@ async fn back_pressure_answers_429_and_503_with_retry_after() {
         let b = json!({"variables": [{"key": next_key, "kind": "se2", "value": [0, 0, 0]}], "factors": factors});
         let resp = c
             .post(s.url("/v1/sessions/busy/batches"))
+            .header("content-type", "application/json")
             .body(b.to_string())
             .send()
             .await
@@ -712,6 +713,7 @@ async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
     );
     let resp = c
         .post(s.url("/v1/sessions/g/batches"))
+        .header("content-type", "application/json")
         .body("{\"variables\": [")
         .send()
         .await
@@ -738,6 +740,7 @@ async fn bad_input_gets_4xx_naming_the_problem_and_changes_nothing() {
     for _ in 0..10 {
         let sent = once
             .post(s.url("/v1/sessions/g/batches"))
+            .header("content-type", "application/json")
             .body(big.to_string())
             .send()
             .await;

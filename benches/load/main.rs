@@ -179,7 +179,12 @@ async fn garbage_client(
                 // To a session that does not exist: 404, or 400 when the body is refused before
                 // the session is looked up.
                 let url = format!("{s_url}/v1/sessions/nobody-{}/batches", next() % 1000);
-                let answer = c.post(&url).body(body.clone()).send().await;
+                let answer = c
+                    .post(&url)
+                    .header("content-type", "application/json")
+                    .body(body.clone())
+                    .send()
+                    .await;
                 tally.garbage_answered(answer.map(|r| r.status()), "a missing session");
             }
             _ => {

@@ -35,6 +35,34 @@ impl TestServer {
 
     /// `factord serve` on an existing state directory (a restart after a crash).
     pub fn start_at(state_dir: &Path, extra: &[&str], env: &[(&str, &str)]) -> Self {
+        Self::start_with(state_dir, extra, env, |_| {})
+    }
+
+    /// `factord serve` allowed at most `files` open files (soft and hard limit), as a server
+    /// on a machine with a small limit would be.
+    pub fn start_with_file_limit(extra: &[&str], files: u64) -> Self {
+        Self::start_with(&super::temp_dir("server"), extra, &[], move |cmd| {
+            use std::os::unix::process::CommandExt;
+            let limit = libc::rlimit {
+                rlim_cur: files as libc::rlim_t,
+                rlim_max: files as libc::rlim_t,
+            };
+            // SAFETY: setrlimit is async-signal-safe and touches only the struct passed in.
+            unsafe {
+                cmd.pre_exec(move || match libc::setrlimit(libc::RLIMIT_NOFILE, &limit) {
+                    0 => Ok(()),
+                    _ => Err(std::io::Error::last_os_error()),
+                });
+            }
+        })
+    }
+
+    fn start_with(
+        state_dir: &Path,
+        extra: &[&str],
+        env: &[(&str, &str)],
+        configure: impl FnOnce(&mut Command),
+    ) -> Self {
         let state_dir = state_dir.to_path_buf();
         // A killed server leaves its address file behind; wait for the new one.
         let _ = std::fs::remove_file(state_dir.join("server.json"));
@@ -60,6 +88,7 @@ impl TestServer {
         for (k, v) in env {
             cmd.env(k, v);
         }
+        configure(&mut cmd);
         let child = cmd.spawn().expect("factord starts");
         let info = state_dir.join("server.json");
         let deadline = Instant::now() + Duration::from_secs(20);
@@ -175,13 +204,21 @@ pub async fn send(
 }
 
 /// Posts a body as is (a graph file, deliberately broken JSON) and parses the JSON answer.
+/// Graph files go to `/v1/jobs` as text; everything else is sent as JSON, which the JSON
+/// routes require.
 pub async fn post_raw(
     client: &reqwest::Client,
     url: &str,
     body: impl Into<reqwest::Body>,
 ) -> (u16, Value) {
+    let content_type = if url.contains("/v1/jobs") {
+        "text/plain"
+    } else {
+        "application/json"
+    };
     let resp = client
         .post(url)
+        .header("content-type", content_type)
         .body(body)
         .send()
         .await

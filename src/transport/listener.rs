@@ -1,0 +1,324 @@
+//! The HTTP accept loop: HTTP/1.1 connections served by hyper under a cap, with header and
+//! idle timeouts, so idle or half-open sockets cannot take every file descriptor.
+//!
+//! - Up to `max_connections` connections are served normally.
+//! - Beyond the cap, a small reserve ([`RESERVE_CONNECTIONS`]) still answers `GET /v1/health`
+//!   and `GET /metrics` (one request per connection, a short header timeout); anything else
+//!   there gets 503 `too_many_connections` and the connection closes. When the reserve is full,
+//!   a newcomer takes the place of the oldest reserve connection that has not sent a request
+//!   yet, so sockets that only hold a place cannot keep probes out.
+//! - Beyond that, connections are closed as soon as they are accepted.
+//!
+//! A connection has `header_timeout_ms` to deliver a request head, counted from when the server
+//! starts waiting for one (a new connection, or a kept-alive one after its last answer). One on
+//! which no byte moves either way for `idle_timeout_ms` while no handler is working on one of
+//! its requests is closed (a client that stopped reading its answer). Upgraded WebSockets are
+//! outside both: they live as long as the session's stream, and still count under the cap.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+
+use axum::extract::Request;
+use axum::http::{header, HeaderValue, Method};
+use axum::response::{IntoResponse, Response};
+use axum::Router;
+use hyper::body::Incoming;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::service::TowerToHyperService;
+use serde::{Deserialize, Serialize};
+use tokio::net::TcpListener;
+use tokio::sync::{oneshot, watch, Semaphore};
+
+use super::connection_io::{Activity, ConnectionIo, MAX_HEAD_BYTES};
+use crate::service::ServiceError;
+
+/// HTTP connection handling and the cross-site guard (`http` in the config file).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HttpConfig {
+    /// Connections served at once [default: min(4096, the process's file limit / 4)].
+    pub max_connections: Option<usize>,
+    /// Time to deliver a request head, from when the server starts waiting for one.
+    pub header_timeout_ms: u64,
+    /// A connection on which nothing moves this long, with no request being worked on, closes.
+    pub idle_timeout_ms: u64,
+    /// Host names (no port) accepted in `Host` besides the listen address's own and, on
+    /// loopback, `localhost`, `127.0.0.1` and `[::1]` (see `transport::http_guard`).
+    pub allowed_hosts: Vec<String>,
+    /// Origins (`scheme://host[:port]`) allowed to send state-changing requests besides the
+    /// server's own.
+    pub allowed_origins: Vec<String>,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            max_connections: None,
+            header_timeout_ms: 10_000,
+            idle_timeout_ms: 60_000,
+            allowed_hosts: Vec::new(),
+            allowed_origins: Vec::new(),
+        }
+    }
+}
+
+/// Connections beyond the cap that may still ask for health and metrics.
+pub const RESERVE_CONNECTIONS: usize = 32;
+/// Header timeout of a reserve connection: a probe sends its request at once.
+const RESERVE_HEADER_TIMEOUT: Duration = Duration::from_secs(1);
+/// Never fewer connections than this, whatever the file limit says.
+const MIN_CONNECTIONS: usize = 64;
+
+/// Raises the soft limit on open files to the hard limit (sockets are files), and returns the
+/// limit now in force (`None` when it cannot be read).
+pub fn raise_file_limit() -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit and setrlimit only read and write the struct passed in.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) != 0 {
+            return None;
+        }
+        if limit.rlim_cur < limit.rlim_max {
+            let raised = libc::rlimit {
+                rlim_cur: limit.rlim_max,
+                rlim_max: limit.rlim_max,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &raised) == 0 {
+                limit = raised;
+            }
+        }
+    }
+    Some(limit.rlim_cur as u64)
+}
+
+/// The connection cap: configured, or a quarter of the file limit (solves, the journal, zenoh
+/// and the reserve need files too) and at most 4096.
+pub fn connection_cap(config: &HttpConfig, file_limit: Option<u64>) -> usize {
+    config.max_connections.unwrap_or_else(|| {
+        let quarter = file_limit.map_or(4096, |l| (l / 4) as usize);
+        quarter.clamp(MIN_CONNECTIONS, 4096)
+    })
+}
+
+/// Reserve connections waiting for their request, oldest first: the ones a newcomer may evict.
+struct Reserve {
+    waiting: Mutex<Vec<ReservePlace>>,
+}
+
+struct ReservePlace {
+    /// Closes the connection when sent to (or dropped); closed once the connection ended.
+    evict: oneshot::Sender<()>,
+    has_request: Arc<AtomicBool>,
+}
+
+impl Reserve {
+    /// A place in the reserve, evicting the oldest connection without a request when full.
+    fn admit(&self) -> Option<(oneshot::Receiver<()>, Arc<AtomicBool>)> {
+        let mut waiting = self.waiting.lock().unwrap_or_else(PoisonError::into_inner);
+        waiting.retain(|place| !place.evict.is_closed());
+        if waiting.len() >= RESERVE_CONNECTIONS {
+            let oldest_idle = waiting
+                .iter()
+                .position(|p| !p.has_request.load(Ordering::Relaxed))?;
+            // Dropping the sender closes that connection.
+            waiting.remove(oldest_idle);
+        }
+        let (evict, evicted) = oneshot::channel();
+        let has_request = Arc::new(AtomicBool::new(false));
+        waiting.push(ReservePlace {
+            evict,
+            has_request: Arc::clone(&has_request),
+        });
+        Some((evicted, has_request))
+    }
+}
+
+/// How one connection is served.
+#[derive(Clone, Copy)]
+struct Timeouts {
+    header: Duration,
+    idle: Duration,
+}
+
+/// Serves `app` on `listener` until `shutdown` resolves, then stops accepting, lets open
+/// connections finish their requests and returns once they have all closed.
+pub async fn serve(
+    listener: TcpListener,
+    app: Router,
+    config: &HttpConfig,
+    cap: usize,
+    shutdown: impl Future<Output = ()> + Send,
+) {
+    let slots = Arc::new(Semaphore::new(cap));
+    let reserve = Reserve {
+        waiting: Mutex::new(Vec::new()),
+    };
+    let timeouts = Timeouts {
+        header: Duration::from_millis(config.header_timeout_ms.max(1)),
+        idle: Duration::from_millis(config.idle_timeout_ms.max(1)),
+    };
+    // Every connection task holds a receiver of `stopping`; `closed()` is when all are gone.
+    let (stopping, stop_seen) = watch::channel(false);
+    let mut shutdown = std::pin::pin!(shutdown);
+    loop {
+        let (stream, peer) = tokio::select! {
+            () = &mut shutdown => break,
+            accepted = listener.accept() => match accepted {
+                Ok(accepted) => accepted,
+                Err(e) => {
+                    // Out of files or a connection reset before it was accepted: the cap keeps
+                    // the first rare; pause so a persistent one does not spin.
+                    tracing::warn!("accepting an HTTP connection: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+        };
+        let _ = stream.set_nodelay(true);
+        let stop_seen = stop_seen.clone();
+        if let Ok(slot) = Arc::clone(&slots).try_acquire_owned() {
+            let io = ConnectionIo::new(stream, Activity::new(), Some(slot));
+            let connection = Connection {
+                app: app.clone(),
+                timeouts,
+                reserve: None,
+            };
+            tokio::spawn(connection.run(io, stop_seen, peer));
+        } else if let Some((evicted, has_request)) = reserve.admit() {
+            let io = ConnectionIo::new(stream, Activity::new(), None);
+            let connection = Connection {
+                app: app.clone(),
+                timeouts: Timeouts {
+                    header: timeouts.header.min(RESERVE_HEADER_TIMEOUT),
+                    idle: timeouts.idle.min(RESERVE_HEADER_TIMEOUT),
+                },
+                reserve: Some((evicted, has_request)),
+            };
+            tokio::spawn(connection.run(io, stop_seen, peer));
+        } else {
+            tracing::debug!("{peer}: closed at once, {cap} connections and the reserve in use");
+        }
+    }
+    tracing::info!("shutting down: no new connections");
+    drop(listener);
+    let _ = stopping.send(true);
+    drop(stop_seen);
+    stopping.closed().await;
+}
+
+struct Connection {
+    app: Router,
+    timeouts: Timeouts,
+    /// For a reserve connection: its eviction notice and whether it has sent a request.
+    reserve: Option<(oneshot::Receiver<()>, Arc<AtomicBool>)>,
+}
+
+impl Connection {
+    async fn run(self, io: ConnectionIo, mut stop_seen: watch::Receiver<bool>, peer: SocketAddr) {
+        let activity = io.activity();
+        let (mut evicted, has_request) = match self.reserve {
+            Some((evicted, has_request)) => (Some(evicted), Some(has_request)),
+            None => (None, None),
+        };
+        let in_reserve = has_request.is_some();
+        let router = TowerToHyperService::new(self.app);
+        let answering = Arc::clone(&activity);
+        let service = hyper::service::service_fn(move |request: Request<Incoming>| {
+            if let Some(flag) = &has_request {
+                flag.store(true, Ordering::Relaxed);
+            }
+            let busy = answering.begin_answer();
+            let refused = in_reserve && !is_probe(&request);
+            let answer = (!refused).then(|| hyper::service::Service::call(&router, request));
+            async move {
+                let _busy = busy;
+                match answer {
+                    Some(answer) => answer.await,
+                    None => Ok(too_many_connections()),
+                }
+            }
+        });
+        let mut builder = hyper::server::conn::http1::Builder::new();
+        builder
+            .timer(TokioTimer::new())
+            .header_read_timeout(self.timeouts.header)
+            .max_buf_size(MAX_HEAD_BYTES)
+            // A reserve connection answers one probe and closes, freeing its place.
+            .keep_alive(!in_reserve);
+        let connection = builder
+            .serve_connection(TokioIo::new(io), service)
+            .with_upgrades();
+        let mut connection = std::pin::pin!(connection);
+        let evicted = async {
+            match evicted.as_mut() {
+                Some(evicted) => {
+                    let _ = evicted.await;
+                }
+                None => std::future::pending().await,
+            }
+        };
+        let mut evicted = std::pin::pin!(evicted);
+        let mut stopping = false;
+        loop {
+            tokio::select! {
+                result = connection.as_mut() => {
+                    if let Err(e) = result {
+                        tracing::debug!("{peer}: connection ended: {e}");
+                    }
+                    break;
+                }
+                () = idle(&activity, self.timeouts.idle) => {
+                    tracing::debug!("{peer}: closed after {:?} idle", self.timeouts.idle);
+                    break;
+                }
+                () = &mut evicted => {
+                    tracing::debug!("{peer}: reserve place taken by a newer connection");
+                    break;
+                }
+                changed = stop_seen.changed(), if !stopping => {
+                    stopping = true;
+                    if changed.is_ok() {
+                        connection.as_mut().graceful_shutdown();
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Resolves once nothing has moved on the connection for `limit` while no handler was
+/// working on one of its requests.
+async fn idle(activity: &Activity, limit: Duration) {
+    loop {
+        let quiet = activity.quiet_for();
+        if quiet >= limit && !activity.answering() {
+            return;
+        }
+        let wait = limit.saturating_sub(quiet).max(Duration::from_millis(100));
+        tokio::time::sleep(wait).await;
+    }
+}
+
+/// What a reserve connection may ask: liveness and metrics, nothing that takes work.
+fn is_probe(request: &Request<Incoming>) -> bool {
+    request.method() == Method::GET && matches!(request.uri().path(), "/v1/health" | "/metrics")
+}
+
+fn too_many_connections() -> Response {
+    let error = ServiceError::unavailable(
+        "too_many_connections",
+        "the server is at its connection limit; only GET /v1/health and /metrics are answered",
+        1,
+    );
+    let mut response = super::http::HttpError::from(error).into_response();
+    response
+        .headers_mut()
+        .insert(header::CONNECTION, HeaderValue::from_static("close"));
+    response
+}
