@@ -89,9 +89,13 @@ async fn unnamed_sessions_after_a_restart_take_fresh_names() {
         assert_eq!(v["session"], expected, "{v}");
     }
     s.kill();
+    // A directory that cannot be loaded keeps its name too (it is never overwritten).
+    let unloadable = dir.join("sessions/s7");
+    std::fs::create_dir_all(&unloadable).unwrap();
+    std::fs::write(unloadable.join("session.json"), "not json").unwrap();
     let s = TestServer::start_at(&dir, &["--no-zenoh"], &[]);
     let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
-    assert_eq!(v["session"], "s3", "{v}");
+    assert_eq!(v["session"], "s8", "{v}");
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -379,7 +379,12 @@ impl Service {
         };
         self.finish_deletions();
         let found = crate::journal::SessionDir::list(&state_dir)?;
-        let on_disk = crate::journal::SessionDir::names_on_disk(&state_dir)?.len();
+        let names_on_disk = crate::journal::SessionDir::names_on_disk(&state_dir)?;
+        // Unnamed creations continue after every name on disk, loadable or not.
+        for name in &names_on_disk {
+            self.reserve_generated_name(name);
+        }
+        let on_disk = names_on_disk.len();
         let mut count = 0;
         for (name, dir) in found {
             // Only the small identity files are read here; a session whose identity cannot be
@@ -888,11 +893,15 @@ impl Service {
         }
     }
 
-    /// Lists a recovered session. Unnamed creations (`s<n>`) continue after the names found.
-    fn register(&self, name: String, session: Arc<Session>) {
+    /// Unnamed creations (`s<n>`) are numbered after `name` when it is one of theirs.
+    fn reserve_generated_name(&self, name: &str) {
         if let Some(n) = name.strip_prefix('s').and_then(|n| n.parse::<u64>().ok()) {
             self.next_id.fetch_max(n.saturating_add(1), Ordering::SeqCst);
         }
+    }
+
+    /// Lists a recovered session.
+    fn register(&self, name: String, session: Arc<Session>) {
         self.notify_observers(&session);
         self.sessions
             .write()
