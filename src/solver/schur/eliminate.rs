@@ -1,0 +1,256 @@
+//! One numeric factorisation: U copied into S (with the LM shift), then every eliminated block
+//! in turn: its V⁻¹, Y = W V⁻¹ and S −= Y Wᵀ over its neighbour pairs; then S is factorised.
+//! The small fixed-size kernels (a point's 3×3 V, a camera pair's 9×9 update) live here too.
+
+use super::super::cholesky::NotPositiveDefinite;
+use super::super::simd::has_wide_vectors;
+use super::super::structure::BlockPattern;
+use super::reduced::Backend;
+use super::{kernel_of, SchurSolver, CAMERA};
+
+impl SchurSolver {
+    /// Eliminates with the full matrix `values` (lower triangle in `full`'s layout) plus
+    /// `diag(shift)` when given (LM damping, so H needs no damped copy), and factorises S.
+    pub fn factorize(
+        &mut self,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+    ) -> Result<(), NotPositiveDefinite> {
+        self.s_values.fill(0.0);
+        for &(from, to) in &self.u_map {
+            self.s_values[to] = values[from];
+        }
+        if let Some(shift) = shift {
+            let n = self.reduced.n;
+            let dense = self.is_dense();
+            for (i, add) in shift[self.eliminated_rows..].iter().enumerate() {
+                let at = if dense {
+                    i * n + i
+                } else {
+                    self.reduced.diagonal_index(i)
+                };
+                self.s_values[at] += add;
+            }
+        }
+        if has_wide_vectors() {
+            // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
+            unsafe { eliminate_all_wide(self, full, values, shift) }
+        } else {
+            eliminate_all(self, full, values, shift)
+        }?;
+        self.backend
+            .factorize(&self.reduced, &mut self.s_values, self.eliminated_rows)
+    }
+
+    /// Eliminates block `e` (of dimension `D`, or any when `D` is 0; its neighbours all of
+    /// dimension `K`, or any when `K` is 0): V⁻¹, Y = W V⁻¹ and
+    /// S −= Y Wᵀ over every pair of its neighbours. Errs with the failing pivot of V.
+    #[inline(always)]
+    fn eliminate<const D: usize, const K: usize>(
+        &mut self,
+        e: usize,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+    ) -> Result<(), usize> {
+        let d = if D > 0 { D } else { self.dim[e] };
+        let reduced = &self.reduced;
+        let dense_n = match self.backend {
+            Backend::Dense { .. } => Some(reduced.n),
+            Backend::Sparse(_) => None,
+        };
+        let v = &mut self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let diagonal_pair = full.column_blocks(e)[0].1;
+        for q in 0..d {
+            for r in q..d {
+                v[r * d + q] = values[full.value_index(diagonal_pair, true, r, q)];
+            }
+        }
+        if let Some(shift) = shift {
+            for q in 0..d {
+                v[q * d + q] += shift[self.offset[e] + q];
+            }
+        }
+        small_cholesky(v, d)?;
+        small_cholesky_inverse(v, d);
+        let around = &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]];
+        // W column by column (each contiguous in the full pattern), then Y = W V⁻¹.
+        let mut local = 0;
+        for nb in around {
+            let dk = if K > 0 { K } else { reduced.dim[nb.block] };
+            let w = &mut self.w_local[local..local + dk * d];
+            for t in 0..d {
+                let start = full.value_index(nb.w_pair, false, 0, t);
+                for (to, from) in w[t * dk..(t + 1) * dk]
+                    .iter_mut()
+                    .zip(&values[start..start + dk])
+                {
+                    *to = *from;
+                }
+            }
+            let y = &mut self.y_values[nb.y_offset..nb.y_offset + dk * d];
+            y.fill(0.0);
+            for t in 0..d {
+                let yt = &mut y[t * dk..(t + 1) * dk];
+                for s in 0..d {
+                    let factor = v[s * d + t];
+                    for (yr, wr) in yt.iter_mut().zip(&w[s * dk..(s + 1) * dk]) {
+                        *yr += wr * factor;
+                    }
+                }
+            }
+            local += dk * d;
+        }
+        // S_kl −= Y_k W_lᵀ for l ≤ k: column q of the block is the axpy Σ_t Y_k[:, t] W_l[q, t].
+        let blocks = &self.s_blocks[self.s_block_start[e]..self.s_block_start[e + 1]];
+        let mut next = 0;
+        let mut local_k = 0;
+        for (k, nk) in around.iter().enumerate() {
+            let dk = if K > 0 { K } else { reduced.dim[nk.block] };
+            let y = &self.y_values[nk.y_offset..nk.y_offset + dk * d];
+            let mut local_l = 0;
+            for (l, nl) in around[..=k].iter().enumerate() {
+                let dl = if K > 0 { K } else { reduced.dim[nl.block] };
+                let block = blocks[next];
+                next += 1;
+                let w = &self.w_local[local_l..local_l + dl * d];
+                local_l += dl * d;
+                match dense_n {
+                    // Dense S: a diagonal block may be written whole (the upper half is unread).
+                    Some(n) if D > 0 && K == CAMERA => {
+                        subtract_product::<D, CAMERA>(&mut self.s_values[block..], n, y, w)
+                    }
+                    _ => {
+                        let diagonal = k == l;
+                        for q in 0..dl {
+                            let first = if diagonal { q } else { 0 };
+                            let start = match dense_n {
+                                Some(n) => block + q * n + first,
+                                None => reduced.value_index(block, diagonal, first, q),
+                            };
+                            let column = &mut self.s_values[start..start + dk - first];
+                            for t in 0..d {
+                                let factor = w[t * dl + q];
+                                let yt = &y[t * dk + first..(t + 1) * dk];
+                                for (s, yr) in column.iter_mut().zip(yt) {
+                                    *s -= yr * factor;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            local_k += dk * d;
+        }
+        debug_assert_eq!(local_k, local);
+        Ok(())
+    }
+}
+
+/// Eliminates every block of `solver` into S; errs at the first V that is not positive definite.
+#[inline(always)]
+fn eliminate_all(
+    solver: &mut SchurSolver,
+    full: &BlockPattern,
+    values: &[f64],
+    shift: Option<&[f64]>,
+) -> Result<(), NotPositiveDefinite> {
+    for e in 0..solver.eliminated {
+        let result = match kernel_of(solver, e) {
+            (3, true) => solver.eliminate::<3, CAMERA>(e, full, values, shift),
+            (3, false) => solver.eliminate::<3, 0>(e, full, values, shift),
+            _ => solver.eliminate::<0, 0>(e, full, values, shift),
+        };
+        result.map_err(|i| NotPositiveDefinite {
+            row: solver.offset[e] + i,
+        })?;
+    }
+    Ok(())
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn eliminate_all_wide(
+    solver: &mut SchurSolver,
+    full: &BlockPattern,
+    values: &[f64],
+    shift: Option<&[f64]>,
+) -> Result<(), NotPositiveDefinite> {
+    eliminate_all(solver, full, values, shift)
+}
+
+/// `S[.., ..] −= Y Wᵀ` for column-major `y`, `w` (K × D) into the K×K block of a column-major
+/// matrix with leading dimension `n` that starts at `s[0]`.
+#[inline(always)]
+fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: &[f64], w: &[f64]) {
+    let (y, w) = (&y[..K * D], &w[..K * D]);
+    for q in 0..K {
+        let column = &mut s[q * n..q * n + K];
+        let mut acc = [0.0; K];
+        for t in 0..D {
+            let factor = w[t * K + q];
+            for r in 0..K {
+                acc[r] += y[t * K + r] * factor;
+            }
+        }
+        for r in 0..K {
+            column[r] -= acc[r];
+        }
+    }
+}
+
+/// In-place Cholesky of the d×d row-major matrix `a` (lower triangle read and written).
+/// On failure returns the row of the non-positive pivot.
+#[inline(always)]
+fn small_cholesky(a: &mut [f64], d: usize) -> Result<(), usize> {
+    for j in 0..d {
+        let mut pivot = a[j * d + j];
+        for k in 0..j {
+            pivot -= a[j * d + k] * a[j * d + k];
+        }
+        if !(pivot > 0.0 && pivot.is_finite()) {
+            return Err(j);
+        }
+        let pivot = pivot.sqrt();
+        a[j * d + j] = pivot;
+        for i in j + 1..d {
+            let mut s = a[i * d + j];
+            for k in 0..j {
+                s -= a[i * d + k] * a[j * d + k];
+            }
+            a[i * d + j] = s / pivot;
+        }
+    }
+    Ok(())
+}
+
+/// Replaces the factor L of [`small_cholesky`] (lower triangle of `a`) by (L Lᵀ)⁻¹, both
+/// triangles.
+#[inline(always)]
+fn small_cholesky_inverse(a: &mut [f64], d: usize) {
+    let mut inverse = [0.0; 256];
+    assert!(d <= 16, "eliminated variables have at most 16 dimensions");
+    for c in 0..d {
+        // Solve L Lᵀ x = e_c.
+        let mut x = [0.0; 16];
+        x[c] = 1.0;
+        for i in 0..d {
+            let mut s = x[i];
+            for k in 0..i {
+                s -= a[i * d + k] * x[k];
+            }
+            x[i] = s / a[i * d + i];
+        }
+        for i in (0..d).rev() {
+            let mut s = x[i];
+            for k in i + 1..d {
+                s -= a[k * d + i] * x[k];
+            }
+            x[i] = s / a[i * d + i];
+        }
+        for r in 0..d {
+            inverse[r * d + c] = x[r];
+        }
+    }
+    a.copy_from_slice(&inverse[..d * d]);
+}

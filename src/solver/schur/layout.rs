@@ -1,0 +1,132 @@
+//! Where every piece of the elimination lives, decided once per structure: per eliminated block
+//! its V⁻¹, its neighbours' Y = W V⁻¹ and the S block of every neighbour pair; the U entries
+//! copied into S; and the reduced system's backend (dense buffer or sparse symbolic analysis).
+
+use super::super::cholesky::SymbolicError;
+use super::super::structure::BlockPattern;
+use super::reduced::Backend;
+use super::{Neighbour, SchurPlan, SchurSolver, CAMERA};
+
+impl SchurSolver {
+    /// `full` is the pattern laid out with `plan.ordering`.
+    pub fn new(full: &BlockPattern, plan: &SchurPlan) -> Result<Self, SymbolicError> {
+        let ne = plan.eliminated;
+        // The reduced graph numbers its blocks in free-block order; full position ne + k holds
+        // the block at reduced position k.
+        let dims_by_block: Vec<usize> = plan
+            .reduced
+            .position
+            .iter()
+            .map(|&k| full.dim[ne + k])
+            .collect();
+        let reduced = BlockPattern::with_ordering(&dims_by_block, &plan.reduced);
+        let n = reduced.n;
+        let eliminated_rows = full.n - n;
+        // Where an S block (a ≥ b, reduced positions) starts, and element (r, q) of it.
+        let dense_index = |a: usize, b: usize, r: usize, q: usize| {
+            (reduced.offset[b] + q) * n + reduced.offset[a] + r
+        };
+        let mut dim = Vec::with_capacity(ne);
+        let mut offset = Vec::with_capacity(ne);
+        let mut v_start = Vec::with_capacity(ne + 1);
+        let mut neighbour_start = Vec::with_capacity(ne + 1);
+        let mut neighbours = Vec::new();
+        let mut s_block_start = Vec::with_capacity(ne + 1);
+        let mut s_blocks = Vec::new();
+        let (mut v_len, mut y_len, mut w_max) = (0, 0, 0);
+        for e in 0..ne {
+            let d = full.dim[e];
+            dim.push(d);
+            offset.push(full.offset[e]);
+            v_start.push(v_len);
+            v_len += d * d;
+            neighbour_start.push(neighbours.len());
+            s_block_start.push(s_blocks.len());
+            let first = neighbours.len();
+            let mut w_len = 0;
+            for &(a, w_pair) in full.column_blocks(e) {
+                if a == e {
+                    continue;
+                }
+                assert!(
+                    a >= ne,
+                    "eliminated blocks {a} and {e} share a factor: a planning bug"
+                );
+                neighbours.push(Neighbour {
+                    block: a - ne,
+                    w_pair,
+                    y_offset: y_len,
+                });
+                y_len += full.dim[a] * d;
+                w_len += full.dim[a] * d;
+            }
+            w_max = w_max.max(w_len);
+            // Neighbours are sorted by position, so (k, l ≤ k) is a lower block of S.
+            for k in first..neighbours.len() {
+                for l in first..=k {
+                    let (a, b) = (neighbours[k].block, neighbours[l].block);
+                    s_blocks.push(if plan.dense {
+                        dense_index(a, b, 0, 0)
+                    } else {
+                        reduced.pair(a, b).expect(
+                            "the reduced pattern holds every pair sharing an eliminated block",
+                        )
+                    });
+                }
+            }
+        }
+        v_start.push(v_len);
+        neighbour_start.push(neighbours.len());
+        s_block_start.push(s_blocks.len());
+        let camera_neighbours = (0..ne)
+            .map(|e| {
+                neighbours[neighbour_start[e]..neighbour_start[e + 1]]
+                    .iter()
+                    .all(|n| reduced.dim[n.block] == CAMERA)
+            })
+            .collect();
+        let mut u_map = Vec::new();
+        for b in ne..full.dim.len() {
+            for &(a, pair) in full.column_blocks(b) {
+                let diagonal = a == b;
+                let (ra, rb) = (a - ne, b - ne);
+                let s_pair = reduced
+                    .pair(ra, rb)
+                    .expect("the reduced pattern holds every direct pair");
+                for q in 0..full.dim[b] {
+                    let rows = if diagonal { q } else { 0 };
+                    for r in rows..full.dim[a] {
+                        let to = if plan.dense {
+                            dense_index(ra, rb, r, q)
+                        } else {
+                            reduced.value_index(s_pair, diagonal, r, q)
+                        };
+                        u_map.push((full.value_index(pair, diagonal, r, q), to));
+                    }
+                }
+            }
+        }
+        let backend = Backend::new(&reduced, plan.dense)?;
+        let s_len = backend.values_len(&reduced);
+        Ok(Self {
+            eliminated: ne,
+            eliminated_rows,
+            dim,
+            offset,
+            v_start,
+            v_inverse: vec![0.0; v_len],
+            neighbour_start,
+            neighbours,
+            camera_neighbours,
+            s_block_start,
+            s_blocks,
+            y_values: vec![0.0; y_len],
+            u_map,
+            s_values: vec![0.0; s_len],
+            w_local: vec![0.0; w_max],
+            rhs: vec![0.0; n],
+            reduced,
+            backend,
+        })
+    }
+}

@@ -1,0 +1,131 @@
+//! The Schur complement: eliminate landmark-like variables first and solve the reduced system.
+//!
+//! Order the normal equations as
+//!
+//! ```text
+//! [ V  Wᵀ ] [Δe]   [b_e]
+//! [ W  U  ] [Δr] = [b_r]
+//! ```
+//!
+//! with `e` the eliminated variables (BA points), which no factor connects to each other, so V is
+//! block diagonal. Then `S = U − W V⁻¹ Wᵀ` (the reduced camera system) gives
+//! `S Δr = b_r − W V⁻¹ b_e` and `Δe = V⁻¹ (b_e − Wᵀ Δr)`. Each V block is a few scalars; S is
+//! factorised densely when it is small (few cameras: dense kernels beat any sparse bookkeeping)
+//! and with the sparse supernodal Cholesky otherwise. This is exactly sparse Cholesky with the
+//! eliminated variables ordered first, but done by block arithmetic: a general sparse
+//! factorisation spends most of its time on thousands of 3-column supernodes.
+//!
+//! Which variables to eliminate is a property of the problem ([`crate::problem::Problem::eliminate`]):
+//! every free variable of the listed kinds, except that a variable sharing a factor with an
+//! already chosen one stays in the reduced system (V must stay block diagonal).
+//!
+//! The files, one concept each:
+//! - `plan`: which blocks are eliminated and the reduced system's graph and order ([`SchurPlan`]);
+//! - `layout`: where every piece lives — V⁻¹, Y = W V⁻¹, the S block of every neighbour pair,
+//!   the U entries copied into S ([`SchurSolver::new`]);
+//! - `eliminate`: one factorisation: U into S, then every eliminated block's V⁻¹ and
+//!   S −= Y Wᵀ, with the small fixed-size kernels it uses;
+//! - `reduced`: the reduced system S itself, dense or sparse: its factorisation, its solve and
+//!   their predicted cost;
+//! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr.
+//!
+//! This file holds the solver's state, shared by all of them.
+
+mod back_substitute;
+mod eliminate;
+mod layout;
+mod plan;
+mod reduced;
+#[cfg(test)]
+mod tests;
+
+use super::structure::BlockPattern;
+
+pub use plan::{plan, SchurPlan};
+use reduced::Backend;
+
+/// One neighbour (reduced block) of an eliminated block: its W block in the full pattern, and
+/// where Y = W V⁻¹ of that pair is kept.
+#[derive(Debug, Clone, Copy)]
+struct Neighbour {
+    /// Reduced block number (full position − eliminated).
+    block: usize,
+    w_pair: usize,
+    y_offset: usize,
+}
+
+/// The block size the fixed-size kernels are compiled for: a BAL camera.
+const CAMERA: usize = 9;
+
+/// Factorises the normal equations by eliminating a block-diagonal part first; see the module
+/// documentation.
+pub struct SchurSolver {
+    eliminated: usize,
+    /// Scalar rows of the eliminated part; reduced scalar row `i` is full row `eliminated_rows + i`.
+    eliminated_rows: usize,
+    /// Scalar dimension and first row of every eliminated block, and where its V⁻¹ starts.
+    dim: Vec<usize>,
+    offset: Vec<usize>,
+    v_start: Vec<usize>,
+    v_inverse: Vec<f64>,
+    neighbour_start: Vec<usize>,
+    neighbours: Vec<Neighbour>,
+    /// Per eliminated block: whether all its neighbours are [`CAMERA`]-sized (fixed-size kernels).
+    camera_neighbours: Vec<bool>,
+    /// Per eliminated block, the S block of every neighbour pair (k, l ≤ k), row by row: a pair
+    /// of the reduced pattern (sparse) or the index of the block's (0, 0) entry (dense).
+    s_block_start: Vec<usize>,
+    s_blocks: Vec<usize>,
+    /// Y = W V⁻¹ per (eliminated block, neighbour), column-major (dk × d).
+    y_values: Vec<f64>,
+    /// (full pattern value index, S value index) of every U entry.
+    u_map: Vec<(usize, usize)>,
+    reduced: BlockPattern,
+    s_values: Vec<f64>,
+    backend: Backend,
+    /// W of the current eliminated block's neighbours, column-major like Y.
+    w_local: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+impl std::fmt::Debug for SchurSolver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SchurSolver")
+            .field("eliminated", &self.eliminated)
+            .field("reduced_dim", &self.reduced.n)
+            .field("dense", &self.is_dense())
+            .finish()
+    }
+}
+
+impl SchurSolver {
+    pub fn is_dense(&self) -> bool {
+        matches!(self.backend, Backend::Dense { .. })
+    }
+
+    pub fn eliminated_blocks(&self) -> usize {
+        self.eliminated
+    }
+
+    pub fn reduced_blocks(&self) -> usize {
+        self.reduced.dim.len()
+    }
+
+    pub fn reduced_dim(&self) -> usize {
+        self.reduced.n
+    }
+
+    /// Nonzeros of the reduced system's factor (dense: the lower triangle).
+    pub fn factor_nnz(&self) -> usize {
+        match &self.backend {
+            Backend::Dense { .. } => self.reduced.n * (self.reduced.n + 1) / 2,
+            Backend::Sparse(chol) => chol.factor_nnz(),
+        }
+    }
+}
+
+/// Which compiled kernel serves eliminated block `e`: (point, all cameras) or the general one.
+#[inline(always)]
+fn kernel_of(solver: &SchurSolver, e: usize) -> (usize, bool) {
+    (solver.dim[e], solver.camera_neighbours[e])
+}

@@ -1,0 +1,131 @@
+//! Which blocks the Schur complement eliminates, and the reduced system's graph and order: a
+//! property of the problem's structure, decided once per solve.
+
+use std::borrow::Borrow;
+
+use super::super::linearize::{free_adjacency, free_blocks};
+use super::super::options::LinearSolverChoice;
+use super::super::structure::BlockOrdering;
+use crate::factors::FactorEntry;
+use crate::problem::Values;
+
+/// Auto picks a dense reduced system up to this many scalar unknowns (≈110 BAL cameras): a dense
+/// Cholesky of that size costs ~30 ms, about a sparse one's bookkeeping on a dense-ish S.
+const DENSE_AUTO_MAX: usize = 1000;
+
+/// How one solve eliminates: decided once per problem structure.
+#[derive(Debug, Clone)]
+pub struct SchurPlan {
+    /// Order of the whole free-variable graph: eliminated blocks first, then the reduced ones in
+    /// the order of `reduced`.
+    pub ordering: BlockOrdering,
+    /// Number of eliminated blocks (they hold positions `0..eliminated`).
+    pub eliminated: usize,
+    /// The reduced system's graph and order; block `k` is full position `eliminated + k`.
+    pub(super) reduced: BlockOrdering,
+    pub dense: bool,
+}
+
+/// Plans the Schur complement for the free variables (`fixed[v]` false) whose kind is in
+/// `kinds`; `None` when it does not apply (no such variable, nothing left to reduce to, or the
+/// choice is plain sparse Cholesky).
+pub fn plan<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    fixed: &[bool],
+    kinds: &[&str],
+    choice: LinearSolverChoice,
+) -> Option<SchurPlan> {
+    if kinds.is_empty() || choice == LinearSolverChoice::SparseCholesky {
+        return None;
+    }
+    let (block_of_var, count) = free_blocks(fixed.iter().copied());
+    let adjacency = free_adjacency(factors, fixed);
+    let mut dims = vec![0; count];
+    let mut eliminate = vec![false; count];
+    for (v, block) in block_of_var.iter().enumerate() {
+        let Some(b) = *block else { continue };
+        let variable = values.variable(v);
+        dims[b] = variable.tangent_dim();
+        if kinds.contains(&variable.kind()) && !adjacency[b].iter().any(|&n| eliminate[n]) {
+            eliminate[b] = true;
+        }
+    }
+    let eliminated = eliminate.iter().filter(|&&e| e).count();
+    if eliminated == 0 || eliminated == count {
+        return None;
+    }
+    // Reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one.
+    let mut reduced_index = vec![usize::MAX; count];
+    let mut next = 0;
+    for b in 0..count {
+        if !eliminate[b] {
+            reduced_index[b] = next;
+            next += 1;
+        }
+    }
+    let reduced_count = next;
+    let mut reduced_adjacency = vec![Vec::new(); reduced_count];
+    for b in 0..count {
+        if eliminate[b] {
+            let around: Vec<usize> = adjacency[b].iter().map(|&n| reduced_index[n]).collect();
+            for &x in &around {
+                reduced_adjacency[x].extend(around.iter().filter(|&&y| y != x));
+            }
+        } else {
+            reduced_adjacency[reduced_index[b]].extend(
+                adjacency[b]
+                    .iter()
+                    .filter(|&&n| !eliminate[n])
+                    .map(|&n| reduced_index[n]),
+            );
+        }
+    }
+    for list in &mut reduced_adjacency {
+        list.sort_unstable();
+        list.dedup();
+    }
+    let reduced_dim: usize = (0..count).filter(|&b| !eliminate[b]).map(|b| dims[b]).sum();
+    let dense = match choice {
+        LinearSolverChoice::DenseSchur => true,
+        LinearSolverChoice::SparseSchur => false,
+        _ => reduced_dim <= DENSE_AUTO_MAX,
+    };
+    let reduced = if dense {
+        // Every pair present, in the given order: the pattern is the dense lower triangle.
+        let all = (0..reduced_count)
+            .map(|x| (0..reduced_count).filter(|&y| y != x).collect())
+            .collect();
+        BlockOrdering {
+            adjacency: all,
+            position: (0..reduced_count).collect(),
+            block_at: (0..reduced_count).collect(),
+        }
+    } else {
+        BlockOrdering::amd(reduced_adjacency)
+    };
+    let mut position = vec![0; count];
+    let mut next_eliminated = 0;
+    for b in 0..count {
+        position[b] = if eliminate[b] {
+            next_eliminated += 1;
+            next_eliminated - 1
+        } else {
+            eliminated + reduced.position[reduced_index[b]]
+        };
+    }
+    let mut block_at = vec![0; count];
+    for (b, &p) in position.iter().enumerate() {
+        block_at[p] = b;
+    }
+    Some(SchurPlan {
+        ordering: BlockOrdering {
+            adjacency,
+            position,
+            block_at,
+        },
+        eliminated,
+        reduced,
+        dense,
+    })
+}
