@@ -319,7 +319,7 @@ async fn http_transport_rules() {
     }
 
     // T2: a body hyper cannot read: a bad chunk size, a chunked body cut short.
-    let head = "POST /v1/sessions/pg/batches HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\
+    let head = "POST /v1/sessions/pg/batches HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\
         Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n";
     for (what, tail, cut) in [
         ("bad chunk", "zz\r\n{}\r\n", false),

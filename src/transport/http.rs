@@ -29,7 +29,8 @@ use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 type Shared = State<Arc<Service>>;
 
 /// The router, with request bodies limited to `max_body_bytes`, bearer tokens required when
-/// `tokens` is given, and cross-site requests refused by `guard` before anything else.
+/// `tokens` is given, then cross-site requests refused by `guard` (after the token check, so a
+/// caller without a token learns nothing but 401).
 pub fn router(
     service: Arc<Service>,
     max_body_bytes: usize,
@@ -59,7 +60,11 @@ pub fn router(
         .merge(super::web::routes())
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
-        .layer(DefaultBodyLimit::max(max_body_bytes));
+        .layer(DefaultBodyLimit::max(max_body_bytes))
+        .layer(axum::middleware::from_fn_with_state(
+            guard,
+            super::http_guard::guard,
+        ));
     // Every request carries its `Caller` from here on; a handler without one fails closed.
     let routes = match tokens {
         Some(tokens) => routes.layer(axum::middleware::from_fn_with_state(
@@ -69,10 +74,6 @@ pub fn router(
         None => routes.layer(axum::middleware::from_fn(super::auth::trust_everyone)),
     };
     routes
-        .layer(axum::middleware::from_fn_with_state(
-            guard,
-            super::http_guard::guard,
-        ))
         .layer(axum::middleware::from_fn(json_errors))
         .layer(TraceLayer::new_for_http())
         .with_state(service)

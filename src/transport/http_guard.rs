@@ -1,5 +1,6 @@
 //! Refuses requests a web page could make the operator's browser send (cross-site requests,
-//! DNS rebinding), before authentication and before any handler:
+//! DNS rebinding), before any handler (after the bearer-token check, where tokens are on: a
+//! browser never sends a token by itself, so those requests are already refused there):
 //!
 //! - `Host` must name this server: on loopback `localhost`, `127.0.0.1`, `[::1]` or the listen
 //!   address's host, plus `http.allowed_hosts`. A rebinding page's requests carry its own name
