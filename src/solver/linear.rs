@@ -1,8 +1,11 @@
 //! The linear solver an iteration loop factorises with: sparse Cholesky of the whole system, or
 //! the Schur complement of its landmark-like variables.
 
+use std::ops::ControlFlow;
+
 use serde::Serialize;
 
+use super::budget::Budget;
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::schur::SchurSolver;
 use super::structure::BlockPattern;
@@ -27,15 +30,18 @@ pub struct SchurReport {
 }
 
 impl LinearSolver {
-    /// Factorises the matrix with lower triangle `values` in `pattern`'s layout.
+    /// Factorises the matrix with lower triangle `values` in `pattern`'s layout. `Break`:
+    /// `budget` stopped the Schur complement's elimination or refused its reduced factorisation
+    /// (a sparse Cholesky is one call, checked by the caller before it starts).
     pub fn factorize(
         &mut self,
         pattern: &BlockPattern,
         values: &[f64],
-    ) -> Result<(), NotPositiveDefinite> {
+        budget: &dyn Budget,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
         match self {
-            Self::Sparse(chol) => chol.factorize(pattern, values),
-            Self::Schur(schur) => schur.factorize(pattern, values, None),
+            Self::Sparse(chol) => chol.factorize(pattern, values).map(ControlFlow::Continue),
+            Self::Schur(schur) => schur.factorize_within(pattern, values, None, budget),
         }
     }
 
@@ -44,16 +50,18 @@ impl LinearSolver {
         matches!(self, Self::Schur(_))
     }
 
-    /// Factorises `values + diag(shift)` for a solver that [`LinearSolver::shifts_in_place`].
+    /// Factorises `values + diag(shift)` for a solver that [`LinearSolver::shifts_in_place`];
+    /// `budget` as in [`LinearSolver::factorize`].
     pub fn factorize_shifted(
         &mut self,
         pattern: &BlockPattern,
         values: &[f64],
         shift: &[f64],
-    ) -> Result<(), NotPositiveDefinite> {
+        budget: &dyn Budget,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
         match self {
             Self::Sparse(_) => unreachable!("sparse Cholesky factorises a damped copy"),
-            Self::Schur(schur) => schur.factorize(pattern, values, Some(shift)),
+            Self::Schur(schur) => schur.factorize_within(pattern, values, Some(shift), budget),
         }
     }
 
@@ -84,7 +92,7 @@ impl LinearSolver {
     }
 
     /// Floating-point operations of one factorisation, when known before it runs (the Schur
-    /// complement's depends on the elimination it does first).
+    /// complement predicts and checks its reduced factorisation itself, after the elimination).
     pub fn factor_flops(&self) -> Option<f64> {
         match self {
             Self::Sparse(chol) => Some(chol.factor_flops()),

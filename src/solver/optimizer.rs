@@ -418,15 +418,16 @@ impl Iterations<'_> {
             for c in 0..pattern.n {
                 self.damped[c] = lambda * self.damping_diagonal(c);
             }
-            self.chol.factorize_shifted(pattern, &self.h, &self.damped)
+            self.chol
+                .factorize_shifted(pattern, &self.h, &self.damped, self.budget)
         } else if lambda > 0.0 {
             self.damped.copy_from_slice(&self.h);
             for c in 0..pattern.n {
                 self.damped[pattern.diagonal_index(c)] += lambda * self.damping_diagonal(c);
             }
-            self.chol.factorize(pattern, &self.damped)
+            self.chol.factorize(pattern, &self.damped, self.budget)
         } else {
-            self.chol.factorize(pattern, &self.h)
+            self.chol.factorize(pattern, &self.h, self.budget)
         };
         let took = t.elapsed();
         if let Some(cost) = &mut self.cost {
@@ -435,7 +436,9 @@ impl Iterations<'_> {
         let s = took.as_secs_f64();
         self.timings.factorize_seconds += s;
         times.factorize += s;
-        result?;
+        if result?.is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
         let t = Instant::now();
         self.delta.copy_from_slice(&self.b);
         self.chol.solve_in_place(&mut self.delta);

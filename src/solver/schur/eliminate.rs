@@ -2,11 +2,15 @@
 //! in turn: its V⁻¹, Y = W V⁻¹ and S −= Y Wᵀ over its neighbour pairs; then S is factorised.
 //! The small fixed-size kernels (a point's 3×3 V, a camera pair's 9×9 update) live here too.
 
+use std::ops::ControlFlow;
+use std::time::Instant;
+
+use super::super::budget::{Budget, Unlimited};
 use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
 use super::reduced::Backend;
-use super::{kernel_of, SchurSolver, CAMERA};
+use super::{kernel_of, SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
 
 impl SchurSolver {
     /// Eliminates with the full matrix `values` (lower triangle in `full`'s layout) plus
@@ -17,6 +21,27 @@ impl SchurSolver {
         values: &[f64],
         shift: Option<&[f64]>,
     ) -> Result<(), NotPositiveDefinite> {
+        match self.factorize_within(full, values, shift, &Unlimited)? {
+            ControlFlow::Continue(()) => Ok(()),
+            ControlFlow::Break(()) => unreachable!("an unlimited budget never stops"),
+        }
+    }
+
+    /// [`Self::factorize`] within `budget`: checked every [`ELIMINATED_PER_CHECK`] eliminated
+    /// blocks and before S's factorisation, which is one uninterruptible call and is not started
+    /// (nor is the elimination) when its predicted time exceeds the time left. `Break`: stopped;
+    /// nothing is factorised and the caller must not solve with this factorisation.
+    pub fn factorize_within(
+        &mut self,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+        budget: &dyn Budget,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        // Eliminating is wasted when S's factorisation cannot fit afterwards.
+        if !self.reduced_cost.fits(budget) {
+            return Ok(ControlFlow::Break(()));
+        }
         self.s_values.fill(0.0);
         for &(from, to) in &self.u_map {
             self.s_values[to] = values[from];
@@ -33,14 +58,24 @@ impl SchurSolver {
                 self.s_values[at] += add;
             }
         }
-        if has_wide_vectors() {
+        let eliminated = if has_wide_vectors() {
             // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
-            unsafe { eliminate_all_wide(self, full, values, shift) }
+            unsafe { eliminate_all_wide(self, full, values, shift, budget) }
         } else {
-            eliminate_all(self, full, values, shift)
+            eliminate_all(self, full, values, shift, budget)
         }?;
-        self.backend
-            .factorize(&self.reduced, &mut self.s_values, self.eliminated_rows)
+        if eliminated.is_break()
+            || budget.checkpoint().is_break()
+            || !self.reduced_cost.fits(budget)
+        {
+            return Ok(ControlFlow::Break(()));
+        }
+        let started = Instant::now();
+        let factorized =
+            self.backend
+                .factorize(&self.reduced, &mut self.s_values, self.eliminated_rows);
+        self.reduced_cost.measure(started.elapsed());
+        factorized.map(ControlFlow::Continue)
     }
 
     /// Eliminates block `e` (of dimension `D`, or any when `D` is 0; its neighbours all of
@@ -149,14 +184,19 @@ impl SchurSolver {
 }
 
 /// Eliminates every block of `solver` into S; errs at the first V that is not positive definite.
+/// `Break`: `budget` stopped it part way (S is then incomplete).
 #[inline(always)]
 fn eliminate_all(
     solver: &mut SchurSolver,
     full: &BlockPattern,
     values: &[f64],
     shift: Option<&[f64]>,
-) -> Result<(), NotPositiveDefinite> {
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
     for e in 0..solver.eliminated {
+        if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && budget.checkpoint().is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
         let result = match kernel_of(solver, e) {
             (3, true) => solver.eliminate::<3, CAMERA>(e, full, values, shift),
             (3, false) => solver.eliminate::<3, 0>(e, full, values, shift),
@@ -166,7 +206,7 @@ fn eliminate_all(
             row: solver.offset[e] + i,
         })?;
     }
-    Ok(())
+    Ok(ControlFlow::Continue(()))
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
@@ -175,8 +215,9 @@ fn eliminate_all_wide(
     full: &BlockPattern,
     values: &[f64],
     shift: Option<&[f64]>,
-) -> Result<(), NotPositiveDefinite> {
-    eliminate_all(solver, full, values, shift)
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    eliminate_all(solver, full, values, shift, budget)
 }
 
 /// `S[.., ..] −= Y Wᵀ` for column-major `y`, `w` (K × D) into the K×K block of a column-major

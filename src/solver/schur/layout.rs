@@ -2,6 +2,7 @@
 //! its V⁻¹, its neighbours' Y = W V⁻¹ and the S block of every neighbour pair; the U entries
 //! copied into S; and the reduced system's backend (dense buffer or sparse symbolic analysis).
 
+use super::super::budget::FactorCost;
 use super::super::cholesky::SymbolicError;
 use super::super::structure::BlockPattern;
 use super::reduced::Backend;
@@ -108,6 +109,10 @@ impl SchurSolver {
         }
         let backend = Backend::new(&reduced, plan.dense)?;
         let s_len = backend.values_len(&reduced);
+        let reduced_cost = FactorCost {
+            flops: backend.factor_flops(&reduced),
+            measured_rate: None,
+        };
         Ok(Self {
             eliminated: ne,
             eliminated_rows,
@@ -127,6 +132,7 @@ impl SchurSolver {
             rhs: vec![0.0; n],
             reduced,
             backend,
+            reduced_cost,
         })
     }
 }

@@ -39,6 +39,7 @@ mod reduced;
 #[cfg(test)]
 mod tests;
 
+use super::budget::FactorCost;
 use super::structure::BlockPattern;
 
 pub use plan::{plan, SchurPlan};
@@ -56,6 +57,11 @@ struct Neighbour {
 
 /// The block size the fixed-size kernels are compiled for: a BAL camera.
 const CAMERA: usize = 9;
+
+/// The elimination checks its budget every this many eliminated blocks: 1024 BAL points seen by
+/// four cameras each take about 5 ms (200k points: ~1 s per factorisation), the same grain as
+/// linearisation's [`super::budget::FACTORS_PER_CHECK`].
+const ELIMINATED_PER_CHECK: usize = 1024;
 
 /// Factorises the normal equations by eliminating a block-diagonal part first; see the module
 /// documentation.
@@ -83,6 +89,9 @@ pub struct SchurSolver {
     reduced: BlockPattern,
     s_values: Vec<f64>,
     backend: Backend,
+    /// What factorising S costs (predicted from its size or symbolic analysis, timed after each
+    /// one), so that a factorisation the budget has no time left for is not started.
+    reduced_cost: FactorCost,
     /// W of the current eliminated block's neighbours, column-major like Y.
     w_local: Vec<f64>,
     rhs: Vec<f64>,

@@ -45,6 +45,15 @@ impl Backend {
         }
     }
 
+    /// Floating-point operations of one factorisation of S: n³/3 dense, or from the sparse
+    /// symbolic analysis (as the Cholesky path predicts its own).
+    pub(super) fn factor_flops(&self, reduced: &BlockPattern) -> f64 {
+        match self {
+            Self::Dense { .. } => (reduced.n as f64).powi(3) / 3.0,
+            Self::Sparse(chol) => chol.factor_flops(),
+        }
+    }
+
     /// Factorises S (`s_values`, overwritten by the dense factor); a failing pivot is reported
     /// at its full row, `offset_rows` past the eliminated rows.
     pub(super) fn factorize(
