@@ -244,3 +244,100 @@ fn an_indefinite_point_block_is_reported_at_its_rows() {
     let error = schur.factorize(&layout.pattern, &h, None).unwrap_err();
     assert_eq!(layout.key_at_row(&problem.values, error.row), key);
 }
+
+/// Stops at its `stop_at`-th checkpoint (counting from 1) and has `left` time.
+struct CountingBudget {
+    checkpoints: std::cell::Cell<usize>,
+    stop_at: usize,
+    left: Option<std::time::Duration>,
+}
+
+impl crate::solver::Budget for CountingBudget {
+    fn checkpoint(&self) -> std::ops::ControlFlow<()> {
+        self.checkpoints.set(self.checkpoints.get() + 1);
+        if self.checkpoints.get() >= self.stop_at {
+            std::ops::ControlFlow::Break(())
+        } else {
+            std::ops::ControlFlow::Continue(())
+        }
+    }
+
+    fn remaining(&self) -> Option<std::time::Duration> {
+        self.left
+    }
+}
+
+/// The elimination checks its budget every `ELIMINATED_PER_CHECK` points and once more before
+/// S's factorisation; a budget without the time S's factorisation is predicted to take stops it
+/// before the elimination; a budget that never stops gives the unbudgeted factorisation.
+#[test]
+fn the_budget_is_checked_during_the_elimination_and_before_the_reduced_factorisation() {
+    use super::ELIMINATED_PER_CHECK;
+    let points = 3 * ELIMINATED_PER_CHECK + 10;
+    let problem = synthetic_bundle_adjustment(8, points, 5);
+    let fixed = vec![false; problem.values.len()];
+    let planned = plan(
+        problem.factors(),
+        &problem.values,
+        &fixed,
+        &problem.eliminate,
+        LinearSolverChoice::SparseSchur,
+    )
+    .unwrap();
+    let layout = SystemLayout::with_ordering(
+        problem.factors(),
+        &problem.values,
+        &fixed,
+        &planned.ordering,
+    );
+    let mut scratch = Scratch::new(&layout);
+    let mut h = vec![0.0; layout.pattern.nnz()];
+    let mut b = vec![0.0; layout.n()];
+    linearize(
+        problem.factors(),
+        &problem.values,
+        &layout,
+        &mut scratch,
+        &mut h,
+        &mut b,
+    )
+    .unwrap();
+    let pattern = &layout.pattern;
+    // BA's gauge is free: H needs LM's damping to be positive definite.
+    let shift: Vec<f64> = (0..pattern.n)
+        .map(|c| 1e-3 * h[pattern.diagonal_index(c)].max(1e-6))
+        .collect();
+    let mut schur = SchurSolver::new(pattern, &planned).unwrap();
+    let budget = |stop_at, left| CountingBudget {
+        checkpoints: std::cell::Cell::new(0),
+        stop_at,
+        left,
+    };
+
+    let stopping = budget(2, None);
+    let flow = schur
+        .factorize_within(pattern, &h, Some(&shift), &stopping)
+        .unwrap();
+    assert!(flow.is_break());
+    assert_eq!(stopping.checkpoints.get(), 2, "stopped at the second check");
+
+    let no_time = budget(usize::MAX, Some(std::time::Duration::ZERO));
+    let flow = schur
+        .factorize_within(pattern, &h, Some(&shift), &no_time)
+        .unwrap();
+    assert!(flow.is_break());
+    assert_eq!(no_time.checkpoints.get(), 0, "refused before eliminating");
+
+    let endless = budget(usize::MAX, None);
+    let flow = schur
+        .factorize_within(pattern, &h, Some(&shift), &endless)
+        .unwrap();
+    assert!(flow.is_continue());
+    assert_eq!(endless.checkpoints.get(), points / ELIMINATED_PER_CHECK + 1);
+    let mut x = b.clone();
+    schur.solve_in_place(&mut x);
+    schur.factorize(pattern, &h, Some(&shift)).unwrap();
+    let mut unbudgeted = b;
+    schur.solve_in_place(&mut unbudgeted);
+    assert_eq!(x, unbudgeted, "the same arithmetic, bit for bit");
+}
