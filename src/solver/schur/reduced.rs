@@ -11,6 +11,8 @@ use faer::{Conj, MatMut, MatRef, Par, Spec};
 use super::super::cholesky::{NotPositiveDefinite, SparseCholesky, SymbolicError};
 use super::super::structure::BlockPattern;
 
+/// One per solver, so the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 pub(super) enum Backend {
     /// S is `s_values` as a column-major n×n matrix (lower triangle used).
     Dense { mem: MemBuffer },
