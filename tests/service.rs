@@ -860,10 +860,9 @@ async fn sigterm_stops_a_running_solve_and_exits_cleanly() {
     let status = status.expect("exited after SIGTERM");
     assert!(status.success(), "{status:?}\n{log}");
     assert!(started.elapsed() < Duration::from_secs(10));
-    assert!(
-        !state_dir.join("factord.lock").exists(),
-        "state directory released"
-    );
+    // Released: the lock file stays (removing it would reopen a race), but its lock is free.
+    let lock = std::fs::File::open(state_dir.join("factord.lock")).unwrap();
+    assert!(lock.try_lock().is_ok(), "state directory released");
     assert!(!log.contains("panicked"), "{log}");
 }
 
