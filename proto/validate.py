@@ -804,13 +804,16 @@ class Live:
                   example="error-method-not-allowed")
         self.call("unknown session", "GET", "/v1/sessions/no-such-session/events", 404, "error.schema.json", error_code="unknown_session")
 
-        # A failing solve streams an `error` event (the cost overflows to infinity).
-        self.call("failing", "POST", "/v1/sessions", 201, "session-info.schema.json", body={"session": self.sx, "kind": "pose_graph_2d"})
+        # A failing solve streams an `error` event: one camera and one point leave the system
+        # indeterminate (a cost that would overflow is refused up front, B27).
+        self.call("failing", "POST", "/v1/sessions", 201, "session-info.schema.json",
+                  body={"session": self.sx, "kind": "bundle_adjustment", "options": {"method": "gauss_newton"}})
         self.created.append(self.sx)
         thread, events, problems = self.open_events(self.sx, {"errors"})
-        self.call("non-finite cost", "POST", f"/v1/sessions/{self.sx}/batches?wait=true", 200, "batch-ack.schema.json",
-                  body={"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}, {"key": 1, "kind": "se2", "value": [1e10, 0, 0]}],
-                        "factors": [{"type": "between_se2", "keys": [0, 1], "measurement": [0, 0, 0], "information": [1e300, 0, 0, 1e300, 0, 1e300]}]})
+        self.call("indeterminate system", "POST", f"/v1/sessions/{self.sx}/batches?wait=true", 200, "batch-ack.schema.json",
+                  body={"variables": [{"key": 1, "kind": "snavely_camera", "value": [0, 0, 0, 0, 0, 0, 500, 0, 0]},
+                                      {"key": 1000, "kind": "point3", "value": [0, 0, -5]}],
+                        "factors": [{"type": "reprojection_snavely", "keys": [1, 1000], "measurement": [1, 2], "sigmas": [1, 1]}]})
         thread.join(35)
         r.check("SSE reader ended cleanly (failing solve)", not problems, "; ".join(problems))
         self.check_events("failing solve", events, {"errors"}, {"error": "event-error"})

@@ -124,8 +124,10 @@ class HttpClient:
             data = body.encode("utf-8")
             hdrs["Content-Type"] = "text/plain; charset=utf-8"
         elif isinstance(body, bytes):
+            # Raw bytes are JSON already encoded (graph files go as `str`, text/plain); the
+            # server refuses other types on its JSON routes (415).
             data = body
-            hdrs["Content-Type"] = "application/octet-stream"
+            hdrs["Content-Type"] = "application/json"
         elif method in ("POST", "PUT"):
             data = b""
         hdrs.update(headers or {})
