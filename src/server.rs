@@ -9,8 +9,8 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::service::{Limits, Service};
-use crate::transport::zenoh::ZenohConfig;
 use crate::transport::listener::{self as http_listener, HttpConfig};
+use crate::transport::zenoh::ZenohConfig;
 use crate::transport::{http, http_guard, zenoh};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -124,7 +124,7 @@ struct StateDir {
 
 impl StateDir {
     fn open(dir: &Path) -> Result<Self, ServeError> {
-        use std::io::{Read, Seek, Write};
+        use std::io::{Seek, Write};
         let err = |message: String| ServeError::StateDir {
             dir: dir.into(),
             message,
@@ -141,11 +141,9 @@ impl StateDir {
         match lock.try_lock() {
             Ok(()) => {}
             Err(std::fs::TryLockError::WouldBlock) => {
-                let mut holder = String::new();
-                let _ = lock.read_to_string(&mut holder);
-                let holder = match holder.trim() {
-                    "" => "another process".to_string(),
-                    pid => format!("process {pid}"),
+                let holder = match lock_holder(&lock) {
+                    Some(pid) => format!("process {pid}"),
+                    None => "another process".to_string(),
                 };
                 return Err(err(format!(
                     "in use by {holder}, another factord serving it (it holds the lock on {})",
@@ -163,6 +161,27 @@ impl StateDir {
             .map_err(|e| err(format!("{}: {e}", path.display())))?;
         Ok(Self { _lock: lock })
     }
+}
+
+/// The process holding the `flock` on `file`, as the kernel tells it in `/proc/locks`
+/// (`1: FLOCK  ADVISORY  WRITE <pid> <major>:<minor>:<inode> 0 EOF`). The pid written into the
+/// file cannot say it: the holder writes it only after taking the lock, so a second server
+/// starting at that moment would read the previous holder's. `None` where there is no
+/// `/proc/locks` or the holder is gone.
+fn lock_holder(file: &std::fs::File) -> Option<u32> {
+    use std::os::unix::fs::MetadataExt;
+    let inode = file.metadata().ok()?.ino().to_string();
+    let locks = std::fs::read_to_string("/proc/locks").ok()?;
+    locks
+        .lines()
+        .filter(|line| line.contains("FLOCK") && !line.contains("->"))
+        .find_map(|line| {
+            let fields: Vec<&str> = line.split_whitespace().collect();
+            let at = fields
+                .iter()
+                .position(|f| f.rsplit(':').next() == Some(inode.as_str()) && f.contains(':'))?;
+            fields.get(at.checked_sub(1)?)?.parse().ok()
+        })
 }
 
 /// How long event streams still open after the service has stopped are kept before closing.

@@ -6,20 +6,8 @@ mod common;
 
 use std::time::{Duration, Instant};
 
-use common::server::{create, post, TestServer};
-use serde_json::{json, Value};
-
-fn server_with_limits(limits: Value) -> TestServer {
-    let dir = common::temp_dir("job-budget");
-    let config = dir.join("config.json");
-    std::fs::write(&config, json!({ "limits": limits }).to_string()).unwrap();
-    TestServer::start(&[
-        "--no-zenoh",
-        "--no-journal",
-        "--config",
-        config.to_str().unwrap(),
-    ])
-}
+use common::server::{create, post, post_job_within, start_with_limits};
+use serde_json::json;
 
 /// Query parameters no tolerance can stop: the job runs until its time limit.
 const ENDLESS: &str =
@@ -30,23 +18,9 @@ const ENDLESS: &str =
 #[tokio::test(flavor = "multi_thread")]
 async fn a_giant_job_stops_within_twice_its_time_limit() {
     let limit = Duration::from_millis(3000);
-    let s = server_with_limits(json!({"max_solve_ms": limit.as_millis() as u64}));
+    let s = start_with_limits(&json!({"max_solve_ms": limit.as_millis() as u64}));
     let graph = common::synthetic_building(60_000, 1, 40, 2);
-    // Waiting longer than twice the limit would only measure how late the old behaviour is.
-    let c = reqwest::Client::builder()
-        .timeout(2 * limit)
-        .build()
-        .unwrap();
-    let start = Instant::now();
-    let answer = c
-        .post(s.url(&format!("/v1/jobs?{ENDLESS}")))
-        .body(graph)
-        .send()
-        .await
-        .expect("the job answers within twice its time limit");
-    let status = answer.status().as_u16();
-    let v: Value = answer.json().await.expect("a JSON answer");
-    let wall = start.elapsed();
+    let (status, v, wall) = post_job_within(&s, ENDLESS, graph, 2 * limit).await;
     eprintln!(
         "60k-pose building job, max_solve_ms {}: answered in {:.2} s after {} iterations ({})",
         limit.as_millis(),
@@ -68,7 +42,7 @@ async fn a_giant_job_stops_within_twice_its_time_limit() {
 /// session, with `wait=true`, is answered within 0.5 s every time.
 #[tokio::test(flavor = "multi_thread")]
 async fn another_sessions_batch_is_answered_quickly_during_three_giant_jobs() {
-    let s = server_with_limits(json!({"workers": 2, "max_jobs": 4, "max_solve_ms": 60_000}));
+    let s = start_with_limits(&json!({"workers": 2, "max_jobs": 4, "max_solve_ms": 60_000}));
     let graph = common::synthetic_building(30_000, 2, 30, 2);
     let c = common::server::client();
     let mut jobs = Vec::new();

@@ -7,11 +7,11 @@ mod common;
 use std::fmt::Write as _;
 use std::time::{Duration, Instant};
 
-use common::server::TestServer;
+use common::server::{post_job_within, start_with_limits};
 use factord::factors::testing::Rng;
 use factord::geometry::SnavelyCamera;
 use nalgebra::{Vector2, Vector3};
-use serde_json::{json, Value};
+use serde_json::json;
 
 /// BAL text: `cameras` cameras 20 units from a Gaussian cloud of `points` points, each point seen
 /// by `views` cameras drawn at random (so nearly every camera pair shares a point and the reduced
@@ -83,16 +83,7 @@ const ENDLESS: &str = "format=bal&max_iterations=100000&function_tolerance=0&gra
 #[tokio::test(flavor = "multi_thread")]
 async fn a_giant_bundle_adjustment_job_stops_within_twice_its_time_limit() {
     let limit = Duration::from_millis(6000);
-    let dir = common::temp_dir("job-budget-ba");
-    let config = dir.join("config.json");
-    let limits = json!({"limits": {"max_solve_ms": limit.as_millis() as u64}});
-    std::fs::write(&config, limits.to_string()).unwrap();
-    let s = TestServer::start(&[
-        "--no-zenoh",
-        "--no-journal",
-        "--config",
-        config.to_str().unwrap(),
-    ]);
+    let s = start_with_limits(&json!({"max_solve_ms": limit.as_millis() as u64}));
     let (cameras, points) = (1000, 200_000);
     let made = Instant::now();
     let problem = synthetic_bal(cameras, points, 4, 7);
@@ -101,21 +92,7 @@ async fn a_giant_bundle_adjustment_job_stops_within_twice_its_time_limit() {
         problem.len() >> 20,
         made.elapsed().as_secs_f64()
     );
-    // Waiting longer than twice the limit would only measure how late the old behaviour is.
-    let c = reqwest::Client::builder()
-        .timeout(2 * limit)
-        .build()
-        .unwrap();
-    let start = Instant::now();
-    let answer = c
-        .post(s.url(&format!("/v1/jobs?{ENDLESS}")))
-        .body(problem)
-        .send()
-        .await
-        .expect("the job answers within twice its time limit");
-    let status = answer.status().as_u16();
-    let v: Value = answer.json().await.expect("a JSON answer");
-    let wall = start.elapsed();
+    let (status, v, wall) = post_job_within(&s, ENDLESS, problem, 2 * limit).await;
     let summary = &v["summary"];
     eprintln!(
         "BA job ({cameras} cameras, {points} points), max_solve_ms {}: answered in {:.2} s after {} iterations, timings {} ({})",

@@ -3,6 +3,7 @@
 //! [`Reply`] or [`ServiceError`]; no behaviour lives in an adapter.
 
 pub mod caller;
+pub mod command;
 mod durability;
 pub mod error;
 pub mod jobs;
@@ -17,14 +18,13 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 pub use caller::Caller;
+pub use command::{parse_command, Accepted, Command, Health, Reply};
 pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
 use jobs::{Job, JobAnswer, JobParams};
 use pool::WorkerPool;
 
-use crate::problem::Key;
 use crate::session::catalogue;
 use crate::session::wire::*;
-use crate::session::wire_number;
 use crate::session::Session;
 
 /// Capacity limits.
@@ -77,125 +77,6 @@ impl Default for Limits {
     }
 }
 
-/// Every operation of the API, as both transports send it (zenoh: this JSON on `factord/rpc`).
-#[derive(Clone, Debug, Deserialize, Serialize)]
-#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Command {
-    Health,
-    ListSessions,
-    CreateSession(CreateSession),
-    DeleteSession {
-        session: String,
-    },
-    /// Add variables and factors, remove factors, fix/unfix, set guesses — atomically.
-    /// With `wait`, answers once the estimate reflects the batch (when a solve is due).
-    ApplyBatch {
-        session: String,
-        batch: Batch,
-        #[serde(default)]
-        wait: bool,
-    },
-    /// Solve now whatever the policy; with `wait`, answer when it has finished.
-    Optimize {
-        session: String,
-        #[serde(default)]
-        wait: bool,
-    },
-    SetAutoOptimize {
-        session: String,
-        auto_optimize: AutoOptimize,
-    },
-    GetEstimate {
-        session: String,
-        #[serde(default, deserialize_with = "wire_number::optional_u64")]
-        since: Option<u64>,
-        #[serde(default, deserialize_with = "wire_number::optional_u64")]
-        from: Option<Key>,
-        #[serde(default, deserialize_with = "wire_number::optional_u64")]
-        to: Option<Key>,
-    },
-    GetStats {
-        session: String,
-    },
-    Cancel {
-        session: String,
-    },
-    /// IMU samples, keyframes, relative poses and priors for a `sliding_window` session.
-    Fusion {
-        session: String,
-        messages: Vec<crate::session::fusion::FusionMessage>,
-    },
-    /// What the web view draws: positions, initial guesses and pose-to-pose edges.
-    GetGraph {
-        session: String,
-    },
-    /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
-    GetMarginals {
-        session: String,
-        #[serde(deserialize_with = "wire_number::u64_list")]
-        keys: Vec<Key>,
-        #[serde(default)]
-        joint: bool,
-    },
-}
-
-#[derive(Clone, Debug, Serialize)]
-pub struct Health {
-    pub status: &'static str,
-    pub version: &'static str,
-    pub workers: usize,
-    pub busy_workers: usize,
-    pub queued: usize,
-    pub sessions: usize,
-    pub session_kinds: Vec<&'static str>,
-    pub uptime_seconds: f64,
-}
-
-#[derive(Clone, Debug, Serialize)]
-pub struct Accepted {
-    #[serde(flatten)]
-    pub ack: BatchAck,
-    /// With `wait`: whether the estimate now reflects this batch (false when no solve was due
-    /// under the auto-optimise policy, the solve failed — see `last_error` —, or the wait
-    /// timed out).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub solved: Option<bool>,
-}
-
-#[derive(Clone, Debug, Serialize)]
-#[serde(untagged)]
-pub enum Reply {
-    Health(Health),
-    Sessions {
-        sessions: Vec<SessionInfo>,
-    },
-    Created(SessionInfo),
-    Deleted {
-        deleted: String,
-    },
-    Accepted(Accepted),
-    Optimizing {
-        session: String,
-        sequence: u64,
-        /// With `wait`: the session's statistics after the solve.
-        #[serde(skip_serializing_if = "Option::is_none")]
-        stats: Option<Box<SessionStats>>,
-    },
-    AutoOptimize {
-        session: String,
-        auto_optimize: AutoOptimize,
-    },
-    Estimate(Estimate),
-    Stats(Box<SessionStats>),
-    Cancelled {
-        session: String,
-        cancelled: bool,
-    },
-    Fusion(crate::session::fusion::FusionAck),
-    Graph(Box<crate::session::wire::Graph>),
-    Marginals(Box<crate::session::wire::Marginals>),
-}
-
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
 /// its events from the first one.
 pub type SessionObserver = Box<dyn Fn(&Arc<Session>) + Send + Sync>;
@@ -213,125 +94,6 @@ pub struct Service {
     journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
     /// Session directories found at start that could not be loaded (see `durability`).
     unloaded_on_disk: AtomicUsize,
-}
-
-/// Decodes an rpc command. A tagged enum hides where inside it a field was wrong, so when the
-/// command does not decode, the part that failed is decoded again on its own (a batch, a
-/// creation request) to name the field, as HTTP does (`batch.variables[0].kind`). Lists hold
-/// at most `max_items` items (413 otherwise, found while decoding); a large command that does
-/// not decode is not decoded again, as a JSON tree that can take ten times its size.
-pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceError> {
-    /// Commands beyond this size are not re-read to locate their error.
-    const LOCATE_AT_MOST: usize = 4 << 20;
-    // serde buffers a tagged enum whole before decoding its variant: the two commands that
-    // carry many items are decoded as their own structs, streaming, with the item budget.
-    match parse_json::<OpOnly>(bytes).map(|o| o.op) {
-        Ok(Some(op)) if op == "apply_batch" => {
-            let rpc = parse_json_within::<ApplyBatchRpc>(bytes, max_items).map_err(with_named_field)?;
-            return Ok(Command::ApplyBatch {
-                session: rpc.session,
-                batch: rpc.batch,
-                wait: rpc.wait,
-            });
-        }
-        Ok(Some(op)) if op == "fusion" => {
-            let rpc = parse_json_within::<FusionRpc>(bytes, max_items).map_err(with_named_field)?;
-            return Ok(Command::Fusion {
-                session: rpc.session,
-                messages: rpc.messages,
-            });
-        }
-        _ => {}
-    }
-    let error = match parse_json_within::<Command>(bytes, max_items) {
-        Ok(command) => return Ok(command),
-        Err(e) if e.status() == 413 || bytes.len() > LOCATE_AT_MOST => return Err(e),
-        Err(e) => e,
-    };
-    let Ok(serde_json::Value::Object(mut object)) = serde_json::from_slice(bytes) else {
-        return Err(error);
-    };
-    let located = match object.get("op").and_then(|op| op.as_str()) {
-        Some("apply_batch") => object
-            .get("batch")
-            .and_then(|batch| parse_part::<Batch>(batch, Some("batch"))),
-        Some("set_auto_optimize") => object
-            .get("auto_optimize")
-            .and_then(|policy| parse_part::<AutoOptimize>(policy, Some("auto_optimize"))),
-        Some("fusion") => object.get("messages").and_then(|messages| {
-            let batch = serde_json::json!({ "messages": messages });
-            parse_part::<crate::session::fusion::FusionBatch>(&batch, None)
-        }),
-        Some("create_session") => {
-            object.remove("op");
-            parse_part::<CreateSession>(&serde_json::Value::Object(object), None)
-        }
-        _ => None,
-    };
-    Err(located
-        .filter(|e| e.body.field.is_some())
-        .unwrap_or_else(|| with_named_field(error)))
-}
-
-/// The `op` of a command, every other field skipped unread.
-#[derive(Deserialize)]
-struct OpOnly {
-    #[serde(default)]
-    op: Option<String>,
-}
-
-/// [`Command::ApplyBatch`] as its own struct (see [`parse_command`]).
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ApplyBatchRpc {
-    #[allow(dead_code)]
-    op: serde::de::IgnoredAny,
-    session: String,
-    batch: Batch,
-    #[serde(default)]
-    wait: bool,
-}
-
-/// [`Command::Fusion`] as its own struct (see [`parse_command`]).
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct FusionRpc {
-    #[allow(dead_code)]
-    op: serde::de::IgnoredAny,
-    session: String,
-    #[serde(deserialize_with = "crate::session::wire_list::items")]
-    messages: Vec<crate::session::fusion::FusionMessage>,
-}
-
-/// Decodes one part of a command on its own, where serde keeps the path: the error, with its
-/// field under `prefix` (the part itself when the error has no path).
-fn parse_part<T: serde::de::DeserializeOwned>(
-    part: &serde_json::Value,
-    prefix: Option<&str>,
-) -> Option<ServiceError> {
-    let mut error = parse_json::<T>(part.to_string().as_bytes()).err()?;
-    if let Some(prefix) = prefix {
-        error.body.field = Some(match error.body.field.take() {
-            Some(f) => format!("{prefix}.{f}"),
-            None => prefix.to_string(),
-        });
-    }
-    Some(error)
-}
-
-/// serde names a missing or unknown field in its message (`missing field `keys``) even where
-/// the path is lost; that name becomes the error's field.
-fn with_named_field(mut error: ServiceError) -> ServiceError {
-    if error.body.field.is_none() {
-        let message = &error.body.message;
-        let named = ["missing field `", "unknown field `"]
-            .iter()
-            .find_map(|prefix| message.split_once(prefix))
-            .and_then(|(_, rest)| rest.split_once('`'))
-            .map(|(name, _)| name.to_string());
-        error.body.field = named;
-    }
-    error
 }
 
 /// Session names are zenoh key chunks and URL path segments.

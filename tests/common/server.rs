@@ -414,3 +414,38 @@ pub async fn recovered(
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
 }
+
+/// `factord serve` without zenoh or journal, with `limits` (a JSON object) from a config file.
+pub fn start_with_limits(limits: &Value) -> TestServer {
+    let dir = super::temp_dir("limits");
+    let config = dir.join("config.json");
+    std::fs::write(&config, json!({ "limits": limits }).to_string()).expect("config written");
+    TestServer::start(&[
+        "--no-zenoh",
+        "--no-journal",
+        "--config",
+        config.to_str().unwrap(),
+    ])
+}
+
+/// Posts a batch job (`query`: its query string) and waits at most `wait` for the answer:
+/// its status, its JSON and the wall time. Waiting longer would only measure how late a job
+/// that ignores its limit is, so no answer in time is a failure.
+pub async fn post_job_within(
+    s: &TestServer,
+    query: &str,
+    body: String,
+    wait: Duration,
+) -> (u16, Value, Duration) {
+    let c = reqwest::Client::builder().timeout(wait).build().unwrap();
+    let start = Instant::now();
+    let answer = c
+        .post(s.url(&format!("/v1/jobs?{query}")))
+        .body(body)
+        .send()
+        .await
+        .expect("the job answers in time");
+    let status = answer.status().as_u16();
+    let v: Value = answer.json().await.expect("a JSON answer");
+    (status, v, start.elapsed())
+}
