@@ -10,9 +10,20 @@ use std::time::{Duration, Instant};
 
 use common::server::{client, get, TestServer};
 
+/// A server process, killed when dropped: a failing assertion must not leave it running (it
+/// would hold its state directory's lock, and a port, after the test run).
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 /// `factord serve` on `state`, HTTP on a free port, no zenoh; stderr to `log`.
-fn spawn(state: &Path, log: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_factord"))
+fn spawn(state: &Path, log: &Path) -> Server {
+    let child = Command::new(env!("CARGO_BIN_EXE_factord"))
         .args([
             "serve",
             "--listen",
@@ -24,7 +35,8 @@ fn spawn(state: &Path, log: &Path) -> Child {
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).unwrap())
         .spawn()
-        .expect("factord starts")
+        .expect("factord starts");
+    Server(child)
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -42,7 +54,7 @@ async fn two_servers_started_at_once_on_one_state_directory_never_both_serve() {
             if let Some((i, status)) = children
                 .iter_mut()
                 .enumerate()
-                .find_map(|(i, c)| Some((i, c.try_wait().unwrap()?)))
+                .find_map(|(i, c)| Some((i, c.0.try_wait().unwrap()?)))
             {
                 break (i, status);
             }
@@ -67,14 +79,14 @@ async fn two_servers_started_at_once_on_one_state_directory_never_both_serve() {
                 break v;
             }
             assert!(
-                children[winner].try_wait().unwrap().is_none(),
+                children[winner].0.try_wait().unwrap().is_none(),
                 "round {round}: the winner exited too: {}",
                 std::fs::read_to_string(&logs[winner]).unwrap()
             );
             assert!(Instant::now() < deadline, "round {round}: no server.json");
             std::thread::sleep(Duration::from_millis(10));
         };
-        let winner_pid = children[winner].id();
+        let winner_pid = children[winner].0.id();
         assert_eq!(info["pid"], winner_pid, "round {round}");
         let expected = format!(
             "state directory {}: in use by process {winner_pid}",
@@ -87,8 +99,8 @@ async fn two_servers_started_at_once_on_one_state_directory_never_both_serve() {
         let health = format!("http://{}/v1/health", info["http"].as_str().unwrap());
         assert_eq!(get(&c, &health).await.0, 200, "round {round}");
         // A crash of the winner releases the lock: the next round starts from there.
-        children[winner].kill().unwrap();
-        children[winner].wait().unwrap();
+        children[winner].0.kill().unwrap();
+        children[winner].0.wait().unwrap();
     }
 }
 
@@ -102,7 +114,7 @@ async fn a_lock_file_naming_a_live_process_does_not_block_a_start() {
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
     assert_eq!(get(&client(), &s.url("/v1/health")).await.0, 200);
     let log = state.with_extension("second.log");
-    let status = spawn(&state, &log).wait().unwrap();
+    let status = spawn(&state, &log).0.wait().unwrap();
     let message = std::fs::read_to_string(&log).unwrap();
     assert!(!status.success(), "{message}");
     assert!(
