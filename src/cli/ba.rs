@@ -1,0 +1,132 @@
+//! `factord ba`: bundle adjustment of a BAL problem, optionally normalised and perturbed as in the
+//! course, with the cost in BAL's ½Σ‖r‖² convention.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use factord::factors::RobustKernel;
+use factord::io;
+use factord::solver::{LinearSolverChoice, Method, SolverOptions};
+
+use super::progress::Progress;
+use super::solve_output::{optimize_verbose, write_summary_json};
+use super::value_parsers::{parse_linear_solver, parse_method, parse_robust};
+use super::CliError;
+
+#[derive(clap::Args)]
+pub struct BaArgs {
+    /// BAL problem file.
+    problem: PathBuf,
+    /// gn | lm | dogleg
+    #[arg(long, default_value = "lm", value_parser = parse_method)]
+    method: Method,
+    #[arg(long, default_value_t = 100)]
+    max_iterations: usize,
+    #[arg(long, default_value_t = 1e-6)]
+    function_tolerance: f64,
+    /// auto | sparse_cholesky | dense_schur | sparse_schur (auto: Schur complement of the
+    /// points, dense reduced camera system up to 1000 unknowns)
+    #[arg(long, default_value = "auto", value_parser = parse_linear_solver)]
+    linear_solver: LinearSolverChoice,
+    /// Robust kernel on every observation, e.g. huber:1.0 (pixels)
+    #[arg(long, value_parser = parse_robust)]
+    robust: Option<RobustKernel>,
+    /// Centre on the median point and scale to a median absolute deviation of 100 (as Ceres).
+    #[arg(long)]
+    normalize: bool,
+    /// Gaussian noise std for rotation (rad, angle-axis), camera centre and points: r,t,p.
+    #[arg(long, value_parser = parse_perturb)]
+    perturb: Option<[f64; 3]>,
+    /// Seed of the perturbation.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Write the Summary (plus initial_cost and final_cost in BAL's ½Σ‖r‖²) as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// Point clouds (points and camera centres) before and after, as PLY.
+    #[arg(long)]
+    ply_initial: Option<PathBuf>,
+    #[arg(long)]
+    ply_final: Option<PathBuf>,
+    /// Write the optimised problem in BAL format.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{s}`: {e} (expected r,t,p, e.g. 0.1,0.5,0.5)"))?;
+    match v[..] {
+        [r, t, p] if v.iter().all(|x| x.is_finite() && *x >= 0.0) => Ok([r, t, p]),
+        _ => Err(format!("`{s}`: expected three non-negative numbers r,t,p")),
+    }
+}
+
+pub fn run(args: BaArgs) -> Result<(), CliError> {
+    let start = Instant::now();
+    let loading = Progress::loading(&args.problem, args.quiet);
+    let bal = io::bal::load(&args.problem);
+    loading.finish();
+    let mut bal = bal?;
+    let load_seconds = start.elapsed().as_secs_f64();
+    if args.normalize {
+        bal.normalize();
+    }
+    if let Some([r, t, p]) = args.perturb {
+        bal.perturb(r, t, p, args.seed);
+    }
+    if args.robust.is_some() {
+        bal.problem.set_robust_kernel(args.robust);
+    }
+    if let Some(path) = &args.ply_initial {
+        io::ply::write(path, &bal.points(), &bal.camera_centres())?;
+    }
+    let initial_cost = bal.cost();
+    if !args.quiet {
+        println!(
+            "loaded {} ({} cameras, {} points, {} observations) in {load_seconds:.3}s; initial cost {initial_cost:.6e}",
+            args.problem.display(),
+            bal.num_cameras,
+            bal.num_points,
+            bal.problem.factors().len()
+        );
+    }
+    let options = SolverOptions {
+        method: args.method,
+        max_iterations: args.max_iterations,
+        function_tolerance: args.function_tolerance,
+        linear_solver: args.linear_solver,
+        ..SolverOptions::bundle_adjustment()
+    };
+    let quiet = args.quiet;
+    let summary = optimize_verbose(&mut bal.problem, &options, quiet)?;
+    let final_cost = bal.cost();
+    if !quiet {
+        print!("{}", summary.report());
+        println!("cost (½Σ‖r‖²): {initial_cost:.6e} -> {final_cost:.6e}");
+    }
+    if let Some(path) = &args.summary_json {
+        write_summary_json(
+            path,
+            &summary,
+            vec![
+                ("input", args.problem.display().to_string().into()),
+                ("load_seconds", load_seconds.into()),
+                ("initial_cost", initial_cost.into()),
+                ("final_cost", final_cost.into()),
+            ],
+        )?;
+    }
+    if let Some(path) = &args.ply_final {
+        io::ply::write(path, &bal.points(), &bal.camera_centres())?;
+    }
+    if let Some(path) = &args.out {
+        io::bal::write(&bal, path)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,134 @@
+//! `factord direct-ba`: direct (photometric) bundle adjustment of the course's images, poses and
+//! point patches, reporting how well the patches agree with the images before and after.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use factord::factors::RobustKernel;
+use factord::geometry::image::Pinhole;
+use factord::io;
+use factord::solver::SolverOptions;
+
+use super::progress::Progress;
+use super::solve_output::{optimize_verbose, write_summary_json};
+use super::value_parsers::parse_robust;
+use super::CliError;
+
+#[derive(clap::Args)]
+pub struct DirectBaArgs {
+    /// Directory with poses.txt, points.txt and 0.png, 1.png, …
+    dir: PathBuf,
+    /// Pinhole intrinsics fx,fy,cx,cy [default: the course's 277.34,291.402,312.234,239.777]
+    #[arg(long, value_parser = parse_intrinsics)]
+    intrinsics: Option<Pinhole>,
+    /// Robust kernel on every patch residual (16 gray levels), e.g. huber:40 or none
+    #[arg(long, default_value = "huber:40", value_parser = parse_optional_robust)]
+    robust: OptionalRobust,
+    #[arg(long, default_value_t = 100)]
+    max_iterations: usize,
+    #[arg(long, default_value_t = 1e-6)]
+    function_tolerance: f64,
+    /// Write the Summary plus the per-image patch agreement before and after as JSON.
+    #[arg(long)]
+    summary_json: Option<PathBuf>,
+    /// Points and camera trajectory before and after, as PLY.
+    #[arg(long)]
+    ply_initial: Option<PathBuf>,
+    #[arg(long)]
+    ply_final: Option<PathBuf>,
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_intrinsics(s: &str) -> Result<Pinhole, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{s}`: {e} (expected fx,fy,cx,cy)"))?;
+    match v[..] {
+        [fx, fy, cx, cy] if v.iter().all(|x| x.is_finite()) && fx > 0.0 && fy > 0.0 => {
+            Ok(Pinhole { fx, fy, cx, cy })
+        }
+        _ => Err(format!(
+            "`{s}`: expected four finite numbers fx,fy,cx,cy with fx, fy > 0"
+        )),
+    }
+}
+
+/// A robust kernel or `none` (clap reads a bare `Option` field as "flag may be absent").
+#[derive(Clone, Copy)]
+struct OptionalRobust(Option<RobustKernel>);
+
+fn parse_optional_robust(s: &str) -> Result<OptionalRobust, String> {
+    if s == "none" {
+        return Ok(OptionalRobust(None));
+    }
+    parse_robust(s).map(|k| OptionalRobust(Some(k)))
+}
+
+pub fn run(args: DirectBaArgs) -> Result<(), CliError> {
+    let start = Instant::now();
+    let camera = args.intrinsics.unwrap_or(io::direct_ba::COURSE_CAMERA);
+    let loading = Progress::loading(&args.dir, args.quiet);
+    let problem = io::direct_ba::load(&args.dir, camera, args.robust.0);
+    loading.finish();
+    let mut problem = problem?;
+    let load_seconds = start.elapsed().as_secs_f64();
+    let before = problem.agreement();
+    if let Some(path) = &args.ply_initial {
+        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())?;
+    }
+    let quiet = args.quiet;
+    if !quiet {
+        println!(
+            "loaded {} ({} images, {} points, {} point-image factors, {} points seen by no image) in {load_seconds:.3}s",
+            args.dir.display(),
+            problem.num_poses(),
+            problem.num_points(),
+            problem.problem.factors().len(),
+            problem.unseen_points,
+        );
+    }
+    let options = SolverOptions {
+        max_iterations: args.max_iterations,
+        function_tolerance: args.function_tolerance,
+        ..SolverOptions::bundle_adjustment()
+    };
+    let summary = optimize_verbose(&mut problem.problem, &options, quiet)?;
+    let after = problem.agreement();
+    if !quiet {
+        print!("{}", summary.report());
+        println!(
+            "cost (Σρ(‖r‖²), gray levels²): {:.6e} -> {:.6e}, {} accepted steps",
+            summary.initial_chi2, summary.final_chi2, summary.successful_steps
+        );
+        println!("mean |patch − image| per image (gray levels), before -> after:");
+        for (b, a) in before.iter().zip(&after) {
+            println!(
+                "  image {}: {:.2} ({} points) -> {:.2} ({} points)",
+                b.image,
+                b.mean_abs_patch_difference,
+                b.points_visible,
+                a.mean_abs_patch_difference,
+                a.points_visible
+            );
+        }
+    }
+    if let Some(path) = &args.summary_json {
+        write_summary_json(
+            path,
+            &summary,
+            vec![
+                ("input", args.dir.display().to_string().into()),
+                ("load_seconds", load_seconds.into()),
+                ("agreement_before", serde_json::to_value(&before)?),
+                ("agreement_after", serde_json::to_value(&after)?),
+            ],
+        )?;
+    }
+    if let Some(path) = &args.ply_final {
+        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())?;
+    }
+    Ok(())
+}

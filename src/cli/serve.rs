@@ -1,0 +1,147 @@
+//! `factord serve`: the service's flags and environment variables, laid over the config file.
+//!
+//! Settings come from defaults, then `--config`, then `FACTORD_*` environment variables, then
+//! flags (clap resolves flag over environment; `overlay` puts both over the file).
+
+use std::path::PathBuf;
+
+use factord::journal::Fsync;
+use factord::server::{self, ServeConfig};
+
+use super::logging::{self, parse_log_filter, LogFilter, LogFormat};
+use super::CliError;
+
+/// Settings come from defaults, then `--config`, then `FACTORD_*` environment variables, then
+/// flags.
+#[derive(clap::Args)]
+pub struct ServeArgs {
+    /// JSON config file (the fields of `ServeConfig`, see README).
+    #[arg(long, env = "FACTORD_CONFIG")]
+    config: Option<PathBuf>,
+    /// HTTP address [default: 127.0.0.1:8080]
+    #[arg(long, env = "FACTORD_LISTEN")]
+    listen: Option<String>,
+    /// State directory [default: ./factord-state]
+    #[arg(long, env = "FACTORD_STATE_DIR")]
+    state_dir: Option<PathBuf>,
+    /// zenoh endpoints to listen on (repeatable) [default: tcp/127.0.0.1:7447]
+    #[arg(long, env = "FACTORD_ZENOH_LISTEN", value_delimiter = ',')]
+    zenoh_listen: Option<Vec<String>>,
+    /// zenoh routers or peers to connect to (repeatable)
+    #[arg(long, env = "FACTORD_ZENOH_CONNECT", value_delimiter = ',')]
+    zenoh_connect: Option<Vec<String>>,
+    /// Multicast scouting: on | off [default: off]
+    #[arg(long, env = "FACTORD_ZENOH_MULTICAST", value_parser = parse_on_off)]
+    zenoh_multicast: Option<bool>,
+    /// A zenoh JSON5 configuration to start from (access control, TLS endpoints); the
+    /// --zenoh-* settings apply on top of it.
+    #[arg(long, env = "FACTORD_ZENOH_CONFIG")]
+    zenoh_config: Option<PathBuf>,
+    /// The token label every zenoh peer acts as (needs zenoh's own authentication in
+    /// --zenoh-config: user/password, or mutual TLS); without it and with tokens on, zenoh
+    /// peers reach only unowned sessions.
+    #[arg(long, env = "FACTORD_ZENOH_PRINCIPAL")]
+    zenoh_principal: Option<String>,
+    /// Do not start the zenoh peer (HTTP only).
+    #[arg(long, env = "FACTORD_NO_ZENOH")]
+    no_zenoh: bool,
+    /// When journal appends reach the disk: always (fsync before every acknowledgement) |
+    /// interval (fsync in the background every journal.interval_ms) | never [default: always]
+    #[arg(long, env = "FACTORD_FSYNC", value_parser = parse_fsync)]
+    fsync: Option<Fsync>,
+    /// Bearer tokens for HTTP, `label token` or `token` per line (FACTORD_TOKENS adds
+    /// comma-separated ones); required automatically when --listen is beyond loopback.
+    #[arg(long, env = "FACTORD_TOKENS_FILE")]
+    tokens_file: Option<PathBuf>,
+    /// Keep sessions in memory only (no journal, nothing recovered at start).
+    #[arg(long, env = "FACTORD_NO_JOURNAL")]
+    no_journal: bool,
+    /// Solver worker threads [default: number of cores]
+    #[arg(long, env = "FACTORD_WORKERS")]
+    workers: Option<usize>,
+    /// Largest request body in bytes [default: 268435456]
+    #[arg(long, env = "FACTORD_MAX_BODY_BYTES")]
+    max_body_bytes: Option<usize>,
+    /// Log filter: a level (error | warn | info | debug | trace | off) or RUST_LOG-style
+    /// directives, e.g. factord=debug,zenoh=warn [default: info]
+    #[arg(long, env = "FACTORD_LOG", default_value = "info", value_parser = parse_log_filter)]
+    log: LogFilter,
+    /// Log lines as text (coloured only on a terminal) or as one JSON object per line
+    #[arg(long, env = "FACTORD_LOG_FORMAT", value_enum, default_value = "text")]
+    log_format: LogFormat,
+}
+
+fn parse_on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" | "true" | "1" => Ok(true),
+        "off" | "false" | "0" => Ok(false),
+        _ => Err(format!("expected on or off, got `{s}`")),
+    }
+}
+
+fn parse_fsync(s: &str) -> Result<Fsync, String> {
+    match s {
+        "always" => Ok(Fsync::Always),
+        "interval" => Ok(Fsync::Interval),
+        "never" => Ok(Fsync::Never),
+        _ => Err(format!("`{s}`: expected always, interval or never")),
+    }
+}
+
+pub fn run(args: ServeArgs) -> Result<(), CliError> {
+    logging::init(&args.log, args.log_format)?;
+    let mut config = match &args.config {
+        Some(path) => ServeConfig::from_file(path)?,
+        None => ServeConfig::default(),
+    };
+    overlay(args, &mut config);
+    // zenoh needs the multi-threaded runtime.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(CliError::Runtime)?;
+    Ok(runtime.block_on(server::run(config, server::shutdown_signal()))?)
+}
+
+/// Puts every flag (or its environment variable) that was given over the file's settings.
+fn overlay(args: ServeArgs, config: &mut ServeConfig) {
+    if let Some(v) = args.listen {
+        config.listen = v;
+    }
+    if let Some(v) = args.state_dir {
+        config.state_dir = v;
+    }
+    if let Some(v) = args.zenoh_listen {
+        config.zenoh.listen = v;
+    }
+    if let Some(v) = args.zenoh_connect {
+        config.zenoh.connect = v;
+    }
+    if let Some(v) = args.zenoh_multicast {
+        config.zenoh.multicast = v;
+    }
+    if args.no_zenoh {
+        config.zenoh_enabled = false;
+    }
+    if let Some(v) = args.zenoh_config {
+        config.zenoh.config_file = Some(v);
+    }
+    if let Some(v) = args.zenoh_principal {
+        config.zenoh.principal = Some(v);
+    }
+    if let Some(v) = args.workers {
+        config.limits.workers = v.max(1);
+    }
+    if let Some(v) = args.max_body_bytes {
+        config.max_body_bytes = v;
+    }
+    if let Some(v) = args.fsync {
+        config.journal.fsync = v;
+    }
+    if args.no_journal {
+        config.journal.enabled = false;
+    }
+    if let Some(v) = args.tokens_file {
+        config.auth.tokens_file = Some(v);
+    }
+}

@@ -1,0 +1,30 @@
+//! Flag syntaxes shared by the batch solvers (clap value parsers; clap prints their message and
+//! exits with 2).
+
+use factord::factors::RobustKernel;
+use factord::solver::{Initialization, LinearSolverChoice, Method};
+
+pub fn parse_method(s: &str) -> Result<Method, String> {
+    Method::parse(s).ok_or_else(|| format!("unknown method `{s}` (gn, lm, dogleg)"))
+}
+
+pub fn parse_init(s: &str) -> Result<Initialization, String> {
+    match s {
+        "none" => Ok(Initialization::None),
+        "chordal" => Ok(Initialization::Chordal),
+        "auto" => Ok(Initialization::Auto),
+        _ => Err(format!(
+            "unknown initialisation `{s}` (none, chordal, auto)"
+        )),
+    }
+}
+
+pub fn parse_robust(s: &str) -> Result<RobustKernel, String> {
+    RobustKernel::parse(s).map_err(|e| e.to_string())
+}
+
+pub fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
+    LinearSolverChoice::parse(s).ok_or_else(|| {
+        format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
+    })
+}
