@@ -10,7 +10,7 @@ Without --server:
       (longest match; when the rest of the name is one of that schema's $defs, e.g.
       `reply-deleted`, against that definition);
   (b) proto/v1/openapi.json's $refs resolve to existing schema files (and definitions in them),
-      and its routes are exactly the `.route("...", ...)` routes of src/transport/http.rs and
+      and its routes are exactly the `.route("...", ...)` routes of src/transport/http/mod.rs and
       src/transport/web.rs (the web view), with the same methods.
 With --server it also (c) drives that server through a scripted sequence (sessions, batches,
 estimates, graphs, marginal covariances, events over SSE, a batch job, error cases, the web
@@ -49,8 +49,8 @@ except ImportError:  # pragma: no cover - a hint, not a check
 PROTO = Path(__file__).resolve().parent
 V1 = PROTO / "v1"
 EXAMPLES = V1 / "examples"
-HTTP_RS = PROTO.parent / "src" / "transport" / "http.rs"
-WEB_RS = PROTO.parent / "src" / "transport" / "web.rs"  # merged into http.rs's router
+HTTP_RS = PROTO.parent / "src" / "transport" / "http" / "mod.rs"
+WEB_RS = PROTO.parent / "src" / "transport" / "web.rs"  # merged into http/mod.rs's router
 BASE = "https://factord.invalid/proto/v1/"
 HTTP_METHODS = ("get", "put", "post", "delete", "patch", "head", "options", "trace")
 
@@ -216,7 +216,7 @@ def refs_in(node: Any):
 
 
 def code_routes() -> dict[str, set[str]]:
-    """Routes and methods of src/transport/http.rs and web.rs, from their `.route("...", ...)` calls."""
+    """Routes and methods of src/transport/http/mod.rs and web.rs, from their `.route("...", ...)` calls."""
     routes: dict[str, set[str]] = {}
     for source in (HTTP_RS, WEB_RS):
         if not source.is_file():
@@ -271,7 +271,7 @@ def check_openapi(schemas: Schemas, report: Report) -> dict | None:
     r.check("openapi.json example files (externalValue) exist", not missing, ", ".join(missing))
 
     in_code = code_routes()
-    r.check("http.rs routes found", len(in_code) > 0, f"no .route(...) in {HTTP_RS}")
+    r.check("http/mod.rs routes found", len(in_code) > 0, f"no .route(...) in {HTTP_RS}")
     r.check("web.rs routes found", "/" in in_code, f"no .route(\"/\", ...) in {WEB_RS}")
     in_api = {p: {m for m in ops if m in HTTP_METHODS} for p, ops in api.get("paths", {}).items()}
     for route, methods in sorted(in_code.items()):
@@ -280,7 +280,7 @@ def check_openapi(schemas: Schemas, report: Report) -> dict | None:
                 "missing" if documented is None else f"documented methods {sorted(documented)}")
     for route, methods in sorted(in_api.items()):
         code = in_code.get(route)
-        r.check(f"openapi path {route} ({', '.join(sorted(methods))}) exists in http.rs/web.rs", code is not None and methods <= code,
+        r.check(f"openapi path {route} ({', '.join(sorted(methods))}) exists in http/mod.rs and web.rs", code is not None and methods <= code,
                 "no such route" if code is None else f"code methods {sorted(code)}")
     return api
 

@@ -9,9 +9,9 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::service::{Limits, Service};
-use crate::transport::listener::{self as http_listener, HttpConfig};
+use crate::transport::http::listener::{self as http_listener, HttpConfig};
 use crate::transport::zenoh::ZenohConfig;
-use crate::transport::{http, http_guard, zenoh};
+use crate::transport::{http, zenoh};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -58,7 +58,7 @@ impl Default for ServeConfig {
     }
 }
 
-/// Bearer tokens for HTTP (see `transport::auth`).
+/// Bearer tokens for HTTP (see `transport::http::auth`).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AuthConfig {
@@ -258,7 +258,7 @@ pub async fn run(
         file_limit.map_or("unknown".into(), |l| l.to_string()),
     );
 
-    let guard = http_guard::HttpGuard::new(&config.listen, &http_addr, &config.http);
+    let guard = http::guard::HttpGuard::new(&config.listen, &http_addr, &config.http);
     let app = http::router(
         Arc::clone(&service),
         config.max_body_bytes,
@@ -319,8 +319,8 @@ pub async fn run(
 fn tokens_for(
     auth: &AuthConfig,
     addr: &SocketAddr,
-) -> Result<Option<Arc<crate::transport::auth::Tokens>>, ServeError> {
-    use crate::transport::auth::Tokens;
+) -> Result<Option<Arc<crate::transport::http::auth::Tokens>>, ServeError> {
+    use crate::transport::http::auth::Tokens;
     let mut tokens = match &auth.tokens_file {
         Some(file) => Tokens::load(file).map_err(|e| ServeError::Auth(e.to_string()))?,
         None => Tokens::default(),

@@ -544,7 +544,7 @@ impl Service {
         }
     }
 
-    /// Creates a session owned by the token labelled `owner` (see `transport::auth`).
+    /// Creates a session owned by the token labelled `owner` (see `transport::http::auth`).
     pub fn create_session(
         &self,
         request: CreateSession,

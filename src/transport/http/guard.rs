@@ -26,8 +26,8 @@ use axum::http::{header, HeaderMap, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
-use super::http::HttpError;
 use super::listener::HttpConfig;
+use super::HttpError;
 use crate::service::ServiceError;
 
 /// What the guard accepts, fixed at start.

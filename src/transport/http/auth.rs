@@ -101,10 +101,9 @@ impl Tokens {
 }
 
 fn unauthorized(message: &str) -> Response {
-    let mut response = super::http::HttpError::from(
-        ServiceError::new(401, "unauthorized", message).at("authorization"),
-    )
-    .into_response();
+    let mut response =
+        super::HttpError::from(ServiceError::new(401, "unauthorized", message).at("authorization"))
+            .into_response();
     response
         .headers_mut()
         .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));

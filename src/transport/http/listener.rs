@@ -316,7 +316,7 @@ fn too_many_connections() -> Response {
         "the server is at its connection limit; only GET /v1/health and /metrics are answered",
         1,
     );
-    let mut response = super::http::HttpError::from(error).into_response();
+    let mut response = super::HttpError::from(error).into_response();
     response
         .headers_mut()
         .insert(header::CONNECTION, HeaderValue::from_static("close"));
