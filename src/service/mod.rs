@@ -329,7 +329,11 @@ impl Service {
 
     /// Runs `command` for `caller`: the sessions it names are resolved, and authorised, in
     /// [`Self::session_as`] and nowhere else.
-    pub async fn execute_as(&self, caller: &Caller, command: Command) -> Result<Reply, ServiceError> {
+    pub async fn execute_as(
+        &self,
+        caller: &Caller,
+        command: Command,
+    ) -> Result<Reply, ServiceError> {
         if !matches!(command, Command::Health) {
             self.refuse_when_stopping()?;
         }
@@ -412,12 +416,12 @@ impl Service {
                 self.session_as(caller, &session)?
                     .estimate(&EstimateQuery { since, from, to }),
             )),
-            Command::GetStats { session } => {
-                Ok(Reply::Stats(Box::new(self.session_as(caller, &session)?.stats())))
-            }
-            Command::GetGraph { session } => {
-                Ok(Reply::Graph(Box::new(self.session_as(caller, &session)?.graph())))
-            }
+            Command::GetStats { session } => Ok(Reply::Stats(Box::new(
+                self.session_as(caller, &session)?.stats(),
+            ))),
+            Command::GetGraph { session } => Ok(Reply::Graph(Box::new(
+                self.session_as(caller, &session)?.graph(),
+            ))),
             Command::GetMarginals {
                 session,
                 keys,
@@ -536,7 +540,11 @@ impl Service {
             busy_workers: pool.busy(),
             queued: pool.waiting(),
             sessions: match caller {
-                Caller::Trusted => self.sessions.read().unwrap_or_else(|p| p.into_inner()).len(),
+                Caller::Trusted => self
+                    .sessions
+                    .read()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .len(),
                 _ => self.sessions().iter().filter(|s| caller.may_see(s)).count(),
             },
             session_kinds: catalogue::SESSION_KINDS.iter().map(|k| k.name).collect(),
@@ -658,7 +666,8 @@ impl Service {
     /// Unnamed creations (`s<n>`) are numbered after `name` when it is one of theirs.
     fn reserve_generated_name(&self, name: &str) {
         if let Some(n) = name.strip_prefix('s').and_then(|n| n.parse::<u64>().ok()) {
-            self.next_id.fetch_max(n.saturating_add(1), Ordering::SeqCst);
+            self.next_id
+                .fetch_max(n.saturating_add(1), Ordering::SeqCst);
         }
     }
 

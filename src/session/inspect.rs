@@ -182,8 +182,10 @@ impl Session {
             let factorized = factorized
                 .map_err(|_| ServiceError::internal("the factorisation panicked"))?
                 .map_err(|e| ServiceError::new(422, "indeterminate_system", e.to_string()))?;
-            self.marginals_bytes
-                .store(factorized.memory_bytes(), std::sync::atomic::Ordering::Relaxed);
+            self.marginals_bytes.store(
+                factorized.memory_bytes(),
+                std::sync::atomic::Ordering::Relaxed,
+            );
             *cache = Some((version, factorized));
         } else {
             drop(st);

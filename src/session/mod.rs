@@ -762,7 +762,9 @@ impl Session {
             + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
             + st.factor_ids.len() * size_of::<FactorId>();
         let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
-        let marginals = self.marginals_bytes.load(std::sync::atomic::Ordering::Relaxed) as usize;
+        let marginals = self
+            .marginals_bytes
+            .load(std::sync::atomic::Ordering::Relaxed) as usize;
         mirror + factors + problem + marginals + self.durable_memory_bytes()
     }
 }
