@@ -5,6 +5,7 @@
 use std::cell::{Cell, RefCell};
 use std::ops::ControlFlow;
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -382,5 +383,53 @@ impl Finished {
                 }))
             }
         }
+    }
+}
+
+impl super::Service {
+    /// Runs a batch job on the pool; 503 when `max_jobs` are already in flight.
+    pub async fn run_job(
+        &self,
+        text: String,
+        params: JobParams,
+    ) -> Result<JobAnswer, ServiceError> {
+        let job = Job::new(
+            text,
+            params,
+            Duration::from_millis(self.limits.max_solve_ms),
+            self.limits.max_job_memory_bytes,
+        )?;
+        let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
+        let _slot = JobSlot(&self.jobs_in_flight);
+        if previous >= self.limits.max_jobs {
+            return Err(ServiceError::unavailable(
+                "too_many_jobs",
+                format!(
+                    "{} batch jobs are already running or queued",
+                    self.limits.max_jobs
+                ),
+                1,
+            ));
+        }
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        if !job.submit(&self.pool.handle(), tx) {
+            return Err(ServiceError::unavailable(
+                "shutting_down",
+                "the service is shutting down",
+                5,
+            ));
+        }
+        rx.await.map_err(|_| {
+            ServiceError::unavailable("shutting_down", "the job was dropped at shutdown", 5)
+        })?
+    }
+}
+
+/// Counts a job in flight until it is dropped, whatever way `run_job` ends.
+struct JobSlot<'a>(&'a AtomicUsize);
+
+impl Drop for JobSlot<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
     }
 }

@@ -7,75 +7,25 @@ pub mod command;
 mod durability;
 pub mod error;
 pub mod jobs;
+mod limits;
 pub mod metrics;
 pub mod pool;
+mod recovery;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
-use serde::{Deserialize, Serialize};
-
 pub use caller::Caller;
 pub use command::{parse_command, Accepted, Command, Health, Reply};
 pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
-use jobs::{Job, JobAnswer, JobParams};
+pub use limits::Limits;
 use pool::WorkerPool;
 
 use crate::session::catalogue;
 use crate::session::wire::*;
 use crate::session::Session;
-
-/// Capacity limits.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct Limits {
-    /// Solver threads (default: the number of cores).
-    pub workers: usize,
-    pub max_sessions: usize,
-    /// Factors a session may have waiting for its running solve before batches get 429.
-    pub max_pending_factors: usize,
-    /// Batch jobs running or queued at once before new ones get 503.
-    pub max_jobs: usize,
-    /// How long `wait` requests wait for a solve.
-    pub wait_timeout_ms: u64,
-    /// Largest batch: variables + factors + removals + fixes + guesses (413 beyond).
-    pub max_batch_items: usize,
-    /// Variables and live factors one session may hold (422 `session_full` beyond).
-    pub max_variables_per_session: usize,
-    pub max_factors_per_session: usize,
-    /// A session's solve or a batch job stops after this long (its preempted turns added up),
-    /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
-    /// `interrupted` termination (jobs) says so.
-    pub max_solve_ms: u64,
-    /// A batch job whose solve is estimated (from the graph and its symbolic factorisation) to
-    /// need more memory than this is refused with 413 `job_too_large` before it starts.
-    pub max_job_memory_bytes: u64,
-    /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
-    /// counts as one) before new ones get 429.
-    pub max_subscribers: usize,
-}
-
-impl Default for Limits {
-    fn default() -> Self {
-        let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
-        Self {
-            workers: cores,
-            max_sessions: 1024,
-            max_pending_factors: 200_000,
-            max_jobs: 2 * cores,
-            wait_timeout_ms: 120_000,
-            max_batch_items: 1_000_000,
-            max_variables_per_session: 10_000_000,
-            max_factors_per_session: 50_000_000,
-            max_solve_ms: 600_000,
-            // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
-            max_job_memory_bytes: 4 << 30,
-            max_subscribers: 64,
-        }
-    }
-}
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
 /// its events from the first one.
@@ -130,110 +80,6 @@ impl Service {
             journal,
             unloaded_on_disk: AtomicUsize::new(0),
         })
-    }
-
-    /// Rebuilds every session found in the state directory, each in the background: it is
-    /// listed at once (with `recovering` in its statistics, writes refused with 503) and
-    /// optimised when its journal has been replayed. Returns how many there are.
-    pub fn recover_sessions(self: &Arc<Self>) -> Result<usize, crate::journal::JournalError> {
-        let Some((state_dir, config)) = self.journal.clone() else {
-            return Ok(0);
-        };
-        self.finish_deletions();
-        let found = crate::journal::SessionDir::list(&state_dir)?;
-        let names_on_disk = crate::journal::SessionDir::names_on_disk(&state_dir)?;
-        // Unnamed creations continue after every name on disk, loadable or not.
-        for name in &names_on_disk {
-            self.reserve_generated_name(name);
-        }
-        let on_disk = names_on_disk.len();
-        let mut count = 0;
-        for (name, dir) in found {
-            // Only the small identity files are read here; a session whose identity cannot be
-            // read is left on disk, unlisted (its name cannot be created again), and the
-            // others start.
-            let identity = match dir.load_identity() {
-                Ok(identity) => identity,
-                Err(e) => {
-                    tracing::error!(
-                        session = %name,
-                        "not recovered, its directory is kept for an operator: {e}"
-                    );
-                    continue;
-                }
-            };
-            let auto_optimize = identity.request.auto_optimize;
-            let session = match self.build_session(name.clone(), identity.request) {
-                Ok(session) => session,
-                Err(e) => {
-                    tracing::error!(session = %name, "not recovered: {}", e.body.message);
-                    continue;
-                }
-            };
-            session.mark_recovering();
-            if let Some(owner) = &identity.owner {
-                session.set_owner(owner.as_str().into());
-            }
-            self.register(name.clone(), Arc::clone(&session));
-            count += 1;
-            let config = config.clone();
-            tokio::task::spawn_blocking(move || {
-                let _span = tracing::info_span!("session", session = %name).entered();
-                // The snapshot and journal are read here, off start-up: they can be large.
-                let outcome = dir
-                    .load_state()
-                    .and_then(|recovered| Ok((recovered, dir.open_journal(config.fsync)?)))
-                    .map_err(|e| e.to_string())
-                    .and_then(|(recovered, journal)| {
-                        let durability = crate::session::Durability {
-                            dir,
-                            journal,
-                            config,
-                        };
-                        session.recover(auto_optimize, recovered, durability)
-                    });
-                match outcome {
-                    Ok(r) if r.corruption.is_some() => tracing::error!(
-                        entries = r.entries,
-                        "journal damaged, session recovered up to the damage and read-only: {}",
-                        r.corruption.unwrap_or_default()
-                    ),
-                    Ok(r) => tracing::info!(
-                        entries = r.entries,
-                        truncated_bytes = r.truncated_bytes,
-                        seconds = r.seconds,
-                        "recovered from snapshot {:?} and journal",
-                        r.snapshot_sequence
-                    ),
-                    Err(e) => {
-                        tracing::error!("recovery failed, session kept as far as it got: {e}");
-                        session.recovery_failed(&e);
-                    }
-                }
-            });
-        }
-        if config.fsync == crate::journal::Fsync::Interval {
-            let service = Arc::downgrade(self);
-            let period = Duration::from_millis(config.interval_ms.max(1));
-            self.runtime.spawn(async move {
-                loop {
-                    tokio::time::sleep(period).await;
-                    let Some(service) = service.upgrade() else {
-                        return;
-                    };
-                    let sessions = service.sessions();
-                    drop(service);
-                    let _ = tokio::task::spawn_blocking(move || {
-                        for s in sessions {
-                            s.sync_journal();
-                        }
-                    })
-                    .await;
-                }
-            });
-        }
-        self.count_unloaded(on_disk.saturating_sub(count));
-        Ok(count)
     }
 
     fn refuse_when_stopping(&self) -> Result<(), ServiceError> {
@@ -661,67 +507,5 @@ impl Service {
         {
             observe(session);
         }
-    }
-
-    /// Unnamed creations (`s<n>`) are numbered after `name` when it is one of theirs.
-    fn reserve_generated_name(&self, name: &str) {
-        if let Some(n) = name.strip_prefix('s').and_then(|n| n.parse::<u64>().ok()) {
-            self.next_id
-                .fetch_max(n.saturating_add(1), Ordering::SeqCst);
-        }
-    }
-
-    /// Lists a recovered session.
-    fn register(&self, name: String, session: Arc<Session>) {
-        self.notify_observers(&session);
-        self.sessions
-            .write()
-            .unwrap_or_else(|p| p.into_inner())
-            .insert(name, session);
-    }
-
-    /// Runs a batch job on the pool; 503 when `max_jobs` are already in flight.
-    pub async fn run_job(
-        &self,
-        text: String,
-        params: JobParams,
-    ) -> Result<JobAnswer, ServiceError> {
-        let job = Job::new(
-            text,
-            params,
-            Duration::from_millis(self.limits.max_solve_ms),
-            self.limits.max_job_memory_bytes,
-        )?;
-        let previous = self.jobs_in_flight.fetch_add(1, Ordering::SeqCst);
-        let _slot = JobSlot(&self.jobs_in_flight);
-        if previous >= self.limits.max_jobs {
-            return Err(ServiceError::unavailable(
-                "too_many_jobs",
-                format!(
-                    "{} batch jobs are already running or queued",
-                    self.limits.max_jobs
-                ),
-                1,
-            ));
-        }
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        if !job.submit(&self.pool.handle(), tx) {
-            return Err(ServiceError::unavailable(
-                "shutting_down",
-                "the service is shutting down",
-                5,
-            ));
-        }
-        rx.await.map_err(|_| {
-            ServiceError::unavailable("shutting_down", "the job was dropped at shutdown", 5)
-        })?
-    }
-}
-
-struct JobSlot<'a>(&'a AtomicUsize);
-
-impl Drop for JobSlot<'_> {
-    fn drop(&mut self) {
-        self.0.fetch_sub(1, Ordering::SeqCst);
     }
 }

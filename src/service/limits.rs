@@ -1,0 +1,53 @@
+//! The service's capacity limits (`limits` in the server configuration).
+
+use serde::{Deserialize, Serialize};
+
+/// Capacity limits.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// Solver threads (default: the number of cores).
+    pub workers: usize,
+    pub max_sessions: usize,
+    /// Factors a session may have waiting for its running solve before batches get 429.
+    pub max_pending_factors: usize,
+    /// Batch jobs running or queued at once before new ones get 503.
+    pub max_jobs: usize,
+    /// How long `wait` requests wait for a solve.
+    pub wait_timeout_ms: u64,
+    /// Largest batch: variables + factors + removals + fixes + guesses (413 beyond).
+    pub max_batch_items: usize,
+    /// Variables and live factors one session may hold (422 `session_full` beyond).
+    pub max_variables_per_session: usize,
+    pub max_factors_per_session: usize,
+    /// A session's solve or a batch job stops after this long (its preempted turns added up),
+    /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
+    /// `interrupted` termination (jobs) says so.
+    pub max_solve_ms: u64,
+    /// A batch job whose solve is estimated (from the graph and its symbolic factorisation) to
+    /// need more memory than this is refused with 413 `job_too_large` before it starts.
+    pub max_job_memory_bytes: u64,
+    /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
+    /// counts as one) before new ones get 429.
+    pub max_subscribers: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
+        Self {
+            workers: cores,
+            max_sessions: 1024,
+            max_pending_factors: 200_000,
+            max_jobs: 2 * cores,
+            wait_timeout_ms: 120_000,
+            max_batch_items: 1_000_000,
+            max_variables_per_session: 10_000_000,
+            max_factors_per_session: 50_000_000,
+            max_solve_ms: 600_000,
+            // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
+            max_job_memory_bytes: 4 << 30,
+            max_subscribers: 64,
+        }
+    }
+}
