@@ -62,6 +62,17 @@ fn assert_bounded(s: &TestServer, before: u64, input_bytes: usize, what: &str) {
     );
 }
 
+/// Sends `rpc` over zenoh, expects a refusal, and checks the peak RSS it cost; the error body.
+async fn refused_rpc(s: &TestServer, z: &zenoh::Session, rpc: &str, what: &str) -> Value {
+    let payload: Value = serde_json::from_str(rpc).unwrap();
+    let before = reset_peak(s);
+    let e = zenoh_get(z, "factord/rpc", Some(&payload))
+        .await
+        .unwrap_err();
+    assert_bounded(s, before, rpc.len(), what);
+    e
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn oversized_bodies_are_refused_within_four_times_their_size() {
     let s = TestServer::start(&["--no-journal", "--max-body-bytes", "300000000"]);
@@ -109,31 +120,15 @@ async fn oversized_bodies_are_refused_within_four_times_their_size() {
     zenoh_get(&z, "factord/rpc", Some(&json!({"op": "health"})))
         .await
         .unwrap();
-    let before = reset_peak(&s);
     let batch = removals(50 << 20);
     let rpc = format!(r#"{{"op": "apply_batch", "session": "big", "batch": {batch}}}"#);
-    let e = zenoh_get(
-        &z,
-        "factord/rpc",
-        Some(&serde_json::from_str(&rpc).unwrap()),
-    )
-    .await
-    .unwrap_err();
+    let e = refused_rpc(&s, &z, &rpc, "zenoh rpc batch").await;
     assert_eq!(e["error"]["code"], "batch_too_large", "{e}");
-    assert_bounded(&s, before, rpc.len(), "zenoh rpc batch");
 
-    let before = reset_peak(&s);
     let keys = vec!["7"; 25 << 20].join(",");
     let rpc = format!(r#"{{"op": "get_marginals", "session": "big", "keys": [{keys}]}}"#);
-    let e = zenoh_get(
-        &z,
-        "factord/rpc",
-        Some(&serde_json::from_str(&rpc).unwrap()),
-    )
-    .await
-    .unwrap_err();
+    let e = refused_rpc(&s, &z, &rpc, "zenoh rpc keys").await;
     assert_eq!(e["error"]["status"], 413, "{e}");
-    assert_bounded(&s, before, rpc.len(), "zenoh rpc keys");
 
     let errors = z
         .declare_subscriber("factord/big/out/errors")

@@ -385,13 +385,9 @@ impl Service {
             workers: self.pool.workers,
             busy_workers: pool.busy(),
             queued: pool.waiting(),
-            sessions: match caller {
-                Caller::Trusted => self
-                    .sessions
-                    .read()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .len(),
-                _ => self.sessions().iter().filter(|s| caller.may_see(s)).count(),
+            sessions: {
+                let sessions = self.sessions.read().unwrap_or_else(|p| p.into_inner());
+                sessions.values().filter(|s| caller.may_see(s)).count()
             },
             session_kinds: catalogue::SESSION_KINDS.iter().map(|k| k.name).collect(),
             uptime_seconds: self.started.elapsed().as_secs_f64(),
