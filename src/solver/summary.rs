@@ -1,10 +1,17 @@
-//! What the optimiser did: per-iteration reports and a final Summary in the spirit of Ceres'.
+//! What the optimiser did: per-iteration reports and a final Summary in the spirit of Ceres',
+//! and its assembly from a finished iteration loop (`Run`) plus what only the caller knows
+//! (`Context`).
+
+use std::borrow::Borrow;
+use std::time::Instant;
 
 use serde::Serialize;
 
 use super::linear::SchurReport;
+use super::linearize::SystemLayout;
 use super::options::SolverOptions;
-use crate::problem::Key;
+use crate::factors::FactorEntry;
+use crate::problem::{Key, Values};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct IterationReport {
@@ -195,5 +202,79 @@ impl Summary {
         );
         let _ = writeln!(s, "termination: {}", self.termination.message);
         s
+    }
+}
+
+/// What a finished iteration loop hands back.
+pub(super) struct Run {
+    pub chi2: f64,
+    pub termination: Termination,
+    pub log: Vec<IterationReport>,
+    pub timings: Timings,
+    pub factorization: &'static str,
+    pub factor_nnz: usize,
+    pub linear_solver: &'static str,
+    pub ordering: &'static str,
+    pub schur: Option<SchurReport>,
+}
+
+/// Facts about the solve that the iteration loop does not know.
+pub(super) struct Context {
+    pub start: Instant,
+    pub initialization: String,
+    pub gauge_fixed: Vec<Key>,
+    pub initial_chi2: f64,
+    pub initialized_chi2: Option<f64>,
+    pub region: Option<usize>,
+}
+
+impl Run {
+    pub(super) fn summary<E: Borrow<FactorEntry>>(
+        self,
+        options: &SolverOptions,
+        layout: &SystemLayout,
+        factors: &[E],
+        values: &Values,
+        context: Context,
+    ) -> Summary {
+        let successful = self.log.iter().filter(|r| r.accepted).count();
+        let iterations = self.log.len();
+        Summary {
+            method: options.method.name().into(),
+            given_options: options.clone(),
+            used: UsedOptions {
+                method: options.method.name().into(),
+                linear_solver: self.linear_solver.into(),
+                factorization: self.factorization.into(),
+                ordering: self.ordering.into(),
+                threads: 1,
+                initialization: context.initialization,
+                gauge_fixed: context.gauge_fixed,
+                schur: self.schur,
+                region_variables: context.region,
+            },
+            num_variables: values.len(),
+            num_free_variables: layout.var_at.len(),
+            num_factors: factors.len(),
+            num_residuals: factors
+                .iter()
+                .map(|f| f.borrow().factor.residual_dim())
+                .sum(),
+            num_parameters: layout.n(),
+            jacobian_nnz_blocks: factors.iter().map(|f| f.borrow().factor.keys().len()).sum(),
+            hessian_nnz: layout.pattern.nnz(),
+            factor_nnz: self.factor_nnz,
+            initial_chi2: context.initial_chi2,
+            initialized_chi2: context.initialized_chi2,
+            final_chi2: self.chi2,
+            iterations,
+            successful_steps: successful,
+            unsuccessful_steps: iterations - successful,
+            converged: self.termination.converged(),
+            termination: self.termination,
+            solve_seconds: context.start.elapsed().as_secs_f64(),
+            timings: self.timings,
+            iteration_log: self.log,
+        }
     }
 }
