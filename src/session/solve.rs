@@ -9,8 +9,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::incremental::{self, Engine};
+use super::mirror::value_of;
 use super::wire::{Estimate, SessionEvent, VariableValue};
-use super::{catalogue, value_of, MirrorEntry, Session};
+use super::{catalogue, MirrorEntry, Session};
 use crate::problem::{Key, Problem};
 use crate::service::pool::TIME_SLICE;
 use crate::service::ServiceError;
@@ -239,7 +240,7 @@ impl Session {
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
     pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: Engine) {
-        st.problem_bytes = super::problem_bytes(&problem);
+        st.problem_bytes = super::state::problem_bytes(&problem);
         st.problem = Some(problem);
         st.index = Some(index);
         while let Some((seq, prepared, ids)) = st.pending.pop_front() {

@@ -1,0 +1,298 @@
+//! Accepting a batch: size limits, validation against the mirror, journalling, updating the
+//! mirror, and applying it to the problem now or queueing it behind a running solve.
+
+use std::collections::HashSet;
+use std::sync::Arc;
+
+use super::batch::{self, PreparedBatch, SessionView};
+use super::mirror::value_of;
+use super::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent};
+use super::{catalogue, inspect, MirrorEntry, Session, State};
+use crate::service::ServiceError;
+use crate::solver;
+
+impl Session {
+    /// Validates and accepts a batch, journals it (durable sessions) and only then acknowledges
+    /// it; returns the acknowledgement and whether a solve reflecting it is scheduled (so a
+    /// caller may wait for it).
+    pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
+        self.accept_batch(batch, None, true)
+    }
+
+    /// `ids`: the factor ids to give the batch's factors (a snapshot's), else the next ones.
+    /// `journal`: append it to the journal (not when it is being replayed from there).
+    pub(super) fn accept_batch(
+        self: &Arc<Self>,
+        batch: Batch,
+        ids: Option<Vec<FactorId>>,
+        journal: bool,
+    ) -> Result<(BatchAck, bool), ServiceError> {
+        if self.kind.name == catalogue::SLIDING_WINDOW {
+            return Err(ServiceError::bad_request(
+                "wrong_kind",
+                "session",
+                format!(
+                    "session `{}` is a sliding window: send fusion messages (POST …/fusion, zenoh in/fusion)",
+                    self.name
+                ),
+            ));
+        }
+        let mut st = self.lock();
+        if st.deleted {
+            return Err(ServiceError::not_found("session", &self.name));
+        }
+        // Limits hold for what clients send; a journal replay restores what was accepted.
+        if journal {
+            self.check_batch_size(&batch)?;
+        }
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        let wire_copy = durable.is_some().then(|| batch.clone());
+        let prepared = batch::prepare(
+            batch,
+            &SessionView {
+                kind: self.kind,
+                mirror: &st.mirror,
+                live_factors: &st.live_factors,
+            },
+        )?;
+        if st.problem.is_none()
+            && st.pending_factors + prepared.factor_count() > self.limits.max_pending_factors
+        {
+            return Err(ServiceError::too_many(
+                format!(
+                    "session `{}` has {} factors waiting for the running solve; {} more would exceed the limit of {}",
+                    self.name,
+                    st.pending_factors,
+                    prepared.factor_count(),
+                    self.limits.max_pending_factors
+                ),
+                1,
+            ));
+        }
+        if journal {
+            self.check_session_size(&st, &prepared)?;
+        }
+        let sequence = st.sequence + 1;
+        let wire_copy = match (durable.as_mut(), wire_copy, journal) {
+            (Some(d), Some(copy), true) => {
+                Some(d.append_batch(&self.name, sequence, copy, &prepared)?)
+            }
+            (_, copy, _) => copy,
+        };
+        st.sequence = sequence;
+        let factor_ids: Vec<FactorId> = match ids {
+            Some(ids) => ids,
+            None => (0..prepared.factors.len() as u64)
+                .map(|k| st.next_factor_id + k)
+                .collect(),
+        };
+        st.next_factor_id = factor_ids
+            .iter()
+            .map(|id| id + 1)
+            .fold(st.next_factor_id, u64::max);
+        if let (Some(d), Some(copy)) = (durable.as_mut(), wire_copy) {
+            d.track_factors(copy.factors, &factor_ids, &prepared.remove);
+        }
+        // Mirror first: later batches validate against it even while this one waits.
+        let mut new_values = Vec::new();
+        for (key, v, fixed) in &prepared.variables {
+            let value = catalogue::encode_variable(v.as_ref());
+            let entry = MirrorEntry {
+                kind: v.kind(),
+                initial: inspect::position(v.kind(), &value),
+                value,
+                changed: sequence,
+                fixed: *fixed,
+            };
+            new_values.push(value_of(*key, &entry));
+            st.mirror.insert(*key, entry);
+        }
+        for (key, v) in &prepared.guesses {
+            let value = catalogue::encode_variable(v.as_ref());
+            let entry = st.mirror.get_mut(key).expect("validated");
+            entry.initial = inspect::position(entry.kind, &value);
+            entry.value = value;
+            entry.changed = sequence;
+            new_values.push(value_of(*key, entry));
+        }
+        for &(key, fixed) in &prepared.fix {
+            st.mirror.get_mut(&key).expect("validated").fixed = fixed;
+        }
+        st.live_factors.extend(factor_ids.iter().copied());
+        for (f, &id) in prepared.factors.iter().zip(&factor_ids) {
+            if let Some(edge) = inspect::edge(&st.mirror, f.factor.keys()) {
+                st.edges.insert(id, edge);
+            }
+        }
+        for id in &prepared.remove {
+            st.live_factors.remove(id);
+            st.edges.remove(id);
+        }
+        let predicted = prepared.predicted.clone();
+        if st.problem.is_some() {
+            self.apply_prepared(&mut st, sequence, prepared, factor_ids.clone());
+        } else {
+            st.pending_factors += prepared.factor_count();
+            st.pending
+                .push_back((sequence, prepared, factor_ids.clone()));
+            st.dirty = true;
+        }
+        let ack = BatchAck {
+            session: self.name.clone(),
+            sequence,
+            factor_ids,
+            predicted,
+            reflected: st.solved_sequence >= sequence,
+        };
+        self.emit(SessionEvent::Ack(ack.clone()));
+        if !new_values.is_empty() {
+            self.emit(SessionEvent::Estimate(Estimate {
+                session: self.name.clone(),
+                sequence,
+                variables: new_values,
+            }));
+        }
+        self.maybe_schedule(&mut st);
+        let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
+        if let (Some(d), true) = (durable.as_mut(), journal) {
+            d.maybe_snapshot(&self.name, self.kind.name, &st);
+        }
+        Ok((ack, will_solve))
+    }
+
+    pub(super) fn check_batch_size(&self, batch: &Batch) -> Result<(), ServiceError> {
+        let items = batch.variables.len()
+            + batch.factors.len()
+            + batch.remove_factors.len()
+            + batch.fix.len()
+            + batch.unfix.len()
+            + batch.guesses.len();
+        if items > self.limits.max_batch_items {
+            return Err(ServiceError::new(
+                413,
+                "batch_too_large",
+                format!(
+                    "the batch has {items} items (variables, factors, removals, fixes, guesses); the limit is {} (limits.max_batch_items): split it",
+                    self.limits.max_batch_items
+                ),
+            )
+            .at("batch"));
+        }
+        Ok(())
+    }
+
+    pub(super) fn check_session_size(
+        &self,
+        st: &State,
+        prepared: &PreparedBatch,
+    ) -> Result<(), ServiceError> {
+        let variables = st.mirror.len() + prepared.variables.len();
+        if variables > self.limits.max_variables_per_session {
+            return Err(ServiceError::invalid(
+                "session_full",
+                "variables",
+                format!(
+                    "session `{}` would hold {variables} variables; the limit is {} (limits.max_variables_per_session)",
+                    self.name, self.limits.max_variables_per_session
+                ),
+            ));
+        }
+        let factors =
+            (st.live_factors.len() + prepared.factors.len()).saturating_sub(prepared.remove.len());
+        if factors > self.limits.max_factors_per_session {
+            return Err(ServiceError::invalid(
+                "session_full",
+                "factors",
+                format!(
+                    "session `{}` would hold {factors} factors; the limit is {} (limits.max_factors_per_session)",
+                    self.name, self.limits.max_factors_per_session
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Applies a validated batch to the problem (present in `st`).
+    pub(super) fn apply_prepared(
+        &self,
+        st: &mut State,
+        sequence: u64,
+        prepared: PreparedBatch,
+        factor_ids: Vec<FactorId>,
+    ) {
+        let State {
+            problem,
+            index,
+            factor_ids: ids,
+            seeds,
+            ..
+        } = st;
+        let problem = problem.as_mut().expect("caller checked");
+        let index = index.as_mut().expect("kept with the problem");
+        let first_new_factor = problem.factors().len();
+        let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
+        let adds_variables = !prepared.variables.is_empty();
+        for (key, v, fixed) in prepared.variables {
+            problem.add_variable(key, v).expect("validated");
+            if fixed {
+                problem.set_fixed(key, true).expect("validated");
+            }
+        }
+        let added = prepared.factors.len();
+        for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
+            problem
+                .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, f.label)
+                .expect("validated");
+            ids.push(id);
+        }
+        // chi2 the new factors add at the current estimate, before removals shift indices.
+        let new_chi2 =
+            solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
+                .unwrap_or(f64::INFINITY);
+        index.extend(problem, first_new_factor);
+        for f in &problem.factors()[first_new_factor..] {
+            seeds.extend_from_slice(f.variables());
+        }
+        if !prepared.remove.is_empty() {
+            let remove: HashSet<FactorId> = prepared.remove.into_iter().collect();
+            let keep: Vec<bool> = ids.iter().map(|id| !remove.contains(id)).collect();
+            problem.retain_factors(|i| keep[i]);
+            ids.retain(|id| !remove.contains(id));
+            index.rebuild(problem);
+        }
+        for (key, fixed) in prepared.fix {
+            problem.set_fixed(key, fixed).expect("validated");
+        }
+        for (key, v) in &prepared.guesses {
+            let idx = problem.values.index_of(*key).expect("validated");
+            problem.values.set(idx, v.as_ref());
+            structural = true;
+        }
+        st.factors_since_solve += added;
+        st.structural |= structural;
+        // A batch that only adds factors whose total chi2 at the current (converged) estimate is
+        // below the function tolerance of the whole cannot make a solve gain more than that
+        // tolerance: the estimate stays the optimum to within what a solve would reach. This is
+        // what makes appending an odometry-predicted pose free.
+        if !adds_variables && added == 0 && !structural && !st.dirty {
+            // An empty batch: whatever reflected the last one reflects this one (a `wait` on it
+            // must not wait for a timer, or for ever under `manual`).
+            st.solved_sequence = sequence;
+            self.solved.send_replace(sequence);
+            return;
+        }
+        let total = st.chi2.unwrap_or(0.0) + new_chi2;
+        let negligible = new_chi2 <= st.options.function_tolerance * total || new_chi2 == 0.0;
+        let was_converged = st.converged && !st.dirty && st.chi2.is_some();
+        st.chi2 = st.chi2.map(|_| total);
+        if was_converged && !structural && negligible {
+            st.seeds.clear();
+            st.solved_sequence = sequence;
+            st.skipped_solves += 1;
+            self.solved.send_replace(sequence);
+        } else {
+            st.dirty = true;
+            st.converged = false;
+        }
+    }
+}

@@ -1,0 +1,57 @@
+//! The mirror: every accepted variable as clients see it (kind, wire value, when it changed),
+//! kept apart from the problem so reads never wait for a solve that has the problem.
+
+use super::catalogue;
+use super::wire::{Estimate, EstimateQuery, VariableValue};
+use super::Session;
+use crate::problem::{Key, Variable};
+
+/// A variable as clients see it.
+#[derive(Clone, Debug)]
+pub struct MirrorEntry {
+    pub kind: &'static str,
+    pub value: Vec<f64>,
+    pub changed: u64,
+    pub fixed: bool,
+    /// Position of the value the client last sent (the web view's initial guess).
+    pub initial: [f64; 3],
+}
+
+impl MirrorEntry {
+    pub fn decode(&self) -> Box<dyn Variable> {
+        let codec =
+            catalogue::variable_codec(self.kind).expect("mirror kinds come from the catalogue");
+        (codec.decode)(&self.value).expect("mirror values were encoded by the codec")
+    }
+}
+
+impl Session {
+    pub fn estimate(&self, query: &EstimateQuery) -> Estimate {
+        let st = self.lock();
+        let range = query.from.unwrap_or(0)..=query.to.unwrap_or(Key::MAX);
+        let since = query.since.unwrap_or(0);
+        let variables = if range.start() > range.end() {
+            Vec::new()
+        } else {
+            st.mirror
+                .range(range)
+                .filter(|(_, e)| query.since.is_none() || e.changed > since)
+                .map(|(&k, e)| value_of(k, e))
+                .collect()
+        };
+        Estimate {
+            session: self.name.clone(),
+            sequence: st.sequence,
+            variables,
+        }
+    }
+}
+
+pub(super) fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
+    VariableValue {
+        key,
+        kind: e.kind.into(),
+        value: e.value.clone(),
+        changed: e.changed,
+    }
+}

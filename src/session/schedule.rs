@@ -1,0 +1,133 @@
+//! When solves run: the auto-optimise policy, explicit requests, waiting for a solve, and
+//! stopping one.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::wire::AutoOptimize;
+use super::{Session, State};
+use crate::service::ServiceError;
+
+impl Session {
+    pub(super) fn maybe_schedule(self: &Arc<Self>, st: &mut State) {
+        if !st.dirty || st.scheduled || st.deleted {
+            return;
+        }
+        if st.forced {
+            return self.schedule(st);
+        }
+        match st.auto {
+            AutoOptimize::EveryBatch {} => self.schedule(st),
+            AutoOptimize::EveryNFactors { factors } => {
+                if st.factors_since_solve >= factors {
+                    self.schedule(st)
+                }
+            }
+            AutoOptimize::EveryMs { milliseconds } => {
+                if !st.timer_armed {
+                    st.timer_armed = true;
+                    let session = Arc::clone(self);
+                    self.runtime.spawn(async move {
+                        tokio::time::sleep(Duration::from_millis(milliseconds)).await;
+                        let mut st = session.lock();
+                        st.timer_armed = false;
+                        if st.dirty && !st.scheduled && !st.deleted {
+                            session.schedule(&mut st);
+                        }
+                    });
+                }
+            }
+            AutoOptimize::Manual {} => {}
+        }
+    }
+
+    pub(super) fn schedule(self: &Arc<Self>, st: &mut State) {
+        st.scheduled = true;
+        let session = Arc::clone(self);
+        if !self.pool.submit(Box::new(move || session.solve_once())) {
+            st.scheduled = false; // the pool is shutting down
+        }
+    }
+
+    /// Asks for a solve now, whatever the policy. Returns the sequence it will reflect and the
+    /// number the solve will have (for [`Session::wait_solve`]).
+    pub fn optimize_now(self: &Arc<Self>) -> Result<(u64, u64), ServiceError> {
+        let mut st = self.lock();
+        if st.deleted {
+            return Err(ServiceError::not_found("session", &self.name));
+        }
+        st.dirty = true;
+        st.converged = false;
+        st.forced = true;
+        // Asked for explicitly: the whole problem, not only the region the last updates reach
+        // (region solves stop within their tolerance of the optimum; this one goes all the way).
+        st.structural = true;
+        if !st.scheduled {
+            self.schedule(&mut st);
+        }
+        // A running solve started before this request; the one asked for is the next.
+        Ok((st.sequence, st.solves + 1))
+    }
+
+    /// Waits until a solve reflecting `sequence` finished, at most `timeout`.
+    pub async fn wait_solved(&self, sequence: u64, timeout: Duration) -> bool {
+        let mut rx = self.solved.subscribe();
+        tokio::time::timeout(timeout, rx.wait_for(|s| *s >= sequence))
+            .await
+            .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Waits until solve number `solve` finished, at most `timeout`.
+    pub async fn wait_solve(&self, solve: u64, timeout: Duration) -> bool {
+        let mut rx = self.completed.subscribe();
+        tokio::time::timeout(timeout, rx.wait_for(|n| *n >= solve))
+            .await
+            .is_ok_and(|r| r.is_ok())
+    }
+
+    /// Wakes every waiter (the session is going away or the service is stopping).
+    pub(crate) fn release_waiters(&self) {
+        self.solved.send_replace(u64::MAX);
+        self.completed.send_replace(u64::MAX);
+    }
+
+    pub fn set_auto_optimize(self: &Arc<Self>, auto: AutoOptimize) -> Result<(), ServiceError> {
+        if let AutoOptimize::EveryNFactors { factors: 0 } = auto {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "factors",
+                "every_n_factors needs factors >= 1",
+            ));
+        }
+        if let AutoOptimize::EveryMs { milliseconds: 0 } = auto {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "milliseconds",
+                "every_ms needs milliseconds >= 1",
+            ));
+        }
+        let mut st = self.lock();
+        self.journal_auto_optimize(auto)?;
+        st.auto = auto;
+        self.maybe_schedule(&mut st);
+        Ok(())
+    }
+
+    /// Stops the running solve after its current iteration; returns whether one was running.
+    pub fn cancel(&self) -> bool {
+        let st = self.lock();
+        if st.solving {
+            self.cancel.store(true, Ordering::SeqCst);
+        }
+        st.solving
+    }
+
+    pub(crate) fn mark_deleted(&self) {
+        let mut st = self.lock();
+        st.deleted = true;
+        self.cancel.store(true, Ordering::SeqCst);
+        drop(st);
+        self.release_waiters();
+    }
+}

@@ -1,0 +1,71 @@
+//! What a session reports about itself: its settings, its counters and an estimate of the
+//! memory it holds.
+
+use super::state::problem_bytes;
+use super::wire::{FactorId, SessionInfo, SessionStats};
+use super::{MirrorEntry, Session, State};
+use crate::problem::Key;
+
+impl Session {
+    pub fn info(&self) -> SessionInfo {
+        let st = self.lock();
+        SessionInfo {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            options: st.options.clone(),
+            auto_optimize: st.auto,
+        }
+    }
+
+    pub fn stats(&self) -> SessionStats {
+        let st = self.lock();
+        SessionStats {
+            session: self.name.clone(),
+            kind: self.kind.name.into(),
+            sequence: st.sequence,
+            solved_sequence: st.solved_sequence,
+            num_variables: st.mirror.len(),
+            num_factors: st.live_factors.len(),
+            pending_batches: st.pending.len(),
+            solving: st.solving,
+            solves: st.solves,
+            skipped_solves: st.skipped_solves,
+            chi2: st.chi2,
+            converged: st.converged,
+            auto_optimize: st.auto,
+            options: st.options.clone(),
+            // A damaged recovery outranks solve errors, and a later solve does not clear it.
+            last_error: self.corruption().or(st.last_error.as_ref()).cloned(),
+            last_summary: st.last_summary.clone(),
+            recovering: self.is_recovering(),
+            corrupt: self.corruption().is_some(),
+            memory_bytes: self.memory_bytes_locked(&st),
+        }
+    }
+
+    /// Estimated bytes this session holds: the estimate clients read, the problem (variables,
+    /// factors with their square-root information), queued batches and the wire copies kept for
+    /// snapshots. An estimate from sizes, not an allocator count.
+    pub fn memory_bytes(&self) -> usize {
+        let st = self.lock();
+        self.memory_bytes_locked(&st)
+    }
+
+    pub(super) fn memory_bytes_locked(&self, st: &State) -> usize {
+        use std::mem::size_of;
+        const NODE: usize = 48; // map/set node and allocation overhead
+        let mirror: usize = st
+            .mirror
+            .values()
+            .map(|e| size_of::<MirrorEntry>() + size_of::<Key>() + NODE + 8 * e.value.len())
+            .sum();
+        let factors = st.live_factors.len() * (size_of::<FactorId>() + NODE)
+            + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
+            + st.factor_ids.len() * size_of::<FactorId>();
+        let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
+        let marginals = self
+            .marginals_bytes
+            .load(std::sync::atomic::Ordering::Relaxed) as usize;
+        mirror + factors + problem + marginals + self.durable_memory_bytes()
+    }
+}
