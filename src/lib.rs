@@ -8,14 +8,18 @@
 //! (session registry, worker pool, the one command API) and [`transport`] (HTTP and zenoh adapters
 //! over that API).
 
+pub mod api;
 pub mod factors;
 pub mod fusion;
 pub mod geometry;
 pub mod io;
 pub mod journal;
 pub mod problem;
+pub mod runtime;
 pub mod server;
 pub mod service;
 pub mod session;
 pub mod solver;
 pub mod transport;
+pub mod variables;
+pub mod wire_number;

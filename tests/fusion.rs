@@ -136,7 +136,7 @@ fn bad_fusion_input_is_refused_and_the_window_stays_intact() {
 /// A keyframe from deltas pre-integrated on the robot equals one from the raw samples.
 #[test]
 fn preintegrated_deltas_and_raw_samples_give_the_same_keyframe() {
-    use factord::fusion::preintegration::{ImuNoise, Preintegrated};
+    use factord::geometry::preintegration::{ImuNoise, Preintegrated};
     let information = DMatrix::identity(15, 15) * 100.0;
     let first = NavState::at_pose(&factord::geometry::Se3::identity());
     let samples: Vec<(f64, Vector3<f64>, Vector3<f64>)> = (1..=20)

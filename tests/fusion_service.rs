@@ -9,7 +9,7 @@ use std::time::Duration;
 use common::fusion::{inputs, keyframe_batches, position_error, start_message};
 use common::server::{client, post, zenoh_get, zenoh_peer, TestServer};
 use factord::fusion::experiment::ape;
-use factord::fusion::stream::run_over_zenoh;
+use factord::transport::fusion_client::run_over_zenoh;
 use serde_json::{json, Value};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -215,7 +215,7 @@ fn fusion_eval_streams_to_a_running_server() {
 /// raw samples.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn preintegrated_keyframes_over_http() {
-    use factord::fusion::preintegration::{ImuNoise, Preintegrated};
+    use factord::geometry::preintegration::{ImuNoise, Preintegrated};
     use nalgebra::Vector3;
     let s = TestServer::start(&[]);
     let c = client();

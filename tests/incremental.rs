@@ -5,8 +5,8 @@ mod common;
 
 use common::server::g2o_batches;
 use common::synthetic_manhattan;
+use factord::api::wire::{Batch, CreateSession, SessionEvent};
 use factord::service::{Command, Limits, Reply, Service};
-use factord::session::wire::{Batch, CreateSession, SessionEvent};
 use factord::solver::{optimize, SolverOptions};
 
 #[tokio::test(flavor = "multi_thread")]

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 use std::process::{Command, Stdio};
 
 use factord::factors::ImuFactor;
-use factord::fusion::preintegration::{ImuNoise, Preintegrated};
+use factord::geometry::preintegration::{ImuNoise, Preintegrated};
 use nalgebra::{Matrix3, Vector3};
 use serde_json::Value;
 

@@ -1037,7 +1037,7 @@ async fn bundle_adjustment_as_a_job_and_as_a_session() {
         .iter()
         .map(|&k| {
             let v = values.get(k).unwrap();
-            json!({"key": k, "kind": v.kind(), "value": factord::session::catalogue::encode_variable(v)})
+            json!({"key": k, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
         })
         .collect();
     let factors: Vec<Value> = bal

@@ -16,7 +16,7 @@ mod args;
 use common::fusion::inputs;
 use common::server::TestServer;
 use factord::fusion::experiment::{ape, Percentiles};
-use factord::fusion::stream::run_over_zenoh;
+use factord::transport::fusion_client::run_over_zenoh;
 use serde_json::json;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]

@@ -17,8 +17,8 @@ use std::time::Instant;
 
 use common::server::g2o_batches;
 
+use factord::api::wire::{Batch, CreateSession, SessionEvent};
 use factord::service::{Command, Limits, Reply, Service};
-use factord::session::wire::{Batch, CreateSession, SessionEvent};
 use factord::solver::{optimize, SolverOptions};
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {

@@ -20,13 +20,10 @@ pub struct BenchCholeskyArgs {
 }
 
 pub fn run(args: BenchCholeskyArgs) -> Result<(), CliError> {
-    let report = cholesky_bench::run(
-        &args.graph,
-        args.edges.as_deref(),
-        args.repeat,
-        args.write_mtx.as_deref(),
-    )
-    .map_err(|e| CliError::Reported(e.to_string()))?;
+    let mut graph = factord::io::load(&args.graph, args.edges.as_deref())
+        .map_err(|e| CliError::Reported(e.to_string()))?;
+    let report = cholesky_bench::run(&mut graph.problem, args.repeat, args.write_mtx.as_deref())
+        .map_err(|e| CliError::Reported(e.to_string()))?;
     println!("{report}");
     Ok(())
 }

@@ -87,7 +87,7 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
             .enable_all()
             .build()
             .map_err(CliError::Runtime)?
-            .block_on(factord::fusion::stream::run_over_zenoh(
+            .block_on(factord::transport::fusion_client::run_over_zenoh(
                 endpoint,
                 &args.session,
                 &inputs,

@@ -19,7 +19,7 @@ use std::any::Any;
 
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{wrap_angle, Se2};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct BetweenSe2 {

@@ -25,7 +25,7 @@ use nalgebra::Matrix3;
 
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{so3, Se3};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct BetweenSe3 {

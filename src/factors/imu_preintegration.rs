@@ -32,10 +32,10 @@ use nalgebra::{DMatrix, Matrix3, Vector3};
 
 use super::between_se3::put_block;
 use super::{expect_kind, EvaluationError, Factor};
-use crate::fusion::preintegration::Preintegrated;
 use crate::geometry::nav_state::{BA, BG, P, THETA, V};
+use crate::geometry::preintegration::Preintegrated;
 use crate::geometry::{so3, NavState};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct ImuFactor {
@@ -212,7 +212,7 @@ impl Factor for ImuFactor {
 mod tests {
     use super::*;
     use crate::factors::testing::{assert_jacobians_match, Rng};
-    use crate::fusion::preintegration::ImuNoise;
+    use crate::geometry::preintegration::ImuNoise;
 
     /// A random smooth motion: a second of 200 Hz (accelerometer, gyroscope) samples.
     fn samples(rng: &mut Rng) -> Vec<(Vector3<f64>, Vector3<f64>)> {

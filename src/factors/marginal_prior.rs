@@ -17,7 +17,7 @@ use std::any::Any;
 use nalgebra::{DMatrix, DVector};
 
 use super::{EvaluationError, Factor};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Debug)]
 pub struct MarginalPrior {

@@ -2,7 +2,7 @@
 //!
 //! A factor only computes its *unwhitened* error `e(x)` and `∂e/∂δ` for each variable it touches
 //! (δ in that variable's tangent space, as defined by its retraction). Weighting by the square-root
-//! information and robust kernels is applied uniformly by [`FactorEntry`], so every factor file
+//! information and robust kernels is applied uniformly by `problem::FactorEntry`, so every factor file
 //! contains only its own mathematics.
 
 pub mod between_se2;
@@ -35,7 +35,7 @@ pub use relative_pose_nav::RelativePoseNav;
 pub use reprojection_snavely::ReprojectionSnavely;
 pub use robust::RobustKernel;
 
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 /// Why a factor could not be evaluated at the given variables.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -115,40 +115,4 @@ pub(crate) fn expect_kind<'a, T: Variable>(
             expected,
             found: v.kind(),
         })
-}
-
-/// A factor in a problem: the residual function, its weight, its kernel, and a label naming it in
-/// errors (e.g. `EDGE_SE2 3 7 (intel-e.dat:12)`).
-#[derive(Debug)]
-pub struct FactorEntry {
-    pub factor: Box<dyn Factor>,
-    pub sqrt_information: SqrtInformation,
-    pub robust: Option<RobustKernel>,
-    pub label: String,
-    /// Dense indices (into the problem's `Values`) of `factor.keys()`, resolved once on insertion
-    /// so the solver never hashes a key.
-    pub(crate) variables: Vec<usize>,
-}
-
-impl FactorEntry {
-    /// Indices into the problem's `Values` of the variables this factor touches, in key order.
-    pub fn variables(&self) -> &[usize] {
-        &self.variables
-    }
-
-    /// Whitened, robustified squared error `ρ(‖R e‖²)` at `variables` (the chi2 contribution).
-    pub fn chi2(
-        &self,
-        variables: &[&dyn Variable],
-        error_buffer: &mut [f64],
-        whitened: &mut [f64],
-    ) -> Result<f64, EvaluationError> {
-        self.factor.evaluate(variables, error_buffer, None)?;
-        self.sqrt_information.whiten_vector(error_buffer, whitened);
-        let s: f64 = whitened.iter().map(|v| v * v).sum();
-        Ok(match &self.robust {
-            Some(k) => k.evaluate(s).rho,
-            None => s,
-        })
-    }
 }

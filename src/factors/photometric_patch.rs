@@ -25,7 +25,7 @@ use nalgebra::{RowVector3, Vector3};
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::image::{GrayImage, Pinhole};
 use crate::geometry::{so3, Point3, Se3};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 /// Pixels per patch side, and the patch's offsets from the projection.
 pub const PATCH_SIDE: usize = 4;

@@ -7,7 +7,7 @@ use std::any::Any;
 use super::between_se3::put_block;
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{so3, Se3};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct PriorSe3 {

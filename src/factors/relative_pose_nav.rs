@@ -24,7 +24,7 @@ use super::between_se3::put_block;
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::nav_state::{P, THETA};
 use crate::geometry::{so3, NavState};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct RelativePoseNav {

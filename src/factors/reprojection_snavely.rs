@@ -21,7 +21,7 @@ use nalgebra::{Matrix2, Matrix2x3, Vector2};
 
 use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{so3, Point3, SnavelyCamera};
-use crate::problem::{Key, Variable};
+use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
 pub struct ReprojectionSnavely {

@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 
 use super::Factor;
 use crate::geometry::{so3, wrap_angle, NavState, Se2, Se3};
-use crate::problem::Variable;
+use crate::variables::Variable;
 
 /// SplitMix64: deterministic, dependency-free randomness for tests and synthetic fixtures.
 pub struct Rng(u64);

@@ -9,11 +9,11 @@ use std::time::Instant;
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::preintegration::ImuNoise;
 use super::window::{
     diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
 };
 use crate::factors::testing::Rng;
+use crate::geometry::preintegration::ImuNoise;
 use crate::geometry::{so3, NavState};
 use crate::io::euroc::Euroc;
 use crate::problem::Key;

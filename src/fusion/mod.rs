@@ -3,8 +3,6 @@
 
 pub mod experiment;
 pub mod marginalize;
-pub mod preintegration;
-pub mod stream;
 pub mod window;
 
 pub use marginalize::{marginalize, MarginalizeError};

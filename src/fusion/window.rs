@@ -12,8 +12,8 @@ use nalgebra::{DMatrix, DVector, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::marginalize::{marginalize, MarginalizeError};
-use super::preintegration::{ImuNoise, Preintegrated};
 use crate::factors::{ImuFactor, MarginalPrior, PosePriorNav, PositionPriorNav, RelativePoseNav};
+use crate::geometry::preintegration::{ImuNoise, Preintegrated};
 use crate::geometry::NavState;
 use crate::problem::{Key, Problem, ProblemError};
 use crate::solver::{optimize, Initialization, Method, SolverError, SolverOptions, Summary};

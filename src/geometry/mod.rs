@@ -3,6 +3,7 @@
 pub mod camera;
 pub mod image;
 pub mod nav_state;
+pub mod preintegration;
 pub mod se2;
 pub mod se3;
 pub mod so2;

@@ -11,8 +11,9 @@ use std::path::Path;
 use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
 
 use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
-use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry};
+use crate::factors::{BetweenSe2, BetweenSe3};
 use crate::geometry::{Se2, Se3};
+use crate::problem::FactorEntry;
 use crate::problem::{Key, Problem, Values};
 
 /// Symmetric n×n from its upper triangle, row-major.

@@ -9,7 +9,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use super::IoError;
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::Values;
 use crate::solver::Summary;
 

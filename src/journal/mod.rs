@@ -34,10 +34,8 @@ use serde::{Deserialize, Serialize};
 
 pub use log::{read_log, Fsync, LogWriter};
 
-use crate::session::fusion::FusionMessage;
-use crate::session::wire::{
-    AutoOptimize, Batch, CreateSession, FactorId, FactorSpec, VariableSpec,
-};
+use crate::api::fusion::FusionMessage;
+use crate::api::wire::{AutoOptimize, Batch, CreateSession, FactorId, FactorSpec, VariableSpec};
 
 /// `journal` in the server configuration.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -3,19 +3,20 @@
 //! Everything that enters is validated here once (keys exist, kinds match, dimensions agree,
 //! information is positive definite, numbers are finite), so the solver can trust what it gets.
 
+mod chi2;
+mod entry;
 mod values;
-mod variable;
+
+pub use chi2::{evaluate_chi2, evaluate_chi2_checked};
+pub use entry::FactorEntry;
 
 pub use values::Values;
 
-pub use variable::Variable;
+pub use crate::variables::{Key, Variable};
 
 use nalgebra::DMatrix;
 
-use crate::factors::{Factor, FactorEntry, RobustKernel, SqrtInformation};
-
-/// Variables are addressed by a 64-bit key chosen by the client (g2o vertex ids, say).
-pub type Key = u64;
+use crate::factors::{Factor, RobustKernel, SqrtInformation};
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ProblemError {
@@ -245,6 +246,6 @@ impl Problem {
 
     /// Total chi2 `Σ ρ(eᵀ Ω e)` at the current values.
     pub fn chi2(&self) -> f64 {
-        crate::solver::evaluate_chi2(self.factors(), &self.values).unwrap_or(f64::NAN)
+        evaluate_chi2(self.factors(), &self.values).unwrap_or(f64::NAN)
     }
 }

@@ -6,8 +6,8 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use super::{Caller, Service, ServiceError};
+use crate::api::wire::CreateSession;
 use crate::journal::{JournalError, SessionDir};
-use crate::session::wire::CreateSession;
 use crate::session::{Durability, Session};
 
 /// 409 `session_corrupt` for a session whose recovery found damaged files: it stays read-only

@@ -10,12 +10,13 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use super::pool::{PoolHandle, Turn};
 use super::ServiceError;
+use crate::api::catalogue::encode_variable;
+use crate::api::wire::VariableValue;
+use crate::api::ErrorKind;
 use crate::factors::RobustKernel;
 use crate::io::{self, Format};
-use crate::session::catalogue::encode_variable;
-use crate::session::wire::VariableValue;
+use crate::runtime::pool::{PoolHandle, Turn};
 use crate::solver::{
     self, Budget as _, Initialization, LinearSolverChoice, Method, SolverOptions, Summary,
 };
@@ -273,7 +274,7 @@ impl Job {
             Err(solver::SolverError::MemoryLimit {
                 estimated, limit, ..
             }) => Err(ServiceError::new(
-                413,
+                ErrorKind::TooLarge,
                 "job_too_large",
                 format!(
                     "the job's solve would need about {} MiB of memory, more than limits.max_job_memory_bytes ({} MiB)",
@@ -282,7 +283,7 @@ impl Job {
                 ),
             )
             .at("body")),
-            Err(e) => Err(ServiceError::new(422, "solve_failed", e.to_string())),
+            Err(e) => Err(ServiceError::new(ErrorKind::Invalid, "solve_failed", e.to_string())),
         };
         // The turn goes back before the answer is sent: the caller may submit more at once.
         drop(budget);

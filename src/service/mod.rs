@@ -3,13 +3,8 @@
 //! [`Reply`] or [`ServiceError`]; no behaviour lives in an adapter.
 
 pub mod caller;
-pub mod command;
 mod durability;
-pub mod error;
 pub mod jobs;
-mod limits;
-pub mod metrics;
-pub mod pool;
 mod recovery;
 
 use std::collections::HashMap;
@@ -17,14 +12,15 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
+pub use crate::api::Limits;
+pub use crate::api::{parse_command, Accepted, Command, Health, Reply};
+pub use crate::api::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
+use crate::runtime::metrics;
+use crate::runtime::pool::WorkerPool;
 pub use caller::Caller;
-pub use command::{parse_command, Accepted, Command, Health, Reply};
-pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
-pub use limits::Limits;
-use pool::WorkerPool;
 
-use crate::session::catalogue;
-use crate::session::wire::*;
+use crate::api::catalogue;
+use crate::api::wire::*;
 use crate::session::Session;
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
@@ -202,7 +198,7 @@ impl Service {
             }
             Command::Fusion { session, messages } => {
                 let session = self.writable_as(caller, &session)?;
-                let batch = crate::session::fusion::FusionBatch { messages };
+                let batch = crate::api::fusion::FusionBatch { messages };
                 // A keyframe's optimisation takes about a millisecond: off the async threads.
                 let ack = tokio::task::spawn_blocking(move || session.apply_fusion(batch))
                     .await
@@ -274,7 +270,7 @@ impl Service {
                 joint,
             } => {
                 let session = self.writable_as(caller, &session)?;
-                let query = crate::session::wire::MarginalsQuery { keys, joint };
+                let query = crate::api::wire::MarginalsQuery { keys, joint };
                 self.marginals(session, query)
                     .await
                     .map(|m| Reply::Marginals(Box::new(m)))
@@ -294,8 +290,8 @@ impl Service {
     async fn marginals(
         &self,
         session: Arc<Session>,
-        query: crate::session::wire::MarginalsQuery,
-    ) -> Result<crate::session::wire::Marginals, ServiceError> {
+        query: crate::api::wire::MarginalsQuery,
+    ) -> Result<crate::api::wire::Marginals, ServiceError> {
         let deadline = Instant::now() + self.wait_timeout();
         let query = Arc::new(query);
         loop {
@@ -351,7 +347,7 @@ impl Service {
                 };
                 self.execute_as(caller, command).await.map(|_| ())
             }
-            "fusion" => match parse_json_within::<crate::session::fusion::FusionBatch>(
+            "fusion" => match parse_json_within::<crate::api::fusion::FusionBatch>(
                 payload,
                 self.limits.max_batch_items,
             ) {
@@ -377,6 +373,21 @@ impl Service {
     }
 
     /// The service's health; `sessions` counts the sessions `caller` may see.
+    /// The Prometheus text of `GET /metrics`: the process's counters and this service's gauges.
+    pub fn metrics_text(&self) -> String {
+        let health = self.health(&Caller::Trusted);
+        let sessions = self.sessions();
+        metrics::render(&metrics::Gauges {
+            sessions: health.sessions,
+            sessions_recovering: sessions.iter().filter(|s| s.is_recovering()).count(),
+            queued: health.queued,
+            busy_workers: health.busy_workers,
+            workers: health.workers,
+            session_memory_bytes: sessions.iter().map(|s| s.memory_bytes()).sum(),
+            uptime_seconds: health.uptime_seconds,
+        })
+    }
+
     pub fn health(&self, caller: &Caller) -> Health {
         let pool = self.pool.handle();
         Health {

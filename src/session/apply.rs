@@ -6,9 +6,11 @@ use std::sync::Arc;
 
 use super::batch::{self, PreparedBatch, SessionView};
 use super::mirror::value_of;
-use super::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent};
-use super::{catalogue, inspect, MirrorEntry, Session, State};
-use crate::service::ServiceError;
+use super::{inspect, MirrorEntry, Session, State};
+use crate::api::catalogue;
+use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent};
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 use crate::solver;
 
 impl Session {
@@ -169,7 +171,7 @@ impl Session {
             + batch.guesses.len();
         if items > self.limits.max_batch_items {
             return Err(ServiceError::new(
-                413,
+                ErrorKind::TooLarge,
                 "batch_too_large",
                 format!(
                     "the batch has {items} items (variables, factors, removals, fixes, guesses); the limit is {} (limits.max_batch_items): split it",

@@ -9,12 +9,12 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 
 use nalgebra::DMatrix;
 
-use super::catalogue::{self, SessionKind};
-use super::wire::{Batch, FactorId, FactorSpec};
 use super::MirrorEntry;
+use crate::api::catalogue::{self, SessionKind};
+use crate::api::wire::{Batch, FactorId, FactorSpec};
+use crate::api::ServiceError;
 use crate::factors::{Factor, RobustKernel, SqrtInformation};
 use crate::problem::{Key, Variable};
-use crate::service::ServiceError;
 
 pub(crate) struct PreparedFactor {
     pub factor: Box<dyn Factor>,

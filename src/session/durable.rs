@@ -8,13 +8,14 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::batch::PreparedBatch;
-use super::fusion::FusionBatch;
-use super::wire::{AutoOptimize, Batch, FactorId, FactorSpec, VariableSpec};
-use super::{catalogue, Session, State};
+use super::{Session, State};
+use crate::api::catalogue;
+use crate::api::fusion::FusionBatch;
+use crate::api::wire::{AutoOptimize, Batch, FactorId, FactorSpec, VariableSpec};
+use crate::api::ServiceError;
 use crate::journal::{
     Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir, Snapshot,
 };
-use crate::service::ServiceError;
 
 /// What makes a session durable: its directory, its open journal and the policy.
 pub struct Durability {
@@ -63,7 +64,7 @@ impl Durable {
             .append(&bytes)
             .map_err(|e| journal_failed(name, e))?;
         self.entries_since_snapshot += 1;
-        crate::service::metrics::observe_fsync(self.last_fsync);
+        crate::runtime::metrics::observe_fsync(self.last_fsync);
         Ok(())
     }
 
@@ -325,7 +326,7 @@ impl Session {
     pub fn apply_fusion(
         &self,
         batch: FusionBatch,
-    ) -> Result<super::fusion::FusionAck, ServiceError> {
+    ) -> Result<crate::api::fusion::FusionAck, ServiceError> {
         let mut window = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
         let copy = self
             .durable
@@ -360,7 +361,7 @@ impl Session {
             if let Err(e) = file.sync_data() {
                 tracing::warn!(session = self.name, "journal fsync failed: {e}");
             }
-            crate::service::metrics::observe_fsync(start.elapsed());
+            crate::runtime::metrics::observe_fsync(start.elapsed());
         }
     }
 

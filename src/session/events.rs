@@ -4,9 +4,10 @@ use std::sync::Arc;
 
 use tokio::sync::broadcast;
 
-use super::wire::SessionEvent;
 use super::Session;
-use crate::service::ServiceError;
+use crate::api::wire::SessionEvent;
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 
 impl Session {
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<SessionEvent>> {
@@ -16,7 +17,7 @@ impl Session {
     /// Publishes a rejection of something sent to this session without a reply channel (a
     /// zenoh put), so subscribers of its stream see it.
     pub fn report_rejection(&self, error: ServiceError) {
-        crate::service::metrics::count_rejection(&error.body);
+        crate::runtime::metrics::count_rejection(&error.body);
         self.emit(SessionEvent::Error {
             session: self.name.clone(),
             sequence: None,
@@ -40,7 +41,7 @@ impl Session {
     ) -> Result<broadcast::Receiver<Arc<SessionEvent>>, ServiceError> {
         if self.subscribers() >= self.limits.max_subscribers {
             let mut e = ServiceError::new(
-                429,
+                ErrorKind::TooMany,
                 "too_many_subscribers",
                 format!(
                     "session `{}` has {} event subscribers, the limit (limits.max_subscribers)",

@@ -5,11 +5,12 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::catalogue::{self, Shape};
-use super::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
 use super::{MirrorEntry, Session};
+use crate::api::catalogue::{self, Shape};
+use crate::api::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 use crate::problem::Key;
-use crate::service::ServiceError;
 use crate::solver::marginals::{self, MarginalsError};
 
 /// Most variables one marginals request may name (each costs a solve per tangent direction).
@@ -181,7 +182,9 @@ impl Session {
             drop(st);
             let factorized = factorized
                 .map_err(|_| ServiceError::internal("the factorisation panicked"))?
-                .map_err(|e| ServiceError::new(422, "indeterminate_system", e.to_string()))?;
+                .map_err(|e| {
+                    ServiceError::new(ErrorKind::Invalid, "indeterminate_system", e.to_string())
+                })?;
             self.marginals_bytes.store(
                 factorized.memory_bytes(),
                 std::sync::atomic::Ordering::Relaxed,

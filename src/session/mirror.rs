@@ -1,9 +1,9 @@
 //! The mirror: every accepted variable as clients see it (kind, wire value, when it changed),
 //! kept apart from the problem so reads never wait for a solve that has the problem.
 
-use super::catalogue;
-use super::wire::{Estimate, EstimateQuery, VariableValue};
 use super::Session;
+use crate::api::catalogue;
+use crate::api::wire::{Estimate, EstimateQuery, VariableValue};
 use crate::problem::{Key, Variable};
 
 /// A variable as clients see it.

@@ -29,7 +29,6 @@
 
 mod apply;
 pub mod batch;
-pub mod catalogue;
 mod durable;
 mod events;
 pub mod fusion;
@@ -40,9 +39,6 @@ mod schedule;
 mod solve;
 mod state;
 mod stats;
-pub mod wire;
-pub mod wire_list;
-pub mod wire_number;
 
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -53,10 +49,10 @@ pub use durable::{Durability, Recovery};
 pub use mirror::MirrorEntry;
 use state::State;
 
-use crate::service::pool::PoolHandle;
+use crate::api::catalogue::SessionKind;
+use crate::api::wire::{AutoOptimize, SessionEvent};
+use crate::runtime::pool::PoolHandle;
 use crate::solver::SolverOptions;
-use catalogue::SessionKind;
-use wire::{AutoOptimize, SessionEvent};
 
 pub struct Session {
     pub name: String,
@@ -85,7 +81,7 @@ pub struct Session {
     owner: std::sync::OnceLock<Arc<str>>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
-    limits: crate::service::Limits,
+    limits: crate::api::Limits,
 }
 
 impl Session {
@@ -96,7 +92,7 @@ impl Session {
         auto: AutoOptimize,
         runtime: tokio::runtime::Handle,
         pool: PoolHandle,
-        limits: crate::service::Limits,
+        limits: crate::api::Limits,
     ) -> Arc<Self> {
         Arc::new(Self {
             name,

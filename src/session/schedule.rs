@@ -5,9 +5,9 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::wire::AutoOptimize;
 use super::{Session, State};
-use crate::service::ServiceError;
+use crate::api::wire::AutoOptimize;
+use crate::api::ServiceError;
 
 impl Session {
     pub(super) fn maybe_schedule(self: &Arc<Self>, st: &mut State) {

@@ -10,11 +10,13 @@ use std::time::Instant;
 
 use super::incremental::{self, Engine};
 use super::mirror::value_of;
-use super::wire::{Estimate, SessionEvent, VariableValue};
-use super::{catalogue, MirrorEntry, Session};
+use super::{MirrorEntry, Session};
+use crate::api::catalogue;
+use crate::api::wire::{Estimate, SessionEvent, VariableValue};
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 use crate::problem::{Key, Problem};
-use crate::service::pool::TIME_SLICE;
-use crate::service::ServiceError;
+use crate::runtime::pool::TIME_SLICE;
 use crate::solver::{self, SolverOptions};
 
 /// What a solve takes out of the session state (the problem moves to the worker).
@@ -153,7 +155,7 @@ impl Session {
 
         match &result {
             Ok(r) => {
-                crate::service::metrics::observe_solve(start.elapsed(), r.summary.iterations);
+                crate::runtime::metrics::observe_solve(start.elapsed(), r.summary.iterations);
                 tracing::debug!(
                     chi2 = r.summary.final_chi2,
                     iterations = r.summary.iterations,
@@ -222,7 +224,7 @@ impl Session {
                 self.emit(SessionEvent::Error {
                     session: self.name.clone(),
                     sequence: Some(sequence),
-                    error: ServiceError::new(422, "solve_failed", message).body,
+                    error: ServiceError::new(ErrorKind::Invalid, "solve_failed", message).body,
                 });
             }
         }

@@ -6,10 +6,10 @@ use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::Duration;
 
 use super::batch::PreparedBatch;
-use super::catalogue::SessionKind;
 use super::incremental::Engine;
-use super::wire::{AutoOptimize, FactorId};
 use super::MirrorEntry;
+use crate::api::catalogue::SessionKind;
+use crate::api::wire::{AutoOptimize, FactorId};
 use crate::problem::{Key, Problem, Variable};
 use crate::solver::{self, SolverOptions};
 
@@ -115,7 +115,7 @@ pub(super) fn problem_bytes(problem: &Problem) -> usize {
         .iter()
         .map(|f| {
             let r = f.factor.residual_dim();
-            size_of::<crate::factors::FactorEntry>()
+            size_of::<crate::problem::FactorEntry>()
                 + 96
                 + 8 * (r * r + f.variables().len())
                 + f.label.len()

@@ -2,8 +2,8 @@
 //! memory it holds.
 
 use super::state::problem_bytes;
-use super::wire::{FactorId, SessionInfo, SessionStats};
 use super::{MirrorEntry, Session, State};
+use crate::api::wire::{FactorId, SessionInfo, SessionStats};
 use crate::problem::Key;
 
 impl Session {

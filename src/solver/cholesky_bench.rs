@@ -10,29 +10,28 @@ use faer::sparse::linalg::SupernodalThreshold;
 use super::cholesky::SparseCholesky;
 use super::linearize::{linearize, Scratch, SystemLayout};
 use super::{optimize, SolverOptions};
+use crate::problem::Problem;
 
+/// `problem` is solved first, then its normal equations are factorised `repeat` times.
 pub fn run(
-    graph: &Path,
-    edges: Option<&Path>,
+    problem: &mut Problem,
     repeat: usize,
     write_mtx: Option<&Path>,
 ) -> Result<String, Box<dyn std::error::Error>> {
-    let mut g = crate::io::load(graph, edges)?;
-    let summary = optimize(&mut g.problem, &SolverOptions::default(), &mut |_| {
+    let summary = optimize(problem, &SolverOptions::default(), &mut |_| {
         std::ops::ControlFlow::Continue(())
     })?;
-    let fixed: Vec<bool> = (0..g.problem.values.len())
+    let fixed: Vec<bool> = (0..problem.values.len())
         .map(|v| {
-            g.problem.values.is_fixed(v)
-                || summary.used.gauge_fixed.contains(&g.problem.values.key(v))
+            problem.values.is_fixed(v) || summary.used.gauge_fixed.contains(&problem.values.key(v))
         })
         .collect();
-    let layout = SystemLayout::new(g.problem.factors(), &g.problem.values, &fixed);
+    let layout = SystemLayout::new(problem.factors(), &problem.values, &fixed);
     let mut h = vec![0.0; layout.pattern.nnz()];
     let mut b = vec![0.0; layout.n()];
     linearize(
-        g.problem.factors(),
-        &g.problem.values,
+        problem.factors(),
+        &problem.values,
         &layout,
         &mut Scratch::new(&layout),
         &mut h,

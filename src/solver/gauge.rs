@@ -2,7 +2,7 @@
 //! Every connected component of the factor graph that has neither a fixed variable nor a unary
 //! factor (a prior) gets its lowest key fixed for the solve, and the Summary says which.
 
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
 
 /// Returns the per-variable fixed flags to solve with, and the keys fixed automatically.

@@ -31,8 +31,9 @@ use super::linearize::free_blocks;
 use super::options::Initialization;
 use super::structure::{BlockOrdering, BlockPattern};
 use super::{evaluate_chi2, SolverError};
-use crate::factors::{BetweenSe2, BetweenSe3, FactorEntry, PriorSe2, PriorSe3, SqrtInformation};
+use crate::factors::{BetweenSe2, BetweenSe3, PriorSe2, PriorSe3, SqrtInformation};
 use crate::geometry::{rotation_matrix_2d, Se2, Se3};
+use crate::problem::FactorEntry;
 
 use crate::problem::{Problem, Values};
 

@@ -21,7 +21,7 @@ use super::options::{Method, SolverOptions};
 use super::stopping::{accepted_step_stop, stopped, termination};
 use super::summary::{IterationReport, Termination, TerminationReason, Timings};
 use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::Values;
 
 /// One solve's loop state: the cached linear system H, b and its work buffers. Its fields are

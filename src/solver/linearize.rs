@@ -4,7 +4,8 @@
 use std::borrow::Borrow;
 use std::ops::ControlFlow;
 
-use crate::factors::{EvaluationError, FactorEntry};
+use crate::factors::EvaluationError;
+use crate::problem::FactorEntry;
 use crate::problem::{Key, Values, Variable};
 
 use super::budget::{Budget, Unlimited, FACTORS_PER_CHECK};

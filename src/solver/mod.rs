@@ -27,8 +27,9 @@ pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 pub use warm::{newton_decrement, optimize_region, OrderingCache};
 
-use crate::factors::{EvaluationError, FactorEntry};
-use crate::problem::{Key, Values, Variable};
+use crate::factors::EvaluationError;
+pub use crate::problem::evaluate_chi2;
+use crate::problem::{evaluate_chi2_checked, FactorEntry, Key, Values};
 use std::borrow::Borrow;
 
 #[derive(Debug, thiserror::Error)]
@@ -57,40 +58,17 @@ pub enum SolverError {
     Internal(String),
 }
 
-/// `Σ ρ(eᵀΩe)` over `factors` at `values`.
-pub fn evaluate_chi2<E: Borrow<FactorEntry>>(
-    factors: &[E],
-    values: &Values,
-) -> Result<f64, EvaluationError> {
-    match evaluate_chi2_within(factors, values, &Unlimited)? {
-        std::ops::ControlFlow::Continue(chi2) => Ok(chi2),
-        std::ops::ControlFlow::Break(()) => unreachable!("an unlimited budget never stops"),
-    }
-}
-
 /// [`evaluate_chi2`] that checks `budget` every [`budget::FACTORS_PER_CHECK`] factors.
 pub fn evaluate_chi2_within<E: Borrow<FactorEntry>>(
     factors: &[E],
     values: &Values,
     budget: &dyn Budget,
 ) -> Result<std::ops::ControlFlow<(), f64>, EvaluationError> {
-    let mut total = 0.0;
-    let mut e = Vec::new();
-    let mut w = Vec::new();
-    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
-    for (k, f) in factors.iter().enumerate() {
-        if k % budget::FACTORS_PER_CHECK == budget::FACTORS_PER_CHECK - 1
-            && budget.checkpoint().is_break()
-        {
-            return Ok(std::ops::ControlFlow::Break(()));
+    evaluate_chi2_checked(factors, values, |k| {
+        if k % budget::FACTORS_PER_CHECK == budget::FACTORS_PER_CHECK - 1 {
+            budget.checkpoint()
+        } else {
+            std::ops::ControlFlow::Continue(())
         }
-        let f = f.borrow();
-        refs.clear();
-        refs.extend(f.variables().iter().map(|&v| values.variable(v)));
-        let d = f.factor.residual_dim();
-        e.resize(d, 0.0);
-        w.resize(d, 0.0);
-        total += f.chi2(&refs, &mut e, &mut w)?;
-    }
-    Ok(std::ops::ControlFlow::Continue(total))
+    })
 }

@@ -22,7 +22,7 @@ use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
 use super::{evaluate_chi2, SolverError};
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::{Gauge, Problem, Values};
 
 // The warm re-solve reaches these through this module; they live with their own concepts.

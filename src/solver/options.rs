@@ -72,7 +72,7 @@ impl LinearSolverChoice {
 /// `max_iterations` iterations (g2o's behaviour), unless LM/Dogleg run out of damping range.
 pub struct SolverOptions {
     pub method: Method,
-    #[serde(deserialize_with = "crate::session::wire_number::usize")]
+    #[serde(deserialize_with = "crate::wire_number::usize")]
     pub max_iterations: usize,
     /// Stop when an accepted step decreases chi2 by less than this fraction.
     pub function_tolerance: f64,

@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::linear::SchurReport;
 use super::linearize::SystemLayout;
 use super::options::SolverOptions;
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
 
 #[derive(Clone, Debug, Serialize)]

@@ -15,7 +15,7 @@ use super::options::{Initialization, SolverOptions};
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Summary, Timings};
 use super::{evaluate_chi2, SolverError};
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::Problem;
 
 /// The elimination order of a problem's last solve, reused while the problem only grows: new

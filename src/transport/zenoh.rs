@@ -17,8 +17,9 @@ use std::sync::Arc;
 use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
+use crate::api::wire::{EstimateQuery, SessionEvent};
+use crate::api::ErrorKind;
 use crate::service::{parse_query, Caller, Command, Service, ServiceError};
-use crate::session::wire::{EstimateQuery, SessionEvent};
 
 #[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -166,7 +167,7 @@ fn oversized(payload: Option<&zenoh::bytes::ZBytes>, limit: usize) -> Option<Ser
     let len = payload.map_or(0, |p| p.len());
     (len > limit).then(|| {
         let message = format!("the payload has {len} bytes; the limit is {limit} (max_body_bytes)");
-        ServiceError::new(413, "body_too_large", message).at("payload")
+        ServiceError::new(ErrorKind::TooLarge, "body_too_large", message).at("payload")
     })
 }
 
@@ -336,7 +337,7 @@ async fn reply(query: &Query, result: Result<serde_json::Result<Vec<u8>>, Servic
             query.reply_err(body.to_string()).await
         }
         Err(e) => {
-            crate::service::metrics::count_rejection(&e.body);
+            crate::runtime::metrics::count_rejection(&e.body);
             let body = serde_json::json!({ "error": e.body });
             query.reply_err(body.to_string()).await
         }

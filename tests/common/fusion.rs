@@ -1,8 +1,8 @@
 //! A robot's fusion stream built from EuRoC by `fusion::experiment`, as wire messages.
 
+use factord::api::fusion::experiment_messages;
 use factord::fusion::experiment::{self, FusionInputs, Generation};
 use factord::io::euroc;
-use factord::session::fusion::experiment_messages;
 use serde_json::Value;
 
 /// The experiment's inputs over the first `seconds`, or `None` (skipped) without the data.

@@ -6,7 +6,7 @@ use std::borrow::Borrow;
 use super::super::linearize::{free_adjacency, free_blocks};
 use super::super::options::LinearSolverChoice;
 use super::super::structure::BlockOrdering;
-use crate::factors::FactorEntry;
+use crate::problem::FactorEntry;
 use crate::problem::Values;
 
 /// Auto picks a dense reduced system up to this many scalar unknowns (≈110 BAL cameras): a dense

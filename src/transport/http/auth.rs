@@ -17,6 +17,7 @@ use axum::http::{header, HeaderValue};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
+use crate::api::ErrorKind;
 use crate::service::{Caller, ServiceError};
 
 #[derive(Debug, Default)]
@@ -101,9 +102,10 @@ impl Tokens {
 }
 
 fn unauthorized(message: &str) -> Response {
-    let mut response =
-        super::HttpError::from(ServiceError::new(401, "unauthorized", message).at("authorization"))
-            .into_response();
+    let mut response = super::HttpError::from(
+        ServiceError::new(ErrorKind::Unauthorized, "unauthorized", message).at("authorization"),
+    )
+    .into_response();
     response
         .headers_mut()
         .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));

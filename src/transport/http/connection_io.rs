@@ -20,7 +20,8 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpStream;
 use tokio::sync::OwnedSemaphorePermit;
 
-use crate::service::ServiceError;
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 
 /// Largest request head (request line and headers) hyper buffers; beyond it, 431. Large enough
 /// for hyper's own URI limit (65 534 bytes, then 414) to be reachable.
@@ -148,13 +149,13 @@ fn parse_error_status(buf: &[u8]) -> Option<u16> {
 fn parse_error_answer(status: u16) -> Vec<u8> {
     let error = match status {
         414 => ServiceError::new(
-            414,
+            ErrorKind::UriTooLong,
             "uri_too_long",
             "the request target is longer than 65534 bytes",
         )
         .at("uri"),
         431 => ServiceError::new(
-            431,
+            ErrorKind::HeadersTooLarge,
             "headers_too_large",
             format!(
                 "the request head (request line and headers) is larger than {MAX_HEAD_BYTES} \
@@ -163,12 +164,12 @@ fn parse_error_answer(status: u16) -> Vec<u8> {
         )
         .at("headers"),
         _ => ServiceError::new(
-            400,
+            ErrorKind::BadRequest,
             "malformed_request",
             "the request line or a header is not valid HTTP/1.1",
         ),
     };
-    crate::service::metrics::count_rejection(&error.body);
+    crate::runtime::metrics::count_rejection(&error.body);
     let body = serde_json::json!({ "error": error.body }).to_string();
     let reason = axum::http::StatusCode::from_u16(status)
         .ok()

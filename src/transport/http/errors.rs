@@ -6,6 +6,7 @@ use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
+use crate::api::ErrorKind;
 use crate::service::{parse_query, ServiceError};
 
 /// Errors axum's own extractors answer in plain text (a path segment that is not UTF-8, a
@@ -35,7 +36,12 @@ pub(super) async fn json_errors(
     } else {
         "internal"
     };
-    HttpError(ServiceError::new(status.as_u16(), code, message)).into_response()
+    HttpError(ServiceError::new(
+        ErrorKind::from_status(status.as_u16()),
+        code,
+        message,
+    ))
+    .into_response()
 }
 
 /// An error as an HTTP response.
@@ -50,7 +56,7 @@ impl From<ServiceError> for HttpError {
 impl IntoResponse for HttpError {
     fn into_response(self) -> Response {
         let body = self.0.body;
-        crate::service::metrics::count_rejection(&body);
+        crate::runtime::metrics::count_rejection(&body);
         let status = StatusCode::from_u16(body.status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
         let retry = body.retry_after;
         let mut response = (status, Json(serde_json::json!({ "error": body }))).into_response();
@@ -72,7 +78,14 @@ pub(super) fn body_error(rejection: BytesRejection) -> HttpError {
     } else {
         "unreadable_body"
     };
-    HttpError(ServiceError::new(status.as_u16(), code, rejection.body_text()).at("body"))
+    HttpError(
+        ServiceError::new(
+            ErrorKind::from_status(status.as_u16()),
+            code,
+            rejection.body_text(),
+        )
+        .at("body"),
+    )
 }
 
 pub(super) fn query<T: serde::de::DeserializeOwned>(raw: RawQuery) -> Result<T, HttpError> {
@@ -81,7 +94,7 @@ pub(super) fn query<T: serde::de::DeserializeOwned>(raw: RawQuery) -> Result<T, 
 
 pub(super) async fn not_found() -> HttpError {
     HttpError(ServiceError::new(
-        404,
+        ErrorKind::NotFound,
         "no_route",
         "no such route (the API is under /v1/)",
     ))
@@ -89,7 +102,7 @@ pub(super) async fn not_found() -> HttpError {
 
 pub(super) async fn method_not_allowed() -> HttpError {
     HttpError(ServiceError::new(
-        405,
+        ErrorKind::MethodNotAllowed,
         "method_not_allowed",
         "this route does not take that method",
     ))

@@ -28,7 +28,8 @@ use axum::response::{IntoResponse, Response};
 
 use super::listener::HttpConfig;
 use super::HttpError;
-use crate::service::ServiceError;
+use crate::api::ErrorKind;
+use crate::api::ServiceError;
 
 /// What the guard accepts, fixed at start.
 #[derive(Debug)]
@@ -71,7 +72,7 @@ impl HttpGuard {
         if let (Some(allowed), Some(host)) = (&self.hosts, host) {
             if !allowed.contains(&normalise_host(host_of(host))) {
                 return Err(ServiceError::new(
-                    421,
+                    ErrorKind::Misdirected,
                     "forbidden_host",
                     format!(
                         "this server does not answer to the name `{host}` (add it to \
@@ -87,7 +88,7 @@ impl HttpGuard {
             let origin = origin.to_str().unwrap_or("").to_ascii_lowercase();
             if !self.same_or_allowed(&origin, host) {
                 return Err(ServiceError::new(
-                    403,
+                    ErrorKind::Forbidden,
                     "forbidden_origin",
                     format!(
                         "requests from the web page at `{origin}` may not change anything here \
@@ -104,7 +105,7 @@ impl HttpGuard {
                     format!("`{}`", v.to_str().unwrap_or("?"))
                 });
             return Err(ServiceError::new(
-                415,
+                ErrorKind::UnsupportedMediaType,
                 "unsupported_media_type",
                 format!(
                     "this route reads JSON: send `Content-Type: application/json` (got {sent})"

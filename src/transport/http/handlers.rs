@@ -10,10 +10,11 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::Deserialize;
 
+use crate::api::fusion::FusionBatch;
+use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
+use crate::api::ErrorKind;
 use crate::service::jobs::{JobAnswer, JobParams};
 use crate::service::{parse_json, parse_json_within, Command, Reply, Service, ServiceError};
-use crate::session::fusion::FusionBatch;
-use crate::session::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 
 pub(super) type Shared = State<Arc<Service>>;
 use super::errors::{body_error, query, HttpResult};
@@ -38,7 +39,7 @@ pub(super) async fn metrics(State(service): Shared) -> Response {
             header::CONTENT_TYPE,
             "text/plain; version=0.0.4; charset=utf-8",
         )],
-        crate::service::metrics::render(&service),
+        service.metrics_text(),
     )
         .into_response()
 }
@@ -265,9 +266,12 @@ pub(super) async fn summary(
     };
     match stats.last_summary {
         Some(summary) => Ok(Json(summary).into_response()),
-        None => {
-            Err(ServiceError::new(404, "no_summary", "this session has not been solved yet").into())
-        }
+        None => Err(ServiceError::new(
+            ErrorKind::NotFound,
+            "no_summary",
+            "this session has not been solved yet",
+        )
+        .into()),
     }
 }
 

@@ -33,7 +33,7 @@ use tokio::net::TcpListener;
 use tokio::sync::{oneshot, watch, Semaphore};
 
 use super::connection_io::{Activity, ConnectionIo, MAX_HEAD_BYTES};
-use crate::service::ServiceError;
+use crate::api::ServiceError;
 
 /// HTTP connection handling and the cross-site guard (`http` in the config file).
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -68,7 +68,7 @@ async fn serve_websocket(
     service: Arc<Service>,
     caller: crate::service::Caller,
     session: String,
-    mut events: tokio::sync::broadcast::Receiver<Arc<crate::session::wire::SessionEvent>>,
+    mut events: tokio::sync::broadcast::Receiver<Arc<crate::api::wire::SessionEvent>>,
 ) {
     loop {
         tokio::select! {

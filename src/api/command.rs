@@ -5,9 +5,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::error::{parse_json, parse_json_within, ServiceError};
+use crate::api::wire::*;
 use crate::problem::Key;
-use crate::session::wire::*;
-use crate::session::wire_number;
+use crate::wire_number;
 
 /// Every operation of the API, as both transports send it (zenoh: this JSON on `factord/rpc`).
 #[derive(Clone, Debug, Deserialize, Serialize)]
@@ -55,7 +55,7 @@ pub enum Command {
     /// IMU samples, keyframes, relative poses and priors for a `sliding_window` session.
     Fusion {
         session: String,
-        messages: Vec<crate::session::fusion::FusionMessage>,
+        messages: Vec<crate::api::fusion::FusionMessage>,
     },
     /// What the web view draws: positions, initial guesses and pose-to-pose edges.
     GetGraph {
@@ -123,9 +123,9 @@ pub enum Reply {
         session: String,
         cancelled: bool,
     },
-    Fusion(crate::session::fusion::FusionAck),
-    Graph(Box<crate::session::wire::Graph>),
-    Marginals(Box<crate::session::wire::Marginals>),
+    Fusion(crate::api::fusion::FusionAck),
+    Graph(Box<crate::api::wire::Graph>),
+    Marginals(Box<crate::api::wire::Marginals>),
 }
 
 /// Decodes an rpc command. A tagged enum hides where inside it a field was wrong, so when the
@@ -159,7 +159,9 @@ pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceE
     }
     let error = match parse_json_within::<Command>(bytes, max_items) {
         Ok(command) => return Ok(command),
-        Err(e) if e.status() == 413 || bytes.len() > LOCATE_AT_MOST => return Err(e),
+        Err(e) if e.kind == super::ErrorKind::TooLarge || bytes.len() > LOCATE_AT_MOST => {
+            return Err(e)
+        }
         Err(e) => e,
     };
     let Ok(serde_json::Value::Object(mut object)) = serde_json::from_slice(bytes) else {
@@ -174,7 +176,7 @@ pub fn parse_command(bytes: &[u8], max_items: usize) -> Result<Command, ServiceE
             .and_then(|policy| parse_part::<AutoOptimize>(policy, Some("auto_optimize"))),
         Some("fusion") => object.get("messages").and_then(|messages| {
             let batch = serde_json::json!({ "messages": messages });
-            parse_part::<crate::session::fusion::FusionBatch>(&batch, None)
+            parse_part::<crate::api::fusion::FusionBatch>(&batch, None)
         }),
         Some("create_session") => {
             object.remove("op");
@@ -213,8 +215,8 @@ struct FusionRpc {
     #[allow(dead_code)]
     op: serde::de::IgnoredAny,
     session: String,
-    #[serde(deserialize_with = "crate::session::wire_list::items")]
-    messages: Vec<crate::session::fusion::FusionMessage>,
+    #[serde(deserialize_with = "crate::api::wire_list::items")]
+    messages: Vec<crate::api::fusion::FusionMessage>,
 }
 
 /// Decodes one part of a command on its own, where serde keeps the path: the error, with its

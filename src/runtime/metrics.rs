@@ -7,8 +7,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Duration;
 
-use super::Service;
-
 /// A fixed-bucket histogram of seconds.
 pub struct Histogram {
     bounds: &'static [f64],
@@ -81,7 +79,7 @@ pub fn count_accepted_batch() {
 }
 
 /// A refused input (any 4xx), by its error code.
-pub fn count_rejection(error: &super::error::ErrorBody) {
+pub fn count_rejection(error: &crate::api::error::ErrorBody) {
     // Refusals of what a client sent (4xx); a 503 is the server's state, not bad input.
     if !(400..500).contains(&error.status) {
         return;
@@ -90,39 +88,46 @@ pub fn count_rejection(error: &super::error::ErrorBody) {
     *map.entry(error.code.clone()).or_default() += 1;
 }
 
-pub fn render(service: &Service) -> String {
+/// The service's state at a scrape (read by the service, which this layer does not see).
+pub struct Gauges {
+    pub sessions: usize,
+    pub sessions_recovering: usize,
+    pub queued: usize,
+    pub busy_workers: usize,
+    pub workers: usize,
+    pub session_memory_bytes: usize,
+    pub uptime_seconds: f64,
+}
+
+pub fn render(g: &Gauges) -> String {
     let mut out = String::new();
-    let health = service.health(&crate::service::Caller::Trusted);
-    let sessions = service.sessions();
-    let recovering = sessions.iter().filter(|s| s.is_recovering()).count();
-    let memory: usize = sessions.iter().map(|s| s.memory_bytes()).sum();
     let gauges = [
-        ("factord_sessions", "Sessions held", health.sessions as f64),
+        ("factord_sessions", "Sessions held", g.sessions as f64),
         (
             "factord_sessions_recovering",
             "Sessions being rebuilt from their journal",
-            recovering as f64,
+            g.sessions_recovering as f64,
         ),
         (
             "factord_queue_depth",
             "Solves and jobs waiting for a worker",
-            health.queued as f64,
+            g.queued as f64,
         ),
         (
             "factord_busy_workers",
             "Workers running a solve or job",
-            health.busy_workers as f64,
+            g.busy_workers as f64,
         ),
-        ("factord_workers", "Worker threads", health.workers as f64),
+        ("factord_workers", "Worker threads", g.workers as f64),
         (
             "factord_session_memory_bytes",
             "Estimated memory held by all sessions",
-            memory as f64,
+            g.session_memory_bytes as f64,
         ),
         (
             "factord_uptime_seconds",
             "Time since start",
-            health.uptime_seconds,
+            g.uptime_seconds,
         ),
     ];
     for (name, help, value) in gauges {

@@ -95,9 +95,9 @@ where
 }
 
 /// A list of items that are keys or factor ids (removals, fixes), each read as
-/// [`super::wire_number::u64`] reads one.
+/// [`crate::wire_number::u64`] reads one.
 pub fn key_items<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<u64>, D::Error> {
-    deserializer.deserialize_seq(Items::<super::wire_number::Whole, u64>(PhantomData))
+    deserializer.deserialize_seq(Items::<crate::wire_number::Whole, u64>(PhantomData))
 }
 
 /// A list in a JSON text longer than its place allows.

@@ -136,28 +136,6 @@ mod tests {
         assert!(parse(r#"{"key": 1, "keys": [1, 1000000.001]}"#).is_err());
     }
 
-    /// Internally tagged enums replay buffered content; whole floats must get through that too.
-    #[test]
-    fn whole_floats_reach_fields_inside_tagged_enums() {
-        use crate::session::fusion::FusionMessage;
-        use crate::session::wire::AutoOptimize;
-        let policy: AutoOptimize =
-            serde_json::from_str(r#"{"policy": "every_ms", "milliseconds": 283.0}"#).unwrap();
-        assert_eq!(policy, AutoOptimize::EveryMs { milliseconds: 283 });
-        let message: FusionMessage = serde_json::from_str(
-            r#"{"type": "position_prior", "key": 4.0, "position": [0, 0, 0], "sigma": 1}"#,
-        )
-        .unwrap();
-        assert!(matches!(
-            message,
-            FusionMessage::PositionPrior { key: 4, .. }
-        ));
-        assert!(serde_json::from_str::<AutoOptimize>(
-            r#"{"policy": "every_n_factors", "factors": 2.5}"#
-        )
-        .is_err());
-    }
-
     #[test]
     fn optional_integers_are_absent_null_or_whole() {
         assert_eq!(parse(r#"{"key": 1}"#).unwrap().since, None);

@@ -1,4 +1,5 @@
-//! The robot side of the experiment: streams [`FusionInputs`] to a running `factord serve` over
+//! The robot side of the fusion experiment (a client, used by `factord fusion-eval --stream` and
+//! the tests): streams [`FusionInputs`] to a running `factord serve` over
 //! zenoh (`factord/<session>/in/fusion`), one keyframe's messages at a time once the previous
 //! keyframe's state has come back on `factord/<session>/out/state`, and collects those states.
 
@@ -6,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-use super::experiment::{Estimate, FusionInputs, PoseJson};
-use crate::session::fusion::experiment_messages;
+use crate::api::fusion::experiment_messages;
+use crate::fusion::experiment::{Estimate, FusionInputs, PoseJson};
 
 /// A zenoh peer connected to `endpoint` (no scouting).
 async fn connect(endpoint: &str) -> Result<zenoh::Session, String> {

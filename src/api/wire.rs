@@ -2,10 +2,11 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::wire_list;
 use crate::factors::RobustKernel;
 use crate::problem::Key;
-use crate::session::{wire_list, wire_number};
 use crate::solver::{SolverOptions, Summary};
+use crate::wire_number;
 
 /// Server-assigned id of an accepted factor, used to remove it.
 pub type FactorId = u64;
@@ -299,7 +300,7 @@ pub enum SessionEvent {
     Error {
         session: String,
         sequence: Option<u64>,
-        error: crate::service::ErrorBody,
+        error: crate::api::ErrorBody,
     },
 }
 
@@ -315,5 +316,30 @@ impl SessionEvent {
             Self::Window { .. } => "window",
             Self::Error { .. } => "errors",
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// Internally tagged enums replay buffered content; whole floats must get through that too.
+    #[test]
+    fn whole_floats_reach_fields_inside_tagged_enums() {
+        use super::super::fusion::FusionMessage;
+        use super::AutoOptimize;
+        let policy: AutoOptimize =
+            serde_json::from_str(r#"{"policy": "every_ms", "milliseconds": 283.0}"#).unwrap();
+        assert_eq!(policy, AutoOptimize::EveryMs { milliseconds: 283 });
+        let message: FusionMessage = serde_json::from_str(
+            r#"{"type": "position_prior", "key": 4.0, "position": [0, 0, 0], "sigma": 1}"#,
+        )
+        .unwrap();
+        assert!(matches!(
+            message,
+            FusionMessage::PositionPrior { key: 4, .. }
+        ));
+        assert!(serde_json::from_str::<AutoOptimize>(
+            r#"{"policy": "every_n_factors", "factors": 2.5}"#
+        )
+        .is_err());
     }
 }

@@ -3,6 +3,8 @@
 //! The solver only ever asks a variable for its tangent dimension and to retract; factors downcast
 //! to the concrete kind they need. New kinds (points, cameras, navigation states) implement this
 //! trait in their own file and the solver does not change.
+//!
+//! Layer 1: imports only `geometry`.
 
 use std::any::Any;
 use std::fmt::Debug;
@@ -10,6 +12,9 @@ use std::fmt::Debug;
 use nalgebra::Vector3;
 
 use crate::geometry::{so3, wrap_angle, NavState, Point3, Se2, Se3, SnavelyCamera};
+
+/// Variables are addressed by a 64-bit key chosen by the client (g2o vertex ids, say).
+pub type Key = u64;
 
 pub trait Variable: Any + Debug + Send + Sync {
     /// Short stable name, used in errors and on the wire (`"se2"`, `"se3"`).

@@ -1,0 +1,203 @@
+//! The wire messages of `sliding_window` sessions: what a robot sends (`FusionMessage`, in
+//! batches) and what it gets back (`FusionAck`, `StateReport`).
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::fusion::experiment::InitialSigmas;
+use crate::geometry::preintegration::ImuNoise;
+use crate::geometry::NavState;
+use crate::variables::Key;
+use crate::wire_number;
+
+/// A batch of fusion messages (`POST /v1/sessions/{s}/fusion`, zenoh `…/in/fusion`).
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct FusionBatch {
+    #[serde(deserialize_with = "super::wire_list::items")]
+    pub messages: Vec<FusionMessage>,
+}
+
+fn default_window() -> usize {
+    10
+}
+fn default_gravity() -> f64 {
+    9.81
+}
+fn default_noise() -> ImuNoise {
+    ImuNoise::EUROC
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum FusionMessage {
+    /// The first keyframe (key 0) and the window's parameters; once per session.
+    Start {
+        t: f64,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        #[serde(default)]
+        velocity: [f64; 3],
+        #[serde(default)]
+        accel_bias: [f64; 3],
+        #[serde(default)]
+        gyro_bias: [f64; 3],
+        sigmas: InitialSigmas,
+        #[serde(default = "default_window", deserialize_with = "wire_number::usize")]
+        window: usize,
+        #[serde(default = "default_gravity")]
+        gravity: f64,
+        #[serde(default = "default_noise")]
+        imu_noise: ImuNoise,
+    },
+    /// One IMU sample: accelerometer m/s², gyroscope rad/s, body frame.
+    Imu {
+        t: f64,
+        accel: [f64; 3],
+        gyro: [f64; 3],
+    },
+    /// A keyframe at `t` from the samples since the previous one; the window is then optimised.
+    Keyframe { t: f64 },
+    /// A keyframe at `t` from a measurement pre-integrated on the robot since the previous
+    /// keyframe (GTSAM's manifold pre-integration: matrices row-major, the covariance 15×15 in
+    /// the order rotation, position, velocity, accelerometer bias, gyroscope bias).
+    PreintegratedKeyframe {
+        t: f64,
+        delta_t: f64,
+        delta_rotation_xyzw: [f64; 4],
+        delta_velocity: [f64; 3],
+        delta_position: [f64; 3],
+        /// The bias the samples were corrected with.
+        accel_bias: [f64; 3],
+        gyro_bias: [f64; 3],
+        d_rotation_d_gyro_bias: [f64; 9],
+        d_velocity_d_accel_bias: [f64; 9],
+        d_velocity_d_gyro_bias: [f64; 9],
+        d_position_d_accel_bias: [f64; 9],
+        d_position_d_gyro_bias: [f64; 9],
+        covariance: Vec<f64>,
+    },
+    /// Lidar odometry: the pose of `to` in the frame of `from`.
+    RelativePose {
+        #[serde(deserialize_with = "wire_number::u64")]
+        from: Key,
+        #[serde(deserialize_with = "wire_number::u64")]
+        to: Key,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        sigma_position: f64,
+        sigma_rotation: f64,
+    },
+    /// Map matching: the world pose of `key`.
+    PosePrior {
+        #[serde(deserialize_with = "wire_number::u64")]
+        key: Key,
+        position: [f64; 3],
+        rotation_xyzw: [f64; 4],
+        sigma_position: f64,
+        sigma_rotation: f64,
+    },
+    /// GNSS: the world position of `key`.
+    PositionPrior {
+        #[serde(deserialize_with = "wire_number::u64")]
+        key: Key,
+        position: [f64; 3],
+        sigma: f64,
+    },
+}
+
+/// The experiment's inputs as a robot sends them: the `start` message, then one batch per
+/// keyframe (its IMU samples, the keyframe, its relative poses and priors).
+pub fn experiment_messages(
+    inputs: &crate::fusion::experiment::FusionInputs,
+) -> (FusionMessage, Vec<Vec<FusionMessage>>) {
+    let i = &inputs.initial;
+    let start = FusionMessage::Start {
+        t: i.t,
+        position: i.position,
+        rotation_xyzw: i.rotation_xyzw,
+        velocity: i.velocity,
+        accel_bias: i.accel_bias,
+        gyro_bias: i.gyro_bias,
+        sigmas: i.sigmas.clone(),
+        window: inputs.window,
+        gravity: inputs.gravity,
+        imu_noise: inputs.imu_noise,
+    };
+    let mut samples = inputs.imu.iter().peekable();
+    let batches = inputs
+        .keyframes
+        .iter()
+        .map(|k| {
+            let mut messages = Vec::new();
+            while let Some(s) = samples.next_if(|s| s[0] <= k.t) {
+                messages.push(FusionMessage::Imu {
+                    t: s[0],
+                    accel: [s[1], s[2], s[3]],
+                    gyro: [s[4], s[5], s[6]],
+                });
+            }
+            messages.push(FusionMessage::Keyframe { t: k.t });
+            for r in inputs.relative_poses.iter().filter(|r| r.to == k.key) {
+                messages.push(FusionMessage::RelativePose {
+                    from: r.from,
+                    to: r.to,
+                    position: r.position,
+                    rotation_xyzw: r.rotation_xyzw,
+                    sigma_position: r.sigma_position,
+                    sigma_rotation: r.sigma_rotation,
+                });
+            }
+            for p in inputs.pose_priors.iter().filter(|p| p.key == k.key) {
+                messages.push(FusionMessage::PosePrior {
+                    key: p.key,
+                    position: p.position,
+                    rotation_xyzw: p.rotation_xyzw,
+                    sigma_position: p.sigma_position,
+                    sigma_rotation: p.sigma_rotation,
+                });
+            }
+            messages
+        })
+        .collect();
+    (start, batches)
+}
+
+/// One keyframe's state on the wire.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct StateReport {
+    pub key: Key,
+    pub t: f64,
+    pub position: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
+    pub velocity: [f64; 3],
+    pub accel_bias: [f64; 3],
+    pub gyro_bias: [f64; 3],
+}
+
+impl StateReport {
+    pub fn new(key: Key, t: f64, s: &NavState) -> Self {
+        let q = s.rotation.quaternion();
+        let a = |v: &Vector3<f64>| [v.x, v.y, v.z];
+        Self {
+            key,
+            t,
+            position: a(&s.position),
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+            velocity: a(&s.velocity),
+            accel_bias: a(&s.accel_bias),
+            gyro_bias: a(&s.gyro_bias),
+        }
+    }
+}
+
+/// What a fusion batch did.
+#[derive(Clone, Debug, Serialize)]
+pub struct FusionAck {
+    pub session: String,
+    pub applied: usize,
+    /// Keys of the keyframes the batch created, in order.
+    pub keyframes: Vec<Key>,
+    /// The newest state after the batch (after its last keyframe's optimisation).
+    pub latest: Option<StateReport>,
+}

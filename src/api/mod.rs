@@ -1,0 +1,19 @@
+//! The command API every transport speaks: the wire types (requests, replies, events), how bodies
+//! are decoded within limits, the [`Command`]s and [`Reply`]s of the one dispatch, the catalogue
+//! of session kinds, variable and factor codecs, and the typed error every layer above returns.
+//!
+//! Layer 6: imports `variables`, `factors`, `problem`, `solver`, `fusion` and `wire_number`;
+//! never `journal`, `session`, `service`, `runtime` or `transport`. The one place that knows how
+//! an error maps to an HTTP status is [`error::ErrorKind::status`].
+
+pub mod catalogue;
+pub mod command;
+pub mod error;
+pub mod fusion;
+mod limits;
+pub mod wire;
+pub mod wire_list;
+
+pub use command::{parse_command, Accepted, Command, Health, Reply};
+pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ErrorKind, ServiceError};
+pub use limits::Limits;
