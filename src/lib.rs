@@ -1,12 +1,12 @@
 //! factord: a sparse nonlinear least-squares back-end for pose graphs and factor graphs, and the
 //! network service around it.
 //!
-//! Layers, each usable on its own: [`geometry`] (Lie groups) → [`problem`] (variables, values) and
-//! [`factors`] (residuals with analytic Jacobians) → [`solver`] (normal equations, sparse Cholesky,
-//! GN/LM/Dogleg, initialisation, Summary) → [`io`] (g2o, TORO, TUM). The solver core has no network
-//! dependencies. On top: [`session`] (an incrementally growing problem per client), [`service`]
-//! (session registry, worker pool, the one command API) and [`transport`] (HTTP and zenoh adapters
-//! over that API).
+//! Layers, lowest first; each imports only the ones below or beside it (`tests/layering.rs`,
+//! docs/ARCHITECTURE.md): [`geometry`] and [`wire_number`] → [`variables`] → [`factors`] →
+//! [`problem`] → [`solver`] → [`io`], [`fusion`] → [`api`] (wire types, commands, the typed
+//! error) → [`journal`], [`runtime`] (pool, metrics) → [`session`] → [`service`] →
+//! [`transport`] (HTTP and zenoh adapters over the one command API) → [`server`]. The solver core
+//! has no network dependencies.
 
 pub mod api;
 pub mod factors;

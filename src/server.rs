@@ -1,5 +1,7 @@
 //! `factord serve`: configuration (file < environment < flags), the state directory, starting
 //! HTTP and zenoh over one [`Service`], and graceful shutdown.
+//!
+//! Layer 12, the composition root: may import everything.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -1,5 +1,8 @@
-//! Sliding-window fusion: marginalisation of old states into linear priors (and, next, IMU
-//! pre-integration and the window estimator of the `sliding_window` session kind).
+//! Sliding-window fusion: the window estimator of the `sliding_window` session kind, the
+//! marginalisation of old states into linear priors, and the EuRoC experiment.
+//!
+//! Layer 5: imports `geometry` (IMU pre-integration lives there), `factors`, `problem`, `solver`
+//! and `io`; the session drives it from above.
 
 pub mod experiment;
 pub mod marginalize;

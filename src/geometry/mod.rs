@@ -1,4 +1,6 @@
 //! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3); the BAL camera and 3D points.
+//!
+//! Layer 0: imports nothing of the crate (docs/ARCHITECTURE.md).
 
 pub mod camera;
 pub mod image;

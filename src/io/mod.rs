@@ -2,6 +2,8 @@
 //!
 //! Files are parsed whole into records first (every malformed line is reported with file, line
 //! number and reason), then vertices are added before edges, so record order does not matter.
+//!
+//! Layer 5: imports `geometry`, `factors`, `problem` and `solver`.
 
 pub mod bal;
 pub mod direct_ba;

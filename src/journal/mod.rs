@@ -23,6 +23,8 @@
 //! `write` and one `fdatasync` per batch, and its failure modes (a torn tail) are handled in
 //! thirty lines. A key-value store (sled, redb, RocksDB) would add its own log under ours, a
 //! compaction policy, and a build cost, and buy nothing we read back by key.
+//!
+//! Layer 7: imports `api` (entries are its wire types); never `session` or above.
 
 pub mod log;
 

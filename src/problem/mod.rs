@@ -2,6 +2,8 @@
 //!
 //! Everything that enters is validated here once (keys exist, kinds match, dimensions agree,
 //! information is positive definite, numbers are finite), so the solver can trust what it gets.
+//!
+//! Layer 3: imports `variables` and `factors`; the solver builds on it, never the other way.
 
 mod chi2;
 mod entry;

@@ -1,6 +1,9 @@
-//! The service: the session registry, the worker pool, and the one command API that every
-//! transport calls. HTTP and zenoh only translate their requests into a [`Command`] and render the
-//! [`Reply`] or [`ServiceError`]; no behaviour lives in an adapter.
+//! The service: the session registry, callers and authorisation, recovery, and the dispatch of
+//! the one command API that every transport calls. HTTP and zenoh only translate their requests
+//! into a [`Command`] and render the [`Reply`] or [`ServiceError`]; no behaviour lives in an
+//! adapter.
+//!
+//! Layer 9: imports `session` and everything below; never `transport` or `server`.
 
 pub mod caller;
 mod durability;
@@ -372,8 +375,8 @@ impl Service {
         Ok(())
     }
 
-    /// The service's health; `sessions` counts the sessions `caller` may see.
-    /// The Prometheus text of `GET /metrics`: the process's counters and this service's gauges.
+    /// The Prometheus text of `GET /metrics`: the process's counters, histograms and `process_*`
+    /// metrics, and this service's gauges.
     pub fn metrics_text(&self) -> String {
         let health = self.health(&Caller::Trusted);
         let sessions = self.sessions();
@@ -388,6 +391,7 @@ impl Service {
         })
     }
 
+    /// The service's health; `sessions` counts the sessions `caller` may see.
     pub fn health(&self, caller: &Caller) -> Health {
         let pool = self.pool.handle();
         Health {

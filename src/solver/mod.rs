@@ -1,5 +1,8 @@
 //! The sparse nonlinear least-squares solver: layout, linearisation, sparse Cholesky, GN / LM /
 //! Dogleg, initialisation and the Summary. Nothing here knows about files or networks.
+//!
+//! Layer 4: imports `geometry`, `factors`, `problem` and `wire_number` (its options are a wire
+//! type); never `io` or anything above.
 
 pub mod budget;
 pub mod cholesky;
