@@ -192,7 +192,7 @@ pub fn generate(data: &Euroc, g: &Generation) -> Result<FusionInputs, String> {
                 sigma_rotation: g.relative_sigma_rotation,
             });
         }
-        if g.prior_every > 0 && key as usize % g.prior_every == 0 {
+        if g.prior_every > 0 && (key as usize).is_multiple_of(g.prior_every) {
             let p = pose.position + rng.vector3(g.prior_sigma_position);
             let q = pose.rotation * so3::exp(&rng.vector3(g.prior_sigma_rotation));
             let prior = PoseJson::new(&p, &q);

@@ -132,13 +132,14 @@ fn schur_prior(
     };
     let mut full = DMatrix::zeros(n, n);
     let mut rhs = DVector::zeros(n);
-    for c in 0..pattern.n {
+    for (c, &b_c) in b.iter().enumerate().take(pattern.n) {
         let dc = dense_row(c);
-        rhs[dc] = b[c];
-        for k in pattern.col_ptr[c]..pattern.col_ptr[c + 1] {
-            let dr = dense_row(pattern.row_idx[k]);
-            full[(dr, dc)] = h[k];
-            full[(dc, dr)] = h[k];
+        rhs[dc] = b_c;
+        let column = pattern.col_ptr[c]..pattern.col_ptr[c + 1];
+        for (&r, &h_rc) in pattern.row_idx[column.clone()].iter().zip(&h[column]) {
+            let dr = dense_row(r);
+            full[(dr, dc)] = h_rc;
+            full[(dc, dr)] = h_rc;
         }
     }
     let dm = values.variable(m).tangent_dim();

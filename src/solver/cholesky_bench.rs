@@ -78,8 +78,9 @@ pub fn run(
             p.nnz()
         );
         for c in 0..p.n {
-            for k in p.col_ptr[c]..p.col_ptr[c + 1] {
-                let _ = writeln!(text, "{} {} {:e}", p.row_idx[k] + 1, c + 1, h[k]);
+            let column = p.col_ptr[c]..p.col_ptr[c + 1];
+            for (&r, &h_rc) in p.row_idx[column.clone()].iter().zip(&h[column]) {
+                let _ = writeln!(text, "{} {} {:e}", r + 1, c + 1, h_rc);
             }
         }
         std::fs::write(path, text)?;

@@ -31,11 +31,9 @@ pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>
         }
     }
     let mut root_anchored = vec![false; n];
-    for v in 0..n {
-        if anchored[v] {
-            let r = find(&mut parent, v);
-            root_anchored[r] = true;
-        }
+    for (v, _) in anchored.iter().enumerate().filter(|(_, &a)| a) {
+        let r = find(&mut parent, v);
+        root_anchored[r] = true;
     }
     // Lowest key of each unanchored component.
     let mut lowest: Vec<Option<usize>> = vec![None; n];

@@ -345,11 +345,11 @@ fn linearize_with<E: Borrow<FactorEntry>>(
 pub fn symmetric_multiply(pattern: &BlockPattern, h: &[f64], x: &[f64], y: &mut [f64]) {
     y.fill(0.0);
     for c in 0..pattern.n {
-        for k in pattern.col_ptr[c]..pattern.col_ptr[c + 1] {
-            let r = pattern.row_idx[k];
-            y[r] += h[k] * x[c];
+        let column = pattern.col_ptr[c]..pattern.col_ptr[c + 1];
+        for (&r, &h_rc) in pattern.row_idx[column.clone()].iter().zip(&h[column]) {
+            y[r] += h_rc * x[c];
             if r != c {
-                y[c] += h[k] * x[r];
+                y[c] += h_rc * x[r];
             }
         }
     }
