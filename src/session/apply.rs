@@ -5,6 +5,7 @@ use std::collections::HashSet;
 use std::sync::Arc;
 
 use super::batch::{self, PreparedBatch, SessionView};
+use super::engine::{self, Engine};
 use super::mirror::value_of;
 use super::{inspect, MirrorEntry, Session, State};
 use crate::api::catalogue;
@@ -29,16 +30,9 @@ impl Session {
         ids: Option<Vec<FactorId>>,
         journal: bool,
     ) -> Result<(BatchAck, bool), ServiceError> {
-        if self.kind.name == catalogue::SLIDING_WINDOW {
-            return Err(ServiceError::bad_request(
-                "wrong_kind",
-                "session",
-                format!(
-                    "session `{}` is a sliding window: send fusion messages (POST …/fusion, zenoh in/fusion)",
-                    self.name
-                ),
-            ));
-        }
+        let Engine::Graph(_) = &self.engine else {
+            return Err(engine::batches_refused(&self.name));
+        };
         let mut st = self.lock();
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
@@ -157,7 +151,7 @@ impl Session {
         self.maybe_schedule(&mut st);
         let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
         if let (Some(d), true) = (durable.as_mut(), journal) {
-            d.maybe_snapshot(&self.name, self.kind.name, &st);
+            d.maybe_snapshot(&self.name, &st);
         }
         Ok((ack, will_solve))
     }

@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::batch::PreparedBatch;
+use super::engine::Engine;
 use super::{Session, State};
 use crate::api::catalogue;
 use crate::api::fusion::FusionBatch;
@@ -107,12 +108,12 @@ impl Durable {
 
     /// Writes a snapshot once enough entries have accumulated. A failure leaves the journal
     /// (which holds everything) in place and is only logged.
-    pub(super) fn maybe_snapshot(&mut self, name: &str, kind: &str, st: &State) {
-        // A sliding window's state is more than variables and factors (its pre-integration,
-        // marginalisation priors): it is rebuilt by replaying its messages, never snapshotted.
-        if kind == catalogue::SLIDING_WINDOW
-            || self.entries_since_snapshot < self.config.snapshot_every
-        {
+    ///
+    /// Only graph sessions snapshot (batches are their only entries besides the policy): a
+    /// window's state is more than variables and factors (its pre-integration, marginalisation
+    /// priors), so it is rebuilt by replaying its messages.
+    pub(super) fn maybe_snapshot(&mut self, name: &str, st: &State) {
+        if self.entries_since_snapshot < self.config.snapshot_every {
             return;
         }
         let snapshot = Snapshot {
@@ -254,7 +255,9 @@ impl Session {
                 Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
                 Entry::Fusion { messages } => {
                     let mut applied = 0;
-                    let mut window = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+                    let mut window = self
+                        .locked_window()
+                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
                     let batch = FusionBatch { messages };
                     match self.apply_fusion_counted(&mut window, batch, &mut applied) {
                         Ok(_) => {}
@@ -293,7 +296,8 @@ impl Session {
             )),
             None => self.recovering.store(false, Ordering::SeqCst),
         }
-        if self.kind.name != catalogue::SLIDING_WINDOW && sequence > 0 {
+        // A window was optimised at every keyframe as its messages were replayed.
+        if matches!(self.engine, Engine::Graph(_)) && sequence > 0 {
             self.optimize_now().map_err(|e| e.body.message)?;
         }
         Ok(Recovery {
@@ -327,7 +331,7 @@ impl Session {
         &self,
         batch: FusionBatch,
     ) -> Result<crate::api::fusion::FusionAck, ServiceError> {
-        let mut window = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+        let mut window = self.locked_window()?;
         let copy = self
             .durable
             .lock()

@@ -1,16 +1,17 @@
-//! The `sliding_window` session kind: a robot streams IMU samples, keyframes, lidar relative
-//! poses and map-matching / GNSS priors; the session keeps a [`SlidingWindow`], optimises it at
-//! every keyframe and publishes the newest state (`out/state`) and the whole window
-//! (`out/window`).
+//! The window engine: a robot streams IMU samples, keyframes, lidar relative poses and
+//! map-matching / GNSS priors; the session keeps a [`SlidingWindow`], optimises it at every
+//! keyframe and publishes the newest state (`out/state`) and the whole window (`out/window`).
 //!
 //! Messages are applied in order. A refused message (out-of-order IMU, a prior on a
 //! marginalised keyframe, …) stops the batch there: the messages before it stay applied, the
 //! error names its index, and the window is as it was before that message.
 
+use std::sync::MutexGuard;
 use std::time::Instant;
 
 use nalgebra::Vector3;
 
+use super::engine::{self, Engine};
 use super::Session;
 use crate::api::fusion::{FusionAck, FusionBatch, FusionMessage, StateReport};
 use crate::api::wire::SessionEvent;
@@ -84,9 +85,9 @@ fn apply(
         *window = Some(SlidingWindow::new(options, first, t, &info)?);
         return Ok(Some(0));
     }
-    let w = window.as_mut().ok_or(FusionError::Invalid {
+    let w = window.as_mut().ok_or_else(|| FusionError::Invalid {
         field: "type",
-        reason: "the first message of a sliding_window session must be `start`".into(),
+        reason: engine::start_first(),
     })?;
     match message {
         FusionMessage::Start { .. } => unreachable!("handled above"),
@@ -204,27 +205,27 @@ fn apply(
 }
 
 impl Session {
-    /// Applies a fusion batch (see the module documentation). Keyframes are optimised as they
-    /// arrive, after the batch's later messages for the same keyframe have been added: the
-    /// window is optimised once per keyframe, when the next keyframe or the batch's end comes.
-    /// Applies `batch`'s messages in order to `guard` (the locked window); `applied` counts those
-    /// the window took, also when a later one is rejected (they stay applied).
+    /// The window of a window session, locked; fusion messages are refused by graph sessions.
+    pub(super) fn locked_window(
+        &self,
+    ) -> Result<MutexGuard<'_, Option<SlidingWindow>>, ServiceError> {
+        match &self.engine {
+            Engine::Window(w) => Ok(w.window.lock().unwrap_or_else(|p| p.into_inner())),
+            Engine::Graph(_) => Err(engine::fusion_refused(&self.name, self.kind.name)),
+        }
+    }
+
+    /// Applies `batch`'s messages in order to `guard` (the locked window, see the module
+    /// documentation); `applied` counts those the window took, also when a later one is rejected
+    /// (they stay applied). Keyframes are optimised as they arrive, after the batch's later
+    /// messages for the same keyframe have been added: the window is optimised once per
+    /// keyframe, when the next keyframe or the batch's end comes.
     pub(super) fn apply_fusion_counted(
         &self,
         guard: &mut Option<SlidingWindow>,
         batch: FusionBatch,
         applied: &mut usize,
     ) -> Result<FusionAck, ServiceError> {
-        if self.kind.name != crate::api::catalogue::SLIDING_WINDOW {
-            return Err(ServiceError::bad_request(
-                "wrong_kind",
-                "session",
-                format!(
-                    "session `{}` is of kind {}; fusion messages go to sliding_window sessions",
-                    self.name, self.kind.name
-                ),
-            ));
-        }
         let mut keyframes = Vec::new();
         *applied = 0;
         let mut pending = false;

@@ -28,12 +28,12 @@ const DEBT_LIMIT: f64 = 10.0;
 /// What a session keeps between re-solves, next to its problem: for every variable (dense
 /// index) the factors (indices) that touch it, and the elimination order of full re-solves.
 #[derive(Debug, Default)]
-pub(crate) struct Engine {
+pub(crate) struct RegionIndex {
     by_variable: Vec<Vec<usize>>,
     ordering: solver::OrderingCache,
 }
 
-impl Engine {
+impl RegionIndex {
     /// Records factors `from..` of `problem` (call after appending them).
     pub fn extend(&mut self, problem: &Problem, from: usize) {
         self.by_variable.resize(problem.values.len(), Vec::new());
@@ -79,7 +79,7 @@ pub(crate) struct Resolved {
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn resolve(
     problem: &mut Problem,
-    index: &mut Engine,
+    index: &mut RegionIndex,
     seeds: &[usize],
     anchors: &[bool],
     total_chi2: f64,
@@ -160,7 +160,7 @@ pub(crate) fn resolve(
 
 /// Up to about `size` variables, breadth-first from `seeds` (whole layers, so the region is a
 /// ball in the factor graph).
-fn grow_region(problem: &Problem, index: &Engine, seeds: &[usize], size: usize) -> Vec<usize> {
+fn grow_region(problem: &Problem, index: &RegionIndex, seeds: &[usize], size: usize) -> Vec<usize> {
     let n = problem.values.len();
     let mut seen = vec![false; n];
     let mut region = Vec::with_capacity(size * 2);
@@ -193,7 +193,7 @@ fn grow_region(problem: &Problem, index: &Engine, seeds: &[usize], size: usize) 
 }
 
 /// Every factor touching one of `variables`, once, in index order.
-fn factors_touching(index: &Engine, variables: &[usize]) -> Vec<usize> {
+fn factors_touching(index: &RegionIndex, variables: &[usize]) -> Vec<usize> {
     let mut factors: Vec<usize> = variables
         .iter()
         .flat_map(|&v| index.by_variable[v].iter().copied())

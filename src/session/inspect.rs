@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
+use super::engine::{self, Engine, Window};
 use super::{MirrorEntry, Session};
 use crate::api::catalogue::{self, Shape};
 use crate::api::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
@@ -42,9 +43,14 @@ pub(super) fn edge(mirror: &BTreeMap<Key, MirrorEntry>, keys: &[Key]) -> Option<
 
 impl Session {
     pub fn graph(&self) -> Graph {
-        if self.kind.name == catalogue::SLIDING_WINDOW {
-            return self.window_graph();
+        match &self.engine {
+            Engine::Graph(graph) => self.problem_graph(graph.dimension),
+            Engine::Window(window) => self.window_graph(window),
         }
+    }
+
+    /// A graph session's variables (poses and landmarks) and the factors between two poses.
+    fn problem_graph(&self, dimension: u8) -> Graph {
         let st = self.lock();
         let (mut poses, mut points) = (Vec::new(), Vec::new());
         for (&key, entry) in &st.mirror {
@@ -62,11 +68,7 @@ impl Session {
             session: self.name.clone(),
             kind: self.kind.name.into(),
             sequence: st.sequence,
-            dimension: if self.kind.name == "pose_graph_2d" {
-                2
-            } else {
-                3
-            },
+            dimension,
             poses,
             points,
             edges: st.edges.values().copied().collect(),
@@ -75,9 +77,9 @@ impl Session {
 
     /// A sliding window's keyframes (marginalised ones stay, fixed) and the factors between two
     /// of them. The window keeps no initial guesses: `initial` is the current position.
-    fn window_graph(&self) -> Graph {
+    fn window_graph(&self, window: &Window) -> Graph {
         let sequence = self.lock().sequence;
-        let guard = self.fusion.lock().unwrap_or_else(|p| p.into_inner());
+        let guard = window.window.lock().unwrap_or_else(|p| p.into_inner());
         let (mut poses, mut edges) = (Vec::new(), Vec::new());
         if let Some(window) = guard.as_ref() {
             let values = &window.problem().values;
@@ -118,13 +120,10 @@ impl Session {
         query: &MarginalsQuery,
     ) -> Result<Option<Marginals>, ServiceError> {
         let start = Instant::now();
-        if self.kind.name == catalogue::SLIDING_WINDOW {
-            return Err(ServiceError::bad_request(
-                "wrong_kind",
-                "session",
-                "marginal covariances are served for pose-graph and bundle-adjustment sessions",
-            ));
-        }
+        let graph = match &self.engine {
+            Engine::Graph(graph) => graph,
+            Engine::Window(_) => return Err(engine::marginals_refused()),
+        };
         if query.keys.is_empty() || query.keys.len() > MAX_MARGINAL_KEYS {
             return Err(ServiceError::bad_request(
                 "invalid_value",
@@ -136,7 +135,7 @@ impl Session {
             ));
         }
         // Lock order: the cached factorisation, then the state.
-        let mut cache = self.marginals.lock().unwrap_or_else(|p| p.into_inner());
+        let mut cache = graph.marginals.lock().unwrap_or_else(|p| p.into_inner());
         let mut st = self.lock();
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
@@ -185,7 +184,7 @@ impl Session {
                 .map_err(|e| {
                     ServiceError::new(ErrorKind::Invalid, "indeterminate_system", e.to_string())
                 })?;
-            self.marginals_bytes.store(
+            graph.marginals_bytes.store(
                 factorized.memory_bytes(),
                 std::sync::atomic::Ordering::Relaxed,
             );

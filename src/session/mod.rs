@@ -1,5 +1,6 @@
-//! A session: one incrementally growing problem, its solver options and auto-optimise policy, the
-//! estimate clients read, and the events it streams.
+//! A session: one incrementally growing problem (or, for a sliding window, the window its fusion
+//! messages build), its solver options and auto-optimise policy, the estimate clients read, and
+//! the events it streams.
 //!
 //! Concurrency: the problem moves to a pool worker for a solve. Batches that arrive meanwhile are
 //! validated against the *mirror* (every accepted variable's kind and wire value), acknowledged
@@ -8,28 +9,30 @@
 //! never wait for a solve.
 //!
 //! The session is one type, [`Session`], whose methods are spread over files by concept; they
-//! share its private state:
+//! share its private state. What it runs, a graph of variables and factors or a sliding window
+//! fed with fusion messages, is its `Engine`, chosen once at creation.
 //!
 //! - `mod.rs`: the type, its construction, its lock and who owns it.
+//! - `engine.rs`: the two engines, choosing one from the session kind (the only place that
+//!   names kinds), and the errors for what an engine does not offer.
 //! - `state.rs`: `State`, everything behind that lock, and how a new one starts.
 //! - `mirror.rs`: [`MirrorEntry`], variables as clients see them, and the estimate read from them.
 //! - `apply.rs`: accepting a batch (limits, validation, journal, mirror, problem or queue).
+//! - `batch.rs`: validating a wire batch into a prepared one.
 //! - `schedule.rs`: when solves run (auto-optimise policy, `optimize`), waiting for them and
 //!   cancelling them.
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
-//! - `incremental.rs`: the engine that re-solves only the region new factors reach.
+//! - `incremental.rs`: re-solving only the region new factors reach.
 //! - `events.rs`: the event stream (subscribing, publishing, rejections).
 //! - `stats.rs`: info, stats and memory accounting.
-//! - `inspect.rs`: the graph and marginal covariances.
+//! - `inspect.rs`: the drawable graph (of either engine) and marginal covariances (graphs).
 //! - `durable.rs`: journal, snapshots and recovery.
-//! - `fusion.rs`: sliding-window sessions fed by fusion messages.
-//! - `batch.rs`: validating a wire batch into a prepared one.
-//! - `catalogue.rs`: session kinds and variable codecs.
-//! - `wire.rs`, `wire_list.rs`, `wire_number.rs`: the wire types and their parsing.
+//! - `fusion.rs`: applying fusion messages to a window and optimising it at keyframes.
 
 mod apply;
 pub mod batch;
 mod durable;
+mod engine;
 mod events;
 pub mod fusion;
 mod incremental;
@@ -46,6 +49,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use tokio::sync::{broadcast, watch};
 
 pub use durable::{Durability, Recovery};
+use engine::Engine;
 pub use mirror::MirrorEntry;
 use state::State;
 
@@ -64,13 +68,8 @@ pub struct Session {
     /// Number of finished solves (successful, failed or interrupted).
     completed: watch::Sender<u64>,
     cancel: AtomicBool,
-    /// The window of a `sliding_window` session, from its `start` message on.
-    fusion: Mutex<Option<crate::fusion::window::SlidingWindow>>,
-    /// The last factorisation for marginal covariances, with the (sequence, solves) of the
-    /// estimate it was taken at.
-    marginals: Mutex<Option<((u64, u64), crate::solver::marginals::Marginals)>>,
-    /// What that factorisation holds, read by `memory_bytes` without its lock.
-    marginals_bytes: std::sync::atomic::AtomicU64,
+    /// A graph or a sliding window, by kind.
+    engine: Engine,
     /// Where the session is kept on disk, when it is durable.
     durable: Mutex<Option<durable::Durable>>,
     /// Being rebuilt from its journal: writes are refused until it is done.
@@ -102,9 +101,7 @@ impl Session {
             solved: watch::channel(0).0,
             completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
-            fusion: Mutex::new(None),
-            marginals: Mutex::new(None),
-            marginals_bytes: std::sync::atomic::AtomicU64::new(0),
+            engine: Engine::for_kind(kind),
             durable: Mutex::new(None),
             recovering: AtomicBool::new(false),
             corruption: std::sync::OnceLock::new(),

@@ -8,7 +8,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::incremental::{self, Engine};
+use super::incremental::{self, RegionIndex};
 use super::mirror::value_of;
 use super::{MirrorEntry, Session};
 use crate::api::catalogue;
@@ -22,7 +22,7 @@ use crate::solver::{self, SolverOptions};
 /// What a solve takes out of the session state (the problem moves to the worker).
 struct SolveWork {
     problem: Problem,
-    index: Engine,
+    index: RegionIndex,
     options: SolverOptions,
     sequence: u64,
     solve_number: u64,
@@ -241,7 +241,7 @@ impl Session {
 impl Session {
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
-    pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: Engine) {
+    pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: RegionIndex) {
         st.problem_bytes = super::state::problem_bytes(&problem);
         st.problem = Some(problem);
         st.index = Some(index);

@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::Duration;
 
 use super::batch::PreparedBatch;
-use super::incremental::Engine;
+use super::incremental::RegionIndex;
 use super::MirrorEntry;
 use crate::api::catalogue::SessionKind;
 use crate::api::wire::{AutoOptimize, FactorId};
@@ -18,7 +18,7 @@ pub(super) struct State {
     pub(super) auto: AutoOptimize,
     /// `None` while a worker has it (with `index`).
     pub(super) problem: Option<Problem>,
-    pub(super) index: Option<Engine>,
+    pub(super) index: Option<RegionIndex>,
     /// Variables (dense indices) touched by factors added since the last solve.
     pub(super) seeds: Vec<usize>,
     /// Since the last solve, something other than additions changed (removals, fixes, guesses):
@@ -72,7 +72,7 @@ impl State {
             options,
             auto,
             problem: Some(Problem::with_gauge(kind.gauge).eliminating(kind.eliminate)),
-            index: Some(Engine::default()),
+            index: Some(RegionIndex::default()),
             seeds: Vec::new(),
             structural: true,
             region_debt: 0.0,

@@ -1,6 +1,7 @@
 //! What a session reports about itself: its settings, its counters and an estimate of the
 //! memory it holds.
 
+use super::engine::Engine;
 use super::state::problem_bytes;
 use super::{MirrorEntry, Session, State};
 use crate::api::wire::{FactorId, SessionInfo, SessionStats};
@@ -63,9 +64,13 @@ impl Session {
             + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
             + st.factor_ids.len() * size_of::<FactorId>();
         let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
-        let marginals = self
-            .marginals_bytes
-            .load(std::sync::atomic::Ordering::Relaxed) as usize;
+        let marginals = match &self.engine {
+            Engine::Graph(graph) => graph
+                .marginals_bytes
+                .load(std::sync::atomic::Ordering::Relaxed)
+                as usize,
+            Engine::Window(_) => 0,
+        };
         mirror + factors + problem + marginals + self.durable_memory_bytes()
     }
 }
