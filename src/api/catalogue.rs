@@ -5,55 +5,23 @@
 //! adjustment, sliding-window fusion) is a new entry here plus its variables and factors — the
 //! session, the worker pool and the transports do not change.
 //!
-//! Wire encodings (all numbers are JSON numbers, angles in radians):
-//! - `se2`: `[x, y, θ]`.
-//! - `se3`: `[x, y, z, qx, qy, qz, qw]` (g2o order); the quaternion must have unit norm within
-//!   1e-3 and is normalised.
-//! - `snavely_camera`: BAL's nine parameters `[rx, ry, rz, tx, ty, tz, f, k1, k2]` (angle-axis).
-//! - `point3`: `[x, y, z]`; `reprojection_snavely` measures the pixel `[x, y]` (BAL convention).
-//! - Factor measurements use the same encoding as the variable they relate; information matrices
-//!   are in the factor's residual order (`between_se3`: translation then rotation angle, GTSAM's
-//!   convention, not g2o's half-angle).
+//! Each variable kind declares its wire form once ([`VariableWire`], next to its `Variable` impl
+//! in `variables/`), each factor type once ([`FactorWire`], the `WIRE` const in its file in
+//! `factors/`); this file only lists them. `api::factor_schema` turns the same list into
+//! `proto/v1/factors.schema.json`. A new factor is its file plus one line here.
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector2, Vector3};
-
-use crate::factors::{BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, ReprojectionSnavely};
-use crate::geometry::{wrap_angle, Point3, Se2, Se3, SnavelyCamera};
-use crate::problem::{Gauge, Key, Variable};
+use crate::factors::{BetweenSe2, BetweenSe3, PriorSe2, PriorSe3, ReprojectionSnavely};
+use crate::problem::{Gauge, Variable};
 use crate::solver::SolverOptions;
+use crate::variables::{point3, se2, se3, snavely_camera};
 
-/// Builds a variable from its wire encoding (length already checked), or says why not.
-pub type DecodeVariable = fn(&[f64]) -> Result<Box<dyn Variable>, String>;
-/// Builds a factor from its keys and measurement (lengths already checked), or says why not.
-pub type BuildFactor = fn(&[Key], &[f64]) -> Result<Box<dyn Factor>, String>;
+pub use crate::factors::{BuildFactor, FactorWire};
+pub use crate::variables::{DecodeVariable, Shape, VariableWire};
 
-/// How one variable kind travels on the wire.
-pub struct VariableCodec {
-    pub kind: &'static str,
-    /// Number of values in the wire encoding.
-    pub len: usize,
-    pub decode: DecodeVariable,
-    pub encode: fn(&dyn Variable) -> Vec<f64>,
-    /// How the web view draws it.
-    pub shape: Shape,
-}
-
-/// What a variable is when drawn: a pose of the trajectory or a landmark of a point cloud.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Shape {
-    Pose,
-    Landmark,
-}
-
-/// How one factor type is built from its wire form.
-pub struct FactorCodec {
-    pub name: &'static str,
-    /// Kinds of the variables it connects, in key order.
-    pub variable_kinds: &'static [&'static str],
-    pub measurement_len: usize,
-    pub residual_dim: usize,
-    pub build: BuildFactor,
-}
+/// How one variable kind travels on the wire (its declaration in `variables/`).
+pub type VariableCodec = VariableWire;
+/// How one factor type is built from its wire form (its declaration in `factors/`).
+pub type FactorCodec = FactorWire;
 
 /// A kind of session: which variables and factors it accepts, and how it is solved by default.
 pub struct SessionKind {
@@ -117,119 +85,24 @@ pub const SESSION_KINDS: &[SessionKind] = &[
     },
 ];
 
-const VARIABLES: &[VariableCodec] = &[
-    VariableCodec {
-        kind: "se2",
-        len: 3,
-        decode: |v| Ok(Box::new(Se2::new(v[0], v[1], wrap_angle(v[2])))),
-        encode: |v| encode_as::<Se2>(v, |p| p.to_array().to_vec()),
-        shape: Shape::Pose,
-    },
-    VariableCodec {
-        kind: "se3",
-        len: 7,
-        decode: |v| Ok(Box::new(decode_se3(v)?)),
-        encode: |v| {
-            encode_as::<Se3>(v, |p| {
-                let q = p.rotation.quaternion();
-                let t = p.translation;
-                vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
-            })
-        },
-        shape: Shape::Pose,
-    },
-    VariableCodec {
-        kind: "snavely_camera",
-        len: 9,
-        decode: |v| {
-            let p: [f64; 9] = v.try_into().expect("length checked");
-            Ok(Box::new(SnavelyCamera::from_bal(&p)))
-        },
-        encode: |v| encode_as::<SnavelyCamera>(v, |c| c.to_bal().to_vec()),
-        shape: Shape::Pose,
-    },
-    VariableCodec {
-        kind: "point3",
-        len: 3,
-        decode: |v| Ok(Box::new(Point3(Vector3::new(v[0], v[1], v[2])))),
-        encode: |v| encode_as::<Point3>(v, |p| p.0.iter().copied().collect()),
-        shape: Shape::Landmark,
-    },
+const VARIABLES: &[&VariableWire] = &[&se2::WIRE, &se3::WIRE, &snavely_camera::WIRE, &point3::WIRE];
+
+const FACTORS: &[&FactorWire] = &[
+    &BetweenSe2::WIRE,
+    &PriorSe2::WIRE,
+    &BetweenSe3::WIRE,
+    &PriorSe3::WIRE,
+    &ReprojectionSnavely::WIRE,
 ];
 
-const FACTORS: &[FactorCodec] = &[
-    FactorCodec {
-        name: "between_se2",
-        variable_kinds: &["se2", "se2"],
-        measurement_len: 3,
-        residual_dim: 3,
-        build: |k, m| {
-            Ok(Box::new(BetweenSe2::new(
-                k[0],
-                k[1],
-                Se2::new(m[0], m[1], wrap_angle(m[2])),
-            )))
-        },
-    },
-    FactorCodec {
-        name: "prior_se2",
-        variable_kinds: &["se2"],
-        measurement_len: 3,
-        residual_dim: 3,
-        build: |k, m| {
-            Ok(Box::new(PriorSe2::new(
-                k[0],
-                Se2::new(m[0], m[1], wrap_angle(m[2])),
-            )))
-        },
-    },
-    FactorCodec {
-        name: "between_se3",
-        variable_kinds: &["se3", "se3"],
-        measurement_len: 7,
-        residual_dim: 6,
-        build: |k, m| Ok(Box::new(BetweenSe3::new(k[0], k[1], decode_se3(m)?))),
-    },
-    FactorCodec {
-        name: "prior_se3",
-        variable_kinds: &["se3"],
-        measurement_len: 7,
-        residual_dim: 6,
-        build: |k, m| Ok(Box::new(PriorSe3::new(k[0], decode_se3(m)?))),
-    },
-    FactorCodec {
-        name: "reprojection_snavely",
-        variable_kinds: &["snavely_camera", "point3"],
-        measurement_len: 2,
-        residual_dim: 2,
-        build: |k, m| {
-            Ok(Box::new(ReprojectionSnavely::new(
-                k[0],
-                k[1],
-                Vector2::new(m[0], m[1]),
-            )))
-        },
-    },
-];
-
-fn encode_as<T: 'static>(v: &dyn Variable, f: impl Fn(&T) -> Vec<f64>) -> Vec<f64> {
-    f(v.as_any()
-        .downcast_ref::<T>()
-        .expect("codec is chosen by the variable's kind"))
+/// Every factor type a batch may name, in catalogue order.
+pub fn factors() -> &'static [&'static FactorWire] {
+    FACTORS
 }
 
-fn decode_se3(v: &[f64]) -> Result<Se3, String> {
-    let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-    let norm = q.norm();
-    if (norm - 1.0).abs() > 1e-3 {
-        return Err(format!(
-            "quaternion (qx, qy, qz, qw) has norm {norm}, expected 1"
-        ));
-    }
-    Ok(Se3::new(
-        UnitQuaternion::from_quaternion(q),
-        Vector3::new(v[0], v[1], v[2]),
-    ))
+/// Every variable kind a batch may name, in catalogue order.
+pub fn variables() -> &'static [&'static VariableWire] {
+    VARIABLES
 }
 
 pub fn session_kind(name: &str) -> Option<&'static SessionKind> {
@@ -237,11 +110,11 @@ pub fn session_kind(name: &str) -> Option<&'static SessionKind> {
 }
 
 pub fn variable_codec(kind: &str) -> Option<&'static VariableCodec> {
-    VARIABLES.iter().find(|c| c.kind == kind)
+    VARIABLES.iter().copied().find(|c| c.kind == kind)
 }
 
 pub fn factor_codec(name: &str) -> Option<&'static FactorCodec> {
-    FACTORS.iter().find(|c| c.name == name)
+    FACTORS.iter().copied().find(|c| c.name == name)
 }
 
 /// Encodes a variable for the wire.
@@ -253,6 +126,66 @@ pub fn encode_variable(v: &dyn Variable) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::HashSet;
+
+    #[test]
+    fn names_are_unique() {
+        let mut seen = HashSet::new();
+        for name in FACTORS.iter().map(|f| f.name) {
+            assert!(seen.insert(name), "factor type {name} declared twice");
+        }
+        let mut seen = HashSet::new();
+        for kind in VARIABLES.iter().map(|v| v.kind) {
+            assert!(seen.insert(kind), "variable kind {kind} declared twice");
+        }
+        let mut seen = HashSet::new();
+        for name in SESSION_KINDS.iter().map(|k| k.name) {
+            assert!(seen.insert(name), "session kind {name} declared twice");
+        }
+    }
+
+    #[test]
+    fn every_factor_names_known_variable_kinds_and_documents_its_parts() {
+        for f in FACTORS {
+            assert!(!f.variable_kinds.is_empty(), "{} connects nothing", f.name);
+            for v in f.variable_kinds {
+                assert!(
+                    variable_codec(v).is_some(),
+                    "{} names unknown kind {v}",
+                    f.name
+                );
+            }
+            assert_eq!(f.key_names.len(), f.variable_kinds.len(), "{}", f.name);
+            assert_eq!(f.measurement.len(), f.measurement_len, "{}", f.name);
+            assert!(
+                f.residual_dim > 0 && !f.description.is_empty(),
+                "{}",
+                f.name
+            );
+        }
+        for v in VARIABLES {
+            assert_eq!(v.components.len(), v.len, "{}", v.kind);
+        }
+    }
+
+    /// A factor built from its declaration answers with the declaration's name, kinds and
+    /// residual dimension (the factor's trait methods read them from `WIRE`).
+    #[test]
+    fn built_factors_agree_with_their_declaration() {
+        for f in FACTORS {
+            let keys: Vec<_> = (0..f.variable_kinds.len() as u64).collect();
+            // A measurement every declared encoding accepts: an se3's identity quaternion.
+            let mut m = vec![0.0; f.measurement_len];
+            if f.measurement_len == 7 {
+                m[6] = 1.0;
+            }
+            let built = (f.build)(&keys, &m).unwrap_or_else(|e| panic!("{}: {e}", f.name));
+            assert_eq!(built.name(), f.name);
+            assert_eq!(built.variable_kinds(), f.variable_kinds);
+            assert_eq!(built.residual_dim(), f.residual_dim);
+            assert_eq!(built.keys(), keys.as_slice());
+        }
+    }
 
     #[test]
     fn every_kind_names_known_codecs_and_round_trips() {

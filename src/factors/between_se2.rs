@@ -17,7 +17,7 @@
 
 use std::any::Any;
 
-use super::{expect_kind, EvaluationError, Factor};
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{wrap_angle, Se2};
 use crate::variables::{Key, Variable};
 
@@ -30,6 +30,18 @@ pub struct BetweenSe2 {
 }
 
 impl BetweenSe2 {
+    /// The wire form: `between_se2`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "between_se2",
+        variable_kinds: &["se2", "se2"],
+        key_names: &["i", "j"],
+        measurement_len: 3,
+        measurement: &["x", "y", "theta"],
+        residual_dim: 3,
+        description: "The pose of j in the frame of i (g2o EDGE_SE2). Residual [R_ij^T (R_i^T (t_j - t_i) - t_ij); wrap(theta_j - theta_i - theta_ij)].",
+        build: |k, m| Ok(Box::new(BetweenSe2::new(k[0], k[1], Se2::new(m[0], m[1], wrap_angle(m[2]))))),
+    };
+
     pub fn new(from: Key, to: Key, measurement: Se2) -> Self {
         Self {
             keys: [from, to],
@@ -41,16 +53,16 @@ impl BetweenSe2 {
 
 impl Factor for BetweenSe2 {
     fn name(&self) -> &'static str {
-        "between_se2"
+        Self::WIRE.name
     }
     fn keys(&self) -> &[Key] {
         &self.keys
     }
     fn residual_dim(&self) -> usize {
-        3
+        Self::WIRE.residual_dim
     }
     fn variable_kinds(&self) -> &[&'static str] {
-        &["se2", "se2"]
+        Self::WIRE.variable_kinds
     }
     fn evaluate(
         &self,

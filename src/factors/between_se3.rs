@@ -23,8 +23,9 @@ use std::any::Any;
 
 use nalgebra::Matrix3;
 
-use super::{expect_kind, EvaluationError, Factor};
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{so3, Se3};
+use crate::variables::se3::decode_se3;
 use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
@@ -34,6 +35,18 @@ pub struct BetweenSe3 {
 }
 
 impl BetweenSe3 {
+    /// The wire form: `between_se3`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "between_se3",
+        variable_kinds: &["se3", "se3"],
+        key_names: &["i", "j"],
+        measurement_len: 7,
+        measurement: &["x", "y", "z", "qx", "qy", "qz", "qw"],
+        residual_dim: 6,
+        description: "The pose of j in the frame of i, as an se3 value (g2o EDGE_SE3:QUAT). Residual [t_E; Log(R_E)] with E = Z^-1 X_i^-1 X_j: translation first, then the rotation angle-axis (GTSAM's convention; a g2o information Omega on [t; vec(q)] maps to D Omega D with D = diag(1, 1, 1, 1/2, 1/2, 1/2)).",
+        build: |k, m| Ok(Box::new(BetweenSe3::new(k[0], k[1], decode_se3(m)?))),
+    };
+
     pub fn new(from: Key, to: Key, measurement: Se3) -> Self {
         Self {
             keys: [from, to],
@@ -53,16 +66,16 @@ pub(crate) fn put_block(j: &mut [f64], cols: usize, row0: usize, col0: usize, m:
 
 impl Factor for BetweenSe3 {
     fn name(&self) -> &'static str {
-        "between_se3"
+        Self::WIRE.name
     }
     fn keys(&self) -> &[Key] {
         &self.keys
     }
     fn residual_dim(&self) -> usize {
-        6
+        Self::WIRE.residual_dim
     }
     fn variable_kinds(&self) -> &[&'static str] {
-        &["se3", "se3"]
+        Self::WIRE.variable_kinds
     }
     fn evaluate(
         &self,

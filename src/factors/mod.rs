@@ -37,6 +37,31 @@ pub use robust::RobustKernel;
 
 use crate::variables::{Key, Variable};
 
+/// Builds a factor from its keys and measurement (lengths already checked), or says why not.
+pub type BuildFactor = fn(&[Key], &[f64]) -> Result<Box<dyn Factor>, String>;
+
+/// How one factor type travels on the wire: declared once, as `WIRE` next to the factor's
+/// mathematics, listed by `api::catalogue` and turned into `proto/v1/factors.schema.json` by
+/// `api::factor_schema`. The factor's own `name`, `residual_dim` and `variable_kinds` return
+/// these fields, so the code and the wire cannot disagree.
+pub struct FactorWire {
+    /// The wire `type` (`"between_se2"`).
+    pub name: &'static str,
+    /// Kinds of the variables it connects, in key order.
+    pub variable_kinds: &'static [&'static str],
+    /// What each key is, in key order, for documentation (`["i", "j"]`).
+    pub key_names: &'static [&'static str],
+    /// Number of values in the wire measurement.
+    pub measurement_len: usize,
+    /// The measurement's components in order, for documentation (`["x", "y", "theta"]`).
+    pub measurement: &'static [&'static str],
+    /// Dimension of the residual: the information matrix is its square, `sigmas` its length.
+    pub residual_dim: usize,
+    /// One paragraph for the schema: what is measured and the residual's order and units.
+    pub description: &'static str,
+    pub build: BuildFactor,
+}
+
 /// Why a factor could not be evaluated at the given variables.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum EvaluationError {

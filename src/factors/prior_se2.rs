@@ -3,7 +3,7 @@
 
 use std::any::Any;
 
-use super::{expect_kind, EvaluationError, Factor};
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{wrap_angle, Se2};
 use crate::variables::{Key, Variable};
 
@@ -14,6 +14,23 @@ pub struct PriorSe2 {
 }
 
 impl PriorSe2 {
+    /// The wire form: `prior_se2`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "prior_se2",
+        variable_kinds: &["se2"],
+        key_names: &["i"],
+        measurement_len: 3,
+        measurement: &["x", "y", "theta"],
+        residual_dim: 3,
+        description: "An absolute pose. Residual [R_z^T (t - t_z); wrap(theta - theta_z)].",
+        build: |k, m| {
+            Ok(Box::new(PriorSe2::new(
+                k[0],
+                Se2::new(m[0], m[1], wrap_angle(m[2])),
+            )))
+        },
+    };
+
     pub fn new(key: Key, measurement: Se2) -> Self {
         Self {
             keys: [key],
@@ -24,16 +41,16 @@ impl PriorSe2 {
 
 impl Factor for PriorSe2 {
     fn name(&self) -> &'static str {
-        "prior_se2"
+        Self::WIRE.name
     }
     fn keys(&self) -> &[Key] {
         &self.keys
     }
     fn residual_dim(&self) -> usize {
-        3
+        Self::WIRE.residual_dim
     }
     fn variable_kinds(&self) -> &[&'static str] {
-        &["se2"]
+        Self::WIRE.variable_kinds
     }
     fn evaluate(
         &self,

@@ -5,8 +5,9 @@
 use std::any::Any;
 
 use super::between_se3::put_block;
-use super::{expect_kind, EvaluationError, Factor};
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{so3, Se3};
+use crate::variables::se3::decode_se3;
 use crate::variables::{Key, Variable};
 
 #[derive(Clone, Debug)]
@@ -16,6 +17,18 @@ pub struct PriorSe3 {
 }
 
 impl PriorSe3 {
+    /// The wire form: `prior_se3`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "prior_se3",
+        variable_kinds: &["se3"],
+        key_names: &["i"],
+        measurement_len: 7,
+        measurement: &["x", "y", "z", "qx", "qy", "qz", "qw"],
+        residual_dim: 6,
+        description: "An absolute pose, as an se3 value. Residual [R_z^T (t - t_z); Log(R_z^T R)]: translation in the measured frame, then the rotation angle-axis.",
+        build: |k, m| Ok(Box::new(PriorSe3::new(k[0], decode_se3(m)?))),
+    };
+
     pub fn new(key: Key, measurement: Se3) -> Self {
         Self {
             keys: [key],
@@ -26,16 +39,16 @@ impl PriorSe3 {
 
 impl Factor for PriorSe3 {
     fn name(&self) -> &'static str {
-        "prior_se3"
+        Self::WIRE.name
     }
     fn keys(&self) -> &[Key] {
         &self.keys
     }
     fn residual_dim(&self) -> usize {
-        6
+        Self::WIRE.residual_dim
     }
     fn variable_kinds(&self) -> &[&'static str] {
-        &["se3"]
+        Self::WIRE.variable_kinds
     }
     fn evaluate(
         &self,

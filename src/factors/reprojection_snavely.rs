@@ -19,7 +19,7 @@ use std::any::Any;
 
 use nalgebra::{Matrix2, Matrix2x3, Vector2};
 
-use super::{expect_kind, EvaluationError, Factor};
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{so3, Point3, SnavelyCamera};
 use crate::variables::{Key, Variable};
 
@@ -31,6 +31,18 @@ pub struct ReprojectionSnavely {
 }
 
 impl ReprojectionSnavely {
+    /// The wire form: `reprojection_snavely`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "reprojection_snavely",
+        variable_kinds: &["snavely_camera", "point3"],
+        key_names: &["camera", "point"],
+        measurement_len: 2,
+        measurement: &["x", "y"],
+        residual_dim: 2,
+        description: "The observed pixel with origin at the image centre and y up (BAL). Residual: predicted minus observed pixel, BAL's model p = -P/P.z with radial distortion.",
+        build: |k, m| Ok(Box::new(ReprojectionSnavely::new(k[0], k[1], Vector2::new(m[0], m[1])))),
+    };
+
     pub fn new(camera: Key, point: Key, observed: Vector2<f64>) -> Self {
         Self {
             keys: [camera, point],
@@ -41,16 +53,16 @@ impl ReprojectionSnavely {
 
 impl Factor for ReprojectionSnavely {
     fn name(&self) -> &'static str {
-        "reprojection_snavely"
+        Self::WIRE.name
     }
     fn keys(&self) -> &[Key] {
         &self.keys
     }
     fn residual_dim(&self) -> usize {
-        2
+        Self::WIRE.residual_dim
     }
     fn variable_kinds(&self) -> &[&'static str] {
-        &["snavely_camera", "point3"]
+        Self::WIRE.variable_kinds
     }
     fn evaluate(
         &self,

@@ -4,14 +4,14 @@
 //! to the concrete kind they need. New kinds (points, cameras, navigation states) implement this
 //! trait in their own file and the solver does not change.
 //!
+//! Each kind lives in its own file with its [`VariableWire`]: the one declaration of how that kind
+//! travels on the wire (its name, length, encoding and how the web view draws it). The api
+//! catalogue only lists these declarations.
+//!
 //! Layer 1: imports only `geometry`.
 
 use std::any::Any;
 use std::fmt::Debug;
-
-use nalgebra::Vector3;
-
-use crate::geometry::{so3, wrap_angle, NavState, Point3, Se2, Se3, SnavelyCamera};
 
 /// Variables are addressed by a 64-bit key chosen by the client (g2o vertex ids, say).
 pub type Key = u64;
@@ -60,130 +60,41 @@ macro_rules! copy_variable_plumbing {
     };
 }
 
-/// SE(2) retraction is additive on (x, y, θ) with θ re-wrapped, as in g2o's `VertexSE2` and the
-/// course; the between-factor Jacobians below are derived for exactly this retraction.
-impl Variable for Se2 {
-    fn kind(&self) -> &'static str {
-        "se2"
-    }
-    fn tangent_dim(&self) -> usize {
-        3
-    }
-    fn retract(&mut self, delta: &[f64]) {
-        self.x += delta[0];
-        self.y += delta[1];
-        self.theta = wrap_angle(self.theta + delta[2]);
-    }
-    fn is_finite(&self) -> bool {
-        self.x.is_finite() && self.y.is_finite() && self.theta.is_finite()
-    }
-    fn position(&self) -> Option<[f64; 3]> {
-        Some([self.x, self.y, 0.0])
-    }
-    copy_variable_plumbing!();
+// After the macro: the kinds' files use it.
+pub mod nav_state;
+pub mod point3;
+pub mod se2;
+pub mod se3;
+pub mod snavely_camera;
+
+/// Builds a variable from its wire encoding (length already checked), or says why not.
+pub type DecodeVariable = fn(&[f64]) -> Result<Box<dyn Variable>, String>;
+
+/// What a variable is when drawn: a pose of the trajectory or a landmark of a point cloud.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shape {
+    Pose,
+    Landmark,
 }
 
-/// SE(3) retraction on the right, translation in the body frame:
-/// `(R, t) ⊕ (v, ω) = (R Exp(ω), t + R v)`. Tangent order is (v, ω), the g2o files' (t, R) order.
-impl Variable for Se3 {
-    fn kind(&self) -> &'static str {
-        "se3"
-    }
-    fn tangent_dim(&self) -> usize {
-        6
-    }
-    fn retract(&mut self, delta: &[f64]) {
-        let v = Vector3::new(delta[0], delta[1], delta[2]);
-        let w = Vector3::new(delta[3], delta[4], delta[5]);
-        self.translation += self.rotation * v;
-        self.rotation *= so3::exp(&w);
-        self.rotation.renormalize();
-    }
-    fn is_finite(&self) -> bool {
-        self.translation.iter().all(|v| v.is_finite())
-            && self.rotation.coords.iter().all(|v| v.is_finite())
-    }
-    fn position(&self) -> Option<[f64; 3]> {
-        Some(self.translation.into())
-    }
-    copy_variable_plumbing!();
+/// How one variable kind travels on the wire: declared once, next to the kind's `Variable` impl,
+/// and listed by `api::catalogue`.
+pub struct VariableWire {
+    /// The kind's name, as [`Variable::kind`] returns it and clients write it.
+    pub kind: &'static str,
+    /// Number of values in the wire encoding.
+    pub len: usize,
+    /// The encoding's components in order, for documentation (`["x", "y", "theta"]`).
+    pub components: &'static [&'static str],
+    pub decode: DecodeVariable,
+    pub encode: fn(&dyn Variable) -> Vec<f64>,
+    /// How the web view draws it.
+    pub shape: Shape,
 }
 
-/// The BAL camera: rotation on SO(3) perturbed on the left, the rest additive:
-/// `(R, t, f, k1, k2) ⊕ (ω, v, δf, δk1, δk2) = (Exp(ω) R, t + v, f + δf, k1 + δk1, k2 + δk2)`.
-/// Tangent order: rotation, translation, f, k1, k2 (BAL's parameter order).
-impl Variable for SnavelyCamera {
-    fn kind(&self) -> &'static str {
-        "snavely_camera"
-    }
-    fn tangent_dim(&self) -> usize {
-        9
-    }
-    fn retract(&mut self, delta: &[f64]) {
-        let w = Vector3::new(delta[0], delta[1], delta[2]);
-        self.rotation = so3::exp(&w) * self.rotation;
-        self.rotation.renormalize();
-        self.translation += Vector3::new(delta[3], delta[4], delta[5]);
-        self.focal += delta[6];
-        self.k1 += delta[7];
-        self.k2 += delta[8];
-    }
-    fn is_finite(&self) -> bool {
-        self.translation.iter().all(|v| v.is_finite())
-            && self.rotation.coords.iter().all(|v| v.is_finite())
-            && [self.focal, self.k1, self.k2].iter().all(|v| v.is_finite())
-    }
-    fn position(&self) -> Option<[f64; 3]> {
-        Some(self.centre().into())
-    }
-    copy_variable_plumbing!();
-}
-
-/// A 3D point, additive.
-impl Variable for Point3 {
-    fn kind(&self) -> &'static str {
-        "point3"
-    }
-    fn tangent_dim(&self) -> usize {
-        3
-    }
-    fn retract(&mut self, delta: &[f64]) {
-        self.0 += Vector3::new(delta[0], delta[1], delta[2]);
-    }
-    fn is_finite(&self) -> bool {
-        self.0.iter().all(|v| v.is_finite())
-    }
-    fn position(&self) -> Option<[f64; 3]> {
-        Some(self.0.into())
-    }
-    copy_variable_plumbing!();
-}
-
-/// The sliding-window state; see [`NavState`] for the retraction.
-impl Variable for NavState {
-    fn kind(&self) -> &'static str {
-        "nav_state"
-    }
-    fn tangent_dim(&self) -> usize {
-        15
-    }
-    fn retract(&mut self, delta: &[f64]) {
-        NavState::retract(self, delta);
-    }
-    fn is_finite(&self) -> bool {
-        NavState::is_finite(self)
-    }
-    fn position(&self) -> Option<[f64; 3]> {
-        Some(self.position.into())
-    }
-    fn local(&self, origin: &dyn Variable, out: &mut [f64]) -> bool {
-        match origin.as_any().downcast_ref::<NavState>() {
-            Some(origin) => {
-                out.copy_from_slice(NavState::local(self, origin).as_slice());
-                true
-            }
-            None => false,
-        }
-    }
-    copy_variable_plumbing!();
+/// `f` applied to `v` downcast to the kind a codec was chosen for.
+pub(crate) fn encode_as<T: 'static>(v: &dyn Variable, f: impl Fn(&T) -> Vec<f64>) -> Vec<f64> {
+    f(v.as_any()
+        .downcast_ref::<T>()
+        .expect("codec is chosen by the variable's kind"))
 }
