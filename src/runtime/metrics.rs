@@ -1,81 +1,143 @@
-//! Prometheus metrics (`GET /metrics`, text exposition format 0.0.4): process-wide counters and
-//! histograms updated where things happen, gauges read from the service when scraped.
+//! Prometheus metrics (`GET /metrics`, text exposition format 0.0.4): counters and histograms
+//! recorded through the `metrics` facade where things happen, the service's gauges set when
+//! scraped, `process_*` metrics (CPU, memory, open files, start time) from `metrics-process`, and
+//! `factord_build_info`. `metrics-exporter-prometheus` keeps them and writes the text; it serves
+//! nothing itself (the HTTP transport answers `GET /metrics` with [`render`]).
+//!
+//! The recorder is process-global: it is installed once, by the first call here, so any number
+//! of services in one process share it (as they shared the statics this replaced).
 
-use std::collections::BTreeMap;
-use std::fmt::Write as _;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::{Mutex, OnceLock, PoisonError};
 use std::time::Duration;
 
-/// A fixed-bucket histogram of seconds.
-pub struct Histogram {
-    bounds: &'static [f64],
-    /// Per bucket (non-cumulative), the last one is +Inf.
-    counts: [AtomicU64; 16],
-    sum_nanos: AtomicU64,
-}
+use metrics::{counter, describe_counter, describe_gauge, describe_histogram, gauge, histogram};
+use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 
-impl Histogram {
-    const fn new(bounds: &'static [f64]) -> Self {
-        assert!(bounds.len() < 16);
-        Self {
-            bounds,
-            counts: [const { AtomicU64::new(0) }; 16],
-            sum_nanos: AtomicU64::new(0),
-        }
-    }
+const SOLVE_SECONDS: &str = "factord_solve_duration_seconds";
+const FSYNC_SECONDS: &str = "factord_journal_fsync_seconds";
+const SOLVES: &str = "factord_solves_total";
+const ITERATIONS: &str = "factord_solver_iterations_total";
+const ACCEPTED_BATCHES: &str = "factord_batches_accepted_total";
+const REJECTED: &str = "factord_rejected_inputs_total";
+const REJECTED_HELP: &str = "Inputs refused, by error code";
+const BUILD_INFO: &str = "factord_build_info";
 
-    pub fn observe(&self, d: Duration) {
-        let s = d.as_secs_f64();
-        let bucket = self
-            .bounds
-            .iter()
-            .position(|&b| s <= b)
-            .unwrap_or(self.bounds.len());
-        self.counts[bucket].fetch_add(1, Ordering::Relaxed);
-        self.sum_nanos
-            .fetch_add(d.as_nanos() as u64, Ordering::Relaxed);
-    }
-
-    fn render(&self, out: &mut String, name: &str, help: &str) {
-        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} histogram");
-        let mut cumulative = 0;
-        for (i, &bound) in self.bounds.iter().enumerate() {
-            cumulative += self.counts[i].load(Ordering::Relaxed);
-            let _ = writeln!(out, "{name}_bucket{{le=\"{bound}\"}} {cumulative}");
-        }
-        cumulative += self.counts[self.bounds.len()].load(Ordering::Relaxed);
-        let _ = writeln!(out, "{name}_bucket{{le=\"+Inf\"}} {cumulative}");
-        let sum = self.sum_nanos.load(Ordering::Relaxed) as f64 * 1e-9;
-        let _ = writeln!(out, "{name}_sum {sum}\n{name}_count {cumulative}");
-    }
-}
-
-static SOLVE_SECONDS: Histogram = Histogram::new(&[
+/// Upper bounds of the histograms' buckets, in seconds.
+const SOLVE_BUCKETS: &[f64] = &[
     0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0,
-]);
-static FSYNC_SECONDS: Histogram = Histogram::new(&[
+];
+const FSYNC_BUCKETS: &[f64] = &[
     0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5,
-]);
-static SOLVES: AtomicU64 = AtomicU64::new(0);
-static ITERATIONS: AtomicU64 = AtomicU64::new(0);
-static ACCEPTED_BATCHES: AtomicU64 = AtomicU64::new(0);
-static REJECTED: Mutex<BTreeMap<String, u64>> = Mutex::new(BTreeMap::new());
+];
+
+/// The service's gauges: name, help.
+const GAUGES: [(&str, &str); 7] = [
+    ("factord_sessions", "Sessions held"),
+    (
+        "factord_sessions_recovering",
+        "Sessions being rebuilt from their journal",
+    ),
+    (
+        "factord_queue_depth",
+        "Solves and jobs waiting for a worker",
+    ),
+    ("factord_busy_workers", "Workers running a solve or job"),
+    ("factord_workers", "Worker threads"),
+    (
+        "factord_session_memory_bytes",
+        "Estimated memory held by all sessions",
+    ),
+    ("factord_uptime_seconds", "Time since start"),
+];
+
+/// How often recorded histogram samples are folded into their buckets between scrapes (the
+/// facade queues samples until then; without a scraper the queue would grow).
+const UPKEEP_EVERY: Duration = Duration::from_secs(5);
+
+struct Exporter {
+    handle: PrometheusHandle,
+    process: metrics_process::Collector,
+    /// Gauges are set and rendered under this lock, so two services scraped at once each
+    /// render their own values.
+    scrape: Mutex<()>,
+}
+
+fn exporter() -> &'static Exporter {
+    static EXPORTER: OnceLock<Exporter> = OnceLock::new();
+    EXPORTER.get_or_init(install)
+}
+
+fn install() -> Exporter {
+    let recorder = PrometheusBuilder::new()
+        .set_buckets_for_metric(Matcher::Full(SOLVE_SECONDS.into()), SOLVE_BUCKETS)
+        .and_then(|b| b.set_buckets_for_metric(Matcher::Full(FSYNC_SECONDS.into()), FSYNC_BUCKETS))
+        .expect("bucket lists are not empty")
+        .build_recorder();
+    let handle = recorder.handle();
+    if let Err(e) = metrics::set_global_recorder(recorder) {
+        // Only an embedding program can have done this; its recorder then gets what we record.
+        tracing::warn!("metrics: another recorder is installed, /metrics shows none of ours: {e}");
+    }
+    let upkeep = handle.clone();
+    let spawned = std::thread::Builder::new()
+        .name("factord-metrics".into())
+        .spawn(move || loop {
+            std::thread::sleep(UPKEEP_EVERY);
+            upkeep.run_upkeep();
+        });
+    if let Err(e) = spawned {
+        tracing::warn!("metrics: no upkeep thread ({e}); histograms are folded at each scrape");
+    }
+    describe();
+    let process = metrics_process::Collector::default();
+    process.describe();
+    Exporter {
+        handle,
+        process,
+        scrape: Mutex::new(()),
+    }
+}
+
+/// Help texts, and every metric registered so that a scrape lists it before its first event.
+fn describe() {
+    for (name, help) in GAUGES {
+        describe_gauge!(name, help);
+        gauge!(name).set(0.0);
+    }
+    for (name, help) in [
+        (SOLVES, "Finished session solves"),
+        (ITERATIONS, "Solver iterations of session solves"),
+        (ACCEPTED_BATCHES, "Batches accepted (and journalled)"),
+    ] {
+        describe_counter!(name, help);
+        counter!(name).absolute(0);
+    }
+    describe_counter!(REJECTED, REJECTED_HELP);
+    describe_histogram!(SOLVE_SECONDS, "Wall time of session solves");
+    describe_histogram!(FSYNC_SECONDS, "Journal fsync latency");
+    let _ = histogram!(SOLVE_SECONDS);
+    let _ = histogram!(FSYNC_SECONDS);
+    describe_gauge!(BUILD_INFO, "The running build: its version, always 1");
+    gauge!(BUILD_INFO, "version" => env!("CARGO_PKG_VERSION")).set(1.0);
+}
 
 pub fn observe_fsync(d: Duration) {
+    exporter();
     if !d.is_zero() {
-        FSYNC_SECONDS.observe(d);
+        histogram!(FSYNC_SECONDS).record(d);
     }
 }
 
 pub fn observe_solve(d: Duration, iterations: usize) {
-    SOLVE_SECONDS.observe(d);
-    SOLVES.fetch_add(1, Ordering::Relaxed);
-    ITERATIONS.fetch_add(iterations as u64, Ordering::Relaxed);
+    exporter();
+    histogram!(SOLVE_SECONDS).record(d);
+    counter!(SOLVES).increment(1);
+    counter!(ITERATIONS).increment(iterations as u64);
 }
 
 pub fn count_accepted_batch() {
-    ACCEPTED_BATCHES.fetch_add(1, Ordering::Relaxed);
+    exporter();
+    counter!(ACCEPTED_BATCHES).increment(1);
 }
 
 /// A refused input (any 4xx), by its error code.
@@ -84,8 +146,8 @@ pub fn count_rejection(error: &crate::api::error::ErrorBody) {
     if !(400..500).contains(&error.status) {
         return;
     }
-    let mut map = REJECTED.lock().unwrap_or_else(|p| p.into_inner());
-    *map.entry(error.code.clone()).or_default() += 1;
+    exporter();
+    counter!(REJECTED, "reason" => error.code.clone()).increment(1);
 }
 
 /// The service's state at a scrape (read by the service, which this layer does not see).
@@ -99,85 +161,166 @@ pub struct Gauges {
     pub uptime_seconds: f64,
 }
 
+/// The exposition text: `g` and the process's metrics as of now, the counters and histograms
+/// since the process started.
 pub fn render(g: &Gauges) -> String {
-    let mut out = String::new();
-    let gauges = [
-        ("factord_sessions", "Sessions held", g.sessions as f64),
-        (
-            "factord_sessions_recovering",
-            "Sessions being rebuilt from their journal",
-            g.sessions_recovering as f64,
-        ),
-        (
-            "factord_queue_depth",
-            "Solves and jobs waiting for a worker",
-            g.queued as f64,
-        ),
-        (
-            "factord_busy_workers",
-            "Workers running a solve or job",
-            g.busy_workers as f64,
-        ),
-        ("factord_workers", "Worker threads", g.workers as f64),
-        (
-            "factord_session_memory_bytes",
-            "Estimated memory held by all sessions",
-            g.session_memory_bytes as f64,
-        ),
-        (
-            "factord_uptime_seconds",
-            "Time since start",
-            g.uptime_seconds,
-        ),
+    let exporter = exporter();
+    let _scrape = exporter
+        .scrape
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner);
+    let values = [
+        g.sessions as f64,
+        g.sessions_recovering as f64,
+        g.queued as f64,
+        g.busy_workers as f64,
+        g.workers as f64,
+        g.session_memory_bytes as f64,
+        g.uptime_seconds,
     ];
-    for (name, help, value) in gauges {
-        let _ = writeln!(
-            out,
-            "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {value}"
-        );
+    for ((name, _), value) in GAUGES.iter().zip(values) {
+        gauge!(*name).set(value);
     }
-    let counters = [
-        (
-            "factord_solves_total",
-            "Finished session solves",
-            SOLVES.load(Ordering::Relaxed),
-        ),
-        (
-            "factord_solver_iterations_total",
-            "Solver iterations of session solves",
-            ITERATIONS.load(Ordering::Relaxed),
-        ),
-        (
-            "factord_batches_accepted_total",
-            "Batches accepted (and journalled)",
-            ACCEPTED_BATCHES.load(Ordering::Relaxed),
-        ),
-    ];
-    for (name, help, value) in counters {
-        let _ = writeln!(
-            out,
-            "# HELP {name} {help}\n# TYPE {name} counter\n{name} {value}"
-        );
+    exporter.process.collect();
+    let mut text = exporter.handle.render();
+    // The exporter lists a labelled counter from its first sample; this one is documented (and
+    // typed) before any input was refused.
+    if !text.contains(&format!("# TYPE {REJECTED} ")) {
+        text.push_str(&format!(
+            "# HELP {REJECTED} {REJECTED_HELP}\n# TYPE {REJECTED} counter\n"
+        ));
     }
-    let _ = writeln!(
-        out,
-        "# HELP factord_rejected_inputs_total Inputs refused, by error code\n# TYPE factord_rejected_inputs_total counter"
-    );
-    for (code, n) in REJECTED.lock().unwrap_or_else(|p| p.into_inner()).iter() {
-        let _ = writeln!(
-            out,
-            "factord_rejected_inputs_total{{reason=\"{code}\"}} {n}"
-        );
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn gauges() -> Gauges {
+        Gauges {
+            sessions: 3,
+            sessions_recovering: 1,
+            queued: 0,
+            busy_workers: 2,
+            workers: 4,
+            session_memory_bytes: 1 << 20,
+            uptime_seconds: 1.5,
+        }
     }
-    SOLVE_SECONDS.render(
-        &mut out,
-        "factord_solve_duration_seconds",
-        "Wall time of session solves",
-    );
-    FSYNC_SECONDS.render(
-        &mut out,
-        "factord_journal_fsync_seconds",
-        "Journal fsync latency",
-    );
-    out
+
+    /// The value of the sample line `series` (name and labels, exactly as rendered).
+    fn sample(text: &str, series: &str) -> Option<f64> {
+        text.lines()
+            .find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
+    }
+
+    #[test]
+    fn a_scrape_has_process_metrics_build_info_and_every_documented_metric() {
+        let text = render(&gauges());
+        assert_eq!(
+            sample(
+                &text,
+                &format!(
+                    "factord_build_info{{version=\"{}\"}}",
+                    env!("CARGO_PKG_VERSION")
+                )
+            ),
+            Some(1.0),
+            "{text}"
+        );
+        #[cfg(target_os = "linux")]
+        {
+            let rss = sample(&text, "process_resident_memory_bytes").unwrap_or(0.0);
+            assert!(rss > 1e6, "{text}");
+            assert!(
+                sample(&text, "process_open_fds").unwrap_or(0.0) >= 3.0,
+                "{text}"
+            );
+            assert!(
+                text.contains("# TYPE process_cpu_seconds_total counter"),
+                "{text}"
+            );
+            assert!(sample(&text, "process_start_time_seconds").unwrap_or(0.0) > 1e9);
+        }
+        assert_eq!(sample(&text, "factord_sessions"), Some(3.0));
+        assert_eq!(
+            sample(&text, "factord_session_memory_bytes"),
+            Some(1048576.0)
+        );
+        assert_eq!(sample(&text, "factord_uptime_seconds"), Some(1.5));
+        for (name, kind) in [
+            ("factord_workers", "gauge"),
+            (SOLVES, "counter"),
+            (ITERATIONS, "counter"),
+            (ACCEPTED_BATCHES, "counter"),
+            (REJECTED, "counter"),
+            (SOLVE_SECONDS, "histogram"),
+            (FSYNC_SECONDS, "histogram"),
+        ] {
+            assert!(
+                text.contains(&format!("# TYPE {name} {kind}\n")),
+                "{name}: {text}"
+            );
+        }
+        assert!(text.contains("# HELP factord_journal_fsync_seconds Journal fsync latency\n"));
+    }
+
+    #[test]
+    fn histograms_keep_their_bounds_and_counters_count() {
+        let before = render(&gauges());
+        observe_solve(Duration::from_millis(3), 7);
+        observe_fsync(Duration::from_micros(70));
+        observe_fsync(Duration::ZERO); // not an fsync: not counted
+        count_accepted_batch();
+        let after = render(&gauges());
+        let delta =
+            |series: &str| sample(&after, series).unwrap() - sample(&before, series).unwrap();
+        // Other tests in this process record too: at least ours.
+        assert!(delta(SOLVES) >= 1.0);
+        assert!(delta(ITERATIONS) >= 7.0);
+        assert!(delta(ACCEPTED_BATCHES) >= 1.0);
+        assert!(delta("factord_solve_duration_seconds_bucket{le=\"0.005\"}") >= 1.0);
+        assert!(delta("factord_journal_fsync_seconds_bucket{le=\"0.0001\"}") >= 1.0);
+        for (name, bounds) in [
+            (SOLVE_SECONDS, SOLVE_BUCKETS),
+            (FSYNC_SECONDS, FSYNC_BUCKETS),
+        ] {
+            let les: Vec<String> = after
+                .lines()
+                .filter_map(|l| {
+                    l.strip_prefix(&format!("{name}_bucket{{le=\""))?
+                        .split('"')
+                        .next()
+                })
+                .map(str::to_owned)
+                .collect();
+            let mut want: Vec<String> = bounds.iter().map(f64::to_string).collect();
+            want.push("+Inf".into());
+            assert_eq!(les, want, "{name}");
+            let count = sample(&after, &format!("{name}_count")).unwrap();
+            let inf = sample(&after, &format!("{name}_bucket{{le=\"+Inf\"}}")).unwrap();
+            assert_eq!(count, inf, "{name}: cumulative buckets end at _count");
+        }
+    }
+
+    #[test]
+    fn rejections_count_by_reason_and_only_client_errors() {
+        let body = |status, code: &str| crate::api::error::ErrorBody {
+            status,
+            ..crate::api::error::ServiceError::bad_request(code, "f", "m").body
+        };
+        count_rejection(&body(400, "metrics_test_reason"));
+        count_rejection(&body(400, "metrics_test_reason"));
+        count_rejection(&body(503, "metrics_test_busy"));
+        let text = render(&gauges());
+        assert_eq!(
+            sample(
+                &text,
+                "factord_rejected_inputs_total{reason=\"metrics_test_reason\"}"
+            ),
+            Some(2.0)
+        );
+        assert!(!text.contains("metrics_test_busy"), "{text}");
+    }
 }
