@@ -10,7 +10,9 @@
 //! `factors/`); this file only lists them. `api::factor_schema` turns the same list into
 //! `proto/v1/factors.schema.json`. A new factor is its file plus one line here.
 
-use crate::factors::{BetweenSe2, BetweenSe3, PriorSe2, PriorSe3, ReprojectionSnavely};
+use crate::factors::{
+    BetweenSe2, BetweenSe3, GnssPositionSe3, PriorSe2, PriorSe3, ReprojectionSnavely,
+};
 use crate::problem::{Gauge, Variable};
 use crate::solver::SolverOptions;
 use crate::variables::{point3, se2, se3, snavely_camera};
@@ -56,9 +58,9 @@ pub const SESSION_KINDS: &[SessionKind] = &[
     },
     SessionKind {
         name: "pose_graph_3d",
-        description: "SE(3) poses with relative-pose and prior factors",
+        description: "SE(3) poses with relative-pose, prior and GNSS position factors",
         variable_kinds: &["se3"],
-        factor_types: &["between_se3", "prior_se3"],
+        factor_types: &["between_se3", "prior_se3", "gnss_position_se3"],
         gauge: Gauge::AnchorComponents,
         eliminate: &[],
         default_options: SolverOptions::default,
@@ -93,6 +95,7 @@ const FACTORS: &[&FactorWire] = &[
     &BetweenSe3::WIRE,
     &PriorSe3::WIRE,
     &ReprojectionSnavely::WIRE,
+    &GnssPositionSe3::WIRE,
 ];
 
 /// Every factor type a batch may name, in catalogue order.

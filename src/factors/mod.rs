@@ -7,6 +7,7 @@
 
 pub mod between_se2;
 pub mod between_se3;
+pub mod gnss_position_se3;
 pub mod imu_preintegration;
 pub mod marginal_prior;
 pub mod noise;
@@ -24,6 +25,7 @@ use std::fmt::Debug;
 
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
+pub use gnss_position_se3::GnssPositionSe3;
 pub use imu_preintegration::ImuFactor;
 pub use marginal_prior::MarginalPrior;
 pub use noise::SqrtInformation;
