@@ -10,7 +10,7 @@ use crate::problem::Key;
 use crate::wire_number;
 
 /// Every operation of the API, as both transports send it (zenoh: this JSON on `factord/rpc`).
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Command {
     Health,
@@ -71,7 +71,7 @@ pub enum Command {
     },
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct Health {
     pub status: &'static str,
     pub version: &'static str,
@@ -83,7 +83,7 @@ pub struct Health {
     pub uptime_seconds: f64,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct Accepted {
     #[serde(flatten)]
     pub ack: BatchAck,
@@ -94,7 +94,7 @@ pub struct Accepted {
     pub solved: Option<bool>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 #[serde(untagged)]
 pub enum Reply {
     Health(Health),
@@ -126,6 +126,41 @@ pub enum Reply {
     Fusion(crate::api::fusion::FusionAck),
     Graph(Box<crate::api::wire::Graph>),
     Marginals(Box<crate::api::wire::Marginals>),
+}
+
+/// The command a message published on a session's topic `in/<topic>` asks for (zenoh
+/// `factord/<session>/in/batch`, the WebSocket batch stream): batches and fusion messages are
+/// decoded within `max_items` items, and are never waited for (the answer is an event).
+pub fn parse_topic(
+    session: &str,
+    topic: &str,
+    payload: &[u8],
+    max_items: usize,
+) -> Result<Command, ServiceError> {
+    let session = session.to_string();
+    match topic {
+        "batch" => Ok(Command::ApplyBatch {
+            session,
+            batch: parse_json_within(payload, max_items)?,
+            wait: false,
+        }),
+        "optimize" => Ok(Command::Optimize {
+            session,
+            wait: false,
+        }),
+        "fusion" => {
+            let batch: crate::api::fusion::FusionBatch = parse_json_within(payload, max_items)?;
+            Ok(Command::Fusion {
+                session,
+                messages: batch.messages,
+            })
+        }
+        other => Err(ServiceError::bad_request(
+            "unknown_topic",
+            "key",
+            format!("nothing listens on `in/{other}` (batch, optimize, fusion)"),
+        )),
+    }
 }
 
 /// Decodes an rpc command. A tagged enum hides where inside it a field was wrong, so when the

@@ -7,7 +7,7 @@
 use serde::{Deserialize, Serialize};
 
 /// The JSON body of an error.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct ErrorBody {
     /// Stable machine-readable code, e.g. `unknown_variable`.
     pub code: String,

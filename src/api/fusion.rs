@@ -11,7 +11,7 @@ use crate::variables::Key;
 use crate::wire_number;
 
 /// A batch of fusion messages (`POST /v1/sessions/{s}/fusion`, zenoh `…/in/fusion`).
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FusionBatch {
     #[serde(deserialize_with = "super::wire_list::items")]
@@ -28,7 +28,50 @@ fn default_noise() -> ImuNoise {
     ImuNoise::EUROC
 }
 
-#[derive(Clone, Debug, Deserialize, Serialize)]
+/// `InitialSigmas`' schema (that type lives below the api layer, without a schema of its own).
+fn initial_sigmas_schema() -> utoipa::openapi::schema::Object {
+    numbers_object(
+        &[
+            "position",
+            "rotation",
+            "velocity",
+            "accel_bias",
+            "gyro_bias",
+        ],
+        &[],
+    )
+}
+
+/// `ImuNoise`'s schema (see [`initial_sigmas_schema`]).
+fn imu_noise_schema() -> utoipa::openapi::schema::Object {
+    numbers_object(
+        &[
+            "accel_noise_density",
+            "gyro_noise_density",
+            "accel_random_walk",
+            "gyro_random_walk",
+        ],
+        &["integration_sigma"],
+    )
+}
+
+/// A closed object of number fields, `required` then `optional` ones.
+fn numbers_object(required: &[&str], optional: &[&str]) -> utoipa::openapi::schema::Object {
+    use utoipa::openapi::schema::{AdditionalProperties, ObjectBuilder, Type};
+    let number = || ObjectBuilder::new().schema_type(Type::Number);
+    let mut object = ObjectBuilder::new()
+        .schema_type(Type::Object)
+        .additional_properties(Some(AdditionalProperties::FreeForm(false)));
+    for name in required {
+        object = object.property(*name, number()).required(*name);
+    }
+    for name in optional {
+        object = object.property(*name, number());
+    }
+    object.build()
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum FusionMessage {
     /// The first keyframe (key 0) and the window's parameters; once per session.
@@ -42,12 +85,14 @@ pub enum FusionMessage {
         accel_bias: [f64; 3],
         #[serde(default)]
         gyro_bias: [f64; 3],
+        #[schema(schema_with = initial_sigmas_schema)]
         sigmas: InitialSigmas,
         #[serde(default = "default_window", deserialize_with = "wire_number::usize")]
         window: usize,
         #[serde(default = "default_gravity")]
         gravity: f64,
         #[serde(default = "default_noise")]
+        #[schema(schema_with = imu_noise_schema)]
         imu_noise: ImuNoise,
     },
     /// One IMU sample: accelerometer m/s², gyroscope rad/s, body frame.
@@ -164,7 +209,7 @@ pub fn experiment_messages(
 }
 
 /// One keyframe's state on the wire.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct StateReport {
     pub key: Key,
     pub t: f64,
@@ -192,12 +237,13 @@ impl StateReport {
 }
 
 /// What a fusion batch did.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct FusionAck {
     pub session: String,
     pub applied: usize,
     /// Keys of the keyframes the batch created, in order.
     pub keyframes: Vec<Key>,
     /// The newest state after the batch (after its last keyframe's optimisation).
+    #[schema(required = true)]
     pub latest: Option<StateReport>,
 }

@@ -13,7 +13,7 @@ pub type FactorId = u64;
 
 /// When a session re-optimises by itself. (The field-less policies are empty struct variants:
 /// serde lets unit variants of a tagged enum through with any extra fields.)
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(tag = "policy", rename_all = "snake_case", deny_unknown_fields)]
 pub enum AutoOptimize {
     /// After every accepted batch (updates arriving during a solve are coalesced into the next).
@@ -38,7 +38,7 @@ impl Default for AutoOptimize {
     }
 }
 
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CreateSession {
     /// Session name: 1–64 characters of `[A-Za-z0-9_-]`; generated when absent.
@@ -52,7 +52,7 @@ pub struct CreateSession {
     pub auto_optimize: AutoOptimize,
 }
 
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct VariableSpec {
     #[serde(deserialize_with = "wire_number::u64")]
@@ -66,7 +66,7 @@ pub struct VariableSpec {
     pub fixed: bool,
 }
 
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FactorSpec {
     #[serde(rename = "type")]
@@ -85,7 +85,7 @@ pub struct FactorSpec {
     pub robust: Option<RobustKernel>,
 }
 
-#[derive(Clone, Debug, Deserialize, Serialize)]
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct GuessSpec {
     #[serde(deserialize_with = "wire_number::u64")]
@@ -94,7 +94,7 @@ pub struct GuessSpec {
 }
 
 /// One atomic update: validated whole, applied whole or not at all.
-#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Batch {
     #[serde(default, deserialize_with = "wire_list::items")]
@@ -112,7 +112,7 @@ pub struct Batch {
     pub guesses: Vec<GuessSpec>,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct BatchAck {
     pub session: String,
     pub sequence: u64,
@@ -128,7 +128,10 @@ pub struct BatchAck {
 
 /// Which part of the estimate to read (from a query string or selector; the rpc's JSON form is
 /// `Command::GetEstimate`).
-#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize)]
+#[derive(
+    Clone, Copy, Debug, Default, Deserialize, Serialize, utoipa::ToSchema, utoipa::IntoParams,
+)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct EstimateQuery {
     /// Only variables changed after this sequence number.
@@ -143,7 +146,7 @@ pub struct EstimateQuery {
 
 /// The drawable graph of a session (the web view's data): pose positions in key order with the
 /// client's initial guesses, landmark positions, and pose-to-pose factors as key pairs.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Graph {
     pub session: String,
     pub kind: String,
@@ -155,7 +158,7 @@ pub struct Graph {
     pub edges: Vec<[Key; 2]>,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct DrawnVariable {
     pub key: Key,
     pub position: [f64; 3],
@@ -164,7 +167,7 @@ pub struct DrawnVariable {
 }
 
 /// Which variables' marginal covariance to compute.
-#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MarginalsQuery {
     pub keys: Vec<Key>,
@@ -174,7 +177,7 @@ pub struct MarginalsQuery {
 }
 
 /// Marginal covariances at the estimate of `sequence`, in each variable's tangent space.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Marginals {
     pub session: String,
     /// The sequence and solve count of the estimate the factorisation was taken at.
@@ -194,7 +197,7 @@ pub struct Marginals {
     pub seconds: f64,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct MarginalCovariance {
     pub key: Key,
     pub kind: String,
@@ -202,7 +205,7 @@ pub struct MarginalCovariance {
     pub covariance: Vec<Vec<f64>>,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct VariableValue {
     pub key: Key,
     pub kind: String,
@@ -211,7 +214,7 @@ pub struct VariableValue {
     pub changed: u64,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Estimate {
     pub session: String,
     /// Every accepted batch up to this sequence number is reflected.
@@ -219,7 +222,7 @@ pub struct Estimate {
     pub variables: Vec<VariableValue>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct SessionStats {
     pub session: String,
     pub kind: String,
@@ -236,11 +239,14 @@ pub struct SessionStats {
     /// Updates whose new factors could not lower chi2 by more than the function tolerance, so
     /// no solve was needed.
     pub skipped_solves: u64,
+    #[schema(required = true)]
     pub chi2: Option<f64>,
     pub converged: bool,
     pub auto_optimize: AutoOptimize,
     pub options: SolverOptions,
+    #[schema(required = true)]
     pub last_error: Option<String>,
+    #[schema(required = true)]
     pub last_summary: Option<Summary>,
     /// Being rebuilt from its journal after a restart (writes get 503 until it is done).
     pub recovering: bool,
@@ -252,7 +258,7 @@ pub struct SessionStats {
     pub memory_bytes: usize,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct SessionInfo {
     pub session: String,
     pub kind: String,
@@ -261,7 +267,7 @@ pub struct SessionInfo {
 }
 
 /// What a session streams out (SSE events, zenoh publications).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum SessionEvent {
     /// A batch was accepted.
@@ -299,6 +305,7 @@ pub enum SessionEvent {
     /// A solve failed (the estimate keeps its last good values), or a streamed batch was rejected.
     Error {
         session: String,
+        #[schema(required = true)]
         sequence: Option<u64>,
         error: crate::api::ErrorBody,
     },

@@ -22,7 +22,7 @@ pub struct KernelValue {
     pub rho2: f64,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(tag = "kind", content = "scale", rename_all = "snake_case")]
 pub enum RobustKernel {
     /// ρ(s) = s for s ≤ δ², 2δ√s − δ² beyond.

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
     GaussNewton,
@@ -29,7 +29,7 @@ impl Method {
 }
 
 /// How the initial estimate is prepared before iterating.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Initialization {
     /// Start from the given values.
@@ -42,7 +42,7 @@ pub enum Initialization {
 }
 
 /// How the normal equations are solved.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum LinearSolverChoice {
     /// Schur complement when the problem names variables to eliminate (dense reduced system up
@@ -66,7 +66,7 @@ impl LinearSolverChoice {
     }
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(default, deny_unknown_fields)]
 /// A tolerance of 0 disables its criterion: with all three at 0 a solve runs exactly
 /// `max_iterations` iterations (g2o's behaviour), unless LM/Dogleg run out of damping range.

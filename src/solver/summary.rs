@@ -13,7 +13,7 @@ use super::options::SolverOptions;
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct IterationReport {
     pub iteration: usize,
     /// chi2 after this iteration (the trial chi2 when the step was rejected is in `trial_chi2`).
@@ -22,7 +22,9 @@ pub struct IterationReport {
     pub relative_decrease: f64,
     pub gradient_max_norm: f64,
     pub step_norm: f64,
+    #[schema(required = true)]
     pub lambda: Option<f64>,
+    #[schema(required = true)]
     pub trust_radius: Option<f64>,
     pub accepted: bool,
     pub linearize_seconds: f64,
@@ -30,7 +32,7 @@ pub struct IterationReport {
     pub solve_seconds: f64,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum TerminationReason {
     FunctionTolerance,
@@ -45,7 +47,7 @@ pub enum TerminationReason {
     Interrupted,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct Termination {
     pub reason: TerminationReason,
     /// The measured value that triggered it, and the threshold it crossed.
@@ -65,7 +67,7 @@ impl Termination {
     }
 }
 
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, utoipa::ToSchema)]
 pub struct Timings {
     pub preprocess_seconds: f64,
     pub initialization_seconds: f64,
@@ -76,7 +78,7 @@ pub struct Timings {
 }
 
 /// What was actually used, next to what was given.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct UsedOptions {
     pub method: String,
     pub linear_solver: String,
@@ -88,6 +90,7 @@ pub struct UsedOptions {
     pub gauge_fixed: Vec<Key>,
     /// Present when landmark-like variables were eliminated by Schur complement.
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
     pub schur: Option<SchurReport>,
     /// For a session's local re-solve: how many variables the region let move (the rest of the
     /// problem held fixed).
@@ -95,7 +98,7 @@ pub struct UsedOptions {
     pub region_variables: Option<usize>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
 pub struct Summary {
     pub method: String,
     pub given_options: SolverOptions,
@@ -111,6 +114,7 @@ pub struct Summary {
     /// chi2 = Σ ρ(eᵀΩe) of the given initial values.
     pub initial_chi2: f64,
     /// chi2 after initialisation, where one ran.
+    #[schema(required = true)]
     pub initialized_chi2: Option<f64>,
     pub final_chi2: f64,
     pub iterations: usize,

@@ -2,15 +2,16 @@
 //! read the JSON API and the session's event stream from the same origin.
 //!
 //! `/` lists sessions; `/sessions/<id>` draws the trajectory, initial guess, loop closures, point
-//! cloud and a live convergence plot. The pages are plain HTML, CSS and JS in `web/`.
+//! cloud and a live convergence plot; `/v1/docs` lists the API's operations, parameters and
+//! schemas from `/v1/openapi.json`. The pages are plain HTML, CSS and JS in `web/`.
 
 use std::sync::Arc;
 
 use axum::extract::{Path, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
-use axum::Router;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 use crate::service::{Caller, Service};
 
@@ -18,6 +19,9 @@ const INDEX: &str = include_str!("web/index.html");
 const SESSION: &str = include_str!("web/session.html");
 const SCRIPT: &str = include_str!("web/factord.js");
 const STYLE: &str = include_str!("web/factord.css");
+const DOCS: &str = include_str!("web/docs.html");
+const DOCS_SCRIPT: &str = include_str!("web/docs.js");
+const HTML: &str = "text/html; charset=utf-8";
 
 fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
     (
@@ -30,12 +34,17 @@ fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
     )
 }
 
+#[utoipa::path(get, path = "/sessions/{session}", tag = "web",
+    params(crate::transport::http::openapi::SessionPath),
+    responses(
+        (status = 200, description = "The session page (HTML).", content_type = "text/html", body = String),
+        (status = 404, description = "No such session (HTML).", content_type = "text/html", body = String)))]
 /// The session page, or a 404 page naming the session when there is none (the page itself
 /// would only find out from its first request). With tokens the page is open to anyone and the
 /// browser sends no token for it, so it is served whatever the name: the API calls it makes
 /// answer 404 for a session the token may not see, and the page says so; answering 404 here
 /// would tell strangers which sessions exist.
-async fn session_page(
+pub(crate) async fn session_page(
     State(service): State<Arc<Service>>,
     axum::Extension(caller): axum::Extension<Caller>,
     Path(session): Path<String>,
@@ -62,17 +71,48 @@ fn escape_html(text: &str) -> String {
         .replace('"', "&quot;")
 }
 
-pub fn routes() -> Router<Arc<Service>> {
-    let html = "text/html; charset=utf-8";
-    Router::new()
-        .route("/", get(move || async move { page(INDEX, html) }))
-        .route("/sessions/{session}", get(session_page))
-        .route(
-            "/assets/factord.js",
-            get(|| async { page(SCRIPT, "text/javascript; charset=utf-8") }),
-        )
-        .route(
-            "/assets/factord.css",
-            get(|| async { page(STYLE, "text/css; charset=utf-8") }),
-        )
+/// The session list.
+#[utoipa::path(get, path = "/", tag = "web",
+    responses((status = 200, description = "The session list page.", content_type = "text/html", body = String)))]
+pub(crate) async fn index_page() -> impl IntoResponse {
+    page(INDEX, HTML)
+}
+
+/// The web view's script.
+#[utoipa::path(get, path = "/assets/factord.js", tag = "web",
+    responses((status = 200, description = "JavaScript.", content_type = "text/javascript", body = String)))]
+pub(crate) async fn script() -> impl IntoResponse {
+    page(SCRIPT, "text/javascript; charset=utf-8")
+}
+
+/// The web view's style sheet.
+#[utoipa::path(get, path = "/assets/factord.css", tag = "web",
+    responses((status = 200, description = "CSS.", content_type = "text/css", body = String)))]
+pub(crate) async fn style() -> impl IntoResponse {
+    page(STYLE, "text/css; charset=utf-8")
+}
+
+/// The API's documentation: operations, parameters and schemas, read from `/v1/openapi.json`.
+#[utoipa::path(get, path = "/v1/docs", tag = "web",
+    responses((status = 200, description = "The API docs page.", content_type = "text/html", body = String)))]
+pub(crate) async fn docs_page() -> impl IntoResponse {
+    page(DOCS, HTML)
+}
+
+/// The docs page's script.
+#[utoipa::path(get, path = "/assets/docs.js", tag = "web",
+    responses((status = 200, description = "JavaScript.", content_type = "text/javascript", body = String)))]
+pub(crate) async fn docs_script() -> impl IntoResponse {
+    page(DOCS_SCRIPT, "text/javascript; charset=utf-8")
+}
+
+/// The pages, documented (see `http::routes`).
+pub fn routes() -> OpenApiRouter<Arc<Service>> {
+    OpenApiRouter::new()
+        .routes(routes!(index_page))
+        .routes(routes!(session_page))
+        .routes(routes!(script))
+        .routes(routes!(style))
+        .routes(routes!(docs_page))
+        .routes(routes!(docs_script))
 }

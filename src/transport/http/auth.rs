@@ -2,8 +2,9 @@
 //!
 //! Tokens come from a file (`auth.tokens_file`, one `label token` or bare `token` per line, `#`
 //! comments) and/or `FACTORD_TOKENS` (comma-separated). They are required automatically when
-//! HTTP listens beyond loopback. With tokens in force every route but `GET /v1/health` and the
-//! web pages needs `Authorization: Bearer <token>` (401 otherwise), and a session belongs to the
+//! HTTP listens beyond loopback. With tokens in force every route but `GET /v1/health`, the web
+//! pages and the API's description (`/v1/openapi.json`, `/v1/docs`: not secret, like the pages'
+//! own code) needs `Authorization: Bearer <token>` (401 otherwise), and a session belongs to the
 //! label of the token that created it: to any other caller it does not exist (404), nor is it
 //! listed or counted (see `service::caller`). Sessions created over an unauthenticated zenoh or
 //! before tokens were configured belong to nobody and are reachable with any valid token.
@@ -123,6 +124,8 @@ pub async fn require_token(
 ) -> Response {
     let path = request.uri().path();
     let open = path == "/v1/health"
+        || path == "/v1/openapi.json"
+        || path == "/v1/docs"
         || path == "/"
         || path.starts_with("/sessions/")
         || path.starts_with("/assets/");

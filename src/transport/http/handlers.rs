@@ -18,6 +18,7 @@ use crate::service::{parse_json, parse_json_within, Command, Reply, Service, Ser
 
 pub(super) type Shared = State<Arc<Service>>;
 use super::errors::{body_error, query, HttpResult};
+use super::openapi::*;
 
 /// The request's caller, left by the auth layer (see `router`).
 pub(super) type Caller = axum::Extension<crate::service::Caller>;
@@ -33,6 +34,11 @@ pub(super) async fn run(
 }
 
 /// Prometheus text exposition.
+#[utoipa::path(get, path = "/metrics", tag = "service",
+    responses(
+        (status = 200, description = "Prometheus text exposition (format 0.0.4).",
+            content_type = "text/plain; version=0.0.4; charset=utf-8", body = String),
+        (status = 401, response = Unauthorized), (status = 421, response = Misdirected)))]
 pub(super) async fn metrics(State(service): Shared) -> Response {
     (
         [(
@@ -44,14 +50,30 @@ pub(super) async fn metrics(State(service): Shared) -> Response {
         .into_response()
 }
 
+/// Service health and load (open without a token).
+#[utoipa::path(get, path = "/v1/health", tag = "service",
+    responses((status = 200,
+            description = "Health and load.",
+            body = crate::api::Health), (status = 421, response = Misdirected)))]
 pub(super) async fn health(State(service): Shared, caller: Caller) -> HttpResult {
     run(&service, &caller, Command::Health, StatusCode::OK).await
 }
 
+/// List sessions (sorted by name; with tokens, those of the caller's token).
+#[utoipa::path(get, path = "/v1/sessions", tag = "sessions",
+    responses((status = 200,
+            description = "The sessions.",
+            body = super::openapi::SessionList), (status = 401, response = Unauthorized), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn list_sessions(State(service): Shared, caller: Caller) -> HttpResult {
     run(&service, &caller, Command::ListSessions, StatusCode::OK).await
 }
 
+/// Create a session.
+#[utoipa::path(post, path = "/v1/sessions", tag = "sessions",
+    request_body = CreateSession,
+    responses((status = 201,
+            description = "Created.",
+            body = crate::api::wire::SessionInfo), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn create_session(
     State(service): Shared,
     caller: Caller,
@@ -62,6 +84,11 @@ pub(super) async fn create_session(
     run(&service, &caller, command, StatusCode::CREATED).await
 }
 
+/// A session's state and statistics.
+#[utoipa::path(get, path = "/v1/sessions/{session}", tag = "sessions", params(SessionPath),
+    responses((status = 200,
+            description = "The session's statistics.",
+            body = crate::api::wire::SessionStats), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn stats(
     State(service): Shared,
     caller: Caller,
@@ -76,6 +103,11 @@ pub(super) async fn stats(
     .await
 }
 
+/// Delete a session (its files too).
+#[utoipa::path(delete, path = "/v1/sessions/{session}", tag = "sessions", params(SessionPath),
+    responses((status = 200,
+            description = "Deleted.",
+            body = super::openapi::Deleted), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn delete_session(
     State(service): Shared,
     caller: Caller,
@@ -90,13 +122,22 @@ pub(super) async fn delete_session(
     .await
 }
 
-#[derive(Deserialize, Default)]
+#[derive(Deserialize, Default, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 struct WaitParam {
+    /// `true`: answer once the estimate reflects the request (bounded by `wait_timeout_ms`).
     #[serde(default)]
     wait: bool,
 }
 
+/// Apply a batch: validated whole, applied whole or not at all, journalled before it is
+/// acknowledged. With `wait`, answers once the estimate reflects it (`solved`).
+#[utoipa::path(post, path = "/v1/sessions/{session}/batches", tag = "updates", params(SessionPath, WaitParam),
+    request_body = Batch,
+    responses((status = 200,
+            description = "Accepted; `solved` only with `wait`.",
+            body = crate::api::Accepted), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 429, response = TooMany), (status = 503, response = Unavailable)))]
 pub(super) async fn apply_batch(
     State(service): Shared,
     caller: Caller,
@@ -120,6 +161,13 @@ pub(super) async fn apply_batch(
     .await
 }
 
+/// Fusion messages for a `sliding_window` session (IMU samples, keyframes, relative poses,
+/// priors).
+#[utoipa::path(post, path = "/v1/sessions/{session}/fusion", tag = "updates", params(SessionPath),
+    request_body = FusionBatch,
+    responses((status = 200,
+            description = "Applied.",
+            body = crate::api::fusion::FusionAck), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 503, response = Unavailable)))]
 pub(super) async fn fusion(
     State(service): Shared,
     caller: Caller,
@@ -138,6 +186,13 @@ pub(super) async fn fusion(
     .await
 }
 
+/// Solve now, whatever the policy: 202 at once, or with `wait` 200 when the solve is over
+/// (with the session's `stats`).
+#[utoipa::path(post, path = "/v1/sessions/{session}/optimize", tag = "updates", params(SessionPath, WaitParam),
+    responses(
+        (status = 200, description = "With `wait`: the solve finished.", body = super::openapi::Optimizing),
+        (status = 202, description = "The solve was started or scheduled.", body = super::openapi::Optimizing),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 503, response = Unavailable)))]
 pub(super) async fn optimize(
     State(service): Shared,
     caller: Caller,
@@ -159,6 +214,12 @@ pub(super) async fn optimize(
     .await
 }
 
+/// Change when the session re-optimises by itself.
+#[utoipa::path(put, path = "/v1/sessions/{session}/auto_optimize", tag = "updates", params(SessionPath),
+    request_body = AutoOptimize,
+    responses((status = 200,
+            description = "The new policy.",
+            body = super::openapi::AutoOptimizeSet), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn set_auto_optimize(
     State(service): Shared,
     caller: Caller,
@@ -178,6 +239,11 @@ pub(super) async fn set_auto_optimize(
     .await
 }
 
+/// Read the estimate: every variable, those changed after `since`, or a key range.
+#[utoipa::path(get, path = "/v1/sessions/{session}/estimate", tag = "reads", params(SessionPath, EstimateQuery),
+    responses((status = 200,
+            description = "The estimate.",
+            body = crate::api::wire::Estimate), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn estimate(
     State(service): Shared,
     caller: Caller,
@@ -199,6 +265,11 @@ pub(super) async fn estimate(
     .await
 }
 
+/// What the web view draws: positions, initial guesses, pose-to-pose edges.
+#[utoipa::path(get, path = "/v1/sessions/{session}/graph", tag = "reads", params(SessionPath),
+    responses((status = 200,
+            description = "The graph.",
+            body = crate::api::wire::Graph), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn graph(
     State(service): Shared,
     caller: Caller,
@@ -214,14 +285,22 @@ pub(super) async fn graph(
 }
 
 /// `?keys=3,17&joint=true`: keys as one comma-separated list.
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 struct MarginalsParams {
+    /// Variable keys, comma-separated (`3,17`).
     keys: String,
+    /// Also return the joint covariance of all of them.
     #[serde(default)]
     joint: bool,
 }
 
+/// Marginal covariances of `keys` at the current estimate (and their joint covariance).
+#[utoipa::path(get, path = "/v1/sessions/{session}/marginals", tag = "reads", params(SessionPath, MarginalsParams),
+    responses((status = 200,
+            description = "The covariances.",
+            body = crate::api::wire::Marginals), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 503, response = Unavailable)))]
 pub(super) async fn marginals(
     State(service): Shared,
     caller: Caller,
@@ -255,6 +334,11 @@ pub(super) async fn marginals(
     .await
 }
 
+/// The summary of the session's last solve (404 `no_summary` before the first).
+#[utoipa::path(get, path = "/v1/sessions/{session}/summary", tag = "reads", params(SessionPath),
+    responses((status = 200,
+            description = "The last solve's summary.",
+            body = crate::solver::Summary), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn summary(
     State(service): Shared,
     caller: Caller,
@@ -275,6 +359,11 @@ pub(super) async fn summary(
     }
 }
 
+/// Stop the running solve after its current iteration.
+#[utoipa::path(post, path = "/v1/sessions/{session}/cancel", tag = "updates", params(SessionPath),
+    responses((status = 200,
+            description = "Whether a solve was running.",
+            body = super::openapi::Cancelled), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn cancel(
     State(service): Shared,
     caller: Caller,
@@ -289,6 +378,13 @@ pub(super) async fn cancel(
     .await
 }
 
+/// Optimise a whole graph file (g2o, TORO, BAL text in the body) in one shot.
+#[utoipa::path(post, path = "/v1/jobs", tag = "jobs", params(super::openapi::JobQuery),
+    request_body(content = String, content_type = "text/plain", description = "The graph file."),
+    responses(
+        (status = 200, description = "The summary and estimate as JSON, or the optimised graph as text with `output`.",
+            content((super::openapi::JobResult = "application/json"), (String = "text/plain"))),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 413, response = PayloadTooLarge), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 503, response = Unavailable)))]
 pub(super) async fn job(
     State(service): Shared,
     headers: HeaderMap,

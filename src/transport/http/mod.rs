@@ -7,6 +7,7 @@
 //! - `errors`: the JSON error body, for our errors and for those axum and hyper answer themselves;
 //! - `handlers`: one handler per REST route, each a [`crate::service::Command`] run as the caller;
 //! - `streams`: the event stream (SSE) and the WebSocket;
+//! - `openapi`: the OpenAPI document generated from the handlers, served at `/v1/openapi.json`;
 //! - `auth`: bearer tokens, and the caller each request carries;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
 //! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts.
@@ -17,6 +18,7 @@ mod errors;
 pub mod guard;
 mod handlers;
 pub mod listener;
+pub mod openapi;
 mod streams;
 
 pub use errors::HttpError;
@@ -24,15 +26,41 @@ pub use errors::HttpError;
 use std::sync::Arc;
 
 use axum::extract::DefaultBodyLimit;
-use axum::routing::{get, post};
 use axum::Router;
 use tower_http::trace::TraceLayer;
+use utoipa::OpenApi;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
 use crate::service::Service;
 
 use errors::{json_errors, method_not_allowed, not_found};
 use handlers::*;
-use streams::{events, websocket};
+use streams::{__path_events, __path_websocket, events, websocket};
+
+/// Every route with its operations' documentation: the router and the OpenAPI document
+/// ([`openapi::document`]) are both made from this, so neither has a route the other lacks.
+pub fn routes() -> OpenApiRouter<Arc<Service>> {
+    OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
+        .routes(routes!(health))
+        .routes(routes!(metrics))
+        .routes(routes!(create_session, list_sessions))
+        .routes(routes!(stats, delete_session))
+        .routes(routes!(apply_batch))
+        .routes(routes!(fusion))
+        .routes(routes!(optimize))
+        .routes(routes!(set_auto_optimize))
+        .routes(routes!(estimate))
+        .routes(routes!(summary))
+        .routes(routes!(cancel))
+        .routes(routes!(events))
+        .routes(routes!(websocket))
+        .routes(routes!(graph))
+        .routes(routes!(marginals))
+        .routes(routes!(job))
+        .routes(routes!(openapi::openapi_json))
+        .merge(super::web::routes())
+}
 
 /// The router, with request bodies limited to `max_body_bytes`, bearer tokens required when
 /// `tokens` is given, then cross-site requests refused by `guard` (after the token check, so a
@@ -43,27 +71,8 @@ pub fn router(
     tokens: Option<Arc<auth::Tokens>>,
     guard: Arc<guard::HttpGuard>,
 ) -> Router {
-    let routes = Router::new()
-        .route("/v1/health", get(health))
-        .route("/metrics", get(metrics))
-        .route("/v1/sessions", post(create_session).get(list_sessions))
-        .route("/v1/sessions/{session}", get(stats).delete(delete_session))
-        .route("/v1/sessions/{session}/batches", post(apply_batch))
-        .route("/v1/sessions/{session}/fusion", post(fusion))
-        .route("/v1/sessions/{session}/optimize", post(optimize))
-        .route(
-            "/v1/sessions/{session}/auto_optimize",
-            axum::routing::put(set_auto_optimize),
-        )
-        .route("/v1/sessions/{session}/estimate", get(estimate))
-        .route("/v1/sessions/{session}/summary", get(summary))
-        .route("/v1/sessions/{session}/cancel", post(cancel))
-        .route("/v1/sessions/{session}/events", get(events))
-        .route("/v1/sessions/{session}/ws", get(websocket))
-        .route("/v1/sessions/{session}/graph", get(graph))
-        .route("/v1/sessions/{session}/marginals", get(marginals))
-        .route("/v1/jobs", post(job))
-        .merge(super::web::routes())
+    let (routes, _) = routes().split_for_parts();
+    let routes = routes
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(max_body_bytes))

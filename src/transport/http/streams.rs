@@ -16,6 +16,17 @@ use super::errors::HttpError;
 use super::handlers::Caller;
 use super::handlers::Shared;
 
+#[utoipa::path(get, path = "/v1/sessions/{session}/events", tag = "reads",
+    params(super::openapi::SessionPath),
+    responses(
+        (status = 200, description = "`text/event-stream`: each event's data is one \
+            `SessionEvent` (schema below), its name the topic.", content_type = "text/event-stream",
+            body = crate::api::wire::SessionEvent),
+        (status = 401, response = super::openapi::Unauthorized),
+        (status = 404, response = super::openapi::NotFound),
+        (status = 421, response = super::openapi::Misdirected),
+        (status = 429, response = super::openapi::TooMany),
+        (status = 503, response = super::openapi::Unavailable)))]
 /// Server-Sent Events: every session event, named by its topic (`acks`, `stats`, `poses`,
 /// `summary`, `errors`); `lagged` when this client fell behind and missed some.
 pub(super) async fn events(
@@ -46,6 +57,18 @@ pub(super) async fn events(
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 
+#[utoipa::path(get, path = "/v1/sessions/{session}/ws", tag = "reads",
+    params(super::openapi::SessionPath),
+    responses(
+        (status = 101, description = "Switching to the WebSocket protocol: `SessionEvent`s out, \
+            batches in."),
+        (status = 400, response = super::openapi::BadRequest),
+        (status = 401, response = super::openapi::Unauthorized),
+        (status = 403, response = super::openapi::Forbidden),
+        (status = 404, response = super::openapi::NotFound),
+        (status = 421, response = super::openapi::Misdirected),
+        (status = 429, response = super::openapi::TooMany),
+        (status = 503, response = super::openapi::Unavailable)))]
 /// WebSocket: the same events as the SSE stream (one JSON text message each, tagged by `type`;
 /// `{"type": "lagged", "missed": n}` when this client fell behind), and text messages from the
 /// client are batches for the session, acknowledged by the `ack` event or rejected by an `error`
