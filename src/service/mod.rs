@@ -320,7 +320,8 @@ impl Service {
     }
 
     /// A message sent to a session without a reply channel (a zenoh put, a WebSocket message):
-    /// `kind` is `batch` (a JSON [`Batch`]) or `optimize`. A rejection goes to the session's
+    /// the topic `kind` names a [`Command`] (`api::command::parse_topic`), executed like any
+    /// other. A rejection goes to the session's
     /// event stream, where its sender listens; it is returned only when there is no such session
     /// (and so no stream to put it on).
     pub async fn deliver(
@@ -331,43 +332,14 @@ impl Service {
         payload: &[u8],
     ) -> Result<(), ServiceError> {
         let target = self.session_as(caller, session)?;
-        let outcome = match kind {
-            "batch" => match parse_json_within::<Batch>(payload, self.limits.max_batch_items) {
-                Ok(batch) => {
-                    let command = Command::ApplyBatch {
-                        session: session.into(),
-                        batch,
-                        wait: false,
-                    };
-                    self.execute_as(caller, command).await.map(|_| ())
-                }
-                Err(e) => Err(e),
-            },
-            "optimize" => {
-                let command = Command::Optimize {
-                    session: session.into(),
-                    wait: false,
-                };
-                self.execute_as(caller, command).await.map(|_| ())
-            }
-            "fusion" => match parse_json_within::<crate::api::fusion::FusionBatch>(
-                payload,
-                self.limits.max_batch_items,
-            ) {
-                Ok(batch) => {
-                    let command = Command::Fusion {
-                        session: session.into(),
-                        messages: batch.messages,
-                    };
-                    self.execute_as(caller, command).await.map(|_| ())
-                }
-                Err(e) => Err(e),
-            },
-            other => Err(ServiceError::bad_request(
-                "unknown_topic",
-                "key",
-                format!("nothing listens on `in/{other}` (batch, optimize, fusion)"),
-            )),
+        let outcome = match crate::api::command::parse_topic(
+            session,
+            kind,
+            payload,
+            self.limits.max_batch_items,
+        ) {
+            Ok(command) => self.execute_as(caller, command).await.map(|_| ()),
+            Err(e) => Err(e),
         };
         if let Err(error) = outcome {
             target.report_rejection(error);
