@@ -51,7 +51,10 @@ impl SqrtInformation {
             .ok_or(InformationError::NotPositiveDefinite)?;
         let l = chol.l();
         // A pivot that is tiny relative to the matrix means "numerically semidefinite".
-        if (0..dim).any(|i| !(l[(i, i)] > 1e-12 * scale.sqrt())) {
+        // NaN pivots count as not positive too.
+        let threshold = 1e-12 * scale.sqrt();
+        if (0..dim).any(|i| l[(i, i)].partial_cmp(&threshold) != Some(std::cmp::Ordering::Greater))
+        {
             return Err(InformationError::NotPositiveDefinite);
         }
         let mut r = vec![0.0; dim * dim];
@@ -105,9 +108,9 @@ impl SqrtInformation {
             }
             return;
         }
-        for i in 0..d {
+        for (i, out_i) in out.iter_mut().enumerate().take(d) {
             let row = &self.r[i * d..(i + 1) * d];
-            out[i] = (i..d).map(|j| row[j] * e[j]).sum();
+            *out_i = (i..d).map(|j| row[j] * e[j]).sum();
         }
     }
 

@@ -19,6 +19,8 @@ use crate::api::ServiceError;
 use crate::fusion::window::SlidingWindow;
 use crate::solver::marginals::Marginals;
 
+// One per session: the size of the larger variant costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 pub(super) enum Engine {
     Graph(Graph),
     Window(Window),

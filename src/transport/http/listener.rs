@@ -94,6 +94,8 @@ pub fn raise_file_limit() -> Option<u64> {
             }
         }
     }
+    // rlim_t is u64 on Linux, but not on every libc target.
+    #[allow(clippy::unnecessary_cast)]
     Some(limit.rlim_cur as u64)
 }
 
