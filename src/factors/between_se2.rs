@@ -15,8 +15,6 @@
 //!                 [  0  0          −1                          ]                     [ 0  0       1 ]
 //! ```
 
-use std::any::Any;
-
 use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{wrap_angle, Se2};
 use crate::variables::{Key, Variable};
@@ -52,18 +50,7 @@ impl BetweenSe2 {
 }
 
 impl Factor for BetweenSe2 {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -98,9 +85,6 @@ impl Factor for BetweenSe2 {
             ]);
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
     fn predict(&self, known: &[Option<&dyn Variable>], target: usize) -> Option<Box<dyn Variable>> {
         let other = known[1 - target]?.as_any().downcast_ref::<Se2>()?;

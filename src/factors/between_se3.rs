@@ -19,8 +19,6 @@
 //!                  [  0     −J_r⁻¹(φ) R_Eᵀ R_zᵀ         ]                    [ 0    J_r⁻¹(φ)   ]
 //! ```
 
-use std::any::Any;
-
 use nalgebra::Matrix3;
 
 use super::{expect_kind, EvaluationError, Factor, FactorWire};
@@ -65,18 +63,7 @@ pub(crate) fn put_block(j: &mut [f64], cols: usize, row0: usize, col0: usize, m:
 }
 
 impl Factor for BetweenSe3 {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -105,9 +92,6 @@ impl Factor for BetweenSe3 {
             put_block(j, 12, 3, 9, &jr_inv);
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
     fn predict(&self, known: &[Option<&dyn Variable>], target: usize) -> Option<Box<dyn Variable>> {
         let other = known[1 - target]?.as_any().downcast_ref::<Se3>()?;

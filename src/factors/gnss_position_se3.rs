@@ -18,8 +18,6 @@
 //! the orientation unconstrained, so it predicts no initial value: a pose it alone touches has no
 //! rotation to start from.
 
-use std::any::Any;
-
 use nalgebra::Vector3;
 
 use super::between_se3::put_block;
@@ -56,18 +54,7 @@ impl GnssPositionSe3 {
 }
 
 impl Factor for GnssPositionSe3 {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -82,9 +69,6 @@ impl Factor for GnssPositionSe3 {
             put_block(j, 6, 0, 0, &x.rotation_matrix());
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
 }
 

@@ -5,6 +5,29 @@
 //! information and robust kernels is applied uniformly by `problem::FactorEntry`, so every factor file
 //! contains only its own mathematics.
 
+/// Inside `impl Factor for T`: the methods a factor with a `WIRE: FactorWire` declaration and a
+/// `keys` field answers from them (name, keys, residual dimension, variable kinds) and `as_any`,
+/// so each is stated once and a factor file writes only its residual and Jacobians.
+macro_rules! answered_by_wire {
+    () => {
+        fn name(&self) -> &'static str {
+            Self::WIRE.name
+        }
+        fn keys(&self) -> &[$crate::variables::Key] {
+            &self.keys
+        }
+        fn residual_dim(&self) -> usize {
+            Self::WIRE.residual_dim
+        }
+        fn variable_kinds(&self) -> &[&'static str] {
+            Self::WIRE.variable_kinds
+        }
+        fn as_any(&self) -> &dyn ::std::any::Any {
+            self
+        }
+    };
+}
+
 pub mod between_se2;
 pub mod between_se3;
 pub mod gnss_position_se3;

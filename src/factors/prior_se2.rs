@@ -1,8 +1,6 @@
 //! Absolute prior on one SE(2) pose: `e = [R_zᵀ (t − t_z); wrap(θ − θ_z)]`, the between error with
 //! the first pose at the origin. Jacobian (additive retraction): `[[R_zᵀ, 0], [0, 0, 1]]`.
 
-use std::any::Any;
-
 use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{wrap_angle, Se2};
 use crate::variables::{Key, Variable};
@@ -40,18 +38,7 @@ impl PriorSe2 {
 }
 
 impl Factor for PriorSe2 {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -69,9 +56,6 @@ impl Factor for PriorSe2 {
             j.copy_from_slice(&[c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0]);
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
     fn predict(
         &self,

@@ -2,8 +2,6 @@
 //! Jacobian for `(R, t) ⊕ (v, ω) = (R Exp(ω), t + R v)`, with `R_E = R_zᵀ R`, `φ = Log(R_E)`:
 //! `[[R_E, 0], [0, J_r⁻¹(φ)]]`.
 
-use std::any::Any;
-
 use super::between_se3::put_block;
 use super::{expect_kind, EvaluationError, Factor, FactorWire};
 use crate::geometry::{so3, Se3};
@@ -38,18 +36,7 @@ impl PriorSe3 {
 }
 
 impl Factor for PriorSe3 {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -70,9 +57,6 @@ impl Factor for PriorSe3 {
             put_block(j, 6, 3, 3, &so3::right_jacobian_inv(&phi));
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
     fn predict(
         &self,

@@ -15,8 +15,6 @@
 //! out `[J_camera (2×9) | J_point (2×3)]`. Residuals are in pixels (BAL's convention: the cost is
 //! ½Σ‖e‖², chi2 is Σ‖e‖² with unit information).
 
-use std::any::Any;
-
 use nalgebra::{Matrix2, Matrix2x3, Vector2};
 
 use super::{expect_kind, EvaluationError, Factor, FactorWire};
@@ -52,18 +50,7 @@ impl ReprojectionSnavely {
 }
 
 impl Factor for ReprojectionSnavely {
-    fn name(&self) -> &'static str {
-        Self::WIRE.name
-    }
-    fn keys(&self) -> &[Key] {
-        &self.keys
-    }
-    fn residual_dim(&self) -> usize {
-        Self::WIRE.residual_dim
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        Self::WIRE.variable_kinds
-    }
+    answered_by_wire!();
     fn evaluate(
         &self,
         variables: &[&dyn Variable],
@@ -104,9 +91,6 @@ impl Factor for ReprojectionSnavely {
             }
         }
         Ok(())
-    }
-    fn as_any(&self) -> &dyn Any {
-        self
     }
 }
 
