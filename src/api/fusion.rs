@@ -71,34 +71,11 @@ fn numbers_object(required: &[&str], optional: &[&str]) -> utoipa::openapi::sche
     object.build()
 }
 
-// A pre-integrated keyframe is ~0.6 KB, an IMU sample 56 bytes; batches are bounded by
-// `max_batch_items`, so a 1000-message batch holds under 1 MB either way, and boxing would change
-// the generated schema's shape.
-#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum FusionMessage {
     /// The first keyframe (key 0) and the window's parameters; once per session.
-    Start {
-        t: f64,
-        position: [f64; 3],
-        rotation_xyzw: [f64; 4],
-        #[serde(default)]
-        velocity: [f64; 3],
-        #[serde(default)]
-        accel_bias: [f64; 3],
-        #[serde(default)]
-        gyro_bias: [f64; 3],
-        #[schema(schema_with = initial_sigmas_schema)]
-        sigmas: InitialSigmas,
-        #[serde(default = "default_window", deserialize_with = "wire_number::usize")]
-        window: usize,
-        #[serde(default = "default_gravity")]
-        gravity: f64,
-        #[serde(default = "default_noise")]
-        #[schema(schema_with = imu_noise_schema)]
-        imu_noise: ImuNoise,
-    },
+    Start(Box<StartMessage>),
     /// One IMU sample: accelerometer m/s², gyroscope rad/s, body frame.
     Imu {
         t: f64,
@@ -110,22 +87,7 @@ pub enum FusionMessage {
     /// A keyframe at `t` from a measurement pre-integrated on the robot since the previous
     /// keyframe (GTSAM's manifold pre-integration: matrices row-major, the covariance 15×15 in
     /// the order rotation, position, velocity, accelerometer bias, gyroscope bias).
-    PreintegratedKeyframe {
-        t: f64,
-        delta_t: f64,
-        delta_rotation_xyzw: [f64; 4],
-        delta_velocity: [f64; 3],
-        delta_position: [f64; 3],
-        /// The bias the samples were corrected with.
-        accel_bias: [f64; 3],
-        gyro_bias: [f64; 3],
-        d_rotation_d_gyro_bias: [f64; 9],
-        d_velocity_d_accel_bias: [f64; 9],
-        d_velocity_d_gyro_bias: [f64; 9],
-        d_position_d_accel_bias: [f64; 9],
-        d_position_d_gyro_bias: [f64; 9],
-        covariance: Vec<f64>,
-    },
+    PreintegratedKeyframe(Box<PreintegratedKeyframeMessage>),
     /// Lidar odometry: the pose of `to` in the frame of `from`.
     RelativePose {
         #[serde(deserialize_with = "wire_number::u64")]
@@ -155,13 +117,58 @@ pub enum FusionMessage {
     },
 }
 
+/// The fields of [`FusionMessage::Start`] (boxed: the largest messages stay out of every
+/// element of a batch's message list).
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct StartMessage {
+    pub t: f64,
+    pub position: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
+    #[serde(default)]
+    pub velocity: [f64; 3],
+    #[serde(default)]
+    pub accel_bias: [f64; 3],
+    #[serde(default)]
+    pub gyro_bias: [f64; 3],
+    #[schema(schema_with = initial_sigmas_schema)]
+    pub sigmas: InitialSigmas,
+    #[serde(default = "default_window", deserialize_with = "wire_number::usize")]
+    pub window: usize,
+    #[serde(default = "default_gravity")]
+    pub gravity: f64,
+    #[serde(default = "default_noise")]
+    #[schema(schema_with = imu_noise_schema)]
+    pub imu_noise: ImuNoise,
+}
+
+/// The fields of [`FusionMessage::PreintegratedKeyframe`] (boxed, as [`StartMessage`]).
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PreintegratedKeyframeMessage {
+    pub t: f64,
+    pub delta_t: f64,
+    pub delta_rotation_xyzw: [f64; 4],
+    pub delta_velocity: [f64; 3],
+    pub delta_position: [f64; 3],
+    /// The bias the samples were corrected with.
+    pub accel_bias: [f64; 3],
+    pub gyro_bias: [f64; 3],
+    pub d_rotation_d_gyro_bias: [f64; 9],
+    pub d_velocity_d_accel_bias: [f64; 9],
+    pub d_velocity_d_gyro_bias: [f64; 9],
+    pub d_position_d_accel_bias: [f64; 9],
+    pub d_position_d_gyro_bias: [f64; 9],
+    pub covariance: Vec<f64>,
+}
+
 /// The experiment's inputs as a robot sends them: the `start` message, then one batch per
 /// keyframe (its IMU samples, the keyframe, its relative poses and priors).
 pub fn experiment_messages(
     inputs: &crate::fusion::experiment::FusionInputs,
 ) -> (FusionMessage, Vec<Vec<FusionMessage>>) {
     let i = &inputs.initial;
-    let start = FusionMessage::Start {
+    let start = FusionMessage::Start(Box::new(StartMessage {
         t: i.t,
         position: i.position,
         rotation_xyzw: i.rotation_xyzw,
@@ -172,7 +179,7 @@ pub fn experiment_messages(
         window: inputs.window,
         gravity: inputs.gravity,
         imu_noise: inputs.imu_noise,
-    };
+    }));
     let mut samples = inputs.imu.iter().peekable();
     let batches = inputs
         .keyframes

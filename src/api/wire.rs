@@ -349,4 +349,24 @@ mod tests {
         )
         .is_err());
     }
+
+    /// A batch holds up to `max_batch_items` messages, most of them IMU samples of ~55 bytes of
+    /// JSON: each element must stay near that size, so the large messages are boxed.
+    #[test]
+    fn a_fusion_message_in_a_batch_costs_little_more_than_an_imu_sample() {
+        let size = std::mem::size_of::<super::super::fusion::FusionMessage>();
+        assert!(size <= 128, "FusionMessage is {size} bytes");
+    }
+
+    #[test]
+    fn boxed_fusion_messages_read_and_write_the_same_wire_form() {
+        use super::super::fusion::FusionMessage;
+        let start = r#"{"type":"start","t":1.0,"position":[0,0,0],"rotation_xyzw":[0,0,0,1],"sigmas":{"rotation":0.1,"position":0.1,"velocity":0.1,"accel_bias":0.1,"gyro_bias":0.1}}"#;
+        let message: FusionMessage = serde_json::from_str(start).unwrap();
+        let back = serde_json::to_value(&message).unwrap();
+        assert_eq!(back["type"], "start");
+        assert_eq!(back["window"], 10);
+        let unknown = start.replace(r#""t":1.0"#, r#""t":1.0,"extra":1"#);
+        assert!(serde_json::from_str::<FusionMessage>(&unknown).is_err());
+    }
 }

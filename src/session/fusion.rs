@@ -13,7 +13,9 @@ use nalgebra::Vector3;
 
 use super::engine::{self, Engine};
 use super::Session;
-use crate::api::fusion::{FusionAck, FusionBatch, FusionMessage, StateReport};
+use crate::api::fusion::{
+    FusionAck, FusionBatch, FusionMessage, PreintegratedKeyframeMessage, StartMessage, StateReport,
+};
 use crate::api::wire::SessionEvent;
 use crate::api::ServiceError;
 use crate::fusion::window::{
@@ -39,19 +41,19 @@ fn apply(
     window: &mut Option<SlidingWindow>,
     message: FusionMessage,
 ) -> Result<Option<Key>, FusionError> {
-    if let FusionMessage::Start {
-        t,
-        position,
-        rotation_xyzw,
-        velocity,
-        accel_bias,
-        gyro_bias,
-        sigmas,
-        window: size,
-        gravity,
-        imu_noise,
-    } = message
-    {
+    if let FusionMessage::Start(start) = message {
+        let StartMessage {
+            t,
+            position,
+            rotation_xyzw,
+            velocity,
+            accel_bias,
+            gyro_bias,
+            sigmas,
+            window: size,
+            gravity,
+            imu_noise,
+        } = *start;
         if window.is_some() {
             return Err(FusionError::Invalid {
                 field: "type",
@@ -90,7 +92,7 @@ fn apply(
         reason: engine::start_first(),
     })?;
     match message {
-        FusionMessage::Start { .. } => unreachable!("handled above"),
+        FusionMessage::Start(_) => unreachable!("handled above"),
         FusionMessage::Imu { t, accel, gyro } => {
             w.add_imu(t, Vector3::from(accel), Vector3::from(gyro))?;
             Ok(None)
@@ -99,21 +101,22 @@ fn apply(
             let key = w.add_keyframe(t)?;
             Ok(Some(key))
         }
-        FusionMessage::PreintegratedKeyframe {
-            t,
-            delta_t,
-            delta_rotation_xyzw,
-            delta_velocity,
-            delta_position,
-            accel_bias,
-            gyro_bias,
-            d_rotation_d_gyro_bias,
-            d_velocity_d_accel_bias,
-            d_velocity_d_gyro_bias,
-            d_position_d_accel_bias,
-            d_position_d_gyro_bias,
-            covariance,
-        } => {
+        FusionMessage::PreintegratedKeyframe(keyframe) => {
+            let PreintegratedKeyframeMessage {
+                t,
+                delta_t,
+                delta_rotation_xyzw,
+                delta_velocity,
+                delta_position,
+                accel_bias,
+                gyro_bias,
+                d_rotation_d_gyro_bias,
+                d_velocity_d_accel_bias,
+                d_velocity_d_gyro_bias,
+                d_position_d_accel_bias,
+                d_position_d_gyro_bias,
+                covariance,
+            } = *keyframe;
             if covariance.len() != 225 {
                 return Err(FusionError::Invalid {
                     field: "covariance",
@@ -233,7 +236,7 @@ impl Session {
         for (index, message) in batch.messages.into_iter().enumerate() {
             let is_keyframe = matches!(
                 message,
-                FusionMessage::Keyframe { .. } | FusionMessage::PreintegratedKeyframe { .. }
+                FusionMessage::Keyframe { .. } | FusionMessage::PreintegratedKeyframe(_)
             );
             if is_keyframe && pending {
                 self.optimize_window(guard, started, *applied)?;
