@@ -5,7 +5,7 @@ use nalgebra::{DMatrix, Vector2, Vector3};
 
 use faer::sparse::linalg::SupernodalThreshold;
 
-use super::{plan, SchurSolver};
+use super::{plan, SchurPlan, SchurSolver};
 use crate::factors::testing::Rng;
 use crate::factors::{BetweenSe2, PriorSe2, ReprojectionSnavely};
 use crate::geometry::{Point3, Se2, SnavelyCamera};
@@ -62,9 +62,11 @@ fn synthetic_bundle_adjustment(cameras: usize, points: usize, seed: u64) -> Prob
     problem
 }
 
-/// The damped step (H + diag(shift))⁻¹ b through `solver`, and through a sparse Cholesky of
-/// the same system in the same layout.
-fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, bool) {
+/// `problem`'s plan for `choice`, its layout in the plan's ordering, and `H`, `b` linearised there.
+fn linearized(
+    problem: &Problem,
+    choice: LinearSolverChoice,
+) -> (SchurPlan, SystemLayout, Vec<f64>, Vec<f64>) {
     let fixed = vec![false; problem.values.len()];
     let plan = plan(
         problem.factors(),
@@ -88,6 +90,13 @@ fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, 
         &mut b,
     )
     .unwrap();
+    (plan, layout, h, b)
+}
+
+/// The damped step (H + diag(shift))⁻¹ b through `solver`, and through a sparse Cholesky of
+/// the same system in the same layout.
+fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, bool) {
+    let (plan, layout, h, b) = linearized(problem, choice);
     let pattern = &layout.pattern;
     let shift: Vec<f64> = (0..pattern.n)
         .map(|c| 1e-3 * h[pattern.diagonal_index(c)].max(1e-6))
@@ -213,33 +222,7 @@ fn an_indefinite_point_block_is_reported_at_its_rows() {
     problem
         .add_variable(key, Box::new(Point3(Vector3::new(0.0, 0.0, 0.0))))
         .unwrap();
-    let fixed = vec![false; problem.values.len()];
-    let planned = plan(
-        problem.factors(),
-        &problem.values,
-        &fixed,
-        &problem.eliminate,
-        LinearSolverChoice::Auto,
-    )
-    .unwrap();
-    let layout = SystemLayout::with_ordering(
-        problem.factors(),
-        &problem.values,
-        &fixed,
-        &planned.ordering,
-    );
-    let mut scratch = Scratch::new(&layout);
-    let mut h = vec![0.0; layout.pattern.nnz()];
-    let mut b = vec![0.0; layout.n()];
-    linearize(
-        problem.factors(),
-        &problem.values,
-        &layout,
-        &mut scratch,
-        &mut h,
-        &mut b,
-    )
-    .unwrap();
+    let (planned, layout, h, _) = linearized(&problem, LinearSolverChoice::Auto);
     let mut schur = SchurSolver::new(&layout.pattern, &planned).unwrap();
     let error = schur.factorize(&layout.pattern, &h, None).unwrap_err();
     assert_eq!(layout.key_at_row(&problem.values, error.row), key);
@@ -275,33 +258,7 @@ fn the_budget_is_checked_during_the_elimination_and_before_the_reduced_factorisa
     use super::ELIMINATED_PER_CHECK;
     let points = 3 * ELIMINATED_PER_CHECK + 10;
     let problem = synthetic_bundle_adjustment(8, points, 5);
-    let fixed = vec![false; problem.values.len()];
-    let planned = plan(
-        problem.factors(),
-        &problem.values,
-        &fixed,
-        &problem.eliminate,
-        LinearSolverChoice::SparseSchur,
-    )
-    .unwrap();
-    let layout = SystemLayout::with_ordering(
-        problem.factors(),
-        &problem.values,
-        &fixed,
-        &planned.ordering,
-    );
-    let mut scratch = Scratch::new(&layout);
-    let mut h = vec![0.0; layout.pattern.nnz()];
-    let mut b = vec![0.0; layout.n()];
-    linearize(
-        problem.factors(),
-        &problem.values,
-        &layout,
-        &mut scratch,
-        &mut h,
-        &mut b,
-    )
-    .unwrap();
+    let (planned, layout, h, b) = linearized(&problem, LinearSolverChoice::SparseSchur);
     let pattern = &layout.pattern;
     // BA's gauge is free: H needs LM's damping to be positive definite.
     let shift: Vec<f64> = (0..pattern.n)
