@@ -122,6 +122,17 @@ impl Service {
             .push(observer);
     }
 
+    /// A receiver of the events of session `name` for `caller` (SSE, WebSocket): the same
+    /// visibility as [`Self::session_as`], within the session's subscriber limit. Like batch
+    /// jobs, not a [`Command`]: its answer is a stream, not one reply (docs/ARCHITECTURE.md).
+    pub fn subscribe_as(
+        &self,
+        caller: &Caller,
+        name: &str,
+    ) -> Result<tokio::sync::broadcast::Receiver<Arc<SessionEvent>>, ServiceError> {
+        self.session_as(caller, name)?.subscribe_limited()
+    }
+
     /// The session named `name` if it exists for `caller`; the same 404 as for a session that
     /// was never created otherwise. Every command resolves its session here.
     pub fn session_as(&self, caller: &Caller, name: &str) -> Result<Arc<Session>, ServiceError> {

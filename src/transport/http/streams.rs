@@ -34,9 +34,7 @@ pub(super) async fn events(
     caller: Caller,
     Path(session): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, HttpError> {
-    let session = service.session_as(&caller.0, &session)?;
-    let receiver = session.subscribe_limited()?;
-    drop(session);
+    let receiver = service.subscribe_as(&caller.0, &session)?;
     let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
         let event = match rx.recv().await {
             Ok(event) => Event::default()
@@ -79,9 +77,7 @@ pub(super) async fn websocket(
     Path(session): Path<String>,
     upgrade: WebSocketUpgrade,
 ) -> Result<Response, HttpError> {
-    let events = service
-        .session_as(&caller.0, &session)?
-        .subscribe_limited()?;
+    let events = service.subscribe_as(&caller.0, &session)?;
     let caller = caller.0;
     Ok(upgrade.on_upgrade(move |socket| serve_websocket(socket, service, caller, session, events)))
 }
