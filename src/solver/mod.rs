@@ -10,6 +10,7 @@ pub mod cholesky_bench;
 mod damping;
 mod dogleg;
 pub mod gauge;
+pub mod incremental;
 pub mod initialize;
 mod iterations;
 pub mod linear;
