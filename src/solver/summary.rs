@@ -96,6 +96,11 @@ pub struct UsedOptions {
     /// problem held fixed).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub region_variables: Option<usize>,
+    /// For a session's incremental update (`solver::incremental`): what it relinearised,
+    /// reordered and refactored, and the time of each phase (iSAM2's `ISAM2Result`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub incremental: Option<super::incremental::UpdateReport>,
 }
 
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
@@ -256,6 +261,7 @@ impl Run {
                 gauge_fixed: context.gauge_fixed,
                 schur: self.schur,
                 region_variables: context.region,
+                incremental: None,
             },
             num_variables: values.len(),
             num_free_variables: layout.var_at.len(),

@@ -1,0 +1,146 @@
+//! Small dense kernels on the blocks of the incremental factor (row-major, dimensions 1–15):
+//! Cholesky of a diagonal block, triangular solves with it, and the `C −= A·Bᵀ` update that
+//! left-looking elimination spends its time in.
+
+/// `acc (m×d) −= a (m×k) · bᵀ` with `b` d×k; all row-major.
+#[inline]
+pub fn sub_mul_transpose(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usize, k: usize) {
+    debug_assert!(acc.len() >= m * d && a.len() >= m * k && b.len() >= d * k);
+    for i in 0..m {
+        let ai = &a[i * k..(i + 1) * k];
+        let row = &mut acc[i * d..(i + 1) * d];
+        for (j, out) in row.iter_mut().enumerate() {
+            let bj = &b[j * k..(j + 1) * k];
+            let mut s = 0.0;
+            for l in 0..k {
+                s += ai[l] * bj[l];
+            }
+            *out -= s;
+        }
+    }
+}
+
+/// `y (m) −= a (m×k) · x (k)`.
+#[inline]
+pub fn sub_mul_vector(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
+    for (i, yi) in y.iter_mut().enumerate().take(m) {
+        let ai = &a[i * k..(i + 1) * k];
+        *yi -= ai.iter().zip(x).map(|(p, q)| p * q).sum::<f64>();
+    }
+}
+
+/// `y (k) −= aᵀ · x` with `a` m×k.
+#[inline]
+pub fn sub_mul_transpose_vector(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
+    for (i, &xi) in x.iter().enumerate().take(m) {
+        let ai = &a[i * k..(i + 1) * k];
+        for (yj, &aij) in y.iter_mut().zip(ai) {
+            *yj -= aij * xi;
+        }
+    }
+}
+
+/// In-place Cholesky `A = L Lᵀ` of the d×d symmetric matrix whose lower triangle `a` holds;
+/// the strict upper triangle is zeroed. `Err(i)`: the pivot of row `i` is not positive.
+pub fn cholesky(a: &mut [f64], d: usize) -> Result<(), usize> {
+    for j in 0..d {
+        let mut pivot = a[j * d + j];
+        for l in 0..j {
+            pivot -= a[j * d + l] * a[j * d + l];
+        }
+        if pivot.is_nan() || pivot <= 0.0 {
+            return Err(j);
+        }
+        let pivot = pivot.sqrt();
+        a[j * d + j] = pivot;
+        for i in j + 1..d {
+            let mut s = a[i * d + j];
+            for l in 0..j {
+                s -= a[i * d + l] * a[j * d + l];
+            }
+            a[i * d + j] = s / pivot;
+        }
+        for i in 0..j {
+            a[i * d + j] = 0.0;
+        }
+    }
+    Ok(())
+}
+
+/// `z ← L⁻¹ z` for the lower-triangular d×d `l`.
+#[inline]
+pub fn forward(l: &[f64], z: &mut [f64], d: usize) {
+    for i in 0..d {
+        let mut s = z[i];
+        for k in 0..i {
+            s -= l[i * d + k] * z[k];
+        }
+        z[i] = s / l[i * d + i];
+    }
+}
+
+/// `z ← L⁻ᵀ z` for the lower-triangular d×d `l`.
+#[inline]
+pub fn backward(l: &[f64], z: &mut [f64], d: usize) {
+    for i in (0..d).rev() {
+        let mut s = z[i];
+        for k in i + 1..d {
+            s -= l[k * d + i] * z[k];
+        }
+        z[i] = s / l[i * d + i];
+    }
+}
+
+/// `x (m×d) ← x · L⁻ᵀ`: each row `xᵢ` becomes the solution of `L zᵀ = xᵢᵀ`.
+pub fn solve_right_transpose(x: &mut [f64], l: &[f64], m: usize, d: usize) {
+    for row in x.chunks_exact_mut(d).take(m) {
+        forward(l, row, d);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cholesky_and_solves_agree_with_nalgebra() {
+        let d = 4;
+        let m = nalgebra::DMatrix::<f64>::from_fn(d, d, |i, j| ((i * 3 + j * 5) % 7) as f64 - 3.0);
+        let spd = &m * m.transpose() + nalgebra::DMatrix::identity(d, d) * 2.0;
+        let mut a: Vec<f64> = (0..d * d).map(|k| spd[(k / d, k % d)]).collect();
+        cholesky(&mut a, d).unwrap();
+        let l = nalgebra::DMatrix::from_row_slice(d, d, &a);
+        assert!((&l * l.transpose() - &spd).norm() < 1e-10);
+        let b = [1.0, -2.0, 0.5, 3.0];
+        let mut z = b;
+        forward(&a, &mut z, d);
+        backward(&a, &mut z, d);
+        let x = spd.clone().cholesky().unwrap().solve(&nalgebra::DVector::from_row_slice(&b));
+        for i in 0..d {
+            assert!((z[i] - x[i]).abs() < 1e-10);
+        }
+        // x · L⁻ᵀ · Lᵀ = x.
+        let mut rows = vec![1.0, 2.0, 3.0, 4.0, -1.0, 0.0, 2.0, 1.0];
+        solve_right_transpose(&mut rows, &a, 2, d);
+        let back = nalgebra::DMatrix::from_row_slice(2, d, &rows) * l.transpose();
+        assert!((back[(1, 2)] - 2.0).abs() < 1e-10 && (back[(0, 3)] - 4.0).abs() < 1e-10);
+        let mut indefinite = vec![1.0, 0.0, 2.0, 1.0];
+        assert_eq!(cholesky(&mut indefinite, 2), Err(1));
+    }
+
+    #[test]
+    fn updates_match_the_products() {
+        let (m, d, k) = (2, 3, 2);
+        let a = [1.0, 2.0, 3.0, 4.0];
+        let b = [1.0, 0.0, 0.0, 1.0, 1.0, 1.0];
+        let mut acc = vec![0.0; m * d];
+        sub_mul_transpose(&mut acc, &a, &b, m, d, k);
+        assert_eq!(acc, vec![-1.0, -2.0, -3.0, -3.0, -4.0, -7.0]);
+        let mut y = [0.0, 0.0];
+        sub_mul_vector(&mut y, &a, &[1.0, 1.0], m, k);
+        assert_eq!(y, [-3.0, -7.0]);
+        let mut z = [0.0, 0.0];
+        sub_mul_transpose_vector(&mut z, &a, &[1.0, 1.0], m, k);
+        assert_eq!(z, [-4.0, -6.0]);
+    }
+}
