@@ -115,7 +115,11 @@ mod tests {
         let mut z = b;
         forward(&a, &mut z, d);
         backward(&a, &mut z, d);
-        let x = spd.clone().cholesky().unwrap().solve(&nalgebra::DVector::from_row_slice(&b));
+        let x = spd
+            .clone()
+            .cholesky()
+            .unwrap()
+            .solve(&nalgebra::DVector::from_row_slice(&b));
         for i in 0..d {
             assert!((z[i] - x[i]).abs() < 1e-10);
         }

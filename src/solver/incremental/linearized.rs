@@ -25,12 +25,6 @@ impl Linearized {
     pub fn cols(&self) -> usize {
         self.gradient.len()
     }
-
-    /// Block `(i, j)` (local variable positions) of `gram` as `(first row, first col)`.
-    #[inline]
-    pub fn block_origin(&self, i: usize, j: usize) -> (usize, usize) {
-        (self.col_offset[i], self.col_offset[j])
-    }
 }
 
 /// Scratch buffers reused across factors.

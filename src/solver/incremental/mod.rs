@@ -1,9 +1,373 @@
 //! The incremental engine of a session: a block Cholesky factor that lives between updates,
 //! refactored only along the elimination-tree paths an update touches, with the touched part
 //! reordered so that new variables stay last, and relinearisation only of what moved.
+//!
+//! The estimate is `θ ⊕ Δ`: θ is the linearisation point (per variable), Δ the solution of the
+//! normal equations linearised there. An update
+//! 1. linearises the new factors at θ (a new variable's θ is its initial guess);
+//! 2. relinearises ("fluid relinearisation"): every variable whose `Δ` exceeds the threshold
+//!    (max-norm of its tangent) moves its θ to `θ ⊕ Δ`, and the factors touching it are
+//!    linearised again;
+//! 3. eliminates again the columns of the variables whose `H` entries changed and their
+//!    ancestors in the elimination tree, reordered with the new factors' variables last
+//!    (`ordering`, `block_factor`); the rest of the factor is kept as it is;
+//! 4. solves the whole linear system: forward substitution only where the factor changed (the
+//!    rest of `y` depends only on unchanged subtrees), back substitution from the root down
+//!    into every subtree whose separator moved by more than the wildfire threshold.
+//!
+//! Passes 2–4 repeat while a variable's step still exceeds the relinearisation threshold (up
+//! to `max_passes`), so an update ends at a Gauss-Newton fixed point to that threshold. A
+//! session asks for a tighter threshold when it is idle (`polish`), which ends at the batch
+//! optimum.
 
+mod block_factor;
 mod dense;
 mod linearized;
+mod ordering;
 mod report;
 
+use std::time::Instant;
+
+use block_factor::{Accumulator, BlockFactor};
+use linearized::{linearize_factor, LinearizeScratch, Linearized};
 pub use report::UpdateReport;
+
+use super::SolverError;
+use crate::problem::Problem;
+use crate::variables::Variable;
+
+/// How an update relinearises and solves.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UpdateParams {
+    /// A variable is relinearised when its step's max-norm exceeds this (iSAM2:
+    /// `relinearizeThreshold`, 0.1 by default there).
+    pub relinearize_threshold: f64,
+    /// Back substitution stops descending where a separator moved by less than this
+    /// (iSAM2's wildfire threshold, 0.001 there). 0 solves every column below a change.
+    pub wildfire_threshold: f64,
+    /// Relinearise-and-solve rounds at most.
+    pub max_passes: usize,
+}
+
+impl Default for UpdateParams {
+    fn default() -> Self {
+        Self {
+            relinearize_threshold: 0.01,
+            wildfire_threshold: 1e-7,
+            max_passes: 4,
+        }
+    }
+}
+
+/// The engine: linearisation point, linearised factors, factor, and the solution.
+#[derive(Debug, Default)]
+pub struct IncrementalEngine {
+    theta: Vec<Box<dyn Variable>>,
+    /// In the linear system (not fixed by the client, not a gauge anchor).
+    free: Vec<bool>,
+    /// First scalar of each variable in `delta`, `y` (free ones; dimension 0 otherwise).
+    offset: Vec<usize>,
+    dims: Vec<usize>,
+    delta: Vec<f64>,
+    y: Vec<f64>,
+    linearized: Vec<Linearized>,
+    by_variable: Vec<Vec<u32>>,
+    factor: BlockFactor,
+    /// Σ chi2 of the linearised factors at θ, and yᵀy (their difference is the model chi2).
+    residual_chi2: f64,
+    yty: f64,
+    scratch: LinearizeScratch,
+    /// Scratch marks indexed by variable.
+    mark: Vec<bool>,
+    last: Vec<bool>,
+    local: Vec<u32>,
+}
+
+impl IncrementalEngine {
+    /// Builds the engine at `problem`'s values (usually a converged batch solve) with the
+    /// variables marked in `fixed` held constant, and writes `θ ⊕ Δ` back into the problem.
+    pub fn new(problem: &mut Problem, fixed: &[bool]) -> Result<(Self, UpdateReport), SolverError> {
+        let mut engine = Self::default();
+        let report = engine.advance(problem, Some(fixed), &UpdateParams::default())?;
+        Ok((engine, report))
+    }
+
+    /// Variables this engine knows (those added later join at the next update).
+    pub fn variables(&self) -> usize {
+        self.theta.len()
+    }
+
+    /// Takes the variables and factors appended to `problem` since the last call, relinearises
+    /// and solves (see the module documentation), and writes the changed estimates into the
+    /// problem. On `Err` the engine is unusable: rebuild it with [`IncrementalEngine::new`].
+    pub fn update(
+        &mut self,
+        problem: &mut Problem,
+        params: &UpdateParams,
+    ) -> Result<UpdateReport, SolverError> {
+        self.advance(problem, None, params)
+    }
+
+    /// The variables whose estimate the last update changed are reported through `changed`.
+    fn advance(
+        &mut self,
+        problem: &mut Problem,
+        fixed_at_start: Option<&[bool]>,
+        params: &UpdateParams,
+    ) -> Result<UpdateReport, SolverError> {
+        let mut report = UpdateReport::default();
+        let start = Instant::now();
+        let n = problem.values.len();
+        let known = self.theta.len();
+        report.new_variables = n - known;
+        for v in known..n {
+            let variable = problem.values.variable(v);
+            let is_fixed = match fixed_at_start {
+                Some(fixed) => fixed[v],
+                None => problem.values.is_fixed(v),
+            };
+            let d = if is_fixed { 0 } else { variable.tangent_dim() };
+            self.theta.push(variable.clone_box());
+            self.free.push(!is_fixed);
+            self.offset.push(self.delta.len());
+            self.dims.push(d);
+            self.delta.resize(self.delta.len() + d, 0.0);
+            self.y.resize(self.y.len() + d, 0.0);
+            self.by_variable.push(Vec::new());
+        }
+        self.factor.grow(&self.dims);
+        self.mark.resize(n, false);
+        self.last.resize(n, false);
+        self.local.resize(n, 0);
+        let mut touched: Vec<usize> = (known..n).filter(|&v| self.free[v]).collect();
+        let factors = problem.factors();
+        let first_new = self.linearized.len();
+        report.new_factors = factors.len() - first_new;
+        for (f, entry) in factors.iter().enumerate().skip(first_new) {
+            let mut lin = Linearized::default();
+            linearize_factor(entry, &self.theta, &mut self.scratch, &mut lin)?;
+            self.residual_chi2 += lin.chi2;
+            self.linearized.push(lin);
+            for &v in entry.variables() {
+                self.by_variable[v].push(f as u32);
+                if self.free[v] {
+                    touched.push(v);
+                }
+            }
+        }
+        // The new factors' variables are eliminated last (they are where the next update lands).
+        for &v in &touched {
+            self.last[v] = true;
+        }
+        report.linearize_seconds = start.elapsed().as_secs_f64();
+        let mut changed = Vec::new();
+        for pass in 0..params.max_passes.max(1) {
+            if pass > 0 || known > 0 {
+                self.relinearize(
+                    problem,
+                    params.relinearize_threshold,
+                    &mut touched,
+                    &mut report,
+                )?;
+            }
+            if touched.is_empty() {
+                break;
+            }
+            report.passes += 1;
+            self.solve_pass(problem, &mut touched, params, &mut report, &mut changed)?;
+            self.last.iter_mut().for_each(|l| *l = false);
+        }
+        self.last.iter_mut().for_each(|l| *l = false);
+        // Publish θ ⊕ Δ of what changed.
+        changed.sort_unstable();
+        changed.dedup();
+        for &v in &changed {
+            let (o, d) = (self.offset[v], self.dims[v]);
+            let estimate = problem.values.variable_mut(v);
+            estimate.assign_from(self.theta[v].as_ref());
+            estimate.retract(&self.delta[o..o + d]);
+        }
+        report.changed_variables = changed.len();
+        report.factor_nnz = self.factor.nnz();
+        report.columns = self.free.iter().filter(|&&f| f).count();
+        report.model_chi2 = self.residual_chi2 - self.yty;
+        report.max_delta = self.delta.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        Ok(report)
+    }
+
+    /// Moves θ of every free variable whose step exceeds `threshold` to `θ ⊕ Δ` and linearises
+    /// its factors again; adds their variables to `touched`.
+    fn relinearize(
+        &mut self,
+        problem: &Problem,
+        threshold: f64,
+        touched: &mut Vec<usize>,
+        report: &mut UpdateReport,
+    ) -> Result<(), SolverError> {
+        let start = Instant::now();
+        let mut factors = Vec::new();
+        for v in 0..self.theta.len() {
+            let (o, d) = (self.offset[v], self.dims[v]);
+            let step = &self.delta[o..o + d];
+            if d == 0 || !step.iter().any(|s| s.abs() > threshold) {
+                continue;
+            }
+            self.theta[v].retract(step);
+            // The step now lives in θ. No column outside this update's refactored part has a
+            // block in v's row (such a column's subtree would hold one of v's factors, all of
+            // which are linearised again here), so nothing solved earlier depends on v's Δ.
+            self.delta[o..o + d].fill(0.0);
+            report.relinearized_variables += 1;
+            factors.extend(self.by_variable[v].iter().map(|&f| f as usize));
+        }
+        factors.sort_unstable();
+        factors.dedup();
+        report.relinearized_factors += factors.len();
+        let entries = problem.factors();
+        for &f in &factors {
+            let lin = &mut self.linearized[f];
+            self.residual_chi2 -= lin.chi2;
+            linearize_factor(&entries[f], &self.theta, &mut self.scratch, lin)?;
+            self.residual_chi2 += lin.chi2;
+            touched.extend(entries[f].variables().iter().filter(|&&v| self.free[v]));
+        }
+        report.linearize_seconds += start.elapsed().as_secs_f64();
+        Ok(())
+    }
+}
+
+impl IncrementalEngine {
+    /// One round: refactor the touched variables and their ancestors, then solve.
+    fn solve_pass(
+        &mut self,
+        problem: &Problem,
+        touched: &mut Vec<usize>,
+        params: &UpdateParams,
+        report: &mut UpdateReport,
+        changed: &mut Vec<usize>,
+    ) -> Result<(), SolverError> {
+        let start = Instant::now();
+        let mut affected = Vec::new();
+        for &v in touched.iter() {
+            let mut u = v;
+            while !self.mark[u] {
+                self.mark[u] = true;
+                affected.push(u);
+                match self.factor.parent(u) {
+                    Some(p) => u = p,
+                    None => break,
+                }
+            }
+        }
+        touched.clear();
+        let entries = problem.factors();
+        let reaching = self.factor.reaching(&affected, &self.mark);
+        let cliques: Vec<Vec<usize>> = reaching
+            .iter()
+            .map(|&k| self.factor.rows_of(k).filter(|&u| self.mark[u]).collect())
+            .filter(|c: &Vec<usize>| c.len() > 1)
+            .collect();
+        let (by_variable, mark) = (&self.by_variable, &self.mark);
+        let order = ordering::order_affected(
+            &affected,
+            |v, out| {
+                for &f in &by_variable[v] {
+                    out.extend(
+                        entries[f as usize]
+                            .variables()
+                            .iter()
+                            .filter(|&&u| u != v && mark[u]),
+                    );
+                }
+            },
+            &cliques,
+            &self.last,
+            &mut self.local,
+        );
+        report.order_seconds += start.elapsed().as_secs_f64();
+
+        let start = Instant::now();
+        let (linearized, free, dims) = (&self.linearized, &self.free, &self.dims);
+        let assemble = |r: usize, rank: &[u64], acc: &mut Accumulator| {
+            let dr = dims[r];
+            for &f in &by_variable[r] {
+                let (lin, vars) = (&linearized[f as usize], entries[f as usize].variables());
+                let Some(i) = vars.iter().position(|&v| v == r) else {
+                    continue;
+                };
+                let cols = lin.cols();
+                let ci = lin.col_offset[i];
+                add_block(acc.diagonal_mut(), &lin.gram, cols, (ci, ci), (dr, dr));
+                for (j, &u) in vars.iter().enumerate() {
+                    if j != i && free[u] && rank[u] > rank[r] {
+                        let du = dims[u];
+                        let block = acc.block_mut(u, du);
+                        add_block(block, &lin.gram, cols, (lin.col_offset[j], ci), (du, dr));
+                    }
+                }
+            }
+        };
+        self.factor
+            .refactor(&order, &self.mark, assemble)
+            .map_err(|e| SolverError::IndeterminateSystem {
+                keys: vec![problem.values.key(e.0)],
+            })?;
+        self.factor.reparent(&reaching);
+        report.factorize_seconds += start.elapsed().as_secs_f64();
+
+        let start = Instant::now();
+        for &r in &order {
+            let (o, d) = (self.offset[r], self.dims[r]);
+            self.yty -= self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
+        }
+        let (linearized, by_variable) = (&self.linearized, &self.by_variable);
+        self.factor
+            .forward(&order, &self.offset, &mut self.y, |r, out| {
+                for &f in &by_variable[r] {
+                    let (lin, vars) = (&linearized[f as usize], entries[f as usize].variables());
+                    if let Some(i) = vars.iter().position(|&v| v == r) {
+                        let c = lin.col_offset[i];
+                        for (o, g) in out.iter_mut().zip(&lin.gradient[c..]) {
+                            *o -= g;
+                        }
+                    }
+                }
+            });
+        for &r in &order {
+            let (o, d) = (self.offset[r], self.dims[r]);
+            self.yty += self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
+        }
+        report.solved_columns += self.factor.back_substitute(
+            &self.mark,
+            &self.offset,
+            &self.y,
+            &mut self.delta,
+            params.wildfire_threshold,
+            changed,
+        );
+        report.solve_seconds += start.elapsed().as_secs_f64();
+        report.refactored_columns += affected.len();
+        report.reused_subtrees += reaching.len();
+        for &v in &affected {
+            self.mark[v] = false;
+        }
+        Ok(())
+    }
+}
+
+/// `dst (rows × cols of the block) += gram[origin..]` for a block of a factor's Gram matrix
+/// (`stride` columns, row-major).
+fn add_block(
+    dst: &mut [f64],
+    gram: &[f64],
+    stride: usize,
+    (row0, col0): (usize, usize),
+    (rows, cols): (usize, usize),
+) {
+    for i in 0..rows {
+        let source = &gram[(row0 + i) * stride + col0..(row0 + i) * stride + col0 + cols];
+        for (d, s) in dst[i * cols..(i + 1) * cols].iter_mut().zip(source) {
+            *d += s;
+        }
+    }
+}

@@ -1,0 +1,360 @@
+//! The block Cholesky factor `L` of the normal equations that a session keeps between updates,
+//! with its elimination tree.
+//!
+//! Column `v` of `L` (one per free variable) holds the diagonal block `L_vv` and the blocks
+//! `L_uv` of the variables `u` eliminated after `v` that it reaches. The order is a *rank* per
+//! variable; an update gives fresh ranks, above every other, to the columns it eliminates
+//! again. Why only those change (the argument of iSAM2's Bayes tree, Kaess et al. 2012): a
+//! column depends only on `H`'s entries in its own subtree of the elimination tree and on the
+//! columns of that subtree. An update changes `H` at the variables it touches, so exactly their
+//! columns and those of their ancestors (the path to the root) change; every other column keeps
+//! its values and its row structure (its neighbours eliminated before it are its descendants, so
+//! they stay before it, and its ancestors, wherever they move, stay after it).
+//!
+//! Elimination is left-looking: column `r` is `H`'s column minus `Σ_k L_{·k} L_rkᵀ` over the
+//! columns `k` that reach row `r` (kept per row in `row_columns`), so the refactored part takes
+//! the untouched subtrees' contributions straight from their stored columns.
+
+use std::collections::BTreeSet;
+
+use super::dense;
+
+const NONE: u32 = u32::MAX;
+
+/// One column of `L`.
+#[derive(Debug, Default, Clone)]
+pub struct Column {
+    /// `L_vv`, d×d lower triangular, row-major.
+    pub diagonal: Vec<f64>,
+    /// `(u, offset)`: block `L_uv` (d_u × d_v, row-major) starts at `blocks[offset]`.
+    pub rows: Vec<(u32, u32)>,
+    pub blocks: Vec<f64>,
+}
+
+/// Where a column's `H` entries are gathered while it is eliminated.
+#[derive(Debug, Default)]
+pub struct Accumulator {
+    dim: usize,
+    diagonal: Vec<f64>,
+    slot: Vec<u32>,
+    entries: Vec<(u32, u32)>,
+    buffer: Vec<f64>,
+}
+
+impl Accumulator {
+    fn start(&mut self, dim: usize, variables: usize) {
+        self.dim = dim;
+        self.diagonal.clear();
+        self.diagonal.resize(dim * dim, 0.0);
+        self.slot.resize(variables, NONE);
+        self.entries.clear();
+        self.buffer.clear();
+    }
+
+    /// The diagonal block (d×d, row-major; only its lower triangle is read).
+    pub fn diagonal_mut(&mut self) -> &mut [f64] {
+        &mut self.diagonal
+    }
+
+    /// Block `(u, v)` of the column being eliminated, `du × d_v`, created zero on first use.
+    pub fn block_mut(&mut self, u: usize, du: usize) -> &mut [f64] {
+        let d = self.dim;
+        if self.slot[u] == NONE {
+            self.slot[u] = self.entries.len() as u32;
+            self.entries.push((u as u32, self.buffer.len() as u32));
+            self.buffer.resize(self.buffer.len() + du * d, 0.0);
+        }
+        let offset = self.entries[self.slot[u] as usize].1 as usize;
+        &mut self.buffer[offset..offset + du * d]
+    }
+
+    fn finish(&mut self) {
+        for &(u, _) in &self.entries {
+            self.slot[u as usize] = NONE;
+        }
+    }
+}
+
+/// The factor, its order and its elimination tree. Variables are the problem's dense indices;
+/// a variable of dimension 0 (fixed, or not yet added) has no column.
+#[derive(Debug, Default)]
+pub struct BlockFactor {
+    pub dim: Vec<usize>,
+    /// Elimination order: a variable's column comes after every column of lower rank.
+    pub rank: Vec<u64>,
+    next_rank: u64,
+    pub columns: Vec<Column>,
+    /// For each variable `u`, the columns `k` with a block `L_uk` (its row's structure).
+    row_columns: Vec<Vec<u32>>,
+    parent: Vec<u32>,
+    children: Vec<Vec<u32>>,
+    roots: BTreeSet<u32>,
+    accumulator: Accumulator,
+    changed: Vec<bool>,
+    /// Scalar nonzeros of L.
+    nnz: usize,
+}
+
+/// The variable whose pivot failed: `H` is not positive definite in its column.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NotPositiveDefinite(pub usize);
+
+impl BlockFactor {
+    /// Room for `n` variables; new ones have dimension `dims[v]` (0: not in the system).
+    pub fn grow(&mut self, dims: &[usize]) {
+        let n = dims.len();
+        let old = self.dim.len();
+        self.dim.extend_from_slice(&dims[old..]);
+        self.rank.resize(n, 0);
+        self.columns.resize_with(n, Column::default);
+        self.row_columns.resize_with(n, Vec::new);
+        self.parent.resize(n, NONE);
+        self.children.resize_with(n, Vec::new);
+        self.changed.resize(n, false);
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.nnz
+    }
+
+    pub fn parent(&self, v: usize) -> Option<usize> {
+        (self.parent[v] != NONE).then_some(self.parent[v] as usize)
+    }
+
+    /// The untouched columns with a block in a row of `affected` (marked in `in_affected`):
+    /// the roots of the subtrees an update keeps, and any deeper column reaching that high.
+    pub fn reaching(&self, affected: &[usize], in_affected: &[bool]) -> Vec<usize> {
+        let mut seen = BTreeSet::new();
+        for &r in affected {
+            for &k in &self.row_columns[r] {
+                if !in_affected[k as usize] {
+                    seen.insert(k as usize);
+                }
+            }
+        }
+        seen.into_iter().collect()
+    }
+
+    /// The rows of column `k` (variables).
+    pub fn rows_of(&self, k: usize) -> impl Iterator<Item = usize> + '_ {
+        self.columns[k].rows.iter().map(|&(u, _)| u as usize)
+    }
+
+    /// Eliminates the columns of `order` again, in that order, after every other column: drops
+    /// their old values, gives them fresh ranks, and gathers `H`'s entries of column `r` with
+    /// `assemble(r, rank, accumulator)` (which must add the blocks `(u, r)` for every `u` of
+    /// higher rank that shares a factor with `r`, and the diagonal). Every ancestor of a
+    /// variable in `order` must be in it. On `Err` the factor is unusable (rebuild it).
+    pub fn refactor(
+        &mut self,
+        order: &[usize],
+        in_order: &[bool],
+        mut assemble: impl FnMut(usize, &[u64], &mut Accumulator),
+    ) -> Result<(), NotPositiveDefinite> {
+        // Forget the old columns (their rows are all in `order`: ancestors of affected columns).
+        for &r in order {
+            let old = std::mem::take(&mut self.columns[r]);
+            self.nnz -= self.column_nnz(r, &old);
+            self.row_columns[r].retain(|&k| !in_order[k as usize]);
+            self.children[r].retain(|&c| !in_order[c as usize]);
+            self.roots.remove(&(r as u32));
+            self.parent[r] = NONE;
+        }
+        for &r in order {
+            self.rank[r] = self.next_rank;
+            self.next_rank += 1;
+        }
+        let mut acc = std::mem::take(&mut self.accumulator);
+        let result = (|| {
+            for &r in order {
+                let d = self.dim[r];
+                acc.start(d, self.dim.len());
+                assemble(r, &self.rank, &mut acc);
+                let rank_r = self.rank[r];
+                for &k in &self.row_columns[r] {
+                    let column = &self.columns[k as usize];
+                    let dk = self.dim[k as usize];
+                    let at = column
+                        .rows
+                        .iter()
+                        .find(|&&(u, _)| u as usize == r)
+                        .map(|&(_, o)| o as usize)
+                        .expect("row_columns lists only columns with a block in that row");
+                    let l_rk = &column.blocks[at..at + d * dk];
+                    dense::sub_mul_transpose(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
+                    for &(u, o) in &column.rows {
+                        let u = u as usize;
+                        if self.rank[u] > rank_r {
+                            let du = self.dim[u];
+                            let l_uk = &column.blocks[o as usize..o as usize + du * dk];
+                            dense::sub_mul_transpose(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
+                        }
+                    }
+                }
+                if dense::cholesky(&mut acc.diagonal, d).is_err() {
+                    acc.finish();
+                    return Err(NotPositiveDefinite(r));
+                }
+                let mut parent = NONE;
+                for &(u, o) in &acc.entries {
+                    let du = self.dim[u as usize];
+                    let o = o as usize;
+                    dense::solve_right_transpose(
+                        &mut acc.buffer[o..o + du * d],
+                        &acc.diagonal,
+                        du,
+                        d,
+                    );
+                    self.row_columns[u as usize].push(r as u32);
+                    if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
+                        parent = u;
+                    }
+                }
+                let column = Column {
+                    diagonal: acc.diagonal.clone(),
+                    rows: acc.entries.clone(),
+                    blocks: acc.buffer.clone(),
+                };
+                acc.finish();
+                self.nnz += self.column_nnz(r, &column);
+                self.columns[r] = column;
+                self.set_parent(r, parent);
+            }
+            Ok(())
+        })();
+        self.accumulator = acc;
+        result
+    }
+
+    /// After [`BlockFactor::refactor`]: the untouched columns `reaching` the refactored part
+    /// keep their values, but their parent (the lowest-ranked row) may have moved.
+    pub fn reparent(&mut self, reaching: &[usize]) {
+        for &u in reaching {
+            let parent = self.columns[u]
+                .rows
+                .iter()
+                .map(|&(p, _)| p)
+                .min_by_key(|&p| self.rank[p as usize])
+                .unwrap_or(NONE);
+            if parent != self.parent[u] {
+                if self.parent[u] != NONE {
+                    let old = self.parent[u] as usize;
+                    self.children[old].retain(|&c| c as usize != u);
+                } else {
+                    self.roots.remove(&(u as u32));
+                }
+                self.parent[u] = NONE;
+                self.set_parent(u, parent);
+            }
+        }
+    }
+
+    fn set_parent(&mut self, v: usize, parent: u32) {
+        self.parent[v] = parent;
+        if parent == NONE {
+            self.roots.insert(v as u32);
+        } else {
+            self.children[parent as usize].push(v as u32);
+        }
+    }
+
+    fn column_nnz(&self, v: usize, column: &Column) -> usize {
+        let d = self.dim[v];
+        if column.diagonal.is_empty() {
+            return 0;
+        }
+        d * (d + 1) / 2 + column.blocks.len()
+    }
+
+    /// Forward substitution `L y = b` for the columns of `order` (in that order), whose
+    /// right-hand side `rhs(r, out)` writes; every other column keeps its `y` (it depends only
+    /// on its subtree). `y` and `offset` index scalars per variable.
+    pub fn forward(
+        &self,
+        order: &[usize],
+        offset: &[usize],
+        y: &mut [f64],
+        mut rhs: impl FnMut(usize, &mut [f64]),
+    ) {
+        let mut z = Vec::new();
+        for &r in order {
+            let d = self.dim[r];
+            z.clear();
+            z.resize(d, 0.0);
+            rhs(r, &mut z);
+            for &k in &self.row_columns[r] {
+                let column = &self.columns[k as usize];
+                let dk = self.dim[k as usize];
+                let &(_, at) = column
+                    .rows
+                    .iter()
+                    .find(|&&(u, _)| u as usize == r)
+                    .expect("row_columns lists only columns with a block in that row");
+                let l_rk = &column.blocks[at as usize..at as usize + d * dk];
+                let o = offset[k as usize];
+                dense::sub_mul_vector(&mut z, l_rk, &y[o..o + dk], d, dk);
+            }
+            dense::forward(&self.columns[r].diagonal, &mut z, d);
+            y[offset[r]..offset[r] + d].copy_from_slice(&z);
+        }
+    }
+
+    /// Back substitution `Lᵀ x = y` from the roots down, into `x` (which holds the previous
+    /// solution). A column is solved again when it was refactored (`in_order`) or when one of
+    /// its rows changed by more than `threshold` (max-norm); its subtree is entered only then.
+    /// `threshold = 0` solves every column below a change. Returns the columns solved and
+    /// appends those whose value changed by more than `threshold` (or were refactored) to
+    /// `changed_out`.
+    pub fn back_substitute(
+        &mut self,
+        in_order: &[bool],
+        offset: &[usize],
+        y: &[f64],
+        x: &mut [f64],
+        threshold: f64,
+        changed_out: &mut Vec<usize>,
+    ) -> usize {
+        let mut stack: Vec<u32> = self.roots.iter().copied().collect();
+        let mut solved = 0;
+        let mut z = Vec::new();
+        let first_changed = changed_out.len();
+        while let Some(v) = stack.pop() {
+            let v = v as usize;
+            let column = &self.columns[v];
+            let refactored = in_order[v];
+            if !refactored && !column.rows.iter().any(|&(u, _)| self.changed[u as usize]) {
+                continue;
+            }
+            let d = self.dim[v];
+            let o = offset[v];
+            z.clear();
+            z.extend_from_slice(&y[o..o + d]);
+            for &(u, at) in &column.rows {
+                let du = self.dim[u as usize];
+                let ou = offset[u as usize];
+                let l_uv = &column.blocks[at as usize..at as usize + du * d];
+                dense::sub_mul_transpose_vector(&mut z, l_uv, &x[ou..ou + du], du, d);
+            }
+            dense::backward(&column.diagonal, &mut z, d);
+            solved += 1;
+            let moved = z
+                .iter()
+                .zip(&x[o..o + d])
+                .any(|(a, b)| (a - b).abs() > threshold);
+            x[o..o + d].copy_from_slice(&z);
+            if moved || refactored {
+                changed_out.push(v);
+            }
+            if moved {
+                self.changed[v] = true;
+            }
+            if moved || refactored {
+                stack.extend_from_slice(&self.children[v]);
+            }
+        }
+        for &v in &changed_out[first_changed..] {
+            self.changed[v] = false;
+        }
+        solved
+    }
+}

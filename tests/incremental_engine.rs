@@ -1,0 +1,171 @@
+//! The incremental engine against a batch solve of the same factors: a Manhattan-world 2D pose
+//! graph with loop closures streamed pose by pose (each pose with every edge whose later end
+//! it is, its value predicted from odometry), then compared with `solver::optimize` on the
+//! whole graph. Also checks that updates stay local: an odometry step refactors a handful of
+//! columns, not the map.
+
+use std::ops::ControlFlow;
+
+use factord::factors::BetweenSe2;
+use factord::geometry::Se2;
+use factord::problem::Problem;
+use factord::solver::incremental::{IncrementalEngine, UpdateParams};
+use factord::solver::{optimize, SolverOptions};
+use nalgebra::DMatrix;
+
+/// A deterministic pseudo-random sequence (no dependency for a test generator).
+struct Lcg(u64);
+impl Lcg {
+    fn uniform(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn normal(&mut self) -> f64 {
+        let (u, v) = (self.uniform().max(1e-300), self.uniform());
+        (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+    }
+}
+
+/// Poses on a grid walk (unit steps, random turns), edges: odometry and, whenever the robot is
+/// back on a cell it visited, a loop closure to the earliest visit. Measurements are the true
+/// relative poses with noise.
+fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
+    let mut rng = Lcg(seed);
+    let mut truth = vec![Se2::new(0.0, 0.0, 0.0)];
+    let mut visited = std::collections::HashMap::new();
+    visited.insert((0i64, 0i64), 0usize);
+    let mut edges = Vec::new();
+    let (mut x, mut y, mut heading) = (0i64, 0i64, 0i64);
+    for k in 1..poses {
+        let r = rng.uniform();
+        heading = (heading
+            + if r < 0.15 {
+                1
+            } else if r < 0.3 {
+                3
+            } else {
+                0
+            })
+            % 4;
+        let (dx, dy) = [(1, 0), (0, 1), (-1, 0), (0, -1)][heading as usize];
+        x += dx;
+        y += dy;
+        let theta = heading as f64 * std::f64::consts::FRAC_PI_2;
+        truth.push(Se2::new(
+            x as f64,
+            y as f64,
+            factord::geometry::wrap_angle(theta),
+        ));
+        let noisy = |rng: &mut Lcg, a: &Se2, b: &Se2| {
+            let z = a.inverse().compose(b);
+            Se2::new(
+                z.x + 0.02 * rng.normal(),
+                z.y + 0.02 * rng.normal(),
+                z.theta + 0.01 * rng.normal(),
+            )
+        };
+        edges.push((k - 1, k, noisy(&mut rng, &truth[k - 1], &truth[k])));
+        if let Some(&j) = visited.get(&(x, y)) {
+            if j + 5 < k {
+                edges.push((j, k, noisy(&mut rng, &truth[j], &truth[k])));
+            }
+        } else {
+            visited.insert((x, y), k);
+        }
+    }
+    (truth, edges)
+}
+
+fn information() -> DMatrix<f64> {
+    DMatrix::from_diagonal(&nalgebra::DVector::from_vec(vec![2500.0, 2500.0, 10000.0]))
+}
+
+fn add_edge(problem: &mut Problem, (i, j, z): &(usize, usize, Se2)) {
+    problem
+        .add_factor(
+            Box::new(BetweenSe2::new(*i as u64, *j as u64, *z)),
+            &information(),
+            None,
+            format!("{i}-{j}"),
+        )
+        .unwrap();
+}
+
+fn batch_optimum(poses: usize, edges: &[(usize, usize, Se2)], truth: &[Se2]) -> f64 {
+    let mut problem = Problem::new();
+    for (k, t) in truth.iter().enumerate().take(poses) {
+        problem.add_variable(k as u64, Box::new(*t)).unwrap();
+    }
+    problem.set_fixed(0, true).unwrap();
+    for e in edges.iter().filter(|e| e.1 < poses) {
+        add_edge(&mut problem, e);
+    }
+    let options = SolverOptions {
+        function_tolerance: 1e-12,
+        ..Default::default()
+    };
+    optimize(&mut problem, &options, &mut |_| ControlFlow::Continue(())).unwrap();
+    problem.chi2()
+}
+
+#[test]
+fn streamed_graph_reaches_the_batch_optimum() {
+    let poses = 1500;
+    let (truth, edges) = manhattan(poses, 7);
+    let loops = edges.iter().filter(|e| e.1 != e.0 + 1).count();
+    assert!(loops > 100, "the walk closes loops ({loops})");
+    let mut problem = Problem::new();
+    problem.add_variable(0, Box::new(truth[0])).unwrap();
+    problem.set_fixed(0, true).unwrap();
+    let (mut engine, _) = IncrementalEngine::new(&mut problem, &[true]).unwrap();
+    let params = UpdateParams::default();
+    let mut odometry_columns = Vec::new();
+    let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
+    for e in &edges {
+        by_later_end[e.1].push(e);
+    }
+    for k in 1..poses {
+        let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
+        let odometry = by_later_end[k].iter().find(|e| e.0 == k - 1).unwrap();
+        problem
+            .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
+            .unwrap();
+        for e in &by_later_end[k] {
+            add_edge(&mut problem, e);
+        }
+        let report = engine.update(&mut problem, &params).unwrap();
+        if by_later_end[k].len() == 1 && report.relinearized_variables == 0 {
+            odometry_columns.push(report.refactored_columns);
+        }
+    }
+    // Odometry-only updates refactor the new pose and the previous root, nothing more.
+    odometry_columns.sort_unstable();
+    let median = odometry_columns[odometry_columns.len() / 2];
+    assert!(
+        median <= 3,
+        "odometry updates refactored a median of {median} columns"
+    );
+
+    let optimum = batch_optimum(poses, &edges, &truth);
+    let streamed = problem.chi2();
+    assert!(
+        (streamed - optimum) / optimum < 1e-3,
+        "streamed chi2 {streamed} vs batch {optimum}"
+    );
+    // Polishing (a tight relinearisation threshold) ends at the batch optimum.
+    let polish = UpdateParams {
+        relinearize_threshold: 1e-6,
+        wildfire_threshold: 0.0,
+        max_passes: 20,
+    };
+    let report = engine.update(&mut problem, &polish).unwrap();
+    let polished = problem.chi2();
+    assert!(
+        (polished - optimum).abs() / optimum < 1e-6,
+        "polished chi2 {polished} vs batch {optimum} ({report:?})"
+    );
+    assert!((report.model_chi2 - polished).abs() / polished < 1e-6);
+}
