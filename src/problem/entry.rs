@@ -23,6 +23,17 @@ impl FactorEntry {
         &self.variables
     }
 
+    /// Estimated bytes this entry holds: the entry, the boxed factor (about 96 bytes), the
+    /// square-root information, the variable indices and the label. An estimate from sizes,
+    /// not an allocator count; a problem keeps the sum as factors come and go.
+    pub fn estimated_bytes(&self) -> usize {
+        let r = self.factor.residual_dim();
+        std::mem::size_of::<FactorEntry>()
+            + 96
+            + 8 * (r * r + self.variables.len())
+            + self.label.len()
+    }
+
     /// Whitened, robustified squared error `ρ(‖R e‖²)` at `variables` (the chi2 contribution).
     pub fn chi2(
         &self,

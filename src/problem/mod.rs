@@ -57,6 +57,9 @@ pub struct Problem {
     /// Kinds of landmark-like variables the linear solver eliminates first by Schur complement
     /// (`"point3"` in bundle adjustment). Empty: none.
     pub eliminate: Vec<&'static str>,
+    /// Σ [`FactorEntry::estimated_bytes`] over `factors`, kept as they are added and removed so
+    /// a size estimate never walks the problem.
+    factor_bytes: usize,
 }
 
 /// What the solver does about directions in which the cost is flat as a whole (a pose graph
@@ -183,13 +186,15 @@ impl Problem {
                 return Err(ProblemError::NonFiniteMeasurement { factor: label });
             }
         }
-        self.factors.push(FactorEntry {
+        let entry = FactorEntry {
             factor,
             sqrt_information,
             robust,
             label,
             variables,
-        });
+        };
+        self.factor_bytes += entry.estimated_bytes();
+        self.factors.push(entry);
         Ok(self.factors.len() - 1)
     }
 
@@ -233,10 +238,21 @@ impl Problem {
     /// Keeps the factors for which `keep(index)` is true, in order.
     pub fn retain_factors(&mut self, mut keep: impl FnMut(usize) -> bool) {
         let mut index = 0;
-        self.factors.retain(|_| {
+        let mut removed_bytes = 0;
+        self.factors.retain(|f| {
             index += 1;
-            keep(index - 1)
+            let kept = keep(index - 1);
+            if !kept {
+                removed_bytes += f.estimated_bytes();
+            }
+            kept
         });
+        self.factor_bytes -= removed_bytes;
+    }
+
+    /// Estimated bytes the factors hold (Σ [`FactorEntry::estimated_bytes`]), in O(1).
+    pub fn factor_bytes(&self) -> usize {
+        self.factor_bytes
     }
 
     /// Sets every factor's robust kernel (the CLI's `--robust`).
