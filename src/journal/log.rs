@@ -125,6 +125,12 @@ impl LogWriter {
         Ok(())
     }
 
+    /// Appends to `file` from now on: the journal's new file (see `compact`), holding `bytes`.
+    pub(super) fn replace_file(&mut self, file: File, bytes: u64) {
+        self.file = Arc::new(file);
+        self.bytes = bytes;
+    }
+
     /// The file handle, for a background syncer under `Fsync::Interval`.
     pub fn handle(&self) -> Arc<File> {
         Arc::clone(&self.file)

@@ -26,14 +26,17 @@
 //!
 //! Layer 7: imports `api` (entries are its wire types); never `session` or above.
 
+pub mod compact;
 pub mod log;
 
+use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+pub use compact::Compaction;
 pub use log::{read_log, Fsync, LogWriter};
 
 use crate::api::fusion::FusionMessage;
@@ -92,6 +95,26 @@ pub struct Snapshot {
     pub variables: Vec<VariableSpec>,
     /// Every live factor with its id, in its wire form.
     pub factors: Vec<(FactorId, FactorSpec)>,
+}
+
+/// A [`Snapshot`] written from borrowed parts (the factors straight from the map that keeps
+/// them): the same JSON, without copying a large session to write it.
+#[derive(Serialize)]
+pub struct SnapshotOut<'a> {
+    pub sequence: u64,
+    pub next_factor_id: FactorId,
+    pub auto_optimize: AutoOptimize,
+    pub variables: &'a [VariableSpec],
+    #[serde(serialize_with = "factors_in_order")]
+    pub factors: &'a BTreeMap<FactorId, FactorSpec>,
+}
+
+/// `[[id, spec], ...]` in id order, as `Vec<(FactorId, FactorSpec)>` is written.
+fn factors_in_order<S: serde::Serializer>(
+    factors: &&BTreeMap<FactorId, FactorSpec>,
+    serializer: S,
+) -> Result<S::Ok, S::Error> {
+    serializer.collect_seq(factors.iter())
 }
 
 /// Who a session directory's session is: read at start, before it is listed.
@@ -372,17 +395,12 @@ impl SessionDir {
         })
     }
 
-    /// Makes `snapshot` durable, then empties the journal it makes redundant. A crash between
-    /// the two leaves entries the snapshot already holds; replay skips them by sequence.
-    pub fn write_snapshot(
-        &self,
-        snapshot: &Snapshot,
-        journal: &mut LogWriter,
-    ) -> Result<(), JournalError> {
-        let bytes = serde_json::to_vec(snapshot).expect("serialisable");
-        write_atomically(&self.dir.join("snapshot.json"), &bytes)?;
-        journal.clear().map_err(io_at(journal.path()))?;
-        Ok(())
+    /// Makes a serialised snapshot (a [`SnapshotOut`]) durable: written to a temporary file,
+    /// fsynced, renamed over the last one. The journal is compacted afterwards (see
+    /// [`Compaction`]); a crash between the two leaves records the snapshot already holds,
+    /// which replay skips by sequence.
+    pub fn write_snapshot(&self, bytes: &[u8]) -> Result<(), JournalError> {
+        write_atomically(&self.dir.join("snapshot.json"), bytes)
     }
 }
 
@@ -400,4 +418,35 @@ fn sync_dir(dir: &Path) -> Result<(), JournalError> {
     File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(io_at(dir))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_snapshot_written_from_borrowed_parts_reads_back_as_a_snapshot() {
+        let factor: FactorSpec = serde_json::from_value(serde_json::json!({"type": "between_se2",
+            "keys": [0, 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}))
+        .unwrap();
+        let factors = BTreeMap::from([(7, factor.clone()), (3, factor)]);
+        let variables: Vec<VariableSpec> = serde_json::from_value(serde_json::json!([
+            {"key": 0, "kind": "se2", "value": [0, 0, 0], "fixed": true},
+            {"key": 1, "kind": "se2", "value": [1, 0, 0]}]))
+        .unwrap();
+        let bytes = serde_json::to_vec(&SnapshotOut {
+            sequence: 12,
+            next_factor_id: 8,
+            auto_optimize: AutoOptimize::Manual {},
+            variables: &variables,
+            factors: &factors,
+        })
+        .unwrap();
+        let read: Snapshot = serde_json::from_slice(&bytes).unwrap();
+        assert_eq!((read.sequence, read.next_factor_id), (12, 8));
+        assert_eq!(read.factors.iter().map(|f| f.0).collect::<Vec<_>>(), [3, 7]);
+        assert_eq!(read.variables.len(), 2);
+        assert!(read.variables[0].fixed);
+        assert_eq!(read.factors[1].1.keys, [0, 1]);
+    }
 }

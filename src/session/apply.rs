@@ -87,7 +87,7 @@ impl Session {
             .map(|id| id + 1)
             .fold(st.next_factor_id, u64::max);
         if let (Some(d), Some(copy)) = (durable.as_mut(), wire_copy) {
-            d.track_factors(copy.factors, &factor_ids, &prepared.remove);
+            d.track(copy.factors, &factor_ids, &prepared);
         }
         // Mirror first: later batches validate against it even while this one waits.
         let mut new_values = Vec::new();
@@ -101,15 +101,20 @@ impl Session {
                 fixed: *fixed,
             };
             new_values.push(value_of(*key, &entry));
-            st.mirror.insert(*key, entry);
+            st.mirror_values += entry.value.len();
+            if let Some(old) = st.mirror.insert(*key, entry) {
+                st.mirror_values -= old.value.len();
+            }
         }
         for (key, v) in &prepared.guesses {
             let value = catalogue::encode_variable(v.as_ref());
             let entry = st.mirror.get_mut(key).expect("validated");
+            let resized = value.len() as isize - entry.value.len() as isize;
             entry.initial = inspect::position(entry.kind, &value);
             entry.value = value;
             entry.changed = sequence;
             new_values.push(value_of(*key, entry));
+            st.mirror_values = st.mirror_values.saturating_add_signed(resized);
         }
         for &(key, fixed) in &prepared.fix {
             st.mirror.get_mut(&key).expect("validated").fixed = fixed;
@@ -151,7 +156,7 @@ impl Session {
         self.maybe_schedule(&mut st);
         let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
         if let (Some(d), true) = (durable.as_mut(), journal) {
-            d.maybe_snapshot(&self.name, &st);
+            d.maybe_snapshot(self, &st);
         }
         Ok((ack, will_solve))
     }

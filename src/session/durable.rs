@@ -1,10 +1,12 @@
 //! A session on disk: its journal entries are appended (under the session lock, so in sequence
 //! order) before updates are acknowledged, snapshots compact the journal, and a session is
 //! rebuilt at start from its snapshot plus the entries after it (see `crate::journal`).
+//! Snapshots are written off the session lock: `snapshot.rs`.
 
-use std::collections::BTreeMap;
+mod snapshot;
+
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::batch::PreparedBatch;
@@ -12,11 +14,10 @@ use super::engine::Engine;
 use super::{Session, State};
 use crate::api::catalogue;
 use crate::api::fusion::FusionBatch;
-use crate::api::wire::{AutoOptimize, Batch, FactorId, FactorSpec, VariableSpec};
+use crate::api::wire::{AutoOptimize, Batch, FactorId, FactorSpec};
 use crate::api::ServiceError;
-use crate::journal::{
-    Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir, Snapshot,
-};
+use crate::journal::{Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir};
+use snapshot::{Base, Capture, Change, Files};
 
 /// What makes a session durable: its directory, its open journal and the policy.
 pub struct Durability {
@@ -41,8 +42,16 @@ pub(super) struct Durable {
     dir: SessionDir,
     journal: LogWriter,
     config: JournalConfig,
-    /// Wire form of every live factor, for snapshots.
-    factor_specs: BTreeMap<FactorId, FactorSpec>,
+    /// What was journalled since the last snapshot's capture, for the next one.
+    changes: Vec<Change>,
+    changes_bytes: usize,
+    /// The variables and factors as of the last capture; out (`None`) while a snapshot is being
+    /// written, which is what keeps snapshots one at a time.
+    base: Option<Box<Base>>,
+    /// Estimated bytes of the base, and of the changes a snapshot in flight is applying to it.
+    base_bytes: usize,
+    in_flight_bytes: usize,
+    files: Files,
     entries_since_snapshot: u64,
     /// Time the last append spent in fsync.
     pub(super) last_fsync: Duration,
@@ -94,70 +103,93 @@ impl Durable {
         Ok(batch)
     }
 
-    pub(super) fn track_factors(
+    /// Records what a snapshot must hold of an accepted batch: its variables (kind, fixed), its
+    /// fixes, its factors under their ids and its removals, in the order they are applied.
+    pub(super) fn track(
         &mut self,
         specs: Vec<FactorSpec>,
         ids: &[FactorId],
-        removed: &[FactorId],
+        prepared: &PreparedBatch,
     ) {
-        self.factor_specs.extend(ids.iter().copied().zip(specs));
-        for id in removed {
-            self.factor_specs.remove(id);
+        let variables = prepared
+            .variables
+            .iter()
+            .map(|(key, v, fixed)| Change::Variable {
+                key: *key,
+                kind: v.kind(),
+                fixed: *fixed,
+            });
+        let fixes = prepared
+            .fix
+            .iter()
+            .map(|&(key, fixed)| Change::Fix { key, fixed });
+        let factors = ids
+            .iter()
+            .zip(specs)
+            .map(|(&id, spec)| Change::Factor { id, spec });
+        let removals = prepared.remove.iter().map(|&id| Change::Remove { id });
+        for change in variables.chain(fixes).chain(factors).chain(removals) {
+            self.changes_bytes += change.bytes();
+            self.changes.push(change);
         }
     }
 
-    /// Writes a snapshot once enough entries have accumulated. A failure leaves the journal
-    /// (which holds everything) in place and is only logged.
+    /// Starts a snapshot once enough entries have accumulated and none is being written: takes
+    /// what it needs in O(1) and writes it on a blocking thread (see `snapshot.rs`). A failure
+    /// there leaves the journal (which holds everything) in place and is only logged; the next
+    /// snapshot is tried `snapshot_every` entries later.
     ///
     /// Only graph sessions snapshot (batches are their only entries besides the policy): a
     /// window's state is more than variables and factors (its pre-integration, marginalisation
     /// priors), so it is rebuilt by replaying its messages.
-    pub(super) fn maybe_snapshot(&mut self, name: &str, st: &State) {
+    pub(super) fn maybe_snapshot(&mut self, session: &Arc<Session>, st: &State) {
         if self.entries_since_snapshot < self.config.snapshot_every {
             return;
         }
-        let snapshot = Snapshot {
+        let Some(base) = self.base.take() else {
+            return; // one is being written
+        };
+        let capture = Capture {
             sequence: st.sequence,
             next_factor_id: st.next_factor_id,
-            auto_optimize: st.auto,
-            variables: st
-                .mirror
-                .iter()
-                .map(|(&key, e)| VariableSpec {
-                    key,
-                    kind: e.kind.into(),
-                    value: Some(e.value.clone()),
-                    fixed: e.fixed,
-                })
-                .collect(),
-            factors: self
-                .factor_specs
-                .iter()
-                .map(|(&id, spec)| (id, spec.clone()))
-                .collect(),
+            auto: st.auto,
+            journal_bytes: self.journal.bytes(),
+            journal_path: self.journal.path().to_path_buf(),
+            changes: std::mem::take(&mut self.changes),
+            base,
+            dir: self.dir.clone(),
+            files: Arc::clone(&self.files),
+            started: Instant::now(),
         };
-        match self.dir.write_snapshot(&snapshot, &mut self.journal) {
-            Ok(()) => self.entries_since_snapshot = 0,
-            Err(e) => tracing::warn!(
-                session = name,
-                "snapshot failed (the journal keeps everything): {e}"
-            ),
-        }
+        self.in_flight_bytes = std::mem::take(&mut self.changes_bytes);
+        self.entries_since_snapshot = 0;
+        let session = Arc::clone(session);
+        session
+            .runtime
+            .clone()
+            .spawn_blocking(move || session.write_snapshot(capture));
     }
 
-    /// Bytes this keeps in memory (the factors' wire form).
+    /// The base back from a snapshot (written or not): the next one may start.
+    fn give_back(&mut self, base: Box<Base>, applied_bytes: usize) {
+        debug_assert_eq!(applied_bytes, self.in_flight_bytes);
+        self.base_bytes = base.bytes();
+        self.in_flight_bytes = 0;
+        self.base = Some(base);
+    }
+
+    /// Bytes this keeps in memory (the factors' wire form, the variables' kinds), in O(1).
     pub(super) fn memory_bytes(&self) -> usize {
-        self.factor_specs
-            .values()
-            .map(|f| {
-                std::mem::size_of::<FactorSpec>()
-                    + 8 * (f.keys.len()
-                        + f.measurement.len()
-                        + f.information.as_ref().map_or(0, Vec::len)
-                        + f.sigmas.as_ref().map_or(0, Vec::len))
-                    + f.factor_type.len()
-            })
-            .sum()
+        self.base_bytes + self.in_flight_bytes + self.changes_bytes
+    }
+
+    /// [`Durable::memory_bytes`] and the same estimate from walking what it counts; `None`
+    /// while a snapshot has the base.
+    #[cfg(test)]
+    pub(super) fn bytes_kept_and_walked(&self) -> Option<(usize, usize)> {
+        let base = self.base.as_ref()?;
+        let walked = base.walked_bytes() + self.changes.iter().map(Change::bytes).sum::<usize>();
+        Some((self.memory_bytes(), walked))
     }
 }
 
@@ -168,7 +200,12 @@ impl Session {
             dir: durability.dir,
             journal: durability.journal,
             config: durability.config,
-            factor_specs: BTreeMap::new(),
+            changes: Vec::new(),
+            changes_bytes: 0,
+            base: Some(Box::default()),
+            base_bytes: 0,
+            in_flight_bytes: 0,
+            files: Arc::new(Mutex::new(true)),
             entries_since_snapshot: 0,
             last_fsync: Duration::ZERO,
         });
@@ -376,9 +413,22 @@ impl Session {
         &self,
         bury: impl FnOnce() -> Result<T, JournalError>,
     ) -> Result<T, JournalError> {
+        // A snapshot writing into the directory finishes first; none writes there afterwards.
+        let files = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map(|d| Arc::clone(&d.files));
+        let mut alive = files
+            .as_ref()
+            .map(|f| f.lock().unwrap_or_else(|p| p.into_inner()));
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         let buried = bury()?;
         durable.take();
+        if let Some(alive) = alive.as_mut() {
+            **alive = false;
+        }
         Ok(buried)
     }
 

@@ -3,7 +3,7 @@
 
 use super::engine::Engine;
 use super::state::problem_bytes;
-use super::{MirrorEntry, Session, State};
+use super::{Session, State};
 use crate::api::wire::{FactorId, SessionInfo, SessionStats};
 use crate::problem::Key;
 
@@ -53,13 +53,10 @@ impl Session {
     }
 
     pub(super) fn memory_bytes_locked(&self, st: &State) -> usize {
+        // Every term is O(1): counts and sums kept as the session changes.
         use std::mem::size_of;
         const NODE: usize = 48; // map/set node and allocation overhead
-        let mirror: usize = st
-            .mirror
-            .values()
-            .map(|e| size_of::<MirrorEntry>() + size_of::<Key>() + NODE + 8 * e.value.len())
-            .sum();
+        let mirror = st.mirror_bytes();
         let factors = st.live_factors.len() * (size_of::<FactorId>() + NODE)
             + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
             + st.factor_ids.len() * size_of::<FactorId>();

@@ -1,0 +1,283 @@
+//! Snapshots written off the session lock.
+//!
+//! The session lock (with the journal's) is held only to take a [`Capture`]: the sequence, the
+//! journal's length, and the changes journalled since the last capture, moved out of the
+//! journal side in O(1). A blocking thread then brings the [`Base`] (the journalled variables
+//! and factors as of the last capture, owned by whoever writes snapshots) up to date with those
+//! changes, reads the estimate from the mirror in chunks of [`CHUNK`] variables (a short lock
+//! each), serialises, writes `snapshot.json` and compacts the journal (see
+//! [`crate::journal::Compaction`]): only records before the captured length are dropped, so
+//! what was journalled meanwhile stays.
+//!
+//! One snapshot at a time: the base is taken out of the journal side for the write and put back
+//! at its end, and no snapshot starts while it is out. Deletion: every write into the session's
+//! directory happens holding [`Files`] with `alive` true; burying the directory takes that lock
+//! and clears it, so a snapshot in flight either finished its write before the directory was
+//! renamed or writes nothing (a session of the same name created after that is never touched).
+//!
+//! The estimate is read after the capture, a chunk at a time: a variable's value may come from
+//! a solve after the snapshot's sequence. Replaying the journal's later records on it gives the
+//! same problem (variables are never removed; fixes and guesses are replayed; fixed variables do
+//! not move in solves), and the values are only where the recovery's solve starts from.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use super::super::Session;
+use crate::api::wire::{AutoOptimize, FactorId, FactorSpec, VariableSpec};
+use crate::journal::{Compaction, SessionDir, SnapshotOut};
+use crate::problem::Key;
+
+/// Variables read from the mirror per lock while a snapshot is written.
+pub(super) const CHUNK: usize = 1024;
+/// Map node and allocation overhead, as the session's other estimates count it.
+const NODE: usize = 48;
+
+/// Whether the session's directory is still its own: writes into it hold this lock with `true`.
+pub(super) type Files = Arc<Mutex<bool>>;
+
+/// Something journalled that a snapshot must hold.
+pub(super) enum Change {
+    Variable {
+        key: Key,
+        kind: &'static str,
+        fixed: bool,
+    },
+    Fix {
+        key: Key,
+        fixed: bool,
+    },
+    Factor {
+        id: FactorId,
+        spec: FactorSpec,
+    },
+    Remove {
+        id: FactorId,
+    },
+}
+
+impl Change {
+    /// Estimated bytes it holds.
+    pub(super) fn bytes(&self) -> usize {
+        match self {
+            Change::Factor { spec, .. } => spec_bytes(spec),
+            _ => std::mem::size_of::<Change>(),
+        }
+    }
+}
+
+/// Estimated bytes of a factor's wire form.
+pub(super) fn spec_bytes(f: &FactorSpec) -> usize {
+    std::mem::size_of::<FactorSpec>()
+        + NODE
+        + 8 * (f.keys.len()
+            + f.measurement.len()
+            + f.information.as_ref().map_or(0, Vec::len)
+            + f.sigmas.as_ref().map_or(0, Vec::len))
+        + f.factor_type.len()
+}
+
+const VARIABLE_BYTES: usize = std::mem::size_of::<(Key, VariableMeta)>() + NODE;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct VariableMeta {
+    kind: &'static str,
+    fixed: bool,
+}
+
+/// The journalled variables (kind, fixed) and factors (wire form, by id) as of the last capture.
+#[derive(Default)]
+pub(super) struct Base {
+    variables: BTreeMap<Key, VariableMeta>,
+    factors: BTreeMap<FactorId, FactorSpec>,
+    /// Estimated bytes held, kept as changes are applied.
+    bytes: usize,
+}
+
+impl Base {
+    pub(super) fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// Applies changes in the order they were journalled.
+    pub(super) fn apply(&mut self, changes: Vec<Change>) {
+        for change in changes {
+            match change {
+                Change::Variable { key, kind, fixed } => {
+                    if self
+                        .variables
+                        .insert(key, VariableMeta { kind, fixed })
+                        .is_none()
+                    {
+                        self.bytes += VARIABLE_BYTES;
+                    }
+                }
+                Change::Fix { key, fixed } => {
+                    if let Some(meta) = self.variables.get_mut(&key) {
+                        meta.fixed = fixed;
+                    }
+                }
+                Change::Factor { id, spec } => {
+                    self.bytes += spec_bytes(&spec);
+                    if let Some(old) = self.factors.insert(id, spec) {
+                        self.bytes -= spec_bytes(&old);
+                    }
+                }
+                Change::Remove { id } => {
+                    if let Some(old) = self.factors.remove(&id) {
+                        self.bytes -= spec_bytes(&old);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The estimate from walking everything (what `bytes` keeps): for tests.
+    #[cfg(test)]
+    pub(super) fn walked_bytes(&self) -> usize {
+        self.variables.len() * VARIABLE_BYTES + self.factors.values().map(spec_bytes).sum::<usize>()
+    }
+}
+
+/// What a snapshot takes under the session lock: O(1) (the changes and the base move).
+pub(super) struct Capture {
+    pub(super) sequence: u64,
+    pub(super) next_factor_id: FactorId,
+    pub(super) auto: AutoOptimize,
+    /// The journal's length: the records the snapshot makes redundant.
+    pub(super) journal_bytes: u64,
+    pub(super) journal_path: PathBuf,
+    pub(super) changes: Vec<Change>,
+    pub(super) base: Box<Base>,
+    pub(super) dir: SessionDir,
+    pub(super) files: Files,
+    /// When the capture began and how long the lock was held for it.
+    pub(super) started: Instant,
+}
+
+/// How a snapshot ended.
+enum Outcome {
+    /// `compaction`: the journal's records after the snapshot, copied as far as they were.
+    Written {
+        bytes: usize,
+        compaction: Compaction,
+    },
+    /// The session was deleted meanwhile: nothing was written.
+    Abandoned,
+}
+
+impl Session {
+    /// Writes the snapshot `capture` was taken for (on a blocking thread), then gives the base
+    /// back to the journal side so the next one may start.
+    pub(super) fn write_snapshot(self: &Arc<Self>, capture: Capture) {
+        let Capture {
+            sequence,
+            next_factor_id,
+            auto,
+            journal_bytes,
+            journal_path,
+            changes,
+            mut base,
+            dir,
+            files,
+            started,
+        } = capture;
+        let pending_bytes: usize = changes.iter().map(Change::bytes).sum();
+        base.apply(changes);
+        let outcome = self.snapshot_variables(&base).and_then(|variables| {
+            let bytes = serde_json::to_vec(&SnapshotOut {
+                sequence,
+                next_factor_id,
+                auto_optimize: auto,
+                variables: &variables,
+                factors: &base.factors,
+            })
+            .expect("snapshots serialise");
+            drop(variables);
+            self.persist(&dir, &files, &bytes, journal_bytes, &journal_path)
+        });
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        let Some(d) = durable.as_mut() else {
+            return; // buried meanwhile
+        };
+        let compacted = match outcome {
+            Ok(Outcome::Written { bytes, compaction }) => {
+                let compacted = compaction.finish(&mut d.journal);
+                tracing::info!(
+                    session = self.name,
+                    sequence,
+                    bytes,
+                    seconds = started.elapsed().as_secs_f64(),
+                    "snapshot written"
+                );
+                compacted.map_err(|e| format!("compacting the journal failed: {e}"))
+            }
+            Ok(Outcome::Abandoned) => Ok(()),
+            Err(e) => Err(e),
+        };
+        if let Err(e) = compacted {
+            tracing::warn!(
+                session = self.name,
+                sequence,
+                "snapshot failed (the journal keeps everything): {e}"
+            );
+        }
+        d.give_back(base, pending_bytes);
+    }
+
+    /// Every variable of `base` with its current value, read from the mirror a chunk at a time.
+    fn snapshot_variables(&self, base: &Base) -> Result<Vec<VariableSpec>, String> {
+        let mut out = Vec::with_capacity(base.variables.len());
+        let mut variables = base.variables.iter().peekable();
+        while variables.peek().is_some() {
+            let st = self.lock();
+            for (&key, meta) in variables.by_ref().take(CHUNK) {
+                let entry = st
+                    .mirror
+                    .get(&key)
+                    .ok_or_else(|| format!("variable {key} is journalled but not in the mirror"))?;
+                out.push(VariableSpec {
+                    key,
+                    kind: meta.kind.into(),
+                    value: Some(entry.value.clone()),
+                    fixed: meta.fixed,
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// Writes the snapshot and copies the journal's records after it, holding `files`.
+    fn persist(
+        &self,
+        dir: &SessionDir,
+        files: &Files,
+        bytes: &[u8],
+        journal_bytes: u64,
+        journal_path: &std::path::Path,
+    ) -> Result<Outcome, String> {
+        let alive = files.lock().unwrap_or_else(|p| p.into_inner());
+        if !*alive {
+            return Ok(Outcome::Abandoned);
+        }
+        dir.write_snapshot(bytes).map_err(|e| e.to_string())?;
+        let mut compaction = Compaction::new(journal_bytes);
+        let upto = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map(|d| d.journal.bytes());
+        if let Some(upto) = upto {
+            compaction
+                .copy_until(journal_path, upto)
+                .map_err(|e| format!("copying the journal's tail failed: {e}"))?;
+        }
+        Ok(Outcome::Written {
+            bytes: bytes.len(),
+            compaction,
+        })
+    }
+}
