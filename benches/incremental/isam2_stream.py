@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""GTSAM iSAM2 on a streaming 2D pose graph: per-step latency and final chi2.
+"""GTSAM iSAM2 on a streaming 2D or 3D pose graph: per-step latency, final chi2, peak memory.
 
     isam2_stream.py <g2o file> [--json out.json] [--dump-latencies f] [--limit N]
                     [--relinearize-threshold 0.1] [--relinearize-skip 10]
@@ -9,7 +9,14 @@ Run it with the gtsam venv's python (benches/reference/setup.sh creates it):
         /work/shared/data/2d/carlone/input_M3500_g2o.g2o
 
 The file is parsed by benches/reference/posegraph_io.py, the reader the batch reference drivers use.
-Only 2D graphs (VERTEX_SE2/EDGE_SE2, or TORO VERTEX2/EDGE2) are supported.
+2D (VERTEX_SE2/EDGE_SE2, or TORO VERTEX2/EDGE2) and 3D (VERTEX_SE3:QUAT/EDGE_SE3:QUAT) graphs.
+
+3D: Pose3 and BetweenFactorPose3. The file's 6x6 information is in the order (t, R) and applies
+to g2o's error [t; qvec], qvec about half the rotation angle (MANIFEST.md); GTSAM's error is
+Logmap = (omega, V^-1 t) with the whole angle. So, as factord's reader and the batch reference
+(gtsam_solve.py --se3-info g2o) do, the rotation rows and columns are scaled by 1/2
+(D Omega D, D = diag(1,1,1,1/2,1/2,1/2)) and then the blocks are swapped to GTSAM's (R, t)
+order: all three minimise the same cost up to O(theta^3) per edge.
 
 Streaming protocol
 ------------------
@@ -23,7 +30,7 @@ among them).  Step k:
   2. initial guess for pose k = previous estimate of pose j composed with the edge measurement,
      where the edge is the one between k and the previous vertex (odometry), or failing that any
      new edge to an already-present pose (measurement inverted if the edge is stored as (k, j));
-     a pose with no such edge gets the file's vertex value.  The number of poses initialised
+     a pose with no such edge gets the file's vertex value (3D: the same with Pose3).  The number of poses initialised
      each way is reported in "initial_guess".
   3. isam.update(new_factors, new_values), then isam.calculateEstimate(): the full estimate is
      available after every step, and it is the "previous estimate" used by the next step.
@@ -33,7 +40,11 @@ are not timed.  total_seconds is the sum of the per-step times; percentiles are 
 interpolation over the per-step times.
 
 iSAM2: ISAM2Params() defaults (Gauss-Newton, CHOLESKY, wildfire 0.001) except the relinearize
-threshold and skip, which default to GTSAM's own 0.1 and 10 and can be changed by the flags.
+threshold and skip, which default to GTSAM's own 0.1 and 10 and can be changed by the flags
+(issue 16's acceptance runs use 0.1 and 1: acceptance.py passes --relinearize-skip 1).
+
+peak_rss_kb: VmHWM of this process (/proc/self/status) at the end of the stream, before the
+batch reference solves: the interpreter, gtsam and the stream's state.
 
 chi2 (prior excluded; no 1/2):
   final_chi2      2 * graph.error(estimate) over all streamed edges = sum e^T Omega e with GTSAM's
@@ -44,6 +55,9 @@ chi2 (prior excluded; no 1/2):
   batch_chi2      the same two numbers after a plain GaussNewtonOptimizer on the full graph (with
   batch_chi2_t2v  the same prior) from the file's initial values: the batch optimum, for reference.
   batch_from_isam2_chi2   GaussNewtonOptimizer started from the final iSAM2 estimate instead.
+  chi2_gap        final_chi2 / min(batch_chi2, batch_from_isam2_chi2) - 1 (GTSAM's convention).
+  3D: final_chi2 and batch_chi2 use GTSAM's Logmap error with D Omega D (see above);
+  final_chi2_t2v / batch_chi2_t2v are then g2o's [t; qvec] cost with the file's information.
 Batch GN settings are those of benches/reference/gtsam_solve.py (relative tolerance 1e-6,
 absolute 1e-9, at most 100 iterations, MULTIFRONTAL_CHOLESKY).
 """
@@ -70,7 +84,7 @@ PRIOR_SIGMA = 1e-6
 
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description="GTSAM iSAM2 streaming pose-graph benchmark (prints one JSON object)")
-    p.add_argument("file", help="2D g2o (VERTEX_SE2/EDGE_SE2) or TORO pose-graph file")
+    p.add_argument("file", help="2D g2o (VERTEX_SE2/EDGE_SE2), TORO, or 3D g2o (SE3:QUAT) pose-graph file")
     p.add_argument("--json", metavar="OUT", help="also write the JSON object to this file")
     p.add_argument("--dump-latencies", metavar="FILE", help="write one step latency (ms) per line")
     p.add_argument("--limit", type=int, metavar="N", help="stream only the first N poses (lowest ids)")
@@ -98,13 +112,33 @@ def edges_by_step(graph: PoseGraph) -> Dict[int, List[Edge]]:
     return steps
 
 
-def between_factor(e: Edge) -> gtsam.BetweenFactorPose2:
-    noise = gtsam.noiseModel.Gaussian.Information(np.array(e.information, dtype=float))
-    return gtsam.BetweenFactorPose2(e.i, e.j, gtsam.Pose2(*e.measurement), noise)
+HALF_ANGLE = np.outer([1.0, 1.0, 1.0, 0.5, 0.5, 0.5], [1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+SWAP_T_R = [3, 4, 5, 0, 1, 2]  # (t, R) <-> (R, t)
+
+
+def to_pose(p):
+    """A file value or measurement as a gtsam pose: (x, y, theta) or (x, y, z, qx, qy, qz, qw)."""
+    if len(p) == 3:
+        return gtsam.Pose2(*p)
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(p[6], p[3], p[4], p[5]), np.array(p[:3], dtype=float))
+
+
+def between_factor(e: Edge):
+    info = np.array(e.information, dtype=float)
+    if len(e.measurement) == 3:
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        return gtsam.BetweenFactorPose2(e.i, e.j, to_pose(e.measurement), noise)
+    info = (info * HALF_ANGLE)[np.ix_(SWAP_T_R, SWAP_T_R)]
+    noise = gtsam.noiseModel.Gaussian.Information(info)
+    return gtsam.BetweenFactorPose3(e.i, e.j, to_pose(e.measurement), noise)
+
+
+def at(values: gtsam.Values, k: int, dim: int):
+    return values.atPose2(k) if dim == 2 else values.atPose3(k)
 
 
 def initial_guess(k: int, prev: int | None, new_edges: List[Edge], estimate: gtsam.Values,
-                  file_value) -> Tuple[gtsam.Pose2, str]:
+                  file_value, dim: int) -> Tuple[object, str]:
     """Initial value of pose k and how it was obtained ('odometry', 'other edge' or 'file')."""
     chosen, how = None, None
     for e in new_edges:
@@ -117,14 +151,14 @@ def initial_guess(k: int, prev: int | None, new_edges: List[Edge], estimate: gts
         if chosen is None:
             chosen, how = e, "other edge"
     if chosen is None:
-        return gtsam.Pose2(*file_value), "file"
-    z = gtsam.Pose2(*chosen.measurement)  # z = X_i^-1 X_j
+        return to_pose(file_value), "file"
+    z = to_pose(chosen.measurement)  # z = X_i^-1 X_j
     if chosen.j == k:
-        return estimate.atPose2(chosen.i).compose(z), how
-    return estimate.atPose2(chosen.j).compose(z.inverse()), how
+        return at(estimate, chosen.i, dim).compose(z), how
+    return at(estimate, chosen.j, dim).compose(z.inverse()), how
 
 
-def batch_gn(factors: gtsam.NonlinearFactorGraph, prior: gtsam.PriorFactorPose2,
+def batch_gn(factors: gtsam.NonlinearFactorGraph, prior,
              start: gtsam.Values) -> Tuple[gtsam.Values, int]:
     """Plain Gauss-Newton on the full graph plus the gauge prior (gtsam_solve.py's settings)."""
     graph = gtsam.NonlinearFactorGraph(factors)
@@ -140,21 +174,36 @@ def batch_gn(factors: gtsam.NonlinearFactorGraph, prior: gtsam.PriorFactorPose2,
     return values, optimizer.iterations()
 
 
-def as_tuples(values: gtsam.Values, ids) -> Dict[int, Tuple[float, float, float]]:
+def as_tuples(values: gtsam.Values, ids, dim: int) -> Dict[int, Tuple[float, ...]]:
     out = {}
     for k in ids:
-        p = values.atPose2(k)
-        out[k] = (p.x(), p.y(), p.theta())
+        if dim == 2:
+            p = values.atPose2(k)
+            out[k] = (p.x(), p.y(), p.theta())
+        else:
+            p = values.atPose3(k)
+            q, t = p.rotation().toQuaternion(), p.translation()
+            out[k] = (t[0], t[1], t[2], q.x(), q.y(), q.z(), q.w())
     return out
+
+
+def peak_rss_kb() -> int | None:
+    """VmHWM (peak resident set, kB) of this process."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
 
 
 def main() -> int:
     args = parse_args()
     full = read_pose_graph(args.file)
-    if full.dim != 2:
-        print(f"{args.file}: only 2D pose graphs are supported", file=sys.stderr)
-        return 2
     graph = restrict(full, args.limit)
+    dim = graph.dim
     ids = sorted(graph.vertices)
     steps = edges_by_step(graph)
     first = ids[0]
@@ -163,8 +212,9 @@ def main() -> int:
     params.setRelinearizeThreshold(args.relinearize_threshold)
     params.relinearizeSkip = args.relinearize_skip
     isam = gtsam.ISAM2(params)
-    prior = gtsam.PriorFactorPose2(first, gtsam.Pose2(*graph.vertices[first]),
-                                   gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA))
+    prior_cls = gtsam.PriorFactorPose2 if dim == 2 else gtsam.PriorFactorPose3
+    prior = prior_cls(first, to_pose(graph.vertices[first]),
+                      gtsam.noiseModel.Isotropic.Sigma(3 if dim == 2 else 6, PRIOR_SIGMA))
 
     # ---- the stream -------------------------------------------------------------------------
     latencies = []
@@ -178,7 +228,7 @@ def main() -> int:
             new_factors.add(prior)
         for e in steps[k]:
             new_factors.add(between_factor(e))
-        pose, how = initial_guess(k, prev, steps[k], estimate, graph.vertices[k])
+        pose, how = initial_guess(k, prev, steps[k], estimate, graph.vertices[k], dim)
         new_values = gtsam.Values()
         new_values.insert(k, pose)
         isam.update(new_factors, new_values)
@@ -186,6 +236,7 @@ def main() -> int:
         latencies.append(time.perf_counter() - t0)
         guess_sources[how] += 1
         prev = k
+    peak_kb = peak_rss_kb()
 
     # ---- chi2 of the final estimate and of the batch optimum (not timed) ----------------------
     factors = gtsam.NonlinearFactorGraph()
@@ -193,11 +244,14 @@ def main() -> int:
         factors.add(between_factor(e))
     file_values = gtsam.Values()
     for k in ids:
-        file_values.insert(k, gtsam.Pose2(*graph.vertices[k]))
+        file_values.insert(k, to_pose(graph.vertices[k]))
     batch, batch_iterations = batch_gn(factors, prior, file_values)
     polished, polished_iterations = batch_gn(factors, prior, estimate)
 
     ms = np.array(latencies) * 1e3
+    final_chi2 = 2.0 * factors.error(estimate)
+    batch_chi2 = 2.0 * factors.error(batch)
+    polished_chi2 = 2.0 * factors.error(polished)
     result = {
         "system": "gtsam-isam2",
         "gtsam_version": importlib.metadata.version("gtsam"),
@@ -212,12 +266,15 @@ def main() -> int:
         "p90_ms": float(np.percentile(ms, 90)),
         "p99_ms": float(np.percentile(ms, 99)),
         "max_ms": float(ms.max()),
-        "final_chi2": 2.0 * factors.error(estimate),
-        "final_chi2_t2v": chi2_g2o_convention(graph, as_tuples(estimate, ids)),
-        "batch_chi2": 2.0 * factors.error(batch),
-        "batch_chi2_t2v": chi2_g2o_convention(graph, as_tuples(batch, ids)),
+        "dim": dim,
+        "peak_rss_kb": peak_kb,
+        "final_chi2": final_chi2,
+        "final_chi2_t2v": chi2_g2o_convention(graph, as_tuples(estimate, ids, dim)),
+        "batch_chi2": batch_chi2,
+        "batch_chi2_t2v": chi2_g2o_convention(graph, as_tuples(batch, ids, dim)),
         "batch_iterations": batch_iterations,
-        "batch_from_isam2_chi2": 2.0 * factors.error(polished),
+        "batch_from_isam2_chi2": polished_chi2,
+        "chi2_gap": final_chi2 / min(batch_chi2, polished_chi2) - 1.0,
         "batch_from_isam2_iterations": polished_iterations,
         "initial_chi2_file": 2.0 * factors.error(file_values),
         "prior": "prior sigma 1e-6",

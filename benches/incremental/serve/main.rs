@@ -1,0 +1,164 @@
+//! A g2o pose graph (2D or 3D) streamed pose by pose into the real `factord serve` binary over
+//! real sockets, the durable journal on (fsync always by default), one session: the client's
+//! view of every update, for issue 16's acceptance (driven by `acceptance.py`, next to this).
+//!
+//! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
+//! [--json out.json] [--dump-latencies out.txt] [--fsync always|interval|never]`
+//!
+//! Protocol (the one of `isam2_stream.py` and `incremental_stream`): batch k holds pose k with
+//! every edge whose later end is k (`tests/common` `g2o_batches`: a pose with an odometry edge
+//! from k−1 is sent without a value, the server predicts it); batch k+1 is sent once the
+//! estimate reflects batch k.
+//! - `http`: `POST /v1/sessions/<s>/batches?wait=true`; latency = request sent → answer read.
+//! - `zenoh`: publish on `factord/<s>/in/batch`; latency = publish → arrival of the ack that
+//!   says `reflected` or of the summary of a solve that includes it.
+//!
+//! Batches are serialised before the clock starts (as isam2_stream.py parses the file first).
+//! After the stream (not timed): the estimate is read over HTTP and its chi2 compared with the
+//! batch optimum of the same (truncated) graph (`optimum.rs`), and the server's peak resident
+//! memory is read from `/proc/<pid>/status` (VmHWM). Each run starts a fresh server, so the peak
+//! is that of this stream. Prints one JSON object; `--dump-latencies` writes one latency (ms)
+//! per line, in stream order.
+
+#[path = "../../../tests/common/mod.rs"]
+mod common;
+
+#[path = "../../args.rs"]
+mod args;
+
+mod http;
+mod optimum;
+mod zenoh_stream;
+
+use std::collections::HashSet;
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use common::server::{create, g2o_batches, get, TestServer};
+
+/// One stream's client-side measurements.
+pub struct Streamed {
+    /// Per update, in stream order.
+    pub latencies_ms: Vec<f64>,
+    pub wall_seconds: f64,
+    /// Updates whose availability was learnt by polling the session (see each transport).
+    pub fallbacks: usize,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    // Linear interpolation between closest ranks (numpy's default), as isam2_stream.py.
+    let pos = (sorted.len() as f64 - 1.0) * p;
+    let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
+    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
+}
+
+/// A field of `/proc/<pid>/status` in kB (`VmHWM`: peak resident set).
+fn proc_status_kb(pid: u32, field: &str) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with(field))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+fn main() {
+    let args = args::Args::from_env();
+    let usage = "usage: incremental_serve <file.g2o> --transport http|zenoh [--limit N] \
+                 [--json out] [--dump-latencies out] [--fsync always|interval|never]";
+    let path = args.first(usage);
+    let transport = args
+        .value("--transport")
+        .unwrap_or_else(|| panic!("{usage}"));
+    assert!(
+        transport == "http" || transport == "zenoh",
+        "--transport http|zenoh"
+    );
+    let limit: usize = args.parsed("--limit", usize::MAX);
+    let fsync = args.value("--fsync").unwrap_or_else(|| "always".into());
+    let text = std::fs::read_to_string(&path).expect("readable graph");
+
+    let mut batches = g2o_batches(&text);
+    batches.truncate(limit);
+    let kept: HashSet<u64> = batches
+        .iter()
+        .flat_map(|b| b["variables"].as_array().expect("variables").clone())
+        .map(|v| v["key"].as_u64().expect("key"))
+        .collect();
+    let kind = match batches[0]["variables"][0]["kind"].as_str() {
+        Some("se3") => "pose_graph_3d",
+        _ => "pose_graph_2d",
+    };
+    let bodies: Vec<String> = batches.iter().map(Value::to_string).collect();
+    drop(batches);
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime");
+    let (streamed, estimate, stats, peak_kb, rss_kb) = runtime.block_on(async {
+        let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
+        let c = common::server::client();
+        let session = "stream";
+        create(&c, &s, &json!({"session": session, "kind": kind})).await;
+        let streamed = match transport.as_str() {
+            "http" => http::stream(&s, session, &bodies).await,
+            _ => {
+                let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
+                let base = info["sequence"].as_u64().expect("sequence");
+                zenoh_stream::stream(&s, session, base, &bodies).await
+            }
+        };
+        let peak_kb = proc_status_kb(s.pid(), "VmHWM");
+        let rss_kb = proc_status_kb(s.pid(), "VmRSS");
+        let (status, estimate) = get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
+        assert_eq!(status, 200, "{estimate}");
+        let (_, stats) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
+        s.assert_no_panic();
+        let state_dir = s.state_dir.clone();
+        let _ = s.terminate(Duration::from_secs(10));
+        let _ = std::fs::remove_dir_all(&state_dir);
+        (streamed, estimate, stats, peak_kb, rss_kb)
+    });
+
+    let truncated = optimum::restrict(&text, &kept);
+    let chi2 = optimum::compare(&truncated, &path, &estimate);
+
+    let latencies = streamed.latencies_ms;
+    let mut sorted = latencies.clone();
+    sorted.sort_by(f64::total_cmp);
+    let mut report = json!({
+        "system": "factord",
+        "transport": transport,
+        "fsync": fsync,
+        "dataset": std::path::Path::new(&path).file_stem().map(|s| s.to_string_lossy()),
+        "file": path,
+        "limit": (limit != usize::MAX).then_some(limit),
+        "steps": latencies.len(),
+        "total_seconds": latencies.iter().sum::<f64>() / 1e3,
+        "wall_seconds": streamed.wall_seconds,
+        "mean_ms": latencies.iter().sum::<f64>() / latencies.len() as f64,
+        "p50_ms": percentile(&sorted, 0.5),
+        "p90_ms": percentile(&sorted, 0.9),
+        "p99_ms": percentile(&sorted, 0.99),
+        "max_ms": sorted.last(),
+        "peak_rss_kb": peak_kb,
+        "rss_at_end_kb": rss_kb,
+        "fallbacks": streamed.fallbacks,
+        "solves": stats["solves"],
+        "skipped_solves": stats["skipped_solves"],
+        "tracked_chi2": stats["chi2"],
+    });
+    for (k, v) in chi2.as_object().expect("an object") {
+        report[k] = v.clone();
+    }
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&report).expect("serialisable")
+    );
+    if let Some(out) = args.value("--json") {
+        std::fs::write(out, report.to_string()).expect("writable --json");
+    }
+    if let Some(out) = args.value("--dump-latencies") {
+        let lines: String = latencies.iter().map(|v| format!("{v:.6}\n")).collect();
+        std::fs::write(out, lines).expect("writable --dump-latencies");
+    }
+}
