@@ -116,6 +116,7 @@ fn main() {
         let state_dir = s.state_dir.clone();
         let _ = s.terminate(Duration::from_secs(10));
         let _ = std::fs::remove_dir_all(&state_dir);
+        let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
         (streamed, estimate, stats, peak_kb, rss_kb)
     });
 
