@@ -169,3 +169,64 @@ fn streamed_graph_reaches_the_batch_optimum() {
     );
     assert!((report.model_chi2 - polished).abs() / polished < 1e-6);
 }
+
+/// Prints how far the streamed estimate is from the batch optimum for a few thresholds (run
+/// with `--ignored --nocapture` when tuning; the assertions above are what must hold).
+#[test]
+#[ignore]
+fn threshold_sweep() {
+    let poses = 3000;
+    let (truth, edges) = manhattan(poses, 11);
+    let optimum = batch_optimum(poses, &edges, &truth);
+    for (relin, passes) in [(0.1, 1), (0.05, 2), (0.01, 2), (0.01, 4), (0.001, 4)] {
+        let mut problem = Problem::new();
+        problem.add_variable(0, Box::new(truth[0])).unwrap();
+        problem.set_fixed(0, true).unwrap();
+        let (mut engine, _) = IncrementalEngine::new(&mut problem, &[true]).unwrap();
+        let params = UpdateParams {
+            relinearize_threshold: relin,
+            wildfire_threshold: 1e-7,
+            max_passes: passes,
+        };
+        let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
+        for e in &edges {
+            by_later_end[e.1].push(e);
+        }
+        let (mut columns, mut worst, start) = (0, 0.0f64, std::time::Instant::now());
+        for k in 1..poses {
+            let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
+            let odometry = by_later_end[k].iter().find(|e| e.0 == k - 1).unwrap();
+            problem
+                .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
+                .unwrap();
+            for e in &by_later_end[k] {
+                add_edge(&mut problem, e);
+            }
+            let t = std::time::Instant::now();
+            let report = engine.update(&mut problem, &params).unwrap();
+            worst = worst.max(t.elapsed().as_secs_f64());
+            columns += report.refactored_columns;
+        }
+        let total = start.elapsed().as_secs_f64();
+        let chi2 = problem.chi2();
+        let report = engine
+            .update(
+                &mut problem,
+                &UpdateParams {
+                    relinearize_threshold: 1e-4,
+                    wildfire_threshold: 0.0,
+                    max_passes: 10,
+                },
+            )
+            .unwrap();
+        eprintln!(
+            "relin {relin} passes {passes}: total {total:.3}s worst {:.1}ms columns {columns} gap {:.2e}; polish to 1e-4: gap {:.2e} passes {} columns {} max_delta {:.1e}",
+            worst * 1e3,
+            (chi2 - optimum) / optimum,
+            (problem.chi2() - optimum) / optimum,
+            report.passes,
+            report.refactored_columns,
+            report.max_delta
+        );
+    }
+}

@@ -19,6 +19,9 @@ use crate::problem::{Key, Problem};
 use crate::runtime::pool::TIME_SLICE;
 use crate::solver::{self, SolverOptions};
 
+/// How long a session must be idle before it polishes its estimate.
+const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(20);
+
 /// What a solve takes out of the session state (the problem moves to the worker).
 struct SolveWork {
     problem: Problem,
@@ -31,6 +34,8 @@ struct SolveWork {
     chi2: Option<f64>,
     debt: f64,
     gauge: Vec<Key>,
+    /// A solve the client asked for, or a polish: an engine update runs to convergence.
+    tight: bool,
 }
 
 impl Session {
@@ -44,7 +49,13 @@ impl Session {
         }
         st.solving = true;
         st.dirty = false;
-        st.forced = false;
+        // Tight (to convergence): a polish, or a solve the client asked for with nothing new
+        // (or under the manual policy, where no polish follows). New factors otherwise take
+        // the request-path thresholds and a polish follows.
+        let forced = std::mem::replace(&mut st.forced, false);
+        let tight = forced
+            && (st.seeds.is_empty()
+                || matches!(st.auto, crate::api::wire::AutoOptimize::Manual {}));
         st.factors_since_solve = 0;
         st.solves += 1;
         self.cancel.store(false, Ordering::SeqCst);
@@ -60,6 +71,7 @@ impl Session {
             chi2: st.chi2,
             debt: st.region_debt,
             gauge: st.gauge.clone(),
+            tight,
         })
     }
 
@@ -80,6 +92,7 @@ impl Session {
             chi2,
             mut debt,
             gauge,
+            tight,
         } = work;
         let _span =
             tracing::info_span!("session", session = %self.name, solve = solve_number).entered();
@@ -108,46 +121,47 @@ impl Session {
             }
             ControlFlow::Continue(())
         };
-        let solve = std::panic::AssertUnwindSafe(|| match chi2 {
-            // After additions only, re-solve as far as they reach.
-            Some(total) if !structural && solve_number > 1 => {
-                // Held fixed: what the client fixed, and the gauge anchors of the last full
-                // solve (a region never reaches a component without one: it would be singular
-                // and the re-solve falls back to the whole problem).
-                let mut anchors: Vec<bool> = (0..problem.values.len())
-                    .map(|v| problem.values.is_fixed(v))
-                    .collect();
-                for key in &gauge {
-                    if let Some(v) = problem.values.index_of(*key) {
-                        anchors[v] = true;
+        let solve = std::panic::AssertUnwindSafe(|| {
+            let additions_only = !structural && solve_number > 1;
+            if let Some(total) = chi2.filter(|_| additions_only) {
+                match index.update_engine(&mut problem, total, tight, &options, &gauge) {
+                    Some(Ok(resolved)) => return Ok(resolved),
+                    // The engine failed (an indeterminate update): solve in batch below.
+                    Some(Err(e)) => {
+                        tracing::debug!("incremental update failed, solving in batch: {e}")
+                    }
+                    // After additions only, re-solve as far as they reach.
+                    None => {
+                        return self.resolve_regions(
+                            &mut problem,
+                            &mut index,
+                            &seeds,
+                            total,
+                            &mut debt,
+                            &options,
+                            &gauge,
+                            &mut on_iteration,
+                        )
                     }
                 }
-                incremental::resolve(
-                    &mut problem,
-                    &mut index,
-                    &seeds,
-                    &anchors,
-                    total,
-                    &mut debt,
-                    &options,
-                    &mut on_iteration,
-                )
             }
             // Later solves warm-start from the current estimate; initialisation is for the first.
-            _ => {
-                debt = 0.0;
-                let solved = if solve_number > 1 {
-                    index.solve_whole(&mut problem, &options, &mut on_iteration)
-                } else {
-                    solver::optimize(&mut problem, &options, &mut on_iteration)
-                };
-                solved.map(|summary| incremental::Resolved {
-                    total_chi2: summary.final_chi2,
-                    converged: summary.converged,
-                    moved: None,
-                    summary,
-                })
+            debt = 0.0;
+            let solved = if solve_number > 1 {
+                index.solve_whole(&mut problem, &options, &mut on_iteration)
+            } else {
+                solver::optimize(&mut problem, &options, &mut on_iteration)
+            };
+            let summary = solved?;
+            if summary.converged {
+                index.rebuild_engine(&mut problem, &summary.used.gauge_fixed);
             }
+            Ok(incremental::Resolved {
+                total_chi2: summary.final_chi2,
+                converged: summary.converged,
+                moved: None,
+                summary,
+            })
         });
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
@@ -185,6 +199,11 @@ impl Session {
                     st.solve_carried = carried + start.elapsed();
                 } else {
                     st.solve_carried = std::time::Duration::ZERO;
+                }
+                // An engine update that left steps above the threshold polishes once the
+                // session is idle, unless the client decides when solves run.
+                if index.polish && !matches!(st.auto, crate::api::wire::AutoOptimize::Manual {}) {
+                    self.polish_when_idle(st.sequence);
                 }
                 if timed_out {
                     st.converged = false;
@@ -239,6 +258,58 @@ impl Session {
 }
 
 impl Session {
+    /// Schedules a polish (an engine update to convergence) if no batch arrives within
+    /// [`POLISH_AFTER_IDLE`]: a stream's next update never waits behind a polish.
+    fn polish_when_idle(self: &Arc<Self>, sequence: u64) {
+        let session = Arc::clone(self);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(POLISH_AFTER_IDLE).await;
+            let mut st = session.lock();
+            if st.sequence == sequence && !st.deleted && !st.solving && !st.scheduled {
+                st.dirty = true;
+                st.forced = true;
+                session.schedule(&mut st);
+            }
+        });
+    }
+
+    /// A region re-solve (sessions without an engine, see `incremental`), with the gauge
+    /// anchors of the last full solve held fixed.
+    #[allow(clippy::too_many_arguments)]
+    fn resolve_regions(
+        &self,
+        problem: &mut Problem,
+        index: &mut RegionIndex,
+        seeds: &[usize],
+        total: f64,
+        debt: &mut f64,
+        options: &SolverOptions,
+        gauge: &[Key],
+        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+    ) -> Result<incremental::Resolved, solver::SolverError> {
+        // Held fixed: what the client fixed, and the gauge anchors of the last full solve (a
+        // region never reaches a component without one: it would be singular and the re-solve
+        // falls back to the whole problem).
+        let mut anchors: Vec<bool> = (0..problem.values.len())
+            .map(|v| problem.values.is_fixed(v))
+            .collect();
+        for key in gauge {
+            if let Some(v) = problem.values.index_of(*key) {
+                anchors[v] = true;
+            }
+        }
+        incremental::resolve(
+            problem,
+            index,
+            seeds,
+            &anchors,
+            total,
+            debt,
+            options,
+            on_iteration,
+        )
+    }
+
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
     pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: RegionIndex) {

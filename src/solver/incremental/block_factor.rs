@@ -20,6 +20,8 @@ use std::collections::BTreeSet;
 use super::dense;
 
 const NONE: u32 = u32::MAX;
+/// A zero block of the largest variable (15-dimensional navigation states).
+const ZEROS: [f64; 15 * 15] = [0.0; 15 * 15];
 
 /// One column of `L`.
 #[derive(Debug, Default, Clone)]
@@ -62,7 +64,10 @@ impl Accumulator {
         if self.slot[u] == NONE {
             self.slot[u] = self.entries.len() as u32;
             self.entries.push((u as u32, self.buffer.len() as u32));
-            self.buffer.resize(self.buffer.len() + du * d, 0.0);
+            match ZEROS.get(..du * d) {
+                Some(zeros) => self.buffer.extend_from_slice(zeros),
+                None => self.buffer.resize(self.buffer.len() + du * d, 0.0),
+            }
         }
         let offset = self.entries[self.slot[u] as usize].1 as usize;
         &mut self.buffer[offset..offset + du * d]
@@ -153,8 +158,12 @@ impl BlockFactor {
     ) -> Result<(), NotPositiveDefinite> {
         // Forget the old columns (their rows are all in `order`: ancestors of affected columns).
         for &r in order {
-            let old = std::mem::take(&mut self.columns[r]);
-            self.nnz -= self.column_nnz(r, &old);
+            self.nnz -= self.column_nnz(r, &self.columns[r]);
+            // Cleared, not dropped: the column is rebuilt into the same allocations.
+            let old = &mut self.columns[r];
+            old.diagonal.clear();
+            old.rows.clear();
+            old.blocks.clear();
             self.row_columns[r].retain(|&k| !in_order[k as usize]);
             self.children[r].retain(|&c| !in_order[c as usize]);
             self.roots.remove(&(r as u32));
@@ -210,14 +219,12 @@ impl BlockFactor {
                         parent = u;
                     }
                 }
-                let column = Column {
-                    diagonal: acc.diagonal.clone(),
-                    rows: acc.entries.clone(),
-                    blocks: acc.buffer.clone(),
-                };
+                let column = &mut self.columns[r];
+                column.diagonal.extend_from_slice(&acc.diagonal);
+                column.rows.extend_from_slice(&acc.entries);
+                column.blocks.extend_from_slice(&acc.buffer);
                 acc.finish();
-                self.nnz += self.column_nnz(r, &column);
-                self.columns[r] = column;
+                self.nnz += self.column_nnz(r, &self.columns[r]);
                 self.set_parent(r, parent);
             }
             Ok(())

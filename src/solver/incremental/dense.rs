@@ -2,9 +2,36 @@
 //! Cholesky of a diagonal block, triangular solves with it, and the `C −= A·Bᵀ` update that
 //! left-looking elimination spends its time in.
 
-/// `acc (m×d) −= a (m×k) · bᵀ` with `b` d×k; all row-major.
+/// `acc (m×d) −= a (m×k) · bᵀ` with `b` d×k; all row-major. The block sizes of 2D and 3D pose
+/// graphs get loops of constant length (unrolled: this is where elimination spends its time).
 #[inline]
 pub fn sub_mul_transpose(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usize, k: usize) {
+    match (m, d, k) {
+        (3, 3, 3) => sub_mul_transpose_fixed::<3, 3, 3>(acc, a, b),
+        (6, 6, 6) => sub_mul_transpose_fixed::<6, 6, 6>(acc, a, b),
+        _ => sub_mul_transpose_any(acc, a, b, m, d, k),
+    }
+}
+
+#[inline(always)]
+fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize>(
+    acc: &mut [f64],
+    a: &[f64],
+    b: &[f64],
+) {
+    let (acc, a, b) = (&mut acc[..M * D], &a[..M * K], &b[..D * K]);
+    for i in 0..M {
+        for j in 0..D {
+            let mut s = 0.0;
+            for l in 0..K {
+                s += a[i * K + l] * b[j * K + l];
+            }
+            acc[i * D + j] -= s;
+        }
+    }
+}
+
+fn sub_mul_transpose_any(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usize, k: usize) {
     debug_assert!(acc.len() >= m * d && a.len() >= m * k && b.len() >= d * k);
     for i in 0..m {
         let ai = &a[i * k..(i + 1) * k];

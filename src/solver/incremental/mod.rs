@@ -25,12 +25,14 @@ mod dense;
 mod linearized;
 mod ordering;
 mod report;
+mod summary;
 
 use std::time::Instant;
 
 use block_factor::{Accumulator, BlockFactor};
 use linearized::{linearize_factor, LinearizeScratch, Linearized};
 pub use report::UpdateReport;
+pub use summary::UpdateContext;
 
 use super::SolverError;
 use crate::problem::Problem;
@@ -77,6 +79,11 @@ pub struct IncrementalEngine {
     residual_chi2: f64,
     yty: f64,
     scratch: LinearizeScratch,
+    /// Variables whose estimate the last update wrote.
+    changed: Vec<usize>,
+    /// Σ residual dimensions and Σ free variables over the factors (the Summary's sizes).
+    residuals: usize,
+    jacobian_blocks: usize,
     /// Scratch marks indexed by variable.
     mark: Vec<bool>,
     last: Vec<bool>,
@@ -108,7 +115,11 @@ impl IncrementalEngine {
         self.advance(problem, None, params)
     }
 
-    /// The variables whose estimate the last update changed are reported through `changed`.
+    /// The variables whose estimate the last update wrote into the problem.
+    pub fn changed(&self) -> &[usize] {
+        &self.changed
+    }
+
     fn advance(
         &mut self,
         problem: &mut Problem,
@@ -148,9 +159,11 @@ impl IncrementalEngine {
             linearize_factor(entry, &self.theta, &mut self.scratch, &mut lin)?;
             self.residual_chi2 += lin.chi2;
             self.linearized.push(lin);
+            self.residuals += entry.factor.residual_dim();
             for &v in entry.variables() {
                 self.by_variable[v].push(f as u32);
                 if self.free[v] {
+                    self.jacobian_blocks += 1;
                     touched.push(v);
                 }
             }
@@ -188,6 +201,7 @@ impl IncrementalEngine {
             estimate.retract(&self.delta[o..o + d]);
         }
         report.changed_variables = changed.len();
+        self.changed = changed;
         report.factor_nnz = self.factor.nnz();
         report.columns = self.free.iter().filter(|&&f| f).count();
         report.model_chi2 = self.residual_chi2 - self.yty;
