@@ -18,21 +18,20 @@
 //!
 //! Priors act as edges to a fixed world frame. Graphs with any other factor kind are left alone.
 
+mod planar;
+
 use std::cell::Cell;
-use std::collections::VecDeque;
-use std::f64::consts::PI;
 
 use faer::sparse::linalg::SupernodalThreshold;
-use nalgebra::{Matrix3, RowVector2, RowVector3, SMatrix, UnitQuaternion, Vector2};
+use nalgebra::{Matrix3, RowVector3, SMatrix, UnitQuaternion};
 
 use super::budget::{Budget, FactorCost};
 use super::cholesky::SparseCholesky;
 use super::linearize::free_blocks;
 use super::options::Initialization;
 use super::structure::{BlockOrdering, BlockPattern};
-use super::{evaluate_chi2, SolverError};
-use crate::factors::{BetweenSe2, BetweenSe3, PriorSe2, PriorSe3, SqrtInformation};
-use crate::geometry::{rotation_matrix_2d, Se2, Se3};
+use crate::factors::{BetweenSe3, PriorSe3, SqrtInformation};
+use crate::geometry::Se3;
 use crate::problem::FactorEntry;
 
 use crate::problem::{Problem, Values};
@@ -40,22 +39,22 @@ use crate::problem::{Problem, Values};
 /// How much lower the chordal chi2 must be for `Initialization::Auto` to start from it.
 const AUTO_INIT_GAIN: f64 = 10.0;
 
-/// Replaces `problem.values` by the chordal estimate as `mode` says; returns how the solve was
-/// initialised and the chi2 it starts from. A budget that stops the initialisation leaves the
-/// given values (the iterations then stop at their first check).
-pub(super) fn run_initialization(
-    problem: &mut Problem,
+/// The chordal estimate a solve may start from, when `mode` asks for one; otherwise (or when
+/// it does not apply or the budget stopped it) `Err` with how the solve was initialised. Whether
+/// the estimate is taken depends on its chi2 ([`take_estimate`]), which the solve learns from
+/// its first linearisation there instead of a separate evaluation.
+pub(super) fn chordal_estimate(
+    problem: &Problem,
     fixed: &[bool],
     ordering: &BlockOrdering,
     mode: Initialization,
-    initial_chi2: f64,
     budget: &dyn Budget,
-) -> Result<(String, Option<f64>), SolverError> {
+) -> Result<Values, String> {
     if mode == Initialization::None {
-        return Ok(("none".into(), None));
+        return Err("none".into());
     }
     let stopped = Cell::new(false);
-    let Some(estimate) = chordal(
+    chordal(
         problem.factors(),
         &problem.values,
         fixed,
@@ -64,26 +63,33 @@ pub(super) fn run_initialization(
             budget,
             stopped: &stopped,
         },
-    ) else {
+    )
+    .ok_or_else(|| {
         let why = if stopped.get() {
             "stopped by the solve's budget"
         } else {
             "not a pose graph"
         };
-        return Ok((format!("none ({why})"), None));
-    };
-    let chi2 = evaluate_chi2(problem.factors(), &estimate)?;
+        format!("none ({why})")
+    })
+}
+
+/// Whether a solve initialised as `mode` starts from the chordal estimate of chi2 `chi2`
+/// (`Ok` with the label) or from the given values of chi2 `initial_chi2` (`Err` with the label).
+pub(super) fn take_estimate(
+    mode: Initialization,
+    chi2: f64,
+    initial_chi2: f64,
+) -> Result<String, String> {
     let take = match mode {
         Initialization::Chordal => chi2.is_finite(),
         _ => chi2.is_finite() && chi2 * AUTO_INIT_GAIN < initial_chi2,
     };
     if take {
-        problem.values = estimate;
-        Ok(("chordal".into(), Some(chi2)))
+        Ok("chordal".into())
     } else {
-        Ok((
-            format!("given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"),
-            Some(initial_chi2),
+        Err(format!(
+            "given values (chordal chi2 {chi2:.6e} was not {AUTO_INIT_GAIN}x lower)"
         ))
     }
 }
@@ -127,7 +133,7 @@ pub fn chordal(
     }
     let all = |kind: &str| (0..values.len()).all(|v| values.variable(v).kind() == kind);
     if all("se2") {
-        chordal_2d(factors, values, fixed, ordering, budget)
+        planar::chordal_2d(factors, values, fixed, ordering, budget)
     } else if all("se3") {
         chordal_3d(factors, values, fixed, ordering, budget)
     } else {
@@ -335,132 +341,6 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
         }
         Some(out)
     }
-}
-
-fn chordal_2d(
-    factors: &[FactorEntry],
-    values: &Values,
-    fixed: &[bool],
-    ordering: &BlockOrdering,
-    budget: &Stoppable,
-) -> Option<Values> {
-    let edges = collect_edges(
-        factors,
-        |f| {
-            f.factor
-                .as_any()
-                .downcast_ref::<BetweenSe2>()
-                .map(|b| b.measurement)
-        },
-        |f| {
-            f.factor
-                .as_any()
-                .downcast_ref::<PriorSe2>()
-                .map(|p| p.measurement)
-        },
-    )?;
-    let n = values.len();
-    let pose = |v: usize| {
-        *values
-            .variable(v)
-            .as_any()
-            .downcast_ref::<Se2>()
-            .expect("checked kind")
-    };
-    // Unwrapped tree orientations by BFS from the anchors (fixed variables, then priors).
-    let mut adjacency: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
-    let mut tree: Vec<Option<f64>> = vec![None; n];
-    let mut queue = VecDeque::new();
-    for v in 0..n {
-        if fixed[v] {
-            tree[v] = Some(pose(v).theta);
-            queue.push_back(v);
-        }
-    }
-    for e in &edges {
-        match e.from {
-            Some(i) => {
-                adjacency[i].push((e.to, e.measurement.theta));
-                adjacency[e.to].push((i, -e.measurement.theta));
-            }
-            None if tree[e.to].is_none() => {
-                tree[e.to] = Some(e.measurement.theta);
-                queue.push_back(e.to);
-            }
-            None => {}
-        }
-    }
-    // Breadth-first: shortest paths accumulate the least rotation noise into the unwrapping.
-    while let Some(i) = queue.pop_front() {
-        let ti = tree[i]?;
-        for &(j, d) in &adjacency[i] {
-            if tree[j].is_none() {
-                tree[j] = Some(ti + d);
-                queue.push_back(j);
-            }
-        }
-    }
-    let tree: Vec<f64> = tree.into_iter().map(|t| t.unwrap_or(0.0)).collect();
-    let one = SMatrix::<f64, 1, 1>::identity();
-    let fixed_theta: Vec<Option<SMatrix<f64, 1, 1>>> = (0..n)
-        .map(|v| fixed[v].then(|| SMatrix::from_element(tree[v])))
-        .collect();
-    let mut rot = LinearLeastSquares::new(&fixed_theta, edges.len());
-    // Rotation: marginal information of θ. Translation: isotropic, the mean eigenvalue of the
-    // marginal translation information, so both steps are scalar Laplacians over one graph and
-    // share one symbolic factorisation.
-    let weights: Vec<(SMatrix<f64, 1, 1>, SMatrix<f64, 1, 1>)> = edges
-        .iter()
-        .map(|e| {
-            let wt = marginal_information::<3, 2>(e.sqrt_information, 0)?.trace() / 2.0;
-            Some((
-                marginal_information::<3, 1>(e.sqrt_information, 2)?,
-                SMatrix::from_element(wt),
-            ))
-        })
-        .collect::<Option<_>>()?;
-    let mut cache = None;
-    for (e, (w, _)) in edges.iter().zip(&weights) {
-        let unwrap = |from_theta: f64| {
-            let k = ((tree[e.to] - from_theta - e.measurement.theta) / (2.0 * PI)).round();
-            SMatrix::from_element(-(e.measurement.theta + 2.0 * PI * k))
-        };
-        match e.from {
-            Some(i) => rot.add(&[(e.to, one), (i, -one)], unwrap(tree[i]), *w),
-            None => rot.add(&[(e.to, one)], unwrap(0.0), *w),
-        }
-    }
-    let theta: Vec<f64> = rot
-        .solve(ordering, &mut cache, budget)?
-        .iter()
-        .map(|m| m[(0, 0)])
-        .collect();
-
-    // Unknown per pose: tᵀ, with x and y as two right-hand sides.
-    let fixed_t: Vec<Option<RowVector2<f64>>> = (0..n)
-        .map(|v| fixed[v].then(|| RowVector2::new(pose(v).x, pose(v).y)))
-        .collect();
-    let mut trans = LinearLeastSquares::new(&fixed_t, edges.len());
-    for (e, (_, w)) in edges.iter().zip(&weights) {
-        let z = Vector2::new(e.measurement.x, e.measurement.y);
-        match e.from {
-            // ‖R_iᵀ(t_j − t_i) − t_ij‖² = ‖t_j − t_i − R_i t_ij‖² under an isotropic weight.
-            Some(i) => trans.add(
-                &[(e.to, one), (i, -one)],
-                -(rotation_matrix_2d(theta[i]) * z).transpose(),
-                *w,
-            ),
-            None => trans.add(&[(e.to, one)], -z.transpose(), *w),
-        }
-    }
-    let t = trans.solve(ordering, &mut cache, budget)?;
-    let mut out = values.clone();
-    for v in 0..n {
-        if !fixed[v] {
-            out.set(v, &Se2::new(t[v][(0, 0)], t[v][(0, 1)], theta[v]));
-        }
-    }
-    Some(out)
 }
 
 fn chordal_3d(

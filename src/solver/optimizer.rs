@@ -9,13 +9,13 @@ use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
 
-use super::budget::{Budget, FactorCost, Unlimited};
+use super::budget::{Budget, Unlimited};
 use super::cholesky::SparseCholesky;
 use super::gauge::anchor_components;
-use super::initialize::run_initialization;
-use super::iterations::Iterations;
+use super::initialize::{chordal_estimate, take_estimate};
+use super::iterations::{Iterations, StepTimes};
 use super::linear::LinearSolver;
-use super::linearize::{free_adjacency, Scratch, SystemLayout};
+use super::linearize::{free_adjacency, SystemLayout};
 use super::options::{Initialization, SolverOptions};
 use super::schur::{self, SchurSolver};
 use super::structure::BlockOrdering;
@@ -136,30 +136,66 @@ fn optimize_from(
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
-    let (init_label, initialized_chi2) = run_initialization(
-        problem,
-        &fixed,
-        &ordering,
-        options.initialization,
-        initial_chi2,
-        budget,
-    )?;
+    let estimate = chordal_estimate(problem, &fixed, &ordering, options.initialization, budget);
     timings.initialization_seconds = init_start.elapsed().as_secs_f64();
 
     let mut values = std::mem::take(&mut problem.values);
-    let outcome = iterate(
-        &mut values,
-        problem.factors(),
-        &layout,
-        chol,
-        timings,
-        options,
-        on_iteration,
-        warm,
-        budget,
-    );
+    // The trial buffer is whichever of the given values and the estimate is not started from.
+    let mut solver =
+        Iterations::with_trial(&layout, chol, timings, Values::default(), warm, budget);
+    let mut times = StepTimes::default();
+    // The solve starts from the chordal estimate when its chi2 is low enough; the first
+    // linearisation there gives that chi2 (a separate evaluation cost a tenth of a small
+    // solve). A rejected estimate costs a second linearisation, at the given values.
+    let start_point = match estimate {
+        Ok(estimate) => {
+            let given = std::mem::replace(&mut values, estimate);
+            match solver.linearize_at(problem.factors(), &values, &mut times) {
+                Err(e) => Err(e),
+                Ok(ControlFlow::Continue(chi2)) => {
+                    match take_estimate(options.initialization, chi2, initial_chi2) {
+                        Ok(label) => {
+                            solver.trial = given;
+                            Ok((label, Some(chi2), ControlFlow::Continue(chi2)))
+                        }
+                        Err(label) => {
+                            solver.trial = std::mem::replace(&mut values, given);
+                            times = StepTimes::default();
+                            solver
+                                .linearize_at(problem.factors(), &values, &mut times)
+                                .map(|first| (label, Some(initial_chi2), first))
+                        }
+                    }
+                }
+                // The budget stopped the solve while linearising: it ends at the given values.
+                Ok(ControlFlow::Break(())) => {
+                    solver.trial = std::mem::replace(&mut values, given);
+                    let label = "none (stopped by the solve's budget)".to_string();
+                    Ok((label, None, ControlFlow::Break(())))
+                }
+            }
+        }
+        Err(label) => {
+            solver.trial = values.clone();
+            solver
+                .linearize_at(problem.factors(), &values, &mut times)
+                .map(|first| (label, None, first))
+        }
+    };
+    let outcome = start_point.and_then(|(label, initialized_chi2, first)| {
+        let (chi2, termination) = solver.run_linearized(
+            problem.factors(),
+            &mut values,
+            options,
+            on_iteration,
+            first,
+            times,
+        )?;
+        Ok((label, initialized_chi2, chi2, termination))
+    });
     problem.values = values;
-    let run = outcome?;
+    let (init_label, initialized_chi2, chi2, termination) = outcome?;
+    let run = solver.finish(chi2, termination);
     Ok(run.summary(
         options,
         &layout,
@@ -188,45 +224,7 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     warm: bool,
     budget: &dyn Budget,
 ) -> Result<Run, SolverError> {
-    let n = layout.n();
-    let cost = chol.factor_flops().map(|flops| FactorCost {
-        flops,
-        measured_rate: None,
-    });
-    let mut solver = Iterations {
-        layout,
-        scratch: Scratch::new(layout),
-        h: vec![0.0; layout.pattern.nnz()],
-        damped: vec![
-            0.0;
-            if chol.shifts_in_place() {
-                n
-            } else {
-                layout.pattern.nnz()
-            }
-        ],
-        b: vec![0.0; n],
-        delta: vec![0.0; n],
-        work: vec![0.0; n],
-        product: vec![0.0; n],
-        trial: values.clone(),
-        chol,
-        timings,
-        log: Vec::new(),
-        warm,
-        budget,
-        cost,
-    };
+    let mut solver = Iterations::new(layout, chol, timings, values, warm, budget);
     let (chi2, termination) = solver.run(factors, values, options, on_iteration)?;
-    Ok(Run {
-        chi2,
-        termination,
-        factorization: solver.chol.factorization(),
-        factor_nnz: solver.chol.factor_nnz(),
-        linear_solver: solver.chol.label(),
-        ordering: solver.chol.ordering(),
-        schur: solver.chol.schur_report(),
-        log: solver.log,
-        timings: solver.timings,
-    })
+    Ok(solver.finish(chi2, termination))
 }

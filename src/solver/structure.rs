@@ -24,8 +24,10 @@ pub struct BlockPattern {
     pub col_ptr: Vec<usize>,
     pub row_idx: Vec<usize>,
     /// For each elimination position `b`: the sorted positions `a ≥ b` of its lower column blocks,
-    /// and for each the index of the first entry of `pair_cols` describing block (a, b).
-    col_blocks: Vec<Vec<(usize, usize)>>,
+    /// and for each the index of the first entry of `pair_cols` describing block (a, b); column
+    /// block `b`'s entries are `col_blocks[col_block_ptr[b]..col_block_ptr[b + 1]]`.
+    col_block_ptr: Vec<usize>,
+    col_blocks: Vec<(usize, usize)>,
     /// For block pair (a, b) with first entry `p`: `pair_cols[p + q]` is the value index of
     /// element (first row of a, column q of b) — or, on a diagonal block, of (row q, column q).
     pair_cols: Vec<usize>,
@@ -56,44 +58,70 @@ impl BlockPattern {
             offset[p] = n;
             n += dims[b];
         }
-        // Lower column blocks per elimination position.
-        let mut col_lists: Vec<Vec<usize>> = (0..nb).map(|p| vec![p]).collect();
+        // Lower column blocks per elimination position, sorted and without duplicates, in one
+        // flat array: visiting the rows in elimination order appends each row to a column in
+        // increasing order, so a repeated (row, column) pair is always the column's last entry.
+        // (Assumes each edge is listed from both ends, as `adjacency` is.)
+        let mut below_start = vec![0usize; nb + 1];
         for (i, neighbours) in adjacency.iter().enumerate() {
             let pi = position[i];
             for &j in neighbours {
-                let pj = position[j];
-                if pi > pj {
-                    col_lists[pj].push(pi);
+                if pi > position[j] {
+                    below_start[position[j] + 1] += 1;
                 }
             }
         }
+        for b in 0..nb {
+            below_start[b + 1] += below_start[b];
+        }
+        let mut below = vec![0usize; below_start[nb]];
+        let mut below_len = vec![0usize; nb];
+        for (pi, &i) in block_at.iter().enumerate() {
+            for &j in &adjacency[i] {
+                let pj = position[j];
+                if pj < pi {
+                    let (s, l) = (below_start[pj], below_len[pj]);
+                    if l == 0 || below[s + l - 1] != pi {
+                        below[s + l] = pi;
+                        below_len[pj] += 1;
+                    }
+                }
+            }
+        }
+        let lower = |b: usize| {
+            std::iter::once(b).chain(
+                below[below_start[b]..below_start[b] + below_len[b]]
+                    .iter()
+                    .copied(),
+            )
+        };
         // Sized up front: BA patterns hold millions of entries, and growing by doubling costs
         // copies and page faults of the same order as a whole iteration.
-        let (mut entries, mut pairs) = (0, 0);
-        for (b, list) in col_lists.iter_mut().enumerate() {
-            list.sort_unstable();
-            list.dedup();
-            let below: usize = list.iter().filter(|&&a| a != b).map(|&a| dim[a]).sum();
-            entries += dim[b] * below + dim[b] * (dim[b] + 1) / 2;
-            pairs += list.len() * dim[b];
+        let (mut entries, mut pairs, mut blocks_total) = (0, 0, 0);
+        for b in 0..nb {
+            let below_dims: usize = lower(b).skip(1).map(|a| dim[a]).sum();
+            entries += dim[b] * below_dims + dim[b] * (dim[b] + 1) / 2;
+            pairs += (below_len[b] + 1) * dim[b];
+            blocks_total += below_len[b] + 1;
         }
         let mut col_ptr = Vec::with_capacity(n + 1);
         let mut row_idx = Vec::with_capacity(entries);
         let mut pair_cols = Vec::with_capacity(pairs);
-        let mut col_blocks = Vec::with_capacity(nb);
+        let mut col_blocks = Vec::with_capacity(blocks_total);
+        let mut col_block_ptr = Vec::with_capacity(nb + 1);
         col_ptr.push(0);
+        col_block_ptr.push(0);
         for b in 0..nb {
-            let list = &col_lists[b];
-            let mut blocks = Vec::with_capacity(list.len());
             let first_pair = pair_cols.len();
-            for &a in list.iter() {
-                blocks.push((a, pair_cols.len()));
+            for a in lower(b) {
+                col_blocks.push((a, pair_cols.len()));
                 pair_cols.extend(std::iter::repeat_n(0, dim[b]));
             }
+            col_block_ptr.push(col_blocks.len());
             for q in 0..dim[b] {
                 let col_start = row_idx.len();
                 // Diagonal block: rows q..dim, then every off-diagonal block whole.
-                for (k, &a) in list.iter().enumerate() {
+                for (k, a) in lower(b).enumerate() {
                     pair_cols[first_pair + k * dim[b] + q] = row_idx.len();
                     let first_row = if a == b { offset[b] + q } else { offset[a] };
                     row_idx.extend(first_row..offset[a] + dim[a]);
@@ -101,7 +129,6 @@ impl BlockPattern {
                 debug_assert!(row_idx.len() > col_start);
                 col_ptr.push(row_idx.len());
             }
-            col_blocks.push(blocks);
         }
         Self {
             position,
@@ -111,6 +138,7 @@ impl BlockPattern {
             n,
             col_ptr,
             row_idx,
+            col_block_ptr,
             col_blocks,
             pair_cols,
         }
@@ -123,12 +151,12 @@ impl BlockPattern {
     /// The lower blocks of column block `b` (elimination positions): `(a, pair)` for every `a ≥ b`
     /// in increasing order, the diagonal block first.
     pub fn column_blocks(&self, b: usize) -> &[(usize, usize)] {
-        &self.col_blocks[b]
+        &self.col_blocks[self.col_block_ptr[b]..self.col_block_ptr[b + 1]]
     }
 
     /// Index into `pair_cols` of block (a, b), a ≥ b in elimination positions.
     pub fn pair(&self, a: usize, b: usize) -> Option<usize> {
-        let blocks = &self.col_blocks[b];
+        let blocks = self.column_blocks(b);
         blocks
             .binary_search_by_key(&a, |&(row, _)| row)
             .ok()
@@ -211,26 +239,52 @@ fn block_amd(adjacency: &[Vec<usize>]) -> (Vec<usize>, Vec<usize>) {
     if nb <= 2 {
         return identity();
     }
-    // Upper-triangular pattern with the diagonal, sorted columns.
-    let mut cols: Vec<Vec<usize>> = (0..nb).map(|j| vec![j]).collect();
+    // Upper-triangular pattern with the diagonal, sorted columns without duplicates, in flat
+    // arrays (one Vec per block cost more than the ordering on small pose graphs).
+    let mut col_ptr = vec![0usize; nb + 1];
     for (i, neighbours) in adjacency.iter().enumerate() {
         for &j in neighbours {
-            if i < j {
-                cols[j].push(i);
-            } else if j < i {
-                cols[i].push(j);
+            if j != i {
+                col_ptr[i.max(j) + 1] += 1;
             }
         }
     }
-    let mut col_ptr = Vec::with_capacity(nb + 1);
-    let mut row_idx = Vec::new();
-    col_ptr.push(0);
-    for c in cols.iter_mut() {
-        c.sort_unstable();
-        c.dedup();
-        row_idx.extend_from_slice(c);
-        col_ptr.push(row_idx.len());
+    for j in 0..nb {
+        col_ptr[j + 1] += col_ptr[j] + 1;
     }
+    let mut row_idx = vec![0usize; col_ptr[nb]];
+    let mut len = vec![0usize; nb];
+    for (i, neighbours) in adjacency.iter().enumerate() {
+        for &j in neighbours {
+            if j != i {
+                let (row, col) = (i.min(j), i.max(j));
+                row_idx[col_ptr[col] + len[col]] = row;
+                len[col] += 1;
+            }
+        }
+    }
+    // Compact: sort and deduplicate each column's rows, then its diagonal last.
+    let mut write = 0;
+    let mut start = 0;
+    for j in 0..nb {
+        let column = &mut row_idx[start..start + len[j]];
+        column.sort_unstable();
+        let end = col_ptr[j + 1];
+        let mut last = None;
+        for k in start..start + len[j] {
+            let r = row_idx[k];
+            if last != Some(r) {
+                row_idx[write] = r;
+                write += 1;
+                last = Some(r);
+            }
+        }
+        row_idx[write] = j;
+        write += 1;
+        start = end;
+        col_ptr[j + 1] = write;
+    }
+    row_idx.truncate(write);
     let pattern = SymbolicSparseColMatRef::new_checked(nb, nb, &col_ptr, None, &row_idx);
     let mut fwd = vec![0usize; nb];
     let mut inv = vec![0usize; nb];
