@@ -12,14 +12,17 @@
 //! eigen-decomposition H* = V S Vᵀ, keeping eigenvalues above [`EIGEN_FLOOR`] (directions the
 //! factors did not observe carry no information and must not become a prior), the
 //! [`MarginalPrior`] gets `J = S^½ Vᵀ` and `r₀ = −S^−½ Vᵀ b*`, so that `JᵀJ = H*` and
-//! `−Jᵀ r₀ = b*` (the course's and VINS-Mono's construction). The factors touching m are then
-//! removed and m is held fixed (it keeps its last value, for the record).
+//! `−Jᵀ r₀ = b*` (the course's and VINS-Mono's construction). When every Cholesky pivot of a
+//! matrix is above the floor (with the IMU, every direction is observed) its Cholesky factor
+//! does the same job at a fraction of an eigen-decomposition's cost: H_mm⁻¹ by two triangular
+//! solves, and H* = L Lᵀ gives `J = Lᵀ`, `r₀ = −L⁻¹ b*` (again `JᵀJ = H*`, `−Jᵀ r₀ = b*`).
+//! The factors touching m are then removed and m is held fixed (it keeps its last value, for
+//! the record).
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::factors::MarginalPrior;
+use crate::factors::{MarginalPrior, SqrtInformation};
 use crate::problem::{Key, Problem, ProblemError};
-use crate::solver::linearize::{linearize, Scratch, SystemLayout};
 
 /// Eigenvalues of H* at or below this are treated as unobserved directions and dropped.
 pub const EIGEN_FLOOR: f64 = 1e-8;
@@ -80,9 +83,10 @@ pub fn marginalize(problem: &mut Problem, key: Key) -> Result<Option<usize>, Mar
     match prior {
         Some(prior) => {
             let rows = prior.residual.len();
-            let index = problem.add_factor(
+            // Already whitened: unit information.
+            let index = problem.add_factor_sqrt(
                 Box::new(prior),
-                &DMatrix::identity(rows, rows),
+                SqrtInformation::identity(rows),
                 None,
                 format!("marginalisation of {key}"),
             )?;
@@ -101,67 +105,36 @@ fn schur_prior(
     key: Key,
 ) -> Result<MarginalPrior, MarginalizeError> {
     let values = &problem.values;
-    let subset: Vec<_> = touching.iter().map(|&f| &problem.factors()[f]).collect();
-    let fixed: Vec<bool> = (0..values.len())
-        .map(|v| v != m && !neighbours.contains(&v))
-        .collect();
-    let layout = SystemLayout::new(&subset, values, &fixed);
-    let pattern = &layout.pattern;
-    let mut scratch = Scratch::new(&layout);
-    let mut h = vec![0.0; pattern.nnz()];
-    let mut b = vec![0.0; layout.n()];
-    linearize(&subset, values, &layout, &mut scratch, &mut h, &mut b).map_err(|e| {
-        MarginalizeError::Evaluation {
-            key,
-            reason: e.to_string(),
-        }
-    })?;
-    // Dense H and b in the order [m, neighbours…].
-    let order: Vec<usize> = std::iter::once(m)
-        .chain(neighbours.iter().copied())
-        .collect();
-    let mut start = vec![0; values.len()];
-    let mut n = 0;
-    for &v in &order {
-        start[v] = n;
-        n += values.variable(v).tangent_dim();
-    }
-    let dense_row = |row: usize| {
-        let p = pattern.block_of_row(row);
-        start[layout.var_at[p]] + row - pattern.offset[p]
-    };
-    let mut full = DMatrix::zeros(n, n);
-    let mut rhs = DVector::zeros(n);
-    for (c, &b_c) in b.iter().enumerate().take(pattern.n) {
-        let dc = dense_row(c);
-        rhs[dc] = b_c;
-        let column = pattern.col_ptr[c]..pattern.col_ptr[c + 1];
-        for (&r, &h_rc) in pattern.row_idx[column.clone()].iter().zip(&h[column]) {
-            let dr = dense_row(r);
-            full[(dr, dc)] = h_rc;
-            full[(dc, dr)] = h_rc;
-        }
-    }
+    let (full, rhs) = dense_system(problem, m, neighbours, touching, key)?;
+    let n = full.nrows();
     let dm = values.variable(m).tangent_dim();
     let h_mm = full.view((0, 0), (dm, dm)).into_owned();
     let h_rm = full.view((dm, 0), (n - dm, dm)).into_owned();
     let h_rr = full.view((dm, dm), (n - dm, n - dm)).into_owned();
-    let h_mm_inv = pseudo_inverse(&h_mm);
-    let h_star = &h_rr - &h_rm * &h_mm_inv * h_rm.transpose();
-    let b_star = rhs.rows(dm, n - dm) - &h_rm * &h_mm_inv * rhs.rows(0, dm);
+    let b_m = rhs.rows(0, dm).into_owned();
+    // H_mm⁻¹ [H_mr | b_m]: by Cholesky when H_mm is clearly positive definite (the IMU observes
+    // every direction of a keyframe), else on its observed subspace.
+    let (x, y) = match well_conditioned_cholesky(&h_mm) {
+        Some(c) => (c.solve(&h_rm.transpose()), c.solve(&b_m)),
+        None => {
+            let inverse = pseudo_inverse(&h_mm);
+            (&inverse * h_rm.transpose(), &inverse * &b_m)
+        }
+    };
+    let h_star = &h_rr - &h_rm * x;
+    let b_star = rhs.rows(dm, n - dm) - &h_rm * y;
     let h_star = (&h_star + h_star.transpose()) * 0.5;
-    let eigen = h_star.symmetric_eigen();
-    let kept: Vec<usize> = (0..eigen.eigenvalues.len())
-        .filter(|&i| eigen.eigenvalues[i] > EIGEN_FLOOR)
-        .collect();
-    let mut jacobian = DMatrix::zeros(kept.len(), n - dm);
-    let mut residual = DVector::zeros(kept.len());
-    for (row, &i) in kept.iter().enumerate() {
-        let s = eigen.eigenvalues[i];
-        let v = eigen.eigenvectors.column(i);
-        jacobian.row_mut(row).copy_from(&(v.transpose() * s.sqrt()));
-        residual[row] = -v.dot(&b_star) / s.sqrt();
-    }
+    let (jacobian, residual) = match well_conditioned_cholesky(&h_star) {
+        // H* = L Lᵀ: J = Lᵀ, r₀ = −L⁻¹ b* (JᵀJ = H*, −Jᵀr₀ = b*).
+        Some(c) => {
+            let l = c.l();
+            let residual = -l
+                .solve_lower_triangular(&b_star)
+                .expect("a Cholesky factor has a nonzero diagonal");
+            (l.transpose(), residual)
+        }
+        None => eigen_square_root(&h_star, &b_star),
+    };
     Ok(MarginalPrior::new(
         neighbours.iter().map(|&v| values.key(v)).collect(),
         neighbours
@@ -171,6 +144,98 @@ fn schur_prior(
         jacobian,
         residual,
     ))
+}
+
+/// H and b = −Jᵀr of the factors `touching`, linearised at the current values (robust kernels
+/// included), dense in the order [m, neighbours…].
+fn dense_system(
+    problem: &Problem,
+    m: usize,
+    neighbours: &[usize],
+    touching: &[usize],
+    key: Key,
+) -> Result<(DMatrix<f64>, DVector<f64>), MarginalizeError> {
+    let values = &problem.values;
+    let mut start = Vec::with_capacity(neighbours.len() + 1);
+    let mut n = 0;
+    for v in std::iter::once(m).chain(neighbours.iter().copied()) {
+        start.push((v, n));
+        n += values.variable(v).tangent_dim();
+    }
+    let dense_start = |v: usize| start.iter().find(|&&(w, _)| w == v).map(|&(_, o)| o);
+    let mut full = DMatrix::zeros(n, n);
+    let mut rhs = DVector::zeros(n);
+    for &f in touching {
+        let entry = &problem.factors()[f];
+        let vars = entry.variables();
+        let refs: Vec<&dyn crate::problem::Variable> =
+            vars.iter().map(|&v| values.variable(v)).collect();
+        let dims: Vec<usize> = refs.iter().map(|v| v.tangent_dim()).collect();
+        let (d, cols) = (entry.factor.residual_dim(), dims.iter().sum::<usize>());
+        let (mut e, mut r) = (vec![0.0; d], vec![0.0; d]);
+        let (mut jac, mut wj) = (vec![0.0; d * cols], vec![0.0; d * cols]);
+        entry
+            .factor
+            .evaluate(&refs, &mut e, Some(&mut jac))
+            .map_err(|e| MarginalizeError::Evaluation {
+                key,
+                reason: e.to_string(),
+            })?;
+        entry.sqrt_information.whiten_vector(&e, &mut r);
+        entry.sqrt_information.whiten_jacobian(&jac, cols, &mut wj);
+        if let Some(kernel) = &entry.robust {
+            kernel.correct(&mut r, &mut wj, cols);
+        }
+        let wj = DMatrix::from_row_slice(d, cols, &wj);
+        let gram = wj.transpose() * &wj;
+        let gradient = wj.transpose() * DVector::from_vec(r);
+        let mut ci = 0;
+        for (li, &vi) in vars.iter().enumerate() {
+            let di = dims[li];
+            if let Some(oi) = dense_start(vi) {
+                let mut block = rhs.rows_mut(oi, di);
+                block -= gradient.rows(ci, di);
+                let mut cj = 0;
+                for (lj, &vj) in vars.iter().enumerate() {
+                    let dj = dims[lj];
+                    if let Some(oj) = dense_start(vj) {
+                        let mut block = full.view_mut((oi, oj), (di, dj));
+                        block += gram.view((ci, cj), (di, dj));
+                    }
+                    cj += dj;
+                }
+            }
+            ci += di;
+        }
+    }
+    Ok((full, rhs))
+}
+
+/// The Cholesky factorisation of a symmetric matrix whose pivots all exceed [`EIGEN_FLOOR`]
+/// (no direction is close to unobserved), or `None`.
+fn well_conditioned_cholesky(a: &DMatrix<f64>) -> Option<nalgebra::Cholesky<f64, nalgebra::Dyn>> {
+    let c = a.clone().cholesky()?;
+    let l = c.l_dirty();
+    (0..a.nrows())
+        .all(|i| l[(i, i)] * l[(i, i)] > EIGEN_FLOOR)
+        .then_some(c)
+}
+
+/// `J = S^½ Vᵀ` and `r₀ = −S^−½ Vᵀ b*` over the eigenvalues of `h_star` above [`EIGEN_FLOOR`].
+fn eigen_square_root(h_star: &DMatrix<f64>, b_star: &DVector<f64>) -> (DMatrix<f64>, DVector<f64>) {
+    let eigen = h_star.clone().symmetric_eigen();
+    let kept: Vec<usize> = (0..eigen.eigenvalues.len())
+        .filter(|&i| eigen.eigenvalues[i] > EIGEN_FLOOR)
+        .collect();
+    let mut jacobian = DMatrix::zeros(kept.len(), h_star.ncols());
+    let mut residual = DVector::zeros(kept.len());
+    for (row, &i) in kept.iter().enumerate() {
+        let s = eigen.eigenvalues[i];
+        let v = eigen.eigenvectors.column(i);
+        jacobian.row_mut(row).copy_from(&(v.transpose() * s.sqrt()));
+        residual[row] = -v.dot(b_star) / s.sqrt();
+    }
+    (jacobian, residual)
 }
 
 /// Inverse of a symmetric positive semi-definite matrix on its observed subspace.

@@ -4,7 +4,9 @@
 //! Layer 5: imports `geometry` (IMU pre-integration lives there), `factors`, `problem`, `solver`
 //! and `io`; the session drives it from above.
 
+pub mod envelope;
 pub mod experiment;
+pub mod gauss_newton;
 pub mod marginalize;
 pub mod window;
 
