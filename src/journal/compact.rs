@@ -2,12 +2,12 @@
 //!
 //! A snapshot taken at journal offset `prefix` holds everything the records before that offset
 //! say; the records after it were appended while the snapshot was being written and must stay.
-//! The records from `prefix` on are copied to `journal.tmp` in two steps: most of them without
-//! the writer's lock ([`Compaction::copy_until`], the offsets come from [`LogWriter::bytes`],
-//! which counts only whole appends), then, under the writer's lock, whatever was appended since
-//! ([`Compaction::finish`]); the copy is fsynced, renamed over the journal, the directory
-//! fsynced, and the writer appends to the new file from then on. What the writer's lock covers
-//! is the records appended during the snapshot, not the journal.
+//! The records from `prefix` on are copied to `journal.tmp` and fdatasynced in two steps: most
+//! of them without the writer's lock ([`Compaction::copy_until`], as often as wanted; the
+//! offsets come from [`LogWriter::bytes`], which counts only whole appends), then, under the
+//! writer's lock, whatever was appended since ([`Compaction::finish`]); the copy is renamed over
+//! the journal, the directory fsynced, and the writer appends to the new file from then on. The
+//! writer's lock covers the last few records and two syncs, not the journal.
 //!
 //! A crash at any point leaves the old journal (with the snapshot's records still in it: replay
 //! skips batches the snapshot holds by their sequence) or the new one; a `journal.tmp` left
@@ -80,6 +80,8 @@ impl Compaction {
             }
         };
         tmp.write_all(&bytes)?;
+        // Made durable here, so that little is left to sync under the writer's lock.
+        tmp.sync_data()?;
         self.copied_to = upto;
         Ok(())
     }
@@ -105,7 +107,6 @@ impl Compaction {
         let Some((file, tmp)) = self.tmp.take() else {
             unreachable!("copy_until made it: end > prefix here")
         };
-        file.sync_all()?;
         std::fs::rename(&tmp, &path)?;
         // From here on the directory names the new file: the writer must append there whatever
         // the directory's fsync says.

@@ -404,11 +404,22 @@ impl SessionDir {
     }
 }
 
+/// Bytes written between two fdatasyncs of a large file: the disk is never handed a whole
+/// snapshot to flush at once, which would hold up the journals' fsyncs (the acknowledgements)
+/// behind it for as long.
+const SYNC_PIECE: usize = 4 << 20;
+
 /// Writes `path` so that a crash leaves either the old or the new content.
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), JournalError> {
     let tmp = path.with_extension("tmp");
     let mut file = File::create(&tmp).map_err(io_at(&tmp))?;
-    file.write_all(bytes).map_err(io_at(&tmp))?;
+    let mut pieces = bytes.chunks(SYNC_PIECE).peekable();
+    while let Some(piece) = pieces.next() {
+        file.write_all(piece).map_err(io_at(&tmp))?;
+        if pieces.peek().is_some() {
+            file.sync_data().map_err(io_at(&tmp))?;
+        }
+    }
     file.sync_all().map_err(io_at(&tmp))?;
     std::fs::rename(&tmp, path).map_err(io_at(path))?;
     sync_dir(path.parent().expect("a file in a directory"))

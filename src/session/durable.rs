@@ -149,6 +149,7 @@ impl Durable {
         let Some(base) = self.base.take() else {
             return; // one is being written
         };
+        let started = Instant::now();
         let capture = Capture {
             sequence: st.sequence,
             next_factor_id: st.next_factor_id,
@@ -159,10 +160,16 @@ impl Durable {
             base,
             dir: self.dir.clone(),
             files: Arc::clone(&self.files),
-            started: Instant::now(),
+            started,
         };
         self.in_flight_bytes = std::mem::take(&mut self.changes_bytes);
         self.entries_since_snapshot = 0;
+        tracing::debug!(
+            session = session.name,
+            sequence = st.sequence,
+            micros = started.elapsed().as_secs_f64() * 1e6,
+            "snapshot captured under the lock"
+        );
         let session = Arc::clone(session);
         session
             .runtime

@@ -153,7 +153,7 @@ pub(super) struct Capture {
     pub(super) base: Box<Base>,
     pub(super) dir: SessionDir,
     pub(super) files: Files,
-    /// When the capture began and how long the lock was held for it.
+    /// When the capture began.
     pub(super) started: Instant,
 }
 
@@ -204,12 +204,16 @@ impl Session {
         };
         let compacted = match outcome {
             Ok(Outcome::Written { bytes, compaction }) => {
+                let locked = Instant::now();
                 let compacted = compaction.finish(&mut d.journal);
+                // `finish_locked_ms`: the journal's lock held for the records appended meanwhile
+                // (appends wait for it; the session's lock is not held).
                 tracing::info!(
                     session = self.name,
                     sequence,
                     bytes,
                     seconds = started.elapsed().as_secs_f64(),
+                    finish_locked_ms = locked.elapsed().as_secs_f64() * 1e3,
                     "snapshot written"
                 );
                 compacted.map_err(|e| format!("compacting the journal failed: {e}"))
@@ -264,16 +268,20 @@ impl Session {
         }
         dir.write_snapshot(bytes).map_err(|e| e.to_string())?;
         let mut compaction = Compaction::new(journal_bytes);
-        let upto = self
-            .durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-            .map(|d| d.journal.bytes());
-        if let Some(upto) = upto {
-            compaction
-                .copy_until(journal_path, upto)
-                .map_err(|e| format!("copying the journal's tail failed: {e}"))?;
+        // Twice: the second pass takes what was appended during the first (its sync included),
+        // leaving the fewest records for the pass under the journal's lock.
+        for _ in 0..2 {
+            let upto = self
+                .durable
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .as_ref()
+                .map(|d| d.journal.bytes());
+            if let Some(upto) = upto {
+                compaction
+                    .copy_until(journal_path, upto)
+                    .map_err(|e| format!("copying the journal's tail failed: {e}"))?;
+            }
         }
         Ok(Outcome::Written {
             bytes: bytes.len(),
