@@ -16,7 +16,7 @@ use super::cholesky::NotPositiveDefinite;
 use super::damping::{decrease_damping, increase_damping};
 use super::dogleg::update_trust_radius;
 use super::linear::LinearSolver;
-use super::linearize::{linearize_within, Scratch, SystemLayout};
+use super::linearize::{gradient_within, linearize_within, Scratch, SystemLayout};
 use super::options::{Method, SolverOptions};
 use super::stopping::{accepted_step_stop, stopped, termination};
 use super::summary::{IterationReport, Run, Termination, TerminationReason, Timings};
@@ -47,6 +47,8 @@ pub(super) struct Iterations<'a> {
     /// What one factorisation costs, to not start one the budget has no time left for
     /// (`None`: not known for this linear solver).
     pub(super) cost: Option<FactorCost>,
+    /// `h` is not of the current point (only `b` was relinearised, for a chord step).
+    pub(super) hessian_stale: bool,
 }
 
 /// A chord step is tried only after a step that lowered chi2 by less than this fraction:
@@ -121,6 +123,7 @@ impl<'a> Iterations<'a> {
             warm,
             budget,
             cost,
+            hessian_stale: false,
         }
     }
 
@@ -165,6 +168,30 @@ impl<'a> Iterations<'a> {
         let s = t.elapsed().as_secs_f64();
         self.timings.linearize_seconds += s;
         times.linearize += s;
+        self.hessian_stale = false;
+        Ok(chi2)
+    }
+
+    /// [`Iterations::linearize_at`] for `b` and chi2 only; H stays that of the last point.
+    fn gradient_at<E: Borrow<FactorEntry>>(
+        &mut self,
+        factors: &[E],
+        values: &Values,
+        times: &mut StepTimes,
+    ) -> Result<ControlFlow<(), f64>, SolverError> {
+        let t = Instant::now();
+        let chi2 = gradient_within(
+            factors,
+            values,
+            self.layout,
+            &mut self.scratch,
+            &mut self.b,
+            self.budget,
+        )?;
+        let s = t.elapsed().as_secs_f64();
+        self.timings.linearize_seconds += s;
+        times.linearize += s;
+        self.hessian_stale = true;
         Ok(chi2)
     }
 
@@ -336,6 +363,9 @@ impl<'a> Iterations<'a> {
                 Method::GaussNewton => {
                     chord = chord_allowed && self.chord_step(options, chi2, &mut times);
                     if !chord {
+                        if self.hessian_stale {
+                            or_stop!(self.linearize_at(factors, values, &mut times)?);
+                        }
                         or_stop!(self
                             .solve_damped(0.0, &mut times)
                             .map_err(|e| self.indeterminate(values, e))?);
@@ -414,11 +444,25 @@ impl<'a> Iterations<'a> {
             // Relinearise at the new point, unless this step ends the solve: then its chi2 (already
             // evaluated) is all that is needed. A budget that stops the relinearisation ends the
             // solve at the accepted point after this iteration's report.
+            chord_allowed = accepted
+                && !chord
+                && !self.warm
+                && options.method == Method::GaussNewton
+                && options.function_tolerance > 0.0
+                && relative_decrease > 0.0
+                && relative_decrease < CHORD_AFTER_DECREASE;
             let mut budget_stop = None;
             if accepted {
-                chi2 = match stop {
-                    Some(_) => trial_chi2,
-                    None => match self.linearize_at(factors, values, &mut times)? {
+                let relinearized = match stop {
+                    Some(_) => None,
+                    // A chord step comes next: it needs only the gradient (H follows if the
+                    // chord step is not taken after all).
+                    None if chord_allowed => Some(self.gradient_at(factors, values, &mut times)?),
+                    None => Some(self.linearize_at(factors, values, &mut times)?),
+                };
+                chi2 = match relinearized {
+                    None => trial_chi2,
+                    Some(flow) => match flow {
                         ControlFlow::Continue(chi2) => chi2,
                         ControlFlow::Break(()) => {
                             budget_stop = Some(stopped(iteration));
@@ -428,13 +472,6 @@ impl<'a> Iterations<'a> {
                 };
             }
             let stop = stop.or(budget_stop);
-            chord_allowed = accepted
-                && !chord
-                && !self.warm
-                && options.method == Method::GaussNewton
-                && options.function_tolerance > 0.0
-                && relative_decrease > 0.0
-                && relative_decrease < CHORD_AFTER_DECREASE;
             let report = IterationReport {
                 iteration,
                 chi2,

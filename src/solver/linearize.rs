@@ -255,14 +255,32 @@ pub fn linearize_within<E: Borrow<FactorEntry>>(
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
     if has_wide_vectors() {
         // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide(factors, values, layout, scratch, h, b, budget) }
+        unsafe { linearize_wide::<E, true>(factors, values, layout, scratch, h, b, budget) }
     } else {
-        linearize_with(factors, values, layout, scratch, h, b, budget)
+        linearize_with::<E, true>(factors, values, layout, scratch, h, b, budget)
+    }
+}
+
+/// [`linearize_within`] for `b = −Jᵀr` and chi2 only, leaving H alone: what a step with an
+/// earlier factorisation needs (the factor's `JᵀJ` and its scatter are most of the work).
+pub fn gradient_within<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    layout: &SystemLayout,
+    scratch: &mut Scratch,
+    b: &mut [f64],
+    budget: &dyn Budget,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
+    if has_wide_vectors() {
+        // SAFETY: the CPU has the features `linearize_wide` is compiled for.
+        unsafe { linearize_wide::<E, false>(factors, values, layout, scratch, &mut [], b, budget) }
+    } else {
+        linearize_with::<E, false>(factors, values, layout, scratch, &mut [], b, budget)
     }
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn linearize_wide<E: Borrow<FactorEntry>>(
+fn linearize_wide<E: Borrow<FactorEntry>, const HESSIAN: bool>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -271,11 +289,12 @@ fn linearize_wide<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    linearize_with(factors, values, layout, scratch, h, b, budget)
+    linearize_with::<E, HESSIAN>(factors, values, layout, scratch, h, b, budget)
 }
 
+/// The linearisation loop; without `HESSIAN` it fills only `b` (and `h` may be empty).
 #[inline(always)]
-fn linearize_with<E: Borrow<FactorEntry>>(
+fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -284,7 +303,9 @@ fn linearize_with<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    h.fill(0.0);
+    if HESSIAN {
+        h.fill(0.0);
+    }
     b.fill(0.0);
     let pattern = &layout.pattern;
     let mut total = 0.0;
@@ -321,9 +342,15 @@ fn linearize_with<E: Borrow<FactorEntry>>(
         entry.factor.evaluate(&refs, e, Some(jac))?;
         let (gram, gradient) = (&mut gram[..cols * cols], &mut gradient[..cols]);
         let fixed_size = match entry.robust {
-            None => {
-                fixed::whitened_gram_fixed(&entry.sqrt_information, d, cols, e, jac, gram, gradient)
-            }
+            None => fixed::whitened_gram_fixed::<HESSIAN>(
+                &entry.sqrt_information,
+                d,
+                cols,
+                e,
+                jac,
+                gram,
+                gradient,
+            ),
             Some(_) => None,
         };
         if let Some(chi2) = fixed_size {
@@ -342,8 +369,10 @@ fn linearize_with<E: Borrow<FactorEntry>>(
             for (row, &rk) in wj.chunks_exact(cols).zip(r.iter()) {
                 for (i, &ji) in row.iter().enumerate() {
                     gradient[i] += ji * rk;
-                    for (g, &jj) in gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
-                        *g += ji * jj;
+                    if HESSIAN {
+                        for (g, &jj) in gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
+                            *g += ji * jj;
+                        }
                     }
                 }
             }
@@ -351,10 +380,11 @@ fn linearize_with<E: Borrow<FactorEntry>>(
         for (li, &v) in vars.iter().enumerate() {
             if let Some(p) = layout.position_of_var[v] {
                 let (o, c0, dim) = (pattern.offset[p], col_offsets[li], pattern.dim[p]);
-                for (bq, g) in b[o..o + dim].iter_mut().zip(&gradient[c0..c0 + dim]) {
-                    *bq -= g;
-                }
+                fixed::add_scaled_exact(&mut b[o..o + dim], &gradient[c0..c0 + dim], -1.0);
             }
+        }
+        if !HESSIAN {
+            continue;
         }
         for &(li, lj, pair) in &layout.slots[layout.slot_start[f]..layout.slot_start[f + 1]] {
             let (vi, vj) = (vars[li as usize], vars[lj as usize]);

@@ -12,7 +12,7 @@ use super::BlockPattern;
 /// Whitens `e` (D) and `jac` (D × C, row-major) by `sqrt`, writes the factor's `JᵀJ` into
 /// `gram[..C * C]` and `Jᵀr` into `gradient[..C]`, returns ‖R e‖². No robust kernel.
 #[inline(always)]
-pub(super) fn whitened_gram<const D: usize, const C: usize>(
+pub(super) fn whitened_gram<const D: usize, const C: usize, const HESSIAN: bool>(
     sqrt: &SqrtInformation,
     e: &[f64],
     jac: &[f64],
@@ -48,26 +48,33 @@ pub(super) fn whitened_gram<const D: usize, const C: usize>(
     for v in r {
         chi2 += v * v;
     }
-    let mut g = [[0.0f64; C]; C];
     let mut grad = [0.0f64; C];
     for k in 0..D {
         for i in 0..C {
             grad[i] += wj[k][i] * r[k];
-            for j in 0..C {
-                g[i][j] += wj[k][i] * wj[k][j];
-            }
         }
     }
-    for (row, out) in g.iter().zip(gram[..C * C].chunks_exact_mut(C)) {
-        out.copy_from_slice(row);
+    if HESSIAN {
+        let mut g = [[0.0f64; C]; C];
+        for row in &wj {
+            for i in 0..C {
+                for j in 0..C {
+                    g[i][j] += row[i] * row[j];
+                }
+            }
+        }
+        for (row, out) in g.iter().zip(gram[..C * C].chunks_exact_mut(C)) {
+            out.copy_from_slice(row);
+        }
     }
     gradient[..C].copy_from_slice(&grad);
     chi2
 }
 
-/// [`whitened_gram`] for the shapes it is compiled for; `None` for any other.
+/// [`whitened_gram`] for the shapes it is compiled for; `None` for any other. Without
+/// `HESSIAN` only `gradient` is written.
 #[inline(always)]
-pub(super) fn whitened_gram_fixed(
+pub(super) fn whitened_gram_fixed<const HESSIAN: bool>(
     sqrt: &SqrtInformation,
     d: usize,
     cols: usize,
@@ -80,10 +87,10 @@ pub(super) fn whitened_gram_fixed(
         return None;
     }
     Some(match (d, cols) {
-        (3, 6) => whitened_gram::<3, 6>(sqrt, e, jac, gram, gradient),
-        (3, 3) => whitened_gram::<3, 3>(sqrt, e, jac, gram, gradient),
-        (6, 12) => whitened_gram::<6, 12>(sqrt, e, jac, gram, gradient),
-        (6, 6) => whitened_gram::<6, 6>(sqrt, e, jac, gram, gradient),
+        (3, 6) => whitened_gram::<3, 6, HESSIAN>(sqrt, e, jac, gram, gradient),
+        (3, 3) => whitened_gram::<3, 3, HESSIAN>(sqrt, e, jac, gram, gradient),
+        (6, 12) => whitened_gram::<6, 12, HESSIAN>(sqrt, e, jac, gram, gradient),
+        (6, 6) => whitened_gram::<6, 6, HESSIAN>(sqrt, e, jac, gram, gradient),
         _ => return None,
     })
 }
@@ -106,10 +113,42 @@ pub(super) fn scatter_block<const N: usize>(
         let rows = if diagonal { q } else { 0 };
         let base = pattern.value_index(pair, diagonal, rows, q);
         // Column cj + q of the symmetric gram is its row: contiguous over the rows.
-        let source = &gram[(cj + q) * cols + ci..(cj + q) * cols + ci + N];
-        let target = &mut h[base..base + N - rows];
-        for (hv, g) in target.iter_mut().zip(&source[rows..]) {
-            *hv += g;
+        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + N];
+        add_exact(&mut h[base..base + N - rows], source);
+    }
+}
+
+/// `target += source` for slices of equal length up to 6 with the length known at compile
+/// time: a loop of runtime length vectorises with masked loads and stores, which stalled the
+/// scatter on short columns (a third of a small pose graph's linearisation).
+#[inline(always)]
+pub(super) fn add_exact(target: &mut [f64], source: &[f64]) {
+    add_scaled_exact(target, source, 1.0);
+}
+
+/// `target += sign · source` as [`add_exact`] (`sign` ±1, so exactly `±source`).
+#[inline(always)]
+pub(super) fn add_scaled_exact(target: &mut [f64], source: &[f64], sign: f64) {
+    match target.len() {
+        1 => add_n::<1>(target, source, sign),
+        2 => add_n::<2>(target, source, sign),
+        3 => add_n::<3>(target, source, sign),
+        4 => add_n::<4>(target, source, sign),
+        5 => add_n::<5>(target, source, sign),
+        6 => add_n::<6>(target, source, sign),
+        _ => {
+            for (t, s) in target.iter_mut().zip(source) {
+                *t += sign * s;
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn add_n<const L: usize>(target: &mut [f64], source: &[f64], sign: f64) {
+    if let (Some(t), Some(s)) = (target.first_chunk_mut::<L>(), source.first_chunk::<L>()) {
+        for i in 0..L {
+            t[i] += sign * s[i];
         }
     }
 }
@@ -134,7 +173,7 @@ mod tests {
                 .map(|k| ((k * 7 % 11) as f64 - 5.0) * 0.37)
                 .collect();
             let (mut gram, mut gradient) = (vec![0.0; 36], vec![0.0; 6]);
-            let chi2 = whitened_gram_fixed(&sqrt, 3, 6, &e, &jac, &mut gram, &mut gradient)
+            let chi2 = whitened_gram_fixed::<true>(&sqrt, 3, 6, &e, &jac, &mut gram, &mut gradient)
                 .expect("3×6 is a fixed shape");
             let r = DMatrix::from_row_slice(3, 3, sqrt.upper());
             let whitened_e = &r * DMatrix::from_row_slice(3, 1, &e);
@@ -152,7 +191,7 @@ mod tests {
         let sqrt = SqrtInformation::identity(3);
         let mut scratch = vec![0.0; 64];
         let mut gradient = vec![0.0; 8];
-        assert!(whitened_gram_fixed(
+        assert!(whitened_gram_fixed::<true>(
             &sqrt,
             3,
             5,
