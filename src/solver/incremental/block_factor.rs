@@ -179,27 +179,7 @@ impl BlockFactor {
                 let d = self.dim[r];
                 acc.start(d, self.dim.len());
                 assemble(r, &self.rank, &mut acc);
-                let rank_r = self.rank[r];
-                for &k in &self.row_columns[r] {
-                    let column = &self.columns[k as usize];
-                    let dk = self.dim[k as usize];
-                    let at = column
-                        .rows
-                        .iter()
-                        .find(|&&(u, _)| u as usize == r)
-                        .map(|&(_, o)| o as usize)
-                        .expect("row_columns lists only columns with a block in that row");
-                    let l_rk = &column.blocks[at..at + d * dk];
-                    dense::sub_mul_transpose(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
-                    for &(u, o) in &column.rows {
-                        let u = u as usize;
-                        if self.rank[u] > rank_r {
-                            let du = self.dim[u];
-                            let l_uk = &column.blocks[o as usize..o as usize + du * dk];
-                            dense::sub_mul_transpose(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
-                        }
-                    }
-                }
+                self.subtract_updates(r, &mut acc);
                 if dense::cholesky(&mut acc.diagonal, d).is_err() {
                     acc.finish();
                     return Err(NotPositiveDefinite(r));
@@ -231,6 +211,49 @@ impl BlockFactor {
         })();
         self.accumulator = acc;
         result
+    }
+
+    /// `H`'s column `r` (in `acc`) minus `Σ_k L_{·k} L_rkᵀ` over the columns `k` reaching row
+    /// `r`: where elimination spends its time, so compiled with AVX2 + FMA where the CPU has
+    /// them (see `solver::simd`).
+    fn subtract_updates(&self, r: usize, acc: &mut Accumulator) {
+        if crate::solver::simd::has_wide_vectors() {
+            // SAFETY: the CPU has the features `subtract_updates_wide` is compiled for.
+            unsafe { self.subtract_updates_wide(r, acc) }
+        } else {
+            self.subtract_updates_with(r, acc)
+        }
+    }
+
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+    fn subtract_updates_wide(&self, r: usize, acc: &mut Accumulator) {
+        self.subtract_updates_with(r, acc)
+    }
+
+    #[inline(always)]
+    fn subtract_updates_with(&self, r: usize, acc: &mut Accumulator) {
+        let d = self.dim[r];
+        let rank_r = self.rank[r];
+        for &k in &self.row_columns[r] {
+            let column = &self.columns[k as usize];
+            let dk = self.dim[k as usize];
+            let at = column
+                .rows
+                .iter()
+                .find(|&&(u, _)| u as usize == r)
+                .map(|&(_, o)| o as usize)
+                .expect("row_columns lists only columns with a block in that row");
+            let l_rk = &column.blocks[at..at + d * dk];
+            dense::sub_mul_transpose(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
+            for &(u, o) in &column.rows {
+                let u = u as usize;
+                if self.rank[u] > rank_r {
+                    let du = self.dim[u];
+                    let l_uk = &column.blocks[o as usize..o as usize + du * dk];
+                    dense::sub_mul_transpose(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
+                }
+            }
+        }
     }
 
     /// After [`BlockFactor::refactor`]: the untouched columns `reaching` the refactored part

@@ -13,6 +13,8 @@ pub fn sub_mul_transpose(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usi
     }
 }
 
+/// As [`sub_mul_transpose`] for constant sizes: `b` transposed once, then each row of the
+/// product accumulated as `Σ_l a_il · bᵀ_l` over contiguous rows (vectorises over `j`).
 #[inline(always)]
 fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize>(
     acc: &mut [f64],
@@ -20,13 +22,22 @@ fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize>(
     b: &[f64],
 ) {
     let (acc, a, b) = (&mut acc[..M * D], &a[..M * K], &b[..D * K]);
+    let mut bt = [[0.0; D]; K];
+    for j in 0..D {
+        for l in 0..K {
+            bt[l][j] = b[j * K + l];
+        }
+    }
     for i in 0..M {
-        for j in 0..D {
-            let mut s = 0.0;
-            for l in 0..K {
-                s += a[i * K + l] * b[j * K + l];
+        let mut row = [0.0; D];
+        for l in 0..K {
+            let a_il = a[i * K + l];
+            for j in 0..D {
+                row[j] += a_il * bt[l][j];
             }
-            acc[i * D + j] -= s;
+        }
+        for j in 0..D {
+            acc[i * D + j] -= row[j];
         }
     }
 }
