@@ -586,6 +586,38 @@ mod tests {
         assert!((second.chi2 - converged.chi2).abs() <= 1e-9 * converged.chi2);
     }
 
+    /// Marginalising at the optimum (here by Cholesky: the IMU observes every direction) keeps
+    /// the optimum of the keyframes that stay, wherever they start from.
+    #[test]
+    fn marginalising_at_the_optimum_keeps_the_optimum() {
+        let mut full = turning(tight(), 8);
+        full.optimize().unwrap();
+        let mut short = turning(WindowOptions { size: 4, ..tight() }, 8);
+        short.optimize().unwrap();
+        let kept = short.window();
+        assert_eq!(kept.len(), 4);
+        let marginal = short
+            .problem
+            .factors()
+            .iter()
+            .filter(|f| f.factor.name() == "marginal_prior");
+        assert_eq!(marginal.count(), 1);
+        for &(k, _, _) in &kept {
+            let v = short.problem.values.index_of(k).unwrap();
+            let mut delta = [0.0; 15];
+            delta[0] = 0.05;
+            delta[5] = 0.02;
+            delta[7] = -0.1;
+            short.problem.values.variable_mut(v).retract(&delta);
+        }
+        let update = short.optimize().unwrap();
+        assert_eq!(update.path, "window");
+        for (k, _, state) in short.window() {
+            let d = state.local(&full.state(k).unwrap());
+            assert!(d.amax() < 1e-6, "keyframe {k}: {d}");
+        }
+    }
+
     /// A keyframe that nothing ties to the others is left to the general solver, which fixes
     /// its gauge.
     #[test]
