@@ -43,6 +43,14 @@
     if (Array.isArray(summary.iteration_log)) return summary.iteration_log;
     return Array.isArray(summary.iterations) ? summary.iterations : [];
   }
+  // What the last incremental update did (Summary.used.incremental), like iSAM2's result.
+  function incrementalItems(u, item) {
+    if (!u) return [];
+    return [item('relinearised', fmtInt(u.relinearized_variables)),
+      item('refactored', `${fmtInt(u.refactored_columns)} / ${fmtInt(u.columns)} columns`),
+      item('factor nnz', fmtInt(u.factor_nnz)),
+      item('phases', `order ${fmtMs(u.order_seconds)}, factor ${fmtMs(u.factorize_seconds)}, solve ${fmtMs(u.solve_seconds)}`)];
+  }
   function iterationCount(summary) {
     if (!summary) return null;
     return num(summary.iterations) ? summary.iterations : iterationLog(summary).length;
@@ -477,7 +485,8 @@
           item('cost χ²', fmtCost(s.chi2)), item('last solve', fmtMs(solveSeconds(sum))),
           item('iterations', fmtInt(iterationCount(sum))), item('solves', fmtInt(s.solves)),
           item('sequence', `${fmtInt(s.solved_sequence)} / ${fmtInt(s.sequence)}`),
-          ...(s.pending_batches ? [item('pending batches', fmtInt(s.pending_batches))] : []));
+          ...(s.pending_batches ? [item('pending batches', fmtInt(s.pending_batches))] : []),
+          ...incrementalItems(sum && sum.used && sum.used.incremental, item));
         setStatus(status, `updated ${clock()}`);
       } catch (e) {
         setStatus(status, `cannot load session stats: ${e.message} (retrying)`, true);
