@@ -94,6 +94,13 @@ impl RegionIndex {
         self.engine = None;
     }
 
+    /// What the incremental engine holds (0 without one).
+    pub fn engine_bytes(&self) -> usize {
+        self.engine
+            .as_ref()
+            .map_or(0, IncrementalEngine::memory_bytes)
+    }
+
     /// After a batch solve: the engine, built at its solution with the client's fixed
     /// variables and the solve's gauge anchors held. A problem it does not fit gets none.
     pub fn rebuild_engine(&mut self, problem: &mut Problem, gauge: &[Key]) {

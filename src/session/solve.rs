@@ -313,7 +313,7 @@ impl Session {
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
     pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: RegionIndex) {
-        st.problem_bytes = super::state::problem_bytes(&problem);
+        st.problem_bytes = super::state::problem_bytes(&problem) + index.engine_bytes();
         st.problem = Some(problem);
         st.index = Some(index);
         while let Some((seq, prepared, ids)) = st.pending.pop_front() {

@@ -60,7 +60,11 @@ impl Session {
         let factors = st.live_factors.len() * (size_of::<FactorId>() + NODE)
             + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
             + st.factor_ids.len() * size_of::<FactorId>();
-        let problem = st.problem.as_ref().map_or(st.problem_bytes, problem_bytes);
+        // While a worker has the problem and its engine, their size when last here.
+        let problem = match (&st.problem, &st.index) {
+            (Some(problem), Some(index)) => problem_bytes(problem) + index.engine_bytes(),
+            _ => st.problem_bytes,
+        };
         let marginals = match &self.engine {
             Engine::Graph(graph) => graph
                 .marginals_bytes

@@ -38,6 +38,11 @@ use super::SolverError;
 use crate::problem::Problem;
 use crate::variables::Variable;
 
+/// Per linearised factor: its three vectors' headers and allocations, and its index entries.
+const LINEARIZED_OVERHEAD: usize = 3 * 24 + 3 * 16 + 8;
+/// Per variable: θ (boxed), its bookkeeping vectors and the column's headers.
+const VARIABLE_OVERHEAD: usize = 160;
+
 /// How an update relinearises and solves.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct UpdateParams {
@@ -84,6 +89,8 @@ pub struct IncrementalEngine {
     /// Σ residual dimensions and Σ free variables over the factors (the Summary's sizes).
     residuals: usize,
     jacobian_blocks: usize,
+    /// Bytes of the linearised factors (kept as they are added).
+    linearized_bytes: usize,
     /// Scratch marks indexed by variable.
     mark: Vec<bool>,
     last: Vec<bool>,
@@ -97,6 +104,14 @@ impl IncrementalEngine {
         let mut engine = Self::default();
         let report = engine.advance(problem, Some(fixed), &UpdateParams::default())?;
         Ok((engine, report))
+    }
+
+    /// Memory the engine holds, from counts it keeps (O(1)): the factor's values and block
+    /// indices, the linearised factors, the linearisation point and the solution vectors.
+    pub fn memory_bytes(&self) -> usize {
+        let variables = self.theta.len() * VARIABLE_OVERHEAD + 16 * self.delta.len();
+        let factor = 8 * self.factor.nnz() + 8 * self.jacobian_blocks;
+        variables + factor + self.linearized_bytes
     }
 
     /// Variables this engine knows (those added later join at the next update).
@@ -158,8 +173,10 @@ impl IncrementalEngine {
             let mut lin = Linearized::default();
             linearize_factor(entry, &self.theta, &mut self.scratch, &mut lin)?;
             self.residual_chi2 += lin.chi2;
-            self.linearized.push(lin);
             self.residuals += entry.factor.residual_dim();
+            self.linearized_bytes += LINEARIZED_OVERHEAD
+                + 8 * (lin.gram.len() + lin.gradient.len() + lin.col_offset.len());
+            self.linearized.push(lin);
             for &v in entry.variables() {
                 self.by_variable[v].push(f as u32);
                 if self.free[v] {
