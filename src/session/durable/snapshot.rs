@@ -23,7 +23,7 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use super::super::Session;
 use crate::api::wire::{AutoOptimize, FactorId, FactorSpec, VariableSpec};
@@ -31,7 +31,7 @@ use crate::journal::{Compaction, SessionDir, SnapshotOut};
 use crate::problem::Key;
 
 /// Variables read from the mirror per lock while a snapshot is written.
-pub(super) const CHUNK: usize = 1024;
+pub(super) const CHUNK: usize = 128;
 /// Map node and allocation overhead, as the session's other estimates count it.
 const NODE: usize = 48;
 
@@ -186,18 +186,22 @@ impl Session {
         } = capture;
         let pending_bytes: usize = changes.iter().map(Change::bytes).sum();
         base.apply(changes);
-        let outcome = self.snapshot_variables(&base).and_then(|variables| {
-            let bytes = serde_json::to_vec(&SnapshotOut {
-                sequence,
-                next_factor_id,
-                auto_optimize: auto,
-                variables: &variables,
-                factors: &base.factors,
-            })
-            .expect("snapshots serialise");
-            drop(variables);
-            self.persist(&dir, &files, &bytes, journal_bytes, &journal_path)
-        });
+        let mut chunk_locked = Duration::ZERO;
+        let outcome = self
+            .snapshot_variables(&base)
+            .and_then(|(variables, longest)| {
+                chunk_locked = longest;
+                let bytes = serde_json::to_vec(&SnapshotOut {
+                    sequence,
+                    next_factor_id,
+                    auto_optimize: auto,
+                    variables: &variables,
+                    factors: &base.factors,
+                })
+                .expect("snapshots serialise");
+                drop(variables);
+                self.persist(&dir, &files, &bytes, journal_bytes, &journal_path)
+            });
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         let Some(d) = durable.as_mut() else {
             return; // buried meanwhile
@@ -207,13 +211,16 @@ impl Session {
                 let locked = Instant::now();
                 let compacted = compaction.finish(&mut d.journal);
                 // `finish_locked_ms`: the journal's lock held for the records appended meanwhile
-                // (appends wait for it; the session's lock is not held).
+                // (appends wait for it; the session's lock is not held);
+                // `longest_session_lock_us`: the longest hold of the session's lock for a chunk
+                // of the estimate.
                 tracing::info!(
                     session = self.name,
                     sequence,
                     bytes,
                     seconds = started.elapsed().as_secs_f64(),
                     finish_locked_ms = locked.elapsed().as_secs_f64() * 1e3,
+                    longest_session_lock_us = chunk_locked.as_secs_f64() * 1e6,
                     "snapshot written"
                 );
                 compacted.map_err(|e| format!("compacting the journal failed: {e}"))
@@ -232,11 +239,14 @@ impl Session {
     }
 
     /// Every variable of `base` with its current value, read from the mirror a chunk at a time.
-    fn snapshot_variables(&self, base: &Base) -> Result<Vec<VariableSpec>, String> {
+    /// Also returns the longest the session's lock was held for a chunk.
+    fn snapshot_variables(&self, base: &Base) -> Result<(Vec<VariableSpec>, Duration), String> {
         let mut out = Vec::with_capacity(base.variables.len());
+        let mut longest = Duration::ZERO;
         let mut variables = base.variables.iter().peekable();
         while variables.peek().is_some() {
             let st = self.lock();
+            let locked = Instant::now();
             for (&key, meta) in variables.by_ref().take(CHUNK) {
                 let entry = st
                     .mirror
@@ -249,8 +259,10 @@ impl Session {
                     fixed: meta.fixed,
                 });
             }
+            longest = longest.max(locked.elapsed());
+            drop(st);
         }
-        Ok(out)
+        Ok((out, longest))
     }
 
     /// Writes the snapshot and copies the journal's records after it, holding `files`.
