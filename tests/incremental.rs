@@ -125,3 +125,221 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
         "reported chi2 {tracked} vs true {true_chi2}"
     );
 }
+
+/// Runs a command that must succeed.
+async fn run(service: &Service, command: Command) -> Reply {
+    service.execute(command).await.unwrap()
+}
+
+/// Waits until the idle session has polished to convergence, then returns the true chi2 of its
+/// estimate on `reference` (the same factors, solved in batch by the caller).
+async fn idle_chi2(service: &Service, reference: &factord::problem::Problem) -> f64 {
+    for _ in 0..500 {
+        let Reply::Stats(stats) = run(
+            service,
+            Command::GetStats {
+                session: "edits".into(),
+            },
+        )
+        .await
+        else {
+            unreachable!()
+        };
+        if stats.converged && stats.solved_sequence == stats.sequence {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
+    let Reply::Estimate(estimate) = run(
+        service,
+        Command::GetEstimate {
+            session: "edits".into(),
+            since: None,
+            from: None,
+            to: None,
+        },
+    )
+    .await
+    else {
+        unreachable!()
+    };
+    let mut values = reference.values.clone();
+    for v in &estimate.variables {
+        let idx = values.index_of(v.key).unwrap();
+        assert!(values.set(
+            idx,
+            &factord::geometry::Se2::new(v.value[0], v.value[1], v.value[2])
+        ));
+    }
+    factord::problem::evaluate_chi2(reference.factors(), &values).unwrap()
+}
+
+fn batch_solved(text: &str, fixed: &[(u64, [f64; 3])]) -> factord::problem::Problem {
+    let mut graph = factord::io::parse_text(text, std::path::Path::new("fixture"), None).unwrap();
+    for (key, value) in fixed {
+        let idx = graph.problem.values.index_of(*key).unwrap();
+        let pose = factord::geometry::Se2::new(value[0], value[1], value[2]);
+        graph.problem.values.set(idx, &pose);
+        graph.problem.set_fixed(*key, true).unwrap();
+    }
+    let options = SolverOptions {
+        function_tolerance: 1e-12,
+        ..Default::default()
+    };
+    optimize(&mut graph.problem, &options, &mut |_| {
+        std::ops::ControlFlow::Continue(())
+    })
+    .unwrap();
+    graph.problem
+}
+
+/// Removals, a guess and a fix after a streamed graph: each time the idle session's estimate
+/// is the batch optimum of the factors it then holds (within 1e-5).
+#[tokio::test(flavor = "multi_thread")]
+async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
+    let text = synthetic_manhattan(600, 5);
+    let service = Service::new(Limits::default());
+    run(
+        &service,
+        Command::CreateSession(CreateSession {
+            session: Some("edits".into()),
+            kind: "pose_graph_2d".into(),
+            options: None,
+            auto_optimize: Default::default(),
+        }),
+    )
+    .await;
+    let mut loop_closures = Vec::new();
+    for b in g2o_batches(&text) {
+        let keys: Vec<(u64, u64)> = b["factors"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| {
+                (
+                    f["keys"][0].as_u64().unwrap(),
+                    f["keys"][1].as_u64().unwrap(),
+                )
+            })
+            .collect();
+        let batch: Batch = serde_json::from_value(b).unwrap();
+        let Reply::Accepted(ack) = run(
+            &service,
+            Command::ApplyBatch {
+                session: "edits".into(),
+                batch,
+                wait: true,
+            },
+        )
+        .await
+        else {
+            unreachable!()
+        };
+        for (id, (a, b)) in ack.ack.factor_ids.iter().zip(keys) {
+            if a + 1 != b {
+                loop_closures.push((*id, a, b));
+            }
+        }
+    }
+    assert!(loop_closures.len() > 20, "the walk closes loops");
+    let close = |chi2: f64, optimum: f64, what: &str| {
+        assert!(
+            (chi2 - optimum).abs() <= 1e-5 * optimum,
+            "{what}: {chi2} vs batch {optimum}"
+        );
+    };
+    let reference = batch_solved(&text, &[]);
+    close(
+        idle_chi2(&service, &reference).await,
+        reference.chi2(),
+        "streamed",
+    );
+
+    // Remove every other loop closure.
+    let removed: Vec<_> = loop_closures.iter().step_by(2).collect();
+    let batch = Batch {
+        remove_factors: removed.iter().map(|r| r.0).collect(),
+        ..Default::default()
+    };
+    run(
+        &service,
+        Command::ApplyBatch {
+            session: "edits".into(),
+            batch,
+            wait: true,
+        },
+    )
+    .await;
+    let drop: std::collections::HashSet<(u64, u64)> = removed.iter().map(|r| (r.1, r.2)).collect();
+    let text: String = text
+        .lines()
+        .filter(|line| {
+            let t: Vec<&str> = line.split_whitespace().collect();
+            !(t.first() == Some(&"EDGE_SE2")
+                && drop.contains(&(t[1].parse().unwrap(), t[2].parse().unwrap())))
+        })
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let reference = batch_solved(&text, &[]);
+    close(
+        idle_chi2(&service, &reference).await,
+        reference.chi2(),
+        "after removals",
+    );
+
+    // A guess far off for one pose, then that pose fixed where the guess put it.
+    let guess = [3.0, -2.0, 0.5];
+    let batch: Batch = serde_json::from_value(serde_json::json!({
+        "guesses": [{"key": 300, "value": guess}], "fix": [300]
+    }))
+    .unwrap();
+    run(
+        &service,
+        Command::ApplyBatch {
+            session: "edits".into(),
+            batch,
+            wait: true,
+        },
+    )
+    .await;
+    let reference = batch_solved(&text, &[(300, guess)]);
+    close(
+        idle_chi2(&service, &reference).await,
+        reference.chi2(),
+        "after a guess and a fix",
+    );
+
+    // New poses keep streaming incrementally after the edits.
+    let next: Batch = serde_json::from_value(serde_json::json!({
+        "variables": [{"key": 600, "kind": "se2"}],
+        "factors": [{"type": "between_se2", "keys": [599, 600], "measurement": [1.0, 0.0, 0.0],
+                     "information": [100.0, 0.0, 0.0, 100.0, 0.0, 100.0]},
+                    {"type": "between_se2", "keys": [1, 600], "measurement": [0.5, 0.5, 0.0],
+                     "information": [1.0, 0.0, 0.0, 1.0, 0.0, 1.0]}]
+    }))
+    .unwrap();
+    run(
+        &service,
+        Command::ApplyBatch {
+            session: "edits".into(),
+            batch: next,
+            wait: true,
+        },
+    )
+    .await;
+    let Reply::Stats(stats) = run(
+        &service,
+        Command::GetStats {
+            session: "edits".into(),
+        },
+    )
+    .await
+    else {
+        unreachable!()
+    };
+    let last = stats.last_summary.expect("solved");
+    assert!(
+        last.used.incremental.is_some(),
+        "an engine update after the edits"
+    );
+}
