@@ -12,8 +12,9 @@ use std::time::{Duration, Instant};
 use common::server::{client, create, get, post, recovered, TestServer};
 use serde_json::{json, Value};
 
-fn config_file(dir: &Path, snapshot_every: u64) -> String {
-    let path = dir.join("factord-snapshot.json");
+/// Beside the state directory, named after it: the tests run at once and must not share it.
+fn config_file(state: &Path, snapshot_every: u64) -> String {
+    let path = state.with_extension("json");
     std::fs::write(
         &path,
         json!({"journal": {"snapshot_every": snapshot_every}}).to_string(),
@@ -54,7 +55,7 @@ async fn kill_9_while_snapshots_are_written_loses_no_acknowledged_batch() {
     const BASE: u64 = 20_000;
     const KILLS: usize = 6;
     let state = common::temp_dir("snapshot-stream");
-    let config = config_file(state.parent().unwrap(), 40);
+    let config = config_file(&state, 40);
     let extra = ["--no-zenoh", "--config", config.as_str(), "--log", "info"];
     let c = client();
     let acked: Arc<Mutex<u64>> = Arc::new(Mutex::new(0));
@@ -158,7 +159,7 @@ async fn kill_9_while_snapshots_are_written_loses_no_acknowledged_batch() {
 #[tokio::test(flavor = "multi_thread")]
 async fn deleting_a_session_while_its_snapshot_is_written_resurrects_nothing() {
     let state = common::temp_dir("snapshot-delete");
-    let config = config_file(state.parent().unwrap(), 2);
+    let config = config_file(&state, 2);
     let extra = ["--no-zenoh", "--config", config.as_str(), "--log", "info"];
     let c = client();
     let s = TestServer::start_at(&state, &extra, &[]);
