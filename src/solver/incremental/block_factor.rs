@@ -89,8 +89,10 @@ pub struct BlockFactor {
     pub rank: Vec<u64>,
     next_rank: u64,
     pub columns: Vec<Column>,
-    /// For each variable `u`, the columns `k` with a block `L_uk` (its row's structure).
-    row_columns: Vec<Vec<u32>>,
+    /// For each variable `u`, the columns `k` with a block `L_uk` (its row's structure), with
+    /// that block's offset in column `k` (a column keeps its blocks until it is refactored, and
+    /// then registers them again).
+    row_columns: Vec<Vec<(u32, u32)>>,
     parent: Vec<u32>,
     children: Vec<Vec<u32>>,
     roots: BTreeSet<u32>,
@@ -131,7 +133,7 @@ impl BlockFactor {
     pub fn reaching(&self, affected: &[usize], in_affected: &[bool]) -> Vec<usize> {
         let mut seen = BTreeSet::new();
         for &r in affected {
-            for &k in &self.row_columns[r] {
+            for &(k, _) in &self.row_columns[r] {
                 if !in_affected[k as usize] {
                     seen.insert(k as usize);
                 }
@@ -164,7 +166,7 @@ impl BlockFactor {
             old.diagonal.clear();
             old.rows.clear();
             old.blocks.clear();
-            self.row_columns[r].retain(|&k| !in_order[k as usize]);
+            self.row_columns[r].retain(|&(k, _)| !in_order[k as usize]);
             self.children[r].retain(|&c| !in_order[c as usize]);
             self.roots.remove(&(r as u32));
             self.parent[r] = NONE;
@@ -194,7 +196,7 @@ impl BlockFactor {
                         du,
                         d,
                     );
-                    self.row_columns[u as usize].push(r as u32);
+                    self.row_columns[u as usize].push((r as u32, o as u32));
                     if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
                         parent = u;
                     }
@@ -234,15 +236,10 @@ impl BlockFactor {
     fn subtract_updates_with(&self, r: usize, acc: &mut Accumulator) {
         let d = self.dim[r];
         let rank_r = self.rank[r];
-        for &k in &self.row_columns[r] {
+        for &(k, at) in &self.row_columns[r] {
             let column = &self.columns[k as usize];
             let dk = self.dim[k as usize];
-            let at = column
-                .rows
-                .iter()
-                .find(|&&(u, _)| u as usize == r)
-                .map(|&(_, o)| o as usize)
-                .expect("row_columns lists only columns with a block in that row");
+            let at = at as usize;
             let l_rk = &column.blocks[at..at + d * dk];
             dense::sub_mul_transpose(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
             for &(u, o) in &column.rows {
@@ -312,14 +309,9 @@ impl BlockFactor {
             z.clear();
             z.resize(d, 0.0);
             rhs(r, &mut z);
-            for &k in &self.row_columns[r] {
+            for &(k, at) in &self.row_columns[r] {
                 let column = &self.columns[k as usize];
                 let dk = self.dim[k as usize];
-                let &(_, at) = column
-                    .rows
-                    .iter()
-                    .find(|&&(u, _)| u as usize == r)
-                    .expect("row_columns lists only columns with a block in that row");
                 let l_rk = &column.blocks[at as usize..at as usize + d * dk];
                 let o = offset[k as usize];
                 dense::sub_mul_vector(&mut z, l_rk, &y[o..o + dk], d, dk);
