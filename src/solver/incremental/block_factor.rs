@@ -41,6 +41,9 @@ pub struct Accumulator {
     slot: Vec<u32>,
     entries: Vec<(u32, u32)>,
     buffer: Vec<f64>,
+    /// `−L_rr⁻¹` and a block's copy, while the column's blocks are scaled.
+    inverse: Vec<f64>,
+    scratch: Vec<f64>,
 }
 
 impl Accumulator {
@@ -186,17 +189,10 @@ impl BlockFactor {
                     acc.finish();
                     return Err(NotPositiveDefinite(r));
                 }
+                self.scale_blocks(&mut acc);
                 let mut parent = NONE;
                 for &(u, o) in &acc.entries {
-                    let du = self.dim[u as usize];
-                    let o = o as usize;
-                    dense::solve_right_transpose(
-                        &mut acc.buffer[o..o + du * d],
-                        &acc.diagonal,
-                        du,
-                        d,
-                    );
-                    self.row_columns[u as usize].push((r as u32, o as u32));
+                    self.row_columns[u as usize].push((r as u32, o));
                     if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
                         parent = u;
                     }
@@ -250,6 +246,33 @@ impl BlockFactor {
                     dense::sub_mul_transpose(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
                 }
             }
+        }
+    }
+
+    /// `L_ur = A'_ur L_rr⁻ᵀ` for every block of the column (its diagonal already factored).
+    fn scale_blocks(&self, acc: &mut Accumulator) {
+        if crate::solver::simd::has_wide_vectors() {
+            // SAFETY: the CPU has the features `scale_blocks_wide` is compiled for.
+            unsafe { self.scale_blocks_wide(acc) }
+        } else {
+            self.scale_blocks_with(acc)
+        }
+    }
+
+    #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+    fn scale_blocks_wide(&self, acc: &mut Accumulator) {
+        self.scale_blocks_with(acc)
+    }
+
+    #[inline(always)]
+    fn scale_blocks_with(&self, acc: &mut Accumulator) {
+        let d = acc.dim;
+        dense::negated_lower_inverse(&acc.diagonal, d, &mut acc.inverse);
+        for &(u, o) in &acc.entries {
+            let du = self.dim[u as usize];
+            let o = o as usize;
+            let block = &mut acc.buffer[o..o + du * d];
+            dense::times_inverse_transpose(block, &acc.inverse, du, d, &mut acc.scratch);
         }
     }
 

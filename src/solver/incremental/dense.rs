@@ -129,7 +129,40 @@ pub fn backward(l: &[f64], z: &mut [f64], d: usize) {
     }
 }
 
-/// `x (m×d) ← x · L⁻ᵀ`: each row `xᵢ` becomes the solution of `L zᵀ = xᵢᵀ`.
+/// `−L⁻¹` (row-major) of the lower-triangular d×d `l`, into `out`.
+pub fn negated_lower_inverse(l: &[f64], d: usize, out: &mut Vec<f64>) {
+    out.clear();
+    out.resize(d * d, 0.0);
+    let mut column = vec![0.0; d];
+    for j in 0..d {
+        column.fill(0.0);
+        column[j] = -1.0;
+        forward(l, &mut column, d);
+        for i in 0..d {
+            out[i * d + j] = column[i];
+        }
+    }
+}
+
+/// `x (m×d) ← x · L⁻ᵀ` given `negated_inverse = −L⁻¹` (see [`negated_lower_inverse`]): one
+/// product instead of a triangular solve per row (`scratch` holds a copy of `x`).
+#[inline]
+pub fn times_inverse_transpose(
+    x: &mut [f64],
+    negated_inverse: &[f64],
+    m: usize,
+    d: usize,
+    scratch: &mut Vec<f64>,
+) {
+    scratch.clear();
+    scratch.extend_from_slice(&x[..m * d]);
+    x[..m * d].fill(0.0);
+    sub_mul_transpose(x, scratch, negated_inverse, m, d, d);
+}
+
+/// `x (m×d) ← x · L⁻ᵀ`: each row `xᵢ` becomes the solution of `L zᵀ = xᵢᵀ` (the reference
+/// [`times_inverse_transpose`] is tested against).
+#[cfg(test)]
 pub fn solve_right_transpose(x: &mut [f64], l: &[f64], m: usize, d: usize) {
     for row in x.chunks_exact_mut(d).take(m) {
         forward(l, row, d);
@@ -166,6 +199,13 @@ mod tests {
         solve_right_transpose(&mut rows, &a, 2, d);
         let back = nalgebra::DMatrix::from_row_slice(2, d, &rows) * l.transpose();
         assert!((back[(1, 2)] - 2.0).abs() < 1e-10 && (back[(0, 3)] - 4.0).abs() < 1e-10);
+        let (mut inverse, mut scratch) = (Vec::new(), Vec::new());
+        negated_lower_inverse(&a, d, &mut inverse);
+        let mut rows2 = vec![1.0, 2.0, 3.0, 4.0, -1.0, 0.0, 2.0, 1.0];
+        times_inverse_transpose(&mut rows2, &inverse, 2, d, &mut scratch);
+        for (p, q) in rows.iter().zip(&rows2) {
+            assert!((p - q).abs() < 1e-12);
+        }
         let mut indefinite = vec![1.0, 0.0, 2.0, 1.0];
         assert_eq!(cholesky(&mut indefinite, 2), Err(1));
     }
