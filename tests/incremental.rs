@@ -131,6 +131,20 @@ async fn run(service: &Service, command: Command) -> Reply {
     service.execute(command).await.unwrap()
 }
 
+/// Applies `batch` to the session `edits` and waits for it to be reflected.
+async fn apply(service: &Service, batch: Batch) -> Reply {
+    let session = "edits".into();
+    run(
+        service,
+        Command::ApplyBatch {
+            session,
+            batch,
+            wait: true,
+        },
+    )
+    .await
+}
+
 /// Waits until the idle session has polished to convergence, then returns the true chi2 of its
 /// estimate on `reference` (the same factors, solved in batch by the caller).
 async fn idle_chi2(service: &Service, reference: &factord::problem::Problem) -> f64 {
@@ -223,16 +237,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
             })
             .collect();
         let batch: Batch = serde_json::from_value(b).unwrap();
-        let Reply::Accepted(ack) = run(
-            &service,
-            Command::ApplyBatch {
-                session: "edits".into(),
-                batch,
-                wait: true,
-            },
-        )
-        .await
-        else {
+        let Reply::Accepted(ack) = apply(&service, batch).await else {
             unreachable!()
         };
         for (id, (a, b)) in ack.ack.factor_ids.iter().zip(keys) {
@@ -261,15 +266,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
         remove_factors: removed.iter().map(|r| r.0).collect(),
         ..Default::default()
     };
-    run(
-        &service,
-        Command::ApplyBatch {
-            session: "edits".into(),
-            batch,
-            wait: true,
-        },
-    )
-    .await;
+    apply(&service, batch).await;
     let drop: std::collections::HashSet<(u64, u64)> = removed.iter().map(|r| (r.1, r.2)).collect();
     let text: String = text
         .lines()
@@ -293,15 +290,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
         "guesses": [{"key": 300, "value": guess}], "fix": [300]
     }))
     .unwrap();
-    run(
-        &service,
-        Command::ApplyBatch {
-            session: "edits".into(),
-            batch,
-            wait: true,
-        },
-    )
-    .await;
+    apply(&service, batch).await;
     let reference = batch_solved(&text, &[(300, guess)]);
     close(
         idle_chi2(&service, &reference).await,
@@ -318,15 +307,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
                      "information": [1.0, 0.0, 0.0, 1.0, 0.0, 1.0]}]
     }))
     .unwrap();
-    run(
-        &service,
-        Command::ApplyBatch {
-            session: "edits".into(),
-            batch: next,
-            wait: true,
-        },
-    )
-    .await;
+    apply(&service, next).await;
     let Reply::Stats(stats) = run(
         &service,
         Command::GetStats {

@@ -111,6 +111,26 @@ fn batch_optimum(poses: usize, edges: &[(usize, usize, Se2)], truth: &[Se2]) -> 
     problem.chi2()
 }
 
+/// Adds pose `k` (its value predicted from the odometry edge `k-1 → k` at the current estimate)
+/// and every edge whose later end is `k`, then updates the engine.
+fn stream_pose(
+    problem: &mut Problem,
+    engine: &mut IncrementalEngine,
+    edges_to: &[&(usize, usize, Se2)],
+    k: usize,
+    params: &UpdateParams,
+) -> factord::solver::incremental::UpdateReport {
+    let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
+    let odometry = edges_to.iter().find(|e| e.0 == k - 1).unwrap();
+    problem
+        .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
+        .unwrap();
+    for e in edges_to {
+        add_edge(problem, e);
+    }
+    engine.update(problem, params).unwrap()
+}
+
 #[test]
 fn streamed_graph_reaches_the_batch_optimum() {
     let poses = 1500;
@@ -128,15 +148,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
         by_later_end[e.1].push(e);
     }
     for k in 1..poses {
-        let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
-        let odometry = by_later_end[k].iter().find(|e| e.0 == k - 1).unwrap();
-        problem
-            .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
-            .unwrap();
-        for e in &by_later_end[k] {
-            add_edge(&mut problem, e);
-        }
-        let report = engine.update(&mut problem, &params).unwrap();
+        let report = stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &params);
         if by_later_end[k].len() == 1 && report.relinearized_variables == 0 {
             odometry_columns.push(report.refactored_columns);
         }
@@ -175,7 +187,10 @@ fn streamed_graph_reaches_the_batch_optimum() {
 #[test]
 #[ignore]
 fn threshold_sweep() {
-    let poses: usize = std::env::var("SWEEP_POSES").ok().and_then(|p| p.parse().ok()).unwrap_or(3000);
+    let poses: usize = std::env::var("SWEEP_POSES")
+        .ok()
+        .and_then(|p| p.parse().ok())
+        .unwrap_or(3000);
     let (truth, edges) = manhattan(poses, 11);
     let optimum = batch_optimum(poses, &edges, &truth);
     for (relin, passes) in [(0.1, 1), (0.05, 2), (0.01, 2), (0.01, 4), (0.001, 4)] {
@@ -194,16 +209,8 @@ fn threshold_sweep() {
         }
         let (mut columns, mut worst, start) = (0, 0.0f64, std::time::Instant::now());
         for k in 1..poses {
-            let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
-            let odometry = by_later_end[k].iter().find(|e| e.0 == k - 1).unwrap();
-            problem
-                .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
-                .unwrap();
-            for e in &by_later_end[k] {
-                add_edge(&mut problem, e);
-            }
             let t = std::time::Instant::now();
-            let report = engine.update(&mut problem, &params).unwrap();
+            let report = stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &params);
             worst = worst.max(t.elapsed().as_secs_f64());
             columns += report.refactored_columns;
         }
@@ -212,7 +219,10 @@ fn threshold_sweep() {
         let mut fixed = vec![false; poses];
         fixed[0] = true;
         let kept = engine.update(&mut problem, &params).unwrap().factor_nnz;
-        let fresh = IncrementalEngine::new(&mut problem, &fixed).unwrap().1.factor_nnz;
+        let fresh = IncrementalEngine::new(&mut problem, &fixed)
+            .unwrap()
+            .1
+            .factor_nnz;
         eprintln!("factor nnz: kept {kept}, fresh AMD {fresh}");
         let report = engine
             .update(
