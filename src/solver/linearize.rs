@@ -158,7 +158,8 @@ impl SystemLayout {
                     .unwrap_or(nb)
             })
             .collect();
-        let mut start = vec![0usize; nb + 2];
+        // Positions 0..=nb: a factor whose variables are all fixed sorts last, at nb.
+        let mut start = vec![0usize; nb + 3];
         for &p in &first {
             start[p + 2] += 1;
         }
@@ -428,5 +429,47 @@ pub fn symmetric_multiply(pattern: &BlockPattern, h: &[f64], x: &[f64], y: &mut 
                 y[c] += h_rc * x[r];
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::BetweenSe2;
+    use crate::geometry::Se2;
+    use crate::problem::Problem;
+
+    /// A factor between two fixed variables has no block in the system; the layout still
+    /// visits it (last) and linearisation skips its blocks.
+    #[test]
+    fn a_factor_between_fixed_variables_is_laid_out() {
+        let mut problem = Problem::new();
+        for k in 0..3u64 {
+            problem
+                .add_variable(k, Box::new(Se2::new(k as f64, 0.0, 0.0)))
+                .unwrap();
+        }
+        let information = nalgebra::DMatrix::identity(3, 3);
+        for (a, b) in [(0u64, 1u64), (1, 2)] {
+            let z = Se2::new(1.0, 0.0, 0.0);
+            let factor = Box::new(BetweenSe2::new(a, b, z));
+            problem.add_factor(factor, &information, None, "e").unwrap();
+        }
+        let fixed = [true, true, false];
+        let layout = SystemLayout::new(problem.factors(), &problem.values, &fixed);
+        assert_eq!(layout.visit_order.len(), 2);
+        assert_eq!(layout.visit_order[1], 0, "the all-fixed factor comes last");
+        let mut scratch = Scratch::new(&layout);
+        let mut h = vec![0.0; layout.pattern.nnz()];
+        let mut b = vec![0.0; layout.n()];
+        linearize(
+            problem.factors(),
+            &problem.values,
+            &layout,
+            &mut scratch,
+            &mut h,
+            &mut b,
+        )
+        .unwrap();
     }
 }
