@@ -292,7 +292,13 @@ impl IncrementalEngine {
         }
         touched.clear();
         let entries = problem.factors();
-        let reaching = self.factor.reaching(&affected, &self.mark);
+        // The roots of the kept subtrees hanging off the refactored part: a deeper column's rows
+        // in it are a subset of its subtree root's (a column's structure, less its parent, is
+        // within its parent's), so their cliques carry all the fill the ordering must see, and
+        // only their parents can change.
+        let mark = &self.mark;
+        let mut reaching = self.factor.reaching(&affected, mark);
+        reaching.retain(|&k| self.factor.parent(k).is_some_and(|p| mark[p]));
         let cliques: Vec<Vec<usize>> = reaching
             .iter()
             .map(|&k| self.factor.rows_of(k).filter(|&u| self.mark[u]).collect())

@@ -16,7 +16,7 @@ pub struct UpdateReport {
     /// Columns of the factor eliminated again: the touched variables and their ancestors in
     /// the elimination tree, summed over passes.
     pub refactored_columns: usize,
-    /// Untouched subtrees whose cached columns were reused below the refactored part.
+    /// Untouched subtrees hanging off the refactored part (their columns were reused).
     pub reused_subtrees: usize,
     /// Columns back-substitution visited, and those whose value changed by more than the
     /// wildfire threshold (the estimate changes published).
