@@ -135,6 +135,7 @@ impl RegionIndex {
         tight: bool,
         options: &SolverOptions,
         gauge: &[Key],
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ) -> Option<Result<Resolved, SolverError>> {
         let engine = self.engine.as_mut()?;
         let start = Instant::now();
@@ -160,6 +161,9 @@ impl RegionIndex {
                 threshold: CONVERGED_STEP,
             },
         );
+        // One update is one Gauss-Newton step: streamed like a solver iteration (an engine
+        // update is not interruptible, so what the callback answers does not matter).
+        let _ = on_iteration(&IncrementalEngine::iteration(&report, total_chi2));
         Some(Ok(Resolved {
             total_chi2: summary.final_chi2,
             converged,

@@ -124,7 +124,14 @@ impl Session {
         let solve = std::panic::AssertUnwindSafe(|| {
             let additions_only = !structural && solve_number > 1;
             if let Some(total) = chi2.filter(|_| additions_only) {
-                match index.update_engine(&mut problem, total, tight, &options, &gauge) {
+                match index.update_engine(
+                    &mut problem,
+                    total,
+                    tight,
+                    &options,
+                    &gauge,
+                    &mut on_iteration,
+                ) {
                     Some(Ok(resolved)) => return Ok(resolved),
                     // The engine failed (an indeterminate update): solve in batch below.
                     Some(Err(e)) => {

@@ -4,7 +4,9 @@
 
 use super::{IncrementalEngine, UpdateReport};
 use crate::problem::{Key, Problem};
-use crate::solver::summary::{Summary, Termination, TerminationReason, Timings, UsedOptions};
+use crate::solver::summary::{
+    IterationReport, Summary, Termination, TerminationReason, Timings, UsedOptions,
+};
 use crate::solver::SolverOptions;
 
 /// What the caller knows about the update besides its report.
@@ -19,6 +21,28 @@ pub struct UpdateContext<'a> {
 }
 
 impl IncrementalEngine {
+    /// The update as one Gauss-Newton iteration, for clients that plot convergence.
+    pub fn iteration(report: &UpdateReport, initial_chi2: f64) -> IterationReport {
+        IterationReport {
+            iteration: 1,
+            chi2: report.model_chi2,
+            trial_chi2: report.model_chi2,
+            relative_decrease: if initial_chi2 > 0.0 {
+                (initial_chi2 - report.model_chi2) / initial_chi2
+            } else {
+                0.0
+            },
+            gradient_max_norm: 0.0,
+            step_norm: report.max_delta,
+            lambda: None,
+            trust_radius: None,
+            accepted: true,
+            linearize_seconds: report.linearize_seconds,
+            factorize_seconds: report.factorize_seconds,
+            solve_seconds: report.solve_seconds,
+        }
+    }
+
     pub fn summary(&self, problem: &Problem, report: &UpdateReport, cx: UpdateContext) -> Summary {
         let reason = if cx.converged {
             TerminationReason::ParameterTolerance
@@ -75,7 +99,7 @@ impl IncrementalEngine {
                 linear_solve_seconds: report.solve_seconds,
                 evaluate_seconds: 0.0,
             },
-            iteration_log: Vec::new(),
+            iteration_log: vec![Self::iteration(report, cx.initial_chi2)],
         }
     }
 }
