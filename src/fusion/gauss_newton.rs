@@ -159,8 +159,8 @@ impl WindowSolver {
             let decrease = chi2 - trial;
             let relative = decrease / chi2.max(f64::MIN_POSITIVE);
             let ftol = options.function_tolerance;
-            let converged = (ftol > 0.0 && relative.abs() <= ftol)
-                || (ftol > 0.0 && (decrease - predicted).abs() <= ftol * trial)
+            let converged = (ftol > 0.0
+                && (relative.abs() <= ftol || (decrease - predicted).abs() <= ftol * trial))
                 || (options.parameter_tolerance > 0.0
                     && max_abs(&self.delta) <= options.parameter_tolerance);
             // Lazy convergence: the step left about |decrease − predicted| of chi2 to gain; at

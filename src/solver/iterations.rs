@@ -372,7 +372,12 @@ impl<'a> Iterations<'a> {
                     }
                     predicted = dot(&self.delta, &self.b);
                     let trial = or_stop!(self.evaluate_trial(factors, values)?);
-                    if chord && !(trial <= chi2) {
+                    // Not at most chi2 (NaN included).
+                    let worse = !matches!(
+                        trial.partial_cmp(&chi2),
+                        Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+                    );
+                    if chord && worse {
                         // The old factorisation was not good enough here: discard the step, and
                         // factorise at this point next.
                         (false, trial)

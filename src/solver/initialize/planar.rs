@@ -187,9 +187,9 @@ pub(super) fn chordal_2d(
     }
     let [x, y] = trans.solve(&mut chol, budget)?;
     let mut out = values.clone();
-    for v in 0..n {
+    for (v, &heading) in theta.iter().enumerate().take(n) {
         if let Some(p) = position(v) {
-            out.set(v, &Se2::new(x[p], y[p], theta[v]));
+            out.set(v, &Se2::new(x[p], y[p], heading));
         }
     }
     Some(out)
