@@ -100,7 +100,8 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         .enable_all()
         .build()
         .map_err(CliError::Runtime)?;
-    Ok(runtime.block_on(server::run(config, server::shutdown_signal()))?)
+    // The signal handlers are installed inside the runtime, before the server starts.
+    Ok(runtime.block_on(async { server::run(config, server::shutdown_signal()).await })?)
 }
 
 /// Puts every flag (or its environment variable) that was given over the file's settings.
