@@ -18,6 +18,7 @@
 use std::collections::BTreeSet;
 
 use super::dense;
+use crate::solver::schur::small_cholesky;
 
 const NONE: u32 = u32::MAX;
 /// A zero block of the largest variable (15-dimensional navigation states).
@@ -185,7 +186,7 @@ impl BlockFactor {
                 acc.start(d, self.dim.len());
                 assemble(r, &self.rank, &mut acc);
                 self.subtract_updates(r, &mut acc);
-                if dense::cholesky(&mut acc.diagonal, d).is_err() {
+                if small_cholesky(&mut acc.diagonal, d).is_err() {
                     acc.finish();
                     return Err(NotPositiveDefinite(r));
                 }

@@ -1,5 +1,6 @@
 //! Small dense kernels on the blocks of the incremental factor (row-major, dimensions 1–15):
-//! Cholesky of a diagonal block, triangular solves with it, and the `C −= A·Bᵀ` update that
+//! triangular solves with a diagonal block (its Cholesky is the Schur complement's
+//! `small_cholesky`), and the `C −= A·Bᵀ` update that
 //! left-looking elimination spends its time in.
 
 /// `acc (m×d) −= a (m×k) · bᵀ` with `b` d×k; all row-major. The block sizes of 2D and 3D pose
@@ -78,33 +79,6 @@ pub fn sub_mul_transpose_vector(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k
     }
 }
 
-/// In-place Cholesky `A = L Lᵀ` of the d×d symmetric matrix whose lower triangle `a` holds;
-/// the strict upper triangle is zeroed. `Err(i)`: the pivot of row `i` is not positive.
-pub fn cholesky(a: &mut [f64], d: usize) -> Result<(), usize> {
-    for j in 0..d {
-        let mut pivot = a[j * d + j];
-        for l in 0..j {
-            pivot -= a[j * d + l] * a[j * d + l];
-        }
-        if pivot.is_nan() || pivot <= 0.0 {
-            return Err(j);
-        }
-        let pivot = pivot.sqrt();
-        a[j * d + j] = pivot;
-        for i in j + 1..d {
-            let mut s = a[i * d + j];
-            for l in 0..j {
-                s -= a[i * d + l] * a[j * d + l];
-            }
-            a[i * d + j] = s / pivot;
-        }
-        for i in 0..j {
-            a[i * d + j] = 0.0;
-        }
-    }
-    Ok(())
-}
-
 /// `z ← L⁻¹ z` for the lower-triangular d×d `l`.
 #[inline]
 pub fn forward(l: &[f64], z: &mut [f64], d: usize) {
@@ -172,6 +146,7 @@ pub fn solve_right_transpose(x: &mut [f64], l: &[f64], m: usize, d: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::solver::schur::small_cholesky;
 
     #[test]
     fn cholesky_and_solves_agree_with_nalgebra() {
@@ -179,8 +154,8 @@ mod tests {
         let m = nalgebra::DMatrix::<f64>::from_fn(d, d, |i, j| ((i * 3 + j * 5) % 7) as f64 - 3.0);
         let spd = &m * m.transpose() + nalgebra::DMatrix::identity(d, d) * 2.0;
         let mut a: Vec<f64> = (0..d * d).map(|k| spd[(k / d, k % d)]).collect();
-        cholesky(&mut a, d).unwrap();
-        let l = nalgebra::DMatrix::from_row_slice(d, d, &a);
+        small_cholesky(&mut a, d).unwrap();
+        let l = nalgebra::DMatrix::from_row_slice(d, d, &a).lower_triangle();
         assert!((&l * l.transpose() - &spd).norm() < 1e-10);
         let b = [1.0, -2.0, 0.5, 3.0];
         let mut z = b;
@@ -207,7 +182,7 @@ mod tests {
             assert!((p - q).abs() < 1e-12);
         }
         let mut indefinite = vec![1.0, 0.0, 2.0, 1.0];
-        assert_eq!(cholesky(&mut indefinite, 2), Err(1));
+        assert_eq!(small_cholesky(&mut indefinite, 2), Err(1));
     }
 
     #[test]

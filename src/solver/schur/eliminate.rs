@@ -242,8 +242,11 @@ fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: 
 
 /// In-place Cholesky of the d×d row-major matrix `a` (lower triangle read and written).
 /// On failure returns the row of the non-positive pivot.
+/// In-place Cholesky of a small d×d block (lower triangle, row-major; the upper triangle is
+/// left as it was). `Err(j)`: the pivot of row `j` is not positive and finite. Also the
+/// incremental factor's diagonal blocks (`solver::incremental`).
 #[inline(always)]
-fn small_cholesky(a: &mut [f64], d: usize) -> Result<(), usize> {
+pub(in crate::solver) fn small_cholesky(a: &mut [f64], d: usize) -> Result<(), usize> {
     for j in 0..d {
         let mut pivot = a[j * d + j];
         for k in 0..j {

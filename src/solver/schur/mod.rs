@@ -43,6 +43,7 @@ use super::budget::FactorCost;
 use super::structure::BlockPattern;
 
 pub use plan::{plan, SchurPlan};
+pub(in crate::solver) use eliminate::small_cholesky;
 use reduced::Backend;
 
 /// One neighbour (reduced block) of an eliminated block: its W block in the full pattern, and
