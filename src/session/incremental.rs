@@ -109,14 +109,7 @@ impl RegionIndex {
         if !problem.eliminate.is_empty() || problem.gauge != Gauge::AnchorComponents {
             return;
         }
-        let mut fixed: Vec<bool> = (0..problem.values.len())
-            .map(|v| problem.values.is_fixed(v))
-            .collect();
-        for key in gauge {
-            if let Some(v) = problem.values.index_of(*key) {
-                fixed[v] = true;
-            }
-        }
+        let fixed = held_fixed(problem, gauge);
         match IncrementalEngine::new(problem, &fixed) {
             Ok((engine, _)) => self.engine = Some(engine),
             // The batch solve succeeded, so this is a degenerate system the batch solver's
@@ -171,6 +164,20 @@ impl RegionIndex {
             summary,
         }))
     }
+}
+
+/// Per variable, whether solves hold it: fixed by the client, or a gauge anchor of the last
+/// full solve (`gauge`).
+pub(crate) fn held_fixed(problem: &Problem, gauge: &[Key]) -> Vec<bool> {
+    let mut fixed: Vec<bool> = (0..problem.values.len())
+        .map(|v| problem.values.is_fixed(v))
+        .collect();
+    for key in gauge {
+        if let Some(v) = problem.values.index_of(*key) {
+            fixed[v] = true;
+        }
+    }
+    fixed
 }
 
 /// How a re-solve went.

@@ -297,14 +297,7 @@ impl Session {
         // Held fixed: what the client fixed, and the gauge anchors of the last full solve (a
         // region never reaches a component without one: it would be singular and the re-solve
         // falls back to the whole problem).
-        let mut anchors: Vec<bool> = (0..problem.values.len())
-            .map(|v| problem.values.is_fixed(v))
-            .collect();
-        for key in gauge {
-            if let Some(v) = problem.values.index_of(*key) {
-                anchors[v] = true;
-            }
-        }
+        let anchors = incremental::held_fixed(problem, gauge);
         incremental::resolve(
             problem,
             index,
