@@ -326,58 +326,8 @@ fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
             col_offsets[k] = cols;
             cols += r.tangent_dim();
         }
-        let Scratch {
-            error,
-            residual,
-            jacobian,
-            whitened,
-            gram,
-            gradient,
-        } = scratch;
-        let (e, r, jac, wj) = (
-            &mut error[..d],
-            &mut residual[..d],
-            &mut jacobian[..d * cols],
-            &mut whitened[..d * cols],
-        );
-        entry.factor.evaluate(&refs, e, Some(jac))?;
-        let (gram, gradient) = (&mut gram[..cols * cols], &mut gradient[..cols]);
-        let fixed_size = match entry.robust {
-            None => fixed::whitened_gram_fixed::<HESSIAN>(
-                &entry.sqrt_information,
-                d,
-                cols,
-                e,
-                jac,
-                gram,
-                gradient,
-            ),
-            Some(_) => None,
-        };
-        if let Some(chi2) = fixed_size {
-            total += chi2;
-        } else {
-            entry.sqrt_information.whiten_vector(e, r);
-            entry.sqrt_information.whiten_jacobian(jac, cols, wj);
-            total += match &entry.robust {
-                Some(kernel) => kernel.correct(r, wj, cols),
-                None => r.iter().map(|v| v * v).sum(),
-            };
-            // The factor's own JᵀJ and Jᵀr as rank-1 updates row by row (contiguous,
-            // vectorisable), then scattered block by block into H and b.
-            gram.fill(0.0);
-            gradient.fill(0.0);
-            for (row, &rk) in wj.chunks_exact(cols).zip(r.iter()) {
-                for (i, &ji) in row.iter().enumerate() {
-                    gradient[i] += ji * rk;
-                    if HESSIAN {
-                        for (g, &jj) in gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
-                            *g += ji * jj;
-                        }
-                    }
-                }
-            }
-        }
+        total += factor_gram::<HESSIAN>(entry, &refs, d, cols, scratch)?;
+        let (gram, gradient) = (&scratch.gram[..cols * cols], &scratch.gradient[..cols]);
         for (li, &v) in vars.iter().enumerate() {
             if let Some(p) = layout.position_of_var[v] {
                 let (o, c0, dim) = (pattern.offset[p], col_offsets[li], pattern.dim[p]);
@@ -416,6 +366,100 @@ fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
         }
     }
     Ok(ControlFlow::Continue(total))
+}
+
+/// One factor's whitened, robustified normal equations at `refs` (its variables in key order,
+/// `cols` tangent columns in all): `JᵀJ` (both triangles, only without `HESSIAN` skipped) into
+/// `scratch.gram[..cols²]` and `Jᵀr` into `scratch.gradient[..cols]`; returns its chi2. The batch
+/// linearisation and the incremental engine both take a factor's blocks from here.
+#[inline(always)]
+fn factor_gram<const HESSIAN: bool>(
+    entry: &FactorEntry,
+    refs: &[&dyn Variable],
+    d: usize,
+    cols: usize,
+    scratch: &mut Scratch,
+) -> Result<f64, EvaluationError> {
+    let Scratch {
+        error,
+        residual,
+        jacobian,
+        whitened,
+        gram,
+        gradient,
+    } = scratch;
+    let (e, r, jac, wj) = (
+        &mut error[..d],
+        &mut residual[..d],
+        &mut jacobian[..d * cols],
+        &mut whitened[..d * cols],
+    );
+    entry.factor.evaluate(refs, e, Some(jac))?;
+    let (gram, gradient) = (&mut gram[..cols * cols], &mut gradient[..cols]);
+    let fixed_size = match entry.robust {
+        None => fixed::whitened_gram_fixed::<HESSIAN>(
+            &entry.sqrt_information,
+            d,
+            cols,
+            e,
+            jac,
+            gram,
+            gradient,
+        ),
+        Some(_) => None,
+    };
+    if let Some(chi2) = fixed_size {
+        return Ok(chi2);
+    }
+    entry.sqrt_information.whiten_vector(e, r);
+    entry.sqrt_information.whiten_jacobian(jac, cols, wj);
+    let chi2 = match &entry.robust {
+        Some(kernel) => kernel.correct(r, wj, cols),
+        None => r.iter().map(|v| v * v).sum(),
+    };
+    // The factor's own JᵀJ and Jᵀr as rank-1 updates row by row (contiguous, vectorisable).
+    gram.fill(0.0);
+    gradient.fill(0.0);
+    for (row, &rk) in wj.chunks_exact(cols).zip(r.iter()) {
+        for (i, &ji) in row.iter().enumerate() {
+            gradient[i] += ji * rk;
+            if HESSIAN {
+                for (g, &jj) in gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
+                    *g += ji * jj;
+                }
+            }
+        }
+    }
+    Ok(chi2)
+}
+
+/// [`factor_gram`] with the Hessian, into buffers grown to fit: for callers linearising one
+/// factor at a time (the incremental engine). Returns chi2, `JᵀJ` (cols × cols) and `Jᵀr`.
+pub fn factor_normal_equations<'s>(
+    entry: &FactorEntry,
+    refs: &[&dyn Variable],
+    scratch: &'s mut Scratch,
+) -> Result<(f64, &'s [f64], &'s [f64]), EvaluationError> {
+    let d = entry.factor.residual_dim();
+    let cols: usize = refs.iter().map(|r| r.tangent_dim()).sum();
+    for (buffer, len) in [
+        (&mut scratch.error, d),
+        (&mut scratch.residual, d),
+        (&mut scratch.jacobian, d * cols),
+        (&mut scratch.whitened, d * cols),
+        (&mut scratch.gram, cols * cols),
+        (&mut scratch.gradient, cols),
+    ] {
+        if buffer.len() < len {
+            buffer.resize(len, 0.0);
+        }
+    }
+    let chi2 = factor_gram::<true>(entry, refs, d, cols, scratch)?;
+    Ok((
+        chi2,
+        &scratch.gram[..cols * cols],
+        &scratch.gradient[..cols],
+    ))
 }
 
 /// `y = H x` for the symmetric matrix stored as its lower triangle.

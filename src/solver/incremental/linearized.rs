@@ -6,6 +6,7 @@
 
 use crate::factors::EvaluationError;
 use crate::problem::FactorEntry;
+use crate::solver::linearize::{factor_normal_equations, Scratch};
 use crate::variables::Variable;
 
 /// One factor linearised at θ.
@@ -27,20 +28,12 @@ impl Linearized {
     }
 }
 
-/// Scratch buffers reused across factors.
-#[derive(Debug, Default)]
-pub struct LinearizeScratch {
-    error: Vec<f64>,
-    residual: Vec<f64>,
-    jacobian: Vec<f64>,
-    whitened: Vec<f64>,
-}
-
-/// Linearises `entry` at `theta` (indexed like the problem's values) into `out`.
+/// Linearises `entry` at `theta` (indexed like the problem's values) into `out`, with the batch
+/// solver's per-factor kernel (`solver::linearize::factor_normal_equations`).
 pub fn linearize_factor(
     entry: &FactorEntry,
     theta: &[Box<dyn Variable>],
-    scratch: &mut LinearizeScratch,
+    scratch: &mut Scratch,
     out: &mut Linearized,
 ) -> Result<(), EvaluationError> {
     let refs: Vec<&dyn Variable> = entry
@@ -55,37 +48,11 @@ pub fn linearize_factor(
         cols += r.tangent_dim();
     }
     out.col_offset.push(cols);
-    let d = entry.factor.residual_dim();
-    let LinearizeScratch {
-        error,
-        residual,
-        jacobian,
-        whitened,
-    } = scratch;
-    error.resize(d, 0.0);
-    residual.resize(d, 0.0);
-    jacobian.resize(d * cols, 0.0);
-    whitened.resize(d * cols, 0.0);
-    entry.factor.evaluate(&refs, error, Some(jacobian))?;
-    entry.sqrt_information.whiten_vector(error, residual);
-    entry
-        .sqrt_information
-        .whiten_jacobian(jacobian, cols, whitened);
-    out.chi2 = match &entry.robust {
-        Some(kernel) => kernel.correct(residual, whitened, cols),
-        None => residual.iter().map(|v| v * v).sum(),
-    };
+    let (chi2, gram, gradient) = factor_normal_equations(entry, &refs, scratch)?;
+    out.chi2 = chi2;
     out.gram.clear();
-    out.gram.resize(cols * cols, 0.0);
+    out.gram.extend_from_slice(gram);
     out.gradient.clear();
-    out.gradient.resize(cols, 0.0);
-    for (row, &rk) in whitened.chunks_exact(cols).zip(residual.iter()) {
-        for (i, &ji) in row.iter().enumerate() {
-            out.gradient[i] += ji * rk;
-            for (g, &jj) in out.gram[i * cols..(i + 1) * cols].iter_mut().zip(row) {
-                *g += ji * jj;
-            }
-        }
-    }
+    out.gradient.extend_from_slice(gradient);
     Ok(())
 }

@@ -30,7 +30,7 @@ mod summary;
 use std::time::Instant;
 
 use block_factor::{Accumulator, BlockFactor};
-use linearized::{linearize_factor, LinearizeScratch, Linearized};
+use linearized::{linearize_factor, Linearized};
 pub use report::UpdateReport;
 pub use summary::UpdateContext;
 
@@ -83,12 +83,14 @@ pub struct IncrementalEngine {
     /// Σ chi2 of the linearised factors at θ, and yᵀy (their difference is the model chi2).
     residual_chi2: f64,
     yty: f64,
-    scratch: LinearizeScratch,
+    scratch: super::linearize::Scratch,
     /// Variables whose estimate the last update wrote.
     changed: Vec<usize>,
     /// Σ residual dimensions and Σ free variables over the factors (the Summary's sizes).
     residuals: usize,
     jacobian_blocks: usize,
+    /// Free variables (columns of the factor).
+    columns: usize,
     /// Bytes of the linearised factors (kept as they are added).
     linearized_bytes: usize,
     /// Scratch marks indexed by variable.
@@ -155,6 +157,7 @@ impl IncrementalEngine {
             let d = if is_fixed { 0 } else { variable.tangent_dim() };
             self.theta.push(variable.clone_box());
             self.free.push(!is_fixed);
+            self.columns += usize::from(!is_fixed);
             self.offset.push(self.delta.len());
             self.dims.push(d);
             self.delta.resize(self.delta.len() + d, 0.0);
@@ -186,7 +189,8 @@ impl IncrementalEngine {
             }
         }
         // The new factors' variables are eliminated last (they are where the next update lands).
-        for &v in &touched {
+        let constrained = touched.clone();
+        for &v in &constrained {
             self.last[v] = true;
         }
         report.linearize_seconds = start.elapsed().as_secs_f64();
@@ -205,9 +209,11 @@ impl IncrementalEngine {
             }
             report.passes += 1;
             self.solve_pass(problem, &mut touched, params, &mut report, &mut changed)?;
-            self.last.iter_mut().for_each(|l| *l = false);
+            // Only the first pass carries new factors; later ones reorder freely.
+            for &v in &constrained {
+                self.last[v] = false;
+            }
         }
-        self.last.iter_mut().for_each(|l| *l = false);
         // Publish θ ⊕ Δ of what changed.
         changed.sort_unstable();
         changed.dedup();
@@ -220,7 +226,7 @@ impl IncrementalEngine {
         report.changed_variables = changed.len();
         self.changed = changed;
         report.factor_nnz = self.factor.nnz();
-        report.columns = self.free.iter().filter(|&&f| f).count();
+        report.columns = self.columns;
         report.model_chi2 = self.residual_chi2 - self.yty;
         report.max_delta = self.delta.iter().fold(0.0f64, |m, d| m.max(d.abs()));
         Ok(report)
