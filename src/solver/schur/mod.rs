@@ -42,8 +42,8 @@ mod tests;
 use super::budget::FactorCost;
 use super::structure::BlockPattern;
 
-pub use plan::{plan, SchurPlan};
 pub(in crate::solver) use eliminate::small_cholesky;
+pub use plan::{plan, SchurPlan};
 use reduced::Backend;
 
 /// One neighbour (reduced block) of an eliminated block: its W block in the full pattern, and
