@@ -14,121 +14,18 @@
 
 use std::sync::Arc;
 
-use zenoh::qos::CongestionControl;
 use zenoh::query::Query;
 
 use crate::api::wire::{EstimateQuery, SessionEvent};
 use crate::api::ErrorKind;
-use crate::service::{parse_query, Caller, Command, Service, ServiceError};
+use crate::service::{parse_query, Command, Service, ServiceError};
 
-#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ZenohConfig {
-    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`.
-    pub listen: Vec<String>,
-    /// Routers or peers to connect to.
-    pub connect: Vec<String>,
-    /// Multicast scouting for other peers on the LAN.
-    pub multicast: bool,
-    /// First chunk of every key expression.
-    pub prefix: String,
-    /// A zenoh JSON5 configuration to start from (access control, TLS, authentication: see
-    /// `docker/zenoh-secure.json5`); the settings above are applied on top of it.
-    pub config_file: Option<std::path::PathBuf>,
-    /// The principal (a token label, as in the tokens file) that every zenoh peer acts as: it
-    /// reaches the sessions that label owns, and owns the sessions it creates. Only with
-    /// zenoh's own authentication in `config_file` (user/password, or mutual TLS on every
-    /// endpoint): zenoh then decides who is a peer at all, and its ACL what each may do.
-    /// Without it, and with HTTP tokens on, zenoh peers are anonymous: they reach only unowned
-    /// sessions (see `service::caller`).
-    pub principal: Option<String>,
-}
+mod config;
+mod forward;
 
-#[derive(Debug, thiserror::Error)]
-pub enum ZenohError {
-    #[error("zenoh configuration `{key}`: {message}")]
-    Config { key: String, message: String },
-    #[error("zenoh: {0}")]
-    Zenoh(String),
-}
-
-fn zenoh_error(e: impl std::fmt::Display) -> ZenohError {
-    ZenohError::Zenoh(e.to_string())
-}
-
-fn config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
-    let mut config = match &cfg.config_file {
-        Some(path) => zenoh::Config::from_file(path).map_err(|e| ZenohError::Config {
-            key: path.display().to_string(),
-            message: e.to_string(),
-        })?,
-        None => zenoh::Config::default(),
-    };
-    let json = |v: &Vec<String>| serde_json::to_string(v).expect("strings serialise");
-    for (key, value) in [
-        ("mode", "\"peer\"".to_string()),
-        ("scouting/multicast/enabled", cfg.multicast.to_string()),
-        ("scouting/gossip/enabled", "true".to_string()),
-        ("listen/endpoints", json(&cfg.listen)),
-        ("connect/endpoints", json(&cfg.connect)),
-    ] {
-        config
-            .insert_json5(key, &value)
-            .map_err(|e| ZenohError::Config {
-                key: key.into(),
-                message: e.to_string(),
-            })?;
-    }
-    Ok(config)
-}
-
-/// Whether zenoh authenticates every peer before it may send anything: user/password on every
-/// link, or mutual TLS with only TLS endpoints (a plain `tcp/` endpoint beside it is open).
-fn authenticated(config: &zenoh::Config, cfg: &ZenohConfig) -> bool {
-    let set = |key: &str| {
-        config
-            .get_json(key)
-            .is_ok_and(|v| v != "null" && v != "false" && v != "\"\"")
-    };
-    let usrpwd = set("transport/auth/usrpwd/dictionary_file");
-    let mtls = set("transport/link/tls/enable_mtls")
-        && !cfg.listen.is_empty()
-        && cfg
-            .listen
-            .iter()
-            .chain(&cfg.connect)
-            .all(|e| e.starts_with("tls/"));
-    usrpwd || mtls
-}
-
-/// Who zenoh peers are: see [`ZenohConfig::principal`]. With HTTP tokens on and zenoh open,
-/// peers are anonymous, and the operator is told so.
-fn caller(
-    config: &zenoh::Config,
-    cfg: &ZenohConfig,
-    tokens_required: bool,
-) -> Result<Caller, ZenohError> {
-    match (&cfg.principal, authenticated(config, cfg)) {
-        (Some(label), true) => Ok(Caller::Principal(label.as_str().into())),
-        (Some(_), false) => Err(ZenohError::Config {
-            key: "zenoh.principal".into(),
-            message: "needs zenoh's own authentication in zenoh.config_file \
-                      (transport/auth/usrpwd/dictionary_file, or transport/link/tls/enable_mtls \
-                      with only tls/ endpoints): otherwise any peer would act as that principal"
-                .into(),
-        }),
-        (None, _) if tokens_required => {
-            tracing::warn!(
-                "HTTP requires bearer tokens but zenoh peers are anonymous: any zenoh peer can \
-                 create, read, write and delete the sessions created over zenoh, and sessions \
-                 created with a token are invisible over zenoh (404, not published). Secure \
-                 zenoh (user/password or mutual TLS) and set zenoh.principal to reach them"
-            );
-            Ok(Caller::Anonymous)
-        }
-        (None, _) => Ok(Caller::Trusted),
-    }
-}
+use config::{caller, config, zenoh_error};
+pub use config::{ZenohConfig, ZenohError};
+use forward::forward;
 
 /// The running adapter; dropping it does not close the session, [`ZenohAdapter::close`] does.
 pub struct ZenohAdapter {
@@ -278,34 +175,6 @@ pub async fn start(
     }));
     tracing::info!("zenoh peer {} serving `{prefix}/**`", session.zid());
     Ok(ZenohAdapter { session, tasks })
-}
-
-/// Publishes a session's events until it is deleted (its event channel closes).
-fn forward(zenoh: zenoh::Session, prefix: String, session: &Arc<crate::session::Session>) {
-    let mut rx = session.subscribe();
-    let name = session.name.clone();
-    tokio::spawn(async move {
-        loop {
-            let event = match rx.recv().await {
-                Ok(event) => event,
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    tracing::warn!("zenoh publisher of session {name} skipped {n} events");
-                    continue;
-                }
-                Err(_) => return,
-            };
-            let body = serde_json::to_vec(&*event).expect("events serialise");
-            let key = format!("{prefix}/{name}/out/{}", event.topic());
-            // Iteration statistics may be dropped under congestion; estimates and the rest not.
-            let congestion = match *event {
-                SessionEvent::Iteration { .. } => CongestionControl::Drop,
-                _ => CongestionControl::Block,
-            };
-            if let Err(e) = zenoh.put(key, body).congestion_control(congestion).await {
-                tracing::warn!("zenoh publication for session {name} failed: {e}");
-            }
-        }
-    });
 }
 
 fn payload(query: &Query) -> Vec<u8> {
