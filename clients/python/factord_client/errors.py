@@ -1,4 +1,13 @@
-"""The error every factord client raises for an error answer of the service."""
+"""The errors factord's clients raise: one family under :class:`FactordError`.
+
+* :class:`FactordError` — an error answer of the service (``status``, ``code``, ``field``).
+* :class:`FactordConnectionError` — the service could not be reached (after the retries that were
+  safe); also an :class:`OSError` (``ConnectionError``), as before.
+* :class:`FactordTimeout` — a client-side wait (``flush``, ``wait_acked``, a full window) ran out;
+  also a ``TimeoutError``.
+* :class:`BatchRefused` — a streamed batch of a producer was refused by the service; the producer
+  stopped and raises this from its next call.
+"""
 
 from __future__ import annotations
 
@@ -69,3 +78,43 @@ class FactordError(Exception):
             retry_after=retry_after,
             body=error,
         )
+
+
+class FactordConnectionError(FactordError, ConnectionError):
+    """The service did not answer: connection refused or reset, a socket timeout, no zenoh
+    queryable replied. ``status`` is ``None``; ``code`` is ``connection_failed`` (or
+    ``no_reply`` over zenoh); ``attempts`` says how many times the request was sent."""
+
+    def __init__(self, code: str, message: str, attempts: int = 1) -> None:
+        super().__init__(None, code, message)
+        self.attempts = attempts
+
+
+class FactordTimeout(FactordError, TimeoutError):
+    """A wait of the client ran out (``code`` ``timeout``), e.g. :meth:`flush` with batches
+    still unacknowledged. Nothing is lost: the batches stay queued and are still resent."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(None, "timeout", message)
+
+
+class BatchRefused(FactordError):
+    """The service refused a producer's batch (validation, unknown session, ...): that batch and
+    every later one of the producer were not applied (the later ones would follow it). Carries
+    the service's error (``status``, ``code``, ``field``, ``message``) plus ``producer``,
+    ``producer_seq`` (the refused batch's number), ``accepted_through`` (every batch up to it
+    is applied) and ``unacked`` (the numbers not applied, in order)."""
+
+    def __init__(self, error: FactordError, producer: str, producer_seq: int,
+                 accepted_through: int, unacked: "list[int]") -> None:
+        super().__init__(error.status, error.code, error.message, error.field,
+                         error.retry_after, error.body)
+        self.producer = producer
+        self.producer_seq = producer_seq
+        self.accepted_through = accepted_through
+        self.unacked = list(unacked)
+        tail = (f"; batches {unacked[0]}..{unacked[-1]} not applied" if unacked else "")
+        self.args = (f"batch {producer_seq} of producer {producer} refused: "
+                     f"{error.status} {error.code}"
+                     f"{' at ' + error.field if error.field else ''}: {error.message} "
+                     f"(applied through {accepted_through}{tail})",)

@@ -1,19 +1,32 @@
 """HTTP client for factord (standard library only).
 
 Every method maps onto one route of the ``/v1`` API and returns the parsed JSON answer; an error
-answer raises :class:`~factord_client.errors.FactordError`. Network failures (connection refused,
-timeouts) propagate as the usual ``urllib.error.URLError`` / ``OSError``.
+answer raises :class:`~factord_client.errors.FactordError`, a service that cannot be reached
+:class:`~factord_client.errors.FactordConnectionError` (an ``OSError`` too).
+
+Retries (bounded by ``retries`` attempts and ``retry_budget`` seconds of waiting):
+
+* 429 (``too_many_pending``, ...): the service refused before doing anything, so every request
+  is retried after its ``Retry-After`` (at most ``max_retry_wait`` seconds per wait);
+* 503 and connection failures (refused, reset, socket timeout): retried only for requests that
+  are safe to repeat: reads, ``PUT``, ``optimize``, ``cancel``, batch jobs, and batches that carry
+  ``producer`` + ``producer_seq`` (a repeat is answered with the original acknowledgement and
+  applies nothing). A plain batch or a ``create_session`` is not repeated: the error is raised.
 """
 
 from __future__ import annotations
 
+import http.client
 import json
+import os
+import random
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
 from typing import Any, Dict, Iterator, Optional, Tuple, Union
 
-from .errors import FactordError
+from .errors import FactordConnectionError, FactordError
 
 JsonDict = Dict[str, Any]
 _DEFAULT = object()
@@ -88,15 +101,33 @@ class EventStream:
 class HttpClient:
     """Client of the factord HTTP API.
 
-    >>> c = HttpClient("http://127.0.0.1:8080")
+    >>> c = HttpClient("http://127.0.0.1:8080", token="...")   # token: or $FACTORD_TOKEN
     >>> c.create_session("pose_graph_2d", session="demo")
     """
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8080", timeout: float = 150.0) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8080",
+        timeout: float = 150.0,
+        token: Optional[str] = None,
+        retries: int = 5,
+        max_retry_wait: float = 30.0,
+        retry_budget: float = 120.0,
+    ) -> None:
         """``timeout`` (seconds) applies to every request; it is longer than the server's
-        default wait timeout (120 s) so that ``wait=True`` requests get their answer."""
+        default wait timeout (120 s) so that ``wait=True`` requests get their answer.
+        ``token``: the bearer token (default: ``$FACTORD_TOKEN``; none when unset).
+        ``retries``: at most this many attempts after the first; ``max_retry_wait``: the longest
+        single wait (a larger ``Retry-After`` is cut to it); ``retry_budget``: the most seconds
+        spent waiting between attempts of one request."""
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
+        self.token = token if token is not None else (os.environ.get("FACTORD_TOKEN") or None)
+        self.retries = max(0, int(retries))
+        self.max_retry_wait = max_retry_wait
+        self.retry_budget = retry_budget
+        #: How many requests were sent again (any cause), for monitoring.
+        self.retried = 0
 
     # ----------------------------------------------------------------- plumbing
     def _url(self, path: str, query: Optional[Dict[str, Any]] = None) -> str:
@@ -106,17 +137,18 @@ class HttpClient:
             url += "?" + urllib.parse.urlencode(params)
         return url
 
-    def _open(
+    def _build(
         self,
         method: str,
         path: str,
         body: Union[None, bytes, str, JsonDict] = None,
         query: Optional[Dict[str, Any]] = None,
         headers: Optional[Dict[str, str]] = None,
-        timeout: Any = _DEFAULT,
-    ) -> Any:
+    ) -> urllib.request.Request:
         data: Optional[bytes] = None
         hdrs = {"Accept": "application/json"}
+        if self.token:
+            hdrs["Authorization"] = f"Bearer {self.token}"
         if isinstance(body, (dict, list)):
             data = json.dumps(body).encode("utf-8")
             hdrs["Content-Type"] = "application/json"
@@ -131,20 +163,73 @@ class HttpClient:
         elif method in ("POST", "PUT"):
             data = b""
         hdrs.update(headers or {})
-        request = urllib.request.Request(self._url(path, query), data=data, method=method,
-                                         headers=hdrs)
-        try:
-            return urllib.request.urlopen(
-                request, timeout=self.timeout if timeout is _DEFAULT else timeout
-            )
-        except urllib.error.HTTPError as e:
-            raw = e.read()
-            raise FactordError.from_body(raw, e.code, e.headers.get("Retry-After")) from None
+        return urllib.request.Request(self._url(path, query), data=data, method=method,
+                                      headers=hdrs)
 
-    def _request(self, method: str, path: str, **kwargs: Any) -> Any:
-        with self._open(method, path, **kwargs) as response:
-            raw = response.read()
-            content_type = response.headers.get("Content-Type", "")
+    def _attempts(self, method: str, path: str, safe: Optional[bool],
+                  send: Any, **kwargs: Any) -> Any:
+        """Runs ``send(request)`` with the retry rules of the module docstring."""
+        if safe is None:
+            safe = method in ("GET", "HEAD", "PUT")
+        request = self._build(method, path, **kwargs)
+        waited = 0.0
+        attempt = 0
+        while True:
+            attempt += 1
+            try:
+                return send(request)
+            except urllib.error.HTTPError as e:
+                raw = e.read()
+                error = FactordError.from_body(raw, e.code, e.headers.get("Retry-After"))
+                retryable = e.code == 429 or (e.code == 503 and safe)
+                wait = error.retry_after if error.retry_after is not None else _backoff(attempt)
+                failure: FactordError = error
+            except (urllib.error.URLError, http.client.HTTPException, OSError) as e:
+                reason = getattr(e, "reason", e)
+                failure = FactordConnectionError(
+                    "connection_failed",
+                    f"{method} {self.base_url}{path}: {reason!r}", attempts=attempt)
+                retryable = safe
+                wait = _backoff(attempt)
+            wait = min(wait, self.max_retry_wait)
+            if not retryable or attempt > self.retries or waited + wait > self.retry_budget:
+                if isinstance(failure, FactordConnectionError):
+                    failure.attempts = attempt
+                    raise failure from None
+                raise failure from None
+            waited += wait
+            self.retried += 1
+            time.sleep(wait)
+
+    def _open(
+        self,
+        method: str,
+        path: str,
+        body: Union[None, bytes, str, JsonDict] = None,
+        query: Optional[Dict[str, Any]] = None,
+        headers: Optional[Dict[str, str]] = None,
+        timeout: Any = _DEFAULT,
+        safe: Optional[bool] = None,
+    ) -> Any:
+        """Opens the request (with retries) and returns the open response."""
+        t = self.timeout if timeout is _DEFAULT else timeout
+        return self._attempts(method, path, safe,
+                              lambda r: urllib.request.urlopen(r, timeout=t),
+                              body=body, query=query, headers=headers)
+
+    def _request(self, method: str, path: str, body: Union[None, bytes, str, JsonDict] = None,
+                 query: Optional[Dict[str, Any]] = None,
+                 headers: Optional[Dict[str, str]] = None,
+                 safe: Optional[bool] = None) -> Any:
+        """Sends the request and reads the whole answer (a failure while reading the answer is
+        retried like one while connecting)."""
+
+        def send(request: urllib.request.Request) -> Tuple[bytes, str]:
+            with urllib.request.urlopen(request, timeout=self.timeout) as response:
+                return response.read(), response.headers.get("Content-Type", "")
+
+        raw, content_type = self._attempts(method, path, safe, send, body=body, query=query,
+                                           headers=headers)
         if content_type.startswith("application/json"):
             return json.loads(raw.decode("utf-8"))
         return raw.decode("utf-8")
@@ -192,15 +277,39 @@ class HttpClient:
     def apply_batch(self, session: str, batch: JsonDict, wait: bool = False) -> JsonDict:
         """``POST /v1/sessions/{session}/batches``: the acknowledgement (``sequence``,
         ``factor_ids``, ``predicted``); with ``wait``, also ``solved`` once the estimate
-        reflects the batch (when a solve is due under the policy)."""
-        return self._request("POST", self._session_path(session, "/batches"), body=batch,
-                             query={"wait": True} if wait else None)
+        reflects the batch (when a solve is due under the policy).
 
-    def optimize(self, session: str, wait: bool = False) -> JsonDict:
+        A batch with ``producer`` and ``producer_seq`` is exactly-once: it is resent after a
+        connection failure or a 503, and a repeat answers the original acknowledgement with
+        ``"duplicate": true`` (see :meth:`producer` for a client that numbers batches)."""
+        stamped = isinstance(batch, dict) and "producer" in batch and "producer_seq" in batch
+        return self._request("POST", self._session_path(session, "/batches"), body=batch,
+                             query={"wait": True} if wait else None, safe=stamped)
+
+    def producer(self, session: str, producer: Optional[str] = None,
+                 resume: bool = True) -> "HttpProducer":
+        """A numbering producer on this session (see :class:`HttpProducer`)."""
+        from .producer import HttpProducer  # noqa: PLC0415 - avoids an import cycle
+
+        return HttpProducer(self, session, producer, resume=resume)
+
+    def producer_status(self, session: str, producer: str) -> JsonDict:
+        """``GET /v1/sessions/{session}/producers/{producer}``: ``{"session", "producer",
+        "accepted_through", "sequence", "reflected_sequence"}`` (``accepted_through`` 0 for a
+        producer the session has not seen)."""
+        return self._request("GET", self._session_path(session, f"/producers/{_quote(producer)}"))
+
+    def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
+                 after_seq: Optional[int] = None,
+                 after_timeout_ms: Optional[int] = None) -> JsonDict:
         """``POST /v1/sessions/{session}/optimize``: solve now; with ``wait`` the answer has
-        the statistics after the solve under ``stats``."""
+        the statistics after the solve under ``stats``. With ``after_producer`` + ``after_seq``
+        the solve first waits until that producer's batches through ``after_seq`` are applied
+        (503 ``after_timeout`` after ``after_timeout_ms``, default 10 s)."""
+        query: Dict[str, Any] = {"wait": True} if wait else {}
+        query.update(_after(after_producer, after_seq, after_timeout_ms))
         return self._request("POST", self._session_path(session, "/optimize"),
-                             query={"wait": True} if wait else None)
+                             query=query or None, safe=True)
 
     def set_auto_optimize(self, session: str, policy: Union[str, JsonDict],
                           **params: Any) -> JsonDict:
@@ -216,12 +325,18 @@ class HttpClient:
         since: Optional[int] = None,
         from_key: Optional[int] = None,
         to_key: Optional[int] = None,
+        after_producer: Optional[str] = None,
+        after_seq: Optional[int] = None,
+        after_timeout_ms: Optional[int] = None,
     ) -> JsonDict:
         """``GET /v1/sessions/{session}/estimate``: ``{"session", "sequence", "variables":
         [{"key", "kind", "value", "changed"}, ...]}``; ``since`` keeps the variables changed
-        after that sequence, ``from_key``/``to_key`` an inclusive key range."""
-        return self._request("GET", self._session_path(session, "/estimate"),
-                             query={"since": since, "from": from_key, "to": to_key})
+        after that sequence, ``from_key``/``to_key`` an inclusive key range;
+        ``after_producer`` + ``after_seq``: first wait until that producer's batches through
+        ``after_seq`` are applied."""
+        query: Dict[str, Any] = {"since": since, "from": from_key, "to": to_key}
+        query.update(_after(after_producer, after_seq, after_timeout_ms))
+        return self._request("GET", self._session_path(session, "/estimate"), query=query)
 
     def summary(self, session: str) -> JsonDict:
         """``GET /v1/sessions/{session}/summary``: the last solve's Summary (404 ``no_summary``
@@ -230,7 +345,7 @@ class HttpClient:
 
     def cancel(self, session: str) -> JsonDict:
         """``POST /v1/sessions/{session}/cancel``: ``{"session", "cancelled"}``."""
-        return self._request("POST", self._session_path(session, "/cancel"))
+        return self._request("POST", self._session_path(session, "/cancel"), safe=True)
 
     def run_job(
         self,
@@ -250,7 +365,7 @@ class HttpClient:
         query: Dict[str, Any] = {"format": format, "output": output}
         query.update(solver_params)
         body = graph_text if isinstance(graph_text, str) else graph_text.decode("utf-8")
-        return self._request("POST", "/v1/jobs", body=body, query=query)
+        return self._request("POST", "/v1/jobs", body=body, query=query, safe=True)
 
     def events(self, session: str, timeout: Optional[float] = None) -> EventStream:
         """``GET /v1/sessions/{session}/events``: the session's Server-Sent Events.
@@ -262,6 +377,21 @@ class HttpClient:
                               headers={"Accept": "text/event-stream"},
                               timeout=timeout)
         return EventStream(response)
+
+
+def _after(producer: Optional[str], seq: Optional[int],
+           timeout_ms: Optional[int]) -> Dict[str, Any]:
+    if producer is None or seq is None:
+        return {}
+    out: Dict[str, Any] = {"after_producer": producer, "after_seq": int(seq)}
+    if timeout_ms is not None:
+        out["after_timeout_ms"] = int(timeout_ms)
+    return out
+
+
+def _backoff(attempt: int) -> float:
+    """0.1, 0.2, 0.4, ... seconds (with ±25 % jitter) before attempt ``attempt + 1``."""
+    return 0.1 * (2 ** (attempt - 1)) * random.uniform(0.75, 1.25)
 
 
 def _param(value: Any) -> str:
