@@ -6,9 +6,14 @@ front-end would, and prints live statistics from the session's published events.
 
 Each pose is one batch on ``factord/<session>/in/batch``: the new pose (its value left out when an
 odometry edge joins it to the previous pose, so the server predicts it) and every edge that ends
-at it (odometry and loop closures). The robot listens on ``out/acks``, ``out/stats``,
-``out/summary`` (and ``out/errors``) and, at the end, asks for a final solve over rpc and prints
-the final chi2. Exits non-zero when a batch was rejected or the server does not answer.
+at it (odometry and loop closures). Batches go through a :class:`StreamProducer`: numbered
+(``producer``/``producer_seq``), kept until acknowledged and resent after a timeout, a
+reconnection or a restart of the service, so each is applied exactly once. The robot listens on
+``out/acks``, ``out/stats``, ``out/summary`` (and ``out/errors``), prints live statistics
+(acknowledged batches, the session sequence the estimate reflects, solves), waits until every
+batch is acknowledged, asks for a final solve that comes after its batches (``after_seq``) and
+checks that the service holds exactly the factors it sent. Exits non-zero when a batch was
+refused, the server does not answer, or the counts differ.
 """
 
 from __future__ import annotations
@@ -21,10 +26,10 @@ import time
 from pathlib import Path
 
 try:
-    from factord_client import FactordError, ZenohClient, g2o
+    from factord_client import BatchRefused, FactordError, ZenohClient, g2o
 except ImportError:  # running from a checkout without `pip install`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from factord_client import FactordError, ZenohClient, g2o
+    from factord_client import BatchRefused, FactordError, ZenohClient, g2o
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_DATASET = "2d/carlone/input_M3500_g2o.g2o"
@@ -45,68 +50,71 @@ def resolve_dataset(path: str | None, data_dir: Path) -> Path:
 
 
 class Live:
-    """What the subscriptions have seen so far (updated from zenoh threads)."""
+    """What the subscriptions have seen so far (updated from zenoh threads). Every number is
+    cumulative on the wire, so a missed or coalesced event cannot make it wrong: acknowledged
+    batches come from the producer's ``accepted_through``, the reflected sequence from the
+    largest ``reflected`` ack / ``summary`` / ``lagged`` sequence, solves from the ``solve``
+    number of the latest summary."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.acked = 0
-        self.predicted = 0
-        self.iterations = 0
+        self.sequence = 0  # latest session sequence acknowledged
+        self.reflected = 0  # session sequence the estimate reflects
+        self.predicted = set()
         self.chi2 = None
         self.solves = 0
         self.last_solve_seconds = None
-        self.errors = []
-        self.acked_event = threading.Condition(self.lock)
+        self.lagged = 0
 
-    def on_ack(self, event: dict) -> None:
+    def on_ack(self, event: dict) -> None:  # this producer's acks (StreamProducer's on_ack)
         with self.lock:
-            self.acked = max(self.acked, event["sequence"])
-            self.predicted += len(event.get("predicted", []))
-            self.acked_event.notify_all()
+            self.sequence = max(self.sequence, event["sequence"])
+            if event.get("reflected"):
+                self.reflected = max(self.reflected, event["sequence"])
+            self.predicted.update(event.get("predicted", []))
 
-    def on_stats(self, event: dict) -> None:  # one solver iteration
-        with self.lock:
-            self.iterations += 1
-            if event.get("accepted", True):
+    def on_any_ack(self, event: dict) -> None:  # out/acks: also lagged markers
+        if event.get("type") == "lagged":
+            with self.lock:
+                self.lagged += 1
+                self.sequence = max(self.sequence, event.get("sequence", 0))
+                self.reflected = max(self.reflected, event.get("reflected_sequence", 0))
+
+    def on_stats(self, event: dict) -> None:  # one solver iteration (may be dropped)
+        if event.get("type") == "iteration" and event.get("accepted", True):
+            with self.lock:
                 self.chi2 = event["chi2"]
 
     def on_summary(self, event: dict) -> None:
+        if event.get("type") == "lagged":
+            with self.lock:
+                self.reflected = max(self.reflected, event.get("reflected_sequence", 0))
+            return
+        if event.get("type") != "summary":
+            return
         summary = event["summary"]
         with self.lock:
-            self.solves += 1
+            self.solves = max(self.solves, event.get("solve", self.solves + 1))
+            self.reflected = max(self.reflected, event.get("sequence", 0))
             self.chi2 = summary["final_chi2"]
             self.last_solve_seconds = summary["solve_seconds"]
 
     def on_error(self, event: dict) -> None:
+        if event.get("type") != "error" or event.get("producer"):
+            return  # this producer's refusals are raised by the producer itself
         error = event.get("error", {})
-        with self.lock:
-            self.errors.append(event)
-            self.acked_event.notify_all()
         print(f"  ! error (sequence {event.get('sequence')}): {error.get('code')}"
               f" at {error.get('field')}: {error.get('message')}", file=sys.stderr)
 
-    def wait_acked(self, sequence: int, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.lock:
-            while self.acked < sequence and not self.errors:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.acked_event.wait(left)
-            return self.acked >= sequence
-
-    def line(self, sent: int) -> str:
+    def line(self, producer) -> str:
+        c = producer.counters
         with self.lock:
             chi2 = "-" if self.chi2 is None else f"{self.chi2:.6g}"
             solve = ("-" if self.last_solve_seconds is None
                      else f"{self.last_solve_seconds * 1e3:.1f} ms")
-            return (f"poses sent {sent:6d}  acked seq {self.acked:6d}  solves {self.solves:5d}  "
-                    f"chi2 {chi2:>12}  last solve {solve:>10}")
-
-
-def final_solve(client: ZenohClient, session: str, timeout: float) -> dict:
-    """Solve now and wait for that solve (rpc ``optimize`` with ``wait``); returns the stats."""
-    return client.optimize(session, wait=True)["stats"]
+            return (f"sent {c['sent']:6d}  acked {c['acked']:6d}  reflected seq "
+                    f"{self.reflected:6d}/{self.sequence:<6d}  solves {self.solves:5d}  "
+                    f"chi2 {chi2:>12}  last solve {solve:>9}  resent {c['resent']}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,6 +144,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--delete", action="store_true", help="delete the session at the end")
     parser.add_argument("--timeout", type=float, default=120.0,
                         help="seconds to wait for acknowledgements and the final solve")
+    parser.add_argument("--producer", default=None,
+                        help="producer id (default: <hostname>-<session>)")
+    parser.add_argument("--window", type=int, default=1024,
+                        help="most unacknowledged batches in flight (send blocks beyond)")
+    parser.add_argument("--resend-after", type=float, default=2.0,
+                        help="seconds without acknowledgement or progress before resending")
     args = parser.parse_args(argv)
 
     data_dir = args.data_dir or default_data_dir()
@@ -153,8 +167,10 @@ def main(argv: list[str] | None = None) -> int:
     elif policy == "every_ms":
         auto["milliseconds"] = int(number or 100)
 
+    factors_sent = sum(len(b["factors"]) for _, b in batches)
     print(f"robot: {path.name}: {len(graph.vertices)} poses, {len(graph.edges)} edges; streaming "
-          f"{len(batches)} poses to session `{session}` over {args.zenoh}")
+          f"{len(batches)} poses ({factors_sent} factors) to session `{session}` over "
+          f"{args.zenoh}")
     live = Live()
     try:
         client = ZenohClient(args.zenoh, prefix=args.prefix, mode=args.mode,
@@ -162,15 +178,18 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # noqa: BLE001 - zenoh raises its own error types
         print(f"robot: cannot open zenoh towards {args.zenoh}: {e}", file=sys.stderr)
         return 2
+    producer = None
     try:
         # Subscribe before the session exists so that no event is missed.
-        client.subscribe(session, "acks", live.on_ack)
+        client.subscribe(session, "acks", live.on_any_ack)
         client.subscribe(session, "stats", live.on_stats)
         client.subscribe(session, "summary", live.on_summary)
         client.subscribe(session, "errors", live.on_error)
         created = client.create_session(graph.session_kind, session=session, auto_optimize=auto)
         print(f"robot: created {created['session']} ({created['kind']}, "
               f"auto_optimize {created['auto_optimize']})")
+        producer = client.producer(session, args.producer, window=args.window,
+                                   resend_after=args.resend_after, on_ack=live.on_ack)
 
         start = time.monotonic()
         for sent, (_key, batch) in enumerate(batches, start=1):
@@ -178,36 +197,43 @@ def main(argv: list[str] | None = None) -> int:
                 delay = start + (sent - 1) / args.rate - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            client.publish_batch(session, batch)
-            if sent % args.every == 0 or sent == len(batches):
-                print("  " + live.line(sent), flush=True)
-            if live.errors:
-                break
+            producer.send(batch)
+            if sent % args.every == 0:
+                print("  " + live.line(producer), flush=True)
         elapsed = time.monotonic() - start
-        if live.errors:
-            print("robot: a batch was rejected; stopping", file=sys.stderr)
-            return 1
-        if not live.wait_acked(len(batches), args.timeout):
-            print(f"robot: only {live.acked} of {len(batches)} batches acknowledged after "
-                  f"{args.timeout:.0f} s", file=sys.stderr)
-            return 1
+        producer.flush(args.timeout)
+        acked_after = time.monotonic() - start
+        c = producer.counters
         print(f"robot: {len(batches)} poses streamed in {elapsed:.2f} s "
-              f"({len(batches) / max(elapsed, 1e-9):.0f} poses/s), all acknowledged; "
-              f"{live.predicted} predicted by the server")
-        print("  " + live.line(len(batches)))
+              f"({len(batches) / max(elapsed, 1e-9):.0f} poses/s), all {c['acked']} "
+              f"acknowledged after {acked_after:.2f} s (producer {producer.producer}, "
+              f"seq {producer.accepted_through}; {c['resent']} resent, {c['duplicates']} "
+              f"duplicate acks, {c['lagged']} lagged markers); {len(live.predicted)} "
+              f"predicted by the server")
+        print("  " + live.line(producer))
 
-        stats = final_solve(client, session, args.timeout)
+        stats = producer.optimize(wait=True, timeout=args.timeout)["stats"]
         print(f"robot: final solve: chi2 {stats['chi2']:.6f}  ({stats['num_variables']} poses, "
               f"{stats['num_factors']} factors, {stats['solves']} solves, "
               f"{stats['skipped_solves']} skipped, converged {stats['converged']})")
         print(f"final chi2 {stats['chi2']:.9g}")
+        if stats["num_factors"] != factors_sent or stats["num_variables"] != len(batches):
+            print(f"robot: the service holds {stats['num_variables']} poses and "
+                  f"{stats['num_factors']} factors; sent {len(batches)} and {factors_sent}",
+                  file=sys.stderr)
+            return 1
         if args.delete:
             client.delete_session(session)
         return 0
+    except BatchRefused as e:
+        print(f"robot: stopped: {e}", file=sys.stderr)
+        return 1
     except FactordError as e:
         print(f"robot: {e}", file=sys.stderr)
         return 1
     finally:
+        if producer is not None:
+            producer.close()
         client.close()
 
 

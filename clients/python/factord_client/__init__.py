@@ -2,10 +2,21 @@
 (:class:`ZenohClient`, needs ``eclipse-zenoh``) and a small g2o reader (:mod:`factord_client.g2o`)
 that turns a dataset into the batches a robot would stream."""
 
-from .errors import FactordError
+from .errors import BatchRefused, FactordConnectionError, FactordError, FactordTimeout
 from .http import EventStream, HttpClient
+from .producer import HttpProducer
 
-__all__ = ["FactordError", "HttpClient", "EventStream", "ZenohClient"]
+__all__ = [
+    "BatchRefused",
+    "EventStream",
+    "FactordConnectionError",
+    "FactordError",
+    "FactordTimeout",
+    "HttpClient",
+    "HttpProducer",
+    "StreamProducer",
+    "ZenohClient",
+]
 __version__ = "0.1.0"
 
 
@@ -14,4 +25,8 @@ def __getattr__(name: str):  # lazy: importing the package must not need zenoh
         from .zenoh_client import ZenohClient
 
         return ZenohClient
+    if name == "StreamProducer":
+        from .stream_producer import StreamProducer
+
+        return StreamProducer
     raise AttributeError(name)

@@ -7,7 +7,11 @@ Key expressions (``<p>`` is the prefix, ``factord`` by default):
 * ``<p>/<session>/estimate`` — queryable with selector parameters ``since``, ``from``, ``to``.
 * ``<p>/<session>/in/batch`` — put a batch here (no reply: the acknowledgement is published on
   ``out/acks``, a rejection on ``out/errors``); ``<p>/<session>/in/optimize`` — solve now.
-* ``<p>/<session>/out/{acks,stats,poses,summary,errors}`` — the session's events.
+* ``<p>/<session>/out/{acks,stats,poses,summary,errors}`` — the session's events (each may also
+  carry a ``lagged`` marker when this subscriber fell behind and events were coalesced).
+
+For streaming that survives lost acknowledgements, reconnections and restarts of the service,
+use :meth:`ZenohClient.producer` (a :class:`~factord_client.stream_producer.StreamProducer`).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import sys
 import threading
 from typing import Any, Callable, Dict, List, Optional, Union
 
-from .errors import FactordError
+from .errors import FactordConnectionError, FactordError
 
 JsonDict = Dict[str, Any]
 
@@ -77,8 +81,7 @@ class ZenohClient:
             if ok is not None:
                 return json.loads(ok.payload.to_bytes().decode("utf-8"))
             raise FactordError.from_body(reply.err.payload.to_bytes())
-        raise FactordError(
-            None,
+        raise FactordConnectionError(
             "no_reply",
             f"no zenoh queryable answered `{selector}` (is factord reachable with prefix "
             f"`{self.prefix}`?)",
@@ -121,8 +124,29 @@ class ZenohClient:
         """A batch with an answer (``apply_batch`` over rpc), unlike :meth:`publish_batch`."""
         return self.rpc({"op": "apply_batch", "session": session, "batch": batch, "wait": wait})
 
-    def optimize(self, session: str, wait: bool = False) -> JsonDict:
-        return self.rpc({"op": "optimize", "session": session, "wait": wait})
+    def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
+                 after_seq: Optional[int] = None, after_timeout_ms: Optional[int] = None,
+                 timeout: Optional[float] = None) -> JsonDict:
+        """rpc ``optimize``; with ``after_producer`` + ``after_seq`` the service first waits
+        until that producer's batches through ``after_seq`` are applied."""
+        command: JsonDict = {"op": "optimize", "session": session, "wait": wait}
+        command.update(_after(after_producer, after_seq, after_timeout_ms))
+        return self.rpc(command, timeout=timeout)
+
+    def producer_status(self, session: str, producer: str,
+                        timeout: Optional[float] = None) -> JsonDict:
+        """rpc ``producer_status``: ``{"session", "producer", "accepted_through", "sequence",
+        "reflected_sequence"}``."""
+        return self.rpc({"op": "producer_status", "session": session, "producer": producer},
+                        timeout=timeout)
+
+    def producer(self, session: str, producer: Optional[str] = None, **options: Any) -> Any:
+        """A :class:`~factord_client.stream_producer.StreamProducer` of ``session``: numbered,
+        acknowledged, resent batches (``options``: ``window``, ``resend_after``, ``resume``,
+        ``on_ack``, ...)."""
+        from .stream_producer import StreamProducer  # noqa: PLC0415
+
+        return StreamProducer(self, session, producer, **options)
 
     def stats(self, session: str) -> JsonDict:
         return self.rpc({"op": "get_stats", "session": session})
@@ -141,11 +165,17 @@ class ZenohClient:
         from_key: Optional[int] = None,
         to_key: Optional[int] = None,
         timeout: Optional[float] = None,
+        after_producer: Optional[str] = None,
+        after_seq: Optional[int] = None,
+        after_timeout_ms: Optional[int] = None,
     ) -> JsonDict:
         """Reads the estimate from the ``<prefix>/<session>/estimate`` queryable (selector
-        parameters ``since``, ``from``, ``to``)."""
+        parameters ``since``, ``from``, ``to``, and ``after_producer``/``after_seq``: first wait
+        until that producer's batches through ``after_seq`` are applied)."""
         params = [f"{name}={int(value)}" for name, value in
                   (("since", since), ("from", from_key), ("to", to_key)) if value is not None]
+        params += [f"{k}={v}" for k, v in
+                   _after(after_producer, after_seq, after_timeout_ms).items()]
         selector = f"{self.prefix}/{session}/estimate"
         if params:
             selector += "?" + ";".join(params)
@@ -200,3 +230,13 @@ class ZenohClient:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _after(producer: Optional[str], seq: Optional[int],
+           timeout_ms: Optional[int]) -> JsonDict:
+    if producer is None or seq is None:
+        return {}
+    out: JsonDict = {"after_producer": producer, "after_seq": int(seq)}
+    if timeout_ms is not None:
+        out["after_timeout_ms"] = int(timeout_ms)
+    return out
