@@ -9,6 +9,7 @@ mod bench_cholesky;
 mod direct_ba;
 mod error;
 mod fusion_eval;
+mod health;
 mod logging;
 mod progress;
 mod serve;
@@ -48,6 +49,8 @@ enum Command {
     /// Time the numeric sparse Cholesky of a graph's normal equations at its optimum, and write
     /// the matrix in Matrix Market form for comparison with other libraries.
     BenchCholesky(bench_cholesky::BenchCholeskyArgs),
+    /// Ask a running server whether it is healthy (exit 0) or not (exit 1 with the reason).
+    Health(health::HealthArgs),
 }
 
 /// Exit code of a command that failed after its arguments were accepted (clap also exits with 2
@@ -66,6 +69,8 @@ pub fn run(cli: Cli) -> ExitCode {
         Command::DirectBa(args) => direct_ba::run(args),
         Command::FusionEval(args) => fusion_eval::run(args),
         Command::BenchCholesky(args) => bench_cholesky::run(args),
+        // Exit codes of its own: Docker's HEALTHCHECK reads 1 as unhealthy and reserves 2.
+        Command::Health(args) => return health::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

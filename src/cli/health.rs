@@ -1,0 +1,468 @@
+//! `factord health`: whether a running server answers, for container health checks.
+//!
+//! Asks `GET /v1/health` (open without a token) and wants `200` with `"status": "ok"`; with a
+//! token it also asks `GET /metrics`, which needs one, so a token the server refuses is reported
+//! too. Both routes are answered even when the server is at its connection limit (its reserve
+//! connections), so a busy server is not reported unhealthy. Exit codes as Docker's
+//! `HEALTHCHECK` reads them: 0 healthy, 1 unhealthy with a one-line reason on stderr (Docker
+//! reserves 2; clap still exits with 2 on bad arguments).
+//!
+//! The HTTP client is a plain HTTP/1.1 `GET` over a blocking `TcpStream` with `Connection:
+//! close`: two requests per check need no runtime and no client library.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+#[derive(clap::Args)]
+pub struct HealthArgs {
+    /// The server's HTTP address (plain http://; a path after the address is a prefix the
+    /// routes are under)
+    #[arg(long, env = "FACTORD_URL", default_value = "http://127.0.0.1:8080")]
+    url: String,
+    /// A file holding the bearer token: the token alone, or a tokens file as `serve
+    /// --tokens-file` reads it (`label token` per line; the first token is used). Defaults to
+    /// the server's own FACTORD_TOKENS_FILE, so inside its container `factord health` uses it.
+    #[arg(long, env = "FACTORD_TOKENS_FILE")]
+    token_file: Option<PathBuf>,
+    /// The bearer token, when there is no --token-file (prefer the environment variable: a flag
+    /// shows in the process list)
+    #[arg(long, env = "FACTORD_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// How long the whole check may take, in milliseconds
+    #[arg(long, env = "FACTORD_HEALTH_TIMEOUT_MS", default_value_t = 3000)]
+    timeout_ms: u64,
+}
+
+/// Why the server is not healthy (each a one-line reason).
+#[derive(Debug, thiserror::Error)]
+enum Unhealthy {
+    #[error("--url {url}: {reason}")]
+    Url { url: String, reason: &'static str },
+    #[error("cannot resolve {host}: {source}")]
+    Resolve {
+        host: String,
+        source: std::io::Error,
+    },
+    #[error("token file {}: {reason}", path.display())]
+    TokenFile { path: PathBuf, reason: String },
+    #[error("cannot connect to {addr}: {source}")]
+    Connect {
+        addr: String,
+        source: std::io::Error,
+    },
+    #[error("GET {path} on {addr}: no complete answer within {timeout_ms} ms")]
+    Timeout {
+        addr: String,
+        path: String,
+        timeout_ms: u64,
+    },
+    #[error("GET {path} on {addr}: {source}")]
+    Io {
+        addr: String,
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("GET {path} on {addr}: not an HTTP answer ({reason})")]
+    Malformed {
+        addr: String,
+        path: String,
+        reason: String,
+    },
+    #[error("GET {path} answered {status}: {message}")]
+    Status {
+        path: String,
+        status: u16,
+        message: String,
+    },
+    #[error("the server reports status `{0}`")]
+    NotOk(String),
+    #[error("the token was refused (GET /metrics answered 401: {0})")]
+    TokenRefused(String),
+}
+
+/// Largest answer read (health and metrics are a few kilobytes).
+const MAX_ANSWER_BYTES: usize = 1 << 20;
+
+pub fn run(args: HealthArgs) -> ExitCode {
+    match check(&args) {
+        Ok(line) => {
+            println!("{line}");
+            ExitCode::SUCCESS
+        }
+        Err(reason) => {
+            eprintln!("unhealthy: {reason}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// The check; `Ok` holds the line printed for a healthy server.
+fn check(args: &HealthArgs) -> Result<String, Unhealthy> {
+    let deadline = Instant::now() + Duration::from_millis(args.timeout_ms.max(1));
+    let target = Target::parse(&args.url)?;
+    let token = match (&args.token_file, &args.token) {
+        (Some(path), _) => Some(token_from_file(path)?),
+        (None, Some(token)) => Some(token.trim().to_string()),
+        (None, None) => None,
+    };
+    let client = Client {
+        target: &target,
+        token: token.as_deref(),
+        deadline,
+        timeout_ms: args.timeout_ms,
+    };
+    let health = client.get("/v1/health")?;
+    if health.status != 200 {
+        return Err(client.status_error("/v1/health", &health));
+    }
+    let body: serde_json::Value =
+        serde_json::from_slice(&health.body).map_err(|e| Unhealthy::Malformed {
+            addr: target.authority.clone(),
+            path: "/v1/health".into(),
+            reason: format!("body is not JSON: {e}"),
+        })?;
+    let status = body["status"].as_str().unwrap_or("(none)");
+    if status != "ok" {
+        return Err(Unhealthy::NotOk(status.to_string()));
+    }
+    let mut line = format!(
+        "healthy: factord {} at {}, {} session(s), {} queued",
+        body["version"].as_str().unwrap_or("?"),
+        target.authority,
+        body["sessions"],
+        body["queued"]
+    );
+    if token.is_some() {
+        let metrics = client.get("/metrics")?;
+        match metrics.status {
+            200 => line.push_str(", token accepted"),
+            401 => return Err(Unhealthy::TokenRefused(error_message(&metrics.body))),
+            _ => return Err(client.status_error("/metrics", &metrics)),
+        }
+    }
+    Ok(line)
+}
+
+/// The first token of a file: a bare token, or the last word of the first `label token` line
+/// (blank lines and `#` comments skipped), as `serve --tokens-file` reads it.
+fn token_from_file(path: &Path) -> Result<String, Unhealthy> {
+    let text = std::fs::read_to_string(path).map_err(|e| Unhealthy::TokenFile {
+        path: path.into(),
+        reason: e.to_string(),
+    })?;
+    text.lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'))
+        .and_then(|l| l.split_whitespace().last())
+        .map(str::to_string)
+        .ok_or_else(|| Unhealthy::TokenFile {
+            path: path.into(),
+            reason: "holds no token".into(),
+        })
+}
+
+/// Where the server is: `host:port` as given (for `Host`) and the path prefix.
+#[derive(Debug, PartialEq)]
+struct Target {
+    authority: String,
+    prefix: String,
+}
+
+impl Target {
+    fn parse(url: &str) -> Result<Self, Unhealthy> {
+        let bad = |reason| Unhealthy::Url {
+            url: url.to_string(),
+            reason,
+        };
+        let rest = match url.split_once("://") {
+            Some(("http", rest)) => rest,
+            Some(("https", _)) => {
+                return Err(bad(
+                    "https is not spoken here: give the server's plain HTTP address",
+                ))
+            }
+            Some(_) => return Err(bad("expected http://host:port")),
+            None => url,
+        };
+        let (authority, path) = match rest.find('/') {
+            Some(at) => rest.split_at(at),
+            None => (rest, ""),
+        };
+        if authority.is_empty() || authority.contains('@') {
+            return Err(bad("expected http://host:port"));
+        }
+        let has_port = match authority.rfind(']') {
+            Some(close) => authority[close..].contains(':'),
+            None => authority.contains(':'),
+        };
+        let authority = if has_port {
+            authority.to_string()
+        } else {
+            format!("{authority}:80")
+        };
+        Ok(Self {
+            authority,
+            prefix: path.trim_end_matches('/').to_string(),
+        })
+    }
+
+    /// The host's addresses (`[::1]:8080` and `name:8080` both resolve as written).
+    fn addresses(&self) -> Result<Vec<SocketAddr>, Unhealthy> {
+        self.authority
+            .as_str()
+            .to_socket_addrs()
+            .map(Iterator::collect)
+            .map_err(|source| Unhealthy::Resolve {
+                host: self.authority.clone(),
+                source,
+            })
+    }
+}
+
+struct Client<'a> {
+    target: &'a Target,
+    token: Option<&'a str>,
+    deadline: Instant,
+    timeout_ms: u64,
+}
+
+/// An HTTP answer: status and (de-chunked) body.
+#[derive(Debug)]
+struct Answer {
+    status: u16,
+    body: Vec<u8>,
+}
+
+impl Client<'_> {
+    fn remaining(&self, path: &str) -> Result<Duration, Unhealthy> {
+        let left = self.deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(self.timeout(path));
+        }
+        Ok(left)
+    }
+
+    fn timeout(&self, path: &str) -> Unhealthy {
+        Unhealthy::Timeout {
+            addr: self.target.authority.clone(),
+            path: path.into(),
+            timeout_ms: self.timeout_ms,
+        }
+    }
+
+    fn get(&self, path: &str) -> Result<Answer, Unhealthy> {
+        let addrs = self.target.addresses()?;
+        let mut last = None;
+        let mut stream = None;
+        for addr in &addrs {
+            match TcpStream::connect_timeout(addr, self.remaining(path)?) {
+                Ok(s) => {
+                    stream = Some(s);
+                    break;
+                }
+                Err(e) => last = Some(e),
+            }
+        }
+        let mut stream = stream.ok_or_else(|| Unhealthy::Connect {
+            addr: self.target.authority.clone(),
+            source: last.unwrap_or_else(|| std::io::Error::other("no address")),
+        })?;
+        let io = |source: std::io::Error| match source.kind() {
+            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => self.timeout(path),
+            _ => Unhealthy::Io {
+                addr: self.target.authority.clone(),
+                path: path.into(),
+                source,
+            },
+        };
+        let mut request = format!(
+            "GET {}{path} HTTP/1.1\r\nHost: {}\r\nUser-Agent: factord-health/{}\r\n\
+             Accept: */*\r\nConnection: close\r\n",
+            self.target.prefix,
+            self.target.authority,
+            env!("CARGO_PKG_VERSION")
+        );
+        if let Some(token) = self.token {
+            request.push_str(&format!("Authorization: Bearer {token}\r\n"));
+        }
+        request.push_str("\r\n");
+        stream
+            .set_write_timeout(Some(self.remaining(path)?))
+            .map_err(io)?;
+        stream.write_all(request.as_bytes()).map_err(io)?;
+        let mut raw = Vec::new();
+        let mut buf = [0u8; 8192];
+        loop {
+            stream
+                .set_read_timeout(Some(self.remaining(path)?))
+                .map_err(io)?;
+            match stream.read(&mut buf).map_err(io)? {
+                0 => break,
+                n => raw.extend_from_slice(&buf[..n]),
+            }
+            if raw.len() > MAX_ANSWER_BYTES {
+                break;
+            }
+        }
+        parse_answer(&raw).map_err(|reason| Unhealthy::Malformed {
+            addr: self.target.authority.clone(),
+            path: path.into(),
+            reason,
+        })
+    }
+
+    fn status_error(&self, path: &str, answer: &Answer) -> Unhealthy {
+        Unhealthy::Status {
+            path: path.into(),
+            status: answer.status,
+            message: error_message(&answer.body),
+        }
+    }
+}
+
+/// The message of a factord error body (`{"error": {"message"}}`), else the body's first line.
+fn error_message(body: &[u8]) -> String {
+    if let Ok(v) = serde_json::from_slice::<serde_json::Value>(body) {
+        if let Some(m) = v["error"]["message"].as_str() {
+            return m.to_string();
+        }
+    }
+    let text = String::from_utf8_lossy(body);
+    match text.lines().next().map(str::trim) {
+        Some(line) if !line.is_empty() => line.chars().take(200).collect(),
+        _ => "(empty body)".into(),
+    }
+}
+
+/// Status and body of a whole HTTP/1.1 answer read until the server closed the connection.
+fn parse_answer(raw: &[u8]) -> Result<Answer, String> {
+    let end = find(raw, b"\r\n\r\n").ok_or("the connection closed before the headers ended")?;
+    let head = std::str::from_utf8(&raw[..end]).map_err(|_| "headers are not text")?;
+    let mut lines = head.split("\r\n");
+    let status_line = lines.next().unwrap_or_default();
+    let status = match status_line.split(' ').collect::<Vec<_>>()[..] {
+        [version, code, ..] if version.starts_with("HTTP/1.") => code
+            .parse::<u16>()
+            .map_err(|_| format!("status line `{status_line}`"))?,
+        _ => return Err(format!("status line `{status_line}`")),
+    };
+    let mut chunked = false;
+    let mut length = None;
+    for line in lines {
+        let (name, value) = line.split_once(':').unwrap_or((line, ""));
+        let value = value.trim();
+        if name.eq_ignore_ascii_case("transfer-encoding") {
+            chunked = value.to_ascii_lowercase().contains("chunked");
+        } else if name.eq_ignore_ascii_case("content-length") {
+            length = value.parse::<usize>().ok();
+        }
+    }
+    let rest = &raw[end + 4..];
+    let body = if chunked {
+        dechunk(rest)?
+    } else {
+        match length {
+            Some(n) if rest.len() < n => return Err(format!("body shorter than {n} bytes")),
+            Some(n) => rest[..n].to_vec(),
+            None => rest.to_vec(),
+        }
+    };
+    Ok(Answer { status, body })
+}
+
+fn dechunk(mut rest: &[u8]) -> Result<Vec<u8>, String> {
+    let mut body = Vec::new();
+    loop {
+        let line_end = find(rest, b"\r\n").ok_or("chunk size line cut")?;
+        let size_text = std::str::from_utf8(&rest[..line_end]).map_err(|_| "chunk size")?;
+        let size_text = size_text.split(';').next().unwrap_or_default().trim();
+        let size = usize::from_str_radix(size_text, 16)
+            .map_err(|_| format!("chunk size `{size_text}`"))?;
+        rest = &rest[line_end + 2..];
+        if size == 0 {
+            return Ok(body);
+        }
+        if rest.len() < size {
+            return Err("chunk cut".into());
+        }
+        body.extend_from_slice(&rest[..size]);
+        rest = rest.get(size + 2..).ok_or("chunk cut")?;
+    }
+}
+
+fn find(haystack: &[u8], needle: &[u8]) -> Option<usize> {
+    haystack.windows(needle.len()).position(|w| w == needle)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_give_host_port_and_prefix() {
+        let t = Target::parse("http://factord-1:8080").unwrap();
+        assert_eq!(
+            (t.authority.as_str(), t.prefix.as_str()),
+            ("factord-1:8080", "")
+        );
+        let t = Target::parse("http://[::1]:9000/base/").unwrap();
+        assert_eq!(
+            (t.authority.as_str(), t.prefix.as_str()),
+            ("[::1]:9000", "/base")
+        );
+        assert_eq!(
+            Target::parse("example.org").unwrap().authority,
+            "example.org:80"
+        );
+        assert_eq!(Target::parse("http://[::1]").unwrap().authority, "[::1]:80");
+        assert!(Target::parse("https://x:1").is_err());
+        assert!(Target::parse("ftp://x:1").is_err());
+        assert!(Target::parse("http://user@x:1").is_err());
+        let addrs = Target::parse("http://[::1]:9000")
+            .unwrap()
+            .addresses()
+            .unwrap();
+        assert_eq!(addrs, vec!["[::1]:9000".parse().unwrap()]);
+    }
+
+    #[test]
+    fn answers_with_length_or_chunks_are_read() {
+        let a = parse_answer(b"HTTP/1.1 200 OK\r\ncontent-length: 2\r\n\r\n{}").unwrap();
+        assert_eq!((a.status, a.body.as_slice()), (200, &b"{}"[..]));
+        let a = parse_answer(
+            b"HTTP/1.1 401 Unauthorized\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n\
+              2;x=y\r\nde\r\n0\r\n\r\n",
+        )
+        .unwrap();
+        assert_eq!((a.status, a.body.as_slice()), (401, &b"abcde"[..]));
+        assert!(parse_answer(b"HTTP/1.1 200 OK\r\ncontent-length: 9\r\n\r\n{}").is_err());
+        assert!(parse_answer(b"SSH-2.0-OpenSSH\r\n\r\n").is_err());
+        assert!(parse_answer(b"HTTP/1.1 200 OK\r\n").is_err());
+    }
+
+    #[test]
+    fn token_files_give_their_first_token() {
+        let dir = std::env::temp_dir().join(format!("factord-health-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("tokens");
+        std::fs::write(&file, "# ops\n\nrobots  abcdefghijklmnop1234\nother x\n").unwrap();
+        assert_eq!(token_from_file(&file).unwrap(), "abcdefghijklmnop1234");
+        std::fs::write(&file, "  bare-token-of-sixteen  \n").unwrap();
+        assert_eq!(token_from_file(&file).unwrap(), "bare-token-of-sixteen");
+        std::fs::write(&file, "# only a comment\n").unwrap();
+        assert!(token_from_file(&file).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn error_bodies_give_their_message() {
+        let body =
+            br#"{"error":{"code":"unauthorized","message":"the bearer token is not valid"}}"#;
+        assert_eq!(error_message(body), "the bearer token is not valid");
+        assert_eq!(error_message(b"plain\nmore"), "plain");
+        assert_eq!(error_message(b""), "(empty body)");
+    }
+}
