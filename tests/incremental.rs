@@ -97,12 +97,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
     // The estimate it publishes is the batch optimum: its true chi2, evaluated on the batch
     // problem, and the chi2 the session reports.
     let Reply::Estimate(estimate) = service
-        .execute(Command::GetEstimate {
-            session: "walk".into(),
-            since: None,
-            from: None,
-            to: None,
-        })
+        .execute(Command::get_estimate("walk".into(), Default::default()))
         .await
         .unwrap()
     else {
@@ -166,12 +161,7 @@ async fn idle_chi2(service: &Service, reference: &factord::problem::Problem) -> 
     }
     let Reply::Estimate(estimate) = run(
         service,
-        Command::GetEstimate {
-            session: "edits".into(),
-            since: None,
-            from: None,
-            to: None,
-        },
+        Command::get_estimate("edits".into(), Default::default()),
     )
     .await
     else {

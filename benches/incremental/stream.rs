@@ -130,6 +130,9 @@ fn main() {
             .execute(Command::Optimize {
                 session: "bench".into(),
                 wait: true,
+                after_producer: None,
+                after_seq: None,
+                after_timeout_ms: None,
             })
             .await
             .unwrap()

@@ -32,6 +32,14 @@ pub enum Command {
         session: String,
         #[serde(default)]
         wait: bool,
+        /// First wait until this producer's batches up to `after_seq` are applied (see
+        /// [`After`]), at most `after_timeout_ms`.
+        #[serde(default)]
+        after_producer: Option<String>,
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
+        after_seq: Option<u64>,
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
+        after_timeout_ms: Option<u64>,
     },
     SetAutoOptimize {
         session: String,
@@ -45,6 +53,18 @@ pub enum Command {
         from: Option<Key>,
         #[serde(default, deserialize_with = "wire_number::optional_u64")]
         to: Option<Key>,
+        /// As for `optimize`.
+        #[serde(default)]
+        after_producer: Option<String>,
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
+        after_seq: Option<u64>,
+        #[serde(default, deserialize_with = "wire_number::optional_u64")]
+        after_timeout_ms: Option<u64>,
+    },
+    /// Where a producer's batches stand in a session (exactly-once ingest).
+    ProducerStatus {
+        session: String,
+        producer: String,
     },
     GetStats {
         session: String,
@@ -125,7 +145,31 @@ pub enum Reply {
     },
     Fusion(crate::api::fusion::FusionAck),
     Graph(Box<crate::api::wire::Graph>),
+    Producer(ProducerStatus),
     Marginals(Box<crate::api::wire::Marginals>),
+}
+
+impl Command {
+    /// The estimate read a query string or selector asks for (HTTP, zenoh).
+    pub fn get_estimate(session: String, query: EstimateQuery) -> Command {
+        let EstimateQuery {
+            since,
+            from,
+            to,
+            after_producer,
+            after_seq,
+            after_timeout_ms,
+        } = query;
+        Command::GetEstimate {
+            session,
+            since,
+            from,
+            to,
+            after_producer,
+            after_seq,
+            after_timeout_ms,
+        }
+    }
 }
 
 /// The command a message published on a session's topic `in/<topic>` asks for (zenoh
@@ -147,6 +191,9 @@ pub fn parse_topic(
         "optimize" => Ok(Command::Optimize {
             session,
             wait: false,
+            after_producer: None,
+            after_seq: None,
+            after_timeout_ms: None,
         }),
         "fusion" => {
             let batch: crate::api::fusion::FusionBatch = parse_json_within(payload, max_items)?;

@@ -110,6 +110,19 @@ pub struct Batch {
     /// New values for existing variables.
     #[serde(default, deserialize_with = "wire_list::items")]
     pub guesses: Vec<GuessSpec>,
+    /// Who sent it, for exactly-once ingest (with `producer_seq`): a stable id of the robot or
+    /// program, 1 to 64 characters of `A-Z a-z 0-9 . _ -`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub producer: Option<String>,
+    /// The producer's own counter, 1, 2, 3, … without gaps. A repeat is answered with the
+    /// original acknowledgement (`duplicate`) and applied no second time; a gap is refused
+    /// (409 `producer_sequence_gap`, naming the number expected).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "wire_number::optional_u64"
+    )]
+    pub producer_seq: Option<u64>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
@@ -124,13 +137,39 @@ pub struct BatchAck {
     /// than the function tolerance, so no solve is needed (otherwise a `summary` event with a
     /// sequence at least this one follows the solve).
     pub reflected: bool,
+    /// The batch's `producer` and `producer_seq`, when it had them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub producer: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub producer_seq: Option<u64>,
+    /// Cumulative: every batch of this producer up to this number is applied (with a
+    /// producer). A client that lost acknowledgements learns from any later one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub accepted_through: Option<u64>,
+    /// A repeat of a batch applied before: this is its original acknowledgement, and nothing
+    /// was applied now.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub duplicate: bool,
+}
+
+/// Where a producer's batches stand in a session (`producer_status`; also what a `lagged`
+/// event carries for every producer).
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ProducerStatus {
+    pub session: String,
+    pub producer: String,
+    /// Every batch of this producer up to this number is applied (0: none).
+    pub accepted_through: u64,
+    /// The session sequence of that producer's last applied batch (0: none).
+    pub sequence: u64,
+    /// The session sequence the estimate reflects: the producer's batches up to `sequence`
+    /// are reflected when this is at least `sequence`.
+    pub reflected_sequence: u64,
 }
 
 /// Which part of the estimate to read (from a query string or selector; the rpc's JSON form is
 /// `Command::GetEstimate`).
-#[derive(
-    Clone, Copy, Debug, Default, Deserialize, Serialize, utoipa::ToSchema, utoipa::IntoParams,
-)]
+#[derive(Clone, Debug, Default, Deserialize, Serialize, utoipa::ToSchema, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct EstimateQuery {
@@ -142,6 +181,66 @@ pub struct EstimateQuery {
     pub from: Option<Key>,
     #[serde(default)]
     pub to: Option<Key>,
+    /// Answer only once this producer's batches up to `after_seq` are applied (see [`After`]).
+    #[serde(default)]
+    pub after_producer: Option<String>,
+    #[serde(default)]
+    pub after_seq: Option<u64>,
+    #[serde(default)]
+    pub after_timeout_ms: Option<u64>,
+}
+
+/// "After my batches": a request (`optimize`, an estimate read) that first waits until the
+/// session has applied `producer`'s batches up to `seq`, whichever transport they travelled on,
+/// at most `timeout` (503 `after_timeout` then).
+#[derive(Clone, Debug, PartialEq)]
+pub struct After {
+    pub producer: String,
+    pub seq: u64,
+    pub timeout: std::time::Duration,
+}
+
+impl After {
+    /// How long an `after` waits when the request does not say.
+    pub const DEFAULT_TIMEOUT_MS: u64 = 10_000;
+    /// The longest it may be asked to wait.
+    pub const MAX_TIMEOUT_MS: u64 = 60_000;
+
+    /// From the request's `after_producer`, `after_seq` and `after_timeout_ms`: both of the
+    /// first two or neither; the timeout within [`Self::MAX_TIMEOUT_MS`].
+    pub fn from_fields(
+        producer: Option<String>,
+        seq: Option<u64>,
+        timeout_ms: Option<u64>,
+    ) -> Result<Option<After>, crate::api::ServiceError> {
+        use crate::api::ServiceError;
+        let timeout_ms = timeout_ms.unwrap_or(Self::DEFAULT_TIMEOUT_MS);
+        if timeout_ms > Self::MAX_TIMEOUT_MS {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "after_timeout_ms",
+                format!("after_timeout_ms is at most {}", Self::MAX_TIMEOUT_MS),
+            ));
+        }
+        match (producer, seq) {
+            (None, None) => Ok(None),
+            (Some(producer), Some(seq)) => Ok(Some(After {
+                producer,
+                seq,
+                timeout: std::time::Duration::from_millis(timeout_ms),
+            })),
+            (Some(_), None) => Err(ServiceError::bad_request(
+                "missing_after_seq",
+                "after_seq",
+                "after_producer needs after_seq: the producer sequence to wait for",
+            )),
+            (None, Some(_)) => Err(ServiceError::bad_request(
+                "missing_after_producer",
+                "after_producer",
+                "after_seq needs after_producer: the producer whose batches to wait for",
+            )),
+        }
+    }
 }
 
 /// The drawable graph of a session (the web view's data): pose positions in key order with the
@@ -308,6 +407,26 @@ pub enum SessionEvent {
         #[schema(required = true)]
         sequence: Option<u64>,
         error: crate::api::ErrorBody,
+        /// The rejected batch's `producer` and `producer_seq`, when it had them.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        producer: Option<String>,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        producer_seq: Option<u64>,
+    },
+    /// This subscriber fell behind and `skipped` events were dropped for it. What it missed is
+    /// re-synchronised: this marker carries every producer's cumulative progress (so no
+    /// acknowledgement is lost), and an `estimate` event with the latest value of every
+    /// variable changed meanwhile follows it. Skipped iteration statistics, summaries and
+    /// errors are not repeated.
+    Lagged {
+        session: String,
+        skipped: u64,
+        /// The session's latest accepted sequence.
+        sequence: u64,
+        /// The sequence the estimate reflects.
+        reflected_sequence: u64,
+        /// Every producer's `accepted_through`.
+        producers: std::collections::BTreeMap<String, u64>,
     },
 }
 
@@ -322,6 +441,7 @@ impl SessionEvent {
             Self::State { .. } => "state",
             Self::Window { .. } => "window",
             Self::Error { .. } => "errors",
+            Self::Lagged { .. } => "lagged",
         }
     }
 }

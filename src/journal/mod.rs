@@ -95,6 +95,30 @@ pub struct Snapshot {
     pub variables: Vec<VariableSpec>,
     /// Every live factor with its id, in its wire form.
     pub factors: Vec<(FactorId, FactorSpec)>,
+    /// Exactly-once ingest: every producer's progress and its latest acknowledgements.
+    #[serde(default)]
+    pub producers: Vec<ProducerRecord>,
+}
+
+/// A producer's progress in a session, as a snapshot keeps it (the journal's batches after the
+/// snapshot carry the rest).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ProducerRecord {
+    pub producer: String,
+    pub accepted_through: u64,
+    /// Its latest acknowledgements, oldest first.
+    pub acks: Vec<KeptAck>,
+}
+
+/// What a repeat of a producer's batch is answered with: its original acknowledgement.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct KeptAck {
+    pub producer_seq: u64,
+    /// Its session sequence.
+    pub sequence: u64,
+    /// Its factor ids as runs `[first, count]` (a batch's ids are consecutive).
+    pub factor_ids: Vec<[u64; 2]>,
+    pub predicted: Vec<crate::problem::Key>,
 }
 
 /// A [`Snapshot`] written from borrowed parts (the factors straight from the map that keeps
@@ -107,6 +131,7 @@ pub struct SnapshotOut<'a> {
     pub variables: &'a [VariableSpec],
     #[serde(serialize_with = "factors_in_order")]
     pub factors: &'a BTreeMap<FactorId, FactorSpec>,
+    pub producers: &'a [ProducerRecord],
 }
 
 /// `[[id, spec], ...]` in id order, as `Vec<(FactorId, FactorSpec)>` is written.
@@ -451,6 +476,7 @@ mod tests {
             auto_optimize: AutoOptimize::Manual {},
             variables: &variables,
             factors: &factors,
+            producers: &[],
         })
         .unwrap();
         let read: Snapshot = serde_json::from_slice(&bytes).unwrap();

@@ -7,11 +7,13 @@ use std::sync::Arc;
 use super::batch::{self, PreparedBatch, SessionView};
 use super::engine::{self, Engine};
 use super::mirror::value_of;
+use super::producers::{self, Admission, Origin};
 use super::{inspect, MirrorEntry, Session, State};
 use crate::api::catalogue;
 use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
+use crate::journal::KeptAck;
 use crate::solver;
 
 impl Session {
@@ -33,9 +35,16 @@ impl Session {
         let Engine::Graph(_) = &self.engine else {
             return Err(engine::batches_refused(&self.name));
         };
+        let origin = Origin::of(&batch)?;
         let mut st = self.lock();
         if st.deleted {
             return Err(ServiceError::not_found("session", &self.name));
+        }
+        // A replay applies what the journal holds: it is the truth the table is rebuilt from.
+        if let (Some(origin), true) = (&origin, journal) {
+            if let Admission::Repeat(kept) = st.producers.admit(&self.name, origin)? {
+                return Ok(self.repeat(&st, origin, &kept));
+            }
         }
         // Limits hold for what clients send; a journal replay restores what was accepted.
         if journal {
@@ -138,13 +147,24 @@ impl Session {
                 .push_back((sequence, prepared, factor_ids.clone()));
             st.dirty = true;
         }
-        let ack = BatchAck {
+        let mut ack = BatchAck {
             session: self.name.clone(),
             sequence,
             factor_ids,
             predicted,
             reflected: st.solved_sequence >= sequence,
+            producer: None,
+            producer_seq: None,
+            accepted_through: None,
+            duplicate: false,
         };
+        if let Some(origin) = &origin {
+            st.producers.record(origin, &ack);
+            ack.producer = Some(origin.producer.clone());
+            ack.producer_seq = Some(origin.seq);
+            ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
+        }
+        self.accepted.send_replace(sequence);
         self.emit(SessionEvent::Ack(ack.clone()));
         if !new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
@@ -159,6 +179,17 @@ impl Session {
             d.maybe_snapshot(self, &st);
         }
         Ok((ack, will_solve))
+    }
+
+    /// The answer to a repeat of `origin`'s batch: its original acknowledgement (published again,
+    /// so a zenoh producer that lost it hears it), nothing applied.
+    fn repeat(&self, st: &State, origin: &Origin, kept: &KeptAck) -> (BatchAck, bool) {
+        let mut ack =
+            producers::original_ack(kept, &self.name, &origin.producer, st.solved_sequence);
+        ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
+        self.emit(SessionEvent::Ack(ack.clone()));
+        let will_solve = st.solved_sequence < ack.sequence && (st.scheduled || st.timer_armed);
+        (ack, will_solve)
     }
 
     pub(super) fn check_batch_size(&self, batch: &Batch) -> Result<(), ServiceError> {

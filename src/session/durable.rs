@@ -154,6 +154,7 @@ impl Durable {
             sequence: st.sequence,
             next_factor_id: st.next_factor_id,
             auto: st.auto,
+            producers: st.producers.records(),
             journal_bytes: self.journal.bytes(),
             journal_path: self.journal.path().to_path_buf(),
             changes: std::mem::take(&mut self.changes),
@@ -276,6 +277,7 @@ impl Session {
             self.accept_batch(batch, Some(ids), false)
                 .map_err(|e| format!("snapshot: {}", e.body.message))?;
             let mut st = self.lock();
+            st.producers = super::producers::Producers::from_records(snapshot.producers);
             st.sequence = snapshot.sequence;
             st.next_factor_id = st.next_factor_id.max(snapshot.next_factor_id);
         }

@@ -251,6 +251,8 @@ impl Session {
                     session: self.name.clone(),
                     sequence: Some(sequence),
                     error: ServiceError::new(ErrorKind::Invalid, "solve_failed", message).body,
+                    producer: None,
+                    producer_seq: None,
                 });
             }
         }

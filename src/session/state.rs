@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use super::batch::PreparedBatch;
 use super::incremental::RegionIndex;
+use super::producers::Producers;
 use super::MirrorEntry;
 use crate::api::catalogue::SessionKind;
 use crate::api::wire::{AutoOptimize, FactorId};
@@ -62,6 +63,8 @@ pub(super) struct State {
     pub(super) problem_bytes: usize,
     /// Time the current solve spent in earlier (preempted) turns.
     pub(super) solve_carried: Duration,
+    /// Exactly-once ingest: every producer's progress.
+    pub(super) producers: Producers,
 }
 
 impl State {
@@ -105,6 +108,7 @@ impl State {
             last_summary: None,
             problem_bytes: 0,
             solve_carried: Duration::ZERO,
+            producers: Producers::default(),
         }
     }
 }

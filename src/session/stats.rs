@@ -72,6 +72,7 @@ impl Session {
                 as usize,
             Engine::Window(_) => 0,
         };
-        mirror + factors + problem + marginals + self.durable_memory_bytes()
+        let producers = st.producers.bytes();
+        mirror + factors + problem + marginals + producers + self.durable_memory_bytes()
     }
 }

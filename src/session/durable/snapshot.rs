@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 
 use super::super::Session;
 use crate::api::wire::{AutoOptimize, FactorId, FactorSpec, VariableSpec};
-use crate::journal::{Compaction, SessionDir, SnapshotOut};
+use crate::journal::{Compaction, ProducerRecord, SessionDir, SnapshotOut};
 use crate::problem::Key;
 
 /// Variables read from the mirror per lock while a snapshot is written.
@@ -146,6 +146,8 @@ pub(super) struct Capture {
     pub(super) sequence: u64,
     pub(super) next_factor_id: FactorId,
     pub(super) auto: AutoOptimize,
+    /// Every producer's progress at `sequence`.
+    pub(super) producers: Vec<ProducerRecord>,
     /// The journal's length: the records the snapshot makes redundant.
     pub(super) journal_bytes: u64,
     pub(super) journal_path: PathBuf,
@@ -176,6 +178,7 @@ impl Session {
             sequence,
             next_factor_id,
             auto,
+            producers,
             journal_bytes,
             journal_path,
             changes,
@@ -197,6 +200,7 @@ impl Session {
                     auto_optimize: auto,
                     variables: &variables,
                     factors: &base.factors,
+                    producers: &producers,
                 })
                 .expect("snapshots serialise");
                 drop(variables);

@@ -131,6 +131,24 @@ struct WaitParam {
     wait: bool,
 }
 
+#[derive(Deserialize, Default, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[serde(deny_unknown_fields)]
+struct OptimizeParams {
+    /// `true`: answer once the solve is over (bounded by `wait_timeout_ms`).
+    #[serde(default)]
+    wait: bool,
+    /// Solve only once this producer's batches up to `after_seq` are applied, whichever
+    /// transport they travelled on (at most `after_timeout_ms`, default 10000: 503
+    /// `after_timeout`).
+    #[serde(default)]
+    after_producer: Option<String>,
+    #[serde(default)]
+    after_seq: Option<u64>,
+    #[serde(default)]
+    after_timeout_ms: Option<u64>,
+}
+
 /// Apply a batch: validated whole, applied whole or not at all, journalled before it is
 /// acknowledged. With `wait`, answers once the estimate reflects it (`solved`).
 #[utoipa::path(post, path = "/v1/sessions/{session}/batches", tag = "updates", params(SessionPath, WaitParam),
@@ -188,7 +206,7 @@ pub(super) async fn fusion(
 
 /// Solve now, whatever the policy: 202 at once, or with `wait` 200 when the solve is over
 /// (with the session's `stats`).
-#[utoipa::path(post, path = "/v1/sessions/{session}/optimize", tag = "updates", params(SessionPath, WaitParam),
+#[utoipa::path(post, path = "/v1/sessions/{session}/optimize", tag = "updates", params(SessionPath, OptimizeParams),
     responses(
         (status = 200, description = "With `wait`: the solve finished.", body = super::openapi::Optimizing),
         (status = 202, description = "The solve was started or scheduled.", body = super::openapi::Optimizing),
@@ -199,7 +217,12 @@ pub(super) async fn optimize(
     Path(session): Path<String>,
     raw: RawQuery,
 ) -> HttpResult {
-    let WaitParam { wait } = query(raw)?;
+    let OptimizeParams {
+        wait,
+        after_producer,
+        after_seq,
+        after_timeout_ms,
+    } = query(raw)?;
     let status = if wait {
         StatusCode::OK
     } else {
@@ -208,7 +231,13 @@ pub(super) async fn optimize(
     run(
         &service,
         &caller,
-        Command::Optimize { session, wait },
+        Command::Optimize {
+            session,
+            wait,
+            after_producer,
+            after_seq,
+            after_timeout_ms,
+        },
         status,
     )
     .await
@@ -250,16 +279,11 @@ pub(super) async fn estimate(
     Path(session): Path<String>,
     raw: RawQuery,
 ) -> HttpResult {
-    let EstimateQuery { since, from, to } = query(raw)?;
+    let estimate: EstimateQuery = query(raw)?;
     run(
         &service,
         &caller,
-        Command::GetEstimate {
-            session,
-            since,
-            from,
-            to,
-        },
+        Command::get_estimate(session, estimate),
         StatusCode::OK,
     )
     .await
@@ -294,6 +318,26 @@ struct MarginalsParams {
     /// Also return the joint covariance of all of them.
     #[serde(default)]
     joint: bool,
+}
+
+/// Where a producer's batches stand: every batch up to `accepted_through` is applied (a
+/// reconnecting producer resends only what follows).
+#[utoipa::path(get, path = "/v1/sessions/{session}/producers/{producer}", tag = "reads", params(SessionPath, super::openapi::ProducerPath),
+    responses((status = 200,
+            description = "The producer's progress (0 for one never seen).",
+            body = crate::api::wire::ProducerStatus), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn producer_status(
+    State(service): Shared,
+    caller: Caller,
+    Path((session, producer)): Path<(String, String)>,
+) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::ProducerStatus { session, producer },
+        StatusCode::OK,
+    )
+    .await
 }
 
 /// Marginal covariances of `keys` at the current estimate (and their joint covariance).

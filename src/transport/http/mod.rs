@@ -51,6 +51,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(optimize))
         .routes(routes!(set_auto_optimize))
         .routes(routes!(estimate))
+        .routes(routes!(producer_status))
         .routes(routes!(summary))
         .routes(routes!(cancel))
         .routes(routes!(events))

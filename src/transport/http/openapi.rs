@@ -80,6 +80,15 @@ pub struct SessionPath {
     session: String,
 }
 
+/// The producer a route reports on (exactly-once ingest).
+#[derive(IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+pub struct ProducerPath {
+    /// Producer id: 1–64 characters of `[A-Za-z0-9._-]`.
+    producer: String,
+}
+
 /// `POST /v1/jobs`'s query parameters (`crate::service::jobs::JobParams`).
 #[derive(IntoParams)]
 #[into_params(parameter_in = Query)]
