@@ -71,14 +71,27 @@ impl Service {
             return Ok(0);
         };
         let dir = SessionDir::sessions_root(state_dir).join(name);
-        if std::fs::symlink_metadata(&dir).is_ok() {
+        let exists = std::fs::symlink_metadata(&dir).is_ok();
+        if self.fleet().is_some() {
+            // In a fleet the directories of other instances' sessions are not loaded here; one
+            // on disk is a session that exists (or a creation that did not finish).
+            return match exists {
+                true => Err(ServiceError::conflict(
+                    "session_exists",
+                    format!("session `{name}` already exists"),
+                )),
+                false => Ok(0),
+            };
+        }
+        if exists {
             return Err(on_disk(name, &dir));
         }
         Ok(self.unloaded_on_disk.load(Ordering::SeqCst))
     }
 
     /// Creates the directory and journal of new session `name` (journal enabled). Nothing is
-    /// left on disk when this fails, and an existing directory is never touched.
+    /// left on disk when this fails, and an existing directory is never touched. In a fleet the
+    /// new directory's lock is taken at once (see `fleet_lock`).
     pub(super) fn create_files(
         &self,
         name: &str,
@@ -88,7 +101,11 @@ impl Service {
         let Some((state_dir, config)) = &self.journal else {
             return Ok(None);
         };
-        let created = SessionDir::create(state_dir, name, record, owner).and_then(|dir| {
+        let created = SessionDir::create(state_dir, name, record, owner);
+        if let (Ok(_), Some(fleet)) = (&created, self.fleet()) {
+            fleet.lock_created(name)?;
+        }
+        let created = created.and_then(|dir| {
             let journal = dir.open_journal(config.fsync);
             match journal {
                 Ok(journal) => Ok(Durability {
@@ -104,6 +121,9 @@ impl Service {
             Err(JournalError::Exists { path }) => Err(on_disk(name, &path)),
             Err(e) => {
                 tracing::error!(session = name, "creation refused: {e}");
+                if let Some(fleet) = self.fleet() {
+                    fleet.unlock(name);
+                }
                 Err(journal_failed(name, &e))
             }
         }
@@ -142,6 +162,10 @@ impl Service {
         sessions.remove(name);
         drop(sessions);
         session.mark_deleted();
+        if let Some(fleet) = self.fleet() {
+            fleet.set_loaded(name, false);
+            fleet.unlock(name);
+        }
         if let Some(Err(e)) = tombstone.map(|t| t.purge()) {
             tracing::warn!(
                 session = name,

@@ -7,6 +7,10 @@
 
 pub mod caller;
 mod durability;
+pub mod fleet;
+mod fleet_lock;
+mod fleet_moves;
+pub mod placement;
 pub mod jobs;
 mod recovery;
 
@@ -43,6 +47,8 @@ pub struct Service {
     journal: Option<(std::path::PathBuf, crate::journal::JournalConfig)>,
     /// Session directories found at start that could not be loaded (see `durability`).
     unloaded_on_disk: AtomicUsize,
+    /// This instance's view of its fleet (`fleet.rs`), when it is in one.
+    fleet: std::sync::OnceLock<Arc<fleet::Fleet>>,
 }
 
 /// Session names are zenoh key chunks and URL path segments.
@@ -78,6 +84,7 @@ impl Service {
             started: Instant::now(),
             journal,
             unloaded_on_disk: AtomicUsize::new(0),
+            fleet: std::sync::OnceLock::new(),
         })
     }
 

@@ -1,24 +1,31 @@
 //! Start-up: every session found in the state directory is listed at once and rebuilt from its
 //! snapshot and journal in the background; unnamed creations continue after the names found.
+//! In a fleet only the sessions this instance owns are loaded, by adoption (`fleet_moves.rs`),
+//! one at a time through the same [`Service::recover_one`].
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
 use super::Service;
-use crate::session::Session;
+use crate::journal::{JournalConfig, SessionDir};
 
 impl Service {
     /// Rebuilds every session found in the state directory, each in the background: it is
     /// listed at once (with `recovering` in its statistics, writes refused with 503) and
-    /// optimised when its journal has been replayed. Returns how many there are.
+    /// optimised when its journal has been replayed. Returns how many there are. In a fleet,
+    /// loads nothing (adoption does, once the membership is known).
     pub fn recover_sessions(self: &Arc<Self>) -> Result<usize, crate::journal::JournalError> {
         let Some((state_dir, config)) = self.journal.clone() else {
             return Ok(0);
         };
         self.finish_deletions();
-        let found = crate::journal::SessionDir::list(&state_dir)?;
-        let names_on_disk = crate::journal::SessionDir::names_on_disk(&state_dir)?;
+        self.start_journal_sync(&config);
+        if self.fleet().is_some() {
+            return Ok(0);
+        }
+        let found = SessionDir::list(&state_dir)?;
+        let names_on_disk = SessionDir::names_on_disk(&state_dir)?;
         // Unnamed creations continue after every name on disk, loadable or not.
         for name in &names_on_disk {
             self.reserve_generated_name(name);
@@ -26,91 +33,108 @@ impl Service {
         let on_disk = names_on_disk.len();
         let mut count = 0;
         for (name, dir) in found {
-            // Only the small identity files are read here; a session whose identity cannot be
-            // read is left on disk, unlisted (its name cannot be created again), and the
-            // others start.
-            let identity = match dir.load_identity() {
-                Ok(identity) => identity,
-                Err(e) => {
-                    tracing::error!(
-                        session = %name,
-                        "not recovered, its directory is kept for an operator: {e}"
-                    );
-                    continue;
-                }
-            };
-            let auto_optimize = identity.request.auto_optimize;
-            let session = match self.build_session(name.clone(), identity.request) {
-                Ok(session) => session,
-                Err(e) => {
-                    tracing::error!(session = %name, "not recovered: {}", e.body.message);
-                    continue;
-                }
-            };
-            session.mark_recovering();
-            if let Some(owner) = &identity.owner {
-                session.set_owner(owner.as_str().into());
+            if self.recover_one(name, dir, &config) {
+                count += 1;
             }
-            self.register(name.clone(), Arc::clone(&session));
-            count += 1;
-            let config = config.clone();
-            tokio::task::spawn_blocking(move || {
-                let _span = tracing::info_span!("session", session = %name).entered();
-                // The snapshot and journal are read here, off start-up: they can be large.
-                let outcome = dir
-                    .load_state()
-                    .and_then(|recovered| Ok((recovered, dir.open_journal(config.fsync)?)))
-                    .map_err(|e| e.to_string())
-                    .and_then(|(recovered, journal)| {
-                        let durability = crate::session::Durability {
-                            dir,
-                            journal,
-                            config,
-                        };
-                        session.recover(auto_optimize, recovered, durability)
-                    });
-                match outcome {
-                    Ok(r) if r.corruption.is_some() => tracing::error!(
-                        entries = r.entries,
-                        "journal damaged, session recovered up to the damage and read-only: {}",
-                        r.corruption.unwrap_or_default()
-                    ),
-                    Ok(r) => tracing::info!(
-                        entries = r.entries,
-                        truncated_bytes = r.truncated_bytes,
-                        seconds = r.seconds,
-                        "recovered from snapshot {:?} and journal",
-                        r.snapshot_sequence
-                    ),
-                    Err(e) => {
-                        tracing::error!("recovery failed, session kept as far as it got: {e}");
-                        session.recovery_failed(&e);
-                    }
-                }
-            });
-        }
-        if config.fsync == crate::journal::Fsync::Interval {
-            let service = Arc::downgrade(self);
-            let period = Duration::from_millis(config.interval_ms.max(1));
-            self.runtime.spawn(async move {
-                loop {
-                    tokio::time::sleep(period).await;
-                    let Some(service) = service.upgrade() else {
-                        return;
-                    };
-                    let sessions = service.sessions();
-                    drop(service);
-                    let _ = tokio::task::spawn_blocking(move || {
-                        for s in sessions {
-                            s.sync_journal();
-                        }
-                    })
-                    .await;
-                }
-            });
         }
         self.count_unloaded(on_disk.saturating_sub(count));
         Ok(count)
+    }
+
+    /// Lists session `name` from its directory at once (recovering: writes refused with 503)
+    /// and rebuilds it from its snapshot and journal in the background. Only the small identity
+    /// files are read here; a session whose identity cannot be read is left on disk, unlisted
+    /// (its name cannot be created again): returns false.
+    pub(super) fn recover_one(
+        self: &Arc<Self>,
+        name: String,
+        dir: SessionDir,
+        config: &JournalConfig,
+    ) -> bool {
+        let identity = match dir.load_identity() {
+            Ok(identity) => identity,
+            Err(e) => {
+                tracing::error!(
+                    session = %name,
+                    "not recovered, its directory is kept for an operator: {e}"
+                );
+                return false;
+            }
+        };
+        let auto_optimize = identity.request.auto_optimize;
+        let session = match self.build_session(name.clone(), identity.request) {
+            Ok(session) => session,
+            Err(e) => {
+                tracing::error!(session = %name, "not recovered: {}", e.body.message);
+                return false;
+            }
+        };
+        session.mark_recovering();
+        if let Some(owner) = &identity.owner {
+            session.set_owner(owner.as_str().into());
+        }
+        self.register(name.clone(), Arc::clone(&session));
+        let config = config.clone();
+        tokio::task::spawn_blocking(move || {
+            let _span = tracing::info_span!("session", session = %name).entered();
+            // The snapshot and journal are read here, off start-up: they can be large.
+            let outcome = dir
+                .load_state()
+                .and_then(|recovered| Ok((recovered, dir.open_journal(config.fsync)?)))
+                .map_err(|e| e.to_string())
+                .and_then(|(recovered, journal)| {
+                    let durability = crate::session::Durability {
+                        dir,
+                        journal,
+                        config,
+                    };
+                    session.recover(auto_optimize, recovered, durability)
+                });
+            match outcome {
+                Ok(r) if r.corruption.is_some() => tracing::error!(
+                    entries = r.entries,
+                    "journal damaged, session recovered up to the damage and read-only: {}",
+                    r.corruption.unwrap_or_default()
+                ),
+                Ok(r) => tracing::info!(
+                    entries = r.entries,
+                    truncated_bytes = r.truncated_bytes,
+                    seconds = r.seconds,
+                    "recovered from snapshot {:?} and journal",
+                    r.snapshot_sequence
+                ),
+                Err(e) => {
+                    tracing::error!("recovery failed, session kept as far as it got: {e}");
+                    session.recovery_failed(&e);
+                }
+            }
+        });
+        true
+    }
+
+    /// Under `fsync: interval`: fsyncs every session's journal every `interval_ms`.
+    fn start_journal_sync(self: &Arc<Self>, config: &JournalConfig) {
+        if config.fsync != crate::journal::Fsync::Interval {
+            return;
+        }
+        let service = Arc::downgrade(self);
+        let period = Duration::from_millis(config.interval_ms.max(1));
+        self.runtime.spawn(async move {
+            loop {
+                tokio::time::sleep(period).await;
+                let Some(service) = service.upgrade() else {
+                    return;
+                };
+                let sessions = service.sessions();
+                drop(service);
+                let _ = tokio::task::spawn_blocking(move || {
+                    for s in sessions {
+                        s.sync_journal();
+                    }
+                })
+                .await;
+            }
+        });
     }
 
     /// Unnamed creations (`s<n>`) are numbered after `name` when it is one of theirs.
@@ -130,3 +154,5 @@ impl Service {
             .insert(name, session);
     }
 }
+
+use crate::session::Session;

@@ -1,0 +1,389 @@
+//! A fleet: several `factord serve` instances sharing one state directory form one service.
+//! Each session has exactly one owner, the instance [`placement::owner`] names among the live
+//! instances; only the owner loads it, holding its lock ([`SessionLock`]) so that no two
+//! instances ever write one journal. The transports ask [`Service::route`] where a session's
+//! commands go: here, to another instance, or nowhere yet (it is moving: 503 `session_moving`,
+//! Retry-After 1). Who is live comes from the transport (zenoh liveliness) through
+//! [`Fleet::member_up`] and [`Fleet::member_down`]; adopting and releasing sessions when that
+//! changes is `fleet_moves.rs`.
+//!
+//! Names: an unnamed creation is named by the instance that receives it, before it is routed,
+//! from one counter in `<state_dir>/fleet-names` taken under an OS lock, so `s<n>` never
+//! collides across instances. Deletion tombstones cannot collide: only the lock holder of a
+//! session renames its directory.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::io::{Read, Seek, Write};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+
+use serde::Serialize;
+use tokio::sync::{watch, Notify};
+
+use super::fleet_lock::{LockError, SessionLock};
+use super::placement;
+use super::{Caller, Service, ServiceError};
+use crate::journal::SessionDir;
+
+/// Another live instance, as it announced itself.
+#[derive(Clone, Debug, Default)]
+pub struct Member {
+    /// Where its HTTP is reached (its advertised URL), once known.
+    pub http: Option<String>,
+}
+
+/// Where a session's commands go.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Route {
+    /// Run them here: the session is loaded here, or it does not exist and this instance
+    /// would own it (a creation; anything else answers 404).
+    Local,
+    /// To the owning instance.
+    Remote {
+        instance: String,
+        http: Option<String>,
+    },
+    /// Nowhere right now: being released here or adopted by its owner.
+    Moving,
+}
+
+/// What an instance tells the fleet about itself (zenoh: `<p>/@fleet/<instance>/info`).
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
+pub struct FleetInfo {
+    pub instance: String,
+    pub http: String,
+    /// Whether this instance has learnt the membership (it places sessions only then).
+    pub settled: bool,
+    /// The live instances it knows, itself included, with the HTTP URL of each (once known).
+    pub live: BTreeMap<String, Option<String>>,
+    /// The sessions loaded here, as the asking caller may see them.
+    pub sessions: Vec<serde_json::Value>,
+    pub load: FleetLoad,
+}
+
+#[derive(Clone, Debug, Serialize, serde::Deserialize)]
+pub struct FleetLoad {
+    pub sessions: usize,
+    pub busy_workers: usize,
+    pub queued: usize,
+}
+
+/// This instance's view of the fleet.
+pub struct Fleet {
+    instance: String,
+    http: String,
+    state_dir: PathBuf,
+    /// The other live instances.
+    members: RwLock<BTreeMap<String, Member>>,
+    /// The membership was learnt (placement is meaningful); before, unknown sessions are moving.
+    settled: AtomicBool,
+    /// The lock of every session loaded here.
+    pub(super) locks: Mutex<HashMap<String, SessionLock>>,
+    /// Sessions being released here.
+    pub(super) moving: Mutex<HashSet<String>>,
+    /// Session directories whose adoption failed for good (unreadable): answered as absent.
+    pub(super) broken: Mutex<HashSet<String>>,
+    /// The names of the sessions loaded here (the transports declare their routes from it).
+    loaded: watch::Sender<BTreeSet<String>>,
+    /// Membership changed: rebalance now.
+    pub(super) changed: Notify,
+}
+
+/// An instance id: 1-64 characters of `[A-Za-z0-9._-]`.
+pub fn valid_instance_id(id: &str) -> bool {
+    (1..=64).contains(&id.len())
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+impl Fleet {
+    pub fn instance(&self) -> &str {
+        &self.instance
+    }
+
+    pub fn http(&self) -> &str {
+        &self.http
+    }
+
+    /// Instance `id` is live (announced, or its URL learnt).
+    pub fn member_up(&self, id: &str, member: Member) {
+        if id == self.instance {
+            return;
+        }
+        let mut members = self.members.write().unwrap_or_else(|p| p.into_inner());
+        let known = members.insert(id.to_string(), member).is_some();
+        drop(members);
+        if !known {
+            tracing::info!(instance = id, "fleet: instance joined");
+            self.changed.notify_one();
+        }
+    }
+
+    /// Instance `id` is gone (its liveliness token vanished).
+    pub fn member_down(&self, id: &str) {
+        let removed = self
+            .members
+            .write()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(id)
+            .is_some();
+        if removed {
+            tracing::info!(instance = id, "fleet: instance left");
+            self.changed.notify_one();
+        }
+    }
+
+    /// The membership is known: sessions may be placed, adopted and released from now on.
+    pub fn set_settled(&self) {
+        if !self.settled.swap(true, Ordering::SeqCst) {
+            self.changed.notify_one();
+        }
+    }
+
+    pub fn settled(&self) -> bool {
+        self.settled.load(Ordering::SeqCst)
+    }
+
+    /// The live instances, this one included, sorted.
+    pub fn live(&self) -> Vec<String> {
+        let members = self.members.read().unwrap_or_else(|p| p.into_inner());
+        let mut live: Vec<String> = members.keys().cloned().collect();
+        live.push(self.instance.clone());
+        live.sort();
+        live
+    }
+
+    pub fn member(&self, id: &str) -> Option<Member> {
+        self.members
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(id)
+            .cloned()
+    }
+
+    /// The instance that owns session `name` now.
+    pub fn owner_of(&self, name: &str) -> String {
+        let live = self.live();
+        placement::owner(name, live.iter().map(String::as_str))
+            .unwrap_or(&self.instance)
+            .to_string()
+    }
+
+    /// The sessions loaded here, as they change.
+    pub fn loaded(&self) -> watch::Receiver<BTreeSet<String>> {
+        self.loaded.subscribe()
+    }
+
+    pub(super) fn set_loaded(&self, name: &str, loaded: bool) {
+        self.loaded.send_if_modified(|set| {
+            if loaded {
+                set.insert(name.to_string())
+            } else {
+                set.remove(name)
+            }
+        });
+    }
+
+    pub(super) fn is_moving(&self, name: &str) -> bool {
+        self.moving
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .contains(name)
+    }
+
+    fn session_dir(&self, name: &str) -> PathBuf {
+        SessionDir::sessions_root(&self.state_dir).join(name)
+    }
+
+    /// Takes the lock of new session `name`, whose directory this instance just created.
+    pub(super) fn lock_created(&self, name: &str) -> Result<(), ServiceError> {
+        match SessionLock::try_acquire(&self.session_dir(name)) {
+            Ok(lock) => {
+                self.locks
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .insert(name.to_string(), lock);
+                Ok(())
+            }
+            // Another instance took it in the instant since its directory appeared: it
+            // believes it owns the name (the membership is changing) and has loaded it.
+            Err(LockError::Held | LockError::Gone) => Err(moving(name)),
+            Err(LockError::Io(e)) => Err(ServiceError::unavailable(
+                "journal_failed",
+                format!("cannot lock the directory of session `{name}`: {e}"),
+                5,
+            )),
+        }
+    }
+
+    /// Drops the lock of session `name` (deleted or released here).
+    pub(super) fn unlock(&self, name: &str) {
+        self.locks
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(name);
+    }
+
+    /// A name for an unnamed creation, unique across the fleet: `s<n>` from the shared counter
+    /// in `<state_dir>/fleet-names` (taken under its OS lock), past every name on disk.
+    pub fn generate_name(&self) -> Result<String, ServiceError> {
+        let failed = |e: std::io::Error| {
+            ServiceError::unavailable(
+                "journal_failed",
+                format!("cannot take a session name from the fleet's counter: {e}"),
+                5,
+            )
+        };
+        let path = self.state_dir.join("fleet-names");
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(failed)?;
+        file.lock().map_err(failed)?;
+        let mut text = String::new();
+        file.read_to_string(&mut text).map_err(failed)?;
+        let mut n: u64 = text.trim().parse().unwrap_or(1).max(1);
+        while self.session_dir(&format!("s{n}")).exists() {
+            n += 1;
+        }
+        file.set_len(0)
+            .and_then(|()| file.rewind())
+            .and_then(|()| file.write_all((n + 1).to_string().as_bytes()))
+            .and_then(|()| file.sync_data())
+            .map_err(failed)?;
+        Ok(format!("s{n}"))
+    }
+}
+
+/// 503 `session_moving`: try again in a second.
+pub fn moving(name: &str) -> ServiceError {
+    ServiceError::unavailable(
+        "session_moving",
+        format!("session `{name}` is moving between instances of the fleet; try again shortly"),
+        1,
+    )
+}
+
+impl Service {
+    /// Makes this service instance `instance` of a fleet whose HTTP is reached at `http`.
+    /// Needs the journal (the shared state directory); call before [`Self::recover_sessions`].
+    pub fn join_fleet(self: &Arc<Self>, instance: &str, http: &str) -> Option<Arc<Fleet>> {
+        let (state_dir, _) = self.journal.clone()?;
+        let fleet = Arc::new(Fleet {
+            instance: instance.to_string(),
+            http: http.to_string(),
+            state_dir,
+            members: RwLock::new(BTreeMap::new()),
+            settled: AtomicBool::new(false),
+            locks: Mutex::new(HashMap::new()),
+            moving: Mutex::new(HashSet::new()),
+            broken: Mutex::new(HashSet::new()),
+            loaded: watch::channel(BTreeSet::new()).0,
+            changed: Notify::new(),
+        });
+        if self.fleet.set(Arc::clone(&fleet)).is_err() {
+            return self.fleet.get().cloned();
+        }
+        let weak = Arc::downgrade(&fleet);
+        self.observe_sessions(Box::new(move |session| {
+            if let Some(fleet) = weak.upgrade() {
+                fleet.set_loaded(&session.name, true);
+            }
+        }));
+        self.start_rebalancing(Arc::clone(&fleet));
+        Some(fleet)
+    }
+
+    pub fn fleet(&self) -> Option<&Arc<Fleet>> {
+        self.fleet.get()
+    }
+
+    /// Where the commands of session `name` go (always here outside a fleet).
+    pub fn route(&self, name: &str) -> Route {
+        let Some(fleet) = self.fleet() else {
+            return Route::Local;
+        };
+        if fleet.is_moving(name) {
+            return Route::Moving;
+        }
+        if self.session(name).is_ok() {
+            return Route::Local;
+        }
+        if !fleet.settled() {
+            return Route::Moving;
+        }
+        let owner = fleet.owner_of(name);
+        if owner != fleet.instance {
+            let http = fleet.member(&owner).and_then(|m| m.http);
+            return Route::Remote {
+                instance: owner,
+                http,
+            };
+        }
+        let broken = fleet
+            .broken
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .contains(name);
+        // Its directory is on disk but not loaded yet: being adopted here.
+        if !broken && fleet.session_dir(name).join("session.json").exists() {
+            return Route::Moving;
+        }
+        Route::Local
+    }
+
+    /// What this instance tells the fleet: its sessions as `caller` sees them, and its load.
+    pub fn fleet_info(&self, caller: &Caller) -> Option<FleetInfo> {
+        let fleet = self.fleet()?;
+        let health = self.health(caller);
+        let sessions: Vec<serde_json::Value> = self
+            .sessions()
+            .iter()
+            .filter(|s| caller.may_see(s))
+            .map(|s| serde_json::to_value(s.info()).expect("session info serialises"))
+            .collect();
+        let live = fleet
+            .live()
+            .into_iter()
+            .map(|id| {
+                let http = match id == fleet.instance {
+                    true => Some(fleet.http.clone()),
+                    false => fleet.member(&id).and_then(|m| m.http),
+                };
+                (id, http)
+            })
+            .collect();
+        Some(FleetInfo {
+            instance: fleet.instance.clone(),
+            http: fleet.http.clone(),
+            settled: fleet.settled(),
+            live,
+            load: FleetLoad {
+                sessions: sessions.len(),
+                busy_workers: health.busy_workers,
+                queued: health.queued,
+            },
+            sessions,
+        })
+    }
+}
+
+/// The session list of several instances' answers, merged (each session once) and sorted.
+pub fn merge_session_lists(
+    lists: impl IntoIterator<Item = Vec<serde_json::Value>>,
+) -> Vec<serde_json::Value> {
+    let mut all: BTreeMap<String, serde_json::Value> = BTreeMap::new();
+    for list in lists {
+        for info in list {
+            if let Some(name) = info.get("session").and_then(|s| s.as_str()) {
+                all.entry(name.to_string()).or_insert(info);
+            }
+        }
+    }
+    all.into_values().collect()
+}
