@@ -83,3 +83,23 @@ fn wire_schema_matches_the_server() {
     run_script(&python, &["proto/validate.py", "--server", &server.http]);
     server.assert_no_panic();
 }
+
+/// The recovering client (issue 17): HTTP retry rules against a scripted network peer, then
+/// streams over zenoh and HTTP against factord processes the script starts, kills (-9) and
+/// restarts itself (so it gets this build's binary).
+#[test]
+fn python_client_recovers() {
+    let Some(python) = python() else { return };
+    run_script(&python, &["clients/python/tests/test_http_retry.py"]);
+    let data = data_dir();
+    run_script(
+        &python,
+        &[
+            "clients/python/tests/test_recovery.py",
+            "--factord",
+            env!("CARGO_BIN_EXE_factord"),
+            "--data-dir",
+            data.to_str().expect("utf-8 path"),
+        ],
+    );
+}

@@ -113,8 +113,10 @@ class BatchRefused(FactordError):
         self.producer_seq = producer_seq
         self.accepted_through = accepted_through
         self.unacked = list(unacked)
-        tail = (f"; batches {unacked[0]}..{unacked[-1]} not applied" if unacked else "")
-        self.args = (f"batch {producer_seq} of producer {producer} refused: "
-                     f"{error.status} {error.code}"
-                     f"{' at ' + error.field if error.field else ''}: {error.message} "
-                     f"(applied through {accepted_through}{tail})",)
+
+    def __str__(self) -> str:
+        tail = (f"; batches {self.unacked[0]}..{self.unacked[-1]} not applied"
+                if self.unacked else "")
+        return (f"batch {self.producer_seq} of producer {self.producer} refused: "
+                f"{self.status} {self.code}{' at ' + self.field if self.field else ''}: "
+                f"{self.message} (applied through {self.accepted_through}{tail})")

@@ -86,7 +86,8 @@ class StreamProducer:
         self._cond = threading.Condition(self._lock)
         self._pub_lock = threading.Lock()  # puts in number order
         self._unacked: "OrderedDict[int, _Pending]" = OrderedDict()
-        self._failure: Optional[FactordError] = None
+        self._failure: Optional[BatchRefused] = None
+        self._settling = False  # a refusal's accepted_through is being asked from the service
         self._resync = False  # level-triggered: a resend of everything unacknowledged is due
         self._not_before = 0.0  # no resend before (Retry-After of a 429/503)
         self._last_resync = 0.0
@@ -283,6 +284,7 @@ class StreamProducer:
             elif seq in self._unacked:
                 self._failure = BatchRefused(error, self.producer, seq, self.accepted_through,
                                              [s for s in self._unacked if s >= seq])
+                self._settling = True  # acks of earlier batches may still be on their way
             self._cond.notify_all()
 
     def _advance(self, through: int) -> None:
@@ -299,8 +301,32 @@ class StreamProducer:
         self._cond.notify_all()
 
     def _raise_failure(self) -> None:
-        if self._failure is not None:
-            raise self._failure
+        """Under the lock: raises the refusal, once its numbers are settled (see _settle)."""
+        if self._failure is None:
+            return
+        deadline = time.monotonic() + self.status_timeout + 1.0
+        while self._settling and time.monotonic() < deadline:
+            self._cond.wait(0.1)
+        raise self._failure
+
+    def _settle(self) -> None:
+        """After a refusal: asks the service how far this producer's batches are applied (acks
+        of the batches before the refused one travel separately and may come later), so the
+        exception names exactly what was applied and what was not."""
+        try:
+            status = self.client.producer_status(self.session, self.producer,
+                                                 timeout=self.status_timeout)
+        except FactordError:
+            status = None
+        with self._cond:
+            if status is not None:
+                self._advance(int(status.get("accepted_through", 0)))
+            failure = self._failure
+            if failure is not None:
+                failure.accepted_through = self.accepted_through
+                failure.unacked = list(self._unacked)
+            self._settling = False
+            self._cond.notify_all()
 
     def _status_note(self) -> str:
         return f"; last status query: {self._last_status_error}" if self._last_status_error else ""
@@ -357,6 +383,8 @@ class StreamProducer:
         return min(self.resend_after * (2 ** min(pending.attempts, 8)), self.max_resend_after)
 
     def _step(self, now: float) -> None:
+        if self._settling:
+            self._settle()
         with self._lock:
             if self._failure is not None or not self._unacked:
                 self._resync = False

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import sys
 import threading
+import time
 from typing import Any, Callable, Dict, List, Optional, Union
 
 from .errors import FactordConnectionError, FactordError
@@ -26,6 +27,12 @@ from .errors import FactordConnectionError, FactordError
 JsonDict = Dict[str, Any]
 
 TOPICS = ("acks", "stats", "poses", "summary", "errors")
+
+# Commands that may be sent again when no queryable answered (e.g. while factord restarts):
+# reads, and commands whose repeat changes nothing more. A batch is safe only with
+# producer + producer_seq; create_session and delete_session are not repeated.
+_SAFE_OPS = frozenset({"health", "list_sessions", "get_stats", "get_estimate", "producer_status",
+                       "optimize", "cancel", "set_auto_optimize", "get_graph", "get_marginals"})
 
 
 def _zenoh() -> Any:
@@ -45,6 +52,12 @@ class ZenohClient:
     ``connect_endpoint``: where to connect, e.g. ``tcp/127.0.0.1:7447`` (factord's own zenoh
     listener or a zenoh router it is connected to); a list connects to several. ``mode``:
     ``client`` (default) or ``peer``. Multicast scouting is off: only the given endpoints are used.
+
+    zenoh reconnects by itself when the link drops. A query that no queryable answered (factord
+    away or restarting) is sent again for up to ``reconnect_wait`` seconds when it is safe to
+    repeat (reads, ``optimize``, ``cancel``, ``set_auto_optimize``, ``producer_status``, batches
+    with ``producer`` + ``producer_seq``); otherwise, or after that, it raises
+    :class:`FactordConnectionError` (code ``no_reply``).
     """
 
     def __init__(
@@ -53,6 +66,7 @@ class ZenohClient:
         prefix: str = "factord",
         mode: str = "client",
         timeout: float = 150.0,
+        reconnect_wait: float = 10.0,
     ) -> None:
         zenoh = _zenoh()
         endpoints = [connect_endpoint] if isinstance(connect_endpoint, str) else list(connect_endpoint)
@@ -65,32 +79,47 @@ class ZenohClient:
             config.insert_json5("listen/endpoints", "[]")
         self.prefix = prefix.rstrip("/") or "factord"
         self.timeout = timeout
+        self.reconnect_wait = reconnect_wait
         self._zenoh = zenoh
         self._session = zenoh.open(config)
         self._subscribers: List[Any] = []
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------- queries
-    def _query(self, selector: str, payload: Optional[bytes], timeout: Optional[float]) -> Any:
+    def _query(self, selector: str, payload: Optional[bytes], timeout: Optional[float],
+               safe: bool = True) -> Any:
         kwargs: JsonDict = {"timeout": self.timeout if timeout is None else timeout}
         if payload is not None:
             kwargs["payload"] = payload
-        replies = self._session.get(selector, **kwargs)
-        for reply in replies:  # the first answer wins (there is one factord per prefix)
-            ok = reply.ok
-            if ok is not None:
-                return json.loads(ok.payload.to_bytes().decode("utf-8"))
-            raise FactordError.from_body(reply.err.payload.to_bytes())
-        raise FactordConnectionError(
-            "no_reply",
-            f"no zenoh queryable answered `{selector}` (is factord reachable with prefix "
-            f"`{self.prefix}`?)",
-        )
+        deadline = time.monotonic() + (self.reconnect_wait if safe else 0.0)
+        attempt = 0
+        while True:
+            attempt += 1
+            started = time.monotonic()
+            replies = self._session.get(selector, **kwargs)
+            for reply in replies:  # the first answer wins (there is one factord per prefix)
+                ok = reply.ok
+                if ok is not None:
+                    return json.loads(ok.payload.to_bytes().decode("utf-8"))
+                raise FactordError.from_body(reply.err.payload.to_bytes())
+            # No answer at once: no queryable matched (not reachable now). An answer that did
+            # not come within the timeout is not repeated (the request may be running).
+            quick = time.monotonic() - started < 1.0
+            if not quick or time.monotonic() >= deadline:
+                raise FactordConnectionError(
+                    "no_reply",
+                    f"no zenoh queryable answered `{selector}` (is factord reachable with "
+                    f"prefix `{self.prefix}`?)", attempts=attempt)
+            time.sleep(min(0.05 * 2 ** attempt, 0.5))
 
     def rpc(self, command: JsonDict, timeout: Optional[float] = None) -> JsonDict:
         """Sends a command (``{"op": ..., ...}``) to ``<prefix>/rpc`` and returns its answer;
         an error reply raises :class:`FactordError` (with the status from the error body)."""
-        return self._query(f"{self.prefix}/rpc", json.dumps(command).encode("utf-8"), timeout)
+        batch = command.get("batch") if command.get("op") == "apply_batch" else None
+        safe = command.get("op") in _SAFE_OPS or (
+            isinstance(batch, dict) and "producer" in batch and "producer_seq" in batch)
+        return self._query(f"{self.prefix}/rpc", json.dumps(command).encode("utf-8"), timeout,
+                           safe=safe)
 
     # Convenience wrappers over rpc (same answers as the HTTP routes).
     def health(self) -> JsonDict:
