@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
               f"acknowledged after {acked_after:.2f} s (producer {producer.producer}, "
               f"seq {producer.accepted_through}; {c['resent']} resent, {c['duplicates']} "
               f"duplicate acks, {c['lagged']} lagged markers); {len(live.predicted)} "
-              f"predicted by the server")
+              f"predicted by the server in the {c['acks']} ack events seen")
         print("  " + live.line(producer))
 
         stats = producer.optimize(wait=True, timeout=args.timeout)["stats"]
