@@ -10,6 +10,8 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
+mod fleet;
+
 use crate::service::{Limits, Service};
 use crate::transport::http::listener::{self as http_listener, HttpConfig};
 use crate::transport::zenoh::ZenohConfig;
@@ -34,6 +36,21 @@ pub struct ServeConfig {
     pub journal: crate::journal::JournalConfig,
     /// How long shutdown waits for running solves to stop.
     pub shutdown_timeout_ms: u64,
+    /// Several instances joined by zenoh, sharing `state_dir`, forming one service.
+    pub fleet: FleetConfig,
+}
+
+/// `fleet` in the config file (see README, "Fleet").
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FleetConfig {
+    pub enabled: bool,
+    /// This instance's id, 1-64 characters of `[A-Za-z0-9._-]`, unique in the fleet
+    /// [default: `<hostname>-<pid>`].
+    pub instance: Option<String>,
+    /// The URL the other instances reach this one's HTTP at (`http://host:port`) [default:
+    /// `http://` + the bound address; required when listening on 0.0.0.0 or ::].
+    pub advertise_http: Option<String>,
 }
 
 impl Default for ServeConfig {
@@ -56,6 +73,7 @@ impl Default for ServeConfig {
             journal: crate::journal::JournalConfig::default(),
             auth: AuthConfig::default(),
             shutdown_timeout_ms: 10_000,
+            fleet: FleetConfig::default(),
         }
     }
 }
@@ -88,6 +106,8 @@ pub enum ServeError {
     Zenoh(#[from] zenoh::ZenohError),
     #[error("HTTP server: {0}")]
     Http(std::io::Error),
+    #[error("fleet: {0}")]
+    Fleet(String),
 }
 
 impl ServeConfig {
@@ -113,6 +133,9 @@ pub struct ServerInfo {
     pub http: String,
     pub zenoh_listen: Vec<String>,
     pub zenoh_prefix: String,
+    /// The fleet instance id (in a fleet).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instance: Option<String>,
 }
 
 /// An exclusive hold on the state directory: an OS lock (`flock`) on `factord.lock`, held by the
@@ -120,12 +143,16 @@ pub struct ServerInfo {
 /// `kill -9` leaves no stale lock and two servers starting at once cannot both get it. The file
 /// holds the holder's pid, for the message the next one prints; it is never removed (a removal
 /// would let a third server lock a new file while a second still waits on the old one).
+///
+/// The instances of a fleet share the directory: each holds a *shared* lock on the file (and
+/// each session's own lock, see `service::fleet`), so a server outside the fleet cannot start on
+/// it, nor a fleet instance on a directory a lone server holds.
 struct StateDir {
     _lock: std::fs::File,
 }
 
 impl StateDir {
-    fn open(dir: &Path) -> Result<Self, ServeError> {
+    fn open(dir: &Path, shared: bool) -> Result<Self, ServeError> {
         use std::io::{Seek, Write};
         let err = |message: String| ServeError::StateDir {
             dir: dir.into(),
@@ -140,6 +167,19 @@ impl StateDir {
             .truncate(false)
             .open(&path)
             .map_err(|e| err(format!("{}: {e}", path.display())))?;
+        if shared {
+            return match lock.try_lock_shared() {
+                Ok(()) => Ok(Self { _lock: lock }),
+                Err(std::fs::TryLockError::WouldBlock) => Err(err(format!(
+                    "in use by {}, a factord outside the fleet (it holds the lock on {})",
+                    lock_holder(&lock).map_or("another process".into(), |p| format!("process {p}")),
+                    path.display()
+                ))),
+                Err(std::fs::TryLockError::Error(e)) => {
+                    Err(err(format!("cannot lock {}: {e}", path.display())))
+                }
+            };
+        }
         match lock.try_lock() {
             Ok(()) => {}
             Err(std::fs::TryLockError::WouldBlock) => {
@@ -148,7 +188,8 @@ impl StateDir {
                     None => "another process".to_string(),
                 };
                 return Err(err(format!(
-                    "in use by {holder}, another factord serving it (it holds the lock on {})",
+                    "in use by {holder}, another factord serving it, or a fleet (it holds the \
+                     lock on {})",
                     path.display()
                 )));
             }
@@ -195,14 +236,27 @@ pub async fn run(
     config: ServeConfig,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
-    let state = StateDir::open(&config.state_dir)?;
+    let instance = fleet::instance_id(&config)?;
+    let state = StateDir::open(&config.state_dir, instance.is_some())?;
     // Every connection is a file: use all the process may have, and cap connections below it.
     let file_limit = http_listener::raise_file_limit();
     let connection_cap = http_listener::connection_cap(&config.http, file_limit);
+    let listener = tokio::net::TcpListener::bind(&config.listen)
+        .await
+        .map_err(|source| ServeError::Listen {
+            addr: config.listen.clone(),
+            source,
+        })?;
+    let http_addr: SocketAddr = listener.local_addr().map_err(ServeError::Http)?;
     let service = Service::with_journal(
         config.limits.clone(),
         Some((config.state_dir.clone(), config.journal.clone())),
     );
+    if let Some(instance) = &instance {
+        let http = fleet::advertised_http(&config.fleet, &http_addr)?;
+        service.join_fleet(instance, &http);
+        tracing::info!("fleet instance `{instance}`, reached at {http}");
+    }
     let recovering = service
         .recover_sessions()
         .map_err(|e| ServeError::StateDir {
@@ -215,13 +269,6 @@ pub async fn run(
             config.state_dir.display()
         );
     }
-    let listener = tokio::net::TcpListener::bind(&config.listen)
-        .await
-        .map_err(|source| ServeError::Listen {
-            addr: config.listen.clone(),
-            source,
-        })?;
-    let http_addr: SocketAddr = listener.local_addr().map_err(ServeError::Http)?;
     let tokens = tokens_for(&config.auth, &http_addr)?;
     let zenoh = if config.zenoh_enabled {
         let policy = zenoh::ZenohPolicy {
@@ -241,8 +288,13 @@ pub async fn run(
             Vec::new()
         },
         zenoh_prefix: config.zenoh.prefix.clone(),
+        instance: instance.clone(),
     };
-    let info_path = config.state_dir.join("server.json");
+    // Per instance in a fleet, which shares the directory.
+    let info_path = config.state_dir.join(match &instance {
+        Some(id) => format!("server-{id}.json"),
+        None => "server.json".into(),
+    });
     std::fs::write(
         &info_path,
         serde_json::to_string_pretty(&info).expect("serialisable"),

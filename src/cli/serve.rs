@@ -62,6 +62,17 @@ pub struct ServeArgs {
     /// Largest request body in bytes [default: 268435456]
     #[arg(long, env = "FACTORD_MAX_BODY_BYTES")]
     max_body_bytes: Option<usize>,
+    /// Join a fleet: several instances on one shared state directory, joined by zenoh, form
+    /// one service (needs zenoh and the journal; see README, "Fleet").
+    #[arg(long, env = "FACTORD_FLEET")]
+    fleet: bool,
+    /// This instance's id in the fleet, unique, [A-Za-z0-9._-] [default: <hostname>-<pid>]
+    #[arg(long, env = "FACTORD_INSTANCE_ID")]
+    instance_id: Option<String>,
+    /// The URL the other fleet instances reach this one's HTTP at, http://host:port
+    /// [default: http://<listen address>; required when listening on 0.0.0.0]
+    #[arg(long, env = "FACTORD_ADVERTISE_HTTP")]
+    advertise_http: Option<String>,
     /// Log filter: a level (error | warn | info | debug | trace | off) or RUST_LOG-style
     /// directives, e.g. factord=debug,zenoh=warn [default: info]
     #[arg(long, env = "FACTORD_LOG", default_value = "info", value_parser = parse_log_filter)]
@@ -144,5 +155,14 @@ fn overlay(args: ServeArgs, config: &mut ServeConfig) {
     }
     if let Some(v) = args.tokens_file {
         config.auth.tokens_file = Some(v);
+    }
+    if args.fleet {
+        config.fleet.enabled = true;
+    }
+    if let Some(v) = args.instance_id {
+        config.fleet.instance = Some(v);
+    }
+    if let Some(v) = args.advertise_http {
+        config.fleet.advertise_http = Some(v);
     }
 }

@@ -1,6 +1,7 @@
 //! Shared test support: where the benchmark data lives, and synthetic fixtures made by code.
 #![allow(dead_code)]
 
+pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;
 pub mod server;

@@ -15,6 +15,7 @@
 pub mod auth;
 mod connection_io;
 mod errors;
+pub mod forward;
 pub mod guard;
 mod handlers;
 pub mod listener;
@@ -76,8 +77,13 @@ pub fn router(
     let routes = routes
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
-        .layer(DefaultBodyLimit::max(max_body_bytes))
-        .layer(axum::middleware::from_fn_with_state(guard, guard::guard));
+        .layer(DefaultBodyLimit::max(max_body_bytes));
+    // In a fleet, requests for other instances' sessions go there (after the checks below).
+    let routes = match forward::Forwarder::for_fleet(&service, max_body_bytes) {
+        Some(f) => routes.layer(axum::middleware::from_fn_with_state(f, forward::forward)),
+        None => routes,
+    };
+    let routes = routes.layer(axum::middleware::from_fn_with_state(guard, guard::guard));
     // Every request carries its `Caller` from here on; a handler without one fails closed.
     let routes = match tokens {
         Some(tokens) => routes.layer(axum::middleware::from_fn_with_state(

@@ -11,6 +11,11 @@
 //!   go to `out/acks`, rejections to `out/errors`.
 //! - `<p>/<session>/in/optimize` — subscriber: solve now.
 //! - `<p>/<session>/out/{acks,stats,poses,summary,errors}` — publications of the session events.
+//!
+//! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: each
+//! instance declares `<p>/rpc` (complete, so a query reaches one instance, which forwards it
+//! to the session's owner), and the owner of a session alone declares its `in/*`, `estimate`
+//! and `rpc` keys and publishes its `out/*`; membership lives under `<p>/@fleet/`.
 
 use std::sync::Arc;
 
@@ -18,9 +23,11 @@ use zenoh::query::Query;
 
 use crate::api::wire::{EstimateQuery, SessionEvent};
 use crate::api::ErrorKind;
-use crate::service::{parse_query, Command, Service, ServiceError};
+use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 
 mod config;
+mod fleet;
+mod fleet_routes;
 mod forward;
 
 use config::{caller, config, zenoh_error};
@@ -60,12 +67,25 @@ pub struct ZenohPolicy {
 }
 
 /// The size refusal of a payload beyond the limit, before it is copied or decoded.
-fn oversized(payload: Option<&zenoh::bytes::ZBytes>, limit: usize) -> Option<ServiceError> {
+pub(super) fn oversized(
+    payload: Option<&zenoh::bytes::ZBytes>,
+    limit: usize,
+) -> Option<ServiceError> {
     let len = payload.map_or(0, |p| p.len());
     (len > limit).then(|| {
         let message = format!("the payload has {len} bytes; the limit is {limit} (max_body_bytes)");
         ServiceError::new(ErrorKind::TooLarge, "body_too_large", message).at("payload")
     })
+}
+
+/// What every handler needs: the service, who zenoh peers are, the prefix, the size limit.
+#[derive(Clone)]
+pub(super) struct Context {
+    pub(super) service: Arc<Service>,
+    pub(super) caller: Arc<Caller>,
+    pub(super) prefix: String,
+    pub(super) max_payload: usize,
+    pub(super) zenoh: zenoh::Session,
 }
 
 pub async fn start(
@@ -76,90 +96,65 @@ pub async fn start(
     let prefix = prefix(cfg);
     let config = config(cfg)?;
     let caller = Arc::new(caller(&config, cfg, policy.tokens_required)?);
-    let max_payload = policy.max_payload_bytes;
     let session = zenoh::open(config).await.map_err(zenoh_error)?;
+    let ctx = Context {
+        service: Arc::clone(&service),
+        caller: Arc::clone(&caller),
+        prefix: prefix.clone(),
+        max_payload: policy.max_payload_bytes,
+        zenoh: session.clone(),
+    };
+    let fleet = service.fleet().cloned();
     let mut tasks = Vec::new();
 
+    // In a fleet every instance declares it, complete: a query reaches one of them, which
+    // answers or forwards to the session's owner (`fleet_routes`).
     let rpc = session
         .declare_queryable(format!("{prefix}/rpc"))
+        .complete(fleet.is_some())
         .await
         .map_err(zenoh_error)?;
-    let svc = Arc::clone(&service);
-    let who = Arc::clone(&caller);
+    let c = ctx.clone();
+    let routed = fleet.is_some();
     tasks.push(tokio::spawn(async move {
         while let Ok(query) = rpc.recv_async().await {
-            let (svc, who) = (Arc::clone(&svc), Arc::clone(&who));
+            let c = c.clone();
             // Commands with `wait` may take a while: never block the queryable.
             tokio::spawn(async move {
-                let max_items = svc.limits().max_batch_items;
-                let result = match oversized(query.payload(), max_payload) {
-                    Some(refusal) => Err(refusal),
-                    None => match crate::service::parse_command(&payload(&query), max_items) {
-                        Ok(command) => svc.execute_as(&who, command).await,
-                        Err(e) => Err(e),
-                    },
-                };
-                reply(&query, result.map(|r| serde_json::to_vec(&r))).await;
+                match routed {
+                    true => fleet_routes::route_rpc(&c, &query, fleet_routes::Forward::Yes).await,
+                    false => answer_rpc(&c, &query).await,
+                }
             });
         }
     }));
 
-    let estimates = session
-        .declare_queryable(format!("{prefix}/*/estimate"))
-        .await
-        .map_err(zenoh_error)?;
-    let svc = Arc::clone(&service);
-    let who = Arc::clone(&caller);
-    tasks.push(tokio::spawn(async move {
-        while let Ok(query) = estimates.recv_async().await {
-            let result = estimate_command(&query).map(|c| async { svc.execute_as(&who, c).await });
-            let result = match result {
-                Ok(fut) => fut.await,
-                Err(e) => Err(e),
-            };
-            reply(&query, result.map(|r| serde_json::to_vec(&r))).await;
-        }
-    }));
-
-    let inputs = session
-        .declare_subscriber(format!("{prefix}/*/in/*"))
-        .await
-        .map_err(zenoh_error)?;
-    let svc = Arc::clone(&service);
-    let who = Arc::clone(&caller);
-    let publisher = session.clone();
-    let in_prefix = prefix.clone();
-    tasks.push(tokio::spawn(async move {
-        while let Ok(sample) = inputs.recv_async().await {
-            let key = sample.key_expr().as_str().to_string();
-            let mut parts = key[in_prefix.len() + 1..].split('/');
-            let (Some(name), Some("in"), Some(what)) = (parts.next(), parts.next(), parts.next())
-            else {
-                continue;
-            };
-            // Puts have no reply: rejections go to the session's stream (SSE and `out/errors`),
-            // or straight to `out/errors` when there is no such session or the put is too
-            // large to read (that refusal tells the sender nothing of the session).
-            let outcome = match oversized(Some(sample.payload()), max_payload) {
-                Some(refusal) => Err(refusal),
-                None => {
-                    let bytes = sample.payload().to_bytes();
-                    svc.deliver(&who, name, what, &bytes).await
+    match fleet {
+        // Sessions' keys are declared by their owner only, as it loads them.
+        Some(fleet) => tasks.extend(fleet::start(&ctx, fleet).await?),
+        None => {
+            let estimates = session
+                .declare_queryable(format!("{prefix}/*/estimate"))
+                .await
+                .map_err(zenoh_error)?;
+            let c = ctx.clone();
+            tasks.push(tokio::spawn(async move {
+                while let Ok(query) = estimates.recv_async().await {
+                    answer_estimate(&c, &query).await;
                 }
-            };
-            if let Err(error) = outcome {
-                let event = SessionEvent::Error {
-                    session: name.into(),
-                    sequence: None,
-                    error: error.body,
-                };
-                let body = serde_json::to_vec(&event).expect("events serialise");
-                let _ = publisher
-                    .put(format!("{in_prefix}/{name}/out/errors"), body)
-                    .await;
-            }
+            }));
+            let inputs = session
+                .declare_subscriber(format!("{prefix}/*/in/*"))
+                .await
+                .map_err(zenoh_error)?;
+            let c = ctx.clone();
+            tasks.push(tokio::spawn(async move {
+                while let Ok(sample) = inputs.recv_async().await {
+                    take_input(&c, &sample).await;
+                }
+            }));
         }
-    }));
+    }
 
     // Forward every session's events, for the sessions that exist and those created later
     // (subscribed before the creation is acknowledged, so no event is missed); only those
@@ -177,7 +172,67 @@ pub async fn start(
     Ok(ZenohAdapter { session, tasks })
 }
 
-fn payload(query: &Query) -> Vec<u8> {
+/// `<p>/rpc` outside a fleet: any command, run here.
+pub(super) async fn answer_rpc(c: &Context, query: &Query) {
+    let max_items = c.service.limits().max_batch_items;
+    let result = match oversized(query.payload(), c.max_payload) {
+        Some(refusal) => Err(refusal),
+        None => match crate::service::parse_command(&payload(query), max_items) {
+            Ok(command) => c.service.execute_as(&c.caller, command).await,
+            Err(e) => Err(e),
+        },
+    };
+    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+}
+
+/// `<p>/<session>/estimate`.
+pub(super) async fn answer_estimate(c: &Context, query: &Query) {
+    let result = match estimate_command(query) {
+        Ok(command) => c.service.execute_as(&c.caller, command).await,
+        Err(e) => Err(e),
+    };
+    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+}
+
+/// A put on `<p>/<session>/in/<what>`.
+pub(super) async fn take_input(c: &Context, sample: &zenoh::sample::Sample) {
+    // At full rate the input loops' receive is always ready: without this they never yield,
+    // and the tasks their batches wake (the event publishers, in the worker's LIFO slot, which
+    // no other worker steals) would wait until the stream pauses and then find their events
+    // overwritten.
+    tokio::task::consume_budget().await;
+    let key = sample.key_expr().as_str();
+    let mut parts = key[c.prefix.len() + 1..].split('/');
+    let (Some(name), Some("in"), Some(what)) = (parts.next(), parts.next(), parts.next()) else {
+        return;
+    };
+    // Puts have no reply: rejections go to the session's stream (SSE and `out/errors`),
+    // or straight to `out/errors` when there is no such session or the put is too
+    // large to read (that refusal tells the sender nothing of the session).
+    let outcome = match oversized(Some(sample.payload()), c.max_payload) {
+        Some(refusal) => Err(refusal),
+        None => {
+            let bytes = sample.payload().to_bytes();
+            c.service.deliver(&c.caller, name, what, &bytes).await
+        }
+    };
+    if let Err(error) = outcome {
+        let event = SessionEvent::Error {
+            session: name.into(),
+            sequence: None,
+            error: error.body,
+            producer: None,
+            producer_seq: None,
+        };
+        let body = serde_json::to_vec(&event).expect("events serialise");
+        let _ = c
+            .zenoh
+            .put(format!("{}/{name}/out/errors", c.prefix), body)
+            .await;
+    }
+}
+
+pub(super) fn payload(query: &Query) -> Vec<u8> {
     query
         .payload()
         .map(|p| p.to_bytes().to_vec())
@@ -189,16 +244,14 @@ fn estimate_command(query: &Query) -> Result<Command, ServiceError> {
     let name = key.rsplit('/').nth(1).ok_or_else(|| {
         ServiceError::bad_request("invalid_key", "key", "expected <prefix>/<session>/estimate")
     })?;
-    let EstimateQuery { since, from, to } = parse_query(query.parameters().as_str())?;
-    Ok(Command::GetEstimate {
-        session: name.into(),
-        since,
-        from,
-        to,
-    })
+    let estimate: EstimateQuery = parse_query(query.parameters().as_str())?;
+    Ok(Command::get_estimate(name.into(), estimate))
 }
 
-async fn reply(query: &Query, result: Result<serde_json::Result<Vec<u8>>, ServiceError>) {
+pub(super) async fn reply(
+    query: &Query,
+    result: Result<serde_json::Result<Vec<u8>>, ServiceError>,
+) {
     let outcome = match result {
         Ok(Ok(body)) => query.reply(query.key_expr().clone(), body).await,
         Ok(Err(e)) => {

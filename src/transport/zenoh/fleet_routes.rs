@@ -1,0 +1,210 @@
+//! Routing a fleet's commands over zenoh.
+//!
+//! - `<p>/rpc` (every instance, complete: a query reaches one of them) and `<p>/<s>/rpc` (the
+//!   owner of `s`): a command without a session is answered here (`health`: this instance;
+//!   `list_sessions`: every instance's, merged from their `info`); `create_session` without a
+//!   name is named first (`Fleet::generate_name`); a command naming a session runs here when
+//!   this instance owns it, and is otherwise forwarded to `<p>/@fleet/<owner>/rpc`, whose answer
+//!   (or error) is relayed as is. A session moving between instances answers 503
+//!   `session_moving` with Retry-After 1: the client retries.
+//! - The owner declares `<p>/<s>/in/*`, `<p>/<s>/estimate` and `<p>/<s>/rpc` when it loads
+//!   session `s` and withdraws them when it releases or deletes it, so zenoh routes a robot's
+//!   puts and queries to the owner alone.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use zenoh::query::Query;
+
+use super::config::zenoh_error;
+use super::{answer_estimate, oversized, payload, reply, take_input, Context};
+use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
+use crate::service::ServiceError;
+
+/// Whether a command for a session another instance owns is forwarded there (queries from
+/// clients) or refused as moving (queries another instance forwarded: never twice).
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum Forward {
+    Yes,
+    No,
+}
+
+/// Answers an rpc query as the fleet: see the module's documentation.
+pub(super) async fn route_rpc(c: &Context, query: &Query, forward: Forward) {
+    if let Some(refusal) = oversized(query.payload(), c.max_payload) {
+        return reply(query, Err(refusal)).await;
+    }
+    let mut bytes = payload(query);
+    // Undecodable: the command's own parser says why, here.
+    let Ok(mut command) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
+        return super::answer_rpc(c, query).await;
+    };
+    let fleet = c.service.fleet().cloned();
+    let Some(fleet) = fleet else {
+        return super::answer_rpc(c, query).await;
+    };
+    match command.get("op").and_then(|op| op.as_str()) {
+        Some("list_sessions") => return list_sessions(c, query).await,
+        Some("create_session") if command.get("session").is_none_or(|s| s.is_null()) => {
+            let f = Arc::clone(&fleet);
+            let name = tokio::task::spawn_blocking(move || f.generate_name()).await;
+            match name {
+                Ok(Ok(name)) => {
+                    command["session"] = serde_json::Value::String(name);
+                    bytes = serde_json::to_vec(&command).expect("JSON serialises");
+                }
+                Ok(Err(e)) => return reply(query, Err(e)).await,
+                Err(e) => return reply(query, Err(ServiceError::internal(e.to_string()))).await,
+            }
+        }
+        _ => {}
+    }
+    let Some(session) = command.get("session").and_then(|s| s.as_str()) else {
+        return run_here(c, query, &bytes).await;
+    };
+    match c.service.route(session) {
+        Route::Local => run_here(c, query, &bytes).await,
+        Route::Moving => reply(query, Err(moving(session))).await,
+        Route::Remote { .. } if forward == Forward::No => reply(query, Err(moving(session))).await,
+        Route::Remote { instance, .. } => relay(c, query, &instance, session, bytes).await,
+    }
+}
+
+async fn run_here(c: &Context, query: &Query, bytes: &[u8]) {
+    let max_items = c.service.limits().max_batch_items;
+    let result = match crate::service::parse_command(bytes, max_items) {
+        Ok(command) => c.service.execute_as(&c.caller, command).await,
+        Err(e) => Err(e),
+    };
+    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+}
+
+/// Forwards the command to `instance` and relays its answer; none in time is a move.
+async fn relay(c: &Context, query: &Query, instance: &str, session: &str, bytes: Vec<u8>) {
+    // A command may wait for a solve (`wait`) or for a producer's batches (`after`).
+    let timeout =
+        Duration::from_millis(c.service.limits().wait_timeout_ms) + Duration::from_secs(65);
+    let get = c
+        .zenoh
+        .get(format!("{}/@fleet/{instance}/rpc", c.prefix))
+        .payload(bytes)
+        .timeout(timeout)
+        .await;
+    let answer = match get {
+        Ok(replies) => replies.recv_async().await.ok(),
+        Err(e) => {
+            tracing::warn!(instance, "fleet: forwarding an rpc failed: {e}");
+            None
+        }
+    };
+    let outcome = match answer.as_ref().map(|r| r.result()) {
+        Some(Ok(sample)) => {
+            query
+                .reply(query.key_expr().clone(), sample.payload().clone())
+                .await
+        }
+        Some(Err(error)) => query.reply_err(error.payload().clone()).await,
+        None => return reply(query, Err(moving(session))).await,
+    };
+    if let Err(e) = outcome {
+        tracing::warn!("zenoh reply failed: {e}");
+    }
+}
+
+/// Every instance's sessions, as zenoh peers may see them.
+async fn list_sessions(c: &Context, query: &Query) {
+    let infos = super::fleet::infos(c, "*").await;
+    let mut lists: Vec<_> = infos.into_iter().map(|i| i.sessions).collect();
+    // This instance's own, even if its info query did not come back.
+    if let Some(own) = c.service.fleet_info(&c.caller) {
+        lists.push(own.sessions);
+    }
+    let body = serde_json::json!({ "sessions": merge_session_lists(lists) });
+    reply(query, Ok(serde_json::to_vec(&body))).await;
+}
+
+/// Keeps the keys of the sessions loaded here declared, and only those.
+pub(super) fn start(c: &Context, fleet: Arc<Fleet>) -> tokio::task::JoinHandle<()> {
+    let c = c.clone();
+    tokio::spawn(async move {
+        let mut loaded = fleet.loaded();
+        let mut declared: HashMap<String, SessionKeys> = HashMap::new();
+        loop {
+            let now = loaded.borrow_and_update().clone();
+            declared.retain(|name, _| now.contains(name));
+            for name in now {
+                if !declared.contains_key(&name) {
+                    match SessionKeys::declare(&c, &name).await {
+                        Ok(keys) => {
+                            declared.insert(name, keys);
+                        }
+                        Err(e) => tracing::error!(session = name, "fleet: declaring its keys: {e}"),
+                    }
+                }
+            }
+            if loaded.changed().await.is_err() {
+                return;
+            }
+        }
+    })
+}
+
+/// The tasks serving one session's keys; dropping it aborts them, which drops (undeclares)
+/// their subscriber and queryables.
+struct SessionKeys {
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+}
+
+impl Drop for SessionKeys {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+    }
+}
+
+impl SessionKeys {
+    async fn declare(c: &Context, name: &str) -> Result<Self, super::ZenohError> {
+        let p = &c.prefix;
+        let inputs = c
+            .zenoh
+            .declare_subscriber(format!("{p}/{name}/in/*"))
+            .await
+            .map_err(zenoh_error)?;
+        let estimate = c
+            .zenoh
+            .declare_queryable(format!("{p}/{name}/estimate"))
+            .complete(true)
+            .await
+            .map_err(zenoh_error)?;
+        let rpc = c
+            .zenoh
+            .declare_queryable(format!("{p}/{name}/rpc"))
+            .complete(true)
+            .await
+            .map_err(zenoh_error)?;
+        let mut tasks = Vec::new();
+        let ctx = c.clone();
+        // One task: a session's puts are taken in the order they came.
+        tasks.push(tokio::spawn(async move {
+            while let Ok(sample) = inputs.recv_async().await {
+                take_input(&ctx, &sample).await;
+            }
+        }));
+        let ctx = c.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(query) = estimate.recv_async().await {
+                answer_estimate(&ctx, &query).await;
+            }
+        }));
+        let ctx = c.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(query) = rpc.recv_async().await {
+                let ctx = ctx.clone();
+                tokio::spawn(async move { route_rpc(&ctx, &query, Forward::Yes).await });
+            }
+        }));
+        Ok(Self { tasks })
+    }
+}

@@ -1,0 +1,221 @@
+//! A fleet of real `factord serve --fleet` processes on loopback: distinct HTTP and zenoh
+//! ports, one shared state directory, each instance connected over zenoh to those started
+//! before it (zenoh's gossip completes the mesh). Instances can be killed (-9) and restarted.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+use super::server::free_port;
+
+pub struct Instance {
+    pub id: String,
+    pub http: String,
+    pub zenoh: String,
+    pub pid: u32,
+    stderr_path: PathBuf,
+    child: Child,
+}
+
+impl Instance {
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.http, path)
+    }
+
+    pub fn stderr(&self) -> String {
+        std::fs::read_to_string(&self.stderr_path).unwrap_or_default()
+    }
+}
+
+impl Drop for Instance {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub struct Fleet {
+    pub state_dir: PathBuf,
+    /// By index; `None` while killed.
+    pub instances: Vec<Option<Instance>>,
+    ids: Vec<String>,
+    zenoh: Vec<String>,
+    extra: Vec<String>,
+}
+
+impl Fleet {
+    /// `n` instances `f1`..`fn` on a fresh state directory, started one after the other, plus
+    /// `extra` flags for each.
+    pub fn start(n: usize, extra: &[&str]) -> Self {
+        let state_dir = super::temp_dir("fleet-state");
+        let mut fleet = Self {
+            state_dir,
+            instances: (0..n).map(|_| None).collect(),
+            ids: (1..=n).map(|i| format!("f{i}")).collect(),
+            zenoh: (0..n)
+                .map(|_| format!("tcp/127.0.0.1:{}", free_port()))
+                .collect(),
+            extra: extra.iter().map(|s| s.to_string()).collect(),
+        };
+        for i in 0..n {
+            fleet.start_instance(i);
+        }
+        fleet
+    }
+
+    /// Starts (or restarts) instance `i`, connected to every running instance.
+    pub fn start_instance(&mut self, i: usize) {
+        let id = self.ids[i].clone();
+        let info = self.state_dir.join(format!("server-{id}.json"));
+        let _ = std::fs::remove_file(&info);
+        let stderr_path = self.state_dir.with_extension(format!("{id}.stderr"));
+        let stderr = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&stderr_path)
+            .expect("stderr file");
+        let connect: Vec<String> = (0..self.ids.len())
+            .filter(|&j| j != i && self.instances[j].is_some())
+            .map(|j| self.zenoh[j].clone())
+            .collect();
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
+        cmd.arg("serve")
+            .args(["--fleet", "--instance-id", &id])
+            .args(["--listen", "127.0.0.1:0"])
+            .args(["--zenoh-listen", &self.zenoh[i]])
+            .args(["--zenoh-multicast", "off"])
+            .arg("--state-dir")
+            .arg(&self.state_dir)
+            .args(&self.extra)
+            .stdout(Stdio::null())
+            .stderr(stderr);
+        if !connect.is_empty() {
+            cmd.args(["--zenoh-connect", &connect.join(",")]);
+        }
+        let child = cmd.spawn().expect("factord starts");
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let http = loop {
+            if let Ok(text) = std::fs::read_to_string(&info) {
+                if let Ok(v) = serde_json::from_str::<Value>(&text) {
+                    break format!("http://{}", v["http"].as_str().expect("http address"));
+                }
+            }
+            assert!(
+                Instant::now() < deadline,
+                "instance {id} did not start: {}",
+                read(&stderr_path)
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        self.instances[i] = Some(Instance {
+            id,
+            http,
+            zenoh: self.zenoh[i].clone(),
+            pid: child.id(),
+            stderr_path,
+            child,
+        });
+    }
+
+    pub fn instance(&self, i: usize) -> &Instance {
+        self.instances[i].as_ref().expect("instance running")
+    }
+
+    /// SIGKILL instance `i`; returns its log.
+    pub fn kill(&mut self, i: usize) -> String {
+        let mut instance = self.instances[i].take().expect("instance running");
+        let _ = instance.child.kill();
+        let _ = instance.child.wait();
+        instance.stderr()
+    }
+
+    /// The indices of the running instances.
+    pub fn running(&self) -> Vec<usize> {
+        (0..self.ids.len())
+            .filter(|&i| self.instances[i].is_some())
+            .collect()
+    }
+
+    pub fn id(&self, i: usize) -> &str {
+        &self.ids[i]
+    }
+
+    /// The index of the instance that owns `session` among the running ones.
+    pub fn owner(&self, session: &str) -> usize {
+        let running = self.running();
+        let owner = factord::service::placement::owner(
+            session,
+            running.iter().map(|&i| self.ids[i].as_str()),
+        )
+        .expect("an instance is running");
+        self.ids.iter().position(|id| id == owner).unwrap()
+    }
+
+    /// Waits until every running instance has settled and knows every other one's URL.
+    pub async fn wait_settled(&self, z: &zenoh::Session) {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let expected: Vec<&str> = self
+            .running()
+            .iter()
+            .map(|&i| self.ids[i].as_str())
+            .collect();
+        loop {
+            let infos = infos(z).await;
+            let ready = expected.iter().all(|id| {
+                infos.iter().any(|info| {
+                    info["instance"] == *id
+                        && info["settled"] == true
+                        && expected
+                            .iter()
+                            .all(|other| info["live"][*other].is_string())
+                        && info["live"]
+                            .as_object()
+                            .is_some_and(|l| l.len() == expected.len())
+                })
+            });
+            if ready {
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "the fleet did not settle: {infos:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Every running instance's log, for failure messages.
+    pub fn logs(&self) -> String {
+        self.running()
+            .iter()
+            .map(|&i| format!("--- {} ---\n{}", self.ids[i], self.instance(i).stderr()))
+            .collect()
+    }
+}
+
+/// Every instance's `info` (zenoh `factord/@fleet/*/info`).
+pub async fn infos(z: &zenoh::Session) -> Vec<Value> {
+    let replies = z
+        .get("factord/@fleet/*/info")
+        .target(zenoh::query::QueryTarget::All)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_secs(2))
+        .await
+        .expect("query sent");
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            if let Ok(v) = serde_json::from_slice(&sample.payload().to_bytes()) {
+                out.push(v);
+            }
+        }
+    }
+    out
+}
+
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_default()
+}
