@@ -268,6 +268,30 @@ def main() -> int:
 
     check("kill -9 x3 while streaming over zenoh: exactly once", zenoh_kills)
 
+    # ----------------------------------------------------------------- acks lost
+    def acks_lost():
+        session = "deaf"
+        part = batches[:800]
+        http.create_session(graph.session_kind, session=session)
+        with zenoh.producer(session, "robot-d", resend_after=0.5) as p:
+            for i, b in enumerate(part):
+                if i == 300:
+                    # From here on this producer hears no acknowledgement at all: only the
+                    # service's producer_status can tell it what was applied.
+                    p._subscribers[0].undeclare()
+                p.send(b)
+            p.flush(60)
+            c = dict(p.counters)
+        got = server_counts(session)
+        want = (len(part), sum(len(b["factors"]) for b in part))
+        expect(got == want, f"server {got}, sent {want}")
+        expect(c["acked"] == len(part) and c["status_queries"] > 0, str(c))
+        return (f"acks stopped after 300 of {len(part)}: all acknowledged through "
+                f"{c['status_queries']} producer_status queries, {c['resent']} resent, "
+                f"{c['duplicates']} duplicate acks heard; server {got[1]} factors")
+
+    check("acknowledgements lost: flush completes from producer_status", acks_lost)
+
     # ----------------------------------------------------------------- kill -9 over HTTP
     def http_kills():
         session = "httpkilled"
@@ -421,7 +445,7 @@ def main() -> int:
         shutil.rmtree(root, ignore_errors=True)
     else:
         print(f"state kept in {root}")
-    print(f"\n{7 - len([f for f in failed if f != 'no panic'])} passed, {len(failed)} failed")
+    print(f"\n{8 - len([f for f in failed if f != 'no panic'])} passed, {len(failed)} failed")
     return 1 if failed else 0
 
 
