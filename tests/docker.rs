@@ -718,6 +718,33 @@ fn compose_services_start_as_processes_and_pass_their_health_checks() {
         assert_eq!(out.status.code(), Some(1), "{name}: {}", text(&out));
         assert!(text(&out).contains("token was refused"), "{}", text(&out));
     }
+    // They form one fleet through the router: a session created on one instance is served by
+    // every instance's HTTP (the owner's, or forwarded to it at its advertised address).
+    let token = std::fs::read_to_string(&tokens).unwrap();
+    let token = token
+        .lines()
+        .find(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .and_then(|l| l.split_whitespace().last())
+        .unwrap()
+        .to_string();
+    let urls: Vec<String> = http_ports
+        .iter()
+        .map(|p| format!("http://127.0.0.1:{p}"))
+        .collect();
+    runtime.block_on(async {
+        for (i, session) in ["compose-a", "compose-b", "compose-c"].iter().enumerate() {
+            let body = format!(r#"{{"session": "{session}", "kind": "pose_graph_2d"}}"#);
+            let (status, answer) =
+                authorised(&token, "POST", &format!("{}/v1/sessions", urls[i]), &body).await;
+            assert_eq!(status, 201, "{session}: {answer}\n{}", processes.logs());
+            for url in &urls {
+                let url = format!("{url}/v1/sessions/{session}");
+                let (status, answer) = authorised(&token, "GET", &url, "").await;
+                assert_eq!(status, 200, "{url}: {answer}\n{}", processes.logs());
+                assert_eq!(answer["session"], *session, "{answer}");
+            }
+        }
+    });
     for (name, status) in processes.stop() {
         assert!(
             status.is_some_and(|s| s.success()),
@@ -725,6 +752,37 @@ fn compose_services_start_as_processes_and_pass_their_health_checks() {
         );
     }
     runtime.block_on(async { router.close().await }).unwrap();
+}
+
+/// A request with the bearer token, repeated while the fleet answers 503 (a session being
+/// placed) for at most 20 s; the status and the JSON answer.
+async fn authorised(token: &str, method: &str, url: &str, body: &str) -> (u16, serde_json::Value) {
+    let client = reqwest::Client::builder()
+        .timeout(Duration::from_secs(20))
+        .build()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let mut request = client
+            .request(method.parse().unwrap(), url)
+            .bearer_auth(token);
+        if !body.is_empty() {
+            request = request
+                .header("content-type", "application/json")
+                .body(body.to_string());
+        }
+        let answer = request
+            .send()
+            .await
+            .unwrap_or_else(|e| panic!("{url}: {e}"));
+        let status = answer.status().as_u16();
+        let text = answer.text().await.unwrap_or_default();
+        if status != 503 || Instant::now() > deadline {
+            let value = serde_json::from_str(&text).unwrap_or(serde_json::Value::String(text));
+            return (status, value);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// Without tokens the image's entrypoint refuses to start (the restart loop compose used to
