@@ -1,9 +1,11 @@
 //! Shared test support: where the benchmark data lives, and synthetic fixtures made by code.
 #![allow(dead_code)]
 
+pub mod ack_proxy;
 pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;
+pub mod producer;
 pub mod server;
 
 use std::fmt::Write as _;
