@@ -387,3 +387,97 @@ pub fn merge_session_lists(
     }
     all.into_values().collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::api::wire::CreateSession;
+    use crate::journal::JournalConfig;
+    use crate::service::{Command, Limits};
+
+    fn instance(dir: &std::path::Path, id: &str) -> (Arc<Service>, Arc<Fleet>) {
+        let journal = Some((dir.to_path_buf(), JournalConfig::default()));
+        let service = Service::with_journal(Limits::default(), journal);
+        let fleet = service
+            .join_fleet(id, &format!("http://{id}:8080"))
+            .unwrap();
+        (service, fleet)
+    }
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn two_instances_agree_on_owners_names_and_locks() {
+        let dir = std::env::temp_dir().join(format!("factord-fleet-unit-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let (a, fa) = instance(&dir, "a");
+        let (b, fb) = instance(&dir, "b");
+        // Before the membership is known nothing is placed.
+        assert_eq!(a.route("robot"), Route::Moving);
+        fa.member_up(
+            "b",
+            Member {
+                http: Some("http://b:8080".into()),
+            },
+        );
+        fb.member_up(
+            "a",
+            Member {
+                http: Some("http://a:8080".into()),
+            },
+        );
+        fa.set_settled();
+        fb.set_settled();
+        let names: Vec<String> = (0..40).map(|i| format!("r{i}")).collect();
+        for name in &names {
+            let owner = placement::owner(name, ["a", "b"]).unwrap();
+            let (here, there) = if owner == "a" { (&a, &b) } else { (&b, &a) };
+            assert_eq!(here.route(name), Route::Local, "{name}");
+            assert_eq!(
+                there.route(name),
+                Route::Remote {
+                    instance: owner.into(),
+                    http: Some(format!("http://{owner}:8080"))
+                },
+                "{name}"
+            );
+        }
+        // The owner creates it and holds its lock; the other sees it exists, and does not load it.
+        let name = names
+            .iter()
+            .find(|n| placement::owner(n, ["a", "b"]) == Some("a"))
+            .unwrap();
+        let request = CreateSession {
+            session: Some(name.clone()),
+            kind: "pose_graph_2d".into(),
+            options: None,
+            auto_optimize: Default::default(),
+        };
+        a.execute(Command::CreateSession(request.clone()))
+            .await
+            .unwrap();
+        let session_dir = SessionDir::sessions_root(&dir).join(name);
+        assert!(matches!(
+            SessionLock::try_acquire(&session_dir),
+            Err(LockError::Held)
+        ));
+        let refused = b
+            .execute(Command::CreateSession(request))
+            .await
+            .unwrap_err();
+        assert_eq!(refused.body.code, "session_exists");
+        assert!(fa.loaded().borrow().contains(name));
+        // Generated names never collide, whichever instance draws them.
+        let mut drawn = HashSet::new();
+        for k in 0..20 {
+            let fleet = if k % 2 == 0 { &fa } else { &fb };
+            assert!(drawn.insert(fleet.generate_name().unwrap()));
+        }
+        // When a leaves, b owns everything; a session a still holds stays a's until released.
+        fb.member_down("a");
+        assert!(
+            matches!(b.route(name), Route::Moving),
+            "a holds its lock: b adopts it later"
+        );
+        drop((a, b));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
