@@ -190,6 +190,34 @@ class Schemas:
             if name != "common.schema.json":
                 r.check(f"schema {name} has an example", name in covered, "add examples/" + name.replace(".schema.json", ".example.json"))
 
+    def check_counter_examples(self) -> None:
+        for ref, instance, why in COUNTER_EXAMPLES:
+            self.report.check(f"{ref} refuses {why}", bool(self.errors(ref, instance)), f"{json.dumps(instance)[:200]} validates")
+
+
+# Instances each schema must refuse (so that a rule is not documented without being checked):
+# (reference, instance, why).
+_ACK = {"session": "s", "sequence": 2, "factor_ids": [0], "predicted": [], "reflected": False}
+COUNTER_EXAMPLES = [
+    ("batch.schema.json", {"producer": "robot-7"}, "producer without producer_seq"),
+    ("batch.schema.json", {"producer_seq": 1}, "producer_seq without producer"),
+    ("batch.schema.json", {"producer": "a/b", "producer_seq": 1}, "a producer id outside [A-Za-z0-9._-]"),
+    ("batch.schema.json", {"producer": "x" * 65, "producer_seq": 1}, "a producer id of 65 characters"),
+    ("batch.schema.json", {"producer": "robot-7", "producer_seq": 0}, "producer_seq 0"),
+    ("batch-ack.schema.json", dict(_ACK, producer="robot-7", producer_seq=2), "a producer's ack without accepted_through"),
+    ("batch-ack.schema.json", dict(_ACK, duplicate=False), "duplicate false (absent instead)"),
+    ("batch-ack.schema.json", dict(_ACK, duplicate=True), "a duplicate without its producer"),
+    ("event.schema.json", {"type": "lagged", "session": "s", "skipped": 3, "sequence": 9, "reflected_sequence": 9}, "lagged without producers"),
+    ("event.schema.json", {"type": "lagged", "missed": 3}, "the old SSE lagged body"),
+    ("event.schema.json", {"type": "error", "session": "s", "sequence": None, "error": {"code": "x", "message": "m", "status": 409},
+                           "producer_sequence": 3}, "an unknown error event field"),
+    ("command.schema.json", {"op": "optimize", "session": "s", "after_producer": "r", "after_seq": 1, "after_timeout_ms": 60001},
+     "after_timeout_ms beyond 60000"),
+    ("command.schema.json", {"op": "producer_status", "session": "s"}, "producer_status without producer"),
+    ("estimate-query.schema.json", {"after_seq": -1}, "a negative after_seq"),
+    ("producer-status.schema.json", {"session": "s", "producer": "p", "accepted_through": 1, "sequence": 1}, "without reflected_sequence"),
+]
+
 
 def values_of(node: Any, key: str):
     """Every string value of `key` anywhere in a JSON document."""
@@ -264,8 +292,9 @@ class Response:
 
 
 class Live:
-    def __init__(self, url: str, schemas: Schemas, report: Report, save: bool) -> None:
+    def __init__(self, url: str, schemas: Schemas, report: Report, save: bool, lag_batches: int = 0) -> None:
         self.url = url.rstrip("/")
+        self.lag_batches = lag_batches
         self.schemas = schemas
         self.report = report
         self.save = save
@@ -275,6 +304,7 @@ class Live:
         self.s2 = f"robot-2d{tag}"
         self.s3 = f"robot-3d{tag}"
         self.sx = f"diverging{tag}"
+        self.sp = f"producers{tag}"
         self.created: list[str] = []
 
     # -- plumbing ------------------------------------------------------------------------------
@@ -334,10 +364,12 @@ class Live:
 
     # -- SSE -----------------------------------------------------------------------------------
 
-    def open_events(self, session: str, want: set[str], timeout: float = 30.0):
+    def open_events(self, session: str, want: set[str], timeout: float = 30.0, until=None):
         """Subscribes to a session's SSE stream; returns (thread, events list, error list).
 
-        The subscription exists once this returns (the server subscribes before it answers)."""
+        Reads until every event name in `want` was seen, or, given `until` (a predicate over the
+        events list), until it holds. The subscription exists once this returns (the server
+        subscribes before it answers)."""
         events: list[tuple[str, str]] = []
         problems: list[str] = []
         req = urllib.request.Request(f"{self.url}/v1/sessions/{session}/events", headers={"Accept": "text/event-stream"})
@@ -350,7 +382,7 @@ class Live:
             name, data = None, []
             seen: set[str] = set()
             try:
-                while time.monotonic() < deadline and not want <= seen:
+                while time.monotonic() < deadline and not (until(events) if until else want <= seen):
                     line = resp.readline()
                     if not line:
                         break
@@ -387,10 +419,7 @@ class Live:
             except json.JSONDecodeError as e:
                 self.report.check(f"SSE {label} `{name}` data is JSON", False, f"{e}: {data[:200]}")
                 continue
-            if name == "lagged":
-                self.validate(f"SSE {label} `lagged`", "event.schema.json#/$defs/lagged", value)
-                continue
-            expected = topic_type.get(name)
+            expected = "lagged" if name == "lagged" else topic_type.get(name)
             if not self.report.check(f"SSE {label}: event name `{name}` is a known topic", expected is not None):
                 continue
             self.report.check(f"SSE {label} `{name}`: type is {expected}", isinstance(value, dict) and value.get("type") == expected,
@@ -525,6 +554,181 @@ class Live:
         variables = [{"key": i, "kind": "snavely_camera", "value": c} for i, c in enumerate(cameras)]
         variables += [{"key": 100 + j, "kind": "point3", "value": x} for j, x in enumerate(points)]
         return {"variables": variables, "factors": factors}
+
+    # -- exactly-once ingest and ordering ------------------------------------------------------
+
+    def producers(self) -> None:
+        """Numbered batches: acks with producer fields, a repeat answered with its original ack and
+        applied no second time, a gap refused, a refused batch not using up its number, the
+        producer's status, reads and solves `after` its batches, and the ack events of all that."""
+        r = self.report
+        sp, robot = self.sp, "robot-7"
+        base = f"/v1/sessions/{sp}"
+        self.call("producers", "POST", "/v1/sessions", 201, "session-info.schema.json", body={"session": sp, "kind": "pose_graph_2d"})
+        self.created.append(sp)
+
+        def acked(events: list) -> bool:  # the three acks and the repeat's
+            return sum(1 for n, _ in events if n == "acks") >= 4
+
+        thread, events, problems = self.open_events(sp, {"acks"}, timeout=20, until=acked)
+
+        def batch(seq: int, key: int, **extra) -> dict:
+            b = {"producer": robot, "producer_seq": seq, "variables": [{"key": key, "kind": "se2"}],
+                 "factors": [{"type": "between_se2", "keys": [key - 1, key], "measurement": [1.0, 0.0, 0.05], "sigmas": [0.1, 0.1, 0.05]}]}
+            b.update(extra)
+            return b
+
+        first = {"producer": robot, "producer_seq": 1, "variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0], "fixed": True}]}
+        ack1 = self.call("producer seq 1", "POST", f"{base}/batches", 200, "batch-ack.schema.json", body=first)
+        if ack1:
+            r.check("ack of a numbered batch: producer, producer_seq, accepted_through 1, no duplicate",
+                    (ack1.get("producer"), ack1.get("producer_seq"), ack1.get("accepted_through"), "duplicate" in ack1) == (robot, 1, 1, False),
+                    json.dumps(ack1))
+        b2 = batch(2, 1)
+        ack2 = self.call("producer seq 2", "POST", f"{base}/batches?wait=true", 200, "batch-ack.schema.json", body=b2,
+                         request_example="batch-producer", example="batch-ack-producer")
+        before = self.call("before a repeat", "GET", base, 200, "session-stats.schema.json")
+        again = self.call("repeat of seq 2", "POST", f"{base}/batches", 200, "batch-ack.schema.json", body=b2, example="batch-ack-duplicate")
+        after = self.call("after a repeat", "GET", base, 200, "session-stats.schema.json")
+        if ack2 and again:
+            same = {k: ack2[k] for k in ("session", "sequence", "factor_ids", "predicted", "producer", "producer_seq", "accepted_through")}
+            r.check("repeat: the original ack (sequence, factor_ids, predicted, producer fields) with duplicate true",
+                    again.get("duplicate") is True and {k: again.get(k) for k in same} == same, f"{json.dumps(again)} vs {json.dumps(ack2)}")
+        if before and after:
+            r.check("repeat: nothing applied (sequence, variables and factors unchanged)",
+                    [before[k] for k in ("sequence", "num_variables", "num_factors")] == [after[k] for k in ("sequence", "num_variables", "num_factors")],
+                    f"{[before[k] for k in ('sequence', 'num_variables', 'num_factors')]} -> {[after[k] for k in ('sequence', 'num_variables', 'num_factors')]}")
+        gap = self.call("gap", "POST", f"{base}/batches", 409, "error.schema.json", body=batch(4, 2), error_code="producer_sequence_gap",
+                        error_field="batch.producer_seq", example="error-producer-sequence-gap")
+        if gap:
+            r.check("gap: the message names the number expected (3)", "expects batch 3" in gap["error"]["message"], gap["error"]["message"])
+        self.call("refused seq 3", "POST", f"{base}/batches", 422, "error.schema.json", body=batch(3, 2, factors=[
+            {"type": "between_se2", "keys": [9, 2], "measurement": [1.0, 0.0, 0.05], "sigmas": [0.1, 0.1, 0.05]}]), error_code="unknown_variable")
+        ack3 = self.call("seq 3 after its refusal", "POST", f"{base}/batches", 200, "batch-ack.schema.json", body=batch(3, 2))
+        if ack3:
+            r.check("a refused batch does not use up its number: seq 3 accepted after a 422", ack3.get("accepted_through") == 3, json.dumps(ack3))
+        self.call("producer without seq", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": robot},
+                  error_code="missing_producer_seq", error_field="batch.producer_seq")
+        self.call("seq without producer", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer_seq": 4},
+                  error_code="missing_producer", error_field="batch.producer")
+        self.call("invalid producer", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": "a/b", "producer_seq": 1},
+                  error_code="invalid_producer", error_field="batch.producer")
+        self.call("seq 0", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": robot, "producer_seq": 0},
+                  error_code="invalid_producer_seq", error_field="batch.producer_seq")
+
+        status = self.call("", "GET", f"{base}/producers/{robot}", 200, "producer-status.schema.json", example="producer-status")
+        if status and ack3:
+            r.check("producer status: accepted_through 3 at the sequence of its last batch",
+                    (status["producer"], status["accepted_through"], status["sequence"]) == (robot, 3, ack3["sequence"]), json.dumps(status))
+        unknown = self.call("unknown producer", "GET", f"{base}/producers/nobody", 200, "producer-status.schema.json")
+        if unknown:
+            r.check("producer status of a producer never seen: zeros", (unknown["accepted_through"], unknown["sequence"]) == (0, 0), json.dumps(unknown))
+        self.call("unknown session", "GET", f"/v1/sessions/no-such-session/producers/{robot}", 404, "error.schema.json", error_code="unknown_session")
+
+        est = self.call("after", "GET", f"{base}/estimate?after_producer={robot}&after_seq=3", 200, "estimate.schema.json")
+        if est:
+            r.check("estimate after the producer's seq 3 holds its variables 0..2", [v["key"] for v in est["variables"]] == [0, 1, 2],
+                    f"{[v['key'] for v in est['variables']]}")
+        started = time.monotonic()
+        self.call("after, not reached", "GET", f"{base}/estimate?after_producer={robot}&after_seq=4&after_timeout_ms=300", 503,
+                  "error.schema.json", error_code="after_timeout", error_field="after_seq", example="error-after-timeout")
+        waited = time.monotonic() - started
+        r.check("after_timeout_ms=300 waits about that long", 0.25 <= waited < 5, f"{waited:.3f} s")
+        self.call("after_producer alone", "GET", f"{base}/estimate?after_producer={robot}", 400, "error.schema.json",
+                  error_code="missing_after_seq", error_field="after_seq")
+        self.call("after_seq alone", "POST", f"{base}/optimize?after_seq=1", 400, "error.schema.json",
+                  error_code="missing_after_producer", error_field="after_producer")
+        self.call("after_timeout_ms too long", "GET", f"{base}/estimate?after_producer={robot}&after_seq=1&after_timeout_ms=60001", 400,
+                  "error.schema.json", error_code="invalid_value", error_field="after_timeout_ms")
+        opt = self.call("after", "POST", f"{base}/optimize?wait=true&after_producer={robot}&after_seq=3", 200, "reply.schema.json#/$defs/optimizing")
+        if opt and ack3:
+            r.check("optimize after the producer's seq 3 includes it", opt["sequence"] >= ack3["sequence"], json.dumps(opt)[:200])
+
+        thread.join(25)
+        r.check("SSE reader ended cleanly (producers)", not problems, "; ".join(problems))
+        self.check_events("producers", events, {"acks"}, {})
+        acks = [json.loads(d) for n, d in events if n == "acks"]
+        got = [(a.get("producer_seq"), a.get("accepted_through"), a.get("duplicate", False)) for a in acks]
+        r.check("SSE acks: seq 1, 2, the repeat of 2 (duplicate), 3, each with accepted_through",
+                got[:4] == [(1, 1, False), (2, 2, False), (2, 2, True), (3, 3, False)], f"{got}")
+
+    def lag(self, batches: int) -> None:
+        """A subscriber that falls behind gets a `lagged` marker, not a silent gap: an SSE client
+        with a small receive buffer reads nothing while `batches` numbered one-pose batches are
+        posted (manual policy: ack + estimate each), so more events than the session buffers (4096)
+        and the sockets hold wait for it. Then its stream must carry the marker (with the producer's
+        cumulative accepted_through) followed by an estimate holding the last pose."""
+        import http.client
+        import socket
+
+        r = self.report
+        sl = self.sp + "-lag"
+        self.call("lag", "POST", "/v1/sessions", 201, "session-info.schema.json",
+                  body={"session": sl, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}})
+        self.created.append(sl)
+        url = urllib.parse.urlsplit(self.url)
+        slow = socket.socket()
+        slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        slow.connect((url.hostname, url.port or 80))
+        slow.sendall(f"GET /v1/sessions/{sl}/events HTTP/1.1\r\nHost: {url.netloc}\r\nAccept: text/event-stream\r\n\r\n".encode())
+        time.sleep(0.3)
+        conn = http.client.HTTPConnection(url.hostname, url.port or 80, timeout=60)
+        failed = None
+        started = time.monotonic()
+        for i in range(batches):
+            batch = {"producer": "robot-lag", "producer_seq": i + 1, "variables": [{"key": i, "kind": "se2", "value": [i, 0, 0], "fixed": i == 0}]}
+            if i:
+                batch["factors"] = [{"type": "between_se2", "keys": [i - 1, i], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]}]
+            conn.request("POST", f"/v1/sessions/{sl}/batches", body=json.dumps(batch), headers={"Content-Type": "application/json"})
+            resp = conn.getresponse()
+            resp.read()
+            if resp.status != 200:
+                failed = f"batch {i + 1}: status {resp.status}"
+                break
+        conn.close()
+        r.check(f"lag: {batches} numbered batches accepted ({time.monotonic() - started:.1f} s)", failed is None, failed or "")
+        slow.settimeout(3)
+        events, buf = [], b""
+        try:
+            while True:
+                data = slow.recv(1 << 20)
+                if not data:
+                    break
+                buf += data
+                *blocks, buf = buf.split(b"\n\n")
+                for block in blocks:
+                    lines = block.decode(errors="replace").split("\n")
+                    name = next((l[6:].strip() for l in lines if l.startswith("event:")), None)
+                    data_lines = [l[5:].lstrip(" ") for l in lines if l.startswith("data:")]
+                    if name and data_lines:
+                        events.append((name, "\n".join(data_lines)))
+                if any(n == "lagged" for n, _ in events) and len(events) > 2 and events[-1][0] == "poses":
+                    last = json.loads(events[-1][1])
+                    if any(v["key"] == batches - 1 for v in last.get("variables", [])):
+                        break
+        except (socket.timeout, OSError):
+            pass
+        finally:
+            slow.close()
+        names = [n for n, _ in events]
+        if not r.check("lag: the slow SSE client got a `lagged` event", "lagged" in names, f"{len(events)} events, names {sorted(set(names))}"):
+            return
+        at = names.index("lagged")
+        marker = json.loads(events[at][1])
+        self.validate("SSE lag `lagged`", "event.schema.json", marker, "event-lagged")
+        r.check("lag: the marker carries the producer's cumulative accepted_through and the session's sequence",
+                marker.get("producers", {}).get("robot-lag") == batches and marker.get("sequence") == batches and marker.get("skipped", 0) >= 1,
+                json.dumps(marker))
+        r.check("lag: an `estimate` (poses) re-synchronisation follows the marker", at + 1 < len(names) and names[at + 1] == "poses",
+                f"then {names[at + 1:at + 3]}")
+        latest = {}
+        for n, d in events[at + 1:]:
+            if n == "poses":
+                for v in json.loads(d)["variables"]:
+                    latest[v["key"]] = v["value"]
+        r.check("lag: the latest value of the last pose arrives after the marker", latest.get(batches - 1) == [float(batches - 1), 0.0, 0.0],
+                f"{latest.get(batches - 1)}")
+        self.check_events("lag", events[at:at + 3], {"lagged", "poses"}, {})
 
     # -- the scripted sequence -----------------------------------------------------------------
 
@@ -682,6 +886,11 @@ class Live:
                       body=policy, request_example=ex, example="reply-auto-optimize-set" if ex == "auto-optimize" else None)
         self.call("", "POST", f"/v1/sessions/{self.s2}/optimize", 202, "reply.schema.json#/$defs/optimizing", example="reply-optimizing")
         self.call("", "POST", f"/v1/sessions/{self.s2}/cancel", 200, "reply.schema.json#/$defs/cancelled", example="reply-cancelled")
+
+        # Exactly-once ingest and ordering, in a session of their own.
+        self.producers()
+        if self.lag_batches:
+            self.lag(self.lag_batches)
 
         # 3D, manual policy: wait answers solved=false, then optimize?wait=true solves.
         batch3 = {
@@ -879,12 +1088,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--server", metavar="URL", help="also drive this running server, e.g. http://127.0.0.1:8080")
     parser.add_argument("--save-examples", action="store_true", help="with --server: rewrite the examples it captures")
+    parser.add_argument("--lag", metavar="N", type=int, nargs="?", const=15000, default=0,
+                        help="with --server: also make a slow SSE client fall behind N numbered batches (default 15000, ~10 s) "
+                             "and check its `lagged` marker and re-synchronisation")
     args = parser.parse_args()
     report = Report()
     schemas = Schemas(report)
     schemas.check_all()
     if args.server:
-        live = Live(args.server, schemas, report, args.save_examples)
+        live = Live(args.server, schemas, report, args.save_examples, args.lag)
         try:
             live.run()
         except (urllib.error.URLError, OSError) as e:
@@ -892,6 +1104,7 @@ def main() -> int:
         if live.saved:
             print(f"saved {len(live.saved)} examples to {EXAMPLES}")
     schemas.check_examples()
+    schemas.check_counter_examples()
     check_openapi(schemas, report)
     return report.finish()
 

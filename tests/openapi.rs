@@ -4,7 +4,7 @@
 //! lacks. These tests keep the committed file equal to it, check on a real server that every
 //! documented operation is served (and no other method on its path), and that the generated
 //! schemas and the hand-written `proto/v1/*.schema.json` agree on property names and required
-//! fields.
+//! fields, also for each alternative of the tagged unions (every event `type`, every command `op`).
 
 mod common;
 
@@ -164,6 +164,7 @@ const SCHEMA_FILES: &[(&str, &str, &str)] = &[
     ),
     ("Batch", "batch.schema.json", ""),
     ("BatchAck", "batch-ack.schema.json", ""),
+    ("ProducerStatus", "producer-status.schema.json", ""),
     ("EstimateQuery", "estimate-query.schema.json", ""),
     ("Estimate", "estimate.schema.json", ""),
     ("Graph", "graph.schema.json", ""),
@@ -275,6 +276,124 @@ fn generated_schemas_agree_with_the_hand_written_ones() {
     assert!(
         mismatches.is_empty(),
         "schemas drifted:\n{}",
+        mismatches.join("\n")
+    );
+}
+
+/// The tagged unions, (component, tag property, file): each generated alternative, named by its
+/// tag's value, against the file's `$defs/<tag>` (the file's `oneOf` lists exactly those).
+const TAGGED: &[(&str, &str, &str)] = &[
+    ("SessionEvent", "type", "event.schema.json"),
+    ("Command", "op", "command.schema.json"),
+];
+
+/// The value of an alternative's tag property (`"enum": ["ack"]`), in it or its `allOf` parts.
+fn tag_of(schema: &Value, tag: &str) -> Option<String> {
+    if let Some(value) = schema.pointer(&format!("/properties/{tag}/enum/0")) {
+        return value.as_str().map(String::from);
+    }
+    if let Some(value) = schema.pointer(&format!("/properties/{tag}/const")) {
+        return value.as_str().map(String::from);
+    }
+    schema
+        .get("allOf")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .find_map(|part| tag_of(part, tag))
+}
+
+/// Property and required names of a hand-written schema in `file`: its own `properties` and
+/// `required`, those of its `$ref` (in this file or another one: `batch-ack.schema.json#/$defs/ack`)
+/// and of its `allOf` parts.
+fn hand_shape(schema: &Value, file: &str) -> (BTreeSet<String>, BTreeSet<String>) {
+    let (mut properties, mut required) = shape(
+        &serde_json::json!({
+            "properties": schema.get("properties").cloned().unwrap_or(Value::Null),
+            "required": schema.get("required").cloned().unwrap_or(Value::Null),
+        }),
+        &Value::Null,
+    );
+    let mut parts: Vec<(Value, String)> = schema
+        .get("allOf")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .map(|part| (part.clone(), file.to_string()))
+        .collect();
+    if let Some(reference) = schema.get("$ref").and_then(Value::as_str) {
+        let (target, pointer) = reference.split_once('#').unwrap_or((reference, ""));
+        let target = if target.is_empty() { file } else { target };
+        let text = std::fs::read_to_string(proto(target)).expect("schema file");
+        let document: Value = serde_json::from_str(&text).expect("schema JSON");
+        let part = document.pointer(pointer).cloned().unwrap_or(Value::Null);
+        parts.push((part, target.to_string()));
+    }
+    for (part, in_file) in parts {
+        let (p, r) = hand_shape(&part, &in_file);
+        properties.extend(p);
+        required.extend(r);
+    }
+    (properties, required)
+}
+
+#[test]
+fn tagged_variants_agree_with_the_hand_written_definitions() {
+    let api = generated();
+    let mut mismatches = Vec::new();
+    for (component, tag, file) in TAGGED {
+        let alternatives = api
+            .pointer(&format!("/components/schemas/{component}/oneOf"))
+            .and_then(Value::as_array)
+            .unwrap_or_else(|| panic!("{component} is a oneOf in the generated document"));
+        let text = std::fs::read_to_string(proto(file)).expect("schema file");
+        let document: Value = serde_json::from_str(&text).expect("schema JSON");
+        let listed: BTreeSet<String> = document["oneOf"]
+            .as_array()
+            .expect("the file's oneOf")
+            .iter()
+            .filter_map(|alt| alt["$ref"].as_str())
+            .filter_map(|r| r.strip_prefix("#/$defs/").map(String::from))
+            .collect();
+        let mut generated_tags = BTreeSet::new();
+        for alternative in alternatives {
+            let Some(name) = tag_of(alternative, tag) else {
+                mismatches.push(format!("{component}: an alternative without a `{tag}`"));
+                continue;
+            };
+            generated_tags.insert(name.clone());
+            let Some(theirs) = document.pointer(&format!("/$defs/{name}")) else {
+                mismatches.push(format!("{component} `{name}`: no {file}#/$defs/{name}"));
+                continue;
+            };
+            let (our_props, our_required) = shape(alternative, &api);
+            let (their_props, their_required) = hand_shape(theirs, file);
+            if our_props != their_props {
+                mismatches.push(format!(
+                    "{component} `{name}` vs {file}#/$defs/{name}: properties only generated {:?}, only hand-written {:?}",
+                    our_props.difference(&their_props).collect::<Vec<_>>(),
+                    their_props.difference(&our_props).collect::<Vec<_>>()
+                ));
+            }
+            if our_required != their_required {
+                mismatches.push(format!(
+                    "{component} `{name}` vs {file}#/$defs/{name}: required only generated {:?}, only hand-written {:?}",
+                    our_required.difference(&their_required).collect::<Vec<_>>(),
+                    their_required.difference(&our_required).collect::<Vec<_>>()
+                ));
+            }
+        }
+        if generated_tags != listed {
+            mismatches.push(format!(
+                "{component}: `{tag}`s only generated {:?}, only in {file}'s oneOf {:?}",
+                generated_tags.difference(&listed).collect::<Vec<_>>(),
+                listed.difference(&generated_tags).collect::<Vec<_>>()
+            ));
+        }
+    }
+    assert!(
+        mismatches.is_empty(),
+        "tagged unions drifted:\n{}",
         mismatches.join("\n")
     );
 }
