@@ -13,7 +13,7 @@ import re
 import socket
 from typing import Any, Dict, Optional, Tuple
 
-from .errors import FactordConnectionError, FactordError
+from .errors import BatchRefused, FactordConnectionError, FactordError
 
 JsonDict = Dict[str, Any]
 
@@ -49,6 +49,9 @@ class HttpProducer:
     use up the number: the batch is dropped and the error raised; the next batch takes that
     number.
 
+    A ``duplicate`` answer to a batch sent once (no retry) raises :class:`BatchRefused` with
+    code ``producer_conflict``: another sender uses the same producer id.
+
     ``resume`` (default): start after the producer's ``accepted_through`` on the service, so a
     restarted program that keeps its producer id continues the numbering instead of having its
     new batches taken for repeats of old ones.
@@ -72,7 +75,8 @@ class HttpProducer:
         """The number of the last batch handed to :meth:`send` (0: none)."""
         return self.next_seq - 1
 
-    def _post(self, seq: int, batch: JsonDict, wait: bool) -> JsonDict:
+    def _post(self, seq: int, batch: JsonDict, wait: bool, fresh: bool = False) -> JsonDict:
+        retried_before = self.client.retried
         try:
             ack = self.client.apply_batch(self.session, stamp(batch, self.producer, seq),
                                           wait=wait)
@@ -83,6 +87,14 @@ class HttpProducer:
             self._pending = None
             raise
         self._pending = None
+        if ack.get("duplicate") and fresh and self.client.retried == retried_before:
+            # Sent once, yet the service had the number: another sender uses this producer id
+            # (or an earlier run, with resume=False); its batch holds the number, not ours.
+            raise BatchRefused(
+                FactordError(409, "producer_conflict",
+                             f"producer id {self.producer} is used by another sender: the "
+                             f"service already had batch {seq}"),
+                self.producer, seq, int(ack.get("accepted_through", seq)), [seq])
         self.counters["acked"] += 1
         if ack.get("duplicate"):
             self.counters["duplicates"] += 1
@@ -104,7 +116,7 @@ class HttpProducer:
         seq = self.next_seq
         self.counters["sent"] += 1
         try:
-            ack = self._post(seq, batch, wait)
+            ack = self._post(seq, batch, wait, fresh=True)
         except FactordConnectionError:
             self.next_seq += 1  # kept as pending under this number
             raise

@@ -249,7 +249,7 @@ class StreamProducer:
                             FactordError(409, "producer_conflict",
                                          f"producer id {self.producer} is used by another "
                                          "sender: the service already had this number"),
-                            self.producer, seq, self.accepted_through,
+                            self.producer, seq, int(through),
                             [s for s in self._unacked if s >= seq])
                         self._cond.notify_all()
                         return

@@ -381,6 +381,35 @@ def main() -> int:
 
     check("a repeat answers the original ack; a gap raises 409", gap)
 
+    # ----------------------------------------------------------------- one id, two senders
+    def conflict():
+        session = "twice"
+        http.create_session(graph.session_kind, session=session)
+        first = http.producer(session, "robot-c")
+        second = http.producer(session, "robot-c")  # resumed at the same point as `first`
+        first.send(batches[0])
+        try:
+            second.send(batches[1])
+        except BatchRefused as e:
+            over_http = e
+        else:
+            raise AssertionError("the second sender's batch was taken for a repeat silently")
+        expect(over_http.code == "producer_conflict", str(over_http))
+        with zenoh.producer(session, "robot-c", resume=False) as p:  # numbers from 1 again
+            p.send(batches[1])
+            try:
+                p.flush(10)
+            except BatchRefused as e:
+                over_zenoh = e
+            else:
+                raise AssertionError("a stale numbering was taken for repeats silently")
+        expect(over_zenoh.code == "producer_conflict", str(over_zenoh))
+        got = server_counts(session)
+        expect(got == (1, len(batches[0]["factors"])), str(got))
+        return f"HTTP: {over_http.code}; zenoh: {over_zenoh}"
+
+    check("one producer id used by two senders: producer_conflict", conflict)
+
     # ----------------------------------------------------------------- after
     def after():
         session = "after"
@@ -445,7 +474,7 @@ def main() -> int:
         shutil.rmtree(root, ignore_errors=True)
     else:
         print(f"state kept in {root}")
-    print(f"\n{8 - len([f for f in failed if f != 'no panic'])} passed, {len(failed)} failed")
+    print(f"\n{9 - len([f for f in failed if f != 'no panic'])} passed, {len(failed)} failed")
     return 1 if failed else 0
 
 
