@@ -417,4 +417,53 @@ async fn after_a_kill_9_the_survivors_adopt_its_sessions() {
         );
         assert!(applied <= per_session);
     }
+    // The instance comes back: the survivors release its sessions to it (a join moves them).
+    fleet.start_instance(victim);
+    fleet.wait_settled(&z).await;
+    let back = Instant::now();
+    for name in &on_victim {
+        loop {
+            if local_sessions(&c, &fleet, victim).await.contains(name) {
+                break;
+            }
+            assert!(
+                back.elapsed() < Duration::from_secs(10),
+                "{name} not handed back\n{}",
+                fleet.logs()
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let (_, s) = get(&c, &fleet.instance(0).url(&format!("/v1/sessions/{name}"))).await;
+        assert_eq!(
+            s["sequence"].as_u64().unwrap() as usize,
+            per_session,
+            "{name}: {s}"
+        );
+        let url = fleet
+            .instance(1)
+            .url(&format!("/v1/sessions/{name}/batches"));
+        let (status, ack) = post(
+            &c,
+            &url,
+            &small_batch(&format!("robot-{name}"), per_session as u64),
+        )
+        .await;
+        assert_eq!(
+            (status, ack["duplicate"].clone()),
+            (200, json!(true)),
+            "{ack}"
+        );
+    }
+    eprintln!(
+        "handed back {} sessions within {:.0} ms of settling",
+        on_victim.len(),
+        back.elapsed().as_secs_f64() * 1e3
+    );
+    for i in 0..3 {
+        assert!(
+            !fleet.instance(i).stderr().contains("panicked"),
+            "{}",
+            fleet.logs()
+        );
+    }
 }

@@ -64,7 +64,8 @@ pub struct ServeArgs {
     max_body_bytes: Option<usize>,
     /// Join a fleet: several instances on one shared state directory, joined by zenoh, form
     /// one service (needs zenoh and the journal; see README, "Fleet").
-    #[arg(long, env = "FACTORD_FLEET")]
+    /// [env FACTORD_FLEET: 1, true, on, yes; 0, false, off, no]
+    #[arg(long, env = "FACTORD_FLEET", value_parser = clap::builder::FalseyValueParser::new())]
     fleet: bool,
     /// This instance's id in the fleet, unique, [A-Za-z0-9._-] [default: <hostname>-<pid>]
     #[arg(long, env = "FACTORD_INSTANCE_ID")]
