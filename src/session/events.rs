@@ -1,4 +1,5 @@
-//! The session's event stream: subscribing (within `limits.max_subscribers`) and publishing.
+//! The session's event channel: publishing, and raw subscriptions (lossy when they fall behind:
+//! streams read through [`super::EventStream`], which re-synchronises instead).
 
 use std::sync::Arc;
 
@@ -6,22 +7,27 @@ use tokio::sync::broadcast;
 
 use super::Session;
 use crate::api::wire::SessionEvent;
-use crate::api::ErrorKind;
 use crate::api::ServiceError;
 
 impl Session {
+    /// A raw receiver: falling more than the channel's capacity behind skips events silently
+    /// (`RecvError::Lagged`). Clients' streams use [`Self::stream`].
     pub fn subscribe(&self) -> broadcast::Receiver<Arc<SessionEvent>> {
         self.events.subscribe()
     }
 
     /// Publishes a rejection of something sent to this session without a reply channel (a
-    /// zenoh put), so subscribers of its stream see it.
-    pub fn report_rejection(&self, error: ServiceError) {
+    /// zenoh put), so subscribers of its stream see it; `origin`: the rejected batch's producer
+    /// fields, so its producer can tell which batch it was.
+    pub fn report_rejection(&self, error: ServiceError, origin: Option<super::Origin>) {
         crate::runtime::metrics::count_rejection(&error.body);
+        let (producer, producer_seq) = origin.map(|o| (o.producer, o.seq)).unzip();
         self.emit(SessionEvent::Error {
             session: self.name.clone(),
             sequence: None,
             error: error.body,
+            producer,
+            producer_seq,
         });
     }
 
@@ -33,25 +39,5 @@ impl Session {
     /// Event-stream subscribers now (the zenoh publisher included).
     pub fn subscribers(&self) -> usize {
         self.events.receiver_count()
-    }
-
-    /// A new event-stream subscriber, or 429 at `limits.max_subscribers`.
-    pub fn subscribe_limited(
-        &self,
-    ) -> Result<broadcast::Receiver<Arc<SessionEvent>>, ServiceError> {
-        if self.subscribers() >= self.limits.max_subscribers {
-            let mut e = ServiceError::new(
-                ErrorKind::TooMany,
-                "too_many_subscribers",
-                format!(
-                    "session `{}` has {} event subscribers, the limit (limits.max_subscribers)",
-                    self.name, self.limits.max_subscribers
-                ),
-            )
-            .at("session");
-            e.body.retry_after = Some(5);
-            return Err(e);
-        }
-        Ok(self.subscribe())
     }
 }

@@ -8,7 +8,6 @@ use axum::extract::{Path, State};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::Response;
 use futures_util::Stream;
-use tokio::sync::broadcast::error::RecvError;
 
 use crate::service::Service;
 
@@ -28,29 +27,26 @@ use super::handlers::Shared;
         (status = 429, response = super::openapi::TooMany),
         (status = 503, response = super::openapi::Unavailable)))]
 /// Server-Sent Events: every session event, named by its topic (`acks`, `stats`, `poses`,
-/// `summary`, `errors`); `lagged` when this client fell behind and missed some.
+/// `summary`, `errors`). A client that falls behind gets `lagged` (how many events it missed,
+/// the session's sequences and every producer's `accepted_through`), then an `estimate` of
+/// every variable changed meanwhile, instead of a silent gap.
 pub(super) async fn events(
     State(service): Shared,
     caller: Caller,
     Path(session): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, HttpError> {
-    let receiver = service.subscribe_as(&caller.0, &session)?;
-    let stream = futures_util::stream::unfold(receiver, |mut rx| async move {
-        let event = match rx.recv().await {
-            Ok(event) => Event::default()
-                .event(event.topic())
-                .json_data(&*event)
-                .unwrap_or_else(|_| {
-                    Event::default()
-                        .event("errors")
-                        .data("unserialisable event")
-                }),
-            Err(RecvError::Lagged(missed)) => Event::default()
-                .event("lagged")
-                .data(format!("{{\"missed\":{missed}}}")),
-            Err(RecvError::Closed) => return None,
-        };
-        Some((Ok(event), rx))
+    let events = service.subscribe_as(&caller.0, &session)?;
+    let stream = futures_util::stream::unfold(events, |mut events| async move {
+        let event = events.next().await?;
+        let sse = Event::default()
+            .event(event.topic())
+            .json_data(&*event)
+            .unwrap_or_else(|_| {
+                Event::default()
+                    .event("errors")
+                    .data("unserialisable event")
+            });
+        Some((Ok(sse), events))
     });
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
@@ -68,9 +64,9 @@ pub(super) async fn events(
         (status = 429, response = super::openapi::TooMany),
         (status = 503, response = super::openapi::Unavailable)))]
 /// WebSocket: the same events as the SSE stream (one JSON text message each, tagged by `type`;
-/// `{"type": "lagged", "missed": n}` when this client fell behind), and text messages from the
-/// client are batches for the session, acknowledged by the `ack` event or rejected by an `error`
-/// event naming the problem.
+/// the same `lagged` marker and re-synchronising estimate when this client fell behind), and
+/// text messages from the client are batches for the session, acknowledged by the `ack` event
+/// or rejected by an `error` event naming the problem.
 pub(super) async fn websocket(
     State(service): Shared,
     caller: Caller,
@@ -87,16 +83,13 @@ async fn serve_websocket(
     service: Arc<Service>,
     caller: crate::service::Caller,
     session: String,
-    mut events: tokio::sync::broadcast::Receiver<Arc<crate::api::wire::SessionEvent>>,
+    mut events: crate::session::EventStream,
 ) {
     loop {
         tokio::select! {
-            event = events.recv() => {
-                let text = match event {
-                    Ok(event) => serde_json::to_string(&*event).expect("events serialise"),
-                    Err(RecvError::Lagged(missed)) => format!("{{\"type\":\"lagged\",\"missed\":{missed}}}"),
-                    Err(RecvError::Closed) => break,
-                };
+            event = events.next() => {
+                let Some(event) = event else { break };
+                let text = serde_json::to_string(&*event).expect("events serialise");
                 if socket.send(Message::Text(text.into())).await.is_err() {
                     break;
                 }
