@@ -1,10 +1,27 @@
 //! Publishing a session's events on `<prefix>/<session>/out/<topic>`.
+//!
+//! The publisher reads through the session's [`crate::session::EventStream`], so it never loses silently: after
+//! a lag it publishes the `lagged` marker on every topic key of the session (a subscriber of
+//! any one topic learns it missed something and every producer's cumulative progress), then the
+//! estimate of what changed meanwhile.
+//!
+//! To keep up at full rate it drains what is queued and publishes estimates coalesced: the
+//! estimate events of one drained run become one (the latest value of each variable), published
+//! where the last of them was; everything else is published as it came, in order.
+//! Acknowledgements, estimates, summaries, errors and markers are put with
+//! `CongestionControl::Block` (a slow network slows the publisher, whose lag is then reported,
+//! instead of zenoh dropping them); iteration statistics may be dropped.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use zenoh::qos::CongestionControl;
+use zenoh::Wait;
 
-use crate::api::wire::SessionEvent;
+use crate::api::wire::{Estimate, SessionEvent};
+
+/// The most events drained into one run: bounds the delay of the first of them.
+const MAX_RUN: usize = 256;
 
 /// Publishes a session's events until it is deleted (its event channel closes).
 pub(super) fn forward(
@@ -12,28 +29,170 @@ pub(super) fn forward(
     prefix: String,
     session: &Arc<crate::session::Session>,
 ) {
-    let mut rx = session.subscribe();
+    let mut events = session.stream();
+    let topics = session.topics();
     let name = session.name.clone();
     tokio::spawn(async move {
-        loop {
-            let event = match rx.recv().await {
-                Ok(event) => event,
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    tracing::warn!("zenoh publisher of session {name} skipped {n} events");
-                    continue;
+        let mut run = Vec::with_capacity(MAX_RUN);
+        while let Some(first) = events.next().await {
+            run.push(first);
+            while run.len() < MAX_RUN {
+                match events.try_next() {
+                    Some(event) => run.push(event),
+                    None => break,
                 }
-                Err(_) => return,
-            };
-            let body = serde_json::to_vec(&*event).expect("events serialise");
-            let key = format!("{prefix}/{name}/out/{}", event.topic());
-            // Iteration statistics may be dropped under congestion; estimates and the rest not.
-            let congestion = match *event {
-                SessionEvent::Iteration { .. } => CongestionControl::Drop,
-                _ => CongestionControl::Block,
-            };
-            if let Err(e) = zenoh.put(key, body).congestion_control(congestion).await {
-                tracing::warn!("zenoh publication for session {name} failed: {e}");
+            }
+            // A put is synchronous, and a blocking one waits while the network is congested:
+            // on a blocking thread, so no runtime worker waits with it.
+            let (zenoh, prefix, name) = (zenoh.clone(), prefix.clone(), name.clone());
+            let events = std::mem::take(&mut run);
+            let published = tokio::task::spawn_blocking(move || {
+                publish(&zenoh, &prefix, &name, topics, events);
+            });
+            if published.await.is_err() {
+                return; // the runtime is shutting down
             }
         }
     });
+}
+
+/// Puts a drained run of events, estimates coalesced, `lagged` markers on every topic.
+fn publish(
+    zenoh: &zenoh::Session,
+    prefix: &str,
+    name: &str,
+    topics: &[&'static str],
+    run: Vec<Arc<SessionEvent>>,
+) {
+    for event in coalesce(run) {
+        let body = serde_json::to_vec(&*event).expect("events serialise");
+        let keys: &[&str] = match *event {
+            SessionEvent::Lagged { skipped, .. } => {
+                tracing::warn!(
+                    "zenoh publisher of session {name} fell {skipped} events behind: published \
+                     a lagged marker and the estimate's changes"
+                );
+                topics
+            }
+            _ => &[event.topic()],
+        };
+        // Iteration statistics may be dropped under congestion; the rest not.
+        let congestion = match *event {
+            SessionEvent::Iteration { .. } => CongestionControl::Drop,
+            _ => CongestionControl::Block,
+        };
+        for topic in keys {
+            let key = format!("{prefix}/{name}/out/{topic}");
+            let put = zenoh.put(key, body.clone()).congestion_control(congestion);
+            if let Err(e) = put.wait() {
+                tracing::warn!("zenoh publication for session {name} failed: {e}");
+            }
+        }
+    }
+}
+
+/// `run` with its estimate events merged into one (the latest value of each variable, the
+/// highest sequence) where the last of them was; the other events unchanged, in order.
+fn coalesce(run: Vec<Arc<SessionEvent>>) -> Vec<Arc<SessionEvent>> {
+    let estimates = run
+        .iter()
+        .filter(|e| matches!(***e, SessionEvent::Estimate(_)))
+        .count();
+    if estimates < 2 {
+        return run;
+    }
+    let mut merged = BTreeMap::new();
+    let (mut session, mut sequence) = (String::new(), 0);
+    let mut seen = 0;
+    let mut out = Vec::with_capacity(run.len() - estimates + 1);
+    for event in run {
+        let SessionEvent::Estimate(estimate) = &*event else {
+            out.push(event);
+            continue;
+        };
+        for v in &estimate.variables {
+            merged.insert(v.key, v.clone());
+        }
+        session.clone_from(&estimate.session);
+        sequence = sequence.max(estimate.sequence);
+        seen += 1;
+        if seen == estimates {
+            out.push(Arc::new(SessionEvent::Estimate(Estimate {
+                session: std::mem::take(&mut session),
+                sequence,
+                variables: std::mem::take(&mut merged).into_values().collect(),
+            })));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::api::wire::{BatchAck, VariableValue};
+
+    fn estimate(sequence: u64, values: &[(u64, f64)]) -> Arc<SessionEvent> {
+        Arc::new(SessionEvent::Estimate(Estimate {
+            session: "s".into(),
+            sequence,
+            variables: values
+                .iter()
+                .map(|&(key, x)| VariableValue {
+                    key,
+                    kind: "se2".into(),
+                    value: vec![x, 0.0, 0.0],
+                    changed: sequence,
+                })
+                .collect(),
+        }))
+    }
+
+    fn ack(sequence: u64) -> Arc<SessionEvent> {
+        Arc::new(SessionEvent::Ack(BatchAck {
+            session: "s".into(),
+            sequence,
+            factor_ids: vec![],
+            predicted: vec![],
+            reflected: false,
+            producer: None,
+            producer_seq: None,
+            accepted_through: None,
+            duplicate: false,
+        }))
+    }
+
+    #[test]
+    fn estimates_merge_into_the_latest_value_of_each_variable_where_the_last_was() {
+        let run = vec![
+            ack(1),
+            estimate(1, &[(1, 1.0)]),
+            ack(2),
+            estimate(2, &[(2, 2.0), (1, 1.5)]),
+            ack(3),
+            estimate(1, &[(0, 0.5)]),
+            ack(4),
+        ];
+        let out = coalesce(run);
+        let topics: Vec<&str> = out.iter().map(|e| e.topic()).collect();
+        assert_eq!(topics, ["acks", "acks", "acks", "poses", "acks"]);
+        let SessionEvent::Estimate(merged) = &*out[3] else {
+            panic!("an estimate")
+        };
+        assert_eq!(merged.sequence, 2);
+        let values: Vec<(u64, f64)> = merged
+            .variables
+            .iter()
+            .map(|v| (v.key, v.value[0]))
+            .collect();
+        assert_eq!(values, [(0, 0.5), (1, 1.5), (2, 2.0)]);
+    }
+
+    #[test]
+    fn a_run_with_one_estimate_is_unchanged() {
+        let run = vec![ack(1), estimate(1, &[(1, 1.0)]), ack(2)];
+        let out = coalesce(run.clone());
+        assert!(out.iter().zip(&run).all(|(a, b)| Arc::ptr_eq(a, b)));
+        assert_eq!(out.len(), 3);
+    }
 }
