@@ -1,0 +1,402 @@
+//! Streams that cannot lose silently: a full-rate zenoh stream gets an acknowledgement (or a
+//! cumulative one covering it) for every batch, and a subscriber that falls behind gets a
+//! `lagged` marker with every producer's progress and then the latest value of every variable
+//! changed meanwhile, so what it holds ends equal to the estimate.
+
+mod common;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::{Duration, Instant};
+
+use common::server::{client, create, g2o_batches, get, post, zenoh_get, zenoh_peer, TestServer};
+use serde_json::{json, Value};
+use zenoh::qos::CongestionControl;
+
+/// `input_M3500_g2o` as streaming batches (a generated Manhattan graph of 3500 poses when the
+/// data is missing), each with producer `robot` and its number.
+fn m3500_batches() -> Vec<Value> {
+    let text = common::data_file("2d/carlone/input_M3500_g2o.g2o")
+        .map(|p| std::fs::read_to_string(p).unwrap())
+        .unwrap_or_else(|| common::synthetic_manhattan(3500, 17));
+    let mut batches = g2o_batches(&text);
+    for (i, b) in batches.iter_mut().enumerate() {
+        b["producer"] = json!("robot");
+        b["producer_seq"] = json!(i + 1);
+    }
+    batches
+}
+
+/// An odometry chain of `poses` poses as streaming batches (cheap to apply: many events per
+/// second), with producer `robot` and its numbers.
+fn odometry_batches(poses: usize) -> Vec<Value> {
+    let mut text = String::from("VERTEX_SE2 0 0 0 0\n");
+    for k in 1..poses {
+        text += &format!(
+            "VERTEX_SE2 {k} {k} 0 0\nEDGE_SE2 {} {k} 1 0 0.001 400 0 0 400 0 2500\n",
+            k - 1
+        );
+    }
+    let mut batches = g2o_batches(&text);
+    for (i, b) in batches.iter_mut().enumerate() {
+        b["producer"] = json!("robot");
+        b["producer_seq"] = json!(i + 1);
+    }
+    batches
+}
+
+/// What a subscriber of `<p>/<session>/out/**` saw: acknowledged producer numbers, lagged
+/// markers (by key) and the highest cumulative `accepted_through`.
+#[derive(Default, Debug)]
+struct Seen {
+    acked: BTreeSet<u64>,
+    markers: Vec<(String, Value)>,
+    accepted_through: u64,
+    events: usize,
+}
+
+impl Seen {
+    fn take(&mut self, key: &str, event: Value) {
+        self.events += 1;
+        match event["type"].as_str() {
+            Some("ack") => {
+                let number = event["producer_seq"]
+                    .as_u64()
+                    .or(event["sequence"].as_u64());
+                self.acked.insert(number.unwrap());
+                let through = event["accepted_through"].as_u64().unwrap_or(0);
+                self.accepted_through = self.accepted_through.max(through);
+            }
+            Some("lagged") => {
+                let through = event["producers"]["robot"].as_u64().unwrap_or(0);
+                self.accepted_through = self.accepted_through.max(through);
+                self.markers.push((key.to_string(), event));
+            }
+            _ => {}
+        }
+    }
+
+    /// Batches acknowledged one by one or covered by a cumulative acknowledgement.
+    fn covered(&self) -> usize {
+        let through = self.accepted_through;
+        through as usize + self.acked.iter().filter(|&&s| s > through).count()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn full_rate_zenoh_stream_acknowledges_every_batch() {
+    let batches = m3500_batches();
+    let n = batches.len();
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(&c, &s, &json!({"session": "t7", "kind": "pose_graph_2d"})).await;
+    let z = zenoh_peer(&s.zenoh).await;
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let _out = z
+        .declare_subscriber("factord/t7/out/**")
+        .callback(move |sample| {
+            let event: Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            let _ = tx.send((sample.key_expr().to_string(), event));
+        })
+        .await
+        .unwrap();
+    let publisher = z
+        .declare_publisher("factord/t7/in/batch")
+        .congestion_control(CongestionControl::Block)
+        .await
+        .unwrap();
+    // The server's peer answers queries once it knows this peer; give the subscription time.
+    zenoh_get(&z, "factord/t7/estimate", None).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+
+    let start = Instant::now();
+    for b in &batches {
+        publisher.put(b.to_string()).await.unwrap();
+    }
+    let sent = start.elapsed();
+    let mut seen = Seen::default();
+    let mut last = Instant::now();
+    while seen.covered() < n && last.elapsed() < Duration::from_secs(15) {
+        match tokio::time::timeout(Duration::from_millis(200), rx.recv()).await {
+            Ok(Some((key, event))) => {
+                seen.take(&key, event);
+                last = Instant::now();
+            }
+            Ok(None) => break,
+            Err(_) => {}
+        }
+    }
+    let covered_after = start.elapsed();
+    let (_, info) = get(&c, &s.url("/v1/sessions/t7")).await;
+    eprintln!(
+        "full rate: {n} batches sent in {:.2} s; {} acks seen, {} covered (accepted_through {}), \
+         {} lagged markers, all covered after {:.2} s; {} events; session sequence {}",
+        sent.as_secs_f64(),
+        seen.acked.len(),
+        seen.covered(),
+        seen.accepted_through,
+        seen.markers.len(),
+        covered_after.as_secs_f64(),
+        seen.events,
+        info["sequence"]
+    );
+    let log = s.stderr();
+    eprintln!(
+        "server warnings: {}",
+        log.lines().filter(|l| l.contains("WARN")).count()
+    );
+    assert_eq!(info["sequence"], n, "every batch applied");
+    assert_eq!(seen.covered(), n, "every batch acknowledged or covered");
+    for (key, marker) in &seen.markers {
+        assert_eq!(marker["session"], "t7", "{key}");
+    }
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}
+
+/// Reads SSE events (name, data) from `resp` until none came for `quiet`.
+async fn read_sse_until_quiet(
+    resp: &mut reqwest::Response,
+    buffer: &mut String,
+    quiet: Duration,
+) -> Vec<(String, Value)> {
+    let mut events = Vec::new();
+    while let Ok(Ok(Some(bytes))) = tokio::time::timeout(quiet, resp.chunk()).await {
+        buffer.push_str(&String::from_utf8_lossy(&bytes));
+        while let Some(pos) = buffer.find("\n\n") {
+            let block: String = buffer.drain(..pos + 2).collect();
+            let (mut name, mut data) = (String::new(), String::new());
+            for line in block.lines() {
+                if let Some(v) = line.strip_prefix("event:") {
+                    name = v.trim().into();
+                } else if let Some(v) = line.strip_prefix("data:") {
+                    data.push_str(v.trim());
+                }
+            }
+            if !data.is_empty() {
+                events.push((name, serde_json::from_str(&data).unwrap()));
+            }
+        }
+    }
+    events
+}
+
+/// The value of every variable of an estimate (GET estimate, or `poses` events in order).
+fn apply_poses(values: &mut BTreeMap<u64, Value>, estimate: &Value) {
+    for v in estimate["variables"].as_array().unwrap() {
+        values.insert(v["key"].as_u64().unwrap(), v["value"].clone());
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_values() {
+    // Two producers, interleaved, over zenoh at full rate; the SSE reader reads nothing until
+    // every batch is applied, so its stream overflows.
+    let mut batches = m3500_batches();
+    let (mut counts, n) = ([0u64; 2], batches.len());
+    for (i, b) in batches.iter_mut().enumerate() {
+        counts[i % 2] += 1;
+        b["producer"] = json!(["a", "b"][i % 2]);
+        b["producer_seq"] = json!(counts[i % 2]);
+    }
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(&c, &s, &json!({"session": "lag", "kind": "pose_graph_2d"})).await;
+    let mut sse = c
+        .get(s.url("/v1/sessions/lag/events"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(sse.status(), 200);
+    let z = zenoh_peer(&s.zenoh).await;
+    let publisher = z
+        .declare_publisher("factord/lag/in/batch")
+        .congestion_control(CongestionControl::Block)
+        .await
+        .unwrap();
+    zenoh_get(&z, "factord/lag/estimate", None).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for b in &batches {
+        publisher.put(b.to_string()).await.unwrap();
+    }
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while get(&c, &s.url("/v1/sessions/lag")).await.1["sequence"] != n {
+        assert!(
+            Instant::now() < deadline,
+            "the batches were not all applied"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let url = s.url("/v1/sessions/lag/optimize?wait=true");
+    assert_eq!(post(&c, &url, &json!({})).await.0, 200);
+    // Idle (past the polish that may follow): the estimate the re-synchronisation must give.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let mut before = BTreeMap::new();
+    apply_poses(
+        &mut before,
+        &get(&c, &s.url("/v1/sessions/lag/estimate")).await.1,
+    );
+
+    // Now read: what the connection buffered, the marker, the re-synchronisation, the rest.
+    let (mut buffer, mut events) = (String::new(), Vec::new());
+    let mut held = BTreeMap::new();
+    let mut estimate = BTreeMap::new();
+    for _ in 0..5 {
+        events.extend(read_sse_until_quiet(&mut sse, &mut buffer, Duration::from_secs(2)).await);
+        held.clear();
+        for (name, data) in &events {
+            if name == "poses" {
+                apply_poses(&mut held, data);
+            }
+        }
+        let (status, body) = get(&c, &s.url("/v1/sessions/lag/estimate")).await;
+        assert_eq!(status, 200);
+        estimate.clear();
+        apply_poses(&mut estimate, &body);
+        if held == estimate {
+            break;
+        }
+    }
+    let markers: Vec<usize> = (0..events.len())
+        .filter(|&i| events[i].0 == "lagged")
+        .collect();
+    eprintln!(
+        "SSE reader: {} events read, {} lagged markers ({}), {} variables held",
+        events.len(),
+        markers.len(),
+        markers
+            .iter()
+            .map(|&i| events[i].1["skipped"].to_string())
+            .collect::<Vec<_>>()
+            .join(", "),
+        held.len()
+    );
+    assert!(!markers.is_empty(), "the reader never fell behind");
+    let (first, marker) = (markers[0], &events[markers[0]].1);
+    assert_eq!(marker["session"], "lag");
+    assert_eq!(marker["sequence"], n, "{marker}");
+    assert_eq!(marker["producers"], json!({"a": counts[0], "b": counts[1]}));
+    assert!(marker["reflected_sequence"].as_u64().unwrap() <= n as u64);
+    assert!(marker["skipped"].as_u64().unwrap() > 0);
+    assert_eq!(
+        events[first + 1].0,
+        "poses",
+        "the re-synchronisation follows"
+    );
+    assert_eq!(
+        held, estimate,
+        "the stream's latest values are the estimate"
+    );
+    // Right after the re-synchronisation the reader holds the latest value of every variable
+    // (the session was idle: what it holds is the estimate read before reading); before it,
+    // what the connection had buffered is far from that.
+    let mut at = BTreeMap::new();
+    for (name, data) in &events[..first] {
+        if name == "poses" {
+            apply_poses(&mut at, data);
+        }
+    }
+    assert_ne!(at, before, "the reader had everything before the marker");
+    apply_poses(&mut at, &events[first + 1].1);
+    assert_eq!(
+        at, before,
+        "the re-synchronisation holds every changed variable's latest value"
+    );
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
+    let batches = odometry_batches(8000);
+    let n = batches.len();
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(&c, &s, &json!({"session": "slow", "kind": "pose_graph_2d"})).await;
+    let z = zenoh_peer(&s.zenoh).await;
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let stalled = std::sync::atomic::AtomicBool::new(false);
+    let _out = z
+        .declare_subscriber("factord/slow/out/**")
+        .callback(move |sample| {
+            // The first event stalls this peer's reception for 3 s (less than zenoh's 5 s
+            // before it closes a link a blocking put waits on): the server's publisher falls
+            // behind.
+            if !stalled.swap(true, std::sync::atomic::Ordering::SeqCst) {
+                std::thread::sleep(Duration::from_secs(3));
+            }
+            let event: Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            let _ = tx.send((sample.key_expr().to_string(), event));
+        })
+        .await
+        .unwrap();
+    let publisher = z
+        .declare_publisher("factord/slow/in/batch")
+        .congestion_control(CongestionControl::Block)
+        .await
+        .unwrap();
+    zenoh_get(&z, "factord/slow/estimate", None).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    for b in &batches {
+        publisher.put(b.to_string()).await.unwrap();
+    }
+    let (mut seen, mut held, mut estimate) = (Seen::default(), BTreeMap::new(), BTreeMap::new());
+    let mut received = Vec::new();
+    for _ in 0..10 {
+        while let Ok(Some((key, event))) =
+            tokio::time::timeout(Duration::from_secs(2), rx.recv()).await
+        {
+            if event["type"] == "estimate" {
+                apply_poses(&mut held, &event);
+            }
+            if key.ends_with("/poses") {
+                received.push(event["type"].as_str().unwrap().to_string());
+            }
+            seen.take(&key, event);
+        }
+        estimate.clear();
+        apply_poses(
+            &mut estimate,
+            &get(&c, &s.url("/v1/sessions/slow/estimate")).await.1,
+        );
+        if seen.covered() == n && held == estimate {
+            break;
+        }
+    }
+    eprintln!(
+        "slow zenoh subscriber: {} events, {} acks seen, {} covered, {} lagged markers",
+        seen.events,
+        seen.acked.len(),
+        seen.covered(),
+        seen.markers.len()
+    );
+    assert!(!seen.markers.is_empty(), "the publisher never fell behind");
+    // One marker per lag, on each of the session's topics, identical.
+    let topics = ["acks", "poses", "stats", "summary", "errors"];
+    assert_eq!(seen.markers.len() % topics.len(), 0);
+    for lag in seen.markers.chunks(topics.len()) {
+        let keys: Vec<&str> = lag
+            .iter()
+            .map(|(k, _)| k.rsplit('/').next().unwrap())
+            .collect();
+        assert_eq!(keys, topics);
+        assert!(lag.iter().all(|(_, m)| m == &lag[0].1));
+        let through = lag[0].1["producers"]["robot"].as_u64().unwrap();
+        assert!(through > 0 && through <= n as u64);
+    }
+    // On `poses`, the first marker is followed by the re-synchronisation.
+    let marker = received.iter().position(|t| t == "lagged").unwrap();
+    let next = received[marker..].iter().find(|t| *t != "lagged");
+    assert_eq!(
+        next.map(String::as_str),
+        Some("estimate"),
+        "{:?}",
+        &received[marker..]
+    );
+    assert_eq!(seen.covered(), n, "every batch acknowledged or covered");
+    assert_eq!(
+        held, estimate,
+        "the published latest values are the estimate"
+    );
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}
