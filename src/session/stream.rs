@@ -49,7 +49,6 @@ pub struct EventStream {
     solved: u64,
     /// What a re-synchronisation still has to yield (its estimate).
     queued: VecDeque<Arc<SessionEvent>>,
-    lags: u64,
 }
 
 impl Session {
@@ -64,7 +63,6 @@ impl Session {
             acked: st.sequence,
             solved: st.solved_sequence,
             queued: VecDeque::new(),
-            lags: 0,
         }
     }
 
@@ -136,12 +134,10 @@ impl EventStream {
         if let Some(event) = self.queued.pop_front() {
             return Some(event);
         }
-        loop {
-            match self.receiver.recv().await {
-                Ok(event) => return Some(self.seen(event)),
-                Err(RecvError::Lagged(skipped)) => return self.lagged(skipped),
-                Err(RecvError::Closed) => return None,
-            }
+        match self.receiver.recv().await {
+            Ok(event) => Some(self.seen(event)),
+            Err(RecvError::Lagged(skipped)) => self.lagged(skipped),
+            Err(RecvError::Closed) => None,
         }
     }
 
@@ -158,16 +154,6 @@ impl EventStream {
         }
     }
 
-    /// How many times this subscriber fell behind.
-    pub fn lags(&self) -> u64 {
-        self.lags
-    }
-
-    /// Events queued for this subscriber and not read yet.
-    pub fn backlog(&self) -> usize {
-        self.receiver.len() + self.queued.len()
-    }
-
     fn seen(&mut self, event: Arc<SessionEvent>) -> Arc<SessionEvent> {
         match &*event {
             SessionEvent::Ack(ack) => self.acked = self.acked.max(ack.sequence),
@@ -179,7 +165,6 @@ impl EventStream {
 
     fn lagged(&mut self, skipped: u64) -> Option<Arc<SessionEvent>> {
         let session = self.session.upgrade()?;
-        self.lags += 1;
         // Jump to the live end first (nothing published from here on is missed), dropping
         // what is still queued: the re-synchronisation covers it too, and a subscriber left
         // at the far end of a full channel would only lag again.
