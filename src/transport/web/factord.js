@@ -540,7 +540,7 @@
       const e = d.error || {};
       log('errors', (num(d.sequence) ? `sequence ${d.sequence}: ` : '') + (e.code ? `${e.code}: ` : '') + (e.message || d.raw || 'error'));
     });
-    on('lagged', (d) => { log('lagged', `fell behind: missed ${fmtInt(d.missed)} events`); requestGraph(); });
+    on('lagged', (d) => { log('lagged', `fell behind: missed ${fmtInt(d.skipped)} events`); requestGraph(); });
   }
 
   if (document.body.dataset.page === 'session') startSession();
