@@ -11,6 +11,7 @@
 //!   session `s` and withdraws them when it releases or deletes it, so zenoh routes a robot's
 //!   puts and queries to the owner alone.
 
+use std::collections::hash_map::Entry;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
@@ -134,12 +135,15 @@ pub(super) fn start(c: &Context, fleet: Arc<Fleet>) -> tokio::task::JoinHandle<(
             let now = loaded.borrow_and_update().clone();
             declared.retain(|name, _| now.contains(name));
             for name in now {
-                if !declared.contains_key(&name) {
-                    match SessionKeys::declare(&c, &name).await {
+                if let Entry::Vacant(slot) = declared.entry(name) {
+                    match SessionKeys::declare(&c, slot.key()).await {
                         Ok(keys) => {
-                            declared.insert(name, keys);
+                            slot.insert(keys);
                         }
-                        Err(e) => tracing::error!(session = name, "fleet: declaring its keys: {e}"),
+                        Err(e) => {
+                            let name = slot.key();
+                            tracing::error!(session = name, "fleet: declaring its keys: {e}")
+                        }
                     }
                 }
             }
