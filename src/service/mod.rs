@@ -10,8 +10,8 @@ mod durability;
 pub mod fleet;
 mod fleet_lock;
 mod fleet_moves;
-pub mod placement;
 pub mod jobs;
+pub mod placement;
 mod recovery;
 
 use std::collections::HashMap;
@@ -136,8 +136,8 @@ impl Service {
         &self,
         caller: &Caller,
         name: &str,
-    ) -> Result<tokio::sync::broadcast::Receiver<Arc<SessionEvent>>, ServiceError> {
-        self.session_as(caller, name)?.subscribe_limited()
+    ) -> Result<crate::session::EventStream, ServiceError> {
+        self.session_as(caller, name)?.stream_limited()
     }
 
     /// The session named `name` if it exists for `caller`; the same 404 as for a session that
@@ -244,8 +244,16 @@ impl Service {
                 };
                 Ok(Reply::Accepted(Accepted { ack, solved }))
             }
-            Command::Optimize { session, wait } => {
+            Command::Optimize {
+                session,
+                wait,
+                after_producer,
+                after_seq,
+                after_timeout_ms,
+            } => {
                 let session = self.writable_as(caller, &session)?;
+                let after = After::from_fields(after_producer, after_seq, after_timeout_ms)?;
+                wait_after(&session, after).await?;
                 let (sequence, solve) = session.optimize_now()?;
                 let stats = if wait {
                     session.wait_solve(solve, self.wait_timeout()).await;
@@ -275,9 +283,24 @@ impl Service {
                 since,
                 from,
                 to,
-            } => Ok(Reply::Estimate(
+                after_producer,
+                after_seq,
+                after_timeout_ms,
+            } => {
+                let session = self.session_as(caller, &session)?;
+                let after = After::from_fields(after_producer, after_seq, after_timeout_ms)?;
+                wait_after(&session, after).await?;
+                let query = EstimateQuery {
+                    since,
+                    from,
+                    to,
+                    ..EstimateQuery::default()
+                };
+                Ok(Reply::Estimate(session.estimate(&query)))
+            }
+            Command::ProducerStatus { session, producer } => Ok(Reply::Producer(
                 self.session_as(caller, &session)?
-                    .estimate(&EstimateQuery { since, from, to }),
+                    .producer_status(&producer),
             )),
             Command::GetStats { session } => Ok(Reply::Stats(Box::new(
                 self.session_as(caller, &session)?.stats(),
@@ -350,17 +373,23 @@ impl Service {
         payload: &[u8],
     ) -> Result<(), ServiceError> {
         let target = self.session_as(caller, session)?;
+        let mut origin = None;
         let outcome = match crate::api::command::parse_topic(
             session,
             kind,
             payload,
             self.limits.max_batch_items,
         ) {
-            Ok(command) => self.execute_as(caller, command).await.map(|_| ()),
+            Ok(command) => {
+                if let Command::ApplyBatch { batch, .. } = &command {
+                    origin = crate::session::Origin::of(batch).ok().flatten();
+                }
+                self.execute_as(caller, command).await.map(|_| ())
+            }
             Err(e) => Err(e),
         };
         if let Err(error) = outcome {
-            target.report_rejection(error);
+            target.report_rejection(error, origin);
         }
         Ok(())
     }
@@ -508,5 +537,17 @@ impl Service {
         {
             observe(session);
         }
+    }
+}
+
+/// Waits for the batches a request says it comes after (`after_producer`, `after_seq`).
+async fn wait_after(session: &Session, after: Option<After>) -> Result<(), ServiceError> {
+    match after {
+        Some(After {
+            producer,
+            seq,
+            timeout,
+        }) => session.wait_after(&producer, seq, timeout).await,
+        None => Ok(()),
     }
 }

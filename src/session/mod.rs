@@ -19,11 +19,15 @@
 //! - `mirror.rs`: [`MirrorEntry`], variables as clients see them, and the estimate read from them.
 //! - `apply.rs`: accepting a batch (limits, validation, journal, mirror, problem or queue).
 //! - `batch.rs`: validating a wire batch into a prepared one.
+//! - `producers.rs`: exactly-once ingest (producer ids and sequence numbers, kept acks).
+//! - `ordering.rs`: waiting for a producer's batches (`after`) and its progress.
 //! - `schedule.rs`: when solves run (auto-optimise policy, `optimize`), waiting for them and
 //!   cancelling them.
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
 //! - `incremental.rs`: re-solving only the region new factors reach.
-//! - `events.rs`: the event stream (subscribing, publishing, rejections).
+//! - `events.rs`: the event channel (publishing, rejections, raw subscriptions).
+//! - `stream.rs`: [`EventStream`], the subscriber every stream reads through: a lag yields a
+//!   `lagged` marker and the latest values instead of a silent gap.
 //! - `stats.rs`: info, stats and memory accounting.
 //! - `inspect.rs`: the drawable graph (of either engine) and marginal covariances (graphs).
 //! - `durable.rs`: journal, snapshots and recovery.
@@ -38,10 +42,13 @@ pub mod fusion;
 mod incremental;
 mod inspect;
 mod mirror;
+mod ordering;
+mod producers;
 mod schedule;
 mod solve;
 mod state;
 mod stats;
+mod stream;
 
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -51,7 +58,10 @@ use tokio::sync::{broadcast, watch};
 pub use durable::{Durability, Recovery};
 use engine::Engine;
 pub use mirror::MirrorEntry;
+pub use ordering::Progress;
+pub use producers::Origin;
 use state::State;
+pub use stream::EventStream;
 
 use crate::api::catalogue::SessionKind;
 use crate::api::wire::{AutoOptimize, SessionEvent};
@@ -65,6 +75,8 @@ pub struct Session {
     events: broadcast::Sender<Arc<SessionEvent>>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
     solved: watch::Sender<u64>,
+    /// Highest sequence accepted: requests waiting for a producer's batches (`after`) watch it.
+    accepted: watch::Sender<u64>,
     /// Number of finished solves (successful, failed or interrupted).
     completed: watch::Sender<u64>,
     cancel: AtomicBool,
@@ -99,6 +111,7 @@ impl Session {
             state: Mutex::new(State::new(kind, options, auto)),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,
+            accepted: watch::channel(0).0,
             completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
             engine: Engine::for_kind(kind),
