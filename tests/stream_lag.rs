@@ -13,12 +13,16 @@ use serde_json::{json, Value};
 use zenoh::qos::CongestionControl;
 
 /// `input_M3500_g2o` as streaming batches (a generated Manhattan graph of 3500 poses when the
-/// data is missing), each with producer `robot` and its number.
+/// data is missing), numbered by producer `robot`.
 fn m3500_batches() -> Vec<Value> {
     let text = common::data_file("2d/carlone/input_M3500_g2o.g2o")
         .map(|p| std::fs::read_to_string(p).unwrap())
         .unwrap_or_else(|| common::synthetic_manhattan(3500, 17));
-    let mut batches = g2o_batches(&text);
+    with_producer(g2o_batches(&text))
+}
+
+/// `batches` numbered 1, 2, 3, … by producer `robot`.
+fn with_producer(mut batches: Vec<Value>) -> Vec<Value> {
     for (i, b) in batches.iter_mut().enumerate() {
         b["producer"] = json!("robot");
         b["producer_seq"] = json!(i + 1);
@@ -27,7 +31,7 @@ fn m3500_batches() -> Vec<Value> {
 }
 
 /// An odometry chain of `poses` poses as streaming batches (cheap to apply: many events per
-/// second), with producer `robot` and its numbers.
+/// second), numbered by producer `robot`.
 fn odometry_batches(poses: usize) -> Vec<Value> {
     let mut text = String::from("VERTEX_SE2 0 0 0 0\n");
     for k in 1..poses {
@@ -36,12 +40,7 @@ fn odometry_batches(poses: usize) -> Vec<Value> {
             k - 1
         );
     }
-    let mut batches = g2o_batches(&text);
-    for (i, b) in batches.iter_mut().enumerate() {
-        b["producer"] = json!("robot");
-        b["producer_seq"] = json!(i + 1);
-    }
-    batches
+    with_producer(g2o_batches(&text))
 }
 
 /// What a subscriber of `<p>/<session>/out/**` saw: acknowledged producer numbers, lagged
@@ -84,7 +83,14 @@ impl Seen {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn full_rate_zenoh_stream_acknowledges_every_batch() {
-    let batches = m3500_batches();
+    // FACTORD_STREAM_POSES=n: a generated Manhattan graph of n poses instead (measurements).
+    let batches = match std::env::var("FACTORD_STREAM_POSES") {
+        Ok(n) => with_producer(g2o_batches(&common::synthetic_manhattan(
+            n.parse().unwrap(),
+            17,
+        ))),
+        Err(_) => m3500_batches(),
+    };
     let n = batches.len();
     let s = TestServer::start(&[]);
     let c = client();
