@@ -228,6 +228,41 @@ async fn three_instances_serve_as_one() {
     .await;
     assert_eq!(per_session.len(), 1, "{per_session:?}");
 
+    // An event stream (SSE) through an instance that does not own the session is streamed on.
+    let name = "robot-5";
+    let other = (fleet.owner(name) + 1) % 3;
+    let mut events = c
+        .get(
+            fleet
+                .instance(other)
+                .url(&format!("/v1/sessions/{name}/events")),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(events.status().as_u16(), 200);
+    let url = fleet
+        .instance(other)
+        .url(&format!("/v1/sessions/{name}/batches"));
+    let (status, ack) = post(&c, &url, &json!({"variables": [{"key": 2, "kind": "se2", "value": [2, 0, 0]}],
+        "factors": [{"type": "between_se2", "keys": [1, 2], "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.05]}],
+        "producer": "r", "producer_seq": 2})).await;
+    assert_eq!(status, 200, "{ack}");
+    let mut seen = String::new();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !seen.contains("event: ack") {
+        let chunk = tokio::time::timeout(Duration::from_secs(10), events.chunk()).await;
+        match chunk {
+            Ok(Ok(Some(bytes))) => seen.push_str(&String::from_utf8_lossy(&bytes)),
+            other => panic!("the forwarded stream ended: {other:?}: {seen}"),
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no ack on the forwarded stream: {seen}"
+        );
+    }
+    drop(events);
+
     // A robot's puts reach the owner, whose acknowledgements come back.
     let name = "zrobot";
     let acks = z
