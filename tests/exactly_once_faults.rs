@@ -312,5 +312,13 @@ async fn every_batch_is_applied_exactly_once_through_kills_and_lost_acks() {
         );
     }
     assert!(relative <= 1e-6, "chi2 {chi2} vs {reference}\n{}", report());
+    // The faults happened: the test cannot pass by not testing.
+    assert_eq!(kills.len(), KILLS);
+    assert!(proxy.dropped() > 0 && Counters::get(&zen.counters.acks_ignored) > 0);
+    assert!(
+        Counters::get(&web.counters.duplicates) > 0,
+        "no repeat was answered as a duplicate\n{}",
+        report()
+    );
     z.close().await.unwrap();
 }

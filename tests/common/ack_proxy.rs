@@ -1,8 +1,9 @@
 //! A TCP proxy in front of the server's HTTP port that loses acknowledgements on purpose: it
-//! forwards every request, and for a random share of the `200` answers it closes the client's
-//! connection instead of relaying the answer (the batch was applied, its ack is lost). The
-//! upstream address can change (a restarted server listens on a new port) or be absent (the
-//! server is down: connections are closed at once, as a refused connection would be).
+//! forwards every request, and for a random share of the `200` answers to `POST`s (batches)
+//! it closes the client's connection instead of relaying the answer (the batch was applied,
+//! its ack is lost). The upstream address can change (a restarted server listens on a new
+//! port) or be absent (the server is down: connections are closed at once, as a refused
+//! connection would be).
 //!
 //! One request per connection: the client must not pool connections (a dropped answer is
 //! decided on the first bytes upstream sends after a connection opens).
@@ -26,9 +27,9 @@ struct Shared {
     upstream: Mutex<Option<SocketAddr>>,
     rng: Mutex<Rng>,
     drop_rate: f64,
-    /// `200` answers not relayed.
+    /// `200` answers to `POST`s not relayed.
     dropped: AtomicU64,
-    /// `200` answers relayed.
+    /// `200` answers to `POST`s relayed.
     relayed: AtomicU64,
     /// Connections closed because there was no server to forward to.
     refused: AtomicU64,
@@ -97,6 +98,16 @@ async fn relay(mut client: TcpStream, shared: Arc<Shared>) {
     };
     let (mut client_rx, mut client_tx) = client.split();
     let (mut server_rx, mut server_tx) = server.into_split();
+    // Only the answers to batches (`POST`) are lost; status questions get theirs.
+    let mut head = vec![0u8; 16 * 1024];
+    let n = match client_rx.read(&mut head).await {
+        Ok(0) | Err(_) => return,
+        Ok(n) => n,
+    };
+    let droppable = head.starts_with(b"POST ");
+    if server_tx.write_all(&head[..n]).await.is_err() {
+        return;
+    }
     let upload = async {
         let _ = tokio::io::copy(&mut client_rx, &mut server_tx).await;
         let _ = server_tx.shutdown().await;
@@ -107,7 +118,7 @@ async fn relay(mut client: TcpStream, shared: Arc<Shared>) {
             Ok(0) | Err(_) => return,
             Ok(n) => n,
         };
-        if first[..n].starts_with(b"HTTP/1.1 200") {
+        if droppable && first[..n].starts_with(b"HTTP/1.1 200") {
             let lose = shared.rng.lock().unwrap().uniform() < shared.drop_rate;
             if lose {
                 shared.dropped.fetch_add(1, Ordering::SeqCst);
