@@ -599,7 +599,7 @@ class Live:
                     [before[k] for k in ("sequence", "num_variables", "num_factors")] == [after[k] for k in ("sequence", "num_variables", "num_factors")],
                     f"{[before[k] for k in ('sequence', 'num_variables', 'num_factors')]} -> {[after[k] for k in ('sequence', 'num_variables', 'num_factors')]}")
         gap = self.call("gap", "POST", f"{base}/batches", 409, "error.schema.json", body=batch(4, 2), error_code="producer_sequence_gap",
-                        error_field="batch.producer_seq", example="error-producer-sequence-gap")
+                        error_field="producer_seq", example="error-producer-sequence-gap")
         if gap:
             r.check("gap: the message names the number expected (3)", "expects batch 3" in gap["error"]["message"], gap["error"]["message"])
         self.call("refused seq 3", "POST", f"{base}/batches", 422, "error.schema.json", body=batch(3, 2, factors=[
@@ -608,13 +608,13 @@ class Live:
         if ack3:
             r.check("a refused batch does not use up its number: seq 3 accepted after a 422", ack3.get("accepted_through") == 3, json.dumps(ack3))
         self.call("producer without seq", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": robot},
-                  error_code="missing_producer_seq", error_field="batch.producer_seq")
+                  error_code="missing_producer_seq", error_field="producer_seq")
         self.call("seq without producer", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer_seq": 4},
-                  error_code="missing_producer", error_field="batch.producer")
+                  error_code="missing_producer", error_field="producer")
         self.call("invalid producer", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": "a/b", "producer_seq": 1},
-                  error_code="invalid_producer", error_field="batch.producer")
+                  error_code="invalid_producer", error_field="producer")
         self.call("seq 0", "POST", f"{base}/batches", 400, "error.schema.json", body={"producer": robot, "producer_seq": 0},
-                  error_code="invalid_producer_seq", error_field="batch.producer_seq")
+                  error_code="invalid_producer_seq", error_field="producer_seq")
 
         status = self.call("", "GET", f"{base}/producers/{robot}", 200, "producer-status.schema.json", example="producer-status")
         if status and ack3:

@@ -55,7 +55,7 @@ async fn repeats_get_their_original_ack_and_gaps_are_refused() {
     let (status, gap) = post(&c, &url, &with_producer(batches[3].clone(), "r1", 4)).await;
     assert_eq!(status, 409, "{gap}");
     assert_eq!(gap["error"]["code"], "producer_sequence_gap");
-    assert_eq!(gap["error"]["field"], "batch.producer_seq");
+    assert_eq!(gap["error"]["field"], "producer_seq");
     assert!(
         gap["error"]["message"]
             .as_str()
@@ -84,19 +84,23 @@ async fn repeats_get_their_original_ack_and_gaps_are_refused() {
     assert_eq!(progress["sequence"], third["sequence"]);
     let (_, unknown) = get(&c, &s.url("/v1/sessions/eo/producers/nobody")).await;
     assert_eq!(unknown["accepted_through"], 0);
+    let (status, bad) = get(&c, &s.url("/v1/sessions/eo/producers/no%20body")).await;
+    assert_eq!(status, 400, "{bad}");
+    assert_eq!(bad["error"]["code"], "invalid_producer");
+    let (status, bad) = get(
+        &c,
+        &s.url("/v1/sessions/eo/estimate?after_producer=a%2Fb&after_seq=1"),
+    )
+    .await;
+    assert_eq!(status, 400, "{bad}");
+    assert_eq!(bad["error"]["field"], "after_producer");
 
     // Half the fields, a bad id: 400 naming the field.
     for (body, field) in [
-        (json!({"producer": "r1"}), "batch.producer_seq"),
-        (json!({"producer_seq": 5}), "batch.producer"),
-        (
-            json!({"producer": "r/1", "producer_seq": 1}),
-            "batch.producer",
-        ),
-        (
-            json!({"producer": "r1", "producer_seq": 0}),
-            "batch.producer_seq",
-        ),
+        (json!({"producer": "r1"}), "producer_seq"),
+        (json!({"producer_seq": 5}), "producer"),
+        (json!({"producer": "r/1", "producer_seq": 1}), "producer"),
+        (json!({"producer": "r1", "producer_seq": 0}), "producer_seq"),
     ] {
         let (status, e) = post(&c, &url, &body).await;
         assert_eq!(status, 400, "{body}: {e}");

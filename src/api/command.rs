@@ -33,7 +33,7 @@ pub enum Command {
         #[serde(default)]
         wait: bool,
         /// First wait until this producer's batches up to `after_seq` are applied (see
-        /// [`After`]), at most `after_timeout_ms`.
+        /// `After`), at most `after_timeout_ms`.
         #[serde(default)]
         after_producer: Option<String>,
         #[serde(default, deserialize_with = "wire_number::optional_u64")]

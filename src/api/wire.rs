@@ -181,7 +181,7 @@ pub struct EstimateQuery {
     pub from: Option<Key>,
     #[serde(default)]
     pub to: Option<Key>,
-    /// Answer only once this producer's batches up to `after_seq` are applied (see [`After`]).
+    /// Answer only once this producer's batches up to `after_seq` are applied (see `After`).
     #[serde(default)]
     pub after_producer: Option<String>,
     #[serde(default)]

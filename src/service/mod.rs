@@ -298,10 +298,11 @@ impl Service {
                 };
                 Ok(Reply::Estimate(session.estimate(&query)))
             }
-            Command::ProducerStatus { session, producer } => Ok(Reply::Producer(
-                self.session_as(caller, &session)?
-                    .producer_status(&producer),
-            )),
+            Command::ProducerStatus { session, producer } => {
+                let session = self.session_as(caller, &session)?;
+                crate::session::check_producer_id(&producer, "producer")?;
+                Ok(Reply::Producer(session.producer_status(&producer)))
+            }
             Command::GetStats { session } => Ok(Reply::Stats(Box::new(
                 self.session_as(caller, &session)?.stats(),
             ))),
@@ -547,7 +548,10 @@ async fn wait_after(session: &Session, after: Option<After>) -> Result<(), Servi
             producer,
             seq,
             timeout,
-        }) => session.wait_after(&producer, seq, timeout).await,
+        }) => {
+            crate::session::check_producer_id(&producer, "after_producer")?;
+            session.wait_after(&producer, seq, timeout).await
+        }
         None => Ok(()),
     }
 }

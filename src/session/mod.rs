@@ -59,7 +59,7 @@ pub use durable::{Durability, Recovery};
 use engine::Engine;
 pub use mirror::MirrorEntry;
 pub use ordering::Progress;
-pub use producers::Origin;
+pub use producers::{check_producer_id, Origin};
 use state::State;
 pub use stream::EventStream;
 

@@ -59,33 +59,20 @@ impl Origin {
             (None, None) => Ok(None),
             (Some(_), None) => Err(ServiceError::bad_request(
                 "missing_producer_seq",
-                "batch.producer_seq",
+                "producer_seq",
                 "a batch with a `producer` needs its `producer_seq` (1, 2, 3, …)",
             )),
             (None, Some(_)) => Err(ServiceError::bad_request(
                 "missing_producer",
-                "batch.producer",
+                "producer",
                 "a batch with a `producer_seq` needs the `producer` it counts for",
             )),
             (Some(producer), Some(seq)) => {
-                let valid = !producer.is_empty()
-                    && producer.len() <= MAX_PRODUCER_LEN
-                    && producer
-                        .bytes()
-                        .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
-                if !valid {
-                    return Err(ServiceError::bad_request(
-                        "invalid_producer",
-                        "batch.producer",
-                        format!(
-                            "a producer id has 1 to {MAX_PRODUCER_LEN} characters of A-Z a-z 0-9 . _ -"
-                        ),
-                    ));
-                }
+                check_producer_id(producer, "producer")?;
                 if seq == 0 {
                     return Err(ServiceError::bad_request(
                         "invalid_producer_seq",
-                        "batch.producer_seq",
+                        "producer_seq",
                         "producer sequence numbers start at 1",
                     ));
                 }
@@ -98,6 +85,23 @@ impl Origin {
     }
 }
 
+/// A valid producer id (`field`: where the request carries it): 400 `invalid_producer`.
+pub fn check_producer_id(producer: &str, field: &str) -> Result<(), ServiceError> {
+    let valid = !producer.is_empty()
+        && producer.len() <= MAX_PRODUCER_LEN
+        && producer
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    if valid {
+        return Ok(());
+    }
+    Err(ServiceError::bad_request(
+        "invalid_producer",
+        field,
+        format!("a producer id has 1 to {MAX_PRODUCER_LEN} characters of A-Z a-z 0-9 . _ -"),
+    ))
+}
+
 impl Producers {
     /// Whether `origin`'s batch is the producer's next (409 for a gap, or a repeat whose
     /// acknowledgement is no longer kept).
@@ -107,17 +111,22 @@ impl Producers {
             return Ok(Admission::Next);
         }
         if origin.seq > through {
+            let applied = match through {
+                0 => "none of its batches".to_string(),
+                1 => "its batch 1".to_string(),
+                n => format!("its batches 1 to {n}"),
+            };
             return Err(ServiceError::conflict(
                 "producer_sequence_gap",
                 format!(
                     "session `{session}` expects batch {} of producer `{}` next (it has applied \
-                     1 to {through}); {} would leave a gap: send the missing ones first",
+                     {applied}); {} would leave a gap: send the missing ones first",
                     through + 1,
                     origin.producer,
                     origin.seq
                 ),
             )
-            .at("batch.producer_seq"));
+            .at("producer_seq"));
         }
         let kept = self.by_id.get(&origin.producer).and_then(|p| {
             let first = p.acks.front()?.producer_seq;
@@ -134,7 +143,7 @@ impl Producers {
                     origin.seq, origin.producer
                 ),
             )
-            .at("batch.producer_seq")),
+            .at("producer_seq")),
         }
     }
 
@@ -323,7 +332,7 @@ mod tests {
         };
         assert_eq!(kept.factor_ids, vec![[13, 1], [20, 1]]);
         let gap = p.admit("s", &origin(4)).err().unwrap();
-        assert_eq!(gap.body.field.as_deref(), Some("batch.producer_seq"));
+        assert_eq!(gap.body.field.as_deref(), Some("producer_seq"));
         assert!(
             gap.body.message.contains("expects batch 3"),
             "{}",
@@ -381,12 +390,12 @@ mod tests {
             })
         );
         for (b, field) in [
-            (batch(Some("r"), None), "batch.producer_seq"),
-            (batch(None, Some(1)), "batch.producer"),
-            (batch(Some("a/b"), Some(1)), "batch.producer"),
-            (batch(Some(""), Some(1)), "batch.producer"),
-            (batch(Some(&"x".repeat(65)), Some(1)), "batch.producer"),
-            (batch(Some("r"), Some(0)), "batch.producer_seq"),
+            (batch(Some("r"), None), "producer_seq"),
+            (batch(None, Some(1)), "producer"),
+            (batch(Some("a/b"), Some(1)), "producer"),
+            (batch(Some(""), Some(1)), "producer"),
+            (batch(Some(&"x".repeat(65)), Some(1)), "producer"),
+            (batch(Some("r"), Some(0)), "producer_seq"),
         ] {
             let e = Origin::of(&b).unwrap_err();
             assert_eq!(e.body.field.as_deref(), Some(field), "{}", e.body.message);

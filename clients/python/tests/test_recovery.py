@@ -383,7 +383,7 @@ def main() -> int:
         else:
             raise AssertionError("a gap was accepted")
         expect((refused.status, refused.code, refused.field) == (
-            409, "producer_sequence_gap", "batch.producer_seq"), str(refused))
+            409, "producer_sequence_gap", "producer_seq"), str(refused))
         expect("2" in refused.message, f"message does not name 2: {refused.message}")
         got = server_counts(session)
         expect(got == (1, len(batches[0]["factors"])), str(got))
