@@ -260,14 +260,7 @@ impl Fleet {
     }
 }
 
-/// 503 `session_moving`: try again in a second.
-pub fn moving(name: &str) -> ServiceError {
-    ServiceError::unavailable(
-        "session_moving",
-        format!("session `{name}` is moving between instances of the fleet; try again shortly"),
-        1,
-    )
-}
+pub use crate::session::moving;
 
 impl Service {
     /// Makes this service instance `instance` of a fleet whose HTTP is reached at `http`.

@@ -133,8 +133,9 @@ impl Service {
             .unwrap_or_else(|p| p.into_inner())
             .insert(name.to_string());
         tracing::info!(session = name, "fleet: releasing to its new owner");
-        // Batches racing this see the session gone (checked under its lock); waiters wake.
-        session.mark_deleted();
+        // Writes racing this see it moving (checked under its lock: 503 session_moving, so
+        // their clients retry and reach the new owner); waiters wake.
+        session.mark_moved();
         session.sync_journal();
         // Waits for a snapshot being written, then closes the journal: nothing writes there
         // from here on.

@@ -38,7 +38,7 @@ impl Session {
         let origin = Origin::of(&batch)?;
         let mut st = self.lock();
         if st.deleted {
-            return Err(ServiceError::not_found("session", &self.name));
+            return Err(self.gone());
         }
         // A replay applies what the journal holds: it is the truth the table is rebuilt from.
         if let (Some(origin), true) = (&origin, journal) {
@@ -165,8 +165,13 @@ impl Session {
             ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
         }
         self.accepted.send_replace(sequence);
-        self.emit(SessionEvent::Ack(ack.clone()));
-        if !new_values.is_empty() {
+        // A replay (recovery, adoption) restores what was acknowledged before: acknowledging it
+        // again would tell subscribers something new was applied, with a producer's
+        // `accepted_through` going backwards. The recovery's solve publishes the estimate.
+        if journal {
+            self.emit(SessionEvent::Ack(ack.clone()));
+        }
+        if journal && !new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),
                 sequence,

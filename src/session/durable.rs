@@ -390,8 +390,12 @@ impl Session {
             messages.truncate(applied);
             if !messages.is_empty() {
                 let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
-                if let Some(d) = durable.as_mut() {
-                    d.append(&self.name, &Entry::Fusion { messages })?;
+                match durable.as_mut() {
+                    Some(d) => d.append(&self.name, &Entry::Fusion { messages })?,
+                    // Its files were closed meanwhile (deleted, or handed to another instance
+                    // of a fleet): what was applied here is dropped with it, so it must not be
+                    // acknowledged.
+                    None => return Err(self.gone()),
                 }
             }
         }

@@ -138,7 +138,7 @@ impl Session {
         let mut cache = graph.marginals.lock().unwrap_or_else(|p| p.into_inner());
         let mut st = self.lock();
         if st.deleted {
-            return Err(ServiceError::not_found("session", &self.name));
+            return Err(self.gone());
         }
         let mut kinds = Vec::with_capacity(query.keys.len());
         for (i, key) in query.keys.iter().enumerate() {

@@ -86,6 +86,9 @@ pub struct Session {
     durable: Mutex<Option<durable::Durable>>,
     /// Being rebuilt from its journal: writes are refused until it is done.
     recovering: AtomicBool,
+    /// Handed to another instance of a fleet: what still reaches it is refused with 503
+    /// `session_moving` (the client retries and reaches the new owner), not 404.
+    moved: AtomicBool,
     /// Why its files could not be recovered whole (set once, never cleared): it is read-only.
     corruption: std::sync::OnceLock<String>,
     /// The label of the bearer token that created it (HTTP with tokens), else nobody.
@@ -117,6 +120,7 @@ impl Session {
             engine: Engine::for_kind(kind),
             durable: Mutex::new(None),
             recovering: AtomicBool::new(false),
+            moved: AtomicBool::new(false),
             corruption: std::sync::OnceLock::new(),
             owner: std::sync::OnceLock::new(),
             runtime,
@@ -147,5 +151,34 @@ impl Session {
             None => true,
             Some(owner) => principal == Some(owner),
         }
+    }
+}
+
+/// 503 `session_moving`: the session is moving between instances of a fleet; try again in a
+/// second.
+pub fn moving(name: &str) -> crate::api::ServiceError {
+    crate::api::ServiceError::unavailable(
+        "session_moving",
+        format!("session `{name}` is moving between instances of the fleet; try again shortly"),
+        1,
+    )
+}
+
+impl Session {
+    /// What a request to this session gets once it is gone from here: 404, or 503
+    /// `session_moving` when it was handed to another instance.
+    fn gone(&self) -> crate::api::ServiceError {
+        if self.moved.load(std::sync::atomic::Ordering::SeqCst) {
+            moving(&self.name)
+        } else {
+            crate::api::ServiceError::not_found("session", &self.name)
+        }
+    }
+
+    /// Hands the session over (a fleet's release): every later write is refused with 503
+    /// `session_moving`, waiters wake, a running solve stops.
+    pub(crate) fn mark_moved(&self) {
+        self.moved.store(true, std::sync::atomic::Ordering::SeqCst);
+        self.mark_deleted();
     }
 }

@@ -55,7 +55,7 @@ impl Session {
         let reached = |session: &Session| {
             let st = session.lock();
             if st.deleted {
-                return Err(ServiceError::not_found("session", &session.name));
+                return Err(session.gone());
             }
             Ok(st.producers.accepted_through(producer))
         };

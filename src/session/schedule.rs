@@ -55,7 +55,7 @@ impl Session {
     pub fn optimize_now(self: &Arc<Self>) -> Result<(u64, u64), ServiceError> {
         let mut st = self.lock();
         if st.deleted {
-            return Err(ServiceError::not_found("session", &self.name));
+            return Err(self.gone());
         }
         st.dirty = true;
         st.converged = false;
@@ -108,6 +108,9 @@ impl Session {
             ));
         }
         let mut st = self.lock();
+        if st.deleted {
+            return Err(self.gone());
+        }
         self.journal_auto_optimize(auto)?;
         st.auto = auto;
         self.maybe_schedule(&mut st);
