@@ -313,7 +313,7 @@ async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_va
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
-    let batches = odometry_batches(8000);
+    let batches = odometry_batches(20000);
     let n = batches.len();
     let s = TestServer::start(&[]);
     let c = client();
@@ -324,11 +324,11 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
     let _out = z
         .declare_subscriber("factord/slow/out/**")
         .callback(move |sample| {
-            // The first event stalls this peer's reception for 3 s (less than zenoh's 5 s
-            // before it closes a link a blocking put waits on): the server's publisher falls
-            // behind.
+            // The first event stalls this peer's reception for 4 s (less than zenoh's 5 s
+            // before it closes a link a blocking put waits on) while the batches keep coming:
+            // the server's publisher falls behind.
             if !stalled.swap(true, std::sync::atomic::Ordering::SeqCst) {
-                std::thread::sleep(Duration::from_secs(3));
+                std::thread::sleep(Duration::from_secs(4));
             }
             let event: Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
             let _ = tx.send((sample.key_expr().to_string(), event));
