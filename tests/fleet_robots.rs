@@ -304,6 +304,7 @@ async fn thirty_robots_stream_through_a_kill_9() {
     let robots = result["robots"].as_array().unwrap();
     assert_eq!(robots.len(), ROBOTS);
     let (mut resent, mut duplicates, mut worst_chi2, mut worst_pose) = (0, 0, 0.0f64, 0.0f64);
+    let mut moved_link = Vec::new();
     let mut resumed = Vec::new();
     for r in robots {
         let name = r["session"].as_str().unwrap();
@@ -325,6 +326,17 @@ async fn thirty_robots_stream_through_a_kill_9() {
         assert_eq!(n("num_variables"), n("vertices"), "{name}: variables");
         resent += counters["resent"].as_u64().unwrap();
         duplicates += counters["duplicates"].as_u64().unwrap();
+        // A robot whose zenoh link was to the killed instance (its first endpoint) went on
+        // through another endpoint of its list.
+        let index: usize = name.trim_start_matches("robot-").parse().unwrap();
+        if index % 3 == victim {
+            let reconnects = counters["reconnects"].as_u64().unwrap();
+            assert!(
+                reconnects >= 1,
+                "{name} linked to the victim saw no reconnection"
+            );
+            moved_link.push(name.to_string());
+        }
         if let Some(t) = r["acks_resumed_s"].as_f64() {
             resumed.push(format!("{name} {:.0} ms", t * 1e3));
         }
@@ -415,6 +427,7 @@ async fn thirty_robots_stream_through_a_kill_9() {
         "{ROBOTS} robots x {POSES} batches at {RATE}/s; fleet up in {:.1} s; script: setup \
          {:.1} s, stream {:.1} s, flush+optimize+estimate {:.1} s; kill at {:.1} s of the script\n\
          adoption: worst {:.0} ms over {} sessions; the robots' next new ack after the kill: {}\n\
+         {} robots linked to the killed instance over zenoh moved to another endpoint\n\
          resent {resent} batches, {duplicates} answered as duplicates (applied 0 times again); \
          chi2 vs batch solver worst relative {worst_chi2:.1e}, poses worst {worst_pose:.1e}; \
          total {:.1} s",
@@ -426,6 +439,7 @@ async fn thirty_robots_stream_through_a_kill_9() {
         worst.as_secs_f64() * 1e3,
         on_victim.len(),
         resumed.join(", "),
+        moved_link.len(),
         started.elapsed().as_secs_f64()
     );
 }
