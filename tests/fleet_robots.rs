@@ -305,6 +305,7 @@ async fn thirty_robots_stream_through_a_kill_9() {
     assert_eq!(robots.len(), ROBOTS);
     let (mut resent, mut duplicates, mut worst_chi2, mut worst_pose) = (0, 0, 0.0f64, 0.0f64);
     let mut moved_link = Vec::new();
+    let mut refusals: BTreeMap<String, u64> = BTreeMap::new();
     let mut resumed = Vec::new();
     for r in robots {
         let name = r["session"].as_str().unwrap();
@@ -336,6 +337,9 @@ async fn thirty_robots_stream_through_a_kill_9() {
                 "{name} linked to the victim saw no reconnection"
             );
             moved_link.push(name.to_string());
+        }
+        for (code, count) in r["refusals"].as_object().unwrap() {
+            *refusals.entry(code.clone()).or_default() += count.as_u64().unwrap();
         }
         if let Some(t) = r["acks_resumed_s"].as_f64() {
             resumed.push(format!("{name} {:.0} ms", t * 1e3));
@@ -429,6 +433,7 @@ async fn thirty_robots_stream_through_a_kill_9() {
          adoption: worst {:.0} ms over {} sessions; the robots' next new ack after the kill: {}\n\
          {} robots linked to the killed instance over zenoh moved to another endpoint\n\
          resent {resent} batches, {duplicates} answered as duplicates (applied 0 times again); \
+         transient refusals seen by the robots {refusals:?}; \
          chi2 vs batch solver worst relative {worst_chi2:.1e}, poses worst {worst_pose:.1e}; \
          total {:.1} s",
         fleet_ready.as_secs_f64(),
@@ -442,4 +447,12 @@ async fn thirty_robots_stream_through_a_kill_9() {
         moved_link.len(),
         started.elapsed().as_secs_f64()
     );
+    // Passed: nothing to look at afterwards.
+    let state = fleet.state_dir.clone();
+    drop(fleet);
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&state);
+    for id in ["f1", "f2", "f3"] {
+        let _ = std::fs::remove_file(state.with_extension(format!("{id}.stderr")));
+    }
 }

@@ -48,6 +48,7 @@ class Robot:
         self.graph = g2o.load(path)
         self.batches = [b for _, b in self.graph.batches(predict=True)]
         self.ack_times: list = []  # monotonic times of new (not duplicate) acknowledgements
+        self.refusals: dict = {}  # error code -> count of this producer's batches refused
         self.lock = threading.Lock()
         self.producer = None
         self.client = None
@@ -55,6 +56,12 @@ class Robot:
                              "batches": len(self.batches), "edges": len(self.graph.edges),
                              "vertices": len(self.graph.vertices)}
         self.error = None
+
+    def on_error(self, event: dict) -> None:
+        if event.get("type") == "error" and event.get("producer") == self.producer_id:
+            code = (event.get("error") or {}).get("code", "?")
+            with self.lock:
+                self.refusals[code] = self.refusals.get(code, 0) + 1
 
     def on_ack(self, event: dict) -> None:
         if not event.get("duplicate"):
@@ -109,6 +116,7 @@ def main() -> int:
     for r in robots:
         home = r.index % n
         r.client = ZenohClient([endpoints[(home + k) % n] for k in range(n)], timeout=30)
+        r.client.subscribe(r.session, "errors", r.on_error)  # what the producer is told
         r.producer = r.client.producer(r.session, r.producer_id, window=4096,
                                        **{**options, "on_ack": r.on_ack})
         if args.no_resend:
@@ -174,6 +182,7 @@ def main() -> int:
             })
             with r.lock:
                 times = list(r.ack_times)
+                r.result["refusals"] = dict(r.refusals)
             if times:
                 gaps = [b - a for a, b in zip(times, times[1:])]
                 r.result["max_ack_gap_s"] = max(gaps, default=0.0)
