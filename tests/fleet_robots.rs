@@ -418,6 +418,32 @@ async fn thirty_robots_stream_through_a_kill_9() {
             assert_eq!(ack["sequence"], json!(POSES), "{ack}");
             assert_eq!(ack["accepted_through"], json!(POSES), "{ack}");
         }
+        // A new batch through each survivor (one more measurement between the first two poses,
+        // from a producer of its own) is applied once, by the owner, in order.
+        for (k, &i) in survivors.iter().enumerate() {
+            let extra = json!({"factors": [{"type": "between_se2", "keys": [0, 1],
+                "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.05]}],
+                "producer": format!("http-{}", fleet.id(i)), "producer_seq": 1});
+            let url = fleet
+                .instance(i)
+                .url(&format!("/v1/sessions/{name}/batches"));
+            let answer = c.post(&url).json(&extra).send().await.unwrap();
+            assert_eq!(answer.status().as_u16(), 200, "{name} via {}", fleet.id(i));
+            let ack: Value = answer.json().await.unwrap();
+            assert_eq!(ack["sequence"], json!(POSES + k + 1), "{name}: {ack}");
+            assert_ne!(ack["duplicate"], true, "{ack}");
+        }
+        for &i in &survivors {
+            let url = fleet.instance(i).url(&format!("/v1/sessions/{name}"));
+            let stats: Value = c.get(&url).send().await.unwrap().json().await.unwrap();
+            let edges = text.lines().filter(|l| l.starts_with("EDGE")).count();
+            assert_eq!(
+                stats["num_factors"],
+                json!(edges + survivors.len()),
+                "{stats}"
+            );
+            assert_eq!(stats["sequence"], json!(POSES + survivors.len()), "{stats}");
+        }
         assert!(survivors.contains(&owner));
     }
     for &i in &survivors {
