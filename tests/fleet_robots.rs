@@ -140,6 +140,10 @@ async fn thirty_robots_stream_through_a_kill_9() {
     for name in &names {
         owned[fleet.owner(name)].push(name.clone());
     }
+    assert!(
+        owned.iter().all(|o| !o.is_empty()),
+        "placement left an instance without sessions: {owned:?}"
+    );
     let victim = (0..3).max_by_key(|&i| owned[i].len()).unwrap();
     let on_victim = owned[victim].clone();
     let survivors: Vec<usize> = (0..3).filter(|&i| i != victim).collect();
