@@ -21,6 +21,10 @@ JsonDict = Dict[str, Any]
 # Error codes of a batch that say "send again later", not "this batch is wrong".
 _TRANSIENT_STATUS = (429, 503)
 _GAP = "producer_sequence_gap"
+# Refusals that end within milliseconds (a recovery, a fleet move): retried after _BRIEF_RETRY
+# seconds rather than their whole-second Retry-After.
+_BRIEF_UNAVAILABLE = ("recovering", "session_moving")
+_BRIEF_RETRY = 0.05
 _FORGOTTEN = "producer_sequence_forgotten"
 
 
@@ -280,7 +284,12 @@ class StreamProducer:
                 self._resync = True  # the service misses earlier ones: send them again
             elif error.status in _TRANSIENT_STATUS:
                 self._resync = True
-                self._not_before = time.monotonic() + float(error.retry_after or 1.0)
+                # A session recovering or moving between fleet instances is back within
+                # milliseconds; Retry-After counts whole seconds, so these retry sooner.
+                wait = float(error.retry_after or 1.0)
+                if error.code in _BRIEF_UNAVAILABLE:
+                    wait = min(wait, _BRIEF_RETRY)
+                self._not_before = time.monotonic() + wait
             elif seq in self._unacked:
                 self._failure = BatchRefused(error, self.producer, seq, self.accepted_through,
                                              [s for s in self._unacked if s >= seq])
