@@ -19,6 +19,11 @@ struct Event {
     accepted_through: Option<u64>,
     producers: Option<BTreeMap<String, u64>>,
     duplicate: Option<bool>,
+    error: Option<ErrorBody>,
+}
+
+#[derive(Deserialize, Default)]
+struct ErrorBody {
     code: Option<String>,
     message: Option<String>,
 }
@@ -88,12 +93,15 @@ impl Tracker {
                     .and_then(|p| p.get(&self.producer).copied());
                 self.cover_through(through.unwrap_or(0), at);
             }
-            "error" if mine || e.producer.is_none() => self.errors.push(format!(
-                "{} (batch {:?}): {}",
-                e.code.unwrap_or_default(),
-                e.producer_seq,
-                e.message.unwrap_or_default()
-            )),
+            "error" if mine || e.producer.is_none() => {
+                let body = e.error.unwrap_or_default();
+                self.errors.push(format!(
+                    "{} (batch {:?}): {}",
+                    body.code.unwrap_or_default(),
+                    e.producer_seq,
+                    body.message.unwrap_or_default()
+                ))
+            }
             _ => {}
         }
     }

@@ -51,10 +51,13 @@ impl Server {
         let _ = std::fs::remove_file(&info);
         let stderr_path = state_dir.with_extension(format!("{info_name}.stderr"));
         let stderr = std::fs::File::create(&stderr_path).expect("stderr file");
+        // FACTORD_LINK_LOG=info: the servers' logs in more detail (kept next to the state
+        // directory, `<dir>.<info>.stderr`).
+        let log = std::env::var("FACTORD_LINK_LOG").unwrap_or_else(|_| "warn".into());
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
         cmd.arg("serve")
             .args(["--listen", "127.0.0.1:0", "--zenoh-listen", zenoh])
-            .args(["--zenoh-multicast", "off", "--log", "warn"])
+            .args(["--zenoh-multicast", "off", "--log", &log])
             .arg("--state-dir")
             .arg(state_dir)
             .args(extra)
