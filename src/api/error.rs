@@ -179,8 +179,21 @@ impl ServiceError {
 }
 
 /// Parses a JSON request body (an object), naming the offending field on failure.
+///
+/// A valid body is decoded once, straight; only one that fails is decoded again through
+/// `serde_path_to_error` to name the field (tracking the path of every value costs about a
+/// fifth of the decoding, measured on 1000-factor batches).
 pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, ServiceError> {
-    // serde would also fill a struct from an array by position; the API only speaks objects.
+    require_object(bytes)?;
+    match serde_json::from_slice(bytes) {
+        Ok(value) => Ok(value),
+        Err(_) => parse_json_located(bytes),
+    }
+}
+
+/// The body starts with `{` (serde would also fill a struct from an array by position; the API
+/// only speaks objects).
+fn require_object(bytes: &[u8]) -> Result<(), ServiceError> {
     match bytes.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'{') => {}
         Some(_) => {
@@ -198,6 +211,11 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, Ser
             ))
         }
     }
+    Ok(())
+}
+
+/// Decodes `bytes` tracking the path of every value, so an error names its field.
+fn parse_json_located<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T, ServiceError> {
     let de = &mut serde_json::Deserializer::from_slice(bytes);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
@@ -237,9 +255,15 @@ pub fn parse_json_within<T: serde::de::DeserializeOwned>(
             return Err(ServiceError::too_large("list_too_long", e.to_string()).at("body"))
         }
     }
+    require_object(bytes)?;
+    // The common case first, as `parse_json` does; the budget starts afresh for the second
+    // decoding of a failing body.
+    if let Ok(Ok(value)) = decode_within(max_items, || serde_json::from_slice::<T>(bytes)) {
+        return Ok(value);
+    }
     let mut beyond = None;
     let decoded = decode_within(max_items, || {
-        parse_json::<T>(bytes).inspect_err(|e| beyond = e.body.field.clone())
+        parse_json_located::<T>(bytes).inspect_err(|e| beyond = e.body.field.clone())
     });
     decoded.unwrap_or_else(|exceeded| {
         let error = ServiceError::too_large(
