@@ -230,3 +230,120 @@ async fn reads_after_a_producers_batches_see_them_across_transports() {
     z.close().await.unwrap();
     s.assert_no_panic();
 }
+
+/// One pose per batch or a hundred (beyond the size the server decodes where it receives, so
+/// those are decoded ahead on another thread while the batch before them is applied), mixed on
+/// one zenoh publisher: acknowledged in the order sent; a large refused batch in between is
+/// reported with its producer and changes nothing; a large put for no session is refused on
+/// that session's `out/errors`.
+#[tokio::test(flavor = "multi_thread")]
+async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "ahead", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    let z = zenoh_peer(&s.zenoh).await;
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<(String, Value)>();
+    let _events = z
+        .declare_subscriber("factord/*/out/*")
+        .callback(move |sample| {
+            if let Ok(v) = serde_json::from_slice::<Value>(&sample.payload().to_bytes()) {
+                let _ = tx.send((sample.key_expr().as_str().to_string(), v));
+            }
+        })
+        .await
+        .unwrap();
+    let publisher = z
+        .declare_publisher("factord/ahead/in/batch")
+        .congestion_control(zenoh::qos::CongestionControl::Block)
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    // Chunks of 1 and 100 poses, alternating.
+    let poses = g2o_batches(&common::synthetic_manhattan(1010, 4));
+    let mut chunks: Vec<Value> = Vec::new();
+    let mut rest = &poses[..];
+    while !rest.is_empty() {
+        let take = if chunks.len() % 2 == 0 { 1 } else { 100 }.min(rest.len());
+        let (chunk, tail) = rest.split_at(take);
+        let mut merged = json!({"variables": [], "factors": []});
+        for b in chunk {
+            for part in ["variables", "factors"] {
+                let items = b[part].as_array().unwrap().clone();
+                merged[part].as_array_mut().unwrap().extend(items);
+            }
+        }
+        chunks.push(merged);
+        rest = tail;
+    }
+    assert!(
+        chunks[1].to_string().len() > 20_000,
+        "a large chunk is large"
+    );
+    // A large batch refused on its last factor (a measurement of the wrong length).
+    let mut bad = chunks[1].clone();
+    let last = bad["factors"].as_array().unwrap().len() - 1;
+    bad["factors"][last]["measurement"] = json!([1.0, 2.0]);
+    bad["variables"] = json!([]);
+    let bad = with_producer(bad, "bad", 1);
+
+    for (k, chunk) in chunks.iter().enumerate() {
+        let body = with_producer(chunk.clone(), "p", k as u64 + 1).to_string();
+        publisher.put(body).await.unwrap();
+        if k == chunks.len() / 2 {
+            publisher.put(bad.to_string()).await.unwrap();
+        }
+    }
+    z.put("factord/nobody/in/batch", bad.to_string())
+        .await
+        .unwrap();
+
+    let mut acked = Vec::new();
+    let (mut refused, mut nobody) = (None, None);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while acked.len() < chunks.len() || refused.is_none() || nobody.is_none() {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let Ok(Some((key, v))) = tokio::time::timeout(left, rx.recv()).await else {
+            panic!(
+                "acked {} of {}, refused {refused:?}, nobody {nobody:?}",
+                acked.len(),
+                chunks.len()
+            );
+        };
+        match key.as_str() {
+            "factord/ahead/out/acks" if v["producer"] == "p" => {
+                acked.push(v["producer_seq"].as_u64().unwrap())
+            }
+            "factord/ahead/out/errors" => refused = Some(v),
+            "factord/nobody/out/errors" => nobody = Some(v),
+            _ => {}
+        }
+    }
+    let expected: Vec<u64> = (1..=chunks.len() as u64).collect();
+    assert_eq!(acked, expected, "acks in the order the batches were sent");
+    let refused = refused.unwrap();
+    assert_eq!(refused["producer"], "bad", "{refused}");
+    assert_eq!(refused["error"]["code"], "wrong_dimension", "{refused}");
+    assert_eq!(
+        refused["error"]["field"],
+        format!("factors[{last}].measurement"),
+        "{refused}"
+    );
+    let nobody = nobody.unwrap();
+    assert_eq!(nobody["error"]["code"], "unknown_session", "{nobody}");
+
+    let st = stats(&c, &s, "ahead").await;
+    let factors: usize = chunks
+        .iter()
+        .map(|b| b["factors"].as_array().unwrap().len())
+        .sum();
+    assert_eq!(st["num_variables"], poses.len(), "{st}");
+    assert_eq!(st["num_factors"], factors, "{st}");
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}

@@ -6,6 +6,7 @@
 //! Layer 9: imports `session` and everything below; never `transport` or `server`.
 
 pub mod caller;
+mod delivery;
 mod durability;
 pub mod fleet;
 mod fleet_lock;
@@ -25,6 +26,7 @@ pub use crate::api::{parse_json, parse_json_within, parse_query, ErrorBody, Serv
 use crate::runtime::metrics;
 use crate::runtime::pool::WorkerPool;
 pub use caller::Caller;
+pub use delivery::Delivery;
 
 use crate::api::catalogue;
 use crate::api::wire::*;
@@ -359,40 +361,6 @@ impl Service {
             }
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
-    }
-
-    /// A message sent to a session without a reply channel (a zenoh put, a WebSocket message):
-    /// the topic `kind` names a [`Command`] (`api::command::parse_topic`), executed like any
-    /// other. A rejection goes to the session's
-    /// event stream, where its sender listens; it is returned only when there is no such session
-    /// (and so no stream to put it on).
-    pub async fn deliver(
-        &self,
-        caller: &Caller,
-        session: &str,
-        kind: &str,
-        payload: &[u8],
-    ) -> Result<(), ServiceError> {
-        let target = self.session_as(caller, session)?;
-        let mut origin = None;
-        let outcome = match crate::api::command::parse_topic(
-            session,
-            kind,
-            payload,
-            self.limits.max_batch_items,
-        ) {
-            Ok(command) => {
-                if let Command::ApplyBatch { batch, .. } = &command {
-                    origin = crate::session::Origin::of(batch).ok().flatten();
-                }
-                self.execute_as(caller, command).await.map(|_| ())
-            }
-            Err(e) => Err(e),
-        };
-        if let Err(error) = outcome {
-            target.report_rejection(error, origin);
-        }
-        Ok(())
     }
 
     /// The Prometheus text of `GET /metrics`: the process's counters, histograms and `process_*`

@@ -277,8 +277,10 @@ impl Session {
         }
         let added = prepared.factors.len();
         for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
+            // No label: `prepare` checked what the problem's errors would name, and a session's
+            // factor is named by its id.
             problem
-                .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, f.label)
+                .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, String::new())
                 .expect("validated");
             ids.push(id);
         }

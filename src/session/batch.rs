@@ -20,7 +20,6 @@ pub(crate) struct PreparedFactor {
     pub factor: Box<dyn Factor>,
     pub sqrt_information: SqrtInformation,
     pub robust: Option<RobustKernel>,
-    pub label: String,
 }
 
 pub(crate) struct PreparedBatch {
@@ -47,23 +46,35 @@ pub(crate) struct SessionView<'a> {
     pub live_factors: &'a HashSet<FactorId>,
 }
 
-fn finite(values: &[f64], field: &str) -> Result<(), ServiceError> {
+/// The name of a field in a request, formatted only when an error names it: a valid batch of a
+/// thousand factors would otherwise format thousands of names it never shows (about 5% of
+/// ingest, measured).
+type FieldName<'a> = &'a dyn Fn() -> String;
+
+fn finite(values: &[f64], field: FieldName) -> Result<(), ServiceError> {
     match values.iter().position(|v| !v.is_finite()) {
-        Some(k) => Err(ServiceError::bad_request(
-            "non_finite",
-            format!("{field}[{k}]"),
-            format!("{field}[{k}] is not a finite number"),
-        )),
+        Some(k) => {
+            let field = field();
+            Err(ServiceError::bad_request(
+                "non_finite",
+                format!("{field}[{k}]"),
+                format!("{field}[{k}] is not a finite number"),
+            ))
+        }
         None => Ok(()),
     }
 }
 
-fn decode_value(kind: &str, value: &[f64], field: &str) -> Result<Box<dyn Variable>, ServiceError> {
+fn decode_value(
+    kind: &str,
+    value: &[f64],
+    field: FieldName,
+) -> Result<Box<dyn Variable>, ServiceError> {
     let codec = catalogue::variable_codec(kind).expect("kind checked against the catalogue");
     if value.len() != codec.len {
         return Err(ServiceError::bad_request(
             "wrong_dimension",
-            field,
+            field(),
             format!(
                 "a {kind} value has {} numbers, got {}",
                 codec.len,
@@ -72,25 +83,26 @@ fn decode_value(kind: &str, value: &[f64], field: &str) -> Result<Box<dyn Variab
         ));
     }
     finite(value, field)?;
-    (codec.decode)(value).map_err(|m| ServiceError::bad_request("invalid_value", field, m))
+    (codec.decode)(value).map_err(|m| ServiceError::bad_request("invalid_value", field(), m))
 }
 
+/// The factor's square-root information; `factor` names the factor (`factors[3]`) in errors.
 fn information(
     spec: &FactorSpec,
     dim: usize,
-    field: &str,
+    factor: FieldName,
 ) -> Result<SqrtInformation, ServiceError> {
+    let information_field = || format!("{}.information", factor());
     let matrix = match (&spec.information, &spec.sigmas) {
         (Some(_), Some(_)) | (None, None) => {
             return Err(ServiceError::bad_request(
                 "missing_noise",
-                field,
+                factor(),
                 "give exactly one of `information` and `sigmas`",
             ))
         }
         (Some(info), None) => {
-            let field = format!("{field}.information");
-            finite(info, &field)?;
+            finite(info, &information_field)?;
             if info.len() == dim * dim {
                 DMatrix::from_row_slice(dim, dim, info)
             } else if info.len() == dim * (dim + 1) / 2 {
@@ -107,7 +119,7 @@ fn information(
             } else {
                 return Err(ServiceError::bad_request(
                     "wrong_dimension",
-                    field,
+                    information_field(),
                     format!(
                         "information needs {} (full) or {} (upper triangle) numbers, got {}",
                         dim * dim,
@@ -118,19 +130,19 @@ fn information(
             }
         }
         (None, Some(sigmas)) => {
-            let field = format!("{field}.sigmas");
-            finite(sigmas, &field)?;
+            let sigmas_field = || format!("{}.sigmas", factor());
+            finite(sigmas, &sigmas_field)?;
             if sigmas.len() != dim {
                 return Err(ServiceError::bad_request(
                     "wrong_dimension",
-                    field,
+                    sigmas_field(),
                     format!("sigmas needs {dim} numbers, got {}", sigmas.len()),
                 ));
             }
             if let Some(k) = sigmas.iter().position(|s| *s <= 0.0) {
                 return Err(ServiceError::bad_request(
                     "bad_information",
-                    format!("{field}[{k}]"),
+                    format!("{}[{k}]", sigmas_field()),
                     "sigmas must be positive",
                 ));
             }
@@ -141,11 +153,7 @@ fn information(
         }
     };
     SqrtInformation::from_information(&matrix).map_err(|e| {
-        ServiceError::bad_request(
-            "bad_information",
-            format!("{field}.information"),
-            e.to_string(),
-        )
+        ServiceError::bad_request("bad_information", information_field(), e.to_string())
     })
 }
 
@@ -156,11 +164,11 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
     let mut new_kind: HashMap<Key, &'static str> = HashMap::new();
     let mut values: Vec<Option<Box<dyn Variable>>> = Vec::with_capacity(batch.variables.len());
     for (i, spec) in batch.variables.iter().enumerate() {
-        let field = format!("variables[{i}]");
+        let field = |suffix: &str| format!("variables[{i}]{suffix}");
         let Some(&var_kind) = kind.variable_kinds.iter().find(|k| **k == spec.kind) else {
             return Err(ServiceError::bad_request(
                 "wrong_kind",
-                format!("{field}.kind"),
+                field(".kind"),
                 format!(
                     "a {} session holds variables of kind {:?}, not `{}`",
                     kind.name, kind.variable_kinds, spec.kind
@@ -170,12 +178,12 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         if view.mirror.contains_key(&spec.key) || new_kind.insert(spec.key, var_kind).is_some() {
             return Err(ServiceError::invalid(
                 "duplicate_variable",
-                format!("{field}.key"),
+                field(".key"),
                 format!("variable {} already exists", spec.key),
             ));
         }
         values.push(match &spec.value {
-            Some(v) => Some(decode_value(var_kind, v, &format!("{field}.value"))?),
+            Some(v) => Some(decode_value(var_kind, v, &|| field(".value"))?),
             None => None,
         });
     }
@@ -189,7 +197,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
     // Factors.
     let mut factors = Vec::with_capacity(batch.factors.len());
     for (i, spec) in batch.factors.iter().enumerate() {
-        let field = format!("factors[{i}]");
+        let field = |suffix: &str| format!("factors[{i}]{suffix}");
         let codec = kind
             .factor_types
             .contains(&spec.factor_type.as_str())
@@ -198,7 +206,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             .ok_or_else(|| {
                 ServiceError::bad_request(
                     "unknown_factor_type",
-                    format!("{field}.type"),
+                    field(".type"),
                     format!(
                         "a {} session accepts factors {:?}, not `{}`",
                         kind.name, kind.factor_types, spec.factor_type
@@ -208,7 +216,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         if spec.keys.len() != codec.variable_kinds.len() {
             return Err(ServiceError::bad_request(
                 "wrong_dimension",
-                format!("{field}.keys"),
+                field(".keys"),
                 format!(
                     "{} connects {} variables, got {} keys",
                     codec.name,
@@ -218,11 +226,11 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             ));
         }
         for (k, (&key, &expected)) in spec.keys.iter().zip(codec.variable_kinds).enumerate() {
-            let key_field = format!("{field}.keys[{k}]");
+            let key_field = || field(&format!(".keys[{k}]"));
             if spec.keys[..k].contains(&key) {
                 return Err(ServiceError::bad_request(
                     "repeated_variable",
-                    key_field,
+                    key_field(),
                     format!("variable {key} appears twice"),
                 ));
             }
@@ -230,7 +238,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
                 None => {
                     return Err(ServiceError::invalid(
                         "unknown_variable",
-                        key_field,
+                        key_field(),
                         format!(
                             "variable {key} does not exist (add it in this or an earlier batch)"
                         ),
@@ -239,7 +247,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
                 Some(found) if found != expected => {
                     return Err(ServiceError::invalid(
                         "wrong_kind",
-                        key_field,
+                        key_field(),
                         format!(
                             "{} needs a {expected} here, variable {key} is a {found}",
                             codec.name
@@ -252,7 +260,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         if spec.measurement.len() != codec.measurement_len {
             return Err(ServiceError::bad_request(
                 "wrong_dimension",
-                format!("{field}.measurement"),
+                field(".measurement"),
                 format!(
                     "{} measurement has {} numbers, got {}",
                     codec.name,
@@ -261,26 +269,23 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
                 ),
             ));
         }
-        finite(&spec.measurement, &format!("{field}.measurement"))?;
-        let factor = (codec.build)(&spec.keys, &spec.measurement).map_err(|m| {
-            ServiceError::bad_request("invalid_value", format!("{field}.measurement"), m)
-        })?;
-        let sqrt_information = information(spec, codec.residual_dim, &field)?;
+        finite(&spec.measurement, &|| field(".measurement"))?;
+        let factor = (codec.build)(&spec.keys, &spec.measurement)
+            .map_err(|m| ServiceError::bad_request("invalid_value", field(".measurement"), m))?;
+        let sqrt_information = information(spec, codec.residual_dim, &|| field(""))?;
         if let Some(s) = spec.robust.map(|k| k.scale()) {
             if !(s.is_finite() && s > 0.0) {
                 return Err(ServiceError::bad_request(
                     "invalid_value",
-                    format!("{field}.robust.scale"),
+                    field(".robust.scale"),
                     "robust kernel scale must be a positive finite number",
                 ));
             }
         }
-        let label = format!("{field} ({} {:?})", codec.name, spec.keys);
         factors.push(PreparedFactor {
             factor,
             sqrt_information,
             robust: spec.robust,
-            label,
         });
     }
 
@@ -323,17 +328,17 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
     // Guesses for existing (or this batch's) variables.
     let mut guesses = Vec::with_capacity(batch.guesses.len());
     for (i, g) in batch.guesses.iter().enumerate() {
-        let field = format!("guesses[{i}]");
+        let field = |suffix: &str| format!("guesses[{i}]{suffix}");
         let Some(var_kind) = kind_of(g.key) else {
             return Err(ServiceError::invalid(
                 "unknown_variable",
-                format!("{field}.key"),
+                field(".key"),
                 format!("variable {} does not exist", g.key),
             ));
         };
         guesses.push((
             g.key,
-            decode_value(var_kind, &g.value, &format!("{field}.value"))?,
+            decode_value(var_kind, &g.value, &|| field(".value"))?,
         ));
     }
 

@@ -19,7 +19,7 @@ use std::time::Duration;
 use zenoh::query::Query;
 
 use super::config::zenoh_error;
-use super::{answer_estimate, oversized, payload, reply, take_input, Context};
+use super::{answer_estimate, oversized, payload, reply, Context};
 use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
 use crate::service::ServiceError;
 
@@ -189,13 +189,8 @@ impl SessionKeys {
             .await
             .map_err(zenoh_error)?;
         let mut tasks = Vec::new();
-        let ctx = c.clone();
-        // One task: a session's puts are taken in the order they came.
-        tasks.push(tokio::spawn(async move {
-            while let Ok(sample) = inputs.recv_async().await {
-                take_input(&ctx, &sample).await;
-            }
-        }));
+        // A session's puts are taken in the order they came.
+        tasks.extend(super::inputs::take_inputs(c, inputs));
         let ctx = c.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(query) = estimate.recv_async().await {

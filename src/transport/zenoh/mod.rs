@@ -21,7 +21,7 @@ use std::sync::Arc;
 
 use zenoh::query::Query;
 
-use crate::api::wire::{EstimateQuery, SessionEvent};
+use crate::api::wire::EstimateQuery;
 use crate::api::ErrorKind;
 use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 
@@ -29,6 +29,7 @@ mod config;
 mod fleet;
 mod fleet_routes;
 mod forward;
+mod inputs;
 
 use config::{caller, config, zenoh_error};
 pub use config::{ZenohConfig, ZenohError};
@@ -147,12 +148,7 @@ pub async fn start(
                 .declare_subscriber(format!("{prefix}/*/in/*"))
                 .await
                 .map_err(zenoh_error)?;
-            let c = ctx.clone();
-            tasks.push(tokio::spawn(async move {
-                while let Ok(sample) = inputs.recv_async().await {
-                    take_input(&c, &sample).await;
-                }
-            }));
+            tasks.extend(inputs::take_inputs(&ctx, inputs));
         }
     }
 
@@ -192,44 +188,6 @@ pub(super) async fn answer_estimate(c: &Context, query: &Query) {
         Err(e) => Err(e),
     };
     reply(query, result.map(|r| serde_json::to_vec(&r))).await;
-}
-
-/// A put on `<p>/<session>/in/<what>`.
-pub(super) async fn take_input(c: &Context, sample: &zenoh::sample::Sample) {
-    // At full rate the input loops' receive is always ready: without this they never yield,
-    // and the tasks their batches wake (the event publishers, in the worker's LIFO slot, which
-    // no other worker steals) would wait until the stream pauses and then find their events
-    // overwritten.
-    tokio::task::consume_budget().await;
-    let key = sample.key_expr().as_str();
-    let mut parts = key[c.prefix.len() + 1..].split('/');
-    let (Some(name), Some("in"), Some(what)) = (parts.next(), parts.next(), parts.next()) else {
-        return;
-    };
-    // Puts have no reply: rejections go to the session's stream (SSE and `out/errors`),
-    // or straight to `out/errors` when there is no such session or the put is too
-    // large to read (that refusal tells the sender nothing of the session).
-    let outcome = match oversized(Some(sample.payload()), c.max_payload) {
-        Some(refusal) => Err(refusal),
-        None => {
-            let bytes = sample.payload().to_bytes();
-            c.service.deliver(&c.caller, name, what, &bytes).await
-        }
-    };
-    if let Err(error) = outcome {
-        let event = SessionEvent::Error {
-            session: name.into(),
-            sequence: None,
-            error: error.body,
-            producer: None,
-            producer_seq: None,
-        };
-        let body = serde_json::to_vec(&event).expect("events serialise");
-        let _ = c
-            .zenoh
-            .put(format!("{}/{name}/out/errors", c.prefix), body)
-            .await;
-    }
 }
 
 pub(super) fn payload(query: &Query) -> Vec<u8> {
