@@ -96,20 +96,7 @@ impl Fleet {
             cmd.args(["--zenoh-connect", &connect.join(",")]);
         }
         let child = cmd.spawn().expect("factord starts");
-        let deadline = Instant::now() + Duration::from_secs(20);
-        let http = loop {
-            if let Ok(text) = std::fs::read_to_string(&info) {
-                if let Ok(v) = serde_json::from_str::<Value>(&text) {
-                    break format!("http://{}", v["http"].as_str().expect("http address"));
-                }
-            }
-            assert!(
-                Instant::now() < deadline,
-                "instance {id} did not start: {}",
-                read(&stderr_path)
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        };
+        let http = super::server::http_when_started(&info, &format!("instance {id}"), &stderr_path);
         self.instances[i] = Some(Instance {
             id,
             http,

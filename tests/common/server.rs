@@ -90,21 +90,7 @@ impl TestServer {
         }
         configure(&mut cmd);
         let child = cmd.spawn().expect("factord starts");
-        let info = state_dir.join("server.json");
-        let deadline = Instant::now() + Duration::from_secs(20);
-        let http = loop {
-            if let Ok(text) = std::fs::read_to_string(&info) {
-                if let Ok(v) = serde_json::from_str::<Value>(&text) {
-                    break format!("http://{}", v["http"].as_str().expect("http address"));
-                }
-            }
-            assert!(
-                Instant::now() < deadline,
-                "server did not start: {}",
-                read(&stderr_path)
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        };
+        let http = http_when_started(&state_dir.join("server.json"), "server", &stderr_path);
         Self {
             http,
             zenoh,
@@ -319,6 +305,25 @@ pub fn g2o_batches(text: &str) -> Vec<Value> {
             })
         })
         .collect()
+}
+
+/// The HTTP URL a starting server writes to `info` (its `server.json`), waited for up to 20 s;
+/// `what` and its stderr in the failure.
+pub fn http_when_started(info: &Path, what: &str, stderr_path: &Path) -> String {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        if let Ok(text) = std::fs::read_to_string(info) {
+            if let Ok(v) = serde_json::from_str::<Value>(&text) {
+                return format!("http://{}", v["http"].as_str().expect("http address"));
+            }
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what} did not start: {}",
+            read(stderr_path)
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
 
 /// A zenoh peer on loopback connected to `endpoint`, scouting off.
