@@ -432,11 +432,24 @@ fn cases() -> Vec<Case> {
             text(&[&v3_quat(0, "0 0 0 1"), &v2("1", "0")]),
             "request body:2: mixes 2D and 3D records",
         ),
-        // J21: at least one vertex. These errors name no line: `request body: <reason>`.
+        // J21: at least one vertex or edge. These errors name no line: `request body: <reason>`.
         bad_graph("J21", "", "", "request body: no vertices or edges"),
         bad_graph("J21", "", "# nothing\n\n", "request body: no vertices or edges"),
         bad_graph("J21", "", "FIX 0\n", "request body: no vertices or edges"),
-        bad_graph("J21", "format=toro", "# nothing\nEQUIV 0 1\n", "request body: no vertices"),
+        bad_graph("J21", "format=toro", "# nothing\nEQUIV 0 1\n", "request body: no vertices or edges"),
+        // J21a: edges only, but not connected.
+        bad_graph(
+            "J21a",
+            "",
+            "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 5 6 1 0 0 1 0 0 1 0 1\n",
+            "request body: the file has no vertices and its edges do not connect vertex 5",
+        ),
+        bad_graph(
+            "J21a",
+            "format=toro",
+            "EDGE2 0 1 1 0 0 1 0 1 1 0 0\nEDGE2 5 6 1 0 0 1 0 1 1 0 0\n",
+            "do not connect vertex 5 (and 1 more) to vertex 0",
+        ),
         // J22: unique vertex ids.
         bad_graph(
             "J22",

@@ -4,17 +4,19 @@
 //! defined on g2o's error `[t; vec(q)]`, where `vec(q) ≈ Log(R)/2`; our SE(3) factor's rotation
 //! error is `Log(R)` (the angle), so Ω is mapped to `D Ω D`, `D = diag(1, 1, 1, ½, ½, ½)`, and back
 //! on writing. [`chi2_g2o_convention`] scores a 3D graph exactly as g2o does, for comparisons.
+//! A file of edges only gets its vertices from a spanning tree (`edges.rs`).
 
 use std::fmt::Write as _;
 use std::path::Path;
 
 use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
 
+use super::edges::{add_edges, Edge};
 use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
 use crate::factors::{BetweenSe2, BetweenSe3};
 use crate::geometry::{Se2, Se3};
 use crate::problem::FactorEntry;
-use crate::problem::{Key, Problem, Values};
+use crate::problem::{Key, Problem, Values, Variable};
 
 /// Symmetric n×n from its upper triangle, row-major.
 fn upper_triangle(n: usize, f: &[f64]) -> DMatrix<f64> {
@@ -127,41 +129,42 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             reason: "no vertices or edges".into(),
         });
     };
+    let mut built = Vec::with_capacity(edges.len());
     for (path, number, f, dim) in edges {
         let (i, j) = (id(path, number, f[0], 1)?, id(path, number, f[1], 2)?);
-        let result = match dim {
-            Dimension::Two => problem.add_factor(
-                Box::new(BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]))),
-                &upper_triangle(3, &f[5..11]),
-                None,
-                format!("EDGE_SE2 {i} {j} ({}:{number})", path.display()),
-            ),
+        built.push(match dim {
+            Dimension::Two => Edge {
+                factor: Box::new(BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]))),
+                information: upper_triangle(3, &f[5..11]),
+                label: format!("EDGE_SE2 {i} {j} ({}:{number})", path.display()),
+                path,
+                line: number,
+            },
             Dimension::Three => {
                 let z = Se3::new(
                     quaternion(path, number, &f[5..9])?,
                     Vector3::new(f[2], f[3], f[4]),
                 );
                 let d = rotation_scaling(true);
-                problem.add_factor(
-                    Box::new(BetweenSe3::new(i, j, z)),
-                    &(&d * upper_triangle(6, &f[9..30]) * &d),
-                    None,
-                    format!("EDGE_SE3:QUAT {i} {j} ({}:{number})", path.display()),
-                )
+                Edge {
+                    factor: Box::new(BetweenSe3::new(i, j, z)),
+                    information: &d * upper_triangle(6, &f[9..30]) * &d,
+                    label: format!("EDGE_SE3:QUAT {i} {j} ({}:{number})", path.display()),
+                    path,
+                    line: number,
+                }
             }
-        };
-        result.map_err(|e| problem_error(path, number, e))?;
+        });
     }
+    let origin: Box<dyn Variable> = match dimension {
+        Dimension::Two => Box::new(Se2::identity()),
+        Dimension::Three => Box::new(Se3::identity()),
+    };
+    order.extend(add_edges(&mut problem, built, origin, files[0].0)?);
     for (path, number, key) in fixes {
         problem
             .set_fixed(key, true)
             .map_err(|e| problem_error(path, number, e))?;
-    }
-    if problem.values.is_empty() {
-        return Err(super::IoError::Invalid {
-            file: files[0].0.to_path_buf(),
-            reason: "no vertices".into(),
-        });
     }
     Ok(PoseGraph {
         problem,

@@ -7,6 +7,7 @@
 
 pub mod bal;
 pub mod direct_ba;
+mod edges;
 pub mod euroc;
 pub mod g2o;
 pub mod ply;
