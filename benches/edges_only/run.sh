@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Graphs without vertices: factord solve (default options) and GTSAM in the same run.
 #   benches/edges_only/run.sh [--repeat 5]
-# Prints one JSON line per graph (factord's Summary numbers and gtsam_edges_only.py's output)
+# Prints one JSON line per graph (factord's Summary numbers and gtsam_no_vertices.py's output)
 # and a table.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -14,11 +14,11 @@ py="${FACTORD_BENCH_VENVS:-$HOME/.cache/factord/venvs}/gtsam/bin/python"
 target="${CARGO_TARGET_DIR:-target}"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-for graph in 2d/gtsam/w20000.txt 2d/sesync/CSAIL.g2o; do
+for graph in 2d/gtsam/w20000.txt 2d/sesync/CSAIL.g2o 2d/gtsam/victoria_park.txt; do
   [ -f "$data/$graph" ] || { echo "skipped $graph: not in $data" >&2; continue; }
   /usr/bin/time -f "%M" -o "$tmp/rss" "$target/release/factord" solve "$data/$graph" --repeat "$repeat" \
     --summary-json "$tmp/summary.json" --out "$tmp/ours.g2o" --quiet
-  "$py" benches/edges_only/gtsam_edges_only.py --file "$data/$graph" --ours "$tmp/ours.g2o" >"$tmp/gtsam.json"
+  "$py" benches/edges_only/gtsam_no_vertices.py --file "$data/$graph" --ours "$tmp/ours.g2o" >"$tmp/gtsam.json"
   python3 - "$graph" "$tmp" <<'PY'
 import json, sys
 graph, tmp = sys.argv[1], sys.argv[2]

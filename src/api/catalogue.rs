@@ -11,11 +11,12 @@
 //! `proto/v1/factors.schema.json`. A new factor is its file plus one line here.
 
 use crate::factors::{
-    BetweenSe2, BetweenSe3, GnssPositionSe3, PriorSe2, PriorSe3, ReprojectionSnavely,
+    BearingRangeSe2, BetweenSe2, BetweenSe3, GnssPositionSe3, PriorSe2, PriorSe3,
+    ReprojectionSnavely,
 };
 use crate::problem::{Gauge, Variable};
 use crate::solver::SolverOptions;
-use crate::variables::{point3, se2, se3, snavely_camera};
+use crate::variables::{point2, point3, se2, se3, snavely_camera};
 
 pub use crate::factors::{BuildFactor, FactorWire};
 pub use crate::variables::{DecodeVariable, Shape, VariableWire};
@@ -49,9 +50,9 @@ fn sliding_window_options() -> SolverOptions {
 pub const SESSION_KINDS: &[SessionKind] = &[
     SessionKind {
         name: "pose_graph_2d",
-        description: "SE(2) poses with relative-pose and prior factors",
-        variable_kinds: &["se2"],
-        factor_types: &["between_se2", "prior_se2"],
+        description: "SE(2) poses and point2 landmarks with relative-pose, prior and bearing-range factors",
+        variable_kinds: &["se2", "point2"],
+        factor_types: &["between_se2", "prior_se2", "bearing_range_se2"],
         gauge: Gauge::AnchorComponents,
         eliminate: &[],
         default_options: SolverOptions::default,
@@ -87,7 +88,13 @@ pub const SESSION_KINDS: &[SessionKind] = &[
     },
 ];
 
-const VARIABLES: &[&VariableWire] = &[&se2::WIRE, &se3::WIRE, &snavely_camera::WIRE, &point3::WIRE];
+const VARIABLES: &[&VariableWire] = &[
+    &se2::WIRE,
+    &se3::WIRE,
+    &snavely_camera::WIRE,
+    &point3::WIRE,
+    &point2::WIRE,
+];
 
 const FACTORS: &[&FactorWire] = &[
     &BetweenSe2::WIRE,
@@ -96,6 +103,7 @@ const FACTORS: &[&FactorWire] = &[
     &PriorSe3::WIRE,
     &ReprojectionSnavely::WIRE,
     &GnssPositionSe3::WIRE,
+    &BearingRangeSe2::WIRE,
 ];
 
 /// Every factor type a batch may name, in catalogue order.

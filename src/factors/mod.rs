@@ -28,6 +28,7 @@ macro_rules! answered_by_wire {
     };
 }
 
+pub mod bearing_range_se2;
 pub mod between_se2;
 pub mod between_se3;
 pub mod gnss_position_se3;
@@ -46,6 +47,7 @@ pub mod testing;
 use std::any::Any;
 use std::fmt::Debug;
 
+pub use bearing_range_se2::BearingRangeSe2;
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
 pub use gnss_position_se3::GnssPositionSe3;

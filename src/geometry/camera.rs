@@ -25,6 +25,10 @@ pub struct SnavelyCamera {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Point3(pub Vector3<f64>);
 
+/// A point in the plane (a 2D landmark).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Point2(pub nalgebra::Vector2<f64>);
+
 impl SnavelyCamera {
     /// From BAL's nine parameters: angle-axis (3), translation (3), f, k1, k2.
     pub fn from_bal(p: &[f64; 9]) -> Self {

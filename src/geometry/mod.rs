@@ -1,4 +1,4 @@
-//! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3); the BAL camera and 3D points.
+//! Lie groups used by the variables: SO(2)/SE(2) and SO(3)/SE(3); the BAL camera, 2D and 3D points.
 //!
 //! Layer 0: imports nothing of the crate (docs/ARCHITECTURE.md).
 
@@ -11,7 +11,7 @@ pub mod se3;
 pub mod so2;
 pub mod so3;
 
-pub use camera::{Point3, SnavelyCamera};
+pub use camera::{Point2, Point3, SnavelyCamera};
 pub use nav_state::NavState;
 pub use se2::Se2;
 pub use se3::Se3;

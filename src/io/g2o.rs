@@ -14,7 +14,7 @@ use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
 use super::edges::{add_edges, Edge};
 use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
 use crate::factors::{BetweenSe2, BetweenSe3};
-use crate::geometry::{Se2, Se3};
+use crate::geometry::{Point2, Se2, Se3};
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Problem, Values, Variable};
 
@@ -190,6 +190,8 @@ pub fn to_string(graph: &PoseGraph) -> String {
     for &key in &graph.vertex_order {
         if let Some(p) = values.get_as::<Se2>(key) {
             let _ = writeln!(out, "VERTEX_SE2 {key} {} {} {}", p.x, p.y, p.theta);
+        } else if let Some(p) = values.get_as::<Point2>(key) {
+            let _ = writeln!(out, "VERTEX_XY {key} {} {}", p.0.x, p.0.y);
         } else if let Some(p) = values.get_as::<Se3>(key) {
             let (t, q) = (p.translation, p.rotation);
             let _ = writeln!(

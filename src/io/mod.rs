@@ -10,6 +10,7 @@ pub mod direct_ba;
 mod edges;
 pub mod euroc;
 pub mod g2o;
+pub mod gtsam_text;
 pub mod ply;
 pub mod svg;
 pub mod toro;
@@ -143,6 +144,8 @@ pub(crate) fn problem_error(path: &Path, line: usize, e: ProblemError) -> IoErro
 pub enum Format {
     G2o,
     Toro,
+    /// GTSAM's text format with landmarks (`ODOMETRY`, `LANDMARK`).
+    Gtsam,
 }
 
 impl Format {
@@ -150,6 +153,7 @@ impl Format {
         match name {
             "g2o" => Some(Self::G2o),
             "toro" => Some(Self::Toro),
+            "gtsam" => Some(Self::Gtsam),
             _ => None,
         }
     }
@@ -158,14 +162,20 @@ impl Format {
 /// Parses a whole graph held in memory (`name` labels errors), in `format` or, when `None`,
 /// detected as [`load`] does.
 pub fn parse_text(text: &str, name: &Path, format: Option<Format>) -> Result<PoseGraph, IoError> {
-    let format = format.unwrap_or(if is_toro(text) {
-        Format::Toro
-    } else {
-        Format::G2o
-    });
+    let format = format.unwrap_or_else(|| detect(text));
     match format {
         Format::Toro => toro::parse(&[(name, text)]),
         Format::G2o => g2o::parse(&[(name, text)]),
+        Format::Gtsam => gtsam_text::parse(name, text),
+    }
+}
+
+/// The format of `text` by its first record: TORO, GTSAM's landmark text, else g2o.
+fn detect(text: &str) -> Format {
+    match lines(text).next() {
+        Some(l) if gtsam_text::detect(l.tokens[0]) => Format::Gtsam,
+        _ if is_toro(text) => Format::Toro,
+        _ => Format::G2o,
     }
 }
 
@@ -193,7 +203,6 @@ pub fn load(path: &Path, edges: Option<&Path>) -> Result<PoseGraph, IoError> {
                 g2o::parse(&[(path, &text), (edges_path, &edge_text)])
             }
         }
-        None if is_toro => toro::parse(&[(path, &text)]),
-        None => g2o::parse(&[(path, &text)]),
+        None => parse_text(&text, path, None),
     }
 }

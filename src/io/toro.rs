@@ -32,7 +32,7 @@ fn is_gtsam_covariance(f: &[f64]) -> bool {
 
 /// Ω of an `EDGE2` record's six numbers (module doc); `None` for a GTSAM covariance that is
 /// not invertible.
-fn edge_information(f: &[f64]) -> Option<DMatrix<f64>> {
+pub(super) fn edge_information(f: &[f64]) -> Option<DMatrix<f64>> {
     if is_gtsam_covariance(f) {
         let covariance = DMatrix::from_row_slice(
             3,

@@ -122,14 +122,16 @@ impl Job {
         max_memory_bytes: u64,
     ) -> Result<Self, ServiceError> {
         let bad = |field: &str, m: String| ServiceError::bad_request("invalid_parameter", field, m);
-        let format =
-            match params.format.as_deref() {
-                None => None,
-                Some("bal") => None,
-                Some(f) => Some(Format::parse(f).ok_or_else(|| {
-                    bad("format", format!("unknown format `{f}` (g2o, toro, bal)"))
-                })?),
-            };
+        let format = match params.format.as_deref() {
+            None => None,
+            Some("bal") => None,
+            Some(f) => Some(Format::parse(f).ok_or_else(|| {
+                bad(
+                    "format",
+                    format!("unknown format `{f}` (g2o, toro, gtsam, bal)"),
+                )
+            })?),
+        };
         let bal = params.format.as_deref() == Some("bal");
         // Bundle adjustment leaves the gauge free: it needs LM's damping by default.
         let mut options = if bal {

@@ -1,6 +1,6 @@
 //! Gauge freedom: a pose graph with only relative measurements can slide and turn as a whole.
 //! Every connected component of the factor graph that has neither a fixed variable nor a unary
-//! factor (a prior) gets its lowest key fixed for the solve, and the Summary says which.
+//! factor (a prior) gets its lowest-keyed pose fixed for the solve, and the Summary says which.
 
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
@@ -35,11 +35,18 @@ pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>
         let r = find(&mut parent, v);
         root_anchored[r] = true;
     }
-    // Lowest key of each unanchored component.
+    // Lowest key of each unanchored component among its variables of the largest tangent
+    // dimension: a pose, not a landmark (fixing a 2D landmark would leave the map free to turn).
+    let rank = |v: usize| {
+        (
+            std::cmp::Reverse(values.variable(v).tangent_dim()),
+            values.key(v),
+        )
+    };
     let mut lowest: Vec<Option<usize>> = vec![None; n];
     for v in 0..n {
         let r = find(&mut parent, v);
-        if !root_anchored[r] && lowest[r].is_none_or(|u| values.key(v) < values.key(u)) {
+        if !root_anchored[r] && lowest[r].is_none_or(|u| rank(v) < rank(u)) {
             lowest[r] = Some(v);
         }
     }

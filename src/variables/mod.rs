@@ -62,6 +62,7 @@ macro_rules! copy_variable_plumbing {
 
 // After the macro: the kinds' files use it.
 pub mod nav_state;
+pub mod point2;
 pub mod point3;
 pub mod se2;
 pub mod se3;

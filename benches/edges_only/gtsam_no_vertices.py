@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
 """GTSAM on a 2D graph file without vertices, and a check of factord's optimum in GTSAM's terms.
 
-    python gtsam_edges_only.py --file w20000.txt [--ours factord_result.g2o] [--max-iterations 100]
+    python gtsam_no_vertices.py --file w20000.txt [--ours factord_result.g2o] [--max-iterations 100]
+
+Also for landmark graphs (victoria_park.txt: load2D turns each LANDMARK into a
+BearingRangeFactor2D on Symbol('l', l), the key factord uses too).
 
 Run with the gtsam venv's python (benches/reference/setup.sh). The graph is read by GTSAM's own
 `readG2o` for `.g2o` files (information), else `load2D` (NoiseFormatAUTO: w20000's `3.16228 0 0 3.16228 0 5` is a covariance xx xy xθ yy yθ θθ),
 so this is GTSAM as its users run it. Start: chained odometry (pose 0 at the origin; each edge
 whose first pose is placed and second is not places the second), prior σ 1e-6 on pose 0 (not
-counted in χ²). χ² = 2 · graph.error.
+counted in χ²); landmarks start from their first sighting. χ² = 2 · graph.error.
 
 Prints one JSON object:
 - `lm`: LevenbergMarquardt from the chained start (GTSAM's default parameters, relative and
@@ -26,6 +29,7 @@ import json
 import time
 
 import gtsam
+import numpy as np
 
 
 def chained(graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
@@ -36,6 +40,15 @@ def chained(graph: gtsam.NonlinearFactorGraph) -> gtsam.Values:
         progress = False
         for k in range(graph.size()):
             f = graph.at(k)
+            if isinstance(f, gtsam.BearingRangeFactor2D):
+                i, l = f.keys()
+                if values.exists(i) and not values.exists(l):
+                    m = f.measured()
+                    b, r = m.bearing().theta(), m.range()
+                    seen = np.array([r * np.cos(b), r * np.sin(b)])
+                    values.insert(l, values.atPose2(i).transformFrom(seen))
+                    progress = True
+                continue
             if not isinstance(f, gtsam.BetweenFactorPose2):
                 continue
             i, j = f.keys()
@@ -70,6 +83,8 @@ def read_g2o_poses(path: str) -> gtsam.Values:
             t = line.split()
             if t and t[0] == "VERTEX_SE2":
                 values.insert(int(t[1]), gtsam.Pose2(float(t[2]), float(t[3]), float(t[4])))
+            elif t and t[0] == "VERTEX_XY":
+                values.insert(int(t[1]), np.array([float(t[2]), float(t[3])]))
     return values
 
 
@@ -86,7 +101,7 @@ def main() -> int:
     with_prior = gtsam.NonlinearFactorGraph(graph)
     with_prior.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
     start = chained(graph)
-    out = {"file": a.file, "factors": graph.size(), "poses": start.size(),
+    out = {"file": a.file, "factors": graph.size(), "variables": start.size(),
            "start_chi2": 2 * graph.error(start)}
     for kind in ("lm", "gn"):
         result, info = solve(kind, with_prior, start, a.max_iterations)
