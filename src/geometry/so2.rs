@@ -24,6 +24,12 @@ pub fn rotation(theta: f64) -> [[f64; 2]; 2] {
     [[c, -s], [s, c]]
 }
 
+/// [`rotation`] as an nalgebra matrix.
+pub fn rotation_matrix_2d(theta: f64) -> nalgebra::Matrix2<f64> {
+    let (s, c) = theta.sin_cos();
+    nalgebra::Matrix2::new(c, -s, s, c)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -42,10 +48,4 @@ mod tests {
             assert!(w > -PI && w <= PI, "{w}");
         }
     }
-}
-
-/// [`rotation`] as an nalgebra matrix.
-pub fn rotation_matrix_2d(theta: f64) -> nalgebra::Matrix2<f64> {
-    let (s, c) = theta.sin_cos();
-    nalgebra::Matrix2::new(c, -s, s, c)
 }

@@ -215,9 +215,9 @@ mod tests {
         // Diagonally dominant values: diagonal 10, off-diagonal a deterministic pattern.
         let mut values = vec![0.0; p.nnz()];
         for c in 0..p.n {
-            for k in p.col_ptr[c]..p.col_ptr[c + 1] {
-                let r = p.row_idx[k];
-                values[k] = if r == c {
+            let column = p.col_ptr[c]..p.col_ptr[c + 1];
+            for (value, &r) in values[column.clone()].iter_mut().zip(&p.row_idx[column]) {
+                *value = if r == c {
                     10.0
                 } else {
                     ((r * 7 + c * 3) % 5) as f64 * 0.3 - 0.6

@@ -5,6 +5,9 @@
 //! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
 //! [--json out.json] [--dump-latencies out.txt] [--fsync always|interval|never]`
 //!
+//! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
+//! `isam2_landmarks.py`.
+//!
 //! Protocol (the one of `isam2_stream.py` and `incremental_stream`): batch k holds pose k with
 //! every edge whose later end is k (`tests/common` `g2o_batches`: a pose with an odometry edge
 //! from k−1 is sent without a value, the server predicts it); batch k+1 is sent once the
@@ -27,6 +30,7 @@ mod common;
 mod args;
 
 mod http;
+mod landmarks;
 mod optimum;
 mod zenoh_stream;
 
@@ -76,7 +80,11 @@ fn main() {
     let fsync = args.value("--fsync").unwrap_or_else(|| "always".into());
     let text = std::fs::read_to_string(&path).expect("readable graph");
 
-    let mut batches = g2o_batches(&text);
+    let mut batches = if landmarks::is_gtsam_text(&text) {
+        landmarks::batches(&text, &path)
+    } else {
+        g2o_batches(&text)
+    };
     batches.truncate(limit);
     let kept: HashSet<u64> = batches
         .iter()

@@ -13,7 +13,8 @@ use factord::api::catalogue::variable_codec;
 use factord::io::parse_text;
 use factord::solver::{optimize, SolverOptions};
 
-/// The lines of a g2o text among the vertices `kept` (what a `--limit` stream saw).
+/// The lines of a g2o (or GTSAM landmark) text among the vertices `kept` (what a `--limit`
+/// stream saw).
 pub fn restrict(text: &str, kept: &HashSet<u64>) -> String {
     let id = |t: &str| t.parse::<u64>().expect("a vertex id");
     text.lines()
@@ -21,9 +22,11 @@ pub fn restrict(text: &str, kept: &HashSet<u64>) -> String {
             let t: Vec<&str> = l.split_whitespace().collect();
             match t.first() {
                 Some(tag) if tag.starts_with("VERTEX") => kept.contains(&id(t[1])),
-                Some(tag) if tag.starts_with("EDGE") => {
+                Some(tag) if tag.starts_with("EDGE") || *tag == "ODOMETRY" => {
                     kept.contains(&id(t[1])) && kept.contains(&id(t[2]))
                 }
+                // A sighting from a kept pose (its landmark came with that pose or before).
+                Some(&"LANDMARK") => kept.contains(&id(t[1])),
                 _ => false,
             }
         })
