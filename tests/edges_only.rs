@@ -139,6 +139,28 @@ async fn batch_jobs_take_edges_only_graphs() {
         "{v}"
     );
 
+    // GTSAM's landmark text, detected or named: poses and landmarks come back.
+    let landmarks = "ODOMETRY 0 1 1 0 0.5 0.01 0 0 0.01 0 0.0001\n\
+                     LANDMARK 0 3 2 0 0.1 0 0.1\n\
+                     LANDMARK 1 3 0.5 -1.2 0.1 0 0.1\n";
+    for query in ["", "?format=gtsam"] {
+        let answer = c
+            .post(s.url(&format!("/v1/jobs{query}")))
+            .body(landmarks)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(answer.status(), 200, "{query}");
+        let v: Value = answer.json().await.unwrap();
+        let kinds: Vec<&str> = v["estimate"]["variables"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x["kind"].as_str().unwrap())
+            .collect();
+        assert_eq!(kinds, ["se2", "se2", "point2"], "{v}");
+    }
+
     let split = "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 5 6 1 0 0 1 0 0 1 0 1\n";
     let answer = c.post(s.url("/v1/jobs")).body(split).send().await.unwrap();
     assert_eq!(answer.status(), 400);

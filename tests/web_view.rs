@@ -368,11 +368,39 @@ async fn web_view_draws_sessions_being_fed() {
         .screenshot(&shots.join("session-ba-points.png"))
         .await;
 
+    // 2D landmarks (point2) drawn with the trajectory of a pose graph session.
+    create(
+        &c,
+        &s,
+        &json!({"session": "trees", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    let mut variables: Vec<Value> = (0..10)
+        .map(|i| json!({"key": i, "kind": "se2", "value": [i as f64, 0.0, 0.0]}))
+        .collect();
+    for l in 0..5u64 {
+        variables.push(json!({"key": 100 + l, "kind": "point2", "value": [2.0 * l as f64, 3.0]}));
+    }
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions/trees/batches"),
+        &json!({"variables": variables}),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    browser.open(&s.url("/sessions/trees")).await;
+    browser
+        .wait_for(
+            "Number(document.body.dataset.pointsDrawn) === 5 && Number(document.body.dataset.trajectoryPoints) === 10",
+            "the landmarks and the poses",
+        )
+        .await;
+
     // The list of sessions.
     browser.open(&s.url("/")).await;
     let hooks = browser
         .wait_for(
-            "Number(document.body.dataset.sessionsListed) === 3",
+            "Number(document.body.dataset.sessionsListed) === 4",
             "the session list",
         )
         .await;
@@ -380,7 +408,7 @@ async fn web_view_draws_sessions_being_fed() {
     let listed = browser.script("return document.body.innerText;").await;
     let listed = listed.as_str().unwrap();
     assert!(
-        listed.contains("robot") && listed.contains("helix"),
+        listed.contains("robot") && listed.contains("helix") && listed.contains("trees"),
         "{listed}"
     );
     browser.screenshot(&shots.join("index.png")).await;
