@@ -11,8 +11,8 @@
 //! `proto/v1/factors.schema.json`. A new factor is its file plus one line here.
 
 use crate::factors::{
-    BearingRangeSe2, BetweenSe2, BetweenSe3, GnssPositionSe3, PriorSe2, PriorSe3,
-    ReprojectionSnavely,
+    BearingRangeSe2, BetweenSe2, BetweenSe3, GnssLeverArmSe3, GnssPositionSe3, PositionSe3Point3,
+    PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3, ReprojectionSnavely,
 };
 use crate::problem::{Gauge, Variable};
 use crate::solver::SolverOptions;
@@ -50,18 +50,32 @@ fn sliding_window_options() -> SolverOptions {
 pub const SESSION_KINDS: &[SessionKind] = &[
     SessionKind {
         name: "pose_graph_2d",
-        description: "SE(2) poses and point2 landmarks with relative-pose, prior and bearing-range factors",
+        description: "SE(2) poses and point2 landmarks with relative-pose, prior, bearing-range and range factors",
         variable_kinds: &["se2", "point2"],
-        factor_types: &["between_se2", "prior_se2", "bearing_range_se2"],
+        factor_types: &[
+            "between_se2",
+            "prior_se2",
+            "bearing_range_se2",
+            "range_se2_point2",
+            "range_se2",
+        ],
         gauge: Gauge::AnchorComponents,
         eliminate: &[],
         default_options: SolverOptions::default,
     },
     SessionKind {
         name: "pose_graph_3d",
-        description: "SE(3) poses with relative-pose, prior and GNSS position factors",
-        variable_kinds: &["se3"],
-        factor_types: &["between_se3", "prior_se3", "gnss_position_se3"],
+        description: "SE(3) poses and point3 landmarks with relative-pose, prior, GNSS position (with or without a lever arm), landmark position and range factors",
+        variable_kinds: &["se3", "point3"],
+        factor_types: &[
+            "between_se3",
+            "prior_se3",
+            "gnss_position_se3",
+            "gnss_lever_arm_se3",
+            "position_se3_point3",
+            "range_se3_point3",
+            "range_se3",
+        ],
         gauge: Gauge::AnchorComponents,
         eliminate: &[],
         default_options: SolverOptions::default,
@@ -104,6 +118,12 @@ const FACTORS: &[&FactorWire] = &[
     &ReprojectionSnavely::WIRE,
     &GnssPositionSe3::WIRE,
     &BearingRangeSe2::WIRE,
+    &RangeSe2Point2::WIRE,
+    &RangeSe2::WIRE,
+    &GnssLeverArmSe3::WIRE,
+    &PositionSe3Point3::WIRE,
+    &RangeSe3Point3::WIRE,
+    &RangeSe3::WIRE,
 ];
 
 /// Every factor type a batch may name, in catalogue order.

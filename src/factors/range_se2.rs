@@ -1,0 +1,78 @@
+//! The range between two planar poses' positions (UWB ranging between robots).
+//!
+//! `e = ‖t_j − t_i‖ − r` (metres). With `u = (t_j − t_i)/‖t_j − t_i‖` and additive retraction in
+//! `(x, y, θ)`: `∂e/∂x_i = [−uᵀ  0]`, `∂e/∂x_j = [uᵀ  0]` (`u = 0` where the positions meet).
+
+use nalgebra::Vector2;
+
+use super::range_se2_point2::distance_and_direction2;
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use crate::geometry::Se2;
+use crate::variables::{Key, Variable};
+
+#[derive(Clone, Debug)]
+pub struct RangeSe2 {
+    keys: [Key; 2],
+    /// Measured range, metres.
+    pub range: f64,
+}
+
+impl RangeSe2 {
+    /// The wire form: `range_se2`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "range_se2",
+        variable_kinds: &["se2", "se2"],
+        key_names: &["i", "j"],
+        measurement_len: 1,
+        measurement: &["range"],
+        residual_dim: 1,
+        description: "Range in metres between the positions of two se2 poses (UWB ranging between robots). Residual |t_j - t_i| - r.",
+        build: |k, m| {
+            if m[0] < 0.0 {
+                return Err(format!("a range is not negative, got {}", m[0]));
+            }
+            Ok(Box::new(RangeSe2::new(k[0], k[1], m[0])))
+        },
+    };
+
+    pub fn new(a: Key, b: Key, range: f64) -> Self {
+        Self {
+            keys: [a, b],
+            range,
+        }
+    }
+}
+
+impl Factor for RangeSe2 {
+    answered_by_wire!();
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
+        let a: &Se2 = expect_kind(variables, 0, "se2")?;
+        let b: &Se2 = expect_kind(variables, 1, "se2")?;
+        let (e, u) = distance_and_direction2(Vector2::new(b.x - a.x, b.y - a.y));
+        error[0] = e - self.range;
+        if let Some(j) = jacobian {
+            j.copy_from_slice(&[-u.x, -u.y, 0.0, u.x, u.y, 0.0]);
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::testing::{assert_jacobians_match, Rng};
+
+    #[test]
+    fn jacobians_match_numeric() {
+        let mut rng = Rng::new(73);
+        for _ in 0..100 {
+            let f = RangeSe2::new(0, 1, 3.0 * rng.uniform());
+            assert_jacobians_match(&f, &[Box::new(rng.se2()), Box::new(rng.se2())]);
+        }
+    }
+}

@@ -1,0 +1,80 @@
+//! The range between two SE(3) poses' positions (UWB ranging between robots or drones).
+//!
+//! `e = ‖t_j − t_i‖ − r` (metres). With `u = (t_j − t_i)/‖t_j − t_i‖` and `t` moving by `R v`:
+//! `∂e/∂(v_i, ω_i) = [−uᵀR_i  0]`, `∂e/∂(v_j, ω_j) = [uᵀR_j  0]` (`u = 0` where they meet).
+
+use super::range_se3_point3::distance_and_direction3;
+use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use crate::geometry::Se3;
+use crate::variables::{Key, Variable};
+
+#[derive(Clone, Debug)]
+pub struct RangeSe3 {
+    keys: [Key; 2],
+    /// Measured range, metres.
+    pub range: f64,
+}
+
+impl RangeSe3 {
+    /// The wire form: `range_se3`.
+    pub const WIRE: FactorWire = FactorWire {
+        name: "range_se3",
+        variable_kinds: &["se3", "se3"],
+        key_names: &["i", "j"],
+        measurement_len: 1,
+        measurement: &["range"],
+        residual_dim: 1,
+        description: "Range in metres between the positions of two se3 poses (UWB ranging between robots). Residual |t_j - t_i| - r.",
+        build: |k, m| {
+            if m[0] < 0.0 {
+                return Err(format!("a range is not negative, got {}", m[0]));
+            }
+            Ok(Box::new(RangeSe3::new(k[0], k[1], m[0])))
+        },
+    };
+
+    pub fn new(a: Key, b: Key, range: f64) -> Self {
+        Self {
+            keys: [a, b],
+            range,
+        }
+    }
+}
+
+impl Factor for RangeSe3 {
+    answered_by_wire!();
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
+        let a: &Se3 = expect_kind(variables, 0, "se3")?;
+        let b: &Se3 = expect_kind(variables, 1, "se3")?;
+        let (e, u) = distance_and_direction3(b.translation - a.translation);
+        error[0] = e - self.range;
+        if let Some(j) = jacobian {
+            let ua = a.rotation_matrix().transpose() * u;
+            let ub = b.rotation_matrix().transpose() * u;
+            j.fill(0.0);
+            j[..3].copy_from_slice(&[-ua.x, -ua.y, -ua.z]);
+            j[6..9].copy_from_slice(&[ub.x, ub.y, ub.z]);
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::factors::testing::{assert_jacobians_match, Rng};
+
+    #[test]
+    fn jacobians_match_numeric() {
+        let mut rng = Rng::new(83);
+        for _ in 0..100 {
+            let f = RangeSe3::new(0, 1, 3.0 * rng.uniform());
+            assert_jacobians_match(&f, &[Box::new(rng.se3()), Box::new(rng.se3())]);
+        }
+    }
+}
