@@ -26,10 +26,10 @@ import time
 from pathlib import Path
 
 try:
-    from factord_client import BatchRefused, FactordError, ZenohClient, g2o
+    from factord_client import BatchRefused, FactordError, ZenohClient, g2o, gtsam_text
 except ImportError:  # running from a checkout without `pip install`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from factord_client import BatchRefused, FactordError, ZenohClient, g2o
+    from factord_client import BatchRefused, FactordError, ZenohClient, g2o, gtsam_text
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_DATASET = "2d/carlone/input_M3500_g2o.g2o"
@@ -120,7 +120,8 @@ class Live:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", nargs="?",
-                        help=f"g2o file (absolute, or relative to --data-dir); default "
+                        help=f"g2o file or GTSAM landmark text (victoria_park.txt), absolute or "
+                             f"relative to --data-dir; default "
                              f"{DEFAULT_DATASET}")
     parser.add_argument("--data-dir", type=Path, default=None,
                         help="datasets folder (default: $FACTORD_DATA or ../shared/data from "
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     if not path.exists():
         print(f"robot: dataset {path} not found (use --data-dir or a path)", file=sys.stderr)
         return 2
-    graph = g2o.load(path)
+    graph = gtsam_text.load(path) if gtsam_text.is_gtsam_text(path) else g2o.load(path)
     batches = list(graph.batches(predict=not args.no_predict, limit=args.limit))
     session = args.session or f"robot-{os.getpid()}"
     policy, _, number = args.auto_optimize.partition(":")
