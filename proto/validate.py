@@ -1008,9 +1008,9 @@ class Live:
         self.call("IMU out of order", "POST", f"/v1/sessions/{sw}/fusion", 422, "error.schema.json",
                   body={"messages": [{"type": "imu", "t": 0.05, "accel": [0, 0, 9.81], "gyro": [0, 0, 0]}]}, error_code="rejected_message")
         self.call("batch to a sliding window", "POST", f"/v1/sessions/{sw}/batches", 400, "error.schema.json",
-                  body={"variables": []}, error_code="wrong_kind")
-        self.call("sliding window", "GET", f"/v1/sessions/{sw}/marginals?keys=1", 400, "error.schema.json", error_code="wrong_kind",
-                  error_field="session", example="error-wrong-kind")
+                  body={"variables": []}, error_code="wrong_kind", error_field="session", example="error-wrong-kind")
+        self.call("sliding window: marginals of a keyframe not in the window", "GET", f"/v1/sessions/{sw}/marginals?keys=999999",
+                  422, "error.schema.json", error_code="unknown_variable", error_field="keys[0]")
         graph_sw = self.call("sliding window", "GET", f"/v1/sessions/{sw}/graph", 200, "graph.schema.json")
         if graph_sw:
             r.check("graph of a sliding window: dimension 3", graph_sw["dimension"] == 3, f"{graph_sw['dimension']}")

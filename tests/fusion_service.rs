@@ -7,7 +7,7 @@ mod common;
 use std::time::Duration;
 
 use common::fusion::{inputs, keyframe_batches, position_error, start_message};
-use common::server::{client, post, zenoh_get, zenoh_peer, TestServer};
+use common::server::{client, get, post, zenoh_get, zenoh_peer, TestServer};
 use factord::fusion::experiment::ape;
 use factord::transport::fusion_client::run_over_zenoh;
 use serde_json::{json, Value};
@@ -40,6 +40,46 @@ async fn sliding_window_over_http_tracks_and_refuses_bad_input() {
     assert_eq!(errors.len(), 100);
     let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     assert!(rmse < 0.2, "APE rmse {rmse}");
+
+    // Marginal covariances of the window's keyframes (15 × 15: pose, velocity, biases), the
+    // joint one agreeing with them; a marginalised keyframe is not in the window.
+    let (status, m) = get(
+        &c,
+        &s.url("/v1/sessions/robot/marginals?keys=100,91&joint=true"),
+    )
+    .await;
+    assert_eq!(status, 200, "{m}");
+    let joint: Vec<Vec<f64>> = serde_json::from_value(m["joint"].clone()).unwrap();
+    assert_eq!(joint.len(), 30);
+    for (v, offset) in m["variables"].as_array().unwrap().iter().zip([0, 15]) {
+        assert_eq!(v["kind"], "nav_state", "{v}");
+        let cov: Vec<Vec<f64>> = serde_json::from_value(v["covariance"].clone()).unwrap();
+        assert_eq!(cov.len(), 15);
+        for r in 0..15 {
+            assert!(
+                cov[r][r] > 0.0,
+                "variance {r} of {}: {}",
+                v["key"],
+                cov[r][r]
+            );
+            for q in 0..15 {
+                assert!((cov[r][q] - cov[q][r]).abs() <= 1e-9 * cov[r][r].max(cov[q][q]));
+                assert!(
+                    (cov[r][q] - joint[offset + r][offset + q]).abs()
+                        <= 1e-12 + 1e-9 * cov[r][q].abs()
+                );
+            }
+        }
+        let sigma_position = (0..3).map(|r| cov[r][r]).sum::<f64>().sqrt();
+        assert!(
+            sigma_position > 1e-4 && sigma_position < 1.0,
+            "position sigma {sigma_position} m"
+        );
+    }
+    let (status, e) = get(&c, &s.url("/v1/sessions/robot/marginals?keys=0")).await;
+    assert_eq!(status, 422, "{e}");
+    assert_eq!(e["error"]["code"], "unknown_variable");
+    assert_eq!(e["error"]["field"], "keys[0]");
 
     // Refusals name the message, keep what came before it, and leave the window usable.
     let last_t = inputs.keyframes.last().unwrap().t;

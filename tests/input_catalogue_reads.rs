@@ -163,7 +163,7 @@ const CASES: &[&str] = &[
     // Keys are checked one at a time (exists, then repeated): a repeat before an unknown key
     // answers first.
     r#"Q8 | 400 invalid_value keys[1] | GET pg/marginals?keys=1,1,9 | rpc get_marginals pg {"keys": [1, 1, 9]}"#,
-    r#"Q9 | 400 wrong_kind session | GET win/marginals?keys=1 | rpc get_marginals win {"keys": [1]}"#,
+    r#"Q9 | 422 not_started session | GET win/marginals?keys=1 | rpc get_marginals win {"keys": [1]}"#,
     r#"Q10 | 422 indeterminate_system | GET ba/marginals?keys=1 | rpc get_marginals ba {"keys": [1]}"#,
     "Q12 | 404 no_summary | GET pg/summary",
 ];

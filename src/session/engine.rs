@@ -86,15 +86,6 @@ pub(super) fn fusion_refused(session: &str, kind: &str) -> ServiceError {
     )
 }
 
-/// Marginal covariances asked of a window session.
-pub(super) fn marginals_refused() -> ServiceError {
-    ServiceError::bad_request(
-        "wrong_kind",
-        "session",
-        "marginal covariances are served for pose-graph and bundle-adjustment sessions",
-    )
-}
-
 /// Why a window session's first message must be `start` (the window does not exist before).
 pub(super) fn start_first() -> String {
     format!(

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::engine::{self, Engine, Window};
+use super::engine::{Engine, Window};
 use super::{MirrorEntry, Session};
 use crate::api::catalogue::{self, Shape};
 use crate::api::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
@@ -120,10 +120,6 @@ impl Session {
         query: &MarginalsQuery,
     ) -> Result<Option<Marginals>, ServiceError> {
         let start = Instant::now();
-        let graph = match &self.engine {
-            Engine::Graph(graph) => graph,
-            Engine::Window(_) => return Err(engine::marginals_refused()),
-        };
         if query.keys.is_empty() || query.keys.len() > MAX_MARGINAL_KEYS {
             return Err(ServiceError::bad_request(
                 "invalid_value",
@@ -134,6 +130,10 @@ impl Session {
                 ),
             ));
         }
+        let graph = match &self.engine {
+            Engine::Graph(graph) => graph,
+            Engine::Window(window) => return self.window_marginals(window, query, start).map(Some),
+        };
         // Lock order: the cached factorisation, then the state.
         let mut cache = graph.marginals.lock().unwrap_or_else(|p| p.into_inner());
         let mut st = self.lock();
@@ -229,6 +229,6 @@ impl Session {
     }
 }
 
-fn rows(row_major: &[f64], n: usize) -> Vec<Vec<f64>> {
+pub(super) fn rows(row_major: &[f64], n: usize) -> Vec<Vec<f64>> {
     row_major.chunks(n.max(1)).map(<[f64]>::to_vec).collect()
 }

@@ -49,6 +49,7 @@ mod solve;
 mod state;
 mod stats;
 mod stream;
+mod window_marginals;
 
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};
