@@ -49,7 +49,7 @@ impl BearingRangeSe2 {
         description: "A point2 landmark seen from an se2 pose: bearing (radians, counter-clockwise from the pose's x axis) and range (metres). Residual (wrapped bearing error, range error).",
         build: |k, m| {
             if m[1] < 0.0 {
-                return Err(format!("a range is not negative, got {}", m[1]));
+                return Err(format!("a range cannot be negative, got {}", m[1]));
             }
             Ok(Box::new(BearingRangeSe2::new(k[0], k[1], m[0], m[1])))
         },

@@ -28,6 +28,44 @@ macro_rules! answered_by_wire {
     };
 }
 
+/// A range factor's declaration (`range_se2`, `range_se3_point3`, …): the struct, two keys and
+/// the measured range in metres, with `new` and its `WIRE` (one number, refused when negative).
+/// Each range factor's file adds its residual and Jacobians.
+macro_rules! range_factor {
+    ($(#[$doc:meta])* $name:ident, $wire:literal, $kinds:expr, $key_names:expr, $description:literal) => {
+        $(#[$doc])*
+        #[derive(Clone, Debug)]
+        pub struct $name {
+            keys: [$crate::variables::Key; 2],
+            /// Measured range, metres.
+            pub range: f64,
+        }
+
+        impl $name {
+            #[doc = concat!("The wire form: `", $wire, "`.")]
+            pub const WIRE: $crate::factors::FactorWire = $crate::factors::FactorWire {
+                name: $wire,
+                variable_kinds: $kinds,
+                key_names: $key_names,
+                measurement_len: 1,
+                measurement: &["range"],
+                residual_dim: 1,
+                description: $description,
+                build: |k, m| {
+                    if m[0] < 0.0 {
+                        return Err(format!("a range cannot be negative, got {}", m[0]));
+                    }
+                    Ok(Box::new($name::new(k[0], k[1], m[0])))
+                },
+            };
+
+            pub fn new(a: $crate::variables::Key, b: $crate::variables::Key, range: f64) -> Self {
+                Self { keys: [a, b], range }
+            }
+        }
+    };
+}
+
 pub mod bearing_range_se2;
 pub mod between_se2;
 pub mod between_se3;

@@ -6,42 +6,11 @@
 use nalgebra::Vector2;
 
 use super::range_se2_point2::distance_and_direction2;
-use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::Se2;
-use crate::variables::{Key, Variable};
+use crate::variables::Variable;
 
-#[derive(Clone, Debug)]
-pub struct RangeSe2 {
-    keys: [Key; 2],
-    /// Measured range, metres.
-    pub range: f64,
-}
-
-impl RangeSe2 {
-    /// The wire form: `range_se2`.
-    pub const WIRE: FactorWire = FactorWire {
-        name: "range_se2",
-        variable_kinds: &["se2", "se2"],
-        key_names: &["i", "j"],
-        measurement_len: 1,
-        measurement: &["range"],
-        residual_dim: 1,
-        description: "Range in metres between the positions of two se2 poses (UWB ranging between robots). Residual |t_j - t_i| - r.",
-        build: |k, m| {
-            if m[0] < 0.0 {
-                return Err(format!("a range is not negative, got {}", m[0]));
-            }
-            Ok(Box::new(RangeSe2::new(k[0], k[1], m[0])))
-        },
-    };
-
-    pub fn new(a: Key, b: Key, range: f64) -> Self {
-        Self {
-            keys: [a, b],
-            range,
-        }
-    }
-}
+range_factor!(RangeSe2, "range_se2", &["se2", "se2"], &["i", "j"], "Range in metres between the positions of two se2 poses (UWB ranging between robots). Residual |t_j - t_i| - r.");
 
 impl Factor for RangeSe2 {
     answered_by_wire!();

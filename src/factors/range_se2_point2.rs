@@ -7,42 +7,11 @@
 
 use nalgebra::Vector2;
 
-use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{Point2, Se2};
-use crate::variables::{Key, Variable};
+use crate::variables::Variable;
 
-#[derive(Clone, Debug)]
-pub struct RangeSe2Point2 {
-    keys: [Key; 2],
-    /// Measured range, metres.
-    pub range: f64,
-}
-
-impl RangeSe2Point2 {
-    /// The wire form: `range_se2_point2`.
-    pub const WIRE: FactorWire = FactorWire {
-        name: "range_se2_point2",
-        variable_kinds: &["se2", "point2"],
-        key_names: &["pose", "landmark"],
-        measurement_len: 1,
-        measurement: &["range"],
-        residual_dim: 1,
-        description: "Range in metres from an se2 pose's position to a point2 landmark (a UWB or radio beacon). Residual |l - t| - r.",
-        build: |k, m| {
-            if m[0] < 0.0 {
-                return Err(format!("a range is not negative, got {}", m[0]));
-            }
-            Ok(Box::new(RangeSe2Point2::new(k[0], k[1], m[0])))
-        },
-    };
-
-    pub fn new(a: Key, b: Key, range: f64) -> Self {
-        Self {
-            keys: [a, b],
-            range,
-        }
-    }
-}
+range_factor!(RangeSe2Point2, "range_se2_point2", &["se2", "point2"], &["pose", "landmark"], "Range in metres from an se2 pose's position to a point2 landmark (a UWB or radio beacon). Residual |l - t| - r.");
 
 /// `‖d‖` and `d/‖d‖` (0 for `d = 0`).
 pub(crate) fn distance_and_direction2(d: Vector2<f64>) -> (f64, Vector2<f64>) {

@@ -4,42 +4,11 @@
 //! `∂e/∂(v_i, ω_i) = [−uᵀR_i  0]`, `∂e/∂(v_j, ω_j) = [uᵀR_j  0]` (`u = 0` where they meet).
 
 use super::range_se3_point3::distance_and_direction3;
-use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::Se3;
-use crate::variables::{Key, Variable};
+use crate::variables::Variable;
 
-#[derive(Clone, Debug)]
-pub struct RangeSe3 {
-    keys: [Key; 2],
-    /// Measured range, metres.
-    pub range: f64,
-}
-
-impl RangeSe3 {
-    /// The wire form: `range_se3`.
-    pub const WIRE: FactorWire = FactorWire {
-        name: "range_se3",
-        variable_kinds: &["se3", "se3"],
-        key_names: &["i", "j"],
-        measurement_len: 1,
-        measurement: &["range"],
-        residual_dim: 1,
-        description: "Range in metres between the positions of two se3 poses (UWB ranging between robots). Residual |t_j - t_i| - r.",
-        build: |k, m| {
-            if m[0] < 0.0 {
-                return Err(format!("a range is not negative, got {}", m[0]));
-            }
-            Ok(Box::new(RangeSe3::new(k[0], k[1], m[0])))
-        },
-    };
-
-    pub fn new(a: Key, b: Key, range: f64) -> Self {
-        Self {
-            keys: [a, b],
-            range,
-        }
-    }
-}
+range_factor!(RangeSe3, "range_se3", &["se3", "se3"], &["i", "j"], "Range in metres between the positions of two se3 poses (UWB ranging between robots). Residual |t_j - t_i| - r.");
 
 impl Factor for RangeSe3 {
     answered_by_wire!();

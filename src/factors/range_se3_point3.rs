@@ -6,42 +6,11 @@
 
 use nalgebra::Vector3;
 
-use super::{expect_kind, EvaluationError, Factor, FactorWire};
+use super::{expect_kind, EvaluationError, Factor};
 use crate::geometry::{Point3, Se3};
-use crate::variables::{Key, Variable};
+use crate::variables::Variable;
 
-#[derive(Clone, Debug)]
-pub struct RangeSe3Point3 {
-    keys: [Key; 2],
-    /// Measured range, metres.
-    pub range: f64,
-}
-
-impl RangeSe3Point3 {
-    /// The wire form: `range_se3_point3`.
-    pub const WIRE: FactorWire = FactorWire {
-        name: "range_se3_point3",
-        variable_kinds: &["se3", "point3"],
-        key_names: &["pose", "landmark"],
-        measurement_len: 1,
-        measurement: &["range"],
-        residual_dim: 1,
-        description: "Range in metres from an se3 pose's position to a point3 landmark (a UWB beacon). Residual |l - t| - r.",
-        build: |k, m| {
-            if m[0] < 0.0 {
-                return Err(format!("a range is not negative, got {}", m[0]));
-            }
-            Ok(Box::new(RangeSe3Point3::new(k[0], k[1], m[0])))
-        },
-    };
-
-    pub fn new(a: Key, b: Key, range: f64) -> Self {
-        Self {
-            keys: [a, b],
-            range,
-        }
-    }
-}
+range_factor!(RangeSe3Point3, "range_se3_point3", &["se3", "point3"], &["pose", "landmark"], "Range in metres from an se3 pose's position to a point3 landmark (a UWB beacon). Residual |l - t| - r.");
 
 /// `‖d‖` and `d/‖d‖` (0 for `d = 0`).
 pub(crate) fn distance_and_direction3(d: Vector3<f64>) -> (f64, Vector3<f64>) {
