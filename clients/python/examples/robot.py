@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
         auto["milliseconds"] = int(number or 100)
 
     factors_sent = sum(len(b["factors"]) for _, b in batches)
-    print(f"robot: {path.name}: {len(graph.vertices)} poses, {len(graph.edges)} edges; streaming "
+    print(f"robot: {path.name}: {len(graph.vertices)} variables, {len(graph.edges)} factors; streaming "
           f"{len(batches)} poses ({factors_sent} factors) to session `{session}` over "
           f"{args.zenoh}")
     live = Live()
