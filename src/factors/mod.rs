@@ -10,7 +10,7 @@
 /// so each is stated once and a factor file writes only its residual and Jacobians.
 macro_rules! answered_by_wire {
     () => {
-        fn name(&self) -> &'static str {
+        fn name(&self) -> &str {
             Self::WIRE.name
         }
         fn keys(&self) -> &[$crate::variables::Key] {
@@ -69,6 +69,7 @@ macro_rules! range_factor {
 pub mod bearing_range_se2;
 pub mod between_se2;
 pub mod between_se3;
+pub mod expression;
 pub mod gnss_lever_arm_se3;
 pub mod gnss_position_se3;
 pub mod imu_preintegration;
@@ -151,8 +152,8 @@ pub enum EvaluationError {
 }
 
 pub trait Factor: Debug + Send + Sync {
-    /// Short name for errors and summaries (`"between_se2"`).
-    fn name(&self) -> &'static str;
+    /// Short name for errors and summaries (`"between_se2"`; a user-defined type's own name).
+    fn name(&self) -> &str;
     fn keys(&self) -> &[Key];
     fn residual_dim(&self) -> usize;
     /// The kind expected at each key, checked when the factor is added to a problem.
