@@ -27,6 +27,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
             kind: "pose_graph_2d".into(),
             options: None,
             auto_optimize: Default::default(),
+            factor_types: vec![],
         }))
         .await
         .unwrap();
@@ -210,6 +211,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
             kind: "pose_graph_2d".into(),
             options: None,
             auto_optimize: Default::default(),
+            factor_types: vec![],
         }),
     )
     .await;

@@ -59,6 +59,7 @@ fn main() {
                 kind: kind.into(),
                 options: None,
                 auto_optimize: Default::default(),
+                factor_types: vec![],
             }))
             .await
             .expect("session");

@@ -50,6 +50,11 @@ pub struct CreateSession {
     pub options: Option<SolverOptions>,
     #[serde(default)]
     pub auto_optimize: AutoOptimize,
+    /// Factor types of this session's own, each a residual written as an expression and
+    /// differentiated automatically; batches then use their names as `type` (see README,
+    /// "User-defined factors"). Graph kinds only.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -363,6 +368,9 @@ pub struct SessionInfo {
     pub kind: String,
     pub options: SolverOptions,
     pub auto_optimize: AutoOptimize,
+    /// Names of the factor types declared at creation, when any.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub factor_types: Vec<String>,
 }
 
 /// What a session streams out (SSE events, zenoh publications).

@@ -30,6 +30,7 @@ pub use delivery::Delivery;
 
 use crate::api::catalogue;
 use crate::api::wire::*;
+use crate::session::factor_types::FactorTypes;
 use crate::session::Session;
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
@@ -451,6 +452,7 @@ impl Service {
                 kind: info.kind,
                 options: Some(info.options),
                 auto_optimize: info.auto_optimize,
+                factor_types: session.factor_types.definitions(),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
@@ -479,9 +481,11 @@ impl Service {
         options.validate().map_err(|(field, m)| {
             ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
         })?;
+        let factor_types = FactorTypes::compile(kind, &request.factor_types)?;
         let session = Session::new(
             name,
             kind,
+            factor_types,
             options,
             request.auto_optimize,
             self.runtime.clone(),

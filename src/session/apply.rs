@@ -58,6 +58,7 @@ impl Session {
                 kind: self.kind,
                 mirror: &st.mirror,
                 live_factors: &st.live_factors,
+                factor_types: &self.factor_types,
             },
         )?;
         if st.problem.is_none()

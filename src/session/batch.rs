@@ -9,6 +9,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 
 use nalgebra::DMatrix;
 
+use super::factor_types::FactorTypes;
 use super::MirrorEntry;
 use crate::api::catalogue::{self, SessionKind};
 use crate::api::wire::{Batch, FactorId, FactorSpec};
@@ -44,6 +45,8 @@ pub(crate) struct SessionView<'a> {
     pub kind: &'static SessionKind,
     pub mirror: &'a BTreeMap<Key, MirrorEntry>,
     pub live_factors: &'a HashSet<FactorId>,
+    /// Factor types the session's client declared.
+    pub factor_types: &'a FactorTypes,
 }
 
 /// The name of a field in a request, formatted only when an error names it: a valid batch of a
@@ -198,34 +201,34 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
     let mut factors = Vec::with_capacity(batch.factors.len());
     for (i, spec) in batch.factors.iter().enumerate() {
         let field = |suffix: &str| format!("factors[{i}]{suffix}");
-        let codec = kind
+        let codec = view
             .factor_types
-            .contains(&spec.factor_type.as_str())
-            .then(|| catalogue::factor_codec(&spec.factor_type))
-            .flatten()
+            .resolve(kind, &spec.factor_type)
             .ok_or_else(|| {
+                let mut accepted: Vec<&str> = kind.factor_types.to_vec();
+                accepted.extend(view.factor_types.names().iter().map(String::as_str));
                 ServiceError::bad_request(
                     "unknown_factor_type",
                     field(".type"),
                     format!(
-                        "a {} session accepts factors {:?}, not `{}`",
-                        kind.name, kind.factor_types, spec.factor_type
+                        "a {} session accepts factors {accepted:?}, not `{}`",
+                        kind.name, spec.factor_type
                     ),
                 )
             })?;
-        if spec.keys.len() != codec.variable_kinds.len() {
+        if spec.keys.len() != codec.variable_kinds().len() {
             return Err(ServiceError::bad_request(
                 "wrong_dimension",
                 field(".keys"),
                 format!(
                     "{} connects {} variables, got {} keys",
-                    codec.name,
-                    codec.variable_kinds.len(),
+                    codec.name(),
+                    codec.variable_kinds().len(),
                     spec.keys.len()
                 ),
             ));
         }
-        for (k, (&key, &expected)) in spec.keys.iter().zip(codec.variable_kinds).enumerate() {
+        for (k, (&key, &expected)) in spec.keys.iter().zip(codec.variable_kinds()).enumerate() {
             let key_field = || field(&format!(".keys[{k}]"));
             if spec.keys[..k].contains(&key) {
                 return Err(ServiceError::bad_request(
@@ -250,29 +253,30 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
                         key_field(),
                         format!(
                             "{} needs a {expected} here, variable {key} is a {found}",
-                            codec.name
+                            codec.name()
                         ),
                     ))
                 }
                 Some(_) => {}
             }
         }
-        if spec.measurement.len() != codec.measurement_len {
+        if spec.measurement.len() != codec.measurement_len() {
             return Err(ServiceError::bad_request(
                 "wrong_dimension",
                 field(".measurement"),
                 format!(
                     "{} measurement has {} numbers, got {}",
-                    codec.name,
-                    codec.measurement_len,
+                    codec.name(),
+                    codec.measurement_len(),
                     spec.measurement.len()
                 ),
             ));
         }
         finite(&spec.measurement, &|| field(".measurement"))?;
-        let factor = (codec.build)(&spec.keys, &spec.measurement)
+        let factor = codec
+            .build(&spec.keys, &spec.measurement)
             .map_err(|m| ServiceError::bad_request("invalid_value", field(".measurement"), m))?;
-        let sqrt_information = information(spec, codec.residual_dim, &|| field(""))?;
+        let sqrt_information = information(spec, codec.residual_dim(), &|| field(""))?;
         if let Some(s) = spec.robust.map(|k| k.scale()) {
             if !(s.is_finite() && s > 0.0) {
                 return Err(ServiceError::bad_request(

@@ -38,6 +38,7 @@ pub mod batch;
 mod durable;
 mod engine;
 mod events;
+pub mod factor_types;
 pub mod fusion;
 mod incremental;
 mod inspect;
@@ -72,6 +73,8 @@ use crate::solver::SolverOptions;
 pub struct Session {
     pub name: String,
     pub kind: &'static SessionKind,
+    /// Factor types its client declared at creation.
+    pub factor_types: factor_types::FactorTypes,
     state: Mutex<State>,
     events: broadcast::Sender<Arc<SessionEvent>>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
@@ -103,6 +106,7 @@ impl Session {
     pub(crate) fn new(
         name: String,
         kind: &'static SessionKind,
+        factor_types: factor_types::FactorTypes,
         options: SolverOptions,
         auto: AutoOptimize,
         runtime: tokio::runtime::Handle,
@@ -112,6 +116,7 @@ impl Session {
         Arc::new(Self {
             name,
             kind,
+            factor_types,
             state: Mutex::new(State::new(kind, options, auto)),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,

@@ -204,6 +204,7 @@ mod tests {
         let session = Session::new(
             "bytes".into(),
             kind,
+            Default::default(),
             (kind.default_options)(),
             AutoOptimize::Manual {},
             runtime.handle().clone(),

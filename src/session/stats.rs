@@ -15,6 +15,7 @@ impl Session {
             kind: self.kind.name.into(),
             options: st.options.clone(),
             auto_optimize: st.auto,
+            factor_types: self.factor_types.names().to_vec(),
         }
     }
 

@@ -65,11 +65,7 @@ impl Builder {
     /// The tape, which slots are constant, and each slot's node.
     pub fn finish(self, outputs: Vec<Slot>) -> (Tape, Vec<bool>, Vec<u32>, Vec<String>) {
         (
-            Tape {
-                ops: self.ops,
-                varying: self.varying,
-                outputs,
-            },
+            Tape::new(self.ops, self.varying, outputs),
             self.constant,
             self.origin,
             self.paths,
@@ -113,10 +109,10 @@ impl Builder {
         self.push(Op::Neg(a))
     }
     pub fn sin(&mut self, a: Slot) -> Slot {
-        self.push(Op::Sin(a))
+        self.push(Op::SinCos(a))
     }
     pub fn cos(&mut self, a: Slot) -> Slot {
-        self.push(Op::Cos(a))
+        self.push(Op::SinCos(a)) + 1
     }
 
     /// `Σ a_k b_k`.

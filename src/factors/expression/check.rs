@@ -75,13 +75,14 @@ pub(super) fn check(ty: &Arc<ExpressionType>) -> Result<(), DefinitionError> {
             .iter()
             .map(|k| random_variable(k, &mut rng))
             .collect();
-        let params = random_parameters(ty.parameter_kinds(), &mut rng);
+        let keys: Vec<u64> = (0..variables.len() as u64).collect();
+        let probe = ty.with_parameters(&keys, random_parameters(ty.parameter_kinds(), &mut rng));
         let refs: Vec<&dyn Variable> = variables.iter().map(|v| v.as_ref()).collect();
         let cols: usize = variables.iter().map(|v| v.tangent_dim()).sum();
         let mut error = vec![0.0; dim];
         let mut analytic = vec![0.0; dim * cols];
         let bad = ty
-            .evaluate_at(&refs, &params, &mut error, Some(&mut analytic))
+            .evaluate_at(&refs, probe.fixed(), &mut error, Some(&mut analytic))
             .expect("variables are made of the declared kinds");
         if let Some(slot) = bad {
             first_non_finite.get_or_insert(slot);
@@ -91,8 +92,6 @@ pub(super) fn check(ty: &Arc<ExpressionType>) -> Result<(), DefinitionError> {
             continue;
         }
         finite += 1;
-        let keys: Vec<u64> = (0..variables.len() as u64).collect();
-        let probe = ty.with_parameters(&keys, params);
         let numeric = numeric_jacobian(&probe as &dyn Factor, &variables, 1e-6);
         let worst = analytic
             .iter()

@@ -18,35 +18,53 @@ use crate::geometry::{so3, Point2, Point3, Se2, Se3, SnavelyCamera};
 use crate::variables::{Key, Variable};
 
 /// A declared kind: how many tape inputs it lowers to and its tangent dimension.
+#[derive(Debug)]
 struct KindLayout {
     kind: &'static str,
+    seed: SeedKind,
     inputs: usize,
     tangent: usize,
+}
+
+/// How a kind's values and retraction become tape inputs (matched per evaluation, so not by
+/// name).
+#[derive(Debug, Clone, Copy)]
+enum SeedKind {
+    Se2,
+    Se3,
+    Point2,
+    Point3,
+    Camera,
 }
 
 const VARIABLE_KINDS: &[KindLayout] = &[
     KindLayout {
         kind: "se2",
+        seed: SeedKind::Se2,
         inputs: 3,
         tangent: 3,
     },
     KindLayout {
         kind: "se3",
+        seed: SeedKind::Se3,
         inputs: 12,
         tangent: 6,
     },
     KindLayout {
         kind: "point2",
+        seed: SeedKind::Point2,
         inputs: 2,
         tangent: 2,
     },
     KindLayout {
         kind: "point3",
+        seed: SeedKind::Point3,
         inputs: 3,
         tangent: 3,
     },
     KindLayout {
         kind: "snavely_camera",
+        seed: SeedKind::Camera,
         inputs: 15,
         tangent: 9,
     },
@@ -83,6 +101,10 @@ impl ParamKind {
 pub struct ExpressionType {
     pub definition: FactorTypeDefinition,
     kinds: Vec<&'static str>,
+    /// The layout of each variable, by position (looked up once, not per evaluation).
+    layouts: Vec<&'static KindLayout>,
+    /// Number of tape inputs.
+    inputs: usize,
     params: Vec<ParamKind>,
     measurement_len: usize,
     tape: Tape,
@@ -252,6 +274,8 @@ impl ExpressionType {
         let (tape, constant, origin, paths) = builder.finish(outputs);
         let compiled = Arc::new(Self {
             definition,
+            layouts: kinds.iter().map(|k| layout(k)).collect(),
+            inputs: input as usize,
             kinds,
             params,
             measurement_len,
@@ -291,15 +315,9 @@ impl ExpressionType {
     /// neither and is not finite (`log(0)`, `1/0`) is wrong at any values.
     pub(super) fn first_constant_non_finite(&self) -> Option<Slot> {
         SCRATCH.with(|cell| {
-            let (seeds, scratch) = &mut *cell.borrow_mut();
-            seeds.values.clear();
-            seeds
-                .values
-                .resize(self.kinds.iter().map(|k| layout(k).inputs).sum(), 0.0);
-            let params = vec![0.0; self.tape_parameters()];
-            let mut error = vec![0.0; self.residual_dim()];
+            let (_, scratch) = &mut *cell.borrow_mut();
             self.tape
-                .evaluate(seeds, &params, self.lanes, scratch, &mut error, None);
+                .fixed_part(&vec![0.0; self.tape_parameters()], scratch);
             (0..self.constant.len() as Slot)
                 .find(|&s| self.constant[s as usize] && !scratch.value(s).is_finite())
         })
@@ -336,18 +354,20 @@ impl ExpressionType {
         keys: &[Key],
         params: Vec<f64>,
     ) -> ExpressionFactor {
+        let fixed = SCRATCH.with(|cell| self.tape.fixed_part(&params, &mut cell.borrow_mut().1));
         ExpressionFactor {
             ty: Arc::clone(self),
             keys: keys.to_vec(),
-            params,
+            fixed,
         }
     }
 
-    /// Evaluates at `variables` with `params`; returns the first non-finite slot, if any.
+    /// Evaluates at `variables` with a factor's `fixed` values; returns the first non-finite
+    /// slot, if any.
     pub(super) fn evaluate_at(
         &self,
         variables: &[&dyn Variable],
-        params: &[f64],
+        fixed: &[f64],
         error: &mut [f64],
         jacobian: Option<&mut [f64]>,
     ) -> Result<Option<Slot>, EvaluationError> {
@@ -355,7 +375,7 @@ impl ExpressionType {
             let (seeds, scratch) = &mut *cell.borrow_mut();
             self.seed(variables, seeds, jacobian.is_some())?;
             self.tape
-                .evaluate(seeds, params, self.lanes, scratch, error, jacobian);
+                .evaluate(seeds, fixed, self.lanes, scratch, error, jacobian);
             Ok(if error.iter().all(|v| v.is_finite()) {
                 None
             } else {
@@ -373,42 +393,42 @@ impl ExpressionType {
         gradients: bool,
     ) -> Result<(), EvaluationError> {
         seeds.values.clear();
-        let inputs: usize = self.kinds.iter().map(|k| layout(k).inputs).sum();
         if gradients {
             seeds.gradients.clear();
-            seeds.gradients.resize(inputs * self.lanes, 0.0);
+            seeds.gradients.resize(self.inputs * self.lanes, 0.0);
         }
         let lanes = self.lanes;
         let mut lane = 0;
-        for (position, &kind) in self.kinds.iter().enumerate() {
+        for (position, layout) in self.layouts.iter().enumerate() {
+            let kind = layout.kind;
             let first = seeds.values.len();
             // Row `first + row` of the gradients, column `lane + col`.
             let set = |g: &mut Vec<f64>, row: usize, col: usize, v: f64| {
                 g[(first + row) * lanes + lane + col] = v
             };
-            match kind {
-                "se2" => {
+            match layout.seed {
+                SeedKind::Se2 => {
                     let p: &Se2 = crate::factors::expect_kind(variables, position, kind)?;
                     seeds.values.extend_from_slice(&[p.x, p.y, p.theta]);
                     if gradients {
                         (0..3).for_each(|k| set(&mut seeds.gradients, k, k, 1.0));
                     }
                 }
-                "point2" => {
+                SeedKind::Point2 => {
                     let p: &Point2 = crate::factors::expect_kind(variables, position, kind)?;
                     seeds.values.extend_from_slice(p.0.as_slice());
                     if gradients {
                         (0..2).for_each(|k| set(&mut seeds.gradients, k, k, 1.0));
                     }
                 }
-                "point3" => {
+                SeedKind::Point3 => {
                     let p: &Point3 = crate::factors::expect_kind(variables, position, kind)?;
                     seeds.values.extend_from_slice(p.0.as_slice());
                     if gradients {
                         (0..3).for_each(|k| set(&mut seeds.gradients, k, k, 1.0));
                     }
                 }
-                "se3" => {
+                SeedKind::Se3 => {
                     // (R Exp(ω), t + R v): ∂R/∂ω_m = R [e_m]×, ∂t/∂v = R.
                     let p: &Se3 = crate::factors::expect_kind(variables, position, kind)?;
                     let r = push_se3(&mut seeds.values, &p.rotation, &p.translation);
@@ -422,7 +442,7 @@ impl ExpressionType {
                         }
                     }
                 }
-                "snavely_camera" => {
+                SeedKind::Camera => {
                     // (Exp(ω) R, t + δt, [f, k1, k2] + δk): ∂R/∂ω_m = [e_m]× R.
                     let c: &SnavelyCamera = crate::factors::expect_kind(variables, position, kind)?;
                     let r = push_se3(&mut seeds.values, &c.rotation, &c.translation);
@@ -435,9 +455,8 @@ impl ExpressionType {
                         (0..6).for_each(|k| set(&mut seeds.gradients, 9 + k, 3 + k, 1.0));
                     }
                 }
-                _ => unreachable!("kinds are checked at compile time"),
             }
-            lane += layout(kind).tangent;
+            lane += layout.tangent;
         }
         Ok(())
     }
@@ -502,13 +521,17 @@ fn declare(
 pub struct ExpressionFactor {
     ty: Arc<ExpressionType>,
     keys: Vec<Key>,
-    /// The measurement as tape parameters (`se3` as a rotation matrix and a translation).
-    params: Vec<f64>,
+    /// What its measurement determines before any variable is known: the tape's frontier
+    /// values (see [`Tape::fixed_part`]).
+    fixed: Vec<f64>,
 }
 
 impl ExpressionFactor {
     pub fn expression_type(&self) -> &Arc<ExpressionType> {
         &self.ty
+    }
+    pub(super) fn fixed(&self) -> &[f64] {
+        &self.fixed
     }
 }
 
@@ -532,7 +555,7 @@ impl Factor for ExpressionFactor {
         jacobian: Option<&mut [f64]>,
     ) -> Result<(), EvaluationError> {
         self.ty
-            .evaluate_at(variables, &self.params, error, jacobian)
+            .evaluate_at(variables, &self.fixed, error, jacobian)
             .map(|_| ())
     }
     fn as_any(&self) -> &dyn std::any::Any {

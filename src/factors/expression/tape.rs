@@ -34,8 +34,6 @@ pub(super) enum Op {
     Mul(Slot, Slot),
     Div(Slot, Slot),
     Neg(Slot),
-    Sin(Slot),
-    Cos(Slot),
     Tan(Slot),
     Asin(Slot),
     Acos(Slot),
@@ -54,6 +52,9 @@ pub(super) enum Op {
     Cosc(Slot),
     /// (x/2) cot(x/2), exact near 0 (the SE(2) logarithm's V⁻¹).
     HalfCotHalf(Slot),
+    /// sin and cos of one slot: two outputs (an angle's are nearly always both needed, and
+    /// one `sin_cos` costs what one of them does).
+    SinCos(Slot),
     /// Log of the rotation in nine row-major slots: three outputs.
     LogSo3([Slot; 9]),
     /// Exp of the vector in three slots: nine outputs (row-major rotation matrix).
@@ -66,6 +67,7 @@ impl Op {
     /// How many slots it writes.
     pub fn width(&self) -> usize {
         match self {
+            Op::SinCos(_) => 2,
             Op::LogSo3(_) => 3,
             Op::ExpSo3(_) => 9,
             _ => 1,
@@ -79,9 +81,11 @@ impl Op {
             Add(a, b) | Sub(a, b) | Mul(a, b) | Div(a, b) | Atan2(a, b) | Pow(a, b) => {
                 [Some(a), Some(b)]
             }
-            Neg(a) | Sin(a) | Cos(a) | Tan(a) | Asin(a) | Acos(a) | Atan(a) | Sqrt(a) | Exp(a)
-            | Ln(a) | Abs(a) | Wrap(a) | Sinc(a) | Cosc(a) | HalfCotHalf(a) => [Some(a), None],
-            Input(_) | Param(_) | Const(_) | Filled | LogSo3(_) | ExpSo3(_) => [None, None],
+            Neg(a) | Tan(a) | Asin(a) | Acos(a) | Atan(a) | Sqrt(a) | Exp(a) | Ln(a) | Abs(a)
+            | Wrap(a) | Sinc(a) | Cosc(a) | HalfCotHalf(a) => [Some(a), None],
+            Input(_) | Param(_) | Const(_) | Filled | SinCos(_) | LogSo3(_) | ExpSo3(_) => {
+                [None, None]
+            }
         }
     }
 
@@ -91,8 +95,8 @@ impl Op {
         match *self {
             Input(_) | Param(_) | Const(_) | Filled => vec![],
             Add(a, b) | Sub(a, b) | Mul(a, b) | Div(a, b) | Atan2(a, b) | Pow(a, b) => vec![a, b],
-            Neg(a) | Sin(a) | Cos(a) | Tan(a) | Asin(a) | Acos(a) | Atan(a) | Sqrt(a) | Exp(a)
-            | Ln(a) | Abs(a) | Wrap(a) | Sinc(a) | Cosc(a) | HalfCotHalf(a) => vec![a],
+            Neg(a) | Tan(a) | Asin(a) | Acos(a) | Atan(a) | Sqrt(a) | Exp(a) | Ln(a) | Abs(a)
+            | Wrap(a) | Sinc(a) | Cosc(a) | HalfCotHalf(a) | SinCos(a) => vec![a],
             LogSo3(r) => r.to_vec(),
             ExpSo3(w) => w.to_vec(),
         }
@@ -102,7 +106,9 @@ impl Op {
 /// Below this magnitude the closed forms of `Sinc`, `Cosc` and `HalfCotHalf` give way to series.
 const SMALL: f64 = 1e-4;
 
-/// Value and the two local partial derivatives of a single-output operation.
+/// Value and the two local partial derivatives of a single-output operation (inlined, so a
+/// value-only evaluation does not compute the partials).
+#[inline(always)]
 fn scalar(op: Op, v: &[f64]) -> (f64, f64, f64) {
     use Op::*;
     let at = |s: Slot| v[s as usize];
@@ -116,8 +122,6 @@ fn scalar(op: Op, v: &[f64]) -> (f64, f64, f64) {
             (x / y, 1.0 / y, -x / (y * y))
         }
         Neg(a) => (-at(a), -1.0, 0.0),
-        Sin(a) => (at(a).sin(), at(a).cos(), 0.0),
-        Cos(a) => (at(a).cos(), -at(a).sin(), 0.0),
         Tan(a) => {
             let t = at(a).tan();
             (t, 1.0 + t * t, 0.0)
@@ -180,7 +184,7 @@ fn scalar(op: Op, v: &[f64]) -> (f64, f64, f64) {
                 (0.5 * x * c / s, 0.5 * c / s - 0.25 * x / (s * s), 0.0)
             }
         }
-        Input(_) | Param(_) | Filled | LogSo3(_) | ExpSo3(_) => {
+        Input(_) | Param(_) | Filled | SinCos(_) | LogSo3(_) | ExpSo3(_) => {
             unreachable!("not a scalar operation: {op:?}")
         }
     }
@@ -188,12 +192,23 @@ fn scalar(op: Op, v: &[f64]) -> (f64, f64, f64) {
 
 /// A compiled residual: operations in evaluation order, which slots vary with δ, and which
 /// slots form the residual.
+///
+/// What does not depend on the variables (a measurement's sine and cosine, a parameter's
+/// inverse) is computed once per factor, when it is built ([`Tape::fixed_part`]): an evaluation
+/// runs only the operations that vary, reading the fixed slots they need (the *frontier*) from
+/// the factor.
 #[derive(Clone, Debug, Default)]
 pub(super) struct Tape {
     pub ops: Vec<Op>,
     /// Whether slot `i` depends on a variable (its gradient is meaningful).
     pub varying: Vec<bool>,
     pub outputs: Vec<Slot>,
+    /// Indices of the operations that vary, in order.
+    varying_ops: Vec<Slot>,
+    /// Fixed slots read by a varying operation or part of the residual.
+    frontier: Vec<Slot>,
+    /// For each of `varying_ops`, its operands that vary (whose gradients it combines).
+    varying_operands: Vec<[Option<Slot>; 2]>,
 }
 
 /// The variables' values as tape inputs, and each input's gradient row (`lanes` long).
@@ -210,11 +225,85 @@ pub(super) struct Scratch {
 }
 
 impl Tape {
-    /// Evaluates into `error` and, when asked, the Jacobian (row-major, residual × lanes).
+    pub fn new(ops: Vec<Op>, varying: Vec<bool>, outputs: Vec<Slot>) -> Self {
+        let varying_ops: Vec<Slot> = (0..ops.len())
+            .filter(|&i| varying[i] && ops[i] != Op::Filled)
+            .map(|i| i as Slot)
+            .collect();
+        let mut frontier: Vec<Slot> = varying_ops
+            .iter()
+            .flat_map(|&i| ops[i as usize].arguments())
+            .chain(outputs.iter().copied())
+            .filter(|&s| !varying[s as usize])
+            .collect();
+        frontier.sort_unstable();
+        frontier.dedup();
+        let varying_operands = varying_ops
+            .iter()
+            .map(|&i| {
+                ops[i as usize]
+                    .scalar_operands()
+                    .map(|a| a.filter(|&a| varying[a as usize]))
+            })
+            .collect();
+        Self {
+            ops,
+            varying,
+            outputs,
+            varying_ops,
+            frontier,
+            varying_operands,
+        }
+    }
+
+    /// Computes every fixed slot from the factor's `params` into `scratch` and returns the
+    /// frontier's values, which [`Tape::evaluate`] takes.
+    pub fn fixed_part(&self, params: &[f64], scratch: &mut Scratch) -> Vec<f64> {
+        let n = self.ops.len();
+        scratch.values.resize(n, 0.0);
+        let values = &mut scratch.values;
+        for i in (0..n).filter(|&i| !self.varying[i]) {
+            match self.ops[i] {
+                Op::Param(k) => values[i] = params[k as usize],
+                Op::Filled => {}
+                Op::SinCos(a) => (values[i], values[i + 1]) = values[a as usize].sin_cos(),
+                Op::LogSo3(r) => log_so3(i, r, values, &mut [], 0, None),
+                Op::ExpSo3(w) => exp_so3(i, w, values, &mut [], 0, None),
+                op => values[i] = scalar(op, values).0,
+            }
+        }
+        self.frontier.iter().map(|&s| values[s as usize]).collect()
+    }
+
+    /// Evaluates into `error` and, when asked, the Jacobian (row-major, residual × lanes),
+    /// with `fixed` the factor's frontier values from [`Tape::fixed_part`].
     pub fn evaluate(
         &self,
         seeds: &Seeds,
-        params: &[f64],
+        fixed: &[f64],
+        lanes: usize,
+        scratch: &mut Scratch,
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) {
+        // The common widths get their own copy of the loop with `lanes` a constant, so the
+        // per-operation gradient updates are unrolled (measured: 1.4x faster solves on intel
+        // than one loop over a variable width).
+        match lanes {
+            3 => self.run(seeds, fixed, 3, scratch, error, jacobian),
+            6 => self.run(seeds, fixed, 6, scratch, error, jacobian),
+            9 => self.run(seeds, fixed, 9, scratch, error, jacobian),
+            12 => self.run(seeds, fixed, 12, scratch, error, jacobian),
+            15 => self.run(seeds, fixed, 15, scratch, error, jacobian),
+            _ => self.run(seeds, fixed, lanes, scratch, error, jacobian),
+        }
+    }
+
+    #[inline(always)]
+    fn run(
+        &self,
+        seeds: &Seeds,
+        fixed: &[f64],
         lanes: usize,
         scratch: &mut Scratch,
         error: &mut [f64],
@@ -228,8 +317,11 @@ impl Tape {
         }
         let values = &mut scratch.values;
         let gradients = &mut scratch.gradients;
-        let mut i = 0;
-        while i < n {
+        for (&s, &v) in self.frontier.iter().zip(fixed) {
+            values[s as usize] = v;
+        }
+        for (&i, &[a, b]) in self.varying_ops.iter().zip(&self.varying_operands) {
+            let i = i as usize;
             let op = self.ops[i];
             match op {
                 Op::Input(k) => {
@@ -240,36 +332,50 @@ impl Tape {
                             .copy_from_slice(&seeds.gradients[k * lanes..(k + 1) * lanes]);
                     }
                 }
-                Op::Param(k) => values[i] = params[k as usize],
-                Op::Filled => {}
+                Op::Param(_) | Op::Const(_) | Op::Filled => unreachable!("fixed, not varying"),
+                Op::SinCos(a) => {
+                    let (sin, cos) = values[a as usize].sin_cos();
+                    (values[i], values[i + 1]) = (sin, cos);
+                    if with_gradient {
+                        // The operand varies, or this would not.
+                        let (head, tail) = gradients.split_at_mut(i * lanes);
+                        let g = &head[a as usize * lanes..(a as usize + 1) * lanes];
+                        for k in 0..lanes {
+                            tail[k] = cos * g[k];
+                            tail[lanes + k] = -sin * g[k];
+                        }
+                    }
+                }
                 Op::LogSo3(r) => {
-                    let grad = (with_gradient && self.varying[i]).then_some(&self.varying[..]);
+                    let grad = with_gradient.then_some(&self.varying[..]);
                     log_so3(i, r, values, gradients, lanes, grad)
                 }
                 Op::ExpSo3(w) => {
-                    let grad = (with_gradient && self.varying[i]).then_some(&self.varying[..]);
+                    let grad = with_gradient.then_some(&self.varying[..]);
                     exp_so3(i, w, values, gradients, lanes, grad)
                 }
                 _ => {
                     let (value, da, db) = scalar(op, values);
                     values[i] = value;
-                    if with_gradient && self.varying[i] {
+                    if with_gradient {
                         let (head, tail) = gradients.split_at_mut(i * lanes);
                         let out = &mut tail[..lanes];
-                        out.fill(0.0);
-                        for (arg, d) in op.scalar_operands().into_iter().zip([da, db]) {
-                            let Some(arg) = arg else { break };
-                            if self.varying[arg as usize] {
-                                let g = &head[arg as usize * lanes..(arg as usize + 1) * lanes];
-                                for (o, gv) in out.iter_mut().zip(g) {
-                                    *o += d * gv;
+                        let gradient_of = |arg: Option<Slot>| {
+                            arg.map(|a| &head[a as usize * lanes..(a as usize + 1) * lanes])
+                        };
+                        match (gradient_of(a), gradient_of(b)) {
+                            (Some(ga), Some(gb)) => {
+                                for k in 0..lanes {
+                                    out[k] = da * ga[k] + db * gb[k];
                                 }
                             }
+                            (Some(g), None) => (0..lanes).for_each(|k| out[k] = da * g[k]),
+                            (None, Some(g)) => (0..lanes).for_each(|k| out[k] = db * g[k]),
+                            (None, None) => unreachable!("a varying slot has a varying operand"),
                         }
                     }
                 }
             }
-            i += op.width();
         }
         for (e, &s) in error.iter_mut().zip(&self.outputs) {
             *e = values[s as usize];
@@ -286,14 +392,18 @@ impl Tape {
         }
     }
 
-    /// The first slot, in evaluation order, whose last computed value is not finite.
+    /// The first slot, in evaluation order, of those an evaluation computes or reads (the
+    /// varying ones and the frontier), whose last value is not finite.
     pub fn first_non_finite(&self, scratch: &Scratch) -> Option<Slot> {
-        scratch
-            .values
+        let mut read: Vec<Slot> = self
+            .frontier
             .iter()
-            .take(self.ops.len())
-            .position(|v| !v.is_finite())
-            .map(|i| i as Slot)
+            .chain(&self.varying_ops)
+            .copied()
+            .collect();
+        read.sort_unstable();
+        read.into_iter()
+            .find(|&s| !scratch.values[s as usize].is_finite())
     }
 }
 
