@@ -360,6 +360,9 @@ pub struct SessionStats {
     pub corrupt: bool,
     /// Estimated memory this session holds, in bytes.
     pub memory_bytes: usize,
+    /// Names of the factor types declared at creation, when any.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub factor_types: Vec<String>,
 }
 
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]

@@ -41,6 +41,7 @@ impl Session {
             last_summary: st.last_summary.clone(),
             recovering: self.is_recovering(),
             corrupt: self.corruption().is_some(),
+            factor_types: self.factor_types.names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
         }
     }
