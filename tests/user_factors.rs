@@ -299,3 +299,24 @@ async fn bad_definitions_and_uses_are_refused_naming_the_field_and_nothing_chang
     );
     s.assert_no_panic();
 }
+
+/// The documented examples compile on the server (the wire test only checks their shape).
+#[tokio::test(flavor = "multi_thread")]
+async fn the_documented_examples_compile() {
+    let s = TestServer::start(&["--no-journal"]);
+    let c = client();
+    let example = |name: &str| -> Value {
+        let path = format!("{}/proto/v1/examples/{name}", env!("CARGO_MANIFEST_DIR"));
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    };
+    let info = create(&c, &s, &example("create-session-factor-types.example.json")).await;
+    assert_eq!(info["factor_types"], json!(["wheel_odometry_with_slip"]));
+    let info = create(
+        &c,
+        &s,
+        &json!({"session": "baro", "kind": "pose_graph_3d",
+        "factor_types": [example("factor-type.example.json")]}),
+    )
+    .await;
+    assert_eq!(info["factor_types"], json!(["barometric_altitude"]));
+}
