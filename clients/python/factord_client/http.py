@@ -248,11 +248,13 @@ class HttpClient:
         session: Optional[str] = None,
         options: Optional[JsonDict] = None,
         auto_optimize: Union[None, str, JsonDict] = None,
+        factor_types: Optional[list] = None,
     ) -> JsonDict:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
         solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
         ``auto_optimize``: a policy dict such as ``{"policy": "every_n_factors", "factors": 50}``
-        or just the policy name (``"every_batch"``, ``"manual"``)."""
+        or just the policy name (``"every_batch"``, ``"manual"``); ``factor_types``: user-defined
+        factor types (proto/v1/factor-type.schema.json), used by name in batches."""
         body: JsonDict = {"kind": kind}
         if session is not None:
             body["session"] = session
@@ -260,6 +262,8 @@ class HttpClient:
             body["options"] = options
         if auto_optimize is not None:
             body["auto_optimize"] = auto_optimize_policy(auto_optimize)
+        if factor_types:
+            body["factor_types"] = factor_types
         return self._request("POST", "/v1/sessions", body=body)
 
     def list_sessions(self) -> JsonDict:

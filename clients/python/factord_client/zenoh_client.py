@@ -134,6 +134,7 @@ class ZenohClient:
         session: Optional[str] = None,
         options: Optional[JsonDict] = None,
         auto_optimize: Union[None, str, JsonDict] = None,
+        factor_types: Optional[list] = None,
     ) -> JsonDict:
         command: JsonDict = {"op": "create_session", "kind": kind}
         if session is not None:
@@ -144,6 +145,8 @@ class ZenohClient:
             command["auto_optimize"] = (
                 {"policy": auto_optimize} if isinstance(auto_optimize, str) else auto_optimize
             )
+        if factor_types:
+            command["factor_types"] = factor_types
         return self.rpc(command)
 
     def delete_session(self, session: str) -> JsonDict:

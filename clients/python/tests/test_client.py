@@ -464,6 +464,45 @@ def main() -> int:
 
     checks.run("GTSAM landmark text streamed == batch job", landmarks)
 
+    # ------------------------------------------------------------------ user-defined factors
+    def user_factors():
+        # A range to a beacon at a known position, declared over zenoh, fed and solved over HTTP.
+        beacon = {
+            "name": "beacon_range",
+            "variables": [{"name": "x", "kind": "se2"}],
+            "parameters": [{"name": "beacon", "kind": "point2"}, {"name": "range", "kind": "scalar"}],
+            "residual": {"sub": [{"norm": [{"sub": ["beacon", {"translation": ["x"]}]}]}, "range"]},
+        }
+        name = f"pyuser-{run_id}"
+        info = zenoh.create_session("pose_graph_2d", session=name, auto_optimize="manual",
+                                    factor_types=[beacon])
+        expect(info["factor_types"] == ["beacon_range"], f"{info}")
+        truth = (3.0, 4.0)
+        beacons = [(0.0, 0.0), (10.0, 0.0), (0.0, 10.0)]
+        try:
+            http.apply_batch(name, {
+                "variables": [{"key": 1, "kind": "se2", "value": [0.5, 0.5, 0.0]}],
+                "factors": [{"type": "beacon_range", "keys": [1],
+                             "measurement": [bx, by, math.hypot(truth[0] - bx, truth[1] - by)],
+                             "sigmas": [0.01]} for bx, by in beacons]
+                + [{"type": "prior_se2", "keys": [1], "measurement": [0, 0, 0], "sigmas": [1e3, 1e3, 0.1]}],
+            })
+            optimize_and_wait(http, name)
+            x = http.estimate(name)["variables"][0]["value"]
+        finally:
+            http.delete_session(name)
+        expect(math.hypot(x[0] - truth[0], x[1] - truth[1]) < 1e-6, f"estimate {x}")
+        try:
+            zenoh.create_session("pose_graph_2d", session=name + "-bad",
+                                 factor_types=[dict(beacon, residual={"nrom": ["beacon"]})])
+            raise AssertionError("an unknown operation was accepted")
+        except FactordError as e:
+            expect(e.code == "invalid_factor_type" and e.field == "factor_types[0].residual.nrom",
+                   f"{e.code} at {e.field}")
+        return f"three beacon ranges place the robot at {x[0]:.6f}, {x[1]:.6f}; a typo is refused at its node"
+
+    checks.run("user-defined factor type over zenoh and HTTP", user_factors)
+
     # ------------------------------------------------------------------ robot example
     def robot():
         need_data(STREAM_DATASET)
