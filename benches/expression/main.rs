@@ -117,7 +117,9 @@ fn main() {
         function_tolerance: 1e-12,
         ..SolverOptions::default()
     };
-    let mut report = serde_json::json!({"file": file, "rounds": rounds});
+    let (operations, varying) = ty.operations();
+    let mut report = serde_json::json!({"file": file, "rounds": rounds,
+        "tape": {"operations": operations, "run_per_evaluation": varying}});
     for (name, options) in [
         ("same_start", same_start),
         ("defaults", SolverOptions::default()),

@@ -301,6 +301,11 @@ impl ExpressionType {
     pub fn residual_dim(&self) -> usize {
         self.tape.outputs.len()
     }
+    /// Operations on the tape, and how many of them an evaluation runs (those that depend on
+    /// a variable).
+    pub fn operations(&self) -> (usize, usize) {
+        (self.tape.ops.len(), self.tape.varying_operations())
+    }
     pub(super) fn path_of(&self, slot: Slot) -> &str {
         &self.paths[self.origin[slot as usize] as usize]
     }

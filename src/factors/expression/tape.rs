@@ -256,6 +256,10 @@ impl Tape {
         }
     }
 
+    pub fn varying_operations(&self) -> usize {
+        self.varying_ops.len()
+    }
+
     /// Computes every fixed slot from the factor's `params` into `scratch` and returns the
     /// frontier's values, which [`Tape::evaluate`] takes.
     pub fn fixed_part(&self, params: &[f64], scratch: &mut Scratch) -> Vec<f64> {
