@@ -320,3 +320,110 @@ async fn the_documented_examples_compile() {
     .await;
     assert_eq!(info["factor_types"], json!(["barometric_altitude"]));
 }
+
+/// A type declared in a running session (`POST …/factor_types`) is journalled in order with the
+/// batches, listed in snapshots, and back after kill -9; a bad declaration changes nothing.
+#[tokio::test(flavor = "multi_thread")]
+async fn types_declared_in_a_running_session_survive_snapshots_and_kill_9() {
+    let dir = common::temp_dir("user-factors-late");
+    let config = dir.join("factord.json");
+    std::fs::write(
+        &config,
+        json!({"journal": {"snapshot_every": 4}}).to_string(),
+    )
+    .unwrap();
+    let config = config.display().to_string();
+    let s = TestServer::start_at(&dir, &["--config", &config], &[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "late", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
+    )
+    .await;
+    let url = s.url("/v1/sessions/late/batches");
+    let (status, v) = post(
+        &c,
+        &url,
+        &json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0], "fixed": true}]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    // Not declared yet: refused, naming the type.
+    let odometry = |k: u64| {
+        json!({"variables": [{"key": k, "kind": "se2", "value": [k as f64, 0.1 * k as f64, 0.0]}],
+        "factors": [{"type": "user_between_se2", "keys": [k - 1, k], "measurement": [1.0, 0.0, 0.05], "sigmas": [0.1, 0.1, 0.01]}]})
+    };
+    let (status, v) = post(&c, &url, &odometry(1)).await;
+    assert_eq!(
+        (status, v["error"]["field"].as_str()),
+        (400, Some("factors[0].type")),
+        "{v}"
+    );
+
+    let declare = s.url("/v1/sessions/late/factor_types");
+    let (status, info) = post(&c, &declare, &json!({"factor_types": [user_between_se2()]})).await;
+    assert_eq!(status, 200, "{info}");
+    assert_eq!(info["factor_types"], json!(["user_between_se2"]));
+    let mut typo = user_between_se2();
+    typo["name"] = json!("second");
+    typo["residual"] = json!({"compose": ["a", {"inverse": ["c"]}]});
+    for (body, field) in [
+        (
+            json!({"factor_types": [user_between_se2()]}),
+            "factor_types[0].name",
+        ),
+        (
+            json!({"factor_types": [typo]}),
+            "factor_types[0].residual.compose[1].inverse[0]",
+        ),
+        (json!({"factor_type": []}), "factor_type"),
+    ] {
+        let (status, v) = post(&c, &declare, &body).await;
+        assert_eq!(status, 400, "{body}: {v}");
+        assert_eq!(v["error"]["field"], field, "{v}");
+        let (_, stats) = get(&c, &s.url("/v1/sessions/late")).await;
+        assert_eq!(
+            stats["factor_types"],
+            json!(["user_between_se2"]),
+            "{stats}"
+        );
+        assert_eq!(stats["sequence"], 1, "{stats}");
+    }
+    for k in 1..=9 {
+        let (status, v) = post(&c, &url, &odometry(k)).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    // The snapshot (every 4 entries) lists the type.
+    let snapshot = dir.join("sessions/late/snapshot.json");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    while !std::fs::read_to_string(&snapshot)
+        .is_ok_and(|t| t.contains("user_between_se2\",\"variables"))
+    {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no snapshot with the type"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let (chi2, before) = solve(&c, &s, "late").await;
+
+    drop(s.kill());
+    let s = TestServer::start_at(&dir, &["--config", &config], &[]);
+    let (stats, _) = common::server::recovered(&c, &s, "late", std::time::Instant::now()).await;
+    assert_eq!(
+        stats["factor_types"],
+        json!(["user_between_se2"]),
+        "{stats}"
+    );
+    assert_eq!(stats["num_factors"], 9, "{stats}");
+    let (chi2_after, after) = solve(&c, &s, "late").await;
+    assert!(
+        (chi2_after - chi2).abs() <= 1e-9 * chi2.max(1e-12),
+        "{chi2_after} vs {chi2}"
+    );
+    assert!(max_difference(&before, &after) <= 1e-9);
+    let (status, v) = post(&c, &s.url("/v1/sessions/late/batches"), &odometry(10)).await;
+    assert_eq!(status, 200, "{v}");
+    s.assert_no_panic();
+}

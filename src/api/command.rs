@@ -45,6 +45,12 @@ pub enum Command {
         session: String,
         auto_optimize: AutoOptimize,
     },
+    /// Declare more user-defined factor types in a running graph session (all or none);
+    /// answers the session's info with every declared name.
+    DefineFactorTypes {
+        session: String,
+        factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
+    },
     GetEstimate {
         session: String,
         #[serde(default, deserialize_with = "wire_number::optional_u64")]

@@ -83,6 +83,10 @@ pub enum Entry {
     Fusion {
         messages: Vec<FusionMessage>,
     },
+    /// Factor types declared in a running session (those of its creation are in its record).
+    FactorTypes {
+        factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
+    },
 }
 
 /// The estimate and the problem at `sequence`.
@@ -98,6 +102,9 @@ pub struct Snapshot {
     /// Exactly-once ingest: every producer's progress and its latest acknowledgements.
     #[serde(default)]
     pub producers: Vec<ProducerRecord>,
+    /// Every factor type declared at `sequence` (compiled before the factors are restored).
+    #[serde(default)]
+    pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
 }
 
 /// A producer's progress in a session, as a snapshot keeps it (the journal's batches after the
@@ -132,6 +139,8 @@ pub struct SnapshotOut<'a> {
     #[serde(serialize_with = "factors_in_order")]
     pub factors: &'a BTreeMap<FactorId, FactorSpec>,
     pub producers: &'a [ProducerRecord],
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    pub factor_types: &'a [crate::factors::expression::FactorTypeDefinition],
 }
 
 /// `[[id, spec], ...]` in id order, as `Vec<(FactorId, FactorSpec)>` is written.

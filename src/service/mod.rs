@@ -281,6 +281,20 @@ impl Service {
                     auto_optimize,
                 })
             }
+            Command::DefineFactorTypes {
+                session,
+                factor_types,
+            } => {
+                let session = self.writable_as(caller, &session)?;
+                // Compiling checks each definition's Jacobian numerically: off the async threads.
+                let info =
+                    tokio::task::spawn_blocking(move || session.define_factor_types(factor_types))
+                        .await
+                        .map_err(|e| {
+                            ServiceError::internal(format!("factor types failed: {e}"))
+                        })??;
+                Ok(Reply::Created(info))
+            }
             Command::GetEstimate {
                 session,
                 since,
@@ -452,7 +466,7 @@ impl Service {
                 kind: info.kind,
                 options: Some(info.options),
                 auto_optimize: info.auto_optimize,
-                factor_types: session.factor_types.definitions(),
+                factor_types: session.factor_types().definitions(),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);

@@ -52,13 +52,14 @@ impl Session {
         }
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         let wire_copy = durable.is_some().then(|| batch.clone());
+        let factor_types = self.factor_types();
         let prepared = batch::prepare(
             batch,
             &SessionView {
                 kind: self.kind,
                 mirror: &st.mirror,
                 live_factors: &st.live_factors,
-                factor_types: &self.factor_types,
+                factor_types: &factor_types,
             },
         )?;
         if st.problem.is_none()

@@ -155,6 +155,7 @@ impl Durable {
             next_factor_id: st.next_factor_id,
             auto: st.auto,
             producers: st.producers.records(),
+            factor_types: session.factor_types().definitions(),
             journal_bytes: self.journal.bytes(),
             journal_path: self.journal.path().to_path_buf(),
             changes: std::mem::take(&mut self.changes),
@@ -267,6 +268,8 @@ impl Session {
         let corruption = recovered.corruption;
         if let Some(snapshot) = recovered.snapshot {
             auto = snapshot.auto_optimize;
+            self.restore_factor_types(snapshot.factor_types)
+                .map_err(|e| format!("snapshot: {e}"))?;
             let (ids, factors): (Vec<FactorId>, Vec<FactorSpec>) =
                 snapshot.factors.into_iter().unzip();
             let batch = Batch {
@@ -299,6 +302,9 @@ impl Session {
                         .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
                 }
                 Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
+                Entry::FactorTypes { factor_types } => self
+                    .restore_factor_types(factor_types)
+                    .map_err(|e| format!("journal entry {i}: {e}"))?,
                 Entry::Fusion { messages } => {
                     let mut applied = 0;
                     let mut window = self

@@ -18,7 +18,7 @@ use crate::problem::Key;
 /// At most this many declared types per session.
 pub const MAX_FACTOR_TYPES: usize = 32;
 
-#[derive(Default, Debug)]
+#[derive(Default, Debug, Clone)]
 pub struct FactorTypes {
     by_name: HashMap<String, Arc<ExpressionType>>,
     /// Declaration order, for listing.
@@ -37,20 +37,33 @@ impl FactorTypes {
         definitions: &[FactorTypeDefinition],
     ) -> Result<Self, ServiceError> {
         let mut types = Self::default();
+        types.extend(kind, definitions)?;
+        Ok(types)
+    }
+
+    /// Adds `definitions` (all of them, or none when one is refused); a name already declared
+    /// is refused.
+    pub fn extend(
+        &mut self,
+        kind: &SessionKind,
+        definitions: &[FactorTypeDefinition],
+    ) -> Result<(), ServiceError> {
         if definitions.is_empty() {
-            return Ok(types);
+            return Ok(());
         }
+        let mut types = self.clone();
         if kind.name == SLIDING_WINDOW {
             return Err(refused(
                 "factor_types".into(),
                 "a sliding_window session is fed fusion messages; declare factor types in graph sessions",
             ));
         }
-        if definitions.len() > MAX_FACTOR_TYPES {
+        if types.names.len() + definitions.len() > MAX_FACTOR_TYPES {
             return Err(refused(
                 "factor_types".into(),
                 format!(
-                    "at most {MAX_FACTOR_TYPES} factor types per session, got {}",
+                    "at most {MAX_FACTOR_TYPES} factor types per session: {} declared, {} more",
+                    types.names.len(),
                     definitions.len()
                 ),
             ));
@@ -85,7 +98,17 @@ impl FactorTypes {
             types.names.push(definition.name.clone());
             types.by_name.insert(definition.name.clone(), compiled);
         }
-        Ok(types)
+        *self = types;
+        Ok(())
+    }
+
+    /// Those of `definitions` not declared yet (a snapshot lists every type, the creation
+    /// record the first ones).
+    pub fn missing(&self, definitions: Vec<FactorTypeDefinition>) -> Vec<FactorTypeDefinition> {
+        definitions
+            .into_iter()
+            .filter(|d| !self.by_name.contains_key(&d.name))
+            .collect()
     }
 
     pub fn names(&self) -> &[String] {
@@ -145,5 +168,59 @@ impl Codec<'_> {
             Codec::BuiltIn(c) => (c.build)(keys, measurement),
             Codec::Declared(t) => Ok(Box::new(t.build(keys, measurement)?)),
         }
+    }
+}
+
+impl super::Session {
+    /// The factor types declared so far (a read lock, held by batches while they validate).
+    pub fn factor_types(&self) -> std::sync::RwLockReadGuard<'_, FactorTypes> {
+        self.factor_types.read().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Declares more factor types in a running graph session: compiled whole (all or none),
+    /// journalled before they are answered, in order with the batches (the session's lock is
+    /// held), and usable by every batch after.
+    pub fn define_factor_types(
+        &self,
+        definitions: Vec<FactorTypeDefinition>,
+    ) -> Result<crate::api::wire::SessionInfo, ServiceError> {
+        if !matches!(self.engine, super::Engine::Graph(_)) {
+            return Err(refused(
+                "factor_types".into(),
+                "a sliding_window session is fed fusion messages; declare factor types in graph sessions",
+            ));
+        }
+        {
+            let st = self.lock();
+            if st.deleted {
+                return Err(self.gone());
+            }
+            let mut extended = self.factor_types().clone();
+            extended.extend(self.kind, &definitions)?;
+            let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+            if let Some(d) = durable.as_mut() {
+                d.append(
+                    &self.name,
+                    &crate::journal::Entry::FactorTypes {
+                        factor_types: definitions,
+                    },
+                )?;
+            }
+            *self.factor_types.write().unwrap_or_else(|p| p.into_inner()) = extended;
+        }
+        Ok(self.info())
+    }
+
+    /// Replays declared types (a journal entry, a snapshot's list): those already known are
+    /// skipped.
+    pub(super) fn restore_factor_types(
+        &self,
+        definitions: Vec<FactorTypeDefinition>,
+    ) -> Result<(), String> {
+        let mut types = self.factor_types.write().unwrap_or_else(|p| p.into_inner());
+        let missing = types.missing(definitions);
+        types
+            .extend(self.kind, &missing)
+            .map_err(|e| e.body.message)
     }
 }

@@ -73,8 +73,8 @@ use crate::solver::SolverOptions;
 pub struct Session {
     pub name: String,
     pub kind: &'static SessionKind,
-    /// Factor types its client declared at creation.
-    pub factor_types: factor_types::FactorTypes,
+    /// Factor types its client declared (at creation or since).
+    factor_types: std::sync::RwLock<factor_types::FactorTypes>,
     state: Mutex<State>,
     events: broadcast::Sender<Arc<SessionEvent>>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
@@ -116,7 +116,7 @@ impl Session {
         Arc::new(Self {
             name,
             kind,
-            factor_types,
+            factor_types: std::sync::RwLock::new(factor_types),
             state: Mutex::new(State::new(kind, options, auto)),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,

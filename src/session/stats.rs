@@ -15,7 +15,7 @@ impl Session {
             kind: self.kind.name.into(),
             options: st.options.clone(),
             auto_optimize: st.auto,
-            factor_types: self.factor_types.names().to_vec(),
+            factor_types: self.factor_types().names().to_vec(),
         }
     }
 
@@ -41,7 +41,7 @@ impl Session {
             last_summary: st.last_summary.clone(),
             recovering: self.is_recovering(),
             corrupt: self.corruption().is_some(),
-            factor_types: self.factor_types.names().to_vec(),
+            factor_types: self.factor_types().names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
         }
     }

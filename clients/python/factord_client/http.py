@@ -274,6 +274,11 @@ class HttpClient:
         """``GET /v1/sessions/{session}``: sequence, solved_sequence, chi2, solves, ..."""
         return self._request("GET", self._session_path(session))
 
+    def define_factor_types(self, session: str, factor_types: list) -> JsonDict:
+        """Declares more user-defined factor types in a running graph session (all or none);
+        answers the session's info with every declared name."""
+        return self._request("POST", f"/v1/sessions/{session}/factor_types", body={"factor_types": factor_types})
+
     def delete_session(self, session: str) -> JsonDict:
         """``DELETE /v1/sessions/{session}``."""
         return self._request("DELETE", self._session_path(session))

@@ -149,6 +149,11 @@ class ZenohClient:
             command["factor_types"] = factor_types
         return self.rpc(command)
 
+    def define_factor_types(self, session: str, factor_types: list) -> JsonDict:
+        """Declares more user-defined factor types in a running graph session (all or none);
+        answers the session's info with every declared name."""
+        return self.rpc({"op": "define_factor_types", "session": session, "factor_types": factor_types})
+
     def delete_session(self, session: str) -> JsonDict:
         return self.rpc({"op": "delete_session", "session": session})
 

@@ -477,6 +477,11 @@ def main() -> int:
         info = zenoh.create_session("pose_graph_2d", session=name, auto_optimize="manual",
                                     factor_types=[beacon])
         expect(info["factor_types"] == ["beacon_range"], f"{info}")
+        bearing = dict(beacon, name="beacon_bearing", residual={"wrap": [{"sub": [
+            {"atan2": [{"at": [{"act": [{"inverse": ["x"]}, "beacon"]}, 1]},
+                       {"at": [{"act": [{"inverse": ["x"]}, "beacon"]}, 0]}]}, "range"]}]})
+        info = http.define_factor_types(name, [bearing])
+        expect(info["factor_types"] == ["beacon_range", "beacon_bearing"], f"{info}")
         truth = (3.0, 4.0)
         beacons = [(0.0, 0.0), (10.0, 0.0), (0.0, 10.0)]
         try:

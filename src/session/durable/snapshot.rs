@@ -148,6 +148,8 @@ pub(super) struct Capture {
     pub(super) auto: AutoOptimize,
     /// Every producer's progress at `sequence`.
     pub(super) producers: Vec<ProducerRecord>,
+    /// Every factor type declared at `sequence`.
+    pub(super) factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
     /// The journal's length: the records the snapshot makes redundant.
     pub(super) journal_bytes: u64,
     pub(super) journal_path: PathBuf,
@@ -179,6 +181,7 @@ impl Session {
             next_factor_id,
             auto,
             producers,
+            factor_types,
             journal_bytes,
             journal_path,
             changes,
@@ -201,6 +204,7 @@ impl Session {
                     variables: &variables,
                     factors: &base.factors,
                     producers: &producers,
+                    factor_types: &factor_types,
                 })
                 .expect("snapshots serialise");
                 drop(variables);

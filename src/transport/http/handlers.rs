@@ -268,6 +268,31 @@ pub(super) async fn set_auto_optimize(
     .await
 }
 
+/// Declare more user-defined factor types in a running graph session (all or none).
+#[utoipa::path(post, path = "/v1/sessions/{session}/factor_types", tag = "updates", params(SessionPath),
+    request_body = super::openapi::FactorTypesBody,
+    responses((status = 200,
+            description = "The session, with every declared factor type's name.",
+            body = crate::api::wire::SessionInfo), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn define_factor_types(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult {
+    let body: super::openapi::FactorTypesBody = parse_json(&body.map_err(body_error)?)?;
+    run(
+        &service,
+        &caller,
+        Command::DefineFactorTypes {
+            session,
+            factor_types: body.factor_types,
+        },
+        StatusCode::OK,
+    )
+    .await
+}
+
 /// Read the estimate: every variable, those changed after `since`, or a key range.
 #[utoipa::path(get, path = "/v1/sessions/{session}/estimate", tag = "reads", params(SessionPath, EstimateQuery),
     responses((status = 200,

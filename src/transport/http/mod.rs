@@ -51,6 +51,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(fusion))
         .routes(routes!(optimize))
         .routes(routes!(set_auto_optimize))
+        .routes(routes!(define_factor_types))
         .routes(routes!(estimate))
         .routes(routes!(producer_status))
         .routes(routes!(summary))

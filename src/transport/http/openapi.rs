@@ -53,6 +53,13 @@ pub struct AutoOptimizeSet {
     auto_optimize: AutoOptimize,
 }
 
+/// The body of `POST /v1/sessions/{session}/factor_types`.
+#[derive(ToSchema, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FactorTypesBody {
+    pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
+}
+
 /// `POST /v1/sessions/{session}/cancel`: whether a solve was running.
 #[derive(ToSchema)]
 #[allow(dead_code)]
