@@ -427,3 +427,74 @@ async fn types_declared_in_a_running_session_survive_snapshots_and_kill_9() {
     assert_eq!(status, 200, "{v}");
     s.assert_no_panic();
 }
+
+/// Bundle adjustment with BAL's reprojection written as an expression: the Schur complement
+/// eliminates the points as for the built-in factor, and LM reaches the same cost.
+#[test]
+fn a_user_defined_reprojection_solves_bal_through_the_schur_complement() {
+    use factord::factors::expression::{ExpressionType, FactorTypeDefinition};
+    use factord::factors::{Factor, ReprojectionSnavely};
+    use factord::solver::{optimize, SolverOptions};
+    let Some(path) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let example = format!(
+        "{}/proto/v1/examples/factor-type-reprojection.example.json",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let definition: FactorTypeDefinition =
+        serde_json::from_str(&std::fs::read_to_string(example).unwrap()).unwrap();
+    let ty = ExpressionType::compile(definition).unwrap();
+    let solve = |user: bool| {
+        let mut b = factord::io::bal::load(&path).unwrap();
+        if user {
+            let mut problem =
+                factord::problem::Problem::with_gauge(b.problem.gauge).eliminating(&["point3"]);
+            for idx in 0..b.problem.values.len() {
+                problem
+                    .add_variable(
+                        b.problem.values.key(idx),
+                        b.problem.values.variable(idx).clone_box(),
+                    )
+                    .unwrap();
+            }
+            for f in b.problem.factors() {
+                let r = f
+                    .factor
+                    .as_any()
+                    .downcast_ref::<ReprojectionSnavely>()
+                    .unwrap();
+                let user = ty.build(r.keys(), &[r.observed.x, r.observed.y]).unwrap();
+                problem
+                    .add_factor_sqrt(
+                        Box::new(user),
+                        f.sqrt_information.clone(),
+                        f.robust,
+                        f.label.clone(),
+                    )
+                    .unwrap();
+            }
+            b.problem = problem;
+        }
+        let summary = optimize(
+            &mut b.problem,
+            &SolverOptions::bundle_adjustment(),
+            &mut |_| std::ops::ControlFlow::Continue(()),
+        )
+        .unwrap();
+        let schur = summary
+            .used
+            .schur
+            .as_ref()
+            .expect("points eliminated")
+            .eliminated_variables;
+        (summary.final_chi2 / 2.0, summary.iterations, schur)
+    };
+    let (built_in, user) = (solve(false), solve(true));
+    println!("problem-49-7776: cost built-in {built_in:?}, user-defined {user:?}");
+    assert_eq!(user.2, built_in.2);
+    assert!(
+        (user.0 - built_in.0).abs() <= 1e-6 * built_in.0,
+        "{user:?} vs {built_in:?}"
+    );
+}

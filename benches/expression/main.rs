@@ -9,7 +9,11 @@
 //!   initialisation that needs to know a factor is a relative pose; a user-defined one is not
 //!   known to be).
 //!
-//! `cargo bench --bench expression -- <file.g2o> [--rounds 20]`
+//! A BAL file (`problem-*.txt`) is solved the same way with BAL's reprojection written as an
+//! expression (`proto/v1/examples/factor-type-reprojection.example.json`), with the bundle
+//! adjustment options (LM, points eliminated by the Schur complement).
+//!
+//! `cargo bench --bench expression -- <file.g2o | problem-*.txt> [--rounds 20]`
 
 #[path = "../args.rs"]
 mod args;
@@ -17,7 +21,9 @@ mod args;
 use std::time::Instant;
 
 use factord::factors::expression::{ExpressionType, FactorTypeDefinition};
-use factord::factors::{BetweenSe2, Factor};
+use std::sync::Arc;
+
+use factord::factors::{BetweenSe2, Factor, ReprojectionSnavely};
 use factord::geometry::Se2;
 use factord::problem::Problem;
 use factord::solver::{self, Initialization, SolverOptions};
@@ -33,9 +39,9 @@ const BETWEEN_SE2: &str = r#"{
     ]
 }"#;
 
-/// A copy of `original` (a graph of `between_se2` only) whose factors `make` rebuilds.
-fn copy_with(original: &Problem, make: &dyn Fn(&BetweenSe2) -> Box<dyn Factor>) -> Problem {
-    let mut problem = Problem::new();
+/// A copy of `original` (same gauge, same eliminated kinds) whose factors `make` rebuilds.
+fn copy_with(original: &Problem, make: &dyn Fn(&dyn Factor) -> Box<dyn Factor>) -> Problem {
+    let mut problem = Problem::with_gauge(original.gauge).eliminating(&original.eliminate);
     let values = &original.values;
     for idx in 0..values.len() {
         problem
@@ -46,15 +52,9 @@ fn copy_with(original: &Problem, make: &dyn Fn(&BetweenSe2) -> Box<dyn Factor>) 
             .expect("just added");
     }
     for entry in original.factors() {
-        let Some(b) = entry.factor.as_any().downcast_ref::<BetweenSe2>() else {
-            panic!(
-                "only between_se2 graphs are compared, found {}",
-                entry.factor.name()
-            );
-        };
         problem
             .add_factor_sqrt(
-                make(b),
+                make(entry.factor.as_ref()),
                 entry.sqrt_information.clone(),
                 entry.robust,
                 entry.label.clone(),
@@ -62,6 +62,11 @@ fn copy_with(original: &Problem, make: &dyn Fn(&BetweenSe2) -> Box<dyn Factor>) 
             .expect("same factors");
     }
     problem
+}
+
+fn compile(json: &str) -> Arc<ExpressionType> {
+    let definition: FactorTypeDefinition = serde_json::from_str(json).expect("valid JSON");
+    ExpressionType::compile(definition).expect("the definition compiles")
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -98,32 +103,69 @@ fn solve(
 
 fn main() {
     let args = args::Args::from_env();
-    let file = args.first("usage: expression <file.g2o> [--rounds N]");
+    let file = args.first("usage: expression <file.g2o | BAL problem-*.txt> [--rounds N]");
     let rounds: usize = args.parsed("--rounds", 20);
-    let graph = factord::io::load(file.as_ref(), None).expect("a readable 2D g2o file");
-    let original = graph.problem;
-    let definition: FactorTypeDefinition = serde_json::from_str(BETWEEN_SE2).expect("valid JSON");
-    let ty = ExpressionType::compile(definition).expect("the definition compiles");
-    let built_in = |b: &BetweenSe2| Box::new(b.clone()) as Box<dyn Factor>;
-    let expression = |b: &BetweenSe2| {
-        let z: Se2 = b.measurement;
-        Box::new(
-            ty.build(b.keys(), &[z.x, z.y, z.theta])
-                .expect("a valid measurement"),
-        ) as Box<dyn Factor>
+    let bal = file.ends_with(".txt");
+    let (original, ty, runs) = if bal {
+        let problem = factord::io::bal::load(file.as_ref())
+            .expect("a readable BAL file")
+            .problem;
+        let ty = compile(include_str!(
+            "../../proto/v1/examples/factor-type-reprojection.example.json"
+        ));
+        (
+            problem,
+            ty,
+            vec![("bundle_adjustment", SolverOptions::bundle_adjustment())],
+        )
+    } else {
+        let problem = factord::io::load(file.as_ref(), None)
+            .expect("a readable 2D g2o file")
+            .problem;
+        let same_start = SolverOptions {
+            initialization: Initialization::None,
+            function_tolerance: 1e-12,
+            ..SolverOptions::default()
+        };
+        (
+            problem,
+            compile(BETWEEN_SE2),
+            vec![
+                ("same_start", same_start),
+                ("defaults", SolverOptions::default()),
+            ],
+        )
     };
-    let same_start = SolverOptions {
-        initialization: Initialization::None,
-        function_tolerance: 1e-12,
-        ..SolverOptions::default()
+    let built_in = |f: &dyn Factor| -> Box<dyn Factor> {
+        if let Some(b) = f.as_any().downcast_ref::<BetweenSe2>() {
+            return Box::new(b.clone());
+        }
+        let r = f
+            .as_any()
+            .downcast_ref::<ReprojectionSnavely>()
+            .expect("between_se2 or reprojection_snavely");
+        Box::new(r.clone())
+    };
+    let expression = |f: &dyn Factor| -> Box<dyn Factor> {
+        let measurement = match f.as_any().downcast_ref::<BetweenSe2>() {
+            Some(b) => vec![b.measurement.x, b.measurement.y, b.measurement.theta],
+            None => {
+                let r = f
+                    .as_any()
+                    .downcast_ref::<ReprojectionSnavely>()
+                    .expect("between_se2 or reprojection_snavely");
+                vec![r.observed.x, r.observed.y]
+            }
+        };
+        Box::new(
+            ty.build(f.keys(), &measurement)
+                .expect("a valid measurement"),
+        )
     };
     let (operations, varying) = ty.operations();
     let mut report = serde_json::json!({"file": file, "rounds": rounds,
         "tape": {"operations": operations, "run_per_evaluation": varying}});
-    for (name, options) in [
-        ("same_start", same_start),
-        ("defaults", SolverOptions::default()),
-    ] {
+    for (name, options) in runs {
         let (t_built_in, solved_built_in, it_built_in) =
             solve(&original, &options, rounds, |p| copy_with(p, &built_in));
         let (t_expression, solved_expression, it_expression) =
@@ -134,7 +176,7 @@ fn main() {
             "expression": {"solve_seconds": t_expression, "chi2": c1, "iterations": it_expression},
             "time_ratio": t_expression / t_built_in,
             "chi2_relative_difference": (c1 - c0).abs() / c0,
-            "max_pose_difference": max_pose_difference(&solved_built_in, &solved_expression),
+            "max_pose_difference": (!bal).then(|| max_pose_difference(&solved_built_in, &solved_expression)),
         });
     }
     println!("{report}");

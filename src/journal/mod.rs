@@ -486,6 +486,7 @@ mod tests {
             variables: &variables,
             factors: &factors,
             producers: &[],
+            factor_types: &[],
         })
         .unwrap();
         let read: Snapshot = serde_json::from_slice(&bytes).unwrap();

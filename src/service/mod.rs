@@ -213,9 +213,26 @@ impl Service {
                     .map(|s| s.info())
                     .collect(),
             }),
-            Command::CreateSession(request) => self
-                .create_session(request, caller.owner_of_new())
-                .map(Reply::Created),
+            Command::CreateSession(request) => {
+                // Declared factor types are compiled (and their Jacobians checked numerically,
+                // tens of milliseconds for the largest) off the async threads.
+                let factor_types = match catalogue::session_kind(&request.kind) {
+                    Some(kind) if !request.factor_types.is_empty() => {
+                        let definitions = request.factor_types.clone();
+                        let compiled = tokio::task::spawn_blocking(move || {
+                            FactorTypes::compile(kind, &definitions)
+                        })
+                        .await
+                        .map_err(|e| {
+                            ServiceError::internal(format!("factor types failed: {e}"))
+                        })??;
+                        Some(compiled)
+                    }
+                    _ => None,
+                };
+                self.create_session(request, factor_types, caller.owner_of_new())
+                    .map(Reply::Created)
+            }
             Command::DeleteSession { session } => {
                 self.delete_session(caller, &session)?;
                 Ok(Reply::Deleted { deleted: session })
@@ -412,10 +429,12 @@ impl Service {
         }
     }
 
-    /// Creates a session owned by the token labelled `owner` (see `transport::http::auth`).
+    /// Creates a session owned by the token labelled `owner` (see `transport::http::auth`);
+    /// `factor_types`: the request's already compiled, else they are compiled here.
     pub fn create_session(
         &self,
         request: CreateSession,
+        factor_types: Option<FactorTypes>,
         owner: Option<Arc<str>>,
     ) -> Result<SessionInfo, ServiceError> {
         self.refuse_when_stopping()?;
@@ -430,7 +449,7 @@ impl Service {
             }
             None => format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst)),
         };
-        let session = self.build_session(name.clone(), request.clone())?;
+        let session = self.build_session(name.clone(), request.clone(), factor_types)?;
         if let Some(owner) = &owner {
             session.set_owner(Arc::clone(owner));
         }
@@ -482,6 +501,7 @@ impl Service {
         &self,
         name: String,
         request: CreateSession,
+        factor_types: Option<FactorTypes>,
     ) -> Result<Arc<Session>, ServiceError> {
         let kind = catalogue::session_kind(&request.kind).ok_or_else(|| {
             let known: Vec<_> = catalogue::SESSION_KINDS.iter().map(|k| k.name).collect();
@@ -495,7 +515,10 @@ impl Service {
         options.validate().map_err(|(field, m)| {
             ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
         })?;
-        let factor_types = FactorTypes::compile(kind, &request.factor_types)?;
+        let factor_types = match factor_types {
+            Some(compiled) => compiled,
+            None => FactorTypes::compile(kind, &request.factor_types)?,
+        };
         let session = Session::new(
             name,
             kind,

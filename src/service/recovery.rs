@@ -62,7 +62,7 @@ impl Service {
             }
         };
         let auto_optimize = identity.request.auto_optimize;
-        let session = match self.build_session(name.clone(), identity.request) {
+        let session = match self.build_session(name.clone(), identity.request, None) {
             Ok(session) => session,
             Err(e) => {
                 tracing::error!(session = %name, "not recovered: {}", e.body.message);

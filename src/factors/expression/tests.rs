@@ -364,3 +364,37 @@ fn an_invalid_se3_parameter_is_refused_when_the_factor_is_built() {
         .unwrap_err();
     assert!(e.contains("parameter `z`") && e.contains("norm"), "{e}");
 }
+
+/// BAL's reprojection (`reprojection_snavely`) written as an expression: the documented example.
+fn snavely_definition() -> Value {
+    serde_json::from_str(include_str!(
+        "../../../proto/v1/examples/factor-type-reprojection.example.json"
+    ))
+    .expect("the example is JSON")
+}
+
+#[test]
+fn snavely_reprojection_expression_equals_the_built_in_factor() {
+    let ty = compile(snavely_definition()).unwrap();
+    let mut rng = Rng::new(23);
+    for _ in 0..200 {
+        let pose = rng.se3();
+        let camera = crate::geometry::SnavelyCamera {
+            rotation: pose.rotation,
+            translation: nalgebra::Vector3::new(0.1 * rng.normal(), 0.1 * rng.normal(), -10.0),
+            focal: 500.0 + 10.0 * rng.normal(),
+            k1: 0.05 * rng.normal(),
+            k2: 0.01 * rng.normal(),
+        };
+        let z = [rng.normal(), rng.normal()];
+        let built_in =
+            crate::factors::ReprojectionSnavely::new(0, 1, nalgebra::Vector2::new(z[0], z[1]));
+        let user = ty.build(&[0, 1], &z).unwrap();
+        let vars: Vec<Box<dyn Variable>> =
+            vec![Box::new(camera), Box::new(Point3(rng.vector3(1.0)))];
+        let (e0, j0) = evaluate(&built_in, &vars);
+        let (e1, j1) = evaluate(&user, &vars);
+        assert_close(&e1, &e0, 1e-10);
+        assert_close(&j1, &j0, 1e-9);
+    }
+}
