@@ -522,13 +522,13 @@ impl Service {
         let session = Session::new(
             name,
             kind,
-            factor_types,
             options,
             request.auto_optimize,
             self.runtime.clone(),
             self.pool.handle(),
             self.limits.clone(),
         );
+        session.set_factor_types(factor_types);
         session
             .set_auto_optimize(request.auto_optimize)
             .map_err(|mut e| {

@@ -177,6 +177,11 @@ impl super::Session {
         self.factor_types.read().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Gives a new session the types of its creation request.
+    pub(crate) fn set_factor_types(&self, types: FactorTypes) {
+        *self.factor_types.write().unwrap_or_else(|p| p.into_inner()) = types;
+    }
+
     /// Declares more factor types in a running graph session: compiled whole (all or none),
     /// journalled before they are answered, in order with the batches (the session's lock is
     /// held), and usable by every batch after.

@@ -106,7 +106,6 @@ impl Session {
     pub(crate) fn new(
         name: String,
         kind: &'static SessionKind,
-        factor_types: factor_types::FactorTypes,
         options: SolverOptions,
         auto: AutoOptimize,
         runtime: tokio::runtime::Handle,
@@ -116,7 +115,7 @@ impl Session {
         Arc::new(Self {
             name,
             kind,
-            factor_types: std::sync::RwLock::new(factor_types),
+            factor_types: Default::default(),
             state: Mutex::new(State::new(kind, options, auto)),
             events: broadcast::channel(4096).0,
             solved: watch::channel(0).0,

@@ -204,7 +204,6 @@ mod tests {
         let session = Session::new(
             "bytes".into(),
             kind,
-            Default::default(),
             (kind.default_options)(),
             AutoOptimize::Manual {},
             runtime.handle().clone(),
