@@ -127,8 +127,8 @@ impl Builder {
 
     // SE(2)
 
-    /// `R(θ) p`.
-    fn rotate2(&mut self, theta: Slot, p: [Slot; 2]) -> [Slot; 2] {
+    /// `R(θ) p`, or `R(θ)ᵀ p` when `transposed`.
+    fn rotate2(&mut self, theta: Slot, p: [Slot; 2], transposed: bool) -> [Slot; 2] {
         let (c, s) = (self.cos(theta), self.sin(theta));
         let (cx, sy, sx, cy) = (
             self.mul(c, p[0]),
@@ -136,24 +136,16 @@ impl Builder {
             self.mul(s, p[0]),
             self.mul(c, p[1]),
         );
-        [self.sub(cx, sy), self.add(sx, cy)]
-    }
-
-    /// `R(θ)ᵀ p`.
-    fn unrotate2(&mut self, theta: Slot, p: [Slot; 2]) -> [Slot; 2] {
-        let (c, s) = (self.cos(theta), self.sin(theta));
-        let (cx, sy, sx, cy) = (
-            self.mul(c, p[0]),
-            self.mul(s, p[1]),
-            self.mul(s, p[0]),
-            self.mul(c, p[1]),
-        );
-        [self.add(cx, sy), self.sub(cy, sx)]
+        if transposed {
+            [self.add(cx, sy), self.sub(cy, sx)]
+        } else {
+            [self.sub(cx, sy), self.add(sx, cy)]
+        }
     }
 
     /// `a ∘ b = (t_a + R_a t_b, θ_a + θ_b)`.
     pub fn se2_compose(&mut self, a: [Slot; 3], b: [Slot; 3]) -> [Slot; 3] {
-        let r = self.rotate2(a[2], [b[0], b[1]]);
+        let r = self.rotate2(a[2], [b[0], b[1]], false);
         [
             self.add(a[0], r[0]),
             self.add(a[1], r[1]),
@@ -163,20 +155,20 @@ impl Builder {
 
     /// `a⁻¹ = (−R_aᵀ t_a, −θ_a)`.
     pub fn se2_inverse(&mut self, a: [Slot; 3]) -> [Slot; 3] {
-        let r = self.unrotate2(a[2], [a[0], a[1]]);
+        let r = self.rotate2(a[2], [a[0], a[1]], true);
         [self.neg(r[0]), self.neg(r[1]), self.neg(a[2])]
     }
 
     /// `a⁻¹ ∘ b = (R_aᵀ (t_b − t_a), θ_b − θ_a)`.
     pub fn se2_between(&mut self, a: [Slot; 3], b: [Slot; 3]) -> [Slot; 3] {
         let d = [self.sub(b[0], a[0]), self.sub(b[1], a[1])];
-        let r = self.unrotate2(a[2], d);
+        let r = self.rotate2(a[2], d, true);
         [r[0], r[1], self.sub(b[2], a[2])]
     }
 
     /// `R p + t`.
     pub fn se2_act(&mut self, a: [Slot; 3], p: [Slot; 2]) -> [Slot; 2] {
-        let r = self.rotate2(a[2], p);
+        let r = self.rotate2(a[2], p, false);
         [self.add(a[0], r[0]), self.add(a[1], r[1])]
     }
 
