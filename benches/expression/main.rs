@@ -23,6 +23,7 @@ use std::time::Instant;
 use factord::factors::expression::{ExpressionType, FactorTypeDefinition};
 use std::sync::Arc;
 
+use factord::factors::autodiff::{AutoBetweenSe2, AutoFactor};
 use factord::factors::{BetweenSe2, Factor, ReprojectionSnavely};
 use factord::geometry::Se2;
 use factord::problem::Problem;
@@ -162,6 +163,15 @@ fn main() {
                 .expect("a valid measurement"),
         )
     };
+    let rust_autodiff = |f: &dyn Factor| -> Box<dyn Factor> {
+        let b = f
+            .as_any()
+            .downcast_ref::<BetweenSe2>()
+            .expect("between_se2");
+        Box::new(
+            AutoFactor::new(b.keys().to_vec(), AutoBetweenSe2(b.measurement)).expect("two se2"),
+        )
+    };
     let (operations, varying) = ty.operations();
     let mut report = serde_json::json!({"file": file, "rounds": rounds,
         "tape": {"operations": operations, "run_per_evaluation": varying}});
@@ -170,6 +180,14 @@ fn main() {
             solve(&original, &options, rounds, |p| copy_with(p, &built_in));
         let (t_expression, solved_expression, it_expression) =
             solve(&original, &options, rounds, |p| copy_with(p, &expression));
+        // The same residual in Rust with automatic derivatives (factors::autodiff), 2D only.
+        let rust = (!bal).then(|| {
+            let (t, solved, iterations) = solve(&original, &options, rounds, |p| {
+                copy_with(p, &rust_autodiff)
+            });
+            serde_json::json!({"solve_seconds": t, "chi2": solved.chi2(), "iterations": iterations,
+                "time_ratio": t / t_built_in})
+        });
         let (c0, c1) = (solved_built_in.chi2(), solved_expression.chi2());
         report[name] = serde_json::json!({
             "built_in": {"solve_seconds": t_built_in, "chi2": c0, "iterations": it_built_in},
@@ -177,6 +195,7 @@ fn main() {
             "time_ratio": t_expression / t_built_in,
             "chi2_relative_difference": (c1 - c0).abs() / c0,
             "max_pose_difference": (!bal).then(|| max_pose_difference(&solved_built_in, &solved_expression)),
+            "rust_autodiff": rust,
         });
     }
     println!("{report}");

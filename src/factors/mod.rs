@@ -66,6 +66,7 @@ macro_rules! range_factor {
     };
 }
 
+pub mod autodiff;
 pub mod bearing_range_se2;
 pub mod between_se2;
 pub mod between_se3;
