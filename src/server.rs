@@ -38,6 +38,9 @@ pub struct ServeConfig {
     pub shutdown_timeout_ms: u64,
     /// Several instances joined by zenoh, sharing `state_dir`, forming one service.
     pub fleet: FleetConfig,
+    /// User-defined factor types every new graph session gets (those whose variable kinds it
+    /// holds), as if its creation request declared them first.
+    pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
 }
 
 /// `fleet` in the config file (see README, "Fleet").
@@ -74,6 +77,7 @@ impl Default for ServeConfig {
             auth: AuthConfig::default(),
             shutdown_timeout_ms: 10_000,
             fleet: FleetConfig::default(),
+            factor_types: Vec::new(),
         }
     }
 }
@@ -252,6 +256,12 @@ pub async fn run(
         config.limits.clone(),
         Some((config.state_dir.clone(), config.journal.clone())),
     );
+    service
+        .set_server_factor_types(&config.factor_types)
+        .map_err(|e| ServeError::Config {
+            file: "(factor_types)".into(),
+            message: e,
+        })?;
     if let Some(instance) = &instance {
         let http = fleet::advertised_http(&config.fleet, &http_addr)?;
         service.join_fleet(instance, &http);

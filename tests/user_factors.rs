@@ -498,3 +498,88 @@ fn a_user_defined_reprojection_solves_bal_through_the_schur_complement() {
         "{user:?} vs {built_in:?}"
     );
 }
+
+/// Types in the server's configuration reach every new graph session whose kinds fit, as if
+/// declared first; a bad one stops the server at start, naming it.
+#[tokio::test(flavor = "multi_thread")]
+async fn server_wide_types_from_the_configuration() {
+    let dir = common::temp_dir("user-factors-config");
+    let beacon = json!({"name": "beacon_range", "variables": [{"name": "x", "kind": "se2"}],
+        "parameters": [{"name": "beacon", "kind": "point2"}, {"name": "range", "kind": "scalar"}],
+        "residual": {"sub": [{"norm": [{"sub": ["beacon", {"translation": ["x"]}]}]}, "range"]}});
+    let altitude: Value = serde_json::from_str(
+        &std::fs::read_to_string(format!(
+            "{}/proto/v1/examples/factor-type.example.json",
+            env!("CARGO_MANIFEST_DIR")
+        ))
+        .unwrap(),
+    )
+    .unwrap();
+    let config = dir.join("factord.json");
+    std::fs::write(
+        &config,
+        json!({"factor_types": [beacon, altitude]}).to_string(),
+    )
+    .unwrap();
+    let config = config.display().to_string();
+    let s = TestServer::start_at(&dir, &["--config", &config], &[]);
+    let c = client();
+    let info = create(
+        &c,
+        &s,
+        &json!({"session": "plane", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    assert_eq!(
+        info["factor_types"],
+        json!(["beacon_range"]),
+        "only the types whose kinds fit"
+    );
+    let info = create(
+        &c,
+        &s,
+        &json!({"session": "space", "kind": "pose_graph_3d"}),
+    )
+    .await;
+    assert_eq!(
+        info["factor_types"],
+        json!(["barometric_altitude"]),
+        "the se3 type only: {info}"
+    );
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "clash", "kind": "pose_graph_2d", "factor_types": [user_between_se2(), {
+        "name": "beacon_range", "variables": [{"name": "x", "kind": "se2"}], "residual": 1}]}),
+    )
+    .await;
+    assert_eq!(
+        (status, v["error"]["field"].as_str()),
+        (400, Some("factor_types[1].name")),
+        "{v}"
+    );
+    let (status, v) = post(&c, &s.url("/v1/sessions/plane/batches"), &json!({
+        "variables": [{"key": 1, "kind": "se2", "value": [0.5, 0.5, 0.0]}],
+        "factors": [{"type": "beacon_range", "keys": [1], "measurement": [0.0, 0.0, 5.0], "sigmas": [0.1]}]})).await;
+    assert_eq!(status, 200, "{v}");
+    drop(s);
+
+    // A type that does not compile: the server does not start, and says which and where.
+    std::fs::write(
+        dir.join("bad.json"),
+        json!({"factor_types": [{"name": "typo", "variables": [{"name": "x", "kind": "se2"}],
+        "residual": {"nrom": ["x"]}}]})
+        .to_string(),
+    )
+    .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_factord"))
+        .args(["serve", "--no-zenoh", "--listen", "127.0.0.1:0", "--config"])
+        .arg(dir.join("bad.json"))
+        .arg("--state-dir")
+        .arg(dir.join("bad-state"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("factor_types[0].residual.nrom"), "{stderr}");
+}

@@ -52,6 +52,8 @@ pub struct Service {
     unloaded_on_disk: AtomicUsize,
     /// This instance's view of its fleet (`fleet.rs`), when it is in one.
     fleet: std::sync::OnceLock<Arc<fleet::Fleet>>,
+    /// Factor types from the server's configuration, compiled at start.
+    server_factor_types: std::sync::OnceLock<Vec<Arc<crate::factors::expression::ExpressionType>>>,
 }
 
 /// Session names are zenoh key chunks and URL path segments.
@@ -88,7 +90,35 @@ impl Service {
             journal,
             unloaded_on_disk: AtomicUsize::new(0),
             fleet: std::sync::OnceLock::new(),
+            server_factor_types: std::sync::OnceLock::new(),
         })
+    }
+
+    /// Compiles the configuration's factor types (once, at start); a refusal names the field.
+    pub fn set_server_factor_types(
+        &self,
+        definitions: &[crate::factors::expression::FactorTypeDefinition],
+    ) -> Result<(), String> {
+        let mut compiled = Vec::with_capacity(definitions.len());
+        for (i, d) in definitions.iter().enumerate() {
+            if catalogue::factor_codec(&d.name).is_some()
+                || definitions[..i].iter().any(|e| e.name == d.name)
+            {
+                return Err(format!(
+                    "factor_types[{i}].name: `{}` is built in or declared twice",
+                    d.name
+                ));
+            }
+            let ty = crate::factors::expression::ExpressionType::compile(d.clone())
+                .map_err(|e| format!("factor_types[{i}].{e}"))?;
+            compiled.push(ty);
+        }
+        if !compiled.is_empty() {
+            let names: Vec<&str> = compiled.iter().map(|t| t.name()).collect();
+            tracing::info!("factor types for every new session: {names:?}");
+        }
+        let _ = self.server_factor_types.set(compiled);
+        Ok(())
     }
 
     fn refuse_when_stopping(&self) -> Result<(), ServiceError> {
@@ -214,13 +244,16 @@ impl Service {
                     .collect(),
             }),
             Command::CreateSession(request) => {
-                // Declared factor types are compiled (and their Jacobians checked numerically,
-                // tens of milliseconds for the largest) off the async threads.
+                // The configuration's types first, then the request's, compiled (their
+                // Jacobians checked numerically, tens of milliseconds for the largest) off the
+                // async threads.
                 let factor_types = match catalogue::session_kind(&request.kind) {
-                    Some(kind) if !request.factor_types.is_empty() => {
+                    Some(kind) => {
+                        let server_wide =
+                            self.server_factor_types.get().cloned().unwrap_or_default();
                         let definitions = request.factor_types.clone();
                         let compiled = tokio::task::spawn_blocking(move || {
-                            FactorTypes::compile(kind, &definitions)
+                            FactorTypes::for_new_session(kind, &server_wide, &definitions)
                         })
                         .await
                         .map_err(|e| {
@@ -228,7 +261,7 @@ impl Service {
                         })??;
                         Some(compiled)
                     }
-                    _ => None,
+                    None => None,
                 };
                 self.create_session(request, factor_types, caller.owner_of_new())
                     .map(Reply::Created)

@@ -41,6 +41,38 @@ impl FactorTypes {
         Ok(types)
     }
 
+    /// A new session's types: the server-wide ones whose variable kinds a session of `kind`
+    /// holds (graph kinds), then the request's `definitions`, which may not reuse their names.
+    pub fn for_new_session(
+        kind: &SessionKind,
+        server_wide: &[Arc<ExpressionType>],
+        definitions: &[FactorTypeDefinition],
+    ) -> Result<Self, ServiceError> {
+        let mut types = Self::default();
+        if kind.name != SLIDING_WINDOW {
+            for ty in server_wide {
+                if ty
+                    .variable_kinds()
+                    .iter()
+                    .all(|k| kind.variable_kinds.contains(k))
+                {
+                    types.names.push(ty.name().to_string());
+                    types.by_name.insert(ty.name().to_string(), Arc::clone(ty));
+                }
+            }
+        }
+        for (i, d) in definitions.iter().enumerate() {
+            if types.by_name.contains_key(&d.name) {
+                return Err(refused(
+                    format!("factor_types[{i}].name"),
+                    format!("`{}` is declared in the server's configuration", d.name),
+                ));
+            }
+        }
+        types.extend(kind, definitions)?;
+        Ok(types)
+    }
+
     /// Adds `definitions` (all of them, or none when one is refused); a name already declared
     /// is refused.
     pub fn extend(
