@@ -141,6 +141,8 @@ impl<const N: usize> Sub for Jet<N> {
 
 impl<const N: usize> Mul for Jet<N> {
     type Output = Self;
+    // The product rule adds.
+    #[allow(clippy::suspicious_arithmetic_impl)]
     fn mul(self, o: Self) -> Self {
         Self {
             value: self.value * o.value,
@@ -153,6 +155,8 @@ impl<const N: usize> Mul for Jet<N> {
 
 impl<const N: usize> Div for Jet<N> {
     type Output = Self;
+    // The quotient rule subtracts and multiplies.
+    #[allow(clippy::suspicious_arithmetic_impl)]
     fn div(self, o: Self) -> Self {
         let inverse = 1.0 / o.value;
         let value = self.value * inverse;
