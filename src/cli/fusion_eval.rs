@@ -81,20 +81,28 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
         let text = serde_json::to_string(&inputs)?;
         std::fs::write(path, text).map_err(CliError::file(path))?;
     }
-    let estimates = match &args.zenoh {
-        Some(endpoint) => tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .map_err(CliError::Runtime)?
-            .block_on(factord::transport::fusion_client::run_over_zenoh(
-                endpoint,
-                &args.session,
-                &inputs,
-            ))
-            .map_err(CliError::Reported)?,
-        None => experiment::run(&inputs)?,
+    // In process, also the lag-smoothed trajectory (each keyframe as it left the window).
+    let (estimates, smoothed) = match &args.zenoh {
+        Some(endpoint) => (
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .map_err(CliError::Runtime)?
+                .block_on(factord::transport::fusion_client::run_over_zenoh(
+                    endpoint,
+                    &args.session,
+                    &inputs,
+                ))
+                .map_err(CliError::Reported)?,
+            None,
+        ),
+        None => {
+            let (real_time, smoothed) = experiment::run_smoothed(&inputs)?;
+            (real_time, Some(smoothed))
+        }
     };
+    let smoothed_ape = smoothed.as_ref().map(|s| experiment::ape(&inputs, s));
     let (full, trans) = experiment::ape(&inputs, &estimates);
     let update = experiment::Percentiles::of(
         &estimates
@@ -118,6 +126,9 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
         "pose_priors": inputs.pose_priors.len(),
         "ape_full": full,
         "ape_trans": trans,
+        // Each keyframe's estimate as it left the window (in process only).
+        "ape_smoothed_full": smoothed_ape.as_ref().map(|a| &a.0),
+        "ape_smoothed_trans": smoothed_ape.as_ref().map(|a| &a.1),
         "update_ms": update,
         // Over zenoh: from publishing a keyframe's messages to its state's arrival.
         "latency_ms": latency.map(|l| experiment::Percentiles::of(&l)),

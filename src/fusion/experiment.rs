@@ -269,6 +269,14 @@ pub struct Estimate {
 
 /// Runs our sliding window over `inputs` as a robot would feed it, in time order.
 pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
+    run_smoothed(inputs).map(|(real_time, _)| real_time)
+}
+
+/// [`run`], and the lag-smoothed trajectory: each keyframe's estimate when it leaves the
+/// window (marginalised after the optimisation that saw the window's newest keyframe), and for
+/// those still in the window at the end, their final estimate. `update_seconds` is the update
+/// it left in; in time order.
+pub fn run_smoothed(inputs: &FusionInputs) -> Result<(Vec<Estimate>, Vec<Estimate>), FusionError> {
     let i = &inputs.initial;
     let pose = PoseJson {
         position: i.position,
@@ -306,6 +314,15 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
     let mut keys = std::collections::HashMap::from([(i.key, 0)]);
     let mut samples = inputs.imu.iter().peekable();
     let mut estimates = Vec::with_capacity(inputs.keyframes.len());
+    let mut smoothed = Vec::with_capacity(inputs.keyframes.len());
+    // The window's keys back to the inputs' keys.
+    let mut input_key = std::collections::HashMap::from([(0, i.key)]);
+    let smoothed_estimate = |key: Key, t: f64, state: &NavState, update: &Estimate| Estimate {
+        key,
+        t,
+        pose: PoseJson::new(&state.position, &state.rotation),
+        ..update.clone()
+    };
     for keyframe in &inputs.keyframes {
         let start = Instant::now();
         if inputs.use_imu {
@@ -339,6 +356,7 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
             window.add_keyframe_without_imu(keyframe.t, guess)?
         };
         keys.insert(keyframe.key, key);
+        input_key.insert(key, keyframe.key);
         for r in relatives {
             let from = *keys
                 .get(&r.from)
@@ -362,16 +380,25 @@ pub fn run(inputs: &FusionInputs) -> Result<Vec<Estimate>, FusionError> {
         }
         let summary = window.optimize()?;
         let (_, t, state) = window.latest();
-        estimates.push(Estimate {
+        let estimate = Estimate {
             key: keyframe.key,
             t,
             pose: PoseJson::new(&state.position, &state.rotation),
             update_seconds: start.elapsed().as_secs_f64(),
             iterations: summary.iterations,
             latency_seconds: None,
-        });
+        };
+        for (key, t, state) in window.departed() {
+            smoothed.push(smoothed_estimate(input_key[key], *t, state, &estimate));
+        }
+        estimates.push(estimate);
     }
-    Ok(estimates)
+    if let Some(last) = estimates.last() {
+        for (key, t, state) in window.window() {
+            smoothed.push(smoothed_estimate(input_key[&key], t, &state, last));
+        }
+    }
+    Ok((estimates, smoothed))
 }
 
 /// Percentiles of durations (or anything), nearest rank.

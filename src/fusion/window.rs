@@ -105,6 +105,10 @@ pub struct SlidingWindow {
     next_key: Key,
     /// The Gauss-Newton solve's buffers, kept between keyframes.
     solver: WindowSolver,
+    /// The keyframes the last [`SlidingWindow::optimize`] marginalised, with their estimate at
+    /// that optimum: the lag-smoothed states (each saw every measurement of the window it
+    /// leaves).
+    departed: Vec<(Key, f64, NavState)>,
 }
 
 /// The diagonal information of independent measurements: `1/σ²` for each (σ, count).
@@ -206,6 +210,7 @@ impl SlidingWindow {
             samples_since_keyframe: 0,
             next_key: 1,
             solver: WindowSolver::default(),
+            departed: Vec::new(),
         })
     }
 
@@ -486,11 +491,21 @@ impl SlidingWindow {
                 }
             }
         };
+        self.departed.clear();
         while self.keyframes.len() > self.options.size {
-            let (oldest, _) = self.keyframes.pop_front().expect("longer than size ≥ 2");
+            let (oldest, t) = self.keyframes.pop_front().expect("longer than size ≥ 2");
+            if let Some(state) = self.state(oldest) {
+                self.departed.push((oldest, t, state));
+            }
             marginalize(&mut self.problem, oldest)?;
         }
         Ok(update)
+    }
+
+    /// The keyframes the last optimisation marginalised, oldest first, as they left: key,
+    /// time and the estimate at that optimisation (lag-smoothed by the window's length).
+    pub fn departed(&self) -> &[(Key, f64, NavState)] {
+        &self.departed
     }
 }
 
