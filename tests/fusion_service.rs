@@ -197,6 +197,29 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
             .len(),
         20
     );
+    // Every keyframe that left the window came out once, lag-smoothed, in order; they equal
+    // the in-process experiment's lag-smoothed states.
+    let smoothed: Vec<&Value> = windows
+        .iter()
+        .filter_map(|w| w["smoothed"].as_array())
+        .flatten()
+        .collect();
+    assert_eq!(
+        smoothed.len(),
+        201 - 20,
+        "the initial state and 200 keyframes, less 20 in the window"
+    );
+    let (_, expected) = factord::fusion::experiment::run_smoothed(&inputs).unwrap();
+    for (got, want) in smoothed.iter().zip(&expected) {
+        let p: Vec<f64> = serde_json::from_value(got["position"].clone()).unwrap();
+        assert!(
+            p.iter()
+                .zip(want.pose.position)
+                .all(|(a, b)| (a - b).abs() < 1e-6),
+            "{got} vs {:?}",
+            want.pose
+        );
+    }
     s.assert_no_panic();
 }
 

@@ -411,6 +411,10 @@ pub enum SessionEvent {
     Window {
         session: String,
         keyframes: Vec<super::fusion::StateReport>,
+        /// The keyframes this optimisation marginalised, oldest first, with their estimate at
+        /// it: the lag-smoothed trajectory (each state saw the whole window it leaves).
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        smoothed: Vec<super::fusion::StateReport>,
     },
     /// A solve failed (the estimate keeps its last good values), or a streamed batch was rejected.
     Error {

@@ -42,6 +42,10 @@ pub struct FusionEvalArgs {
     /// Write the estimated trajectory (newest state after each keyframe) in TUM format
     #[arg(long)]
     tum_out: Option<PathBuf>,
+    /// Write the lag-smoothed trajectory (each keyframe as it left the window) in TUM format
+    /// (in process only)
+    #[arg(long)]
+    tum_smoothed_out: Option<PathBuf>,
     /// Print the result as JSON
     #[arg(long)]
     json: bool,
@@ -114,6 +118,9 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
         .iter()
         .map(|e| e.latency_seconds.map(|s| s * 1e3))
         .collect();
+    if let (Some(path), Some(smoothed)) = (&args.tum_smoothed_out, &smoothed) {
+        std::fs::write(path, experiment::tum(&inputs, smoothed)).map_err(CliError::file(path))?;
+    }
     if let Some(path) = &args.tum_out {
         std::fs::write(path, experiment::tum(&inputs, &estimates)).map_err(CliError::file(path))?;
     }

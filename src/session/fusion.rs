@@ -315,6 +315,11 @@ impl Session {
                 .iter()
                 .map(|(k, t, s)| StateReport::new(*k, *t, s))
                 .collect(),
+            smoothed: w
+                .departed()
+                .iter()
+                .map(|(k, t, s)| StateReport::new(*k, *t, s))
+                .collect(),
         });
         Ok(())
     }
