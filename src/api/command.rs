@@ -66,6 +66,9 @@ pub enum Command {
         after_seq: Option<u64>,
         #[serde(default, deserialize_with = "wire_number::optional_u64")]
         after_timeout_ms: Option<u64>,
+        /// `json` (default), or a file: `tum`, `kitti`, `g2o`, `ply` (see `api::export`).
+        #[serde(default)]
+        format: Option<crate::api::export::EstimateFormat>,
     },
     /// Where a producer's batches stand in a session (exactly-once ingest).
     ProducerStatus {
@@ -144,6 +147,9 @@ pub enum Reply {
         auto_optimize: AutoOptimize,
     },
     Estimate(Estimate),
+    /// The estimate as a file (`estimate?format=tum|kitti|g2o|ply`): transports serve `body`
+    /// as text where they can (HTTP, the zenoh estimate queryable), rpc as this JSON.
+    Export(crate::api::export::Export),
     Stats(Box<SessionStats>),
     Cancelled {
         session: String,
@@ -165,6 +171,7 @@ impl Command {
             after_producer,
             after_seq,
             after_timeout_ms,
+            format,
         } = query;
         Command::GetEstimate {
             session,
@@ -174,6 +181,7 @@ impl Command {
             after_producer,
             after_seq,
             after_timeout_ms,
+            format,
         }
     }
 }

@@ -9,6 +9,7 @@
 pub mod catalogue;
 pub mod command;
 pub mod error;
+pub mod export;
 pub mod factor_schema;
 pub mod fusion;
 mod limits;

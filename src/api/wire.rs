@@ -69,6 +69,10 @@ pub struct VariableSpec {
     pub value: Option<Vec<f64>>,
     #[serde(default)]
     pub fixed: bool,
+    /// When the pose was taken, in seconds on the robot's clock (e.g. a ROS header stamp).
+    /// Trajectory exports (`estimate?format=tum`) write it; finite, set once with the variable.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stamp: Option<f64>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -193,6 +197,10 @@ pub struct EstimateQuery {
     pub after_seq: Option<u64>,
     #[serde(default)]
     pub after_timeout_ms: Option<u64>,
+    /// `json` (default) or a trajectory/point file: `tum`, `kitti`, `g2o`, `ply` (text; see
+    /// `api::export`). With a file format only the whole estimate is served (no `since`/range).
+    #[serde(default)]
+    pub format: Option<super::export::EstimateFormat>,
 }
 
 /// "After my batches": a request (`optimize`, an estimate read) that first waits until the
@@ -316,6 +324,9 @@ pub struct VariableValue {
     pub value: Vec<f64>,
     /// Sequence number of the update that last changed this value.
     pub changed: u64,
+    /// The stamp the variable was created with, if any (seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stamp: Option<f64>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]

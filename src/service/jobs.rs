@@ -377,6 +377,7 @@ impl Finished {
                             kind: v.kind().into(),
                             value: encode_variable(v),
                             changed: 0,
+                            stamp: None,
                         }
                     })
                     .collect();

@@ -29,6 +29,7 @@ pub use caller::Caller;
 pub use delivery::Delivery;
 
 use crate::api::catalogue;
+use crate::api::export::EstimateFormat;
 use crate::api::wire::*;
 use crate::session::factor_types::FactorTypes;
 use crate::session::Session;
@@ -353,6 +354,7 @@ impl Service {
                 after_producer,
                 after_seq,
                 after_timeout_ms,
+                format,
             } => {
                 let session = self.session_as(caller, &session)?;
                 let after = After::from_fields(after_producer, after_seq, after_timeout_ms)?;
@@ -363,7 +365,10 @@ impl Service {
                     to,
                     ..EstimateQuery::default()
                 };
-                Ok(Reply::Estimate(session.estimate(&query)))
+                match format.unwrap_or_default() {
+                    EstimateFormat::Json => Ok(Reply::Estimate(session.estimate(&query))),
+                    file => Ok(Reply::Export(session.export(file, &query)?)),
+                }
             }
             Command::ProducerStatus { session, producer } => {
                 let session = self.session_as(caller, &session)?;

@@ -1,7 +1,7 @@
 //! Accepting a batch: size limits, validation against the mirror, journalling, updating the
 //! mirror, and applying it to the problem now or queueing it behind a running solve.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
 use super::batch::{self, PreparedBatch, SessionView};
@@ -102,6 +102,7 @@ impl Session {
         }
         // Mirror first: later batches validate against it even while this one waits.
         let mut new_values = Vec::new();
+        let stamps: HashMap<crate::problem::Key, f64> = prepared.stamps.iter().copied().collect();
         for (key, v, fixed) in &prepared.variables {
             let value = catalogue::encode_variable(v.as_ref());
             let entry = MirrorEntry {
@@ -110,6 +111,7 @@ impl Session {
                 value,
                 changed: sequence,
                 fixed: *fixed,
+                stamp: stamps.get(key).copied(),
             };
             new_values.push(value_of(*key, &entry));
             st.mirror_values += entry.value.len();

@@ -25,6 +25,8 @@ pub(crate) struct PreparedFactor {
 
 pub(crate) struct PreparedBatch {
     pub variables: Vec<(Key, Box<dyn Variable>, bool)>,
+    /// The new variables' stamps (seconds), for those that carry one.
+    pub stamps: Vec<(Key, f64)>,
     pub factors: Vec<PreparedFactor>,
     pub remove: Vec<FactorId>,
     /// (key, fixed) changes.
@@ -183,6 +185,16 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
                 "duplicate_variable",
                 field(".key"),
                 format!("variable {} already exists", spec.key),
+            ));
+        }
+        if let Some(stamp) = spec.stamp.filter(|s| !s.is_finite()) {
+            return Err(ServiceError::bad_request(
+                "non_finite",
+                field(".stamp"),
+                format!(
+                    "{} is {stamp}, not a finite number of seconds",
+                    field(".stamp")
+                ),
             ));
         }
         values.push(match &spec.value {
@@ -353,8 +365,14 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         .map(|(spec, v)| (spec.key, v.expect("predicted above"), spec.fixed))
         .collect();
     check_residuals(&factors, &variables, &guesses, view)?;
+    let stamps = batch
+        .variables
+        .iter()
+        .filter_map(|spec| Some((spec.key, spec.stamp?)))
+        .collect();
     Ok(PreparedBatch {
         variables,
+        stamps,
         factors,
         remove: batch.remove_factors,
         fix,

@@ -42,6 +42,18 @@ pub(super) struct Graph {
 pub(super) struct Window {
     /// The window, from the session's `start` message on.
     pub(super) window: Mutex<Option<SlidingWindow>>,
+    /// Every keyframe that left the window, as it left (lag-smoothed), oldest first: with the
+    /// window's own keyframes, the trajectory a `tum` export serves. Locked after `window`.
+    pub(super) smoothed: Mutex<Vec<SmoothedKeyframe>>,
+}
+
+/// A keyframe's pose as it left the window (the velocity and biases are not kept: 64 bytes).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct SmoothedKeyframe {
+    pub key: crate::problem::Key,
+    pub t: f64,
+    pub position: [f64; 3],
+    pub rotation_xyzw: [f64; 4],
 }
 
 impl Engine {
@@ -56,6 +68,7 @@ impl Engine {
         match kind.name {
             catalogue::SLIDING_WINDOW => Engine::Window(Window {
                 window: Mutex::new(None),
+                smoothed: Mutex::new(Vec::new()),
             }),
             "pose_graph_2d" => graph(2),
             _ => graph(3),

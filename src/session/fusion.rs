@@ -11,12 +11,12 @@ use std::time::Instant;
 
 use nalgebra::Vector3;
 
-use super::engine::{self, Engine};
+use super::engine::{self, Engine, SmoothedKeyframe};
 use super::Session;
 use crate::api::fusion::{
     FusionAck, FusionBatch, FusionMessage, PreintegratedKeyframeMessage, StartMessage, StateReport,
 };
-use crate::api::wire::SessionEvent;
+use crate::api::wire::{SessionEvent, VariableValue};
 use crate::api::ServiceError;
 use crate::fusion::window::{
     diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
@@ -321,6 +321,57 @@ impl Session {
                 .map(|(k, t, s)| StateReport::new(*k, *t, s))
                 .collect(),
         });
+        if let Engine::Window(engine) = &self.engine {
+            let mut smoothed = engine.smoothed.lock().unwrap_or_else(|p| p.into_inner());
+            smoothed.extend(w.departed().iter().map(|(key, t, state)| {
+                let report = StateReport::new(*key, *t, state);
+                SmoothedKeyframe {
+                    key: *key,
+                    t: *t,
+                    position: report.position,
+                    rotation_xyzw: report.rotation_xyzw,
+                }
+            }));
+        }
         Ok(())
+    }
+
+    /// The window session's trajectory as `se3` variables stamped with their time: the
+    /// keyframes that left the window as they left (lag-smoothed), then the window's own at its
+    /// current optimum. Empty before `start`.
+    pub(super) fn window_trajectory(&self) -> Result<Vec<VariableValue>, ServiceError> {
+        let window = self.locked_window()?;
+        let Engine::Window(engine) = &self.engine else {
+            unreachable!("locked_window refuses graph sessions")
+        };
+        let pose = |key: Key, t: f64, position: [f64; 3], q: [f64; 4]| VariableValue {
+            key,
+            kind: "se3".into(),
+            value: vec![
+                position[0],
+                position[1],
+                position[2],
+                q[0],
+                q[1],
+                q[2],
+                q[3],
+            ],
+            changed: 0,
+            stamp: Some(t),
+        };
+        let mut out: Vec<VariableValue> = engine
+            .smoothed
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .map(|k| pose(k.key, k.t, k.position, k.rotation_xyzw))
+            .collect();
+        if let Some(w) = window.as_ref() {
+            out.extend(w.window().iter().map(|(key, t, state)| {
+                let report = StateReport::new(*key, *t, state);
+                pose(*key, *t, report.position, report.rotation_xyzw)
+            }));
+        }
+        Ok(out)
     }
 }

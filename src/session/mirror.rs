@@ -1,9 +1,12 @@
 //! The mirror: every accepted variable as clients see it (kind, wire value, when it changed),
 //! kept apart from the problem so reads never wait for a solve that has the problem.
 
+use super::engine::Engine;
 use super::Session;
 use crate::api::catalogue;
+use crate::api::export::{self, EstimateFormat, Export};
 use crate::api::wire::{Estimate, EstimateQuery, VariableValue};
+use crate::api::ServiceError;
 use crate::problem::{Key, Variable};
 
 /// A variable as clients see it.
@@ -15,6 +18,8 @@ pub struct MirrorEntry {
     pub fixed: bool,
     /// Position of the value the client last sent (the web view's initial guess).
     pub initial: [f64; 3],
+    /// When the pose was taken (seconds), as the client said when it created the variable.
+    pub stamp: Option<f64>,
 }
 
 impl MirrorEntry {
@@ -47,11 +52,33 @@ impl Session {
     }
 }
 
+impl Session {
+    /// The estimate as a file (see `api::export`): a graph session's variables in the query's
+    /// key range, or a window session's trajectory (smoothed keyframes, then the window).
+    pub fn export(
+        &self,
+        format: EstimateFormat,
+        query: &EstimateQuery,
+    ) -> Result<Export, ServiceError> {
+        let variables = match &self.engine {
+            Engine::Graph(_) => self.estimate(query).variables,
+            Engine::Window(_) => {
+                let range = query.from.unwrap_or(0)..=query.to.unwrap_or(Key::MAX);
+                let mut trajectory = self.window_trajectory()?;
+                trajectory.retain(|v| range.contains(&v.key));
+                trajectory
+            }
+        };
+        Ok(export::render(&self.name, format, &variables))
+    }
+}
+
 pub(super) fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
     VariableValue {
         key,
         kind: e.kind.into(),
         value: e.value.clone(),
         changed: e.changed,
+        stamp: e.stamp,
     }
 }

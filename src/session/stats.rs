@@ -72,7 +72,11 @@ impl Session {
                 .marginals_bytes
                 .load(std::sync::atomic::Ordering::Relaxed)
                 as usize,
-            Engine::Window(_) => 0,
+            // The window itself is small and bounded; the smoothed trajectory grows.
+            Engine::Window(w) => {
+                let kept = w.smoothed.lock().unwrap_or_else(|p| p.into_inner()).len();
+                kept * std::mem::size_of::<super::engine::SmoothedKeyframe>()
+            }
         };
         let producers = st.producers.bytes();
         mirror + factors + problem + marginals + producers + self.durable_memory_bytes()

@@ -265,6 +265,7 @@ impl Session {
                     kind: meta.kind.into(),
                     value: Some(entry.value.clone()),
                     fixed: meta.fixed,
+                    stamp: entry.stamp,
                 });
             }
             longest = longest.max(locked.elapsed());

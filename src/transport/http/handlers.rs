@@ -10,6 +10,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::Deserialize;
 
+use crate::api::export::Export;
 use crate::api::fusion::FusionBatch;
 use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 use crate::api::ErrorKind;
@@ -293,11 +294,12 @@ pub(super) async fn define_factor_types(
     .await
 }
 
-/// Read the estimate: every variable, those changed after `since`, or a key range.
+/// Read the estimate: every variable, those changed after `since`, or a key range; with
+/// `format=tum|kitti|g2o|ply` as that file (text; a window session's trajectory).
 #[utoipa::path(get, path = "/v1/sessions/{session}/estimate", tag = "reads", params(SessionPath, EstimateQuery),
     responses((status = 200,
-            description = "The estimate.",
-            body = crate::api::wire::Estimate), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+            description = "The estimate (JSON), or with `format` a TUM, KITTI, g2o or PLY file as text.",
+            content((crate::api::wire::Estimate = "application/json"), (String = "text/plain; charset=utf-8"))), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn estimate(
     State(service): Shared,
     caller: Caller,
@@ -305,13 +307,23 @@ pub(super) async fn estimate(
     raw: RawQuery,
 ) -> HttpResult {
     let estimate: EstimateQuery = query(raw)?;
-    run(
-        &service,
-        &caller,
-        Command::get_estimate(session, estimate),
-        StatusCode::OK,
-    )
-    .await
+    match service
+        .execute_as(&caller.0, Command::get_estimate(session, estimate))
+        .await?
+    {
+        Reply::Export(file) => Ok((
+            [
+                (header::CONTENT_TYPE, Export::MEDIA_TYPE.to_string()),
+                (
+                    header::CONTENT_DISPOSITION,
+                    format!("inline; filename=\"{}\"", file.file_name),
+                ),
+            ],
+            file.body,
+        )
+            .into_response()),
+        reply => Ok((StatusCode::OK, Json(reply)).into_response()),
+    }
 }
 
 /// What the web view draws: positions, initial guesses, pose-to-pose edges.

@@ -143,6 +143,7 @@ mod tests {
                     kind: "se2".into(),
                     value: vec![x, 0.0, 0.0],
                     changed: sequence,
+                    stamp: None,
                 })
                 .collect(),
         }))

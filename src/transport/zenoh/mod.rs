@@ -23,6 +23,7 @@ use zenoh::query::Query;
 
 use crate::api::wire::EstimateQuery;
 use crate::api::ErrorKind;
+use crate::api::Reply;
 use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 
 mod config;
@@ -187,7 +188,15 @@ pub(super) async fn answer_estimate(c: &Context, query: &Query) {
         Ok(command) => c.service.execute_as(&c.caller, command).await,
         Err(e) => Err(e),
     };
-    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+    // A file format is served as its text, as over HTTP; the JSON estimate as JSON.
+    reply(
+        query,
+        result.map(|r| match r {
+            Reply::Export(file) => Ok(file.body.into_bytes()),
+            r => serde_json::to_vec(&r),
+        }),
+    )
+    .await;
 }
 
 pub(super) fn payload(query: &Query) -> Vec<u8> {
