@@ -7,7 +7,8 @@ prints JSON with the trajectory, evo-style APE statistics and the update times.
     PY=~/.cache/factord/venvs/gtsam/bin/python
     $PY benches/fusion/gtsam_fixed_lag.py INPUTS.json [--smoother incremental|batch]
         [--error-mode componentwise|logmap] [--preint-bias latest|predicted]
-        [--factorization cholesky|qr] [--tum-out FILE] [--summary-only] [--compact]
+        [--factorization cholesky|qr] [--tum-out FILE] [--marginals-out FILE] [--summary-only]
+        [--compact]
 
 Model (GTSAM 4.3.0 Python; see GTSAM_PREINTEGRATION.md):
 * use_imu: keys X(k) Pose3, V(k) Vector3 (world), B(k) imuBias.ConstantBias per keyframe;
@@ -287,7 +288,27 @@ def run(inputs, args):
             entry["gyro_bias"] = [float(c) for c in prev_bias.gyroscope()]
         trajectory.append(entry)
     smoothed = [last_estimate[k] for k in sorted(last_estimate)]
+    if args.marginals_out and failure is None:
+        write_marginals(args.marginals_out, smoother, sorted(in_window), use_imu)
     return lag, trajectory, smoothed, solve_ms, kept, iterations, failure
+
+
+def write_marginals(path, smoother, keys, use_imu):
+    """The marginal covariances of the keyframes left in the smoother after its last update, in
+    GTSAM's tangent orders: X Pose3 [rotation, translation] (both in the body frame), V Vector3
+    (world), B ConstantBias [accelerometer, gyroscope]; with each pose's rotation matrix, which
+    maps GTSAM's body-frame translation to a world-frame one (benches/fusion/marginals_compare.py)."""
+    out = []
+    for k in keys:
+        entry = {"key": int(k),
+                 "rotation": np.asarray(smoother.calculateEstimatePose3(X(k)).rotation().matrix()).tolist(),
+                 "pose": np.asarray(smoother.marginalCovariance(X(k))).tolist()}
+        if use_imu:
+            entry["velocity"] = np.asarray(smoother.marginalCovariance(V(k))).tolist()
+            entry["bias"] = np.asarray(smoother.marginalCovariance(B(k))).tolist()
+        out.append(entry)
+    with open(path, "w") as f:
+        json.dump(out, f)
 
 
 def write_tum(path, inputs, trajectory):
@@ -323,6 +344,7 @@ def main():
                          "QR survives the ill-conditioned no-prior IMU case where Cholesky throws")
     ap.add_argument("--lm-max-iterations", type=int, default=100, help="batch smoother's LM iterations")
     ap.add_argument("--tum-out", help="write the estimated trajectory (TUM: t x y z qx qy qz qw, t + origin)")
+    ap.add_argument("--marginals-out", help="write the marginal covariances of the last window's keyframes (JSON)")
     ap.add_argument("--summary-only", action="store_true", help="leave the trajectory out of the JSON")
     ap.add_argument("--compact", action="store_true", help="one-line JSON")
     args = ap.parse_args()

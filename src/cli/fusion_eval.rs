@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use factord::fusion::experiment::{self, Generation};
 use factord::io;
+use factord::transport::fusion_client::{self, AfterRun};
 
 use super::CliError;
 
@@ -56,6 +57,9 @@ pub struct FusionEvalArgs {
     /// Session name to create on that server
     #[arg(long, default_value = "fusion-eval")]
     session: String,
+    /// Keep that session afterwards (to read its `estimate?format=tum` or marginals)
+    #[arg(long, requires = "zenoh")]
+    keep_session: bool,
 }
 
 pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
@@ -93,10 +97,15 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
                 .enable_all()
                 .build()
                 .map_err(CliError::Runtime)?
-                .block_on(factord::transport::fusion_client::run_over_zenoh(
+                .block_on(fusion_client::stream_over_zenoh(
                     endpoint,
                     &args.session,
                     &inputs,
+                    if args.keep_session {
+                        AfterRun::Keep
+                    } else {
+                        AfterRun::Delete
+                    },
                 ))
                 .map_err(CliError::Reported)?,
             None,

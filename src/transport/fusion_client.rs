@@ -52,12 +52,32 @@ async fn rpc(z: &zenoh::Session, command: &Value) -> Result<Value, String> {
     Err("no factord answered on factord/rpc".into())
 }
 
+/// What becomes of the session once the inputs are streamed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AfterRun {
+    /// Deleted: a measurement leaves nothing behind.
+    Delete,
+    /// Kept, to read its trajectory export or marginals afterwards.
+    Keep,
+}
+
 /// Creates `session` (kind sliding_window), streams `inputs` and returns the published states,
-/// one per keyframe, with the server's update time and the publication-to-state latency.
+/// one per keyframe, with the server's update time and the publication-to-state latency; the
+/// session is deleted afterwards.
 pub async fn run_over_zenoh(
     endpoint: &str,
     session: &str,
     inputs: &FusionInputs,
+) -> Result<Vec<Estimate>, String> {
+    stream_over_zenoh(endpoint, session, inputs, AfterRun::Delete).await
+}
+
+/// [`run_over_zenoh`], keeping the session when `after` says so.
+pub async fn stream_over_zenoh(
+    endpoint: &str,
+    session: &str,
+    inputs: &FusionInputs,
+    after: AfterRun,
 ) -> Result<Vec<Estimate>, String> {
     let z = connect(endpoint).await?;
     rpc(
@@ -121,7 +141,9 @@ pub async fn run_over_zenoh(
         });
     }
     drop(subscriber);
-    let _ = rpc(&z, &json!({"op": "delete_session", "session": session})).await;
+    if after == AfterRun::Delete {
+        let _ = rpc(&z, &json!({"op": "delete_session", "session": session})).await;
+    }
     let _ = z.close().await;
     Ok(estimates)
 }
