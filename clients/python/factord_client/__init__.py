@@ -1,23 +1,38 @@
-"""Python client for factord: HTTP (:class:`HttpClient`, standard library only), zenoh
-(:class:`ZenohClient`, needs ``eclipse-zenoh``) and a small g2o reader (:mod:`factord_client.g2o`)
-that turns a dataset into the batches a robot would stream."""
+"""Python client for factord: HTTP (:class:`HttpClient`) and zenoh (:class:`ZenohClient`, needs
+``eclipse-zenoh``), numpy in and out (:class:`Batch` builds batches from arrays,
+``estimate_array`` reads poses back as an (N, 3) / (N, 7) array), poses and noise models
+(:class:`Pose2`, :class:`Pose3`, :class:`Noise`), the wire shapes as TypedDicts
+(:mod:`factord_client.wire`), and a small g2o reader (:mod:`factord_client.g2o`).
 
+Every failure raises :class:`FactordError` or a subclass (service errors, unreachable service,
+client-side timeouts, refused producer batches), carrying ``status``, ``code`` and ``field``."""
+
+from .batch import Batch, EstimateArray, dumps, jsonable
 from .errors import BatchRefused, FactordConnectionError, FactordError, FactordTimeout
+from .geometry import Noise, Pose2, Pose3, pose_from_wire
 from .http import EventStream, HttpClient
 from .producer import HttpProducer
 
 __all__ = [
+    "Batch",
     "BatchRefused",
+    "EstimateArray",
     "EventStream",
     "FactordConnectionError",
     "FactordError",
     "FactordTimeout",
     "HttpClient",
     "HttpProducer",
+    "Noise",
+    "Pose2",
+    "Pose3",
     "StreamProducer",
     "ZenohClient",
+    "dumps",
+    "jsonable",
+    "pose_from_wire",
 ]
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 def __getattr__(name: str):  # lazy: importing the package must not need zenoh

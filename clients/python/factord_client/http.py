@@ -24,12 +24,21 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from typing import Any, Dict, Iterator, Optional, Tuple, Union
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
+import numpy as np
+
+from . import wire
+from .batch import (Batch, EstimateArray, as_batch, dumps, estimate_to_array,
+                    marginals_to_arrays)
 from .errors import FactordConnectionError, FactordError
+from .geometry import AnyPose
 
 JsonDict = Dict[str, Any]
+BatchLike = Union[Batch, wire.Batch, JsonDict]
 _DEFAULT = object()
+#: What ``export`` serves (``GET .../estimate?format=``).
+EXPORT_FORMATS = ("tum", "kitti", "g2o", "ply", "json")
 
 
 def _quote(segment: str) -> str:
@@ -56,7 +65,13 @@ class EventStream:
         data_lines: list = []
         try:
             while True:
-                raw = self._response.readline()
+                try:
+                    raw = self._response.readline()
+                except (OSError, http.client.HTTPException) as e:
+                    if self.closed:  # closed by us from another thread: just the end
+                        return
+                    raise FactordConnectionError(
+                        "connection_failed", f"event stream broke: {e!r}") from None
                 if not raw:  # the server closed the stream (session deleted, shutdown)
                     return
                 line = raw.decode("utf-8").rstrip("\r\n")
@@ -149,8 +164,8 @@ class HttpClient:
         hdrs = {"Accept": "application/json"}
         if self.token:
             hdrs["Authorization"] = f"Bearer {self.token}"
-        if isinstance(body, (dict, list)):
-            data = json.dumps(body).encode("utf-8")
+        if isinstance(body, (dict, list, Batch)):
+            data = dumps(body).encode("utf-8")
             hdrs["Content-Type"] = "application/json"
         elif isinstance(body, str):
             data = body.encode("utf-8")
@@ -230,15 +245,19 @@ class HttpClient:
 
         raw, content_type = self._attempts(method, path, safe, send, body=body, query=query,
                                            headers=headers)
-        if content_type.startswith("application/json"):
-            return json.loads(raw.decode("utf-8"))
-        return raw.decode("utf-8")
+        try:
+            text = raw.decode("utf-8")
+            return json.loads(text) if content_type.startswith("application/json") else text
+        except ValueError as e:  # a proxy's page, a truncated body: still one error family
+            raise FactordError(None, "unexpected_response",
+                               f"{method} {path}: unreadable answer ({e})",
+                               body=raw[:1000]) from None
 
     def _session_path(self, session: str, tail: str = "") -> str:
         return f"/v1/sessions/{_quote(session)}{tail}"
 
     # ----------------------------------------------------------------- routes
-    def health(self) -> JsonDict:
+    def health(self) -> wire.Health:
         """``GET /v1/health``: status, version, workers, sessions, session kinds, uptime."""
         return self._request("GET", "/v1/health")
 
@@ -249,7 +268,7 @@ class HttpClient:
         options: Optional[JsonDict] = None,
         auto_optimize: Union[None, str, JsonDict] = None,
         factor_types: Optional[list] = None,
-    ) -> JsonDict:
+    ) -> wire.SessionInfo:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
         solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
         ``auto_optimize``: a policy dict such as ``{"policy": "every_n_factors", "factors": 50}``
@@ -266,32 +285,36 @@ class HttpClient:
             body["factor_types"] = factor_types
         return self._request("POST", "/v1/sessions", body=body)
 
-    def list_sessions(self) -> JsonDict:
+    def list_sessions(self) -> wire.SessionList:
         """``GET /v1/sessions``: ``{"sessions": [{session, kind, options, auto_optimize}, ...]}``."""
         return self._request("GET", "/v1/sessions")
 
-    def stats(self, session: str) -> JsonDict:
+    def stats(self, session: str) -> wire.SessionStats:
         """``GET /v1/sessions/{session}``: sequence, solved_sequence, chi2, solves, ..."""
         return self._request("GET", self._session_path(session))
 
-    def define_factor_types(self, session: str, factor_types: list) -> JsonDict:
-        """Declares more user-defined factor types in a running graph session (all or none);
-        answers the session's info with every declared name."""
-        return self._request("POST", f"/v1/sessions/{session}/factor_types", body={"factor_types": factor_types})
+    def define_factor_types(self, session: str, factor_types: list) -> wire.SessionInfo:
+        """``POST /v1/sessions/{session}/factor_types``: declares more user-defined factor
+        types in a running graph session (all or none); answers the session's info with every
+        declared name."""
+        return self._request("POST", self._session_path(session, "/factor_types"),
+                             body={"factor_types": factor_types})
 
     def delete_session(self, session: str) -> JsonDict:
         """``DELETE /v1/sessions/{session}``."""
         return self._request("DELETE", self._session_path(session))
 
-    def apply_batch(self, session: str, batch: JsonDict, wait: bool = False) -> JsonDict:
+    def apply_batch(self, session: str, batch: BatchLike, wait: bool = False) -> wire.BatchAck:
         """``POST /v1/sessions/{session}/batches``: the acknowledgement (``sequence``,
         ``factor_ids``, ``predicted``); with ``wait``, also ``solved`` once the estimate
         reflects the batch (when a solve is due under the policy).
 
         A batch with ``producer`` and ``producer_seq`` is exactly-once: it is resent after a
         connection failure or a 503, and a repeat answers the original acknowledgement with
-        ``"duplicate": true`` (see :meth:`producer` for a client that numbers batches)."""
-        stamped = isinstance(batch, dict) and "producer" in batch and "producer_seq" in batch
+        ``"duplicate": true`` (see :meth:`producer` for a client that numbers batches).
+        ``batch``: a dict (numpy arrays and poses allowed as values) or a :class:`Batch`."""
+        batch = as_batch(batch)
+        stamped = "producer" in batch and "producer_seq" in batch
         return self._request("POST", self._session_path(session, "/batches"), body=batch,
                              query={"wait": True} if wait else None, safe=stamped)
 
@@ -302,7 +325,7 @@ class HttpClient:
 
         return HttpProducer(self, session, producer, resume=resume)
 
-    def producer_status(self, session: str, producer: str) -> JsonDict:
+    def producer_status(self, session: str, producer: str) -> wire.ProducerStatus:
         """``GET /v1/sessions/{session}/producers/{producer}``: ``{"session", "producer",
         "accepted_through", "sequence", "reflected_sequence"}`` (``accepted_through`` 0 for a
         producer the session has not seen)."""
@@ -310,7 +333,7 @@ class HttpClient:
 
     def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
                  after_seq: Optional[int] = None,
-                 after_timeout_ms: Optional[int] = None) -> JsonDict:
+                 after_timeout_ms: Optional[int] = None) -> wire.OptimizeAnswer:
         """``POST /v1/sessions/{session}/optimize``: solve now; with ``wait`` the answer has
         the statistics after the solve under ``stats``. With ``after_producer`` + ``after_seq``
         the solve first waits until that producer's batches through ``after_seq`` are applied
@@ -321,7 +344,7 @@ class HttpClient:
                              query=query or None, safe=True)
 
     def set_auto_optimize(self, session: str, policy: Union[str, JsonDict],
-                          **params: Any) -> JsonDict:
+                          **params: Any) -> wire.SessionInfo:
         """``PUT /v1/sessions/{session}/auto_optimize``, e.g.
         ``set_auto_optimize(s, "every_n_factors", factors=50)`` or
         ``set_auto_optimize(s, {"policy": "every_ms", "milliseconds": 200})``."""
@@ -337,7 +360,7 @@ class HttpClient:
         after_producer: Optional[str] = None,
         after_seq: Optional[int] = None,
         after_timeout_ms: Optional[int] = None,
-    ) -> JsonDict:
+    ) -> wire.Estimate:
         """``GET /v1/sessions/{session}/estimate``: ``{"session", "sequence", "variables":
         [{"key", "kind", "value", "changed"}, ...]}``; ``since`` keeps the variables changed
         after that sequence, ``from_key``/``to_key`` an inclusive key range;
@@ -347,7 +370,7 @@ class HttpClient:
         query.update(_after(after_producer, after_seq, after_timeout_ms))
         return self._request("GET", self._session_path(session, "/estimate"), query=query)
 
-    def summary(self, session: str) -> JsonDict:
+    def summary(self, session: str) -> wire.Summary:
         """``GET /v1/sessions/{session}/summary``: the last solve's Summary (404 ``no_summary``
         before the first solve)."""
         return self._request("GET", self._session_path(session, "/summary"))
@@ -375,6 +398,72 @@ class HttpClient:
         query.update(solver_params)
         body = graph_text if isinstance(graph_text, str) else graph_text.decode("utf-8")
         return self._request("POST", "/v1/jobs", body=body, query=query, safe=True)
+
+    def estimate_array(self, session: str, kind: Optional[str] = None,
+                       **query: Any) -> EstimateArray:
+        """The estimate as arrays: ``keys, values = c.estimate_array(s)`` with ``values``
+        (N, 3) for se2 poses, (N, 7) for se3 (see :class:`EstimateArray`; ``stamps`` too).
+        ``kind`` picks one kind in a session that has several (``"point2"`` for landmarks);
+        ``query``: :meth:`estimate`'s filters (``since``, ``from_key``, ``after_seq``, ...)."""
+        return estimate_to_array(self.estimate(session, **query), kind)
+
+    def estimate_poses(self, session: str, **query: Any) -> Dict[int, AnyPose]:
+        """``{key: Pose2 | Pose3}`` of the session's poses."""
+        return self.estimate_array(session, **query).poses()
+
+    def export(self, session: str, format: str = "tum") -> str:
+        """``GET /v1/sessions/{session}/estimate?format=``: the estimate as a file's text:
+        ``tum`` (``stamp tx ty tz qx qy qz qw`` per pose, for evo), ``kitti``, ``g2o``,
+        ``ply``, or ``json``."""
+        if format not in EXPORT_FORMATS:
+            raise ValueError(f"format must be one of {EXPORT_FORMATS}, not {format!r}")
+        answer = self._request("GET", self._session_path(session, "/estimate"),
+                               query={"format": format},
+                               headers={"Accept": "text/plain, application/json"})
+        return answer if isinstance(answer, str) else json.dumps(answer)
+
+    def graph(self, session: str) -> wire.Graph:
+        """``GET /v1/sessions/{session}/graph``: what the web view draws (positions now and
+        initially, edges)."""
+        return self._request("GET", self._session_path(session, "/graph"))
+
+    def marginals(self, session: str, keys: Iterable[int], joint: bool = False) -> wire.Marginals:
+        """``GET /v1/sessions/{session}/marginals?keys=…``: each variable's covariance in its
+        tangent space (se2: x, y, θ; se3: body translation, rotation), with ``joint`` the
+        cross-covariances too. :meth:`covariances` gives numpy arrays."""
+        key_list = ",".join(str(int(k)) for k in np.asarray(list(keys)).reshape(-1))
+        return self._request("GET", self._session_path(session, "/marginals"),
+                             query={"keys": key_list, "joint": True if joint else None})
+
+    def covariances(self, session: str, keys: Iterable[int], joint: bool = False
+                    ) -> Tuple[Dict[int, np.ndarray], Optional[np.ndarray]]:
+        """``({key: (d, d) covariance}, joint (n, n) or None)`` as numpy arrays."""
+        return marginals_to_arrays(self.marginals(session, keys, joint))
+
+    def fusion(self, session: str, messages: List[JsonDict]) -> JsonDict:
+        """``POST /v1/sessions/{session}/fusion``: messages for a ``sliding_window`` session
+        (``start``, ``imu``, ``keyframe``, ``relative_pose``, ``pose_prior``, ...; numpy
+        arrays allowed as values)."""
+        return self._request("POST", self._session_path(session, "/fusion"),
+                             body={"messages": messages})
+
+    def openapi(self) -> JsonDict:
+        """``GET /v1/openapi.json``: the API's description."""
+        return self._request("GET", "/v1/openapi.json")
+
+    def metrics(self) -> str:
+        """``GET /metrics``: Prometheus text."""
+        return self._request("GET", "/metrics", headers={"Accept": "text/plain"})
+
+    def close(self) -> None:
+        """Nothing stays open between requests (each opens its own connection); here so that
+        both clients are used the same way (``with HttpClient(...) as c:``)."""
+
+    def __enter__(self) -> "HttpClient":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
     def events(self, session: str, timeout: Optional[float] = None) -> EventStream:
         """``GET /v1/sessions/{session}/events``: the session's Server-Sent Events.

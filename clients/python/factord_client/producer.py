@@ -13,6 +13,7 @@ import re
 import socket
 from typing import Any, Dict, Optional, Tuple
 
+from .batch import as_batch
 from .errors import BatchRefused, FactordConnectionError, FactordError
 
 JsonDict = Dict[str, Any]
@@ -33,9 +34,10 @@ def check_producer_id(producer: str) -> str:
     return producer
 
 
-def stamp(batch: JsonDict, producer: str, seq: int) -> JsonDict:
-    """A copy of ``batch`` with ``producer`` and ``producer_seq``."""
-    return {**batch, "producer": producer, "producer_seq": seq}
+def stamp(batch: Any, producer: str, seq: int) -> JsonDict:
+    """A copy of ``batch`` (a dict, numpy values allowed, or a :class:`Batch`) with
+    ``producer`` and ``producer_seq``."""
+    return {**as_batch(batch), "producer": producer, "producer_seq": seq}
 
 
 class HttpProducer:

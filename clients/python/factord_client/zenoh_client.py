@@ -12,19 +12,37 @@ Key expressions (``<p>`` is the prefix, ``factord`` by default):
 
 For streaming that survives lost acknowledgements, reconnections and restarts of the service,
 use :meth:`ZenohClient.producer` (a :class:`~factord_client.stream_producer.StreamProducer`).
+
+**A forgotten** :meth:`ZenohClient.close` **does not keep the process alive.** zenoh-python runs
+a Python callback on a non-daemon thread of its own, which the interpreter waits for at exit
+(before ``atexit`` handlers run): a script that subscribed and forgot ``close()`` hung. Here
+zenoh's receiving thread only appends each sample to a queue (a direct callback, no thread of
+zenoh-python's), a *daemon* thread of ours calls the user's callback, and a ``weakref.finalize``
+closes the zenoh session when the client is garbage-collected or the interpreter exits. (A
+FIFO channel read by our thread would do too, but undeclaring it while the thread waits in
+``recv()`` fails with "Already borrowed".)
 """
 
 from __future__ import annotations
 
 import json
+import queue
 import sys
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Union
+import weakref
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple, Union
 
+import numpy as np
+
+from . import wire
+from .batch import Batch, EstimateArray, as_batch, dumps, estimate_to_array, marginals_to_arrays
 from .errors import FactordConnectionError, FactordError
+from .geometry import AnyPose
 
 JsonDict = Dict[str, Any]
+BatchLike = Union[Batch, wire.Batch, JsonDict]
+_END = object()  # queued when zenoh drops the subscriber: the draining thread stops
 
 TOPICS = ("acks", "stats", "poses", "summary", "errors")
 
@@ -33,6 +51,65 @@ TOPICS = ("acks", "stats", "poses", "summary", "errors")
 # producer + producer_seq; create_session and delete_session are not repeated.
 _SAFE_OPS = frozenset({"health", "list_sessions", "get_stats", "get_estimate", "producer_status",
                        "optimize", "cancel", "set_auto_optimize", "get_graph", "get_marginals"})
+
+
+def _zenoh_failure(what: str, error: BaseException) -> FactordConnectionError:
+    """zenoh's own exceptions (``ZError``, a closed session) as the client's error family."""
+    return FactordConnectionError("connection_failed", f"zenoh {what}: {error}")
+
+
+class Subscription:
+    """One subscriber: zenoh's thread queues each sample (unbounded, so it never waits for
+    Python code), a daemon thread calls the callback for each, in order.
+    :meth:`undeclare` stops both (also called by :meth:`ZenohClient.close`)."""
+
+    def __init__(self, session: Any, zenoh: Any, key: str,
+                 callback: Callable[[JsonDict], None]) -> None:
+        self.key = key
+        self._callback = callback
+        self._undeclared = False
+        self._queue: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
+        handler = zenoh.handlers.Callback(self._queue.put, drop=lambda: self._queue.put(_END),
+                                          indirect=False)
+        self._subscriber = session.declare_subscriber(key, handler)
+        self._thread = threading.Thread(target=self._drain, name=f"factord-sub-{key}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _drain(self) -> None:
+        while True:
+            sample = self._queue.get()
+            if sample is _END or self._undeclared:
+                return
+            try:
+                self._callback(json.loads(sample.payload.to_bytes().decode("utf-8")))
+            except Exception as e:  # noqa: BLE001 - a failing callback must not end the stream
+                print(f"factord_client: subscriber of {self.key}: {e!r}", file=sys.stderr)
+
+    def undeclare(self) -> None:
+        if self._undeclared:
+            return
+        self._undeclared = True
+        try:
+            self._subscriber.undeclare()
+        except Exception:  # noqa: BLE001 - the session may be closed already
+            pass
+        self._queue.put(_END)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=1.0)
+
+
+def _close_session(session: Any, subscriptions: List[Subscription], lock: threading.Lock) -> None:
+    """Undeclares the subscriptions and closes the session. Run once: by ``close()``, when the
+    client is garbage-collected, or at interpreter exit (``weakref.finalize``)."""
+    with lock:
+        pending, subscriptions[:] = list(subscriptions), []
+    for subscription in pending:
+        subscription.undeclare()
+    try:
+        session.close()
+    except Exception:  # noqa: BLE001 - closing twice or during shutdown
+        pass
 
 
 def _zenoh() -> Any:
@@ -67,27 +144,53 @@ class ZenohClient:
         mode: str = "client",
         timeout: float = 150.0,
         reconnect_wait: float = 10.0,
+        user: Optional[str] = None,
+        password: Optional[str] = None,
+        config_file: Optional[str] = None,
     ) -> None:
+        """``user`` / ``password``: zenoh's own user-password authentication (the server's
+        ``--zenoh-config`` with ``transport/auth/usrpwd``; HTTP bearer tokens do not apply to
+        zenoh). ``config_file``: a zenoh JSON5 configuration to start from (TLS, ...)."""
         zenoh = _zenoh()
         endpoints = [connect_endpoint] if isinstance(connect_endpoint, str) else list(connect_endpoint)
-        config = zenoh.Config()
-        config.insert_json5("mode", json.dumps(mode))
-        config.insert_json5("connect/endpoints", json.dumps(endpoints))
-        config.insert_json5("scouting/multicast/enabled", "false")
-        if mode == "peer":
-            # A peer does not need to listen for factord to reach it.
-            config.insert_json5("listen/endpoints", "[]")
+        try:
+            config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+            config.insert_json5("mode", json.dumps(mode))
+            config.insert_json5("connect/endpoints", json.dumps(endpoints))
+            config.insert_json5("scouting/multicast/enabled", "false")
+            if mode == "peer":
+                # A peer does not need to listen for factord to reach it.
+                config.insert_json5("listen/endpoints", "[]")
+            if user is not None and password is not None:
+                config.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+                config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+            session = zenoh.open(config)
+        except Exception as e:  # noqa: BLE001 - zenoh.ZError and configuration errors
+            raise _zenoh_failure(f"session to {endpoints}", e) from None
         self.prefix = prefix.rstrip("/") or "factord"
         self.timeout = timeout
         self.reconnect_wait = reconnect_wait
         self._zenoh = zenoh
-        self._session = zenoh.open(config)
-        self._subscribers: List[Any] = []
+        self._session = session
+        self._subscriptions: List[Subscription] = []
         self._lock = threading.Lock()
+        # Holds no reference to self, so an unreferenced client is collected and closed.
+        self._finalizer = weakref.finalize(self, _close_session, session, self._subscriptions,
+                                           self._lock)
+
+    @property
+    def closed(self) -> bool:
+        return not self._finalizer.alive
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise FactordError(None, "closed", "this ZenohClient is closed")
 
     # ----------------------------------------------------------------- queries
     def _query(self, selector: str, payload: Optional[bytes], timeout: Optional[float],
-               safe: bool = True) -> Any:
+               safe: bool = True, text: bool = False) -> Any:
+        """The first reply's payload: parsed JSON, or the text with ``text``."""
+        self._check_open()
         kwargs: JsonDict = {"timeout": self.timeout if timeout is None else timeout}
         if payload is not None:
             kwargs["payload"] = payload
@@ -96,11 +199,14 @@ class ZenohClient:
         while True:
             attempt += 1
             started = time.monotonic()
-            replies = self._session.get(selector, **kwargs)
+            try:
+                replies = list(self._session.get(selector, **kwargs))
+            except Exception as e:  # noqa: BLE001 - ZError, a session closed meanwhile
+                raise _zenoh_failure(f"query `{selector}`", e) from None
             for reply in replies:  # the first answer wins (there is one factord per prefix)
                 ok = reply.ok
                 if ok is not None:
-                    return json.loads(ok.payload.to_bytes().decode("utf-8"))
+                    return _decode(ok.payload.to_bytes(), selector, text)
                 raise FactordError.from_body(reply.err.payload.to_bytes())
             # No answer at once: no queryable matched (not reachable now). An answer that did
             # not come within the timeout is not repeated (the request may be running).
@@ -112,20 +218,21 @@ class ZenohClient:
                     f"prefix `{self.prefix}`?)", attempts=attempt)
             time.sleep(min(0.05 * 2 ** attempt, 0.5))
 
-    def rpc(self, command: JsonDict, timeout: Optional[float] = None) -> JsonDict:
+    def rpc(self, command: JsonDict, timeout: Optional[float] = None) -> Any:
         """Sends a command (``{"op": ..., ...}``) to ``<prefix>/rpc`` and returns its answer;
-        an error reply raises :class:`FactordError` (with the status from the error body)."""
+        an error reply raises :class:`FactordError` (with the status from the error body).
+        numpy arrays, poses and :class:`Batch` objects may appear in the command."""
         batch = command.get("batch") if command.get("op") == "apply_batch" else None
         safe = command.get("op") in _SAFE_OPS or (
             isinstance(batch, dict) and "producer" in batch and "producer_seq" in batch)
-        return self._query(f"{self.prefix}/rpc", json.dumps(command).encode("utf-8"), timeout,
+        return self._query(f"{self.prefix}/rpc", dumps(command).encode("utf-8"), timeout,
                            safe=safe)
 
     # Convenience wrappers over rpc (same answers as the HTTP routes).
-    def health(self) -> JsonDict:
+    def health(self) -> wire.Health:
         return self.rpc({"op": "health"})
 
-    def list_sessions(self) -> JsonDict:
+    def list_sessions(self) -> wire.SessionList:
         return self.rpc({"op": "list_sessions"})
 
     def create_session(
@@ -135,7 +242,7 @@ class ZenohClient:
         options: Optional[JsonDict] = None,
         auto_optimize: Union[None, str, JsonDict] = None,
         factor_types: Optional[list] = None,
-    ) -> JsonDict:
+    ) -> wire.SessionInfo:
         command: JsonDict = {"op": "create_session", "kind": kind}
         if session is not None:
             command["session"] = session
@@ -149,7 +256,7 @@ class ZenohClient:
             command["factor_types"] = factor_types
         return self.rpc(command)
 
-    def define_factor_types(self, session: str, factor_types: list) -> JsonDict:
+    def define_factor_types(self, session: str, factor_types: list) -> wire.SessionInfo:
         """Declares more user-defined factor types in a running graph session (all or none);
         answers the session's info with every declared name."""
         return self.rpc({"op": "define_factor_types", "session": session, "factor_types": factor_types})
@@ -157,13 +264,15 @@ class ZenohClient:
     def delete_session(self, session: str) -> JsonDict:
         return self.rpc({"op": "delete_session", "session": session})
 
-    def apply_batch(self, session: str, batch: JsonDict, wait: bool = False) -> JsonDict:
-        """A batch with an answer (``apply_batch`` over rpc), unlike :meth:`publish_batch`."""
-        return self.rpc({"op": "apply_batch", "session": session, "batch": batch, "wait": wait})
+    def apply_batch(self, session: str, batch: BatchLike, wait: bool = False) -> wire.BatchAck:
+        """A batch with an answer (``apply_batch`` over rpc), unlike :meth:`publish_batch`;
+        a dict (numpy values allowed) or a :class:`Batch`."""
+        return self.rpc({"op": "apply_batch", "session": session, "batch": as_batch(batch),
+                         "wait": wait})
 
     def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
                  after_seq: Optional[int] = None, after_timeout_ms: Optional[int] = None,
-                 timeout: Optional[float] = None) -> JsonDict:
+                 timeout: Optional[float] = None) -> wire.OptimizeAnswer:
         """rpc ``optimize``; with ``after_producer`` + ``after_seq`` the service first waits
         until that producer's batches through ``after_seq`` are applied."""
         command: JsonDict = {"op": "optimize", "session": session, "wait": wait}
@@ -171,7 +280,7 @@ class ZenohClient:
         return self.rpc(command, timeout=timeout)
 
     def producer_status(self, session: str, producer: str,
-                        timeout: Optional[float] = None) -> JsonDict:
+                        timeout: Optional[float] = None) -> wire.ProducerStatus:
         """rpc ``producer_status``: ``{"session", "producer", "accepted_through", "sequence",
         "reflected_sequence"}``."""
         return self.rpc({"op": "producer_status", "session": session, "producer": producer},
@@ -185,7 +294,7 @@ class ZenohClient:
 
         return StreamProducer(self, session, producer, **options)
 
-    def stats(self, session: str) -> JsonDict:
+    def stats(self, session: str) -> wire.SessionStats:
         return self.rpc({"op": "get_stats", "session": session})
 
     def cancel(self, session: str) -> JsonDict:
@@ -205,7 +314,7 @@ class ZenohClient:
         after_producer: Optional[str] = None,
         after_seq: Optional[int] = None,
         after_timeout_ms: Optional[int] = None,
-    ) -> JsonDict:
+    ) -> wire.Estimate:
         """Reads the estimate from the ``<prefix>/<session>/estimate`` queryable (selector
         parameters ``since``, ``from``, ``to``, and ``after_producer``/``after_seq``: first wait
         until that producer's batches through ``after_seq`` are applied)."""
@@ -218,55 +327,104 @@ class ZenohClient:
             selector += "?" + ";".join(params)
         return self._query(selector, None, timeout)
 
+    def estimate_array(self, session: str, kind: Optional[str] = None,
+                       **query: Any) -> EstimateArray:
+        """The estimate as arrays: ``keys, values = z.estimate_array(s)`` (see
+        :meth:`HttpClient.estimate_array`)."""
+        return estimate_to_array(self.estimate(session, **query), kind)
+
+    def estimate_poses(self, session: str, **query: Any) -> Dict[int, AnyPose]:
+        """``{key: Pose2 | Pose3}`` of the session's poses."""
+        return self.estimate_array(session, **query).poses()
+
+    def export(self, session: str, format: str = "tum",
+               timeout: Optional[float] = None) -> str:
+        """The estimate as a file's text from the estimate queryable (``?format=tum``,
+        ``kitti``, ``g2o``, ``ply``)."""
+        return self._query(f"{self.prefix}/{session}/estimate?format={format}", None, timeout,
+                           text=True)
+
+    def graph(self, session: str) -> wire.Graph:
+        """rpc ``get_graph``: what the web view draws."""
+        return self.rpc({"op": "get_graph", "session": session})
+
+    def marginals(self, session: str, keys: Iterable[int], joint: bool = False) -> wire.Marginals:
+        """rpc ``get_marginals``: covariances of ``keys`` (``joint``: cross-covariances)."""
+        key_list = [int(k) for k in np.asarray(list(keys)).reshape(-1)]
+        return self.rpc({"op": "get_marginals", "session": session, "keys": key_list,
+                         "joint": joint})
+
+    def covariances(self, session: str, keys: Iterable[int], joint: bool = False
+                    ) -> Tuple[Dict[int, np.ndarray], Optional[np.ndarray]]:
+        """``({key: (d, d) covariance}, joint (n, n) or None)`` as numpy arrays."""
+        return marginals_to_arrays(self.marginals(session, keys, joint))
+
+    def fusion(self, session: str, messages: List[JsonDict]) -> JsonDict:
+        """rpc ``fusion``: messages for a ``sliding_window`` session (with an answer; or
+        :meth:`publish_fusion` without)."""
+        return self.rpc({"op": "fusion", "session": session, "messages": messages})
+
     # ----------------------------------------------------------------- streams
-    def publish_batch(self, session: str, batch: JsonDict) -> None:
+    def _put(self, key: str, payload: bytes) -> None:
+        self._check_open()
+        try:
+            self._session.put(key, payload,
+                              congestion_control=self._zenoh.CongestionControl.BLOCK)
+        except Exception as e:  # noqa: BLE001 - ZError
+            raise _zenoh_failure(f"put on `{key}`", e) from None
+
+    def publish_fusion(self, session: str, messages: List[JsonDict]) -> None:
+        """Puts ``{"messages": [...]}`` on ``<prefix>/<session>/in/fusion`` (no reply)."""
+        self._put(f"{self.prefix}/{session}/in/fusion",
+                  dumps({"messages": messages}).encode("utf-8"))
+
+    def publish_batch(self, session: str, batch: BatchLike) -> None:
         """Puts a batch on ``<prefix>/<session>/in/batch`` (fire and forget: watch ``out/acks``
         and ``out/errors``)."""
-        # Block rather than drop when the link is congested: a lost batch would make every later
-        # batch that refers to its variables fail.
-        self._session.put(f"{self.prefix}/{session}/in/batch", json.dumps(batch).encode("utf-8"),
-                          congestion_control=self._zenoh.CongestionControl.BLOCK)
+        # Block rather than drop when the link is congested (_put): a lost batch would make
+        # every later batch that refers to its variables fail.
+        self._put(f"{self.prefix}/{session}/in/batch", dumps(as_batch(batch)).encode("utf-8"))
 
     def publish_optimize(self, session: str) -> None:
         """Puts on ``<prefix>/<session>/in/optimize``: solve now."""
-        self._session.put(f"{self.prefix}/{session}/in/optimize", b"{}",
-                          congestion_control=self._zenoh.CongestionControl.BLOCK)
+        self._put(f"{self.prefix}/{session}/in/optimize", b"{}")
 
     def subscribe(self, session: str, topic: str, callback: Callable[[JsonDict], None]) -> Any:
         """Calls ``callback(event)`` for every publication on ``<prefix>/<session>/out/<topic>``
         (``topic``: acks, stats, poses, summary, errors, or ``*`` for all; the event's ``type``
-        field tells them apart). The callback runs on a zenoh thread; exceptions are printed.
-        Returns the subscriber (undeclared by :meth:`close`, or call its ``undeclare()``)."""
+        field tells them apart). The callback runs on a daemon thread of this subscription, one
+        event at a time in order; its exceptions are printed. Returns the
+        :class:`Subscription` (undeclared by :meth:`close`, or call its ``undeclare()``)."""
+        self._check_open()
         key = f"{self.prefix}/{session}/out/{topic}"
-
-        def on_sample(sample: Any) -> None:
-            try:
-                event = json.loads(sample.payload.to_bytes().decode("utf-8"))
-                callback(event)
-            except Exception as e:  # noqa: BLE001 - never let an exception kill zenoh's thread
-                print(f"factord_client: subscriber of {key}: {e!r}", file=sys.stderr)
-
-        subscriber = self._session.declare_subscriber(key, on_sample)
+        try:
+            subscription = Subscription(self._session, self._zenoh, key, callback)
+        except Exception as e:  # noqa: BLE001 - ZError
+            raise _zenoh_failure(f"subscriber on `{key}`", e) from None
         with self._lock:
-            self._subscribers.append(subscriber)
-        return subscriber
+            self._subscriptions.append(subscription)
+        return subscription
 
     def close(self) -> None:
-        """Undeclares the subscribers and closes the zenoh session."""
-        with self._lock:
-            subscribers, self._subscribers = self._subscribers, []
-        for s in subscribers:
-            try:
-                s.undeclare()
-            except Exception:  # noqa: BLE001
-                pass
-        self._session.close()
+        """Undeclares the subscriptions and closes the zenoh session (once; later calls do
+        nothing). Also done when the client is garbage-collected or the interpreter exits."""
+        self._finalizer()
 
     def __enter__(self) -> "ZenohClient":
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _decode(payload: bytes, selector: str, text: bool) -> Any:
+    try:
+        body = payload.decode("utf-8")
+        return body if text else json.loads(body)
+    except ValueError as e:
+        raise FactordError(None, "unexpected_response",
+                           f"`{selector}` answered something unreadable ({e})",
+                           body=payload[:1000]) from None
 
 
 def _after(producer: Optional[str], seq: Optional[int],
