@@ -58,12 +58,8 @@ async fn session_marginals_match_gtsam_on_intel() {
     let Some(path) = common::data_file("2d/sesync/intel.g2o") else {
         return;
     };
-    let python = match common::python_venv("gtsam", &[vec!["gtsam".into()]]) {
-        Ok(p) => p,
-        Err(reason) => {
-            common::skip_or_fail::<()>(&format!("no GTSAM Python environment: {reason}"));
-            return;
-        }
+    let Some(python) = common::gtsam_python() else {
+        return;
     };
     let s = TestServer::start(&[]);
     let c = client();
@@ -274,12 +270,8 @@ fn window_marginals_match_gtsam_fixed_lag() {
     let Some(imu) = common::data_file("imu/euroc_V1_01_easy/imu0.csv") else {
         return;
     };
-    let python = match common::python_venv("gtsam", &[vec!["gtsam".into()]]) {
-        Ok(p) => p,
-        Err(reason) => {
-            common::skip_or_fail::<()>(&format!("no GTSAM Python environment: {reason}"));
-            return;
-        }
+    let Some(python) = common::gtsam_python() else {
+        return;
     };
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),

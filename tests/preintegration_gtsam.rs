@@ -68,12 +68,8 @@ fn preintegration_matches_gtsam_manifold() {
     let Some(imu_path) = common::data_file("imu/euroc_V1_01_easy/imu0.csv") else {
         return;
     };
-    let python = match common::python_venv("gtsam", &[vec!["gtsam".into()]]) {
-        Ok(p) => p,
-        Err(reason) => {
-            common::skip_or_fail::<()>(&format!("no GTSAM Python environment: {reason}"));
-            return;
-        }
+    let Some(python) = common::gtsam_python() else {
+        return;
     };
     let noise = ImuNoise::EUROC;
     let (bias_acc, bias_gyro) = (

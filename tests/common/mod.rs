@@ -249,6 +249,15 @@ pub fn skip_or_fail<T>(reason: &str) -> Option<T> {
     None
 }
 
+/// The python of the GTSAM venv (`pip install gtsam`), or `None` (skipped; a failure under CI).
+#[allow(dead_code)]
+pub fn gtsam_python() -> Option<PathBuf> {
+    match python_venv("gtsam", &[vec!["gtsam".into()]]) {
+        Ok(python) => Some(python),
+        Err(reason) => skip_or_fail(&format!("no GTSAM Python environment: {reason}")),
+    }
+}
+
 /// The python of the venv `~/.cache/factord/venvs/<name>`, created if missing, after
 /// `pip install <args>` of each entry of `installs` (PyPI must be reachable the first time).
 #[allow(dead_code)]
