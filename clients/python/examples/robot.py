@@ -11,9 +11,11 @@ at it (odometry and loop closures). Batches go through a :class:`StreamProducer`
 reconnection or a restart of the service, so each is applied exactly once. The robot listens on
 ``out/acks``, ``out/stats``, ``out/summary`` (and ``out/errors``), prints live statistics
 (acknowledged batches, the session sequence the estimate reflects, solves), waits until every
-batch is acknowledged, asks for a final solve that comes after its batches (``after_seq``) and
-checks that the service holds exactly the factors it sent. Exits non-zero when a batch was
-refused, the server does not answer, or the counts differ.
+batch is acknowledged, asks for a final solve that comes after its batches (``after_seq``),
+reads the estimate back as a numpy array (``estimate_array``: (N, 3) for 2D, (N, 7) for 3D) and
+checks that the service holds exactly the poses and factors it sent; ``--tum FILE`` saves the
+trajectory (the estimate queryable's ``format=tum``). Exits non-zero when a batch was refused,
+the server does not answer, or the counts differ.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 try:
     from factord_client import BatchRefused, FactordError, ZenohClient, g2o, gtsam_text
@@ -151,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="most unacknowledged batches in flight (send blocks beyond)")
     parser.add_argument("--resend-after", type=float, default=2.0,
                         help="seconds without acknowledgement or progress before resending")
+    parser.add_argument("--tum", type=Path, default=None,
+                        help="write the optimised trajectory here (TUM: stamp tx ty tz qx qy qz "
+                             "qw; the stamps are the keys, g2o files have no time)")
     args = parser.parse_args(argv)
 
     data_dir = args.data_dir or default_data_dir()
@@ -173,12 +180,24 @@ def main(argv: list[str] | None = None) -> int:
           f"{len(batches)} poses ({factors_sent} factors) to session `{session}` over "
           f"{args.zenoh}")
     live = Live()
+    sent_keys = np.array(sorted(v["key"] for _, b in batches for v in b.get("variables", [])),
+                         dtype=np.int64)
     try:
         client = ZenohClient(args.zenoh, prefix=args.prefix, mode=args.mode,
                              timeout=args.timeout)
-    except Exception as e:  # noqa: BLE001 - zenoh raises its own error types
+    except FactordError as e:  # zenoh's own errors arrive as FactordConnectionError
         print(f"robot: cannot open zenoh towards {args.zenoh}: {e}", file=sys.stderr)
         return 2
+    producer = None
+    # The client closes zenoh on exit even without `with`; `with` closes it right here.
+    with client:
+        return _stream(args, client, live, graph, batches, session, auto, sent_keys,
+                       factors_sent, path)
+
+
+def _stream(args: argparse.Namespace, client: ZenohClient, live: Live, graph, batches: list,
+            session: str, auto: dict, sent_keys: np.ndarray, factors_sent: int,
+            path: Path) -> int:
     producer = None
     try:
         # Subscribe before the session exists so that no event is missed.
@@ -218,11 +237,21 @@ def main(argv: list[str] | None = None) -> int:
               f"{stats['num_factors']} factors, {stats['solves']} solves, "
               f"{stats['skipped_solves']} skipped, converged {stats['converged']})")
         print(f"final chi2 {stats['chi2']:.9g}")
-        if stats["num_factors"] != factors_sent or stats["num_variables"] != len(batches):
-            print(f"robot: the service holds {stats['num_variables']} poses and "
-                  f"{stats['num_factors']} factors; sent {len(batches)} and {factors_sent}",
+        estimate = client.estimate_array(session)  # the poses; landmarks are kind="point2"
+        held_keys = np.sort(np.concatenate(
+            [estimate.keys] + [client.estimate_array(session, kind=k).keys
+                               for k in estimate.extra_kinds]))
+        last = estimate.poses()[int(estimate.keys[-1])] if len(estimate) else None
+        print(f"robot: estimate {estimate.kind} {estimate.values.shape}, last pose {last}")
+        if stats["num_factors"] != factors_sent or stats["num_variables"] != len(sent_keys) \
+                or not np.array_equal(held_keys, sent_keys):
+            print(f"robot: the service holds {stats['num_variables']} variables and "
+                  f"{stats['num_factors']} factors; sent {len(sent_keys)} and {factors_sent}",
                   file=sys.stderr)
             return 1
+        if args.tum is not None:
+            args.tum.write_text(client.export(session, "tum"))
+            print(f"robot: trajectory written to {args.tum}")
         if args.delete:
             client.delete_session(session)
         return 0
@@ -235,7 +264,6 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if producer is not None:
             producer.close()
-        client.close()
 
 
 if __name__ == "__main__":
