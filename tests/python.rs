@@ -1,8 +1,10 @@
 //! The Python side, run by the one test command: the scripted client (HTTP and zenoh, the robot
-//! example) and the wire-schema check of `proto/` against a live server.
+//! example), the numpy client with auth on, and the wire-schema check of `proto/` against a live
+//! server.
 //!
-//! Both need a virtual environment with the client package, `eclipse-zenoh` and `jsonschema`;
-//! this test creates it once under `~/.cache/factord/venvs/client` (PyPI must be reachable).
+//! They need a virtual environment with the client package (which brings `numpy` and
+//! `eclipse-zenoh`) and `jsonschema`; this test creates it once under
+//! `~/.cache/factord/venvs/client` (PyPI must be reachable).
 //! Without Python or PyPI it skips with the reason, except under `CI=true`, where it fails.
 
 mod common;
@@ -96,6 +98,28 @@ fn python_client_recovers() {
         &python,
         &[
             "clients/python/tests/test_recovery.py",
+            "--factord",
+            env!("CARGO_BIN_EXE_factord"),
+            "--data-dir",
+            data.to_str().expect("utf-8 path"),
+        ],
+    );
+}
+
+/// The numpy client (issue 19): poses, noise, batches from arrays and a method per route of
+/// `proto/v1/openapi.json` without a server; then against a factord with tokens that the script
+/// starts itself: the 15-line intel example with and without a token, covariance in and out,
+/// exports with stamps over HTTP and zenoh, one exception family, and a script that forgets
+/// `close()` exiting at once.
+#[test]
+fn python_client_numpy_and_auth() {
+    let Some(python) = python() else { return };
+    run_script(&python, &["clients/python/tests/test_helpers.py"]);
+    let data = data_dir();
+    run_script(
+        &python,
+        &[
+            "clients/python/tests/test_numpy_auth.py",
             "--factord",
             env!("CARGO_BIN_EXE_factord"),
             "--data-dir",
