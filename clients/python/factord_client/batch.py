@@ -17,7 +17,7 @@ import numpy as np
 
 from .geometry import AnyPose, Noise, Pose2, Pose3, information_rows, pose_from_wire
 from .wire import Batch as BatchDict
-from .wire import Estimate, FactorSpec, Marginals, RobustKernel, VariableSpec
+from .wire import Estimate, FactorSpec, GuessSpec, Marginals, RobustKernel, VariableSpec
 
 ArrayLike = Union[Sequence[Any], np.ndarray]
 
@@ -92,7 +92,7 @@ class Batch:
         self.variables: List[VariableSpec] = []
         self.factors: List[FactorSpec] = []
         self.fixed_keys: List[int] = []
-        self.guesses: List[Dict[str, Any]] = []
+        self.guesses: List[GuessSpec] = []
         self.removed_factors: List[int] = []
 
     # ------------------------------------------------------------ variables
@@ -131,15 +131,16 @@ class Batch:
         array = np.asarray(values, dtype=float)
         if array.ndim != 2:
             raise ValueError(f"values must be one row per key, got shape {array.shape}")
-        kind = kind or _pose_kind(array.shape[1])
-        rows = _rows(array, len(key_list), _WIRE_LENGTH.get(kind, array.shape[1]), "values")
+        chosen_kind = kind or _pose_kind(array.shape[1])
+        length = int(_WIRE_LENGTH.get(chosen_kind) or array.shape[1])
+        rows = _rows(array, len(key_list), length, "values")
         stamp_list: List[Optional[float]] = [None] * len(key_list)
         if stamps is not None:
             stamp_list = [float(s) for s in np.asarray(stamps, dtype=float).reshape(-1)]
             if len(stamp_list) != len(key_list):
                 raise ValueError(f"{len(stamp_list)} stamps for {len(key_list)} keys")
         for key, row, stamp in zip(key_list, rows, stamp_list):
-            self.variable(key, kind, row, stamp, fixed)
+            self.variable(key, chosen_kind, row, stamp, fixed)
         return self
 
     # ------------------------------------------------------------ factors
@@ -227,7 +228,7 @@ class Batch:
         if self.fixed_keys:
             batch["fix"] = list(self.fixed_keys)
         if self.guesses:
-            batch["guesses"] = list(self.guesses)  # type: ignore[typeddict-item]
+            batch["guesses"] = list(self.guesses)
         if self.removed_factors:
             batch["remove_factors"] = list(self.removed_factors)
         return batch

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Optional, Tuple, Union
+from typing import Any, Dict, Iterator, List, Optional, Set, Tuple, Union
 
 JsonDict = Dict[str, Any]
 
@@ -103,7 +103,7 @@ class LandmarkGraph:
 
 def parse(text: str, name: str = "<gtsam>") -> LandmarkGraph:
     g = LandmarkGraph()
-    poses = set()
+    poses: Set[int] = set()
     landmarks: Dict[int, None] = {}
     for number, raw in enumerate(text.splitlines(), start=1):
         tokens = raw.split()

@@ -24,7 +24,7 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
+from typing import TYPE_CHECKING, Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -33,6 +33,9 @@ from .batch import (Batch, EstimateArray, as_batch, dumps, estimate_to_array,
                     marginals_to_arrays)
 from .errors import FactordConnectionError, FactordError
 from .geometry import AnyPose
+
+if TYPE_CHECKING:
+    from .producer import HttpProducer
 
 JsonDict = Dict[str, Any]
 BatchLike = Union[Batch, wire.Batch, JsonDict]
