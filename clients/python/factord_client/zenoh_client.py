@@ -200,10 +200,12 @@ class ZenohClient:
             attempt += 1
             started = time.monotonic()
             try:
-                replies = list(self._session.get(selector, **kwargs))
+                # The first answer wins (there is one factord per prefix): no waiting for the
+                # query to end.
+                reply = next(iter(self._session.get(selector, **kwargs)), None)
             except Exception as e:  # noqa: BLE001 - ZError, a session closed meanwhile
                 raise _zenoh_failure(f"query `{selector}`", e) from None
-            for reply in replies:  # the first answer wins (there is one factord per prefix)
+            if reply is not None:
                 ok = reply.ok
                 if ok is not None:
                     return _decode(ok.payload.to_bytes(), selector, text)
