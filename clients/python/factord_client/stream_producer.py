@@ -13,7 +13,7 @@ import time
 from collections import OrderedDict
 from typing import Any, Callable, Dict, List, Optional
 
-from .errors import BatchRefused, FactordError, FactordTimeout
+from .errors import BatchRefused, FactordConnectionError, FactordError, FactordTimeout
 from .producer import check_producer_id, default_producer_id, stamp
 
 JsonDict = Dict[str, Any]
@@ -116,11 +116,15 @@ class StreamProducer:
         self._checked_through = self.accepted_through
         self.last_seq = self.accepted_through
         self._first_seq = self.accepted_through + 1
-        self._publisher = client._session.declare_publisher(
-            f"{client.prefix}/{session}/in/batch",
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        try:
+            self._publisher = client._session.declare_publisher(
+                f"{client.prefix}/{session}/in/batch",
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+        except Exception as e:  # noqa: BLE001 - zenoh.ZError: the client's session is closed
+            raise FactordConnectionError("connection_failed",
+                                         f"zenoh publisher for {session}: {e}") from None
         self._subscribers = [
             client.subscribe(session, "acks", self._on_acks_topic),
             client.subscribe(session, "errors", self._on_errors_topic),
@@ -157,7 +161,11 @@ class StreamProducer:
                 payload = json.dumps(stamp(batch, self.producer, seq)).encode("utf-8")
                 self._unacked[seq] = _Pending(payload, time.monotonic())
                 self.counters["sent"] += 1
-            self._publisher.put(payload)
+            try:
+                self._publisher.put(payload)
+            except Exception as e:  # noqa: BLE001 - zenoh.ZError; the batch stays queued
+                raise FactordConnectionError("connection_failed",
+                                             f"zenoh put of batch {seq}: {e}") from None
         return seq
 
     def wait_acked(self, seq: int, timeout: Optional[float] = None) -> int:

@@ -268,6 +268,8 @@ def run_checks(checks: Checks, server: TokenServer, data_dir: Path) -> None:
         z.close()
         error = expect_raises(FactordError, z.health, "a closed client")
         expect(error.code == "closed", f"closed: {error}")
+        expect_raises(FactordError, lambda: z.producer("x", "p", resume=False),
+                      "a producer on a closed client")
         return "422 with field; refused HTTP; zenoh open, rpc error, no reply, closed client"
 
     def forgotten_close_exits() -> str:
