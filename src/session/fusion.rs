@@ -323,15 +323,11 @@ impl Session {
         });
         if let Engine::Window(engine) = &self.engine {
             let mut smoothed = engine.smoothed.lock().unwrap_or_else(|p| p.into_inner());
-            smoothed.extend(w.departed().iter().map(|(key, t, state)| {
-                let report = StateReport::new(*key, *t, state);
-                SmoothedKeyframe {
-                    key: *key,
-                    t: *t,
-                    position: report.position,
-                    rotation_xyzw: report.rotation_xyzw,
-                }
-            }));
+            smoothed.extend(
+                w.departed()
+                    .iter()
+                    .map(|(k, t, s)| keyframe_pose(*k, *t, s)),
+            );
         }
         Ok(())
     }
@@ -344,34 +340,44 @@ impl Session {
         let Engine::Window(engine) = &self.engine else {
             unreachable!("locked_window refuses graph sessions")
         };
-        let pose = |key: Key, t: f64, position: [f64; 3], q: [f64; 4]| VariableValue {
-            key,
-            kind: "se3".into(),
-            value: vec![
-                position[0],
-                position[1],
-                position[2],
-                q[0],
-                q[1],
-                q[2],
-                q[3],
-            ],
-            changed: 0,
-            stamp: Some(t),
-        };
         let mut out: Vec<VariableValue> = engine
             .smoothed
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .iter()
-            .map(|k| pose(k.key, k.t, k.position, k.rotation_xyzw))
+            .map(SmoothedKeyframe::as_variable)
             .collect();
         if let Some(w) = window.as_ref() {
-            out.extend(w.window().iter().map(|(key, t, state)| {
-                let report = StateReport::new(*key, *t, state);
-                pose(*key, *t, report.position, report.rotation_xyzw)
-            }));
+            out.extend(
+                w.window()
+                    .iter()
+                    .map(|(k, t, s)| keyframe_pose(*k, *t, s).as_variable()),
+            );
         }
         Ok(out)
+    }
+}
+
+fn keyframe_pose(key: Key, t: f64, state: &NavState) -> SmoothedKeyframe {
+    let q = state.rotation.quaternion();
+    SmoothedKeyframe {
+        key,
+        t,
+        position: state.position.into(),
+        rotation_xyzw: [q.i, q.j, q.k, q.w],
+    }
+}
+
+impl SmoothedKeyframe {
+    /// As an `se3` variable stamped with its time (what trajectory exports read).
+    fn as_variable(&self) -> VariableValue {
+        let ([x, y, z], [qx, qy, qz, qw]) = (self.position, self.rotation_xyzw);
+        VariableValue {
+            key: self.key,
+            kind: "se3".into(),
+            value: vec![x, y, z, qx, qy, qz, qw],
+            changed: 0,
+            stamp: Some(self.t),
+        }
     }
 }
