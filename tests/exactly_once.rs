@@ -291,12 +291,17 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
     bad["factors"][last]["measurement"] = json!([1.0, 2.0]);
     bad["variables"] = json!([]);
     let bad = with_producer(bad, "bad", 1);
+    // A batch that is not a batch (a field this server does not know): refused at decoding,
+    // still reported with its numbering, so its producer learns of it instead of waiting.
+    let mut undecodable = with_producer(json!({"variables": [], "factors": []}), "typo", 1);
+    undecodable["factorz"] = json!([]);
 
     for (k, chunk) in chunks.iter().enumerate() {
         let body = with_producer(chunk.clone(), "p", k as u64 + 1).to_string();
         publisher.put(body).await.unwrap();
         if k == chunks.len() / 2 {
             publisher.put(bad.to_string()).await.unwrap();
+            publisher.put(undecodable.to_string()).await.unwrap();
         }
     }
     z.put("factord/nobody/in/batch", bad.to_string())
@@ -304,9 +309,9 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
         .unwrap();
 
     let mut acked = Vec::new();
-    let (mut refused, mut nobody) = (None, None);
+    let (mut refused, mut nobody, mut typo) = (None, None, None);
     let deadline = Instant::now() + Duration::from_secs(30);
-    while acked.len() < chunks.len() || refused.is_none() || nobody.is_none() {
+    while acked.len() < chunks.len() || refused.is_none() || nobody.is_none() || typo.is_none() {
         let left = deadline.saturating_duration_since(Instant::now());
         let Ok(Some((key, v))) = tokio::time::timeout(left, rx.recv()).await else {
             panic!(
@@ -319,6 +324,7 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
             "factord/ahead/out/acks" if v["producer"] == "p" => {
                 acked.push(v["producer_seq"].as_u64().unwrap())
             }
+            "factord/ahead/out/errors" if v["producer"] == "typo" => typo = Some(v),
             "factord/ahead/out/errors" => refused = Some(v),
             "factord/nobody/out/errors" => nobody = Some(v),
             _ => {}
@@ -336,6 +342,12 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
     );
     let nobody = nobody.unwrap();
     assert_eq!(nobody["error"]["code"], "unknown_session", "{nobody}");
+    let typo = typo.unwrap();
+    assert_eq!(typo["producer_seq"], 1, "{typo}");
+    assert!(
+        typo["error"]["message"].to_string().contains("factorz"),
+        "{typo}"
+    );
 
     let st = stats(&c, &s, "ahead").await;
     let factors: usize = chunks

@@ -14,6 +14,9 @@ use crate::session::Origin;
 pub struct Delivery {
     session: String,
     decoded: Result<Command, ServiceError>,
+    /// The producer numbering of a batch that did not decode, read leniently: its producer
+    /// waits for an ack or a refusal of exactly that number, so the refusal must carry it.
+    undecoded_origin: Option<Origin>,
 }
 
 impl Delivery {
@@ -22,8 +25,28 @@ impl Delivery {
         Self {
             session: session.into(),
             decoded: Err(error),
+            undecoded_origin: None,
         }
     }
+}
+
+/// `producer` and `producer_seq` of a batch payload that is JSON but not a valid batch (an
+/// unknown field, a wrong type elsewhere); `None` when they are missing or invalid themselves.
+fn lenient_origin(payload: &[u8]) -> Option<Origin> {
+    #[derive(serde::Deserialize)]
+    struct Numbering {
+        producer: Option<String>,
+        producer_seq: Option<serde_json::Value>,
+    }
+    let numbering: Numbering = serde_json::from_slice(payload).ok()?;
+    let producer = numbering.producer?;
+    crate::session::check_producer_id(&producer, "producer").ok()?;
+    let seq = match numbering.producer_seq? {
+        serde_json::Value::Number(n) => n.as_u64()?,
+        serde_json::Value::String(s) => s.parse().ok()?,
+        _ => return None,
+    };
+    (seq > 0).then_some(Origin { producer, seq })
 }
 
 impl Service {
@@ -39,9 +62,14 @@ impl Service {
         let decoded = self.session_as(caller, session).and_then(|_| {
             crate::api::command::parse_topic(session, kind, payload, self.limits.max_batch_items)
         });
+        let undecoded_origin = match (&decoded, kind) {
+            (Err(_), "batch") => lenient_origin(payload),
+            _ => None,
+        };
         Delivery {
             session: session.into(),
             decoded,
+            undecoded_origin,
         }
     }
 
@@ -55,7 +83,7 @@ impl Service {
     ) -> Result<(), ServiceError> {
         // Checked again: the session may have gone (or moved) while the message was decoded.
         let target = self.session_as(caller, &delivery.session)?;
-        let mut origin = None;
+        let mut origin = delivery.undecoded_origin;
         let outcome = match delivery.decoded {
             Ok(command) => {
                 if let Command::ApplyBatch { batch, .. } = &command {
