@@ -1,4 +1,4 @@
-//! The `factord solve` command end to end: real files in, real files out.
+//! The `factord` batch commands end to end: real files in, real files out, real pipes.
 
 mod common;
 
@@ -53,7 +53,10 @@ fn solve_writes_summary_json_graph_and_trajectory() {
     // The written graph re-reads with the optimised chi2, and the trajectory has one line a pose.
     let mut reread = factord::io::load(&out, None).unwrap();
     assert!((reread.problem.chi2() - final_chi2).abs() <= 1e-6 * final_chi2);
-    assert_eq!(std::fs::read_to_string(&tum).unwrap().lines().count(), 120);
+    // One line a pose after the header that says the first column is the vertex id.
+    let tum = std::fs::read_to_string(&tum).unwrap();
+    assert!(tum.starts_with("# vertex_id "), "{tum}");
+    assert_eq!(tum.lines().count(), 1 + 120);
     let again = factord::solver::optimize(&mut reread.problem, &Default::default(), &mut |_| {
         std::ops::ControlFlow::Continue(())
     })
@@ -300,4 +303,189 @@ fn progress_shows_on_a_terminal_and_stays_quiet_when_piped() {
         screen.contains("iter   1") && screen.contains("termination:"),
         "{screen}"
     );
+}
+
+fn run_with_stdin(command: &mut Command, stdin: &[u8]) -> std::process::Output {
+    use std::io::Write;
+    let mut child = command
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A command that refuses its arguments exits before reading: a broken pipe is its answer.
+    let _ = child.stdin.take().unwrap().write_all(stdin);
+    child.wait_with_output().unwrap()
+}
+
+/// `-` is standard input and output; with data on stdout the progress lines go to stderr; two
+/// `-` outputs and bad piped input are errors naming the argument or `<stdin>`.
+#[test]
+fn dash_reads_stdin_and_writes_stdout_with_progress_on_stderr() {
+    let text = common::synthetic_manhattan(80, 2);
+    let output = run_with_stdin(
+        factord().args(["solve", "-", "--out", "-"]),
+        text.as_bytes(),
+    );
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr),
+    );
+    assert!(output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("loaded <stdin>") && stderr.contains("iter   1"),
+        "{stderr}"
+    );
+    let graph = factord::io::parse_text(&stdout, "out".as_ref(), None).unwrap();
+    assert_eq!(
+        graph.problem.values.len(),
+        80,
+        "stdout holds only the graph"
+    );
+
+    let output = run_with_stdin(
+        factord().args(["solve", "-", "--out", "-", "--tum", "-"]),
+        text.as_bytes(),
+    );
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--tum") && stderr.contains("already taken by --out"),
+        "{stderr}"
+    );
+
+    let output = run_with_stdin(
+        factord().args(["solve", "-"]),
+        b"VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n",
+    );
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("<stdin>:2:") && !stderr.contains("panicked"),
+        "{stderr}"
+    );
+
+    // The Summary on stdout is the whole of stdout.
+    let output = run_with_stdin(
+        factord().args(["solve", "-", "--summary-json", "-"]),
+        text.as_bytes(),
+    );
+    assert!(output.status.success());
+    let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(json["input"], "<stdin>");
+}
+
+/// `solve --tum` says its first column is the vertex id, or takes stamps from `--stamps`, and
+/// writes every number in shortest round-trip form.
+#[test]
+fn solve_tum_writes_ids_with_a_header_or_stamps_from_a_file() {
+    let dir = common::temp_dir("cli-tum");
+    let input = dir.join("in.g2o");
+    std::fs::write(&input, common::synthetic_manhattan(30, 3)).unwrap();
+    let stamps = dir.join("stamps.txt");
+    let lines: String = (0..30)
+        .map(|i| format!("{i} 1403715273.{:09}\n", 262142944 + i))
+        .collect();
+    std::fs::write(&stamps, lines).unwrap();
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--quiet", "--tum", "-", "--stamps"])
+        .arg(&stamps)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let tum = String::from_utf8(output.stdout).unwrap();
+    let mut rows = tum.lines();
+    assert_eq!(rows.next(), Some("# timestamp tx ty tz qx qy qz qw"));
+    let first: Vec<&str> = rows.next().unwrap().split(' ').collect();
+    assert_eq!(first[0], "1403715273.262142944", "stamps keep every digit");
+    for row in tum.lines().skip(1) {
+        for number in row.split(' ').skip(1) {
+            let value: f64 = number.parse().unwrap();
+            assert_eq!(value.to_string(), number, "not shortest round-trip: {row}");
+        }
+    }
+    // A pose without a stamp is an error naming the stamps file and the vertex.
+    std::fs::write(&stamps, "0 1.5\n").unwrap();
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--quiet", "--tum", "-", "--stamps"])
+        .arg(&stamps)
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("stamps.txt") && stderr.contains("no stamp for vertex 1"),
+        "{stderr}"
+    );
+    // --stamps without --tum is refused by the argument parser.
+    let output = factord()
+        .arg("solve")
+        .arg(&input)
+        .arg("--stamps")
+        .arg(&stamps)
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+}
+
+/// FACTORD_DATA: relative inputs not found here are looked up there, fusion-eval's default
+/// dataset lives there, and a missing one is an error naming the argument and the variable.
+#[test]
+fn factord_data_locates_inputs_and_default_datasets() {
+    let data = common::temp_dir("cli-data-root");
+    std::fs::create_dir_all(data.join("graphs")).unwrap();
+    std::fs::write(
+        data.join("graphs/m.g2o"),
+        common::synthetic_manhattan(40, 1),
+    )
+    .unwrap();
+    let elsewhere = common::temp_dir("cli-data-cwd");
+    let output = factord()
+        .current_dir(&elsewhere)
+        .env("FACTORD_DATA", &data)
+        .args(["solve", "graphs/m.g2o", "--quiet", "--summary-json", "-"])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(json["num_variables"], 40);
+
+    let output = factord()
+        .current_dir(&elsewhere)
+        .env("FACTORD_DATA", &data)
+        .args(["solve", "graphs/missing.g2o"])
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("graph graphs/missing.g2o") && stderr.contains("FACTORD_DATA"),
+        "{stderr}"
+    );
+
+    let output = factord()
+        .env("FACTORD_DATA", &data)
+        .arg("fusion-eval")
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let expected = data.join("imu/euroc_V1_01_easy");
+    assert!(
+        stderr.contains("--data") && stderr.contains(&*expected.to_string_lossy()),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"));
 }

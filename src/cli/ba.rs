@@ -1,22 +1,24 @@
 //! `factord ba`: bundle adjustment of a BAL problem, optionally normalised and perturbed as in the
 //! course, with the cost in BAL's ½Σ‖r‖² convention.
 
-use std::path::PathBuf;
 use std::time::Instant;
 
 use factord::factors::RobustKernel;
 use factord::io;
 use factord::solver::{LinearSolverChoice, Method, SolverOptions};
 
+use super::ceres_style;
 use super::progress::Progress;
-use super::solve_output::{optimize_verbose, write_summary_json};
+use super::solve_output::{optimize_verbose, write_summary_json, IterationLines};
+use super::stdio::{one_stdout, Console, InputArg, OutputArg};
 use super::value_parsers::{parse_linear_solver, parse_method, parse_robust};
 use super::CliError;
 
 #[derive(clap::Args)]
 pub struct BaArgs {
-    /// BAL problem file.
-    problem: PathBuf,
+    /// BAL problem file; `-` reads standard input. A relative path not found here is looked up
+    /// under $FACTORD_DATA.
+    problem: InputArg,
     /// gn | lm | dogleg
     #[arg(long, default_value = "lm", value_parser = parse_method)]
     method: Method,
@@ -40,17 +42,19 @@ pub struct BaArgs {
     /// Seed of the perturbation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Write the Summary (plus initial_cost and final_cost in BAL's ½Σ‖r‖²) as JSON.
+    /// Write the Summary (plus initial_cost and final_cost in BAL's ½Σ‖r‖²) as JSON; `-` for
+    /// standard output.
     #[arg(long)]
-    summary_json: Option<PathBuf>,
-    /// Point clouds (points and camera centres) before and after, as PLY.
+    summary_json: Option<OutputArg>,
+    /// Point clouds (points and camera centres) before and after, as PLY; `-` for standard
+    /// output.
     #[arg(long)]
-    ply_initial: Option<PathBuf>,
+    ply_initial: Option<OutputArg>,
     #[arg(long)]
-    ply_final: Option<PathBuf>,
-    /// Write the optimised problem in BAL format.
+    ply_final: Option<OutputArg>,
+    /// Write the optimised problem in BAL format; `-` for standard output.
     #[arg(long)]
-    out: Option<PathBuf>,
+    out: Option<OutputArg>,
     #[arg(long)]
     quiet: bool,
 }
@@ -68,9 +72,26 @@ fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
 }
 
 pub fn run(args: BaArgs) -> Result<(), CliError> {
+    let outputs = [
+        ("--summary-json", args.summary_json.as_ref()),
+        ("--ply-initial", args.ply_initial.as_ref()),
+        ("--ply-final", args.ply_final.as_ref()),
+        ("--out", args.out.as_ref()),
+    ];
+    one_stdout(&outputs)?;
+    let console = Console::new(
+        outputs
+            .iter()
+            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
+        args.quiet,
+    );
     let start = Instant::now();
-    let loading = Progress::loading(&args.problem, args.quiet);
-    let bal = io::bal::load(&args.problem);
+    let name = args.problem.name();
+    let loading = Progress::loading(&name, args.quiet);
+    let bal = args
+        .problem
+        .read_to_string("problem")
+        .and_then(|text| Ok(io::bal::parse(&name, &text)?));
     loading.finish();
     let mut bal = bal?;
     let load_seconds = start.elapsed().as_secs_f64();
@@ -83,19 +104,18 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
     if args.robust.is_some() {
         bal.problem.set_robust_kernel(args.robust);
     }
-    if let Some(path) = &args.ply_initial {
-        io::ply::write(path, &bal.points(), &bal.camera_centres())?;
+    if let Some(target) = &args.ply_initial {
+        let ply = io::ply::to_string(&bal.points(), &bal.camera_centres());
+        target.write("--ply-initial", ply.as_bytes())?;
     }
     let initial_cost = bal.cost();
-    if !args.quiet {
-        println!(
-            "loaded {} ({} cameras, {} points, {} observations) in {load_seconds:.3}s; initial cost {initial_cost:.6e}",
-            args.problem.display(),
-            bal.num_cameras,
-            bal.num_points,
-            bal.problem.factors().len()
-        );
-    }
+    console.print(&format!(
+        "loaded {} ({} cameras, {} points, {} observations) in {load_seconds:.3}s\n",
+        name.display(),
+        bal.num_cameras,
+        bal.num_points,
+        bal.problem.factors().len()
+    ));
     let options = SolverOptions {
         method: args.method,
         max_iterations: args.max_iterations,
@@ -103,30 +123,30 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
         linear_solver: args.linear_solver,
         ..SolverOptions::bundle_adjustment()
     };
-    let quiet = args.quiet;
-    let summary = optimize_verbose(&mut bal.problem, &options, quiet)?;
+    let lines = IterationLines::Ceres {
+        initial_chi2: 2.0 * initial_cost,
+    };
+    let summary = optimize_verbose(&mut bal.problem, &options, console, lines)?;
     let final_cost = bal.cost();
-    if !quiet {
-        print!("{}", summary.report());
-        println!("cost (½Σ‖r‖²): {initial_cost:.6e} -> {final_cost:.6e}");
-    }
-    if let Some(path) = &args.summary_json {
+    console.print(&ceres_style::summary_report(&summary));
+    if let Some(target) = &args.summary_json {
         write_summary_json(
-            path,
+            target,
             &summary,
             vec![
-                ("input", args.problem.display().to_string().into()),
+                ("input", name.display().to_string().into()),
                 ("load_seconds", load_seconds.into()),
                 ("initial_cost", initial_cost.into()),
                 ("final_cost", final_cost.into()),
             ],
         )?;
     }
-    if let Some(path) = &args.ply_final {
-        io::ply::write(path, &bal.points(), &bal.camera_centres())?;
+    if let Some(target) = &args.ply_final {
+        let ply = io::ply::to_string(&bal.points(), &bal.camera_centres());
+        target.write("--ply-final", ply.as_bytes())?;
     }
-    if let Some(path) = &args.out {
-        io::bal::write(&bal, path)?;
+    if let Some(target) = &args.out {
+        target.write("--out", io::bal::to_string(&bal).as_bytes())?;
     }
     Ok(())
 }

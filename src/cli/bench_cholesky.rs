@@ -5,13 +5,16 @@ use std::path::PathBuf;
 
 use factord::solver::cholesky_bench;
 
+use super::stdio::{one_stdin, InputArg};
 use super::CliError;
 
 #[derive(clap::Args)]
 pub struct BenchCholeskyArgs {
-    graph: PathBuf,
+    /// Graph file; `-` reads standard input. A relative path not found here is looked up under
+    /// $FACTORD_DATA.
+    graph: InputArg,
     #[arg(long)]
-    edges: Option<PathBuf>,
+    edges: Option<InputArg>,
     #[arg(long, default_value_t = 50)]
     repeat: usize,
     /// Matrix Market output of H (lower triangle, symmetric).
@@ -20,8 +23,21 @@ pub struct BenchCholeskyArgs {
 }
 
 pub fn run(args: BenchCholeskyArgs) -> Result<(), CliError> {
-    let mut graph = factord::io::load(&args.graph, args.edges.as_deref())
-        .map_err(|e| CliError::Reported(e.to_string()))?;
+    one_stdin(&[
+        ("graph", Some(&args.graph)),
+        ("--edges", args.edges.as_ref()),
+    ])?;
+    let text = args.graph.read_to_string("graph")?;
+    let edges = match &args.edges {
+        Some(input) => Some((input.name(), input.read_to_string("--edges")?)),
+        None => None,
+    };
+    let mut graph = factord::io::parse_pair(
+        (&args.graph.name(), &text),
+        edges
+            .as_ref()
+            .map(|(name, text)| (name.as_path(), text.as_str())),
+    )?;
     let report = cholesky_bench::run(&mut graph.problem, args.repeat, args.write_mtx.as_deref())
         .map_err(|e| CliError::Reported(e.to_string()))?;
     println!("{report}");

@@ -9,14 +9,17 @@ use factord::geometry::image::Pinhole;
 use factord::io;
 use factord::solver::SolverOptions;
 
+use super::data_dir;
 use super::progress::Progress;
-use super::solve_output::{optimize_verbose, write_summary_json};
+use super::solve_output::{optimize_verbose, write_summary_json, IterationLines};
+use super::stdio::{one_stdout, Console, OutputArg};
 use super::value_parsers::parse_robust;
 use super::CliError;
 
 #[derive(clap::Args)]
 pub struct DirectBaArgs {
-    /// Directory with poses.txt, points.txt and 0.png, 1.png, …
+    /// Directory with poses.txt, points.txt and 0.png, 1.png, … (a relative path not found here
+    /// is looked up under $FACTORD_DATA)
     dir: PathBuf,
     /// Pinhole intrinsics fx,fy,cx,cy [default: the course's 277.34,291.402,312.234,239.777]
     #[arg(long, value_parser = parse_intrinsics)]
@@ -28,14 +31,15 @@ pub struct DirectBaArgs {
     max_iterations: usize,
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// Write the Summary plus the per-image patch agreement before and after as JSON.
+    /// Write the Summary plus the per-image patch agreement before and after as JSON; `-` for
+    /// standard output.
     #[arg(long)]
-    summary_json: Option<PathBuf>,
-    /// Points and camera trajectory before and after, as PLY.
+    summary_json: Option<OutputArg>,
+    /// Points and camera trajectory before and after, as PLY; `-` for standard output.
     #[arg(long)]
-    ply_initial: Option<PathBuf>,
+    ply_initial: Option<OutputArg>,
     #[arg(long)]
-    ply_final: Option<PathBuf>,
+    ply_final: Option<OutputArg>,
     #[arg(long)]
     quiet: bool,
 }
@@ -68,45 +72,61 @@ fn parse_optional_robust(s: &str) -> Result<OptionalRobust, String> {
 }
 
 pub fn run(args: DirectBaArgs) -> Result<(), CliError> {
+    let outputs = [
+        ("--summary-json", args.summary_json.as_ref()),
+        ("--ply-initial", args.ply_initial.as_ref()),
+        ("--ply-final", args.ply_final.as_ref()),
+    ];
+    one_stdout(&outputs)?;
+    let console = Console::new(
+        outputs
+            .iter()
+            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
+        args.quiet,
+    );
+    let dir = data_dir::existing_dir("dir", &args.dir)?;
     let start = Instant::now();
     let camera = args.intrinsics.unwrap_or(io::direct_ba::COURSE_CAMERA);
-    let loading = Progress::loading(&args.dir, args.quiet);
-    let problem = io::direct_ba::load(&args.dir, camera, args.robust.0);
+    let loading = Progress::loading(&dir, args.quiet);
+    let problem = io::direct_ba::load(&dir, camera, args.robust.0);
     loading.finish();
     let mut problem = problem?;
     let load_seconds = start.elapsed().as_secs_f64();
     let before = problem.agreement();
-    if let Some(path) = &args.ply_initial {
-        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())?;
+    if let Some(target) = &args.ply_initial {
+        let ply = io::ply::trajectory_to_string(&problem.points(), &problem.camera_centres());
+        target.write("--ply-initial", ply.as_bytes())?;
     }
-    let quiet = args.quiet;
-    if !quiet {
-        println!(
-            "loaded {} ({} images, {} points, {} point-image factors, {} points seen by no image) in {load_seconds:.3}s",
-            args.dir.display(),
+    console.print(&format!(
+            "loaded {} ({} images, {} points, {} point-image factors, {} points seen by no image) in {load_seconds:.3}s\n",
+            dir.display(),
             problem.num_poses(),
             problem.num_points(),
             problem.problem.factors().len(),
             problem.unseen_points,
-        );
-    }
+        ));
     let options = SolverOptions {
         max_iterations: args.max_iterations,
         function_tolerance: args.function_tolerance,
         ..SolverOptions::bundle_adjustment()
     };
-    let summary = optimize_verbose(&mut problem.problem, &options, quiet)?;
+    let summary = optimize_verbose(
+        &mut problem.problem,
+        &options,
+        console,
+        IterationLines::Chi2,
+    )?;
     let after = problem.agreement();
-    if !quiet {
-        print!("{}", summary.report());
-        println!(
-            "cost (Σρ(‖r‖²), gray levels²): {:.6e} -> {:.6e}, {} accepted steps",
+    {
+        let mut report = summary.report();
+        report += &format!(
+            "cost (Σρ(‖r‖²), gray levels²): {:.6e} -> {:.6e}, {} accepted steps\n",
             summary.initial_chi2, summary.final_chi2, summary.successful_steps
         );
-        println!("mean |patch − image| per image (gray levels), before -> after:");
+        report += "mean |patch − image| per image (gray levels), before -> after:\n";
         for (b, a) in before.iter().zip(&after) {
-            println!(
-                "  image {}: {:.2} ({} points) -> {:.2} ({} points)",
+            report += &format!(
+                "  image {}: {:.2} ({} points) -> {:.2} ({} points)\n",
                 b.image,
                 b.mean_abs_patch_difference,
                 b.points_visible,
@@ -114,21 +134,23 @@ pub fn run(args: DirectBaArgs) -> Result<(), CliError> {
                 a.points_visible
             );
         }
+        console.print(&report);
     }
-    if let Some(path) = &args.summary_json {
+    if let Some(target) = &args.summary_json {
         write_summary_json(
-            path,
+            target,
             &summary,
             vec![
-                ("input", args.dir.display().to_string().into()),
+                ("input", dir.display().to_string().into()),
                 ("load_seconds", load_seconds.into()),
                 ("agreement_before", serde_json::to_value(&before)?),
                 ("agreement_after", serde_json::to_value(&after)?),
             ],
         )?;
     }
-    if let Some(path) = &args.ply_final {
-        io::ply::write_trajectory(path, &problem.points(), &problem.camera_centres())?;
+    if let Some(target) = &args.ply_final {
+        let ply = io::ply::trajectory_to_string(&problem.points(), &problem.camera_centres());
+        target.write("--ply-final", ply.as_bytes())?;
     }
     Ok(())
 }

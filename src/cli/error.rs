@@ -17,12 +17,24 @@ pub enum CliError {
     Fusion(#[from] FusionError),
     #[error(transparent)]
     Serve(#[from] ServeError),
-    /// Reading or writing a file the command handles itself (not through `factord::io`).
-    #[error("{}: {source}", path.display())]
-    File {
+    /// Reading an input argument (a file or `-`); `hint` says where else it was looked for.
+    #[error("{argument} {}: cannot read: {source}{hint}", path.display())]
+    Read {
+        argument: String,
+        path: PathBuf,
+        source: std::io::Error,
+        hint: String,
+    },
+    /// Writing an output argument (a file or `-`).
+    #[error("{argument} {}: cannot write: {source}", path.display())]
+    Write {
+        argument: String,
         path: PathBuf,
         source: std::io::Error,
     },
+    /// An argument clap accepted that does not fit with the others or the data.
+    #[error("{argument}: {reason}")]
+    Argument { argument: String, reason: String },
     /// A JSON file the command reads that does not hold what it should.
     #[error("{}: {source}", path.display())]
     FileContents {
@@ -42,11 +54,4 @@ pub enum CliError {
     /// zenoh stream, the Cholesky benchmark).
     #[error("{0}")]
     Reported(String),
-}
-
-impl CliError {
-    pub fn file(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Self {
-        let path = path.into();
-        move |source| Self::File { path, source }
-    }
 }

@@ -7,19 +7,26 @@ use factord::fusion::experiment::{self, Generation};
 use factord::io;
 use factord::transport::fusion_client::{self, AfterRun};
 
+use super::data_dir;
+use super::stdio::{one_stdout, InputArg, OutputArg};
 use super::CliError;
+
+/// The default dataset, under the data directory (`FACTORD_DATA`).
+const DEFAULT_SEQUENCE: &str = "imu/euroc_V1_01_easy";
 
 #[derive(clap::Args)]
 pub struct FusionEvalArgs {
-    /// EuRoC directory with imu0.csv and the ground truth
-    #[arg(long, default_value = "../shared/data/imu/euroc_V1_01_easy")]
-    data: PathBuf,
+    /// EuRoC directory with imu0.csv and the ground truth [default:
+    /// $FACTORD_DATA/imu/euroc_V1_01_easy, FACTORD_DATA defaulting to ../shared/data]
+    #[arg(long)]
+    data: Option<PathBuf>,
     /// Ground-truth file in that directory (TUM format)
     #[arg(long, default_value = "groundtruth_20hz_tum.txt")]
     truth: String,
-    /// Run on these inputs (as written by --inputs-out) instead of making new ones
+    /// Run on these inputs (as written by --inputs-out) instead of making new ones; `-` reads
+    /// standard input
     #[arg(long)]
-    inputs: Option<PathBuf>,
+    inputs: Option<InputArg>,
     /// Keyframes in the window
     #[arg(long, default_value_t = 10)]
     window: usize,
@@ -37,17 +44,18 @@ pub struct FusionEvalArgs {
     /// Leave out the lidar relative poses
     #[arg(long)]
     no_relative: bool,
-    /// Write the inputs (for GTSAM: benches/fusion/gtsam_fixed_lag.py)
+    /// Write the inputs (for GTSAM: benches/fusion/gtsam_fixed_lag.py); `-` for standard output
     #[arg(long)]
-    inputs_out: Option<PathBuf>,
-    /// Write the estimated trajectory (newest state after each keyframe) in TUM format
+    inputs_out: Option<OutputArg>,
+    /// Write the estimated trajectory (newest state after each keyframe) in TUM format; `-` for
+    /// standard output
     #[arg(long)]
-    tum_out: Option<PathBuf>,
+    tum_out: Option<OutputArg>,
     /// Write the lag-smoothed trajectory (each keyframe as it left the window) in TUM format
-    /// (in process only)
+    /// (in process only); `-` for standard output
     #[arg(long)]
-    tum_smoothed_out: Option<PathBuf>,
-    /// Print the result as JSON
+    tum_smoothed_out: Option<OutputArg>,
+    /// Print the result as one line of JSON on standard output, instead of the text report
     #[arg(long)]
     json: bool,
     /// Stream the inputs to a running `factord serve` over zenoh (this endpoint, e.g.
@@ -63,16 +71,38 @@ pub struct FusionEvalArgs {
 }
 
 pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
+    // `--json` takes standard output for the result, as a `-` output would for its data.
+    let json_target = OutputArg::Stdout;
+    let outputs = [
+        ("--json", args.json.then_some(&json_target)),
+        ("--inputs-out", args.inputs_out.as_ref()),
+        ("--tum-out", args.tum_out.as_ref()),
+        ("--tum-smoothed-out", args.tum_smoothed_out.as_ref()),
+    ];
+    one_stdout(&outputs)?;
+    let data_on_stdout = outputs
+        .iter()
+        .any(|(_, o)| o.is_some_and(OutputArg::is_stdout));
+    if args.tum_smoothed_out.is_some() && args.zenoh.is_some() {
+        return Err(CliError::Argument {
+            argument: "--tum-smoothed-out".into(),
+            reason: "the lag-smoothed trajectory is only known in process, not with --zenoh".into(),
+        });
+    }
     let inputs = match &args.inputs {
-        Some(path) => {
-            let text = std::fs::read_to_string(path).map_err(CliError::file(path))?;
+        Some(input) => {
+            let text = input.read_to_string("--inputs")?;
             serde_json::from_str(&text).map_err(|source| CliError::FileContents {
-                path: path.clone(),
+                path: input.name(),
                 source,
             })?
         }
         None => {
-            let data = io::euroc::load(&args.data, &args.truth)?;
+            let dir = match &args.data {
+                Some(dir) => data_dir::existing_dir("--data", dir)?,
+                None => data_dir::existing_dir("--data", &data_dir::root().join(DEFAULT_SEQUENCE))?,
+            };
+            let data = io::euroc::load(&dir, &args.truth)?;
             let generation = Generation {
                 seconds: args.seconds,
                 prior_every: if args.no_priors { 0 } else { 10 },
@@ -85,9 +115,9 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
             experiment::generate(&data, &generation).map_err(CliError::Reported)?
         }
     };
-    if let Some(path) = &args.inputs_out {
+    if let Some(target) = &args.inputs_out {
         let text = serde_json::to_string(&inputs)?;
-        std::fs::write(path, text).map_err(CliError::file(path))?;
+        target.write("--inputs-out", text.as_bytes())?;
     }
     // In process, also the lag-smoothed trajectory (each keyframe as it left the window).
     let (estimates, smoothed) = match &args.zenoh {
@@ -127,11 +157,12 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
         .iter()
         .map(|e| e.latency_seconds.map(|s| s * 1e3))
         .collect();
-    if let (Some(path), Some(smoothed)) = (&args.tum_smoothed_out, &smoothed) {
-        std::fs::write(path, experiment::tum(&inputs, smoothed)).map_err(CliError::file(path))?;
+    if let (Some(target), Some(smoothed)) = (&args.tum_smoothed_out, &smoothed) {
+        let text = experiment::tum(&inputs, smoothed);
+        target.write("--tum-smoothed-out", text.as_bytes())?;
     }
-    if let Some(path) = &args.tum_out {
-        std::fs::write(path, experiment::tum(&inputs, &estimates)).map_err(CliError::file(path))?;
+    if let Some(target) = &args.tum_out {
+        target.write("--tum-out", experiment::tum(&inputs, &estimates).as_bytes())?;
     }
     let result = serde_json::json!({
         "generation": inputs.generation,
@@ -154,8 +185,74 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
     });
     if args.json {
         println!("{result}");
+    } else if data_on_stdout {
+        eprint!("{}", text_report(&result));
     } else {
-        println!("{}", serde_json::to_string_pretty(&result)?);
+        print!("{}", text_report(&result));
     }
     Ok(())
+}
+
+/// The result for a person: one line per figure, APE as evo prints its statistics.
+fn text_report(result: &serde_json::Value) -> String {
+    let number = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    let statistics = |v: &serde_json::Value| {
+        format!(
+            "rmse {:.4}  mean {:.4}  median {:.4}  std {:.4}  min {:.4}  max {:.4}",
+            number(&v["rmse"]),
+            number(&v["mean"]),
+            number(&v["median"]),
+            number(&v["std"]),
+            number(&v["min"]),
+            number(&v["max"])
+        )
+    };
+    let percentiles = |v: &serde_json::Value| {
+        format!(
+            "p50 {:.3}  p90 {:.3}  p99 {:.3}  max {:.3}",
+            number(&v["p50"]),
+            number(&v["p90"]),
+            number(&v["p99"]),
+            number(&v["max"])
+        )
+    };
+    let mut out =
+        format!(
+        "fusion-eval ({}): {} keyframes, window {}, IMU {}, {} relative poses, {} pose priors\n",
+        result["through"].as_str().unwrap_or("?"),
+        result["keyframes"],
+        result["window"],
+        if result["use_imu"] == true { "on" } else { "off" },
+        result["relative_poses"],
+        result["pose_priors"],
+    );
+    out += &format!(
+        "APE translation (m)      {}\n",
+        statistics(&result["ape_trans"])
+    );
+    out += &format!(
+        "APE full (unit-less)     {}\n",
+        statistics(&result["ape_full"])
+    );
+    if !result["ape_smoothed_trans"].is_null() {
+        out += &format!(
+            "lag-smoothed APE trans.  {}\n",
+            statistics(&result["ape_smoothed_trans"])
+        );
+    }
+    out += &format!(
+        "update (ms)              {}\n",
+        percentiles(&result["update_ms"])
+    );
+    if !result["latency_ms"].is_null() {
+        out += &format!(
+            "latency (ms)             {}\n",
+            percentiles(&result["latency_ms"])
+        );
+    }
+    out += &format!(
+        "Gauss-Newton steps per keyframe (mean) {:.2}\n",
+        number(&result["iterations_mean"])
+    );
+    out
 }

@@ -1,20 +1,26 @@
 //! The `factord` command line: the top layer, which may use every library module below it.
 //!
 //! One file per subcommand (its flags and what it runs); `solve_output` holds what the batch
-//! solvers print and write about a solve, `value_parsers` the flag syntaxes they share, `error`
-//! the one error type every subcommand returns, `logging` the server's log setup.
+//! solvers print and write about a solve (`ceres_style` the rows `ba` prints), `value_parsers`
+//! the flag syntaxes they share, `stdio` the file arguments where `-` is standard input or output,
+//! `data_dir` where datasets are found (`FACTORD_DATA`), `plot` SVG or PNG plots, `error` the one
+//! error type every subcommand returns, `logging` the server's log setup.
 
 mod ba;
 mod bench_cholesky;
+mod ceres_style;
+mod data_dir;
 mod direct_ba;
 mod error;
 mod fusion_eval;
 mod health;
 mod logging;
+mod plot;
 mod progress;
 mod serve;
 mod solve;
 mod solve_output;
+mod stdio;
 mod value_parsers;
 
 use std::process::ExitCode;

@@ -1,24 +1,26 @@
 //! `factord solve`: optimise a pose graph file and write the result, its Summary and plots.
 
-use std::path::PathBuf;
 use std::time::Instant;
 
 use factord::factors::RobustKernel;
 use factord::io::{self, Dimension};
 use factord::solver::{self, Initialization, Method, SolverOptions};
 
+use super::plot::{self, PlotFormat};
 use super::progress::Progress;
-use super::solve_output::{print_iteration, write_summary_json};
+use super::solve_output::{chi2_line, write_summary_json};
+use super::stdio::{one_stdin, one_stdout, Console, InputArg, OutputArg};
 use super::value_parsers::{parse_init, parse_method, parse_robust};
 use super::CliError;
 
 #[derive(clap::Args)]
 pub struct SolveArgs {
-    /// Graph file (g2o or TORO), or the vertices file of a pair.
-    graph: PathBuf,
+    /// Graph file (g2o or TORO), or the vertices file of a pair; `-` reads standard input. A
+    /// relative path not found here is looked up under $FACTORD_DATA.
+    graph: InputArg,
     /// Edges file, when vertices and edges are in two files (course `-v.dat` / `-e.dat`).
     #[arg(long)]
-    edges: Option<PathBuf>,
+    edges: Option<InputArg>,
     /// gn | lm | dogleg
     #[arg(long, default_value = "gn", value_parser = parse_method)]
     method: Method,
@@ -32,19 +34,26 @@ pub struct SolveArgs {
     robust: Option<RobustKernel>,
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// Write the optimised graph (g2o format).
+    /// Write the optimised graph (g2o format); `-` for standard output.
     #[arg(long)]
-    out: Option<PathBuf>,
-    /// Write the optimised trajectory in TUM format.
+    out: Option<OutputArg>,
+    /// Write the optimised trajectory in TUM format; `-` for standard output. The first column
+    /// is the vertex id (a header line says so) unless --stamps gives times.
     #[arg(long)]
-    tum: Option<PathBuf>,
-    /// Write the Summary as JSON.
+    tum: Option<OutputArg>,
+    /// Timestamps for --tum: a file of `id stamp` lines, one per pose.
+    #[arg(long, requires = "tum")]
+    stamps: Option<InputArg>,
+    /// Write the Summary as JSON; `-` for standard output.
     #[arg(long)]
-    summary_json: Option<PathBuf>,
-    /// Draw the initial guess, the optimum, its loop closures and the convergence plot as SVG
-    /// (3D graphs from above).
+    summary_json: Option<OutputArg>,
+    /// Draw the initial guess, the optimum, its loop closures and the convergence plot, with
+    /// axes (3D graphs from above and from the side); `-` for standard output.
     #[arg(long)]
-    plot: Option<PathBuf>,
+    plot: Option<OutputArg>,
+    /// svg | png [default: png for a path ending in .png, else svg]
+    #[arg(long, value_enum, requires = "plot")]
+    plot_format: Option<PlotFormat>,
     /// Solve this many times from the same initial values (as the reference benchmarks do, in
     /// one process); the Summary's `solve_seconds` is then the median, all runs are in
     /// `solve_seconds_runs`.
@@ -56,11 +65,37 @@ pub struct SolveArgs {
 }
 
 pub fn run(args: SolveArgs) -> Result<(), CliError> {
+    one_stdin(&[
+        ("graph", Some(&args.graph)),
+        ("--edges", args.edges.as_ref()),
+        ("--stamps", args.stamps.as_ref()),
+    ])?;
+    let outputs = [
+        ("--out", args.out.as_ref()),
+        ("--tum", args.tum.as_ref()),
+        ("--summary-json", args.summary_json.as_ref()),
+        ("--plot", args.plot.as_ref()),
+    ];
+    one_stdout(&outputs)?;
+    let console = Console::new(
+        outputs
+            .iter()
+            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
+        args.quiet,
+    );
     let load_start = Instant::now();
-    let loading = Progress::loading(&args.graph, args.quiet);
-    let graph = io::load(&args.graph, args.edges.as_deref());
+    let name = args.graph.name();
+    let loading = Progress::loading(&name, args.quiet);
+    let graph = load(&args);
     loading.finish();
     let mut graph = graph?;
+    let stamps = match &args.stamps {
+        Some(input) => Some(io::tum::parse_stamps(
+            &input.name(),
+            &input.read_to_string("--stamps")?,
+        )?),
+        None => None,
+    };
     let load_seconds = load_start.elapsed().as_secs_f64();
     if args.robust.is_some() {
         graph.problem.set_robust_kernel(args.robust);
@@ -72,27 +107,24 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         function_tolerance: args.function_tolerance,
         ..SolverOptions::default()
     };
-    if !args.quiet {
-        println!(
-            "loaded {} ({} variables, {} factors) in {:.3}s",
-            args.graph.display(),
-            graph.problem.values.len(),
-            graph.problem.factors().len(),
-            load_seconds
-        );
-    }
-    let quiet = args.quiet;
+    console.print(&format!(
+        "loaded {} ({} variables, {} factors) in {:.3}s\n",
+        name.display(),
+        graph.problem.values.len(),
+        graph.problem.factors().len(),
+        load_seconds
+    ));
     let initial = graph.problem.values.clone();
     let mut runs = Vec::with_capacity(args.repeat as usize);
     let mut summary = None;
     for run in 0..args.repeat {
         graph.problem.values.clone_from(&initial);
         let last = run + 1 == args.repeat;
-        let progress = Progress::solving(options.max_iterations, quiet || !last);
+        let progress = Progress::solving(options.max_iterations, args.quiet || !last);
         let s = solver::optimize(&mut graph.problem, &options, &mut |r| {
             progress.iteration(r);
-            if !quiet && last {
-                progress.suspend(|| print_iteration(r));
+            if last {
+                progress.suspend(|| console.print(&chi2_line(r)));
             }
             std::ops::ControlFlow::Continue(())
         });
@@ -104,12 +136,10 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
     let mut summary = summary.expect("--repeat is at least 1, so there was a run");
     runs.sort_by(f64::total_cmp);
     summary.solve_seconds = runs[runs.len() / 2];
-    if !quiet {
-        print!("{}", summary.report());
-    }
-    if let Some(path) = &args.summary_json {
+    console.print(&summary.report());
+    if let Some(target) = &args.summary_json {
         let mut extra = vec![
-            ("input", args.graph.display().to_string().into()),
+            ("input", name.display().to_string().into()),
             ("load_seconds", load_seconds.into()),
             ("solve_seconds_runs", runs.clone().into()),
         ];
@@ -117,18 +147,24 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
             let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
             extra.push(("final_chi2_g2o", g2o.into()));
         }
-        write_summary_json(path, &summary, extra)?;
+        write_summary_json(target, &summary, extra)?;
     }
-    if let Some(path) = &args.out {
-        io::g2o::write(&graph, path)?;
+    if let Some(target) = &args.out {
+        target.write("--out", io::g2o::to_string(&graph).as_bytes())?;
     }
-    if let Some(path) = &args.tum {
-        io::tum::write(&graph, path)?;
+    if let Some(target) = &args.tum {
+        let text = match (&stamps, &args.stamps) {
+            (Some(stamps), Some(input)) => {
+                io::tum::to_string_with_stamps(&graph, stamps, &input.name())?
+            }
+            _ => io::tum::to_string_with_ids(&graph),
+        };
+        target.write("--tum", text.as_bytes())?;
     }
-    if let Some(path) = &args.plot {
+    if let Some(target) = &args.plot {
         let title = format!(
             "{}: {} variables, {} factors",
-            args.graph.file_name().unwrap_or_default().to_string_lossy(),
+            name.file_name().unwrap_or_default().to_string_lossy(),
             graph.problem.values.len(),
             graph.problem.factors().len()
         );
@@ -139,7 +175,21 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
             &summary,
             &title,
         );
-        io::svg::write(path, &svg)?;
+        plot::write(target, args.plot_format, &svg)?;
     }
     Ok(())
+}
+
+fn load(args: &SolveArgs) -> Result<io::PoseGraph, CliError> {
+    let text = args.graph.read_to_string("graph")?;
+    let edges = match &args.edges {
+        Some(input) => Some((input.name(), input.read_to_string("--edges")?)),
+        None => None,
+    };
+    Ok(io::parse_pair(
+        (&args.graph.name(), &text),
+        edges
+            .as_ref()
+            .map(|(name, text)| (name.as_path(), text.as_str())),
+    )?)
 }

@@ -1,38 +1,53 @@
 //! What the batch solvers (`solve`, `ba`, `direct-ba`) print and write about a solve: one line an
-//! iteration on stdout, and the Summary as JSON with command-specific fields added.
-
-use std::path::Path;
+//! iteration (χ² lines, or Ceres' rows for `ba`), and the Summary as JSON with command-specific
+//! fields added.
 
 use factord::problem::Problem;
 use factord::solver::{self, IterationReport, SolverOptions, Summary};
 
+use super::ceres_style::CeresRows;
 use super::progress::Progress;
+use super::stdio::{Console, OutputArg};
 use super::CliError;
 
-/// Optimises, printing each iteration unless `quiet`.
+/// How iterations are printed.
+pub enum IterationLines {
+    /// χ², relative decrease, damping and phase times (pose-graph users, g2o's χ² convention).
+    Chi2,
+    /// Ceres' rows, starting from a point of this χ² (bundle adjustment users).
+    Ceres { initial_chi2: f64 },
+}
+
+/// Optimises, printing each iteration on `console`.
 pub fn optimize_verbose(
     problem: &mut Problem,
     options: &SolverOptions,
-    quiet: bool,
+    console: Console,
+    lines: IterationLines,
 ) -> Result<Summary, CliError> {
-    let progress = Progress::solving(options.max_iterations, quiet);
+    let progress = Progress::solving(options.max_iterations, console.quiet());
+    let mut ceres = match lines {
+        IterationLines::Ceres { initial_chi2 } => Some(CeresRows::new(options, initial_chi2)),
+        IterationLines::Chi2 => None,
+    };
     let summary = solver::optimize(problem, options, &mut |r| {
         progress.iteration(r);
-        if !quiet {
-            progress.suspend(|| print_iteration(r));
-        }
+        let text = match &mut ceres {
+            Some(rows) => rows.rows(r),
+            None => chi2_line(r),
+        };
+        progress.suspend(|| console.print(&text));
         std::ops::ControlFlow::Continue(())
     });
     progress.finish();
     Ok(summary?)
 }
 
-/// Writes the Summary as JSON with `extra` fields added at its top level.
-pub fn write_summary_json(
-    path: &Path,
+/// The Summary as pretty JSON with `extra` fields added at its top level.
+pub fn summary_json(
     summary: &Summary,
     extra: Vec<(&str, serde_json::Value)>,
-) -> Result<(), CliError> {
+) -> Result<String, CliError> {
     let mut json = serde_json::to_value(summary)?;
     let map = json
         .as_object_mut()
@@ -40,18 +55,26 @@ pub fn write_summary_json(
     for (key, value) in extra {
         map.insert(key.into(), value);
     }
-    let text = serde_json::to_string_pretty(&json)?;
-    std::fs::write(path, text).map_err(CliError::file(path))
+    Ok(serde_json::to_string_pretty(&json)? + "\n")
 }
 
-pub fn print_iteration(r: &IterationReport) {
+/// Writes [`summary_json`] to `--summary-json`.
+pub fn write_summary_json(
+    target: &OutputArg,
+    summary: &Summary,
+    extra: Vec<(&str, serde_json::Value)>,
+) -> Result<(), CliError> {
+    target.write("--summary-json", summary_json(summary, extra)?.as_bytes())
+}
+
+pub fn chi2_line(r: &IterationReport) -> String {
     let damping = match (r.lambda, r.trust_radius) {
         (Some(l), _) => format!("lambda {l:9.3e}"),
         (_, Some(t)) => format!("radius {t:9.3e}"),
         _ => " ".repeat(16),
     };
-    println!(
-        "iter {:3}  chi2 {:14.6e}  rel.decr {:10.3e}  |g|inf {:9.3e}  |dx|inf {:9.3e}  {damping}  {}  lin {:.2}ms fact {:.2}ms solve {:.2}ms",
+    format!(
+        "iter {:3}  chi2 {:14.6e}  rel.decr {:10.3e}  |g|inf {:9.3e}  |dx|inf {:9.3e}  {damping}  {}  lin {:.2}ms fact {:.2}ms solve {:.2}ms\n",
         r.iteration,
         r.chi2,
         r.relative_decrease,
@@ -61,5 +84,5 @@ pub fn print_iteration(r: &IterationReport) {
         r.linearize_seconds * 1e3,
         r.factorize_seconds * 1e3,
         r.solve_seconds * 1e3,
-    );
+    )
 }

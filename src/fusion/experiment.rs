@@ -496,8 +496,9 @@ pub fn tum(inputs: &FusionInputs, estimates: &[Estimate]) -> String {
     for e in estimates {
         let [x, y, z] = e.pose.position;
         let [qx, qy, qz, qw] = e.pose.rotation_xyzw;
+        // Shortest round-trip form: every digit the estimate has, none it does not.
         out.push_str(&format!(
-            "{:.6} {x:.9} {y:.9} {z:.9} {qx:.9} {qy:.9} {qz:.9} {qw:.9}\n",
+            "{} {x} {y} {z} {qx} {qy} {qz} {qw}\n",
             inputs.origin as f64 + e.t
         ));
     }

@@ -189,20 +189,29 @@ fn is_toro(text: &str) -> bool {
 /// an optional separate edges file, as the course's `-v.dat`/`-e.dat` pairs), anything else g2o.
 pub fn load(path: &Path, edges: Option<&Path>) -> Result<PoseGraph, IoError> {
     let text = read_text(path)?;
-    let is_toro = is_toro(&text);
+    let edge_text = edges.map(read_text).transpose()?;
+    parse_pair((path, &text), edges.zip(edge_text.as_deref()))
+}
+
+/// [`load`] for texts already read (a file from standard input, say): `graph` and the optional
+/// separate `edges` are each a name for errors and the text.
+pub fn parse_pair(
+    graph: (&Path, &str),
+    edges: Option<(&Path, &str)>,
+) -> Result<PoseGraph, IoError> {
+    let (path, text) = graph;
     match edges {
-        Some(edges_path) => {
-            let edge_text = read_text(edges_path)?;
-            if is_toro
-                || lines(&edge_text)
+        Some((edges_path, edge_text)) => {
+            if is_toro(text)
+                || lines(edge_text)
                     .next()
                     .is_some_and(|l| l.tokens[0] == "EDGE2")
             {
-                toro::parse(&[(path, &text), (edges_path, &edge_text)])
+                toro::parse(&[(path, text), (edges_path, edge_text)])
             } else {
-                g2o::parse(&[(path, &text), (edges_path, &edge_text)])
+                g2o::parse(&[(path, text), (edges_path, edge_text)])
             }
         }
-        None => parse_text(&text, path, None),
+        None => parse_text(text, path, None),
     }
 }

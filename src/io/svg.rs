@@ -2,8 +2,9 @@
 //! trajectory (initial guess and optimum, loop closures of the optimum) next to the convergence
 //! plot (χ² per iteration on a log scale).
 //!
-//! Positions come from [`Variable::position`]; 3D graphs are drawn from above (x-y). Loop
-//! closures are factors between two drawn variables whose keys are not consecutive.
+//! Positions come from [`Variable::position`]; 3D graphs (any z ≠ 0) are drawn from above (x-y)
+//! and from the side (x-z), each panel with its axes' tick labels in metres. Loop closures are
+//! factors between two drawn variables whose keys are not consecutive.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -14,7 +15,9 @@ use crate::problem::Values;
 use crate::solver::Summary;
 
 const PANEL: f64 = 560.0;
-const MARGIN: f64 = 48.0;
+const MARGIN: f64 = 64.0;
+/// Below the panels: tick labels, axis name, legend.
+const AXIS_ROOM: f64 = 40.0;
 const INITIAL: &str = "#e8a33d";
 const OPTIMUM: &str = "#1f4e9c";
 const LOOP: &str = "#c0392b";
@@ -27,8 +30,16 @@ pub fn before_after(
     summary: &Summary,
     title: &str,
 ) -> String {
-    let width = 2.0 * PANEL + 3.0 * MARGIN;
-    let height = PANEL + 2.0 * MARGIN;
+    let (before, after) = (positions(initial), positions(optimum));
+    let has_height = before.iter().chain(&after).flatten().any(|p| p[2] != 0.0);
+    let views: &[View] = if has_height {
+        &[View::TOP, View::SIDE]
+    } else {
+        &[View::TOP]
+    };
+    let panels = views.len() as f64 + 1.0;
+    let width = panels * PANEL + (panels + 1.0) * MARGIN;
+    let height = PANEL + 2.0 * MARGIN + AXIS_ROOM;
     let mut svg = String::new();
     let _ = writeln!(
         svg,
@@ -40,8 +51,18 @@ pub fn before_after(
         r#"<text x="{MARGIN}" y="24" font-size="15">{}</text>"#,
         escape(title)
     );
-    trajectory(&mut svg, initial, optimum, factors, MARGIN, MARGIN);
-    convergence(&mut svg, summary, 2.0 * MARGIN + PANEL, MARGIN);
+    let mut left = MARGIN;
+    for view in views {
+        let drawn = Drawn {
+            before: &before,
+            after: &after,
+            optimum,
+            factors,
+        };
+        trajectory(&mut svg, &drawn, *view, left, MARGIN);
+        left += PANEL + MARGIN;
+    }
+    convergence(&mut svg, summary, left, MARGIN);
     svg.push_str("</svg>\n");
     svg
 }
@@ -59,10 +80,43 @@ fn escape(text: &str) -> String {
         .replace('>', "&gt;")
 }
 
-fn positions(values: &Values) -> Vec<Option<[f64; 2]>> {
+fn positions(values: &Values) -> Vec<Option<[f64; 3]>> {
     (0..values.len())
-        .map(|v| values.variable(v).position().map(|p| [p[0], p[1]]))
+        .map(|v| values.variable(v).position())
         .collect()
+}
+
+/// A projection of the world: which two axes the panel shows, and their names.
+#[derive(Clone, Copy)]
+struct View {
+    axes: [usize; 2],
+    names: [&'static str; 2],
+    label: &'static str,
+}
+
+impl View {
+    const TOP: Self = Self {
+        axes: [0, 1],
+        names: ["x (m)", "y (m)"],
+        label: "from above",
+    };
+    const SIDE: Self = Self {
+        axes: [0, 2],
+        names: ["x (m)", "z (m)"],
+        label: "from the side",
+    };
+
+    fn project(&self, p: &[f64; 3]) -> [f64; 2] {
+        [p[self.axes[0]], p[self.axes[1]]]
+    }
+}
+
+/// What a trajectory panel draws.
+struct Drawn<'a> {
+    before: &'a [Option<[f64; 3]>],
+    after: &'a [Option<[f64; 3]>],
+    optimum: &'a Values,
+    factors: &'a [FactorEntry],
 }
 
 /// Maps world x-y into a square panel at (`left`, `top`) with equal scales, y up.
@@ -104,9 +158,9 @@ impl Frame {
     }
 }
 
-fn polyline(svg: &mut String, frame: &Frame, points: &[Option<[f64; 2]>], style: &str) {
+fn polyline(svg: &mut String, frame: &Frame, points: &[[f64; 2]], style: &str) {
     let mut path = String::new();
-    for p in points.iter().flatten() {
+    for p in points {
         let (x, y) = frame.map(*p);
         let _ = write!(path, "{x:.1},{y:.1} ");
     }
@@ -117,20 +171,17 @@ fn polyline(svg: &mut String, frame: &Frame, points: &[Option<[f64; 2]>], style:
     );
 }
 
-fn trajectory(
-    svg: &mut String,
-    initial: &Values,
-    optimum: &Values,
-    factors: &[FactorEntry],
-    left: f64,
-    top: f64,
-) {
-    let (before, after) = (positions(initial), positions(optimum));
-    let frame = Frame::fit(before.iter().chain(&after).flatten().copied(), left, top);
+fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) {
+    let project = |points: &[Option<[f64; 3]>]| -> Vec<[f64; 2]> {
+        points.iter().flatten().map(|p| view.project(p)).collect()
+    };
+    let (before, after) = (project(drawn.before), project(drawn.after));
+    let frame = Frame::fit(before.iter().chain(&after).copied(), left, top);
     let _ = writeln!(
         svg,
         r##"<rect x="{left}" y="{top}" width="{PANEL}" height="{PANEL}" fill="none" stroke="#ccc"/>"##
     );
+    axes(svg, &frame, view);
     polyline(
         svg,
         &frame,
@@ -139,13 +190,14 @@ fn trajectory(
     );
     let mut loops = 0;
     let mut path = String::new();
-    for f in factors {
+    for f in drawn.factors {
         let &[a, b] = f.variables() else { continue };
-        if optimum.key(a).abs_diff(optimum.key(b)) == 1 {
+        if drawn.optimum.key(a).abs_diff(drawn.optimum.key(b)) == 1 {
             continue;
         }
-        if let (Some(pa), Some(pb)) = (after[a], after[b]) {
-            let ((x1, y1), (x2, y2)) = (frame.map(pa), frame.map(pb));
+        if let (Some(pa), Some(pb)) = (drawn.after[a], drawn.after[b]) {
+            let (x1, y1) = frame.map(view.project(&pa));
+            let (x2, y2) = frame.map(view.project(&pb));
             let _ = write!(path, "M{x1:.1},{y1:.1}L{x2:.1},{y2:.1}");
             loops += 1;
         }
@@ -162,8 +214,15 @@ fn trajectory(
         &after,
         &format!(r#"stroke="{OPTIMUM}" stroke-width="1.2""#),
     );
-    // Legend and scale bar.
-    let y = top + PANEL + 20.0;
+    // View name, legend and scale bar.
+    let _ = writeln!(
+        svg,
+        r##"<text x="{:.1}" y="{:.1}" text-anchor="end" fill="#666">{}</text>"##,
+        left + PANEL - 6.0,
+        top + 16.0,
+        view.label
+    );
+    let y = top + PANEL + 20.0 + AXIS_ROOM;
     let _ = writeln!(
         svg,
         r#"<text x="{left}" y="{y}"><tspan fill="{INITIAL}">━ initial guess</tspan>  <tspan fill="{OPTIMUM}">━ optimum</tspan>  <tspan fill="{LOOP}">━ loop closures ({loops})</tspan></text>"#
@@ -178,6 +237,68 @@ fn trajectory(
         y0 - 5.0,
         format_number(metres)
     );
+}
+
+/// Tick marks and labels on the panel's bottom (first axis) and left (second axis) edges, at
+/// round values about a fifth of the panel apart, and the axes' names.
+fn axes(svg: &mut String, frame: &Frame, view: View) {
+    let span = PANEL / frame.scale;
+    let step = nice_length(span / 5.0);
+    let (left, top) = (frame.left, frame.top);
+    let bottom = top + PANEL;
+    for axis in 0..2 {
+        let first = (frame.min[axis] / step).ceil() as i64;
+        let last = ((frame.min[axis] + span) / step).floor() as i64;
+        for k in first..=last {
+            let value = k as f64 * step;
+            let label = tick_label(value, step);
+            if axis == 0 {
+                let (x, _) = frame.map([value, frame.min[1]]);
+                let _ = writeln!(
+                    svg,
+                    r##"<path d="M{x:.1},{bottom:.1}v5" stroke="#888"/><text x="{x:.1}" y="{:.1}" text-anchor="middle" font-size="11">{label}</text>"##,
+                    bottom + 17.0
+                );
+            } else {
+                let (_, y) = frame.map([frame.min[0], value]);
+                let _ = writeln!(
+                    svg,
+                    r##"<path d="M{left:.1},{y:.1}h-5" stroke="#888"/><text x="{:.1}" y="{:.1}" text-anchor="end" font-size="11">{label}</text>"##,
+                    left - 7.0,
+                    y + 4.0
+                );
+            }
+        }
+    }
+    let _ = writeln!(
+        svg,
+        r#"<text x="{:.1}" y="{:.1}" text-anchor="middle" font-size="12">{}</text>"#,
+        left + PANEL / 2.0,
+        bottom + 34.0,
+        view.names[0]
+    );
+    let (x, y) = (left - 46.0, top + PANEL / 2.0);
+    let _ = writeln!(
+        svg,
+        r#"<text x="{x:.1}" y="{y:.1}" text-anchor="middle" font-size="12" transform="rotate(-90 {x:.1} {y:.1})">{}</text>"#,
+        view.names[1]
+    );
+}
+
+/// A tick value with as many decimals as the tick step needs (0.5 → `2.5`, 20 → `40`).
+fn tick_label(value: f64, step: f64) -> String {
+    let decimals = (-step.log10().floor()).max(0.0) as usize;
+    let text = format!("{value:.decimals$}");
+    // `-0` reads as a mistake.
+    if text
+        .trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        text.trim_start_matches('-').to_string()
+    } else {
+        text
+    }
 }
 
 /// 1, 2 or 5 times a power of ten, at most `upper`.
@@ -264,11 +385,27 @@ fn convergence(svg: &mut String, summary: &Summary, left: f64, top: f64) {
             y(*c)
         );
     }
+    // Iteration ticks: every iteration up to ten, else round steps.
+    let step = if last <= 10 {
+        1
+    } else {
+        nice_length(last as f64 / 5.0).max(1.0) as usize
+    };
+    for i in (0..=last).step_by(step) {
+        let _ = writeln!(
+            svg,
+            r##"<path d="M{:.1},{:.1}v5" stroke="#888"/><text x="{:.1}" y="{:.1}" text-anchor="middle" font-size="11">{i}</text>"##,
+            x(i),
+            top + PANEL,
+            x(i),
+            top + PANEL + 17.0
+        );
+    }
     let _ = writeln!(
         svg,
         r#"<text x="{:.1}" y="{:.1}" text-anchor="middle">iteration (0 = initial guess; hollow red: rejected trial)</text>"#,
         left + PANEL / 2.0,
-        top + PANEL + 20.0
+        top + PANEL + 34.0
     );
     let _ = writeln!(
         svg,

@@ -423,6 +423,10 @@ impl<'a> Iterations<'a> {
                 }
             };
             let step_norm = max_abs(&self.delta);
+            let step_two_norm = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let gain_ratio = Some((chi2 - trial_chi2) / predicted)
+                .filter(|r| r.is_finite())
+                .unwrap_or(0.0);
             let previous = chi2;
             if accepted {
                 std::mem::swap(values, &mut self.trial);
@@ -484,6 +488,8 @@ impl<'a> Iterations<'a> {
                 relative_decrease,
                 gradient_max_norm: gradient,
                 step_norm,
+                step_two_norm,
+                gain_ratio,
                 lambda: (options.method == Method::LevenbergMarquardt).then_some(lambda),
                 trust_radius: (options.method == Method::Dogleg).then_some(radius),
                 accepted,

@@ -21,7 +21,14 @@ pub struct IterationReport {
     pub trial_chi2: f64,
     pub relative_decrease: f64,
     pub gradient_max_norm: f64,
+    /// ‖Δx‖∞ of the step (tried, whether or not accepted).
     pub step_norm: f64,
+    /// ‖Δx‖₂ of the step, the norm Ceres reports as `|step|` (0 for incremental updates, which
+    /// do not measure it).
+    pub step_two_norm: f64,
+    /// Actual over predicted decrease of the cost (Ceres' `tr_ratio`); 0 when the step could not
+    /// be computed, and for incremental updates.
+    pub gain_ratio: f64,
     #[schema(required = true)]
     pub lambda: Option<f64>,
     #[schema(required = true)]

@@ -34,6 +34,9 @@ impl IncrementalEngine {
             },
             gradient_max_norm: 0.0,
             step_norm: report.max_delta,
+            // Not measured by the incremental engine.
+            step_two_norm: 0.0,
+            gain_ratio: 0.0,
             lambda: None,
             trust_radius: None,
             accepted: true,
