@@ -22,7 +22,7 @@ for spec in "intel:2d/ls_slam/intel-v.dat:2d/ls_slam/intel-e.dat" "killian:2d/ls
             "input_M3500_g2o:2d/carlone/input_M3500_g2o.g2o:" "sphere2500:3d/sesync/sphere2500.g2o:"; do
   IFS=: read -r name graph edges <<<"$spec"
   args=("$data/$graph"); [ -n "$edges" ] && args+=(--edges "$data/$edges")
-  target/release/factord bench-cholesky "${args[@]}" --repeat 30 --write-mtx "$tmp/$name.mtx" >"$tmp/f.json"
+  target/release/factord bench-cholesky "${args[@]}" --json --repeat 30 --write-mtx "$tmp/$name.mtx" >"$tmp/f.json"
   "$bin/cholmod_bench" --matrix "$tmp/$name.mtx" --repeat 30 --mode supernodal --ordering amd >"$tmp/a.json"
   "$bin/cholmod_bench" --matrix "$tmp/$name.mtx" --repeat 30 --mode simplicial --ordering amd >"$tmp/b.json"
   python3 - "$name" "$tmp" <<'PY'

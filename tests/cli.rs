@@ -489,3 +489,58 @@ fn factord_data_locates_inputs_and_default_datasets() {
     );
     assert!(!stderr.contains("panicked"));
 }
+
+/// evo reads what `solve --tum --stamps` writes (header comment, stamps, shortest round-trip
+/// numbers): two solves of one graph agree, and evo_ape says so.
+#[test]
+fn evo_ape_reads_solve_tum_with_stamps() {
+    let python = match common::python_venv("evo", &[vec!["evo".into()]]) {
+        Ok(python) => python,
+        Err(e) => return common::skip_or_fail::<()>(&format!("no evo: {e}")).unwrap_or(()),
+    };
+    let dir = common::temp_dir("cli-evo");
+    let input = dir.join("helix.g2o");
+    std::fs::write(&input, common::synthetic_helix_3d(50, 4)).unwrap();
+    let stamps = dir.join("stamps.txt");
+    let lines: String = (0..50)
+        .map(|i| format!("{i} {}\n", 1000.0 + 0.1 * i as f64))
+        .collect();
+    std::fs::write(&stamps, lines).unwrap();
+    let (gn, lm) = (dir.join("gn.tum"), dir.join("lm.tum"));
+    for (method, tum) in [("gn", &gn), ("lm", &lm)] {
+        let output = factord()
+            .arg("solve")
+            .arg(&input)
+            .args(["--quiet", "--method", method, "--tum"])
+            .arg(tum)
+            .arg("--stamps")
+            .arg(&stamps)
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    let output = Command::new(python.with_file_name("evo_ape"))
+        .arg("tum")
+        .arg(&gn)
+        .arg(&lm)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let rmse: f64 = stdout
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("rmse"))
+        .unwrap_or_else(|| panic!("{stdout}"))
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(rmse < 1e-3, "{stdout}");
+}

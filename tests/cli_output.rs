@@ -153,3 +153,45 @@ fn fusion_eval_prints_text_unless_asked_for_json() {
     assert!(String::from_utf8_lossy(&tum.stdout).starts_with("# timestamp"));
     assert!(String::from_utf8_lossy(&tum.stderr).contains("APE translation"));
 }
+
+/// bench-cholesky prints a table, JSON only with --json, and the matrix alone on stdout with
+/// `--write-mtx -` (the table then on stderr).
+#[test]
+fn bench_cholesky_prints_a_table_json_on_request_and_the_matrix_to_stdout() {
+    let dir = common::temp_dir("cli-bench-cholesky");
+    let input = dir.join("m.g2o");
+    std::fs::write(&input, common::synthetic_manhattan(50, 1)).unwrap();
+    let run = |extra: &[&str]| {
+        let output = factord()
+            .arg("bench-cholesky")
+            .arg(&input)
+            .args(["--repeat", "2"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "{}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        (
+            String::from_utf8(output.stdout).unwrap(),
+            String::from_utf8(output.stderr).unwrap(),
+        )
+    };
+    let (table, _) = run(&[]);
+    assert!(
+        table.contains("supernodal") && serde_json::from_str::<serde_json::Value>(&table).is_err()
+    );
+    let (json, _) = run(&["--json"]);
+    let json: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let n = json["n"].as_u64().unwrap();
+    assert_eq!(n, 3 * 49, "one pose fixed for the gauge");
+    let (mtx, table) = run(&["--write-mtx", "-"]);
+    assert!(mtx.starts_with("%%MatrixMarket matrix coordinate real symmetric\n"));
+    assert_eq!(
+        mtx.lines().count() as u64,
+        2 + json["nnz_lower"].as_u64().unwrap()
+    );
+    assert!(table.contains("supernodal"), "{table}");
+}

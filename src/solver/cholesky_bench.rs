@@ -2,7 +2,6 @@
 //! solver factorises in its last iterations), and exports it for CHOLMOD comparisons.
 
 use std::fmt::Write as _;
-use std::path::Path;
 use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
@@ -12,12 +11,19 @@ use super::linearize::{linearize, Scratch, SystemLayout};
 use super::{optimize, SolverOptions};
 use crate::problem::Problem;
 
-/// `problem` is solved first, then its normal equations are factorised `repeat` times.
+/// What [`run`] measured: the timings as JSON, and H in Matrix Market form when asked for.
+pub struct CholeskyBench {
+    pub report: String,
+    pub matrix_market: Option<String>,
+}
+
+/// `problem` is solved first, then its normal equations are factorised `repeat` times;
+/// `with_matrix`: also H (lower triangle, symmetric) as Matrix Market text.
 pub fn run(
     problem: &mut Problem,
     repeat: usize,
-    write_mtx: Option<&Path>,
-) -> Result<String, Box<dyn std::error::Error>> {
+    with_matrix: bool,
+) -> Result<CholeskyBench, Box<dyn std::error::Error>> {
     let summary = optimize(problem, &SolverOptions::default(), &mut |_| {
         std::ops::ControlFlow::Continue(())
     })?;
@@ -69,7 +75,8 @@ pub fn run(
         layout.n(),
         layout.pattern.nnz()
     );
-    if let Some(path) = write_mtx {
+    let mut matrix_market = None;
+    if with_matrix {
         let p = &layout.pattern;
         let mut text = format!(
             "%%MatrixMarket matrix coordinate real symmetric\n{} {} {}\n",
@@ -83,7 +90,10 @@ pub fn run(
                 let _ = writeln!(text, "{} {} {:e}", r + 1, c + 1, h_rc);
             }
         }
-        std::fs::write(path, text)?;
+        matrix_market = Some(text);
     }
-    Ok(report)
+    Ok(CholeskyBench {
+        report,
+        matrix_market,
+    })
 }
