@@ -267,8 +267,12 @@ async fn the_login_cookie_reads_but_never_writes() {
         c.request(method, s.url(path))
             .header("cookie", format!("theme=dark; {cookie}"))
     };
-    // Reads: the list, stats and the event stream.
-    for path in ["/v1/sessions", "/v1/sessions/alices"] {
+    // Reads: the list, stats, history and the event stream.
+    for path in [
+        "/v1/sessions",
+        "/v1/sessions/alices",
+        "/v1/sessions/alices/history",
+    ] {
         let r = with_cookie(M::GET, path).send().await.unwrap();
         assert_eq!(r.status(), 200, "GET {path}");
     }

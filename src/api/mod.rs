@@ -11,6 +11,7 @@ pub mod command;
 pub mod error;
 pub mod factor_schema;
 pub mod fusion;
+pub mod history;
 mod limits;
 pub mod wire;
 pub mod wire_list;

@@ -23,13 +23,11 @@ use std::time::{Duration, Instant};
 pub use crate::api::Limits;
 pub use crate::api::{parse_command, Accepted, Command, Health, Reply};
 pub use crate::api::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
-use crate::runtime::metrics;
-use crate::runtime::pool::WorkerPool;
+use crate::runtime::{metrics, pool::WorkerPool};
 pub use caller::Caller;
 pub use delivery::Delivery;
 
-use crate::api::catalogue;
-use crate::api::wire::*;
+use crate::api::{catalogue, wire::*};
 use crate::session::factor_types::FactorTypes;
 use crate::session::Session;
 
@@ -375,6 +373,9 @@ impl Service {
             ))),
             Command::GetGraph { session } => Ok(Reply::Graph(Box::new(
                 self.session_as(caller, &session)?.graph(),
+            ))),
+            Command::GetHistory { session } => Ok(Reply::History(Box::new(
+                self.session_as(caller, &session)?.history(),
             ))),
             Command::GetMarginals {
                 session,

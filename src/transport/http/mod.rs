@@ -63,6 +63,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(websocket))
         .routes(routes!(graph))
         .routes(routes!(marginals))
+        .routes(routes!(history))
         .routes(routes!(login::login))
         .routes(routes!(login::logout))
         .routes(routes!(job))
