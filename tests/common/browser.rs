@@ -144,6 +144,11 @@ pub struct Browser {
 impl Browser {
     /// chromedriver and Chromium with a fresh profile directory (removed on drop).
     pub async fn start(name: &str) -> Self {
+        Self::start_sized(name, (1280, 1600)).await
+    }
+
+    /// [`Browser::start`] with a window of `size` (width, height) pixels.
+    pub async fn start_sized(name: &str, size: (u32, u32)) -> Self {
         let profile = super::temp_dir(&format!("chromium-profile-{name}"));
         let port = super::server::free_port();
         let driver = Command::new(CHROMEDRIVER)
@@ -172,7 +177,7 @@ impl Browser {
             "args": ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                      "--no-first-run", "--disable-background-networking",
                      "--disable-component-update", "--disable-sync",
-                     "--window-size=1280,1600",
+                     format!("--window-size={},{}", size.0, size.1),
                      format!("--user-data-dir={}", browser.who.profile.display())]}}}});
         let deadline = Instant::now() + Duration::from_secs(30);
         let session = loop {
