@@ -65,10 +65,14 @@
   // On load the server's history refills the event log (through the live handlers) and the
   // timeline; after that the timeline, rejections and last_error are re-read after each solve.
   F.sessionHistory = (id, timeline, handlers) => {
-    let busy = false, again = false, first = true;
+    let busy = false, again = false, first = true, last = -Infinity; // last: when the last read started
+    // At most one read every 2 s however fast the session solves (it carries the event log).
     async function refresh() {
       if (busy) { again = true; return; }
+      const wait = last + 2000 - performance.now();
+      if (wait > 0) { busy = true; setTimeout(() => { busy = false; refresh(); }, wait); return; }
       busy = true;
+      last = performance.now();
       try {
         const h = await getJSON(api(id, '/history'));
         timeline.setPoints(h.timeline || []);
@@ -76,9 +80,9 @@
           first = false;
           for (const e of h.events || []) if (handlers[e.event]) handlers[e.event](e.data, e.unix_ms);
         }
-        const last = $('last-error');
-        last.textContent = h.last_error ? `last error: ${h.last_error}` : 'no error';
-        last.className = h.last_error ? 'statusline error' : 'statusline';
+        const lastError = $('last-error');
+        lastError.textContent = h.last_error ? `last error: ${h.last_error}` : 'no error';
+        lastError.className = h.last_error ? 'statusline error' : 'statusline';
         const rows = (h.rejected || []).slice().reverse().map((e) =>
           el('li', { className: 'errors' }, el('time', { textContent: new Date(e.unix_ms).toLocaleTimeString() }), F.describeError(e.data)));
         $('rejected').replaceChildren(...(rows.length ? rows : [el('li', { className: 'muted', textContent: 'nothing rejected' })]));
@@ -88,7 +92,7 @@
         $('last-error').textContent = `history unavailable: ${e.message}`;
       } finally {
         busy = false;
-        if (again) { again = false; setTimeout(refresh, 500); }
+        if (again) { again = false; refresh(); }
       }
     }
     refresh();
