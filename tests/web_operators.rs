@@ -103,6 +103,41 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
     let stats = settled(&c, &stats_url).await;
     println!("solves: {}", stats["solves"]);
 
+    // The history the page will read: a point per solve with its latency, the log bounded (300
+    // acks and as many summaries make more than 200 events), the refused rpc batch kept.
+    let h: Value = c
+        .get(s.url("/v1/sessions/robot/history"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let timeline = h["timeline"].as_array().unwrap();
+    // (A solve that stops at its iteration limit is followed by another: more may come.)
+    assert!(timeline.len() >= 100, "{} points: {stats}", timeline.len());
+    let latency = |p: &Value| p["latency_seconds"].as_f64();
+    assert!(timeline.iter().all(|p| latency(p).is_none_or(|l| l >= 0.0)));
+    assert!(
+        timeline
+            .iter()
+            .any(|p| latency(p).is_some_and(|l| l >= p["solve_seconds"].as_f64().unwrap())),
+        "a batch waits at least as long as the solve that reflects it"
+    );
+    assert_eq!(h["events"].as_array().unwrap().len(), 200);
+    assert!(h["dropped"].as_u64().unwrap() > 0);
+    assert_eq!(
+        h["rejected"].as_array().unwrap().len(),
+        1,
+        "{}",
+        h["rejected"]
+    );
+    assert_eq!(
+        h["rejected"][0]["data"]["error"]["field"],
+        "variables[0].kind"
+    );
+    assert_eq!(h["last_error"], Value::Null);
+
     // Tall enough for the timeline in the screenshot.
     let browser = Browser::start_sized("operators", (1280, 1900)).await;
     let ours = browser.identity();
