@@ -206,3 +206,145 @@ async fn tokens_from_the_environment_beyond_loopback() {
         200
     );
 }
+
+/// The web view's login: a valid token is exchanged for an `HttpOnly; SameSite=Strict` cookie
+/// that reads (GET, the event stream) like the bearer header, but changes nothing: a cross-site
+/// form or a WebSocket (which takes batches) cannot use it. A bad token is 401 naming `token`.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_login_cookie_reads_but_never_writes() {
+    let dir = common::temp_dir("auth-cookie");
+    let tokens = dir.join("tokens");
+    std::fs::write(&tokens, format!("alice {ALICE}\nbob {BOB}\n")).unwrap();
+    let tokens = tokens.display().to_string();
+    let s = TestServer::start_at(
+        &dir.join("state"),
+        &["--no-zenoh", "--tokens-file", &tokens],
+        &[],
+    );
+    let c = client();
+    use reqwest::Method as M;
+    let login = s.url("/v1/login");
+
+    let (status, v, _) = call(
+        &c,
+        M::POST,
+        &login,
+        None,
+        Some(json!({"token": "x".repeat(20)})),
+    )
+    .await;
+    assert_eq!(status, 401, "{v}");
+    assert_eq!(v["error"]["field"], "token");
+    let (status, v, _) = call(&c, M::POST, &login, None, Some(json!({"tokn": ALICE}))).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["error"]["field"], "tokn");
+
+    let (status, v, headers) = call(&c, M::POST, &login, None, Some(json!({"token": ALICE}))).await;
+    assert_eq!(status, 200, "{v}");
+    assert_eq!(v, json!({"auth": true, "principal": "alice"}));
+    let set = headers["set-cookie"].to_str().unwrap().to_string();
+    assert!(
+        set.contains("HttpOnly") && set.contains("SameSite=Strict"),
+        "{set}"
+    );
+    assert!(
+        !set.contains(ALICE),
+        "the cookie holds the token encoded: {set}"
+    );
+    let cookie = set.split(';').next().unwrap().to_string();
+
+    let create = json!({"session": "alices", "kind": "pose_graph_2d"});
+    let (status, v, _) = call(
+        &c,
+        M::POST,
+        &s.url("/v1/sessions"),
+        Some(ALICE),
+        Some(create),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    let with_cookie = |method: M, path: &str| {
+        c.request(method, s.url(path))
+            .header("cookie", format!("theme=dark; {cookie}"))
+    };
+    // Reads: the list, stats, history and the event stream.
+    for path in [
+        "/v1/sessions",
+        "/v1/sessions/alices",
+        "/v1/sessions/alices/history",
+    ] {
+        let r = with_cookie(M::GET, path).send().await.unwrap();
+        assert_eq!(r.status(), 200, "GET {path}");
+    }
+    let v: Value = with_cookie(M::GET, "/v1/sessions")
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(v["sessions"][0]["session"], "alices");
+    let events = with_cookie(M::GET, "/v1/sessions/alices/events")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(events.status(), 200);
+    drop(events);
+    // Writes: refused with the cookie alone, whatever the method.
+    let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}]});
+    let r = with_cookie(M::POST, "/v1/sessions/alices/batches")
+        .json(&batch)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 401);
+    let r = with_cookie(M::DELETE, "/v1/sessions/alices")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 401);
+    let r = with_cookie(M::GET, "/v1/sessions/alices/ws")
+        .header("connection", "upgrade")
+        .header("upgrade", "websocket")
+        .header("sec-websocket-version", "13")
+        .header("sec-websocket-key", "dGhlIHNhbXBsZSBub25jZQ==")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(
+        r.status(),
+        401,
+        "a WebSocket takes batches: no cookie for it"
+    );
+    // Bob's cookie does not see alice's session; a forged cookie is no one's.
+    let (_, _, headers) = call(&c, M::POST, &login, None, Some(json!({"token": BOB}))).await;
+    let bob = headers["set-cookie"]
+        .to_str()
+        .unwrap()
+        .split(';')
+        .next()
+        .unwrap()
+        .to_string();
+    let r = c
+        .get(s.url("/v1/sessions/alices"))
+        .header("cookie", bob)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 404);
+    let r = c
+        .get(s.url("/v1/sessions"))
+        .header("cookie", "factord_token=zz")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 401);
+    // Logging out clears it.
+    let (status, _, headers) = call(&c, M::POST, &s.url("/v1/logout"), None, None).await;
+    assert_eq!(status, 204);
+    assert!(headers["set-cookie"]
+        .to_str()
+        .unwrap()
+        .contains("Max-Age=0"));
+    s.assert_no_panic();
+}

@@ -4,216 +4,12 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
+use std::time::Duration;
 
+use common::browser::{self, survivors, Browser};
 use common::server::{client, create, g2o_batches, post, TestServer};
 use serde_json::{json, Value};
-
-const CHROMIUM: &str = "/usr/bin/chromium";
-const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
-
-/// Debian's chromium and chromedriver, installed on first use when we may (root with apt).
-fn browser() -> Result<(), String> {
-    if Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists() {
-        return Ok(());
-    }
-    let out = Command::new("apt-get")
-        .args([
-            "install",
-            "-y",
-            "--no-install-recommends",
-            "chromium",
-            "chromium-driver",
-        ])
-        .env("DEBIAN_FRONTEND", "noninteractive")
-        .output()
-        .map_err(|e| format!("apt-get: {e}"))?;
-    if out.status.success() && Path::new(CHROMEDRIVER).exists() {
-        Ok(())
-    } else {
-        Err(format!(
-            "cannot install chromium and chromium-driver: {}",
-            String::from_utf8_lossy(&out.stderr)
-        ))
-    }
-}
-
-/// A WebDriver session in headless Chromium; the driver is stopped on drop.
-struct Browser {
-    driver: Child,
-    base: String,
-    http: reqwest::Client,
-}
-
-impl Browser {
-    async fn start(profile: &Path) -> Self {
-        let port = common::server::free_port();
-        let driver = Command::new(CHROMEDRIVER)
-            .arg(format!("--port={port}"))
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("chromedriver starts");
-        let http = reqwest::Client::new();
-        let root = format!("http://127.0.0.1:{port}");
-        // The flags keep Chromium off the network this machine does not have.
-        let capabilities = json!({"capabilities": {"alwaysMatch": {"goog:chromeOptions": {
-            "binary": CHROMIUM,
-            "args": ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                     "--no-first-run", "--disable-background-networking",
-                     "--disable-component-update", "--disable-sync",
-                     "--window-size=1280,1600",
-                     format!("--user-data-dir={}", profile.display())]}}}});
-        let deadline = Instant::now() + Duration::from_secs(30);
-        let session = loop {
-            let reply = http
-                .post(format!("{root}/session"))
-                .json(&capabilities)
-                .send()
-                .await;
-            if let Ok(reply) = reply {
-                let v: Value = reply.json().await.unwrap();
-                match v["value"]["sessionId"].as_str() {
-                    Some(id) => break id.to_string(),
-                    None => panic!("chromedriver refused the session: {v}"),
-                }
-            }
-            assert!(Instant::now() < deadline, "chromedriver did not start");
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        };
-        Self {
-            driver,
-            base: format!("{root}/session/{session}"),
-            http,
-        }
-    }
-
-    async fn command(&self, method: reqwest::Method, path: &str, body: Option<Value>) -> Value {
-        let mut request = self.http.request(method, format!("{}{path}", self.base));
-        if let Some(body) = body {
-            request = request.json(&body);
-        }
-        let v: Value = request.send().await.unwrap().json().await.unwrap();
-        assert!(v["value"].get("error").is_none(), "WebDriver {path}: {v}");
-        v["value"].clone()
-    }
-
-    async fn open(&self, url: &str) {
-        self.command(reqwest::Method::POST, "/url", Some(json!({"url": url})))
-            .await;
-    }
-
-    async fn script(&self, script: &str) -> Value {
-        let body = json!({"script": script, "args": []});
-        self.command(reqwest::Method::POST, "/execute/sync", Some(body))
-            .await
-    }
-
-    /// Polls `condition` (a JS expression) until it is true; returns the page's test hooks.
-    async fn wait_for(&self, condition: &str, what: &str) -> Value {
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            let ok = self.script(&format!("return Boolean({condition});")).await;
-            if ok == json!(true) {
-                return self
-                    .script("return Object.assign({}, document.body.dataset);")
-                    .await;
-            }
-            let hooks = self
-                .script("return Object.assign({}, document.body.dataset);")
-                .await;
-            assert!(
-                Instant::now() < deadline,
-                "timed out waiting for {what}: {hooks}"
-            );
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-    }
-
-    /// Pixels of canvas `id` that differ from its top-left (background) pixel.
-    async fn inked_pixels(&self, id: &str) -> u64 {
-        let script = format!(
-            "const c = document.getElementById('{id}'); const d = c.getContext('2d')\
-             .getImageData(0, 0, c.width, c.height).data; let n = 0;\
-             for (let i = 0; i < d.length; i += 4) {{ if (d[i] != d[0] || d[i+1] != d[1] || d[i+2] != d[2]) n++; }}\
-             return n;"
-        );
-        self.script(&script).await.as_u64().unwrap()
-    }
-
-    async fn click(&self, css: &str) {
-        let body = json!({"using": "css selector", "value": css});
-        let element = self
-            .command(reqwest::Method::POST, "/element", Some(body))
-            .await;
-        let id = element
-            .as_object()
-            .and_then(|o| o.values().next())
-            .and_then(Value::as_str)
-            .unwrap()
-            .to_string();
-        self.command(
-            reqwest::Method::POST,
-            &format!("/element/{id}/click"),
-            Some(json!({})),
-        )
-        .await;
-    }
-
-    async fn screenshot(&self, path: &Path) {
-        let png = self
-            .command(reqwest::Method::GET, "/screenshot", None)
-            .await;
-        let bytes = base64_decode(png.as_str().unwrap());
-        // A real PNG of the window.
-        let decoder = png::Decoder::new(std::io::Cursor::new(&bytes));
-        let info = decoder.read_info().unwrap().info().clone();
-        assert!(
-            info.width >= 1000 && info.height >= 800,
-            "{}x{}",
-            info.width,
-            info.height
-        );
-        std::fs::write(path, bytes).unwrap();
-        println!("screenshot: {}", path.display());
-    }
-}
-
-impl Drop for Browser {
-    fn drop(&mut self) {
-        let _ = self.driver.kill();
-        let _ = self.driver.wait();
-    }
-}
-
-/// Standard base64 (WebDriver screenshots), without a crate for twenty lines.
-fn base64_decode(text: &str) -> Vec<u8> {
-    let value = |c: u8| -> u32 {
-        match c {
-            b'A'..=b'Z' => (c - b'A') as u32,
-            b'a'..=b'z' => (c - b'a' + 26) as u32,
-            b'0'..=b'9' => (c - b'0' + 52) as u32,
-            b'+' => 62,
-            b'/' => 63,
-            _ => panic!("not base64: {c}"),
-        }
-    };
-    let clean: Vec<u8> = text
-        .bytes()
-        .filter(|c| !c.is_ascii_whitespace() && *c != b'=')
-        .collect();
-    let mut out = Vec::with_capacity(clean.len() * 3 / 4);
-    for chunk in clean.chunks(4) {
-        let mut acc = 0u32;
-        for (i, &c) in chunk.iter().enumerate() {
-            acc |= value(c) << (18 - 6 * i);
-        }
-        out.extend_from_slice(&acc.to_be_bytes()[1..chunk.len()]);
-    }
-    out
-}
 
 fn screenshot_dir() -> PathBuf {
     let dir = std::env::var_os("FACTORD_SCREENSHOT_DIR")
@@ -225,7 +21,7 @@ fn screenshot_dir() -> PathBuf {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn web_view_draws_sessions_being_fed() {
-    if let Err(reason) = browser() {
+    if let Err(reason) = browser::install() {
         common::skip_or_fail::<()>(&format!("no headless Chromium: {reason}"));
         return;
     }
@@ -253,8 +49,8 @@ async fn web_view_draws_sessions_being_fed() {
         assert_eq!(status, 200, "{v}");
     }
 
-    let profile = common::temp_dir("chromium-profile");
-    let browser = Browser::start(&profile).await;
+    let browser = Browser::start("draws").await;
+    let ours = browser.identity();
     let page = s.url("/sessions/robot");
     browser.open(&page).await;
     browser
@@ -417,4 +213,48 @@ async fn web_view_draws_sessions_being_fed() {
     let missing = c.get(s.url("/sessions/nobody")).send().await.unwrap();
     assert_eq!(missing.status(), 404);
     s.assert_no_panic();
+    drop(browser);
+    let left = survivors(&ours);
+    assert!(
+        left.is_empty(),
+        "browser processes outlived the test: {left:?}"
+    );
+}
+
+/// A failing test leaves no browser behind: the guard ends chromedriver's process group (and
+/// anything naming our profile) while the panic unwinds. Only our own processes are looked at.
+#[tokio::test(flavor = "multi_thread")]
+async fn no_browser_process_outlives_a_panicking_test() {
+    if let Err(reason) = browser::install() {
+        common::skip_or_fail::<()>(&format!("no headless Chromium: {reason}"));
+        return;
+    }
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let failing = tokio::spawn(async move {
+        let browser = Browser::start("panics").await;
+        browser
+            .open("data:text/html,<title>about to fail</title>")
+            .await;
+        let ours = browser.identity();
+        let running = survivors(&ours);
+        tx.send((ours, running.len())).unwrap();
+        panic!("this test fails on purpose, with the browser open");
+    });
+    let outcome = failing.await;
+    assert!(outcome.as_ref().is_err_and(|e| e.is_panic()), "{outcome:?}");
+    let (ours, running) = rx.await.unwrap();
+    // Chromium and its helpers, and chromedriver, were there while the test ran.
+    assert!(
+        running >= 3,
+        "only {running} browser processes seen running"
+    );
+    let left = survivors(&ours);
+    assert!(
+        left.is_empty(),
+        "browser processes outlived the panic: {left:?}"
+    );
+    assert!(
+        !ours.profile.exists(),
+        "the profile directory was left behind"
+    );
 }

@@ -90,6 +90,11 @@ pub enum Command {
     GetGraph {
         session: String,
     },
+    /// The session's timeline of solves, recent events and rejected inputs (the web view's
+    /// history, kept bounded in memory).
+    GetHistory {
+        session: String,
+    },
     /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
     GetMarginals {
         session: String,
@@ -159,6 +164,7 @@ pub enum Reply {
     Graph(Box<crate::api::wire::Graph>),
     Producer(ProducerStatus),
     Marginals(Box<crate::api::wire::Marginals>),
+    History(Box<crate::api::history::SessionHistory>),
 }
 
 impl Command {

@@ -12,6 +12,7 @@ pub mod error;
 pub mod export;
 pub mod factor_schema;
 pub mod fusion;
+pub mod history;
 mod limits;
 pub mod wire;
 pub mod wire_list;

@@ -257,7 +257,8 @@ impl After {
 }
 
 /// The drawable graph of a session (the web view's data): pose positions in key order with the
-/// client's initial guesses, landmark positions, and pose-to-pose factors as key pairs.
+/// client's initial guesses, landmark positions, and pose-to-pose factors as key pairs with
+/// their χ².
 #[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Graph {
     pub session: String,
@@ -268,6 +269,11 @@ pub struct Graph {
     pub poses: Vec<DrawnVariable>,
     pub points: Vec<DrawnVariable>,
     pub edges: Vec<[Key; 2]>,
+    /// Each edge's χ² contribution at the estimate, in the order of `edges` (the web view
+    /// colours edges by it); null while a solve holds the problem or for a queued edge. Empty
+    /// for sliding windows.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub edge_chi2: Vec<Option<f64>>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]

@@ -4,10 +4,11 @@
 //! session's state and may run on any thread) and then delivered ([`Service::deliver_decoded`],
 //! in the order the messages came). Transports that receive at full rate decode the next
 //! message while the previous one is applied: decoding a 1000-factor batch costs about as much
-//! as applying it.
+//! as applying it. Refusals of rpcs' batches ([`Service::execute_recorded`]) are kept in the
+//! session's history too, where operators look for rejected inputs.
 
 use super::{Caller, Service};
-use crate::api::{Command, ServiceError};
+use crate::api::{Command, Reply, ServiceError};
 use crate::session::Origin;
 
 /// A message for a session's topic, decoded into its command, or refused.
@@ -97,6 +98,31 @@ impl Service {
             target.report_rejection(error, origin);
         }
         Ok(())
+    }
+
+    /// Runs `command` as `caller` (an rpc: HTTP, zenoh `rpc`): a batch or fusion message it
+    /// refuses is kept in its session's history, where the web view lists rejected inputs, as
+    /// the refusals of streamed messages are (those also go on the stream: the rpc's caller has
+    /// its answer).
+    pub async fn execute_recorded(
+        &self,
+        caller: &Caller,
+        command: Command,
+    ) -> Result<Reply, ServiceError> {
+        let target = match &command {
+            Command::ApplyBatch { session, batch, .. } => {
+                Some((session.clone(), Origin::of(batch).ok().flatten()))
+            }
+            Command::Fusion { session, .. } => Some((session.clone(), None)),
+            _ => None,
+        };
+        let outcome = self.execute_as(caller, command).await;
+        if let (Err(error), Some((name, origin))) = (&outcome, target) {
+            if let Ok(session) = self.session_as(caller, &name) {
+                session.note_rejection(error, origin);
+            }
+        }
+        outcome
     }
 
     /// [`Service::decode_delivery`] then [`Service::deliver_decoded`].

@@ -12,6 +12,7 @@ pub mod fleet;
 mod fleet_lock;
 mod fleet_moves;
 pub mod jobs;
+mod marginals;
 pub mod placement;
 mod recovery;
 
@@ -23,14 +24,12 @@ use std::time::{Duration, Instant};
 pub use crate::api::Limits;
 pub use crate::api::{parse_command, Accepted, Command, Health, Reply};
 pub use crate::api::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
-use crate::runtime::metrics;
-use crate::runtime::pool::WorkerPool;
+use crate::runtime::{metrics, pool::WorkerPool};
 pub use caller::Caller;
 pub use delivery::Delivery;
 
-use crate::api::catalogue;
 use crate::api::export::EstimateFormat;
-use crate::api::wire::*;
+use crate::api::{catalogue, wire::*};
 use crate::session::factor_types::FactorTypes;
 use crate::session::Session;
 
@@ -381,6 +380,9 @@ impl Service {
             Command::GetGraph { session } => Ok(Reply::Graph(Box::new(
                 self.session_as(caller, &session)?.graph(),
             ))),
+            Command::GetHistory { session } => Ok(Reply::History(Box::new(
+                self.session_as(caller, &session)?.history(),
+            ))),
             Command::GetMarginals {
                 session,
                 keys,
@@ -399,37 +401,6 @@ impl Service {
                     session: session.name.clone(),
                 })
             }
-        }
-    }
-
-    /// Marginals off the async threads; while a solve holds the problem, asks again after it
-    /// (polling: a queued solve may find nothing to do and finish without a trace).
-    async fn marginals(
-        &self,
-        session: Arc<Session>,
-        query: crate::api::wire::MarginalsQuery,
-    ) -> Result<crate::api::wire::Marginals, ServiceError> {
-        let deadline = Instant::now() + self.wait_timeout();
-        let query = Arc::new(query);
-        loop {
-            let (s, q) = (Arc::clone(&session), Arc::clone(&query));
-            let answer = tokio::task::spawn_blocking(move || s.marginals(&q))
-                .await
-                .map_err(|e| ServiceError::internal(format!("marginals failed: {e}")))??;
-            if let Some(marginals) = answer {
-                return Ok(marginals);
-            }
-            if Instant::now() >= deadline {
-                return Err(ServiceError::unavailable(
-                    "solving",
-                    format!(
-                        "session `{}` is being solved; ask again when the solve finishes",
-                        session.name
-                    ),
-                    1,
-                ));
-            }
-            tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
 

@@ -32,8 +32,13 @@ impl Session {
     }
 
     pub(super) fn emit(&self, event: SessionEvent) {
+        let event = Arc::new(event);
+        self.history
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .record(&event);
         // No subscribers is fine.
-        let _ = self.events.send(Arc::new(event));
+        let _ = self.events.send(event);
     }
 
     /// Event-stream subscribers now (the zenoh publisher included).

@@ -1,18 +1,19 @@
 //! Read-only views of a session beyond its estimate: the drawable graph (what the web view
 //! shows) and marginal covariances of selected variables.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::Instant;
 
 use super::engine::{Engine, Window};
-use super::{MirrorEntry, Session};
+use super::{MirrorEntry, Session, State};
 use crate::api::catalogue::{self, Shape};
 use crate::api::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::problem::Key;
 use crate::solver::marginals::{self, MarginalsError};
+use crate::variables::Variable;
 
 /// Most variables one marginals request may name (each costs a solve per tangent direction).
 pub const MAX_MARGINAL_KEYS: usize = 256;
@@ -39,6 +40,34 @@ pub(super) fn edge(mirror: &BTreeMap<Key, MirrorEntry>, keys: &[Key]) -> Option<
     let [a, b] = keys else { return None };
     let is_pose = |k: &Key| mirror.get(k).is_some_and(|e| shape(e.kind) == Shape::Pose);
     (is_pose(a) && is_pose(b)).then_some([*a, *b])
+}
+
+/// Each edge's χ² contribution `ρ(‖R e‖²)` at the estimate, in the order of `st.edges`; none
+/// while a solve holds the problem, for an edge still queued, or where it cannot be evaluated.
+fn edge_chi2(st: &State) -> Vec<Option<f64>> {
+    let Some(problem) = &st.problem else {
+        return vec![None; st.edges.len()];
+    };
+    let mut by_id = HashMap::with_capacity(st.edges.len());
+    let (mut error, mut whitened) = (Vec::new(), Vec::new());
+    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(2);
+    for (f, id) in problem.factors().iter().zip(&st.factor_ids) {
+        if !st.edges.contains_key(id) {
+            continue;
+        }
+        refs.clear();
+        refs.extend(f.variables().iter().map(|&v| problem.values.variable(v)));
+        let d = f.factor.residual_dim();
+        error.resize(d, 0.0);
+        whitened.resize(d, 0.0);
+        if let Ok(chi2) = f.chi2(&refs, &mut error, &mut whitened) {
+            by_id.insert(*id, chi2);
+        }
+    }
+    st.edges
+        .keys()
+        .map(|id| by_id.get(id).copied().filter(|c| c.is_finite()))
+        .collect()
 }
 
 impl Session {
@@ -72,6 +101,7 @@ impl Session {
             poses,
             points,
             edges: st.edges.values().copied().collect(),
+            edge_chi2: edge_chi2(&st),
         }
     }
 
@@ -107,6 +137,7 @@ impl Session {
             poses,
             points: Vec::new(),
             edges,
+            edge_chi2: Vec::new(),
         }
     }
 

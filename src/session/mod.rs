@@ -26,6 +26,7 @@
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
 //! - `incremental.rs`: re-solving only the region new factors reach.
 //! - `events.rs`: the event channel (publishing, rejections, raw subscriptions).
+//! - `history.rs`: the bounded timeline and event log every published event feeds (web view).
 //! - `stream.rs`: [`EventStream`], the subscriber every stream reads through: a lag yields a
 //!   `lagged` marker and the latest values instead of a silent gap.
 //! - `stats.rs`: info, stats and memory accounting.
@@ -40,6 +41,7 @@ mod engine;
 mod events;
 pub mod factor_types;
 pub mod fusion;
+mod history;
 mod incremental;
 mod inspect;
 mod mirror;
@@ -77,6 +79,8 @@ pub struct Session {
     factor_types: std::sync::RwLock<factor_types::FactorTypes>,
     state: Mutex<State>,
     events: broadcast::Sender<Arc<SessionEvent>>,
+    /// The timeline and recent events, fed by every published event.
+    history: Mutex<history::History>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
     solved: watch::Sender<u64>,
     /// Highest sequence accepted: requests waiting for a producer's batches (`after`) watch it.
@@ -118,6 +122,7 @@ impl Session {
             factor_types: Default::default(),
             state: Mutex::new(State::new(kind, options, auto)),
             events: broadcast::channel(4096).0,
+            history: Mutex::default(),
             solved: watch::channel(0).0,
             accepted: watch::channel(0).0,
             completed: watch::channel(0).0,

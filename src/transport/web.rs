@@ -1,8 +1,10 @@
 //! The live web view: static pages compiled into the binary (no CDN, nothing to install), which
 //! read the JSON API and the session's event stream from the same origin.
 //!
-//! `/` lists sessions; `/sessions/<id>` draws the trajectory, initial guess, loop closures, point
-//! cloud and a live convergence plot; `/v1/docs` lists the API's operations, parameters and
+//! `/` lists sessions with the server's health (and a login form when tokens are on);
+//! `/sessions/<id>` draws the trajectory, initial guess, residual-coloured edges, covariance
+//! ellipses, point cloud, a live convergence plot and the session's timeline, event log and
+//! rejected inputs, with export links; `/v1/docs` lists the API's operations, parameters and
 //! schemas from `/v1/openapi.json`. The pages are plain HTML, CSS and JS in `web/`.
 
 use std::sync::Arc;
@@ -19,6 +21,8 @@ const INDEX: &str = include_str!("web/index.html");
 const SESSION: &str = include_str!("web/session.html");
 const SCRIPT: &str = include_str!("web/factord.js");
 const STYLE: &str = include_str!("web/factord.css");
+const PLOTS: &str = include_str!("web/plots.js");
+const OPERATOR: &str = include_str!("web/operator.js");
 const DOCS: &str = include_str!("web/docs.html");
 const DOCS_SCRIPT: &str = include_str!("web/docs.js");
 const HTML: &str = "text/html; charset=utf-8";
@@ -85,6 +89,20 @@ pub(crate) async fn script() -> impl IntoResponse {
     page(SCRIPT, "text/javascript; charset=utf-8")
 }
 
+/// The web view's plots: convergence and the session's timeline.
+#[utoipa::path(get, path = "/assets/plots.js", tag = "web",
+    responses((status = 200, description = "JavaScript.", content_type = "text/javascript", body = String)))]
+pub(crate) async fn plots_script() -> impl IntoResponse {
+    page(PLOTS, "text/javascript; charset=utf-8")
+}
+
+/// The web view's operator panels: login, health, history, rejections, exports, ellipses.
+#[utoipa::path(get, path = "/assets/operator.js", tag = "web",
+    responses((status = 200, description = "JavaScript.", content_type = "text/javascript", body = String)))]
+pub(crate) async fn operator_script() -> impl IntoResponse {
+    page(OPERATOR, "text/javascript; charset=utf-8")
+}
+
 /// The web view's style sheet.
 #[utoipa::path(get, path = "/assets/factord.css", tag = "web",
     responses((status = 200, description = "CSS.", content_type = "text/css", body = String)))]
@@ -112,6 +130,8 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(index_page))
         .routes(routes!(session_page))
         .routes(routes!(script))
+        .routes(routes!(plots_script))
+        .routes(routes!(operator_script))
         .routes(routes!(style))
         .routes(routes!(docs_page))
         .routes(routes!(docs_script))

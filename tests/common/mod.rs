@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod ack_proxy;
+pub mod browser;
 pub mod docker;
 pub mod fleet;
 #[allow(dead_code)]

@@ -4,7 +4,9 @@
 //! comments) and/or `FACTORD_TOKENS` (comma-separated). They are required automatically when
 //! HTTP listens beyond loopback. With tokens in force every route but `GET /v1/health`, the web
 //! pages and the API's description (`/v1/openapi.json`, `/v1/docs`: not secret, like the pages'
-//! own code) needs `Authorization: Bearer <token>` (401 otherwise), and a session belongs to the
+//! own code) needs `Authorization: Bearer <token>` (401 otherwise), or on reads (GET and HEAD,
+//! not WebSocket upgrades) the web view's cookie set by `POST /v1/login` (see `login`): a
+//! cross-site form cannot change anything with it. A session belongs to the
 //! label of the token that created it: to any other caller it does not exist (404), nor is it
 //! listed or counted (see `service::caller`). Sessions created over an unauthenticated zenoh or
 //! before tokens were configured belong to nobody and are reachable with any valid token.
@@ -14,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
-use axum::http::{header, HeaderValue};
+use axum::http::{header, HeaderValue, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
@@ -98,9 +100,36 @@ impl Tokens {
     fn check(&self, header: Option<&HeaderValue>) -> Option<Arc<str>> {
         let value = header?.to_str().ok()?;
         let token = value.strip_prefix("Bearer ")?.trim();
+        self.label_of(token)
+    }
+
+    /// The label of `token`, when it is one of ours.
+    pub fn label_of(&self, token: &str) -> Option<Arc<str>> {
         self.by_token.get(token).cloned()
     }
+
+    /// The web view's cookie, on a read only: GET or HEAD, and not a WebSocket upgrade (whose
+    /// stream takes batches). A cookie is sent by the browser by itself; the methods that change
+    /// state need the bearer header, which a cross-site page cannot make it send.
+    fn check_cookie(&self, request: &Request) -> Option<Arc<str>> {
+        let read = matches!(*request.method(), Method::GET | Method::HEAD)
+            && !request.headers().contains_key(header::UPGRADE);
+        if !read {
+            return None;
+        }
+        request
+            .headers()
+            .get_all(header::COOKIE)
+            .iter()
+            .filter_map(|v| v.to_str().ok())
+            .flat_map(|v| v.split(';'))
+            .filter_map(|pair| pair.trim().strip_prefix(COOKIE)?.strip_prefix('='))
+            .find_map(|value| self.label_of(&super::login::unhex(value)?))
+    }
 }
+
+/// The web view's cookie (see `login`).
+pub const COOKIE: &str = "factord_token";
 
 fn unauthorized(message: &str) -> Response {
     let mut response = super::HttpError::from(
@@ -127,9 +156,14 @@ pub async fn require_token(
         || path == "/v1/openapi.json"
         || path == "/v1/docs"
         || path == "/"
+        || path == "/v1/login"
+        || path == "/v1/logout"
         || path.starts_with("/sessions/")
         || path.starts_with("/assets/");
-    let caller = match tokens.check(request.headers().get(header::AUTHORIZATION)) {
+    let principal = tokens
+        .check(request.headers().get(header::AUTHORIZATION))
+        .or_else(|| tokens.check_cookie(&request));
+    let caller = match principal {
         Some(label) => Caller::Principal(label),
         None if open => Caller::Anonymous,
         None => {
@@ -142,11 +176,17 @@ pub async fn require_token(
         }
     };
     request.extensions_mut().insert(caller);
+    request
+        .extensions_mut()
+        .insert(super::login::LoginTokens(Some(tokens)));
     next.run(request).await
 }
 
 /// Without tokens every HTTP caller is trusted (HTTP then listens on loopback only).
 pub async fn trust_everyone(mut request: Request, next: Next) -> Response {
     request.extensions_mut().insert(Caller::Trusted);
+    request
+        .extensions_mut()
+        .insert(super::login::LoginTokens(None));
     next.run(request).await
 }

@@ -8,6 +8,9 @@
 //!   bearer token, which a browser never attaches by itself, so any `Host` is accepted there
 //!   unless `http.allowed_hosts` is set. A request without `Host` (HTTP/1.0) is not a
 //!   browser's and passes.
+//! - Bearer tokens are never attached by a browser by itself; the web view's login cookie is,
+//!   but `auth` accepts it on reads only (GET and HEAD, not WebSocket upgrades), and SameSite=
+//!   Strict keeps it off cross-site requests altogether.
 //! - A request that changes state (any method but GET, HEAD and OPTIONS, and WebSocket upgrades,
 //!   which take batches) with an `Origin` must come from the server's own origin (`http://` or
 //!   `https://` + its `Host`) or one in `http.allowed_origins` (`forbidden_origin`, 403).
@@ -158,7 +161,7 @@ fn normalise_host(host: &str) -> String {
 fn takes_json(method: &Method, path: &str) -> bool {
     let segments: Vec<&str> = path.trim_end_matches('/').split('/').collect();
     match segments[..] {
-        ["", "v1", "sessions"] => *method == Method::POST,
+        ["", "v1", "sessions"] | ["", "v1", "login"] => *method == Method::POST,
         ["", "v1", "sessions", _, "batches" | "fusion"] => *method == Method::POST,
         ["", "v1", "sessions", _, "auto_optimize"] => *method == Method::PUT,
         _ => false,

@@ -30,7 +30,7 @@ pub(super) async fn run(
     command: Command,
     status: StatusCode,
 ) -> HttpResult {
-    let reply = service.execute_as(&caller.0, command).await?;
+    let reply = service.execute_recorded(&caller.0, command).await?;
     Ok((status, Json(reply)).into_response())
 }
 
@@ -340,6 +340,27 @@ pub(super) async fn graph(
         &service,
         &caller,
         Command::GetGraph { session },
+        StatusCode::OK,
+    )
+    .await
+}
+
+/// The session's history: a timeline of its solves (χ², solve time, update latency), its last
+/// events as streamed, rejected inputs and `last_error` (kept bounded in memory; the web view
+/// reads it on load).
+#[utoipa::path(get, path = "/v1/sessions/{session}/history", tag = "reads", params(SessionPath),
+    responses((status = 200,
+            description = "The history.",
+            body = crate::api::history::SessionHistory), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn history(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    run(
+        &service,
+        &caller,
+        Command::GetHistory { session },
         StatusCode::OK,
     )
     .await

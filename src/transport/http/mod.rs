@@ -8,7 +8,9 @@
 //! - `handlers`: one handler per REST route, each a [`crate::service::Command`] run as the caller;
 //! - `streams`: the event stream (SSE) and the WebSocket;
 //! - `openapi`: the OpenAPI document generated from the handlers, served at `/v1/openapi.json`;
-//! - `auth`: bearer tokens, and the caller each request carries;
+//! - `auth`: bearer tokens (or the web view's cookie, for reads), and the caller each request
+//!   carries;
+//! - `login`: the web view's login, which exchanges a token for that cookie;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
 //! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts.
 
@@ -19,6 +21,7 @@ pub mod forward;
 pub mod guard;
 mod handlers;
 pub mod listener;
+mod login;
 pub mod openapi;
 mod streams;
 
@@ -60,6 +63,9 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(websocket))
         .routes(routes!(graph))
         .routes(routes!(marginals))
+        .routes(routes!(history))
+        .routes(routes!(login::login))
+        .routes(routes!(login::logout))
         .routes(routes!(job))
         .routes(routes!(openapi::openapi_json))
         .merge(super::web::routes())

@@ -20,7 +20,7 @@
     try { body = await res.json(); } catch (_) { /* not JSON: the status line says enough */ }
     if (!res.ok) {
       const msg = body && body.error && body.error.message;
-      throw new Error(`${res.status} ${msg || res.statusText}`);
+      throw Object.assign(new Error(`${res.status} ${msg || res.statusText}`), { status: res.status });
     }
     return body;
   }
@@ -113,6 +113,9 @@
   }
   const SUP = { '-': '⁻', 0: '⁰', 1: '¹', 2: '²', 3: '³', 4: '⁴', 5: '⁵', 6: '⁶', 7: '⁷', 8: '⁸', 9: '⁹' };
   const decade = (k) => (k === 0 ? '1' : k === 1 ? '10' : '10' + String(k).replace(/./g, (c) => SUP[c]));
+  // Shared with plots.js and operator.js (loaded after this file, before the page starts).
+  const F = window.factord = { $, api, num, clock, el, getJSON, fmtCost, fmtInt, fmtMs, solveSeconds, iterationLog,
+    iterationCount, fitCanvas, perFrame, niceStep, decade, setStatus };
 
   // ---------------------------------------------------------------- index page
   function startIndex() {
@@ -145,15 +148,19 @@
         else setStatus(status, `updated ${clock()}`);
       } catch (e) {
         setStatus(status, `cannot list sessions: ${e.message} (retrying)`, true);
+        if (e.status === 401) F.showLogin();
       }
     }
     // Chained rather than setInterval so a slow server never gets overlapping refreshes.
     (async function loop() { await refresh(); setTimeout(loop, 2000); })();
+    F.startHealth();
   }
 
   // ---------------------------------------------------------------- trajectory
   function trajectoryView(canvas) {
-    const show = { initial: $('show-initial'), loops: $('show-loops'), points: $('show-points') };
+    const show = { initial: $('show-initial'), loops: $('show-loops'), points: $('show-points'), residuals: $('show-residuals') };
+    const threshold = $('residual-threshold'), ellipseScale = $('ellipse-scale');
+    let ellipses = new Map(), onPick = () => {};
     const projection = $('projection');
     const ORBIT = { yaw: -0.6, pitch: 0.9 };
     // pivot: the 3D point the projection is centred on (and orbits about); (u0, v0): the projected
@@ -243,7 +250,8 @@
         }
       }
       if (show.initial.checked) polyline('initial', '#e39a4c', 1.5);
-      if (show.loops.checked) {
+      if (show.residuals.checked) drawResiduals(ctx, X, Y);
+      else if (show.loops.checked) {
         ctx.beginPath();
         for (const e of graph.edges) {
           const i = index.get(e[0]), j = index.get(e[1]);
@@ -266,10 +274,63 @@
         ctx.beginPath(); ctx.arc(X(p.position), Y(p.position), r, 0, 2 * Math.PI); ctx.fill();
         if (r > 2) ctx.stroke();
       }
+      drawEllipses(ctx, X, Y, s);
       if (!graph.poses.length && !graph.points.length) centredText(ctx, w, h, 'no variables yet');
       else { scaleBar(ctx, h, s); axisTriad(ctx, w, h, a, b); }
       document.body.dataset.trajectoryPoints = String(posesDrawn);
       document.body.dataset.pointsDrawn = String(pointsDrawn);
+    }
+
+    // Every edge, grey below the χ² threshold and red above it (outliers), wider the worse.
+    function drawResiduals(ctx, X, Y) {
+      const limit = Number(threshold.value), chi = graph.edge_chi2 || [];
+      let over = 0;
+      for (const bad of [false, true]) {
+        ctx.beginPath();
+        graph.edges.forEach((e, k) => {
+          const c = chi[k], i = index.get(e[0]), j = index.get(e[1]);
+          if ((num(c) && c > limit) !== bad || i === undefined || j === undefined) return;
+          const p = graph.poses[i].position, q = graph.poses[j].position;
+          if (!valid(p) || !valid(q)) return;
+          if (bad) over++;
+          ctx.moveTo(X(p), Y(p)); ctx.lineTo(X(q), Y(q));
+        });
+        ctx.strokeStyle = bad ? 'rgba(214, 39, 40, 0.9)' : 'rgba(120, 130, 140, 0.35)'; ctx.lineWidth = bad ? 2 : 1; ctx.stroke();
+      }
+      document.body.dataset.edgesOverThreshold = String(over);
+    }
+
+    // 95% ellipses (2.45σ in 2D) of the world x-y covariance of the selected variables.
+    function drawEllipses(ctx, X, Y, s) {
+      let drawn = 0;
+      const k = 2.4477 * Number(ellipseScale.value || 1);
+      for (const [key, c] of ellipses) {
+        const i = index.get(key), p = i === undefined ? null : graph.poses[i].position;
+        if (!valid(p)) continue;
+        const [a, b, d] = [c[0][0], c[0][1], c[1][1]], m = (a + d) / 2, r = Math.sqrt(((a - d) / 2) ** 2 + b * b);
+        const r1 = Math.sqrt(Math.max(m + r, 0)) * k * s, r2 = Math.sqrt(Math.max(m - r, 0)) * k * s;
+        ctx.beginPath(); ctx.ellipse(X(p), Y(p), Math.max(r1, 1), Math.max(r2, 1), -0.5 * Math.atan2(2 * b, a - d), 0, 2 * Math.PI);
+        ctx.fillStyle = 'rgba(42, 157, 143, 0.18)'; ctx.fill();
+        ctx.strokeStyle = '#2a9d8f'; ctx.lineWidth = 1.5; ctx.stroke();
+        drawn++;
+      }
+      document.body.dataset.ellipsesDrawn = String(drawn);
+    }
+
+    // The pose nearest a click (within 10 px), for the ellipses.
+    function pick(e) {
+      if (!graph || is3d()) return;
+      const rect = canvas.getBoundingClientRect(), w = rect.width, h = rect.height;
+      const [a, b] = axes(), pv = view.pivot;
+      let best = null, bestD = 10;
+      for (const p of graph.poses) {
+        if (!valid(p.position)) continue;
+        const x = w / 2 + (a[0] * (p.position[0] - pv[0]) + a[1] * (p.position[1] - pv[1]) - view.u0) * view.scale;
+        const y = h / 2 - (b[0] * (p.position[0] - pv[0]) + b[1] * (p.position[1] - pv[1]) - view.v0) * view.scale;
+        const dist = Math.hypot(x - (e.clientX - rect.left), y - (e.clientY - rect.top));
+        if (dist < bestD) { bestD = dist; best = p.key; }
+      }
+      if (best !== null) onPick(best);
     }
 
     function scaleBar(ctx, h, s) {
@@ -308,7 +369,7 @@
     let drag = null;
     canvas.addEventListener('contextmenu', (e) => e.preventDefault());
     canvas.addEventListener('pointerdown', (e) => {
-      drag = { x: e.clientX, y: e.clientY, rotate: mode() === 'orbit' && !e.shiftKey && e.button === 0 };
+      drag = { x0: e.clientX, y0: e.clientY, x: e.clientX, y: e.clientY, rotate: mode() === 'orbit' && !e.shiftKey && e.button === 0 };
       canvas.setPointerCapture(e.pointerId);
       canvas.classList.add('dragging');
     });
@@ -326,7 +387,10 @@
       schedule();
     });
     const endDrag = () => { drag = null; canvas.classList.remove('dragging'); };
-    canvas.addEventListener('pointerup', endDrag);
+    canvas.addEventListener('pointerup', (e) => {
+      if (drag && Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) < 4) pick(e); // a click, not a drag
+      endDrag();
+    });
     canvas.addEventListener('pointercancel', endDrag);
 
     function reset() {
@@ -338,6 +402,8 @@
     $('reset-view').addEventListener('click', reset);
     projection.addEventListener('change', reset);
     for (const box of Object.values(show)) box.addEventListener('change', () => { bounds = null; schedule(); });
+    threshold.addEventListener('input', schedule);
+    ellipseScale.addEventListener('change', schedule);
     new ResizeObserver(schedule).observe(canvas);
 
     return {
@@ -359,99 +425,14 @@
           (graph.edges.length ? ` · ${graph.edges.length} edges (${loops} loop closures)` : '') + (num(g.sequence) ? ` · sequence ${g.sequence}` : '');
         schedule();
       },
+      setEllipses(map) { ellipses = map; schedule(); },
+      onPick(fn) { onPick = fn; },
+      poses: () => (graph ? graph.poses.map((p) => p.key) : []),
+      is3d,
       setError(message) {
         if (graph) $('graph-info').textContent = `graph refresh failed: ${message}`;
         else { error = `graph unavailable: ${message}`; schedule(); }
       },
-    };
-  }
-
-  // ---------------------------------------------------------------- convergence plot
-  function convergencePlot(canvas) {
-    const MAX = 2000, COLORS = ['#1f3a93', '#2a9d8f'];
-    let pts = [], x = 0, band = 0, lastSolve;
-    const seen = new Set(); // solves with live iterations, so their summary doesn't add them twice
-    const schedule = perFrame(draw);
-    new ResizeObserver(schedule).observe(canvas);
-
-    function add(report, solve) {
-      if (solve !== lastSolve) { band++; lastSolve = solve; }
-      pts.push({ x: ++x, chi2: report.chi2, trial: report.trial_chi2, ok: report.accepted !== false, band });
-      if (pts.length > MAX) pts = pts.slice(pts.length - MAX);
-    }
-
-    function draw() {
-      const { ctx, w, h } = fitCanvas(canvas);
-      const L = 58, R = 12, T = 10, B = 34, pw = w - L - R, ph = h - T - B;
-      ctx.fillStyle = '#444'; ctx.textAlign = 'center'; ctx.textBaseline = 'bottom';
-      ctx.fillText('iteration', L + pw / 2, h - 2);
-      ctx.save(); ctx.translate(12, T + ph / 2); ctx.rotate(-Math.PI / 2); ctx.textBaseline = 'middle';
-      ctx.fillText('cost (χ²)', 0, 0); ctx.restore();
-      ctx.strokeStyle = '#c4c9d0'; ctx.lineWidth = 1; ctx.strokeRect(L + 0.5, T + 0.5, pw, ph);
-      document.body.dataset.plotIterations = String(pts.length);
-      if (!pts.length) { ctx.fillStyle = '#66707c'; ctx.textBaseline = 'middle'; ctx.fillText('no iterations yet', L + pw / 2, T + ph / 2); return; }
-
-      const vals = [];
-      for (const p of pts) { vals.push(p.chi2); if (!p.ok) vals.push(p.trial); }
-      const pos = vals.filter((v) => num(v) && v > 0);
-      let lo = pos.length ? Math.floor(Math.log10(Math.min(...pos))) : -1;
-      let hi = pos.length ? Math.ceil(Math.log10(Math.max(...pos))) : 1;
-      if (hi <= lo) hi = lo + 1;
-      const x0 = pts[0].x, x1 = Math.max(pts[pts.length - 1].x, x0 + 1);
-      const px = (xv) => L + 6 + ((xv - x0) / (x1 - x0)) * (pw - 12); // inset so end markers aren't clipped
-      // Non-positive cost sits on the floor, a non-finite trial on the ceiling.
-      const py = (v) => (num(v) && v > 0 ? T + ph - ((Math.log10(v) - lo) / (hi - lo)) * ph : v > 0 ? T : T + ph);
-
-      ctx.textBaseline = 'middle'; ctx.textAlign = 'right';
-      const every = Math.max(1, Math.ceil((hi - lo) / (ph / 18)));
-      for (let k = lo; k <= hi; k++) {
-        const y = Math.round(py(Math.pow(10, k))) + 0.5;
-        ctx.strokeStyle = '#d5d9de'; ctx.beginPath(); ctx.moveTo(L, y); ctx.lineTo(L + pw, y); ctx.stroke();
-        if ((k - lo) % every === 0) { ctx.fillStyle = '#444'; ctx.fillText(decade(k), L - 6, y); }
-        if (k < hi && hi - lo <= 6) { // minor 2..9 lines while they stay readable
-          ctx.strokeStyle = '#f0f2f4'; ctx.beginPath();
-          for (let m = 2; m <= 9; m++) { const ym = Math.round(py(m * Math.pow(10, k))) + 0.5; ctx.moveTo(L, ym); ctx.lineTo(L + pw, ym); }
-          ctx.stroke();
-        }
-      }
-      ctx.textAlign = 'center'; ctx.textBaseline = 'top'; ctx.fillStyle = '#444';
-      const step = Math.max(1, niceStep((x1 - x0) / Math.max(2, pw / 80)));
-      for (let t = Math.ceil(x0 / step) * step; t <= x1; t += step) {
-        const xx = Math.round(px(t)) + 0.5;
-        ctx.strokeStyle = '#eceef1'; ctx.beginPath(); ctx.moveTo(xx, T); ctx.lineTo(xx, T + ph); ctx.stroke();
-        ctx.fillText(String(t), xx, T + ph + 4);
-      }
-
-      ctx.save();
-      ctx.beginPath(); ctx.rect(L, T - 4, pw + 4, ph + 8); ctx.clip();
-      ctx.lineWidth = 1.5;
-      for (let i = 0; i < pts.length;) { // one polyline per solve
-        let j = i;
-        ctx.beginPath(); ctx.strokeStyle = COLORS[pts[i].band % 2];
-        for (; j < pts.length && pts[j].band === pts[i].band; j++) {
-          if (j === i) ctx.moveTo(px(pts[j].x), py(pts[j].chi2)); else ctx.lineTo(px(pts[j].x), py(pts[j].chi2));
-        }
-        ctx.stroke();
-        i = j;
-      }
-      const r = pts.length > 300 ? 1.6 : 2.6;
-      for (const p of pts) {
-        ctx.beginPath(); ctx.arc(px(p.x), py(p.ok ? p.chi2 : p.trial), p.ok ? r : r + 1, 0, 2 * Math.PI);
-        if (p.ok) { ctx.fillStyle = COLORS[p.band % 2]; ctx.fill(); } else { ctx.strokeStyle = '#d0312d'; ctx.lineWidth = 1.3; ctx.stroke(); }
-      }
-      ctx.restore();
-    }
-
-    return {
-      addIteration(d) { seen.add(d.solve); add(d, d.solve); schedule(); },
-      // A summary for a solve whose iterations we missed (page opened mid-solve, lagged stream) fills them in.
-      addSummary(solve, summary) {
-        if (seen.has(solve)) return;
-        seen.add(solve);
-        for (const r of iterationLog(summary)) add(r, solve);
-        schedule();
-      },
-      schedule,
     };
   }
 
@@ -462,8 +443,10 @@
     $('name').textContent = id;
     const status = $('status'), logList = $('log');
     const traj = trajectoryView($('trajectory'));
-    const plot = convergencePlot($('convergence'));
+    const plot = F.convergencePlot($('convergence'));
+    const timeline = F.timelinePlot($('timeline'));
     plot.schedule();
+    F.startOperator(id, traj);
 
     let statsBusy = false, seeded = false;
     async function refreshStats() {
@@ -490,6 +473,7 @@
         setStatus(status, `updated ${clock()}`);
       } catch (e) {
         setStatus(status, `cannot load session stats: ${e.message} (retrying)`, true);
+        if (e.status === 401) F.showLogin();
       } finally {
         statsBusy = false;
       }
@@ -511,38 +495,60 @@
     }
     requestGraph();
 
-    function log(kind, text) {
-      logList.prepend(el('li', { className: kind }, el('time', { textContent: clock() }), text));
-      while (logList.children.length > 20) logList.lastChild.remove();
+    // Newest first; `at`: when the server published it (history), else now.
+    function log(kind, text, at) {
+      const time = at ? new Date(at).toLocaleTimeString() : clock();
+      logList.prepend(el('li', { className: kind }, el('time', { textContent: time }), text));
+      while (logList.children.length > 50) logList.lastChild.remove();
+      document.body.dataset.logEntries = String(logList.children.length);
     }
     const events = new EventSource(api(id, '/events'));
     const conn = $('conn');
     events.onopen = () => { document.body.dataset.eventsConnected = 'true'; conn.textContent = '(live)'; };
     events.onerror = () => { conn.textContent = '(disconnected, retrying…)'; };
-    const on = (name, fn) => events.addEventListener(name, (ev) => {
-      let d;
-      try { d = JSON.parse(ev.data); } catch (_) { d = { raw: ev.data }; }
-      fn(d || {});
-    });
+    // The same handlers take the live stream and, on load, the server's history of it; an
+    // event in both (published while the page loaded) is shown once.
+    const shown = new Set(), handlers = {};
+    const on = (name, fn) => {
+      handlers[name] = (d, at) => {
+        const key = name + JSON.stringify(d);
+        if (name !== 'stats' && name !== 'poses') {
+          if (shown.has(key)) return;
+          if (shown.size > 2000) shown.clear(); // overlap is only possible at load
+          shown.add(key);
+        }
+        fn(d, at);
+      };
+      events.addEventListener(name, (ev) => {
+        let d;
+        try { d = JSON.parse(ev.data); } catch (_) { d = { raw: ev.data }; }
+        handlers[name](d || {});
+      });
+    };
     on('stats', (d) => plot.addIteration(d));
     on('poses', requestGraph);
     on('window', requestGraph); // sliding_window sessions announce their keyframes this way
-    on('summary', (d) => {
+    on('summary', (d, at) => {
       const s = d.summary || {};
       plot.addSummary(d.solve, s);
       const reason = s.termination && s.termination.reason ? `, ${s.termination.reason}` : '';
       log('summary', `solve ${fmtInt(d.solve)}: χ² ${fmtCost(s.initial_chi2)} → ${fmtCost(s.final_chi2)}, ` +
-        `${fmtInt(iterationCount(s))} iterations, ${fmtMs(solveSeconds(s))}, ${s.converged ? 'converged' : 'not converged'}${reason}`);
+        `${fmtInt(iterationCount(s))} iterations, ${fmtMs(solveSeconds(s))}, ${s.converged ? 'converged' : 'not converged'}${reason}`, at);
       refreshStats();
+      history.refresh();
     });
-    on('acks', (d) => log('acks', `batch ${fmtInt(d.sequence)} accepted` + (Array.isArray(d.factor_ids) ? ` (${d.factor_ids.length} factors)` : '')));
-    on('errors', (d) => {
-      const e = d.error || {};
-      log('errors', (num(d.sequence) ? `sequence ${d.sequence}: ` : '') + (e.code ? `${e.code}: ` : '') + (e.message || d.raw || 'error'));
+    on('acks', (d, at) => log('acks', `batch ${fmtInt(d.sequence)} accepted` + (Array.isArray(d.factor_ids) ? ` (${d.factor_ids.length} factors)` : ''), at));
+    on('errors', (d, at) => {
+      log('errors', F.describeError(d), at);
+      history.refresh();
     });
+    const history = F.sessionHistory(id, timeline, handlers);
     on('lagged', (d) => { log('lagged', `fell behind: missed ${fmtInt(d.skipped)} events`); requestGraph(); });
   }
 
-  if (document.body.dataset.page === 'session') startSession();
-  else startIndex();
+  // plots.js and operator.js add to `factord` before the page is parsed to its end.
+  document.addEventListener('DOMContentLoaded', () => {
+    if (document.body.dataset.page === 'session') startSession();
+    else startIndex();
+  });
 })();

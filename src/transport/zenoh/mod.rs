@@ -175,7 +175,7 @@ pub(super) async fn answer_rpc(c: &Context, query: &Query) {
     let result = match oversized(query.payload(), c.max_payload) {
         Some(refusal) => Err(refusal),
         None => match crate::service::parse_command(&payload(query), max_items) {
-            Ok(command) => c.service.execute_as(&c.caller, command).await,
+            Ok(command) => c.service.execute_recorded(&c.caller, command).await,
             Err(e) => Err(e),
         },
     };

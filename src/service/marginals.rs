@@ -1,0 +1,43 @@
+//! Marginal covariances for a request: computed off the async threads, and asked again after a
+//! running solve (which holds the problem) finishes.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::Service;
+use crate::api::wire::{Marginals, MarginalsQuery};
+use crate::api::ServiceError;
+use crate::session::Session;
+
+impl Service {
+    /// Marginals off the async threads; while a solve holds the problem, asks again after it
+    /// (polling: a queued solve may find nothing to do and finish without a trace).
+    pub(super) async fn marginals(
+        &self,
+        session: Arc<Session>,
+        query: MarginalsQuery,
+    ) -> Result<Marginals, ServiceError> {
+        let deadline = Instant::now() + self.wait_timeout();
+        let query = Arc::new(query);
+        loop {
+            let (s, q) = (Arc::clone(&session), Arc::clone(&query));
+            let answer = tokio::task::spawn_blocking(move || s.marginals(&q))
+                .await
+                .map_err(|e| ServiceError::internal(format!("marginals failed: {e}")))??;
+            if let Some(marginals) = answer {
+                return Ok(marginals);
+            }
+            if Instant::now() >= deadline {
+                return Err(ServiceError::unavailable(
+                    "solving",
+                    format!(
+                        "session `{}` is being solved; ask again when the solve finishes",
+                        session.name
+                    ),
+                    1,
+                ));
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+}
