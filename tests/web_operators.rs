@@ -211,6 +211,18 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
             "/v1/sessions/robot/estimate?format=ply"
         ])
     );
+    // …and they download with the login cookie alone (a synchronous XHR, as a click would).
+    let tum = browser
+        .script("const x = new XMLHttpRequest(); x.open('GET', document.getElementById('export-tum').getAttribute('href'), false); x.send(); return [x.status, x.responseText];")
+        .await;
+    assert_eq!(tum[0], 200, "{tum}");
+    assert!(
+        tum[1]
+            .as_str()
+            .unwrap()
+            .starts_with("# timestamp tx ty tz qx qy qz qw\n"),
+        "{tum}"
+    );
 
     // Edges by χ²: the corrupted loop closure stands out at the default threshold; nothing
     // is above an absurd one.
