@@ -13,6 +13,7 @@ pub mod export;
 pub mod factor_schema;
 pub mod fusion;
 mod limits;
+pub mod ros2;
 pub mod wire;
 pub mod wire_list;
 

@@ -24,6 +24,15 @@ impl Delivery {
             decoded: Err(error),
         }
     }
+
+    /// A message a transport decoded itself (e.g. a ROS 2 message translated into a batch),
+    /// or its refusal.
+    pub fn decoded(session: &str, decoded: Result<Command, ServiceError>) -> Self {
+        Self {
+            session: session.into(),
+            decoded,
+        }
+    }
 }
 
 impl Service {
