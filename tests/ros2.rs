@@ -31,18 +31,11 @@ fn python() -> Option<PathBuf> {
     }
 }
 
-#[test]
-fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
-    let Some(python) = python() else { return };
-    let server = TestServer::start(&[]);
-    let out = Command::new(&python)
-        .args([
-            "tests/ros2/robot_odometry.py",
-            "--http",
-            &server.http,
-            "--zenoh",
-            &server.zenoh,
-        ])
+fn run_script(python: &std::path::Path, server: &TestServer, script: &str, extra: &[&str]) {
+    let out = Command::new(python)
+        .arg(script)
+        .args(["--http", &server.http, "--zenoh", &server.zenoh])
+        .args(extra)
         .current_dir(repo())
         .output()
         .expect("python runs");
@@ -50,9 +43,39 @@ fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
     println!("{stdout}");
     assert!(
         out.status.success(),
-        "the ROS 2 robot failed:\n{stdout}\n{}\n--- factord:\n{}",
+        "{script} failed:\n{stdout}\n{}\n--- factord:\n{}",
         String::from_utf8_lossy(&out.stderr),
         server.stderr()
     );
     server.assert_no_panic();
+}
+
+#[test]
+fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
+}
+
+/// A ROS 2 bag (MCAP, written by rosbags from sphere2500's first 300 poses) replayed into a
+/// session as `ros2 bag play` over rmw_zenoh would: the recorded CDR bytes, unchanged.
+#[test]
+fn a_ros2_bag_replayed_over_rmw_zenoh_becomes_the_sessions_path() {
+    let Some(python) = python() else { return };
+    let data = std::env::var_os("FACTORD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join("../shared/data"));
+    let g2o = data.join("3d/sesync/sphere2500.g2o");
+    if !g2o.exists() {
+        common::skip_or_fail::<()>(&format!("no dataset at {}", g2o.display()));
+        return;
+    }
+    let server = TestServer::start(&[]);
+    let g2o = g2o.to_str().expect("a utf-8 path");
+    run_script(
+        &python,
+        &server,
+        "tests/ros2/bag_replay.py",
+        &["--g2o", g2o],
+    );
 }

@@ -70,6 +70,15 @@ impl Keyframer {
         }
     }
 
+    /// Continues a session that already holds keys up to `max_key` (after a restart of the
+    /// service): new keyframes take the keys after it. What odometry said of the old keyframes
+    /// is gone, so the first new one starts a segment of its own, weakly anchored at its
+    /// odometry pose (never fixed: the old segment keeps the gauge).
+    pub fn resume_after(&mut self, max_key: Key) {
+        self.next_key = max_key + 1;
+        self.expects_priors = true;
+    }
+
     /// The batch a new keyframe makes, or `None` while the robot has not moved enough. The
     /// keyframer's state changes only when a batch is returned: the caller must apply it (a
     /// refused batch leaves a gap its next keyframe's factor would reach across).
@@ -321,6 +330,15 @@ mod tests {
         assert_eq!(k.on_prior(&prior(14)).unwrap().factors[0].keys, [0]);
         assert_eq!(k.on_prior(&prior(16)).unwrap().factors[0].keys, [1]);
         assert_eq!(k.on_prior(&prior(99)).unwrap().factors[0].keys, [1]);
+    }
+
+    #[test]
+    fn a_resumed_binding_starts_after_the_existing_keys_unfixed() {
+        let mut k = Keyframer::new(&binding(false));
+        k.resume_after(41);
+        let first = k.on_odometry(&odometry(0.0, 0.0, 1)).unwrap().unwrap();
+        assert_eq!(first.variables[0].key, 42);
+        assert!(!first.variables[0].fixed && first.factors[0].factor_type == "prior_se3");
     }
 
     #[test]

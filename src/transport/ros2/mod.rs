@@ -143,11 +143,15 @@ async fn run(
         binding.domain_id
     );
 
+    let mut keyframer = keyframes::Keyframer::new(&binding);
+    if let Some(max_key) = existing_max_key(&service, &caller, &session.name).await {
+        keyframer.resume_after(max_key);
+    }
     let inputs = inputs::Inputs {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
         session: session.name.clone(),
-        keyframer: keyframes::Keyframer::new(&binding),
+        keyframer,
         odometry,
         priors,
         refused: Arc::default(),
@@ -167,6 +171,18 @@ async fn run(
     inputs.abort();
     drop(tokens);
     Ok(())
+}
+
+/// The highest key of a session that already has variables (recovered after a restart).
+async fn existing_max_key(service: &Service, caller: &Caller, session: &str) -> Option<u64> {
+    let query = crate::api::wire::EstimateQuery::default();
+    let command = crate::service::Command::get_estimate(session.into(), query);
+    match service.execute_as(caller, command).await {
+        Ok(crate::service::Reply::Estimate(estimate)) => {
+            estimate.variables.iter().map(|v| v.key).max()
+        }
+        _ => None,
+    }
 }
 
 async fn declare_token(zenoh: &zenoh::Session, key: String) -> zenoh::Result<LivelinessToken> {
