@@ -28,6 +28,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
             options: None,
             auto_optimize: Default::default(),
             factor_types: vec![],
+            ros2: None,
         }))
         .await
         .unwrap();
@@ -212,6 +213,7 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
             options: None,
             auto_optimize: Default::default(),
             factor_types: vec![],
+            ros2: None,
         }),
     )
     .await;

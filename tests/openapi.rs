@@ -154,6 +154,7 @@ async fn the_document_and_docs_page_are_served_without_a_token() {
 const SCHEMA_FILES: &[(&str, &str, &str)] = &[
     ("Health", "health.schema.json", ""),
     ("CreateSession", "create-session.schema.json", ""),
+    ("Ros2Binding", "ros2-binding.schema.json", ""),
     ("SessionInfo", "session-info.schema.json", ""),
     ("SessionList", "session-list.schema.json", ""),
     ("SessionStats", "session-stats.schema.json", ""),

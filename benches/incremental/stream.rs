@@ -60,6 +60,7 @@ fn main() {
                 options: None,
                 auto_optimize: Default::default(),
                 factor_types: vec![],
+                ros2: None,
             }))
             .await
             .expect("session");

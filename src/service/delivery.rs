@@ -29,6 +29,16 @@ impl Delivery {
             undecoded_origin: None,
         }
     }
+
+    /// A message a transport decoded itself (e.g. a ROS 2 message translated into a batch),
+    /// or its refusal.
+    pub fn decoded(session: &str, decoded: Result<Command, ServiceError>) -> Self {
+        Self {
+            session: session.into(),
+            decoded,
+            undecoded_origin: None,
+        }
+    }
 }
 
 /// `producer` and `producer_seq` of a batch payload that is JSON but not a valid batch (an

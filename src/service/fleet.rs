@@ -443,6 +443,7 @@ mod tests {
             kind: "pose_graph_2d".into(),
             options: None,
             auto_optimize: Default::default(),
+            ros2: None,
             factor_types: vec![],
         };
         a.execute(Command::CreateSession(request.clone()))

@@ -101,6 +101,9 @@ pub struct Session {
     corruption: std::sync::OnceLock<String>,
     /// The label of the bearer token that created it (HTTP with tokens), else nobody.
     owner: std::sync::OnceLock<Arc<str>>,
+    /// The ROS 2 topics it is bound to (set once, at creation or recovery); the transport
+    /// layer runs the binding.
+    ros2: std::sync::OnceLock<crate::api::ros2::Ros2Binding>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     limits: crate::api::Limits,
@@ -133,6 +136,7 @@ impl Session {
             moved: AtomicBool::new(false),
             corruption: std::sync::OnceLock::new(),
             owner: std::sync::OnceLock::new(),
+            ros2: std::sync::OnceLock::new(),
             runtime,
             pool,
             limits,
@@ -152,6 +156,15 @@ impl Session {
 
     pub fn owner(&self) -> Option<&Arc<str>> {
         self.owner.get()
+    }
+
+    /// Binds the session to ROS 2 topics (once, at creation or recovery).
+    pub fn set_ros2_binding(&self, binding: crate::api::ros2::Ros2Binding) {
+        let _ = self.ros2.set(binding);
+    }
+
+    pub fn ros2_binding(&self) -> Option<&crate::api::ros2::Ros2Binding> {
+        self.ros2.get()
     }
 
     /// Whether a caller holding the token labelled `principal` may see this session: its

@@ -3,5 +3,6 @@
 
 pub mod fusion_client;
 pub mod http;
+mod ros2;
 mod web;
 pub mod zenoh;

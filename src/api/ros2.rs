@@ -1,0 +1,161 @@
+//! A session's ROS 2 binding, as given in its creation request (`"ros2": {…}`): which topics of
+//! robots that speak rmw_zenoh feed it, how odometry becomes keyframes, and where the optimised
+//! trajectory goes. The transport layer (`transport::ros2`) runs it; this is only its wire form
+//! and validation.
+
+use serde::{Deserialize, Serialize};
+
+use super::ServiceError;
+
+/// The ROS 2 topics a session reads and writes over rmw_zenoh. Topic names are ROS names
+/// (`/odom`, `robot1/odom`); an empty or absent output topic is not published.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Ros2Binding {
+    /// `ROS_DOMAIN_ID` of the robots (the first component of every key expression).
+    #[serde(default)]
+    pub domain_id: u32,
+    /// The node factord appears as in `ros2 node list`; `factord_<session>` when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub node_name: Option<String>,
+    /// `nav_msgs/msg/Odometry`: keyframes and the relative-pose factors between them.
+    pub odometry_topic: String,
+    /// `geometry_msgs/msg/PoseWithCovarianceStamped`: absolute priors (GNSS, map matching) on
+    /// the keyframe nearest in time.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior_topic: Option<String>,
+    /// `nav_msgs/msg/Path`: the optimised keyframe trajectory after each solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path_topic: Option<String>,
+    /// `geometry_msgs/msg/PoseWithCovarianceStamped`: the newest keyframe's optimised pose and
+    /// marginal covariance after each solve.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_topic: Option<String>,
+    /// `header.frame_id` of what is published (the frame the trajectory is optimised in).
+    #[serde(default = "default_map_frame")]
+    pub map_frame: String,
+    /// A new keyframe when the robot has moved this far (metres) since the last one…
+    #[serde(default = "default_keyframe_distance")]
+    pub keyframe_distance: f64,
+    /// …or turned this much (radians).
+    #[serde(default = "default_keyframe_angle")]
+    pub keyframe_angle: f64,
+}
+
+fn default_map_frame() -> String {
+    "map".into()
+}
+
+fn default_keyframe_distance() -> f64 {
+    0.5
+}
+
+fn default_keyframe_angle() -> f64 {
+    // 15°: typical of lidar/visual keyframing.
+    0.2618
+}
+
+impl Ros2Binding {
+    /// The node name, defaulted from the session's.
+    pub fn node_name(&self, session: &str) -> String {
+        self.node_name
+            .clone()
+            .unwrap_or_else(|| format!("factord_{}", session.replace('-', "_")))
+    }
+
+    /// 400 `invalid_value` at the offending field (`ros2.<field>`).
+    pub fn validate(&self) -> Result<(), ServiceError> {
+        let invalid = |field: &str, message: String| {
+            ServiceError::bad_request("invalid_value", format!("ros2.{field}"), message)
+        };
+        // rmw_zenoh maps domains onto key expressions; ROS itself allows 0–232.
+        if self.domain_id > 232 {
+            return Err(invalid("domain_id", "ROS domain ids are 0 to 232".into()));
+        }
+        let topics = [
+            ("odometry_topic", Some(&self.odometry_topic)),
+            ("prior_topic", self.prior_topic.as_ref()),
+            ("path_topic", self.path_topic.as_ref()),
+            ("pose_topic", self.pose_topic.as_ref()),
+        ];
+        for (field, topic) in topics {
+            if let Some(topic) = topic {
+                if !valid_ros_name(topic) {
+                    return Err(invalid(
+                        field,
+                        format!("`{topic}` is not a ROS topic name ([A-Za-z0-9_/], no `//`)"),
+                    ));
+                }
+            }
+        }
+        if let Some(node) = &self.node_name {
+            if node.is_empty() || !node.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+                return Err(invalid(
+                    "node_name",
+                    format!("`{node}` is not a ROS node name"),
+                ));
+            }
+        }
+        if self.map_frame.is_empty() {
+            return Err(invalid("map_frame", "a frame id is required".into()));
+        }
+        for (field, value) in [
+            ("keyframe_distance", self.keyframe_distance),
+            ("keyframe_angle", self.keyframe_angle),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(invalid(field, format!("{value} is not a finite value ≥ 0")));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A ROS topic name as rmw_zenoh can carry it in a key expression: segments of
+/// `[A-Za-z0-9_]` separated by single slashes (a leading `/` allowed, no `~` or substitutions).
+fn valid_ros_name(name: &str) -> bool {
+    let name = name.strip_prefix('/').unwrap_or(name);
+    !name.is_empty()
+        && name.split('/').all(|segment| {
+            !segment.is_empty()
+                && segment
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_')
+                && !segment.starts_with(|c: char| c.is_ascii_digit())
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn binding(json: &str) -> Ros2Binding {
+        serde_json::from_str(json).expect("a binding")
+    }
+
+    #[test]
+    fn defaults_fill_what_the_request_leaves_out() {
+        let b = binding(r#"{"odometry_topic": "/odom"}"#);
+        assert_eq!(b.domain_id, 0);
+        assert_eq!(b.map_frame, "map");
+        assert_eq!(b.node_name("robot-1"), "factord_robot_1");
+        assert!(b.validate().is_ok());
+    }
+
+    #[test]
+    fn topic_names_that_cannot_be_key_expressions_are_refused() {
+        for bad in ["", "/", "a//b", "odom*", "/1st", "a b"] {
+            let b = Ros2Binding {
+                odometry_topic: bad.into(),
+                ..binding(r#"{"odometry_topic": "/odom"}"#)
+            };
+            let e = b.validate().expect_err(bad);
+            assert_eq!(
+                e.body.field.as_deref(),
+                Some("ros2.odometry_topic"),
+                "{bad}"
+            );
+        }
+        assert!(valid_ros_name("robot1/odom"));
+    }
+}

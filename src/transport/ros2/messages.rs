@@ -1,0 +1,229 @@
+//! The ROS 2 messages the binding reads and writes, as serde structs in the field order of their
+//! `.msg` definitions (CDR is that order, nothing else), with the names and type hashes rmw_zenoh
+//! puts in key expressions.
+//!
+//! Type hashes are the RIHS01 hashes of the Jazzy definitions (the same in Kilted and Rolling:
+//! these messages have not changed since hashes were introduced in Iron). Source: computed as
+//! rosidl does by `rosbags` 0.11.9 (`get_typestore(Stores.ROS2_JAZZY).hash_rihs01(name)`) and
+//! checked against the hashes in rosidl-generated type-support sources (`nav_msgs` and
+//! `geometry_msgs` `*__type_support.c`, `TYPE_HASH`).
+
+use serde::de::{Error as _, SeqAccess, Visitor};
+use serde::ser::SerializeTuple;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+/// A ROS 2 message type as rmw_zenoh names it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RosType {
+    /// The ROS name, `nav_msgs/msg/Odometry`.
+    pub name: &'static str,
+    /// The DDS-mangled name rmw_zenoh puts in key expressions, `nav_msgs::msg::dds_::Odometry_`.
+    pub dds_name: &'static str,
+    /// `RIHS01_<sha256 of the type description>`.
+    pub hash: &'static str,
+}
+
+pub const ODOMETRY: RosType = RosType {
+    name: "nav_msgs/msg/Odometry",
+    dds_name: "nav_msgs::msg::dds_::Odometry_",
+    hash: "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0",
+};
+
+pub const POSE_WITH_COVARIANCE_STAMPED: RosType = RosType {
+    name: "geometry_msgs/msg/PoseWithCovarianceStamped",
+    dds_name: "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_",
+    hash: "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e",
+};
+
+pub const PATH: RosType = RosType {
+    name: "nav_msgs/msg/Path",
+    dds_name: "nav_msgs::msg::dds_::Path_",
+    hash: "RIHS01_1957a5bb3cee5da65c4e52e52b65a93df227efce4c20f8458b36e73066ca334b",
+};
+
+/// `builtin_interfaces/Time`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Time {
+    pub sec: i32,
+    pub nanosec: u32,
+}
+
+impl Time {
+    pub fn seconds(self) -> f64 {
+        f64::from(self.sec) + f64::from(self.nanosec) * 1e-9
+    }
+
+    /// The stamp of `seconds`, rounded to the nanosecond (stamps come from ROS headers, so
+    /// they round-trip exactly at the precision a header carries).
+    pub fn from_seconds(seconds: f64) -> Self {
+        let sec = seconds.floor();
+        let mut nanosec = ((seconds - sec) * 1e9).round() as u32;
+        let mut sec = sec as i32;
+        if nanosec >= 1_000_000_000 {
+            sec += 1;
+            nanosec -= 1_000_000_000;
+        }
+        Self { sec, nanosec }
+    }
+}
+
+/// `std_msgs/Header`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Header {
+    pub stamp: Time,
+    pub frame_id: String,
+}
+
+/// `geometry_msgs/Point`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `geometry_msgs/Vector3`.
+pub type Vector3 = Point;
+
+/// `geometry_msgs/Quaternion`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Quaternion {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub w: f64,
+}
+
+impl Default for Quaternion {
+    fn default() -> Self {
+        Self {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+            w: 1.0,
+        }
+    }
+}
+
+/// `geometry_msgs/Pose`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: Point,
+    pub orientation: Quaternion,
+}
+
+/// `float64[36]`: a 6×6 row-major covariance over `[x y z rot_x rot_y rot_z]`. A fixed-size
+/// array is CDR's elements without a length, which serde writes for a tuple (its derive stops
+/// at 32 elements, hence this type).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Covariance(pub [f64; 36]);
+
+impl Default for Covariance {
+    fn default() -> Self {
+        Self([0.0; 36])
+    }
+}
+
+impl Serialize for Covariance {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let mut tuple = serializer.serialize_tuple(36)?;
+        for value in &self.0 {
+            tuple.serialize_element(value)?;
+        }
+        tuple.end()
+    }
+}
+
+impl<'de> Deserialize<'de> for Covariance {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Elements;
+        impl<'de> Visitor<'de> for Elements {
+            type Value = Covariance;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("36 float64")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Covariance, A::Error> {
+                let mut values = [0.0; 36];
+                for (i, value) in values.iter_mut().enumerate() {
+                    *value = seq
+                        .next_element()?
+                        .ok_or_else(|| A::Error::invalid_length(i, &self))?;
+                }
+                Ok(Covariance(values))
+            }
+        }
+        deserializer.deserialize_tuple(36, Elements)
+    }
+}
+
+/// `geometry_msgs/PoseWithCovariance`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseWithCovariance {
+    pub pose: Pose,
+    pub covariance: Covariance,
+}
+
+/// `geometry_msgs/Twist`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Twist {
+    pub linear: Vector3,
+    pub angular: Vector3,
+}
+
+/// `geometry_msgs/TwistWithCovariance`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TwistWithCovariance {
+    pub twist: Twist,
+    pub covariance: Covariance,
+}
+
+/// `nav_msgs/Odometry`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Odometry {
+    pub header: Header,
+    pub child_frame_id: String,
+    pub pose: PoseWithCovariance,
+    pub twist: TwistWithCovariance,
+}
+
+/// `geometry_msgs/PoseWithCovarianceStamped`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseWithCovarianceStamped {
+    pub header: Header,
+    pub pose: PoseWithCovariance,
+}
+
+/// `geometry_msgs/PoseStamped`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseStamped {
+    pub header: Header,
+    pub pose: Pose,
+}
+
+/// `nav_msgs/Path`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Path {
+    pub header: Header,
+    pub poses: Vec<PoseStamped>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stamps_round_trip_at_nanosecond_precision() {
+        let t = Time {
+            sec: 1_700_000_000,
+            nanosec: 123_456_789,
+        };
+        assert_eq!(Time::from_seconds(t.seconds()).sec, t.sec);
+        let back = Time::from_seconds(t.seconds()).nanosec as i64;
+        // f64 holds ~16 digits: 10 for the seconds leave ~100 ns for the fraction.
+        assert!((back - t.nanosec as i64).abs() < 500, "{back}");
+        assert_eq!(
+            Time::from_seconds(2.9999999999),
+            Time { sec: 3, nanosec: 0 }
+        );
+    }
+}

@@ -1,0 +1,190 @@
+//! ROS 2 over rmw_zenoh: a session created with a `ros2` binding (`api::ros2::Ros2Binding`)
+//! appears in the robots' ROS graph as a node with its subscriptions and publishers, and is fed
+//! by their topics with no code of ours on the robot.
+//!
+//! Everything matches rmw_zenoh_cpp (its `docs/design.md`, `liveliness_utils.cpp`,
+//! `attachment_helpers.cpp`), Jazzy's release and later:
+//! - samples on `<domain>/<topic>/<dds type>/<RIHS01 hash>` (`names`), CDR payloads with their
+//!   encapsulation header (`cdr_codec`), an attachment of sequence, time and GID (`attachment`);
+//! - liveliness tokens `@ros2_lv/…` for the node and each endpoint (`names`), held as long as
+//!   the session lives, so `ros2 node list` and `ros2 topic list` on the robot see them.
+//!
+//! In: `nav_msgs/Odometry` (keyframes, `between_se3`) and `geometry_msgs/PoseWithCovarianceStamped`
+//! (`prior_se3`), see `keyframes`. Out after each solve: `nav_msgs/Path` and
+//! `geometry_msgs/PoseWithCovarianceStamped`, see `outputs`. Messages go through the one command
+//! API ([`Service::execute_as`]) like any client's; nothing here touches a session's state.
+//!
+//! The binding uses the zenoh adapter's session: robots reach factord through the same router
+//! (or peer-to-peer) as any zenoh client. Not in a fleet (`--fleet`): a moved session's binding
+//! does not follow it yet.
+
+mod attachment;
+mod cdr_codec;
+mod inputs;
+mod keyframes;
+mod messages;
+mod names;
+mod outputs;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use zenoh::liveliness::LivelinessToken;
+
+use crate::api::ros2::Ros2Binding;
+use crate::service::{Caller, Service};
+use crate::session::Session;
+use messages::{RosType, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED};
+use names::{EndpointKind, NodeName};
+use outputs::RosPublisher;
+
+/// Node and endpoint ids within our zenoh session, unique as rmw_zenoh's per-context counter.
+static NEXT_ENTITY_ID: AtomicU64 = AtomicU64::new(1);
+
+fn next_id() -> u64 {
+    NEXT_ENTITY_ID.fetch_add(1, Ordering::Relaxed)
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("ROS 2 binding of session {session}: {source}")]
+pub struct BindError {
+    session: String,
+    #[source]
+    source: zenoh::Error,
+}
+
+/// Starts `session`'s binding when it has one; it runs until the session is deleted.
+pub fn bind(
+    zenoh: zenoh::Session,
+    service: Arc<Service>,
+    caller: Arc<Caller>,
+    session: &Arc<Session>,
+) {
+    let Some(binding) = session.ros2_binding().cloned() else {
+        return;
+    };
+    let session = Arc::clone(session);
+    tokio::spawn(async move {
+        if let Err(e) = run(zenoh, service, caller, session, binding).await {
+            tracing::error!("{e}");
+        }
+    });
+}
+
+async fn run(
+    zenoh: zenoh::Session,
+    service: Arc<Service>,
+    caller: Arc<Caller>,
+    session: Arc<Session>,
+    binding: Ros2Binding,
+) -> Result<(), BindError> {
+    let failed = |source| BindError {
+        session: session.name.clone(),
+        source,
+    };
+    let node = NodeName {
+        domain_id: binding.domain_id,
+        zid: zenoh.zid().to_string(),
+        node_id: next_id(),
+        name: binding.node_name(&session.name),
+    };
+    let mut tokens = vec![declare_token(&zenoh, node.node_token())
+        .await
+        .map_err(failed)?];
+    let endpoint = |kind, topic: &str, ros_type: &RosType| {
+        let token = node.endpoint_token(next_id(), kind, topic, ros_type);
+        let key = names::topic_key(binding.domain_id, topic, ros_type);
+        (token, key)
+    };
+
+    let (token, key) = endpoint(
+        EndpointKind::Subscription,
+        &binding.odometry_topic,
+        &ODOMETRY,
+    );
+    let odometry = zenoh.declare_subscriber(&key).await.map_err(failed)?;
+    tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+    let priors = match &binding.prior_topic {
+        Some(topic) => {
+            let (token, key) = endpoint(
+                EndpointKind::Subscription,
+                topic,
+                &POSE_WITH_COVARIANCE_STAMPED,
+            );
+            let subscriber = zenoh.declare_subscriber(&key).await.map_err(failed)?;
+            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+            Some(subscriber)
+        }
+        None => None,
+    };
+    let publisher = |topic: &Option<String>, ros_type| {
+        topic.as_deref().map(|topic| {
+            let (token, key) = endpoint(EndpointKind::Publisher, topic, ros_type);
+            let gid = names::gid_of(&token);
+            (
+                token,
+                RosPublisher {
+                    key,
+                    gid,
+                    sequence: 0,
+                },
+            )
+        })
+    };
+    let path = publisher(&binding.path_topic, &PATH);
+    let pose = publisher(&binding.pose_topic, &POSE_WITH_COVARIANCE_STAMPED);
+    for (token, _) in path.iter().chain(pose.iter()) {
+        tokens.push(declare_token(&zenoh, token.clone()).await.map_err(failed)?);
+    }
+    tracing::info!(
+        session = session.name,
+        "ROS 2 binding: node {} on domain {}",
+        node.name,
+        binding.domain_id
+    );
+
+    let mut keyframer = keyframes::Keyframer::new(&binding);
+    if let Some(max_key) = existing_max_key(&service, &caller, &session.name).await {
+        keyframer.resume_after(max_key);
+    }
+    let inputs = inputs::Inputs {
+        service: Arc::clone(&service),
+        caller: Arc::clone(&caller),
+        session: session.name.clone(),
+        keyframer,
+        odometry,
+        priors,
+        refused: Arc::default(),
+    };
+    let inputs = tokio::spawn(inputs.run());
+    let outputs = outputs::Outputs {
+        service,
+        caller,
+        session,
+        zenoh,
+        map_frame: binding.map_frame.clone(),
+        path: path.map(|(_, p)| p),
+        pose: pose.map(|(_, p)| p),
+    };
+    outputs.run().await;
+    // The session is gone: leave the ROS graph.
+    inputs.abort();
+    drop(tokens);
+    Ok(())
+}
+
+/// The highest key of a session that already has variables (recovered after a restart).
+async fn existing_max_key(service: &Service, caller: &Caller, session: &str) -> Option<u64> {
+    let query = crate::api::wire::EstimateQuery::default();
+    let command = crate::service::Command::get_estimate(session.into(), query);
+    match service.execute_as(caller, command).await {
+        Ok(crate::service::Reply::Estimate(estimate)) => {
+            estimate.variables.iter().map(|v| v.key).max()
+        }
+        _ => None,
+    }
+}
+
+async fn declare_token(zenoh: &zenoh::Session, key: String) -> zenoh::Result<LivelinessToken> {
+    zenoh.liveliness().declare_token(key).await
+}

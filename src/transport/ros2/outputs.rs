@@ -1,0 +1,173 @@
+//! The binding's publications after each solve: the optimised keyframe trajectory as a
+//! `nav_msgs/Path` and the newest keyframe as a `geometry_msgs/PoseWithCovarianceStamped`, both
+//! in the binding's map frame, stamped with the keyframes' header stamps.
+//!
+//! The pose's covariance is the keyframe's marginal covariance (`GetMarginals`, one factorisation
+//! of the session's Hessian per solve, reused when nothing changed), in factord's tangent space:
+//! a body-frame perturbation `(R, t) ⊕ (v, ω) = (R Exp(ω), t + R v)` in the order
+//! `[v; ω]`, which is ROS's `[x y z rot_x rot_y rot_z]` order. When it cannot be had (e.g. the
+//! keyframe is fixed, or the Hessian is singular) the covariance is all zeros (ROS: unknown).
+//!
+//! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
+
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use nalgebra::{Quaternion as NaQuaternion, UnitQuaternion};
+
+use super::attachment::Attachment;
+use super::cdr_codec;
+use super::messages::{
+    Covariance, Header, Path, Point, Pose, PoseStamped, PoseWithCovariance,
+    PoseWithCovarianceStamped, Quaternion, Time,
+};
+use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
+use crate::service::{Caller, Command, Reply, Service};
+
+/// One ROS publisher: its key expression, GID and sequence.
+pub(super) struct RosPublisher {
+    pub key: String,
+    pub gid: [u8; 16],
+    pub sequence: i64,
+}
+
+impl RosPublisher {
+    async fn put(&mut self, zenoh: &zenoh::Session, payload: Vec<u8>) {
+        self.sequence += 1;
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i64);
+        let attachment = Attachment {
+            sequence_number: self.sequence,
+            source_timestamp_ns: now,
+            source_gid: self.gid,
+        };
+        let put = zenoh
+            .put(&self.key, payload)
+            .attachment(attachment.encode().to_vec());
+        if let Err(e) = put.await {
+            tracing::warn!("ROS publication on {} failed: {e}", self.key);
+        }
+    }
+}
+
+pub(super) struct Outputs {
+    pub service: Arc<Service>,
+    pub caller: Arc<Caller>,
+    pub session: Arc<crate::session::Session>,
+    pub zenoh: zenoh::Session,
+    pub map_frame: String,
+    pub path: Option<RosPublisher>,
+    pub pose: Option<RosPublisher>,
+}
+
+impl Outputs {
+    /// Publishes after every solve until the session is deleted (its event stream ends).
+    pub async fn run(mut self) {
+        let mut events = self.session.stream();
+        while let Some(event) = events.next().await {
+            let mut solved = matches!(*event, SessionEvent::Summary { .. });
+            // Solves that finished while we published: one publication covers them all.
+            while let Some(event) = events.try_next() {
+                solved |= matches!(*event, SessionEvent::Summary { .. });
+            }
+            if solved {
+                self.publish().await;
+            }
+        }
+    }
+
+    async fn publish(&mut self) {
+        let name = self.session.name.clone();
+        let estimate = Command::get_estimate(name.clone(), EstimateQuery::default());
+        let Ok(Reply::Estimate(estimate)) = self.service.execute_as(&self.caller, estimate).await
+        else {
+            return;
+        };
+        let mut poses: Vec<PoseStamped> = Vec::with_capacity(estimate.variables.len());
+        let mut keys = Vec::with_capacity(estimate.variables.len());
+        for v in &estimate.variables {
+            if let Some(pose) = self.pose_stamped(v) {
+                poses.push(pose);
+                keys.push(v.key);
+            }
+        }
+        if let Some(path) = &mut self.path {
+            let message = Path {
+                header: Header {
+                    stamp: poses.last().map(|p| p.header.stamp).unwrap_or_default(),
+                    frame_id: self.map_frame.clone(),
+                },
+                poses: poses.clone(),
+            };
+            path.put(&self.zenoh, cdr_codec::encode(&message)).await;
+        }
+        let (Some(pose), Some(last), Some(&key)) = (&mut self.pose, poses.last(), keys.last())
+        else {
+            return;
+        };
+        let covariance = marginal(&self.service, &self.caller, &name, key).await;
+        let message = PoseWithCovarianceStamped {
+            header: last.header.clone(),
+            pose: PoseWithCovariance {
+                pose: last.pose,
+                covariance,
+            },
+        };
+        pose.put(&self.zenoh, cdr_codec::encode(&message)).await;
+    }
+
+    /// An `se3` estimate as a stamped pose (others, and values of the wrong length, skipped).
+    fn pose_stamped(&self, v: &VariableValue) -> Option<PoseStamped> {
+        let [x, y, z, qx, qy, qz, qw] = v.value[..] else {
+            return None;
+        };
+        (v.kind == "se3").then(|| PoseStamped {
+            header: Header {
+                stamp: v.stamp.map(Time::from_seconds).unwrap_or_default(),
+                frame_id: self.map_frame.clone(),
+            },
+            pose: Pose {
+                position: Point { x, y, z },
+                orientation: unit(qx, qy, qz, qw),
+            },
+        })
+    }
+}
+
+/// The estimate's quaternion, renormalised (the wire's shortest round-trip numbers are unit
+/// to ~1e-16 already; this keeps ROS consumers that check norms strictly happy).
+fn unit(x: f64, y: f64, z: f64, w: f64) -> Quaternion {
+    let q = UnitQuaternion::from_quaternion(NaQuaternion::new(w, x, y, z));
+    Quaternion {
+        x: q.i,
+        y: q.j,
+        z: q.k,
+        w: q.w,
+    }
+}
+
+/// The 6×6 marginal covariance of `key`, row-major; zeros (unknown) when it cannot be had.
+async fn marginal(service: &Service, caller: &Caller, session: &str, key: u64) -> Covariance {
+    let command = Command::GetMarginals {
+        session: session.into(),
+        keys: vec![key],
+        joint: false,
+    };
+    let mut covariance = Covariance::default();
+    match service.execute_as(caller, command).await {
+        Ok(Reply::Marginals(marginals)) => {
+            let Some(m) = marginals.variables.first() else {
+                return covariance;
+            };
+            if m.covariance.len() == 6 && m.covariance.iter().all(|row| row.len() == 6) {
+                for (i, row) in m.covariance.iter().enumerate() {
+                    covariance.0[i * 6..i * 6 + 6].copy_from_slice(row);
+                }
+            }
+        }
+        Ok(_) => {}
+        Err(e) => tracing::debug!(session, "no marginal for the ROS pose: {}", e.body.message),
+    }
+    covariance
+}
