@@ -430,6 +430,11 @@ class HttpClient:
         initially, edges)."""
         return self._request("GET", self._session_path(session, "/graph"))
 
+    def history(self, session: str) -> JsonDict:
+        """``GET /v1/sessions/{session}/history``: the session's timeline (χ², solve time, update
+        latency per solve), its last events, rejected inputs and ``last_error``."""
+        return self._request("GET", self._session_path(session, "/history"))
+
     def marginals(self, session: str, keys: Iterable[int], joint: bool = False) -> wire.Marginals:
         """``GET /v1/sessions/{session}/marginals?keys=…``: each variable's covariance in its
         tangent space (se2: x, y, θ; se3: body translation, rotation), with ``joint`` the

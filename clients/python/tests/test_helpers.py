@@ -25,8 +25,9 @@ from factord_client.batch import estimate_to_array, marginals_to_arrays
 
 # openapi operations that are not API calls a client makes: the web view's pages and assets,
 # and the WebSocket (the same events as `events()`, which needs no extra dependency).
+# Pages, their assets, the WebSocket, and the browser's login (clients send the bearer token).
 NOT_CLIENT_CALLS = {"index_page", "session_page", "script", "style", "docs_page", "docs_script",
-                    "websocket"}
+                    "websocket", "plots_script", "operator_script", "login", "logout"}
 # operationId -> method name where they differ.
 METHOD_OF = {"job": "run_job", "openapi_json": "openapi"}
 
