@@ -10,7 +10,7 @@ use factord::solver::{LinearSolverChoice, Method, SolverOptions};
 use super::ceres_style;
 use super::progress::Progress;
 use super::solve_output::{optimize_verbose, write_summary_json, IterationLines};
-use super::stdio::{one_stdout, Console, InputArg, OutputArg};
+use super::stdio::{Console, InputArg, OutputArg};
 use super::value_parsers::{parse_linear_solver, parse_method, parse_robust};
 use super::CliError;
 
@@ -78,13 +78,7 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
         ("--ply-final", args.ply_final.as_ref()),
         ("--out", args.out.as_ref()),
     ];
-    one_stdout(&outputs)?;
-    let console = Console::new(
-        outputs
-            .iter()
-            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
-        args.quiet,
-    );
+    let console = Console::for_outputs(&outputs, args.quiet)?;
     let start = Instant::now();
     let name = args.problem.name();
     let loading = Progress::loading(&name, args.quiet);

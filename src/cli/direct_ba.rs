@@ -12,7 +12,7 @@ use factord::solver::SolverOptions;
 use super::data_dir;
 use super::progress::Progress;
 use super::solve_output::{optimize_verbose, write_summary_json, IterationLines};
-use super::stdio::{one_stdout, Console, OutputArg};
+use super::stdio::{Console, OutputArg};
 use super::value_parsers::parse_robust;
 use super::CliError;
 
@@ -77,13 +77,7 @@ pub fn run(args: DirectBaArgs) -> Result<(), CliError> {
         ("--ply-initial", args.ply_initial.as_ref()),
         ("--ply-final", args.ply_final.as_ref()),
     ];
-    one_stdout(&outputs)?;
-    let console = Console::new(
-        outputs
-            .iter()
-            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
-        args.quiet,
-    );
+    let console = Console::for_outputs(&outputs, args.quiet)?;
     let dir = data_dir::existing_dir("dir", &args.dir)?;
     let start = Instant::now();
     let camera = args.intrinsics.unwrap_or(io::direct_ba::COURSE_CAMERA);

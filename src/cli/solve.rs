@@ -9,7 +9,7 @@ use factord::solver::{self, Initialization, Method, SolverOptions};
 use super::plot::{self, PlotFormat};
 use super::progress::Progress;
 use super::solve_output::{chi2_line, write_summary_json};
-use super::stdio::{one_stdin, one_stdout, Console, InputArg, OutputArg};
+use super::stdio::{one_stdin, Console, InputArg, OutputArg};
 use super::value_parsers::{parse_init, parse_method, parse_robust};
 use super::CliError;
 
@@ -76,13 +76,7 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         ("--summary-json", args.summary_json.as_ref()),
         ("--plot", args.plot.as_ref()),
     ];
-    one_stdout(&outputs)?;
-    let console = Console::new(
-        outputs
-            .iter()
-            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout)),
-        args.quiet,
-    );
+    let console = Console::for_outputs(&outputs, args.quiet)?;
     let load_start = Instant::now();
     let name = args.graph.name();
     let loading = Progress::loading(&name, args.quiet);

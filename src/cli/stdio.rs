@@ -167,6 +167,19 @@ impl Console {
         }
     }
 
+    /// The console of a command writing `outputs`: at most one of them may be `-` (refused
+    /// naming the second), and when one is, the console prints to standard error.
+    pub fn for_outputs(
+        outputs: &[(&str, Option<&OutputArg>)],
+        quiet: bool,
+    ) -> Result<Self, CliError> {
+        one_stdout(outputs)?;
+        let data_on_stdout = outputs
+            .iter()
+            .any(|(_, o)| o.is_some_and(OutputArg::is_stdout));
+        Ok(Self::new(data_on_stdout, quiet))
+    }
+
     pub fn quiet(&self) -> bool {
         self.quiet
     }
