@@ -19,6 +19,7 @@ use nalgebra::{Rotation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::wire::VariableValue;
+use crate::io::tum;
 
 /// What `estimate?format=` asks for.
 #[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq, utoipa::ToSchema)]
@@ -119,7 +120,7 @@ fn trajectory(variables: &[VariableValue]) -> (Vec<Pose>, bool) {
 
 fn tum(variables: &[VariableValue]) -> String {
     let (poses, stamped) = trajectory(variables);
-    let mut out = String::from("# timestamp tx ty tz qx qy qz qw\n");
+    let mut out = String::from(tum::TIMESTAMP_HEADER);
     if !stamped && !poses.is_empty() {
         out.push_str("# not every pose has a stamp: the first column is the variable's key\n");
     }
@@ -128,13 +129,8 @@ fn tum(variables: &[VariableValue]) -> String {
             Some(s) if stamped => s,
             _ => p.key as f64,
         };
-        let t = &p.translation;
-        let q = p.rotation.quaternion();
-        let _ = writeln!(
-            out,
-            "{time} {} {} {} {} {} {} {}",
-            t.x, t.y, t.z, q.i, q.j, q.k, q.w
-        );
+        let (t, q) = (&p.translation, p.rotation.quaternion());
+        tum::push_line(&mut out, time, [t.x, t.y, t.z], [q.i, q.j, q.k, q.w]);
     }
     out
 }

@@ -492,15 +492,10 @@ pub fn ape(inputs: &FusionInputs, estimates: &[Estimate]) -> (ErrorStatistics, E
 
 /// The estimates as TUM lines (`t x y z qx qy qz qw`, absolute seconds).
 pub fn tum(inputs: &FusionInputs, estimates: &[Estimate]) -> String {
-    let mut out = String::from("# timestamp tx ty tz qx qy qz qw\n");
+    let mut out = String::from(crate::io::tum::TIMESTAMP_HEADER);
     for e in estimates {
-        let [x, y, z] = e.pose.position;
-        let [qx, qy, qz, qw] = e.pose.rotation_xyzw;
-        // Shortest round-trip form: every digit the estimate has, none it does not.
-        out.push_str(&format!(
-            "{} {x} {y} {z} {qx} {qy} {qz} {qw}\n",
-            inputs.origin as f64 + e.t
-        ));
+        let stamp = inputs.origin as f64 + e.t;
+        crate::io::tum::push_line(&mut out, stamp, e.pose.position, e.pose.rotation_xyzw);
     }
     out
 }

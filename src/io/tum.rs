@@ -68,20 +68,25 @@ fn poses(
         } else {
             continue;
         };
-        let _ = writeln!(
-            out,
-            "{} {} {} {} {} {} {} {}",
+        push_line(
+            &mut out,
             first_column(key)?,
-            t.x,
-            t.y,
-            t.z,
-            q.i,
-            q.j,
-            q.k,
-            q.w
+            [t.x, t.y, t.z],
+            [q.i, q.j, q.k, q.w],
         );
     }
     Ok(out)
+}
+
+/// Appends one trajectory line, `first_column tx ty tz qx qy qz qw`, numbers in shortest
+/// round-trip form (every digit the value has, none it does not).
+pub fn push_line(
+    out: &mut String,
+    first_column: impl std::fmt::Display,
+    [x, y, z]: [f64; 3],
+    [qx, qy, qz, qw]: [f64; 4],
+) {
+    let _ = writeln!(out, "{first_column} {x} {y} {z} {qx} {qy} {qz} {qw}");
 }
 
 /// Reads `id stamp` lines (`#` comments and blank lines skipped); `path` names the file in errors.
