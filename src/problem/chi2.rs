@@ -26,20 +26,37 @@ pub fn evaluate_chi2_checked<E: Borrow<FactorEntry>>(
     mut checkpoint: impl FnMut(usize) -> ControlFlow<()>,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
     let mut total = 0.0;
-    let mut e = Vec::new();
-    let mut w = Vec::new();
-    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
+    let mut scratch = Chi2Scratch::default();
     for (k, f) in factors.iter().enumerate() {
         if checkpoint(k).is_break() {
             return Ok(ControlFlow::Break(()));
         }
-        let f = f.borrow();
-        refs.clear();
-        refs.extend(f.variables().iter().map(|&v| values.variable(v)));
-        let d = f.factor.residual_dim();
-        e.resize(d, 0.0);
-        w.resize(d, 0.0);
-        total += f.chi2(&refs, &mut e, &mut w)?;
+        total += scratch.chi2(f.borrow(), values)?;
     }
     Ok(ControlFlow::Continue(total))
+}
+
+/// Buffers for evaluating factor after factor at the same values without allocating.
+#[derive(Default)]
+pub struct Chi2Scratch<'v> {
+    variables: Vec<&'v dyn Variable>,
+    error: Vec<f64>,
+    whitened: Vec<f64>,
+}
+
+impl<'v> Chi2Scratch<'v> {
+    /// `ρ(‖R e‖²)` of `factor` at `values`.
+    pub fn chi2(
+        &mut self,
+        factor: &FactorEntry,
+        values: &'v Values,
+    ) -> Result<f64, EvaluationError> {
+        self.variables.clear();
+        self.variables
+            .extend(factor.variables().iter().map(|&v| values.variable(v)));
+        let d = factor.factor.residual_dim();
+        self.error.resize(d, 0.0);
+        self.whitened.resize(d, 0.0);
+        factor.chi2(&self.variables, &mut self.error, &mut self.whitened)
+    }
 }

@@ -9,7 +9,7 @@ mod chi2;
 mod entry;
 mod values;
 
-pub use chi2::{evaluate_chi2, evaluate_chi2_checked};
+pub use chi2::{evaluate_chi2, evaluate_chi2_checked, Chi2Scratch};
 pub use entry::FactorEntry;
 
 pub use values::Values;

@@ -11,9 +11,8 @@ use crate::api::catalogue::{self, Shape};
 use crate::api::wire::{DrawnVariable, Graph, MarginalCovariance, Marginals, MarginalsQuery};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
-use crate::problem::Key;
+use crate::problem::{Chi2Scratch, Key};
 use crate::solver::marginals::{self, MarginalsError};
-use crate::variables::Variable;
 
 /// Most variables one marginals request may name (each costs a solve per tangent direction).
 pub const MAX_MARGINAL_KEYS: usize = 256;
@@ -49,18 +48,12 @@ fn edge_chi2(st: &State) -> Vec<Option<f64>> {
         return vec![None; st.edges.len()];
     };
     let mut by_id = HashMap::with_capacity(st.edges.len());
-    let (mut error, mut whitened) = (Vec::new(), Vec::new());
-    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(2);
+    let mut scratch = Chi2Scratch::default();
     for (f, id) in problem.factors().iter().zip(&st.factor_ids) {
         if !st.edges.contains_key(id) {
             continue;
         }
-        refs.clear();
-        refs.extend(f.variables().iter().map(|&v| problem.values.variable(v)));
-        let d = f.factor.residual_dim();
-        error.resize(d, 0.0);
-        whitened.resize(d, 0.0);
-        if let Ok(chi2) = f.chi2(&refs, &mut error, &mut whitened) {
+        if let Ok(chi2) = scratch.chi2(f, &problem.values) {
             by_id.insert(*id, chi2);
         }
     }
