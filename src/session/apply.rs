@@ -1,7 +1,7 @@
 //! Accepting a batch: size limits, validation against the mirror, journalling, updating the
 //! mirror, and applying it to the problem now or queueing it behind a running solve.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::sync::Arc;
 
 use super::batch::{self, PreparedBatch, SessionView};
@@ -102,20 +102,20 @@ impl Session {
         }
         // Mirror first: later batches validate against it even while this one waits.
         let mut new_values = Vec::new();
-        let stamps: HashMap<crate::problem::Key, f64> = prepared.stamps.iter().copied().collect();
-        for (key, v, fixed) in &prepared.variables {
-            let value = catalogue::encode_variable(v.as_ref());
+        for v in &prepared.variables {
+            let kind = v.value.kind();
+            let value = catalogue::encode_variable(v.value.as_ref());
             let entry = MirrorEntry {
-                kind: v.kind(),
-                initial: inspect::position(v.kind(), &value),
+                kind,
+                initial: inspect::position(kind, &value),
                 value,
                 changed: sequence,
-                fixed: *fixed,
-                stamp: stamps.get(key).copied(),
+                fixed: v.fixed,
+                stamp: v.stamp,
             };
-            new_values.push(value_of(*key, &entry));
+            new_values.push(value_of(v.key, &entry));
             st.mirror_values += entry.value.len();
-            if let Some(old) = st.mirror.insert(*key, entry) {
+            if let Some(old) = st.mirror.insert(v.key, entry) {
                 st.mirror_values -= old.value.len();
             }
         }
@@ -273,10 +273,10 @@ impl Session {
         let first_new_factor = problem.factors().len();
         let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
         let adds_variables = !prepared.variables.is_empty();
-        for (key, v, fixed) in prepared.variables {
-            problem.add_variable(key, v).expect("validated");
-            if fixed {
-                problem.set_fixed(key, true).expect("validated");
+        for v in prepared.variables {
+            problem.add_variable(v.key, v.value).expect("validated");
+            if v.fixed {
+                problem.set_fixed(v.key, true).expect("validated");
             }
         }
         let added = prepared.factors.len();

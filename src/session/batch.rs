@@ -23,10 +23,17 @@ pub(crate) struct PreparedFactor {
     pub robust: Option<RobustKernel>,
 }
 
+/// A variable a batch creates, with its (given or predicted) value.
+pub(crate) struct NewVariable {
+    pub key: Key,
+    pub value: Box<dyn Variable>,
+    pub fixed: bool,
+    /// When the pose was taken (seconds), if the client said.
+    pub stamp: Option<f64>,
+}
+
 pub(crate) struct PreparedBatch {
-    pub variables: Vec<(Key, Box<dyn Variable>, bool)>,
-    /// The new variables' stamps (seconds), for those that carry one.
-    pub stamps: Vec<(Key, f64)>,
+    pub variables: Vec<NewVariable>,
     pub factors: Vec<PreparedFactor>,
     pub remove: Vec<FactorId>,
     /// (key, fixed) changes.
@@ -358,21 +365,20 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         ));
     }
 
-    let variables: Vec<(Key, Box<dyn Variable>, bool)> = batch
+    let variables: Vec<NewVariable> = batch
         .variables
         .iter()
         .zip(values)
-        .map(|(spec, v)| (spec.key, v.expect("predicted above"), spec.fixed))
+        .map(|(spec, v)| NewVariable {
+            key: spec.key,
+            value: v.expect("predicted above"),
+            fixed: spec.fixed,
+            stamp: spec.stamp,
+        })
         .collect();
     check_residuals(&factors, &variables, &guesses, view)?;
-    let stamps = batch
-        .variables
-        .iter()
-        .filter_map(|spec| Some((spec.key, spec.stamp?)))
-        .collect();
     Ok(PreparedBatch {
         variables,
-        stamps,
         factors,
         remove: batch.remove_factors,
         fix,
@@ -385,15 +391,15 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
 /// looking at a point in its own centre, poses at 1e308): the solver could do nothing with it.
 fn check_residuals(
     factors: &[PreparedFactor],
-    variables: &[(Key, Box<dyn Variable>, bool)],
+    variables: &[NewVariable],
     guesses: &[(Key, Box<dyn Variable>)],
     view: &SessionView,
 ) -> Result<(), ServiceError> {
     // The value each key starts from: a guess (the last one wins), else the batch's new
     // variable; mirror values are decoded on first use.
     let mut given: HashMap<Key, &dyn Variable> = HashMap::new();
-    for (key, v, _) in variables {
-        given.insert(*key, v.as_ref());
+    for v in variables {
+        given.insert(v.key, v.value.as_ref());
     }
     for (key, v) in guesses {
         given.insert(*key, v.as_ref());

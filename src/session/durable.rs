@@ -89,10 +89,10 @@ impl Durable {
     ) -> Result<Batch, ServiceError> {
         let mut batch = batch;
         // `prepare` keeps the batch's variables in order, each with its value.
-        for (spec, (key, value, _)) in batch.variables.iter_mut().zip(&prepared.variables) {
-            debug_assert_eq!(spec.key, *key);
+        for (spec, new) in batch.variables.iter_mut().zip(&prepared.variables) {
+            debug_assert_eq!(spec.key, new.key);
             if spec.value.is_none() {
-                spec.value = Some(catalogue::encode_variable(value.as_ref()));
+                spec.value = Some(catalogue::encode_variable(new.value.as_ref()));
             }
         }
         let entry = Entry::Batch { sequence, batch };
@@ -111,14 +111,11 @@ impl Durable {
         ids: &[FactorId],
         prepared: &PreparedBatch,
     ) {
-        let variables = prepared
-            .variables
-            .iter()
-            .map(|(key, v, fixed)| Change::Variable {
-                key: *key,
-                kind: v.kind(),
-                fixed: *fixed,
-            });
+        let variables = prepared.variables.iter().map(|v| Change::Variable {
+            key: v.key,
+            kind: v.value.kind(),
+            fixed: v.fixed,
+        });
         let fixes = prepared
             .fix
             .iter()
