@@ -21,14 +21,23 @@ impl Session {
     /// fields, so its producer can tell which batch it was.
     pub fn report_rejection(&self, error: ServiceError, origin: Option<super::Origin>) {
         crate::runtime::metrics::count_rejection(&error.body);
+        self.emit(self.rejection_event(error.body, origin));
+    }
+
+    /// The `error` event of a refused input, naming its producer's numbering when it had one.
+    pub(super) fn rejection_event(
+        &self,
+        error: crate::api::ErrorBody,
+        origin: Option<super::Origin>,
+    ) -> SessionEvent {
         let (producer, producer_seq) = origin.map(|o| (o.producer, o.seq)).unzip();
-        self.emit(SessionEvent::Error {
+        SessionEvent::Error {
             session: self.name.clone(),
             sequence: None,
-            error: error.body,
+            error,
             producer,
             producer_seq,
-        });
+        }
     }
 
     pub(super) fn emit(&self, event: SessionEvent) {

@@ -150,21 +150,15 @@ impl Session {
     /// Keeps a refusal answered to its sender (an rpc) in the history's rejected inputs, as
     /// streamed refusals are, without publishing it: `origin` names the batch's producer.
     pub fn note_rejection(&self, error: &ServiceError, origin: Option<Origin>) {
-        let (producer, producer_seq) = origin.map(|o| (o.producer, o.seq)).unzip();
-        let event = Arc::new(SessionEvent::Error {
-            session: self.name.clone(),
-            sequence: None,
-            error: error.body.clone(),
-            producer,
-            producer_seq,
-        });
+        let event = Arc::new(self.rejection_event(error.body.clone(), origin));
         let mut history = self.history.lock().unwrap_or_else(|p| p.into_inner());
         history.record(&event);
     }
 
     /// The session's timeline, recent events and rejections (see `api::history`).
     pub fn history(&self) -> SessionHistory {
-        let last_error = self.stats().last_error;
+        // Not `stats()`: that also walks the session's memory, which this does not need.
+        let last_error = self.last_error_locked(&self.lock());
         let h = self.history.lock().unwrap_or_else(|p| p.into_inner());
         SessionHistory {
             session: self.name.clone(),

@@ -36,14 +36,19 @@ impl Session {
             converged: st.converged,
             auto_optimize: st.auto,
             options: st.options.clone(),
-            // A damaged recovery outranks solve errors, and a later solve does not clear it.
-            last_error: self.corruption().or(st.last_error.as_ref()).cloned(),
+            last_error: self.last_error_locked(&st),
             last_summary: st.last_summary.clone(),
             recovering: self.is_recovering(),
             corrupt: self.corruption().is_some(),
             factor_types: self.factor_types().names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
         }
+    }
+
+    /// Why the last solve failed, or why the session is damaged: a damaged recovery outranks
+    /// solve errors, and a later solve does not clear it.
+    pub(super) fn last_error_locked(&self, st: &State) -> Option<String> {
+        self.corruption().or(st.last_error.as_ref()).cloned()
     }
 
     /// Estimated bytes this session holds: the estimate clients read, the problem (variables,
