@@ -99,20 +99,10 @@ impl Service {
         &self,
         definitions: &[crate::factors::expression::FactorTypeDefinition],
     ) -> Result<(), String> {
-        let mut compiled = Vec::with_capacity(definitions.len());
-        for (i, d) in definitions.iter().enumerate() {
-            if catalogue::factor_codec(&d.name).is_some()
-                || definitions[..i].iter().any(|e| e.name == d.name)
-            {
-                return Err(format!(
-                    "factor_types[{i}].name: `{}` is built in or declared twice",
-                    d.name
-                ));
-            }
-            let ty = crate::factors::expression::ExpressionType::compile(d.clone())
-                .map_err(|e| format!("factor_types[{i}].{e}"))?;
-            compiled.push(ty);
-        }
+        let compiled = FactorTypes::compile_server_wide(definitions).map_err(|e| {
+            let field = e.body.field.unwrap_or_default();
+            format!("{field}: {}", e.body.message)
+        })?;
         if !compiled.is_empty() {
             let names: Vec<&str> = compiled.iter().map(|t| t.name()).collect();
             tracing::info!("factor types for every new session: {names:?}");

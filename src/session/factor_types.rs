@@ -29,6 +29,13 @@ fn refused(field: String, message: impl Into<String>) -> ServiceError {
     ServiceError::bad_request("invalid_factor_type", field, message)
 }
 
+fn refused_in_windows() -> ServiceError {
+    refused(
+        "factor_types".into(),
+        "a sliding_window session is fed fusion messages; declare factor types in graph sessions",
+    )
+}
+
 impl FactorTypes {
     /// Compiles a creation request's declarations for a session of `kind`; errors name the
     /// field or expression node (`factor_types[0].residual.compose[1]`).
@@ -56,8 +63,7 @@ impl FactorTypes {
                     .iter()
                     .all(|k| kind.variable_kinds.contains(k))
                 {
-                    types.names.push(ty.name().to_string());
-                    types.by_name.insert(ty.name().to_string(), Arc::clone(ty));
+                    types.insert(Arc::clone(ty));
                 }
             }
         }
@@ -85,10 +91,7 @@ impl FactorTypes {
         }
         let mut types = self.clone();
         if kind.name == SLIDING_WINDOW {
-            return Err(refused(
-                "factor_types".into(),
-                "a sliding_window session is fed fusion messages; declare factor types in graph sessions",
-            ));
+            return Err(refused_in_windows());
         }
         if types.names.len() + definitions.len() > MAX_FACTOR_TYPES {
             return Err(refused(
@@ -101,37 +104,69 @@ impl FactorTypes {
             ));
         }
         for (i, definition) in definitions.iter().enumerate() {
-            let field = |suffix: &str| format!("factor_types[{i}].{suffix}");
-            if catalogue::factor_codec(&definition.name).is_some() {
-                return Err(refused(
-                    field("name"),
-                    format!("`{}` is a built-in factor type", definition.name),
-                ));
-            }
-            if types.by_name.contains_key(&definition.name) {
-                return Err(refused(
-                    field("name"),
-                    format!("`{}` is declared twice", definition.name),
-                ));
-            }
-            for (k, v) in definition.variables.iter().enumerate() {
-                if !kind.variable_kinds.contains(&v.kind.as_str()) {
-                    return Err(refused(
-                        field(&format!("variables[{k}].kind")),
-                        format!(
-                            "a {} session holds variables of kind {:?}, not `{}`",
-                            kind.name, kind.variable_kinds, v.kind
-                        ),
-                    ));
-                }
-            }
-            let compiled = ExpressionType::compile(definition.clone())
-                .map_err(|e| refused(field(&e.path), e.message))?;
-            types.names.push(definition.name.clone());
-            types.by_name.insert(definition.name.clone(), compiled);
+            let compiled = types.compile_one(i, definition, Some(kind))?;
+            types.insert(compiled);
         }
         *self = types;
         Ok(())
+    }
+
+    /// The server configuration's types, compiled once at start; each new graph session then
+    /// takes those its kinds fit ([`FactorTypes::for_new_session`]).
+    pub fn compile_server_wide(
+        definitions: &[FactorTypeDefinition],
+    ) -> Result<Vec<Arc<ExpressionType>>, ServiceError> {
+        let mut types = Self::default();
+        for (i, definition) in definitions.iter().enumerate() {
+            let compiled = types.compile_one(i, definition, None)?;
+            types.insert(compiled);
+        }
+        Ok(types
+            .names
+            .iter()
+            .map(|n| Arc::clone(&types.by_name[n]))
+            .collect())
+    }
+
+    /// Compiles `definitions[i]` for these types: its name new and not built in, its variables
+    /// of `kind`'s kinds (any kind for the server-wide list).
+    fn compile_one(
+        &self,
+        i: usize,
+        definition: &FactorTypeDefinition,
+        kind: Option<&SessionKind>,
+    ) -> Result<Arc<ExpressionType>, ServiceError> {
+        let field = |suffix: &str| format!("factor_types[{i}].{suffix}");
+        if catalogue::factor_codec(&definition.name).is_some() {
+            return Err(refused(
+                field("name"),
+                format!("`{}` is a built-in factor type", definition.name),
+            ));
+        }
+        if self.by_name.contains_key(&definition.name) {
+            return Err(refused(
+                field("name"),
+                format!("`{}` is declared twice", definition.name),
+            ));
+        }
+        for (k, v) in definition.variables.iter().enumerate() {
+            if let Some(kind) = kind.filter(|kind| !kind.variable_kinds.contains(&v.kind.as_str()))
+            {
+                return Err(refused(
+                    field(&format!("variables[{k}].kind")),
+                    format!(
+                        "a {} session holds variables of kind {:?}, not `{}`",
+                        kind.name, kind.variable_kinds, v.kind
+                    ),
+                ));
+            }
+        }
+        ExpressionType::compile(definition.clone()).map_err(|e| refused(field(&e.path), e.message))
+    }
+
+    fn insert(&mut self, compiled: Arc<ExpressionType>) {
+        self.names.push(compiled.name().to_string());
+        self.by_name.insert(compiled.name().to_string(), compiled);
     }
 
     /// Those of `definitions` not declared yet (a snapshot lists every type, the creation
@@ -222,10 +257,7 @@ impl super::Session {
         definitions: Vec<FactorTypeDefinition>,
     ) -> Result<crate::api::wire::SessionInfo, ServiceError> {
         if !matches!(self.engine, super::Engine::Graph(_)) {
-            return Err(refused(
-                "factor_types".into(),
-                "a sliding_window session is fed fusion messages; declare factor types in graph sessions",
-            ));
+            return Err(refused_in_windows());
         }
         {
             let st = self.lock();
