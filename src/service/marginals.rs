@@ -21,9 +21,7 @@ impl Service {
         let query = Arc::new(query);
         loop {
             let (s, q) = (Arc::clone(&session), Arc::clone(&query));
-            let answer = tokio::task::spawn_blocking(move || s.marginals(&q))
-                .await
-                .map_err(|e| ServiceError::internal(format!("marginals failed: {e}")))??;
+            let answer = super::off_async("marginals", move || s.marginals(&q)).await?;
             if let Some(marginals) = answer {
                 return Ok(marginals);
             }

@@ -56,6 +56,17 @@ pub struct Service {
     server_factor_types: std::sync::OnceLock<Vec<Arc<crate::factors::expression::ExpressionType>>>,
 }
 
+/// Runs `work` on a blocking thread (compiling, optimising: milliseconds the async threads
+/// must not spend); a panic there is an internal error naming `what`.
+pub(crate) async fn off_async<T: Send + 'static>(
+    what: &str,
+    work: impl FnOnce() -> Result<T, ServiceError> + Send + 'static,
+) -> Result<T, ServiceError> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| ServiceError::internal(format!("{what} failed: {e}")))?
+}
+
 /// Session names are zenoh key chunks and URL path segments.
 fn valid_session_name(name: &str) -> bool {
     (1..=64).contains(&name.len())
@@ -242,13 +253,10 @@ impl Service {
                         let server_wide =
                             self.server_factor_types.get().cloned().unwrap_or_default();
                         let definitions = request.factor_types.clone();
-                        let compiled = tokio::task::spawn_blocking(move || {
+                        let compiled = off_async("factor types", move || {
                             FactorTypes::for_new_session(kind, &server_wide, &definitions)
                         })
-                        .await
-                        .map_err(|e| {
-                            ServiceError::internal(format!("factor types failed: {e}"))
-                        })??;
+                        .await?;
                         Some(compiled)
                     }
                     None => None,
@@ -264,9 +272,7 @@ impl Service {
                 let session = self.writable_as(caller, &session)?;
                 let batch = crate::api::fusion::FusionBatch { messages };
                 // A keyframe's optimisation takes about a millisecond: off the async threads.
-                let ack = tokio::task::spawn_blocking(move || session.apply_fusion(batch))
-                    .await
-                    .map_err(|e| ServiceError::internal(format!("fusion update failed: {e}")))??;
+                let ack = off_async("fusion update", move || session.apply_fusion(batch)).await?;
                 Ok(Reply::Fusion(ack))
             }
             Command::ApplyBatch {
@@ -327,12 +333,10 @@ impl Service {
             } => {
                 let session = self.writable_as(caller, &session)?;
                 // Compiling checks each definition's Jacobian numerically: off the async threads.
-                let info =
-                    tokio::task::spawn_blocking(move || session.define_factor_types(factor_types))
-                        .await
-                        .map_err(|e| {
-                            ServiceError::internal(format!("factor types failed: {e}"))
-                        })??;
+                let info = off_async("factor types", move || {
+                    session.define_factor_types(factor_types)
+                })
+                .await?;
                 Ok(Reply::Created(info))
             }
             Command::GetEstimate {
