@@ -95,19 +95,14 @@ impl Keyframer {
                 if !moved {
                     return Ok(None);
                 }
-                let information = information(&odometry.pose.covariance, "odometry")?
-                    .unwrap_or_else(|| diagonal_information(&DEFAULT_ODOMETRY_SIGMAS));
+                let noise = information(&odometry.pose.covariance, "odometry")?
+                    .map_or(Noise::Sigmas(DEFAULT_ODOMETRY_SIGMAS), Noise::Information);
                 Batch {
                     // The value is predicted from the factor, i.e. from the optimised previous
                     // keyframe, not odometry's drifting frame.
                     variables: vec![variable(key, None, stamp)],
-                    factors: vec![factor(
-                        "between_se3",
-                        vec![last.key, key],
-                        &motion,
-                        information,
-                    )],
-                    ..empty_batch()
+                    factors: vec![factor("between_se3", vec![last.key, key], &motion, noise)],
+                    ..Batch::default()
                 }
             }
         };
@@ -128,7 +123,7 @@ impl Keyframer {
                 "prior_se3",
                 vec![key],
                 pose,
-                diagonal_information(&ANCHOR_SIGMAS),
+                Noise::Sigmas(ANCHOR_SIGMAS),
             )),
             // The gauge: with odometry alone the first pose is where odometry says.
             false => first.fixed = true,
@@ -136,7 +131,7 @@ impl Keyframer {
         Batch {
             variables: vec![first],
             factors,
-            ..empty_batch()
+            ..Batch::default()
         }
     }
 
@@ -154,27 +149,19 @@ impl Keyframer {
         };
         let (_, &key) = nearest.ok_or(MessageError::NoKeyframeYet)?;
         Ok(Batch {
-            factors: vec![factor("prior_se3", vec![key], &pose, information)],
-            ..empty_batch()
+            factors: vec![factor(
+                "prior_se3",
+                vec![key],
+                &pose,
+                Noise::Information(information),
+            )],
+            ..Batch::default()
         })
     }
 }
 
 fn stamp_ns(seconds: f64) -> i64 {
     (seconds * 1e9).round() as i64
-}
-
-fn empty_batch() -> Batch {
-    Batch {
-        variables: vec![],
-        factors: vec![],
-        remove_factors: vec![],
-        fix: vec![],
-        unfix: vec![],
-        guesses: vec![],
-        producer: None,
-        producer_seq: None,
-    }
 }
 
 fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
@@ -187,18 +174,24 @@ fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
     }
 }
 
-fn factor(
-    kind: &str,
-    keys: Vec<Key>,
-    pose: &Isometry3<f64>,
-    information: Matrix6<f64>,
-) -> FactorSpec {
+/// A factor's noise as the wire takes it: an information matrix, or sigmas (the server then
+/// builds the diagonal information).
+enum Noise {
+    Information(Matrix6<f64>),
+    Sigmas([f64; 6]),
+}
+
+fn factor(kind: &str, keys: Vec<Key>, pose: &Isometry3<f64>, noise: Noise) -> FactorSpec {
+    let (information, sigmas) = match noise {
+        Noise::Information(m) => (Some(m.iter().copied().collect()), None),
+        Noise::Sigmas(s) => (None, Some(s.to_vec())),
+    };
     FactorSpec {
         factor_type: kind.into(),
         keys,
         measurement: wire_pose(pose),
-        information: Some(information.iter().copied().collect()),
-        sigmas: None,
+        information,
+        sigmas,
         robust: None,
     }
 }
@@ -250,12 +243,6 @@ fn information(
     }
     let inverse = matrix.cholesky().ok_or(refused)?.inverse();
     Ok(Some((inverse + inverse.transpose()) * 0.5))
-}
-
-fn diagonal_information(sigmas: &[f64; 6]) -> Matrix6<f64> {
-    Matrix6::from_diagonal(&nalgebra::Vector6::from_iterator(
-        sigmas.iter().map(|s| 1.0 / (s * s)),
-    ))
 }
 
 #[cfg(test)]

@@ -85,30 +85,30 @@ impl Outputs {
             return;
         };
         let mut poses: Vec<PoseStamped> = Vec::with_capacity(estimate.variables.len());
-        let mut keys = Vec::with_capacity(estimate.variables.len());
+        let mut newest_key = None;
         for v in &estimate.variables {
             if let Some(pose) = self.pose_stamped(v) {
                 poses.push(pose);
-                keys.push(v.key);
+                newest_key = Some(v.key);
             }
         }
+        let newest = poses.last().cloned();
         if let Some(path) = &mut self.path {
             let message = Path {
                 header: Header {
-                    stamp: poses.last().map(|p| p.header.stamp).unwrap_or_default(),
+                    stamp: newest.as_ref().map(|p| p.header.stamp).unwrap_or_default(),
                     frame_id: self.map_frame.clone(),
                 },
-                poses: poses.clone(),
+                poses,
             };
             path.put(&self.zenoh, cdr_codec::encode(&message)).await;
         }
-        let (Some(pose), Some(last), Some(&key)) = (&mut self.pose, poses.last(), keys.last())
-        else {
+        let (Some(pose), Some(last), Some(key)) = (&mut self.pose, newest, newest_key) else {
             return;
         };
         let covariance = marginal(&self.service, &self.caller, &name, key).await;
         let message = PoseWithCovarianceStamped {
-            header: last.header.clone(),
+            header: last.header,
             pose: PoseWithCovariance {
                 pose: last.pose,
                 covariance,
