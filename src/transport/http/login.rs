@@ -93,19 +93,12 @@ pub(super) async fn logout() -> impl IntoResponse {
 /// Tokens are printable ASCII, but `;`, `,`, `"`, `\` and spaces are not cookie characters:
 /// the cookie holds the token in hex.
 fn hex(text: &str) -> String {
-    text.bytes().map(|b| format!("{b:02x}")).collect()
+    hex::encode(text)
 }
 
 /// The token a cookie value holds (see [`hex`]).
 pub(super) fn unhex(text: &str) -> Option<String> {
-    if !text.len().is_multiple_of(2) {
-        return None;
-    }
-    let bytes = (0..text.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(text.get(i..i + 2)?, 16).ok())
-        .collect::<Option<Vec<u8>>>()?;
-    String::from_utf8(bytes).ok()
+    String::from_utf8(hex::decode(text).ok()?).ok()
 }
 
 #[cfg(test)]
