@@ -71,15 +71,21 @@ impl InputArg {
 
 /// Refuses two arguments that both read standard input: the first would take it all.
 pub fn one_stdin(inputs: &[(&str, Option<&InputArg>)]) -> Result<(), CliError> {
-    let readers: Vec<&str> = inputs
+    let takers = inputs
         .iter()
-        .filter(|(_, i)| matches!(i, Some(InputArg::Stdin)))
-        .map(|(name, _)| *name)
-        .collect();
-    match readers[..] {
-        [first, second, ..] => Err(CliError::Argument {
+        .filter(|(_, i)| matches!(i, Some(InputArg::Stdin)));
+    at_most_one(takers.map(|(name, _)| *name), "standard input")
+}
+
+/// The second of the arguments set to `-` for `stream`, if any, refused naming the first.
+fn at_most_one<'a>(
+    mut takers: impl Iterator<Item = &'a str>,
+    stream: &str,
+) -> Result<(), CliError> {
+    match (takers.next(), takers.next()) {
+        (Some(first), Some(second)) => Err(CliError::Argument {
             argument: second.to_string(),
-            reason: format!("`-` (standard input) is already taken by {first}; give a file"),
+            reason: format!("`-` ({stream}) is already taken by {first}; give a file"),
         }),
         _ => Ok(()),
     }
@@ -137,18 +143,10 @@ impl OutputArg {
 
 /// Refuses two arguments that both write standard output: their data would be interleaved.
 pub fn one_stdout(outputs: &[(&str, Option<&OutputArg>)]) -> Result<(), CliError> {
-    let writers: Vec<&str> = outputs
+    let takers = outputs
         .iter()
-        .filter(|(_, o)| o.is_some_and(OutputArg::is_stdout))
-        .map(|(name, _)| *name)
-        .collect();
-    match writers[..] {
-        [first, second, ..] => Err(CliError::Argument {
-            argument: second.to_string(),
-            reason: format!("`-` (standard output) is already taken by {first}; give a file"),
-        }),
-        _ => Ok(()),
-    }
+        .filter(|(_, o)| o.is_some_and(OutputArg::is_stdout));
+    at_most_one(takers.map(|(name, _)| *name), "standard output")
 }
 
 /// Where a command's human-readable lines go: standard output, unless data goes there.
