@@ -202,7 +202,7 @@ pub struct EstimateQuery {
     #[serde(default)]
     pub after_timeout_ms: Option<u64>,
     /// `json` (default) or a trajectory/point file: `tum`, `kitti`, `g2o`, `ply` (text; see
-    /// `api::export`). With a file format only the whole estimate is served (no `since`/range).
+    /// `api::export`) of the variables `from`/`to` (and in graph sessions `since`) select.
     #[serde(default)]
     pub format: Option<super::export::EstimateFormat>,
 }
