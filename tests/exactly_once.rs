@@ -305,6 +305,7 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
         }
     }
     z.put("factord/nobody/in/batch", bad.to_string())
+        .congestion_control(zenoh::qos::CongestionControl::Block)
         .await
         .unwrap();
 
@@ -315,7 +316,7 @@ async fn puts_decoded_ahead_are_applied_in_the_order_sent() {
         let left = deadline.saturating_duration_since(Instant::now());
         let Ok(Some((key, v))) = tokio::time::timeout(left, rx.recv()).await else {
             panic!(
-                "acked {} of {}, refused {refused:?}, nobody {nobody:?}",
+                "acked {} of {}, refused {refused:?}, nobody {nobody:?}, typo {typo:?}",
                 acked.len(),
                 chunks.len()
             );

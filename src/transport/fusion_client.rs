@@ -108,6 +108,7 @@ pub async fn stream_over_zenoh(
         let (z, topic) = (z.clone(), topic.clone());
         async move {
             z.put(topic, json!({ "messages": messages }).to_string())
+                .congestion_control(zenoh::qos::CongestionControl::Block)
                 .await
                 .map_err(|e| format!("zenoh put: {e}"))
         }

@@ -96,7 +96,9 @@ impl Keyframer {
                     return Ok(None);
                 }
                 let noise = information(&odometry.pose.covariance, "odometry")?
-                    .map_or(Noise::Sigmas(DEFAULT_ODOMETRY_SIGMAS), Noise::Information);
+                    .map_or(Noise::Sigmas(DEFAULT_ODOMETRY_SIGMAS), |m| {
+                        Noise::Information(m.iter().copied().collect())
+                    });
                 Batch {
                     // The value is predicted from the factor, i.e. from the optimised previous
                     // keyframe, not odometry's drifting frame.
@@ -153,7 +155,7 @@ impl Keyframer {
                 "prior_se3",
                 vec![key],
                 &pose,
-                Noise::Information(information),
+                Noise::Information(information.iter().copied().collect()),
             )],
             ..Batch::default()
         })
@@ -177,13 +179,14 @@ fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
 /// A factor's noise as the wire takes it: an information matrix, or sigmas (the server then
 /// builds the diagonal information).
 enum Noise {
-    Information(Matrix6<f64>),
+    /// Row-major, as `FactorSpec::information`.
+    Information(Vec<f64>),
     Sigmas([f64; 6]),
 }
 
 fn factor(kind: &str, keys: Vec<Key>, pose: &Isometry3<f64>, noise: Noise) -> FactorSpec {
     let (information, sigmas) = match noise {
-        Noise::Information(m) => (Some(m.iter().copied().collect()), None),
+        Noise::Information(m) => (Some(m), None),
         Noise::Sigmas(s) => (None, Some(s.to_vec())),
     };
     FactorSpec {
