@@ -57,47 +57,69 @@ impl TestServer {
         })
     }
 
+    /// Starts the server; when its zenoh port was taken between [`free_port`] and the server's
+    /// bind (another test's process got it), tries again on a new port.
     fn start_with(
         state_dir: &Path,
         extra: &[&str],
         env: &[(&str, &str)],
-        configure: impl FnOnce(&mut Command),
+        configure: impl Fn(&mut Command),
     ) -> Self {
+        const ATTEMPTS: usize = 3;
         let state_dir = state_dir.to_path_buf();
-        // A killed server leaves its address file behind; wait for the new one.
-        let _ = std::fs::remove_file(state_dir.join("server.json"));
-        let zenoh = format!("tcp/127.0.0.1:{}", free_port());
         let stderr_path = state_dir.with_extension("stderr");
-        let stderr = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&stderr_path)
-            .expect("stderr file");
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
-        cmd.arg("serve");
-        if !extra.contains(&"--listen") {
-            cmd.args(["--listen", "127.0.0.1:0"]);
+        for attempt in 1..=ATTEMPTS {
+            // A killed server leaves its address file behind; wait for the new one.
+            let _ = std::fs::remove_file(state_dir.join("server.json"));
+            let zenoh = format!("tcp/127.0.0.1:{}", free_port());
+            let stderr = std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&stderr_path)
+                .expect("stderr file");
+            let logged_before = stderr.metadata().map_or(0, |m| m.len() as usize);
+            let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
+            cmd.arg("serve");
+            if !extra.contains(&"--listen") {
+                cmd.args(["--listen", "127.0.0.1:0"]);
+            }
+            cmd.args(["--zenoh-listen", &zenoh])
+                .arg("--state-dir")
+                .arg(&state_dir)
+                .args(["--zenoh-multicast", "off"])
+                .args(extra)
+                .stdout(Stdio::null())
+                .stderr(stderr);
+            for (k, v) in env {
+                cmd.env(k, v);
+            }
+            configure(&mut cmd);
+            let mut child = cmd.spawn().expect("factord starts");
+            match started(&state_dir.join("server.json"), &mut child) {
+                Some(http) => {
+                    return Self {
+                        http,
+                        zenoh,
+                        state_dir,
+                        stderr_path,
+                        child: Some(child),
+                    }
+                }
+                None => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    let log = read(&stderr_path);
+                    let port_taken = log
+                        .get(logged_before..)
+                        .is_some_and(|new| new.contains("Address already in use"));
+                    assert!(
+                        port_taken && attempt < ATTEMPTS,
+                        "server did not start: {log}"
+                    );
+                }
+            }
         }
-        cmd.args(["--zenoh-listen", &zenoh])
-            .arg("--state-dir")
-            .arg(&state_dir)
-            .args(["--zenoh-multicast", "off"])
-            .args(extra)
-            .stdout(Stdio::null())
-            .stderr(stderr);
-        for (k, v) in env {
-            cmd.env(k, v);
-        }
-        configure(&mut cmd);
-        let child = cmd.spawn().expect("factord starts");
-        let http = http_when_started(&state_dir.join("server.json"), "server", &stderr_path);
-        Self {
-            http,
-            zenoh,
-            state_dir,
-            stderr_path,
-            child: Some(child),
-        }
+        unreachable!("the last attempt returns or panics")
     }
 
     pub fn url(&self, path: &str) -> String {
@@ -305,6 +327,27 @@ pub fn g2o_batches(text: &str) -> Vec<Value> {
             })
         })
         .collect()
+}
+
+/// The HTTP URL `child` writes to `info` (its `server.json`) once started, waited for up to
+/// 20 s; `None` when it exits first or does not start in time.
+fn started(info: &Path, child: &mut Child) -> Option<String> {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while Instant::now() < deadline {
+        if let Ok(text) = std::fs::read_to_string(info) {
+            if let Ok(v) = serde_json::from_str::<Value>(&text) {
+                return Some(format!(
+                    "http://{}",
+                    v["http"].as_str().expect("http address")
+                ));
+            }
+        }
+        if matches!(child.try_wait(), Ok(Some(_))) {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    None
 }
 
 /// The HTTP URL a starting server writes to `info` (its `server.json`), waited for up to 20 s;
