@@ -31,6 +31,14 @@ pub struct Ros2Binding {
     /// marginal covariance after each solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_topic: Option<String>,
+    /// `tf2_msgs/msg/TFMessage`: the `map → odom` correction (from `map_frame` to odometry's
+    /// `header.frame_id`), as a localisation node publishes it; usually `/tf`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tf_topic: Option<String>,
+    /// Seconds the correction is dated after the newest odometry stamp, so that lookups at the
+    /// robot's newest time find it (AMCL's `transform_tolerance`); 0 to 10.
+    #[serde(default = "default_transform_tolerance")]
+    pub transform_tolerance: f64,
     /// `header.frame_id` of what is published (the frame the trajectory is optimised in).
     #[serde(default = "default_map_frame")]
     pub map_frame: String,
@@ -44,6 +52,11 @@ pub struct Ros2Binding {
 
 fn default_map_frame() -> String {
     "map".into()
+}
+
+fn default_transform_tolerance() -> f64 {
+    // slam_toolbox's `transform_timeout`.
+    0.2
 }
 
 fn default_keyframe_distance() -> f64 {
@@ -77,6 +90,7 @@ impl Ros2Binding {
             ("prior_topic", self.prior_topic.as_ref()),
             ("path_topic", self.path_topic.as_ref()),
             ("pose_topic", self.pose_topic.as_ref()),
+            ("tf_topic", self.tf_topic.as_ref()),
         ];
         for (field, topic) in topics {
             if let Some(topic) = topic {
@@ -106,6 +120,13 @@ impl Ros2Binding {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(invalid(field, format!("{value} is not a finite value ≥ 0")));
             }
+        }
+        // Beyond seconds, future-dating would hide a correction that stopped being updated.
+        if !(0.0..=10.0).contains(&self.transform_tolerance) {
+            return Err(invalid(
+                "transform_tolerance",
+                format!("{} is not in 0 to 10 seconds", self.transform_tolerance),
+            ));
         }
         Ok(())
     }
@@ -157,5 +178,27 @@ mod tests {
             );
         }
         assert!(valid_ros_name("robot1/odom"));
+    }
+
+    #[test]
+    fn tf_fields_are_checked_at_their_names() {
+        let tf = binding(r#"{"odometry_topic": "/odom", "tf_topic": "/tf"}"#);
+        assert_eq!(tf.transform_tolerance, 0.2);
+        assert!(tf.validate().is_ok());
+        let bad_topic = binding(r#"{"odometry_topic": "/odom", "tf_topic": "tf//x"}"#);
+        let e = bad_topic.validate().expect_err("a bad tf topic");
+        assert_eq!(e.body.field.as_deref(), Some("ros2.tf_topic"));
+        for tolerance in [-0.1, 11.0, f64::NAN] {
+            let b = Ros2Binding {
+                transform_tolerance: tolerance,
+                ..tf.clone()
+            };
+            let e = b.validate().expect_err("a bad tolerance");
+            assert_eq!(
+                e.body.field.as_deref(),
+                Some("ros2.transform_tolerance"),
+                "{tolerance}"
+            );
+        }
     }
 }

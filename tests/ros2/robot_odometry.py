@@ -12,7 +12,10 @@ odometry publisher. Checks, in order:
 3. a malformed payload and a message of the wrong type are reported on the session's error
    stream (`ros2_bad_message`) and change nothing: odometry keeps extending the path;
 4. an absolute pose (PoseWithCovarianceStamped) pulls the trajectory to it, and the pose output
-   carries a positive definite marginal covariance.
+   carries a positive definite marginal covariance;
+5. `/tf` carries the map → odom correction: identity while the optimum is odometry, then the
+   pull; composed with the newest keyframe's odometry pose it is that keyframe's optimised pose;
+   stamped at the newest odometry stamp plus the tolerance, strictly increasing.
 
 Prints the key expressions, tokens and one captured attachment (hex).
 """
@@ -35,6 +38,8 @@ DOMAIN = 7
 ODOM = "nav_msgs/msg/Odometry"
 PWCS = "geometry_msgs/msg/PoseWithCovarianceStamped"
 PATH = "nav_msgs/msg/Path"
+TF = "tf2_msgs/msg/TFMessage"
+TOLERANCE = 0.25
 
 
 def dds_name(msgtype):
@@ -159,6 +164,7 @@ def main():
     binding = {
         "domain_id": DOMAIN, "odometry_topic": "/robot1/odom", "prior_topic": "/robot1/gnss",
         "path_topic": "/robot1/factord/path", "pose_topic": "/robot1/factord/pose",
+        "tf_topic": "/tf", "transform_tolerance": TOLERANCE,
         "keyframe_distance": 1.0, "keyframe_angle": 0.5,
     }
     http(args.http, "POST", "/v1/sessions",
@@ -177,22 +183,23 @@ def main():
 
 
 def run(session, args):
-    # 1. The ROS graph: factord's node and its four endpoints.
+    # 1. The ROS graph: factord's node and its five endpoints.
     def graph():
         tokens = [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")
                   if r.ok is not None]
         ours = [t for t in tokens if "/factord_ros_robot" in t]
-        return ours if len(ours) == 5 else None
+        return ours if len(ours) == 6 else None
     tokens = sorted(wait_for("factord's liveliness tokens", graph), key=lambda t: t.split("/")[5])
     for token in tokens:
         print("liveliness:", token)
     kinds = sorted(t.split("/")[5] for t in tokens)
-    assert kinds == ["MP", "MP", "MS", "MS", "NN"], kinds
+    assert kinds == ["MP", "MP", "MP", "MS", "MS", "NN"], kinds
     expected_tails = {
         f"%robot1%odom/{dds_name(ODOM)}/{STORE.hash_rihs01(ODOM)}/::,10:,:,:,,",
         f"%robot1%gnss/{dds_name(PWCS)}/{STORE.hash_rihs01(PWCS)}/::,10:,:,:,,",
         f"%robot1%factord%path/{dds_name(PATH)}/{STORE.hash_rihs01(PATH)}/::,10:,:,:,,",
         f"%robot1%factord%pose/{dds_name(PWCS)}/{STORE.hash_rihs01(PWCS)}/::,10:,:,:,,",
+        f"%tf/{dds_name(TF)}/{STORE.hash_rihs01(TF)}/::,10:,:,:,,",
     }
     for token in tokens:
         parts = token.split("/")
@@ -200,7 +207,7 @@ def run(session, args):
     assert {"/".join(t.split("/")[9:]) for t in tokens if "/NN/" not in t} == expected_tails
 
     # Outputs, read as a ROS subscriber would (CDR and attachment decoded).
-    received = {"path": [], "pose": [], "errors": []}
+    received = {"path": [], "pose": [], "tf": [], "errors": []}
     lock = threading.Lock()
 
     def on(kind, msgtype):
@@ -225,12 +232,15 @@ def run(session, args):
             received["errors"].append(json.loads(bytes(sample.payload.to_bytes())))
     path_key = topic_key("/robot1/factord/path", PATH)
     pose_key = topic_key("/robot1/factord/pose", PWCS)
+    tf_key = topic_key("/tf", TF)
     print("odometry key:", topic_key("/robot1/odom", ODOM))
     print("gnss key:", topic_key("/robot1/gnss", PWCS))
     print("path key:", path_key)
     print("pose key:", pose_key)
+    print("tf key:", tf_key)
     subscribers = [session.declare_subscriber(path_key, on("path", PATH)),
                    session.declare_subscriber(pose_key, on("pose", PWCS)),
+                   session.declare_subscriber(tf_key, on("tf", TF)),
                    session.declare_subscriber("factord/ros_robot/out/errors", on_error)]
     robot = Robot(session)
     time.sleep(0.5)  # let factord's subscriptions see our publishers' routes
@@ -319,9 +329,80 @@ def run(session, args):
     assert cov[0, 0] < 0.01 ** 2 * 1.01, cov[0, 0]
     print(f"pose after the prior: x {pose.pose.pose.position.x:.4f} (prior {x + 0.5:.4f}), "
           f"sigma_x {math.sqrt(cov[0, 0]):.4f} m")
+    check_tf(received, lock, robot, expected[-1], samples[-1][0])
     for subscriber in subscribers:
         subscriber.undeclare()
     print("ros2 robot: ok")
+
+
+def pose_matrix(translation, rotation):
+    """A 4×4 transform from a position and a quaternion message."""
+    x, y, z, w = rotation.x, rotation.y, rotation.z, rotation.w
+    matrix = np.eye(4)
+    matrix[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    matrix[:3, 3] = [translation.x, translation.y, translation.z]
+    return matrix
+
+
+def stamp_of(header):
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+def check_tf(received, lock, robot, last_keyframe, newest_odometry):
+    """5. map → odom on /tf (see the module's doc)."""
+    with lock:
+        transforms = [m[0].transforms for m in received["tf"]]
+    assert transforms and all(len(t) == 1 for t in transforms), transforms[:3]
+    first = transforms[0][0]
+    assert (first.header.frame_id, first.child_frame_id) == ("map", "odom"), first
+    identity = pose_matrix(first.transform.translation, first.transform.rotation)
+    assert np.abs(identity - np.eye(4)).max() < 1e-6, identity
+
+    # The pulled correction: the newest keyframe's odometry pose carried to its optimum.
+    stamp, x, y, yaw = last_keyframe
+    odometry_pose = pose_matrix(STORE.types["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+                                pose_msg(x, y, 0.0, yaw).orientation)
+
+    def pulled():
+        with lock:
+            if received["tf"]:
+                t = received["tf"][-1][0].transforms[0].transform
+                if abs(t.translation.x - 0.5) < 0.02:
+                    return received["tf"][-1][0].transforms[0], received["path"][-1][0]
+        return None
+    correction, path = wait_for("the map -> odom correction after the pull", pulled)
+    time.sleep(0.3)  # the path and the correction of the last solve
+    with lock:
+        correction, path = received["tf"][-1][0].transforms[0], received["path"][-1][0]
+    optimised = path.poses[-1].pose
+    composed = pose_matrix(correction.transform.translation, correction.transform.rotation) \
+        @ odometry_pose
+    wanted = pose_matrix(optimised.position, optimised.orientation)
+    assert np.abs(composed - wanted).max() < 1e-6, (composed, wanted)
+    print(f"map -> odom after the pull: t = ({correction.transform.translation.x:.4f}, "
+          f"{correction.transform.translation.y:.4f}, {correction.transform.translation.z:.4f})")
+
+    # Odometry that makes no keyframe (the robot stands at its last keyframe) re-dates it.
+    for i in range(1, 4):
+        robot.publish("/robot1/odom", odometry(newest_odometry + 0.1 * i, x, y, yaw))
+        time.sleep(0.05)
+    newest = newest_odometry + 0.3 + TOLERANCE
+
+    def redated():
+        with lock:
+            if received["tf"] and abs(stamp_of(received["tf"][-1][0].transforms[0].header)
+                                      - newest) < 1e-6:
+                return received["tf"][-1][0].transforms[0]
+        return None
+    wait_for("the correction dated at the newest odometry stamp plus the tolerance", redated)
+    with lock:
+        stamps = [m[0].transforms[0].header.stamp for m in received["tf"]]
+    # In nanoseconds, as tf2 keeps them (a float of epoch seconds cannot tell 1 ns apart).
+    stamps = [s.sec * 10**9 + s.nanosec for s in stamps]
+    assert all(b > a for a, b in zip(stamps, stamps[1:])), stamps
+    print(f"tf: {len(stamps)} map -> odom transforms, stamps strictly increasing")
 
 
 if __name__ == "__main__":

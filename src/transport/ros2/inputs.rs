@@ -18,6 +18,7 @@ use super::keyframes::{Keyframer, MessageError};
 use super::messages::{
     Odometry, PoseWithCovarianceStamped, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
 };
+use super::tf::TfBroadcaster;
 use crate::api::wire::Batch;
 use crate::service::{Caller, Command, Delivery, Service, ServiceError};
 
@@ -41,6 +42,8 @@ pub(super) struct Inputs {
     pub keyframer: Keyframer,
     pub odometry: Samples,
     pub priors: Option<Samples>,
+    /// Told of every odometry message used and every keyframe made (`map → odom` on `/tf`).
+    pub tf: Option<Arc<TfBroadcaster>>,
     /// Messages refused so far (reported with each refusal).
     pub refused: Arc<AtomicU64>,
 }
@@ -65,7 +68,7 @@ impl Inputs {
                 .map(|a| Attachment::decode(&a.to_bytes()));
             let batch = match (attachment, is_odometry) {
                 (Some(Err(e)), _) => Err(e.into()),
-                (_, true) => self.odometry_batch(&payload),
+                (_, true) => self.odometry_batch(&payload).await,
                 (_, false) => self.prior_batch(&payload),
             };
             match batch {
@@ -76,9 +79,16 @@ impl Inputs {
         }
     }
 
-    fn odometry_batch(&mut self, payload: &[u8]) -> Result<Option<Batch>, Unusable> {
+    async fn odometry_batch(&mut self, payload: &[u8]) -> Result<Option<Batch>, Unusable> {
         let odometry: Odometry = cdr_codec::decode(payload, ODOMETRY.name)?;
-        Ok(self.keyframer.on_odometry(&odometry)?)
+        let batch = self.keyframer.on_odometry(&odometry)?;
+        if let Some(tf) = &self.tf {
+            let keyframe = batch.as_ref().and(self.keyframer.last_keyframe());
+            let header = &odometry.header;
+            tf.on_odometry(header.stamp, &header.frame_id, keyframe)
+                .await;
+        }
+        Ok(batch)
     }
 
     fn prior_batch(&mut self, payload: &[u8]) -> Result<Option<Batch>, Unusable> {

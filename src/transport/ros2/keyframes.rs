@@ -117,6 +117,11 @@ impl Keyframer {
         Ok(Some(batch))
     }
 
+    /// The newest keyframe: its key and where odometry put it.
+    pub fn last_keyframe(&self) -> Option<(Key, Isometry3<f64>)> {
+        self.last.as_ref().map(|k| (k.key, k.odometry_pose))
+    }
+
     fn first_keyframe(&self, key: Key, pose: &Isometry3<f64>, stamp: f64) -> Batch {
         let mut first = variable(key, Some(wire_pose(pose)), stamp);
         let mut factors = Vec::new();
@@ -204,6 +209,17 @@ pub fn wire_pose(pose: &Isometry3<f64>) -> Vec<f64> {
     let t = pose.translation.vector;
     let q = pose.rotation.quaternion();
     vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}
+
+/// The inverse of [`wire_pose`]; `None` for a value that is not seven numbers.
+pub fn from_wire_pose(value: &[f64]) -> Option<Isometry3<f64>> {
+    let [x, y, z, qx, qy, qz, qw] = value[..] else {
+        return None;
+    };
+    Some(Isometry3::from_parts(
+        Translation3::new(x, y, z),
+        UnitQuaternion::from_quaternion(NaQuaternion::new(qw, qx, qy, qz)),
+    ))
 }
 
 /// A ROS pose as an isometry; its quaternion must be unit within 1e-3 (then normalised).

@@ -6,8 +6,10 @@
 //! these messages have not changed since hashes were introduced in Iron). Source: computed as
 //! rosidl does by `rosbags` 0.11.9 (`get_typestore(Stores.ROS2_JAZZY).hash_rihs01(name)`) and
 //! checked against the hashes in rosidl-generated type-support sources (`nav_msgs` and
-//! `geometry_msgs` `*__type_support.c`, `TYPE_HASH`).
+//! `geometry_msgs` `*__type_support.c`, `TYPE_HASH`) and, for `tf2_msgs/TFMessage`, against
+//! the golden hash in rosidl's own tests.
 
+use nalgebra::{Isometry3, UnitQuaternion};
 use serde::de::{Error as _, SeqAccess, Visitor};
 use serde::ser::SerializeTuple;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
@@ -35,6 +37,12 @@ pub const POSE_WITH_COVARIANCE_STAMPED: RosType = RosType {
     hash: "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e",
 };
 
+pub const TF_MESSAGE: RosType = RosType {
+    name: "tf2_msgs/msg/TFMessage",
+    dds_name: "tf2_msgs::msg::dds_::TFMessage_",
+    hash: "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
+};
+
 pub const PATH: RosType = RosType {
     name: "nav_msgs/msg/Path",
     dds_name: "nav_msgs::msg::dds_::Path_",
@@ -51,6 +59,17 @@ pub struct Time {
 impl Time {
     pub fn seconds(self) -> f64 {
         f64::from(self.sec) + f64::from(self.nanosec) * 1e-9
+    }
+
+    pub fn nanoseconds(self) -> i64 {
+        i64::from(self.sec) * 1_000_000_000 + i64::from(self.nanosec)
+    }
+
+    pub fn from_nanoseconds(nanoseconds: i64) -> Self {
+        Self {
+            sec: nanoseconds.div_euclid(1_000_000_000) as i32,
+            nanosec: nanoseconds.rem_euclid(1_000_000_000) as u32,
+        }
     }
 
     /// The stamp of `seconds`, rounded to the nanosecond (stamps come from ROS headers, so
@@ -105,11 +124,36 @@ impl Default for Quaternion {
     }
 }
 
+impl From<&UnitQuaternion<f64>> for Quaternion {
+    fn from(q: &UnitQuaternion<f64>) -> Self {
+        Self {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        }
+    }
+}
+
 /// `geometry_msgs/Pose`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Pose {
     pub position: Point,
     pub orientation: Quaternion,
+}
+
+impl From<&Isometry3<f64>> for Pose {
+    fn from(pose: &Isometry3<f64>) -> Self {
+        let t = pose.translation.vector;
+        Self {
+            position: Point {
+                x: t.x,
+                y: t.y,
+                z: t.z,
+            },
+            orientation: Quaternion::from(&pose.rotation),
+        }
+    }
 }
 
 /// `float64[36]`: a 6×6 row-major covariance over `[x y z rot_x rot_y rot_z]`. A fixed-size
@@ -207,6 +251,40 @@ pub struct Path {
     pub poses: Vec<PoseStamped>,
 }
 
+/// `geometry_msgs/Transform`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Transform {
+    pub translation: Vector3,
+    pub rotation: Quaternion,
+}
+
+impl From<&Isometry3<f64>> for Transform {
+    fn from(pose: &Isometry3<f64>) -> Self {
+        let Pose {
+            position,
+            orientation,
+        } = Pose::from(pose);
+        Self {
+            translation: position,
+            rotation: orientation,
+        }
+    }
+}
+
+/// `geometry_msgs/TransformStamped`: `child_frame_id`'s pose in `header.frame_id`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TransformStamped {
+    pub header: Header,
+    pub child_frame_id: String,
+    pub transform: Transform,
+}
+
+/// `tf2_msgs/TFMessage`, what `/tf` carries.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TfMessage {
+    pub transforms: Vec<TransformStamped>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -224,6 +302,14 @@ mod tests {
         assert_eq!(
             Time::from_seconds(2.9999999999),
             Time { sec: 3, nanosec: 0 }
+        );
+        assert_eq!(Time::from_nanoseconds(t.nanoseconds()), t);
+        assert_eq!(
+            Time::from_nanoseconds(-1),
+            Time {
+                sec: -1,
+                nanosec: 999_999_999
+            }
         );
     }
 }

@@ -11,7 +11,8 @@
 //!
 //! In: `nav_msgs/Odometry` (keyframes, `between_se3`) and `geometry_msgs/PoseWithCovarianceStamped`
 //! (`prior_se3`), see `keyframes`. Out after each solve: `nav_msgs/Path` and
-//! `geometry_msgs/PoseWithCovarianceStamped`, see `outputs`. Messages go through the one command
+//! `geometry_msgs/PoseWithCovarianceStamped`, see `outputs`, and the `map → odom` correction on
+//! `/tf`, see `tf`. Messages go through the one command
 //! API ([`Service::execute_as`]) like any client's; nothing here touches a session's state.
 //!
 //! The binding uses the zenoh adapter's session: robots reach factord through the same router
@@ -25,6 +26,7 @@ mod keyframes;
 mod messages;
 mod names;
 mod outputs;
+mod tf;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -34,9 +36,10 @@ use zenoh::liveliness::LivelinessToken;
 use crate::api::ros2::Ros2Binding;
 use crate::service::{Caller, Service};
 use crate::session::Session;
-use messages::{RosType, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED};
+use messages::{RosType, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
 use names::{EndpointKind, NodeName};
 use outputs::RosPublisher;
+use tf::TfBroadcaster;
 
 /// Node and endpoint ids within our zenoh session, unique as rmw_zenoh's per-context counter.
 static NEXT_ENTITY_ID: AtomicU64 = AtomicU64::new(1);
@@ -133,9 +136,18 @@ async fn run(
     };
     let path = publisher(&binding.path_topic, &PATH);
     let pose = publisher(&binding.pose_topic, &POSE_WITH_COVARIANCE_STAMPED);
-    for (token, _) in path.iter().chain(pose.iter()) {
+    let tf = publisher(&binding.tf_topic, &TF_MESSAGE);
+    for (token, _) in path.iter().chain(&pose).chain(&tf) {
         tokens.push(declare_token(&zenoh, token.clone()).await.map_err(failed)?);
     }
+    let tf = tf.map(|(_, publisher)| {
+        Arc::new(TfBroadcaster::new(
+            zenoh.clone(),
+            publisher,
+            binding.map_frame.clone(),
+            binding.transform_tolerance,
+        ))
+    });
     tracing::info!(
         session = session.name,
         "ROS 2 binding: node {} on domain {}",
@@ -154,6 +166,7 @@ async fn run(
         keyframer,
         odometry,
         priors,
+        tf: tf.clone(),
         refused: Arc::default(),
     };
     let inputs = tokio::spawn(inputs.run());
@@ -165,6 +178,7 @@ async fn run(
         map_frame: binding.map_frame.clone(),
         path: path.map(|(_, p)| p),
         pose: pose.map(|(_, p)| p),
+        tf,
     };
     outputs.run().await;
     // The session is gone: leave the ROS graph.

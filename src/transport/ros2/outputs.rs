@@ -8,19 +8,24 @@
 //! `[v; ω]`, which is ROS's `[x y z rot_x rot_y rot_z]` order. When it cannot be had (e.g. the
 //! keyframe is fixed, or the Hessian is singular) the covariance is all zeros (ROS: unknown).
 //!
+//! When the binding has a `tf_topic`, each solve also updates the `map → odom` correction
+//! (`tf`).
+//!
 //! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
 use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use nalgebra::{Quaternion as NaQuaternion, UnitQuaternion};
+use nalgebra::Isometry3;
 
 use super::attachment::Attachment;
 use super::cdr_codec;
+use super::keyframes::from_wire_pose;
 use super::messages::{
-    Covariance, Header, Path, Point, Pose, PoseStamped, PoseWithCovariance,
-    PoseWithCovarianceStamped, Quaternion, Time,
+    Covariance, Header, Path, Pose, PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped,
+    Time,
 };
+use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
 use crate::service::{Caller, Command, Reply, Service};
 
@@ -32,7 +37,7 @@ pub(super) struct RosPublisher {
 }
 
 impl RosPublisher {
-    async fn put(&mut self, zenoh: &zenoh::Session, payload: Vec<u8>) {
+    pub async fn put(&mut self, zenoh: &zenoh::Session, payload: Vec<u8>) {
         self.sequence += 1;
         let now = SystemTime::now()
             .duration_since(UNIX_EPOCH)
@@ -59,6 +64,7 @@ pub(super) struct Outputs {
     pub map_frame: String,
     pub path: Option<RosPublisher>,
     pub pose: Option<RosPublisher>,
+    pub tf: Option<Arc<TfBroadcaster>>,
 }
 
 impl Outputs {
@@ -92,6 +98,9 @@ impl Outputs {
                 newest_key = Some(v.key);
             }
         }
+        if let Some(tf) = &self.tf {
+            tf.on_solve(&estimate.variables).await;
+        }
         let newest = poses.last().cloned();
         if let Some(path) = &mut self.path {
             let message = Path {
@@ -119,32 +128,23 @@ impl Outputs {
 
     /// An `se3` estimate as a stamped pose (others, and values of the wrong length, skipped).
     fn pose_stamped(&self, v: &VariableValue) -> Option<PoseStamped> {
-        let [x, y, z, qx, qy, qz, qw] = v.value[..] else {
-            return None;
-        };
-        (v.kind == "se3").then(|| PoseStamped {
+        Some(PoseStamped {
             header: Header {
                 stamp: v.stamp.map(Time::from_seconds).unwrap_or_default(),
                 frame_id: self.map_frame.clone(),
             },
-            pose: Pose {
-                position: Point { x, y, z },
-                orientation: unit(qx, qy, qz, qw),
-            },
+            // Renormalised on the way (the wire's shortest round-trip numbers are unit to
+            // ~1e-16 already; this keeps ROS consumers that check norms strictly happy).
+            pose: Pose::from(&se3_estimate(v)?),
         })
     }
 }
 
-/// The estimate's quaternion, renormalised (the wire's shortest round-trip numbers are unit
-/// to ~1e-16 already; this keeps ROS consumers that check norms strictly happy).
-fn unit(x: f64, y: f64, z: f64, w: f64) -> Quaternion {
-    let q = UnitQuaternion::from_quaternion(NaQuaternion::new(w, x, y, z));
-    Quaternion {
-        x: q.i,
-        y: q.j,
-        z: q.k,
-        w: q.w,
-    }
+/// An `se3` estimate as an isometry (other kinds, and values of the wrong length: `None`).
+pub(super) fn se3_estimate(v: &VariableValue) -> Option<Isometry3<f64>> {
+    (v.kind == "se3")
+        .then(|| from_wire_pose(&v.value))
+        .flatten()
 }
 
 /// The 6×6 marginal covariance of `key`, row-major; zeros (unknown) when it cannot be had.
