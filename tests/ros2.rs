@@ -57,6 +57,13 @@ fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
     run_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
 }
 
+#[test]
+fn a_ros2_robot_with_an_imu_feeds_a_sliding_window() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &server, "tests/ros2/robot_imu.py", &[]);
+}
+
 /// A ROS 2 bag (MCAP, written by rosbags from sphere2500's first 300 poses) replayed into a
 /// session as `ros2 bag play` over rmw_zenoh would: the recorded CDR bytes, unchanged.
 #[test]

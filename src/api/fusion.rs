@@ -43,7 +43,7 @@ fn initial_sigmas_schema() -> utoipa::openapi::schema::Object {
 }
 
 /// `ImuNoise`'s schema (see [`initial_sigmas_schema`]).
-fn imu_noise_schema() -> utoipa::openapi::schema::Object {
+pub(super) fn imu_noise_schema() -> utoipa::openapi::schema::Object {
     numbers_object(
         &[
             "accel_noise_density",

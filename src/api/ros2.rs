@@ -6,6 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::ServiceError;
+use crate::geometry::preintegration::ImuNoise;
 
 /// The ROS 2 topics a session reads and writes over rmw_zenoh. Topic names are ROS names
 /// (`/odom`, `robot1/odom`); an empty or absent output topic is not published.
@@ -18,8 +19,19 @@ pub struct Ros2Binding {
     /// The node factord appears as in `ros2 node list`; `factord_<session>` when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub node_name: Option<String>,
-    /// `nav_msgs/msg/Odometry`: keyframes and the relative-pose factors between them.
+    /// `nav_msgs/msg/Odometry`: keyframes and the relative poses between them.
     pub odometry_topic: String,
+    /// `sensor_msgs/msg/Imu`: the samples a `sliding_window` session pre-integrates between
+    /// keyframes (required there; a pose graph has no use for them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imu_topic: Option<String>,
+    /// `sliding_window` sessions: the keyframes the window keeps (its `start` message's).
+    #[serde(default = "default_window")]
+    pub window: usize,
+    /// `sliding_window` sessions: the IMU's noise; default EuRoC's (ADIS16448).
+    #[serde(default = "default_imu_noise")]
+    #[schema(schema_with = super::fusion::imu_noise_schema)]
+    pub imu_noise: ImuNoise,
     /// `geometry_msgs/msg/PoseWithCovarianceStamped`: absolute priors (GNSS, map matching) on
     /// the keyframe nearest in time.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -52,6 +64,14 @@ pub struct Ros2Binding {
 
 fn default_map_frame() -> String {
     "map".into()
+}
+
+fn default_window() -> usize {
+    10
+}
+
+fn default_imu_noise() -> ImuNoise {
+    ImuNoise::EUROC
 }
 
 fn default_transform_tolerance() -> f64 {
@@ -87,6 +107,7 @@ impl Ros2Binding {
         }
         let topics = [
             ("odometry_topic", Some(&self.odometry_topic)),
+            ("imu_topic", self.imu_topic.as_ref()),
             ("prior_topic", self.prior_topic.as_ref()),
             ("path_topic", self.path_topic.as_ref()),
             ("pose_topic", self.pose_topic.as_ref()),
@@ -121,6 +142,27 @@ impl Ros2Binding {
                 return Err(invalid(field, format!("{value} is not a finite value ≥ 0")));
             }
         }
+        if !(1..=1000).contains(&self.window) {
+            return Err(invalid(
+                "window",
+                format!("{} is not 1 to 1000 keyframes", self.window),
+            ));
+        }
+        let n = &self.imu_noise;
+        for (field, value) in [
+            ("accel_noise_density", n.accel_noise_density),
+            ("gyro_noise_density", n.gyro_noise_density),
+            ("accel_random_walk", n.accel_random_walk),
+            ("gyro_random_walk", n.gyro_random_walk),
+            ("integration_sigma", n.integration_sigma),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(invalid(
+                    &format!("imu_noise.{field}"),
+                    format!("{value} is not a finite value > 0"),
+                ));
+            }
+        }
         // Beyond seconds, future-dating would hide a correction that stopped being updated.
         if !(0.0..=10.0).contains(&self.transform_tolerance) {
             return Err(invalid(
@@ -129,6 +171,34 @@ impl Ros2Binding {
             ));
         }
         Ok(())
+    }
+}
+
+impl Ros2Binding {
+    /// Whether a session of `kind` can take this binding: odometry makes `se3` keyframes in a
+    /// `pose_graph_3d`, or IMU-and-odometry keyframes in a `sliding_window` (which needs the
+    /// IMU). 400 `ros2_unsupported_kind` at `ros2`, or `invalid_value` at `ros2.imu_topic`.
+    pub fn check_kind(&self, kind: &str) -> Result<(), ServiceError> {
+        let imu = |message: &str| {
+            ServiceError::bad_request("invalid_value", "ros2.imu_topic", message.to_string())
+        };
+        match (kind, &self.imu_topic) {
+            ("pose_graph_3d", None) | ("sliding_window", Some(_)) => Ok(()),
+            ("pose_graph_3d", Some(_)) => Err(imu(
+                "IMU samples feed sliding_window sessions; a pose_graph_3d takes odometry only",
+            )),
+            ("sliding_window", None) => Err(imu(
+                "a sliding_window session pre-integrates IMU samples between keyframes: \
+                 imu_topic is required",
+            )),
+            _ => Err(ServiceError::bad_request(
+                "ros2_unsupported_kind",
+                "ros2",
+                format!(
+                    "a ROS 2 binding needs a pose_graph_3d or sliding_window session, not {kind}"
+                ),
+            )),
+        }
     }
 }
 

@@ -55,10 +55,12 @@ pub struct CreateSession {
     /// "User-defined factors"). Graph kinds only.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
-    /// Bind the session to ROS 2 topics of robots that speak rmw_zenoh (odometry and priors
-    /// in, the optimised path and pose out); `pose_graph_3d` only. See README, "ROS 2".
+    /// Bind the session to ROS 2 topics of robots that speak rmw_zenoh (odometry, priors and,
+    /// for a `sliding_window`, IMU in; the optimised path, pose and `map → odom` out);
+    /// `pose_graph_3d` and `sliding_window`. See README, "ROS 2". Boxed: most requests have
+    /// none, and a command holds its request.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ros2: Option<super::ros2::Ros2Binding>,
+    pub ros2: Option<Box<super::ros2::Ros2Binding>>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]

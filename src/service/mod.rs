@@ -489,7 +489,7 @@ impl Service {
                 options: Some(info.options),
                 auto_optimize: info.auto_optimize,
                 factor_types: session.factor_types().definitions(),
-                ros2: session.ros2_binding().cloned(),
+                ros2: session.ros2_binding().cloned().map(Box::new),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
@@ -535,18 +535,8 @@ impl Service {
         session.set_factor_types(factor_types);
         if let Some(binding) = request.ros2 {
             binding.validate()?;
-            // Odometry becomes se3 keyframes and between_se3 factors: a 3D pose graph's.
-            if kind.name != "pose_graph_3d" {
-                return Err(ServiceError::bad_request(
-                    "ros2_unsupported_kind",
-                    "ros2",
-                    format!(
-                        "a ROS 2 binding needs a pose_graph_3d session, not {}",
-                        kind.name
-                    ),
-                ));
-            }
-            session.set_ros2_binding(binding);
+            binding.check_kind(kind.name)?;
+            session.set_ros2_binding(*binding);
         }
         session
             .set_auto_optimize(request.auto_optimize)

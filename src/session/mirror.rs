@@ -31,28 +31,41 @@ impl MirrorEntry {
 }
 
 impl Session {
+    /// The variables `query` selects with the session's sequence. A window session has no
+    /// variables of its own: its trajectory stands for them (see [`Session::export`]), in the
+    /// key range; `since` selects none of it (trajectory states carry no change counter).
     pub fn estimate(&self, query: &EstimateQuery) -> Estimate {
-        let st = self.lock();
         let range = query.from.unwrap_or(0)..=query.to.unwrap_or(Key::MAX);
-        let since = query.since.unwrap_or(0);
-        let variables = if range.start() > range.end() {
-            Vec::new()
-        } else {
-            st.mirror
-                .range(range)
-                .filter(|(_, e)| query.since.is_none() || e.changed > since)
-                .map(|(&k, e)| value_of(k, e))
-                .collect()
+        let (sequence, variables) = match &self.engine {
+            Engine::Window(_) => {
+                let variables = match query.since {
+                    Some(_) => Vec::new(),
+                    None => self.window_trajectory_in(&range),
+                };
+                (self.lock().sequence, variables)
+            }
+            Engine::Graph(_) => {
+                let st = self.lock();
+                let since = query.since.unwrap_or(0);
+                let variables = if range.start() > range.end() {
+                    Vec::new()
+                } else {
+                    st.mirror
+                        .range(range)
+                        .filter(|(_, e)| query.since.is_none() || e.changed > since)
+                        .map(|(&k, e)| value_of(k, e))
+                        .collect()
+                };
+                (st.sequence, variables)
+            }
         };
         Estimate {
             session: self.name.clone(),
-            sequence: st.sequence,
+            sequence,
             variables,
         }
     }
-}
 
-impl Session {
     /// The estimate as a file (see `api::export`): a graph session's variables in the query's
     /// key range, or a window session's trajectory (smoothed keyframes, then the window).
     pub fn export(
@@ -64,12 +77,18 @@ impl Session {
             Engine::Graph(_) => self.estimate(query).variables,
             Engine::Window(_) => {
                 let range = query.from.unwrap_or(0)..=query.to.unwrap_or(Key::MAX);
-                let mut trajectory = self.window_trajectory()?;
-                trajectory.retain(|v| range.contains(&v.key));
-                trajectory
+                self.window_trajectory_in(&range)
             }
         };
         Ok(export::render(&self.name, format, &variables))
+    }
+
+    fn window_trajectory_in(&self, range: &std::ops::RangeInclusive<Key>) -> Vec<VariableValue> {
+        let mut trajectory = self
+            .window_trajectory()
+            .expect("only called for window sessions");
+        trajectory.retain(|v| range.contains(&v.key));
+        trajectory
     }
 }
 

@@ -70,15 +70,16 @@ def wait_for(what, predicate, timeout=30.0):
 
 
 class Robot:
-    """A node `robot` with an odometry and a GNSS publisher, as rmw_zenoh_cpp declares them."""
+    """A node `robot` with publishers (by default odometry and GNSS), as rmw_zenoh_cpp declares
+    them."""
 
-    def __init__(self, session):
+    def __init__(self, session, topics=(("/robot1/odom", ODOM), ("/robot1/gnss", PWCS))):
         self.session = session
         zid = str(session.zid())
         node = f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%/robot"
         self.tokens = [session.liveliness().declare_token(node)]
         self.publishers = {}
-        for eid, (topic, msgtype) in enumerate([("/robot1/odom", ODOM), ("/robot1/gnss", PWCS)], 1):
+        for eid, (topic, msgtype) in enumerate(topics, 1):
             token = (f"@ros2_lv/{DOMAIN}/{zid}/0/{eid}/MP/%/%/robot/{topic.replace('/', '%')}/"
                      f"{dds_name(msgtype)}/{STORE.hash_rihs01(msgtype)}/::,10:,:,:,,")
             self.tokens.append(session.liveliness().declare_token(token))
@@ -90,7 +91,10 @@ class Robot:
         publisher[2] += 1
         attachment = zext.z_serialize(
             (zext.Int64(publisher[2]), zext.Int64(time.time_ns()), publisher[1]))
-        self.session.put(publisher[0], payload, attachment=attachment)
+        # Blocking, as rmw_zenoh publishes reliable topics that keep all: a test that floods
+        # thousands of samples must not lose any on a busy machine.
+        self.session.put(publisher[0], payload, attachment=attachment,
+                         congestion_control=zenoh.CongestionControl.BLOCK)
 
 
 def header(stamp, frame):
@@ -112,11 +116,12 @@ def covariance(sigmas):
     return np.diag(np.square(np.array(sigmas, dtype=np.float64))).reshape(36)
 
 
-def odometry(stamp, x, y, yaw):
+def odometry(stamp, x, y, yaw, speed=1.0):
+    """Odometry at (x, y, yaw), driving forward at `speed` (the twist is in the body frame)."""
     t = STORE.types
     twist = t["geometry_msgs/msg/TwistWithCovariance"](
         twist=t["geometry_msgs/msg/Twist"](
-            linear=t["geometry_msgs/msg/Vector3"](x=1.0, y=0.0, z=0.0),
+            linear=t["geometry_msgs/msg/Vector3"](x=speed, y=0.0, z=0.0),
             angular=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
         covariance=np.zeros(36))
     message = t[ODOM](
@@ -155,6 +160,17 @@ def keyframes(samples, distance, angle):
     return kept
 
 
+def zenoh_session(endpoint):
+    """A zenoh peer connected to factord only (no scouting), as the robot's rmw_zenoh would be
+    through its router."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    config.insert_json5("listen/endpoints", "[]")
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--http", required=True)
@@ -170,12 +186,7 @@ def main():
     http(args.http, "POST", "/v1/sessions",
          {"session": "ros_robot", "kind": "pose_graph_3d", "ros2": binding})
 
-    config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("connect/endpoints", json.dumps([args.zenoh]))
-    config.insert_json5("listen/endpoints", "[]")
-    config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
+    session = zenoh_session(args.zenoh)
     try:
         run(session, args)
     finally:

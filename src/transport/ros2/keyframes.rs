@@ -38,6 +38,14 @@ pub enum MessageError {
     NonFinite { what: &'static str },
     #[error("an absolute pose arrived before any keyframe: there is nothing to attach it to")]
     NoKeyframeYet,
+    #[error("the {what} stamp {t} is not after the previous one ({previous})")]
+    OutOfOrder {
+        what: &'static str,
+        t: f64,
+        previous: f64,
+    },
+    #[error("{held} IMU samples are held waiting for odometry to make a keyframe: no more")]
+    TooManyHeld { held: usize },
 }
 
 struct Keyframe {
@@ -89,12 +97,10 @@ impl Keyframer {
         let batch = match &self.last {
             None => self.first_keyframe(key, &pose, stamp),
             Some(last) => {
-                let motion = last.odometry_pose.inverse() * pose;
-                let moved = motion.translation.vector.norm() >= self.distance
-                    || motion.rotation.angle() >= self.angle;
-                if !moved {
+                if !has_moved(&last.odometry_pose, &pose, self.distance, self.angle) {
                     return Ok(None);
                 }
+                let motion = last.odometry_pose.inverse() * pose;
                 let noise = information(&odometry.pose.covariance, "odometry")?
                     .map_or(Noise::Sigmas(DEFAULT_ODOMETRY_SIGMAS), |m| {
                         Noise::Information(m.iter().copied().collect())
@@ -147,14 +153,8 @@ impl Keyframer {
         let pose = isometry(&prior.pose.pose, "prior")?;
         let information = information(&prior.pose.covariance, "prior")?
             .ok_or(MessageError::Covariance { what: "prior" })?;
-        let at = stamp_ns(prior.header.stamp.seconds());
-        let before = self.by_stamp.range(..=at).next_back();
-        let after = self.by_stamp.range(at..).next();
-        let nearest = match (before, after) {
-            (Some(b), Some(a)) => Some(if at - b.0 <= a.0 - at { b } else { a }),
-            (b, a) => b.or(a),
-        };
-        let (_, &key) = nearest.ok_or(MessageError::NoKeyframeYet)?;
+        let key = nearest_key(&self.by_stamp, stamp_ns(prior.header.stamp.seconds()))
+            .ok_or(MessageError::NoKeyframeYet)?;
         Ok(Batch {
             factors: vec![factor(
                 "prior_se3",
@@ -167,8 +167,30 @@ impl Keyframer {
     }
 }
 
-fn stamp_ns(seconds: f64) -> i64 {
+pub(super) fn stamp_ns(seconds: f64) -> i64 {
     (seconds * 1e9).round() as i64
+}
+
+/// Whether the robot, now at `pose`, has moved `distance` or turned `angle` since `from`.
+pub(super) fn has_moved(
+    from: &Isometry3<f64>,
+    pose: &Isometry3<f64>,
+    distance: f64,
+    angle: f64,
+) -> bool {
+    let motion = from.inverse() * pose;
+    motion.translation.vector.norm() >= distance || motion.rotation.angle() >= angle
+}
+
+/// The key whose stamp (ns) is nearest `at`; `None` when there are none.
+pub(super) fn nearest_key(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<Key> {
+    let before = by_stamp.range(..=at).next_back();
+    let after = by_stamp.range(at..).next();
+    let nearest = match (before, after) {
+        (Some(b), Some(a)) => Some(if at - b.0 <= a.0 - at { b } else { a }),
+        (b, a) => b.or(a),
+    };
+    nearest.map(|(_, &key)| key)
 }
 
 fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {

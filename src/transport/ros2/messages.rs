@@ -37,6 +37,12 @@ pub const POSE_WITH_COVARIANCE_STAMPED: RosType = RosType {
     hash: "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e",
 };
 
+pub const IMU: RosType = RosType {
+    name: "sensor_msgs/msg/Imu",
+    dds_name: "sensor_msgs::msg::dds_::Imu_",
+    hash: "RIHS01_7d9a00ff131080897a5ec7e26e315954b8eae3353c3f995c55faf71574000b5b",
+};
+
 pub const TF_MESSAGE: RosType = RosType {
     name: "tf2_msgs/msg/TFMessage",
     dds_name: "tf2_msgs::msg::dds_::TFMessage_",
@@ -221,7 +227,7 @@ pub struct TwistWithCovariance {
     pub covariance: Covariance,
 }
 
-/// `nav_msgs/Odometry`.
+/// `nav_msgs/Odometry`: `pose` in `header.frame_id`, `twist` in `child_frame_id` (the body).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Odometry {
     pub header: Header,
@@ -249,6 +255,19 @@ pub struct PoseStamped {
 pub struct Path {
     pub header: Header,
     pub poses: Vec<PoseStamped>,
+}
+
+/// `sensor_msgs/Imu`. Covariances are 3×3 row-major (`float64[9]`: a fixed array, which serde
+/// writes as a tuple, as CDR wants); `orientation` is not used (the window integrates the gyro).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Imu {
+    pub header: Header,
+    pub orientation: Quaternion,
+    pub orientation_covariance: [f64; 9],
+    pub angular_velocity: Vector3,
+    pub angular_velocity_covariance: [f64; 9],
+    pub linear_acceleration: Vector3,
+    pub linear_acceleration_covariance: [f64; 9],
 }
 
 /// `geometry_msgs/Transform`.

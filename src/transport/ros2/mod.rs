@@ -9,8 +9,9 @@
 //! - liveliness tokens `@ros2_lv/…` for the node and each endpoint (`names`), held as long as
 //!   the session lives, so `ros2 node list` and `ros2 topic list` on the robot see them.
 //!
-//! In: `nav_msgs/Odometry` (keyframes, `between_se3`) and `geometry_msgs/PoseWithCovarianceStamped`
-//! (`prior_se3`), see `keyframes`. Out after each solve: `nav_msgs/Path` and
+//! In, for a `pose_graph_3d`: `nav_msgs/Odometry` (keyframes, `between_se3`) and
+//! `geometry_msgs/PoseWithCovarianceStamped` (`prior_se3`), see `keyframes`; for a
+//! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`. Out after each solve: `nav_msgs/Path` and
 //! `geometry_msgs/PoseWithCovarianceStamped`, see `outputs`, and the `map → odom` correction on
 //! `/tf`, see `tf`. Messages go through the one command
 //! API ([`Service::execute_as`]) like any client's; nothing here touches a session's state.
@@ -27,6 +28,7 @@ mod messages;
 mod names;
 mod outputs;
 mod tf;
+mod window_feed;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -36,10 +38,13 @@ use zenoh::liveliness::LivelinessToken;
 use crate::api::ros2::Ros2Binding;
 use crate::service::{Caller, Service};
 use crate::session::Session;
-use messages::{RosType, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
+use inputs::Feeder;
+use keyframes::Keyframer;
+use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
 use names::{EndpointKind, NodeName};
 use outputs::RosPublisher;
 use tf::TfBroadcaster;
+use window_feed::WindowFeed;
 
 /// Node and endpoint ids within our zenoh session, unique as rmw_zenoh's per-context counter.
 static NEXT_ENTITY_ID: AtomicU64 = AtomicU64::new(1);
@@ -120,6 +125,15 @@ async fn run(
         }
         None => None,
     };
+    let imu = match &binding.imu_topic {
+        Some(topic) => {
+            let (token, key) = endpoint(EndpointKind::Subscription, topic, &IMU);
+            let subscriber = zenoh.declare_subscriber(&key).await.map_err(failed)?;
+            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+            Some(subscriber)
+        }
+        None => None,
+    };
     let publisher = |topic: &Option<String>, ros_type| {
         topic.as_deref().map(|topic| {
             let (token, key) = endpoint(EndpointKind::Publisher, topic, ros_type);
@@ -155,17 +169,25 @@ async fn run(
         binding.domain_id
     );
 
-    let mut keyframer = keyframes::Keyframer::new(&binding);
+    // An IMU topic means a sliding window (`Ros2Binding::check_kind`).
+    let mut feeder = match binding.imu_topic {
+        Some(_) => Feeder::Window(Box::new(WindowFeed::new(&binding))),
+        None => Feeder::Graph(Keyframer::new(&binding)),
+    };
     if let Some(max_key) = existing_max_key(&service, &caller, &session.name).await {
-        keyframer.resume_after(max_key);
+        match &mut feeder {
+            Feeder::Window(feed) => feed.resume_after(max_key),
+            Feeder::Graph(keyframer) => keyframer.resume_after(max_key),
+        }
     }
     let inputs = inputs::Inputs {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
         session: session.name.clone(),
-        keyframer,
+        feeder,
         odometry,
         priors,
+        imu,
         tf: tf.clone(),
         refused: Arc::default(),
     };

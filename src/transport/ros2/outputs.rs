@@ -72,10 +72,10 @@ impl Outputs {
     pub async fn run(mut self) {
         let mut events = self.session.stream();
         while let Some(event) = events.next().await {
-            let mut solved = matches!(*event, SessionEvent::Summary { .. });
+            let mut solved = is_solve(&event);
             // Solves that finished while we published: one publication covers them all.
             while let Some(event) = events.try_next() {
-                solved |= matches!(*event, SessionEvent::Summary { .. });
+                solved |= is_solve(&event);
             }
             if solved {
                 self.publish().await;
@@ -140,6 +140,14 @@ impl Outputs {
     }
 }
 
+/// A pose graph's solve, or a window's optimisation at a keyframe.
+fn is_solve(event: &SessionEvent) -> bool {
+    matches!(
+        event,
+        SessionEvent::Summary { .. } | SessionEvent::Window { .. }
+    )
+}
+
 /// An `se3` estimate as an isometry (other kinds, and values of the wrong length: `None`).
 pub(super) fn se3_estimate(v: &VariableValue) -> Option<Isometry3<f64>> {
     (v.kind == "se3")
@@ -160,9 +168,11 @@ async fn marginal(service: &Service, caller: &Caller, session: &str, key: u64) -
             let Some(m) = marginals.variables.first() else {
                 return covariance;
             };
-            if m.covariance.len() == 6 && m.covariance.iter().all(|row| row.len() == 6) {
-                for (i, row) in m.covariance.iter().enumerate() {
-                    covariance.0[i * 6..i * 6 + 6].copy_from_slice(row);
+            // A pose (6×6), or a window's state (15×15) whose first six are the pose's.
+            let square = |n| m.covariance.len() == n && m.covariance.iter().all(|r| r.len() == n);
+            if square(6) || square(15) {
+                for (i, row) in m.covariance.iter().take(6).enumerate() {
+                    covariance.0[i * 6..i * 6 + 6].copy_from_slice(&row[..6]);
                 }
             }
         }

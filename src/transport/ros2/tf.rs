@@ -76,12 +76,12 @@ impl TfBroadcaster {
         }
     }
 
-    /// An odometry message was used (`keyframe`: the keyframe it made, with its odometry pose).
+    /// An odometry message was used; `keyframes`: those it made, with their odometry poses.
     pub async fn on_odometry(
         &self,
         stamp: Time,
         frame_id: &str,
-        keyframe: Option<(Key, Isometry3<f64>)>,
+        keyframes: &[(Key, Isometry3<f64>)],
     ) {
         let mut state = self.state.lock().await;
         let stamp_ns = stamp.nanoseconds();
@@ -93,12 +93,7 @@ impl TfBroadcaster {
                 .newest_odometry_ns
                 .map_or(stamp_ns, |n| n.max(stamp_ns)),
         );
-        if let Some((key, pose)) = keyframe {
-            state.keyframes.insert(key, pose);
-            while state.keyframes.len() > MAX_PENDING_KEYFRAMES {
-                state.keyframes.pop_first();
-            }
-        }
+        state.remember(keyframes);
         let due = state
             .last_odometry_publication_ns
             .is_none_or(|last| stamp_ns - last >= MIN_PERIOD_NS);
@@ -106,6 +101,11 @@ impl TfBroadcaster {
             state.last_odometry_publication_ns = Some(stamp_ns);
             self.publish(&mut state).await;
         }
+    }
+
+    /// Keyframes made later than their odometry message (a window's, once the IMU covers them).
+    pub async fn on_keyframes(&self, keyframes: &[(Key, Isometry3<f64>)]) {
+        self.state.lock().await.remember(keyframes);
     }
 
     /// A solve's estimate: the correction from its newest keyframe whose odometry pose is known.
@@ -145,5 +145,14 @@ impl TfBroadcaster {
             .publisher
             .put(&self.zenoh, cdr_codec::encode(&message))
             .await;
+    }
+}
+
+impl State {
+    fn remember(&mut self, keyframes: &[(Key, Isometry3<f64>)]) {
+        self.keyframes.extend(keyframes.iter().copied());
+        while self.keyframes.len() > MAX_PENDING_KEYFRAMES {
+            self.keyframes.pop_first();
+        }
     }
 }
