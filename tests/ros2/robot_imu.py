@@ -25,7 +25,7 @@ import urllib.error
 import numpy as np
 
 from robot_odometry import (DOMAIN, ODOM, PATH, PWCS, STORE, Robot, dds_name, header, http,
-                            odometry, topic_key, wait_for, zenoh_session)
+                            odometry, ros_graph, topic_key, wait_for, zenoh_session)
 
 IMU = "sensor_msgs/msg/Imu"
 RADIUS, SPEED, G = 5.0, 1.0, 9.81
@@ -93,9 +93,7 @@ def main():
 def run(session, args):
     # 2. The IMU subscription in the ROS graph.
     def imu_token():
-        tokens = [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")
-                  if r.ok is not None]
-        return [t for t in tokens if "/factord_ros_imu/%robot2%imu/" in t]
+        return [t for t in ros_graph(session) if "/factord_ros_imu/%robot2%imu/" in t]
     token = wait_for("the IMU subscription's token", imu_token)[0]
     assert token.split("/")[5] == "MS" and token.endswith(
         f"/{dds_name(IMU)}/{STORE.hash_rihs01(IMU)}/::,10:,:,:,,"), token

@@ -171,6 +171,12 @@ def zenoh_session(endpoint):
     return zenoh.open(config)
 
 
+def ros_graph(session):
+    """Every liveliness token of the domain: the ROS graph as `ros2 node/topic list` sees it."""
+    return [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")
+            if r.ok is not None]
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--http", required=True)
@@ -196,9 +202,7 @@ def main():
 def run(session, args):
     # 1. The ROS graph: factord's node and its five endpoints.
     def graph():
-        tokens = [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")
-                  if r.ok is not None]
-        ours = [t for t in tokens if "/factord_ros_robot" in t]
+        ours = [t for t in ros_graph(session) if "/factord_ros_robot" in t]
         return ours if len(ours) == 6 else None
     tokens = sorted(wait_for("factord's liveliness tokens", graph), key=lambda t: t.split("/")[5])
     for token in tokens:
