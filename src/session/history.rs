@@ -39,6 +39,38 @@ fn push_bounded<T>(queue: &mut VecDeque<T>, item: T, cap: usize, dropped: &mut u
 }
 
 impl History {
+    /// What the history holds, for `memory_bytes`: a walk of its bounded queues (at most a few
+    /// hundred events), each event with its heap parts (an ack's ids, an error's text). An
+    /// event the stream's buffer still shares is counted here too, as the history outlives it.
+    pub(super) fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        let logged = |e: &LoggedEvent| {
+            size_of::<LoggedEvent>()
+                + size_of::<SessionEvent>()
+                + match e.data.as_ref() {
+                    SessionEvent::Ack(ack) => {
+                        ack.factor_ids.len() * size_of::<crate::api::wire::FactorId>()
+                            + ack.predicted.len() * size_of::<crate::variables::Key>()
+                            + ack.session.len()
+                    }
+                    SessionEvent::Error { session, error, .. } => {
+                        session.len()
+                            + error.message.len()
+                            + error.field.as_ref().map_or(0, String::len)
+                    }
+                    _ => 0,
+                }
+        };
+        self.timeline.len() * size_of::<TimelinePoint>()
+            + self.accepted.len() * size_of::<(u64, Instant)>()
+            + self
+                .events
+                .iter()
+                .chain(&self.rejected)
+                .map(logged)
+                .sum::<usize>()
+    }
+
     pub(super) fn record(&mut self, event: &Arc<SessionEvent>) {
         let now = unix_ms();
         let logged = |event: &Arc<SessionEvent>| LoggedEvent {
@@ -168,5 +200,43 @@ impl Session {
             last_error,
             dropped: h.dropped,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::api::wire::BatchAck;
+
+    fn ack(sequence: u64, factors: usize) -> Arc<SessionEvent> {
+        Arc::new(SessionEvent::Ack(BatchAck {
+            session: "s".into(),
+            sequence,
+            factor_ids: (0..factors as u64).collect(),
+            predicted: Vec::new(),
+            reflected: true,
+            producer: None,
+            producer_seq: None,
+            accepted_through: None,
+            duplicate: false,
+        }))
+    }
+
+    #[test]
+    fn its_bytes_count_what_logged_acks_carry_and_stay_bounded() {
+        let mut history = History::default();
+        history.record(&ack(1, 0));
+        let small = history.bytes();
+        history.record(&ack(2, 1000));
+        assert!(history.bytes() >= small + 8000, "{}", history.bytes());
+        for sequence in 3..10 * LOGGED_EVENTS as u64 {
+            history.record(&ack(sequence, 1000));
+        }
+        // The log keeps the last LOGGED_EVENTS: its bytes stop growing.
+        let full = history.bytes();
+        assert!(
+            full >= LOGGED_EVENTS * 8000 && full < LOGGED_EVENTS * 9000,
+            "{full}"
+        );
     }
 }

@@ -60,7 +60,8 @@ impl Session {
     }
 
     pub(super) fn memory_bytes_locked(&self, st: &State) -> usize {
-        // Every term is O(1): counts and sums kept as the session changes.
+        // Every term costs O(1) in the session's size: counts and sums kept as it changes, and the
+        // history's walk of its bounded queues (a few hundred events).
         use std::mem::size_of;
         const NODE: usize = 48; // map/set node and allocation overhead
         let mirror = st.mirror_bytes();
@@ -84,6 +85,11 @@ impl Session {
             }
         };
         let producers = st.producers.bytes();
-        mirror + factors + problem + marginals + producers + self.durable_memory_bytes()
+        let history = self
+            .history
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .bytes();
+        mirror + factors + problem + marginals + producers + history + self.durable_memory_bytes()
     }
 }
