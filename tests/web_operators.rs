@@ -277,6 +277,49 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
         .screenshot(&shots.join("operator-session.png"))
         .await;
 
+    // A 3D session: ellipses of the world position covariance (an se3's tangent is the body's),
+    // projected on the view, here from the front.
+    let (status, v) = send(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "helix", "kind": "pose_graph_3d"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{v}");
+    for b in g2o_batches(&common::synthetic_helix_3d(120, 2)) {
+        let (status, v) = send(&c, &s.url("/v1/sessions/helix/batches"), &b).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    settled(&c, &s.url("/v1/sessions/helix")).await;
+    browser.open(&s.url("/sessions/helix")).await;
+    browser
+        .wait_for(
+            "Number(document.body.dataset.trajectoryPoints) === 120",
+            "the 3D trajectory",
+        )
+        .await;
+    browser
+        .script("const p = document.getElementById('projection'); p.value = 'front'; p.dispatchEvent(new Event('change')); const k = document.getElementById('ellipse-scale'); k.value = '10'; k.dispatchEvent(new Event('change')); return p.value;")
+        .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let before = browser.inked_pixels("trajectory").await;
+    browser.click("#ellipse-sample").await;
+    browser
+        .wait_for(
+            "Number(document.body.dataset.ellipsesDrawn) >= 5",
+            "the 3D covariance ellipses",
+        )
+        .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let with_ellipses = browser.inked_pixels("trajectory").await;
+    assert!(
+        with_ellipses > before,
+        "3D ellipses drew nothing: {before} → {with_ellipses}"
+    );
+    browser
+        .screenshot(&shots.join("operator-3d-ellipses.png"))
+        .await;
+
     drop(browser);
     let left = survivors(&ours);
     assert!(

@@ -326,7 +326,13 @@ pub struct MarginalCovariance {
     pub key: Key,
     pub kind: String,
     pub fixed: bool,
+    /// Over the kind's tangent, in its order and frame (an `se3`'s `[v; ω]` is the body's).
     pub covariance: Vec<Vec<f64>>,
+    /// The covariance of its position in the world, 3×3 (z is 0 for planar kinds), whatever
+    /// the tangent's frame: what covariance ellipses are drawn from. Absent for kinds without a
+    /// position.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position_covariance: Option<Vec<Vec<f64>>>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]

@@ -13,6 +13,7 @@ use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::problem::{Chi2Scratch, Key};
 use crate::solver::marginals::{self, MarginalsError};
+use crate::variables::{position_covariance, Variable};
 
 /// Most variables one marginals request may name (each costs a solve per tangent direction).
 pub const MAX_MARGINAL_KEYS: usize = 256;
@@ -164,10 +165,10 @@ impl Session {
         if st.deleted {
             return Err(self.gone());
         }
-        let mut kinds = Vec::with_capacity(query.keys.len());
+        let mut variables = Vec::with_capacity(query.keys.len());
         for (i, key) in query.keys.iter().enumerate() {
             match st.mirror.get(key) {
-                Some(entry) => kinds.push(entry.kind),
+                Some(entry) => variables.push(entry.decode()),
                 None => {
                     return Err(ServiceError::invalid(
                         "unknown_variable",
@@ -227,13 +228,15 @@ impl Session {
         let variables = query
             .keys
             .iter()
-            .zip(&kinds)
+            .zip(&variables)
             .enumerate()
-            .map(|(i, (&key, kind))| MarginalCovariance {
-                key,
-                kind: (*kind).into(),
-                fixed: held.gauge_fixed.binary_search(&key).is_ok(),
-                covariance: rows(&covariance.block(i, i), covariance.dims[i]),
+            .map(|(i, (&key, variable))| {
+                marginal_of(
+                    key,
+                    variable.as_ref(),
+                    &covariance.block(i, i),
+                    held.gauge_fixed.binary_search(&key).is_ok(),
+                )
             })
             .collect();
         let joint = query
@@ -250,6 +253,22 @@ impl Session {
             factorize_seconds: held.factorize_seconds,
             seconds: start.elapsed().as_secs_f64(),
         }))
+    }
+}
+
+/// One variable's answer: its tangent covariance (`block`, row-major) and its position's.
+pub(super) fn marginal_of(
+    key: Key,
+    variable: &dyn Variable,
+    block: &[f64],
+    fixed: bool,
+) -> MarginalCovariance {
+    MarginalCovariance {
+        key,
+        kind: variable.kind().into(),
+        fixed,
+        covariance: rows(block, variable.tangent_dim()),
+        position_covariance: position_covariance(variable, block).map(|c| rows(&c, 3)),
     }
 }
 

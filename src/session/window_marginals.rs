@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use super::engine::Window;
 use super::Session;
-use crate::api::wire::{MarginalCovariance, Marginals, MarginalsQuery};
+use crate::api::wire::{Marginals, MarginalsQuery};
 use crate::api::{ErrorKind, ServiceError};
 use crate::solver::marginals::{self, MarginalsError};
 
@@ -64,16 +64,13 @@ impl Session {
             .keys
             .iter()
             .enumerate()
-            .map(|(i, &key)| MarginalCovariance {
-                key,
-                kind: problem
-                    .values
-                    .get(key)
-                    .expect("checked above")
-                    .kind()
-                    .into(),
-                fixed: factorized.gauge_fixed.binary_search(&key).is_ok(),
-                covariance: super::inspect::rows(&covariance.block(i, i), covariance.dims[i]),
+            .map(|(i, &key)| {
+                super::inspect::marginal_of(
+                    key,
+                    problem.values.get(key).expect("checked above"),
+                    &covariance.block(i, i),
+                    factorized.gauge_fixed.binary_search(&key).is_ok(),
+                )
             })
             .collect();
         let joint = query

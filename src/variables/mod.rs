@@ -39,6 +39,46 @@ pub trait Variable: Any + Debug + Send + Sync {
     }
 }
 
+/// The covariance of `variable`'s [`Variable::position`] in the world, 3×3 row-major, from
+/// the covariance of its tangent (`tangent_dim()`² row-major): `J Σ Jᵀ`, with `J` the
+/// position's derivative along the retraction, by central differences (positions are smooth
+/// in the tangent, and linear in it for every kind but a camera's centre). What covariance
+/// ellipses are drawn from, whatever the kind's tangent frame (an `se3`'s is the body's).
+/// `None` for a kind without a position or a covariance of the wrong size.
+pub fn position_covariance(variable: &dyn Variable, covariance: &[f64]) -> Option<[f64; 9]> {
+    const STEP: f64 = 1e-6;
+    let n = variable.tangent_dim();
+    variable.position()?;
+    if covariance.len() != n * n {
+        return None;
+    }
+    let moved = |i: usize, step: f64| {
+        let mut delta = vec![0.0; n];
+        delta[i] = step;
+        let mut v = variable.clone_box();
+        v.retract(&delta);
+        v.position()
+    };
+    // J, 3 × n, column by column.
+    let mut jacobian = vec![[0.0; 3]; n];
+    for (i, column) in jacobian.iter_mut().enumerate() {
+        let (plus, minus) = (moved(i, STEP)?, moved(i, -STEP)?);
+        for r in 0..3 {
+            column[r] = (plus[r] - minus[r]) / (2.0 * STEP);
+        }
+    }
+    let mut out = [0.0; 9];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[r * 3 + c] = (0..n)
+                .flat_map(|i| (0..n).map(move |j| (i, j)))
+                .map(|(i, j)| jacobian[i][r] * covariance[i * n + j] * jacobian[j][c])
+                .sum();
+        }
+    }
+    Some(out)
+}
+
 /// `clone_box`, `assign_from` and `as_any`, the same for every `Copy` variable kind.
 macro_rules! copy_variable_plumbing {
     () => {
@@ -98,4 +138,31 @@ pub(crate) fn encode_as<T: 'static>(v: &dyn Variable, f: impl Fn(&T) -> Vec<f64>
     f(v.as_any()
         .downcast_ref::<T>()
         .expect("codec is chosen by the variable's kind"))
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    use super::*;
+    use crate::geometry::Se3;
+
+    #[test]
+    fn position_covariance_turns_a_body_frame_tangent_into_the_world() {
+        // Yawed 90°: body x is world y.
+        let pose = Se3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+            Vector3::new(1.0, 2.0, 3.0),
+        );
+        let mut tangent = [0.0; 36];
+        for (i, variance) in [1.0, 4.0, 9.0, 0.1, 0.1, 0.1].iter().enumerate() {
+            tangent[i * 7] = *variance;
+        }
+        let world = position_covariance(&pose, &tangent).expect("a pose has a position");
+        let expected = [4.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 9.0];
+        for (got, want) in world.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{world:?}");
+        }
+        assert_eq!(position_covariance(&pose, &tangent[..35]), None);
+    }
 }

@@ -220,11 +220,17 @@ class ProducerStatus(TypedDict):
     reflected_sequence: int
 
 
-class Marginal(TypedDict):
+class _MarginalKeys(TypedDict):
     key: int
     kind: str
     fixed: bool
     covariance: List[List[float]]
+
+
+class Marginal(_MarginalKeys, total=False):
+    """One variable's; ``position_covariance`` (3×3, world frame) for kinds with a position."""
+
+    position_covariance: List[List[float]]
 
 
 class _MarginalsKeys(TypedDict):

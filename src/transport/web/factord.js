@@ -225,9 +225,7 @@
       const { ctx, w, h } = fitCanvas(canvas);
       if (!graph) return centredText(ctx, w, h, error || 'loading graph…');
       if (view.auto) fit(w, h);
-      const [a, b] = axes(), pv = view.pivot, s = view.scale;
-      const X = (p) => { const x = p[0] - pv[0], y = p[1] - pv[1], z = (num(p[2]) ? p[2] : 0) - pv[2]; return w / 2 + (a[0] * x + a[1] * y + a[2] * z - view.u0) * s; };
-      const Y = (p) => { const x = p[0] - pv[0], y = p[1] - pv[1], z = (num(p[2]) ? p[2] : 0) - pv[2]; return h / 2 - (b[0] * x + b[1] * y + b[2] * z - view.v0) * s; };
+      const [a, b] = axes(), s = view.scale, [X, Y] = projector(w, h);
       const polyline = (field, style, width) => {
         ctx.beginPath();
         let pen = false;
@@ -300,14 +298,24 @@
       document.body.dataset.edgesOverThreshold = String(over);
     }
 
-    // 95% ellipses (2.45σ in 2D) of the world x-y covariance of the selected variables.
+    // World point -> canvas pixel, for the current view (x right, y down).
+    function projector(w, h) {
+      const [a, b] = axes(), pv = view.pivot, s = view.scale;
+      const rel = (p) => [p[0] - pv[0], p[1] - pv[1], (num(p[2]) ? p[2] : 0) - pv[2]];
+      const dot = (u, v) => u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+      return [(p) => w / 2 + (dot(a, rel(p)) - view.u0) * s, (p) => h / 2 - (dot(b, rel(p)) - view.v0) * s];
+    }
+
+    // 95% ellipses (2.45σ in 2D) of the selected variables' world position covariance (3×3),
+    // projected on the view's screen axes: the 2×2 [a b]ᵀ Σ [a b] (a: right, b: up).
     function drawEllipses(ctx, X, Y, s) {
       let drawn = 0;
-      const k = 2.4477 * Number(ellipseScale.value || 1);
+      const k = 2.4477 * Number(ellipseScale.value || 1), [u, v] = axes();
+      const quad = (l, c, r) => [0, 1, 2].reduce((sum, i) => sum + l[i] * [0, 1, 2].reduce((t, j) => t + c[i][j] * r[j], 0), 0);
       for (const [key, c] of ellipses) {
         const i = index.get(key), p = i === undefined ? null : graph.poses[i].position;
         if (!valid(p)) continue;
-        const [a, b, d] = [c[0][0], c[0][1], c[1][1]], m = (a + d) / 2, r = Math.sqrt(((a - d) / 2) ** 2 + b * b);
+        const [a, b, d] = [quad(u, c, u), quad(u, c, v), quad(v, c, v)], m = (a + d) / 2, r = Math.sqrt(((a - d) / 2) ** 2 + b * b);
         const r1 = Math.sqrt(Math.max(m + r, 0)) * k * s, r2 = Math.sqrt(Math.max(m - r, 0)) * k * s;
         ctx.beginPath(); ctx.ellipse(X(p), Y(p), Math.max(r1, 1), Math.max(r2, 1), -0.5 * Math.atan2(2 * b, a - d), 0, 2 * Math.PI);
         ctx.fillStyle = 'rgba(42, 157, 143, 0.18)'; ctx.fill();
@@ -319,15 +327,12 @@
 
     // The pose nearest a click (within 10 px), for the ellipses.
     function pick(e) {
-      if (!graph || is3d()) return;
-      const rect = canvas.getBoundingClientRect(), w = rect.width, h = rect.height;
-      const [a, b] = axes(), pv = view.pivot;
+      if (!graph) return;
+      const rect = canvas.getBoundingClientRect(), [X, Y] = projector(rect.width, rect.height);
       let best = null, bestD = 10;
       for (const p of graph.poses) {
         if (!valid(p.position)) continue;
-        const x = w / 2 + (a[0] * (p.position[0] - pv[0]) + a[1] * (p.position[1] - pv[1]) - view.u0) * view.scale;
-        const y = h / 2 - (b[0] * (p.position[0] - pv[0]) + b[1] * (p.position[1] - pv[1]) - view.v0) * view.scale;
-        const dist = Math.hypot(x - (e.clientX - rect.left), y - (e.clientY - rect.top));
+        const dist = Math.hypot(X(p.position) - (e.clientX - rect.left), Y(p.position) - (e.clientY - rect.top));
         if (dist < bestD) { bestD = dist; best = p.key; }
       }
       if (best !== null) onPick(best);

@@ -111,7 +111,7 @@
       if (!selected.size) { traj.setEllipses(new Map()); info.textContent = 'click a pose for its covariance'; return; }
       try {
         const m = await getJSON(api(id, '/marginals?keys=' + [...selected].join(',')));
-        traj.setEllipses(new Map(m.variables.filter((v) => !v.fixed).map((v) => [v.key, v.covariance])));
+        traj.setEllipses(new Map(m.variables.filter((v) => !v.fixed && v.position_covariance).map((v) => [v.key, v.position_covariance])));
         info.textContent = `${selected.size} selected (95%, sequence ${fmtInt(m.sequence)})`;
       } catch (e) {
         info.textContent = `covariances unavailable: ${e.message}`;
@@ -120,7 +120,6 @@
     traj.onPick((key) => { if (!selected.delete(key)) selected.add(key); load(); });
     // A sample along the trajectory: every n-th pose, about ten.
     $('ellipse-sample').addEventListener('click', () => {
-      if (traj.is3d()) { info.textContent = 'ellipses: planar sessions only'; return; }
       const keys = traj.poses(), step = Math.max(1, Math.floor(keys.length / 10));
       selected.clear();
       for (let i = step - 1; i < keys.length; i += step) selected.add(keys[i]);
