@@ -83,11 +83,8 @@ def main():
     http(args.http, "POST", "/v1/sessions",
          {"session": "ros_imu", "kind": "sliding_window", "ros2": binding})
 
-    session = zenoh_session(args.zenoh)
-    try:
+    with zenoh_session(args.zenoh) as session:  # closed however run() ends
         run(session, args)
-    finally:
-        session.close()
 
 
 def run(session, args):

@@ -192,11 +192,8 @@ def main():
     http(args.http, "POST", "/v1/sessions",
          {"session": "ros_robot", "kind": "pose_graph_3d", "ros2": binding})
 
-    session = zenoh_session(args.zenoh)
-    try:
+    with zenoh_session(args.zenoh) as session:  # closed however run() ends
         run(session, args)
-    finally:
-        session.close()
 
 
 def run(session, args):
