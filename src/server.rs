@@ -11,6 +11,7 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 mod fleet;
+mod sessions;
 
 use crate::service::{Limits, Service};
 use crate::transport::http::listener::{self as http_listener, HttpConfig};
@@ -41,6 +42,9 @@ pub struct ServeConfig {
     /// User-defined factor types every new graph session gets (those whose variable kinds it
     /// holds), as if its creation request declared them first.
     pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
+    /// Sessions created at start unless they exist (see `server::sessions`), each a creation
+    /// request with a name: e.g. a robot's ROS 2 binding.
+    pub sessions: Vec<crate::api::wire::CreateSession>,
 }
 
 /// `fleet` in the config file (see README, "Fleet").
@@ -78,6 +82,7 @@ impl Default for ServeConfig {
             shutdown_timeout_ms: 10_000,
             fleet: FleetConfig::default(),
             factor_types: Vec::new(),
+            sessions: Vec::new(),
         }
     }
 }
@@ -279,6 +284,12 @@ pub async fn run(
             config.state_dir.display()
         );
     }
+    // After recovery, so a configured session that is on disk is found, not created again;
+    // before zenoh, which binds every session's ROS 2 topics when it starts.
+    sessions::ensure(&service, &config.sessions).map_err(|message| ServeError::Config {
+        file: "(sessions)".into(),
+        message,
+    })?;
     let tokens = tokens_for(&config.auth, &http_addr)?;
     let zenoh = if config.zenoh_enabled {
         let policy = zenoh::ZenohPolicy {

@@ -1,0 +1,146 @@
+//! Sessions the config file asks for (`"sessions": [...]`): created at start (a ROS 2 binding
+//! included, which then joins the ROS graph with no client), left as they are when they exist
+//! (after a kill -9 the recovered session keeps what it was sent), and a bad request stops the
+//! start naming its field.
+
+mod common;
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use common::server::{zenoh_peer, TestServer};
+use serde_json::{json, Value};
+
+fn write_config(path: &Path, sessions: Value) -> String {
+    std::fs::write(path, json!({ "sessions": sessions }).to_string()).unwrap();
+    path.display().to_string()
+}
+
+/// factord's ROS node for `robot1`, as `ros2 node list` would find it (its liveliness token).
+async fn ros_node_of(zenoh_endpoint: &str) -> Option<String> {
+    let z = zenoh_peer(zenoh_endpoint).await;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while Instant::now() < deadline {
+        let replies = z.liveliness().get("@ros2_lv/0/**").await.unwrap();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                let key = sample.key_expr().as_str();
+                if key.contains("/NN/") && key.ends_with("/factord_robot1") {
+                    return Some(key.to_string());
+                }
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    None
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn configured_sessions_are_created_once_and_kept() {
+    let dir = common::temp_dir("config-sessions");
+    let config = write_config(
+        &dir.join("factord.json"),
+        json!([
+            {"session": "robot1", "kind": "pose_graph_3d",
+             "ros2": {"odometry_topic": "/odom", "path_topic": "/path"}},
+            {"session": "plane", "kind": "pose_graph_2d"}
+        ]),
+    );
+    let state = dir.join("state");
+    let s = TestServer::start_at(&state, &["--config", &config], &[]);
+    let c = reqwest::Client::new();
+    let list: Value = c
+        .get(s.url("/v1/sessions"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let mut names: Vec<&str> = list["sessions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["session"].as_str().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["plane", "robot1"], "{list}");
+    let node = ros_node_of(&s.zenoh).await;
+    assert!(
+        node.is_some(),
+        "the configured binding is not in the ROS graph"
+    );
+
+    // What the session is sent survives a kill -9 and a start with the same config.
+    let batch = json!({"variables": [{"key": 0, "kind": "se2", "value": [1, 2, 0], "fixed": true},
+                                     {"key": 1, "kind": "se2", "value": [2, 2, 0]}],
+                       "factors": [{"type": "between_se2", "keys": [0, 1],
+                                    "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.1]}]});
+    let r = c
+        .post(s.url("/v1/sessions/plane/batches?wait=true"))
+        .json(&batch)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    s.kill();
+    let s = TestServer::start_at(&state, &["--config", &config], &[]);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let stats = loop {
+        let stats: Value = c
+            .get(s.url("/v1/sessions/plane"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if stats["num_variables"] == 2 || Instant::now() > deadline {
+            break stats;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(
+        stats["num_variables"], 2,
+        "the recovered session, not a new one: {stats}"
+    );
+    assert!(
+        ros_node_of(&s.zenoh).await.is_some(),
+        "the binding after the restart"
+    );
+    assert!(s.stderr().contains("created from the config"));
+    s.assert_no_panic();
+}
+
+#[test]
+fn a_bad_configured_session_stops_the_start_naming_its_field() {
+    let dir = common::temp_dir("config-sessions-bad");
+    let cases = [
+        (
+            json!([{"session": "r", "kind": "pose_graph_3d",
+                    "ros2": {"odometry_topic": "/odom", "imu_topic": "/imu"}}]),
+            "sessions[0].ros2.imu_topic",
+        ),
+        (
+            json!([{"session": "ok", "kind": "pose_graph_2d"}, {"kind": "pose_graph_2d"}]),
+            "sessions[1].session",
+        ),
+        (
+            json!([{"session": "x", "kind": "nope"}]),
+            "sessions[0].kind",
+        ),
+    ];
+    for (i, (sessions, field)) in cases.into_iter().enumerate() {
+        let config = write_config(&dir.join(format!("bad{i}.json")), sessions);
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_factord"))
+            .args(["serve", "--no-zenoh", "--listen", "127.0.0.1:0", "--config"])
+            .arg(&config)
+            .arg("--state-dir")
+            .arg(dir.join(format!("state{i}")))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{stderr}");
+        assert!(stderr.contains(field), "{field}: {stderr}");
+    }
+}
