@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::server::{zenoh_peer, TestServer};
+use common::server::{ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 fn write_config(path: &Path, sessions: Value) -> String {
@@ -16,23 +16,11 @@ fn write_config(path: &Path, sessions: Value) -> String {
     path.display().to_string()
 }
 
-/// factord's ROS node for `robot1`, as `ros2 node list` would find it (its liveliness token).
-async fn ros_node_of(zenoh_endpoint: &str) -> Option<String> {
+/// Whether factord's ROS node for `robot1` is in the ROS graph (domain 0).
+async fn robot1_in_ros_graph(zenoh_endpoint: &str) -> bool {
     let z = zenoh_peer(zenoh_endpoint).await;
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while Instant::now() < deadline {
-        let replies = z.liveliness().get("@ros2_lv/0/**").await.unwrap();
-        while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result() {
-                let key = sample.key_expr().as_str();
-                if key.contains("/NN/") && key.ends_with("/factord_robot1") {
-                    return Some(key.to_string());
-                }
-            }
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    None
+    let has = |nodes: &[String]| nodes.iter().any(|n| n == "factord_robot1");
+    has(&ros_nodes_until(&z, 0, has).await)
 }
 
 #[tokio::test(flavor = "multi_thread")]

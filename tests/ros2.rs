@@ -12,7 +12,8 @@ mod common;
 use std::path::PathBuf;
 use std::process::Command;
 
-use common::server::TestServer;
+use common::server::{ros_nodes_until, zenoh_peer, TestServer};
+use serde_json::json;
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -85,4 +86,36 @@ fn a_ros2_bag_replayed_over_rmw_zenoh_becomes_the_sessions_path() {
         "tests/ros2/bag_replay.py",
         &["--g2o", g2o],
     );
+}
+
+/// A binding lives as long as its session here: deleted, its node leaves the ROS graph (the
+/// binding must not keep the session alive, nor feed a session that is gone).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_deleted_sessions_node_leaves_the_ros_graph() {
+    let server = TestServer::start(&[]);
+    let c = reqwest::Client::new();
+    let create = json!({"session": "gone", "kind": "pose_graph_3d",
+                        "ros2": {"domain_id": 3, "odometry_topic": "/odom", "path_topic": "/path"}});
+    let r = c
+        .post(server.url("/v1/sessions"))
+        .json(&create)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let z = zenoh_peer(&server.zenoh).await;
+    let ours = |nodes: &[String]| nodes.iter().any(|n| n == "factord_gone");
+    assert!(ours(&ros_nodes_until(&z, 3, ours).await), "the node joins");
+    let r = c
+        .delete(server.url("/v1/sessions/gone"))
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "{}", r.status());
+    let left = ros_nodes_until(&z, 3, |nodes| !ours(nodes)).await;
+    assert!(
+        !ours(&left),
+        "the deleted session's node is still in the ROS graph: {left:?}"
+    );
+    server.assert_no_panic();
 }

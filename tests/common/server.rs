@@ -380,6 +380,42 @@ pub async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
     zenoh::open(c).await.expect("zenoh peer opens")
 }
 
+/// The ROS 2 nodes of `domain` as `ros2 node list` finds them: the names in the rmw_zenoh
+/// node liveliness tokens (`@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/%/%/<name>`) alive now.
+pub async fn ros_nodes(z: &zenoh::Session, domain: u32) -> Vec<String> {
+    let replies = z
+        .liveliness()
+        .get(format!("@ros2_lv/{domain}/**"))
+        .await
+        .expect("a liveliness query");
+    let mut nodes = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            let key = sample.key_expr().as_str();
+            if key.split('/').nth(5) == Some("NN") {
+                nodes.extend(key.rsplit('/').next().map(str::to_string));
+            }
+        }
+    }
+    nodes
+}
+
+/// Waits up to 10 s for `present(ros_nodes)`; the last list either way.
+pub async fn ros_nodes_until(
+    z: &zenoh::Session,
+    domain: u32,
+    present: impl Fn(&[String]) -> bool,
+) -> Vec<String> {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let nodes = ros_nodes(z, domain).await;
+        if present(&nodes) || Instant::now() > deadline {
+            return nodes;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// A zenoh query, retried until the server's queryable is known to this peer.
 pub async fn zenoh_get(
     z: &zenoh::Session,

@@ -37,7 +37,7 @@ use zenoh::liveliness::LivelinessToken;
 
 use crate::api::ros2::Ros2Binding;
 use crate::service::{Caller, Service};
-use crate::session::Session;
+use crate::session::{EventStream, Session};
 use inputs::Feeder;
 use keyframes::Keyframer;
 use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
@@ -61,7 +61,9 @@ pub struct BindError {
     source: zenoh::Error,
 }
 
-/// Starts `session`'s binding when it has one; it runs until the session is deleted.
+/// Starts `session`'s binding when it has one. It runs while the session lives here: it holds
+/// only the session's event stream, which ends when the session is deleted or moves to
+/// another fleet instance (whose adoption binds it there).
 pub fn bind(
     zenoh: zenoh::Session,
     service: Arc<Service>,
@@ -71,9 +73,9 @@ pub fn bind(
     let Some(binding) = session.ros2_binding().cloned() else {
         return;
     };
-    let session = Arc::clone(session);
+    let (name, events) = (session.name.clone(), session.stream());
     tokio::spawn(async move {
-        if let Err(e) = run(zenoh, service, caller, session, binding).await {
+        if let Err(e) = run(zenoh, service, caller, (name, events), binding).await {
             tracing::error!("{e}");
         }
     });
@@ -83,18 +85,18 @@ async fn run(
     zenoh: zenoh::Session,
     service: Arc<Service>,
     caller: Arc<Caller>,
-    session: Arc<Session>,
+    (session, events): (String, EventStream),
     binding: Ros2Binding,
 ) -> Result<(), BindError> {
     let failed = |source| BindError {
-        session: session.name.clone(),
+        session: session.clone(),
         source,
     };
     let node = NodeName {
         domain_id: binding.domain_id,
         zid: zenoh.zid().to_string(),
         node_id: next_id(),
-        name: binding.node_name(&session.name),
+        name: binding.node_name(&session),
     };
     let mut tokens = vec![declare_token(&zenoh, node.node_token())
         .await
@@ -163,7 +165,7 @@ async fn run(
         ))
     });
     tracing::info!(
-        session = session.name,
+        session,
         "ROS 2 binding: node {} on domain {}",
         node.name,
         binding.domain_id
@@ -174,7 +176,7 @@ async fn run(
         Some(_) => Feeder::Window(Box::new(WindowFeed::new(&binding))),
         None => Feeder::Graph(Keyframer::new(&binding)),
     };
-    if let Some(max_key) = existing_max_key(&service, &caller, &session.name).await {
+    if let Some(max_key) = existing_max_key(&service, &caller, &session).await {
         match &mut feeder {
             Feeder::Window(feed) => feed.resume_after(max_key),
             Feeder::Graph(keyframer) => keyframer.resume_after(max_key),
@@ -183,7 +185,7 @@ async fn run(
     let inputs = inputs::Inputs {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
-        session: session.name.clone(),
+        session: session.clone(),
         feeder,
         odometry,
         priors,
@@ -196,6 +198,7 @@ async fn run(
         service,
         caller,
         session,
+        events,
         zenoh,
         map_frame: binding.map_frame.clone(),
         path: path.map(|(_, p)| p),
@@ -203,7 +206,7 @@ async fn run(
         tf,
     };
     outputs.run().await;
-    // The session is gone: leave the ROS graph.
+    // The session is gone from here: leave the ROS graph.
     inputs.abort();
     drop(tokens);
     Ok(())

@@ -28,6 +28,7 @@ use super::messages::{
 use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
 use crate::service::{Caller, Command, Reply, Service};
+use crate::session::EventStream;
 
 /// One ROS publisher: its key expression, GID and sequence.
 pub(super) struct RosPublisher {
@@ -59,7 +60,8 @@ impl RosPublisher {
 pub(super) struct Outputs {
     pub service: Arc<Service>,
     pub caller: Arc<Caller>,
-    pub session: Arc<crate::session::Session>,
+    pub session: String,
+    pub events: EventStream,
     pub zenoh: zenoh::Session,
     pub map_frame: String,
     pub path: Option<RosPublisher>,
@@ -68,13 +70,12 @@ pub(super) struct Outputs {
 }
 
 impl Outputs {
-    /// Publishes after every solve until the session is deleted (its event stream ends).
+    /// Publishes after every solve until the session's event stream ends.
     pub async fn run(mut self) {
-        let mut events = self.session.stream();
-        while let Some(event) = events.next().await {
+        while let Some(event) = self.events.next().await {
             let mut solved = is_solve(&event);
             // Solves that finished while we published: one publication covers them all.
-            while let Some(event) = events.try_next() {
+            while let Some(event) = self.events.try_next() {
                 solved |= is_solve(&event);
             }
             if solved {
@@ -84,7 +85,7 @@ impl Outputs {
     }
 
     async fn publish(&mut self) {
-        let name = self.session.name.clone();
+        let name = self.session.clone();
         let estimate = Command::get_estimate(name.clone(), EstimateQuery::default());
         let Ok(Reply::Estimate(estimate)) = self.service.execute_as(&self.caller, estimate).await
         else {
