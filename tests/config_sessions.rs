@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::server::{ros_nodes_until, zenoh_peer, TestServer};
+use common::server::{holders, ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 fn write_config(path: &Path, sessions: Value) -> String {
@@ -19,8 +19,8 @@ fn write_config(path: &Path, sessions: Value) -> String {
 /// Whether factord's ROS node for `robot1` is in the ROS graph (domain 0).
 async fn robot1_in_ros_graph(zenoh_endpoint: &str) -> bool {
     let z = zenoh_peer(zenoh_endpoint).await;
-    let has = |nodes: &[String]| nodes.iter().any(|n| n == "factord_robot1");
-    has(&ros_nodes_until(&z, 0, has).await)
+    let has = |nodes: &[(String, String)]| !holders(nodes, "factord_robot1").is_empty();
+    has(&ros_nodes_until(&z, 0, Duration::from_secs(10), has).await)
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -53,9 +53,8 @@ async fn configured_sessions_are_created_once_and_kept() {
         .collect();
     names.sort();
     assert_eq!(names, ["plane", "robot1"], "{list}");
-    let node = ros_node_of(&s.zenoh).await;
     assert!(
-        node.is_some(),
+        robot1_in_ros_graph(&s.zenoh).await,
         "the configured binding is not in the ROS graph"
     );
 
@@ -93,7 +92,7 @@ async fn configured_sessions_are_created_once_and_kept() {
         "the recovered session, not a new one: {stats}"
     );
     assert!(
-        ros_node_of(&s.zenoh).await.is_some(),
+        robot1_in_ros_graph(&s.zenoh).await,
         "the binding after the restart"
     );
     assert!(s.stderr().contains("created from the config"));

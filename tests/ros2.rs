@@ -11,8 +11,9 @@ mod common;
 
 use std::path::PathBuf;
 use std::process::Command;
+use std::time::Duration;
 
-use common::server::{ros_nodes_until, zenoh_peer, TestServer};
+use common::server::{holders, ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::json;
 
 fn repo() -> PathBuf {
@@ -104,15 +105,19 @@ async fn a_deleted_sessions_node_leaves_the_ros_graph() {
         .unwrap();
     assert_eq!(r.status(), 201);
     let z = zenoh_peer(&server.zenoh).await;
-    let ours = |nodes: &[String]| nodes.iter().any(|n| n == "factord_gone");
-    assert!(ours(&ros_nodes_until(&z, 3, ours).await), "the node joins");
+    let within = Duration::from_secs(10);
+    let ours = |nodes: &[(String, String)]| !holders(nodes, "factord_gone").is_empty();
+    assert!(
+        ours(&ros_nodes_until(&z, 3, within, ours).await),
+        "the node joins"
+    );
     let r = c
         .delete(server.url("/v1/sessions/gone"))
         .send()
         .await
         .unwrap();
     assert!(r.status().is_success(), "{}", r.status());
-    let left = ros_nodes_until(&z, 3, |nodes| !ours(nodes)).await;
+    let left = ros_nodes_until(&z, 3, within, |nodes| !ours(nodes)).await;
     assert!(
         !ours(&left),
         "the deleted session's node is still in the ROS graph: {left:?}"

@@ -380,9 +380,10 @@ pub async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
     zenoh::open(c).await.expect("zenoh peer opens")
 }
 
-/// The ROS 2 nodes of `domain` as `ros2 node list` finds them: the names in the rmw_zenoh
-/// node liveliness tokens (`@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/%/%/<name>`) alive now.
-pub async fn ros_nodes(z: &zenoh::Session, domain: u32) -> Vec<String> {
+/// The ROS 2 nodes of `domain` as `ros2 node list` finds them, as (zenoh id, node name): from
+/// the rmw_zenoh node liveliness tokens (`@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/%/%/<name>`)
+/// alive now.
+pub async fn ros_nodes(z: &zenoh::Session, domain: u32) -> Vec<(String, String)> {
     let replies = z
         .liveliness()
         .get(format!("@ros2_lv/{domain}/**"))
@@ -391,25 +392,36 @@ pub async fn ros_nodes(z: &zenoh::Session, domain: u32) -> Vec<String> {
     let mut nodes = Vec::new();
     while let Ok(reply) = replies.recv_async().await {
         if let Ok(sample) = reply.result() {
-            let key = sample.key_expr().as_str();
-            if key.split('/').nth(5) == Some("NN") {
-                nodes.extend(key.rsplit('/').next().map(str::to_string));
+            let parts: Vec<&str> = sample.key_expr().as_str().split('/').collect();
+            if let (Some(zid), Some(&"NN"), Some(name)) = (parts.get(2), parts.get(5), parts.last())
+            {
+                nodes.push((zid.to_string(), name.to_string()));
             }
         }
     }
     nodes
 }
 
-/// Waits up to 10 s for `present(ros_nodes)`; the last list either way.
+/// The zenoh ids of the peers holding ROS node `name`.
+pub fn holders(nodes: &[(String, String)], name: &str) -> Vec<String> {
+    nodes
+        .iter()
+        .filter(|(_, n)| n == name)
+        .map(|(zid, _)| zid.clone())
+        .collect()
+}
+
+/// Waits up to `within` for `done(ros_nodes)`; the last list either way.
 pub async fn ros_nodes_until(
     z: &zenoh::Session,
     domain: u32,
-    present: impl Fn(&[String]) -> bool,
-) -> Vec<String> {
-    let deadline = Instant::now() + Duration::from_secs(10);
+    within: Duration,
+    done: impl Fn(&[(String, String)]) -> bool,
+) -> Vec<(String, String)> {
+    let deadline = Instant::now() + within;
     loop {
         let nodes = ros_nodes(z, domain).await;
-        if present(&nodes) || Instant::now() > deadline {
+        if done(&nodes) || Instant::now() > deadline {
             return nodes;
         }
         tokio::time::sleep(Duration::from_millis(100)).await;

@@ -17,8 +17,9 @@
 //! API ([`Service::execute_as`]) like any client's; nothing here touches a session's state.
 //!
 //! The binding uses the zenoh adapter's session: robots reach factord through the same router
-//! (or peer-to-peer) as any zenoh client. Not in a fleet (`--fleet`): a moved session's binding
-//! does not follow it yet.
+//! (or peer-to-peer) as any zenoh client. In a fleet (`--fleet`) the binding runs where the
+//! session is loaded and follows it: the instance that adopts a moved session binds it, the one
+//! that released it leaves the ROS graph (its event stream ended).
 
 mod attachment;
 mod cdr_codec;
