@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::server::{holders, ros_nodes_until, zenoh_peer, TestServer};
+use common::server::{get, holders, ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
 fn write_config(path: &Path, sessions: Value) -> String {
@@ -37,14 +37,7 @@ async fn configured_sessions_are_created_once_and_kept() {
     let state = dir.join("state");
     let s = TestServer::start_at(&state, &["--config", &config], &[]);
     let c = reqwest::Client::new();
-    let list: Value = c
-        .get(s.url("/v1/sessions"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let (_, list) = get(&c, &s.url("/v1/sessions")).await;
     let mut names: Vec<&str> = list["sessions"]
         .as_array()
         .unwrap()
@@ -74,14 +67,7 @@ async fn configured_sessions_are_created_once_and_kept() {
     let s = TestServer::start_at(&state, &["--config", &config], &[]);
     let deadline = Instant::now() + Duration::from_secs(20);
     let stats = loop {
-        let stats: Value = c
-            .get(s.url("/v1/sessions/plane"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let (_, stats) = get(&c, &s.url("/v1/sessions/plane")).await;
         if stats["num_variables"] == 2 || Instant::now() > deadline {
             break stats;
         }
