@@ -172,9 +172,7 @@ impl Ros2Binding {
         }
         Ok(())
     }
-}
 
-impl Ros2Binding {
     /// Whether a session of `kind` can take this binding: odometry makes `se3` keyframes in a
     /// `pose_graph_3d`, or IMU-and-odometry keyframes in a `sliding_window` (which needs the
     /// IMU). 400 `ros2_unsupported_kind` at `ros2`, or `invalid_value` at `ros2.imu_topic`.

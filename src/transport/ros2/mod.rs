@@ -11,10 +11,11 @@
 //!
 //! In, for a `pose_graph_3d`: `nav_msgs/Odometry` (keyframes, `between_se3`) and
 //! `geometry_msgs/PoseWithCovarianceStamped` (`prior_se3`), see `keyframes`; for a
-//! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`. Out after each solve: `nav_msgs/Path` and
-//! `geometry_msgs/PoseWithCovarianceStamped`, see `outputs`, and the `map → odom` correction on
-//! `/tf`, see `tf`. Messages go through the one command
-//! API ([`Service::execute_as`]) like any client's; nothing here touches a session's state.
+//! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
+//! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
+//! `outputs`, and the `map → odom` correction on `/tf`, see `tf`. Messages go through the one
+//! command API ([`Service::execute_as`]) like any client's; nothing here touches a session's
+//! state.
 //!
 //! The binding uses the zenoh adapter's session: robots reach factord through the same router
 //! (or peer-to-peer) as any zenoh client. In a fleet (`--fleet`) the binding runs where the
@@ -108,34 +109,24 @@ async fn run(
         (token, key)
     };
 
-    let (token, key) = endpoint(
-        EndpointKind::Subscription,
-        &binding.odometry_topic,
-        &ODOMETRY,
-    );
-    let odometry = zenoh.declare_subscriber(&key).await.map_err(failed)?;
-    tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-    let priors = match &binding.prior_topic {
-        Some(topic) => {
-            let (token, key) = endpoint(
-                EndpointKind::Subscription,
-                topic,
-                &POSE_WITH_COVARIANCE_STAMPED,
-            );
-            let subscriber = zenoh.declare_subscriber(&key).await.map_err(failed)?;
-            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-            Some(subscriber)
-        }
-        None => None,
-    };
-    let imu = match &binding.imu_topic {
-        Some(topic) => {
-            let (token, key) = endpoint(EndpointKind::Subscription, topic, &IMU);
-            let subscriber = zenoh.declare_subscriber(&key).await.map_err(failed)?;
-            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-            Some(subscriber)
-        }
-        None => None,
+    // Odometry always; priors and IMU when the binding names their topics.
+    let wanted = [
+        (Some(&binding.odometry_topic), &ODOMETRY),
+        (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
+        (binding.imu_topic.as_ref(), &IMU),
+    ];
+    let mut subscriptions = Vec::with_capacity(wanted.len());
+    for (topic, ros_type) in wanted {
+        let Some(topic) = topic else {
+            subscriptions.push(None);
+            continue;
+        };
+        let (token, key) = endpoint(EndpointKind::Subscription, topic, ros_type);
+        subscriptions.push(Some(zenoh.declare_subscriber(&key).await.map_err(failed)?));
+        tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+    }
+    let Ok([Some(odometry), priors, imu]) = <[_; 3]>::try_from(subscriptions) else {
+        unreachable!("odometry is always subscribed, and three were wanted")
     };
     let publisher = |topic: &Option<String>, ros_type| {
         topic.as_deref().map(|topic| {
