@@ -4,9 +4,7 @@ mod common;
 
 use std::process::Command;
 
-fn factord() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_factord"))
-}
+use common::cli::{factord, Run};
 
 #[test]
 fn solve_writes_summary_json_graph_and_trajectory() {
@@ -23,13 +21,7 @@ fn solve_writes_summary_json_graph_and_trajectory() {
         .arg(&out)
         .arg("--tum")
         .arg(&tum)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .succeeds();
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
         stdout.contains("iter   1") && stdout.contains("termination:"),
@@ -73,9 +65,7 @@ fn bad_input_exits_with_an_error_not_a_panic() {
         "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n",
     )
     .unwrap();
-    let output = factord().arg("solve").arg(&input).output().unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&output.stderr);
+    let stderr = factord().arg("solve").arg(&input).refused();
     assert!(
         stderr.contains("bad.g2o:2:") && stderr.contains("unknown variable 1"),
         "{stderr}"
@@ -107,7 +97,7 @@ fn ba_runs_the_course_workflow_and_writes_point_clouds() {
         dir.join("after.ply"),
         dir.join("out.txt"),
     );
-    let output = factord()
+    factord()
         .arg("ba")
         .arg(&input)
         .args([
@@ -127,13 +117,7 @@ fn ba_runs_the_course_workflow_and_writes_point_clouds() {
         .arg(&after)
         .arg("--out")
         .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .succeeds();
     let s: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
     let (initial, last) = (
@@ -164,9 +148,7 @@ fn ba_rejects_a_bad_file_with_a_clear_error() {
     let dir = common::temp_dir("ba-bad");
     let input = dir.join("bad.txt");
     std::fs::write(&input, "2 1 1\n0 3 1.0 2.0\n").unwrap();
-    let output = factord().arg("ba").arg(&input).output().unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&output.stderr);
+    let err = factord().arg("ba").arg(&input).refused();
     assert!(
         err.contains("bad.txt") && err.contains("the file has"),
         "{err}"
@@ -181,20 +163,14 @@ fn solve_plot_draws_initial_guess_optimum_loop_closures_and_convergence() {
     let text = common::synthetic_manhattan(150, 4);
     std::fs::write(&input, &text).unwrap();
     let (plot, summary) = (dir.join("before_after.svg"), dir.join("s.json"));
-    let output = factord()
+    factord()
         .arg("solve")
         .arg(&input)
         .args(["--init", "none", "--quiet", "--plot"])
         .arg(&plot)
         .arg("--summary-json")
         .arg(&summary)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .succeeds();
     let svg = std::fs::read_to_string(&plot).unwrap();
     assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
     // Two trajectories, with one vertex per pose each.
@@ -232,15 +208,12 @@ fn solve_plot_draws_initial_guess_optimum_loop_closures_and_convergence() {
 
     // A path that cannot be written is an error naming it, not a panic.
     let bad = dir.join("missing-dir/x.svg");
-    let output = factord()
+    let stderr = factord()
         .arg("solve")
         .arg(&input)
         .args(["--quiet", "--plot"])
         .arg(&bad)
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&output.stderr);
+        .refused();
     assert!(
         stderr.contains("missing-dir/x.svg") && !stderr.contains("panicked"),
         "{stderr}"
@@ -392,13 +365,7 @@ fn solve_tum_writes_ids_with_a_header_or_stamps_from_a_file() {
         .arg(&input)
         .args(["--quiet", "--tum", "-", "--stamps"])
         .arg(&stamps)
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .succeeds();
     let tum = String::from_utf8(output.stdout).unwrap();
     let mut rows = tum.lines();
     assert_eq!(rows.next(), Some("# timestamp tx ty tz qx qy qz qw"));
@@ -412,15 +379,12 @@ fn solve_tum_writes_ids_with_a_header_or_stamps_from_a_file() {
     }
     // A pose without a stamp is an error naming the stamps file and the vertex.
     std::fs::write(&stamps, "0 1.5\n").unwrap();
-    let output = factord()
+    let stderr = factord()
         .arg("solve")
         .arg(&input)
         .args(["--quiet", "--tum", "-", "--stamps"])
         .arg(&stamps)
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&output.stderr);
+        .refused();
     assert!(
         stderr.contains("stamps.txt") && stderr.contains("no stamp for vertex 1"),
         "{stderr}"
@@ -452,36 +416,24 @@ fn factord_data_locates_inputs_and_default_datasets() {
         .current_dir(&elsewhere)
         .env("FACTORD_DATA", &data)
         .args(["solve", "graphs/m.g2o", "--quiet", "--summary-json", "-"])
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+        .succeeds();
     let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(json["num_variables"], 40);
 
-    let output = factord()
+    let stderr = factord()
         .current_dir(&elsewhere)
         .env("FACTORD_DATA", &data)
         .args(["solve", "graphs/missing.g2o"])
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&output.stderr);
+        .refused();
     assert!(
         stderr.contains("graph graphs/missing.g2o") && stderr.contains("FACTORD_DATA"),
         "{stderr}"
     );
 
-    let output = factord()
+    let stderr = factord()
         .env("FACTORD_DATA", &data)
         .arg("fusion-eval")
-        .output()
-        .unwrap();
-    assert_eq!(output.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&output.stderr);
+        .refused();
     let expected = data.join("imu/euroc_V1_01_easy");
     assert!(
         stderr.contains("--data") && stderr.contains(&*expected.to_string_lossy()),
@@ -508,20 +460,14 @@ fn evo_ape_reads_solve_tum_with_stamps() {
     std::fs::write(&stamps, lines).unwrap();
     let (gn, lm) = (dir.join("gn.tum"), dir.join("lm.tum"));
     for (method, tum) in [("gn", &gn), ("lm", &lm)] {
-        let output = factord()
+        factord()
             .arg("solve")
             .arg(&input)
             .args(["--quiet", "--method", method, "--tum"])
             .arg(tum)
             .arg("--stamps")
             .arg(&stamps)
-            .output()
-            .unwrap();
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+            .succeeds();
     }
     let output = Command::new(python.with_file_name("evo_ape"))
         .arg("tum")

@@ -3,11 +3,7 @@
 
 mod common;
 
-use std::process::Command;
-
-fn factord() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_factord"))
-}
+use common::cli::{factord, Run};
 
 /// `ba` prints Ceres' rows (cost = ½Σρ, the same numbers as the Summary) and Ceres' cost block;
 /// with `--summary-json -` the JSON is all of stdout and the rows go to stderr.
@@ -64,18 +60,12 @@ fn plots_have_axes_side_views_and_png() {
     std::fs::write(&input, common::synthetic_helix_3d(60, 2)).unwrap();
     let (svg_path, png_path) = (dir.join("p.svg"), dir.join("p.png"));
     for plot in [&svg_path, &png_path] {
-        let output = factord()
+        factord()
             .arg("solve")
             .arg(&input)
             .args(["--quiet", "--plot"])
             .arg(plot)
-            .output()
-            .unwrap();
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+            .succeeds();
     }
     let svg = std::fs::read_to_string(&svg_path).unwrap();
     assert!(svg.contains(">from above<") && svg.contains(">from the side<"));
@@ -167,13 +157,7 @@ fn bench_cholesky_prints_a_table_json_on_request_and_the_matrix_to_stdout() {
             .arg(&input)
             .args(["--repeat", "2"])
             .args(extra)
-            .output()
-            .unwrap();
-        assert!(
-            output.status.success(),
-            "{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+            .succeeds();
         (
             String::from_utf8(output.stdout).unwrap(),
             String::from_utf8(output.stderr).unwrap(),

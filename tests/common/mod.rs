@@ -3,6 +3,7 @@
 
 pub mod ack_proxy;
 pub mod browser;
+pub mod cli;
 pub mod docker;
 pub mod fleet;
 #[allow(dead_code)]
