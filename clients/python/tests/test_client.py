@@ -19,17 +19,12 @@ import subprocess
 import sys
 import threading
 import time
-import traceback
 from pathlib import Path
 
-HERE = Path(__file__).resolve()
-try:
-    from factord_client import FactordError, HttpClient, ZenohClient, g2o, gtsam_text
-except ImportError:  # running from a checkout without `pip install`
-    sys.path.insert(0, str(HERE.parents[1]))
-    from factord_client import FactordError, HttpClient, ZenohClient, g2o, gtsam_text
+# harness first: it puts a checkout's client on the path when it is not installed.
+from harness import CLIENT_ROOT, REPO_ROOT, Checks, Skip, expect
+from factord_client import FactordError, HttpClient, ZenohClient, g2o, gtsam_text
 
-REPO_ROOT = HERE.parents[3]
 STREAM_DATASET = "2d/carlone/input_M3500_g2o.g2o"
 JOB_DATASET = "2d/converted/intel_lsslam.g2o"
 JOB_FINAL_CHI2 = 65.402048  # the reference optimum of intel_lsslam (tests/datasets.rs)
@@ -37,41 +32,6 @@ DATASET_3D = "3d/gtsam/pose3example-grid.txt"
 LANDMARK_DATASET = "2d/gtsam/victoria_park.txt"
 LANDMARK_POSES = 300
 STREAM_POSES = 40
-
-
-class Skip(Exception):
-    pass
-
-
-class Checks:
-    def __init__(self) -> None:
-        self.failed: list[str] = []
-        self.passed = 0
-        self.skipped = 0
-
-    def run(self, name: str, fn, *args):
-        t0 = time.monotonic()
-        try:
-            detail = fn(*args)
-        except Skip as e:
-            self.skipped += 1
-            print(f"SKIP  {name}: {e}", flush=True)
-            return None
-        except Exception as e:  # noqa: BLE001 - report every failure and go on
-            self.failed.append(name)
-            print(f"FAIL  {name}: {e!r}", flush=True)
-            traceback.print_exc(limit=3, file=sys.stdout)
-            return None
-        self.passed += 1
-        ms = (time.monotonic() - t0) * 1e3
-        print(f"ok    {name}{': ' + detail if isinstance(detail, str) and detail else ''}"
-              f"  [{ms:.0f} ms]", flush=True)
-        return detail
-
-
-def expect(condition: bool, message: str) -> None:
-    if not condition:
-        raise AssertionError(message)
 
 
 def relative(a: float, b: float) -> float:
@@ -512,7 +472,7 @@ def main() -> int:
     def robot():
         need_data(STREAM_DATASET)
         name = f"pyrobot-{run_id}"
-        cmd = [sys.executable, str(HERE.parents[1] / "examples" / "robot.py"),
+        cmd = [sys.executable, str(CLIENT_ROOT / "examples" / "robot.py"),
                "--zenoh", args.zenoh, "--prefix", args.prefix, "--session", name,
                "--limit", "200", "--data-dir", str(data_dir), "--every", "50", "--delete"]
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
