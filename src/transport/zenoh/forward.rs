@@ -76,11 +76,7 @@ fn publish(
             }
             _ => &[event.topic()],
         };
-        // Iteration statistics may be dropped under congestion; the rest not.
-        let congestion = match *event {
-            SessionEvent::Iteration { .. } => CongestionControl::Drop,
-            _ => CongestionControl::Block,
-        };
+        let congestion = congestion_for(&event);
         for topic in keys {
             let key = format!("{prefix}/{name}/out/{topic}");
             let put = zenoh.put(key, body.clone()).congestion_control(congestion);
@@ -88,6 +84,16 @@ fn publish(
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
             }
         }
+    }
+}
+
+/// How an event is published when zenoh's queue is full: iteration statistics may be dropped
+/// (the next one supersedes them); the rest wait, as an ack or an error may be the only word
+/// its sender gets.
+pub(super) fn congestion_for(event: &SessionEvent) -> CongestionControl {
+    match event {
+        SessionEvent::Iteration { .. } => CongestionControl::Drop,
+        _ => CongestionControl::Block,
     }
 }
 

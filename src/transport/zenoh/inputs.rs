@@ -10,7 +10,6 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
-use zenoh::qos::CongestionControl;
 use zenoh::sample::Sample;
 
 use super::{oversized, Context};
@@ -116,11 +115,10 @@ async fn deliver(c: &Context, name: &str, delivery: Delivery) {
         producer_seq: None,
     };
     let body = serde_json::to_vec(&event).expect("events serialise");
-    // Blocking, as the session's own error events are (see `forward`): at full rate the
-    // default (drop when the queue is full) could lose the only word its sender gets.
+    // As the session's own events are published (zenoh's default would drop it at full rate).
     let _ = c
         .zenoh
         .put(format!("{}/{name}/out/errors", c.prefix), body)
-        .congestion_control(CongestionControl::Block)
+        .congestion_control(super::forward::congestion_for(&event))
         .await;
 }
