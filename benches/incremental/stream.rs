@@ -4,8 +4,10 @@
 //! protocol as `isam2_stream.py`. Runs the service in-process through its command API (no
 //! transport), so this measures the session engine.
 //!
-//! `cargo bench --bench incremental_stream -- <file.g2o> [--json out.json] [--limit N]`
-//! (2D or 3D g2o).
+//! `cargo bench --bench incremental_stream -- <file.g2o> [--json out.json] [--limit N]
+//! [--dump-latencies out.txt] [--dump-reports out.jsonl]` (2D or 3D g2o; the latency dump has
+//! one latency in ms per line, in stream order; the report dump one engine `UpdateReport` per
+//! incremental update).
 
 #[path = "../../tests/common/mod.rs"]
 mod common;
@@ -72,8 +74,12 @@ fn main() {
                 let e = totals.entry(k.to_string()).or_insert(0.0.into());
                 *e = (e.as_f64().unwrap() + v).into();
             };
+            let mut reports = Vec::new();
             while let Ok(event) = events.recv().await {
                 if let SessionEvent::Summary { summary, .. } = &*event {
+                    if let Some(report) = &summary.used.incremental {
+                        reports.push(serde_json::to_string(report).expect("serialisable"));
+                    }
                     let t = &summary.timings;
                     add("solve", summary.solve_seconds);
                     match summary.used.region_variables {
@@ -95,7 +101,7 @@ fn main() {
                     add("evaluate", t.evaluate_seconds);
                 }
             }
-            totals
+            (totals, reports)
         });
         let mut latencies = Vec::with_capacity(batches.len());
         let start = Instant::now();
@@ -150,7 +156,11 @@ fn main() {
             .await
             .expect("deleted");
         drop(service);
-        let phases = phases.await.expect("phase totals");
+        let (phases, reports) = phases.await.expect("phase totals");
+        if let Some(out) = args.value("--dump-reports") {
+            let lines: String = reports.iter().map(|r| format!("{r}\n")).collect();
+            std::fs::write(out, lines).expect("writable --dump-reports");
+        }
         (latencies, total, stats, phases, check)
     });
     let (mut latencies, total, stats, phases, check) = report;
@@ -177,6 +187,10 @@ fn main() {
     })
     .expect("batch solve");
 
+    if let Some(out) = args.value("--dump-latencies") {
+        let lines: String = latencies.iter().map(|ms| format!("{ms}\n")).collect();
+        std::fs::write(out, lines).expect("writable --dump-latencies");
+    }
     let mean = latencies.iter().sum::<f64>() / latencies.len() as f64;
     latencies.sort_by(f64::total_cmp);
     let final_chi2 = stats.chi2.unwrap_or(f64::NAN);

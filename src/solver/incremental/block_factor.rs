@@ -18,6 +18,7 @@
 use std::collections::BTreeSet;
 
 use super::dense;
+use super::subtree_updates::{ColumnView, SubtreeUpdates};
 use crate::solver::schur::small_cholesky;
 
 const NONE: u32 = u32::MAX;
@@ -104,6 +105,13 @@ pub struct BlockFactor {
     changed: Vec<bool>,
     /// Scalar nonzeros of L.
     nnz: usize,
+    /// What kept subtrees contribute to a refactored part (see `subtree_updates`).
+    kept: SubtreeUpdates,
+    /// During a refactor: the columns whose contribution comes from their kept subtree's
+    /// update matrix, and each visited kept column's subtree root (scratch, else clear).
+    covered: Vec<bool>,
+    kept_root: Vec<u32>,
+    slot: Vec<u32>,
 }
 
 /// The variable whose pivot failed: `H` is not positive definite in its column.
@@ -122,6 +130,14 @@ impl BlockFactor {
         self.parent.resize(n, NONE);
         self.children.resize_with(n, Vec::new);
         self.changed.resize(n, false);
+        self.covered.resize(n, false);
+        self.kept_root.resize(n, NONE);
+        self.slot.resize(n, NONE);
+    }
+
+    /// Bytes of the kept subtrees' update matrices.
+    pub fn kept_update_bytes(&self) -> usize {
+        self.kept.bytes()
     }
 
     pub fn nnz(&self) -> usize {
@@ -178,7 +194,10 @@ impl BlockFactor {
         for &r in order {
             self.rank[r] = self.next_rank;
             self.next_rank += 1;
+            self.kept.forget(r);
         }
+        let (members, applications) = self.prepare_kept_updates(order, in_order);
+        let mut next_application = 0;
         let mut acc = std::mem::take(&mut self.accumulator);
         let result = (|| {
             for &r in order {
@@ -186,6 +205,18 @@ impl BlockFactor {
                 acc.start(d, self.dim.len());
                 assemble(r, &self.rank, &mut acc);
                 self.subtract_updates(r, &mut acc);
+                let rank_r = self.rank[r];
+                while let Some(&(rank, root)) = applications.get(next_application) {
+                    if rank != rank_r {
+                        break;
+                    }
+                    let rank_of = &self.rank;
+                    self.kept
+                        .subtract_from_column(root as usize, r, &self.dim, &mut acc, |u| {
+                            rank_of[u] > rank_r
+                        });
+                    next_application += 1;
+                }
                 if small_cholesky(&mut acc.diagonal, d).is_err() {
                     acc.finish();
                     return Err(NotPositiveDefinite(r));
@@ -209,7 +240,88 @@ impl BlockFactor {
             Ok(())
         })();
         self.accumulator = acc;
+        for (_, k) in members {
+            self.covered[k as usize] = false;
+        }
+        self.kept.end_refactor(8 * self.nnz);
         result
+    }
+
+    /// Before the refactored part (`order`, fresh ranks) is eliminated: groups the kept columns
+    /// reaching it by the root of their kept subtree, makes sure each group of two or more has
+    /// its update matrix (computed now when it is not kept yet) and marks its columns
+    /// `covered`. Returns the groups' members `(root, column)` and, sorted by rank, where the
+    /// update matrices apply: `(rank of a refactored variable, root)` for each row of a root.
+    #[allow(clippy::type_complexity)]
+    fn prepare_kept_updates(
+        &mut self,
+        order: &[usize],
+        in_order: &[bool],
+    ) -> (Vec<(u32, u32)>, Vec<(u64, u32)>) {
+        let mut members: Vec<(u32, u32)> = Vec::new();
+        let mut visited: Vec<u32> = Vec::new();
+        let mut path: Vec<u32> = Vec::new();
+        for &r in order {
+            for &(k, _) in &self.row_columns[r] {
+                if in_order[k as usize] || self.covered[k as usize] {
+                    continue;
+                }
+                self.covered[k as usize] = true;
+                // Up the (old) tree to the last column before the refactored part.
+                path.clear();
+                let mut x = k;
+                let root = loop {
+                    if self.kept_root[x as usize] != NONE {
+                        break self.kept_root[x as usize];
+                    }
+                    path.push(x);
+                    let p = self.parent[x as usize];
+                    if p == NONE || in_order[p as usize] {
+                        break x;
+                    }
+                    x = p;
+                };
+                for &v in &path {
+                    self.kept_root[v as usize] = root;
+                }
+                visited.extend_from_slice(&path);
+                members.push((root, k));
+            }
+        }
+        for v in visited {
+            self.kept_root[v as usize] = NONE;
+        }
+        members.sort_unstable();
+        let mut applications = Vec::new();
+        let mut kept_members = Vec::with_capacity(members.len());
+        for group in members.chunk_by(|a, b| a.0 == b.0) {
+            let root = group[0].0 as usize;
+            if !self.kept.contains(root) {
+                if group.len() < 2 {
+                    self.covered[group[0].1 as usize] = false;
+                    continue;
+                }
+                let rows: Vec<u32> = self.columns[root].rows.iter().map(|&(u, _)| u).collect();
+                debug_assert!(rows.iter().all(|&u| in_order[u as usize]));
+                let columns = &self.columns;
+                let dim = &self.dim;
+                let views = group.iter().map(|&(_, k)| ColumnView {
+                    dim: dim[k as usize],
+                    rows: &columns[k as usize].rows,
+                    blocks: &columns[k as usize].blocks,
+                });
+                self.kept.compute(root, rows, views, dim, &mut self.slot);
+            }
+            kept_members.extend_from_slice(group);
+            applications.extend(
+                self.columns[root]
+                    .rows
+                    .iter()
+                    .map(|&(u, _)| (self.rank[u as usize], root as u32)),
+            );
+        }
+        applications.sort_unstable();
+        (kept_members, applications)
     }
 
     /// `H`'s column `r` (in `acc`) minus `Σ_k L_{·k} L_rkᵀ` over the columns `k` reaching row
@@ -234,6 +346,10 @@ impl BlockFactor {
         let d = self.dim[r];
         let rank_r = self.rank[r];
         for &(k, at) in &self.row_columns[r] {
+            if self.covered[k as usize] {
+                // In a kept subtree whose update matrix carries it.
+                continue;
+            }
             let column = &self.columns[k as usize];
             let dk = self.dim[k as usize];
             let at = at as usize;
@@ -404,3 +520,7 @@ impl BlockFactor {
         solved
     }
 }
+
+#[cfg(test)]
+#[path = "block_factor_tests.rs"]
+mod tests;

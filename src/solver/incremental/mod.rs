@@ -25,6 +25,7 @@ mod dense;
 mod linearized;
 mod ordering;
 mod report;
+mod subtree_updates;
 mod summary;
 
 use std::time::Instant;
@@ -112,7 +113,8 @@ impl IncrementalEngine {
     /// indices, the linearised factors, the linearisation point and the solution vectors.
     pub fn memory_bytes(&self) -> usize {
         let variables = self.theta.len() * VARIABLE_OVERHEAD + 16 * self.delta.len();
-        let factor = 8 * self.factor.nnz() + 8 * self.jacobian_blocks;
+        let factor =
+            8 * self.factor.nnz() + 8 * self.jacobian_blocks + self.factor.kept_update_bytes();
         variables + factor + self.linearized_bytes
     }
 

@@ -1,0 +1,214 @@
+//! `BlockFactor::refactor` against a dense Cholesky: after every partial refactor (random
+//! touched variables, their ancestors, in a random order), `L Lᵀ` equals `H` in the factor's
+//! order, whether kept subtrees contribute through their columns or their update matrices.
+
+use super::*;
+
+/// A small deterministic generator (xorshift), so a failure reproduces.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n as u64) as usize
+    }
+    fn uniform(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+}
+
+/// A symmetric block matrix: `blocks[(u, v)]` for `u ≥ v` in variable index (row-major du×dv).
+struct Sparse {
+    dims: Vec<usize>,
+    blocks: std::collections::BTreeMap<(usize, usize), Vec<f64>>,
+}
+
+impl Sparse {
+    /// `H_uv` (du×dv) for any `u, v`, zero when absent.
+    fn block(&self, u: usize, v: usize) -> Vec<f64> {
+        let (du, dv) = (self.dims[u], self.dims[v]);
+        if u >= v {
+            self.blocks
+                .get(&(u, v))
+                .cloned()
+                .unwrap_or(vec![0.0; du * dv])
+        } else {
+            let t = self.block(v, u);
+            (0..du * dv).map(|i| t[(i % dv) * du + i / dv]).collect()
+        }
+    }
+    fn neighbours(&self, v: usize) -> Vec<usize> {
+        let mut out: Vec<usize> = self
+            .blocks
+            .keys()
+            .filter_map(|&(a, b)| match (a == v, b == v) {
+                (true, false) => Some(b),
+                (false, true) => Some(a),
+                _ => None,
+            })
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+    /// Adds a random coupling between `u ≠ v`, and to both diagonals enough to stay positive
+    /// definite (diagonal dominance).
+    fn couple(&mut self, rng: &mut Rng, u: usize, v: usize) {
+        let (a, b) = (u.max(v), u.min(v));
+        let (da, db) = (self.dims[a], self.dims[b]);
+        let block = self.blocks.entry((a, b)).or_insert(vec![0.0; da * db]);
+        for x in block.iter_mut() {
+            *x += rng.uniform();
+        }
+        for (w, d) in [(a, da), (b, db)] {
+            let diagonal = self.blocks.entry((w, w)).or_insert(vec![0.0; d * d]);
+            for i in 0..d {
+                diagonal[i * d + i] += 3.0 * d.max(da.max(db)) as f64;
+            }
+        }
+    }
+}
+
+fn refactor(factor: &mut BlockFactor, h: &Sparse, order: &[usize]) {
+    let mut in_order = vec![false; h.dims.len()];
+    for &v in order {
+        in_order[v] = true;
+    }
+    let mut reaching = factor.reaching(order, &in_order);
+    reaching.retain(|&k| factor.parent(k).is_some_and(|p| in_order[p]));
+    factor
+        .refactor(order, &in_order, |r, rank, acc| {
+            for (out, x) in acc.diagonal_mut().iter_mut().zip(h.block(r, r)) {
+                *out += x;
+            }
+            for u in h.neighbours(r) {
+                if rank[u] > rank[r] {
+                    let du = h.dims[u];
+                    for (out, x) in acc.block_mut(u, du).iter_mut().zip(h.block(u, r)) {
+                        *out += x;
+                    }
+                }
+            }
+        })
+        .expect("positive definite");
+    factor.reparent(&reaching);
+}
+
+/// max |L Lᵀ − H| over every entry, in the factor's order.
+fn reconstruction_error(factor: &BlockFactor, h: &Sparse) -> f64 {
+    let n = h.dims.len();
+    let mut by_rank: Vec<usize> = (0..n).collect();
+    by_rank.sort_by_key(|&v| factor.rank[v]);
+    let mut start = vec![0; n];
+    let mut total = 0;
+    for &v in &by_rank {
+        start[v] = total;
+        total += h.dims[v];
+    }
+    let mut l = vec![0.0; total * total];
+    for v in 0..n {
+        let (d, column) = (h.dims[v], &factor.columns[v]);
+        for i in 0..d {
+            for j in 0..=i {
+                l[(start[v] + i) * total + start[v] + j] = column.diagonal[i * d + j];
+            }
+        }
+        for &(u, o) in &column.rows {
+            let (u, du) = (u as usize, h.dims[u as usize]);
+            for i in 0..du {
+                for j in 0..d {
+                    l[(start[u] + i) * total + start[v] + j] =
+                        column.blocks[o as usize + i * d + j];
+                }
+            }
+        }
+    }
+    let mut worst = 0.0f64;
+    for u in 0..n {
+        for v in 0..n {
+            let hb = h.block(u, v);
+            let (du, dv) = (h.dims[u], h.dims[v]);
+            for i in 0..du {
+                for j in 0..dv {
+                    let (a, b) = (start[u] + i, start[v] + j);
+                    let llt: f64 = (0..total)
+                        .map(|k| l[a * total + k] * l[b * total + k])
+                        .sum();
+                    worst = worst.max((llt - hb[i * dv + j]).abs());
+                }
+            }
+        }
+    }
+    worst
+}
+
+#[test]
+fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
+    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let n = 48;
+    // Poses (3) with a few landmarks (2) among them: blocks of two sizes.
+    let dims: Vec<usize> = (0..n).map(|v| if v % 7 == 3 { 2 } else { 3 }).collect();
+    let mut h = Sparse {
+        dims: dims.clone(),
+        blocks: Default::default(),
+    };
+    for v in 1..n {
+        h.couple(&mut rng, v - 1, v);
+    }
+    for _ in 0..n / 2 {
+        let (u, v) = (rng.below(n), rng.below(n));
+        if u != v {
+            h.couple(&mut rng, u, v);
+        }
+    }
+    let mut factor = BlockFactor::default();
+    factor.grow(&dims);
+    refactor(&mut factor, &h, &(0..n).collect::<Vec<_>>());
+    assert!(reconstruction_error(&factor, &h) < 1e-9);
+
+    let mut reused = false;
+    for _ in 0..60 {
+        // A change at one or two variables (a new coupling, or a diagonal one), then the
+        // touched variables and their ancestors in a random order.
+        let u = rng.below(n);
+        let v = if rng.below(2) == 0 { rng.below(n) } else { u };
+        if u != v {
+            h.couple(&mut rng, u, v);
+        } else {
+            h.blocks
+                .get_mut(&(u, u))
+                .expect("every variable is coupled")[0] += 1.0;
+        }
+        let mut affected = Vec::new();
+        let mut seen = vec![false; n];
+        for mut w in [u, v] {
+            while !seen[w] {
+                seen[w] = true;
+                affected.push(w);
+                match factor.parent(w) {
+                    Some(p) => w = p,
+                    None => break,
+                }
+            }
+        }
+        // New couplings may join columns that were in different subtrees: their ancestors
+        // (in the new structure) are found by the refactor itself; every ancestor of the
+        // touched variables in the old tree is in `affected`.
+        for i in (1..affected.len()).rev() {
+            affected.swap(i, rng.below(i + 1));
+        }
+        refactor(&mut factor, &h, &affected);
+        reused |= factor.kept_update_bytes() > 0;
+        let error = reconstruction_error(&factor, &h);
+        assert!(
+            error < 1e-9,
+            "L Lᵀ − H = {error:e} after refactoring {affected:?}"
+        );
+    }
+    assert!(reused, "some refactor took a kept subtree's update matrix");
+}
