@@ -22,6 +22,13 @@ use super::subtree_updates::{ColumnView, SubtreeUpdates};
 use crate::solver::schur::small_cholesky;
 
 const NONE: u32 = u32::MAX;
+
+/// Where the update matrices of kept subtrees apply, `(rank of a refactored column, subtree
+/// root)` sorted by rank, and the next one to apply.
+struct KeptApplications {
+    list: Vec<(u64, u32)>,
+    next: usize,
+}
 /// A zero block of the largest variable (15-dimensional navigation states).
 const ZEROS: [f64; 15 * 15] = [0.0; 15 * 15];
 
@@ -112,6 +119,8 @@ pub struct BlockFactor {
     covered: Vec<bool>,
     kept_root: Vec<u32>,
     slot: Vec<u32>,
+    /// Columns factored as part of a dense tail, over the factor's life.
+    dense_columns: usize,
 }
 
 /// The variable whose pivot failed: `H` is not positive definite in its column.
@@ -133,6 +142,11 @@ impl BlockFactor {
         self.covered.resize(n, false);
         self.kept_root.resize(n, NONE);
         self.slot.resize(n, NONE);
+    }
+
+    /// Columns factored in a dense tail so far (see `dense_tail`).
+    pub fn dense_columns(&self) -> usize {
+        self.dense_columns
     }
 
     /// Bytes of the kept subtrees' update matrices.
@@ -197,54 +211,87 @@ impl BlockFactor {
             self.kept.forget(r);
         }
         let (members, applications) = self.prepare_kept_updates(order, in_order);
-        let mut next_application = 0;
+        let mut kept_at = KeptApplications {
+            list: applications,
+            next: 0,
+        };
         let mut acc = std::mem::take(&mut self.accumulator);
-        let result = (|| {
-            for &r in order {
-                let d = self.dim[r];
-                acc.start(d, self.dim.len());
-                assemble(r, &self.rank, &mut acc);
-                self.subtract_updates(r, &mut acc);
-                let rank_r = self.rank[r];
-                while let Some(&(rank, root)) = applications.get(next_application) {
-                    if rank != rank_r {
-                        break;
-                    }
-                    let rank_of = &self.rank;
-                    self.kept
-                        .subtract_from_column(root as usize, r, &self.dim, &mut acc, |u| {
-                            rank_of[u] > rank_r
-                        });
-                    next_application += 1;
-                }
-                if small_cholesky(&mut acc.diagonal, d).is_err() {
-                    acc.finish();
-                    return Err(NotPositiveDefinite(r));
-                }
-                self.scale_blocks(&mut acc);
-                let mut parent = NONE;
-                for &(u, o) in &acc.entries {
-                    self.row_columns[u as usize].push((r as u32, o));
-                    if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
-                        parent = u;
-                    }
-                }
-                let column = &mut self.columns[r];
-                column.diagonal.extend_from_slice(&acc.diagonal);
-                column.rows.extend_from_slice(&acc.entries);
-                column.blocks.extend_from_slice(&acc.buffer);
-                acc.finish();
-                self.nnz += self.column_nnz(r, &self.columns[r]);
-                self.set_parent(r, parent);
-            }
-            Ok(())
-        })();
+        let result = self.eliminate(order, &mut acc, &mut assemble, &mut kept_at);
         self.accumulator = acc;
         for (_, k) in members {
             self.covered[k as usize] = false;
         }
         self.kept.end_refactor(8 * self.nnz);
         result
+    }
+
+    /// Left-looking elimination of `order`, column by column, until the rest of it is (nearly)
+    /// one dense clique (a column whose rows are nearly every column after it): that tail is
+    /// factored as one dense matrix (`dense_tail`).
+    fn eliminate<A: FnMut(usize, &[u64], &mut Accumulator)>(
+        &mut self,
+        order: &[usize],
+        acc: &mut Accumulator,
+        assemble: &mut A,
+        kept_at: &mut KeptApplications,
+    ) -> Result<(), NotPositiveDefinite> {
+        for (i, &r) in order.iter().enumerate() {
+            self.gather(r, acc, assemble, kept_at);
+            let later = order.len() - i - 1;
+            if dense_tail::starts_here(acc.entries.len(), later) {
+                return self.eliminate_dense_tail(&order[i..], acc, assemble, kept_at);
+            }
+            if small_cholesky(&mut acc.diagonal, self.dim[r]).is_err() {
+                acc.finish();
+                return Err(NotPositiveDefinite(r));
+            }
+            self.scale_blocks(acc);
+            self.store_column(r, acc);
+        }
+        Ok(())
+    }
+
+    /// Column `r` of `H` (by `assemble`) minus what every column eliminated before it
+    /// contributes, into `acc`.
+    fn gather<A: FnMut(usize, &[u64], &mut Accumulator)>(
+        &mut self,
+        r: usize,
+        acc: &mut Accumulator,
+        assemble: &mut A,
+        kept_at: &mut KeptApplications,
+    ) {
+        acc.start(self.dim[r], self.dim.len());
+        assemble(r, &self.rank, acc);
+        self.subtract_updates(r, acc);
+        let rank_r = self.rank[r];
+        while let Some(&(rank, root)) = kept_at.list.get(kept_at.next) {
+            if rank != rank_r {
+                break;
+            }
+            let rank_of = &self.rank;
+            self.kept
+                .subtract_from_column(root as usize, r, &self.dim, acc, |u| rank_of[u] > rank_r);
+            kept_at.next += 1;
+        }
+    }
+
+    /// Stores the eliminated column `r` (in `acc`, then cleared): its rows register it, and its
+    /// parent is its lowest-ranked row.
+    fn store_column(&mut self, r: usize, acc: &mut Accumulator) {
+        let mut parent = NONE;
+        for &(u, o) in &acc.entries {
+            self.row_columns[u as usize].push((r as u32, o));
+            if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
+                parent = u;
+            }
+        }
+        let column = &mut self.columns[r];
+        column.diagonal.extend_from_slice(&acc.diagonal);
+        column.rows.extend_from_slice(&acc.entries);
+        column.blocks.extend_from_slice(&acc.buffer);
+        acc.finish();
+        self.nnz += self.column_nnz(r, &self.columns[r]);
+        self.set_parent(r, parent);
     }
 
     /// Before the refactored part (`order`, fresh ranks) is eliminated: groups the kept columns
@@ -520,6 +567,9 @@ impl BlockFactor {
         solved
     }
 }
+
+#[path = "dense_tail.rs"]
+mod dense_tail;
 
 #[cfg(test)]
 #[path = "block_factor_tests.rs"]

@@ -1,6 +1,7 @@
 //! `BlockFactor::refactor` against a dense Cholesky: after every partial refactor (random
 //! touched variables, their ancestors, in a random order), `L Lᵀ` equals `H` in the factor's
-//! order, whether kept subtrees contribute through their columns or their update matrices.
+//! order, whether kept subtrees contribute through their columns or their update matrices, and
+//! whether the top of the refactored part is eliminated column by column or as a dense tail.
 
 use super::*;
 
@@ -160,7 +161,7 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
     for v in 1..n {
         h.couple(&mut rng, v - 1, v);
     }
-    for _ in 0..n / 2 {
+    for _ in 0..2 * n {
         let (u, v) = (rng.below(n), rng.below(n));
         if u != v {
             h.couple(&mut rng, u, v);
@@ -171,6 +172,11 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
     refactor(&mut factor, &h, &(0..n).collect::<Vec<_>>());
     assert!(reconstruction_error(&factor, &h) < 1e-9);
 
+    assert!(
+        factor.dense_columns() > 0,
+        "the first factorisation has a dense tail"
+    );
+    let dense_at_start = factor.dense_columns();
     let mut reused = false;
     for _ in 0..60 {
         // A change at one or two variables (a new coupling, or a diagonal one), then the
@@ -211,4 +217,8 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
         );
     }
     assert!(reused, "some refactor took a kept subtree's update matrix");
+    assert!(
+        factor.dense_columns() > dense_at_start,
+        "some partial refactor had a dense tail"
+    );
 }

@@ -332,6 +332,7 @@ impl IncrementalEngine {
         report.order_seconds += start.elapsed().as_secs_f64();
 
         let start = Instant::now();
+        let dense_before = self.factor.dense_columns();
         let (linearized, free, dims) = (&self.linearized, &self.free, &self.dims);
         let assemble = |r: usize, rank: &[u64], acc: &mut Accumulator| {
             let dr = dims[r];
@@ -358,6 +359,7 @@ impl IncrementalEngine {
                 keys: vec![problem.values.key(e.0)],
             })?;
         self.factor.reparent(&reaching);
+        report.dense_columns += self.factor.dense_columns() - dense_before;
         report.factorize_seconds += start.elapsed().as_secs_f64();
 
         let start = Instant::now();
