@@ -7,7 +7,7 @@
 //! `cargo bench --bench incremental_stream -- <file.g2o> [--json out.json] [--limit N]
 //! [--dump-latencies out.txt] [--dump-reports out.jsonl]` (2D or 3D g2o; the latency dump has
 //! one latency in ms per line, in stream order; the report dump one engine `UpdateReport` per
-//! incremental update).
+//! incremental update). Every 1000 updates, that window's p50, p99 and worst go to stderr.
 
 #[path = "../../tests/common/mod.rs"]
 mod common;
@@ -22,6 +22,9 @@ use common::server::g2o_batches;
 use factord::api::wire::{Batch, CreateSession, SessionEvent};
 use factord::service::{Command, Limits, Reply, Service};
 use factord::solver::{optimize, SolverOptions};
+
+/// Updates per progress line on stderr (that window's p50, p99 and worst).
+const PROGRESS_EVERY: usize = 1000;
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     let idx = ((sorted.len() as f64 - 1.0) * p).round() as usize;
@@ -116,6 +119,18 @@ fn main() {
                 .await
                 .expect("batch accepted");
             latencies.push(t.elapsed().as_secs_f64() * 1e3);
+            if latencies.len() % PROGRESS_EVERY == 0 {
+                // Long streams (100k poses) report as they go: a window survives a stopped run.
+                let mut window = latencies[latencies.len() - PROGRESS_EVERY..].to_vec();
+                window.sort_by(f64::total_cmp);
+                eprintln!(
+                    "updates {}: p50 {:.3} ms, p99 {:.3} ms, worst {:.3} ms",
+                    latencies.len(),
+                    percentile(&window, 0.5),
+                    percentile(&window, 0.99),
+                    window[PROGRESS_EVERY - 1]
+                );
+            }
             if let Reply::Accepted(a) = reply {
                 assert_eq!(a.solved, Some(true), "estimate reflects the update");
             }
