@@ -22,6 +22,8 @@ use super::subtree_updates::{ColumnView, SubtreeUpdates};
 use crate::solver::schur::small_cholesky;
 
 const NONE: u32 = u32::MAX;
+/// A zero block of the largest variable (15-dimensional navigation states).
+const ZEROS: [f64; 15 * 15] = [0.0; 15 * 15];
 
 /// Where the update matrices of kept subtrees apply, `(rank of a refactored column, subtree
 /// root)` sorted by rank, and the next one to apply.
@@ -29,8 +31,6 @@ struct KeptApplications {
     list: Vec<(u64, u32)>,
     next: usize,
 }
-/// A zero block of the largest variable (15-dimensional navigation states).
-const ZEROS: [f64; 15 * 15] = [0.0; 15 * 15];
 
 /// One column of `L`.
 #[derive(Debug, Default, Clone)]
@@ -210,11 +210,7 @@ impl BlockFactor {
             self.next_rank += 1;
             self.kept.forget(r);
         }
-        let (members, applications) = self.prepare_kept_updates(order, in_order);
-        let mut kept_at = KeptApplications {
-            list: applications,
-            next: 0,
-        };
+        let (members, mut kept_at) = self.prepare_kept_updates(order, in_order);
         let mut acc = std::mem::take(&mut self.accumulator);
         let result = self.eliminate(order, &mut acc, &mut assemble, &mut kept_at);
         self.accumulator = acc;
@@ -297,14 +293,13 @@ impl BlockFactor {
     /// Before the refactored part (`order`, fresh ranks) is eliminated: groups the kept columns
     /// reaching it by the root of their kept subtree, makes sure each group of two or more has
     /// its update matrix (computed now when it is not kept yet) and marks its columns
-    /// `covered`. Returns the groups' members `(root, column)` and, sorted by rank, where the
-    /// update matrices apply: `(rank of a refactored variable, root)` for each row of a root.
-    #[allow(clippy::type_complexity)]
+    /// `covered`. Returns the groups' members `(root, column)` and where the update matrices
+    /// apply (each row of each root).
     fn prepare_kept_updates(
         &mut self,
         order: &[usize],
         in_order: &[bool],
-    ) -> (Vec<(u32, u32)>, Vec<(u64, u32)>) {
+    ) -> (Vec<(u32, u32)>, KeptApplications) {
         let mut members: Vec<(u32, u32)> = Vec::new();
         let mut visited: Vec<u32> = Vec::new();
         let mut path: Vec<u32> = Vec::new();
@@ -368,7 +363,11 @@ impl BlockFactor {
             );
         }
         applications.sort_unstable();
-        (kept_members, applications)
+        let kept_at = KeptApplications {
+            list: applications,
+            next: 0,
+        };
+        (kept_members, kept_at)
     }
 
     /// `H`'s column `r` (in `acc`) minus `Σ_k L_{·k} L_rkᵀ` over the columns `k` reaching row
