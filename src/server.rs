@@ -286,10 +286,12 @@ pub async fn run(
     }
     // After recovery, so a configured session that is on disk is found, not created again;
     // before zenoh, which binds every session's ROS 2 topics when it starts.
-    sessions::ensure(&service, &config.sessions).map_err(|message| ServeError::Config {
-        file: "(sessions)".into(),
-        message,
-    })?;
+    sessions::ensure(&service, &config.sessions)
+        .await
+        .map_err(|message| ServeError::Config {
+            file: "(sessions)".into(),
+            message,
+        })?;
     let tokens = tokens_for(&config.auth, &http_addr)?;
     let zenoh = if config.zenoh_enabled {
         let policy = zenoh::ZenohPolicy {

@@ -1,19 +1,32 @@
-//! Sessions the config file asks for (`"sessions": [...]`): created at start (a ROS 2 binding
-//! included, which then joins the ROS graph with no client), left as they are when they exist
-//! (after a kill -9 the recovered session keeps what it was sent), and a bad request stops the
-//! start naming its field.
+//! Sessions the config file asks for (`"sessions": [...]`): created at start as a client's
+//! creation would be (a ROS 2 binding included, which then joins the ROS graph with no client;
+//! the config's server-wide factor types included), left as they are when they exist (after a
+//! kill -9 the recovered session keeps what it was sent), and a bad request stops the start
+//! naming its field.
 
 mod common;
 
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::server::{get, holders, ros_nodes_until, zenoh_peer, TestServer};
+use common::cli::factord;
+use common::server::{get, holders, post, ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
-fn write_config(path: &Path, sessions: Value) -> String {
-    std::fs::write(path, json!({ "sessions": sessions }).to_string()).unwrap();
+fn write_config(path: &Path, config: Value) -> String {
+    std::fs::write(path, config.to_string()).unwrap();
     path.display().to_string()
+}
+
+/// A server-wide factor type for `se2` sessions: `between_se2` written as an expression.
+fn user_between_se2() -> Value {
+    let e = json!({"between": ["z", {"between": ["a", "b"]}]});
+    json!({
+        "name": "user_between_se2",
+        "variables": [{"name": "a", "kind": "se2"}, {"name": "b", "kind": "se2"}],
+        "parameters": [{"name": "z", "kind": "se2"}],
+        "residual": [{"translation": [e.clone()]}, {"wrap": [{"angle": [e]}]}]
+    })
 }
 
 /// Whether factord's ROS node for `robot1` is in the ROS graph (domain 0).
@@ -28,11 +41,14 @@ async fn configured_sessions_are_created_once_and_kept() {
     let dir = common::temp_dir("config-sessions");
     let config = write_config(
         &dir.join("factord.json"),
-        json!([
-            {"session": "robot1", "kind": "pose_graph_3d",
-             "ros2": {"odometry_topic": "/odom", "path_topic": "/path"}},
-            {"session": "plane", "kind": "pose_graph_2d"}
-        ]),
+        json!({
+            "factor_types": [user_between_se2()],
+            "sessions": [
+                {"session": "robot1", "kind": "pose_graph_3d",
+                 "ros2": {"odometry_topic": "/odom", "path_topic": "/path"}},
+                {"session": "plane", "kind": "pose_graph_2d"}
+            ]
+        }),
     );
     let state = dir.join("state");
     let s = TestServer::start_at(&state, &["--config", &config], &[]);
@@ -46,6 +62,12 @@ async fn configured_sessions_are_created_once_and_kept() {
         .collect();
     names.sort();
     assert_eq!(names, ["plane", "robot1"], "{list}");
+    let (_, plane) = get(&c, &s.url("/v1/sessions/plane")).await;
+    assert_eq!(
+        plane["factor_types"],
+        json!(["user_between_se2"]),
+        "the server-wide factor types, as a client's session gets them: {plane}"
+    );
     assert!(
         robot1_in_ros_graph(&s.zenoh).await,
         "the configured binding is not in the ROS graph"
@@ -56,13 +78,8 @@ async fn configured_sessions_are_created_once_and_kept() {
                                      {"key": 1, "kind": "se2", "value": [2, 2, 0]}],
                        "factors": [{"type": "between_se2", "keys": [0, 1],
                                     "measurement": [1, 0, 0], "sigmas": [0.1, 0.1, 0.1]}]});
-    let r = c
-        .post(s.url("/v1/sessions/plane/batches?wait=true"))
-        .json(&batch)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
+    let (status, v) = post(&c, &s.url("/v1/sessions/plane/batches?wait=true"), &batch).await;
+    assert_eq!(status, 200, "{v}");
     s.kill();
     let s = TestServer::start_at(&state, &["--config", &config], &[]);
     let deadline = Instant::now() + Duration::from_secs(20);
@@ -104,8 +121,11 @@ fn a_bad_configured_session_stops_the_start_naming_its_field() {
         ),
     ];
     for (i, (sessions, field)) in cases.into_iter().enumerate() {
-        let config = write_config(&dir.join(format!("bad{i}.json")), sessions);
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_factord"))
+        let config = write_config(
+            &dir.join(format!("bad{i}.json")),
+            json!({ "sessions": sessions }),
+        );
+        let out = factord()
             .args(["serve", "--no-zenoh", "--listen", "127.0.0.1:0", "--config"])
             .arg(&config)
             .arg("--state-dir")

@@ -8,13 +8,16 @@
 //! `sessions[i].<field>`, as a bad config value would. A refusal that says nothing about the
 //! request (the state directory holds an unloadable session of that name, the session cap) is
 //! logged and the start goes on: the server is still of use for the rest.
+//!
+//! Each goes through the command API as a client's creation would (the config's server-wide
+//! factor types included), unowned: any token reaches it, as with an anonymous zenoh client.
 
 use crate::api::wire::CreateSession;
 use crate::api::ErrorKind;
-use crate::service::Service;
+use crate::service::{Command, Reply, Service};
 
 /// Creates the missing ones; `Err` with the message for a request that is wrong.
-pub(super) fn ensure(service: &Service, requests: &[CreateSession]) -> Result<(), String> {
+pub(super) async fn ensure(service: &Service, requests: &[CreateSession]) -> Result<(), String> {
     for (i, request) in requests.iter().enumerate() {
         let Some(name) = request.session.as_deref() else {
             return Err(format!(
@@ -22,9 +25,14 @@ pub(super) fn ensure(service: &Service, requests: &[CreateSession]) -> Result<()
                  every start unless it exists)"
             ));
         };
-        // Unowned, as sessions created over an anonymous zenoh are: any token reaches it.
-        match service.create_session(request.clone(), None, None) {
-            Ok(info) => tracing::info!(session = name, "created from the config ({})", info.kind),
+        match service
+            .execute(Command::CreateSession(request.clone()))
+            .await
+        {
+            Ok(Reply::Created(info)) => {
+                tracing::info!(session = name, "created from the config ({})", info.kind)
+            }
+            Ok(other) => unreachable!("a creation answers Created, not {other:?}"),
             Err(e) if e.body.code == "session_exists" => {
                 tracing::debug!(session = name, "configured session exists: left as it is")
             }
