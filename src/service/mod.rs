@@ -285,9 +285,9 @@ impl Service {
                 metrics::count_accepted_batch();
                 let solved = if wait && will_solve {
                     let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;
-                    Some(done && session.stats().last_error.is_none())
+                    Some(done && session.last_error().is_none())
                 } else if wait {
-                    Some(session.stats().solved_sequence >= ack.sequence)
+                    Some(session.solved_sequence() >= ack.sequence)
                 } else {
                     None
                 };

@@ -21,6 +21,8 @@ pub(super) struct History {
     /// When each batch not yet reflected by a solve was accepted, by sequence (oldest first).
     accepted: VecDeque<(u64, Instant)>,
     dropped: u64,
+    /// What `events` and `rejected` hold, kept as they change (see [`History::bytes`]).
+    logged_bytes: usize,
 }
 
 fn unix_ms() -> u64 {
@@ -29,46 +31,57 @@ fn unix_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// Pushes `item`, dropping the oldest beyond `cap`; counts what was dropped.
-fn push_bounded<T>(queue: &mut VecDeque<T>, item: T, cap: usize, dropped: &mut u64) {
+/// Pushes `item`, dropping the oldest beyond `cap`; counts what was dropped and returns it.
+fn push_bounded<T>(queue: &mut VecDeque<T>, item: T, cap: usize, dropped: &mut u64) -> Option<T> {
     queue.push_back(item);
-    while queue.len() > cap {
-        queue.pop_front();
-        *dropped += 1;
+    if queue.len() <= cap {
+        return None;
+    }
+    *dropped += 1;
+    queue.pop_front()
+}
+
+/// [`push_bounded`] for the event log and the rejections, keeping their byte count.
+fn push_logged(
+    queue: &mut VecDeque<LoggedEvent>,
+    item: LoggedEvent,
+    cap: usize,
+    dropped: &mut u64,
+    bytes: &mut usize,
+) {
+    *bytes += logged_bytes(&item);
+    if let Some(old) = push_bounded(queue, item, cap, dropped) {
+        *bytes -= logged_bytes(&old);
     }
 }
 
+/// One logged event with its heap parts (an ack's ids, an error's text). An event the
+/// stream's buffer still shares is counted here too, as the history outlives it.
+fn logged_bytes(e: &LoggedEvent) -> usize {
+    use std::mem::size_of;
+    size_of::<LoggedEvent>()
+        + size_of::<SessionEvent>()
+        + match e.data.as_ref() {
+            SessionEvent::Ack(ack) => {
+                ack.factor_ids.len() * size_of::<crate::api::wire::FactorId>()
+                    + ack.predicted.len() * size_of::<crate::variables::Key>()
+                    + ack.session.len()
+            }
+            SessionEvent::Error { session, error, .. } => {
+                session.len() + error.message.len() + error.field.as_ref().map_or(0, String::len)
+            }
+            _ => 0,
+        }
+}
+
 impl History {
-    /// What the history holds, for `memory_bytes`: a walk of its bounded queues (at most a few
-    /// hundred events), each event with its heap parts (an ack's ids, an error's text). An
-    /// event the stream's buffer still shares is counted here too, as the history outlives it.
+    /// What the history holds, for `memory_bytes`: O(1), from the logged events' byte count
+    /// kept as they come and go and the fixed-size entries of the other queues.
     pub(super) fn bytes(&self) -> usize {
         use std::mem::size_of;
-        let logged = |e: &LoggedEvent| {
-            size_of::<LoggedEvent>()
-                + size_of::<SessionEvent>()
-                + match e.data.as_ref() {
-                    SessionEvent::Ack(ack) => {
-                        ack.factor_ids.len() * size_of::<crate::api::wire::FactorId>()
-                            + ack.predicted.len() * size_of::<crate::variables::Key>()
-                            + ack.session.len()
-                    }
-                    SessionEvent::Error { session, error, .. } => {
-                        session.len()
-                            + error.message.len()
-                            + error.field.as_ref().map_or(0, String::len)
-                    }
-                    _ => 0,
-                }
-        };
         self.timeline.len() * size_of::<TimelinePoint>()
             + self.accepted.len() * size_of::<(u64, Instant)>()
-            + self
-                .events
-                .iter()
-                .chain(&self.rejected)
-                .map(logged)
-                .sum::<usize>()
+            + self.logged_bytes
     }
 
     pub(super) fn record(&mut self, event: &Arc<SessionEvent>) {
@@ -90,11 +103,12 @@ impl History {
                         &mut ignored,
                     );
                 }
-                push_bounded(
+                push_logged(
                     &mut self.events,
                     logged(event),
                     LOGGED_EVENTS,
                     &mut self.dropped,
+                    &mut self.logged_bytes,
                 );
             }
             SessionEvent::Summary {
@@ -127,11 +141,12 @@ impl History {
                     TIMELINE_POINTS,
                     &mut self.dropped,
                 );
-                push_bounded(
+                push_logged(
                     &mut self.events,
                     logged(event),
                     LOGGED_EVENTS,
                     &mut self.dropped,
+                    &mut self.logged_bytes,
                 );
             }
             SessionEvent::State {
@@ -157,17 +172,19 @@ impl History {
                 );
             }
             SessionEvent::Error { .. } => {
-                push_bounded(
+                push_logged(
                     &mut self.events,
                     logged(event),
                     LOGGED_EVENTS,
                     &mut self.dropped,
+                    &mut self.logged_bytes,
                 );
-                push_bounded(
+                push_logged(
                     &mut self.rejected,
                     logged(event),
                     REJECTIONS,
                     &mut self.dropped,
+                    &mut self.logged_bytes,
                 );
             }
             SessionEvent::Iteration { .. }
@@ -189,8 +206,7 @@ impl Session {
 
     /// The session's timeline, recent events and rejections (see `api::history`).
     pub fn history(&self) -> SessionHistory {
-        // Not `stats()`: that also walks the session's memory, which this does not need.
-        let last_error = self.last_error_locked(&self.lock());
+        let last_error = self.last_error();
         let h = self.history.lock().unwrap_or_else(|p| p.into_inner());
         SessionHistory {
             session: self.name.clone(),

@@ -45,6 +45,17 @@ impl Session {
         }
     }
 
+    /// Why the last solve failed, or why the session is damaged (see `last_error_locked`):
+    /// one field, for the request path, without building the whole [`Session::stats`].
+    pub fn last_error(&self) -> Option<String> {
+        self.last_error_locked(&self.lock())
+    }
+
+    /// The newest batch sequence a solve has reflected.
+    pub fn solved_sequence(&self) -> u64 {
+        self.lock().solved_sequence
+    }
+
     /// Why the last solve failed, or why the session is damaged: a damaged recovery outranks
     /// solve errors, and a later solve does not clear it.
     pub(super) fn last_error_locked(&self, st: &State) -> Option<String> {
@@ -60,8 +71,7 @@ impl Session {
     }
 
     pub(super) fn memory_bytes_locked(&self, st: &State) -> usize {
-        // Every term costs O(1) in the session's size: counts and sums kept as it changes, and the
-        // history's walk of its bounded queues (a few hundred events).
+        // Every term is O(1): counts and sums kept as the session changes.
         use std::mem::size_of;
         const NODE: usize = 48; // map/set node and allocation overhead
         let mirror = st.mirror_bytes();
