@@ -185,11 +185,13 @@ impl BlockFactor {
     /// their old values, gives them fresh ranks, and gathers `H`'s entries of column `r` with
     /// `assemble(r, rank, accumulator)` (which must add the blocks `(u, r)` for every `u` of
     /// higher rank that shares a factor with `r`, and the diagonal). Every ancestor of a
-    /// variable in `order` must be in it. On `Err` the factor is unusable (rebuild it).
+    /// variable in `order` must be in it; `reaching` is [`BlockFactor::reaching`] of it. On
+    /// `Err` the factor is unusable (rebuild it).
     pub fn refactor(
         &mut self,
         order: &[usize],
         in_order: &[bool],
+        reaching: &[usize],
         mut assemble: impl FnMut(usize, &[u64], &mut Accumulator),
     ) -> Result<(), NotPositiveDefinite> {
         // Forget the old columns (their rows are all in `order`: ancestors of affected columns).
@@ -210,7 +212,7 @@ impl BlockFactor {
             self.next_rank += 1;
             self.kept.forget(r);
         }
-        let (members, mut kept_at) = self.prepare_kept_updates(order, in_order);
+        let (members, mut kept_at) = self.prepare_kept_updates(reaching, in_order);
         let mut acc = std::mem::take(&mut self.accumulator);
         let result = self.eliminate(order, &mut acc, &mut assemble, &mut kept_at);
         self.accumulator = acc;
@@ -290,45 +292,41 @@ impl BlockFactor {
         self.set_parent(r, parent);
     }
 
-    /// Before the refactored part (`order`, fresh ranks) is eliminated: groups the kept columns
-    /// reaching it by the root of their kept subtree, makes sure each group of two or more has
+    /// Before the refactored part (fresh ranks) is eliminated: groups the kept columns
+    /// `reaching` it by the root of their kept subtree, makes sure each group of two or more has
     /// its update matrix (computed now when it is not kept yet) and marks its columns
     /// `covered`. Returns the groups' members `(root, column)` and where the update matrices
     /// apply (each row of each root).
     fn prepare_kept_updates(
         &mut self,
-        order: &[usize],
+        reaching: &[usize],
         in_order: &[bool],
     ) -> (Vec<(u32, u32)>, KeptApplications) {
-        let mut members: Vec<(u32, u32)> = Vec::new();
+        let mut members: Vec<(u32, u32)> = Vec::with_capacity(reaching.len());
         let mut visited: Vec<u32> = Vec::new();
         let mut path: Vec<u32> = Vec::new();
-        for &r in order {
-            for &(k, _) in &self.row_columns[r] {
-                if in_order[k as usize] || self.covered[k as usize] {
-                    continue;
+        for &k in reaching {
+            let k = k as u32;
+            self.covered[k as usize] = true;
+            // Up the (old) tree to the last column before the refactored part.
+            path.clear();
+            let mut x = k;
+            let root = loop {
+                if self.kept_root[x as usize] != NONE {
+                    break self.kept_root[x as usize];
                 }
-                self.covered[k as usize] = true;
-                // Up the (old) tree to the last column before the refactored part.
-                path.clear();
-                let mut x = k;
-                let root = loop {
-                    if self.kept_root[x as usize] != NONE {
-                        break self.kept_root[x as usize];
-                    }
-                    path.push(x);
-                    let p = self.parent[x as usize];
-                    if p == NONE || in_order[p as usize] {
-                        break x;
-                    }
-                    x = p;
-                };
-                for &v in &path {
-                    self.kept_root[v as usize] = root;
+                path.push(x);
+                let p = self.parent[x as usize];
+                if p == NONE || in_order[p as usize] {
+                    break x;
                 }
-                visited.extend_from_slice(&path);
-                members.push((root, k));
+                x = p;
+            };
+            for &v in &path {
+                self.kept_root[v as usize] = root;
             }
+            visited.extend_from_slice(&path);
+            members.push((root, k));
         }
         for v in visited {
             self.kept_root[v as usize] = NONE;

@@ -80,10 +80,14 @@ fn refactor(factor: &mut BlockFactor, h: &Sparse, order: &[usize]) {
     for &v in order {
         in_order[v] = true;
     }
-    let mut reaching = factor.reaching(order, &in_order);
-    reaching.retain(|&k| factor.parent(k).is_some_and(|p| in_order[p]));
+    let reaching = factor.reaching(order, &in_order);
+    let kept_roots: Vec<usize> = reaching
+        .iter()
+        .copied()
+        .filter(|&k| factor.parent(k).is_some_and(|p| in_order[p]))
+        .collect();
     factor
-        .refactor(order, &in_order, |r, rank, acc| {
+        .refactor(order, &in_order, &reaching, |r, rank, acc| {
             for (out, x) in acc.diagonal_mut().iter_mut().zip(h.block(r, r)) {
                 *out += x;
             }
@@ -97,7 +101,7 @@ fn refactor(factor: &mut BlockFactor, h: &Sparse, order: &[usize]) {
             }
         })
         .expect("positive definite");
-    factor.reparent(&reaching);
+    factor.reparent(&kept_roots);
 }
 
 /// max |L Lᵀ − H| over every entry, in the factor's order.

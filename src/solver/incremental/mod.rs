@@ -305,9 +305,13 @@ impl IncrementalEngine {
         // within its parent's), so their cliques carry all the fill the ordering must see, and
         // only their parents can change.
         let mark = &self.mark;
-        let mut reaching = self.factor.reaching(&affected, mark);
-        reaching.retain(|&k| self.factor.parent(k).is_some_and(|p| mark[p]));
-        let cliques: Vec<Vec<usize>> = reaching
+        let reaching = self.factor.reaching(&affected, mark);
+        let kept_roots: Vec<usize> = reaching
+            .iter()
+            .copied()
+            .filter(|&k| self.factor.parent(k).is_some_and(|p| mark[p]))
+            .collect();
+        let cliques: Vec<Vec<usize>> = kept_roots
             .iter()
             .map(|&k| self.factor.rows_of(k).filter(|&u| self.mark[u]).collect())
             .filter(|c: &Vec<usize>| c.len() > 1)
@@ -354,11 +358,11 @@ impl IncrementalEngine {
             }
         };
         self.factor
-            .refactor(&order, &self.mark, assemble)
+            .refactor(&order, &self.mark, &reaching, assemble)
             .map_err(|e| SolverError::IndeterminateSystem {
                 keys: vec![problem.values.key(e.0)],
             })?;
-        self.factor.reparent(&reaching);
+        self.factor.reparent(&kept_roots);
         report.dense_columns += self.factor.dense_columns() - dense_before;
         report.factorize_seconds += start.elapsed().as_secs_f64();
 
@@ -394,7 +398,7 @@ impl IncrementalEngine {
         );
         report.solve_seconds += start.elapsed().as_secs_f64();
         report.refactored_columns += affected.len();
-        report.reused_subtrees += reaching.len();
+        report.reused_subtrees += kept_roots.len();
         for &v in &affected {
             self.mark[v] = false;
         }
