@@ -59,24 +59,17 @@ pub fn position_covariance(variable: &dyn Variable, covariance: &[f64]) -> Optio
         v.retract(&delta);
         v.position()
     };
-    // J, 3 × n, column by column.
-    let mut jacobian = vec![[0.0; 3]; n];
-    for (i, column) in jacobian.iter_mut().enumerate() {
+    // J (3 × n), column by column; then J Σ Jᵀ.
+    let mut jacobian = nalgebra::DMatrix::zeros(3, n);
+    for i in 0..n {
         let (plus, minus) = (moved(i, STEP)?, moved(i, -STEP)?);
         for r in 0..3 {
-            column[r] = (plus[r] - minus[r]) / (2.0 * STEP);
+            jacobian[(r, i)] = (plus[r] - minus[r]) / (2.0 * STEP);
         }
     }
-    let mut out = [0.0; 9];
-    for r in 0..3 {
-        for c in 0..3 {
-            out[r * 3 + c] = (0..n)
-                .flat_map(|i| (0..n).map(move |j| (i, j)))
-                .map(|(i, j)| jacobian[i][r] * covariance[i * n + j] * jacobian[j][c])
-                .sum();
-        }
-    }
-    Some(out)
+    let sigma = nalgebra::DMatrix::from_row_slice(n, n, covariance);
+    let world = &jacobian * sigma * jacobian.transpose();
+    Some(std::array::from_fn(|k| world[(k / 3, k % 3)]))
 }
 
 /// `clone_box`, `assign_from` and `as_any`, the same for every `Copy` variable kind.
