@@ -8,7 +8,7 @@ mod common;
 use std::time::Duration;
 
 use common::fleet::Fleet;
-use common::server::{holders, ros_nodes_until, zenoh_peer};
+use common::server::{client, holders, post, ros_nodes_until, zenoh_peer};
 use serde_json::json;
 
 const NODE: &str = "factord_rosbot";
@@ -24,13 +24,13 @@ async fn a_ros2_binding_follows_its_session_through_the_fleet() {
     fleet.wait_settled(&z).await;
     let create = json!({"session": "rosbot", "kind": "pose_graph_3d",
                         "ros2": {"domain_id": DOMAIN, "odometry_topic": "/odom"}});
-    let r = reqwest::Client::new()
-        .post(fleet.instance(other).url("/v1/sessions"))
-        .json(&create)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201, "{}", fleet.logs());
+    let (status, v) = post(
+        &client(),
+        &fleet.instance(other).url("/v1/sessions"),
+        &create,
+    )
+    .await;
+    assert_eq!(status, 201, "{v}\n{}", fleet.logs());
 
     let within = Duration::from_secs(40);
     let one = |nodes: &[(String, String)]| holders(nodes, NODE).len() == 1;

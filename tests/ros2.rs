@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::Duration;
 
-use common::server::{holders, ros_nodes_until, zenoh_peer, TestServer};
+use common::server::{client, create, holders, ros_nodes_until, send, zenoh_peer, TestServer};
 use serde_json::json;
 
 fn repo() -> PathBuf {
@@ -94,16 +94,10 @@ fn a_ros2_bag_replayed_over_rmw_zenoh_becomes_the_sessions_path() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_deleted_sessions_node_leaves_the_ros_graph() {
     let server = TestServer::start(&[]);
-    let c = reqwest::Client::new();
-    let create = json!({"session": "gone", "kind": "pose_graph_3d",
-                        "ros2": {"domain_id": 3, "odometry_topic": "/odom", "path_topic": "/path"}});
-    let r = c
-        .post(server.url("/v1/sessions"))
-        .json(&create)
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 201);
+    let c = client();
+    let session = json!({"session": "gone", "kind": "pose_graph_3d",
+                         "ros2": {"domain_id": 3, "odometry_topic": "/odom", "path_topic": "/path"}});
+    create(&c, &server, &session).await;
     let z = zenoh_peer(&server.zenoh).await;
     let within = Duration::from_secs(10);
     let ours = |nodes: &[(String, String)]| !holders(nodes, "factord_gone").is_empty();
@@ -111,12 +105,14 @@ async fn a_deleted_sessions_node_leaves_the_ros_graph() {
         ours(&ros_nodes_until(&z, 3, within, ours).await),
         "the node joins"
     );
-    let r = c
-        .delete(server.url("/v1/sessions/gone"))
-        .send()
-        .await
-        .unwrap();
-    assert!(r.status().is_success(), "{}", r.status());
+    let (status, v) = send(
+        &c,
+        reqwest::Method::DELETE,
+        &server.url("/v1/sessions/gone"),
+        None,
+    )
+    .await;
+    assert!((200..300).contains(&status), "{status}: {v}");
     let left = ros_nodes_until(&z, 3, within, |nodes| !ours(nodes)).await;
     assert!(
         !ours(&left),

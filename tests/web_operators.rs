@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use common::browser::{self, survivors, Browser};
-use common::server::{g2o_batches, TestServer};
+use common::server::{create, g2o_batches, post, TestServer};
 use serde_json::{json, Value};
 
 const TOKEN: &str = "operator-0123456789abcdef";
@@ -35,11 +35,6 @@ fn authorised() -> reqwest::Client {
         .default_headers(headers)
         .build()
         .unwrap()
-}
-
-async fn send(c: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
-    let r = c.post(url).json(body).send().await.unwrap();
-    (r.status().as_u16(), r.json().await.unwrap_or(Value::Null))
 }
 
 /// Waits until the session's estimate reflects every batch and no solve runs.
@@ -75,30 +70,29 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
 
     // A planar session fed in batches (each solved), one rejected batch, one loop closure
     // corrupted into an outlier.
-    let (status, v) = send(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "robot", "kind": "pose_graph_2d"}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     let text = common::synthetic_manhattan(300, 7);
     let batches = g2o_batches(&text);
     let batch_url = s.url("/v1/sessions/robot/batches");
     let stats_url = s.url("/v1/sessions/robot");
     for (i, b) in batches.iter().enumerate() {
-        let (status, v) = send(&c, &batch_url, b).await;
+        let (status, v) = post(&c, &batch_url, b).await;
         assert_eq!(status, 200, "{v}");
         if i % 25 == 0 {
             settled(&c, &stats_url).await;
         }
     }
     let bad = json!({"variables": [{"key": 9999, "kind": "nonsense", "value": [0.0]}]});
-    let (status, v) = send(&c, &batch_url, &bad).await;
+    let (status, v) = post(&c, &batch_url, &bad).await;
     assert_eq!(status, 400, "{v}");
     let outlier = json!({"factors": [{"type": "between_se2", "keys": [0, 150],
         "measurement": [40.0, -25.0, 2.0], "information": [1, 0, 0, 1, 0, 1]}]});
-    let (status, v) = send(&c, &batch_url, &outlier).await;
+    let (status, v) = post(&c, &batch_url, &outlier).await;
     assert_eq!(status, 200, "{v}");
     let stats = settled(&c, &stats_url).await;
     println!("solves: {}", stats["solves"]);
@@ -244,7 +238,7 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
     // The outlier drags its neighbours a little; most edges stay below.
     assert!(over < 60, "{over} edges above 7.81: {edges}");
     browser
-        .script("const t = document.getElementById('residual-threshold'); t.value = '1e300'; t.dispatchEvent(new Event('input')); return 0;")
+        .set_control("residual-threshold", "1e300", "input")
         .await;
     browser
         .wait_for(
@@ -253,7 +247,7 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
         )
         .await;
     browser
-        .script("const t = document.getElementById('residual-threshold'); t.value = '7.81'; t.dispatchEvent(new Event('input')); return 0;")
+        .set_control("residual-threshold", "7.81", "input")
         .await;
 
     // Covariance ellipses for a sample of poses, from the marginals route.
@@ -279,15 +273,14 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
 
     // A 3D session: ellipses of the world position covariance (an se3's tangent is the body's),
     // projected on the view, here from the front.
-    let (status, v) = send(
+    create(
         &c,
-        &s.url("/v1/sessions"),
+        &s,
         &json!({"session": "helix", "kind": "pose_graph_3d"}),
     )
     .await;
-    assert_eq!(status, 201, "{v}");
     for b in g2o_batches(&common::synthetic_helix_3d(120, 2)) {
-        let (status, v) = send(&c, &s.url("/v1/sessions/helix/batches"), &b).await;
+        let (status, v) = post(&c, &s.url("/v1/sessions/helix/batches"), &b).await;
         assert_eq!(status, 200, "{v}");
     }
     settled(&c, &s.url("/v1/sessions/helix")).await;
@@ -298,9 +291,8 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
             "the 3D trajectory",
         )
         .await;
-    browser
-        .script("const p = document.getElementById('projection'); p.value = 'front'; p.dispatchEvent(new Event('change')); const k = document.getElementById('ellipse-scale'); k.value = '10'; k.dispatchEvent(new Event('change')); return p.value;")
-        .await;
+    browser.set_control("projection", "front", "change").await;
+    browser.set_control("ellipse-scale", "10", "change").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     let before = browser.inked_pixels("trajectory").await;
     browser.click("#ellipse-sample").await;

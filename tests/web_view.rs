@@ -116,9 +116,7 @@ async fn web_view_draws_sessions_being_fed() {
             "the 3D trajectory",
         )
         .await;
-    browser
-        .script("const p = document.getElementById('projection'); p.value = 'front'; p.dispatchEvent(new Event('change')); return p.value;")
-        .await;
+    browser.set_control("projection", "front", "change").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     assert!(browser.inked_pixels("trajectory").await > 1_000);
     browser

@@ -226,6 +226,16 @@ impl Browser {
             .await
     }
 
+    /// Sets the value of control `id` and fires `event` on it (`change` for a select, `input`
+    /// for a text field), as a user's edit does.
+    pub async fn set_control(&self, id: &str, value: &str, event: &str) {
+        self.script(&format!(
+            "const e = document.getElementById('{id}'); e.value = '{value}'; \
+             e.dispatchEvent(new Event('{event}')); return e.value;"
+        ))
+        .await;
+    }
+
     /// Polls `condition` (a JS expression) until it is true; returns the page's test hooks.
     pub async fn wait_for(&self, condition: &str, what: &str) -> Value {
         let deadline = Instant::now() + Duration::from_secs(30);
