@@ -11,22 +11,12 @@ use std::time::{Duration, Instant};
 
 use common::cli::factord;
 use common::server::{get, holders, post, ros_nodes_until, zenoh_peer, TestServer};
+use common::user_between_se2;
 use serde_json::{json, Value};
 
 fn write_config(path: &Path, config: Value) -> String {
     std::fs::write(path, config.to_string()).unwrap();
     path.display().to_string()
-}
-
-/// A server-wide factor type for `se2` sessions: `between_se2` written as an expression.
-fn user_between_se2() -> Value {
-    let e = json!({"between": ["z", {"between": ["a", "b"]}]});
-    json!({
-        "name": "user_between_se2",
-        "variables": [{"name": "a", "kind": "se2"}, {"name": "b", "kind": "se2"}],
-        "parameters": [{"name": "z", "kind": "se2"}],
-        "residual": [{"translation": [e.clone()]}, {"wrap": [{"angle": [e]}]}]
-    })
 }
 
 /// Whether factord's ROS node for `robot1` is in the ROS graph (domain 0).

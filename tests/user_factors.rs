@@ -6,19 +6,8 @@
 mod common;
 
 use common::server::{client, create, get, post, TestServer};
+use common::user_between_se2;
 use serde_json::{json, Value};
-
-/// `[R_ijᵀ (R_iᵀ (t_j − t_i) − t_ij); wrap(θ_j − θ_i − θ_ij)]`, the built-in's residual.
-fn user_between_se2() -> Value {
-    let e = json!({"between": ["z", {"between": ["a", "b"]}]});
-    json!({
-        "name": "user_between_se2",
-        "variables": [{"name": "a", "kind": "se2"}, {"name": "b", "kind": "se2"}],
-        "parameters": [{"name": "z", "kind": "se2"}],
-        "residual": [{"translation": [e.clone()]}, {"wrap": [{"angle": [e]}]}],
-        "description": "between_se2, written by a client"
-    })
-}
 
 /// The whole g2o graph as one batch, every vertex with its value, edges of type `edge_type`.
 fn whole_graph(text: &str, edge_type: &str) -> Value {

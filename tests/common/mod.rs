@@ -37,6 +37,19 @@ pub fn data_file(relative: &str) -> Option<PathBuf> {
     None
 }
 
+/// `between_se2` as a user-defined factor type (issue 18, item 4): `[R_ijᵀ (R_iᵀ (t_j − t_i) −
+/// t_ij); wrap(θ_j − θ_i − θ_ij)]`, the built-in's residual.
+pub fn user_between_se2() -> serde_json::Value {
+    let e = serde_json::json!({"between": ["z", {"between": ["a", "b"]}]});
+    serde_json::json!({
+        "name": "user_between_se2",
+        "variables": [{"name": "a", "kind": "se2"}, {"name": "b", "kind": "se2"}],
+        "parameters": [{"name": "z", "kind": "se2"}],
+        "residual": [{"translation": [e.clone()]}, {"wrap": [{"angle": [e]}]}],
+        "description": "between_se2, written by a client"
+    })
+}
+
 /// A noisy 2D "Manhattan" pose graph as g2o text: a random walk on a grid with odometry and
 /// loop closures to earlier poses nearby, measured with noise; initial guess from odometry.
 pub fn synthetic_manhattan(poses: usize, seed: u64) -> String {
