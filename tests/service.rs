@@ -187,13 +187,23 @@ async fn session_fed_over_http_is_read_over_zenoh() {
         .unwrap_err();
     assert_eq!(bad["error"]["field"], "since");
 
-    // The incremental session reaches the batch optimum.
-    let st = stats(&c, &s, "walk").await;
+    // The incremental session reaches the batch optimum once idle: the last update alone ends
+    // up to ~1e-4 from it (the request path's relinearisation threshold), the polish that
+    // follows closes the rest, so wait for it (under load it may not have run yet).
+    let mut st = stats(&c, &s, "walk").await;
+    for _ in 0..200 {
+        if st["converged"] == true {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        st = stats(&c, &s, "walk").await;
+    }
+    assert_eq!(st["converged"], true, "the idle session polished: {st}");
     assert_close(
         st["chi2"].as_f64().unwrap(),
         batch_optimum(&text),
-        1e-4,
-        "incremental chi2",
+        1e-5,
+        "incremental chi2 once idle",
     );
     assert!(
         st["skipped_solves"].as_u64().unwrap() > 0,
