@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::server::{client, create, get, post, recovered, TestServer};
+use common::server::{client, create, delete_session, get, post, recovered, TestServer};
 use serde_json::{json, Value};
 
 fn request(name: &str) -> Value {
@@ -23,16 +23,6 @@ async fn create_with_batches(c: &reqwest::Client, s: &TestServer, name: &str, n:
         let batch = json!({"variables": [{"key": key, "kind": "se2", "value": [key, 0, 0]}]});
         assert_eq!(post(c, &url, &batch).await.0, 200);
     }
-}
-
-async fn delete(c: &reqwest::Client, s: &TestServer, name: &str) -> (u16, Value) {
-    common::server::send(
-        c,
-        reqwest::Method::DELETE,
-        &s.url(&format!("/v1/sessions/{name}")),
-        None,
-    )
-    .await
 }
 
 /// What `sessions/` holds, by name.
@@ -70,7 +60,7 @@ async fn a_delete_the_disk_refuses_is_an_error_and_an_acknowledged_one_survives_
     let moved = state.join("sessions.moved");
     std::fs::rename(&sessions, &moved).unwrap();
     std::fs::write(&sessions, b"not a directory").unwrap();
-    let (status, v) = delete(&c, &s, "kept").await;
+    let (status, v) = delete_session(&c, &s, "kept").await;
     assert_eq!(
         (status, v["error"]["code"].as_str()),
         (503, Some("delete_failed")),
@@ -97,7 +87,7 @@ async fn a_delete_the_disk_refuses_is_an_error_and_an_acknowledged_one_survives_
         stats["sequence"], 4,
         "the refused deletion lost nothing: {stats}"
     );
-    assert_eq!(delete(&c, &s, "kept").await.0, 200);
+    assert_eq!(delete_session(&c, &s, "kept").await.0, 200);
     s.kill();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
     assert_eq!(get(&c, &s.url("/v1/sessions/kept")).await.0, 404);

@@ -13,7 +13,9 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::Duration;
 
-use common::server::{client, create, holders, ros_nodes_until, send, zenoh_peer, TestServer};
+use common::server::{
+    client, create, delete_session, holders, ros_nodes_until, zenoh_peer, TestServer,
+};
 use serde_json::json;
 
 fn repo() -> PathBuf {
@@ -105,13 +107,7 @@ async fn a_deleted_sessions_node_leaves_the_ros_graph() {
         ours(&ros_nodes_until(&z, 3, within, ours).await),
         "the node joins"
     );
-    let (status, v) = send(
-        &c,
-        reqwest::Method::DELETE,
-        &server.url("/v1/sessions/gone"),
-        None,
-    )
-    .await;
+    let (status, v) = delete_session(&c, &server, "gone").await;
     assert!((200..300).contains(&status), "{status}: {v}");
     let left = ros_nodes_until(&z, 3, within, |nodes| !ours(nodes)).await;
     assert!(

@@ -5,7 +5,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::server::{
-    client, create, g2o_batches, get, post, post_raw, send, start_long_solve, zenoh_get,
+    client, create, delete_session, g2o_batches, get, post, post_raw, start_long_solve, zenoh_get,
     zenoh_peer, TestServer,
 };
 use common::{synthetic_helix_3d, synthetic_manhattan};
@@ -439,13 +439,7 @@ async fn cancel_and_delete_during_a_solve() {
     let (status, _) = post(&c, &s.url("/v1/sessions/long/optimize"), &json!({})).await;
     assert_eq!(status, 202);
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let (status, v) = send(
-        &c,
-        reqwest::Method::DELETE,
-        &s.url("/v1/sessions/long"),
-        None,
-    )
-    .await;
+    let (status, v) = delete_session(&c, &s, "long").await;
     assert_eq!((status, &v["deleted"]), (200, &json!("long")));
     let (status, v) = get(&c, &s.url("/v1/sessions/long")).await;
     assert_eq!(

@@ -254,6 +254,12 @@ pub async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
     send(client, reqwest::Method::GET, url, None).await
 }
 
+/// `DELETE /v1/sessions/{name}`: the status and the JSON answer.
+pub async fn delete_session(client: &reqwest::Client, s: &TestServer, name: &str) -> (u16, Value) {
+    let url = s.url(&format!("/v1/sessions/{name}"));
+    send(client, reqwest::Method::DELETE, &url, None).await
+}
+
 /// A g2o pose graph (2D or 3D) as streaming batches: pose k with every edge whose later end is
 /// k. A pose with an odometry edge from k−1 is sent without a value (the server predicts it).
 pub fn g2o_batches(text: &str) -> Vec<Value> {
