@@ -22,6 +22,7 @@
 
 mod block_factor;
 mod dense;
+mod elimination_cost;
 mod linearized;
 mod ordering;
 mod report;
@@ -331,6 +332,7 @@ impl IncrementalEngine {
             },
             &cliques,
             &self.last,
+            &self.dims,
             &mut self.local,
         );
         report.order_seconds += start.elapsed().as_secs_f64();
