@@ -8,7 +8,9 @@ odometry publisher. Checks, in order:
 1. factord's node and endpoints are in the ROS graph (liveliness tokens, exact format);
 2. odometry becomes keyframes by the distance/angle thresholds, and the published nav_msgs/Path
    is those keyframes' odometry poses with their header stamps (the graph is consistent, so the
-   optimum is odometry), with a well-formed attachment;
+   optimum is odometry), with a well-formed attachment; the path is latched (transient local,
+   depth 1): a subscriber that joins later, declared as rmw_zenoh declares a transient-local
+   subscription, gets the last path from factord's publication cache at once;
 3. a malformed payload and a message of the wrong type are reported on the session's error
    stream (`ros2_bad_message`) and change nothing: odometry keeps extending the path;
 4. an absolute pose (PoseWithCovarianceStamped) pulls the trajectory to it, and the pose output
@@ -209,7 +211,7 @@ def run(session, args):
     expected_tails = {
         f"%robot1%odom/{dds_name(ODOM)}/{STORE.hash_rihs01(ODOM)}/::,10:,:,:,,",
         f"%robot1%gnss/{dds_name(PWCS)}/{STORE.hash_rihs01(PWCS)}/::,10:,:,:,,",
-        f"%robot1%factord%path/{dds_name(PATH)}/{STORE.hash_rihs01(PATH)}/::,10:,:,:,,",
+        f"%robot1%factord%path/{dds_name(PATH)}/{STORE.hash_rihs01(PATH)}/:1:,1:,:,:,,",
         f"%robot1%factord%pose/{dds_name(PWCS)}/{STORE.hash_rihs01(PWCS)}/::,10:,:,:,,",
         f"%tf/{dds_name(TF)}/{STORE.hash_rihs01(TF)}/::,10:,:,:,,",
     }
@@ -300,6 +302,7 @@ def run(session, args):
     assert worst < 1e-6, f"optimised path differs from the odometry by {worst}"
     print(f"path: {len(message.poses)} keyframes of {len(first)} odometry messages, "
           f"max deviation from odometry {worst:.2e}")
+    check_late_joiner(args.zenoh, path_key, received, lock)
 
     # 3. Bad input is reported, never applied.
     robot.publish("/robot1/odom", b"\x00\x01\x00\x00garbage")
@@ -345,6 +348,34 @@ def run(session, args):
     for subscriber in subscribers:
         subscriber.undeclare()
     print("ros2 robot: ok")
+
+
+def check_late_joiner(endpoint, path_key, received, lock):
+    """A subscriber that joins after the path was published, in a session of its own (an
+    operator's RViz started later), declared as rmw_zenoh declares a transient-local, reliable,
+    depth-1 subscription: an advanced subscriber that queries late publishers' caches. It must
+    get the last path at once, without a new publication: the very sample (same attachment
+    sequence) the robot's subscriber got before the late one was declared."""
+    with lock:
+        published = {seq for _, _, seq, _, _ in received["path"]}
+        newest = received["path"][-1][0]
+    late = []
+    with zenoh_session(endpoint) as session:
+        subscriber = zext.declare_advanced_subscriber(
+            session, path_key,
+            lambda sample: late.append((STORE.deserialize_cdr(
+                bytes(sample.payload.to_bytes()), PATH), zext.z_deserialize(
+                    tuple[zext.Int64, zext.Int64, bytes], sample.attachment)[0])),
+            history=zext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+            recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+            subscriber_detection=True)
+        message, seq = wait_for("the latched path at a late subscriber",
+                                lambda: late[0] if late else None, timeout=10.0)
+        subscriber.undeclare()
+    assert int(seq) in published, f"sequence {seq} was not published before ({sorted(published)})"
+    assert len(message.poses) == len(newest.poses), (len(message.poses), len(newest.poses))
+    print(f"late subscriber: the latched path (sequence {seq}, {len(message.poses)} keyframes) "
+          "from factord's cache")
 
 
 def pose_matrix(translation, rotation):

@@ -43,7 +43,7 @@ use crate::session::{EventStream, Session};
 use inputs::Feeder;
 use keyframes::Keyframer;
 use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
-use names::{EndpointKind, NodeName};
+use names::{EndpointKind, NodeName, Qos};
 use outputs::RosPublisher;
 use tf::TfBroadcaster;
 use window_feed::WindowFeed;
@@ -103,8 +103,8 @@ async fn run(
     let mut tokens = vec![declare_token(&zenoh, node.node_token())
         .await
         .map_err(failed)?];
-    let endpoint = |kind, topic: &str, ros_type: &RosType| {
-        let token = node.endpoint_token(next_id(), kind, topic, ros_type);
+    let endpoint = |kind, topic: &str, ros_type: &RosType, qos| {
+        let token = node.endpoint_token(next_id(), kind, topic, ros_type, qos);
         let key = names::topic_key(binding.domain_id, topic, ros_type);
         (token, key)
     };
@@ -121,36 +121,43 @@ async fn run(
             subscriptions.push(None);
             continue;
         };
-        let (token, key) = endpoint(EndpointKind::Subscription, topic, ros_type);
+        let (token, key) = endpoint(EndpointKind::Subscription, topic, ros_type, Qos::Default);
         subscriptions.push(Some(zenoh.declare_subscriber(&key).await.map_err(failed)?));
         tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
     let Ok([Some(odometry), priors, imu]) = <[_; 3]>::try_from(subscriptions) else {
         unreachable!("odometry is always subscribed, and three were wanted")
     };
-    let publisher = |topic: &Option<String>, ros_type| {
-        topic.as_deref().map(|topic| {
-            let (token, key) = endpoint(EndpointKind::Publisher, topic, ros_type);
-            let gid = names::gid_of(&token);
-            (
-                token,
-                RosPublisher {
-                    key,
-                    gid,
-                    sequence: 0,
-                },
-            )
-        })
-    };
-    let path = publisher(&binding.path_topic, &PATH);
-    let pose = publisher(&binding.pose_topic, &POSE_WITH_COVARIANCE_STAMPED);
-    let tf = publisher(&binding.tf_topic, &TF_MESSAGE);
-    for (token, _) in path.iter().chain(&pose).chain(&tf) {
-        tokens.push(declare_token(&zenoh, token.clone()).await.map_err(failed)?);
+    // The path is latched (transient local): a late subscriber, e.g. an operator's RViz
+    // started after the robot, gets the last trajectory at once.
+    let wanted = [
+        (binding.path_topic.as_ref(), &PATH, Qos::Latched),
+        (
+            binding.pose_topic.as_ref(),
+            &POSE_WITH_COVARIANCE_STAMPED,
+            Qos::Default,
+        ),
+        (binding.tf_topic.as_ref(), &TF_MESSAGE, Qos::Default),
+    ];
+    let mut publishers = Vec::with_capacity(wanted.len());
+    for (topic, ros_type, qos) in wanted {
+        let Some(topic) = topic else {
+            publishers.push(None);
+            continue;
+        };
+        let (token, key) = endpoint(EndpointKind::Publisher, topic, ros_type, qos);
+        let gid = names::gid_of(&token);
+        let publisher = RosPublisher::declare(&zenoh, key, gid, qos)
+            .await
+            .map_err(failed)?;
+        publishers.push(Some(publisher));
+        tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
-    let tf = tf.map(|(_, publisher)| {
+    let Ok([path, pose, tf]) = <[_; 3]>::try_from(publishers) else {
+        unreachable!("three publishers were wanted")
+    };
+    let tf = tf.map(|publisher| {
         Arc::new(TfBroadcaster::new(
-            zenoh.clone(),
             publisher,
             binding.map_frame.clone(),
             binding.transform_tolerance,
@@ -191,10 +198,9 @@ async fn run(
         caller,
         session,
         events,
-        zenoh,
         map_frame: binding.map_frame.clone(),
-        path: path.map(|(_, p)| p),
-        pose: pose.map(|(_, p)| p),
+        path,
+        pose,
         tf,
     };
     outputs.run().await;

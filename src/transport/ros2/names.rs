@@ -13,11 +13,36 @@ use super::messages::RosType;
 
 const ADMIN_SPACE: &str = "@ros2_lv";
 
-/// The QoS of our endpoints: reliable, volatile, keep last 10 (rclcpp's default profile).
-/// Written as rmw_zenoh writes it, components equal to its defaults (reliable, volatile, keep
-/// last, no deadline, lifespan or lease) left empty: `<rel>:<dur>:<hist>,<depth>:<deadline
-/// s,ns>:<lifespan s,ns>:<liveliness>,<lease s>,<lease ns>`.
-pub const DEFAULT_QOS: &str = "::,10:,:,:,,";
+/// An endpoint's QoS as rmw_zenoh writes it in the liveliness token, components equal to its
+/// defaults (reliable, volatile, keep last, no deadline, lifespan or lease) left empty:
+/// `<rel>:<dur>:<hist>,<depth>:<deadline s,ns>:<lifespan s,ns>:<liveliness>,<lease s>,<lease
+/// ns>`, durability as rmw's enum (transient local 1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Qos {
+    /// Reliable, volatile, keep last 10: rclcpp's default profile (our subscriptions, the
+    /// pose and `/tf`).
+    Default,
+    /// Reliable, transient local, keep last 1: a late subscriber gets the last sample (the
+    /// path, as a map server latches its map).
+    Latched,
+}
+
+impl Qos {
+    pub fn keyexpr(self) -> &'static str {
+        match self {
+            Self::Default => "::,10:,:,:,,",
+            Self::Latched => ":1:,1:,:,:,,",
+        }
+    }
+
+    /// Samples a transient-local publisher keeps for late subscribers (its depth).
+    pub fn cached_samples(self) -> Option<usize> {
+        match self {
+            Self::Default => None,
+            Self::Latched => Some(1),
+        }
+    }
+}
 
 /// What an endpoint is in the graph.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -90,13 +115,15 @@ impl NodeName {
         kind: EndpointKind,
         topic: &str,
         ros_type: &RosType,
+        qos: Qos,
     ) -> String {
         format!(
-            "{}/{}/{}/{}/{DEFAULT_QOS}",
+            "{}/{}/{}/{}/{}",
             self.prefix(entity_id, kind.code()),
             mangle(&fully_qualified(topic)),
             mangle(ros_type.dds_name),
-            mangle(ros_type.hash)
+            mangle(ros_type.hash),
+            qos.keyexpr()
         )
     }
 }
@@ -114,7 +141,7 @@ pub fn gid_of(token: &str) -> [u8; 16] {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::transport::ros2::messages::ODOMETRY;
+    use crate::transport::ros2::messages::{ODOMETRY, PATH};
 
     fn node() -> NodeName {
         NodeName {
@@ -134,11 +161,25 @@ mod tests {
         );
         assert_eq!(node().node_token(), "@ros2_lv/7/a1b2/3/3/NN/%/%/factord_s1");
         assert_eq!(
-            node().endpoint_token(4, EndpointKind::Subscription, "robot1/odom", &ODOMETRY),
+            node().endpoint_token(
+                4,
+                EndpointKind::Subscription,
+                "robot1/odom",
+                &ODOMETRY,
+                Qos::Default
+            ),
             "@ros2_lv/7/a1b2/3/4/MS/%/%/factord_s1/%robot1%odom/\
              nav_msgs::msg::dds_::Odometry_/\
              RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0/::,10:,:,:,,"
         );
+        // Transient local (rmw's 1) and depth 1, as `ros2 topic pub --qos-durability
+        // transient_local --qos-depth 1` declares it.
+        let path = node().endpoint_token(5, EndpointKind::Publisher, "/path", &PATH, Qos::Latched);
+        assert!(
+            path.starts_with("@ros2_lv/7/a1b2/3/5/MP/%/%/factord_s1/%path/"),
+            "{path}"
+        );
+        assert!(path.ends_with("/:1:,1:,:,:,,"), "{path}");
     }
 
     #[test]
@@ -153,7 +194,13 @@ mod tests {
             ]
         );
         // A token's length (166 bytes: XXH3's 129–240-byte path), against Python's `xxhash`.
-        let token = node().endpoint_token(4, EndpointKind::Subscription, "robot1/odom", &ODOMETRY);
+        let token = node().endpoint_token(
+            4,
+            EndpointKind::Subscription,
+            "robot1/odom",
+            &ODOMETRY,
+            Qos::Default,
+        );
         let hash = u128::from_le_bytes(gid_of(&token));
         assert_eq!(hash, 0xfc64c9392215cf4663552217d8c49ddf);
     }

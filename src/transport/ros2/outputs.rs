@@ -14,9 +14,11 @@
 //! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use nalgebra::Isometry3;
+use zenoh::qos::Reliability;
+use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
 use super::attachment::Attachment;
 use super::cdr_codec;
@@ -25,20 +27,54 @@ use super::messages::{
     Covariance, Header, Path, Pose, PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped,
     Time,
 };
+use super::names::Qos;
 use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
 use crate::service::{Caller, Command, Reply, Service};
 use crate::session::EventStream;
 
-/// One ROS publisher: its key expression, GID and sequence.
+/// One ROS publisher, declared as rmw_zenoh declares a reliable one: a zenoh-ext advanced
+/// publisher, which for a transient-local endpoint also keeps its last samples in a cache,
+/// announces itself (publisher detection) and sends sporadic heartbeats (sample-miss
+/// detection), so that a late subscriber with history (rmw_zenoh's transient-local
+/// subscription) queries the cache and gets them.
 pub(super) struct RosPublisher {
-    pub key: String,
-    pub gid: [u8; 16],
-    pub sequence: i64,
+    publisher: AdvancedPublisher<'static>,
+    gid: [u8; 16],
+    sequence: i64,
 }
 
+/// Heartbeat period of a transient-local publisher (rmw_zenoh's
+/// `SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD`).
+const MISS_DETECTION_HEARTBEAT: Duration = Duration::from_millis(500);
+
 impl RosPublisher {
-    pub async fn put(&mut self, zenoh: &zenoh::Session, payload: Vec<u8>) {
+    pub async fn declare(
+        zenoh: &zenoh::Session,
+        key: String,
+        gid: [u8; 16],
+        qos: Qos,
+    ) -> zenoh::Result<Self> {
+        let mut builder = zenoh
+            .declare_publisher(key)
+            .reliability(Reliability::Reliable)
+            .advanced();
+        if let Some(samples) = qos.cached_samples() {
+            builder = builder
+                .cache(CacheConfig::default().max_samples(samples))
+                .publisher_detection()
+                .sample_miss_detection(
+                    MissDetectionConfig::default().sporadic_heartbeat(MISS_DETECTION_HEARTBEAT),
+                );
+        }
+        Ok(Self {
+            publisher: builder.await?,
+            gid,
+            sequence: 0,
+        })
+    }
+
+    pub async fn put(&mut self, payload: Vec<u8>) {
         self.sequence += 1;
         let now = SystemTime::now()
             .duration_since(UNIX_EPOCH)
@@ -48,11 +84,15 @@ impl RosPublisher {
             source_timestamp_ns: now,
             source_gid: self.gid,
         };
-        let put = zenoh
-            .put(&self.key, payload)
+        let put = self
+            .publisher
+            .put(payload)
             .attachment(attachment.encode().to_vec());
         if let Err(e) = put.await {
-            tracing::warn!("ROS publication on {} failed: {e}", self.key);
+            tracing::warn!(
+                "ROS publication on {} failed: {e}",
+                self.publisher.key_expr()
+            );
         }
     }
 }
@@ -62,7 +102,6 @@ pub(super) struct Outputs {
     pub caller: Arc<Caller>,
     pub session: String,
     pub events: EventStream,
-    pub zenoh: zenoh::Session,
     pub map_frame: String,
     pub path: Option<RosPublisher>,
     pub pose: Option<RosPublisher>,
@@ -111,7 +150,7 @@ impl Outputs {
                 },
                 poses,
             };
-            path.put(&self.zenoh, cdr_codec::encode(&message)).await;
+            path.put(cdr_codec::encode(&message)).await;
         }
         let (Some(pose), Some(last), Some(key)) = (&mut self.pose, newest, newest_key) else {
             return;
@@ -124,7 +163,7 @@ impl Outputs {
                 covariance,
             },
         };
-        pose.put(&self.zenoh, cdr_codec::encode(&message)).await;
+        pose.put(cdr_codec::encode(&message)).await;
     }
 
     /// An `se3` estimate as a stamped pose (others, and values of the wrong length, skipped).

@@ -35,7 +35,6 @@ const MAX_PENDING_KEYFRAMES: usize = 1024;
 const DEFAULT_ODOM_FRAME: &str = "odom";
 
 pub(super) struct TfBroadcaster {
-    zenoh: zenoh::Session,
     map_frame: String,
     tolerance_ns: i64,
     state: Mutex<State>,
@@ -54,14 +53,8 @@ struct State {
 }
 
 impl TfBroadcaster {
-    pub fn new(
-        zenoh: zenoh::Session,
-        publisher: RosPublisher,
-        map_frame: String,
-        tolerance_seconds: f64,
-    ) -> Self {
+    pub fn new(publisher: RosPublisher, map_frame: String, tolerance_seconds: f64) -> Self {
         Self {
-            zenoh,
             map_frame,
             tolerance_ns: (tolerance_seconds * 1e9).round() as i64,
             state: Mutex::new(State {
@@ -141,10 +134,7 @@ impl TfBroadcaster {
                 transform: Transform::from(&correction),
             }],
         };
-        state
-            .publisher
-            .put(&self.zenoh, cdr_codec::encode(&message))
-            .await;
+        state.publisher.put(cdr_codec::encode(&message)).await;
     }
 }
 
