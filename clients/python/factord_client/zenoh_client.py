@@ -58,33 +58,70 @@ def _zenoh_failure(what: str, error: BaseException) -> FactordConnectionError:
     return FactordConnectionError("connection_failed", f"zenoh {what}: {error}")
 
 
+#: Events a subscription holds for a callback that has not caught up (see :class:`Subscription`).
+MAX_PENDING = 10_000
+
+
 class Subscription:
-    """One subscriber: zenoh's thread queues each sample (unbounded, so it never waits for
-    Python code), a daemon thread calls the callback for each, in order.
-    :meth:`undeclare` stops both (also called by :meth:`ZenohClient.close`)."""
+    """One subscriber: zenoh's thread queues each sample, a daemon thread calls the callback for
+    each, in order. :meth:`undeclare` stops both (also called by :meth:`ZenohClient.close`).
+
+    The queue holds at most ``max_pending`` events. zenoh's thread never waits for Python code
+    (it would stall every subscriber of the session), so when the callback falls that far
+    behind, newer events are dropped and counted in :attr:`dropped`; the callback then gets,
+    where the gap is (before the next event that fits), a marker ``{"type": "lagged",
+    "skipped": n, "source": "client"}`` like the service's own ``lagged`` (which this client
+    passes on as it comes, without ``source``), so a consumer can resynchronise (e.g. read the
+    estimate) instead of missing a silent gap."""
 
     def __init__(self, session: Any, zenoh: Any, key: str,
-                 callback: Callable[[JsonDict], None]) -> None:
+                 callback: Callable[[JsonDict], None], max_pending: int = MAX_PENDING) -> None:
         self.key = key
+        self.dropped = 0  # events dropped because the queue was full
+        self._skipped = 0  # dropped since the last event that got into the queue
+        self._offer_lock = threading.Lock()  # zenoh may call from more than one thread
         self._callback = callback
         self._undeclared = False
-        self._queue: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
-        handler = zenoh.handlers.Callback(self._queue.put, drop=lambda: self._queue.put(_END),
+        self._queue: "queue.Queue[Any]" = queue.Queue(maxsize=max_pending)
+        handler = zenoh.handlers.Callback(self._offer, drop=lambda: self._offer(_END),
                                           indirect=False)
         self._subscriber = session.declare_subscriber(key, handler)
         self._thread = threading.Thread(target=self._drain, name=f"factord-sub-{key}",
                                         daemon=True)
         self._thread.start()
 
+    def _offer(self, item: Any) -> None:
+        """Queues without waiting, with the number of samples dropped just before it; a full
+        queue drops the sample (``_END`` need not get in: a full queue means the draining
+        thread is not waiting, and it checks ``_undeclared``)."""
+        with self._offer_lock:
+            try:
+                self._queue.put_nowait((item, self._skipped))
+                self._skipped = 0
+            except queue.Full:
+                if item is not _END:
+                    self.dropped += 1
+                    self._skipped += 1
+
     def _drain(self) -> None:
         while True:
-            sample = self._queue.get()
+            sample, skipped_before = self._queue.get()
             if sample is _END or self._undeclared:
                 return
+            if skipped_before:
+                self._call({"type": "lagged", "skipped": skipped_before, "source": "client"})
             try:
-                self._callback(json.loads(sample.payload.to_bytes().decode("utf-8")))
-            except Exception as e:  # noqa: BLE001 - a failing callback must not end the stream
+                event = json.loads(sample.payload.to_bytes().decode("utf-8"))
+            except Exception as e:  # noqa: BLE001 - not JSON: reported, the stream goes on
                 print(f"factord_client: subscriber of {self.key}: {e!r}", file=sys.stderr)
+                continue
+            self._call(event)
+
+    def _call(self, event: JsonDict) -> None:
+        try:
+            self._callback(event)
+        except Exception as e:  # noqa: BLE001 - a failing callback must not end the stream
+            print(f"factord_client: subscriber of {self.key}: {e!r}", file=sys.stderr)
 
     def undeclare(self) -> None:
         if self._undeclared:
@@ -94,7 +131,7 @@ class Subscription:
             self._subscriber.undeclare()
         except Exception:  # noqa: BLE001 - the session may be closed already
             pass
-        self._queue.put(_END)
+        self._offer(_END)
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=1.0)
 
@@ -391,16 +428,22 @@ class ZenohClient:
         """Puts on ``<prefix>/<session>/in/optimize``: solve now."""
         self._put(f"{self.prefix}/{session}/in/optimize", b"{}")
 
-    def subscribe(self, session: str, topic: str, callback: Callable[[JsonDict], None]) -> Any:
+    def subscribe(self, session: str, topic: str, callback: Callable[[JsonDict], None],
+                  max_pending: int = MAX_PENDING) -> Any:
         """Calls ``callback(event)`` for every publication on ``<prefix>/<session>/out/<topic>``
         (``topic``: acks, stats, poses, summary, errors, or ``*`` for all; the event's ``type``
         field tells them apart). The callback runs on a daemon thread of this subscription, one
-        event at a time in order; its exceptions are printed. Returns the
-        :class:`Subscription` (undeclared by :meth:`close`, or call its ``undeclare()``)."""
+        event at a time in order; its exceptions are printed. A callback more than
+        ``max_pending`` events behind loses the newer ones and is told so by a ``lagged``
+        event with ``"source": "client"`` (memory stays bounded; see :class:`Subscription`).
+        Returns the :class:`Subscription` (undeclared by :meth:`close`, or call its
+        ``undeclare()``)."""
         self._check_open()
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be at least 1, not {max_pending}")
         key = f"{self.prefix}/{session}/out/{topic}"
         try:
-            subscription = Subscription(self._session, self._zenoh, key, callback)
+            subscription = Subscription(self._session, self._zenoh, key, callback, max_pending)
         except Exception as e:  # noqa: BLE001 - ZError
             raise _zenoh_failure(f"subscriber on `{key}`", e) from None
         with self._lock:

@@ -18,6 +18,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -223,6 +224,51 @@ def run_checks(checks: Checks, server: TokenServer, data_dir: Path) -> None:
             z.delete_session(session)
         return "producer sends Batch objects; estimate_array, export, covariances, graph agree"
 
+    def slow_subscriber() -> str:
+        # A callback stuck on the first ack: 3 more fit the queue, the other 17 are dropped;
+        # the next ack after the gap comes with a client-side lagged marker before it.
+        session = "slow-subscriber"
+        events: list = []
+        release = threading.Event()
+
+        def stuck_on_first(event: dict) -> None:
+            events.append(event)
+            release.wait(timeout=60)
+
+        with ZenohClient(server.zenoh) as z:
+            z.create_session("pose_graph_2d", session=session)
+            expect_raises(ValueError, lambda: z.subscribe(session, "acks", print, max_pending=0),
+                          "max_pending 0")
+            slow = z.subscribe(session, "acks", stuck_on_first, max_pending=3)
+            with z.producer(session, "fast-robot") as producer:
+                producer.send(Batch().pose(0, Pose2(), fixed=True))
+                # The callback holds the first ack (out of the queue) before the rest come.
+                deadline = time.monotonic() + 10
+                while not events and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                for k in range(1, 21):
+                    producer.send(Batch().pose(k, None, kind="se2")
+                                  .between(k - 1, k, Pose2(1.0, 0.0, 0.0),
+                                           Noise.sigmas([0.1, 0.1, 0.1])))
+                producer.flush(timeout=60)
+                deadline = time.monotonic() + 10
+                while slow.dropped < 17 and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                expect(slow.dropped == 17, f"{slow.dropped} acks dropped of 21, 1 + 3 kept")
+                release.set()
+                producer.send(Batch().pose(21, None, kind="se2")
+                              .between(20, 21, Pose2(1.0, 0.0, 0.0),
+                                       Noise.sigmas([0.1, 0.1, 0.1])))
+                producer.flush(timeout=60)
+            deadline = time.monotonic() + 10
+            while len(events) < 6 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            seen = [e.get("producer_seq") if e.get("type") == "ack" else e for e in events]
+            expect(seen == [1, 2, 3, 4, {"type": "lagged", "skipped": 17, "source": "client"}, 22],
+                   f"events: {seen}")
+            z.delete_session(session)
+        return "max_pending 3: 4 acks, a lagged marker for the 17 dropped, then the next ack"
+
     def fusion() -> str:
         s = http.create_session("sliding_window")["session"]
         sigmas = {"position": 0.01, "rotation": 0.01, "velocity": 0.1, "accel_bias": 0.1,
@@ -294,6 +340,7 @@ def run_checks(checks: Checks, server: TokenServer, data_dir: Path) -> None:
     checks.run("export: TUM with stamps, KITTI, g2o", export_with_stamps)
     checks.run("zenoh: producer of Batch objects, arrays and exports agree with HTTP",
                over_zenoh)
+    checks.run("a slow zenoh subscriber: bounded queue, told what it missed", slow_subscriber)
     checks.run("fusion messages with numpy fields", fusion)
     checks.run("one exception family: service, HTTP and zenoh failures", one_error_family)
     checks.run("a script that forgets close() exits at once", forgotten_close_exits)
