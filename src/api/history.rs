@@ -1,10 +1,12 @@
 //! A session's recent history, as the web view reads it on load: a timeline of its solves (χ²,
 //! solve time, update latency) and the last events of its stream, kept bounded in memory by the
-//! session (`GET /v1/sessions/{id}/history`, command `get_history`).
+//! session (`GET /v1/sessions/{id}/history`, command `get_history`). A durable session also
+//! keeps it in its directory, so it outlives a restart (events from before one come back as
+//! they were streamed: [`LoggedData::Restored`]).
 
 use std::sync::Arc;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::wire::SessionEvent;
 
@@ -34,7 +36,7 @@ pub struct SessionHistory {
     pub dropped: u64,
 }
 
-#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct TimelinePoint {
     /// When the solve finished (milliseconds since the Unix epoch).
     pub unix_ms: u64,
@@ -64,11 +66,27 @@ pub struct LoggedEvent {
     pub event: &'static str,
     /// The event, as the stream sent it.
     #[schema(value_type = SessionEvent)]
-    #[serde(serialize_with = "shared")]
-    pub data: Arc<SessionEvent>,
+    pub data: LoggedData,
 }
 
-/// The event behind its `Arc` (kept once, shared with the stream's subscribers).
-fn shared<S: serde::Serializer>(event: &Arc<SessionEvent>, s: S) -> Result<S::Ok, S::Error> {
-    event.as_ref().serialize(s)
+/// A logged event's content: published by this process, or read back from the session's
+/// history file (published before a restart, or by the instance that held the session before).
+#[derive(Clone, Debug)]
+pub enum LoggedData {
+    /// Kept once, shared with the stream's subscribers.
+    Live(Arc<SessionEvent>),
+    /// As it was streamed then, with its serialised size (counted in the session's memory).
+    Restored {
+        event: Arc<serde_json::Value>,
+        bytes: usize,
+    },
+}
+
+impl Serialize for LoggedData {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Self::Live(event) => event.as_ref().serialize(s),
+            Self::Restored { event, .. } => event.as_ref().serialize(s),
+        }
+    }
 }

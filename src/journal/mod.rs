@@ -436,6 +436,29 @@ impl SessionDir {
     pub fn write_snapshot(&self, bytes: &[u8]) -> Result<(), JournalError> {
         write_atomically(&self.dir.join("snapshot.json"), bytes)
     }
+
+    /// Replaces the session's history file (`history.json`, see `session::history`): written
+    /// to a temporary file and renamed over the last one, not fsynced. The history is the
+    /// operators' view of the stream, rewritten every second while the session is busy; a
+    /// killed process leaves the last whole file (the kernel writes it out), and a power loss
+    /// costs at most a timeline, never an accepted batch. Fsyncing it would queue ahead of the
+    /// journals' fsyncs that acknowledgements wait for.
+    pub fn write_history(&self, bytes: &[u8]) -> Result<(), JournalError> {
+        let path = self.dir.join("history.json");
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, bytes).map_err(io_at(&tmp))?;
+        std::fs::rename(&tmp, &path).map_err(io_at(&path))
+    }
+
+    /// The history file's bytes (`None` when the session has none yet).
+    pub fn load_history(&self) -> Result<Option<Vec<u8>>, JournalError> {
+        let path = self.dir.join("history.json");
+        match std::fs::read(&path) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(io_at(&path)(e)),
+        }
+    }
 }
 
 /// Bytes written between two fdatasyncs of a large file: the disk is never handed a whole

@@ -137,6 +137,7 @@ impl Service {
         // their clients retry and reach the new owner); waiters wake.
         session.mark_moved();
         session.sync_journal();
+        session.persist_history();
         // Waits for a snapshot being written, then closes the journal: nothing writes there
         // from here on.
         if let Err(e) = session.bury_files(|| Ok(())) {

@@ -207,11 +207,12 @@ impl Service {
     }
 
     /// Stops the pool (running solves stop after their current iteration, queued work is
-    /// dropped) and wakes every request waiting for a solve.
+    /// dropped), wakes every request waiting for a solve and writes the sessions' histories.
     pub fn shutdown(&self, timeout: Duration) {
         self.pool.shutdown(timeout);
         for s in self.sessions() {
             s.release_waiters();
+            s.persist_history();
         }
     }
 

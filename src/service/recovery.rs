@@ -10,6 +10,9 @@ use std::time::Duration;
 use super::Service;
 use crate::journal::{JournalConfig, SessionDir};
 
+/// How often sessions' histories are written to their directories (when they changed).
+const HISTORY_PERSISTENCE_PERIOD: Duration = Duration::from_secs(1);
+
 impl Service {
     /// Rebuilds every session found in the state directory, each in the background: it is
     /// listed at once (with `recovering` in its statistics, writes refused with 503) and
@@ -21,6 +24,7 @@ impl Service {
         };
         self.finish_deletions();
         self.start_journal_sync(&config);
+        self.start_history_persistence();
         if self.fleet().is_some() {
             return Ok(0);
         }
@@ -130,6 +134,29 @@ impl Service {
                 let _ = tokio::task::spawn_blocking(move || {
                     for s in sessions {
                         s.sync_journal();
+                    }
+                })
+                .await;
+            }
+        });
+    }
+
+    /// Writes every durable session's history to its directory once a second, where it
+    /// changed (see `Session::persist_history`): a restart loses at most the last second of
+    /// the operators' timeline and log.
+    fn start_history_persistence(self: &Arc<Self>) {
+        let service = Arc::downgrade(self);
+        self.runtime.spawn(async move {
+            loop {
+                tokio::time::sleep(HISTORY_PERSISTENCE_PERIOD).await;
+                let Some(service) = service.upgrade() else {
+                    return;
+                };
+                let sessions = service.sessions();
+                drop(service);
+                let _ = tokio::task::spawn_blocking(move || {
+                    for s in sessions {
+                        s.persist_history();
                     }
                 })
                 .await;

@@ -1,8 +1,10 @@
 //! A session on disk: its journal entries are appended (under the session lock, so in sequence
 //! order) before updates are acknowledged, snapshots compact the journal, and a session is
 //! rebuilt at start from its snapshot plus the entries after it (see `crate::journal`).
-//! Snapshots are written off the session lock: `snapshot.rs`.
+//! Snapshots are written off the session lock: `snapshot.rs`; the operators' history of the
+//! stream is kept beside them: `history_file.rs`.
 
+mod history_file;
 mod snapshot;
 
 use std::sync::atomic::Ordering;
@@ -324,13 +326,17 @@ impl Session {
                 }
             }
         }
-        if let Some(d) = self
+        let dir = self
             .durable
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .as_mut()
-        {
-            d.entries_since_snapshot = entries as u64;
+            .map(|d| {
+                d.entries_since_snapshot = entries as u64;
+                d.dir.clone()
+            });
+        if let Some(dir) = dir {
+            self.restore_history(&dir);
         }
         let sequence = {
             let mut st = self.lock();

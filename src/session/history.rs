@@ -1,6 +1,8 @@
 //! What a session remembers of its stream for the web view: every event it publishes passes
 //! through [`History::record`], which keeps a bounded timeline of solves and the last events of
-//! the log (see `api::history`). Nothing here is durable: a restarted server starts afresh.
+//! the log (see `api::history`). A durable session writes it to its directory when it changed
+//! ([`StoredHistory`], written by `durable/history_file.rs`) and reads it back when it is
+//! rebuilt, so the timeline and the log outlive a restart or a move to another instance.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -8,7 +10,8 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use super::{Origin, Session};
 use crate::api::history::{
-    LoggedEvent, SessionHistory, TimelinePoint, LOGGED_EVENTS, REJECTIONS, TIMELINE_POINTS,
+    LoggedData, LoggedEvent, SessionHistory, TimelinePoint, LOGGED_EVENTS, REJECTIONS,
+    TIMELINE_POINTS,
 };
 use crate::api::wire::SessionEvent;
 use crate::api::ServiceError;
@@ -23,6 +26,56 @@ pub(super) struct History {
     dropped: u64,
     /// What `events` and `rejected` hold, kept as they change (see [`History::bytes`]).
     logged_bytes: usize,
+    /// Counts the changes (recorded events), and the count the history file was written at.
+    revision: u64,
+    written: u64,
+}
+
+/// The history as a session's directory keeps it (`history.json`): what `GET …/history` shows
+/// but `last_error`, which the session's own state holds. `format` is 1.
+#[derive(serde::Serialize, serde::Deserialize)]
+pub(super) struct StoredHistory {
+    pub format: u32,
+    pub timeline: Vec<TimelinePoint>,
+    pub events: Vec<StoredEvent>,
+    pub rejected: Vec<StoredEvent>,
+    pub dropped: u64,
+}
+
+/// A logged event as stored: its stream's name and the event as streamed.
+#[derive(serde::Serialize, serde::Deserialize)]
+pub(super) struct StoredEvent {
+    pub unix_ms: u64,
+    pub event: String,
+    pub data: serde_json::Value,
+}
+
+pub(super) const STORED_HISTORY_FORMAT: u32 = 1;
+
+impl StoredEvent {
+    fn of(e: &LoggedEvent) -> Self {
+        Self {
+            unix_ms: e.unix_ms,
+            event: e.event.to_string(),
+            data: serde_json::to_value(&e.data).unwrap_or(serde_json::Value::Null),
+        }
+    }
+
+    /// Back as a logged event; `None` for a stream the log does not keep.
+    fn restored(self) -> Option<LoggedEvent> {
+        let event = ["acks", "summary", "errors"]
+            .into_iter()
+            .find(|name| *name == self.event)?;
+        let bytes = serde_json::to_string(&self.data).map_or(0, |s| s.len());
+        Some(LoggedEvent {
+            unix_ms: self.unix_ms,
+            event,
+            data: LoggedData::Restored {
+                event: Arc::new(self.data),
+                bytes,
+            },
+        })
+    }
 }
 
 fn unix_ms() -> u64 {
@@ -59,9 +112,13 @@ fn push_logged(
 /// stream's buffer still shares is counted here too, as the history outlives it.
 fn logged_bytes(e: &LoggedEvent) -> usize {
     use std::mem::size_of;
+    let event = match &e.data {
+        LoggedData::Live(event) => event,
+        LoggedData::Restored { bytes, .. } => return size_of::<LoggedEvent>() + bytes,
+    };
     size_of::<LoggedEvent>()
         + size_of::<SessionEvent>()
-        + match e.data.as_ref() {
+        + match event.as_ref() {
             SessionEvent::Ack(ack) => {
                 ack.factor_ids.len() * size_of::<crate::api::wire::FactorId>()
                     + ack.predicted.len() * size_of::<crate::variables::Key>()
@@ -84,12 +141,56 @@ impl History {
             + self.logged_bytes
     }
 
+    /// The history to write out, when it changed since it was last written: the stored form
+    /// and the revision it is at (for [`History::written_at`]). Built from the events' shared
+    /// data; the caller serialises it after releasing the history's lock.
+    pub(super) fn changed_since_written(&self) -> Option<(u64, StoredHistory)> {
+        (self.revision != self.written).then(|| {
+            let stored = StoredHistory {
+                format: STORED_HISTORY_FORMAT,
+                timeline: self.timeline.iter().cloned().collect(),
+                events: self.events.iter().map(StoredEvent::of).collect(),
+                rejected: self.rejected.iter().map(StoredEvent::of).collect(),
+                dropped: self.dropped,
+            };
+            (self.revision, stored)
+        })
+    }
+
+    /// The history file now holds the history as of `revision`.
+    pub(super) fn written_at(&mut self, revision: u64) {
+        self.written = self.written.max(revision);
+    }
+
+    /// The history a session's directory kept, before anything of this process is recorded
+    /// (bounded as a live one; events of streams the log does not keep are left out).
+    pub(super) fn restored(stored: StoredHistory) -> Self {
+        let mut history = Self {
+            dropped: stored.dropped,
+            ..Self::default()
+        };
+        let mut ignored = 0;
+        for point in stored.timeline {
+            push_bounded(&mut history.timeline, point, TIMELINE_POINTS, &mut ignored);
+        }
+        for (stored, queue, cap) in [
+            (stored.events, &mut history.events, LOGGED_EVENTS),
+            (stored.rejected, &mut history.rejected, REJECTIONS),
+        ] {
+            for event in stored.into_iter().filter_map(StoredEvent::restored) {
+                push_logged(queue, event, cap, &mut ignored, &mut history.logged_bytes);
+            }
+        }
+        history
+    }
+
     pub(super) fn record(&mut self, event: &Arc<SessionEvent>) {
+        self.revision += 1;
         let now = unix_ms();
         let logged = |event: &Arc<SessionEvent>| LoggedEvent {
             unix_ms: now,
             event: event.topic(),
-            data: event.clone(),
+            data: LoggedData::Live(event.clone()),
         };
         match event.as_ref() {
             SessionEvent::Ack(ack) => {
