@@ -89,6 +89,16 @@ fn written(state: &Path, timeline: usize, rejected: usize) -> Value {
     }
 }
 
+/// A server on `state` with the session created and fed `poses` poses, one solve each.
+async fn streamed(c: &reqwest::Client, state: &Path, poses: u64) -> TestServer {
+    let s = TestServer::start_at(state, &["--no-zenoh"], &[]);
+    create(c, &s, &json!({"session": SESSION, "kind": "pose_graph_2d"})).await;
+    for key in 0..poses {
+        send_pose(c, &s, key).await;
+    }
+    s
+}
+
 /// Starts a server on `state` and waits for the session to be rebuilt.
 async fn restart(c: &reqwest::Client, state: &Path) -> TestServer {
     let s = TestServer::start_at(state, &["--no-zenoh"], &[]);
@@ -100,16 +110,7 @@ async fn restart(c: &reqwest::Client, state: &Path) -> TestServer {
 async fn the_history_comes_back_after_kill_9_and_after_a_graceful_stop() {
     let state = common::temp_dir("history");
     let c = client();
-    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    create(
-        &c,
-        &s,
-        &json!({"session": SESSION, "kind": "pose_graph_2d"}),
-    )
-    .await;
-    for key in 0..6 {
-        send_pose(&c, &s, key).await;
-    }
+    let s = streamed(&c, &state, 6).await;
     // A factor on a pose that does not exist: refused, and kept among the rejected inputs.
     let bad = json!({"factors": [{"type": "between_se2", "keys": [5, 99], "measurement": [1, 0, 0],
                                   "information": [100, 0, 0, 100, 0, 400]}]});
@@ -159,16 +160,7 @@ async fn the_history_comes_back_after_kill_9_and_after_a_graceful_stop() {
 async fn a_damaged_history_file_costs_the_history_not_the_session() {
     let state = common::temp_dir("history-damaged");
     let c = client();
-    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    create(
-        &c,
-        &s,
-        &json!({"session": SESSION, "kind": "pose_graph_2d"}),
-    )
-    .await;
-    for key in 0..4 {
-        send_pose(&c, &s, key).await;
-    }
+    let s = streamed(&c, &state, 4).await;
     let points = items(&settled(&c, &s, 4).await, "timeline").len();
     written(&state, points, 0);
     s.kill();

@@ -121,8 +121,21 @@ impl Service {
         if config.fsync != crate::journal::Fsync::Interval {
             return;
         }
-        let service = Arc::downgrade(self);
         let period = Duration::from_millis(config.interval_ms.max(1));
+        self.every_session_every(period, Session::sync_journal);
+    }
+
+    /// Writes every durable session's history to its directory once a second, where it
+    /// changed (see `Session::persist_history`): a restart loses at most the last second of
+    /// the operators' timeline and log.
+    fn start_history_persistence(self: &Arc<Self>) {
+        self.every_session_every(HISTORY_PERSISTENCE_PERIOD, Session::persist_history);
+    }
+
+    /// Runs `each` on every session, on a blocking thread (file I/O), every `period` for as
+    /// long as the service lives.
+    fn every_session_every(self: &Arc<Self>, period: Duration, each: fn(&Session)) {
+        let service = Arc::downgrade(self);
         self.runtime.spawn(async move {
             loop {
                 tokio::time::sleep(period).await;
@@ -133,30 +146,7 @@ impl Service {
                 drop(service);
                 let _ = tokio::task::spawn_blocking(move || {
                     for s in sessions {
-                        s.sync_journal();
-                    }
-                })
-                .await;
-            }
-        });
-    }
-
-    /// Writes every durable session's history to its directory once a second, where it
-    /// changed (see `Session::persist_history`): a restart loses at most the last second of
-    /// the operators' timeline and log.
-    fn start_history_persistence(self: &Arc<Self>) {
-        let service = Arc::downgrade(self);
-        self.runtime.spawn(async move {
-            loop {
-                tokio::time::sleep(HISTORY_PERSISTENCE_PERIOD).await;
-                let Some(service) = service.upgrade() else {
-                    return;
-                };
-                let sessions = service.sessions();
-                drop(service);
-                let _ = tokio::task::spawn_blocking(move || {
-                    for s in sessions {
-                        s.persist_history();
+                        each(&s);
                     }
                 })
                 .await;
