@@ -32,18 +32,20 @@ pub(super) struct History {
 }
 
 /// The history as a session's directory keeps it (`history.json`): what `GET …/history` shows
-/// but `last_error`, which the session's own state holds. `format` is 1.
+/// but `last_error`, which the session's own state holds. `format` is 1. Written from the
+/// logged events themselves (shared, serialised as streamed), read back as [`StoredEvent`]s.
 #[derive(serde::Serialize, serde::Deserialize)]
-pub(super) struct StoredHistory {
+pub(super) struct StoredHistory<E> {
     pub format: u32,
     pub timeline: Vec<TimelinePoint>,
-    pub events: Vec<StoredEvent>,
-    pub rejected: Vec<StoredEvent>,
+    pub events: Vec<E>,
+    pub rejected: Vec<E>,
     pub dropped: u64,
 }
 
-/// A logged event as stored: its stream's name and the event as streamed.
-#[derive(serde::Serialize, serde::Deserialize)]
+/// A logged event as read back: its stream's name and the event as it was streamed (the
+/// fields a [`LoggedEvent`] serialises to).
+#[derive(serde::Deserialize)]
 pub(super) struct StoredEvent {
     pub unix_ms: u64,
     pub event: String,
@@ -53,14 +55,6 @@ pub(super) struct StoredEvent {
 pub(super) const STORED_HISTORY_FORMAT: u32 = 1;
 
 impl StoredEvent {
-    fn of(e: &LoggedEvent) -> Self {
-        Self {
-            unix_ms: e.unix_ms,
-            event: e.event.to_string(),
-            data: serde_json::to_value(&e.data).unwrap_or(serde_json::Value::Null),
-        }
-    }
-
     /// Back as a logged event; `None` for a stream the log does not keep.
     fn restored(self) -> Option<LoggedEvent> {
         let event = ["acks", "summary", "errors"]
@@ -144,13 +138,13 @@ impl History {
     /// The history to write out, when it changed since it was last written: the stored form
     /// and the revision it is at (for [`History::written_at`]). Built from the events' shared
     /// data; the caller serialises it after releasing the history's lock.
-    pub(super) fn changed_since_written(&self) -> Option<(u64, StoredHistory)> {
+    pub(super) fn changed_since_written(&self) -> Option<(u64, StoredHistory<LoggedEvent>)> {
         (self.revision != self.written).then(|| {
             let stored = StoredHistory {
                 format: STORED_HISTORY_FORMAT,
                 timeline: self.timeline.iter().cloned().collect(),
-                events: self.events.iter().map(StoredEvent::of).collect(),
-                rejected: self.rejected.iter().map(StoredEvent::of).collect(),
+                events: self.events.iter().cloned().collect(),
+                rejected: self.rejected.iter().cloned().collect(),
                 dropped: self.dropped,
             };
             (self.revision, stored)
@@ -164,7 +158,7 @@ impl History {
 
     /// The history a session's directory kept, before anything of this process is recorded
     /// (bounded as a live one; events of streams the log does not keep are left out).
-    pub(super) fn restored(stored: StoredHistory) -> Self {
+    pub(super) fn restored(stored: StoredHistory<StoredEvent>) -> Self {
         let mut history = Self {
             dropped: stored.dropped,
             ..Self::default()

@@ -6,7 +6,7 @@
 
 use std::sync::Arc;
 
-use super::super::history::{History, StoredHistory, STORED_HISTORY_FORMAT};
+use super::super::history::{History, StoredEvent, StoredHistory, STORED_HISTORY_FORMAT};
 use super::super::Session;
 use crate::journal::SessionDir;
 
@@ -69,7 +69,7 @@ impl Session {
                 return;
             }
         };
-        match serde_json::from_slice::<StoredHistory>(&bytes) {
+        match serde_json::from_slice::<StoredHistory<StoredEvent>>(&bytes) {
             Ok(stored) if stored.format == STORED_HISTORY_FORMAT => {
                 *self.history.lock().unwrap_or_else(|p| p.into_inner()) = History::restored(stored);
             }
