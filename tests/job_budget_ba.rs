@@ -79,10 +79,12 @@ const ENDLESS: &str = "format=bal&max_iterations=100000&function_tolerance=0&gra
 /// the first linearisation took ~3.2 s, the factorisation 12.7 s more (elimination ~1 s, the
 /// reduced system 2.4e11 flops), and the answer came after 17.4 s (measured on the machine this
 /// was written on, 2 cores shared). Now S's factorisation is predicted not to fit and is not
-/// started: the answer comes after ~4.9 s.
+/// started: the answer comes after ~4.9 s. The limit is 10 s: on a machine 1.5x slower
+/// (2026-11-26: parsing and the layout alone took 4.9 s) a 6 s limit ran out before the first
+/// factorisation, and the test no longer reached the Schur path it is about.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_giant_bundle_adjustment_job_stops_within_twice_its_time_limit() {
-    let limit = Duration::from_millis(6000);
+    let limit = Duration::from_millis(10_000);
     let s = start_with_limits(&json!({"max_solve_ms": limit.as_millis() as u64}));
     let (cameras, points) = (1000, 200_000);
     let made = Instant::now();
