@@ -367,6 +367,10 @@ impl SessionDir {
         self.dir.join("journal.log")
     }
 
+    fn history_path(&self) -> PathBuf {
+        self.dir.join("history.json")
+    }
+
     pub fn open_journal(&self, fsync: Fsync) -> Result<LogWriter, JournalError> {
         let path = self.journal_path();
         LogWriter::open(&path, fsync).map_err(io_at(&path))
@@ -444,7 +448,7 @@ impl SessionDir {
     /// costs at most a timeline, never an accepted batch. Fsyncing it would queue ahead of the
     /// journals' fsyncs that acknowledgements wait for.
     pub fn write_history(&self, bytes: &[u8]) -> Result<(), JournalError> {
-        let path = self.dir.join("history.json");
+        let path = self.history_path();
         let tmp = path.with_extension("tmp");
         std::fs::write(&tmp, bytes).map_err(io_at(&tmp))?;
         std::fs::rename(&tmp, &path).map_err(io_at(&path))
@@ -452,7 +456,7 @@ impl SessionDir {
 
     /// The history file's bytes (`None` when the session has none yet).
     pub fn load_history(&self) -> Result<Option<Vec<u8>>, JournalError> {
-        let path = self.dir.join("history.json");
+        let path = self.history_path();
         match std::fs::read(&path) {
             Ok(bytes) => Ok(Some(bytes)),
             Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),

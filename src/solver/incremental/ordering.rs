@@ -61,17 +61,19 @@ pub fn order_affected(
         order.extend(constrained);
         order
     };
-    if affected.len() < NESTED_DISSECTION_FROM {
-        let by_amd = constrained_last(BlockOrdering::amd(adjacency).block_at);
-        return by_amd.into_iter().map(|i| affected[i]).collect();
-    }
-    let by_amd = constrained_last(BlockOrdering::amd(adjacency.clone()).block_at);
-    let flops = |order: &[usize]| elimination_flops(&adjacency, order, |i| dims[affected[i]]);
-    let amd_flops = flops(&by_amd);
-    let chosen = if amd_flops < NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE * affected.len() as f64 {
-        by_amd
+    let chosen = if affected.len() < NESTED_DISSECTION_FROM {
+        constrained_last(BlockOrdering::amd(adjacency).block_at)
     } else {
-        match nested_dissection(&adjacency).map(constrained_last) {
+        let by_amd = constrained_last(BlockOrdering::amd(adjacency.clone()).block_at);
+        let flops = |order: &[usize]| elimination_flops(&adjacency, order, |i| dims[affected[i]]);
+        let amd_flops = flops(&by_amd);
+        let worth_trying =
+            amd_flops >= NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE * affected.len() as f64;
+        match worth_trying
+            .then(|| nested_dissection(&adjacency))
+            .flatten()
+            .map(constrained_last)
+        {
             Some(by_nd) if flops(&by_nd) < amd_flops => by_nd,
             _ => by_amd,
         }
