@@ -172,6 +172,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
         relinearize_threshold: 1e-6,
         wildfire_threshold: 0.0,
         max_passes: 20,
+        relinearize_columns: usize::MAX,
     };
     let report = engine.update(&mut problem, &polish).unwrap();
     let polished = problem.chi2();
@@ -180,6 +181,78 @@ fn streamed_graph_reaches_the_batch_optimum() {
         "polished chi2 {polished} vs batch {optimum} ({report:?})"
     );
     assert!((report.model_chi2 - polished).abs() / polished < 1e-6);
+}
+
+/// A polish in steps (a column budget per update, as an idle session runs it): each step
+/// relinearises only the largest steps that fit, refactors far less than the map, and the steps
+/// together end at the batch optimum, as one unbounded polish does.
+#[test]
+fn polish_in_bounded_steps_reaches_the_batch_optimum() {
+    let poses = 1200;
+    let (truth, edges) = manhattan(poses, 3);
+    let mut problem = Problem::new();
+    problem.add_variable(0, Box::new(truth[0])).unwrap();
+    problem.set_fixed(0, true).unwrap();
+    let (mut engine, _) = IncrementalEngine::new(&mut problem, &[true]).unwrap();
+    // As sessions stream: a loose threshold, one pass, so drift below it accumulates.
+    let stream = UpdateParams {
+        relinearize_threshold: 0.05,
+        wildfire_threshold: 1e-5,
+        max_passes: 1,
+        relinearize_columns: usize::MAX,
+    };
+    let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
+    for e in &edges {
+        by_later_end[e.1].push(e);
+    }
+    for k in 1..poses {
+        stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &stream);
+    }
+    let optimum = batch_optimum(poses, &edges, &truth);
+    let budget = 96;
+    let step = UpdateParams {
+        relinearize_threshold: 1e-6,
+        wildfire_threshold: 0.0,
+        max_passes: 1,
+        relinearize_columns: budget,
+    };
+    let mut reports = Vec::new();
+    loop {
+        let report = engine.update(&mut problem, &step).unwrap();
+        let done = report.relinearized_variables == 0 && report.max_delta <= 1e-6;
+        reports.push(report);
+        if done || reports.len() == 500 {
+            break;
+        }
+    }
+    let first = &reports[0];
+    let widest = reports.iter().map(|r| r.refactored_columns).max().unwrap();
+    eprintln!(
+        "{} steps; the first relinearised {} variables and refactored {} columns; widest {widest}",
+        reports.len(),
+        first.relinearized_variables,
+        first.refactored_columns
+    );
+    assert!(
+        reports.len() > 3,
+        "a long stream leaves more to relinearise than one step takes ({} steps)",
+        reports.len()
+    );
+    assert!(
+        first.relinearized_variables < poses / 4,
+        "the first step relinearised {} of {poses} variables",
+        first.relinearized_variables
+    );
+    assert!(
+        widest < poses / 2,
+        "a step refactored {widest} of {poses} columns (budget {budget})"
+    );
+    let polished = problem.chi2();
+    assert!(
+        (polished - optimum).abs() / optimum < 1e-6,
+        "after {} steps: chi2 {polished} vs batch {optimum}",
+        reports.len()
+    );
 }
 
 /// Prints how far the streamed estimate is from the batch optimum for a few thresholds (run
@@ -202,6 +275,7 @@ fn threshold_sweep() {
             relinearize_threshold: relin,
             wildfire_threshold: 1e-7,
             max_passes: passes,
+            relinearize_columns: usize::MAX,
         };
         let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
         for e in &edges {
@@ -231,6 +305,7 @@ fn threshold_sweep() {
                     relinearize_threshold: 1e-4,
                     wildfire_threshold: 0.0,
                     max_passes: 10,
+                    relinearize_columns: usize::MAX,
                 },
             )
             .unwrap();

@@ -39,20 +39,34 @@ const FIRST_REGION: usize = 128;
 const DEBT_LIMIT: f64 = 10.0;
 
 /// An update on the request path: relinearise what moved more than this (max-norm of the
-/// tangent step), in at most two rounds. The estimate then sits within ~3e-5 relative chi2 of
-/// the optimum (tests/incremental_engine.rs `threshold_sweep`); the polish closes the rest.
+/// tangent step), in one round. The estimate then sits within ~3e-5 relative chi2 of the
+/// optimum (tests/incremental_engine.rs `threshold_sweep`); the polish closes the rest.
 const STREAM: UpdateParams = UpdateParams {
     relinearize_threshold: 0.05,
     wildfire_threshold: 1e-5,
     max_passes: 1,
+    relinearize_columns: usize::MAX,
 };
 /// A polish, or a solve the client asked for: steps below this are the optimum.
 const CONVERGED_STEP: f64 = 1e-4;
+/// One step of a polish: relinearise the largest steps above [`CONVERGED_STEP`] that fit in the
+/// step's column budget, refactor, solve exactly. Steps repeat while the session stays idle
+/// until none is left. After a long stream nearly every variable has drifted past the tight
+/// threshold; relinearising them all at once took 0.5 s at 10k poses, and a batch that arrived
+/// meanwhile waited for all of it (an engine update cannot be interrupted).
 const POLISH: UpdateParams = UpdateParams {
     relinearize_threshold: CONVERGED_STEP,
     wildfire_threshold: 0.0,
-    max_passes: 6,
+    max_passes: 1,
+    relinearize_columns: FIRST_POLISH_STEP_COLUMNS,
 };
+/// Columns of the factor the first polish step after an update may refactor for its
+/// relinearisation: about what a large streamed update refactors (a loop closure at 10k poses),
+/// so that a batch arriving during it waits about one update more. Each further step of the
+/// same idle spell may take twice as many: the session has been idle at least as long as the
+/// steps before took, so a batch waits behind a step about as long as the session had been
+/// idle, and a long idle spell converges in a few wide steps rather than many narrow ones.
+const FIRST_POLISH_STEP_COLUMNS: usize = 2048;
 
 /// What a session keeps between re-solves, next to its problem: for every variable (dense
 /// index) the factors (indices) that touch it, and the elimination order of full re-solves.
@@ -63,6 +77,8 @@ pub(crate) struct RegionIndex {
     engine: Option<IncrementalEngine>,
     /// The last engine update left steps above [`CONVERGED_STEP`]: polish when idle.
     pub polish: bool,
+    /// Polish steps since the last streamed update (each may refactor twice the last).
+    polish_steps: u32,
 }
 
 impl RegionIndex {
@@ -106,6 +122,7 @@ impl RegionIndex {
     pub fn rebuild_engine(&mut self, problem: &mut Problem, gauge: &[Key]) {
         self.engine = None;
         self.polish = false;
+        self.polish_steps = 0;
         if !problem.eliminate.is_empty() || problem.gauge != Gauge::AnchorComponents {
             return;
         }
@@ -132,7 +149,18 @@ impl RegionIndex {
     ) -> Option<Result<Resolved, SolverError>> {
         let engine = self.engine.as_mut()?;
         let start = Instant::now();
-        let params = if tight { POLISH } else { STREAM };
+        let params = if tight {
+            self.polish_steps += 1;
+            UpdateParams {
+                relinearize_columns: POLISH
+                    .relinearize_columns
+                    .saturating_mul(1 << (self.polish_steps - 1).min(20)),
+                ..POLISH
+            }
+        } else {
+            self.polish_steps = 0;
+            STREAM
+        };
         let report = match engine.update(problem, &params) {
             Ok(report) => report,
             Err(e) => {

@@ -3,7 +3,8 @@
 //! view of every update, for issue 16's acceptance (driven by `acceptance.py`, next to this).
 //!
 //! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
-//! [--json out.json] [--dump-latencies out.txt] [--fsync always|interval|never]`
+//! [--json out.json] [--dump-latencies out.txt] [--dump-server out.jsonl]
+//! [--fsync always|interval|never]`
 //!
 //! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
 //! `isam2_landmarks.py`.
@@ -21,7 +22,8 @@
 //! batch optimum of the same (truncated) graph (`optimum.rs`), and the server's peak resident
 //! memory is read from `/proc/<pid>/status` (VmHWM). Each run starts a fresh server, so the peak
 //! is that of this stream. Prints one JSON object; `--dump-latencies` writes one latency (ms)
-//! per line, in stream order.
+//! per line, in stream order; `--dump-server` the server's view of every solve
+//! (`server_view.rs`), and the JSON then carries its fsync and solve histograms.
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
@@ -32,6 +34,7 @@ mod args;
 mod http;
 mod landmarks;
 mod optimum;
+mod server_view;
 mod zenoh_stream;
 
 use std::collections::HashSet;
@@ -67,7 +70,8 @@ fn proc_status_kb(pid: u32, field: &str) -> Option<u64> {
 fn main() {
     let args = args::Args::from_env();
     let usage = "usage: incremental_serve <file.g2o> --transport http|zenoh [--limit N] \
-                 [--json out] [--dump-latencies out] [--fsync always|interval|never]";
+                 [--json out] [--dump-latencies out] [--dump-server out] \
+                 [--fsync always|interval|never]";
     let path = args.first(usage);
     let transport = args
         .value("--transport")
@@ -102,12 +106,18 @@ fn main() {
         .enable_all()
         .build()
         .expect("tokio runtime");
-    let (streamed, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb) = runtime
-        .block_on(async {
+    let dump_server = args.value("--dump-server");
+    let (streamed, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb, histograms) =
+        runtime.block_on(async {
             let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
             let c = common::server::client();
             let session = "stream";
             create(&c, &s, &json!({"session": session, "kind": kind})).await;
+            let view = match &dump_server {
+                Some(_) => Some(server_view::ServerView::listen(&s.zenoh, session).await),
+                None => None,
+            };
+            let started = std::time::Instant::now();
             let streamed = match transport.as_str() {
                 "http" => http::stream(&s, session, &bodies).await,
                 _ => {
@@ -135,6 +145,15 @@ fn main() {
             let (status, idle_estimate) =
                 get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
             assert_eq!(status, 200, "{idle_estimate}");
+            // The server's view, the idle polish included.
+            let histograms = match (&view, &dump_server) {
+                (Some(view), Some(out)) => {
+                    std::fs::write(out, view.lines(started)).expect("writable --dump-server");
+                    let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
+                    server_view::histograms(&metrics.text().await.expect("metrics text"))
+                }
+                _ => Value::Null,
+            };
             s.assert_no_panic();
             let state_dir = s.state_dir.clone();
             let _ = s.terminate(Duration::from_secs(10));
@@ -148,6 +167,7 @@ fn main() {
                 stats,
                 peak_kb,
                 rss_kb,
+                histograms,
             )
         });
 
@@ -180,6 +200,9 @@ fn main() {
         "skipped_solves": stats["skipped_solves"],
         "tracked_chi2": stats["chi2"],
     });
+    if !histograms.is_null() {
+        report["server_histograms"] = histograms;
+    }
     for (k, v) in chi2.as_object().expect("an object") {
         report[k] = v.clone();
     }

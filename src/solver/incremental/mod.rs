@@ -56,6 +56,11 @@ pub struct UpdateParams {
     pub wildfire_threshold: f64,
     /// Relinearise-and-solve rounds at most.
     pub max_passes: usize,
+    /// A pass relinearises, largest steps first, only as many variables as fit in about this
+    /// many columns of the factor (their elimination-tree paths to the root); `usize::MAX`
+    /// takes every variable above the threshold. It bounds what one update costs, so that an
+    /// idle session's polish runs in steps: a streamed update waits behind one step at most.
+    pub relinearize_columns: usize,
 }
 
 impl Default for UpdateParams {
@@ -64,6 +69,7 @@ impl Default for UpdateParams {
             relinearize_threshold: 0.01,
             wildfire_threshold: 1e-7,
             max_passes: 4,
+            relinearize_columns: usize::MAX,
         }
     }
 }
@@ -200,12 +206,7 @@ impl IncrementalEngine {
         let mut changed = Vec::new();
         for pass in 0..params.max_passes.max(1) {
             if pass > 0 || known > 0 {
-                self.relinearize(
-                    problem,
-                    params.relinearize_threshold,
-                    &mut touched,
-                    &mut report,
-                )?;
+                self.relinearize(problem, params, &mut touched, &mut report)?;
             }
             if touched.is_empty() {
                 break;
@@ -235,24 +236,33 @@ impl IncrementalEngine {
         Ok(report)
     }
 
-    /// Moves θ of every free variable whose step exceeds `threshold` to `θ ⊕ Δ` and linearises
-    /// its factors again; adds their variables to `touched`.
+    /// Moves θ of the free variables whose step exceeds the threshold (within the column
+    /// budget, see [`UpdateParams::relinearize_columns`]) to `θ ⊕ Δ` and linearises their
+    /// factors again; adds their variables to `touched`.
     fn relinearize(
         &mut self,
         problem: &Problem,
-        threshold: f64,
+        params: &UpdateParams,
         touched: &mut Vec<usize>,
         report: &mut UpdateReport,
     ) -> Result<(), SolverError> {
         let start = Instant::now();
+        let mut moved: Vec<(usize, f64)> = (0..self.theta.len())
+            .filter_map(|v| {
+                let (o, d) = (self.offset[v], self.dims[v]);
+                let step = self.delta[o..o + d]
+                    .iter()
+                    .fold(0.0f64, |m, s| m.max(s.abs()));
+                (step > params.relinearize_threshold).then_some((v, step))
+            })
+            .collect();
+        if params.relinearize_columns < self.columns {
+            self.within_budget(problem, &mut moved, params.relinearize_columns);
+        }
         let mut factors = Vec::new();
-        for v in 0..self.theta.len() {
+        for &(v, _) in &moved {
             let (o, d) = (self.offset[v], self.dims[v]);
-            let step = &self.delta[o..o + d];
-            if d == 0 || !step.iter().any(|s| s.abs() > threshold) {
-                continue;
-            }
-            self.theta[v].retract(step);
+            self.theta[v].retract(&self.delta[o..o + d]);
             // The step now lives in θ. No column outside this update's refactored part has a
             // block in v's row (such a column's subtree would hold one of v's factors, all of
             // which are linearised again here), so nothing solved earlier depends on v's Δ.
@@ -273,6 +283,41 @@ impl IncrementalEngine {
         }
         report.linearize_seconds += start.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// Keeps of `moved` (variable, step) the largest steps whose refactoring fits in `budget`
+    /// columns (the first always), in that order. Relinearising v refactors the paths to the
+    /// root of the elimination tree from v and from every variable its factors touch.
+    fn within_budget(&mut self, problem: &Problem, moved: &mut Vec<(usize, f64)>, budget: usize) {
+        moved.sort_unstable_by(|a, b| b.1.total_cmp(&a.1));
+        let entries = problem.factors();
+        let (mut marked, mut fresh) = (Vec::new(), Vec::new());
+        moved.retain(|&(v, _)| {
+            fresh.clear();
+            let touched = self.by_variable[v]
+                .iter()
+                .flat_map(|&f| entries[f as usize].variables());
+            for &start in std::iter::once(&v).chain(touched) {
+                let mut u = Some(start).filter(|&u| self.free[u]);
+                while let Some(c) = u.filter(|&c| !self.mark[c]) {
+                    self.mark[c] = true;
+                    fresh.push(c);
+                    u = self.factor.parent(c);
+                }
+            }
+            let fits = marked.is_empty() || marked.len() + fresh.len() <= budget;
+            if fits {
+                marked.extend_from_slice(&fresh);
+            } else {
+                for &c in &fresh {
+                    self.mark[c] = false;
+                }
+            }
+            fits
+        });
+        for c in marked {
+            self.mark[c] = false;
+        }
     }
 }
 
