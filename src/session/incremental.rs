@@ -4,8 +4,9 @@
 //! after a batch solve the engine is built at its solution, and every later solve of an
 //! additions-only update is one engine update (refactor what the update touched, relinearise
 //! what moved). When an update leaves steps above the convergence threshold, the session
-//! schedules a *polish*: an engine update with a tight threshold that ends at the batch optimum,
-//! run when no batch is waiting (a batch arriving meanwhile goes first, see `solve`). Removals,
+//! schedules a *polish*: engine updates with a tight threshold that end at the batch optimum,
+//! run in bounded steps while no batch arrives (a batch arriving meanwhile waits for the current
+//! step only, see [`POLISH`] and `solve`). Removals,
 //! fixes and guesses, and any engine failure, go through a batch solve, which rebuilds it.
 //!
 //! Sessions the engine does not fit (bundle adjustment: Schur complement, free gauge) use

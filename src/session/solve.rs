@@ -267,8 +267,9 @@ impl Session {
 }
 
 impl Session {
-    /// Schedules a polish (an engine update to convergence) if no batch arrives within
-    /// [`POLISH_AFTER_IDLE`]: a stream's next update never waits behind a polish.
+    /// Schedules a polish step (an engine update towards convergence, bounded in what it
+    /// refactors) if no batch arrives within [`POLISH_AFTER_IDLE`]: a stream's next update
+    /// never waits behind a polish, and a batch that arrives later waits for one step at most.
     fn polish_when_idle(self: &Arc<Self>, sequence: u64) {
         let session = Arc::clone(self);
         self.runtime.spawn(async move {
