@@ -477,31 +477,57 @@ impl BlockFactor {
         d * (d + 1) / 2 + column.blocks.len()
     }
 
+    /// Before the columns of `order` are refactored: takes what they contributed to `partial`
+    /// out of it (see [`BlockFactor::forward`]), with their values and `y` as they still are.
+    pub fn withdraw(&self, order: &[usize], offset: &[usize], y: &[f64], partial: &mut [f64]) {
+        for &k in order {
+            let (dk, ok) = (self.dim[k], offset[k]);
+            let column = &self.columns[k];
+            for &(u, at) in &column.rows {
+                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
+                let l_uk = &column.blocks[at as usize..at as usize + du * dk];
+                dense::sub_mul_vector(&mut partial[ou..ou + du], l_uk, &y[ok..ok + dk], du, dk);
+            }
+        }
+    }
+
     /// Forward substitution `L y = b` for the columns of `order` (in that order), whose
     /// right-hand side `rhs(r, out)` writes; every other column keeps its `y` (it depends only
     /// on its subtree). `y` and `offset` index scalars per variable.
+    ///
+    /// `partial` holds, per row u, `Σ_k L_uk y_k` over the columns k stored now: the kept
+    /// columns' part stays valid across updates (neither their blocks nor their `y` change), so
+    /// a refactored row takes it from there instead of walking every column that reaches it
+    /// (near the root, most of the map). [`BlockFactor::withdraw`] takes the refactored
+    /// columns' old part out first; this adds their new part as each is solved.
     pub fn forward(
         &self,
         order: &[usize],
         offset: &[usize],
         y: &mut [f64],
+        partial: &mut [f64],
         mut rhs: impl FnMut(usize, &mut [f64]),
     ) {
         let mut z = Vec::new();
+        let mut negated = Vec::new();
         for &r in order {
-            let d = self.dim[r];
+            let (d, o) = (self.dim[r], offset[r]);
             z.clear();
             z.resize(d, 0.0);
             rhs(r, &mut z);
-            for &(k, at) in &self.row_columns[r] {
-                let column = &self.columns[k as usize];
-                let dk = self.dim[k as usize];
-                let l_rk = &column.blocks[at as usize..at as usize + d * dk];
-                let o = offset[k as usize];
-                dense::sub_mul_vector(&mut z, l_rk, &y[o..o + dk], d, dk);
+            for (zi, p) in z.iter_mut().zip(&partial[o..o + d]) {
+                *zi -= p;
             }
-            dense::forward(&self.columns[r].diagonal, &mut z, d);
-            y[offset[r]..offset[r] + d].copy_from_slice(&z);
+            let column = &self.columns[r];
+            dense::forward(&column.diagonal, &mut z, d);
+            y[o..o + d].copy_from_slice(&z);
+            negated.clear();
+            negated.extend(z.iter().map(|v| -v));
+            for &(u, at) in &column.rows {
+                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
+                let l_ur = &column.blocks[at as usize..at as usize + du * d];
+                dense::sub_mul_vector(&mut partial[ou..ou + du], l_ur, &negated, du, d);
+            }
         }
     }
 

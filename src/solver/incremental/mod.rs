@@ -85,6 +85,9 @@ pub struct IncrementalEngine {
     dims: Vec<usize>,
     delta: Vec<f64>,
     y: Vec<f64>,
+    /// Per row, what the stored columns contribute to its forward substitution
+    /// (`BlockFactor::forward`).
+    partial: Vec<f64>,
     linearized: Vec<Linearized>,
     by_variable: Vec<Vec<u32>>,
     factor: BlockFactor,
@@ -119,7 +122,7 @@ impl IncrementalEngine {
     /// Memory the engine holds, from counts it keeps (O(1)): the factor's values and block
     /// indices, the linearised factors, the linearisation point and the solution vectors.
     pub fn memory_bytes(&self) -> usize {
-        let variables = self.theta.len() * VARIABLE_OVERHEAD + 16 * self.delta.len();
+        let variables = self.theta.len() * VARIABLE_OVERHEAD + 24 * self.delta.len();
         let factor =
             8 * self.factor.nnz() + 8 * self.jacobian_blocks + self.factor.kept_update_bytes();
         variables + factor + self.linearized_bytes
@@ -171,6 +174,7 @@ impl IncrementalEngine {
             self.dims.push(d);
             self.delta.resize(self.delta.len() + d, 0.0);
             self.y.resize(self.y.len() + d, 0.0);
+            self.partial.resize(self.partial.len() + d, 0.0);
             self.by_variable.push(Vec::new());
         }
         self.factor.grow(&self.dims);
@@ -383,6 +387,8 @@ impl IncrementalEngine {
         report.order_seconds += start.elapsed().as_secs_f64();
 
         let start = Instant::now();
+        self.factor
+            .withdraw(&order, &self.offset, &self.y, &mut self.partial);
         let dense_before = self.factor.dense_columns();
         let (linearized, free, dims) = (&self.linearized, &self.free, &self.dims);
         let assemble = |r: usize, rank: &[u64], acc: &mut Accumulator| {
@@ -419,8 +425,12 @@ impl IncrementalEngine {
             self.yty -= self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
         }
         let (linearized, by_variable) = (&self.linearized, &self.by_variable);
-        self.factor
-            .forward(&order, &self.offset, &mut self.y, |r, out| {
+        self.factor.forward(
+            &order,
+            &self.offset,
+            &mut self.y,
+            &mut self.partial,
+            |r, out| {
                 for &f in &by_variable[r] {
                     let (lin, vars) = (&linearized[f as usize], entries[f as usize].variables());
                     if let Some(i) = vars.iter().position(|&v| v == r) {
@@ -430,7 +440,8 @@ impl IncrementalEngine {
                         }
                     }
                 }
-            });
+            },
+        );
         for &r in &order {
             let (o, d) = (self.offset[r], self.dims[r]);
             self.yty += self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
