@@ -457,9 +457,14 @@ async fn after_a_kill_9_the_survivors_adopt_its_sessions() {
     fleet.wait_settled(&z).await;
     let back = Instant::now();
     for name in &on_victim {
-        loop {
+        // Listed by its owner again, and done replaying its journal there (a session answers
+        // reads while it recovers, saying so).
+        let s = loop {
             if local_sessions(&c, &fleet, victim).await.contains(name) {
-                break;
+                let (_, s) = get(&c, &fleet.instance(0).url(&format!("/v1/sessions/{name}"))).await;
+                if s["recovering"] == false {
+                    break s;
+                }
             }
             assert!(
                 back.elapsed() < Duration::from_secs(10),
@@ -467,8 +472,7 @@ async fn after_a_kill_9_the_survivors_adopt_its_sessions() {
                 fleet.logs()
             );
             tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let (_, s) = get(&c, &fleet.instance(0).url(&format!("/v1/sessions/{name}"))).await;
+        };
         assert_eq!(
             s["sequence"].as_u64().unwrap() as usize,
             per_session,
