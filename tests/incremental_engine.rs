@@ -131,6 +131,18 @@ fn stream_pose(
     engine.update(problem, params).unwrap()
 }
 
+/// The edges by their later end: what `stream_pose` sends with each pose.
+fn edges_by_later_end(
+    poses: usize,
+    edges: &[(usize, usize, Se2)],
+) -> Vec<Vec<&(usize, usize, Se2)>> {
+    let mut by_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
+    for e in edges {
+        by_end[e.1].push(e);
+    }
+    by_end
+}
+
 #[test]
 fn streamed_graph_reaches_the_batch_optimum() {
     let poses = 1500;
@@ -143,10 +155,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
     let (mut engine, _) = IncrementalEngine::new(&mut problem, &[true]).unwrap();
     let params = UpdateParams::default();
     let mut odometry_columns = Vec::new();
-    let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
-    for e in &edges {
-        by_later_end[e.1].push(e);
-    }
+    let by_later_end = edges_by_later_end(poses, &edges);
     for k in 1..poses {
         let report = stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &params);
         if by_later_end[k].len() == 1 && report.relinearized_variables == 0 {
@@ -201,10 +210,7 @@ fn polish_in_bounded_steps_reaches_the_batch_optimum() {
         max_passes: 1,
         relinearize_columns: usize::MAX,
     };
-    let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
-    for e in &edges {
-        by_later_end[e.1].push(e);
-    }
+    let by_later_end = edges_by_later_end(poses, &edges);
     for k in 1..poses {
         stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &stream);
     }
@@ -277,10 +283,7 @@ fn threshold_sweep() {
             max_passes: passes,
             relinearize_columns: usize::MAX,
         };
-        let mut by_later_end: Vec<Vec<&(usize, usize, Se2)>> = vec![Vec::new(); poses];
-        for e in &edges {
-            by_later_end[e.1].push(e);
-        }
+        let by_later_end = edges_by_later_end(poses, &edges);
         let (mut columns, mut worst, start) = (0, 0.0f64, std::time::Instant::now());
         for k in 1..poses {
             let t = std::time::Instant::now();

@@ -114,7 +114,10 @@ fn main() {
             let session = "stream";
             create(&c, &s, &json!({"session": session, "kind": kind})).await;
             let view = match &dump_server {
-                Some(_) => Some(server_view::ServerView::listen(&s.zenoh, session).await),
+                Some(out) => Some((
+                    server_view::ServerView::listen(&s.zenoh, session).await,
+                    out,
+                )),
                 None => None,
             };
             let started = std::time::Instant::now();
@@ -146,13 +149,13 @@ fn main() {
                 get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
             assert_eq!(status, 200, "{idle_estimate}");
             // The server's view, the idle polish included.
-            let histograms = match (&view, &dump_server) {
-                (Some(view), Some(out)) => {
+            let histograms = match &view {
+                Some((view, out)) => {
                     std::fs::write(out, view.lines(started)).expect("writable --dump-server");
                     let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
                     server_view::histograms(&metrics.text().await.expect("metrics text"))
                 }
-                _ => Value::Null,
+                None => Value::Null,
             };
             s.assert_no_panic();
             let state_dir = s.state_dir.clone();
