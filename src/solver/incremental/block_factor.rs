@@ -20,6 +20,7 @@ use std::collections::BTreeSet;
 use super::dense;
 use super::subtree_updates::{ColumnView, SubtreeUpdates};
 use crate::solver::schur::small_cholesky;
+use front::FrontUpdates;
 
 const NONE: u32 = u32::MAX;
 /// A zero block of the largest variable (15-dimensional navigation states).
@@ -119,8 +120,12 @@ pub struct BlockFactor {
     covered: Vec<bool>,
     kept_root: Vec<u32>,
     slot: Vec<u32>,
-    /// Columns factored as part of a dense tail, over the factor's life.
+    /// Columns factored as part of a dense front, over the factor's life.
     dense_columns: usize,
+    /// During a refactor: the update matrices of its fronts so far, and the fronts' columns
+    /// (`covered`: their contributions come from those).
+    fronts: FrontUpdates,
+    front_columns: Vec<u32>,
 }
 
 /// The variable whose pivot failed: `H` is not positive definite in its column.
@@ -144,7 +149,7 @@ impl BlockFactor {
         self.slot.resize(n, NONE);
     }
 
-    /// Columns factored in a dense tail so far (see `dense_tail`).
+    /// Columns factored in dense fronts so far (see `front`).
     pub fn dense_columns(&self) -> usize {
         self.dense_columns
     }
@@ -219,13 +224,16 @@ impl BlockFactor {
         for (_, k) in members {
             self.covered[k as usize] = false;
         }
+        for k in self.front_columns.drain(..) {
+            self.covered[k as usize] = false;
+        }
+        self.fronts.clear();
         self.kept.end_refactor(8 * self.nnz);
         result
     }
 
-    /// Left-looking elimination of `order`, column by column, until the rest of it is (nearly)
-    /// one dense clique (a column whose rows are nearly every column after it): that tail is
-    /// factored as one dense matrix (`dense_tail`).
+    /// Left-looking elimination of `order`, column by column, except where a run of columns
+    /// forms one clique: that front is factored as one dense matrix (see `front`).
     fn eliminate<A: FnMut(usize, &[u64], &mut Accumulator)>(
         &mut self,
         order: &[usize],
@@ -233,12 +241,15 @@ impl BlockFactor {
         assemble: &mut A,
         kept_at: &mut KeptApplications,
     ) -> Result<(), NotPositiveDefinite> {
-        for (i, &r) in order.iter().enumerate() {
+        let mut i = 0;
+        while let Some(&r) = order.get(i) {
             self.gather(r, acc, assemble, kept_at);
-            let later = order.len() - i - 1;
-            if dense_tail::starts_here(acc.entries.len(), later) {
-                return self.eliminate_dense_tail(&order[i..], acc, assemble, kept_at);
+            if let Some(width) = front::front_at(order, i, acc) {
+                self.eliminate_front(&order[i..i + width], acc, assemble, kept_at)?;
+                i += width;
+                continue;
             }
+            i += 1;
             if small_cholesky(&mut acc.diagonal, self.dim[r]).is_err() {
                 acc.finish();
                 return Err(NotPositiveDefinite(r));
@@ -271,6 +282,7 @@ impl BlockFactor {
                 .subtract_from_column(root as usize, r, &self.dim, acc, |u| rank_of[u] > rank_r);
             kept_at.next += 1;
         }
+        self.fronts.subtract_due(rank_r, &self.dim, acc);
     }
 
     /// Stores the eliminated column `r` (in `acc`, then cleared): its rows register it, and its
@@ -476,123 +488,13 @@ impl BlockFactor {
         }
         d * (d + 1) / 2 + column.blocks.len()
     }
-
-    /// Before the columns of `order` are refactored: takes what they contributed to `partial`
-    /// out of it (see [`BlockFactor::forward`]), with their values and `y` as they still are.
-    pub fn withdraw(&self, order: &[usize], offset: &[usize], y: &[f64], partial: &mut [f64]) {
-        for &k in order {
-            let (dk, ok) = (self.dim[k], offset[k]);
-            let column = &self.columns[k];
-            for &(u, at) in &column.rows {
-                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
-                let l_uk = &column.blocks[at as usize..at as usize + du * dk];
-                dense::sub_mul_vector(&mut partial[ou..ou + du], l_uk, &y[ok..ok + dk], du, dk);
-            }
-        }
-    }
-
-    /// Forward substitution `L y = b` for the columns of `order` (in that order), whose
-    /// right-hand side `rhs(r, out)` writes; every other column keeps its `y` (it depends only
-    /// on its subtree). `y` and `offset` index scalars per variable.
-    ///
-    /// `partial` holds, per row u, `Σ_k L_uk y_k` over the columns k stored now: the kept
-    /// columns' part stays valid across updates (neither their blocks nor their `y` change), so
-    /// a refactored row takes it from there instead of walking every column that reaches it
-    /// (near the root, most of the map). [`BlockFactor::withdraw`] takes the refactored
-    /// columns' old part out first; this adds their new part as each is solved.
-    pub fn forward(
-        &self,
-        order: &[usize],
-        offset: &[usize],
-        y: &mut [f64],
-        partial: &mut [f64],
-        mut rhs: impl FnMut(usize, &mut [f64]),
-    ) {
-        let mut z = Vec::new();
-        let mut negated = Vec::new();
-        for &r in order {
-            let (d, o) = (self.dim[r], offset[r]);
-            z.clear();
-            z.resize(d, 0.0);
-            rhs(r, &mut z);
-            for (zi, p) in z.iter_mut().zip(&partial[o..o + d]) {
-                *zi -= p;
-            }
-            let column = &self.columns[r];
-            dense::forward(&column.diagonal, &mut z, d);
-            y[o..o + d].copy_from_slice(&z);
-            negated.clear();
-            negated.extend(z.iter().map(|v| -v));
-            for &(u, at) in &column.rows {
-                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
-                let l_ur = &column.blocks[at as usize..at as usize + du * d];
-                dense::sub_mul_vector(&mut partial[ou..ou + du], l_ur, &negated, du, d);
-            }
-        }
-    }
-
-    /// Back substitution `Lᵀ x = y` from the roots down, into `x` (which holds the previous
-    /// solution). A column is solved again when it was refactored (`in_order`) or when one of
-    /// its rows changed by more than `threshold` (max-norm); its subtree is entered only then.
-    /// `threshold = 0` solves every column below a change. Returns the columns solved and
-    /// appends those whose value changed by more than `threshold` (or were refactored) to
-    /// `changed_out`.
-    pub fn back_substitute(
-        &mut self,
-        in_order: &[bool],
-        offset: &[usize],
-        y: &[f64],
-        x: &mut [f64],
-        threshold: f64,
-        changed_out: &mut Vec<usize>,
-    ) -> usize {
-        let mut stack: Vec<u32> = self.roots.iter().copied().collect();
-        let mut solved = 0;
-        let mut z = Vec::new();
-        let first_changed = changed_out.len();
-        while let Some(v) = stack.pop() {
-            let v = v as usize;
-            let column = &self.columns[v];
-            let refactored = in_order[v];
-            if !refactored && !column.rows.iter().any(|&(u, _)| self.changed[u as usize]) {
-                continue;
-            }
-            let d = self.dim[v];
-            let o = offset[v];
-            z.clear();
-            z.extend_from_slice(&y[o..o + d]);
-            for &(u, at) in &column.rows {
-                let du = self.dim[u as usize];
-                let ou = offset[u as usize];
-                let l_uv = &column.blocks[at as usize..at as usize + du * d];
-                dense::sub_mul_transpose_vector(&mut z, l_uv, &x[ou..ou + du], du, d);
-            }
-            dense::backward(&column.diagonal, &mut z, d);
-            solved += 1;
-            let moved = z
-                .iter()
-                .zip(&x[o..o + d])
-                .any(|(a, b)| (a - b).abs() > threshold);
-            x[o..o + d].copy_from_slice(&z);
-            if moved || refactored {
-                changed_out.push(v);
-            }
-            if moved {
-                self.changed[v] = true;
-            }
-            if moved || refactored {
-                stack.extend_from_slice(&self.children[v]);
-            }
-        }
-        for &v in &changed_out[first_changed..] {
-            self.changed[v] = false;
-        }
-        solved
-    }
 }
 
-#[path = "dense_tail.rs"]
-mod dense_tail;
+#[path = "front.rs"]
+mod front;
+
+#[path = "block_solve.rs"]
+mod block_solve;
 
 #[cfg(test)]
 #[path = "block_factor_tests.rs"]

@@ -1,7 +1,8 @@
 //! `BlockFactor::refactor` against a dense Cholesky: after every partial refactor (random
 //! touched variables, their ancestors, in a random order), `L Lᵀ` equals `H` in the factor's
 //! order, whether kept subtrees contribute through their columns or their update matrices, and
-//! whether the top of the refactored part is eliminated column by column or as a dense tail.
+//! whether a run of columns is eliminated column by column or as a dense front (the tail among
+//! them).
 
 use super::*;
 
@@ -178,17 +179,36 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
 
     assert!(
         factor.dense_columns() > 0,
-        "the first factorisation has a dense tail"
+        "the first factorisation has a dense front"
     );
     let dense_at_start = factor.dense_columns();
+    let reused = random_partial_refactors(&mut rng, &mut h, &mut factor, 60, true);
+    assert!(reused, "some refactor took a kept subtree's update matrix");
+    assert!(
+        factor.dense_columns() > dense_at_start,
+        "some partial refactor had a dense front"
+    );
+}
+
+/// `rounds` times: a change at one or two variables (a new coupling, or a diagonal one), then
+/// a refactor of the touched variables and their ancestors in a random order (`shuffled`) or in
+/// variable order, checked against the dense Cholesky. Returns whether some refactor took a kept subtree's update matrix.
+fn random_partial_refactors(
+    rng: &mut Rng,
+    h: &mut Sparse,
+    factor: &mut BlockFactor,
+    rounds: usize,
+    shuffled: bool,
+) -> bool {
+    let n = h.dims.len();
     let mut reused = false;
-    for _ in 0..60 {
+    for _ in 0..rounds {
         // A change at one or two variables (a new coupling, or a diagonal one), then the
         // touched variables and their ancestors in a random order.
         let u = rng.below(n);
         let v = if rng.below(2) == 0 { rng.below(n) } else { u };
         if u != v {
-            h.couple(&mut rng, u, v);
+            h.couple(rng, u, v);
         } else {
             h.blocks
                 .get_mut(&(u, u))
@@ -209,20 +229,54 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
         // New couplings may join columns that were in different subtrees: their ancestors
         // (in the new structure) are found by the refactor itself; every ancestor of the
         // touched variables in the old tree is in `affected`.
-        for i in (1..affected.len()).rev() {
-            affected.swap(i, rng.below(i + 1));
+        if shuffled {
+            for i in (1..affected.len()).rev() {
+                affected.swap(i, rng.below(i + 1));
+            }
+        } else {
+            affected.sort_unstable();
         }
-        refactor(&mut factor, &h, &affected);
+        refactor(factor, h, &affected);
         reused |= factor.kept_update_bytes() > 0;
-        let error = reconstruction_error(&factor, &h);
+        let error = reconstruction_error(factor, h);
         assert!(
             error < 1e-9,
             "L Lᵀ − H = {error:e} after refactoring {affected:?}"
         );
     }
-    assert!(reused, "some refactor took a kept subtree's update matrix");
+    reused
+}
+
+#[test]
+fn runs_of_a_clique_are_factored_as_dense_fronts() {
+    // A band of width 12 in natural order: each column reaches the next 12, so a run of
+    // columns forms a clique with the next band beyond it (a front with rows beyond it) all
+    // the way down, where a dense tail alone would take only the last dozen columns.
+    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let n = 72;
+    let dims: Vec<usize> = (0..n).map(|v| if v % 5 == 2 { 6 } else { 3 }).collect();
+    let mut h = Sparse {
+        dims: dims.clone(),
+        blocks: Default::default(),
+    };
+    for v in 0..n {
+        for u in v + 1..(v + 13).min(n) {
+            h.couple(&mut rng, u, v);
+        }
+    }
+    let mut factor = BlockFactor::default();
+    factor.grow(&dims);
+    refactor(&mut factor, &h, &(0..n).collect::<Vec<_>>());
+    assert!(reconstruction_error(&factor, &h) < 1e-9);
+    assert!(
+        factor.dense_columns() >= n - 12,
+        "{} of {n} columns in dense fronts",
+        factor.dense_columns()
+    );
+    let dense_at_start = factor.dense_columns();
+    random_partial_refactors(&mut rng, &mut h, &mut factor, 40, false);
     assert!(
         factor.dense_columns() > dense_at_start,
-        "some partial refactor had a dense tail"
+        "some partial refactor had a front"
     );
 }

@@ -16,7 +16,8 @@ pub struct UpdateReport {
     /// Columns of the factor eliminated again: the touched variables and their ancestors in
     /// the elimination tree, summed over passes.
     pub refactored_columns: usize,
-    /// Of those, the columns of the dense tail (the root clique, factored as one dense matrix).
+    /// Of those, the columns factored in dense fronts (runs that form a clique, the root clique
+    /// among them: see `block_factor::front`).
     pub dense_columns: usize,
     /// Untouched subtrees hanging off the refactored part (their columns were reused).
     pub reused_subtrees: usize,

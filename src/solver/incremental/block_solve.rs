@@ -1,0 +1,120 @@
+//! Solves with the kept factor: forward substitution of the refactored columns (from the
+//! per-row sums the kept columns leave) and back substitution from the roots down, into the
+//! subtrees whose separator moved.
+
+use super::{dense, BlockFactor};
+
+impl BlockFactor {
+    /// Before the columns of `order` are refactored: takes what they contributed to `partial`
+    /// out of it (see [`BlockFactor::forward`]), with their values and `y` as they still are.
+    pub fn withdraw(&self, order: &[usize], offset: &[usize], y: &[f64], partial: &mut [f64]) {
+        for &k in order {
+            let (dk, ok) = (self.dim[k], offset[k]);
+            let column = &self.columns[k];
+            for &(u, at) in &column.rows {
+                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
+                let l_uk = &column.blocks[at as usize..at as usize + du * dk];
+                dense::sub_mul_vector(&mut partial[ou..ou + du], l_uk, &y[ok..ok + dk], du, dk);
+            }
+        }
+    }
+
+    /// Forward substitution `L y = b` for the columns of `order` (in that order), whose
+    /// right-hand side `rhs(r, out)` writes; every other column keeps its `y` (it depends only
+    /// on its subtree). `y` and `offset` index scalars per variable.
+    ///
+    /// `partial` holds, per row u, `Σ_k L_uk y_k` over the columns k stored now: the kept
+    /// columns' part stays valid across updates (neither their blocks nor their `y` change), so
+    /// a refactored row takes it from there instead of walking every column that reaches it
+    /// (near the root, most of the map). [`BlockFactor::withdraw`] takes the refactored
+    /// columns' old part out first; this adds their new part as each is solved.
+    pub fn forward(
+        &self,
+        order: &[usize],
+        offset: &[usize],
+        y: &mut [f64],
+        partial: &mut [f64],
+        mut rhs: impl FnMut(usize, &mut [f64]),
+    ) {
+        let mut z = Vec::new();
+        let mut negated = Vec::new();
+        for &r in order {
+            let (d, o) = (self.dim[r], offset[r]);
+            z.clear();
+            z.resize(d, 0.0);
+            rhs(r, &mut z);
+            for (zi, p) in z.iter_mut().zip(&partial[o..o + d]) {
+                *zi -= p;
+            }
+            let column = &self.columns[r];
+            dense::forward(&column.diagonal, &mut z, d);
+            y[o..o + d].copy_from_slice(&z);
+            negated.clear();
+            negated.extend(z.iter().map(|v| -v));
+            for &(u, at) in &column.rows {
+                let (du, ou) = (self.dim[u as usize], offset[u as usize]);
+                let l_ur = &column.blocks[at as usize..at as usize + du * d];
+                dense::sub_mul_vector(&mut partial[ou..ou + du], l_ur, &negated, du, d);
+            }
+        }
+    }
+
+    /// Back substitution `Lᵀ x = y` from the roots down, into `x` (which holds the previous
+    /// solution). A column is solved again when it was refactored (`in_order`) or when one of
+    /// its rows changed by more than `threshold` (max-norm); its subtree is entered only then.
+    /// `threshold = 0` solves every column below a change. Returns the columns solved and
+    /// appends those whose value changed by more than `threshold` (or were refactored) to
+    /// `changed_out`.
+    pub fn back_substitute(
+        &mut self,
+        in_order: &[bool],
+        offset: &[usize],
+        y: &[f64],
+        x: &mut [f64],
+        threshold: f64,
+        changed_out: &mut Vec<usize>,
+    ) -> usize {
+        let mut stack: Vec<u32> = self.roots.iter().copied().collect();
+        let mut solved = 0;
+        let mut z = Vec::new();
+        let first_changed = changed_out.len();
+        while let Some(v) = stack.pop() {
+            let v = v as usize;
+            let column = &self.columns[v];
+            let refactored = in_order[v];
+            if !refactored && !column.rows.iter().any(|&(u, _)| self.changed[u as usize]) {
+                continue;
+            }
+            let d = self.dim[v];
+            let o = offset[v];
+            z.clear();
+            z.extend_from_slice(&y[o..o + d]);
+            for &(u, at) in &column.rows {
+                let du = self.dim[u as usize];
+                let ou = offset[u as usize];
+                let l_uv = &column.blocks[at as usize..at as usize + du * d];
+                dense::sub_mul_transpose_vector(&mut z, l_uv, &x[ou..ou + du], du, d);
+            }
+            dense::backward(&column.diagonal, &mut z, d);
+            solved += 1;
+            let moved = z
+                .iter()
+                .zip(&x[o..o + d])
+                .any(|(a, b)| (a - b).abs() > threshold);
+            x[o..o + d].copy_from_slice(&z);
+            if moved || refactored {
+                changed_out.push(v);
+            }
+            if moved {
+                self.changed[v] = true;
+            }
+            if moved || refactored {
+                stack.extend_from_slice(&self.children[v]);
+            }
+        }
+        for &v in &changed_out[first_changed..] {
+            self.changed[v] = false;
+        }
+        solved
+    }
+}
