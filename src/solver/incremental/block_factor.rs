@@ -170,15 +170,15 @@ impl BlockFactor {
     /// The untouched columns with a block in a row of `affected` (marked in `in_affected`):
     /// the roots of the subtrees an update keeps, and any deeper column reaching that high.
     pub fn reaching(&self, affected: &[usize], in_affected: &[bool]) -> Vec<usize> {
-        let mut seen = BTreeSet::new();
-        for &r in affected {
-            for &(k, _) in &self.row_columns[r] {
-                if !in_affected[k as usize] {
-                    seen.insert(k as usize);
-                }
-            }
-        }
-        seen.into_iter().collect()
+        let mut seen: Vec<usize> = affected
+            .iter()
+            .flat_map(|&r| &self.row_columns[r])
+            .map(|&(k, _)| k as usize)
+            .filter(|&k| !in_affected[k])
+            .collect();
+        seen.sort_unstable();
+        seen.dedup();
+        seen
     }
 
     /// The rows of column `k` (variables).

@@ -59,18 +59,51 @@ fn sub_mul_transpose_any(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usi
     }
 }
 
-/// `y (m) −= a (m×k) · x (k)`.
+/// `y (m) −= a (m×k) · x (k)`; the square blocks of 2D and 3D poses get constant lengths (the
+/// solves walk every block of the columns they visit).
 #[inline]
 pub fn sub_mul_vector(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
+    match (m, k) {
+        (3, 3) => sub_mul_vector_fixed::<3, 3>(y, a, x),
+        (6, 6) => sub_mul_vector_fixed::<6, 6>(y, a, x),
+        _ => sub_mul_vector_any(y, a, x, m, k),
+    }
+}
+
+#[inline(always)]
+fn sub_mul_vector_fixed<const M: usize, const K: usize>(y: &mut [f64], a: &[f64], x: &[f64]) {
+    sub_mul_vector_any(&mut y[..M], &a[..M * K], &x[..K], M, K)
+}
+
+#[inline(always)]
+fn sub_mul_vector_any(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
     for (i, yi) in y.iter_mut().enumerate().take(m) {
         let ai = &a[i * k..(i + 1) * k];
         *yi -= ai.iter().zip(x).map(|(p, q)| p * q).sum::<f64>();
     }
 }
 
-/// `y (k) −= aᵀ · x` with `a` m×k.
+/// `y (k) −= aᵀ · x` with `a` m×k (constant lengths as in [`sub_mul_vector`]).
 #[inline]
 pub fn sub_mul_transpose_vector(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
+    match (m, k) {
+        (3, 3) => sub_mul_transpose_vector_fixed::<3, 3>(y, a, x),
+        (6, 6) => sub_mul_transpose_vector_fixed::<6, 6>(y, a, x),
+        _ => sub_mul_transpose_vector_any(y, a, x, m, k),
+    }
+}
+
+#[inline(always)]
+fn sub_mul_transpose_vector_fixed<const M: usize, const K: usize>(
+    y: &mut [f64],
+    a: &[f64],
+    x: &[f64],
+) {
+    sub_mul_transpose_vector_any(&mut y[..K], &a[..M * K], &x[..M], M, K)
+}
+
+#[inline(always)]
+fn sub_mul_transpose_vector_any(y: &mut [f64], a: &[f64], x: &[f64], m: usize, k: usize) {
     for (i, &xi) in x.iter().enumerate().take(m) {
         let ai = &a[i * k..(i + 1) * k];
         for (yj, &aij) in y.iter_mut().zip(ai) {

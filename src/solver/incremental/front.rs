@@ -106,11 +106,13 @@ impl FrontUpdates {
             let front = &mut self.fronts[f as usize];
             let (q, n) = (q as usize, front.offsets[front.rows.len()]);
             let (oq, d) = (front.offsets[q], dims[front.rows[q] as usize]);
-            let u_at = |row: usize, column: usize| front.values[column * n + row];
+            // Column j of the row's columns of U, from row `from` on (contiguous).
+            let values = &front.values;
+            let u_column = |j: usize, from: usize| &values[(oq + j) * n + from..(oq + j + 1) * n];
             let diagonal = acc.diagonal_mut();
-            for i in 0..d {
-                for j in 0..=i {
-                    diagonal[i * d + j] -= u_at(oq + i, oq + j);
+            for j in 0..d {
+                for (i, v) in u_column(j, oq + j).iter().take(d - j).enumerate() {
+                    diagonal[(i + j) * d + j] -= v;
                 }
             }
             // Later rows of S come later in it (rank order): below the diagonal of U.
@@ -118,9 +120,9 @@ impl FrontUpdates {
                 let (u, op) = (front.rows[p] as usize, front.offsets[p]);
                 let du = dims[u];
                 let block = acc.block_mut(u, du);
-                for i in 0..du {
-                    for j in 0..d {
-                        block[i * d + j] -= u_at(op + i, oq + j);
+                for j in 0..d {
+                    for (i, v) in u_column(j, op).iter().take(du).enumerate() {
+                        block[i * d + j] -= v;
                     }
                 }
             }
