@@ -27,9 +27,10 @@ const NONE: u32 = u32::MAX;
 const ZEROS: [f64; 15 * 15] = [0.0; 15 * 15];
 
 /// Where the update matrices of kept subtrees apply, `(rank of a refactored column, subtree
-/// root)` sorted by rank, and the next one to apply.
+/// root, position of that column among the root's rows)` sorted by rank, and the next one to
+/// apply.
 struct KeptApplications {
-    list: Vec<(u64, u32)>,
+    list: Vec<(u64, u32, u32)>,
     next: usize,
 }
 
@@ -273,13 +274,15 @@ impl BlockFactor {
         assemble(r, &self.rank, acc);
         self.subtract_updates(r, acc);
         let rank_r = self.rank[r];
-        while let Some(&(rank, root)) = kept_at.list.get(kept_at.next) {
+        while let Some(&(rank, root, at)) = kept_at.list.get(kept_at.next) {
             if rank != rank_r {
                 break;
             }
             let rank_of = &self.rank;
+            let later = |u| rank_of[u] > rank_r;
+            let (root, at) = (root as usize, at as usize);
             self.kept
-                .subtract_from_column(root as usize, r, &self.dim, acc, |u| rank_of[u] > rank_r);
+                .subtract_from_column(root, at, &self.dim, acc, later);
             kept_at.next += 1;
         }
         self.fronts.subtract_due(rank_r, &self.dim, acc);
@@ -365,11 +368,14 @@ impl BlockFactor {
                 self.kept.compute(root, rows, views, dim, &mut self.slot);
             }
             kept_members.extend_from_slice(group);
+            // A kept update's rows are its root's, in the same order (the root is not
+            // refactored while its update is kept).
             applications.extend(
                 self.columns[root]
                     .rows
                     .iter()
-                    .map(|&(u, _)| (self.rank[u as usize], root as u32)),
+                    .enumerate()
+                    .map(|(at, &(u, _))| (self.rank[u as usize], root as u32, at as u32)),
             );
         }
         applications.sort_unstable();

@@ -180,12 +180,13 @@ impl SubtreeUpdates {
         }
     }
 
-    /// Adds `root`'s `−U` to column `r` being eliminated (in `acc`): the diagonal block, and
-    /// block `(u, r)` for every other row `u` of `root` that `later(u)` (eliminated after `r`).
+    /// Adds `root`'s `−U` to the column being eliminated (in `acc`), the root's row at position
+    /// `p`: the diagonal block, and block `(u, r)` for every other row `u` of `root` that
+    /// `later(u)` (eliminated after it).
     pub fn subtract_from_column(
         &mut self,
         root: usize,
-        r: usize,
+        p: usize,
         dims: &[usize],
         acc: &mut Accumulator,
         later: impl Fn(usize) -> bool,
@@ -196,12 +197,7 @@ impl SubtreeUpdates {
             .get_mut(&(root as u32))
             .expect("a kept update is applied only after it was computed");
         update.last_used = clock;
-        let p = update
-            .rows
-            .iter()
-            .position(|&u| u as usize == r)
-            .expect("r is a row of the kept subtree's root");
-        let d = dims[r];
+        let d = dims[update.rows[p] as usize];
         let at = update.block(p, p);
         let diagonal = &update.values[at..at + d * d];
         for (out, v) in acc.diagonal_mut().iter_mut().zip(diagonal) {
