@@ -181,7 +181,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
         relinearize_threshold: 1e-6,
         wildfire_threshold: 0.0,
         max_passes: 20,
-        relinearize_columns: usize::MAX,
+        relinearize_scalars: usize::MAX,
     };
     let report = engine.update(&mut problem, &polish).unwrap();
     let polished = problem.chi2();
@@ -192,7 +192,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
     assert!((report.model_chi2 - polished).abs() / polished < 1e-6);
 }
 
-/// A polish in steps (a column budget per update, as an idle session runs it): each step
+/// A polish in steps (a budget of scalar columns per update, as an idle session runs it): each step
 /// relinearises only the largest steps that fit, refactors far less than the map, and the steps
 /// together end at the batch optimum, as one unbounded polish does.
 #[test]
@@ -208,19 +208,20 @@ fn polish_in_bounded_steps_reaches_the_batch_optimum() {
         relinearize_threshold: 0.05,
         wildfire_threshold: 1e-5,
         max_passes: 1,
-        relinearize_columns: usize::MAX,
+        relinearize_scalars: usize::MAX,
     };
     let by_later_end = edges_by_later_end(poses, &edges);
     for k in 1..poses {
         stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &stream);
     }
     let optimum = batch_optimum(poses, &edges, &truth);
-    let budget = 96;
+    // 96 poses' columns (3 scalars each).
+    let budget = 96 * 3;
     let step = UpdateParams {
         relinearize_threshold: 1e-6,
         wildfire_threshold: 0.0,
         max_passes: 1,
-        relinearize_columns: budget,
+        relinearize_scalars: budget,
     };
     let mut reports = Vec::new();
     loop {
@@ -281,7 +282,7 @@ fn threshold_sweep() {
             relinearize_threshold: relin,
             wildfire_threshold: 1e-7,
             max_passes: passes,
-            relinearize_columns: usize::MAX,
+            relinearize_scalars: usize::MAX,
         };
         let by_later_end = edges_by_later_end(poses, &edges);
         let (mut columns, mut worst, start) = (0, 0.0f64, std::time::Instant::now());
@@ -308,7 +309,7 @@ fn threshold_sweep() {
                     relinearize_threshold: 1e-4,
                     wildfire_threshold: 0.0,
                     max_passes: 10,
-                    relinearize_columns: usize::MAX,
+                    relinearize_scalars: usize::MAX,
                 },
             )
             .unwrap();

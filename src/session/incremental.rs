@@ -46,7 +46,7 @@ const STREAM: UpdateParams = UpdateParams {
     relinearize_threshold: 0.05,
     wildfire_threshold: 1e-5,
     max_passes: 1,
-    relinearize_columns: usize::MAX,
+    relinearize_scalars: usize::MAX,
 };
 /// A polish, or a solve the client asked for: steps below this are the optimum.
 const CONVERGED_STEP: f64 = 1e-4;
@@ -59,15 +59,16 @@ const POLISH: UpdateParams = UpdateParams {
     relinearize_threshold: CONVERGED_STEP,
     wildfire_threshold: 0.0,
     max_passes: 1,
-    relinearize_columns: FIRST_POLISH_STEP_COLUMNS,
+    relinearize_scalars: FIRST_POLISH_STEP_SCALARS,
 };
-/// Columns of the factor the first polish step after an update may refactor for its
-/// relinearisation: about what a large streamed update refactors (a loop closure at 10k poses),
-/// so that a batch arriving during it waits about one update more. Each further step of the
-/// same idle spell may take twice as many: the session has been idle at least as long as the
-/// steps before took, so a batch waits behind a step about as long as the session had been
-/// idle, and a long idle spell converges in a few wide steps rather than many narrow ones.
-const FIRST_POLISH_STEP_COLUMNS: usize = 2048;
+/// Scalar columns of the factor the first polish step after an update may refactor for its
+/// relinearisation (2048 columns of 2D poses, 1024 of 3D poses): about what a large streamed
+/// update refactors (a loop closure at 10k 2D poses), so that a batch arriving during it waits
+/// about one update more. Each further step of the same idle spell may take twice as many: the
+/// session has been idle at least as long as the steps before took, so a batch waits behind a
+/// step about as long as the session had been idle, and a long idle spell converges in a few
+/// wide steps rather than many narrow ones.
+const FIRST_POLISH_STEP_SCALARS: usize = 2048 * 3;
 
 /// What a session keeps between re-solves, next to its problem: for every variable (dense
 /// index) the factors (indices) that touch it, and the elimination order of full re-solves.
@@ -153,8 +154,8 @@ impl RegionIndex {
         let params = if tight {
             self.polish_steps += 1;
             UpdateParams {
-                relinearize_columns: POLISH
-                    .relinearize_columns
+                relinearize_scalars: POLISH
+                    .relinearize_scalars
                     .saturating_mul(1 << (self.polish_steps - 1).min(20)),
                 ..POLISH
             }

@@ -189,6 +189,7 @@ impl Session {
         let mut st = self.lock();
         st.solving = false;
         self.cancel.store(false, Ordering::SeqCst);
+        let mut polish = false;
         match result {
             Ok(resolved) => {
                 let summary = resolved.summary;
@@ -208,10 +209,11 @@ impl Session {
                     st.solve_carried = std::time::Duration::ZERO;
                 }
                 // An engine update that left steps above the threshold polishes once the
-                // session is idle, unless the client decides when solves run.
-                if index.polish && !matches!(st.auto, crate::api::wire::AutoOptimize::Manual {}) {
-                    self.polish_when_idle(st.sequence);
-                }
+                // session is idle, unless the client decides when solves run: counted from
+                // when this solve is published and handed back (below), so the time a large
+                // update spends there does not count as idle.
+                polish =
+                    index.polish && !matches!(st.auto, crate::api::wire::AutoOptimize::Manual {});
                 if timed_out {
                     st.converged = false;
                     st.last_error = Some(format!(
@@ -259,6 +261,9 @@ impl Session {
         st.solved_sequence = st.solved_sequence.max(sequence);
         st.region_debt = debt;
         self.hand_back(&mut st, problem, index);
+        if polish {
+            self.polish_when_idle(st.sequence);
+        }
         st.scheduled = false;
         self.solved.send_replace(st.solved_sequence);
         self.completed.send_modify(|n| *n = (*n).max(solve_number));

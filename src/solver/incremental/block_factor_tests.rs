@@ -192,7 +192,8 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
 
 /// `rounds` times: a change at one or two variables (a new coupling, or a diagonal one), then
 /// a refactor of the touched variables and their ancestors in a random order (`shuffled`) or in
-/// variable order, checked against the dense Cholesky. Returns whether some refactor took a kept subtree's update matrix.
+/// variable order, checked against the dense Cholesky. Returns whether some refactor took a
+/// kept subtree's update matrix.
 fn random_partial_refactors(
     rng: &mut Rng,
     h: &mut Sparse,

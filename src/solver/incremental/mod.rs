@@ -57,10 +57,12 @@ pub struct UpdateParams {
     /// Relinearise-and-solve rounds at most.
     pub max_passes: usize,
     /// A pass relinearises, largest steps first, only as many variables as fit in about this
-    /// many columns of the factor (their elimination-tree paths to the root); `usize::MAX`
-    /// takes every variable above the threshold. It bounds what one update costs, so that an
-    /// idle session's polish runs in steps: a streamed update waits behind one step at most.
-    pub relinearize_columns: usize,
+    /// many scalar columns of the factor (their elimination-tree paths to the root, each column
+    /// counting its variable's dimension: a 3D pose's column costs more to refactor than a 2D
+    /// pose's); `usize::MAX` takes every variable above the threshold. It bounds what one update
+    /// costs, so that an idle session's polish runs in steps: a streamed update waits behind
+    /// one step at most.
+    pub relinearize_scalars: usize,
 }
 
 impl Default for UpdateParams {
@@ -69,7 +71,7 @@ impl Default for UpdateParams {
             relinearize_threshold: 0.01,
             wildfire_threshold: 1e-7,
             max_passes: 4,
-            relinearize_columns: usize::MAX,
+            relinearize_scalars: usize::MAX,
         }
     }
 }
@@ -241,7 +243,7 @@ impl IncrementalEngine {
     }
 
     /// Moves θ of the free variables whose step exceeds the threshold (within the column
-    /// budget, see [`UpdateParams::relinearize_columns`]) to `θ ⊕ Δ` and linearises their
+    /// budget, see [`UpdateParams::relinearize_scalars`]) to `θ ⊕ Δ` and linearises their
     /// factors again; adds their variables to `touched`.
     fn relinearize(
         &mut self,
@@ -260,8 +262,8 @@ impl IncrementalEngine {
                 (step > params.relinearize_threshold).then_some((v, step))
             })
             .collect();
-        if params.relinearize_columns < self.columns {
-            self.within_budget(problem, &mut moved, params.relinearize_columns);
+        if params.relinearize_scalars < self.delta.len() {
+            self.within_budget(problem, &mut moved, params.relinearize_scalars);
         }
         let mut factors = Vec::new();
         for &(v, _) in &moved {
@@ -290,12 +292,13 @@ impl IncrementalEngine {
     }
 
     /// Keeps of `moved` (variable, step) the largest steps whose refactoring fits in `budget`
-    /// columns (the first always), in that order. Relinearising v refactors the paths to the
+    /// scalar columns (the first always), in that order. Relinearising v refactors the paths to the
     /// root of the elimination tree from v and from every variable its factors touch.
     fn within_budget(&mut self, problem: &Problem, moved: &mut Vec<(usize, f64)>, budget: usize) {
         moved.sort_unstable_by(|a, b| b.1.total_cmp(&a.1));
         let entries = problem.factors();
         let (mut marked, mut fresh) = (Vec::new(), Vec::new());
+        let mut marked_scalars = 0;
         moved.retain(|&(v, _)| {
             fresh.clear();
             let touched = self.by_variable[v]
@@ -309,9 +312,11 @@ impl IncrementalEngine {
                     u = self.factor.parent(c);
                 }
             }
-            let fits = marked.is_empty() || marked.len() + fresh.len() <= budget;
+            let fresh_scalars: usize = fresh.iter().map(|&c| self.dims[c]).sum();
+            let fits = marked.is_empty() || marked_scalars + fresh_scalars <= budget;
             if fits {
                 marked.extend_from_slice(&fresh);
+                marked_scalars += fresh_scalars;
             } else {
                 for &c in &fresh {
                     self.mark[c] = false;
