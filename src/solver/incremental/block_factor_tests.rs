@@ -153,6 +153,15 @@ fn reconstruction_error(factor: &BlockFactor, h: &Sparse) -> f64 {
     worst
 }
 
+/// `h` factored from scratch in variable order, checked against the dense Cholesky.
+fn factored_from_scratch(h: &Sparse) -> BlockFactor {
+    let mut factor = BlockFactor::default();
+    factor.grow(&h.dims);
+    refactor(&mut factor, h, &(0..h.dims.len()).collect::<Vec<_>>());
+    assert!(reconstruction_error(&factor, h) < 1e-9);
+    factor
+}
+
 #[test]
 fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
     let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
@@ -160,7 +169,7 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
     // Poses (3) with a few landmarks (2) among them: blocks of two sizes.
     let dims: Vec<usize> = (0..n).map(|v| if v % 7 == 3 { 2 } else { 3 }).collect();
     let mut h = Sparse {
-        dims: dims.clone(),
+        dims,
         blocks: Default::default(),
     };
     for v in 1..n {
@@ -172,10 +181,7 @@ fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
             h.couple(&mut rng, u, v);
         }
     }
-    let mut factor = BlockFactor::default();
-    factor.grow(&dims);
-    refactor(&mut factor, &h, &(0..n).collect::<Vec<_>>());
-    assert!(reconstruction_error(&factor, &h) < 1e-9);
+    let mut factor = factored_from_scratch(&h);
 
     assert!(
         factor.dense_columns() > 0,
@@ -257,7 +263,7 @@ fn runs_of_a_clique_are_factored_as_dense_fronts() {
     let n = 72;
     let dims: Vec<usize> = (0..n).map(|v| if v % 5 == 2 { 6 } else { 3 }).collect();
     let mut h = Sparse {
-        dims: dims.clone(),
+        dims,
         blocks: Default::default(),
     };
     for v in 0..n {
@@ -265,10 +271,7 @@ fn runs_of_a_clique_are_factored_as_dense_fronts() {
             h.couple(&mut rng, u, v);
         }
     }
-    let mut factor = BlockFactor::default();
-    factor.grow(&dims);
-    refactor(&mut factor, &h, &(0..n).collect::<Vec<_>>());
-    assert!(reconstruction_error(&factor, &h) < 1e-9);
+    let mut factor = factored_from_scratch(&h);
     assert!(
         factor.dense_columns() >= n - 12,
         "{} of {n} columns in dense fronts",
