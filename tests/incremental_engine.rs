@@ -192,9 +192,9 @@ fn streamed_graph_reaches_the_batch_optimum() {
     assert!((report.model_chi2 - polished).abs() / polished < 1e-6);
 }
 
-/// A polish in steps (a budget of scalar columns per update, as an idle session runs it): each step
-/// relinearises only the largest steps that fit, refactors far less than the map, and the steps
-/// together end at the batch optimum, as one unbounded polish does.
+/// A polish in steps (a budget of scalar columns per update, as an idle session runs it): each
+/// step relinearises only the largest steps that fit, refactors far less than the map, and the
+/// steps together end at the batch optimum, as one unbounded polish does.
 #[test]
 fn polish_in_bounded_steps_reaches_the_batch_optimum() {
     let poses = 1200;

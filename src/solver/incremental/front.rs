@@ -209,13 +209,15 @@ impl BlockFactor {
             acc.finish();
         }
         beyond.sort_unstable_by_key(|&(u, _)| self.rank[u as usize]);
-        let mut offsets = Vec::with_capacity(w + beyond.len() + 1);
-        let mut n = 0;
-        for u in front
+        // The panel's rows: the front, then S in rank order.
+        let panel_rows: Vec<usize> = front
             .iter()
             .copied()
             .chain(beyond.iter().map(|&(u, _)| u as usize))
-        {
+            .collect();
+        let mut offsets = Vec::with_capacity(panel_rows.len() + 1);
+        let mut n = 0;
+        for &u in &panel_rows {
             self.slot[u] = offsets.len() as u32;
             offsets.push(n);
             n += self.dim[u];
@@ -245,11 +247,7 @@ impl BlockFactor {
                 }
             }
         }
-        for u in front
-            .iter()
-            .copied()
-            .chain(beyond.iter().map(|&(u, _)| u as usize))
-        {
+        for &u in &panel_rows {
             self.slot[u] = NONE;
         }
         let update = match factor_front(&mut f, n, nj) {

@@ -242,9 +242,9 @@ impl IncrementalEngine {
         Ok(report)
     }
 
-    /// Moves θ of the free variables whose step exceeds the threshold (within the column
-    /// budget, see [`UpdateParams::relinearize_scalars`]) to `θ ⊕ Δ` and linearises their
-    /// factors again; adds their variables to `touched`.
+    /// Moves θ of the free variables whose step exceeds the threshold (within the budget, see
+    /// [`UpdateParams::relinearize_scalars`]) to `θ ⊕ Δ` and linearises their factors again;
+    /// adds their variables to `touched`.
     fn relinearize(
         &mut self,
         problem: &Problem,
@@ -292,8 +292,8 @@ impl IncrementalEngine {
     }
 
     /// Keeps of `moved` (variable, step) the largest steps whose refactoring fits in `budget`
-    /// scalar columns (the first always), in that order. Relinearising v refactors the paths to the
-    /// root of the elimination tree from v and from every variable its factors touch.
+    /// scalar columns (the first always), in that order. Relinearising v refactors the paths to
+    /// the root of the elimination tree from v and from every variable its factors touch.
     fn within_budget(&mut self, problem: &Problem, moved: &mut Vec<(usize, f64)>, budget: usize) {
         moved.sort_unstable_by(|a, b| b.1.total_cmp(&a.1));
         let entries = problem.factors();
