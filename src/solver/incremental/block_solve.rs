@@ -64,7 +64,10 @@ impl BlockFactor {
     /// its rows changed by more than `threshold` (max-norm); its subtree is entered only then.
     /// `threshold = 0` solves every column below a change. Returns the columns solved and
     /// appends those whose value changed by more than `threshold` (or were refactored) to
-    /// `changed_out`.
+    /// `changed_out`. Only those are written to `x`: a column that moved less keeps the value
+    /// its subtree was solved with, so small moves add up until they pass the threshold and
+    /// reach the subtree, instead of each being dropped (the streamed estimate then drifted
+    /// from the solution: 10k stream, 4.5e-4 relative chi2 above the optimum against 1.8e-4).
     pub fn back_substitute(
         &mut self,
         in_order: &[bool],
@@ -101,8 +104,8 @@ impl BlockFactor {
                 .iter()
                 .zip(&x[o..o + d])
                 .any(|(a, b)| (a - b).abs() > threshold);
-            x[o..o + d].copy_from_slice(&z);
             if moved || refactored {
+                x[o..o + d].copy_from_slice(&z);
                 changed_out.push(v);
             }
             if moved {
