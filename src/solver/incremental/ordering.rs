@@ -14,7 +14,7 @@ use crate::solver::structure::BlockOrdering;
 
 /// Refactored parts of at least this many variables may be ordered by nested dissection
 /// (METIS) instead of AMD; smaller ones are cheap to refactor whatever their order.
-const NESTED_DISSECTION_FROM: usize = 256;
+const NESTED_DISSECTION_FROM: usize = 128;
 
 /// Nested dissection is tried only where AMD's order needs more factorisation flops per
 /// variable than this, and kept only where it needs fewer flops than AMD's. METIS costs about
@@ -22,7 +22,10 @@ const NESTED_DISSECTION_FROM: usize = 256;
 /// factorisation; above this its cost is a few percent of the refactor it may shrink, below
 /// it the refactor is cheap anyway (the 2D acceptance files stay below 16k; sphere2500's 6-dim
 /// parts are at 340k–700k).
-const NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE: f64 = 1e5;
+/// Since the runs of a clique are factored as dense fronts, a flop costs less time, and the
+/// trial pays from lower down: with 128 variables and 3e4 flops per variable (was 256 and 1e5)
+/// the 10k stream's factorisation took 27–30 s instead of 41–43 s, for ~1 s more ordering.
+const NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE: f64 = 3e4;
 
 /// `affected` in the order to eliminate them. `neighbours(v, out)` lists the affected
 /// variables sharing a factor with `v`; `cliques` are groups of affected variables that fill
