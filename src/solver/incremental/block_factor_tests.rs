@@ -2,7 +2,7 @@
 //! touched variables, their ancestors, in a random order), `L Lᵀ` equals `H` in the factor's
 //! order, whether kept subtrees contribute through their columns or their update matrices, and
 //! whether a run of columns is eliminated column by column or as a dense front (the tail among
-//! them).
+//! them). And the wildfire back substitution against a full one.
 
 use super::*;
 
@@ -282,5 +282,81 @@ fn runs_of_a_clique_are_factored_as_dense_fronts() {
     assert!(
         factor.dense_columns() > dense_at_start,
         "some partial refactor had a front"
+    );
+}
+
+/// `Lᵀ x = y` solved in full (every column, threshold 0) from zero.
+fn solved_in_full(factor: &mut BlockFactor, offset: &[usize], y: &[f64]) -> Vec<f64> {
+    let all = vec![true; offset.len()];
+    let (mut x, mut propagated) = (vec![0.0; y.len()], vec![0.0; y.len()]);
+    factor.back_substitute(
+        &all,
+        offset,
+        y,
+        &mut x,
+        &mut propagated,
+        0.0,
+        &mut Vec::new(),
+    );
+    x
+}
+
+#[test]
+fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
+    // A chain 0-1-…-5 of 3-dim variables factored in order: 5 is the root and every other
+    // column's only row is its parent. Each update refactors the root alone and moves its
+    // solution by less than the threshold; over many updates the moves add up far past it.
+    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let n = 6;
+    let mut h = Sparse {
+        dims: vec![3; n],
+        blocks: Default::default(),
+    };
+    for v in 0..n - 1 {
+        h.couple(&mut rng, v, v + 1);
+        // Coupled strongly (still diagonally dominant), so a child follows its parent's moves.
+        for x in h.blocks.get_mut(&(v + 1, v)).expect("coupled") {
+            *x *= 2.5;
+        }
+    }
+    let mut factor = factored_from_scratch(&h);
+    let offset: Vec<usize> = (0..n).map(|v| 3 * v).collect();
+    let mut y: Vec<f64> = (0..3 * n).map(|_| rng.uniform()).collect();
+    let mut x = solved_in_full(&mut factor, &offset, &y);
+    let mut propagated = x.clone();
+    let threshold = 1e-3;
+    let root = 3 * (n - 1)..3 * n;
+    let mut root_only = vec![false; n];
+    root_only[n - 1] = true;
+    let start = x.clone();
+    let mut worst_error = 0.0f64;
+    for _ in 0..1000 {
+        let before = solved_in_full(&mut factor, &offset, &y);
+        for r in root.clone() {
+            y[r] += 2e-4;
+        }
+        let exact = solved_in_full(&mut factor, &offset, &y);
+        let root_move = root.clone().map(|r| (exact[r] - before[r]).abs());
+        assert!(root_move.fold(0.0, f64::max) < threshold);
+        factor.back_substitute(
+            &root_only,
+            &offset,
+            &y,
+            &mut x,
+            &mut propagated,
+            threshold,
+            &mut Vec::new(),
+        );
+        let error = x.iter().zip(&exact).map(|(a, b)| (a - b).abs());
+        worst_error = worst_error.max(error.fold(0.0, f64::max));
+    }
+    let exact = solved_in_full(&mut factor, &offset, &y);
+    let drift = exact.iter().zip(&start).map(|(a, b)| (a - b).abs());
+    let drift = drift.fold(0.0, f64::max);
+    assert!(drift > 10.0 * threshold, "the moves add up: {drift}");
+    assert!(
+        worst_error < 2.0 * threshold,
+        "the subtree follows its root within the threshold: off by {worst_error}, the \
+         solution drifted {drift}"
     );
 }

@@ -86,6 +86,9 @@ pub struct IncrementalEngine {
     offset: Vec<usize>,
     dims: Vec<usize>,
     delta: Vec<f64>,
+    /// Per scalar of `delta`, the value the column's subtree was last solved against (see
+    /// `BlockFactor::back_substitute`).
+    propagated: Vec<f64>,
     y: Vec<f64>,
     /// Per row, what the stored columns contribute to its forward substitution
     /// (`BlockFactor::forward`).
@@ -124,7 +127,7 @@ impl IncrementalEngine {
     /// Memory the engine holds, from counts it keeps (O(1)): the factor's values and block
     /// indices, the linearised factors, the linearisation point and the solution vectors.
     pub fn memory_bytes(&self) -> usize {
-        let variables = self.theta.len() * VARIABLE_OVERHEAD + 24 * self.delta.len();
+        let variables = self.theta.len() * VARIABLE_OVERHEAD + 32 * self.delta.len();
         let factor =
             8 * self.factor.nnz() + 8 * self.jacobian_blocks + self.factor.kept_update_bytes();
         variables + factor + self.linearized_bytes
@@ -175,6 +178,7 @@ impl IncrementalEngine {
             self.offset.push(self.delta.len());
             self.dims.push(d);
             self.delta.resize(self.delta.len() + d, 0.0);
+            self.propagated.resize(self.delta.len(), 0.0);
             self.y.resize(self.y.len() + d, 0.0);
             self.partial.resize(self.partial.len() + d, 0.0);
             self.by_variable.push(Vec::new());
@@ -273,6 +277,7 @@ impl IncrementalEngine {
             // block in v's row (such a column's subtree would hold one of v's factors, all of
             // which are linearised again here), so nothing solved earlier depends on v's Δ.
             self.delta[o..o + d].fill(0.0);
+            self.propagated[o..o + d].fill(0.0);
             report.relinearized_variables += 1;
             factors.extend(self.by_variable[v].iter().map(|&f| f as usize));
         }
@@ -456,6 +461,7 @@ impl IncrementalEngine {
             &self.offset,
             &self.y,
             &mut self.delta,
+            &mut self.propagated,
             params.wildfire_threshold,
             changed,
         );
