@@ -500,7 +500,7 @@ impl BlockFactor {
 mod front;
 
 #[path = "block_solve.rs"]
-mod block_solve;
+pub(super) mod block_solve;
 
 #[cfg(test)]
 #[path = "block_factor_tests.rs"]

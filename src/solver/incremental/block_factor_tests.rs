@@ -4,6 +4,7 @@
 //! whether a run of columns is eliminated column by column or as a dense front (the tail among
 //! them). And the wildfire back substitution against a full one.
 
+use super::block_solve::Solution;
 use super::*;
 
 /// A small deterministic generator (xorshift), so a failure reproduces.
@@ -293,8 +294,10 @@ fn solved_in_full(factor: &mut BlockFactor, offset: &[usize], y: &[f64]) -> Vec<
         &all,
         offset,
         y,
-        &mut x,
-        &mut propagated,
+        Solution {
+            x: &mut x,
+            propagated: &mut propagated,
+        },
         0.0,
         &mut Vec::new(),
     );
@@ -342,8 +345,10 @@ fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
             &root_only,
             &offset,
             &y,
-            &mut x,
-            &mut propagated,
+            Solution {
+                x: &mut x,
+                propagated: &mut propagated,
+            },
             threshold,
             &mut Vec::new(),
         );

@@ -4,6 +4,13 @@
 
 use super::{dense, BlockFactor};
 
+/// What back substitution writes, per scalar: the solution `x` of `Lᵀ x = y`, and the value
+/// each column's subtree was last solved against (`propagated`).
+pub struct Solution<'a> {
+    pub x: &'a mut [f64],
+    pub propagated: &'a mut [f64],
+}
+
 impl BlockFactor {
     /// Before the columns of `order` are refactored: takes what they contributed to `partial`
     /// out of it (see [`BlockFactor::forward`]), with their values and `y` as they still are.
@@ -59,8 +66,8 @@ impl BlockFactor {
         }
     }
 
-    /// Back substitution `Lᵀ x = y` from the roots down, into `x` (which holds the previous
-    /// solution). A column is solved again when it was refactored (`in_order`) or when one of
+    /// Back substitution `Lᵀ x = y` from the roots down, into `solution.x` (which holds the
+    /// previous solution). A column is solved again when it was refactored (`in_order`) or when one of
     /// its rows moved by more than `threshold` (max-norm); its subtree is entered only then.
     /// `threshold = 0` solves every column below a change. Returns the columns solved and
     /// appends those written to `x` (refactored, or moved) to `changed_out`.
@@ -76,11 +83,11 @@ impl BlockFactor {
         in_order: &[bool],
         offset: &[usize],
         y: &[f64],
-        x: &mut [f64],
-        propagated: &mut [f64],
+        solution: Solution<'_>,
         threshold: f64,
         changed_out: &mut Vec<usize>,
     ) -> usize {
+        let Solution { x, propagated } = solution;
         let mut stack: Vec<u32> = self.roots.iter().copied().collect();
         let mut solved = 0;
         let mut z = Vec::new();

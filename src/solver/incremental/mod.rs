@@ -31,6 +31,7 @@ mod summary;
 
 use std::time::Instant;
 
+use block_factor::block_solve::Solution;
 use block_factor::{Accumulator, BlockFactor};
 use linearized::{linearize_factor, Linearized};
 pub use report::UpdateReport;
@@ -460,8 +461,10 @@ impl IncrementalEngine {
             &self.mark,
             &self.offset,
             &self.y,
-            &mut self.delta,
-            &mut self.propagated,
+            Solution {
+                x: &mut self.delta,
+                propagated: &mut self.propagated,
+            },
             params.wildfire_threshold,
             changed,
         );
