@@ -67,10 +67,10 @@ impl BlockFactor {
     }
 
     /// Back substitution `Lᵀ x = y` from the roots down, into `solution.x` (which holds the
-    /// previous solution). A column is solved again when it was refactored (`in_order`) or when one of
-    /// its rows moved by more than `threshold` (max-norm); its subtree is entered only then.
-    /// `threshold = 0` solves every column below a change. Returns the columns solved and
-    /// appends those written to `x` (refactored, or moved) to `changed_out`.
+    /// previous solution). A column is solved again when it was refactored (`in_order`) or
+    /// when one of its rows moved by more than `threshold` (max-norm); its subtree is entered
+    /// only then. `threshold = 0` solves every column below a change. Returns the columns
+    /// solved and appends those written to `x` (refactored, or moved) to `changed_out`.
     ///
     /// A column *moved* when its solution is more than `threshold` from `propagated`, the
     /// value its children were last solved against (updated then). Measured against the
