@@ -195,9 +195,8 @@ async fn stamped_graph_exports_over_http_and_zenoh_and_after_kill_9() {
     let deadline = std::time::Instant::now() + Duration::from_secs(30);
     loop {
         let (status, stats) = get(&c, &server.url("/v1/sessions/map")).await;
-        let solved = stats["recovering"] == false
-            && stats["solving"] == false
-            && stats["converged"] == true;
+        let solved =
+            stats["recovering"] == false && stats["solving"] == false && stats["converged"] == true;
         if status == 200 && solved {
             break;
         }
