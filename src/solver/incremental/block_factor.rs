@@ -500,7 +500,8 @@ impl BlockFactor {
 mod front;
 
 #[path = "block_solve.rs"]
-pub(super) mod block_solve;
+mod block_solve;
+pub use block_solve::Solution;
 
 #[cfg(test)]
 #[path = "block_factor_tests.rs"]

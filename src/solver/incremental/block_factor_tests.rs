@@ -4,7 +4,6 @@
 //! whether a run of columns is eliminated column by column or as a dense front (the tail among
 //! them). And the wildfire back substitution against a full one.
 
-use super::block_solve::Solution;
 use super::*;
 
 /// A small deterministic generator (xorshift), so a failure reproduces.

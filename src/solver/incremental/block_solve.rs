@@ -115,15 +115,13 @@ impl BlockFactor {
                 .iter()
                 .zip(&propagated[o..o + d])
                 .any(|(a, b)| (a - b).abs() > threshold);
-            if moved || refactored {
-                x[o..o + d].copy_from_slice(&z);
-                changed_out.push(v);
-            }
             if moved {
                 propagated[o..o + d].copy_from_slice(&z);
                 self.changed[v] = true;
             }
             if moved || refactored {
+                x[o..o + d].copy_from_slice(&z);
+                changed_out.push(v);
                 stack.extend_from_slice(&self.children[v]);
             }
         }

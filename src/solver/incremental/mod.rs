@@ -31,8 +31,7 @@ mod summary;
 
 use std::time::Instant;
 
-use block_factor::block_solve::Solution;
-use block_factor::{Accumulator, BlockFactor};
+use block_factor::{Accumulator, BlockFactor, Solution};
 use linearized::{linearize_factor, Linearized};
 pub use report::UpdateReport;
 pub use summary::UpdateContext;
