@@ -487,6 +487,14 @@ impl BlockFactor {
         }
     }
 
+    /// What eliminating column `v` as it stands costs: `d·s·(s + d)` for `s` scalar rows below
+    /// its `d`-wide diagonal block (its panel solve and its update of the later columns).
+    pub fn elimination_flops(&self, v: usize) -> f64 {
+        let d = self.dim[v];
+        let s = self.columns[v].blocks.len().checked_div(d).unwrap_or(0);
+        (d * s * (s + d)) as f64
+    }
+
     fn column_nnz(&self, v: usize, column: &Column) -> usize {
         let d = self.dim[v];
         if column.diagonal.is_empty() {
@@ -498,6 +506,10 @@ impl BlockFactor {
 
 #[path = "front.rs"]
 mod front;
+
+#[path = "rank_update.rs"]
+mod rank_update;
+pub use rank_update::UpdateRows;
 
 #[path = "block_solve.rs"]
 mod block_solve;

@@ -107,8 +107,11 @@ fn refactor(factor: &mut BlockFactor, h: &Sparse, order: &[usize]) {
 
 /// max |L Lᵀ − H| over every entry, in the factor's order.
 fn reconstruction_error(factor: &BlockFactor, h: &Sparse) -> f64 {
+    // The variables with a column (the others are not in the system yet).
     let n = h.dims.len();
-    let mut by_rank: Vec<usize> = (0..n).collect();
+    let mut by_rank: Vec<usize> = (0..n)
+        .filter(|&v| !factor.columns[v].diagonal.is_empty())
+        .collect();
     by_rank.sort_by_key(|&v| factor.rank[v]);
     let mut start = vec![0; n];
     let mut total = 0;
@@ -117,7 +120,7 @@ fn reconstruction_error(factor: &BlockFactor, h: &Sparse) -> f64 {
         total += h.dims[v];
     }
     let mut l = vec![0.0; total * total];
-    for v in 0..n {
+    for &v in &by_rank {
         let (d, column) = (h.dims[v], &factor.columns[v]);
         for i in 0..d {
             for j in 0..=i {
@@ -135,8 +138,8 @@ fn reconstruction_error(factor: &BlockFactor, h: &Sparse) -> f64 {
         }
     }
     let mut worst = 0.0f64;
-    for u in 0..n {
-        for v in 0..n {
+    for &u in &by_rank {
+        for &v in &by_rank {
             let hb = h.block(u, v);
             let (du, dv) = (h.dims[u], h.dims[v]);
             for i in 0..du {
@@ -363,4 +366,119 @@ fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
         "the subtree follows its root within the threshold: off by {worst_error}, the \
          solution drifted {drift}"
     );
+}
+
+/// Random rows `W` (`k` of them) on `vars`, as `add_rows` takes them, with `WᵀW` added to `h`.
+fn random_rows(rng: &mut Rng, h: &mut Sparse, vars: &[usize], k: usize) -> UpdateRows {
+    let scalars: usize = vars.iter().map(|&v| h.dims[v]).sum();
+    let transposed: Vec<f64> = (0..scalars * k).map(|_| rng.uniform()).collect();
+    let mut start = Vec::new();
+    let mut at = 0;
+    for &v in vars {
+        start.push(at);
+        at += h.dims[v];
+    }
+    for (a, &u) in vars.iter().enumerate() {
+        for (b, &v) in vars.iter().enumerate() {
+            if u < v {
+                continue;
+            }
+            let (du, dv) = (h.dims[u], h.dims[v]);
+            let block = h.blocks.entry((u, v)).or_insert(vec![0.0; du * dv]);
+            for i in 0..du {
+                for j in 0..dv {
+                    let (ru, rv) = (start[a] + i, start[b] + j);
+                    block[i * dv + j] += (0..k)
+                        .map(|r| transposed[ru * k + r] * transposed[rv * k + r])
+                        .sum::<f64>();
+                }
+            }
+        }
+    }
+    UpdateRows {
+        variables: vars.iter().map(|&v| v as u32).collect(),
+        k,
+        transposed,
+    }
+}
+
+#[test]
+fn rank_updates_equal_a_dense_cholesky_with_new_columns_and_refactors_between() {
+    let mut rng = Rng(0x51_7cc1_b727_220a);
+    let (n, first_new) = (48, 36);
+    let dims: Vec<usize> = (0..n).map(|v| if v % 7 == 3 { 2 } else { 3 }).collect();
+    let mut h = Sparse {
+        dims: dims.clone(),
+        blocks: Default::default(),
+    };
+    for v in 1..first_new {
+        h.couple(&mut rng, v - 1, v);
+    }
+    for _ in 0..first_new {
+        let (u, v) = (rng.below(first_new), rng.below(first_new));
+        if u != v {
+            h.couple(&mut rng, u, v);
+        }
+    }
+    let mut factor = BlockFactor::default();
+    factor.grow(&h.dims);
+    refactor(&mut factor, &h, &(0..first_new).collect::<Vec<_>>());
+    let offset: Vec<usize> = dims
+        .iter()
+        .scan(0, |at, &d| {
+            *at += d;
+            Some(*at - d)
+        })
+        .collect();
+    let scalars: usize = dims.iter().sum();
+    let (y, mut partial) = (vec![0.0; scalars], vec![0.0; scalars]);
+    let mut updated = 0;
+    // A new variable per round (odometry from the newest, a loop closure to an older one: two
+    // groups meeting at the new column), then rank updates between old variables with partial
+    // refactors between them.
+    for round in 0..40 {
+        let groups = if first_new + round < n {
+            let new = first_new + round;
+            factor.append(&[new]);
+            let older = rng.below(new - 1);
+            vec![
+                random_rows(&mut rng, &mut h, &[new - 1, new], 4),
+                random_rows(&mut rng, &mut h, &[older, new], 3),
+            ]
+        } else {
+            let (u, v) = (rng.below(n), rng.below(n));
+            let vars = if u == v { vec![u] } else { vec![u, v] };
+            let k = 1 + rng.below(4);
+            vec![random_rows(&mut rng, &mut h, &vars, k)]
+        };
+        let update = factor
+            .add_rows(groups, &offset, &y, &mut partial)
+            .expect("positive definite");
+        updated += update.path.len();
+        let error = reconstruction_error(&factor, &h);
+        assert!(error < 1e-9, "L Lᵀ − H = {error:e} after round {round}");
+        if round >= n - first_new && round % 3 == 0 {
+            random_partial_refactors(&mut rng, &mut h, &mut factor, 1, true);
+        }
+    }
+    assert!(
+        updated > 40,
+        "the updates changed paths ({updated} columns)"
+    );
+    // Every column is reached from the roots (new columns became roots, old roots their
+    // children).
+    let all = vec![true; n];
+    let (mut x, mut propagated) = (vec![0.0; scalars], vec![0.0; scalars]);
+    let solved = factor.back_substitute(
+        &all,
+        &offset,
+        &y,
+        Solution {
+            x: &mut x,
+            propagated: &mut propagated,
+        },
+        0.0,
+        &mut Vec::new(),
+    );
+    assert_eq!(solved, n);
 }

@@ -20,6 +20,7 @@
 //! session asks for a tighter threshold when it is idle (`polish`), which ends at the batch
 //! optimum.
 
+mod add_factors;
 mod block_factor;
 mod dense;
 mod elimination_cost;
@@ -109,6 +110,9 @@ pub struct IncrementalEngine {
     columns: usize,
     /// Bytes of the linearised factors (kept as they are added).
     linearized_bytes: usize,
+    /// Flops of the last refactoring pass, and of the rank updates since (see `add_factors`).
+    refactor_flops: f64,
+    update_flops: f64,
     /// Scratch marks indexed by variable.
     mark: Vec<bool>,
     last: Vec<bool>,
@@ -222,7 +226,20 @@ impl IncrementalEngine {
                 break;
             }
             report.passes += 1;
-            self.solve_pass(problem, &mut touched, params, &mut report, &mut changed)?;
+            let only_adds = pass == 0 && known > 0 && report.relinearized_variables == 0;
+            if !(only_adds
+                && self.add_factors(
+                    problem,
+                    first_new,
+                    known,
+                    params,
+                    &mut report,
+                    &mut changed,
+                )?)
+            {
+                self.solve_pass(problem, &mut touched, params, &mut report, &mut changed)?;
+            }
+            touched.clear();
             // Only the first pass carries new factors; later ones reorder freely.
             for &v in &constrained {
                 self.last[v] = false;
@@ -429,14 +446,39 @@ impl IncrementalEngine {
         report.dense_columns += self.factor.dense_columns() - dense_before;
         report.factorize_seconds += start.elapsed().as_secs_f64();
 
+        self.refactor_flops = order
+            .iter()
+            .map(|&r| self.factor.elimination_flops(r))
+            .sum();
+        self.update_flops = 0.0;
+        self.resolve(problem, &order, params, report, changed);
+        report.refactored_columns += affected.len();
+        report.reused_subtrees += kept_roots.len();
+        for &v in &affected {
+            self.mark[v] = false;
+        }
+        Ok(())
+    }
+
+    /// Forward substitution of the columns of `order` (in that order; every other column keeps
+    /// its `y`), then back substitution from the root into what moved. `mark` holds `order`.
+    fn resolve(
+        &mut self,
+        problem: &Problem,
+        order: &[usize],
+        params: &UpdateParams,
+        report: &mut UpdateReport,
+        changed: &mut Vec<usize>,
+    ) {
         let start = Instant::now();
-        for &r in &order {
+        let entries = problem.factors();
+        for &r in order {
             let (o, d) = (self.offset[r], self.dims[r]);
             self.yty -= self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
         }
         let (linearized, by_variable) = (&self.linearized, &self.by_variable);
         self.factor.forward(
-            &order,
+            order,
             &self.offset,
             &mut self.y,
             &mut self.partial,
@@ -452,7 +494,7 @@ impl IncrementalEngine {
                 }
             },
         );
-        for &r in &order {
+        for &r in order {
             let (o, d) = (self.offset[r], self.dims[r]);
             self.yty += self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
         }
@@ -468,12 +510,6 @@ impl IncrementalEngine {
             changed,
         );
         report.solve_seconds += start.elapsed().as_secs_f64();
-        report.refactored_columns += affected.len();
-        report.reused_subtrees += kept_roots.len();
-        for &v in &affected {
-            self.mark[v] = false;
-        }
-        Ok(())
     }
 }
 

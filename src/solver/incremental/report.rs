@@ -16,7 +16,11 @@ pub struct UpdateReport {
     /// Columns of the factor eliminated again: the touched variables and their ancestors in
     /// the elimination tree, summed over passes.
     pub refactored_columns: usize,
-    /// Of those, the columns factored in dense fronts (runs that form a clique, the root clique
+    /// Columns changed by a rank update instead (an update that only adds factors: they are
+    /// added along their elimination-tree paths, see `block_factor::rank_update`), summed over
+    /// passes.
+    pub updated_columns: usize,
+    /// Of the refactored columns, those factored in dense fronts (runs that form a clique, the root clique
     /// among them: see `block_factor::front`).
     pub dense_columns: usize,
     /// Untouched subtrees hanging off the refactored part (their columns were reused).

@@ -1,0 +1,137 @@
+//! An update that only adds factors (nothing relinearised): the factors are added to the kept
+//! factor by a rank update along their elimination-tree paths (`block_factor::rank_update`)
+//! instead of eliminating and reordering those paths again.
+//!
+//! Each factor's rows `W` come from its Gram matrix: `G = Q Λ Qᵀ`, `W = Λ^½ Qᵀ` over the
+//! eigenvalues it has (a 2D odometry factor's 6×6 Gram has rank 3), so `WᵀW = G`; the
+//! right-hand side is not rotated along, the path is solved forward again from the
+//! gradients, as after a refactor.
+//!
+//! The update keeps the order, so fill accumulates where a refactor would have reordered (the
+//! newest variables stay on top of the path to every loop closure). Ski-rental amortisation
+//! decides: once the rank updates since the last refactoring pass have cost as many flops as
+//! that pass, the next update refactors (and reorders) its paths instead. Updates that
+//! relinearise refactor anyway (a relinearised factor's old rows would have to be taken out).
+
+use std::time::Instant;
+
+use nalgebra::{DMatrix, SymmetricEigen};
+
+use super::block_factor::UpdateRows;
+use super::{IncrementalEngine, UpdateParams, UpdateReport};
+use crate::problem::{FactorEntry, Problem};
+use crate::solver::schur::small_cholesky;
+use crate::solver::SolverError;
+
+/// A factor's Gram eigenvalues below this fraction of its largest are rank it does not have.
+const RANK_TOLERANCE: f64 = 1e-12;
+
+impl IncrementalEngine {
+    /// Adds the factors from `first_new` on (and the variables from `first_variable` on) by a
+    /// rank update and solves, when that applies; `false` (nothing done) when the caller must
+    /// refactor: the amortisation says so, or a new variable's pivot would rest on rows of
+    /// several factors that do not determine it alone.
+    pub(super) fn add_factors(
+        &mut self,
+        problem: &Problem,
+        first_new: usize,
+        first_variable: usize,
+        params: &UpdateParams,
+        report: &mut UpdateReport,
+        changed: &mut Vec<usize>,
+    ) -> Result<bool, SolverError> {
+        if self.update_flops >= self.refactor_flops {
+            return Ok(false);
+        }
+        let new: Vec<usize> = (first_variable..self.theta.len())
+            .filter(|&v| self.free[v])
+            .collect();
+        let entries = problem.factors();
+        if !new.iter().all(|&v| self.determined(v, entries)) {
+            return Ok(false);
+        }
+        let start = Instant::now();
+        let groups: Vec<UpdateRows> = (first_new..entries.len())
+            .filter_map(|f| self.factor_rows(f, entries[f].variables()))
+            .collect();
+        self.factor.append(&new);
+        let update = self
+            .factor
+            .add_rows(groups, &self.offset, &self.y, &mut self.partial)
+            .map_err(|e| SolverError::IndeterminateSystem {
+                keys: vec![problem.values.key(e.0)],
+            })?;
+        self.update_flops += update.flops;
+        report.factorize_seconds += start.elapsed().as_secs_f64();
+        for &c in &update.path {
+            self.mark[c] = true;
+        }
+        self.resolve(problem, &update.path, params, report, changed);
+        for &c in &update.path {
+            self.mark[c] = false;
+        }
+        report.updated_columns += update.path.len();
+        Ok(true)
+    }
+
+    /// Whether the factors of `v` (a new variable: all of them new) give it a positive definite
+    /// block of its own, so its new column has a pivot whatever the rest.
+    fn determined(&self, v: usize, entries: &[FactorEntry]) -> bool {
+        let d = self.dims[v];
+        let mut block = vec![0.0; d * d];
+        for &f in &self.by_variable[v] {
+            let lin = &self.linearized[f as usize];
+            let vars = entries[f as usize].variables();
+            let Some(i) = vars.iter().position(|&u| u == v) else {
+                continue;
+            };
+            let (cols, c) = (lin.cols(), lin.col_offset[i]);
+            for a in 0..d {
+                for b in 0..d {
+                    block[a * d + b] += lin.gram[(c + a) * cols + c + b];
+                }
+            }
+        }
+        small_cholesky(&mut block, d).is_ok()
+    }
+
+    /// Rows `W` with `WᵀW` the Gram of factor `f` (over its variables `vars`) restricted to its
+    /// free variables; `None` for a factor without any (or without information).
+    fn factor_rows(&self, f: usize, vars: &[usize]) -> Option<UpdateRows> {
+        let lin = &self.linearized[f];
+        let mut columns = Vec::new();
+        let mut variables = Vec::new();
+        for (i, &v) in vars.iter().enumerate() {
+            if self.free[v] {
+                variables.push(v as u32);
+                columns.extend(lin.col_offset[i]..lin.col_offset[i] + self.dims[v]);
+            }
+        }
+        let m = columns.len();
+        if m == 0 {
+            return None;
+        }
+        let cols = lin.cols();
+        let gram = DMatrix::from_fn(m, m, |a, b| lin.gram[columns[a] * cols + columns[b]]);
+        let eigen = SymmetricEigen::new(gram);
+        let largest = eigen.eigenvalues.max();
+        if !(largest > 0.0 && largest.is_finite()) {
+            return None;
+        }
+        let kept: Vec<usize> = (0..m)
+            .filter(|&i| eigen.eigenvalues[i] > RANK_TOLERANCE * largest)
+            .collect();
+        let k = kept.len();
+        let mut transposed = vec![0.0; m * k];
+        for (a, row) in transposed.chunks_exact_mut(k).enumerate() {
+            for (w, &i) in row.iter_mut().zip(&kept) {
+                *w = eigen.eigenvectors[(a, i)] * eigen.eigenvalues[i].sqrt();
+            }
+        }
+        Some(UpdateRows {
+            variables,
+            k,
+            transposed,
+        })
+    }
+}
