@@ -490,9 +490,17 @@ impl BlockFactor {
     /// What eliminating column `v` as it stands costs: `d·s·(s + d)` for `s` scalar rows below
     /// its `d`-wide diagonal block (its panel solve and its update of the later columns).
     pub fn elimination_flops(&self, v: usize) -> f64 {
-        let d = self.dim[v];
-        let s = self.columns[v].blocks.len().checked_div(d).unwrap_or(0);
+        let (d, s) = (self.dim[v], self.scalar_rows(v));
         (d * s * (s + d)) as f64
+    }
+
+    /// Scalar rows of column `v` below its diagonal block.
+    pub fn scalar_rows(&self, v: usize) -> usize {
+        self.columns[v]
+            .blocks
+            .len()
+            .checked_div(self.dim[v])
+            .unwrap_or(0)
     }
 
     fn column_nnz(&self, v: usize, column: &Column) -> usize {
