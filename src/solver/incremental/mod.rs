@@ -10,7 +10,9 @@
 //!    linearised again;
 //! 3. eliminates again the columns of the variables whose `H` entries changed and their
 //!    ancestors in the elimination tree, reordered with the new factors' variables last
-//!    (`ordering`, `block_factor`); the rest of the factor is kept as it is;
+//!    (`ordering`, `block_factor`); the rest of the factor is kept as it is. An update
+//!    that relinearised nothing may instead add its factors by a rank update along those
+//!    paths, without reordering (`add_factors`);
 //! 4. solves the whole linear system: forward substitution only where the factor changed (the
 //!    rest of `y` depends only on unchanged subtrees), back substitution from the root down
 //!    into every subtree whose separator moved by more than the wildfire threshold.
