@@ -17,8 +17,8 @@ use std::time::Instant;
 
 use nalgebra::{DMatrix, SymmetricEigen};
 
-use super::block_factor::UpdateRows;
-use super::{IncrementalEngine, UpdateParams, UpdateReport};
+use super::block_factor::{rank_update_flops, UpdateRows};
+use super::{add_block, IncrementalEngine, UpdateParams, UpdateReport};
 use crate::problem::{FactorEntry, Problem};
 use crate::solver::schur::small_cholesky;
 use crate::solver::SolverError;
@@ -34,8 +34,8 @@ const RANK_TOLERANCE: f64 = 1e-12;
 impl IncrementalEngine {
     /// Adds the factors from `first_new` on (and the variables from `first_variable` on) by a
     /// rank update and solves, when that applies; `false` (nothing done) when the caller must
-    /// refactor: the amortisation says so, or a new variable's pivot would rest on rows of
-    /// several factors that do not determine it alone.
+    /// refactor: the amortisation says so, a new variable's factors do not determine it on
+    /// their own, or the update would not cost clearly less than the refactor.
     pub(super) fn add_factors(
         &mut self,
         problem: &Problem,
@@ -105,7 +105,7 @@ impl IncrementalEngine {
         for &c in &path {
             self.mark[c] = false;
             let (d, s) = (self.dims[c], self.factor.scalar_rows(c));
-            by_update += (4 * k * d * (d + s)) as f64;
+            by_update += rank_update_flops(k, d, s);
             by_refactor += self.factor.elimination_flops(c);
         }
         UPDATE_COST_MARGIN * by_update <= by_refactor + SMALL_PATH_FLOPS
@@ -122,12 +122,8 @@ impl IncrementalEngine {
             let Some(i) = vars.iter().position(|&u| u == v) else {
                 continue;
             };
-            let (cols, c) = (lin.cols(), lin.col_offset[i]);
-            for a in 0..d {
-                for b in 0..d {
-                    block[a * d + b] += lin.gram[(c + a) * cols + c + b];
-                }
-            }
+            let c = lin.col_offset[i];
+            add_block(&mut block, &lin.gram, lin.cols(), (c, c), (d, d));
         }
         small_cholesky(&mut block, d).is_ok()
     }

@@ -455,8 +455,9 @@ impl BlockFactor {
         }
     }
 
-    /// After [`BlockFactor::refactor`]: the untouched columns `reaching` the refactored part
-    /// keep their values, but their parent (the lowest-ranked row) may have moved.
+    /// Sets each column of `columns` to its lowest-ranked row as parent again: after
+    /// [`BlockFactor::refactor`], the untouched columns reaching the refactored part keep their
+    /// values, but that row may have moved; after a rank update, fill may have added one.
     pub fn reparent(&mut self, reaching: &[usize]) {
         for &u in reaching {
             let parent = self.columns[u]
@@ -517,7 +518,7 @@ mod front;
 
 #[path = "rank_update.rs"]
 mod rank_update;
-pub use rank_update::UpdateRows;
+pub use rank_update::{rank_update_flops, UpdateRows};
 
 #[path = "block_solve.rs"]
 mod block_solve;

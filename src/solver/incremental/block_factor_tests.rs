@@ -457,6 +457,25 @@ fn rank_updates_equal_a_dense_cholesky_with_new_columns_and_refactors_between() 
         updated += update.path.len();
         let error = reconstruction_error(&factor, &h);
         assert!(error < 1e-9, "L Lᵀ − H = {error:e} after round {round}");
+        // Back substitution from the roots reaches every column built so far (a new column
+        // became a root, the old root its child), also before a refactor re-roots the top.
+        let built = factor
+            .columns
+            .iter()
+            .filter(|c| !c.diagonal.is_empty())
+            .count();
+        let solved = factor.back_substitute(
+            &vec![true; n],
+            &offset,
+            &y,
+            Solution {
+                x: &mut vec![0.0; scalars],
+                propagated: &mut vec![0.0; scalars],
+            },
+            0.0,
+            &mut Vec::new(),
+        );
+        assert_eq!(solved, built, "columns solved after round {round}");
         if round >= n - first_new && round % 3 == 0 {
             random_partial_refactors(&mut rng, &mut h, &mut factor, 1, true);
         }

@@ -47,11 +47,12 @@ pub struct RankUpdate {
 
 impl BlockFactor {
     /// Gives `new` (variables without a column yet) fresh ranks above every other, in that
-    /// order: their columns are built by the next [`BlockFactor::add_rows`].
+    /// order, as roots: their columns are built by the next [`BlockFactor::add_rows`].
     pub fn append(&mut self, new: &[usize]) {
         for &v in new {
             self.rank[v] = self.next_rank;
             self.next_rank += 1;
+            self.roots.insert(v as u32);
         }
     }
 
@@ -169,7 +170,7 @@ impl BlockFactor {
             self.slot[u as usize] = NONE;
         }
         let pivots = householder(&mut column.diagonal, &mut column.blocks, &mut wt, d, k);
-        let flops = (4 * k * d * (d + scalars)) as f64;
+        let flops = rank_update_flops(k, d, scalars);
         // What is left of `Wᵀ` is on c's rows, in the order of their blocks.
         let mut rows = column.rows.clone();
         rows.sort_unstable_by_key(|&(_, o)| o);
@@ -180,35 +181,17 @@ impl BlockFactor {
         };
         self.nnz += self.column_nnz(c, &self.columns[c]);
         self.kept.forget(c);
-        self.relink(c);
+        // Fill may have added a row ranked below the parent, or given a new column its first.
+        self.reparent(&[c]);
         let merged = pivots.map(|()| merged).map_err(|()| NotPositiveDefinite(c));
         (merged, flops)
     }
+}
 
-    /// Sets `c`'s parent to its lowest-ranked row again (fill may have added a lower one, or
-    /// given a root its first row).
-    fn relink(&mut self, c: usize) {
-        let parent = self.columns[c]
-            .rows
-            .iter()
-            .map(|&(u, _)| u)
-            .min_by_key(|&u| self.rank[u as usize])
-            .unwrap_or(NONE);
-        if parent == self.parent[c] {
-            if parent == NONE {
-                // A new column that no other reaches: a root of its own.
-                self.roots.insert(c as u32);
-            }
-            return;
-        }
-        match self.parent[c] {
-            NONE => {
-                self.roots.remove(&(c as u32));
-            }
-            old => self.children[old as usize].retain(|&x| x as usize != c),
-        }
-        self.set_parent(c, parent);
-    }
+/// Flops of rotating a column `d` wide with `s` scalar rows against `k` rows of `W`: `d`
+/// reflections of `d + s` rows, each `4·k` flops.
+pub fn rank_update_flops(k: usize, d: usize, s: usize) -> f64 {
+    (4 * k * d * (d + s)) as f64
 }
 
 /// Zeroes the first `d` rows of `wt` (`(d + s) × k`, row-major) against column `L_c`:
