@@ -70,10 +70,12 @@ impl BlockFactor {
         partial: &mut [f64],
     ) -> Result<RankUpdate, NotPositiveDefinite> {
         let mut groups: Vec<UpdateRows> = groups.into_iter().filter(|g| g.k > 0).collect();
+        // Each group is due at its lowest-ranked variable: every group meeting there has it
+        // as its lowest too (any lower one was due, and merged, before), so the merged rows
+        // are due at the lowest of the column's rows, its parent.
         let mut due: BinaryHeap<Reverse<(u64, u32)>> = groups
             .iter()
-            .flat_map(|g| &g.variables)
-            .map(|&v| Reverse((self.rank[v as usize], v)))
+            .filter_map(|g| self.lowest(&g.variables))
             .collect();
         let mut update = RankUpdate::default();
         let mut result = Ok(());
@@ -83,22 +85,21 @@ impl BlockFactor {
                 continue;
             }
             self.covered[c] = true;
-            let (meeting, apart): (Vec<UpdateRows>, Vec<UpdateRows>) = groups
-                .into_iter()
-                .partition(|g| g.variables.contains(&(c as u32)));
-            groups = apart;
+            let mut meeting = Vec::with_capacity(1);
+            let mut i = 0;
+            while i < groups.len() {
+                match groups[i].variables.contains(&(c as u32)) {
+                    true => meeting.push(groups.swap_remove(i)),
+                    false => i += 1,
+                }
+            }
             self.withdraw(&[c], offset, y, partial);
             let (merged, flops) = self.rotate_column(c, meeting);
             update.path.push(c);
             update.flops += flops;
             match merged {
                 Ok(merged) => {
-                    due.extend(
-                        merged
-                            .variables
-                            .iter()
-                            .map(|&v| Reverse((self.rank[v as usize], v))),
-                    );
+                    due.extend(self.lowest(&merged.variables));
                     if !merged.variables.is_empty() {
                         groups.push(merged);
                     }
@@ -113,6 +114,14 @@ impl BlockFactor {
             self.covered[c] = false;
         }
         result.map(|()| update)
+    }
+
+    /// The lowest-ranked of `variables`, keyed for the min-heap of `add_rows`.
+    fn lowest(&self, variables: &[u32]) -> Option<Reverse<(u64, u32)>> {
+        variables
+            .iter()
+            .map(|&v| Reverse((self.rank[v as usize], v)))
+            .max()
     }
 
     /// Rotates column `c` with the rows of `meeting` (every group with a variable at `c`): adds
@@ -145,22 +154,23 @@ impl BlockFactor {
                 }
             }
         }
-        // `Wᵀ` on c's scalars (the first d rows) and on its rows' scalars (in `blocks` order).
+        // `Wᵀ` on c's scalars (`top`, d rows) and on its rows' scalars (`rest`, in `blocks`
+        // order): what is left of `rest` is the merged group's `Wᵀ`, with no copy.
         let k: usize = meeting.iter().map(|g| g.k).sum();
         let scalars = column.blocks.len() / d;
-        let mut wt = vec![0.0; (d + scalars) * k];
+        let (mut top, mut rest) = (vec![0.0; d * k], vec![0.0; scalars * k]);
         let mut first = 0;
         for g in &meeting {
             let mut from = 0;
             for &u in &g.variables {
                 let du = self.dim[u as usize];
-                let to = match u as usize == c {
-                    true => 0,
-                    false => d + self.slot[u as usize] as usize / d,
+                let (to, row) = match u as usize == c {
+                    true => (&mut top, 0),
+                    false => (&mut rest, self.slot[u as usize] as usize / d),
                 };
                 for a in 0..du {
                     let src = &g.transposed[(from + a) * g.k..(from + a + 1) * g.k];
-                    wt[(to + a) * k + first..(to + a) * k + first + g.k].copy_from_slice(src);
+                    to[(row + a) * k + first..(row + a) * k + first + g.k].copy_from_slice(src);
                 }
                 from += du;
             }
@@ -169,15 +179,30 @@ impl BlockFactor {
         for &(u, _) in &column.rows {
             self.slot[u as usize] = NONE;
         }
-        let pivots = householder(&mut column.diagonal, &mut column.blocks, &mut wt, d, k);
-        let flops = rank_update_flops(k, d, scalars);
-        // What is left of `Wᵀ` is on c's rows, in the order of their blocks.
-        let mut rows = column.rows.clone();
-        rows.sort_unstable_by_key(|&(_, o)| o);
-        let merged = UpdateRows {
-            variables: rows.into_iter().map(|(u, _)| u).collect(),
+        let pivots = householder(
+            &mut column.diagonal,
+            &mut column.blocks,
+            &mut top,
+            &mut rest,
+            d,
             k,
-            transposed: wt.split_off(d * k),
+        );
+        let flops = rank_update_flops(k, d, scalars);
+        // What is left of `Wᵀ` is on c's rows, in the order of their blocks (the order in which
+        // they were stored, unless a dense front stored them otherwise).
+        let in_block_order = column.rows.windows(2).all(|w| w[0].1 < w[1].1);
+        let variables = match in_block_order {
+            true => column.rows.iter().map(|&(u, _)| u).collect(),
+            false => {
+                let mut rows = column.rows.clone();
+                rows.sort_unstable_by_key(|&(_, o)| o);
+                rows.into_iter().map(|(u, _)| u).collect()
+            }
+        };
+        let merged = UpdateRows {
+            variables,
+            k,
+            transposed: rest,
         };
         self.nnz += self.column_nnz(c, &self.columns[c]);
         self.kept.forget(c);
@@ -194,21 +219,22 @@ pub fn rank_update_flops(k: usize, d: usize, s: usize) -> f64 {
     (4 * k * d * (d + s)) as f64
 }
 
-/// Zeroes the first `d` rows of `wt` (`(d + s) × k`, row-major) against column `L_c`:
-/// `diagonal` (`d × d` lower triangular, row-major) over `blocks` (`s × d`, row-major), by `d`
-/// Householder reflections of the `d + k` columns `[L_c  Wᵀ]`, each keeping its pivot positive.
+/// Zeroes `top` (`Wᵀ` on column `L_c`'s scalars, `d × k` row-major) against `L_c`: `diagonal`
+/// (`d × d` lower triangular, row-major) over `blocks` (`s × d`, row-major, beside `rest`: `Wᵀ`
+/// on the column's rows, `s × k`), by `d` Householder reflections of the `d + k` columns
+/// `[L_c  Wᵀ]`, each keeping its pivot positive.
 /// `Err` when a pivot ends at zero (a column without information).
 fn householder(
     diagonal: &mut [f64],
     blocks: &mut [f64],
-    wt: &mut [f64],
+    top: &mut [f64],
+    rest: &mut [f64],
     d: usize,
     k: usize,
 ) -> Result<(), ()> {
     // Each reflection `j` is `I − β_j u uᵀ` with `u = (1 at column j, v_j on Wᵀ's columns)`.
     let mut v = vec![0.0; d * k];
     let mut beta = vec![0.0; d];
-    let (top, rest) = wt.split_at_mut(d * k);
     for j in 0..d {
         let x0 = diagonal[j * d + j];
         let row = &top[j * k..(j + 1) * k];
