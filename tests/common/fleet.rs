@@ -61,9 +61,18 @@ impl Fleet {
             extra: extra.iter().map(|s| s.to_string()).collect(),
         };
         for i in 0..n {
+            // Appended to across restarts; one left by an earlier run with this process id is
+            // not this fleet's.
+            let _ = std::fs::remove_file(fleet.stderr_path(i));
             fleet.start_instance(i);
         }
         fleet
+    }
+
+    /// Where instance `i` logs (beside the state directory).
+    fn stderr_path(&self, i: usize) -> PathBuf {
+        self.state_dir
+            .with_extension(format!("{}.stderr", self.ids[i]))
     }
 
     /// Starts (or restarts) instance `i`, connected to every running instance.
@@ -71,7 +80,7 @@ impl Fleet {
         let id = self.ids[i].clone();
         let info = self.state_dir.join(format!("server-{id}.json"));
         let _ = std::fs::remove_file(&info);
-        let stderr_path = self.state_dir.with_extension(format!("{id}.stderr"));
+        let stderr_path = self.stderr_path(i);
         let stderr = std::fs::OpenOptions::new()
             .create(true)
             .append(true)

@@ -195,6 +195,9 @@ pub fn temp_dir(name: &str) -> PathBuf {
     let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
     let dir = std::env::temp_dir().join(format!("factord-test-{}-{name}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
+    // A server's log lives beside its directory (`TestServer`) and is appended to: one left by
+    // an earlier run whose process had the same id would be read as this run's.
+    let _ = std::fs::remove_file(dir.with_extension("stderr"));
     std::fs::create_dir_all(&dir).unwrap();
     dir
 }
