@@ -85,14 +85,9 @@ impl BlockFactor {
                 continue;
             }
             self.covered[c] = true;
-            let mut meeting = Vec::with_capacity(1);
-            let mut i = 0;
-            while i < groups.len() {
-                match groups[i].variables.contains(&(c as u32)) {
-                    true => meeting.push(groups.swap_remove(i)),
-                    false => i += 1,
-                }
-            }
+            let meeting: Vec<UpdateRows> = groups
+                .extract_if(.., |g| g.variables.contains(&(c as u32)))
+                .collect();
             self.withdraw(&[c], offset, y, partial);
             let (merged, flops) = self.rotate_column(c, meeting);
             update.path.push(c);
