@@ -95,6 +95,13 @@ impl LogWriter {
 
     /// Appends one record; returns how long the fsync took (zero when the policy skips it).
     pub fn append(&mut self, payload: &[u8]) -> io::Result<Duration> {
+        self.write(payload)?;
+        self.sync()
+    }
+
+    /// Writes one record without the fsync the policy asks for: [`Self::sync`] makes it durable,
+    /// and nothing may acknowledge it before that returned.
+    pub fn write(&mut self, payload: &[u8]) -> io::Result<()> {
         if payload.len() > MAX_RECORD {
             return Err(io::Error::new(
                 io::ErrorKind::InvalidInput,
@@ -109,12 +116,18 @@ impl LogWriter {
         (&*self.file).write_all(&frame)?;
         self.bytes += frame.len() as u64;
         self.records += 1;
-        if self.fsync == Fsync::Always {
-            let start = Instant::now();
-            self.file.sync_data()?;
-            return Ok(start.elapsed());
+        Ok(())
+    }
+
+    /// Under `fsync always`, makes every record written so far durable; returns how long the
+    /// fsync took (zero when the policy skips it).
+    pub fn sync(&self) -> io::Result<Duration> {
+        if self.fsync != Fsync::Always {
+            return Ok(Duration::ZERO);
         }
-        Ok(Duration::ZERO)
+        let start = Instant::now();
+        self.file.sync_data()?;
+        Ok(start.elapsed())
     }
 
     /// Empties the file (its records are in a durable snapshot now).

@@ -82,7 +82,7 @@ impl Session {
         let sequence = st.sequence + 1;
         let wire_copy = match (durable.as_mut(), wire_copy, journal) {
             (Some(d), Some(copy), true) => {
-                Some(d.append_batch(&self.name, sequence, copy, &prepared)?)
+                Some(d.write_batch(&self.name, sequence, copy, &prepared)?)
             }
             (_, copy, _) => copy,
         };
@@ -168,6 +168,20 @@ impl Session {
             ack.producer_seq = Some(origin.seq);
             ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
         }
+        self.maybe_schedule(&mut st);
+        let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
+        if let (Some(d), true) = (durable.as_mut(), journal) {
+            d.maybe_snapshot(self, &st);
+        }
+        // The fsync runs with the session unlocked, so the solve just scheduled (and reads) run
+        // meanwhile; the journal stays locked, so the acknowledgement below, and everything a
+        // solve publishes (it passes `journal_barrier` first), wait for the batch to be durable.
+        drop(st);
+        if let (Some(d), true) = (durable.as_mut(), journal) {
+            if let Err(e) = d.sync(&self.name) {
+                return Err(self.journal_sync_failed(e));
+            }
+        }
         self.accepted.send_replace(sequence);
         // A replay (recovery, adoption) restores what was acknowledged before: acknowledging it
         // again would tell subscribers something new was applied, with a producer's
@@ -182,17 +196,14 @@ impl Session {
                 variables: new_values,
             }));
         }
-        self.maybe_schedule(&mut st);
-        let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
-        if let (Some(d), true) = (durable.as_mut(), journal) {
-            d.maybe_snapshot(self, &st);
-        }
         Ok((ack, will_solve))
     }
 
     /// The answer to a repeat of `origin`'s batch: its original acknowledgement (published again,
     /// so a zenoh producer that lost it hears it), nothing applied.
     fn repeat(&self, st: &State, origin: &Origin, kept: &KeptAck) -> (BatchAck, bool) {
+        // The original may still be on its way to the disk.
+        self.journal_barrier();
         let mut ack =
             producers::original_ack(kept, &self.name, &origin.producer, st.solved_sequence);
         ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));

@@ -1,8 +1,10 @@
-//! A session on disk: its journal entries are appended (under the session lock, so in sequence
-//! order) before updates are acknowledged, snapshots compact the journal, and a session is
-//! rebuilt at start from its snapshot plus the entries after it (see `crate::journal`).
-//! Snapshots are written off the session lock: `snapshot.rs`; the operators' history of the
-//! stream is kept beside them: `history_file.rs`.
+//! A session on disk: its journal entries are written under the session lock (so in sequence
+//! order), and a batch is durable before it is acknowledged or anything reflecting it is
+//! published (its fsync runs after the session lock is released, with the journal held: see
+//! `apply.rs`). Snapshots compact the journal, and a session is rebuilt at start from its
+//! snapshot plus the entries after it (see `crate::journal`). Snapshots are written off the
+//! session lock: `snapshot.rs`; the operators' history of the stream is kept beside them:
+//! `history_file.rs`.
 
 mod history_file;
 mod snapshot;
@@ -60,7 +62,8 @@ pub(super) struct Durable {
 }
 
 fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
-    // The update was not made durable, so it is neither applied nor acknowledged.
+    // The update was not made durable, so it is not acknowledged (nor applied, unless only its
+    // fsync failed: see `Session::journal_sync_failed`).
     ServiceError::unavailable(
         "journal_failed",
         format!("session `{name}`: the update could not be written to its journal: {e}"),
@@ -69,20 +72,33 @@ fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
 }
 
 impl Durable {
+    /// Journals `entry`, durable (under `fsync always`) when this returns.
     pub(super) fn append(&mut self, name: &str, entry: &Entry) -> Result<(), ServiceError> {
+        self.write(name, entry)?;
+        self.sync(name)
+    }
+
+    fn write(&mut self, name: &str, entry: &Entry) -> Result<(), ServiceError> {
         let bytes = serde_json::to_vec(entry).expect("journal entries serialise");
-        self.last_fsync = self
-            .journal
-            .append(&bytes)
+        self.journal
+            .write(&bytes)
             .map_err(|e| journal_failed(name, e))?;
         self.entries_since_snapshot += 1;
+        Ok(())
+    }
+
+    /// Makes every entry written so far durable (under `fsync always`).
+    pub(super) fn sync(&mut self, name: &str) -> Result<(), ServiceError> {
+        self.last_fsync = self.journal.sync().map_err(|e| journal_failed(name, e))?;
         crate::runtime::metrics::observe_fsync(self.last_fsync);
         Ok(())
     }
 
     /// Fills in the values the server predicted for variables sent without one (so a replay
-    /// does not depend on the estimate it meets), then journals `batch` as `sequence`.
-    pub(super) fn append_batch(
+    /// does not depend on the estimate it meets), then writes `batch` as `sequence` to the
+    /// journal, not yet durable: the caller [`Self::sync`]s before acknowledging it (after
+    /// releasing the session's lock, see `apply.rs`).
+    pub(super) fn write_batch(
         &mut self,
         name: &str,
         sequence: u64,
@@ -98,7 +114,7 @@ impl Durable {
             }
         }
         let entry = Entry::Batch { sequence, batch };
-        self.append(name, &entry)?;
+        self.write(name, &entry)?;
         let Entry::Batch { batch, .. } = entry else {
             unreachable!("built above")
         };
@@ -244,8 +260,8 @@ impl Session {
         self.recovering.store(false, Ordering::SeqCst);
     }
 
-    /// Why the session's files could not be recovered whole, when they could not: it then
-    /// refuses writes (409 `session_corrupt`).
+    /// Why the session is read-only, when it is: its files could not be recovered whole, or its
+    /// journal could not be made durable. It then refuses writes (409 `session_corrupt`).
     pub fn corruption(&self) -> Option<&String> {
         self.corruption.get()
     }
@@ -409,6 +425,28 @@ impl Session {
             }
         }
         result
+    }
+
+    /// Waits until every batch whose entry is in the journal is durable: a batch holds the
+    /// journal from its write through its fsync (see `apply.rs`), so passing its lock is enough.
+    /// What a solve publishes, and a repeated acknowledgement, pass it first.
+    pub(super) fn journal_barrier(&self) {
+        drop(self.durable.lock().unwrap_or_else(|p| p.into_inner()));
+    }
+
+    /// A batch was applied but its journal entry could not be made durable: whether it reached
+    /// the disk is unknown (a failed fsync may have dropped the written pages), so the session
+    /// stops taking writes rather than go on from a state its files may not hold. A restart
+    /// recovers it from what the journal does hold.
+    pub(super) fn journal_sync_failed(&self, error: ServiceError) -> ServiceError {
+        let reason = format!(
+            "its journal could not be made durable ({}); restart the server to recover the \
+             session from its files",
+            error.body.message
+        );
+        tracing::error!(session = self.name, "{reason}");
+        let _ = self.corruption.set(reason);
+        error
     }
 
     /// Under `fsync: interval`: makes what was appended so far durable.

@@ -97,7 +97,8 @@ pub struct Session {
     /// Handed to another instance of a fleet: what still reaches it is refused with 503
     /// `session_moving` (the client retries and reaches the new owner), not 404.
     moved: AtomicBool,
-    /// Why its files could not be recovered whole (set once, never cleared): it is read-only.
+    /// Why its files could not be recovered whole, or its journal made durable (set once,
+    /// never cleared): it is read-only.
     corruption: std::sync::OnceLock<String>,
     /// The label of the bearer token that created it (HTTP with tokens), else nobody.
     owner: std::sync::OnceLock<Arc<str>>,

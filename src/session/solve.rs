@@ -102,6 +102,8 @@ impl Session {
         let max_solve = std::time::Duration::from_millis(self.limits.max_solve_ms);
         let carried = self.lock().solve_carried;
         let mut on_iteration = |report: &solver::IterationReport| {
+            // Nothing is published of a batch before it is durable (see `journal_barrier`).
+            self.journal_barrier();
             self.emit(SessionEvent::Iteration {
                 session: self.name.clone(),
                 solve: solve_number,
@@ -186,6 +188,7 @@ impl Session {
             }
             Err(e) => tracing::warn!("solve failed: {e}"),
         }
+        self.journal_barrier();
         let mut st = self.lock();
         st.solving = false;
         self.cancel.store(false, Ordering::SeqCst);
