@@ -150,8 +150,15 @@ pub fn factor_codec(name: &str) -> Option<&'static FactorCodec> {
 
 /// Encodes a variable for the wire.
 pub fn encode_variable(v: &dyn Variable) -> Vec<f64> {
+    let mut out = Vec::new();
+    encode_variable_into(v, &mut out);
+    out
+}
+
+/// Encodes a variable for the wire into `out` (its contents replaced, its allocation reused).
+pub fn encode_variable_into(v: &dyn Variable, out: &mut Vec<f64>) {
     let codec = variable_codec(v.kind()).expect("every variable kind has a codec");
-    (codec.encode)(v)
+    (codec.encode)(v, out)
 }
 
 #[cfg(test)]

@@ -69,7 +69,7 @@ struct Pose {
 }
 
 fn pose_of(v: &VariableValue) -> Option<Pose> {
-    let (translation, rotation) = match (v.kind.as_str(), v.value.as_slice()) {
+    let (translation, rotation) = match (&*v.kind, v.value.as_slice()) {
         ("se2", &[x, y, theta]) => (
             Vector3::new(x, y, 0.0),
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), theta),
@@ -150,7 +150,7 @@ fn kitti(variables: &[VariableValue]) -> String {
 fn g2o(variables: &[VariableValue]) -> String {
     let mut out = String::new();
     for v in variables {
-        let tag = match v.kind.as_str() {
+        let tag = match &*v.kind {
             "se2" => "VERTEX_SE2",
             "se3" => "VERTEX_SE3:QUAT",
             "point2" => "VERTEX_XY",
@@ -174,7 +174,7 @@ const CAMERA_RGB: [u8; 3] = [30, 170, 60];
 fn ply(variables: &[VariableValue]) -> String {
     let points: Vec<([f64; 3], [u8; 3])> = variables
         .iter()
-        .filter_map(|v| match (v.kind.as_str(), v.value.as_slice()) {
+        .filter_map(|v| match (&*v.kind, v.value.as_slice()) {
             ("point2", &[x, y]) => Some(([x, y, 0.0], LANDMARK_RGB)),
             ("point3", &[x, y, z]) => Some(([x, y, z], LANDMARK_RGB)),
             // BAL's camera: angle-axis ω and t map world to camera, so its centre is −Rᵀt.
@@ -205,7 +205,7 @@ fn ply(variables: &[VariableValue]) -> String {
 mod tests {
     use super::*;
 
-    fn var(key: u64, kind: &str, value: &[f64], stamp: Option<f64>) -> VariableValue {
+    fn var(key: u64, kind: &'static str, value: &[f64], stamp: Option<f64>) -> VariableValue {
         VariableValue {
             key,
             kind: kind.into(),

@@ -338,7 +338,7 @@ pub struct MarginalCovariance {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct VariableValue {
     pub key: Key,
-    pub kind: String,
+    pub kind: std::borrow::Cow<'static, str>,
     pub value: Vec<f64>,
     /// Sequence number of the update that last changed this value.
     pub changed: u64,

@@ -335,7 +335,8 @@ impl Session {
 }
 
 /// Copies the values of the variables that may have moved (`None`: all) into the mirror;
-/// returns those that changed.
+/// returns those that changed. Runs under the session lock, over every variable a loop closure
+/// moved, so it allocates only for what it returns.
 fn refresh_mirror(
     mirror: &mut BTreeMap<Key, MirrorEntry>,
     problem: &Problem,
@@ -343,25 +344,22 @@ fn refresh_mirror(
     sequence: u64,
 ) -> Vec<VariableValue> {
     let mut changed = Vec::new();
-    let all: Vec<usize>;
-    let moved = match moved {
-        Some(m) => m,
-        None => {
-            all = (0..problem.values.len()).collect();
-            &all
-        }
-    };
-    for &idx in moved {
+    let mut value = Vec::new();
+    let mut refresh = |idx: usize| {
         let key = problem.values.key(idx);
-        let value = catalogue::encode_variable(problem.values.variable(idx));
+        catalogue::encode_variable_into(problem.values.variable(idx), &mut value);
         if let Some(entry) = mirror.get_mut(&key) {
             // A batch accepted during the solve set a newer guess; it is applied next.
             if entry.changed <= sequence && entry.value != value {
-                entry.value = value;
+                entry.value.clone_from(&value);
                 entry.changed = sequence;
                 changed.push(value_of(key, entry));
             }
         }
+    };
+    match moved {
+        Some(moved) => moved.iter().for_each(|&idx| refresh(idx)),
+        None => (0..problem.values.len()).for_each(refresh),
     }
     changed
 }

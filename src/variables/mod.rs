@@ -121,16 +121,25 @@ pub struct VariableWire {
     /// The encoding's components in order, for documentation (`["x", "y", "theta"]`).
     pub components: &'static [&'static str],
     pub decode: DecodeVariable,
-    pub encode: fn(&dyn Variable) -> Vec<f64>,
+    /// Writes the wire encoding to the vector (cleared first, so a caller can reuse one).
+    pub encode: fn(&dyn Variable, &mut Vec<f64>),
     /// How the web view draws it.
     pub shape: Shape,
 }
 
-/// `f` applied to `v` downcast to the kind a codec was chosen for.
-pub(crate) fn encode_as<T: 'static>(v: &dyn Variable, f: impl Fn(&T) -> Vec<f64>) -> Vec<f64> {
-    f(v.as_any()
+/// `out` cleared, then filled with `encode` applied to `v` downcast to the kind a codec was
+/// chosen for.
+pub(crate) fn encode_as<T: 'static, const N: usize>(
+    v: &dyn Variable,
+    out: &mut Vec<f64>,
+    encode: impl Fn(&T) -> [f64; N],
+) {
+    let v = v
+        .as_any()
         .downcast_ref::<T>()
-        .expect("codec is chosen by the variable's kind"))
+        .expect("codec is chosen by the variable's kind");
+    out.clear();
+    out.extend_from_slice(&encode(v));
 }
 
 #[cfg(test)]

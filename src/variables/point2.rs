@@ -13,7 +13,7 @@ pub const WIRE: VariableWire = VariableWire {
     len: 2,
     components: &["x", "y"],
     decode: |v| Ok(Box::new(Point2(Vector2::new(v[0], v[1])))),
-    encode: |v| encode_as::<Point2>(v, |p| vec![p.0.x, p.0.y]),
+    encode: |v, out| encode_as::<Point2, 2>(v, out, |p| [p.0.x, p.0.y]),
     shape: Shape::Landmark,
 };
 

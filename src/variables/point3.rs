@@ -13,7 +13,7 @@ pub const WIRE: VariableWire = VariableWire {
     len: 3,
     components: &["x", "y", "z"],
     decode: |v| Ok(Box::new(Point3(Vector3::new(v[0], v[1], v[2])))),
-    encode: |v| encode_as::<Point3>(v, |p| p.0.iter().copied().collect()),
+    encode: |v, out| encode_as::<Point3, 3>(v, out, |p| p.0.into()),
     shape: Shape::Landmark,
 };
 

@@ -11,7 +11,7 @@ pub const WIRE: VariableWire = VariableWire {
     len: 3,
     components: &["x", "y", "theta"],
     decode: |v| Ok(Box::new(Se2::new(v[0], v[1], wrap_angle(v[2])))),
-    encode: |v| encode_as::<Se2>(v, |p| p.to_array().to_vec()),
+    encode: |v, out| encode_as::<Se2, 3>(v, out, Se2::to_array),
     shape: Shape::Pose,
 };
 

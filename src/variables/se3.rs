@@ -14,11 +14,11 @@ pub const WIRE: VariableWire = VariableWire {
     len: 7,
     components: &["x", "y", "z", "qx", "qy", "qz", "qw"],
     decode: |v| Ok(Box::new(decode_se3(v)?)),
-    encode: |v| {
-        encode_as::<Se3>(v, |p| {
+    encode: |v, out| {
+        encode_as::<Se3, 7>(v, out, |p| {
             let q = p.rotation.quaternion();
             let t = p.translation;
-            vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+            [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
         })
     },
     shape: Shape::Pose,

@@ -19,7 +19,7 @@ pub const WIRE: VariableWire = VariableWire {
             .map_err(|_| format!("expected 9 numbers, got {}", v.len()))?;
         Ok(Box::new(SnavelyCamera::from_bal(&p)))
     },
-    encode: |v| encode_as::<SnavelyCamera>(v, |c| c.to_bal().to_vec()),
+    encode: |v, out| encode_as::<SnavelyCamera, 9>(v, out, SnavelyCamera::to_bal),
     shape: Shape::Pose,
 };
 
