@@ -180,7 +180,7 @@ async fn every_batch_is_applied_exactly_once_through_kills_and_lost_acks() {
     ));
     let web_task = tokio::spawn(run_http(Arc::clone(&web), proxy.url("")));
     let mut tasks = [Some(zen_task), Some(web_task)];
-    // The slower producer's progress: kills come while both stream.
+    // The slower producer's progress (a finished one's is complete): kills come while it streams.
     let progress = || {
         Counters::get(&zen.counters.accepted_through)
             .min(Counters::get(&web.counters.accepted_through))

@@ -105,6 +105,12 @@ impl LogWriter {
     /// Writes one record without the fsync the policy asks for: [`Self::sync`] makes it durable,
     /// and nothing may acknowledge it before that returned.
     pub fn write(&mut self, payload: &[u8]) -> io::Result<()> {
+        if self.torn {
+            return Err(io::Error::other(
+                "an earlier write failed part-way and its partial record could not be cut off; \
+                 a restart cuts it (it is the file's torn tail)",
+            ));
+        }
         if payload.len() > MAX_RECORD {
             return Err(io::Error::new(
                 io::ErrorKind::InvalidInput,
@@ -115,12 +121,6 @@ impl LogWriter {
         frame.extend_from_slice(&(payload.len() as u32).to_le_bytes());
         frame.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
         frame.extend_from_slice(payload);
-        if self.torn {
-            return Err(io::Error::other(
-                "an earlier write failed part-way and its partial record could not be cut off; \
-                 a restart cuts it (it is the file's torn tail)",
-            ));
-        }
         // One write call per record: a crash leaves a prefix of it, which the checksum catches.
         if let Err(e) = (&*self.file).write_all(&frame) {
             // A failed write (a full disk) may have written part of the record. Cut it off: a

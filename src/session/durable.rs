@@ -254,7 +254,7 @@ impl Session {
     }
 
     /// Makes the session read-only for good, with `reason` as its `last_error`. Set before
-    /// `recovering` clears, so no write slips in between.
+    /// `recovering` clears (when it is recovering), so no write slips in between.
     fn mark_corrupt(&self, reason: String) {
         let _ = self.corruption.set(reason);
         self.recovering.store(false, Ordering::SeqCst);
@@ -445,7 +445,7 @@ impl Session {
             error.body.message
         );
         tracing::error!(session = self.name, "{reason}");
-        let _ = self.corruption.set(reason);
+        self.mark_corrupt(reason);
         error
     }
 
