@@ -11,6 +11,12 @@
 //! Acknowledgements, estimates, summaries, errors and markers are put with
 //! `CongestionControl::Block` (a slow network slows the publisher, whose lag is then reported,
 //! instead of zenoh dropping them); iteration statistics may be dropped.
+//!
+//! An event is serialised and put only on the topics some subscriber would receive it on (in
+//! this process, on a peer, or behind a router: zenoh's matching status of a publisher
+//! declared per topic key). A put that matches nobody reaches nobody, so skipping it changes
+//! nothing a subscriber sees; it saves the serialisation, which for the estimate after a loop
+//! closure (thousands of variables) costs milliseconds of a core the solves share.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -33,6 +39,7 @@ pub(super) fn forward(
     let topics = session.topics();
     let name = session.name.clone();
     tokio::spawn(async move {
+        let listened = Arc::new(Listened::declare(&zenoh, &prefix, &name, topics).await);
         let mut run = Vec::with_capacity(MAX_RUN);
         while let Some(first) = events.next().await {
             run.push(first);
@@ -44,10 +51,10 @@ pub(super) fn forward(
             }
             // A put is synchronous, and a blocking one waits while the network is congested:
             // on a blocking thread, so no runtime worker waits with it.
-            let (zenoh, prefix, name) = (zenoh.clone(), prefix.clone(), name.clone());
+            let (zenoh, name, listened) = (zenoh.clone(), name.clone(), Arc::clone(&listened));
             let events = std::mem::take(&mut run);
             let published = tokio::task::spawn_blocking(move || {
-                publish(&zenoh, &prefix, &name, topics, events);
+                publish(&zenoh, &name, &listened, events);
             });
             if published.await.is_err() {
                 return; // the runtime is shutting down
@@ -56,29 +63,86 @@ pub(super) fn forward(
     });
 }
 
-/// Puts a drained run of events, estimates coalesced, `lagged` markers on every topic.
-fn publish(
-    zenoh: &zenoh::Session,
-    prefix: &str,
-    name: &str,
-    topics: &[&'static str],
-    run: Vec<Arc<SessionEvent>>,
-) {
+/// A session's topic keys, each with a publisher declared on it so that zenoh keeps its
+/// matching status up to date.
+struct Listened {
+    topics: Vec<Topic>,
+}
+
+struct Topic {
+    name: &'static str,
+    key: String,
+    /// `None` when zenoh refused the declaration: the topic then counts as listened to.
+    publisher: Option<zenoh::pubsub::Publisher<'static>>,
+}
+
+impl Listened {
+    async fn declare(
+        zenoh: &zenoh::Session,
+        prefix: &str,
+        session: &str,
+        topics: &[&'static str],
+    ) -> Self {
+        let mut declared = Vec::with_capacity(topics.len());
+        for &name in topics {
+            let key = format!("{prefix}/{session}/out/{name}");
+            let publisher = match zenoh.declare_publisher(key.clone()).await {
+                Ok(publisher) => Some(publisher),
+                Err(e) => {
+                    tracing::warn!(
+                        "zenoh publisher for {key} not declared ({e}): its events are put \
+                         whether or not anyone subscribes"
+                    );
+                    None
+                }
+            };
+            declared.push(Topic {
+                name,
+                key,
+                publisher,
+            });
+        }
+        Self { topics: declared }
+    }
+
+    /// The keys of the topics `of` takes that some subscriber would receive a put on (when
+    /// zenoh cannot say, a key counts as heard: an unneeded put costs less than a lost one).
+    fn heard(&self, of: impl Fn(&str) -> bool) -> Vec<&str> {
+        self.topics
+            .iter()
+            .filter(|t| of(t.name))
+            .filter(|t| {
+                t.publisher.as_ref().is_none_or(|p| {
+                    p.matching_status()
+                        .wait()
+                        .map_or(true, |status| status.matching())
+                })
+            })
+            .map(|t| t.key.as_str())
+            .collect()
+    }
+}
+
+/// Puts a drained run of events, estimates coalesced, `lagged` markers on every topic; an
+/// event no subscriber would receive is not serialised.
+fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc<SessionEvent>>) {
     for event in coalesce(run) {
-        let body = serde_json::to_vec(&*event).expect("events serialise");
-        let keys: &[&str] = match *event {
+        let keys = match *event {
             SessionEvent::Lagged { skipped, .. } => {
                 tracing::warn!(
                     "zenoh publisher of session {name} fell {skipped} events behind: published \
                      a lagged marker and the estimate's changes"
                 );
-                topics
+                listened.heard(|_| true)
             }
-            _ => &[event.topic()],
+            _ => listened.heard(|topic| topic == event.topic()),
         };
+        if keys.is_empty() {
+            continue;
+        }
+        let body = serde_json::to_vec(&*event).expect("events serialise");
         let congestion = congestion_for(&event);
-        for topic in keys {
-            let key = format!("{prefix}/{name}/out/{topic}");
+        for key in keys {
             let put = zenoh.put(key, body.clone()).congestion_control(congestion);
             if let Err(e) = put.wait() {
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
