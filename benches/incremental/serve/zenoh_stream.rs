@@ -1,6 +1,9 @@
 //! The stream over zenoh, as a robot publishes: each pose's batch on `<p>/<s>/in/batch`, the
 //! next once the previous one's estimate is available, i.e. its ack on `out/acks` says
 //! `reflected` or a `summary` event of a solve that includes it arrives on `out/summary`.
+//! Like a robot, it also subscribes to its poses on `out/poses`, so the server serialises and
+//! sends every estimate it would send a robot. (It does not parse them: what a robot spends
+//! reading its poses depends on the robot.)
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -62,6 +65,11 @@ pub async fn stream(s: &TestServer, session: &str, base: u64, bodies: &[String])
     let acks: Arc<Seen> = Default::default();
     let summaries: Arc<Seen> = Default::default();
     let _a = subscribe(&z, &format!("factord/{session}/out/acks"), acks.clone()).await;
+    let _p = z
+        .declare_subscriber(format!("factord/{session}/out/poses"))
+        .callback(|_| {})
+        .await
+        .expect("poses subscriber");
     let _s = subscribe(
         &z,
         &format!("factord/{session}/out/summary"),
