@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
 //! [--json out.json] [--dump-latencies out.txt] [--dump-server out.jsonl]
-//! [--fsync always|interval|never]`
+//! [--fsync always|interval|never] [--without-poses]`
 //!
 //! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
 //! `isam2_landmarks.py`.
@@ -15,7 +15,8 @@
 //! estimate reflects batch k.
 //! - `http`: `POST /v1/sessions/<s>/batches?wait=true`; latency = request sent → answer read.
 //! - `zenoh`: publish on `factord/<s>/in/batch`; latency = publish → arrival of the ack that
-//!   says `reflected` or of the summary of a solve that includes it.
+//!   says `reflected` or of the summary of a solve that includes it. The client subscribes to
+//!   its poses as a robot does (`--without-poses`: it does not, to measure what they cost).
 //!
 //! Batches are serialised before the clock starts (as isam2_stream.py parses the file first).
 //! After the stream (not timed): the estimate is read over HTTP and its chi2 compared with the
@@ -71,7 +72,7 @@ fn main() {
     let args = args::Args::from_env();
     let usage = "usage: incremental_serve <file.g2o> --transport http|zenoh [--limit N] \
                  [--json out] [--dump-latencies out] [--dump-server out] \
-                 [--fsync always|interval|never]";
+                 [--fsync always|interval|never] [--without-poses]";
     let path = args.first(usage);
     let transport = args
         .value("--transport")
@@ -126,7 +127,8 @@ fn main() {
                 _ => {
                     let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
                     let base = info["sequence"].as_u64().expect("sequence");
-                    zenoh_stream::stream(&s, session, base, &bodies).await
+                    let poses = !args.has("--without-poses");
+                    zenoh_stream::stream(&s, session, base, &bodies, poses).await
                 }
             };
             let peak_kb = proc_status_kb(s.pid(), "VmHWM");

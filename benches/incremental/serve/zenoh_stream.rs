@@ -60,16 +60,26 @@ fn available(seen: &Seen, from: &mut usize, sequence: u64, ack: bool) -> Option<
 /// first batch). Latency: from `put` to the arrival of the event that makes the estimate
 /// available. When no such event arrives within 5 s (an event stream that lagged), the
 /// session's `solved_sequence` is asked over the rpc and its answer time is used (`fallbacks`).
-pub async fn stream(s: &TestServer, session: &str, base: u64, bodies: &[String]) -> Streamed {
+pub async fn stream(
+    s: &TestServer,
+    session: &str,
+    base: u64,
+    bodies: &[String],
+    poses: bool,
+) -> Streamed {
     let z = zenoh_peer(&s.zenoh).await;
     let acks: Arc<Seen> = Default::default();
     let summaries: Arc<Seen> = Default::default();
     let _a = subscribe(&z, &format!("factord/{session}/out/acks"), acks.clone()).await;
-    let _p = z
-        .declare_subscriber(format!("factord/{session}/out/poses"))
-        .callback(|_| {})
-        .await
-        .expect("poses subscriber");
+    let _p = match poses {
+        true => Some(
+            z.declare_subscriber(format!("factord/{session}/out/poses"))
+                .callback(|_| {})
+                .await
+                .expect("poses subscriber"),
+        ),
+        false => None,
+    };
     let _s = subscribe(
         &z,
         &format!("factord/{session}/out/summary"),
