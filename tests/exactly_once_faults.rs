@@ -90,13 +90,7 @@ fn http_addr(s: &TestServer) -> SocketAddr {
 /// A zenoh peer that listens on `endpoint` (the server connects to it, again after every
 /// restart), scouting off.
 async fn listening_peer(endpoint: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"peer\"").unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    c.insert_json5("listen/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zenoh::open(c).await.expect("zenoh peer opens")
+    common::server::zenoh_session("peer", "listen", endpoint).await
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -10,30 +10,8 @@ mod common;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use common::server::{client, create, free_port, post, TestServer};
+use common::server::{client, create, free_port, post, zenoh_session, TestServer};
 use serde_json::{json, Value};
-
-/// A zenoh router listening on `endpoint`, in this process.
-async fn router(endpoint: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"router\"").unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    c.insert_json5("listen/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zenoh::open(c).await.expect("zenoh router opens")
-}
-
-/// A zenoh client of the router at `endpoint`.
-async fn robot(endpoint: &str) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"client\"").unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    c.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zenoh::open(c).await.expect("zenoh client opens")
-}
 
 /// The batch that adds pose `key` after pose `key - 1`, one metre ahead.
 fn step(key: u64) -> Value {
@@ -47,7 +25,7 @@ fn step(key: u64) -> Value {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_robot_behind_a_router_receives_poses_and_acks() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _router = router(&endpoint).await;
+    let _router = zenoh_session("router", "listen", &endpoint).await;
     let s = TestServer::start(&["--zenoh-connect", &endpoint]);
     let c = client();
     let url = |path: &str| s.url(&format!("/v1/sessions{path}"));
@@ -58,7 +36,7 @@ async fn a_robot_behind_a_router_receives_poses_and_acks() {
     assert_eq!(status, 200, "{v}");
 
     // One subscriber on the poses' own key, one on every topic of the session.
-    let z = robot(&endpoint).await;
+    let z = zenoh_session("client", "connect", &endpoint).await;
     let (tx, events) = mpsc::channel::<(String, Value)>();
     let mut subscribers = Vec::new();
     for key in ["factord/r/out/poses", "factord/r/out/**"] {

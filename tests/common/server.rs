@@ -377,13 +377,24 @@ pub fn http_when_started(info: &Path, what: &str, stderr_path: &Path) -> String 
 
 /// A zenoh peer on loopback connected to `endpoint`, scouting off.
 pub async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
+    zenoh_session("peer", "connect", endpoint).await
+}
+
+/// A zenoh session in `mode` (`peer`, `client`, `router`), multicast scouting off, that
+/// `connects` to or `listen`s on `endpoint`.
+pub async fn zenoh_session(mode: &str, endpoints: &str, endpoint: &str) -> zenoh::Session {
     let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"peer\"").unwrap();
+    c.insert_json5("mode", &format!("\"{mode}\"")).unwrap();
     c.insert_json5("scouting/multicast/enabled", "false")
         .unwrap();
-    c.insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    zenoh::open(c).await.expect("zenoh peer opens")
+    c.insert_json5(
+        &format!("{endpoints}/endpoints"),
+        &format!("[\"{endpoint}\"]"),
+    )
+    .unwrap();
+    zenoh::open(c)
+        .await
+        .unwrap_or_else(|e| panic!("zenoh {mode} on {endpoint} opens: {e}"))
 }
 
 /// The ROS 2 nodes of `domain` as `ros2 node list` finds them, as (zenoh id, node name): from
