@@ -71,14 +71,16 @@ pub async fn stream(
     let acks: Arc<Seen> = Default::default();
     let summaries: Arc<Seen> = Default::default();
     let _a = subscribe(&z, &format!("factord/{session}/out/acks"), acks.clone()).await;
-    let _p = match poses {
-        true => Some(
-            z.declare_subscriber(format!("factord/{session}/out/poses"))
+    let _p = if poses {
+        let key = format!("factord/{session}/out/poses");
+        Some(
+            z.declare_subscriber(key)
                 .callback(|_| {})
                 .await
                 .expect("poses subscriber"),
-        ),
-        false => None,
+        )
+    } else {
+        None
     };
     let _s = subscribe(
         &z,
