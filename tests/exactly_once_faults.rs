@@ -22,7 +22,9 @@ use std::time::{Duration, Instant};
 
 use common::ack_proxy::AckDroppingProxy;
 use common::producer::{run_http, run_zenoh, Counters, Producer, ZenohFaults};
-use common::server::{client, create, free_port, g2o_batches, get, post, recovered, TestServer};
+use common::server::{
+    client, create, free_port, g2o_batches, get, post, recovered, zenoh_session, TestServer,
+};
 use factord::factors::testing::Rng;
 use serde_json::{json, Value};
 
@@ -87,12 +89,6 @@ fn http_addr(s: &TestServer) -> SocketAddr {
         .expect("a socket address")
 }
 
-/// A zenoh peer that listens on `endpoint` (the server connects to it, again after every
-/// restart), scouting off.
-async fn listening_peer(endpoint: &str) -> zenoh::Session {
-    common::server::zenoh_session("peer", "listen", endpoint).await
-}
-
 #[tokio::test(flavor = "multi_thread")]
 async fn every_batch_is_applied_exactly_once_through_kills_and_lost_acks() {
     let started = Instant::now();
@@ -144,7 +140,8 @@ async fn every_batch_is_applied_exactly_once_through_kills_and_lost_acks() {
         "--zenoh-connect",
         endpoint.as_str(),
     ];
-    let z = listening_peer(&endpoint).await;
+    // The producers' zenoh peer listens; the server connects to it, again after every restart.
+    let z = zenoh_session("peer", "listen", &endpoint).await;
     let proxy = AckDroppingProxy::start(rng.next_u64(), 0.1).await;
     let c = client();
 

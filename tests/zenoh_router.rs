@@ -79,16 +79,15 @@ async fn a_robot_behind_a_router_receives_poses_and_acks() {
         assert_eq!(status, 200, "{v}");
         last_sequence = v["sequence"].as_u64().unwrap();
     }
+    // Per subscription (the poses' key, the wildcard) the poses heard, and the acks heard.
     let mut poses_of = [Vec::new(), Vec::new()];
     let mut acked = Vec::new();
+    let complete = |poses_of: &[Vec<u64>; 2], acked: &[u64]| {
+        poses_of.iter().all(|p| p.contains(&to)) && acked.contains(&last_sequence)
+    };
     let deadline = Instant::now() + Duration::from_secs(10);
-    while Instant::now() < deadline {
+    while !complete(&poses_of, &acked) && Instant::now() < deadline {
         let Ok((subscription, v)) = events.recv_timeout(Duration::from_millis(200)) else {
-            let complete =
-                poses_of.iter().all(|p| p.contains(&to)) && acked.contains(&last_sequence);
-            if complete {
-                break;
-            }
             continue;
         };
         let wildcard = subscription.ends_with("**") as usize;
