@@ -160,6 +160,11 @@ impl BlockFactor {
         self.kept.bytes()
     }
 
+    /// Bytes of the buffers dense fronts are built in, kept between refactors.
+    pub fn front_scratch_bytes(&self) -> usize {
+        self.fronts.scratch_bytes()
+    }
+
     pub fn nnz(&self) -> usize {
         self.nnz
     }

@@ -286,6 +286,9 @@ fn runs_of_a_clique_are_factored_as_dense_fronts() {
         factor.dense_columns() > dense_at_start,
         "some partial refactor had a front"
     );
+    // Every refactor above built its fronts in the buffers of the ones before (and was checked
+    // against a dense Cholesky): they are kept for the next.
+    assert!(factor.front_scratch_bytes() > 0, "front buffers are kept");
 }
 
 /// `Lᵀ x = y` solved in full (every column, threshold 0) from zero.

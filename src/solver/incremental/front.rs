@@ -62,13 +62,27 @@ pub(super) fn front_at(order: &[usize], i: usize, acc: &Accumulator) -> Option<u
     (run + 1 >= MIN_COLUMNS).then_some(run + 1)
 }
 
+/// Spare buffers kept at most: about the fronts of one large refactor.
+const MAX_SPARE_BUFFERS: usize = 16;
+
 /// The update matrices of the fronts eliminated so far in one refactor, each until the last
-/// of its rows is gathered.
+/// of its rows is gathered; and the buffers fronts are built in, kept from one refactor to the
+/// next.
+///
+/// A front near the root of a 3D map is a dense matrix of megabytes (sphere2500: a thousand
+/// scalars square). Allocated fresh for every update, each of its pages was zeroed again by a
+/// page fault: 13% of a sphere2500 stream's time, most of it in the kernel. Reused, a buffer
+/// is zeroed by one `memset` over memory the process already has.
 #[derive(Debug, Default)]
 pub(super) struct FrontUpdates {
     /// `(rank of a row, front, position of the row in the front's rows)`, the lowest rank first.
     due: BinaryHeap<Reverse<(u64, u32, u32)>>,
     fronts: Vec<FrontUpdate>,
+    /// Update matrices no longer needed, for the next fronts.
+    spare: Vec<Vec<f64>>,
+    /// The panel `[A_JJ; A_SJ]` of the front being eliminated, and its gathered columns.
+    panel: Vec<f64>,
+    gathered: Gathered,
 }
 
 /// `U` of one front: its rows `S` in rank order, where each starts in `U` (scalars, one more
@@ -128,7 +142,8 @@ impl FrontUpdates {
             }
             front.remaining -= 1;
             if front.remaining == 0 {
-                front.values = Vec::new();
+                let values = std::mem::take(&mut front.values);
+                self.recycle(values);
             }
         }
     }
@@ -136,12 +151,50 @@ impl FrontUpdates {
     /// The refactor is over: nothing is due any more.
     pub(super) fn clear(&mut self) {
         self.due.clear();
-        self.fronts.clear();
+        for front in std::mem::take(&mut self.fronts) {
+            self.recycle(front.values);
+        }
+    }
+
+    /// A buffer of `len` zeros: the smallest spare that holds it, else the largest spare
+    /// (grown), else a new one.
+    fn zeroed(&mut self, len: usize) -> Vec<f64> {
+        let fits = (0..self.spare.len())
+            .filter(|&i| self.spare[i].capacity() >= len)
+            .min_by_key(|&i| self.spare[i].capacity());
+        let largest = || (0..self.spare.len()).max_by_key(|&i| self.spare[i].capacity());
+        let mut buffer = fits
+            .or_else(largest)
+            .map_or_else(Vec::new, |i| self.spare.swap_remove(i));
+        buffer.clear();
+        buffer.resize(len, 0.0);
+        buffer
+    }
+
+    /// Keeps `buffer` for a later front, unless as many are kept already and it is the
+    /// smallest.
+    fn recycle(&mut self, buffer: Vec<f64>) {
+        if buffer.capacity() == 0 {
+            return;
+        }
+        self.spare.push(buffer);
+        if self.spare.len() > MAX_SPARE_BUFFERS {
+            let smallest = (0..self.spare.len())
+                .min_by_key(|&i| self.spare[i].capacity())
+                .expect("more spares than the limit");
+            self.spare.swap_remove(smallest);
+        }
+    }
+
+    /// Bytes of the buffers kept between refactors.
+    pub(super) fn scratch_bytes(&self) -> usize {
+        let spare: usize = self.spare.iter().map(Vec::capacity).sum();
+        8 * (spare + self.panel.capacity()) + self.gathered.bytes()
     }
 }
 
 /// The gathered columns of a front, copied out of the accumulator one after the other.
-#[derive(Default)]
+#[derive(Debug, Default)]
 struct Gathered {
     diagonals: Vec<f64>,
     entries: Vec<(u32, u32)>,
@@ -151,6 +204,18 @@ struct Gathered {
 }
 
 impl Gathered {
+    fn clear(&mut self) {
+        self.diagonals.clear();
+        self.entries.clear();
+        self.buffers.clear();
+        self.starts.clear();
+    }
+
+    fn bytes(&self) -> usize {
+        8 * (self.diagonals.capacity() + self.buffers.capacity() + self.starts.capacity() * 3)
+            + 8 * self.entries.capacity()
+    }
+
     fn save(&mut self, acc: &Accumulator) {
         let (diagonal, entries, buffer) =
             (self.diagonals.len(), self.entries.len(), self.buffers.len());
@@ -193,7 +258,8 @@ impl BlockFactor {
         }
         // Each column's H entries less what was eliminated before the front; the rows beyond
         // the front (S), each with the first column of the front that reaches it.
-        let mut gathered = Gathered::default();
+        let mut gathered = std::mem::take(&mut self.fronts.gathered);
+        gathered.clear();
         let mut beyond: Vec<(u32, usize)> = Vec::new();
         for (p, &r) in front.iter().enumerate() {
             if p > 0 {
@@ -225,7 +291,9 @@ impl BlockFactor {
         offsets.push(n);
         let nj = offsets[w];
         // The panel [A_JJ; A_SJ], column-major n × nj: entry (row a, column b) at f[b·n + a].
-        let mut f = vec![0.0; n * nj];
+        let mut f = std::mem::take(&mut self.fronts.panel);
+        f.clear();
+        f.resize(n * nj, 0.0);
         for p in 0..w {
             let (diagonal, entries, buffer) = gathered.column(p);
             let (d, o) = (self.dim[front[p]], offsets[p]);
@@ -247,16 +315,17 @@ impl BlockFactor {
                 }
             }
         }
+        self.fronts.gathered = gathered;
         for &u in &panel_rows {
             self.slot[u] = NONE;
         }
-        let update = match factor_front(&mut f, n, nj) {
-            Ok(update) => update,
-            Err(row) => {
-                let p = offsets.partition_point(|&o| o <= row) - 1;
-                return Err(NotPositiveDefinite(front[p]));
-            }
-        };
+        let mut update = self.fronts.zeroed((n - nj) * (n - nj));
+        if let Err(row) = factor_front(&mut f, n, nj, &mut update) {
+            self.fronts.panel = f;
+            self.fronts.recycle(update);
+            let p = offsets.partition_point(|&o| o <= row) - 1;
+            return Err(NotPositiveDefinite(front[p]));
+        }
         self.dense_columns += w;
         for (p, &r) in front.iter().enumerate() {
             let (d, o) = (self.dim[r], offsets[p]);
@@ -292,15 +361,18 @@ impl BlockFactor {
             let rows = beyond.iter().map(|&(u, _)| u).collect();
             let from_nj = offsets[w..].iter().map(|&o| o - nj).collect();
             self.fronts.push(rows, from_nj, update, &self.rank);
+        } else {
+            self.fronts.recycle(update);
         }
+        self.fronts.panel = f;
         Ok(())
     }
 }
 
 /// Factors the n × nj column-major panel `[A_JJ; A_SJ]` in place into `[L_JJ; L_SJ]` (lower
-/// triangles read and written) and returns `U = L_SJ L_SJᵀ` (lower triangle, column-major,
-/// (n − nj)²), or the scalar row whose pivot failed.
-fn factor_front(f: &mut [f64], n: usize, nj: usize) -> Result<Vec<f64>, usize> {
+/// triangles read and written) and writes `U = L_SJ L_SJᵀ` into `update` (lower triangle,
+/// column-major, (n − nj)²); or returns the scalar row whose pivot failed.
+fn factor_front(f: &mut [f64], n: usize, nj: usize, update: &mut [f64]) -> Result<(), usize> {
     let mut mem = MemBuffer::new(dense_llt::cholesky_in_place_scratch::<f64>(
         nj,
         Par::Seq,
@@ -317,12 +389,11 @@ fn factor_front(f: &mut [f64], n: usize, nj: usize) -> Result<Vec<f64>, usize> {
     )
     .map_err(|LltError::NonPositivePivot { index }| index)?;
     let ns = n - nj;
-    let mut update = vec![0.0; ns * ns];
     if ns > 0 {
         // X Lᵀ = A_SJ  ⇔  L Xᵀ = A_SJᵀ.
         solve_lower_triangular_in_place(top.as_ref(), bottom.as_mut().transpose_mut(), Par::Seq);
         triangular_matmul::matmul(
-            MatMut::from_column_major_slice_mut(&mut update, ns, ns),
+            MatMut::from_column_major_slice_mut(update, ns, ns),
             BlockStructure::TriangularLower,
             Accum::Replace,
             bottom.as_ref(),
@@ -333,5 +404,5 @@ fn factor_front(f: &mut [f64], n: usize, nj: usize) -> Result<Vec<f64>, usize> {
             Par::Seq,
         );
     }
-    Ok(update)
+    Ok(())
 }

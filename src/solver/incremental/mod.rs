@@ -131,11 +131,14 @@ impl IncrementalEngine {
     }
 
     /// Memory the engine holds, from counts it keeps (O(1)): the factor's values and block
-    /// indices, the linearised factors, the linearisation point and the solution vectors.
+    /// indices, the linearised factors, the linearisation point and the solution vectors, and
+    /// the dense fronts' buffers.
     pub fn memory_bytes(&self) -> usize {
         let variables = self.theta.len() * VARIABLE_OVERHEAD + 32 * self.delta.len();
-        let factor =
-            8 * self.factor.nnz() + 8 * self.jacobian_blocks + self.factor.kept_update_bytes();
+        let factor = 8 * self.factor.nnz()
+            + 8 * self.jacobian_blocks
+            + self.factor.kept_update_bytes()
+            + self.factor.front_scratch_bytes();
         variables + factor + self.linearized_bytes
     }
 
