@@ -233,7 +233,7 @@ impl BlockFactor {
         for k in self.front_columns.drain(..) {
             self.covered[k as usize] = false;
         }
-        self.fronts.clear();
+        self.fronts.end_refactor(8 * self.nnz);
         self.kept.end_refactor(8 * self.nnz);
         result
     }

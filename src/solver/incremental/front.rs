@@ -148,12 +148,28 @@ impl FrontUpdates {
         }
     }
 
-    /// The refactor is over: nothing is due any more.
-    pub(super) fn clear(&mut self) {
+    /// The refactor is over: nothing is due any more. The buffers kept for the next refactor
+    /// are cut to `budget` bytes (the factor's own size: a large loop closure's fronts in a 2D
+    /// map are update matrices of tens of megabytes, kept whole they raised a 10k stream's peak
+    /// memory by a fifth), the largest kept first.
+    pub(super) fn end_refactor(&mut self, budget: usize) {
         self.due.clear();
         for front in std::mem::take(&mut self.fronts) {
             self.recycle(front.values);
         }
+        if 8 * self.panel.capacity() > budget {
+            self.panel = Vec::new();
+        }
+        let mut left = budget.saturating_sub(8 * self.panel.capacity() + self.gathered.bytes());
+        self.spare
+            .sort_unstable_by_key(|buffer| std::cmp::Reverse(buffer.capacity()));
+        self.spare.retain(|buffer| {
+            let fits = 8 * buffer.capacity() <= left;
+            if fits {
+                left -= 8 * buffer.capacity();
+            }
+            fits
+        });
     }
 
     /// A buffer of `len` zeros: the smallest spare that holds it, else the largest spare
