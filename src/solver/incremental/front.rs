@@ -38,6 +38,7 @@ use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
 use faer::{Accum, MatMut, Par, Spec};
 
 use super::{Accumulator, BlockFactor, KeptApplications, NotPositiveDefinite, NONE};
+use crate::solver::incremental::subtree_updates::BASE_BUDGET;
 
 /// A shorter run is eliminated column by column (the dense matrix would not pay for itself).
 const MIN_COLUMNS: usize = 12;
@@ -64,10 +65,6 @@ pub(super) fn front_at(order: &[usize], i: usize, acc: &Accumulator) -> Option<u
 
 /// Spare buffers kept at most: about the fronts of one large refactor.
 const MAX_SPARE_BUFFERS: usize = 16;
-/// Bytes of buffers kept between refactors whatever the factor's size: without this floor a
-/// sphere2500 stream dropped buffers it needed again and spent 1.4–1.9 s in the kernel, with it
-/// 0.8–0.9 s (a 10k stream's peak memory: 205 MB without, 209 MB with).
-const BASE_BUDGET: usize = 16 << 20;
 
 /// The update matrices of the fronts eliminated so far in one refactor, each until the last
 /// of its rows is gathered; and the buffers fronts are built in, kept from one refactor to the
@@ -153,9 +150,12 @@ impl FrontUpdates {
     }
 
     /// The refactor is over: nothing is due any more. The buffers kept for the next refactor
-    /// are cut to the factor's size (`factor_bytes`), and at least [`BASE_BUDGET`], the largest
-    /// kept first. A large loop closure's fronts in a 2D map are update matrices of tens of
-    /// megabytes: kept whole, they raised a 10k stream's peak memory from 199 to 230 MB.
+    /// are cut to the factor's size (`factor_bytes`), and at least [`BASE_BUDGET`] (the floor
+    /// of the kept subtree updates), the largest kept first. A large loop closure's fronts in a
+    /// 2D map are update matrices of tens of megabytes: kept whole, they raised a 10k stream's
+    /// peak memory from 199 to 230 MB. Without the floor a sphere2500 stream dropped buffers
+    /// it needed again and spent 1.4–1.9 s in the kernel, with it 0.8–0.9 s (the 10k stream's
+    /// peak: 205 MB without, 209 MB with).
     pub(super) fn end_refactor(&mut self, factor_bytes: usize) {
         let budget = BASE_BUDGET.max(factor_bytes);
         self.due.clear();
@@ -233,8 +233,10 @@ impl Gathered {
     }
 
     fn bytes(&self) -> usize {
-        8 * (self.diagonals.capacity() + self.buffers.capacity() + self.starts.capacity() * 3)
-            + 8 * self.entries.capacity()
+        use std::mem::size_of;
+        size_of::<f64>() * (self.diagonals.capacity() + self.buffers.capacity())
+            + size_of::<(u32, u32)>() * self.entries.capacity()
+            + size_of::<(usize, usize, usize)>() * self.starts.capacity()
     }
 
     fn save(&mut self, acc: &Accumulator) {

@@ -29,8 +29,9 @@ use std::collections::HashMap;
 use super::block_factor::Accumulator;
 use super::dense;
 
-/// Bytes the store may always hold, whatever the factor's size.
-const BASE_BUDGET: usize = 16 << 20;
+/// Bytes the store may always hold, whatever the factor's size (the dense fronts' kept buffers
+/// have the same floor, see `block_factor::front`).
+pub(super) const BASE_BUDGET: usize = 16 << 20;
 
 /// `−U_g` of one kept subtree root `g`, its lower block triangle in the order of `rows`.
 #[derive(Debug)]
