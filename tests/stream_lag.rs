@@ -367,24 +367,57 @@ async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_va
     s.assert_no_panic();
 }
 
+/// The socket buffers (bytes) of the stalled subscriber's link, each way. Loopback's defaults
+/// grow to megabytes, which hold tens of thousands of small events: a stall would then fill
+/// the kernel's buffers before the server's event channel.
+const SOCKET_BUFFER: usize = 16 * 1024;
+
+/// The longest the slow subscriber stalls (the server's zenoh waits longer: see
+/// [`stall_tolerant_zenoh_config`]).
+const MAX_STALL: Duration = Duration::from_secs(40);
+
+/// A zenoh configuration file for the server whose subscriber stalls: small socket buffers,
+/// and a blocked put or a silent peer tolerated for a minute (zenoh's defaults close the link
+/// after 5 s of a blocked put, and the peer closes it after the server's 10 s lease without a
+/// word, which a stalled reception cannot hear).
+fn stall_tolerant_zenoh_config() -> String {
+    let path = common::temp_dir("slow-zenoh").join("zenoh.json5");
+    let config = json!({"transport": {"link": {
+        "tcp": {"so_sndbuf": SOCKET_BUFFER, "so_rcvbuf": SOCKET_BUFFER},
+        "tx": {
+            "lease": 60_000,
+            "queue": {"congestion_control": {"block": {"wait_before_close": 60_000_000}}},
+        },
+    }}});
+    std::fs::write(&path, config.to_string()).unwrap();
+    path.to_str().unwrap().to_string()
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
-    let batches = odometry_batches(20000);
+    let batches = odometry_batches(8000);
     let n = batches.len();
-    let s = TestServer::start(&[]);
+    let s = TestServer::start(&["--zenoh-config", &stall_tolerant_zenoh_config()]);
     let c = client();
     create(&c, &s, &json!({"session": "slow", "kind": "pose_graph_2d"})).await;
-    let z = zenoh_peer(&s.zenoh).await;
+    let z = zenoh_peer(&format!("{}#so_rcvbuf={SOCKET_BUFFER}", s.zenoh)).await;
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
     let stalled = std::sync::atomic::AtomicBool::new(false);
+    let release = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let released = std::sync::Arc::clone(&release);
     let _out = z
         .declare_subscriber("factord/slow/out/**")
         .callback(move |sample| {
-            // The first event stalls this peer's reception for 4 s (less than zenoh's 5 s
-            // before it closes a link a blocking put waits on) while the batches keep coming:
-            // the server's publisher falls behind.
+            // The first event stalls this peer's reception until the server has applied and
+            // solved every batch, so the publisher falls behind by (nearly) the whole stream,
+            // however fast or slow the machine.
             if !stalled.swap(true, std::sync::atomic::Ordering::SeqCst) {
-                std::thread::sleep(Duration::from_secs(4));
+                let deadline = Instant::now() + MAX_STALL;
+                while !released.load(std::sync::atomic::Ordering::SeqCst)
+                    && Instant::now() < deadline
+                {
+                    std::thread::sleep(Duration::from_millis(10));
+                }
             }
             let event: Value = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
             let _ = tx.send((sample.key_expr().to_string(), event));
@@ -401,6 +434,15 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
     for b in &batches {
         publisher.put(b.to_string()).await.unwrap();
     }
+    let deadline = Instant::now() + MAX_STALL;
+    while Instant::now() < deadline {
+        let stats = get(&c, &s.url("/v1/sessions/slow")).await.1;
+        if stats["solved_sequence"].as_u64().unwrap_or(0) >= n as u64 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    release.store(true, std::sync::atomic::Ordering::SeqCst);
     let (mut seen, mut held, mut estimate) = (Seen::default(), BTreeMap::new(), BTreeMap::new());
     let mut received = Vec::new();
     for _ in 0..10 {
@@ -425,11 +467,15 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
         }
     }
     eprintln!(
-        "slow zenoh subscriber: {} events, {} acks seen, {} covered, {} lagged markers",
+        "slow zenoh subscriber: {} events, {} acks seen, {} covered, {} lagged markers \
+         (the first after {} skipped events)",
         seen.events,
         seen.acked.len(),
         seen.covered(),
-        seen.markers.len()
+        seen.markers.len(),
+        seen.markers
+            .first()
+            .map_or(Value::Null, |(_, m)| m["skipped"].clone())
     );
     assert!(!seen.markers.is_empty(), "the publisher never fell behind");
     // One marker per lag, on each of the session's topics, identical.
