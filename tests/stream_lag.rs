@@ -508,3 +508,54 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
     z.close().await.unwrap();
     s.assert_no_panic();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn what_a_robot_waits_on_is_sent_at_once_and_never_dropped() {
+    // Batched behind a large estimate, the summary that completes an update waited for zenoh's
+    // batch to stop growing; iteration statistics may still be batched and dropped.
+    let batches: Vec<Value> = m3500_batches().into_iter().take(300).collect();
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(&c, &s, &json!({"session": "qos", "kind": "pose_graph_2d"})).await;
+    let z = zenoh_peer(&s.zenoh).await;
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let _out = z
+        .declare_subscriber("factord/qos/out/**")
+        .callback(move |sample| {
+            let topic = sample.key_expr().as_str().rsplit('/').next().unwrap();
+            let _ = tx.send((
+                topic.to_string(),
+                sample.express(),
+                sample.congestion_control(),
+            ));
+        })
+        .await
+        .unwrap();
+    let publisher = z.declare_publisher("factord/qos/in/batch").await.unwrap();
+    zenoh_get(&z, "factord/qos/estimate", None).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for b in &batches {
+        publisher.put(b.to_string()).await.unwrap();
+    }
+    // A refused batch (an unknown factor type) gets an error event.
+    publisher
+        .put(json!({"factors": [{"type": "no_such_factor", "keys": [0]}]}).to_string())
+        .await
+        .unwrap();
+    let mut seen: BTreeMap<String, BTreeSet<(bool, String)>> = BTreeMap::new();
+    while let Ok(Some((topic, express, congestion))) =
+        tokio::time::timeout(Duration::from_secs(2), rx.recv()).await
+    {
+        seen.entry(topic)
+            .or_default()
+            .insert((express, format!("{congestion:?}")));
+    }
+    let at_once = BTreeSet::from([(true, "Block".to_string())]);
+    for topic in ["acks", "poses", "summary", "errors"] {
+        assert_eq!(seen.get(topic), Some(&at_once), "{topic}: {seen:?}");
+    }
+    let batched = BTreeSet::from([(false, "Drop".to_string())]);
+    assert_eq!(seen.get("stats"), Some(&batched), "{seen:?}");
+    z.close().await.unwrap();
+    s.assert_no_panic();
+}

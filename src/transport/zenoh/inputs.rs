@@ -120,5 +120,6 @@ async fn deliver(c: &Context, name: &str, delivery: Delivery) {
         .zenoh
         .put(format!("{}/{name}/out/errors", c.prefix), body)
         .congestion_control(super::forward::congestion_for(&event))
+        .express(super::forward::express_for(&event))
         .await;
 }
