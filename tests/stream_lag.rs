@@ -2,7 +2,8 @@
 //! cumulative one covering it) for every batch, and a subscriber that falls behind gets a
 //! `lagged` marker with every producer's progress and then the latest value of every variable
 //! changed meanwhile, so what it holds ends equal to the estimate. Nor do they run ahead of the
-//! journal: nothing reflecting a batch is published before its acknowledgement.
+//! journal: nothing reflecting a batch is published before its acknowledgement. And what a
+//! client waits on is sent at once (zenoh's express), never dropped.
 
 mod common;
 
