@@ -22,6 +22,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use zenoh::pubsub::{PublicationBuilder, PublicationBuilderPut, PublisherBuilder};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
@@ -142,37 +143,40 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
             continue;
         }
         let body = serde_json::to_vec(&*event).expect("events serialise");
-        let (congestion, express) = (congestion_for(&event), express_for(&event));
         for key in keys {
-            let put = zenoh
-                .put(key, body.clone())
-                .congestion_control(congestion)
-                .express(express);
-            if let Err(e) = put.wait() {
+            if let Err(e) = put_event(zenoh, key, body.clone(), &event).wait() {
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
             }
         }
     }
 }
 
-/// How an event is published when zenoh's queue is full: iteration statistics may be dropped
-/// (the next one supersedes them); the rest wait, as an ack or an error may be the only word
-/// its sender gets.
-pub(super) fn congestion_for(event: &SessionEvent) -> CongestionControl {
-    match event {
-        SessionEvent::Iteration { .. } => CongestionControl::Drop,
-        _ => CongestionControl::Block,
-    }
-}
-
-/// Whether an event is sent at once, alone, rather than batched with the ones after it:
-/// everything a client waits on (all but iteration statistics). While its link is busy, zenoh
-/// packs small messages into one batch and holds the batch back as long as it keeps growing;
-/// right after a large estimate's fragments, the summary that completes an update waited there
-/// (manhattanOlson3500 over zenoh with the poses subscribed, 6 interleaved pairs: total median
-/// 4.59 → 3.94 s, p90 2.92 → 2.18 ms sent at once; see BENCHMARKS).
-pub(super) fn express_for(event: &SessionEvent) -> bool {
-    congestion_for(event) == CongestionControl::Block
+/// The put of `event` (serialised in `body`) on `key`, with the event's QoS: every put of an
+/// event goes through here, so none gets one setting without the other.
+///
+/// Everything a client waits on (acks, estimates, summaries, errors, markers) waits when zenoh's
+/// queue is full, as an ack or an error may be the only word its sender gets, and is express:
+/// sent at once, alone. While its link is busy, zenoh packs small messages into one batch and
+/// holds the batch back as long as it keeps growing; right after a large estimate's fragments,
+/// the summary that completes an update waited there (manhattanOlson3500 over zenoh with the
+/// poses subscribed, 6 interleaved pairs: total median 4.59 → 3.94 s, p90 2.92 → 2.18 ms sent
+/// at once; see BENCHMARKS). Iteration statistics may be dropped (the next one supersedes
+/// them) and batched.
+pub(super) fn put_event<'a>(
+    zenoh: &'a zenoh::Session,
+    key: &'a str,
+    body: Vec<u8>,
+    event: &SessionEvent,
+) -> PublicationBuilder<PublisherBuilder<'a, 'a>, PublicationBuilderPut> {
+    let waited_on = !matches!(event, SessionEvent::Iteration { .. });
+    let congestion = match waited_on {
+        true => CongestionControl::Block,
+        false => CongestionControl::Drop,
+    };
+    zenoh
+        .put(key, body)
+        .congestion_control(congestion)
+        .express(waited_on)
 }
 
 /// `run` with its estimate events merged into one (the latest value of each variable, the

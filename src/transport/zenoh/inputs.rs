@@ -116,10 +116,6 @@ async fn deliver(c: &Context, name: &str, delivery: Delivery) {
     };
     let body = serde_json::to_vec(&event).expect("events serialise");
     // As the session's own events are published (zenoh's default would drop it at full rate).
-    let _ = c
-        .zenoh
-        .put(format!("{}/{name}/out/errors", c.prefix), body)
-        .congestion_control(super::forward::congestion_for(&event))
-        .express(super::forward::express_for(&event))
-        .await;
+    let key = format!("{}/{name}/out/errors", c.prefix);
+    let _ = super::forward::put_event(&c.zenoh, &key, body, &event).await;
 }
