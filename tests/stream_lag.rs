@@ -8,6 +8,8 @@
 mod common;
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::server::{client, create, g2o_batches, get, post, zenoh_get, zenoh_peer, TestServer};
@@ -216,14 +218,73 @@ async fn nothing_of_a_batch_is_published_before_its_acknowledgement() {
     s.assert_no_panic();
 }
 
+/// Where an SSE stream's bytes come from.
+trait SseBytes {
+    /// The next bytes, or `None` at the end of the stream.
+    async fn next_bytes(&mut self) -> Option<Vec<u8>>;
+}
+
+impl SseBytes for reqwest::Response {
+    async fn next_bytes(&mut self) -> Option<Vec<u8>> {
+        self.chunk().await.ok().flatten().map(|b| b.to_vec())
+    }
+}
+
+/// An SSE stream read straight off a socket whose receive buffer is fixed at 4 KB. Through
+/// reqwest the kernel may grow an unread connection's buffer to megabytes (autotuning), which
+/// then held the whole stream (about 7 700 events) and the server's never fell behind.
+struct SmallBufferSse(tokio::net::TcpStream);
+
+impl SmallBufferSse {
+    /// `GET path` on the server as HTTP/1.0 (a body that ends with the connection, not
+    /// chunked, so the bytes are the stream's own); returns the reader and the bytes of the
+    /// stream read with the head.
+    async fn open(s: &TestServer, path: &str) -> (Self, String) {
+        use tokio::io::AsyncWriteExt;
+        let addr: std::net::SocketAddr = s.http.trim_start_matches("http://").parse().unwrap();
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.set_recv_buffer_size(4096).unwrap();
+        let mut stream = socket.connect(addr).await.unwrap();
+        let request = format!("GET {path} HTTP/1.0\r\nAccept: text/event-stream\r\n\r\n");
+        stream.write_all(request.as_bytes()).await.unwrap();
+        let mut reader = Self(stream);
+        let mut head = String::new();
+        while !head.contains("\r\n\r\n") {
+            let bytes = reader.next_bytes().await.expect("the answer's head");
+            head.push_str(&String::from_utf8_lossy(&bytes));
+        }
+        let (status_and_headers, rest) = head.split_once("\r\n\r\n").unwrap();
+        assert!(
+            status_and_headers.starts_with("HTTP/1.0 200")
+                || status_and_headers.starts_with("HTTP/1.1 200"),
+            "{status_and_headers}"
+        );
+        (reader, rest.to_string())
+    }
+}
+
+impl SseBytes for SmallBufferSse {
+    async fn next_bytes(&mut self) -> Option<Vec<u8>> {
+        use tokio::io::AsyncReadExt;
+        let mut bytes = vec![0; 16 * 1024];
+        match self.0.read(&mut bytes).await {
+            Ok(0) | Err(_) => None,
+            Ok(n) => {
+                bytes.truncate(n);
+                Some(bytes)
+            }
+        }
+    }
+}
+
 /// Reads SSE events (name, data) from `resp` until none came for `quiet`.
 async fn read_sse_until_quiet(
-    resp: &mut reqwest::Response,
+    resp: &mut impl SseBytes,
     buffer: &mut String,
     quiet: Duration,
 ) -> Vec<(String, Value)> {
     let mut events = Vec::new();
-    while let Ok(Ok(Some(bytes))) = tokio::time::timeout(quiet, resp.chunk()).await {
+    while let Ok(Some(bytes)) = tokio::time::timeout(quiet, resp.next_bytes()).await {
         buffer.push_str(&String::from_utf8_lossy(&bytes));
         while let Some(pos) = buffer.find("\n\n") {
             let block: String = buffer.drain(..pos + 2).collect();
@@ -264,12 +325,7 @@ async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_va
     let s = TestServer::start(&[]);
     let c = client();
     create(&c, &s, &json!({"session": "lag", "kind": "pose_graph_2d"})).await;
-    let mut sse = c
-        .get(s.url("/v1/sessions/lag/events"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(sse.status(), 200);
+    let (mut sse, mut buffer) = SmallBufferSse::open(&s, "/v1/sessions/lag/events").await;
     let z = zenoh_peer(&s.zenoh).await;
     let publisher = z
         .declare_publisher("factord/lag/in/batch")
@@ -300,7 +356,7 @@ async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_va
     );
 
     // Now read: what the connection buffered, the marker, the re-synchronisation, the rest.
-    let (mut buffer, mut events) = (String::new(), Vec::new());
+    let mut events = Vec::new();
     let mut held = BTreeMap::new();
     let mut estimate = BTreeMap::new();
     for _ in 0..5 {
@@ -403,20 +459,18 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
     create(&c, &s, &json!({"session": "slow", "kind": "pose_graph_2d"})).await;
     let z = zenoh_peer(&format!("{}#so_rcvbuf={SOCKET_BUFFER}", s.zenoh)).await;
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
-    let stalled = std::sync::atomic::AtomicBool::new(false);
-    let release = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let released = std::sync::Arc::clone(&release);
+    let stalled = AtomicBool::new(false);
+    let release = Arc::new(AtomicBool::new(false));
+    let released = Arc::clone(&release);
     let _out = z
         .declare_subscriber("factord/slow/out/**")
         .callback(move |sample| {
             // The first event stalls this peer's reception until the server has applied and
             // solved every batch, so the publisher falls behind by (nearly) the whole stream,
             // however fast or slow the machine.
-            if !stalled.swap(true, std::sync::atomic::Ordering::SeqCst) {
+            if !stalled.swap(true, Ordering::SeqCst) {
                 let deadline = Instant::now() + MAX_STALL;
-                while !released.load(std::sync::atomic::Ordering::SeqCst)
-                    && Instant::now() < deadline
-                {
+                while !released.load(Ordering::SeqCst) && Instant::now() < deadline {
                     std::thread::sleep(Duration::from_millis(10));
                 }
             }
@@ -443,7 +497,7 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    release.store(true, std::sync::atomic::Ordering::SeqCst);
+    release.store(true, Ordering::SeqCst);
     let (mut seen, mut held, mut estimate) = (Seen::default(), BTreeMap::new(), BTreeMap::new());
     let mut received = Vec::new();
     for _ in 0..10 {
