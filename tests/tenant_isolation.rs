@@ -172,6 +172,7 @@ async fn anonymous_zenoh_peers_reach_only_unowned_sessions_and_the_operator_is_t
     alice_creates_secret(&s);
     let z = zenoh_until_connected(&s.zenoh).await;
     let events = z.declare_subscriber("factord/secret/out/**").await.unwrap();
+    let binary = z.declare_subscriber("factord/secret/bin/**").await.unwrap();
 
     let sessions = zenoh_get(&z, "factord/rpc", Some(&json!({"op": "list_sessions"})))
         .await
@@ -222,6 +223,9 @@ async fn anonymous_zenoh_peers_reach_only_unowned_sessions_and_the_operator_is_t
             "published for an owned session: {} {text}",
             sample.key_expr()
         );
+    }
+    if let Ok(Some(sample)) = binary.try_recv() {
+        panic!("published for an owned session: {}", sample.key_expr());
     }
 
     // Sessions created over zenoh are unowned: zenoh peers and every token reach them.

@@ -14,6 +14,7 @@ pub mod factor_schema;
 pub mod fusion;
 pub mod history;
 mod limits;
+pub mod poses_binary;
 pub mod ros2;
 pub mod wire;
 pub mod wire_list;

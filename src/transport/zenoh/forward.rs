@@ -1,9 +1,13 @@
-//! Publishing a session's events on `<prefix>/<session>/out/<topic>`.
+//! Publishing a session's events on `<prefix>/<session>/out/<topic>`, and its estimates also in
+//! binary on `<prefix>/<session>/bin/poses` (`crate::api::poses_binary`: about 40 bytes an SE(2)
+//! pose against about 100 in JSON, and nothing to format or parse). The binary key is outside
+//! `out/`, so subscribers of `out/**` keep receiving JSON only.
 //!
 //! The publisher reads through the session's [`crate::session::EventStream`], so it never loses silently: after
 //! a lag it publishes the `lagged` marker on every topic key of the session (a subscriber of
 //! any one topic learns it missed something and every producer's cumulative progress), then the
-//! estimate of what changed meanwhile.
+//! estimate of what changed meanwhile. The marker is JSON on every key, `bin/poses` included
+//! (it starts with `{`, a binary estimate with `FDPB`; the zenoh encoding says which too).
 //!
 //! To keep up at full rate it drains what is queued and publishes estimates coalesced: the
 //! estimate events of one drained run become one (the latest value of each variable), published
@@ -22,10 +26,12 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use zenoh::bytes::Encoding;
 use zenoh::pubsub::{PublicationBuilder, PublicationBuilderPut, PublisherBuilder};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use crate::api::poses_binary;
 use crate::api::wire::{Estimate, SessionEvent};
 
 /// The most events drained into one run: bounds the delay of the first of them.
@@ -72,10 +78,20 @@ struct Listened {
 }
 
 struct Topic {
-    name: &'static str,
+    /// The events it carries: those whose [`SessionEvent::topic`] this is (and the markers).
+    carries: &'static str,
+    form: Form,
     key: String,
     /// `None` when zenoh refused the declaration: the topic then counts as listened to.
     publisher: Option<zenoh::pubsub::Publisher<'static>>,
+}
+
+/// How a topic's events are put.
+#[derive(Clone, Copy, PartialEq, Debug)]
+enum Form {
+    Json,
+    /// Estimates in `crate::api::poses_binary`'s layout; markers in JSON.
+    PosesBinary,
 }
 
 impl Listened {
@@ -85,9 +101,23 @@ impl Listened {
         session: &str,
         topics: &[&'static str],
     ) -> Self {
-        let mut declared = Vec::with_capacity(topics.len());
-        for &name in topics {
-            let key = format!("{prefix}/{session}/out/{name}");
+        let mut declared = Vec::with_capacity(topics.len() + 1);
+        for &carries in topics {
+            declared.push((
+                carries,
+                Form::Json,
+                format!("{prefix}/{session}/out/{carries}"),
+            ));
+            if carries == "poses" {
+                declared.push((
+                    carries,
+                    Form::PosesBinary,
+                    binary_poses_key(prefix, session),
+                ));
+            }
+        }
+        let mut listened = Vec::with_capacity(declared.len());
+        for (carries, form, key) in declared {
             let publisher = match zenoh.declare_publisher(key.clone()).await {
                 Ok(publisher) => Some(publisher),
                 Err(e) => {
@@ -98,21 +128,23 @@ impl Listened {
                     None
                 }
             };
-            declared.push(Topic {
-                name,
+            listened.push(Topic {
+                carries,
+                form,
                 key,
                 publisher,
             });
         }
-        Self { topics: declared }
+        Self { topics: listened }
     }
 
-    /// The keys of the topics `of` takes that some subscriber would receive a put on (when
-    /// zenoh cannot say, a key counts as heard: an unneeded put costs less than a lost one).
-    fn heard(&self, of: impl Fn(&str) -> bool) -> Vec<&str> {
+    /// The topics `of` takes (by the events they carry) that some subscriber would receive a
+    /// put on (when zenoh cannot say, a topic counts as heard: an unneeded put costs less than
+    /// a lost one).
+    fn heard(&self, of: impl Fn(&str) -> bool) -> Vec<&Topic> {
         self.topics
             .iter()
-            .filter(|t| of(t.name))
+            .filter(|t| of(t.carries))
             .filter(|t| {
                 t.publisher.as_ref().is_none_or(|p| {
                     p.matching_status()
@@ -120,16 +152,20 @@ impl Listened {
                         .map_or(true, |status| status.matching())
                 })
             })
-            .map(|t| t.key.as_str())
             .collect()
     }
+}
+
+/// The key of a session's estimates in binary.
+pub(super) fn binary_poses_key(prefix: &str, session: &str) -> String {
+    format!("{prefix}/{session}/bin/poses")
 }
 
 /// Puts a drained run of events, estimates coalesced, `lagged` markers on every topic; an
 /// event no subscriber would receive is not serialised.
 fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc<SessionEvent>>) {
     for event in coalesce(run) {
-        let keys = match *event {
+        let topics = match *event {
             SessionEvent::Lagged { skipped, .. } => {
                 tracing::warn!(
                     "zenoh publisher of session {name} fell {skipped} events behind: published \
@@ -139,19 +175,32 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
             }
             _ => listened.heard(|topic| topic == event.topic()),
         };
-        if keys.is_empty() {
+        if topics.is_empty() {
             continue;
         }
-        let body = serde_json::to_vec(&*event).expect("events serialise");
-        for key in keys {
-            if let Err(e) = put_event(zenoh, key, body.clone(), &event).wait() {
+        let mut json = None;
+        for topic in topics {
+            let (body, encoding) = match (topic.form, &*event) {
+                (Form::PosesBinary, SessionEvent::Estimate(estimate)) => (
+                    poses_binary::encode(estimate),
+                    Encoding::APPLICATION_OCTET_STREAM,
+                ),
+                _ => (
+                    json.get_or_insert_with(|| {
+                        serde_json::to_vec(&*event).expect("events serialise")
+                    })
+                    .clone(),
+                    Encoding::APPLICATION_JSON,
+                ),
+            };
+            if let Err(e) = put_event(zenoh, &topic.key, body, encoding, &event).wait() {
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
             }
         }
     }
 }
 
-/// The put of `event` (serialised in `body`) on `key`, with the event's QoS: every put of an
+/// The put of `event` (serialised in `body`, which `encoding` names) on `key`, with the event's QoS: every put of an
 /// event goes through here, so none gets one setting without the other.
 ///
 /// Everything a client waits on (acks, estimates, summaries, errors, markers) waits when zenoh's
@@ -166,6 +215,7 @@ pub(super) fn put_event<'a>(
     zenoh: &'a zenoh::Session,
     key: &'a str,
     body: Vec<u8>,
+    encoding: Encoding,
     event: &SessionEvent,
 ) -> PublicationBuilder<PublisherBuilder<'a, 'a>, PublicationBuilderPut> {
     let waited_on = !matches!(event, SessionEvent::Iteration { .. });
@@ -175,6 +225,7 @@ pub(super) fn put_event<'a>(
     };
     zenoh
         .put(key, body)
+        .encoding(encoding)
         .congestion_control(congestion)
         .express(waited_on)
 }

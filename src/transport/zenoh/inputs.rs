@@ -117,5 +117,12 @@ async fn deliver(c: &Context, name: &str, delivery: Delivery) {
     let body = serde_json::to_vec(&event).expect("events serialise");
     // As the session's own events are published (zenoh's default would drop it at full rate).
     let key = format!("{}/{name}/out/errors", c.prefix);
-    let _ = super::forward::put_event(&c.zenoh, &key, body, &event).await;
+    let _ = super::forward::put_event(
+        &c.zenoh,
+        &key,
+        body,
+        zenoh::bytes::Encoding::APPLICATION_JSON,
+        &event,
+    )
+    .await;
 }

@@ -11,6 +11,8 @@
 //!   go to `out/acks`, rejections to `out/errors`.
 //! - `<p>/<session>/in/optimize` — subscriber: solve now.
 //! - `<p>/<session>/out/{acks,stats,poses,summary,errors}` — publications of the session events.
+//! - `<p>/<session>/bin/poses` — the estimates of `out/poses` in binary (`proto/v1/poses-binary.md`,
+//!   `crate::api::poses_binary`); a `lagged` marker there is JSON.
 //!
 //! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: each
 //! instance declares `<p>/rpc` (complete, so a query reaches one instance, which forwards it
