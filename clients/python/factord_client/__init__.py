@@ -11,6 +11,7 @@ from .batch import Batch, EstimateArray, dumps, jsonable
 from .errors import BatchRefused, FactordConnectionError, FactordError, FactordTimeout
 from .geometry import Noise, Pose2, Pose3, pose_from_wire
 from .http import EventStream, HttpClient
+from .poses_binary import PosesBinaryError, decode_poses
 from .producer import HttpProducer
 
 __all__ = [
@@ -26,8 +27,10 @@ __all__ = [
     "Noise",
     "Pose2",
     "Pose3",
+    "PosesBinaryError",
     "StreamProducer",
     "ZenohClient",
+    "decode_poses",
     "dumps",
     "jsonable",
     "pose_from_wire",

@@ -281,6 +281,8 @@ class EstimateArray:
     sequence: int = 0
     session: str = ""
     extra_kinds: List[str] = field(default_factory=list)
+    #: (N,) the sequence that last changed each value (binary estimates; None from JSON).
+    changed: Optional[np.ndarray] = None
 
     def __iter__(self) -> Iterator[np.ndarray]:
         return iter((self.keys, self.values))

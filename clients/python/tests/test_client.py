@@ -156,8 +156,21 @@ def main() -> int:
             acks.append(event)
             acks_lock.notify_all()
 
+    # The latest value of every variable as the binary estimates (bin/poses) carried them.
+    binary_latest: dict = {}
+    binary_lock = threading.Lock()
+
+    def on_binary_poses(event):
+        if event.get("type") != "estimate":
+            return
+        with binary_lock:
+            for kind, array in event["arrays"].items():
+                for key, value in zip(array.keys.tolist(), array.values.tolist()):
+                    binary_latest[key] = (kind, value)
+
     def stream():
         zenoh.subscribe(session, "acks", on_ack)
+        zenoh.subscribe_binary_poses(session, on_binary_poses)
         time.sleep(0.2)  # let the subscription reach factord
         batches = list(graph.batches(predict=True, limit=STREAM_POSES))
         omitted = [b["variables"][0]["key"] for _, b in batches
@@ -203,6 +216,25 @@ def main() -> int:
         return f"sequence {before['sequence']}, {len(before['variables'])} variables identical"
 
     checks.run("estimate over HTTP == estimate over zenoh queryable", estimates_agree)
+
+    def binary_poses_agree():
+        expect("sequence" in state, "streaming failed")
+        estimate = http.estimate(session)
+        wanted = {v["key"]: (v["kind"], v["value"]) for v in estimate["variables"]}
+        deadline = time.monotonic() + 10
+        while True:
+            with binary_lock:
+                held = dict(binary_latest)
+            if held == wanted or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        differing = [k for k in wanted if held.get(k) != wanted[k]]
+        expect(not differing and len(held) == len(wanted),
+               f"{len(differing)} of {len(wanted)} differ, e.g. {differing[:3]}; "
+               f"{len(held)} held")
+        return f"{len(held)} variables, bit for bit the estimate's"
+
+    checks.run("the binary estimates (bin/poses) end equal to the estimate", binary_poses_agree)
 
     def matches_batch_job():
         expect("chi2" in state, "streaming failed")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib.resources
 import json
 import math
+import struct
 import sys
 import typing
 
@@ -22,6 +23,7 @@ from harness import REPO_ROOT, Checks, expect, expect_raises
 
 from factord_client import Batch, HttpClient, Noise, Pose2, Pose3, ZenohClient, dumps, wire
 from factord_client.batch import estimate_to_array, marginals_to_arrays
+from factord_client.poses_binary import PosesBinaryError, decode_event, decode_poses
 
 # openapi operations that are not API calls a client makes: the web view's pages and assets,
 # and the WebSocket (the same events as `events()`, which needs no extra dependency).
@@ -176,6 +178,44 @@ def estimates_as_arrays() -> str:
     return "(N, 3) sorted by key, stamps NaN where absent, landmarks apart"
 
 
+def binary_group(kind: str, records) -> bytes:
+    """A group of proto/v1/poses-binary.md, packed by hand (not by the code under test)."""
+    dimension = len(records[0][2])
+    out = struct.pack("<B", len(kind)) + kind.encode() + struct.pack("<BI", dimension, len(records))
+    for key, changed, value in records:
+        out += struct.pack(f"<QQ{dimension}d", key, changed, *value)
+    return out
+
+
+def binary_estimates() -> str:
+    groups = [binary_group("se2", [(4, 7, (1.0, 2.0, 0.5)), (5, 9, (3.0, -1e-300, -0.0))]),
+              binary_group("point2", [(100, 8, (7.0, 8.0))]),
+              binary_group("se2", [(2, 3, (0.0, 0.0, math.pi))])]
+    payload = struct.pack("<4sIQI", b"FDPB", 1, 9, len(groups)) + b"".join(groups)
+    event = decode_poses(payload, "s")
+    expect(event["type"] == "estimate" and event["sequence"] == 9, str(event))
+    poses = event["arrays"]["se2"]
+    expect(poses.keys.tolist() == [2, 4, 5], f"sorted by key across groups: {poses.keys}")
+    expect(poses.values.shape == (3, 3) and poses.values[0, 2] == math.pi, f"{poses.values}")
+    expect(poses.values[2, 1] == -1e-300 and math.copysign(1, poses.values[2, 2]) < 0,
+           "values bit for bit")
+    expect(poses.changed.tolist() == [3, 7, 9] and np.isnan(poses.stamps).all(), "changed")
+    expect(poses.extra_kinds == ["point2"], "the other kinds are named")
+    landmarks = event["arrays"]["point2"]
+    expect(landmarks.values.tolist() == [[7.0, 8.0]] and landmarks.keys.tolist() == [100], "landmarks")
+    empty = decode_poses(struct.pack("<4sIQI", b"FDPB", 1, 3, 0))
+    expect(empty["arrays"] == {} and empty["sequence"] == 3, f"empty: {empty}")
+    marker = {"type": "lagged", "session": "s", "skipped": 4}
+    expect(decode_event(json.dumps(marker).encode()) == marker, "a JSON marker passes through")
+    newer = bytearray(payload)
+    newer[4] = 2
+    for bad, what in [(payload[:-1], "cut short"), (payload + b"\0", "after the last group"),
+                      (bytes(newer), "version 2"), (b"XXXX" + payload[4:], "FDPB")]:
+        error = expect_raises(PosesBinaryError, lambda b=bad: decode_poses(b), what)
+        expect(what in str(error), f"{what}: {error}")
+    return "two se2 runs and a point2 run, bit for bit; empty; marker; damaged bytes refused"
+
+
 def typing_files() -> str:
     package = importlib.resources.files("factord_client")
     expect(package.joinpath("py.typed").is_file(), f"py.typed missing in {package}")
@@ -217,6 +257,7 @@ def main() -> int:
     checks.run("JSON encoder takes numpy values and helpers", encoder)
     checks.run("Batch from arrays equals the wire batch", batch_builder)
     checks.run("estimates and marginals as numpy arrays", estimates_as_arrays)
+    checks.run("binary estimates (bin/poses) as numpy arrays", binary_estimates)
     checks.run("typed: py.typed and TypedDicts", typing_files)
     checks.run("a method for every HTTP route of openapi.json", every_route_has_a_method)
     return checks.exit_code()
