@@ -21,6 +21,7 @@ manhattan_gen.py (seed 1 by default) into ~/.cache/factord/data/ (made once, the
 
 Each round runs, for each file in turn: iSAM2 (isam2_stream.py in the gtsam venv, 0.1 / 1 by
 default: --relinearize-threshold/--relinearize-skip), then factord over HTTP, then over zenoh
+with the client subscribed to its poses in JSON (`out/poses`), then in binary (`bin/poses`)
 (the `incremental_serve` bench binary: a fresh `factord serve`, journal on, --fsync always by
 default), each a separate process, so every system sees the same machine state within minutes and
 every peak RSS is that process's own. The statistics are recomputed here from each run's per-update
@@ -52,8 +53,9 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 GTSAM_PYTHON = os.path.expanduser("~/.cache/factord/venvs/gtsam/bin/python")
 DATA = os.path.expanduser("~/.cache/factord/data")
-SYSTEMS = ("isam2", "http", "zenoh")
-LABEL = {"isam2": "iSAM2", "http": "factord HTTP", "zenoh": "factord zenoh"}
+SYSTEMS = ("isam2", "http", "zenoh", "zenoh-binary")
+LABEL = {"isam2": "iSAM2", "http": "factord HTTP", "zenoh": "factord zenoh",
+         "zenoh-binary": "factord zenoh, binary poses"}
 
 
 def percentile(sorted_values, p):
@@ -93,8 +95,10 @@ def run(system: str, path: str, args, binary: str, workdir: str):
                "--relinearize-threshold", str(args.relinearize_threshold),
                "--relinearize-skip", str(args.relinearize_skip)] + limit
     else:
-        cmd = [binary, path, "--transport", system, "--fsync", args.fsync,
-               "--dump-latencies", dump] + limit
+        transport, poses = {"http": ("http", []), "zenoh": ("zenoh", ["--poses", "json"]),
+                            "zenoh-binary": ("zenoh", ["--poses", "binary"])}[system]
+        cmd = [binary, path, "--transport", transport, "--fsync", args.fsync,
+               "--dump-latencies", dump] + poses + limit
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
@@ -159,7 +163,7 @@ def table(name, rounds, systems):
 def main():
     p = argparse.ArgumentParser(description="issue 16 acceptance: iSAM2 vs factord over HTTP and zenoh")
     p.add_argument("files", nargs="+", help="g2o files or gen:N[:SEED]")
-    p.add_argument("--systems", default=",".join(SYSTEMS), help="subset of isam2,http,zenoh")
+    p.add_argument("--systems", default=",".join(SYSTEMS), help="subset of " + ",".join(SYSTEMS))
     p.add_argument("--rounds", type=int, default=1)
     p.add_argument("--limit", type=int)
     p.add_argument("--fsync", default="always")
@@ -173,7 +177,7 @@ def main():
     args = p.parse_args()
     systems = [s for s in args.systems.split(",") if s]
     if not systems or any(s not in SYSTEMS for s in systems):
-        p.error("--systems: a subset of isam2,http,zenoh")
+        p.error("--systems: a subset of " + ",".join(SYSTEMS))
     windows = [tuple(int(x) for x in w.split(":")) for w in args.windows.split(",") if w]
     if "isam2" in systems and not os.path.exists(GTSAM_PYTHON):
         sys.exit(f"{GTSAM_PYTHON} missing: run benches/reference/setup.sh")

@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
 //! [--json out.json] [--dump-latencies out.txt] [--dump-server out.jsonl]
-//! [--fsync always|interval|never] [--without-poses]`
+//! [--fsync always|interval|never] [--poses json|binary|none]`
 //!
 //! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
 //! `isam2_landmarks.py`.
@@ -16,7 +16,8 @@
 //! - `http`: `POST /v1/sessions/<s>/batches?wait=true`; latency = request sent → answer read.
 //! - `zenoh`: publish on `factord/<s>/in/batch`; latency = publish → arrival of the ack that
 //!   says `reflected` or of the summary of a solve that includes it. The client subscribes to
-//!   its poses as a robot does (`--without-poses`: it does not, to measure what they cost).
+//!   its poses as a robot does: `--poses json` (the default) on `out/poses`, `binary` on
+//!   `bin/poses`, `none` (or `--without-poses`) not at all, to measure what they cost.
 //!
 //! Batches are serialised before the clock starts (as isam2_stream.py parses the file first).
 //! After the stream (not timed): the estimate is read over HTTP and its chi2 compared with the
@@ -72,7 +73,7 @@ fn main() {
     let args = args::Args::from_env();
     let usage = "usage: incremental_serve <file.g2o> --transport http|zenoh [--limit N] \
                  [--json out] [--dump-latencies out] [--dump-server out] \
-                 [--fsync always|interval|never] [--without-poses]";
+                 [--fsync always|interval|never] [--poses json|binary|none]";
     let path = args.first(usage);
     let transport = args
         .value("--transport")
@@ -83,6 +84,15 @@ fn main() {
     );
     let limit: usize = args.parsed("--limit", usize::MAX);
     let fsync = args.value("--fsync").unwrap_or_else(|| "always".into());
+    let poses = match args.has("--without-poses") {
+        true => zenoh_stream::Poses::None,
+        false => match args.value("--poses").as_deref() {
+            None | Some("json") => zenoh_stream::Poses::Json,
+            Some("binary") => zenoh_stream::Poses::Binary,
+            Some("none") => zenoh_stream::Poses::None,
+            Some(other) => panic!("--poses json|binary|none, not {other}"),
+        },
+    };
     let text = std::fs::read_to_string(&path).expect("readable graph");
 
     let mut batches = if landmarks::is_gtsam_text(&text) {
@@ -127,7 +137,6 @@ fn main() {
                 _ => {
                     let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
                     let base = info["sequence"].as_u64().expect("sequence");
-                    let poses = !args.has("--without-poses");
                     zenoh_stream::stream(&s, session, base, &bodies, poses).await
                 }
             };
@@ -186,6 +195,10 @@ fn main() {
     let mut report = json!({
         "system": "factord",
         "transport": transport,
+        "poses": match transport.as_str() {
+            "zenoh" => json!(poses.name()),
+            _ => Value::Null,
+        },
         "fsync": fsync,
         "dataset": std::path::Path::new(&path).file_stem().map(|s| s.to_string_lossy()),
         "file": path,

@@ -1,9 +1,9 @@
 //! The stream over zenoh, as a robot publishes: each pose's batch on `<p>/<s>/in/batch`, the
 //! next once the previous one's estimate is available, i.e. its ack on `out/acks` says
 //! `reflected` or a `summary` event of a solve that includes it arrives on `out/summary`.
-//! Like a robot, it also subscribes to its poses on `out/poses`, so the server serialises and
-//! sends every estimate it would send a robot. (It does not parse them: what a robot spends
-//! reading its poses depends on the robot.)
+//! Like a robot, it also subscribes to its poses, on `out/poses` (JSON) or `bin/poses` (binary),
+//! so the server serialises and sends every estimate it would send a robot. (It does not parse
+//! them: what a robot spends reading its poses depends on the robot.)
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -12,6 +12,24 @@ use serde_json::{json, Value};
 
 use crate::common::server::{zenoh_get, zenoh_peer, TestServer};
 use crate::Streamed;
+
+/// Which of its poses the client subscribes to.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub enum Poses {
+    Json,
+    Binary,
+    None,
+}
+
+impl Poses {
+    pub fn name(self) -> &'static str {
+        match self {
+            Poses::Json => "json",
+            Poses::Binary => "binary",
+            Poses::None => "none",
+        }
+    }
+}
 
 /// What a subscriber saw: (arrival, sequence, reflected) per event, and a wake-up.
 #[derive(Default)]
@@ -65,22 +83,25 @@ pub async fn stream(
     session: &str,
     base: u64,
     bodies: &[String],
-    poses: bool,
+    poses: Poses,
 ) -> Streamed {
     let z = zenoh_peer(&s.zenoh).await;
     let acks: Arc<Seen> = Default::default();
     let summaries: Arc<Seen> = Default::default();
     let _a = subscribe(&z, &format!("factord/{session}/out/acks"), acks.clone()).await;
-    let _p = if poses {
-        let key = format!("factord/{session}/out/poses");
-        Some(
+    let poses_key = match poses {
+        Poses::Json => Some(format!("factord/{session}/out/poses")),
+        Poses::Binary => Some(format!("factord/{session}/bin/poses")),
+        Poses::None => None,
+    };
+    let _p = match poses_key {
+        Some(key) => Some(
             z.declare_subscriber(key)
                 .callback(|_| {})
                 .await
                 .expect("poses subscriber"),
-        )
-    } else {
-        None
+        ),
+        None => None,
     };
     let _s = subscribe(
         &z,
