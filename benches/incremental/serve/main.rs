@@ -23,7 +23,9 @@
 //! After the stream (not timed): the estimate is read over HTTP and its chi2 compared with the
 //! batch optimum of the same (truncated) graph (`optimum.rs`), and the server's peak resident
 //! memory is read from `/proc/<pid>/status` (VmHWM). Each run starts a fresh server, so the peak
-//! is that of this stream. Prints one JSON object; `--dump-latencies` writes one latency (ms)
+//! is that of this stream; so are the CPU seconds the server and this client (its zenoh threads
+//! included) spent during the stream (`/proc/<pid>/stat`), steadier than wall time on a shared
+//! machine. Prints one JSON object; `--dump-latencies` writes one latency (ms)
 //! per line, in stream order; `--dump-server` the server's view of every solve
 //! (`server_view.rs`), and the JSON then carries its fsync and solve histograms.
 
@@ -67,6 +69,43 @@ fn proc_status_kb(pid: u32, field: &str) -> Option<u64> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let line = status.lines().find(|l| l.starts_with(field))?;
     line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// CPU seconds (user + system) process `pid` (or `self`) has used so far.
+fn cpu_seconds(pid: &str) -> Option<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // After the command name (in parentheses, which may hold spaces): state is field 3, utime
+    // and stime are fields 14 and 15.
+    let fields: Vec<&str> = stat[stat.rfind(')')? + 2..].split(' ').collect();
+    let ticks: f64 = fields[11].parse::<f64>().ok()? + fields[12].parse::<f64>().ok()?;
+    // SAFETY: sysconf only reads a configuration value.
+    let per_second = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    (per_second > 0).then(|| ticks / per_second as f64)
+}
+
+/// CPU seconds the server and this client (zenoh's threads included) spent during the stream:
+/// on 2 cores the two share, what either spends delays the other.
+#[derive(Clone, Copy, Default)]
+struct CpuUse {
+    server: Option<f64>,
+    client: Option<f64>,
+}
+
+impl CpuUse {
+    fn now(server_pid: u32) -> Self {
+        Self {
+            server: cpu_seconds(&server_pid.to_string()),
+            client: cpu_seconds("self"),
+        }
+    }
+
+    fn since(self, start: Self) -> Self {
+        let minus = |a: Option<f64>, b: Option<f64>| Some(a? - b?);
+        Self {
+            server: minus(self.server, start.server),
+            client: minus(self.client, start.client),
+        }
+    }
 }
 
 fn main() {
@@ -118,7 +157,7 @@ fn main() {
         .build()
         .expect("tokio runtime");
     let dump_server = args.value("--dump-server");
-    let (streamed, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb, histograms) =
+    let (streamed, cpu, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb, histograms) =
         runtime.block_on(async {
             let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
             let c = common::server::client();
@@ -132,6 +171,7 @@ fn main() {
                 None => None,
             };
             let started = std::time::Instant::now();
+            let cpu_start = CpuUse::now(s.pid());
             let streamed = match transport.as_str() {
                 "http" => http::stream(&s, session, &bodies).await,
                 _ => {
@@ -140,6 +180,7 @@ fn main() {
                     zenoh_stream::stream(&s, session, base, &bodies, poses).await
                 }
             };
+            let cpu = CpuUse::now(s.pid()).since(cpu_start);
             let peak_kb = proc_status_kb(s.pid(), "VmHWM");
             let rss_kb = proc_status_kb(s.pid(), "VmRSS");
             let (status, estimate) =
@@ -175,6 +216,7 @@ fn main() {
             let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
             (
                 streamed,
+                cpu,
                 estimate,
                 idle_estimate,
                 idle_seconds,
@@ -213,6 +255,8 @@ fn main() {
         "max_ms": sorted.last(),
         "peak_rss_kb": peak_kb,
         "rss_at_end_kb": rss_kb,
+        "server_cpu_seconds": cpu.server,
+        "client_cpu_seconds": cpu.client,
         "fallbacks": streamed.fallbacks,
         "solves": stats["solves"],
         "skipped_solves": stats["skipped_solves"],
