@@ -59,13 +59,20 @@ impl PoolHandle {
         if self.is_stopping() {
             return false;
         }
+        let lent = entry.lent;
         self.shared
             .queue
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .push_back(entry);
-        // A lent turn may be the only runnable entry for a worker other than the one woken.
-        self.shared.ready.notify_all();
+        // A task any worker may run wakes one: waking every idle worker for it made the others
+        // wake, find nothing and sleep again, a context switch per solve on the cores the
+        // request's own threads need. A lent turn wakes all, as it may be the only runnable
+        // entry for a worker other than the one woken.
+        match lent {
+            false => self.shared.ready.notify_one(),
+            true => self.shared.ready.notify_all(),
+        }
         true
     }
 
