@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use super::batch::{self, PreparedBatch, SessionView};
 use super::engine::{self, Engine};
-use super::mirror::value_of;
+use super::mirror::{heap_values, value_of, WireValue};
 use super::producers::{self, Admission, Origin};
 use super::{inspect, MirrorEntry, Session, State};
 use crate::api::catalogue;
@@ -104,7 +104,7 @@ impl Session {
         let mut new_values = Vec::new();
         for v in &prepared.variables {
             let kind = v.value.kind();
-            let value = catalogue::encode_variable(v.value.as_ref());
+            let value = WireValue::from_vec(catalogue::encode_variable(v.value.as_ref()));
             let entry = MirrorEntry {
                 kind,
                 initial: inspect::position(kind, &value),
@@ -114,20 +114,21 @@ impl Session {
                 stamp: v.stamp,
             };
             new_values.push(value_of(v.key, &entry));
-            st.mirror_values += entry.value.len();
+            st.mirror_values += heap_values(&entry.value);
             if let Some(old) = st.mirror.insert(v.key, entry) {
-                st.mirror_values -= old.value.len();
+                st.mirror_values -= heap_values(&old.value);
             }
         }
         for (key, v) in &prepared.guesses {
-            let value = catalogue::encode_variable(v.as_ref());
+            let value = WireValue::from_vec(catalogue::encode_variable(v.as_ref()));
+            let added = heap_values(&value);
             let entry = st.mirror.get_mut(key).expect("validated");
-            let resized = value.len() as isize - entry.value.len() as isize;
+            let removed = heap_values(&entry.value);
             entry.initial = inspect::position(entry.kind, &value);
             entry.value = value;
             entry.changed = sequence;
             new_values.push(value_of(*key, entry));
-            st.mirror_values = st.mirror_values.saturating_add_signed(resized);
+            st.mirror_values = st.mirror_values + added - removed;
         }
         for &(key, fixed) in &prepared.fix {
             st.mirror.get_mut(&key).expect("validated").fixed = fixed;

@@ -350,8 +350,9 @@ fn refresh_mirror(
         catalogue::encode_variable_into(problem.values.variable(idx), &mut value);
         if let Some(entry) = mirror.get_mut(&key) {
             // A batch accepted during the solve set a newer guess; it is applied next.
-            if entry.changed <= sequence && entry.value != value {
-                entry.value.clone_from(&value);
+            if entry.changed <= sequence && entry.value[..] != value[..] {
+                entry.value.clear();
+                entry.value.extend_from_slice(&value);
                 entry.changed = sequence;
                 changed.push(value_of(key, entry));
             }

@@ -32,8 +32,9 @@ pub(super) struct State {
     /// Id of each factor of the problem, parallel to `problem.factors()`.
     pub(super) factor_ids: Vec<FactorId>,
     pub(super) mirror: BTreeMap<Key, MirrorEntry>,
-    /// Σ `value.len()` over the mirror, kept as entries are added and guessed (a solve's
-    /// refresh keeps each value's kind, so its length), for [`State::mirror_bytes`].
+    /// Σ [`heap_values`](super::mirror::heap_values) over the mirror (numbers beyond the
+    /// inline capacity), kept as entries are added and guessed (a solve's refresh keeps each
+    /// value's kind, so its length), for [`State::mirror_bytes`].
     pub(super) mirror_values: usize,
     pub(super) live_factors: HashSet<FactorId>,
     /// Live factors between two pose-shaped variables (what the web view draws as edges).
@@ -167,7 +168,7 @@ mod tests {
     fn walked_mirror_bytes(st: &State) -> usize {
         st.mirror
             .values()
-            .map(|e| MIRROR_ENTRY_BYTES + 8 * e.value.len())
+            .map(|e| MIRROR_ENTRY_BYTES + 8 * crate::session::mirror::heap_values(&e.value))
             .sum()
     }
 

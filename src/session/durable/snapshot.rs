@@ -263,7 +263,7 @@ impl Session {
                 out.push(VariableSpec {
                     key,
                     kind: meta.kind.into(),
-                    value: Some(entry.value.clone()),
+                    value: Some(entry.value.to_vec()),
                     fixed: meta.fixed,
                     stamp: entry.stamp,
                 });
