@@ -19,11 +19,15 @@
 //!
 //! An event is serialised and put only on the topics some subscriber would receive it on (in
 //! this process, on a peer, or behind a router: zenoh's matching status of a publisher
-//! declared per topic key). A put that matches nobody reaches nobody, so skipping it changes
-//! nothing a subscriber sees; it saves the serialisation, which for the estimate after a loop
-//! closure (thousands of variables) costs milliseconds of a core the solves share.
+//! declared per topic key, kept in a flag by a matching listener). A put that matches nobody
+//! reaches nobody, so skipping it changes nothing a subscriber sees; it saves the
+//! serialisation, which for the estimate after a loop closure (thousands of variables) costs
+//! milliseconds of a core the solves share. A run nobody would receive any of is dropped
+//! without handing it to a blocking thread: a session whose clients all use HTTP costs its
+//! zenoh publisher a wake-up per run, not also a thread switch.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use zenoh::bytes::Encoding;
@@ -57,6 +61,10 @@ pub(super) fn forward(
                     None => break,
                 }
             }
+            if !run.iter().any(|event| listened.hears(event)) {
+                run.clear();
+                continue;
+            }
             // A put is synchronous, and a blocking one waits while the network is congested:
             // on a blocking thread, so no runtime worker waits with it.
             let (zenoh, name, listened) = (zenoh.clone(), name.clone(), Arc::clone(&listened));
@@ -72,7 +80,7 @@ pub(super) fn forward(
 }
 
 /// A session's topic keys, each with a publisher declared on it so that zenoh keeps its
-/// matching status up to date.
+/// matching status up to date, and a listener that keeps that status in a flag.
 struct Listened {
     topics: Vec<Topic>,
 }
@@ -82,8 +90,12 @@ struct Topic {
     carries: &'static str,
     form: Form,
     key: String,
-    /// `None` when zenoh refused the declaration: the topic then counts as listened to.
-    publisher: Option<zenoh::pubsub::Publisher<'static>>,
+    /// Whether some subscriber would receive a put on `key` now: set by `_listener` as zenoh's
+    /// matching status changes; stays true when zenoh refused the publisher or the listener
+    /// (an unneeded put costs less than a lost one).
+    heard: Arc<AtomicBool>,
+    _publisher: Option<zenoh::pubsub::Publisher<'static>>,
+    _listener: Option<zenoh::matching::MatchingListener<()>>,
 }
 
 /// How a topic's events are put.
@@ -118,42 +130,73 @@ impl Listened {
         }
         let mut listened = Vec::with_capacity(declared.len());
         for (carries, form, key) in declared {
-            let publisher = match zenoh.declare_publisher(key.clone()).await {
-                Ok(publisher) => Some(publisher),
+            let heard = Arc::new(AtomicBool::new(true));
+            let (publisher, listener) = match zenoh.declare_publisher(key.clone()).await {
+                Ok(publisher) => {
+                    let listener = listen(&publisher, &heard).await;
+                    if listener.is_none() {
+                        tracing::warn!(
+                            "zenoh matching listener for {key} not declared: its events are \
+                             put whether or not anyone subscribes"
+                        );
+                    }
+                    (Some(publisher), listener)
+                }
                 Err(e) => {
                     tracing::warn!(
                         "zenoh publisher for {key} not declared ({e}): its events are put \
                          whether or not anyone subscribes"
                     );
-                    None
+                    (None, None)
                 }
             };
             listened.push(Topic {
                 carries,
                 form,
                 key,
-                publisher,
+                heard,
+                _publisher: publisher,
+                _listener: listener,
             });
         }
         Self { topics: listened }
     }
 
     /// The topics `of` takes (by the events they carry) that some subscriber would receive a
-    /// put on (when zenoh cannot say, a topic counts as heard: an unneeded put costs less than
-    /// a lost one).
+    /// put on.
     fn heard(&self, of: impl Fn(&str) -> bool) -> Vec<&Topic> {
         self.topics
             .iter()
-            .filter(|t| of(t.carries))
-            .filter(|t| {
-                t.publisher.as_ref().is_none_or(|p| {
-                    p.matching_status()
-                        .wait()
-                        .map_or(true, |status| status.matching())
-                })
-            })
+            .filter(|t| of(t.carries) && t.heard.load(Ordering::SeqCst))
             .collect()
     }
+
+    /// Whether some subscriber would receive `event` (a marker: on any topic).
+    fn hears(&self, event: &SessionEvent) -> bool {
+        let lagged = matches!(event, SessionEvent::Lagged { .. });
+        self.topics
+            .iter()
+            .any(|t| (lagged || t.carries == event.topic()) && t.heard.load(Ordering::SeqCst))
+    }
+}
+
+/// Keeps `heard` equal to whether `publisher` has matching subscribers; `None` when zenoh
+/// refused the listener (`heard` then stays true).
+async fn listen(
+    publisher: &zenoh::pubsub::Publisher<'static>,
+    heard: &Arc<AtomicBool>,
+) -> Option<zenoh::matching::MatchingListener<()>> {
+    let flag = Arc::clone(heard);
+    let listener = publisher
+        .matching_listener()
+        .callback(move |status| flag.store(status.matching(), Ordering::SeqCst))
+        .await
+        .ok()?;
+    // Read after the listener exists, so no change falls between the two.
+    if let Ok(status) = publisher.matching_status().await {
+        heard.store(status.matching(), Ordering::SeqCst);
+    }
+    Some(listener)
 }
 
 /// The key of a session's estimates in binary.
