@@ -3,10 +3,10 @@
 //! pose against about 100 in JSON, and nothing to format or parse). The binary key is outside
 //! `out/`, so subscribers of `out/**` keep receiving JSON only.
 //!
-//! The publisher reads through the session's [`crate::session::EventStream`], so it never loses silently: after
-//! a lag it publishes the `lagged` marker on every topic key of the session (a subscriber of
-//! any one topic learns it missed something and every producer's cumulative progress), then the
-//! estimate of what changed meanwhile. The marker is JSON on every key, `bin/poses` included
+//! The publisher reads through the session's [`crate::session::EventStream`], so it never loses
+//! silently: after a lag it publishes the `lagged` marker on every topic key of the session (a
+//! subscriber of any one topic learns it missed something and every producer's cumulative
+//! progress), then the estimate of what changed meanwhile. The marker is JSON on every key, `bin/poses` included
 //! (it starts with `{`, a binary estimate with `FDPB`; the zenoh encoding says which too).
 //!
 //! To keep up at full rate it drains what is queued and publishes estimates coalesced: the
@@ -162,21 +162,18 @@ impl Listened {
         Self { topics: listened }
     }
 
-    /// The topics `of` takes (by the events they carry) that some subscriber would receive a
-    /// put on.
-    fn heard(&self, of: impl Fn(&str) -> bool) -> Vec<&Topic> {
-        self.topics
-            .iter()
-            .filter(|t| of(t.carries) && t.heard.load(Ordering::SeqCst))
-            .collect()
+    /// The topics `event` goes on (a `lagged` marker: every topic) that some subscriber would
+    /// receive a put on.
+    fn hearing<'a>(&'a self, event: &'a SessionEvent) -> impl Iterator<Item = &'a Topic> + 'a {
+        let lagged = matches!(event, SessionEvent::Lagged { .. });
+        self.topics.iter().filter(move |t| {
+            (lagged || t.carries == event.topic()) && t.heard.load(Ordering::SeqCst)
+        })
     }
 
-    /// Whether some subscriber would receive `event` (a marker: on any topic).
+    /// Whether some subscriber would receive `event`.
     fn hears(&self, event: &SessionEvent) -> bool {
-        let lagged = matches!(event, SessionEvent::Lagged { .. });
-        self.topics
-            .iter()
-            .any(|t| (lagged || t.carries == event.topic()) && t.heard.load(Ordering::SeqCst))
+        self.hearing(event).next().is_some()
     }
 }
 
@@ -200,7 +197,7 @@ async fn listen(
 }
 
 /// The key of a session's estimates in binary.
-pub(super) fn binary_poses_key(prefix: &str, session: &str) -> String {
+fn binary_poses_key(prefix: &str, session: &str) -> String {
     format!("{prefix}/{session}/bin/poses")
 }
 
@@ -208,21 +205,14 @@ pub(super) fn binary_poses_key(prefix: &str, session: &str) -> String {
 /// event no subscriber would receive is not serialised.
 fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc<SessionEvent>>) {
     for event in coalesce(run) {
-        let topics = match *event {
-            SessionEvent::Lagged { skipped, .. } => {
-                tracing::warn!(
-                    "zenoh publisher of session {name} fell {skipped} events behind: published \
-                     a lagged marker and the estimate's changes"
-                );
-                listened.heard(|_| true)
-            }
-            _ => listened.heard(|topic| topic == event.topic()),
-        };
-        if topics.is_empty() {
-            continue;
+        if let SessionEvent::Lagged { skipped, .. } = *event {
+            tracing::warn!(
+                "zenoh publisher of session {name} fell {skipped} events behind: published a \
+                 lagged marker and the estimate's changes"
+            );
         }
         let mut json = None;
-        for topic in topics {
+        for topic in listened.hearing(&event) {
             let (body, encoding) = match (topic.form, &*event) {
                 (Form::PosesBinary, SessionEvent::Estimate(estimate)) => (
                     poses_binary::encode(estimate),
@@ -243,8 +233,8 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
     }
 }
 
-/// The put of `event` (serialised in `body`, which `encoding` names) on `key`, with the event's QoS: every put of an
-/// event goes through here, so none gets one setting without the other.
+/// The put of `event` (serialised in `body`, which `encoding` names) on `key`, with the event's
+/// QoS: every put of an event goes through here, so none gets one setting without the other.
 ///
 /// Everything a client waits on (acks, estimates, summaries, errors, markers) waits when zenoh's
 /// queue is full, as an ack or an error may be the only word its sender gets, and is express:
