@@ -63,5 +63,6 @@ pub async fn stream(s: &TestServer, session: &str, bodies: &[String]) -> Streame
         latencies_ms,
         wall_seconds: start.elapsed().as_secs_f64(),
         fallbacks,
+        poses_received: None,
     }
 }

@@ -55,6 +55,8 @@ pub struct Streamed {
     pub wall_seconds: f64,
     /// Updates whose availability was learnt by polling the session (see each transport).
     pub fallbacks: usize,
+    /// Bytes and samples the poses subscriber received (zenoh with `--poses json|binary`).
+    pub poses_received: Option<(u64, u64)>,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -258,6 +260,8 @@ fn main() {
         "server_cpu_seconds": cpu.server,
         "client_cpu_seconds": cpu.client,
         "fallbacks": streamed.fallbacks,
+        "poses_bytes": streamed.poses_received.map(|(bytes, _)| bytes),
+        "poses_samples": streamed.poses_received.map(|(_, samples)| samples),
         "solves": stats["solves"],
         "skipped_solves": stats["skipped_solves"],
         "tracked_chi2": stats["chi2"],

@@ -5,6 +5,7 @@
 //! so the server serialises and sends every estimate it would send a robot. (It does not parse
 //! them: what a robot spends reading its poses depends on the robot.)
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -94,13 +95,23 @@ pub async fn stream(
         Poses::Binary => Some(format!("factord/{session}/bin/poses")),
         Poses::None => None,
     };
+    // Bytes and samples received on the poses key.
+    let received = Arc::new((AtomicU64::new(0), AtomicU64::new(0)));
     let _p = match poses_key {
-        Some(key) => Some(
-            z.declare_subscriber(key)
-                .callback(|_| {})
-                .await
-                .expect("poses subscriber"),
-        ),
+        Some(key) => {
+            let counts = Arc::clone(&received);
+            Some(
+                z.declare_subscriber(key)
+                    .callback(move |sample| {
+                        counts
+                            .0
+                            .fetch_add(sample.payload().len() as u64, Ordering::Relaxed);
+                        counts.1.fetch_add(1, Ordering::Relaxed);
+                    })
+                    .await
+                    .expect("poses subscriber"),
+            )
+        }
         None => None,
     };
     let _s = subscribe(
@@ -171,5 +182,11 @@ pub async fn stream(
         latencies_ms,
         wall_seconds,
         fallbacks,
+        poses_received: (poses != Poses::None).then(|| {
+            (
+                received.0.load(Ordering::Relaxed),
+                received.1.load(Ordering::Relaxed),
+            )
+        }),
     }
 }
