@@ -5,10 +5,7 @@
 //!   integers, and clients that hold every number as a double (JavaScript, numpy) send them so.
 //!   Fractions, negative numbers and floats beyond the type's range are refused with the field's
 //!   path. From 2^53 on a double no longer tells which integer was meant (`9007199254740993.0`
-//!   reads as …992), so floats there are refused too: such ids must be written as integers. serde_json's fast
-//!   float parser may land one unit in the last place off (`2251799813685247.0` reads as
-//!   `…247.25`), so a float within one unit in the last place of a whole number counts as that
-//!   number.
+//!   reads as …992), so floats there are refused too: such ids must be written as integers.
 //! - Optional fields take `null` as "absent" (serde's reading; the schemas say so), so this
 //!   module keeps that for the optional integers it reads too.
 
@@ -39,8 +36,7 @@ impl<'de> Visitor<'de> for WholeNumber {
 
     fn visit_f64<E: de::Error>(self, v: f64) -> Result<u64, E> {
         let whole = v.round();
-        let parser_slack = f64::EPSILON * whole;
-        if (0.0..INEXACT_FROM).contains(&whole) && (v - whole).abs() <= parser_slack {
+        if (0.0..INEXACT_FROM).contains(&whole) && v == whole {
             Ok(whole as u64)
         } else {
             Err(E::invalid_value(Unexpected::Float(v), &self))

@@ -48,13 +48,10 @@ fn numbers(line: &str) -> Vec<f64> {
         .collect()
 }
 
-/// Equal numbers, as far as the test can tell: the JSON estimate is read by serde_json's fast
-/// float parser (no `float_roundtrip`), which may be 1 ulp off; the files by Rust's exact one.
+/// Equal numbers, bit for bit: the JSON estimate and the files are both read exactly
+/// (serde_json with `float_roundtrip`, Rust's own parser).
 fn same(a: &[f64], b: &[f64]) -> bool {
-    a.len() == b.len()
-        && a.iter()
-            .zip(b)
-            .all(|(x, y)| (x - y).abs() <= 2.0 * f64::EPSILON * x.abs().max(y.abs()))
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
 
 /// The TUM lines of `text` (comments skipped) as numbers.
