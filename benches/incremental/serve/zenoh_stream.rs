@@ -97,7 +97,7 @@ pub async fn stream(
     };
     // Bytes and samples received on the poses key.
     let received = Arc::new((AtomicU64::new(0), AtomicU64::new(0)));
-    let _p = match poses_key {
+    let poses_subscriber = match poses_key {
         Some(key) => {
             let counts = Arc::clone(&received);
             Some(
@@ -182,7 +182,7 @@ pub async fn stream(
         latencies_ms,
         wall_seconds,
         fallbacks,
-        poses_received: (poses != Poses::None).then(|| {
+        poses_received: poses_subscriber.is_some().then(|| {
             (
                 received.0.load(Ordering::Relaxed),
                 received.1.load(Ordering::Relaxed),

@@ -68,11 +68,10 @@ def decode_poses(payload: bytes, session: str = "") -> Dict[str, Any]:
     for kind, records in parts.items():
         joined = np.concatenate(records)
         joined = joined[np.argsort(joined["key"], kind="stable")]
-        width = joined.dtype["value"].shape[0] if joined.dtype["value"].shape else 1
         arrays[kind] = EstimateArray(
             kind=kind,
             keys=joined["key"].astype(np.int64),
-            values=joined["value"].astype(float).reshape(len(joined), width),
+            values=joined["value"].astype(float),
             stamps=np.full(len(joined), np.nan),
             sequence=int(sequence),
             session=session,

@@ -244,7 +244,7 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
 /// poses subscribed, 6 interleaved pairs: total median 4.59 → 3.94 s, p90 2.92 → 2.18 ms sent
 /// at once; see BENCHMARKS). Iteration statistics may be dropped (the next one supersedes
 /// them) and batched.
-pub(super) fn put_event<'a>(
+fn put_event<'a>(
     zenoh: &'a zenoh::Session,
     key: &'a str,
     body: Vec<u8>,
@@ -261,6 +261,17 @@ pub(super) fn put_event<'a>(
         .encoding(encoding)
         .congestion_control(congestion)
         .express(waited_on)
+}
+
+/// The put of `event` in JSON on `key`, for an event published outside a session's run (a
+/// refused put that has no session to report it).
+pub(super) fn put_json_event<'a>(
+    zenoh: &'a zenoh::Session,
+    key: &'a str,
+    event: &SessionEvent,
+) -> PublicationBuilder<PublisherBuilder<'a, 'a>, PublicationBuilderPut> {
+    let body = serde_json::to_vec(event).expect("events serialise");
+    put_event(zenoh, key, body, Encoding::APPLICATION_JSON, event)
 }
 
 /// `run` with its estimate events merged into one (the latest value of each variable, the

@@ -114,15 +114,7 @@ async fn deliver(c: &Context, name: &str, delivery: Delivery) {
         producer: None,
         producer_seq: None,
     };
-    let body = serde_json::to_vec(&event).expect("events serialise");
     // As the session's own events are published (zenoh's default would drop it at full rate).
     let key = format!("{}/{name}/out/errors", c.prefix);
-    let _ = super::forward::put_event(
-        &c.zenoh,
-        &key,
-        body,
-        zenoh::bytes::Encoding::APPLICATION_JSON,
-        &event,
-    )
-    .await;
+    let _ = super::forward::put_json_event(&c.zenoh, &key, &event).await;
 }
