@@ -59,12 +59,12 @@ pub struct UpdateParams {
     pub wildfire_threshold: f64,
     /// Relinearise-and-solve rounds at most.
     pub max_passes: usize,
-    /// A pass relinearises, largest steps first, only as many variables as fit in about this
-    /// many scalar columns of the factor (their elimination-tree paths to the root, each column
-    /// counting its variable's dimension: a 3D pose's column costs more to refactor than a 2D
-    /// pose's); `usize::MAX` takes every variable above the threshold. It bounds what one update
-    /// costs, so that an idle session's polish runs in steps: a streamed update waits behind
-    /// one step at most.
+    /// A pass relinearises, largest steps first (up to the first that does not fit), only as
+    /// many variables as fit in about this many scalar columns of the factor (their
+    /// elimination-tree paths to the root, each column counting its variable's dimension: a 3D
+    /// pose's column costs more to refactor than a 2D pose's); `usize::MAX` takes every
+    /// variable above the threshold. It bounds what one update costs, so that an idle
+    /// session's polish runs in steps: a streamed update waits behind one step at most.
     pub relinearize_scalars: usize,
 }
 
@@ -89,6 +89,10 @@ pub struct IncrementalEngine {
     offset: Vec<usize>,
     dims: Vec<usize>,
     delta: Vec<f64>,
+    /// Per variable, the max-norm of its step in `delta`, kept as back substitution writes it:
+    /// relinearisation reads this array instead of walking every variable's slice of `delta`
+    /// (at 100k 2D poses that walk took 0.4–0.7 ms of every update).
+    step: Vec<f64>,
     /// Per scalar of `delta`, the value the column's subtree was last solved against (see
     /// `BlockFactor::back_substitute`).
     propagated: Vec<f64>,
@@ -187,6 +191,7 @@ impl IncrementalEngine {
             self.offset.push(self.delta.len());
             self.dims.push(d);
             self.delta.resize(self.delta.len() + d, 0.0);
+            self.step.push(0.0);
             self.propagated.resize(self.delta.len(), 0.0);
             self.y.resize(self.y.len() + d, 0.0);
             self.partial.resize(self.partial.len() + d, 0.0);
@@ -264,7 +269,7 @@ impl IncrementalEngine {
         report.factor_nnz = self.factor.nnz();
         report.columns = self.columns;
         report.model_chi2 = self.residual_chi2 - self.yty;
-        report.max_delta = self.delta.iter().fold(0.0f64, |m, d| m.max(d.abs()));
+        report.max_delta = self.step.iter().fold(0.0f64, |m, &s| m.max(s));
         Ok(report)
     }
 
@@ -279,14 +284,12 @@ impl IncrementalEngine {
         report: &mut UpdateReport,
     ) -> Result<(), SolverError> {
         let start = Instant::now();
-        let mut moved: Vec<(usize, f64)> = (0..self.theta.len())
-            .filter_map(|v| {
-                let (o, d) = (self.offset[v], self.dims[v]);
-                let step = self.delta[o..o + d]
-                    .iter()
-                    .fold(0.0f64, |m, s| m.max(s.abs()));
-                (step > params.relinearize_threshold).then_some((v, step))
-            })
+        let mut moved: Vec<(usize, f64)> = self
+            .step
+            .iter()
+            .enumerate()
+            .filter(|&(_, &step)| step > params.relinearize_threshold)
+            .map(|(v, &step)| (v, step))
             .collect();
         if params.relinearize_scalars < self.delta.len() {
             self.within_budget(problem, &mut moved, params.relinearize_scalars);
@@ -299,6 +302,7 @@ impl IncrementalEngine {
             // block in v's row (such a column's subtree would hold one of v's factors, all of
             // which are linearised again here), so nothing solved earlier depends on v's Δ.
             self.delta[o..o + d].fill(0.0);
+            self.step[v] = 0.0;
             self.propagated[o..o + d].fill(0.0);
             report.relinearized_variables += 1;
             factors.extend(self.by_variable[v].iter().map(|&f| f as usize));
@@ -319,15 +323,20 @@ impl IncrementalEngine {
     }
 
     /// Keeps of `moved` (variable, step) the largest steps whose refactoring fits in `budget`
-    /// scalar columns (the first always), in that order. Relinearising v refactors the paths to
-    /// the root of the elimination tree from v and from every variable its factors touch.
+    /// scalar columns (the first always), in that order: it stops at the first that does not
+    /// fit. Relinearising v refactors the paths to the root of the elimination tree from v and
+    /// from every variable its factors touch. What this costs is bounded by the budget too (a
+    /// path walk stops where it overflows), not by how many variables moved: after a long
+    /// stream that is nearly all of them.
     fn within_budget(&mut self, problem: &Problem, moved: &mut Vec<(usize, f64)>, budget: usize) {
         moved.sort_unstable_by(|a, b| b.1.total_cmp(&a.1));
         let entries = problem.factors();
         let (mut marked, mut fresh) = (Vec::new(), Vec::new());
         let mut marked_scalars = 0;
-        moved.retain(|&(v, _)| {
+        let mut kept = 0;
+        'candidates: for &(v, _) in moved.iter() {
             fresh.clear();
+            let mut fresh_scalars = 0;
             let touched = self.by_variable[v]
                 .iter()
                 .flat_map(|&f| entries[f as usize].variables());
@@ -336,21 +345,21 @@ impl IncrementalEngine {
                 while let Some(c) = u.filter(|&c| !self.mark[c]) {
                     self.mark[c] = true;
                     fresh.push(c);
+                    fresh_scalars += self.dims[c];
+                    if kept > 0 && marked_scalars + fresh_scalars > budget {
+                        for &c in &fresh {
+                            self.mark[c] = false;
+                        }
+                        break 'candidates;
+                    }
                     u = self.factor.parent(c);
                 }
             }
-            let fresh_scalars: usize = fresh.iter().map(|&c| self.dims[c]).sum();
-            let fits = marked.is_empty() || marked_scalars + fresh_scalars <= budget;
-            if fits {
-                marked.extend_from_slice(&fresh);
-                marked_scalars += fresh_scalars;
-            } else {
-                for &c in &fresh {
-                    self.mark[c] = false;
-                }
-            }
-            fits
-        });
+            marked.extend_from_slice(&fresh);
+            marked_scalars += fresh_scalars;
+            kept += 1;
+        }
+        moved.truncate(kept);
         for c in marked {
             self.mark[c] = false;
         }
@@ -503,6 +512,7 @@ impl IncrementalEngine {
             let (o, d) = (self.offset[r], self.dims[r]);
             self.yty += self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
         }
+        let first_changed = changed.len();
         report.solved_columns += self.factor.back_substitute(
             &self.mark,
             &self.offset,
@@ -514,6 +524,12 @@ impl IncrementalEngine {
             params.wildfire_threshold,
             changed,
         );
+        for &v in &changed[first_changed..] {
+            let (o, d) = (self.offset[v], self.dims[v]);
+            self.step[v] = self.delta[o..o + d]
+                .iter()
+                .fold(0.0f64, |m, s| m.max(s.abs()));
+        }
         report.solve_seconds += start.elapsed().as_secs_f64();
     }
 }
