@@ -56,3 +56,22 @@ pub fn linearize_factor(
     out.gradient.extend_from_slice(gradient);
     Ok(())
 }
+
+/// Linearises the factors `pending` (indices into `entries`) again at `theta`, into their
+/// entries of `linearized`; returns by how much their chi2 at θ changed.
+pub fn relinearize_factors(
+    pending: &[usize],
+    entries: &[FactorEntry],
+    theta: &[Box<dyn Variable>],
+    scratch: &mut Scratch,
+    linearized: &mut [Linearized],
+) -> Result<f64, EvaluationError> {
+    let mut change = 0.0;
+    for &f in pending {
+        let lin = &mut linearized[f];
+        change -= lin.chi2;
+        linearize_factor(&entries[f], theta, scratch, lin)?;
+        change += lin.chi2;
+    }
+    Ok(change)
+}

@@ -47,6 +47,9 @@ use crate::variables::Variable;
 const LINEARIZED_OVERHEAD: usize = 3 * 24 + 3 * 16 + 8;
 /// Per variable: θ (boxed), its bookkeeping vectors and the column's headers.
 const VARIABLE_OVERHEAD: usize = 160;
+/// From this many factors to linearise again, a pass does it on a second thread beside its
+/// ordering (a thread costs tens of microseconds; a factor about one).
+const LINEARIZE_BESIDE_FROM: usize = 256;
 
 /// How an update relinearises and solves.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -101,6 +104,9 @@ pub struct IncrementalEngine {
     /// (`BlockFactor::forward`).
     partial: Vec<f64>,
     linearized: Vec<Linearized>,
+    /// Factors `relinearize` moved the linearisation point of, linearised again by the next
+    /// `solve_pass` (beside its ordering, on a second thread, when there are many).
+    pending: Vec<usize>,
     by_variable: Vec<Vec<u32>>,
     factor: BlockFactor,
     /// Σ chi2 of the linearised factors at θ, and yᵀy (their difference is the model chi2).
@@ -230,7 +236,7 @@ impl IncrementalEngine {
         let mut changed = Vec::new();
         for pass in 0..params.max_passes.max(1) {
             if pass > 0 || known > 0 {
-                self.relinearize(problem, params, &mut touched, &mut report)?;
+                self.relinearize(problem, params, &mut touched, &mut report);
             }
             if touched.is_empty() {
                 break;
@@ -255,6 +261,10 @@ impl IncrementalEngine {
                 self.last[v] = false;
             }
         }
+        debug_assert!(
+            self.pending.is_empty(),
+            "a relinearisation always reaches solve_pass"
+        );
         // Publish θ ⊕ Δ of what changed.
         changed.sort_unstable();
         changed.dedup();
@@ -274,15 +284,16 @@ impl IncrementalEngine {
     }
 
     /// Moves θ of the free variables whose step exceeds the threshold (within the budget, see
-    /// [`UpdateParams::relinearize_scalars`]) to `θ ⊕ Δ` and linearises their factors again;
-    /// adds their variables to `touched`.
+    /// [`UpdateParams::relinearize_scalars`]) to `θ ⊕ Δ`, leaves their factors in `pending`
+    /// (the next `solve_pass` linearises them again) and adds the factors' variables to
+    /// `touched`.
     fn relinearize(
         &mut self,
         problem: &Problem,
         params: &UpdateParams,
         touched: &mut Vec<usize>,
         report: &mut UpdateReport,
-    ) -> Result<(), SolverError> {
+    ) {
         let start = Instant::now();
         let mut moved: Vec<(usize, f64)> = self
             .step
@@ -312,14 +323,10 @@ impl IncrementalEngine {
         report.relinearized_factors += factors.len();
         let entries = problem.factors();
         for &f in &factors {
-            let lin = &mut self.linearized[f];
-            self.residual_chi2 -= lin.chi2;
-            linearize_factor(&entries[f], &self.theta, &mut self.scratch, lin)?;
-            self.residual_chi2 += lin.chi2;
             touched.extend(entries[f].variables().iter().filter(|&&v| self.free[v]));
         }
+        self.pending = factors;
         report.linearize_seconds += start.elapsed().as_secs_f64();
-        Ok(())
     }
 
     /// Keeps of `moved` (variable, step) the largest steps whose refactoring fits in `budget`
@@ -395,43 +402,78 @@ impl IncrementalEngine {
         // in it are a subset of its subtree root's (a column's structure, less its parent, is
         // within its parent's), so their cliques carry all the fill the ordering must see, and
         // only their parents can change.
-        let mark = &self.mark;
-        let reaching = self.factor.reaching(&affected, mark);
-        let kept_roots: Vec<usize> = reaching
-            .iter()
-            .copied()
-            .filter(|&k| self.factor.parent(k).is_some_and(|p| mark[p]))
-            .collect();
-        let cliques: Vec<Vec<usize>> = kept_roots
-            .iter()
-            .map(|&k| self.factor.rows_of(k).filter(|&u| self.mark[u]).collect())
-            .filter(|c: &Vec<usize>| c.len() > 1)
-            .collect();
-        let (by_variable, mark) = (&self.by_variable, &self.mark);
-        let order = ordering::order_affected(
-            &affected,
-            |v, out| {
-                for &f in &by_variable[v] {
-                    out.extend(
-                        entries[f as usize]
-                            .variables()
-                            .iter()
-                            .filter(|&&u| u != v && mark[u]),
-                    );
-                }
-            },
-            &cliques,
-            &self.last,
-            &self.dims,
-            &mut self.local,
-        );
-        report.order_seconds += start.elapsed().as_secs_f64();
+        let mut order_part = || {
+            let mark = &self.mark;
+            let reaching = self.factor.reaching(&affected, mark);
+            let kept_roots: Vec<usize> = reaching
+                .iter()
+                .copied()
+                .filter(|&k| self.factor.parent(k).is_some_and(|p| mark[p]))
+                .collect();
+            let cliques: Vec<Vec<usize>> = kept_roots
+                .iter()
+                .map(|&k| self.factor.rows_of(k).filter(|&u| mark[u]).collect())
+                .filter(|c: &Vec<usize>| c.len() > 1)
+                .collect();
+            let by_variable = &self.by_variable;
+            let order = ordering::order_affected(
+                &affected,
+                |v, out| {
+                    for &f in &by_variable[v] {
+                        out.extend(
+                            entries[f as usize]
+                                .variables()
+                                .iter()
+                                .filter(|&&u| u != v && mark[u]),
+                        );
+                    }
+                },
+                &cliques,
+                &self.last,
+                &self.dims,
+                &mut self.local,
+            );
+            (order, reaching, kept_roots, start.elapsed())
+        };
+        // The factors whose linearisation point moved are linearised again meanwhile: the
+        // ordering reads only the structure. Many of them (a loop closure's correction) take a
+        // second thread, which a streaming client's server has idle while its update runs.
+        let pending = std::mem::take(&mut self.pending);
+        let mut linearize_part = || {
+            let start = Instant::now();
+            let change = linearized::relinearize_factors(
+                &pending,
+                entries,
+                &self.theta,
+                &mut self.scratch,
+                &mut self.linearized,
+            );
+            (change, start.elapsed())
+        };
+        let ((order, reaching, kept_roots, order_time), (change, linearize_time)) =
+            if pending.len() >= LINEARIZE_BESIDE_FROM {
+                std::thread::scope(|scope| {
+                    let helper = scope.spawn(linearize_part);
+                    let ordered = order_part();
+                    let linearized = helper
+                        .join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                    (ordered, linearized)
+                })
+            } else {
+                let linearized = linearize_part();
+                (order_part(), linearized)
+            };
+        self.residual_chi2 += change?;
+        report.linearize_seconds += linearize_time.as_secs_f64();
+        report.order_seconds += order_time.as_secs_f64();
 
         let start = Instant::now();
         self.factor
             .withdraw(&order, &self.offset, &self.y, &mut self.partial);
         let dense_before = self.factor.dense_columns();
         let (linearized, free, dims) = (&self.linearized, &self.free, &self.dims);
+        let by_variable = &self.by_variable;
         let assemble = |r: usize, rank: &[u64], acc: &mut Accumulator| {
             let dr = dims[r];
             for &f in &by_variable[r] {
