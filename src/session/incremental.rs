@@ -28,7 +28,7 @@ use std::ops::ControlFlow;
 use std::time::Instant;
 
 use crate::problem::{Gauge, Key, Problem};
-use crate::solver::incremental::{IncrementalEngine, UpdateContext, UpdateParams};
+use crate::solver::incremental::{IncrementalEngine, UpdateContext, UpdateParams, UpdateReport};
 use crate::solver::{self, IterationReport, SolverError, SolverOptions, Summary};
 
 /// Problems smaller than this are always re-solved whole: a region would not pay off.
@@ -48,6 +48,19 @@ const STREAM: UpdateParams = UpdateParams {
     max_passes: 1,
     relinearize_scalars: usize::MAX,
 };
+/// A streamed update leaves relinearisation to a later one when at least this many variables,
+/// and more than a quarter of them, moved past [`STREAM`]'s threshold: a correction of the
+/// whole map. The loop closures that follow such a correction keep correcting the same map,
+/// and relinearising it at each of them refactors most of the map each time (M3500: bursts of
+/// 1 000–2 000-variable relinearisations; the 100k graph at 65k poses: 62 000 variables, 99
+/// times in 530 updates). Deferred, they merge into one. The linear system is still solved
+/// whole at every update, at the older linearisation point, and the polish relinearises once
+/// the session is idle. Smaller corrections are cheap to relinearise at once, and deferring
+/// them slowed sphere2500 (its corrections stay below 600 variables).
+const DEFER_FROM_VARIABLES: usize = 1024;
+/// Streamed updates in a row that may defer a correction; the next one relinearises it.
+const MAX_DEFERRED_UPDATES: u32 = 16;
+
 /// A polish, or a solve the client asked for: steps below this are the optimum.
 const CONVERGED_STEP: f64 = 1e-4;
 /// One step of a polish: relinearise the largest steps above [`CONVERGED_STEP`] that fit in the
@@ -81,6 +94,8 @@ pub(crate) struct RegionIndex {
     pub polish: bool,
     /// Polish steps since the last streamed update (each may refactor twice the last).
     polish_steps: u32,
+    /// Streamed updates in a row that deferred a correction (see [`DEFER_FROM_VARIABLES`]).
+    deferred_updates: u32,
 }
 
 impl RegionIndex {
@@ -125,6 +140,7 @@ impl RegionIndex {
         self.engine = None;
         self.polish = false;
         self.polish_steps = 0;
+        self.deferred_updates = 0;
         if !problem.eliminate.is_empty() || problem.gauge != Gauge::AnchorComponents {
             return;
         }
@@ -163,8 +179,29 @@ impl RegionIndex {
             self.polish_steps = 0;
             STREAM
         };
+        let moving = if tight {
+            0
+        } else {
+            engine.moving(params.relinearize_threshold)
+        };
+        let defer = !tight
+            && self.deferred_updates < MAX_DEFERRED_UPDATES
+            && moving >= DEFER_FROM_VARIABLES
+            && moving * 4 > engine.variables();
+        self.deferred_updates = if defer { self.deferred_updates + 1 } else { 0 };
+        let params = UpdateParams {
+            relinearize_threshold: if defer {
+                f64::INFINITY
+            } else {
+                params.relinearize_threshold
+            },
+            ..params
+        };
         let report = match engine.update(problem, &params) {
-            Ok(report) => report,
+            Ok(report) => UpdateReport {
+                deferred_variables: if defer { moving } else { 0 },
+                ..report
+            },
             Err(e) => {
                 self.engine = None;
                 return Some(Err(e));

@@ -168,6 +168,12 @@ impl IncrementalEngine {
         self.advance(problem, None, params)
     }
 
+    /// Variables whose step exceeds `threshold` (max-norm of the tangent): what an update with
+    /// that relinearisation threshold would relinearise.
+    pub fn moving(&self, threshold: f64) -> usize {
+        self.step.iter().filter(|&&s| s > threshold).count()
+    }
+
     /// The variables whose estimate the last update wrote into the problem.
     pub fn changed(&self) -> &[usize] {
         &self.changed

@@ -12,6 +12,9 @@ pub struct UpdateReport {
     pub new_factors: usize,
     /// Variables whose linearisation point moved (their factors were linearised again).
     pub relinearized_variables: usize,
+    /// Variables past the relinearisation threshold that this update left for a later one (a
+    /// correction of the whole map, deferred by the session: see `session::incremental`).
+    pub deferred_variables: usize,
     pub relinearized_factors: usize,
     /// Columns of the factor eliminated again: the touched variables and their ancestors in
     /// the elimination tree, summed over passes.
