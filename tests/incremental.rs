@@ -123,6 +123,65 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
     );
 }
 
+/// M3500's loop closures correct most of the map, one after another: streamed updates defer
+/// relinearising those corrections (the session's rule in `session::incremental`), and once
+/// idle the estimate is still the batch optimum.
+#[tokio::test(flavor = "multi_thread")]
+async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_optimum() {
+    let Some(path) = common::data_file("2d/carlone/input_M3500_g2o.g2o") else {
+        return;
+    };
+    let text = std::fs::read_to_string(path).unwrap();
+    let reference = batch_solved(&text, &[]);
+    let batch_chi2 = reference.chi2();
+    let service = Service::new(Limits::default());
+    run(
+        &service,
+        Command::CreateSession(CreateSession {
+            session: Some("edits".into()),
+            kind: "pose_graph_2d".into(),
+            options: None,
+            auto_optimize: Default::default(),
+            factor_types: vec![],
+            ros2: None,
+        }),
+    )
+    .await;
+    let mut events = service.session("edits").unwrap().subscribe();
+    let collector = tokio::spawn(async move {
+        let (mut deferring, mut relinearizing) = (0, 0);
+        loop {
+            let next = tokio::time::timeout(std::time::Duration::from_secs(2), events.recv()).await;
+            let event = match next {
+                Ok(Ok(event)) => event,
+                Ok(Err(tokio::sync::broadcast::error::RecvError::Lagged(_))) => continue,
+                _ => break,
+            };
+            if let SessionEvent::Summary { summary, .. } = &*event {
+                if let Some(update) = &summary.used.incremental {
+                    if update.deferred_variables > 0 {
+                        assert_eq!(update.relinearized_variables, 0, "{update:?}");
+                        deferring += 1;
+                    }
+                    relinearizing += usize::from(update.relinearized_variables >= 1024);
+                }
+            }
+        }
+        (deferring, relinearizing)
+    });
+    for b in g2o_batches(&text) {
+        apply(&service, serde_json::from_value(b).unwrap()).await;
+    }
+    let (deferring, relinearizing) = collector.await.unwrap();
+    println!("{deferring} updates deferred; {relinearizing} relinearised 1024 variables or more");
+    assert!(deferring > 0, "no update deferred a correction");
+    let idle = idle_chi2(&service, &reference).await;
+    assert!(
+        (idle - batch_chi2).abs() <= 1e-5 * batch_chi2,
+        "idle estimate {idle} vs batch optimum {batch_chi2}"
+    );
+}
+
 /// Runs a command that must succeed.
 async fn run(service: &Service, command: Command) -> Reply {
     service.execute(command).await.unwrap()
