@@ -8,6 +8,7 @@ use common::server::g2o_batches;
 use common::synthetic_manhattan;
 use factord::api::wire::{Batch, CreateSession, SessionEvent};
 use factord::service::{Command, Limits, Reply, Service};
+use factord::solver::incremental::UpdateReport;
 use factord::solver::{optimize, SolverOptions};
 
 #[tokio::test(flavor = "multi_thread")]
@@ -33,30 +34,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
         .await
         .unwrap();
     // Count what the session streams, concurrently (the channel is bounded).
-    let mut events = service.session("walk").unwrap().subscribe();
-    let collector = tokio::spawn(async move {
-        let (mut incremental, mut full, mut odometry_columns) = (0, 0, Vec::new());
-        loop {
-            let next = tokio::time::timeout(std::time::Duration::from_secs(2), events.recv()).await;
-            let event = match next {
-                Ok(Ok(event)) => event,
-                Ok(Err(tokio::sync::broadcast::error::RecvError::Lagged(_))) => continue,
-                _ => break,
-            };
-            if let SessionEvent::Summary { summary, .. } = &*event {
-                match &summary.used.incremental {
-                    Some(update) => {
-                        incremental += 1;
-                        if update.new_factors == 1 && update.relinearized_variables == 0 {
-                            odometry_columns.push(update.refactored_columns);
-                        }
-                    }
-                    None => full += 1,
-                }
-            }
-        }
-        (incremental, full, odometry_columns)
-    });
+    let collector = summaries_until_quiet(service.session("walk").unwrap().subscribe());
     for b in g2o_batches(&text) {
         let batch: Batch = serde_json::from_value(b).unwrap();
         let reply = service
@@ -72,7 +50,15 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
         };
         assert_eq!(a.solved, Some(true));
     }
-    let (incremental, full, mut odometry_columns) = collector.await.unwrap();
+    let updates = collector.await.unwrap();
+    let incremental = updates.iter().flatten().count();
+    let full = updates.len() - incremental;
+    let mut odometry_columns: Vec<usize> = updates
+        .iter()
+        .flatten()
+        .filter(|u| u.new_factors == 1 && u.relinearized_variables == 0)
+        .map(|u| u.refactored_columns)
+        .collect();
     assert!(
         incremental > 1000 && full < 10,
         "updates were incremental ({incremental} incremental, {full} full solves)"
@@ -147,9 +133,41 @@ async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_
         }),
     )
     .await;
-    let mut events = service.session("edits").unwrap().subscribe();
-    let collector = tokio::spawn(async move {
-        let (mut deferring, mut relinearizing) = (0, 0);
+    let collector = summaries_until_quiet(service.session("edits").unwrap().subscribe());
+    for b in g2o_batches(&text) {
+        apply(&service, serde_json::from_value(b).unwrap()).await;
+    }
+    let updates = collector.await.unwrap();
+    let deferring: Vec<_> = updates
+        .iter()
+        .flatten()
+        .filter(|u| u.deferred_variables > 0)
+        .collect();
+    for update in &deferring {
+        assert_eq!(update.relinearized_variables, 0, "{update:?}");
+    }
+    let deferring = deferring.len();
+    let relinearizing = updates
+        .iter()
+        .flatten()
+        .filter(|u| u.relinearized_variables >= 1024)
+        .count();
+    println!("{deferring} updates deferred; {relinearizing} relinearised 1024 variables or more");
+    assert!(deferring > 0, "no update deferred a correction");
+    let idle = idle_chi2(&service, &reference).await;
+    assert!(
+        (idle - batch_chi2).abs() <= 1e-5 * batch_chi2,
+        "idle estimate {idle} vs batch optimum {batch_chi2}"
+    );
+}
+
+/// Collects, concurrently (the channel is bounded), what every solve summary of `events` says
+/// of its incremental update (`None`: a full solve), until the session is quiet for 2 s.
+fn summaries_until_quiet(
+    mut events: tokio::sync::broadcast::Receiver<std::sync::Arc<SessionEvent>>,
+) -> tokio::task::JoinHandle<Vec<Option<UpdateReport>>> {
+    tokio::spawn(async move {
+        let mut updates = Vec::new();
         loop {
             let next = tokio::time::timeout(std::time::Duration::from_secs(2), events.recv()).await;
             let event = match next {
@@ -158,28 +176,11 @@ async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_
                 _ => break,
             };
             if let SessionEvent::Summary { summary, .. } = &*event {
-                if let Some(update) = &summary.used.incremental {
-                    if update.deferred_variables > 0 {
-                        assert_eq!(update.relinearized_variables, 0, "{update:?}");
-                        deferring += 1;
-                    }
-                    relinearizing += usize::from(update.relinearized_variables >= 1024);
-                }
+                updates.push(summary.used.incremental.clone());
             }
         }
-        (deferring, relinearizing)
-    });
-    for b in g2o_batches(&text) {
-        apply(&service, serde_json::from_value(b).unwrap()).await;
-    }
-    let (deferring, relinearizing) = collector.await.unwrap();
-    println!("{deferring} updates deferred; {relinearizing} relinearised 1024 variables or more");
-    assert!(deferring > 0, "no update deferred a correction");
-    let idle = idle_chi2(&service, &reference).await;
-    assert!(
-        (idle - batch_chi2).abs() <= 1e-5 * batch_chi2,
-        "idle estimate {idle} vs batch optimum {batch_chi2}"
-    );
+        updates
+    })
 }
 
 /// Runs a command that must succeed.
