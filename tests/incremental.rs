@@ -121,18 +121,7 @@ async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_
     let reference = batch_solved(&text, &[]);
     let batch_chi2 = reference.chi2();
     let service = Service::new(Limits::default());
-    run(
-        &service,
-        Command::CreateSession(CreateSession {
-            session: Some("edits".into()),
-            kind: "pose_graph_2d".into(),
-            options: None,
-            auto_optimize: Default::default(),
-            factor_types: vec![],
-            ros2: None,
-        }),
-    )
-    .await;
+    create_edits_session(&service).await;
     let collector = summaries_until_quiet(service.session("edits").unwrap().subscribe());
     for b in g2o_batches(&text) {
         apply(&service, serde_json::from_value(b).unwrap()).await;
@@ -181,6 +170,22 @@ fn summaries_until_quiet(
         }
         updates
     })
+}
+
+/// Creates the 2D pose-graph session `edits` (which `apply` and `idle_chi2` use).
+async fn create_edits_session(service: &Service) {
+    run(
+        service,
+        Command::CreateSession(CreateSession {
+            session: Some("edits".into()),
+            kind: "pose_graph_2d".into(),
+            options: None,
+            auto_optimize: Default::default(),
+            factor_types: vec![],
+            ros2: None,
+        }),
+    )
+    .await;
 }
 
 /// Runs a command that must succeed.
@@ -265,18 +270,7 @@ fn batch_solved(text: &str, fixed: &[(u64, [f64; 3])]) -> factord::problem::Prob
 async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
     let text = synthetic_manhattan(600, 5);
     let service = Service::new(Limits::default());
-    run(
-        &service,
-        Command::CreateSession(CreateSession {
-            session: Some("edits".into()),
-            kind: "pose_graph_2d".into(),
-            options: None,
-            auto_optimize: Default::default(),
-            factor_types: vec![],
-            ros2: None,
-        }),
-    )
-    .await;
+    create_edits_session(&service).await;
     let mut loop_closures = Vec::new();
     for b in g2o_batches(&text) {
         let keys: Vec<(u64, u64)> = b["factors"]
