@@ -182,6 +182,7 @@ fn streamed_graph_reaches_the_batch_optimum() {
         wildfire_threshold: 0.0,
         max_passes: 20,
         relinearize_scalars: usize::MAX,
+        defer_from: usize::MAX,
     };
     let report = engine.update(&mut problem, &polish).unwrap();
     let polished = problem.chi2();
@@ -209,6 +210,7 @@ fn polish_in_bounded_steps_reaches_the_batch_optimum() {
         wildfire_threshold: 1e-5,
         max_passes: 1,
         relinearize_scalars: usize::MAX,
+        defer_from: usize::MAX,
     };
     let by_later_end = edges_by_later_end(poses, &edges);
     for k in 1..poses {
@@ -222,6 +224,7 @@ fn polish_in_bounded_steps_reaches_the_batch_optimum() {
         wildfire_threshold: 0.0,
         max_passes: 1,
         relinearize_scalars: budget,
+        defer_from: usize::MAX,
     };
     let mut reports = Vec::new();
     loop {
@@ -283,6 +286,7 @@ fn threshold_sweep() {
             wildfire_threshold: 1e-7,
             max_passes: passes,
             relinearize_scalars: usize::MAX,
+            defer_from: usize::MAX,
         };
         let by_later_end = edges_by_later_end(poses, &edges);
         let (mut columns, mut worst, start) = (0, 0.0f64, std::time::Instant::now());
@@ -310,6 +314,7 @@ fn threshold_sweep() {
                     wildfire_threshold: 0.0,
                     max_passes: 10,
                     relinearize_scalars: usize::MAX,
+                    defer_from: usize::MAX,
                 },
             )
             .unwrap();

@@ -28,7 +28,7 @@ use std::ops::ControlFlow;
 use std::time::Instant;
 
 use crate::problem::{Gauge, Key, Problem};
-use crate::solver::incremental::{IncrementalEngine, UpdateContext, UpdateParams, UpdateReport};
+use crate::solver::incremental::{IncrementalEngine, UpdateContext, UpdateParams};
 use crate::solver::{self, IterationReport, SolverError, SolverOptions, Summary};
 
 /// Problems smaller than this are always re-solved whole: a region would not pay off.
@@ -47,10 +47,11 @@ const STREAM: UpdateParams = UpdateParams {
     wildfire_threshold: 1e-5,
     max_passes: 1,
     relinearize_scalars: usize::MAX,
+    defer_from: DEFER_FROM_VARIABLES,
 };
-/// A streamed update leaves relinearisation to a later one when at least this many variables,
-/// and more than a quarter of them, moved past [`STREAM`]'s threshold: a correction of the
-/// whole map. The loop closures that follow such a correction keep correcting the same map,
+/// A streamed update (`UpdateParams::defer_from`) leaves relinearisation to a later one when at
+/// least this many variables, and more than a quarter of them, moved past [`STREAM`]'s
+/// threshold: a correction of the whole map. The loop closures that follow such a correction keep correcting the same map,
 /// and relinearising it at each of them refactors most of the map each time (M3500: bursts of
 /// 1 000–2 000-variable relinearisations; the 100k graph at 65k poses: 62 000 variables, 99
 /// times in 530 updates). Deferred, they merge into one. The linear system is still solved
@@ -73,6 +74,7 @@ const POLISH: UpdateParams = UpdateParams {
     wildfire_threshold: 0.0,
     max_passes: 1,
     relinearize_scalars: FIRST_POLISH_STEP_SCALARS,
+    defer_from: usize::MAX,
 };
 /// Scalar columns of the factor the first polish step after an update may refactor for its
 /// relinearisation (2048 columns of 2D poses, 1024 of 3D poses): about what a large streamed
@@ -179,33 +181,25 @@ impl RegionIndex {
             self.polish_steps = 0;
             STREAM
         };
-        let moving = if tight {
-            0
-        } else {
-            engine.moving(params.relinearize_threshold)
-        };
-        let defer = !tight
-            && self.deferred_updates < MAX_DEFERRED_UPDATES
-            && moving >= DEFER_FROM_VARIABLES
-            && moving * 4 > engine.variables();
-        self.deferred_updates = if defer { self.deferred_updates + 1 } else { 0 };
         let params = UpdateParams {
-            relinearize_threshold: if defer {
-                f64::INFINITY
+            defer_from: if self.deferred_updates < MAX_DEFERRED_UPDATES {
+                params.defer_from
             } else {
-                params.relinearize_threshold
+                usize::MAX
             },
             ..params
         };
         let report = match engine.update(problem, &params) {
-            Ok(report) => UpdateReport {
-                deferred_variables: if defer { moving } else { 0 },
-                ..report
-            },
+            Ok(report) => report,
             Err(e) => {
                 self.engine = None;
                 return Some(Err(e));
             }
+        };
+        self.deferred_updates = if report.deferred_variables > 0 {
+            self.deferred_updates + 1
+        } else {
+            0
         };
         let converged = report.max_delta <= CONVERGED_STEP;
         self.polish = !converged;

@@ -69,6 +69,11 @@ pub struct UpdateParams {
     /// variable above the threshold. It bounds what one update costs, so that an idle
     /// session's polish runs in steps: a streamed update waits behind one step at most.
     pub relinearize_scalars: usize,
+    /// When at least this many variables, and more than a quarter of them, are past the
+    /// threshold (a correction of the whole map), the pass relinearises none of them and
+    /// reports them as deferred (`UpdateReport::deferred_variables`); `usize::MAX` never
+    /// defers. The caller decides how many updates in a row may defer.
+    pub defer_from: usize,
 }
 
 impl Default for UpdateParams {
@@ -78,6 +83,7 @@ impl Default for UpdateParams {
             wildfire_threshold: 1e-7,
             max_passes: 4,
             relinearize_scalars: usize::MAX,
+            defer_from: usize::MAX,
         }
     }
 }
@@ -166,12 +172,6 @@ impl IncrementalEngine {
         params: &UpdateParams,
     ) -> Result<UpdateReport, SolverError> {
         self.advance(problem, None, params)
-    }
-
-    /// Variables whose step exceeds `threshold` (max-norm of the tangent): what an update with
-    /// that relinearisation threshold would relinearise.
-    pub fn moving(&self, threshold: f64) -> usize {
-        self.step.iter().filter(|&&s| s > threshold).count()
     }
 
     /// The variables whose estimate the last update wrote into the problem.
@@ -308,6 +308,10 @@ impl IncrementalEngine {
             .filter(|&(_, &step)| step > params.relinearize_threshold)
             .map(|(v, &step)| (v, step))
             .collect();
+        if moved.len() >= params.defer_from && moved.len() * 4 > self.theta.len() {
+            report.deferred_variables = moved.len();
+            moved.clear();
+        }
         if params.relinearize_scalars < self.delta.len() {
             self.within_budget(problem, &mut moved, params.relinearize_scalars);
         }
