@@ -110,8 +110,8 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
 }
 
 /// M3500's loop closures correct most of the map, one after another: streamed updates defer
-/// relinearising those corrections (the session's rule in `session::incremental`), and once
-/// idle the estimate is still the batch optimum.
+/// relinearising those corrections (`UpdateParams::defer_from`, bounded by the session in
+/// `session::incremental`), and once idle the estimate is still the batch optimum.
 #[tokio::test(flavor = "multi_thread")]
 async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_optimum() {
     let Some(path) = common::data_file("2d/carlone/input_M3500_g2o.g2o") else {

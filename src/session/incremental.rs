@@ -51,10 +51,10 @@ const STREAM: UpdateParams = UpdateParams {
 };
 /// A streamed update (`UpdateParams::defer_from`) leaves relinearisation to a later one when at
 /// least this many variables, and more than a quarter of them, moved past [`STREAM`]'s
-/// threshold: a correction of the whole map. The loop closures that follow such a correction keep correcting the same map,
-/// and relinearising it at each of them refactors most of the map each time (M3500: bursts of
-/// 1 000–2 000-variable relinearisations; the 100k graph at 65k poses: 62 000 variables, 99
-/// times in 530 updates). Deferred, they merge into one. The linear system is still solved
+/// threshold: a correction of the whole map. The loop closures that follow such a correction
+/// keep correcting the same map, and relinearising it at each of them refactors most of the map
+/// each time (M3500: bursts of 1 000–2 000-variable relinearisations; the 100k graph at 65k
+/// poses: 62 000 variables, 99 times in 530 updates). Deferred, they merge into one. The linear system is still solved
 /// whole at every update, at the older linearisation point, and the polish relinearises once
 /// the session is idle. Smaller corrections are cheap to relinearise at once, and deferring
 /// them slowed sphere2500 (its corrections stay below 600 variables).
@@ -177,17 +177,16 @@ impl RegionIndex {
                     .saturating_mul(1 << (self.polish_steps - 1).min(20)),
                 ..POLISH
             }
-        } else {
+        } else if self.deferred_updates < MAX_DEFERRED_UPDATES {
             self.polish_steps = 0;
             STREAM
-        };
-        let params = UpdateParams {
-            defer_from: if self.deferred_updates < MAX_DEFERRED_UPDATES {
-                params.defer_from
-            } else {
-                usize::MAX
-            },
-            ..params
+        } else {
+            // Deferred long enough: this update relinearises the correction.
+            self.polish_steps = 0;
+            UpdateParams {
+                defer_from: usize::MAX,
+                ..STREAM
+            }
         };
         let report = match engine.update(problem, &params) {
             Ok(report) => report,

@@ -13,7 +13,7 @@ pub struct UpdateReport {
     /// Variables whose linearisation point moved (their factors were linearised again).
     pub relinearized_variables: usize,
     /// Variables past the relinearisation threshold that this update left for a later one (a
-    /// correction of the whole map, deferred by the session: see `session::incremental`).
+    /// correction of the whole map: see `UpdateParams::defer_from`).
     pub deferred_variables: usize,
     pub relinearized_factors: usize,
     /// Columns of the factor eliminated again: the touched variables and their ancestors in
