@@ -84,6 +84,13 @@ pub fn order_affected(
     chosen.into_iter().map(|i| affected[i]).collect()
 }
 
+/// Held while METIS runs. METIS seeds its random generator at every call, but the generator's
+/// state is a static of the process (GKlib's `random.c`): sessions ordering at once raced on it
+/// (a data race in C code, and orders that depended on what other sessions did meanwhile). One
+/// call at a time, an order depends only on its graph; a session waits for at most the calls
+/// already queued (METIS takes about 3 µs per variable).
+static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// METIS nested dissection of `adjacency`: the vertex at each position (`None` if METIS
 /// fails).
 fn nested_dissection(adjacency: &[Vec<usize>]) -> Option<Vec<usize>> {
@@ -101,7 +108,13 @@ fn nested_dissection(adjacency: &[Vec<usize>]) -> Option<Vec<usize>> {
     let mut nv = n as metis_sys::idx_t;
     let mut perm = vec![0 as metis_sys::idx_t; n];
     let mut iperm = vec![0 as metis_sys::idx_t; n];
-    // SAFETY: CSR arrays of a symmetric graph without self loops, sized as METIS expects.
+    // METIS keeps no Rust state, so a panic elsewhere while the lock was held left nothing to
+    // repair: a poisoned lock is taken as it is.
+    let _one_at_a_time = METIS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    // SAFETY: CSR arrays of a symmetric graph without self loops, sized as METIS expects; the
+    // lock keeps other threads out of METIS's static random state meanwhile.
     let status = unsafe {
         metis_sys::METIS_NodeND(
             &mut nv,
@@ -206,6 +219,23 @@ mod tests {
             "{amd}"
         );
         assert!(kept < amd, "kept {kept} flops, AMD {amd}");
+    }
+
+    #[test]
+    fn nested_dissection_orders_alike_on_concurrent_threads() {
+        // Four threads ordering the same grid at once get the order one thread gets alone
+        // (METIS's random state is shared by the process: unguarded, they disturb each other).
+        let adjacency = grid(30);
+        let alone = nested_dissection(&adjacency).expect("METIS orders a grid");
+        std::thread::scope(|scope| {
+            for _ in 0..4 {
+                scope.spawn(|| {
+                    for _ in 0..25 {
+                        assert_eq!(nested_dissection(&adjacency).as_ref(), Some(&alone));
+                    }
+                });
+            }
+        });
     }
 
     #[test]
