@@ -8,7 +8,7 @@
 //! of services in one process share it (as they shared the statics this replaced).
 
 use std::sync::{Mutex, OnceLock, PoisonError};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use metrics::{counter, describe_counter, describe_gauge, describe_histogram, gauge, histogram};
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
@@ -148,7 +148,7 @@ pub fn observe_fsync(d: Duration) {
 /// fsync would otherwise write a line per batch.
 fn warn_slow_fsync(d: Duration) {
     /// When the last warning was written, and the slow fsyncs since then.
-    static LAST: Mutex<Option<(std::time::Instant, u64)>> = Mutex::new(None);
+    static LAST: Mutex<Option<(Instant, u64)>> = Mutex::new(None);
     let mut last = LAST.lock().unwrap_or_else(PoisonError::into_inner);
     match &mut *last {
         Some((at, unreported)) if at.elapsed() < SLOW_FSYNC_WARN_EVERY => *unreported += 1,
@@ -160,7 +160,7 @@ fn warn_slow_fsync(d: Duration) {
                 "journal fsync took {d:?}: answers waiting on it are that late (the disk, not the \
                  solver; see {SLOW_FSYNCS})"
             );
-            *last = Some((std::time::Instant::now(), 0));
+            *last = Some((Instant::now(), 0));
         }
     }
 }

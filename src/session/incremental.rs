@@ -54,10 +54,11 @@ const STREAM: UpdateParams = UpdateParams {
 /// threshold: a correction of the whole map. The loop closures that follow such a correction
 /// keep correcting the same map, and relinearising it at each of them refactors most of the map
 /// each time (M3500: bursts of 1 000–2 000-variable relinearisations; the 100k graph at 65k
-/// poses: 62 000 variables, 99 times in 530 updates). Deferred, they merge into one. The linear system is still solved
-/// whole at every update, at the older linearisation point, and the polish relinearises once
-/// the session is idle. Smaller corrections are cheap to relinearise at once, and deferring
-/// them slowed sphere2500 (its corrections stay below 600 variables).
+/// poses: 62 000 variables, 99 times in 530 updates). Deferred, they merge into one. The
+/// linear system is still solved whole at every update, at the older linearisation point, and
+/// the polish relinearises once the session is idle. Smaller corrections are cheap to
+/// relinearise at once, and deferring them slowed sphere2500 (its corrections stay below 600
+/// variables).
 const DEFER_FROM_VARIABLES: usize = 1024;
 /// Streamed updates in a row that may defer a correction; the next one relinearises it.
 const MAX_DEFERRED_UPDATES: u32 = 16;
@@ -177,14 +178,16 @@ impl RegionIndex {
                     .saturating_mul(1 << (self.polish_steps - 1).min(20)),
                 ..POLISH
             }
-        } else if self.deferred_updates < MAX_DEFERRED_UPDATES {
-            self.polish_steps = 0;
-            STREAM
         } else {
-            // Deferred long enough: this update relinearises the correction.
             self.polish_steps = 0;
+            // Deferred long enough, this update relinearises the correction.
+            let deferred_enough = self.deferred_updates >= MAX_DEFERRED_UPDATES;
             UpdateParams {
-                defer_from: usize::MAX,
+                defer_from: if deferred_enough {
+                    usize::MAX
+                } else {
+                    STREAM.defer_from
+                },
                 ..STREAM
             }
         };

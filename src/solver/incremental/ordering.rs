@@ -10,6 +10,8 @@
 //! a path to the root, not the map.
 
 use super::elimination_cost::elimination_flops;
+use std::sync::{Mutex, PoisonError};
+
 use crate::solver::structure::BlockOrdering;
 
 /// Refactored parts of at least this many variables may be ordered by nested dissection
@@ -89,7 +91,7 @@ pub fn order_affected(
 /// (a data race in C code, and orders that depended on what other sessions did meanwhile). One
 /// call at a time, an order depends only on its graph; a session waits for at most the calls
 /// already queued (METIS takes about 3 µs per variable).
-static METIS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+static METIS: Mutex<()> = Mutex::new(());
 
 /// METIS nested dissection of `adjacency`: the vertex at each position (`None` if METIS
 /// fails).
@@ -110,9 +112,7 @@ fn nested_dissection(adjacency: &[Vec<usize>]) -> Option<Vec<usize>> {
     let mut iperm = vec![0 as metis_sys::idx_t; n];
     // METIS keeps no Rust state, so a panic elsewhere while the lock was held left nothing to
     // repair: a poisoned lock is taken as it is.
-    let _one_at_a_time = METIS
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _one_at_a_time = METIS.lock().unwrap_or_else(PoisonError::into_inner);
     // SAFETY: CSR arrays of a symmetric graph without self loops, sized as METIS expects; the
     // lock keeps other threads out of METIS's static random state meanwhile.
     let status = unsafe {
