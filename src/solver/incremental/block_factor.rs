@@ -293,21 +293,27 @@ impl BlockFactor {
         self.fronts.subtract_due(rank_r, &self.dim, acc);
     }
 
-    /// Stores the eliminated column `r` (in `acc`, then cleared): its rows register it, and its
-    /// parent is its lowest-ranked row.
+    /// Stores the eliminated column `r` (in `acc`, then cleared): see
+    /// [`BlockFactor::register_column`].
     fn store_column(&mut self, r: usize, acc: &mut Accumulator) {
-        let mut parent = NONE;
-        for &(u, o) in &acc.entries {
-            self.row_columns[u as usize].push((r as u32, o));
-            if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
-                parent = u;
-            }
-        }
         let column = &mut self.columns[r];
         column.diagonal.extend_from_slice(&acc.diagonal);
         column.rows.extend_from_slice(&acc.entries);
         column.blocks.extend_from_slice(&acc.buffer);
         acc.finish();
+        self.register_column(r);
+    }
+
+    /// Column `r` has been eliminated and stored: its rows register it, and its parent is its
+    /// lowest-ranked row.
+    fn register_column(&mut self, r: usize) {
+        let mut parent = NONE;
+        for &(u, o) in &self.columns[r].rows {
+            self.row_columns[u as usize].push((r as u32, o));
+            if parent == NONE || self.rank[u as usize] < self.rank[parent as usize] {
+                parent = u;
+            }
+        }
         self.nnz += self.column_nnz(r, &self.columns[r]);
         self.set_parent(r, parent);
     }

@@ -72,8 +72,9 @@ const MAX_SPARE_BUFFERS: usize = 16;
 ///
 /// A front near the root of a 3D map is a dense matrix of megabytes (sphere2500: a thousand
 /// scalars square). Allocated fresh for every update, each of its pages was zeroed again by a
-/// page fault: 13% of a sphere2500 stream's time, most of it in the kernel. Reused, a buffer
-/// is zeroed by one `memset` over memory the process already has.
+/// page fault: 13% of a sphere2500 stream's time, most of it in the kernel. Reused, a panel
+/// is zeroed by one `memset` over memory the process already has, and an update matrix is not
+/// zeroed at all (see [`FrontUpdates::update_buffer`]).
 #[derive(Debug, Default)]
 pub(super) struct FrontUpdates {
     /// `(rank of a row, front, position of the row in the front's rows)`, the lowest rank first.
@@ -177,9 +178,11 @@ impl FrontUpdates {
         });
     }
 
-    /// A buffer of `len` zeros: the smallest spare that holds it, else the largest spare
-    /// (grown), else a new one.
-    fn zeroed(&mut self, len: usize) -> Vec<f64> {
+    /// A buffer of `len` values for an update matrix: the smallest spare that holds it, else
+    /// the largest spare (grown), else a new one. What a spare held stays in it: `factor_front`
+    /// writes the lower triangle of `U` without reading it, and nothing reads the rest, so
+    /// zeroing it (a `memset` of up to megabytes per front) was wasted.
+    fn update_buffer(&mut self, len: usize) -> Vec<f64> {
         let fits = (0..self.spare.len())
             .filter(|&i| self.spare[i].capacity() >= len)
             .min_by_key(|&i| self.spare[i].capacity());
@@ -187,7 +190,6 @@ impl FrontUpdates {
         let mut buffer = fits
             .or_else(largest)
             .map_or_else(Vec::new, |i| self.spare.swap_remove(i));
-        buffer.clear();
         buffer.resize(len, 0.0);
         buffer
     }
@@ -342,7 +344,7 @@ impl BlockFactor {
         for &u in &panel_rows {
             self.slot[u] = NONE;
         }
-        let mut update = self.fronts.zeroed((n - nj) * (n - nj));
+        let mut update = self.fronts.update_buffer((n - nj) * (n - nj));
         if let Err(row) = factor_front(&mut f, n, nj, &mut update) {
             self.fronts.panel = f;
             self.fronts.recycle(update);
@@ -350,13 +352,14 @@ impl BlockFactor {
             return Err(NotPositiveDefinite(front[p]));
         }
         self.dense_columns += w;
+        // Each column straight from the panel into its storage (cleared by the refactor).
         for (p, &r) in front.iter().enumerate() {
             let (d, o) = (self.dim[r], offsets[p]);
-            acc.start(d, self.dim.len());
-            let diagonal = acc.diagonal_mut();
+            let column = &mut self.columns[r];
+            column.diagonal.resize(d * d, 0.0);
             for i in 0..d {
                 for j in 0..=i {
-                    diagonal[i * d + j] = f[(o + j) * n + o + i];
+                    column.diagonal[i * d + j] = f[(o + j) * n + o + i];
                 }
             }
             let later_in_front = front.iter().copied().enumerate().skip(p + 1);
@@ -367,14 +370,18 @@ impl BlockFactor {
             let rows = later_in_front.chain(reached_beyond.map(|(q, &(u, _))| (w + q, u as usize)));
             for (q, u) in rows {
                 let (du, ou) = (self.dim[u], offsets[q]);
-                let block = acc.block_mut(u, du);
-                for i in 0..du {
-                    for j in 0..d {
-                        block[i * d + j] = f[(o + j) * n + ou + i];
+                let at = column.blocks.len();
+                column.rows.push((u as u32, at as u32));
+                column.blocks.resize(at + du * d, 0.0);
+                let block = &mut column.blocks[at..];
+                for j in 0..d {
+                    let panel_column = &f[(o + j) * n + ou..(o + j) * n + ou + du];
+                    for (i, &value) in panel_column.iter().enumerate() {
+                        block[i * d + j] = value;
                     }
                 }
             }
-            self.store_column(r, acc);
+            self.register_column(r);
         }
         if !beyond.is_empty() {
             for &r in front {
@@ -428,4 +435,58 @@ fn factor_front(f: &mut [f64], n: usize, nj: usize, update: &mut [f64]) -> Resul
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::factor_front;
+    use crate::factors::testing::Rng;
+
+    /// `factor_front` writes `U`'s lower triangle without reading it: the update buffer comes
+    /// from a spare, holding whatever an earlier front left (here NaN, which any read of it
+    /// would carry into the result). Sizes past faer's small-matrix kernels, so its blocked
+    /// paths run.
+    #[test]
+    fn the_update_matrix_is_written_whole_over_stale_values() {
+        let (n, nj) = (300, 120);
+        let ns = n - nj;
+        let mut rng = Rng::new(7);
+        let m: Vec<f64> = (0..n * n).map(|_| rng.uniform() - 0.5).collect();
+        // A = M Mᵀ + n I (column-major), symmetric positive definite; the panel is its first
+        // nj columns.
+        let a = |i: usize, j: usize| {
+            let dot: f64 = (0..n).map(|k| m[i * n + k] * m[j * n + k]).sum();
+            dot + if i == j { n as f64 } else { 0.0 }
+        };
+        let mut panel: Vec<f64> = (0..nj)
+            .flat_map(|j| (0..n).map(move |i| (i, j)))
+            .map(|(i, j)| a(i, j))
+            .collect();
+        let original = panel.clone();
+        let mut update = vec![f64::NAN; ns * ns];
+        factor_front(&mut panel, n, nj, &mut update).expect("positive definite");
+
+        let l = |i: usize, j: usize| if i >= j { panel[j * n + i] } else { 0.0 };
+        for j in 0..nj {
+            for i in j..n {
+                // [L_JJ; L_SJ] L_JJᵀ reproduces the panel's lower part.
+                let product: f64 = (0..=j).map(|k| l(i, k) * l(j, k)).sum();
+                let want = original[j * n + i];
+                assert!(
+                    (product - want).abs() <= 1e-9 * want.abs().max(1.0),
+                    "({i}, {j})"
+                );
+            }
+        }
+        for j in 0..ns {
+            for i in j..ns {
+                let want: f64 = (0..nj).map(|k| l(nj + i, k) * l(nj + j, k)).sum();
+                let got = update[j * ns + i];
+                assert!(
+                    (got - want).abs() <= 1e-9 * want.abs().max(1.0),
+                    "U ({i}, {j}): {got}"
+                );
+            }
+        }
+    }
 }
