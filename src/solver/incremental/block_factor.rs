@@ -405,17 +405,17 @@ impl BlockFactor {
             // SAFETY: the CPU has the features `subtract_updates_wide` is compiled for.
             unsafe { self.subtract_updates_wide(r, acc) }
         } else {
-            self.subtract_updates_with(r, acc)
+            self.subtract_updates_with::<false>(r, acc)
         }
     }
 
     #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
     fn subtract_updates_wide(&self, r: usize, acc: &mut Accumulator) {
-        self.subtract_updates_with(r, acc)
+        self.subtract_updates_with::<true>(r, acc)
     }
 
     #[inline(always)]
-    fn subtract_updates_with(&self, r: usize, acc: &mut Accumulator) {
+    fn subtract_updates_with<const FUSED: bool>(&self, r: usize, acc: &mut Accumulator) {
         let d = self.dim[r];
         let rank_r = self.rank[r];
         for &(k, at) in &self.row_columns[r] {
@@ -427,13 +427,13 @@ impl BlockFactor {
             let dk = self.dim[k as usize];
             let at = at as usize;
             let l_rk = &column.blocks[at..at + d * dk];
-            dense::sub_mul_transpose(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
+            dense::sub_mul_transpose::<FUSED>(&mut acc.diagonal, l_rk, l_rk, d, d, dk);
             for &(u, o) in &column.rows {
                 let u = u as usize;
                 if self.rank[u] > rank_r {
                     let du = self.dim[u];
                     let l_uk = &column.blocks[o as usize..o as usize + du * dk];
-                    dense::sub_mul_transpose(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
+                    dense::sub_mul_transpose::<FUSED>(acc.block_mut(u, du), l_uk, l_rk, du, d, dk);
                 }
             }
         }
@@ -445,24 +445,24 @@ impl BlockFactor {
             // SAFETY: the CPU has the features `scale_blocks_wide` is compiled for.
             unsafe { self.scale_blocks_wide(acc) }
         } else {
-            self.scale_blocks_with(acc)
+            self.scale_blocks_with::<false>(acc)
         }
     }
 
     #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
     fn scale_blocks_wide(&self, acc: &mut Accumulator) {
-        self.scale_blocks_with(acc)
+        self.scale_blocks_with::<true>(acc)
     }
 
     #[inline(always)]
-    fn scale_blocks_with(&self, acc: &mut Accumulator) {
+    fn scale_blocks_with<const FUSED: bool>(&self, acc: &mut Accumulator) {
         let d = acc.dim;
         dense::negated_lower_inverse(&acc.diagonal, d, &mut acc.inverse);
         for &(u, o) in &acc.entries {
             let du = self.dim[u as usize];
             let o = o as usize;
             let block = &mut acc.buffer[o..o + du * d];
-            dense::times_inverse_transpose(block, &acc.inverse, du, d, &mut acc.scratch);
+            dense::times_inverse_transpose::<FUSED>(block, &acc.inverse, du, d, &mut acc.scratch);
         }
     }
 

@@ -5,11 +5,20 @@
 
 /// `acc (m×d) −= a (m×k) · bᵀ` with `b` d×k; all row-major. The block sizes of 2D and 3D pose
 /// graphs get loops of constant length (unrolled: this is where elimination spends its time).
-#[inline]
-pub fn sub_mul_transpose(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usize, k: usize) {
+/// `FUSED`: the constant-size products as fused multiply-adds, for callers compiled with FMA
+/// (see `solver::simd`; without it `mul_add` is a library call).
+#[inline(always)]
+pub fn sub_mul_transpose<const FUSED: bool>(
+    acc: &mut [f64],
+    a: &[f64],
+    b: &[f64],
+    m: usize,
+    d: usize,
+    k: usize,
+) {
     match (m, d, k) {
-        (3, 3, 3) => sub_mul_transpose_fixed::<3, 3, 3>(acc, a, b),
-        (6, 6, 6) => sub_mul_transpose_fixed::<6, 6, 6>(acc, a, b),
+        (3, 3, 3) => sub_mul_transpose_fixed::<3, 3, 3, FUSED>(acc, a, b),
+        (6, 6, 6) => sub_mul_transpose_fixed::<6, 6, 6, FUSED>(acc, a, b),
         _ => sub_mul_transpose_any(acc, a, b, m, d, k),
     }
 }
@@ -17,7 +26,7 @@ pub fn sub_mul_transpose(acc: &mut [f64], a: &[f64], b: &[f64], m: usize, d: usi
 /// As [`sub_mul_transpose`] for constant sizes: `b` transposed once, then each row of the
 /// product accumulated as `Σ_l a_il · bᵀ_l` over contiguous rows (vectorises over `j`).
 #[inline(always)]
-fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize>(
+fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize, const FUSED: bool>(
     acc: &mut [f64],
     a: &[f64],
     b: &[f64],
@@ -34,7 +43,11 @@ fn sub_mul_transpose_fixed<const M: usize, const D: usize, const K: usize>(
         for l in 0..K {
             let a_il = a[i * K + l];
             for j in 0..D {
-                row[j] += a_il * bt[l][j];
+                row[j] = if FUSED {
+                    a_il.mul_add(bt[l][j], row[j])
+                } else {
+                    row[j] + a_il * bt[l][j]
+                };
             }
         }
         for j in 0..D {
@@ -167,9 +180,10 @@ pub fn negated_lower_inverse(l: &[f64], d: usize, out: &mut Vec<f64>) {
 }
 
 /// `x (m×d) ← x · L⁻ᵀ` given `negated_inverse = −L⁻¹` (see [`negated_lower_inverse`]): one
-/// product instead of a triangular solve per row (`scratch` holds a copy of `x`).
-#[inline]
-pub fn times_inverse_transpose(
+/// product instead of a triangular solve per row (`scratch` holds a copy of `x`). `FUSED` as
+/// in [`sub_mul_transpose`].
+#[inline(always)]
+pub fn times_inverse_transpose<const FUSED: bool>(
     x: &mut [f64],
     negated_inverse: &[f64],
     m: usize,
@@ -179,7 +193,7 @@ pub fn times_inverse_transpose(
     scratch.clear();
     scratch.extend_from_slice(&x[..m * d]);
     x[..m * d].fill(0.0);
-    sub_mul_transpose(x, scratch, negated_inverse, m, d, d);
+    sub_mul_transpose::<FUSED>(x, scratch, negated_inverse, m, d, d);
 }
 
 /// `x (m×d) ← x · L⁻ᵀ`: each row `xᵢ` becomes the solution of `L zᵀ = xᵢᵀ` (the reference
@@ -225,7 +239,7 @@ mod tests {
         let (mut inverse, mut scratch) = (Vec::new(), Vec::new());
         negated_lower_inverse(&a, d, &mut inverse);
         let mut rows2 = vec![1.0, 2.0, 3.0, 4.0, -1.0, 0.0, 2.0, 1.0];
-        times_inverse_transpose(&mut rows2, &inverse, 2, d, &mut scratch);
+        times_inverse_transpose::<false>(&mut rows2, &inverse, 2, d, &mut scratch);
         for (p, q) in rows.iter().zip(&rows2) {
             assert!((p - q).abs() < 1e-12);
         }
@@ -239,7 +253,7 @@ mod tests {
         let a = [1.0, 2.0, 3.0, 4.0];
         let b = [1.0, 0.0, 0.0, 1.0, 1.0, 1.0];
         let mut acc = vec![0.0; m * d];
-        sub_mul_transpose(&mut acc, &a, &b, m, d, k);
+        sub_mul_transpose::<false>(&mut acc, &a, &b, m, d, k);
         assert_eq!(acc, vec![-1.0, -2.0, -3.0, -3.0, -4.0, -7.0]);
         let mut y = [0.0, 0.0];
         sub_mul_vector(&mut y, &a, &[1.0, 1.0], m, k);
@@ -251,7 +265,8 @@ mod tests {
 
     #[test]
     fn the_fixed_size_products_match_nalgebra() {
-        // The 3×3 and 6×6 blocks take their own paths; each must equal y − aᵀx and y − a·x.
+        // The 3×3 and 6×6 blocks take their own paths; each must equal y − aᵀx, y − a·x and
+        // c − a·bᵀ.
         for d in [3, 6] {
             let a =
                 nalgebra::DMatrix::<f64>::from_fn(d, d, |i, j| ((i * 5 + j * 3) % 11) as f64 - 4.5);
@@ -272,6 +287,24 @@ mod tests {
                     (straight[i] - expected[i]).abs() < 1e-12,
                     "d = {d}, row {i}"
                 );
+            }
+            // C − A·Bᵀ, with the products fused and not.
+            let b = nalgebra::DMatrix::<f64>::from_fn(d, d, |i, j| ((i * 7 + j) % 5) as f64 - 2.0);
+            let b_row_major: Vec<f64> = (0..d * d).map(|p| b[(p / d, p % d)]).collect();
+            let expected = &a - &a * b.transpose();
+            for fused in [false, true] {
+                let mut acc = row_major.clone();
+                if fused {
+                    sub_mul_transpose::<true>(&mut acc, &row_major, &b_row_major, d, d, d);
+                } else {
+                    sub_mul_transpose::<false>(&mut acc, &row_major, &b_row_major, d, d, d);
+                }
+                for p in 0..d * d {
+                    assert!(
+                        (acc[p] - expected[(p / d, p % d)]).abs() < 1e-12,
+                        "d = {d}, fused {fused}, entry {p}"
+                    );
+                }
             }
         }
     }

@@ -61,7 +61,7 @@ impl SubtreeUpdate {
             // SAFETY: the CPU has the features `subtract_column_wide` is compiled for.
             unsafe { self.subtract_column_wide(within, column, dims) }
         } else {
-            self.subtract_column_with(within, column, dims)
+            self.subtract_column_with::<false>(within, column, dims)
         }
     }
 
@@ -72,11 +72,11 @@ impl SubtreeUpdate {
         column: &ColumnView,
         dims: &[usize],
     ) {
-        self.subtract_column_with(within, column, dims)
+        self.subtract_column_with::<true>(within, column, dims)
     }
 
     #[inline(always)]
-    fn subtract_column_with(
+    fn subtract_column_with<const FUSED: bool>(
         &mut self,
         within: &[(usize, usize)],
         column: &ColumnView,
@@ -93,7 +93,7 @@ impl SubtreeUpdate {
                 let db = dims[self.rows[qb] as usize];
                 let l_b = &column.blocks[ob..ob + db * dk];
                 let at = self.block(qa, qb);
-                dense::sub_mul_transpose(&mut self.values[at..], l_a, l_b, da, db, dk);
+                dense::sub_mul_transpose::<FUSED>(&mut self.values[at..], l_a, l_b, da, db, dk);
             }
         }
     }
