@@ -136,8 +136,9 @@ impl BlockFactor {
 }
 
 /// Asks for the start of the next column's rows and blocks while this one is solved: the walk
-/// waits on memory, column after column (sphere2500: back substitution 2.75 / 2.89 → 2.62 /
-/// 2.63 s in-process).
+/// waits on memory, column after column (a profile of sphere2500's stream has its time on the
+/// first loads of each block; its solve phase in-process: 2.75 / 2.89 → 2.62 / 2.63 s in two
+/// pairs, see BENCHMARKS.md).
 #[inline(always)]
 fn prefetch_column(column: &super::Column) {
     #[cfg(target_arch = "x86_64")]
