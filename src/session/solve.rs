@@ -2,17 +2,15 @@
 //! the updates reach, see `incremental`), hand it back, apply what arrived meanwhile, publish the
 //! estimate changes and the Summary, and reschedule if needed.
 
-use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
 use super::incremental::{self, RegionIndex};
-use super::mirror::value_of;
-use super::{MirrorEntry, Session};
-use crate::api::catalogue;
-use crate::api::wire::{Estimate, SessionEvent, VariableValue};
+use super::mirror;
+use super::Session;
+use crate::api::wire::{Estimate, SessionEvent};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::problem::{Key, Problem};
@@ -224,7 +222,7 @@ impl Session {
                         self.limits.max_solve_ms, summary.iterations
                     ));
                 }
-                let changed = refresh_mirror(
+                let changed = mirror::refresh(
                     &mut st.mirror,
                     &problem,
                     resolved.moved.as_deref(),
@@ -332,35 +330,4 @@ impl Session {
             self.apply_prepared(st, seq, prepared, ids);
         }
     }
-}
-
-/// Copies the values of the variables that may have moved (`None`: all) into the mirror;
-/// returns those that changed. Runs under the session lock, over every variable a loop closure
-/// moved, so it allocates only for what it returns.
-fn refresh_mirror(
-    mirror: &mut BTreeMap<Key, MirrorEntry>,
-    problem: &Problem,
-    moved: Option<&[usize]>,
-    sequence: u64,
-) -> Vec<VariableValue> {
-    let mut changed = Vec::new();
-    let mut value = Vec::new();
-    let mut refresh = |idx: usize| {
-        let key = problem.values.key(idx);
-        catalogue::encode_variable_into(problem.values.variable(idx), &mut value);
-        if let Some(entry) = mirror.get_mut(&key) {
-            // A batch accepted during the solve set a newer guess; it is applied next.
-            if entry.changed <= sequence && entry.value[..] != value[..] {
-                entry.value.clear();
-                entry.value.extend_from_slice(&value);
-                entry.changed = sequence;
-                changed.push(value_of(key, entry));
-            }
-        }
-    };
-    match moved {
-        Some(moved) => moved.iter().for_each(|&idx| refresh(idx)),
-        None => (0..problem.values.len()).for_each(refresh),
-    }
-    changed
 }
