@@ -216,7 +216,7 @@ mod tests {
     }
 
     #[test]
-    fn lookups_and_the_walk_refresh_the_same_entries() {
+    fn both_paths_refresh_exactly_the_moved_entries() {
         // Keys not in insertion order, so that the walk has to sort them.
         let keys: Vec<Key> = (0..64).map(|i| (i * 37) % 64 + 1).collect();
         let moved: Vec<usize> = vec![3, 17, 3, 40];
