@@ -137,14 +137,14 @@ impl BlockFactor {
     }
 }
 
-/// Asks for the next column's rows, diagonal and first blocks (up to 2 KB, 8 lines of 6×6
-/// blocks or 28 of 3×3) while this one is solved: the walk waits on memory, column after
-/// column (`perf annotate` of the 10k stream: the first product of each block, the diagonal's
-/// load and the scan of the rows). Only the start of the blocks, the hardware prefetcher did
-/// not follow them in time; all of them (up to 4 KB) was no faster. Solve phase relative to
-/// ordering, in-process, against the first two lines only and the next column guessed from the
-/// stack: 10k 1.74 / 1.79 / 1.89 / 1.92 → 1.54 / 1.40 / 1.57 / 1.55, sphere2500 1.26 / 1.34 /
-/// 1.24 / 1.29 → 1.17 / 1.15 / 1.06 / 1.17 (see BENCHMARKS.md).
+/// Asks for the next column's rows, diagonal and first 2 KB of blocks (7 blocks of 6×6, 28
+/// of 3×3) while this one is solved: the walk waits on memory, column after column (`perf
+/// annotate` of the 10k stream: on the first product of each block, the diagonal's load and
+/// the scan of the rows). With the next column guessed as the last child, against the stack's
+/// top and two lines of blocks (measured together), the solve phase relative to ordering,
+/// in-process: 10k 1.74 / 1.79 / 1.89 / 1.92 → 1.54 / 1.40 / 1.57 / 1.55, sphere2500 1.26 /
+/// 1.34 / 1.24 / 1.29 → 1.17 / 1.15 / 1.06 / 1.17; 4 KB of blocks was no faster than 2 KB
+/// (see BENCHMARKS.md).
 #[inline(always)]
 fn prefetch_column(column: &super::Column) {
     #[cfg(target_arch = "x86_64")]
