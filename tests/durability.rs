@@ -175,17 +175,21 @@ async fn a_torn_journal_tail_is_cut_and_the_rest_recovered() {
     // A crash in the middle of the last append: half of its record is on disk.
     let journal = state.join("sessions/torn/journal.log");
     let bytes = std::fs::read(&journal).unwrap();
-    let last_len = {
-        // Walk the records to find where the last one starts.
+    let (end, last_len) = {
+        // Walk the records to find where the last one starts; a zero length is their end (the
+        // file is grown with zeros ahead of them).
         let (mut at, mut last) = (0usize, 0usize);
-        while at < bytes.len() {
+        while at + 8 <= bytes.len() {
             let len = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+            if len == 0 {
+                break;
+            }
             last = at;
             at += 8 + len;
         }
-        bytes.len() - last
+        (at, at - last)
     };
-    std::fs::write(&journal, &bytes[..bytes.len() - last_len / 2]).unwrap();
+    std::fs::write(&journal, &bytes[..end - last_len / 2]).unwrap();
     let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
     let (stats, _) = recovered(&c, &s, "torn", Instant::now()).await;
     assert_eq!(stats["sequence"], 59, "{stats}");

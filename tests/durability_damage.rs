@@ -41,8 +41,13 @@ async fn write_101_batches(state: &Path, name: &str, extra: &[&str]) {
 fn record_offsets(bytes: &[u8]) -> Vec<usize> {
     let (mut at, mut offsets) = (0usize, Vec::new());
     while at + 8 <= bytes.len() {
+        let len = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        // The file is grown with zeros ahead of its records: a zero length is their end.
+        if len == 0 {
+            break;
+        }
         offsets.push(at);
-        at += 8 + u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        at += 8 + len;
     }
     offsets
 }

@@ -65,8 +65,9 @@ impl Compaction {
         let tmp = match &mut self.tmp {
             Some((file, _)) => file,
             None => {
-                // Append mode, as the writer's own file: its `clear` relies on it. A copy a crash
-                // left behind is removed first (append mode cannot truncate).
+                // Not in append mode: the writer writes its records at their offsets, before
+                // the zeros it grows the file by (see `log`). A copy a crash left behind is
+                // removed first.
                 let path = journal.with_extension("tmp");
                 match std::fs::remove_file(&path) {
                     Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
@@ -74,7 +75,8 @@ impl Compaction {
                 }
                 let file = OpenOptions::new()
                     .create_new(true)
-                    .append(true)
+                    .read(true)
+                    .write(true)
                     .open(&path)?;
                 &mut self.tmp.insert((file, path)).0
             }

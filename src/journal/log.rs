@@ -10,9 +10,22 @@
 //! tears the last record, so what follows was acknowledged and the file was damaged later (a bad
 //! sector, a stray write). Cutting there would drop acknowledged records without a trace, so the
 //! file is then left exactly as it is and the damage is reported ([`Corruption`]).
+//!
+//! The file is grown ahead of the records, with zeros written for real (64 KiB, then by its own
+//! size up to 1 MiB at a time), and records are written into that space at their offset. An
+//! fdatasync after an append that changes the file's size also commits the size to the file
+//! system's journal; after a write into space already written it flushes the data alone. On this
+//! machine's ext4 (2 000 writes plus fdatasync, five runs) a 300-byte append took 138–184 µs on
+//! average against 94–112 µs into zeros written beforehand (p99 247–301 against 159–195 µs, CPU
+//! 59–75 against 40–49 µs). Space reserved with `fallocate` is "unwritten" until written, and its
+//! conversion is again a journalled change: with 4 KiB records, 140–145 µs as appends, against
+//! 102–129 µs into zeros. Since empty records are never written, a zero length field is the end
+//! of the records: zeros after the last record are the grown space, neither a torn tail nor
+//! damage.
 
 use std::fs::{File, OpenOptions};
-use std::io::{self, Read, Write};
+use std::io::{self, Read};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -21,6 +34,11 @@ const HEADER: usize = 8;
 /// No record is larger (a batch is bounded by the request body limit); a larger length field is
 /// a torn or corrupt header.
 pub const MAX_RECORD: usize = 1 << 30;
+/// How far the file is first grown ahead of its records; later it grows by its own size, up to
+/// [`MAX_GROWTH`], so a session that writes little keeps a small file and a busy one grows the
+/// file once in thousands of appends.
+const FIRST_GROWTH: u64 = 64 << 10;
+const MAX_GROWTH: u64 = 1 << 20;
 
 /// When appends reach the disk.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -41,7 +59,10 @@ pub struct LogWriter {
     file: Arc<File>,
     path: PathBuf,
     fsync: Fsync,
+    /// Where the records end: the next record is written here.
     bytes: u64,
+    /// The file's size: zeros from `bytes` to here (see the module doc).
+    allocated: u64,
     records: u64,
     /// A failed write left part of a record that could not be cut off: nothing may follow it.
     torn: bool,
@@ -82,15 +103,24 @@ impl std::fmt::Display for Corruption {
 }
 
 impl LogWriter {
-    /// Opens `path` for appending (creating it), after [`read_log`] has cut any torn tail.
+    /// Opens `path` for appending (creating it), after [`read_log`] has cut any torn tail: the
+    /// next record goes after the last one, over the zeros the file was grown by.
     pub fn open(path: &Path, fsync: Fsync) -> io::Result<Self> {
-        let file = OpenOptions::new().create(true).append(true).open(path)?;
-        let bytes = file.metadata()?.len();
+        // Not in append mode: records are written at their offset, before the file's end.
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(path)?;
+        let allocated = file.metadata()?.len();
+        let bytes = end_of_records(&file, allocated)?;
         Ok(Self {
             file: Arc::new(file),
             path: path.into(),
             fsync,
             bytes,
+            allocated,
             records: 0,
             torn: false,
         })
@@ -117,20 +147,32 @@ impl LogWriter {
                 format!("record of {} bytes exceeds {MAX_RECORD}", payload.len()),
             ));
         }
+        if payload.is_empty() {
+            // Its zero length field would read as the end of the records.
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                "an empty record cannot be written",
+            ));
+        }
         let mut frame = Vec::with_capacity(HEADER + payload.len());
         frame.extend_from_slice(&(payload.len() as u32).to_le_bytes());
         frame.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
         frame.extend_from_slice(payload);
+        let end = self.bytes + frame.len() as u64;
+        if end > self.allocated {
+            self.grow(end);
+        }
         // One write call per record: a crash leaves a prefix of it, which the checksum catches.
-        if let Err(e) = (&*self.file).write_all(&frame) {
+        if let Err(e) = self.file.write_all_at(&frame, self.bytes) {
             // A failed write (a full disk) may have written part of the record. Cut it off: a
             // record appended after it would make it damage followed by intact records, which
             // recovery must not cut (see the module doc), so the session would come back
             // read-only without what was acknowledged after it.
             self.torn = self.file.set_len(self.bytes).is_err();
+            self.allocated = self.bytes;
             return Err(e);
         }
-        self.bytes += frame.len() as u64;
+        self.bytes = end;
         self.records += 1;
         Ok(())
     }
@@ -146,18 +188,40 @@ impl LogWriter {
         Ok(start.elapsed())
     }
 
+    /// Grows the file with zeros after `end`, where the record about to be written ends (see the
+    /// module doc); the record itself fills the file up to there. Best effort: on a full disk
+    /// the record is written as it would be without the zeros, and what was written of them
+    /// stays (zeros are the end of the records).
+    fn grow(&mut self, end: u64) {
+        static ZEROS: [u8; 64 << 10] = [0; 64 << 10];
+        let step = self.allocated.clamp(FIRST_GROWTH, MAX_GROWTH);
+        let target = end.max(self.allocated + step);
+        let mut at = end;
+        while at < target {
+            let n = (target - at).min(ZEROS.len() as u64);
+            if self.file.write_all_at(&ZEROS[..n as usize], at).is_err() {
+                break;
+            }
+            at += n;
+        }
+        self.allocated = at;
+    }
+
     /// Empties the file (its records are in a durable snapshot now).
     pub fn clear(&mut self) -> io::Result<()> {
         self.file.set_len(0)?;
         self.file.sync_all()?;
         self.bytes = 0;
+        self.allocated = 0;
         Ok(())
     }
 
-    /// Appends to `file` from now on: the journal's new file (see `compact`), holding `bytes`.
+    /// Writes to `file` from now on: the journal's new file (see `compact`), holding `bytes`
+    /// and nothing after them.
     pub(super) fn replace_file(&mut self, file: File, bytes: u64) {
         self.file = Arc::new(file);
         self.bytes = bytes;
+        self.allocated = bytes;
     }
 
     /// The file handle, for a background syncer under `Fsync::Interval`.
@@ -198,6 +262,14 @@ pub fn read_log(path: &Path) -> io::Result<LogContents> {
         Err(e) => return Err(e),
     }
     let (records, valid) = parse(&data);
+    if data[valid..].iter().all(|&b| b == 0) {
+        // The space the writer grew the file by (see the module doc): kept for the next records.
+        return Ok(LogContents {
+            records,
+            truncated_bytes: 0,
+            corruption: None,
+        });
+    }
     if valid < data.len() {
         if let Some(next_intact) = next_intact_record(&data, valid + 1) {
             return Ok(LogContents {
@@ -237,15 +309,33 @@ fn record_at(data: &[u8], at: usize) -> Option<(&[u8], usize)> {
     (crc32fast::hash(payload) == crc).then_some((payload, start + len))
 }
 
-/// The intact records at the start of `data`, and how many bytes they span.
+/// The intact records at the start of `data`, and how many bytes they span. An empty record is
+/// the zeros after the last one (see the module doc).
 fn parse(data: &[u8]) -> (Vec<Vec<u8>>, usize) {
     let mut records = Vec::new();
     let mut at = 0;
-    while let Some((payload, end)) = record_at(data, at) {
+    while let Some((payload, end)) = record_at(data, at).filter(|(p, _)| !p.is_empty()) {
         records.push(payload.to_vec());
         at = end;
     }
     (records, at)
+}
+
+/// Where the records of `file` (`size` bytes, its torn tail cut) end: the first zero length
+/// field, or the first record that would run past the file's end. Reads the headers only.
+fn end_of_records(file: &File, size: u64) -> io::Result<u64> {
+    let mut at = 0;
+    let mut header = [0u8; HEADER];
+    while at + HEADER as u64 <= size {
+        file.read_exact_at(&mut header, at)?;
+        let len = u32::from_le_bytes([header[0], header[1], header[2], header[3]]) as u64;
+        let end = at + HEADER as u64 + len;
+        if len == 0 || end > size {
+            break;
+        }
+        at = end;
+    }
+    Ok(at)
 }
 
 /// The first offset from `from` on where an intact, non-empty record starts. Empty records are
@@ -343,7 +433,8 @@ mod tests {
             w.append(p).unwrap();
             ends.push(w.bytes());
         }
-        let whole = std::fs::read(&path).unwrap();
+        // The records, without the zeros the file was grown by.
+        let whole = std::fs::read(&path).unwrap()[..w.bytes() as usize].to_vec();
         // Cut the file at every byte: the records that fit whole survive, the rest is dropped.
         for cut in 0..=whole.len() {
             std::fs::write(&path, &whole[..cut]).unwrap();
@@ -382,7 +473,7 @@ mod tests {
             Some(Corruption {
                 offset: 2 * record as u64,
                 next_intact: 3 * record as u64,
-                file_bytes: 4 * record as u64,
+                file_bytes: bytes.len() as u64,
             })
         );
         assert_eq!(read.truncated_bytes, 0);
@@ -415,22 +506,83 @@ mod tests {
         let mut bytes = std::fs::read(&path).unwrap();
         let third = 3 * (HEADER + 8) + HEADER + 3;
         bytes[third] ^= 0x10;
-        // Zeros after it (a file system's torn tail) are not an intact (empty) record.
+        // Zeros after it (a file system's torn tail, or the space the file was grown by) are not
+        // an intact (empty) record.
         bytes.extend_from_slice(&[0; 24]);
         std::fs::write(&path, &bytes).unwrap();
         let read = read_log(&path).unwrap();
         assert_eq!(read.records.len(), 3);
         assert_eq!(read.corruption, None);
-        assert_eq!(read.truncated_bytes, HEADER as u64 + 8 + 24);
+        assert_eq!(
+            read.truncated_bytes,
+            (bytes.len() - 3 * (HEADER + 8)) as u64
+        );
         // Appending after recovery continues a valid log.
         let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
         w.append(b"after").unwrap();
         assert_eq!(read_log(&path).unwrap().records.len(), 4);
         // A header claiming an absurd length is a torn header, not an allocation.
         let mut bytes = std::fs::read(&path).unwrap();
+        bytes.truncate(w.bytes() as usize);
         bytes.extend_from_slice(&u32::MAX.to_le_bytes());
         bytes.extend_from_slice(&[0; 4]);
         std::fs::write(&path, &bytes).unwrap();
         assert_eq!(read_log(&path).unwrap().truncated_bytes, 8);
+    }
+
+    #[test]
+    fn the_zeros_the_file_grew_by_end_the_records_and_are_kept() {
+        let path = temp("grown");
+        let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
+        for i in 0..3 {
+            w.append(format!("record {i}").as_bytes()).unwrap();
+        }
+        let end = w.bytes();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(bytes.len() as u64, FIRST_GROWTH);
+        assert!(bytes[end as usize..].iter().all(|&b| b == 0));
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 3);
+        assert_eq!((read.truncated_bytes, read.corruption), (0, None));
+        assert_eq!(std::fs::read(&path).unwrap(), bytes, "the zeros are kept");
+        // A writer opened again goes on after the last record, into the zeros.
+        drop(w);
+        let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
+        assert_eq!(w.bytes(), end);
+        w.append(b"record 3").unwrap();
+        assert_eq!(std::fs::metadata(&path).unwrap().len(), bytes.len() as u64);
+        // Past the zeros the file grows by its own size, then by at most MAX_GROWTH.
+        let big = vec![b'x'; 100 << 10];
+        let mut sizes = Vec::new();
+        for _ in 0..30 {
+            w.append(&big).unwrap();
+            sizes.push(std::fs::metadata(&path).unwrap().len());
+        }
+        assert!(sizes
+            .windows(2)
+            .all(|s| s[1] - s[0] <= MAX_GROWTH + big.len() as u64));
+        assert!(*sizes.last().unwrap() - w.bytes() <= MAX_GROWTH);
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 34);
+        assert_eq!((read.truncated_bytes, read.corruption), (0, None));
+        // A record torn in the zeros is a torn tail: cut, with the zeros after it.
+        let size = std::fs::metadata(&path).unwrap().len();
+        let mut frame = 9u32.to_le_bytes().to_vec();
+        frame.extend_from_slice(&crc32fast::hash(b"record 34").to_le_bytes());
+        frame.extend_from_slice(b"rec");
+        w.file.write_all_at(&frame, w.bytes()).unwrap();
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 34);
+        assert_eq!(read.truncated_bytes, size - w.bytes());
+        assert_eq!(std::fs::metadata(&path).unwrap().len(), w.bytes());
+        // A zeroed header with records after it is damage, not the end.
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[HEADER + 8..2 * HEADER + 8].fill(0);
+        std::fs::write(&path, &bytes).unwrap();
+        let read = read_log(&path).unwrap();
+        assert_eq!(read.records.len(), 1);
+        assert!(read.corruption.is_some());
+        // An empty record, whose zero length would read as the end, is refused.
+        assert!(w.append(b"").is_err());
     }
 }
