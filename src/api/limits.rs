@@ -30,6 +30,10 @@ pub struct Limits {
     /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
     /// counts as one) before new ones get 429.
     pub max_subscribers: usize,
+    /// Events a subscriber may fall behind a session (the events published since the oldest
+    /// one it has not taken) before it gets a `lagged` marker and the latest values instead of
+    /// the events it missed. The session holds that many events for its slowest subscriber.
+    pub max_subscriber_lag: usize,
 }
 
 impl Default for Limits {
@@ -48,6 +52,7 @@ impl Default for Limits {
             // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
             max_job_memory_bytes: 4 << 30,
             max_subscribers: 64,
+            max_subscriber_lag: 4096,
         }
     }
 }

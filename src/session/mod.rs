@@ -125,7 +125,8 @@ impl Session {
             kind,
             factor_types: Default::default(),
             state: Mutex::new(State::new(kind, options, auto)),
-            events: broadcast::channel(4096).0,
+            // At least one slot: a zero capacity is no channel.
+            events: broadcast::channel(limits.max_subscriber_lag.max(1)).0,
             history: Mutex::default(),
             solved: watch::channel(0).0,
             accepted: watch::channel(0).0,
