@@ -19,9 +19,9 @@
 //! average against 94–112 µs into zeros written beforehand (p99 247–301 against 159–195 µs, CPU
 //! 59–75 against 40–49 µs). Space reserved with `fallocate` is "unwritten" until written, and its
 //! conversion is again a journalled change: with 4 KiB records, 140–145 µs there (appends:
-//! 145–152 µs) against 102–129 µs into zeros. Since empty records are never written, a zero length field is the end
-//! of the records: zeros after the last record are the grown space, neither a torn tail nor
-//! damage.
+//! 145–152 µs) against 102–129 µs into zeros. Since empty records are never written, a zero length
+//! field is the end of the records: zeros after the last record are the grown space, neither a torn
+//! tail nor damage.
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, Read};
