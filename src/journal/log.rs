@@ -262,33 +262,31 @@ pub fn read_log(path: &Path) -> io::Result<LogContents> {
         Err(e) => return Err(e),
     }
     let (records, valid) = parse(&data);
+    // Nothing after the records, or only the zeros the writer grew the file by (see the module
+    // doc): kept for the next records.
     if data[valid..].iter().all(|&b| b == 0) {
-        // The space the writer grew the file by (see the module doc): kept for the next records.
         return Ok(LogContents {
             records,
             truncated_bytes: 0,
             corruption: None,
         });
     }
-    if valid < data.len() {
-        if let Some(next_intact) = next_intact_record(&data, valid + 1) {
-            return Ok(LogContents {
-                records,
-                truncated_bytes: 0,
-                corruption: Some(Corruption {
-                    offset: valid as u64,
-                    next_intact: next_intact as u64,
-                    file_bytes: data.len() as u64,
-                }),
-            });
-        }
+    // A bad record: damage when an intact one follows, else a torn tail.
+    if let Some(next_intact) = next_intact_record(&data, valid + 1) {
+        return Ok(LogContents {
+            records,
+            truncated_bytes: 0,
+            corruption: Some(Corruption {
+                offset: valid as u64,
+                next_intact: next_intact as u64,
+                file_bytes: data.len() as u64,
+            }),
+        });
     }
     let truncated_bytes = (data.len() - valid) as u64;
-    if truncated_bytes > 0 {
-        let file = OpenOptions::new().write(true).open(path)?;
-        file.set_len(valid as u64)?;
-        file.sync_all()?;
-    }
+    let file = OpenOptions::new().write(true).open(path)?;
+    file.set_len(valid as u64)?;
+    file.sync_all()?;
     Ok(LogContents {
         records,
         truncated_bytes,
