@@ -231,10 +231,16 @@ impl SseBytes for reqwest::Response {
     }
 }
 
-/// An SSE stream read straight off a socket whose receive buffer is fixed at 4 KB. Through
-/// reqwest the kernel may grow an unread connection's buffer to megabytes (autotuning), which
-/// then held the whole stream (about 7 700 events) and the server's never fell behind.
+/// An SSE stream read straight off a socket whose receive buffer is fixed at [`RECEIVE_BUFFER`].
+/// Through reqwest the kernel may grow an unread connection's buffer to megabytes (autotuning),
+/// which then held the whole stream (about 7 700 events) and the server's never fell behind.
 struct SmallBufferSse(tokio::net::TcpStream);
+
+/// Above loopback's 64 KiB segment size. With 4 KB the window the reader opened by reading
+/// was never worth announcing (less than a segment), so the server waited for its window
+/// probes, backing off: under the full suite's load the stream stalled until the server's idle
+/// timeout closed it (twice this stop, 75 KB unsent).
+const RECEIVE_BUFFER: u32 = 128 << 10;
 
 impl SmallBufferSse {
     /// `GET path` on the server as HTTP/1.0 (a body that ends with the connection, not
@@ -244,7 +250,7 @@ impl SmallBufferSse {
         use tokio::io::AsyncWriteExt;
         let addr: std::net::SocketAddr = s.http.trim_start_matches("http://").parse().unwrap();
         let socket = tokio::net::TcpSocket::new_v4().unwrap();
-        socket.set_recv_buffer_size(4096).unwrap();
+        socket.set_recv_buffer_size(RECEIVE_BUFFER).unwrap();
         let mut stream = socket.connect(addr).await.unwrap();
         let request = format!("GET {path} HTTP/1.0\r\nAccept: text/event-stream\r\n\r\n");
         stream.write_all(request.as_bytes()).await.unwrap();
@@ -324,9 +330,9 @@ async fn a_subscriber_that_falls_behind_gets_the_lagged_marker_and_the_latest_va
         b["producer_seq"] = json!(counts[i % 2]);
     }
     // The reader's socket and the server's send buffer hold about 3 500 of the stream's ~8 000
-    // events; with the default 4 096 events of slack the reader fell behind in some runs only
-    // (it read all 7 442 and 7 602 events without a marker in two of six runs), so the test
-    // allows it less.
+    // events (with a 4 KB receive buffer); with the default 4 096 events of slack the reader
+    // fell behind in some runs only (it read all 7 442 and 7 602 events without a marker in two
+    // of six runs), so the test allows it less.
     let config = common::temp_dir("lag").join("config.json");
     std::fs::write(
         &config,
