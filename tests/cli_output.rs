@@ -171,6 +171,7 @@ fn bench_cholesky_prints_a_table_json_on_request_and_the_matrix_to_stdout() {
     let json: serde_json::Value = serde_json::from_str(&json).unwrap();
     let n = json["n"].as_u64().unwrap();
     assert_eq!(n, 3 * 49, "one pose fixed for the gauge");
+    assert!(json["supernodal"]["solve_seconds"].as_f64().unwrap() > 0.0);
     let (mtx, table) = run(&["--write-mtx", "-"]);
     assert!(mtx.starts_with("%%MatrixMarket matrix coordinate real symmetric\n"));
     assert_eq!(

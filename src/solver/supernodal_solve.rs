@@ -1,0 +1,99 @@
+//! `L Lᵀ x = b` on faer's supernodal factor, with plain loops instead of faer's dense kernels.
+//!
+//! faer solves supernode by supernode with its general triangular-solve and matrix-multiply
+//! routines, whose dispatch costs more than the arithmetic on the few columns a pose graph's
+//! supernode has (3–16): on input_INTEL_g2o its supernodal solve took 148 µs where its
+//! simplicial solve of the same system took 47 µs. Here each supernode is
+//!
+//! ```text
+//!     ⎡ L_top ⎤   c × c lower triangle (the supernode's own columns)
+//!     ⎣ L_bot ⎦   one row per index in the supernode's pattern (rows below it)
+//! ```
+//!
+//! stored column-major at `col_ptr_for_val[s]`. Forward: `x_top ← L_top⁻¹ x_top`, then
+//! `x[pattern] −= L_bot x_top`. Backward, in reverse order: `x_top −= L_botᵀ x[pattern]`, then
+//! `x_top ← L_top⁻ᵀ x_top`. Every inner loop runs down a contiguous column, so it vectorises.
+
+use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
+
+/// Solves `L Lᵀ x = b` in place (`x` holds `b` on entry); `below` is scratch of at least the
+/// longest supernode pattern.
+pub(super) fn solve_in_place(
+    symbolic: &SymbolicSupernodalCholesky<usize>,
+    values: &[f64],
+    x: &mut [f64],
+    below: &mut Vec<f64>,
+) {
+    let supernodes = symbolic.n_supernodes();
+    for s in 0..supernodes {
+        let (begin, l, pattern) = supernode(symbolic, values, s);
+        let columns = symbolic.supernode_end()[s] - begin;
+        let rows = columns + pattern.len();
+        below.clear();
+        below.resize(pattern.len(), 0.0);
+        for j in 0..columns {
+            let column = &l[j * rows..(j + 1) * rows];
+            let xj = x[begin + j] / column[j];
+            x[begin + j] = xj;
+            for (x_i, l_ij) in x[begin + j + 1..begin + columns]
+                .iter_mut()
+                .zip(&column[j + 1..columns])
+            {
+                *x_i -= l_ij * xj;
+            }
+            for (b, l_kj) in below.iter_mut().zip(&column[columns..]) {
+                *b += l_kj * xj;
+            }
+        }
+        for (&row, b) in pattern.iter().zip(below.iter()) {
+            x[row] -= b;
+        }
+    }
+    for s in (0..supernodes).rev() {
+        let (begin, l, pattern) = supernode(symbolic, values, s);
+        let columns = symbolic.supernode_end()[s] - begin;
+        let rows = columns + pattern.len();
+        below.clear();
+        below.extend(pattern.iter().map(|&row| x[row]));
+        for j in (0..columns).rev() {
+            let column = &l[j * rows..(j + 1) * rows];
+            let from_below = dot(below, &column[columns..]);
+            let from_top = dot(&x[begin + j + 1..begin + columns], &column[j + 1..columns]);
+            x[begin + j] = (x[begin + j] - from_below - from_top) / column[j];
+        }
+    }
+}
+
+/// `Σ aᵢ bᵢ` in four interleaved sums, so that the compiler may keep them in one vector
+/// register (a single running sum must be added in order).
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut sums = [0.0; 4];
+    let (a_chunks, b_chunks) = (a.chunks_exact(4), b.chunks_exact(4));
+    let tail: f64 = a_chunks
+        .remainder()
+        .iter()
+        .zip(b_chunks.remainder())
+        .map(|(a, b)| a * b)
+        .sum();
+    for (a, b) in a_chunks.zip(b_chunks) {
+        for lane in 0..4 {
+            sums[lane] += a[lane] * b[lane];
+        }
+    }
+    sums[0] + sums[1] + sums[2] + sums[3] + tail
+}
+
+/// Supernode `s`: its first column, its values (column-major, own columns then the pattern's
+/// rows) and its pattern.
+fn supernode<'a>(
+    symbolic: &'a SymbolicSupernodalCholesky<usize>,
+    values: &'a [f64],
+    s: usize,
+) -> (usize, &'a [f64], &'a [usize]) {
+    let values_of = symbolic.col_ptr_for_val();
+    (
+        symbolic.supernode_begin()[s],
+        &values[values_of[s]..values_of[s + 1]],
+        symbolic.supernode(s).pattern(),
+    )
+}
