@@ -23,6 +23,7 @@ mod simd;
 mod stopping;
 pub mod structure;
 pub mod summary;
+mod supernodal_factor;
 mod supernodal_solve;
 mod warm;
 
