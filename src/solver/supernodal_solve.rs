@@ -16,9 +16,36 @@
 
 use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 
-/// Solves `L Lᵀ x = b` in place (`x` holds `b` on entry); `below` is scratch of at least the
-/// longest supernode pattern.
+use super::simd::has_wide_vectors;
+
+/// Solves `L Lᵀ x = b` in place (`x` holds `b` on entry); `below` is scratch (one supernode's
+/// pattern). Compiled with AVX2 + FMA where the CPU has them (see `solver::simd`).
 pub(super) fn solve_in_place(
+    symbolic: &SymbolicSupernodalCholesky<usize>,
+    values: &[f64],
+    x: &mut [f64],
+    below: &mut Vec<f64>,
+) {
+    if has_wide_vectors() {
+        // SAFETY: the CPU has the features `solve_in_place_wide` is compiled for.
+        unsafe { solve_in_place_wide(symbolic, values, x, below) }
+    } else {
+        solve_in_place_with(symbolic, values, x, below)
+    }
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn solve_in_place_wide(
+    symbolic: &SymbolicSupernodalCholesky<usize>,
+    values: &[f64],
+    x: &mut [f64],
+    below: &mut Vec<f64>,
+) {
+    solve_in_place_with(symbolic, values, x, below)
+}
+
+#[inline(always)]
+fn solve_in_place_with(
     symbolic: &SymbolicSupernodalCholesky<usize>,
     values: &[f64],
     x: &mut [f64],
@@ -66,6 +93,7 @@ pub(super) fn solve_in_place(
 
 /// `Σ aᵢ bᵢ` in four interleaved sums, so that the compiler may keep them in one vector
 /// register (a single running sum must be added in order).
+#[inline(always)]
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     let mut sums = [0.0; 4];
     let (a_chunks, b_chunks) = (a.chunks_exact(4), b.chunks_exact(4));
@@ -85,6 +113,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// Supernode `s`: its first column, its values (column-major, own columns then the pattern's
 /// rows) and its pattern.
+#[inline(always)]
 fn supernode<'a>(
     symbolic: &'a SymbolicSupernodalCholesky<usize>,
     values: &'a [f64],
