@@ -42,6 +42,9 @@ pub(super) struct SupernodalPlan {
     descendants: Vec<usize>,
     /// Per scalar row: its row in the current supernode's block (scratch, `usize::MAX` outside).
     local: Vec<usize>,
+    /// Per supernode: where in its pattern the rows of the supernodes not yet factorised begin
+    /// (each pattern is consumed in order as the supernodes it updates come up).
+    cursor: Vec<usize>,
     /// One update's product, rows ≥ s by s's rows it touches (scratch).
     product: Vec<f64>,
     /// faer's dense Cholesky's workspace for the largest supernode.
@@ -83,6 +86,7 @@ impl SupernodalPlan {
             starts,
             descendants,
             local: vec![usize::MAX; n],
+            cursor: vec![0; supernodes],
             product: Vec::new(),
             dense_mem: MemBuffer::new(cholesky_in_place_scratch::<f64>(
                 widest,
@@ -94,7 +98,8 @@ impl SupernodalPlan {
 
     /// Bytes held (for the memory estimate).
     pub(super) fn bytes(&self) -> usize {
-        8 * (self.starts.len() + self.descendants.len() + self.local.len() + self.product.len())
+        let indices = self.starts.len() + self.descendants.len() + self.local.len();
+        8 * (indices + self.cursor.len() + self.product.len())
     }
 
     /// Factorises `a` (lower triangle, in elimination order) into `l`, laid out as `symbolic`.
@@ -132,6 +137,7 @@ impl SupernodalPlan {
         l: &mut [f64],
     ) -> Result<(), NotPositiveDefinite> {
         let offsets = symbolic.col_ptr_for_val();
+        self.cursor.fill(0);
         for s in 0..symbolic.n_supernodes() {
             let begin = symbolic.supernode_begin()[s];
             let columns = symbolic.supernode_end()[s] - begin;
@@ -187,8 +193,12 @@ impl SupernodalPlan {
         let d_columns = symbolic.supernode_end()[d] - symbolic.supernode_begin()[d];
         let d_pattern = symbolic.supernode(d).pattern();
         let d_rows = d_columns + d_pattern.len();
-        let first = d_pattern.partition_point(|&row| row < begin);
-        let touched = d_pattern[first..].partition_point(|&row| row < begin + columns);
+        let first = self.cursor[d];
+        let touched = d_pattern[first..]
+            .iter()
+            .take_while(|&&row| row < begin + columns)
+            .count();
+        self.cursor[d] = first + touched;
         let below = &d_pattern[first..];
         let m = below.len();
         let rows = block.len() / columns;
@@ -276,37 +286,47 @@ fn factorize_block<const FUSED: bool>(
         solve_lower_triangular_in_place(top.rb(), bottom.transpose_mut(), Par::Seq);
         return Ok(());
     }
-    // Right-looking over the whole panel: scaling column j below its pivot also solves
-    // `L_bot`'s row against it, and each later column is updated down to the last row.
-    for j in 0..columns {
-        let (done, later) = block.split_at_mut((j + 1) * rows);
-        let column = &mut done[j * rows..];
-        let pivot = column[j];
+    // Left-looking over the whole panel: column k, down to its last row, less its products
+    // with the columns before it (summed four rows at a time in registers), then scaled by its
+    // pivot; scaling below the pivot also solves `L_bot`'s rows against `L_top`.
+    for k in 0..columns {
+        let (done, rest) = block.split_at_mut(k * rows);
+        let column = &mut rest[..rows];
+        let mut i = k;
+        while i + 4 <= rows {
+            let mut sums = [0.0; 4];
+            for j in 0..k {
+                let earlier = &done[j * rows..(j + 1) * rows];
+                let (factor, rows_i) = (earlier[k], &earlier[i..i + 4]);
+                for lane in 0..4 {
+                    sums[lane] = if FUSED {
+                        rows_i[lane].mul_add(factor, sums[lane])
+                    } else {
+                        sums[lane] + rows_i[lane] * factor
+                    };
+                }
+            }
+            for (value, sum) in column[i..i + 4].iter_mut().zip(sums) {
+                *value -= sum;
+            }
+            i += 4;
+        }
+        for i in i..rows {
+            let sum: f64 = (0..k)
+                .map(|j| done[j * rows + i] * done[j * rows + k])
+                .sum();
+            column[i] -= sum;
+        }
+        let pivot = column[k];
         if pivot.is_nan() || pivot <= 0.0 {
-            return Err(j);
+            return Err(k);
         }
         let pivot = pivot.sqrt();
-        column[j] = pivot;
+        column[k] = pivot;
         let inverse = pivot.recip();
-        for l_ij in &mut column[j + 1..] {
-            *l_ij *= inverse;
-        }
-        for k in j + 1..columns {
-            let target = &mut later[(k - j - 1) * rows + k..(k - j) * rows];
-            multiply_add::<FUSED>(target, &column[k..], -column[k]);
+        for l_ik in &mut column[k + 1..] {
+            *l_ik *= inverse;
         }
     }
     Ok(())
-}
-
-/// `y += factor · x`, fused where `FUSED`.
-#[inline(always)]
-fn multiply_add<const FUSED: bool>(y: &mut [f64], x: &[f64], factor: f64) {
-    for (y, x) in y.iter_mut().zip(x) {
-        *y = if FUSED {
-            x.mul_add(factor, *y)
-        } else {
-            *y + x * factor
-        };
-    }
 }
