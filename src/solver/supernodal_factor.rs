@@ -40,7 +40,8 @@ pub(super) struct SupernodalPlan {
     /// pattern has a row among s's columns (each updates s once).
     starts: Vec<usize>,
     descendants: Vec<usize>,
-    /// Per scalar row: its row in the current supernode's block (scratch, `usize::MAX` outside).
+    /// Per scalar row: its row in the current supernode's block (scratch, set for the current
+    /// supernode's pattern; the other entries are stale and never read).
     local: Vec<usize>,
     /// Per supernode: where in its pattern the rows of the supernodes not yet factorised begin
     /// (each pattern is consumed in order as the supernodes it updates come up).
@@ -85,7 +86,7 @@ impl SupernodalPlan {
         Self {
             starts,
             descendants,
-            local: vec![usize::MAX; n],
+            local: vec![0; n],
             cursor: vec![0; supernodes],
             product: Vec::new(),
             dense_mem: MemBuffer::new(cholesky_in_place_scratch::<f64>(
@@ -163,14 +164,12 @@ impl SupernodalPlan {
             }
             factorize_block::<FUSED>(block, columns, rows, &mut self.dense_mem)
                 .map_err(|local| NotPositiveDefinite { row: begin + local })?;
-            for &row in pattern {
-                self.local[row] = usize::MAX;
-            }
         }
         Ok(())
     }
 
     /// Row of scalar `row` in the block of the supernode starting at `begin`.
+    #[inline(always)]
     fn local_row(&self, row: usize, begin: usize, columns: usize) -> usize {
         if row < begin + columns {
             row - begin
