@@ -213,14 +213,7 @@ impl SupernodalPlan {
                     let mut sums = [0.0; 4];
                     for k in 0..d_columns {
                         let column = below_columns(k);
-                        let (factor, rows_i) = (column[jj], &column[i..i + 4]);
-                        for lane in 0..4 {
-                            sums[lane] = if FUSED {
-                                rows_i[lane].mul_add(factor, sums[lane])
-                            } else {
-                                sums[lane] + rows_i[lane] * factor
-                            };
-                        }
+                        add_scaled_4::<FUSED>(&mut sums, &column[i..i + 4], column[jj]);
                     }
                     for lane in 0..4 {
                         block[target + self.local_row(below[i + lane], begin, columns)] -=
@@ -296,14 +289,7 @@ fn factorize_block<const FUSED: bool>(
             let mut sums = [0.0; 4];
             for j in 0..k {
                 let earlier = &done[j * rows..(j + 1) * rows];
-                let (factor, rows_i) = (earlier[k], &earlier[i..i + 4]);
-                for lane in 0..4 {
-                    sums[lane] = if FUSED {
-                        rows_i[lane].mul_add(factor, sums[lane])
-                    } else {
-                        sums[lane] + rows_i[lane] * factor
-                    };
-                }
+                add_scaled_4::<FUSED>(&mut sums, &earlier[i..i + 4], earlier[k]);
             }
             for (value, sum) in column[i..i + 4].iter_mut().zip(sums) {
                 *value -= sum;
@@ -328,4 +314,17 @@ fn factorize_block<const FUSED: bool>(
         }
     }
     Ok(())
+}
+
+/// `sums += factor · rows` over four lanes (the compiler keeps them in one vector register),
+/// fused where `FUSED`.
+#[inline(always)]
+fn add_scaled_4<const FUSED: bool>(sums: &mut [f64; 4], rows: &[f64], factor: f64) {
+    for (sum, &row) in sums.iter_mut().zip(&rows[..4]) {
+        *sum = if FUSED {
+            row.mul_add(factor, *sum)
+        } else {
+            *sum + row * factor
+        };
+    }
 }
