@@ -18,8 +18,8 @@ use super::supernodal_solve;
 
 /// A supernodal factor with fewer multiply-adds per stored value than this is factorised by
 /// [`SupernodalPlan`]'s loops, a denser one by faer's numeric factorisation. The loops won on
-/// 2D pose graphs (12–29 per value: input_INTEL_g2o 0.30 → 0.24 ms, manhattanOlson3500 1.70
-/// → 1.39 ms) and lost 4–13% on 3D ones (72–330 per value), where supernodes are wider and
+/// 2D pose graphs (12–29 per value: input_INTEL_g2o 0.29 → 0.19 ms, manhattanOlson3500 1.74
+/// → 1.37 ms) and lost 4–13% on 3D ones (72–330 per value), where supernodes are wider and
 /// faer's blocked kernels pay.
 const OWN_LOOPS_BELOW_FLOPS_PER_VALUE: f64 = 48.0;
 
@@ -299,9 +299,10 @@ mod tests {
         assert!(chol.factorize(&p, &values).is_err());
     }
 
-    /// A 12 × 12 grid of 3-dimensional blocks with diagonals: many supernodes, of several
-    /// sizes, with patterns below them (the supernodal solve's own loops, against faer's
-    /// simplicial solve's answer through the dense reference).
+    /// A 12 × 12 grid of 3-dimensional blocks with diagonals: many supernodes of several sizes
+    /// with patterns below them, so the supernodal factor runs its own loops, faer's matmul for
+    /// its large updates and faer's dense Cholesky for its widest supernode; the simplicial one
+    /// is faer's throughout. Both against the dense reference.
     #[test]
     fn both_factorisations_solve_a_grid() {
         let side = 12;
