@@ -64,25 +64,30 @@ impl SupernodalPlan {
             widest = widest.max(end - begin);
         }
         // Each descendant's pattern is sorted, so the supernodes it updates come in order and
-        // repeats are adjacent.
-        let mut updated_by: Vec<Vec<usize>> = vec![Vec::new(); supernodes];
-        for d in 0..supernodes {
-            let mut last = usize::MAX;
-            for &row in symbolic.supernode(d).pattern() {
-                let s = supernode_of[row];
-                if s != last {
-                    updated_by[s].push(d);
-                    last = s;
+        // repeats are adjacent. Two passes: count per supernode, then fill in ascending d.
+        let each_update = |visit: &mut dyn FnMut(usize, usize)| {
+            for d in 0..supernodes {
+                let mut last = usize::MAX;
+                for &row in symbolic.supernode(d).pattern() {
+                    let s = supernode_of[row];
+                    if s != last {
+                        visit(s, d);
+                        last = s;
+                    }
                 }
             }
+        };
+        let mut starts = vec![0; supernodes + 1];
+        each_update(&mut |s, _| starts[s + 1] += 1);
+        for s in 0..supernodes {
+            starts[s + 1] += starts[s];
         }
-        let mut starts = Vec::with_capacity(supernodes + 1);
-        starts.push(0);
-        let mut descendants = Vec::new();
-        for list in &updated_by {
-            descendants.extend_from_slice(list);
-            starts.push(descendants.len());
-        }
+        let mut next = starts.clone();
+        let mut descendants = vec![0; starts[supernodes]];
+        each_update(&mut |s, d| {
+            descendants[next[s]] = d;
+            next[s] += 1;
+        });
         Self {
             starts,
             descendants,
