@@ -209,7 +209,7 @@ mod tests {
         VariableValue {
             key,
             kind: kind.into(),
-            value: value.to_vec(),
+            value: value.into(),
             changed: 0,
             stamp,
         }

@@ -186,7 +186,7 @@ mod tests {
         VariableValue {
             key,
             kind: kind.into(),
-            value: value.to_vec(),
+            value: value.into(),
             changed,
             stamp: None,
         }

@@ -375,7 +375,7 @@ impl Finished {
                         VariableValue {
                             key,
                             kind: v.kind().into(),
-                            value: encode_variable(v),
+                            value: encode_variable(v).into(),
                             changed: 0,
                             stamp: None,
                         }

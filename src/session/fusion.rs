@@ -375,7 +375,7 @@ impl SmoothedKeyframe {
         VariableValue {
             key: self.key,
             kind: "se3".into(),
-            value: vec![x, y, z, qx, qy, qz, qw],
+            value: smallvec::smallvec![x, y, z, qx, qy, qz, qw],
             changed: 0,
             stamp: Some(self.t),
         }

@@ -15,7 +15,7 @@ use crate::problem::{Key, Problem, Variable};
 /// solve compares and rewrites hundreds of these under the session lock; with each value in
 /// an allocation of its own, every one cost a second cache miss (M3500 over HTTP: 6.6% of the
 /// server's samples in that loop, most of them on the value's first load).
-pub type WireValue = smallvec::SmallVec<[f64; 7]>;
+pub use crate::api::wire::WireValue;
 
 /// The numbers of `value` kept on the heap (beyond the inline capacity), for memory accounting.
 pub fn heap_values(value: &WireValue) -> usize {
@@ -112,7 +112,7 @@ pub(super) fn value_of(key: Key, e: &MirrorEntry) -> VariableValue {
     VariableValue {
         key,
         kind: e.kind.into(),
-        value: e.value.to_vec(),
+        value: e.value.clone(),
         changed: e.changed,
         stamp: e.stamp,
     }

@@ -88,10 +88,14 @@ impl SparseCholesky {
             Some(_) => StackReq::empty(),
             None => symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Spec::default()),
         };
-        let solve_req = StackReq::or(
-            symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
-            factor_req,
-        );
+        // A supernodal factor is solved by our own loops (`supernodal_solve`), which need no
+        // workspace from faer.
+        let solve_req = match symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(_) => StackReq::empty(),
+            SymbolicCholeskyRaw::Simplicial(_) => {
+                symbolic.solve_in_place_scratch::<f64>(1, Par::Seq)
+            }
+        };
         Ok(Self {
             l_values: vec![0.0; symbolic.len_val()],
             factor_mem: MemBuffer::new(factor_req),

@@ -324,7 +324,7 @@ mod tests {
                 .map(|&(key, x)| VariableValue {
                     key,
                     kind: "se2".into(),
-                    value: vec![x, 0.0, 0.0],
+                    value: smallvec::smallvec![x, 0.0, 0.0],
                     changed: sequence,
                     stamp: None,
                 })
