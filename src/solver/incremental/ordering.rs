@@ -43,12 +43,22 @@ pub fn order_affected(
     for (i, &v) in affected.iter().enumerate() {
         local[v] = i as u32;
     }
-    let mut adjacency: Vec<Vec<usize>> = vec![Vec::new(); affected.len()];
+    // Each list sized once: grown push by push, their reallocations were about 1 % of a 10k
+    // stream (`perf`).
+    let mut from_cliques = vec![0usize; affected.len()];
+    for clique in cliques {
+        for &a in clique {
+            from_cliques[local[a] as usize] += clique.len() - 1;
+        }
+    }
     let mut out = Vec::new();
-    for (i, &v) in affected.iter().enumerate() {
+    let mut adjacency: Vec<Vec<usize>> = Vec::with_capacity(affected.len());
+    for (&v, &extra) in affected.iter().zip(&from_cliques) {
         out.clear();
         neighbours(v, &mut out);
-        adjacency[i].extend(out.iter().map(|&u| local[u] as usize));
+        let mut list = Vec::with_capacity(out.len() + extra);
+        list.extend(out.iter().map(|&u| local[u] as usize));
+        adjacency.push(list);
     }
     for clique in cliques {
         for &a in clique {
