@@ -11,8 +11,8 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use super::ServiceError;
-use crate::api::catalogue::encode_variable;
-use crate::api::wire::VariableValue;
+use crate::api::catalogue::encode_variable_into;
+use crate::api::wire::{VariableValue, WireValue};
 use crate::api::ErrorKind;
 use crate::factors::RobustKernel;
 use crate::io::{self, Format};
@@ -364,6 +364,8 @@ impl Finished {
             (Parsed::Bal(b), JobOutput::Bal) => JobAnswer::Text(io::bal::to_string(b)),
             _ => {
                 let values = self.graph.values();
+                // One buffer for every value: each is then copied inline into its wire value.
+                let mut encoded = Vec::new();
                 let variables = self
                     .graph
                     .keys()
@@ -372,10 +374,11 @@ impl Finished {
                         let v = values
                             .get(key)
                             .expect("vertex order lists the graph's keys");
+                        encode_variable_into(v, &mut encoded);
                         VariableValue {
                             key,
                             kind: v.kind().into(),
-                            value: encode_variable(v).into(),
+                            value: WireValue::from_slice(&encoded),
                             changed: 0,
                             stamp: None,
                         }

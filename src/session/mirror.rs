@@ -11,10 +11,10 @@ use crate::api::wire::{Estimate, EstimateQuery, VariableValue};
 use crate::api::ServiceError;
 use crate::problem::{Key, Problem, Variable};
 
-/// A variable's wire value, inline up to an SE(3) pose's 7 numbers. After a loop closure a
-/// solve compares and rewrites hundreds of these under the session lock; with each value in
-/// an allocation of its own, every one cost a second cache miss (M3500 over HTTP: 6.6% of the
-/// server's samples in that loop, most of them on the value's first load).
+/// The mirror keeps values in their wire form, inline (see [`WireValue`]): after a loop closure
+/// a solve compares and rewrites hundreds of them under the session lock, and with each value
+/// in an allocation of its own every one cost a second cache miss (M3500 over HTTP: 6.6% of
+/// the server's samples in that loop, most of them on the value's first load).
 pub use crate::api::wire::WireValue;
 
 /// The numbers of `value` kept on the heap (beyond the inline capacity), for memory accounting.
