@@ -1,6 +1,7 @@
-//! Sparse Cholesky on a [`BlockPattern`] with faer: symbolic analysis once, numeric
-//! factorisation into a reused buffer every iteration, single-threaded (faster than rayon on the
-//! matrices we meet; the service runs several solves in parallel instead).
+//! Sparse Cholesky on a [`BlockPattern`]: symbolic analysis once, numeric factorisation into a
+//! reused buffer every iteration, single-threaded (faster than rayon on the matrices we meet;
+//! the service runs several solves in parallel instead). Sparse supernodal factors are analysed
+//! on the blocks and factorised by our own loops; dense ones and simplicial ones by faer.
 
 use dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
@@ -15,6 +16,7 @@ use faer::{Conj, MatMut, Par, Side, Spec};
 use super::structure::BlockPattern;
 use super::supernodal_factor::SupernodalPlan;
 use super::supernodal_solve;
+use super::supernodes::Supernodes;
 
 /// A supernodal factor with fewer multiply-adds per stored value than this is factorised by
 /// [`SupernodalPlan`]'s loops, a denser one by faer's numeric factorisation. The loops won on
@@ -31,7 +33,7 @@ pub struct NotPositiveDefinite {
 }
 
 pub struct SparseCholesky {
-    symbolic: SymbolicCholesky<usize>,
+    structure: Structure,
     l_values: Vec<f64>,
     factor_mem: MemBuffer,
     solve_mem: MemBuffer,
@@ -39,9 +41,25 @@ pub struct SparseCholesky {
     workspace_bytes: usize,
     /// Scratch of [`supernodal_solve`]: one supernode's rows below it.
     below: Vec<f64>,
-    /// The supernodal factorisation's own plan (`None` for a simplicial one).
-    plan: Option<SupernodalPlan>,
     factorized: bool,
+}
+
+/// Who analysed the factor and who factorises it.
+enum Structure {
+    /// Analysed on the blocks ([`Supernodes::analyze`]), factorised by [`SupernodalPlan`]'s
+    /// loops: the sparse factors of 2D graphs and of the chordal start's Laplacians.
+    Own {
+        supernodes: Supernodes,
+        plan: SupernodalPlan,
+    },
+    /// faer's analysis and numeric factorisation (the dense fronts of 3D graphs); solved by
+    /// our loops on the same supernodes.
+    FaerSupernodal {
+        symbolic: SymbolicCholesky<usize>,
+        supernodes: Supernodes,
+    },
+    /// faer's simplicial factorisation and solve.
+    Simplicial(SymbolicCholesky<usize>),
 }
 
 impl std::fmt::Debug for SparseCholesky {
@@ -58,11 +76,20 @@ impl std::fmt::Debug for SparseCholesky {
 pub struct SymbolicError(faer::sparse::FaerError);
 
 impl SparseCholesky {
-    /// Symbolic analysis of `pattern` (already in elimination order, lower triangle).
+    /// Symbolic analysis of `pattern` (already in elimination order, lower triangle). A forced
+    /// supernodal factor is analysed on the blocks ([`Supernodes::analyze`]); when it is sparse
+    /// enough for our loops, faer is not called at all. Otherwise faer analyses the scalar
+    /// pattern and, with `AUTO`, chooses between simplicial and supernodal by its flop ratio.
     pub fn analyze(
         pattern: &BlockPattern,
         threshold: SupernodalThreshold,
     ) -> Result<Self, SymbolicError> {
+        if threshold == SupernodalThreshold::FORCE_SUPERNODAL {
+            let supernodes = Supernodes::analyze(pattern);
+            if sparse_enough(&supernodes) {
+                return Ok(Self::own(supernodes));
+            }
+        }
         let params = CholeskySymbolicParams {
             supernodal_flop_ratio_threshold: threshold,
             ..Default::default()
@@ -76,43 +103,60 @@ impl SparseCholesky {
         let symbolic =
             factorize_symbolic_cholesky(upper, Side::Upper, SymmetricOrdering::Identity, params)
                 .map_err(SymbolicError)?;
-        let sparse_enough =
-            factor_flops(&symbolic) < OWN_LOOPS_BELOW_FLOPS_PER_VALUE * symbolic.len_val() as f64;
-        let plan = match symbolic.raw() {
-            SymbolicCholeskyRaw::Supernodal(supernodal) if sparse_enough => {
-                Some(SupernodalPlan::new(supernodal))
+        let structure = match symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(supernodal) => {
+                let supernodes = Supernodes::from_faer(supernodal);
+                if sparse_enough(&supernodes) {
+                    return Ok(Self::own(supernodes));
+                }
+                Structure::FaerSupernodal {
+                    supernodes,
+                    symbolic,
+                }
             }
-            _ => None,
+            SymbolicCholeskyRaw::Simplicial(_) => Structure::Simplicial(symbolic),
         };
-        let factor_req = match plan {
-            Some(_) => StackReq::empty(),
-            None => symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Spec::default()),
-        };
-        // A supernodal factor is solved by our own loops (`supernodal_solve`), which need no
-        // workspace from faer.
-        let solve_req = match symbolic.raw() {
-            SymbolicCholeskyRaw::Supernodal(_) => StackReq::empty(),
-            SymbolicCholeskyRaw::Simplicial(_) => {
-                symbolic.solve_in_place_scratch::<f64>(1, Par::Seq)
+        let factor_req = match &structure {
+            Structure::FaerSupernodal { symbolic, .. } | Structure::Simplicial(symbolic) => {
+                symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Spec::default())
             }
+            Structure::Own { .. } => StackReq::empty(),
         };
-        Ok(Self {
-            l_values: vec![0.0; symbolic.len_val()],
+        Ok(Self::with(structure, factor_req))
+    }
+
+    fn own(supernodes: Supernodes) -> Self {
+        let plan = SupernodalPlan::new(&supernodes);
+        Self::with(Structure::Own { supernodes, plan }, StackReq::empty())
+    }
+
+    fn with(structure: Structure, factor_req: StackReq) -> Self {
+        let (values, solve_req) = match &structure {
+            Structure::Own { supernodes, .. } | Structure::FaerSupernodal { supernodes, .. } => {
+                // Our own loops solve a supernodal factor: no workspace from faer.
+                (supernodes.values_len(), StackReq::empty())
+            }
+            Structure::Simplicial(symbolic) => (
+                symbolic.len_val(),
+                symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
+            ),
+        };
+        Self {
+            structure,
+            l_values: vec![0.0; values],
             factor_mem: MemBuffer::new(factor_req),
             solve_mem: MemBuffer::new(solve_req),
             workspace_bytes: factor_req.size_bytes() + solve_req.size_bytes(),
             below: Vec::new(),
-            plan,
-            symbolic,
             factorized: false,
-        })
+        }
     }
 
-    /// "supernodal" or "simplicial", as faer's flop-ratio heuristic chose.
+    /// "supernodal" or "simplicial".
     pub fn kind(&self) -> &'static str {
-        match self.symbolic.raw() {
-            SymbolicCholeskyRaw::Simplicial(_) => "simplicial",
-            SymbolicCholeskyRaw::Supernodal(_) => "supernodal",
+        match self.structure {
+            Structure::Simplicial(_) => "simplicial",
+            _ => "supernodal",
         }
     }
 
@@ -120,21 +164,28 @@ impl SparseCholesky {
         self.l_values.len()
     }
 
-    /// Bytes the numeric factorisation holds: L's values and indices, and faer's workspaces.
+    /// Bytes the numeric factorisation holds: L's values and indices, and the workspaces.
     pub fn numeric_bytes(&self) -> u64 {
-        let indices = match self.symbolic.raw() {
-            SymbolicCholeskyRaw::Simplicial(s) => s.row_idx().len() + s.col_ptr().len(),
-            SymbolicCholeskyRaw::Supernodal(s) => s.row_idx().len() + s.col_ptr_for_val().len(),
+        let indices = match &self.structure {
+            Structure::Own { supernodes, plan } => supernodes.index_bytes() + plan.bytes(),
+            Structure::FaerSupernodal { supernodes, .. } => supernodes.index_bytes(),
+            Structure::Simplicial(symbolic) => match symbolic.raw() {
+                SymbolicCholeskyRaw::Simplicial(s) => 8 * (s.row_idx().len() + s.col_ptr().len()),
+                SymbolicCholeskyRaw::Supernodal(_) => 0,
+            },
         };
-        let plan = self.plan.as_ref().map_or(0, SupernodalPlan::bytes);
-        (8 * (self.l_values.len() + indices) + self.workspace_bytes + plan) as u64
+        (8 * self.l_values.len() + indices + self.workspace_bytes) as u64
     }
 
-    /// Floating-point operations of one numeric factorisation, from the symbolic structure:
-    /// per supernode of c columns and r rows below it, c³/3 for its diagonal block, c²·r for
-    /// the panel and c·r² for its update of the later columns (a simplicial column is c = 1).
+    /// Floating-point operations of one numeric factorisation, from the symbolic structure
+    /// (see [`Supernodes::factor_flops`]; a simplicial column is a supernode of one column).
     pub fn factor_flops(&self) -> f64 {
-        factor_flops(&self.symbolic)
+        match &self.structure {
+            Structure::Own { supernodes, .. } | Structure::FaerSupernodal { supernodes, .. } => {
+                supernodes.factor_flops()
+            }
+            Structure::Simplicial(symbolic) => simplicial_flops(symbolic),
+        }
     }
 
     /// Numeric LLᵀ of the matrix with `pattern` and `values`.
@@ -145,15 +196,18 @@ impl SparseCholesky {
     ) -> Result<(), NotPositiveDefinite> {
         self.factorized = false;
         let a = SparseColMatRef::new(pattern.symbolic(), values);
-        if let (SymbolicCholeskyRaw::Supernodal(symbolic), Some(plan)) =
-            (self.symbolic.raw(), self.plan.as_mut())
-        {
-            plan.factorize(symbolic, a, &mut self.l_values)?;
-            self.factorized = true;
-            return Ok(());
-        }
+        let symbolic = match &mut self.structure {
+            Structure::Own { supernodes, plan } => {
+                plan.factorize(supernodes, a, &mut self.l_values)?;
+                self.factorized = true;
+                return Ok(());
+            }
+            Structure::FaerSupernodal { symbolic, .. } | Structure::Simplicial(symbolic) => {
+                &*symbolic
+            }
+        };
         let stack = MemStack::new(&mut self.factor_mem);
-        let result = self.symbolic.factorize_numeric_llt(
+        let result = symbolic.factorize_numeric_llt(
             &mut self.l_values,
             a,
             Side::Lower,
@@ -173,21 +227,34 @@ impl SparseCholesky {
         }
     }
 
-    /// Solves `A X = B` in place for the `columns` column-major columns of `rhs` in one pass
-    /// over the factor (marginal covariances solve for several unit vectors at once).
+    /// Solves `A X = B` in place for the `columns` column-major columns of `rhs` (marginal
+    /// covariances solve for several unit vectors at once).
     pub fn solve_columns_in_place(&self, rhs: &mut [f64], columns: usize) {
         assert!(
             self.factorized,
             "solve before a successful factorisation is a bug"
         );
         let n = rhs.len() / columns.max(1);
-        let llt = LltRef::new(&self.symbolic, &self.l_values);
-        let mut scratch = MemBuffer::new(
-            self.symbolic
-                .solve_in_place_scratch::<f64>(columns, Par::Seq),
-        );
-        let rhs = MatMut::from_column_major_slice_mut(rhs, n, columns);
-        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut scratch));
+        match &self.structure {
+            Structure::Own { supernodes, .. } | Structure::FaerSupernodal { supernodes, .. } => {
+                let mut below = Vec::new();
+                for column in rhs.chunks_exact_mut(n.max(1)) {
+                    supernodal_solve::solve_in_place(
+                        supernodes,
+                        &self.l_values,
+                        column,
+                        &mut below,
+                    );
+                }
+            }
+            Structure::Simplicial(symbolic) => {
+                let llt = LltRef::new(symbolic, &self.l_values);
+                let mut scratch =
+                    MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(columns, Par::Seq));
+                let rhs = MatMut::from_column_major_slice_mut(rhs, n, columns);
+                llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut scratch));
+            }
+        }
     }
 
     /// Solves `A x = rhs` in place with the last successful factorisation.
@@ -196,19 +263,33 @@ impl SparseCholesky {
             self.factorized,
             "solve before a successful factorisation is a bug"
         );
-        if let SymbolicCholeskyRaw::Supernodal(symbolic) = self.symbolic.raw() {
-            supernodal_solve::solve_in_place(symbolic, &self.l_values, rhs, &mut self.below);
-            return;
+        match &self.structure {
+            Structure::Own { supernodes, .. } | Structure::FaerSupernodal { supernodes, .. } => {
+                supernodal_solve::solve_in_place(supernodes, &self.l_values, rhs, &mut self.below);
+            }
+            Structure::Simplicial(symbolic) => {
+                let n = rhs.len();
+                let llt = LltRef::new(symbolic, &self.l_values);
+                let rhs = MatMut::from_column_major_slice_mut(rhs, n, 1);
+                llt.solve_in_place_with_conj(
+                    Conj::No,
+                    rhs,
+                    Par::Seq,
+                    MemStack::new(&mut self.solve_mem),
+                );
+            }
         }
-        let n = rhs.len();
-        let llt = LltRef::new(&self.symbolic, &self.l_values);
-        let rhs = MatMut::from_column_major_slice_mut(rhs, n, 1);
-        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(&mut self.solve_mem));
     }
 }
 
-/// See [`SparseCholesky::factor_flops`].
-fn factor_flops(symbolic: &SymbolicCholesky<usize>) -> f64 {
+/// Whether our loops factorise `supernodes` faster than faer would (see
+/// [`OWN_LOOPS_BELOW_FLOPS_PER_VALUE`]).
+fn sparse_enough(supernodes: &Supernodes) -> bool {
+    supernodes.factor_flops() < OWN_LOOPS_BELOW_FLOPS_PER_VALUE * supernodes.values_len() as f64
+}
+
+/// See [`SparseCholesky::factor_flops`]: a simplicial factor's columns.
+fn simplicial_flops(symbolic: &SymbolicCholesky<usize>) -> f64 {
     match symbolic.raw() {
         SymbolicCholeskyRaw::Simplicial(s) => s
             .col_ptr()
@@ -218,18 +299,12 @@ fn factor_flops(symbolic: &SymbolicCholesky<usize>) -> f64 {
                 1.0 + 2.0 * below + below * below
             })
             .sum(),
-        SymbolicCholeskyRaw::Supernodal(s) => (0..s.n_supernodes())
-            .map(|k| {
-                let c = (s.supernode_end()[k] - s.supernode_begin()[k]) as f64;
-                let r = s.supernode(k).pattern().len() as f64;
-                c * c * c / 3.0 + c * c * r + c * r * r
-            })
-            .sum(),
+        SymbolicCholeskyRaw::Supernodal(s) => Supernodes::from_faer(s).factor_flops(),
     }
 }
 
 /// Compressed-column pattern of the transpose (sorted rows).
-fn transpose_pattern(p: &BlockPattern) -> (Vec<usize>, Vec<usize>) {
+pub(super) fn transpose_pattern(p: &BlockPattern) -> (Vec<usize>, Vec<usize>) {
     let mut counts = vec![0usize; p.n + 1];
     for &r in &p.row_idx {
         counts[r + 1] += 1;

@@ -25,6 +25,7 @@ pub mod structure;
 pub mod summary;
 mod supernodal_factor;
 mod supernodal_solve;
+mod supernodes;
 mod warm;
 
 pub use budget::{Budget, Unlimited};

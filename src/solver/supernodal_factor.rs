@@ -1,4 +1,4 @@
-//! Numeric `A = L Lᵀ` on faer's supernodal structure, with plain loops for the small supernodes
+//! Numeric `A = L Lᵀ` on a supernodal structure ([`Supernodes`]), with plain loops for the small supernodes
 //! of pose graphs and faer's dense kernels for the large ones.
 //!
 //! Left-looking, as faer's own: supernode by supernode, each
@@ -22,19 +22,19 @@ use faer::linalg::cholesky::llt::factor::{
 use faer::linalg::matmul::matmul;
 use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
 use faer::reborrow::{Reborrow, ReborrowMut};
-use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 use faer::sparse::SparseColMatRef;
 use faer::{Accum, MatMut, MatRef, Par, Spec};
 
 use super::cholesky::NotPositiveDefinite;
 use super::simd::has_wide_vectors;
+use super::supernodes::Supernodes;
 
 /// Updates of at most this many multiply-adds run as loops, larger ones in faer's matmul.
 const LOOPS_UP_TO: usize = 4096;
 /// Supernodes of at most this many columns factorise themselves in loops.
 const LOOPS_UP_TO_COLUMNS: usize = 24;
 
-/// What the numeric factorisation needs besides faer's symbolic structure, built once.
+/// What the numeric factorisation needs besides the supernodal structure, built once.
 pub(super) struct SupernodalPlan {
     /// For supernode s, `descendants[starts[s]..starts[s + 1]]`: the earlier supernodes whose
     /// pattern has a row among s's columns (each updates s once).
@@ -53,22 +53,22 @@ pub(super) struct SupernodalPlan {
 }
 
 impl SupernodalPlan {
-    pub(super) fn new(symbolic: &SymbolicSupernodalCholesky<usize>) -> Self {
-        let n = symbolic.nrows();
-        let supernodes = symbolic.n_supernodes();
+    pub(super) fn new(symbolic: &Supernodes) -> Self {
+        let n = symbolic.n();
+        let supernodes = symbolic.count();
         let mut supernode_of = vec![0; n];
         let mut widest = 0;
         for s in 0..supernodes {
-            let (begin, end) = (symbolic.supernode_begin()[s], symbolic.supernode_end()[s]);
-            supernode_of[begin..end].fill(s);
-            widest = widest.max(end - begin);
+            let columns = symbolic.columns(s);
+            widest = widest.max(columns.len());
+            supernode_of[columns].fill(s);
         }
         // Each descendant's pattern is sorted, so the supernodes it updates come in order and
         // repeats are adjacent. Two passes: count per supernode, then fill in ascending d.
         let each_update = |visit: &mut dyn FnMut(usize, usize)| {
             for d in 0..supernodes {
                 let mut last = usize::MAX;
-                for &row in symbolic.supernode(d).pattern() {
+                for &row in symbolic.pattern(d) {
                     let s = supernode_of[row];
                     if s != last {
                         visit(s, d);
@@ -112,7 +112,7 @@ impl SupernodalPlan {
     /// The loops are compiled with AVX2 + FMA where the CPU has them (see `solver::simd`).
     pub(super) fn factorize(
         &mut self,
-        symbolic: &SymbolicSupernodalCholesky<usize>,
+        symbolic: &Supernodes,
         a: SparseColMatRef<'_, usize, f64>,
         l: &mut [f64],
     ) -> Result<(), NotPositiveDefinite> {
@@ -127,7 +127,7 @@ impl SupernodalPlan {
     #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
     fn factorize_wide(
         &mut self,
-        symbolic: &SymbolicSupernodalCholesky<usize>,
+        symbolic: &Supernodes,
         a: SparseColMatRef<'_, usize, f64>,
         l: &mut [f64],
     ) -> Result<(), NotPositiveDefinite> {
@@ -138,16 +138,16 @@ impl SupernodalPlan {
     #[inline(always)]
     fn factorize_with<const FUSED: bool>(
         &mut self,
-        symbolic: &SymbolicSupernodalCholesky<usize>,
+        symbolic: &Supernodes,
         a: SparseColMatRef<'_, usize, f64>,
         l: &mut [f64],
     ) -> Result<(), NotPositiveDefinite> {
-        let offsets = symbolic.col_ptr_for_val();
+        let offsets = symbolic.value_ptr();
         self.cursor.fill(0);
-        for s in 0..symbolic.n_supernodes() {
-            let begin = symbolic.supernode_begin()[s];
-            let columns = symbolic.supernode_end()[s] - begin;
-            let pattern = symbolic.supernode(s).pattern();
+        for s in 0..symbolic.count() {
+            let begin = symbolic.columns(s).start;
+            let columns = symbolic.columns(s).len();
+            let pattern = symbolic.pattern(s);
             let rows = columns + pattern.len();
             for (k, &row) in pattern.iter().enumerate() {
                 self.local[row] = columns + k;
@@ -187,15 +187,15 @@ impl SupernodalPlan {
     #[inline(always)]
     fn subtract_update<const FUSED: bool>(
         &mut self,
-        symbolic: &SymbolicSupernodalCholesky<usize>,
+        symbolic: &Supernodes,
         d: usize,
         d_block: &[f64],
         block: &mut [f64],
         begin: usize,
         columns: usize,
     ) {
-        let d_columns = symbolic.supernode_end()[d] - symbolic.supernode_begin()[d];
-        let d_pattern = symbolic.supernode(d).pattern();
+        let d_columns = symbolic.columns(d).len();
+        let d_pattern = symbolic.pattern(d);
         let d_rows = d_columns + d_pattern.len();
         let first = self.cursor[d];
         let touched = d_pattern[first..]

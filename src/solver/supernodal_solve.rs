@@ -1,4 +1,4 @@
-//! `L Lᵀ x = b` on faer's supernodal factor, with plain loops instead of faer's dense kernels.
+//! `L Lᵀ x = b` on a supernodal factor ([`Supernodes`]), with plain loops instead of faer's dense kernels.
 //!
 //! faer solves supernode by supernode with its general triangular-solve and matrix-multiply
 //! routines, whose dispatch costs more than the arithmetic on the few columns a pose graph's
@@ -14,14 +14,13 @@
 //! `x[pattern] −= L_bot x_top`. Backward, in reverse order: `x_top −= L_botᵀ x[pattern]`, then
 //! `x_top ← L_top⁻ᵀ x_top`. Every inner loop runs down a contiguous column, so it vectorises.
 
-use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
-
 use super::simd::has_wide_vectors;
+use super::supernodes::Supernodes;
 
 /// Solves `L Lᵀ x = b` in place (`x` holds `b` on entry); `below` is scratch (one supernode's
 /// pattern). Compiled with AVX2 + FMA where the CPU has them (see `solver::simd`).
 pub(super) fn solve_in_place(
-    symbolic: &SymbolicSupernodalCholesky<usize>,
+    symbolic: &Supernodes,
     values: &[f64],
     x: &mut [f64],
     below: &mut Vec<f64>,
@@ -35,26 +34,16 @@ pub(super) fn solve_in_place(
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn solve_in_place_wide(
-    symbolic: &SymbolicSupernodalCholesky<usize>,
-    values: &[f64],
-    x: &mut [f64],
-    below: &mut Vec<f64>,
-) {
+fn solve_in_place_wide(symbolic: &Supernodes, values: &[f64], x: &mut [f64], below: &mut Vec<f64>) {
     solve_in_place_with(symbolic, values, x, below)
 }
 
 #[inline(always)]
-fn solve_in_place_with(
-    symbolic: &SymbolicSupernodalCholesky<usize>,
-    values: &[f64],
-    x: &mut [f64],
-    below: &mut Vec<f64>,
-) {
-    let supernodes = symbolic.n_supernodes();
+fn solve_in_place_with(symbolic: &Supernodes, values: &[f64], x: &mut [f64], below: &mut Vec<f64>) {
+    let supernodes = symbolic.count();
     for s in 0..supernodes {
         let (begin, l, pattern) = supernode(symbolic, values, s);
-        let columns = symbolic.supernode_end()[s] - begin;
+        let columns = symbolic.columns(s).len();
         let rows = columns + pattern.len();
         below.clear();
         below.resize(pattern.len(), 0.0);
@@ -78,7 +67,7 @@ fn solve_in_place_with(
     }
     for s in (0..supernodes).rev() {
         let (begin, l, pattern) = supernode(symbolic, values, s);
-        let columns = symbolic.supernode_end()[s] - begin;
+        let columns = symbolic.columns(s).len();
         let rows = columns + pattern.len();
         below.clear();
         below.extend(pattern.iter().map(|&row| x[row]));
@@ -115,14 +104,14 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 /// rows) and its pattern.
 #[inline(always)]
 fn supernode<'a>(
-    symbolic: &'a SymbolicSupernodalCholesky<usize>,
+    symbolic: &'a Supernodes,
     values: &'a [f64],
     s: usize,
 ) -> (usize, &'a [f64], &'a [usize]) {
-    let values_of = symbolic.col_ptr_for_val();
+    let values_of = symbolic.value_ptr();
     (
-        symbolic.supernode_begin()[s],
+        symbolic.columns(s).start,
         &values[values_of[s]..values_of[s + 1]],
-        symbolic.supernode(s).pattern(),
+        symbolic.pattern(s),
     )
 }
