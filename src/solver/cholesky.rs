@@ -16,7 +16,7 @@ use faer::{Conj, MatMut, Par, Side, Spec};
 use super::structure::BlockPattern;
 use super::supernodal_factor::SupernodalPlan;
 use super::supernodal_solve;
-use super::supernodes::Supernodes;
+use super::supernodes::{BlockSupernodes, Supernodes};
 
 /// A supernodal factor with fewer multiply-adds per stored value than this is factorised by
 /// [`SupernodalPlan`]'s loops, a denser one by faer's numeric factorisation. The loops won on
@@ -51,6 +51,8 @@ enum Structure {
     Own {
         supernodes: Supernodes,
         plan: SupernodalPlan,
+        /// The analysis in blocks, when it was made (a forced supernodal factor).
+        blocks: Option<BlockSupernodes>,
     },
     /// faer's analysis and numeric factorisation (the dense fronts of 3D graphs); solved by
     /// our loops on the same supernodes.
@@ -85,9 +87,10 @@ impl SparseCholesky {
         threshold: SupernodalThreshold,
     ) -> Result<Self, SymbolicError> {
         if threshold == SupernodalThreshold::FORCE_SUPERNODAL {
-            let supernodes = Supernodes::analyze(pattern);
+            let blocks = BlockSupernodes::analyze(pattern);
+            let supernodes = blocks.expand(pattern);
             if sparse_enough(&supernodes) {
-                return Ok(Self::own(supernodes));
+                return Ok(Self::own(supernodes, Some(blocks)));
             }
         }
         let params = CholeskySymbolicParams {
@@ -107,7 +110,7 @@ impl SparseCholesky {
             SymbolicCholeskyRaw::Supernodal(supernodal) => {
                 let supernodes = Supernodes::from_faer(supernodal);
                 if sparse_enough(&supernodes) {
-                    return Ok(Self::own(supernodes));
+                    return Ok(Self::own(supernodes, None));
                 }
                 Structure::FaerSupernodal {
                     supernodes,
@@ -125,9 +128,29 @@ impl SparseCholesky {
         Ok(Self::with(structure, factor_req))
     }
 
-    fn own(supernodes: Supernodes) -> Self {
+    /// A factor of `pattern` with the supernodes another factor's analysis found in blocks
+    /// (`pattern` orders the same graph the same way; its block sizes may differ), factorised by
+    /// our loops. The chordal start's scalar Laplacians share the solve's analysis this way.
+    pub fn with_block_supernodes(pattern: &BlockPattern, blocks: &BlockSupernodes) -> Self {
+        Self::own(blocks.expand(pattern), None)
+    }
+
+    /// The analysis in blocks, when this factor was analysed that way.
+    pub fn block_supernodes(&self) -> Option<&BlockSupernodes> {
+        match &self.structure {
+            Structure::Own { blocks, .. } => blocks.as_ref(),
+            _ => None,
+        }
+    }
+
+    fn own(supernodes: Supernodes, blocks: Option<BlockSupernodes>) -> Self {
         let plan = SupernodalPlan::new(&supernodes);
-        Self::with(Structure::Own { supernodes, plan }, StackReq::empty())
+        let structure = Structure::Own {
+            supernodes,
+            plan,
+            blocks,
+        };
+        Self::with(structure, StackReq::empty())
     }
 
     fn with(structure: Structure, factor_req: StackReq) -> Self {
@@ -167,7 +190,9 @@ impl SparseCholesky {
     /// Bytes the numeric factorisation holds: L's values and indices, and the workspaces.
     pub fn numeric_bytes(&self) -> u64 {
         let indices = match &self.structure {
-            Structure::Own { supernodes, plan } => supernodes.index_bytes() + plan.bytes(),
+            Structure::Own {
+                supernodes, plan, ..
+            } => supernodes.index_bytes() + plan.bytes(),
             Structure::FaerSupernodal { supernodes, .. } => supernodes.index_bytes(),
             Structure::Simplicial(symbolic) => match symbolic.raw() {
                 SymbolicCholeskyRaw::Simplicial(s) => 8 * (s.row_idx().len() + s.col_ptr().len()),
@@ -197,7 +222,9 @@ impl SparseCholesky {
         self.factorized = false;
         let a = SparseColMatRef::new(pattern.symbolic(), values);
         let symbolic = match &mut self.structure {
-            Structure::Own { supernodes, plan } => {
+            Structure::Own {
+                supernodes, plan, ..
+            } => {
                 plan.factorize(supernodes, a, &mut self.l_values)?;
                 self.factorized = true;
                 return Ok(());
@@ -326,6 +353,7 @@ pub(super) fn transpose_pattern(p: &BlockPattern) -> (Vec<usize>, Vec<usize>) {
 
 #[cfg(test)]
 mod tests {
+    use super::super::structure::BlockOrdering;
     use super::*;
 
     /// Deterministic, diagonally dominant values on `p`'s pattern.
@@ -425,5 +453,30 @@ mod tests {
             };
             assert_eq!(error.row, expected, "{}", chol.kind());
         }
+    }
+
+    /// A factor on the supernodes another block size's analysis found (the chordal start's
+    /// Laplacians on the solve's) solves as well, with that partition's explicit zeros.
+    #[test]
+    fn shares_a_block_analysis_across_block_sizes() {
+        let side = 9;
+        let blocks = side * side;
+        let mut adjacency = vec![Vec::new(); blocks];
+        for here in 0..blocks {
+            for there in [here + 1, here + side] {
+                if there < blocks && (there != here + 1 || there % side != 0) {
+                    adjacency[here].push(there);
+                    adjacency[there].push(here);
+                }
+            }
+        }
+        let ordering = BlockOrdering::amd(adjacency);
+        let solve = BlockPattern::with_ordering(&vec![3; blocks], &ordering);
+        let chol = SparseCholesky::analyze(&solve, SupernodalThreshold::FORCE_SUPERNODAL).unwrap();
+        let shared = chol.block_supernodes().expect("analysed in blocks");
+        let laplacian = BlockPattern::with_ordering(&vec![1; blocks], &ordering);
+        let mut chol = SparseCholesky::with_block_supernodes(&laplacian, shared);
+        assert_eq!(chol.kind(), "supernodal");
+        assert_solves(&mut chol, &laplacian, &values_on(&laplacian));
     }
 }

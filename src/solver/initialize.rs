@@ -30,6 +30,7 @@ use super::cholesky::SparseCholesky;
 use super::linearize::free_blocks;
 use super::options::Initialization;
 use super::structure::{BlockOrdering, BlockPattern};
+use super::supernodes::BlockSupernodes;
 use crate::factors::{BetweenSe3, PriorSe3, SqrtInformation};
 use crate::geometry::Se3;
 use crate::problem::FactorEntry;
@@ -47,6 +48,7 @@ pub(super) fn chordal_estimate(
     problem: &Problem,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    shared: Option<&BlockSupernodes>,
     mode: Initialization,
     budget: &dyn Budget,
 ) -> Result<Values, String> {
@@ -59,6 +61,7 @@ pub(super) fn chordal_estimate(
         &problem.values,
         fixed,
         ordering,
+        shared,
         &Stoppable {
             budget,
             stopped: &stopped,
@@ -120,12 +123,14 @@ impl Stoppable<'_> {
 /// linear system turned out singular (then the given values are used).
 ///
 /// `ordering` is the free variables' graph ([`super::linearize::free_adjacency`]) with its
-/// elimination order.
+/// elimination order; `shared`, the solve's supernodes over it in blocks when it has them, also
+/// serve the 2D steps' scalar Laplacians (no second analysis).
 pub fn chordal(
     factors: &[FactorEntry],
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    shared: Option<&BlockSupernodes>,
     budget: &Stoppable,
 ) -> Option<Values> {
     if values.is_empty() {
@@ -133,7 +138,7 @@ pub fn chordal(
     }
     let all = |kind: &str| (0..values.len()).all(|v| values.variable(v).kind() == kind);
     if all("se2") {
-        planar::chordal_2d(factors, values, fixed, ordering, budget)
+        planar::chordal_2d(factors, values, fixed, ordering, shared, budget)
     } else if all("se3") {
         chordal_3d(factors, values, fixed, ordering, budget)
     } else {

@@ -9,6 +9,7 @@ use super::budget::Budget;
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
 use super::schur::SchurSolver;
 use super::structure::BlockPattern;
+use super::supernodes::BlockSupernodes;
 
 /// One solver per solve, so the variants' sizes do not matter.
 #[derive(Debug)]
@@ -106,6 +107,15 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.numeric_bytes(),
             Self::Schur(s) => 8 * s.factor_nnz() as u64,
+        }
+    }
+
+    /// The solve's supernodes in blocks, when its factor was analysed that way (the chordal
+    /// start reuses them).
+    pub fn block_supernodes(&self) -> Option<&BlockSupernodes> {
+        match self {
+            Self::Sparse(chol) => chol.block_supernodes(),
+            Self::Schur(_) => None,
         }
     }
 

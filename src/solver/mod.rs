@@ -25,7 +25,7 @@ pub mod structure;
 pub mod summary;
 mod supernodal_factor;
 mod supernodal_solve;
-mod supernodes;
+pub mod supernodes;
 mod warm;
 
 pub use budget::{Budget, Unlimited};

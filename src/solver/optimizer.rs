@@ -136,7 +136,14 @@ fn optimize_from(
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
-    let estimate = chordal_estimate(problem, &fixed, &ordering, options.initialization, budget);
+    let estimate = chordal_estimate(
+        problem,
+        &fixed,
+        &ordering,
+        chol.block_supernodes(),
+        options.initialization,
+        budget,
+    );
     timings.initialization_seconds = init_start.elapsed().as_secs_f64();
 
     let mut values = std::mem::take(&mut problem.values);

@@ -120,6 +120,26 @@ impl Supernodes {
     /// The supernodes of `pattern`'s factor (`pattern` in elimination order), analysed on its
     /// blocks.
     pub fn analyze(pattern: &BlockPattern) -> Self {
+        BlockSupernodes::analyze(pattern).expand(pattern)
+    }
+}
+
+/// Supernodes in blocks, as [`BlockSupernodes::analyze`] finds them before expanding them to
+/// scalars. The partition and its patterns hold for any block sizes over the same ordered
+/// graph, so one analysis also serves the scalar Laplacians of the chordal start.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BlockSupernodes {
+    /// First block of each supernode, then the block count.
+    groups: Vec<usize>,
+    /// Blocks below supernode `s`, ascending: `rows[row_ptr[s]..row_ptr[s + 1]]`.
+    row_ptr: Vec<usize>,
+    rows: Vec<usize>,
+}
+
+impl BlockSupernodes {
+    /// The supernodes of `pattern`'s factor (`pattern` in elimination order), with faer's
+    /// amalgamation for `pattern`'s block sizes.
+    pub fn analyze(pattern: &BlockPattern) -> Self {
         let blocks = pattern.dim.len();
         let rows_of = lower_rows(pattern);
         let row = |k: usize| &rows_of.1[rows_of.0[k]..rows_of.0[k + 1]];
@@ -141,20 +161,19 @@ impl Supernodes {
             }
         }
         let groups = relaxed_groups(pattern, &parent, &below, &scalars_below);
-        Self::with_groups(pattern, &parent, &below, &groups, &row)
+        Self::with_groups(groups, &parent, &below, &row)
     }
 
     /// The supernodes whose first blocks are `groups` (ascending, ending with the block count),
     /// with their patterns from the row subtrees of the supernodal tree.
     fn with_groups<'r>(
-        pattern: &BlockPattern,
+        groups: Vec<usize>,
         parent: &[usize],
         below: &[usize],
-        groups: &[usize],
         row: &dyn Fn(usize) -> &'r [usize],
     ) -> Self {
         let count = groups.len() - 1;
-        let blocks = pattern.dim.len();
+        let blocks = parent.len();
         let mut supernode_of = vec![0usize; blocks];
         for s in 0..count {
             supernode_of[groups[s]..groups[s + 1]].fill(s);
@@ -165,15 +184,15 @@ impl Supernodes {
                 p => supernode_of[p],
             })
             .collect();
-        let mut block_ptr = Vec::with_capacity(count + 1);
-        block_ptr.push(0);
+        let mut row_ptr = Vec::with_capacity(count + 1);
+        row_ptr.push(0);
         for s in 0..count {
-            block_ptr.push(block_ptr[s] + below[groups[s + 1] - 1]);
+            row_ptr.push(row_ptr[s] + below[groups[s + 1] - 1]);
         }
         // Row k reaches every supernode on the tree path from those of its entries up to its
         // own; visiting k in ascending order appends each pattern in order.
-        let mut block_rows = vec![0usize; block_ptr[count]];
-        let mut cursor = block_ptr.clone();
+        let mut rows = vec![0usize; row_ptr[count]];
+        let mut cursor = row_ptr.clone();
         let mut visited = vec![NONE; count];
         for k in 0..blocks {
             visited[supernode_of[k]] = k;
@@ -181,34 +200,49 @@ impl Supernodes {
                 let mut s = supernode_of[i];
                 while visited[s] != k {
                     visited[s] = k;
-                    block_rows[cursor[s]] = k;
+                    rows[cursor[s]] = k;
                     cursor[s] += 1;
                     s = super_parent[s];
                 }
             }
         }
-        debug_assert_eq!(cursor[..count], block_ptr[1..]);
+        debug_assert_eq!(cursor[..count], row_ptr[1..]);
+        Self {
+            groups,
+            row_ptr,
+            rows,
+        }
+    }
 
+    /// The scalar supernodes of `pattern`, a pattern of the graph and order analysed (its block
+    /// sizes may differ).
+    pub fn expand(&self, pattern: &BlockPattern) -> Supernodes {
+        let count = self.groups.len() - 1;
+        assert_eq!(
+            self.groups[count],
+            pattern.dim.len(),
+            "supernodes of another block graph"
+        );
         let (dim, offset) = (&pattern.dim, &pattern.offset);
         let mut begin = Vec::with_capacity(count + 1);
         let mut row_ptr = Vec::with_capacity(count + 1);
         let mut value_ptr = Vec::with_capacity(count + 1);
-        let scalar_rows: usize = block_rows.iter().map(|&k| dim[k]).sum();
-        let mut rows = Vec::with_capacity(scalar_rows);
+        let mut rows = Vec::with_capacity(self.rows.iter().map(|&k| dim[k]).sum());
         row_ptr.push(0);
         value_ptr.push(0);
         for s in 0..count {
-            begin.push(offset[groups[s]]);
-            for &k in &block_rows[block_ptr[s]..block_ptr[s + 1]] {
+            begin.push(offset[self.groups[s]]);
+            for &k in &self.rows[self.row_ptr[s]..self.row_ptr[s + 1]] {
                 rows.extend(offset[k]..offset[k] + dim[k]);
             }
             row_ptr.push(rows.len());
-            let columns = offset[groups[s + 1] - 1] + dim[groups[s + 1] - 1] - offset[groups[s]];
+            let last = self.groups[s + 1] - 1;
+            let columns = offset[last] + dim[last] - offset[self.groups[s]];
             let below = row_ptr[s + 1] - row_ptr[s];
             value_ptr.push(value_ptr[s] + columns * (columns + below));
         }
         begin.push(pattern.n);
-        Self {
+        Supernodes {
             begin,
             row_ptr,
             rows,

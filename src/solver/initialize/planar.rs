@@ -19,6 +19,7 @@ use crate::problem::{FactorEntry, Values};
 use crate::solver::cholesky::SparseCholesky;
 use crate::solver::linearize::free_blocks;
 use crate::solver::structure::{BlockOrdering, BlockPattern};
+use crate::solver::supernodes::BlockSupernodes;
 
 /// Where one edge's terms go: the elimination positions of its free ends and, when both are
 /// free, the value index of their off-diagonal entry.
@@ -82,6 +83,7 @@ pub(super) fn chordal_2d(
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
+    shared: Option<&BlockSupernodes>,
     budget: &Stoppable,
 ) -> Option<Values> {
     let edges = collect_edges(
@@ -123,9 +125,13 @@ pub(super) fn chordal_2d(
 
     let (block, nb) = free_blocks(fixed.iter().copied());
     let pattern = BlockPattern::with_ordering(&vec![1; nb], ordering);
-    // faer's heuristic picks simplicial for these scalar Laplacians (no per-supernode gemm
-    // dispatch; M3500: −5% instructions per solve).
-    let mut chol = SparseCholesky::analyze(&pattern, SupernodalThreshold::AUTO).ok()?;
+    // The solve's supernodes fit these scalar Laplacians too: no second analysis. Without
+    // them, faer's heuristic picks simplicial for the Laplacians (its supernodes of single
+    // columns amalgamate into blocks of mostly zeros).
+    let mut chol = match shared {
+        Some(blocks) => SparseCholesky::with_block_supernodes(&pattern, blocks),
+        None => SparseCholesky::analyze(&pattern, SupernodalThreshold::AUTO).ok()?,
+    };
     let position = |v: usize| block[v].map(|b| pattern.position[b]);
     let slots: Vec<Slot> = edges
         .iter()
@@ -316,40 +322,46 @@ mod tests {
             .map(|v| problem.values.is_fixed(v))
             .collect();
         let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &fixed));
-        let stopped = Cell::new(false);
-        let budget = Stoppable {
-            budget: &Unlimited,
-            stopped: &stopped,
-        };
-        let estimate = chordal(
-            problem.factors(),
-            &problem.values,
-            &fixed,
-            &ordering,
-            &budget,
-        )
-        .expect("a pose graph has a chordal estimate");
-        for (k, pose) in truth.iter().enumerate() {
-            let got = estimate.variable(k).as_any().downcast_ref::<Se2>().unwrap();
-            assert!(
-                (got.x - pose.x).abs() < 1e-9,
-                "x of {k}: {} vs {}",
-                got.x,
-                pose.x
-            );
-            assert!(
-                (got.y - pose.y).abs() < 1e-9,
-                "y of {k}: {} vs {}",
-                got.y,
-                pose.y
-            );
-            let dtheta = wrap_angle(got.theta - pose.theta);
-            assert!(
-                dtheta.abs() < 1e-9,
-                "theta of {k}: {} vs {}",
-                got.theta,
-                pose.theta
-            );
+        // With faer's own analysis of the Laplacians, and with the solve's supernodes shared.
+        let solve_pattern = BlockPattern::with_ordering(&[3; 7], &ordering);
+        let solve_supernodes = BlockSupernodes::analyze(&solve_pattern);
+        for shared in [None, Some(&solve_supernodes)] {
+            let stopped = Cell::new(false);
+            let budget = Stoppable {
+                budget: &Unlimited,
+                stopped: &stopped,
+            };
+            let estimate = chordal(
+                problem.factors(),
+                &problem.values,
+                &fixed,
+                &ordering,
+                shared,
+                &budget,
+            )
+            .expect("a pose graph has a chordal estimate");
+            for (k, pose) in truth.iter().enumerate() {
+                let got = estimate.variable(k).as_any().downcast_ref::<Se2>().unwrap();
+                assert!(
+                    (got.x - pose.x).abs() < 1e-9,
+                    "x of {k}: {} vs {}",
+                    got.x,
+                    pose.x
+                );
+                assert!(
+                    (got.y - pose.y).abs() < 1e-9,
+                    "y of {k}: {} vs {}",
+                    got.y,
+                    pose.y
+                );
+                let dtheta = wrap_angle(got.theta - pose.theta);
+                assert!(
+                    dtheta.abs() < 1e-9,
+                    "theta of {k}: {} vs {}",
+                    got.theta,
+                    pose.theta
+                );
+            }
         }
     }
 }
