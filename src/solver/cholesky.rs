@@ -88,9 +88,8 @@ impl SparseCholesky {
     ) -> Result<Self, SymbolicError> {
         if threshold == SupernodalThreshold::FORCE_SUPERNODAL {
             let blocks = BlockSupernodes::analyze(pattern);
-            let supernodes = blocks.expand(pattern);
-            if sparse_enough(&supernodes) {
-                return Ok(Self::own(supernodes, Some(blocks)));
+            if blocks.flops_per_value(pattern) < OWN_LOOPS_BELOW_FLOPS_PER_VALUE {
+                return Ok(Self::own(blocks.expand(pattern), Some(blocks)));
             }
         }
         let params = CholeskySymbolicParams {

@@ -118,15 +118,24 @@ impl BlockPattern {
                 pair_cols.extend(std::iter::repeat_n(0, dim[b]));
             }
             col_block_ptr.push(col_blocks.len());
-            for q in 0..dim[b] {
-                let col_start = row_idx.len();
-                // Diagonal block: rows q..dim, then every off-diagonal block whole.
-                for (k, a) in lower(b).enumerate() {
-                    pair_cols[first_pair + k * dim[b] + q] = row_idx.len();
-                    let first_row = if a == b { offset[b] + q } else { offset[a] };
-                    row_idx.extend(first_row..offset[a] + dim[a]);
+            // The block's first column: the diagonal block's rows, then every off-diagonal block
+            // whole. Its column q is that column less its first q rows, copied.
+            let first = row_idx.len();
+            for (k, a) in lower(b).enumerate() {
+                pair_cols[first_pair + k * dim[b]] = row_idx.len();
+                row_idx.extend(offset[a]..offset[a] + dim[a]);
+            }
+            let end = row_idx.len();
+            col_ptr.push(end);
+            let blocks_here = col_block_ptr[b + 1] - col_block_ptr[b];
+            for q in 1..dim[b] {
+                let start = row_idx.len();
+                row_idx.extend_from_within(first + q..end);
+                pair_cols[first_pair + q] = start;
+                for k in 1..blocks_here {
+                    let in_first = pair_cols[first_pair + k * dim[b]] - first;
+                    pair_cols[first_pair + k * dim[b] + q] = start + in_first - q;
                 }
-                debug_assert!(row_idx.len() > col_start);
                 col_ptr.push(row_idx.len());
             }
         }

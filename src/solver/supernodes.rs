@@ -214,6 +214,25 @@ impl BlockSupernodes {
         }
     }
 
+    /// Multiply-adds per stored value of `pattern`'s factor on these supernodes (see
+    /// [`Supernodes::factor_flops`]), without expanding them.
+    pub fn flops_per_value(&self, pattern: &BlockPattern) -> f64 {
+        let (mut flops, mut values) = (0.0, 0.0);
+        for s in 0..self.groups.len() - 1 {
+            let (first, last) = (self.groups[s], self.groups[s + 1] - 1);
+            let c = (pattern.offset[last] + pattern.dim[last] - pattern.offset[first]) as f64;
+            let below = &self.rows[self.row_ptr[s]..self.row_ptr[s + 1]];
+            let r = below.iter().map(|&k| pattern.dim[k]).sum::<usize>() as f64;
+            flops += c * c * c / 3.0 + c * c * r + c * r * r;
+            values += c * (c + r);
+        }
+        if values > 0.0 {
+            flops / values
+        } else {
+            0.0
+        }
+    }
+
     /// The scalar supernodes of `pattern`, a pattern of the graph and order analysed (its block
     /// sizes may differ).
     pub fn expand(&self, pattern: &BlockPattern) -> Supernodes {
@@ -462,7 +481,15 @@ mod tests {
                     .collect(),
             };
             let p = BlockPattern::new(&dims, &adjacency);
-            assert_eq!(Supernodes::analyze(&p), faer_supernodes(&p), "case {case}");
+            let blocks = BlockSupernodes::analyze(&p);
+            let expanded = blocks.expand(&p);
+            assert_eq!(expanded, faer_supernodes(&p), "case {case}");
+            let per_value = expanded.factor_flops() / expanded.values_len().max(1) as f64;
+            let estimate = blocks.flops_per_value(&p);
+            assert!(
+                (estimate - per_value).abs() <= 1e-9 * per_value,
+                "case {case}: {estimate} vs {per_value}"
+            );
         }
     }
 
