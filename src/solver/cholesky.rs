@@ -46,7 +46,7 @@ pub struct SparseCholesky {
 
 /// Who analysed the factor and who factorises it.
 enum Structure {
-    /// Analysed on the blocks ([`Supernodes::analyze`]), factorised by [`SupernodalPlan`]'s
+    /// Analysed on the blocks ([`BlockSupernodes::analyze`]), factorised by [`SupernodalPlan`]'s
     /// loops: the sparse factors of 2D graphs and of the chordal start's Laplacians.
     Own {
         supernodes: Supernodes,
@@ -79,7 +79,7 @@ pub struct SymbolicError(faer::sparse::FaerError);
 
 impl SparseCholesky {
     /// Symbolic analysis of `pattern` (already in elimination order, lower triangle). A forced
-    /// supernodal factor is analysed on the blocks ([`Supernodes::analyze`]); when it is sparse
+    /// supernodal factor is analysed on the blocks ([`BlockSupernodes::analyze`]); when it is sparse
     /// enough for our loops, faer is not called at all. Otherwise faer analyses the scalar
     /// pattern and, with `AUTO`, chooses between simplicial and supernodal by its flop ratio.
     pub fn analyze(

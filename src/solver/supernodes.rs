@@ -7,7 +7,7 @@
 //!
 //! faer analyses the scalar pattern: a 2D pose graph has three scalar columns and nine scalar
 //! entries per variable and block, a 3D one six and thirty-six. Every variable's columns share
-//! one structure, so [`Supernodes::analyze`] finds the elimination tree, the column counts and
+//! one structure, so [`BlockSupernodes::analyze`] finds the elimination tree, the column counts and
 //! the supernodes' patterns on the block graph and only then expands them to scalars. Its
 //! supernodes are faer's (the same fundamental supernodes, amalgamated by faer's rule and
 //! thresholds), so the numeric phase sees the same factor for a fraction of the analysis
@@ -89,11 +89,7 @@ impl Supernodes {
     /// of the later columns.
     pub fn factor_flops(&self) -> f64 {
         (0..self.count())
-            .map(|s| {
-                let c = self.columns(s).len() as f64;
-                let r = self.pattern(s).len() as f64;
-                c * c * c / 3.0 + c * c * r + c * r * r
-            })
+            .map(|s| supernode_flops(self.columns(s).len(), self.pattern(s).len()))
             .sum()
     }
 
@@ -115,12 +111,6 @@ impl Supernodes {
             rows,
             value_ptr: symbolic.col_ptr_for_val().to_vec(),
         }
-    }
-
-    /// The supernodes of `pattern`'s factor (`pattern` in elimination order), analysed on its
-    /// blocks.
-    pub fn analyze(pattern: &BlockPattern) -> Self {
-        BlockSupernodes::analyze(pattern).expand(pattern)
     }
 }
 
@@ -220,11 +210,11 @@ impl BlockSupernodes {
         let (mut flops, mut values) = (0.0, 0.0);
         for s in 0..self.groups.len() - 1 {
             let (first, last) = (self.groups[s], self.groups[s + 1] - 1);
-            let c = (pattern.offset[last] + pattern.dim[last] - pattern.offset[first]) as f64;
+            let c = pattern.offset[last] + pattern.dim[last] - pattern.offset[first];
             let below = &self.rows[self.row_ptr[s]..self.row_ptr[s + 1]];
-            let r = below.iter().map(|&k| pattern.dim[k]).sum::<usize>() as f64;
-            flops += c * c * c / 3.0 + c * c * r + c * r * r;
-            values += c * (c + r);
+            let r = below.iter().map(|&k| pattern.dim[k]).sum();
+            flops += supernode_flops(c, r);
+            values += (c * (c + r)) as f64;
         }
         if values > 0.0 {
             flops / values
@@ -268,6 +258,12 @@ impl BlockSupernodes {
             value_ptr,
         }
     }
+}
+
+/// Multiply-adds to factorise a supernode of `c` columns with `r` rows below it.
+fn supernode_flops(c: usize, r: usize) -> f64 {
+    let (c, r) = (c as f64, r as f64);
+    c * c * c / 3.0 + c * c * r + c * r * r
 }
 
 /// The strictly lower block pattern by rows: for block row k, the columns i < k with a block
@@ -496,7 +492,7 @@ mod tests {
     #[test]
     fn an_empty_pattern_has_no_supernodes() {
         let p = BlockPattern::new(&[], &[]);
-        let supernodes = Supernodes::analyze(&p);
+        let supernodes = BlockSupernodes::analyze(&p).expand(&p);
         assert_eq!(supernodes.count(), 0);
         assert_eq!(supernodes.values_len(), 0);
     }
