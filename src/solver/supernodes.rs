@@ -133,23 +133,15 @@ impl BlockSupernodes {
         let blocks = pattern.dim.len();
         let rows_of = lower_rows(pattern);
         let row = |k: usize| &rows_of.1[rows_of.0[k]..rows_of.0[k + 1]];
-        let parent = elimination_tree(blocks, &row);
+        let earlier = |k: usize| row(k).iter().copied();
+        let parent = elimination_tree(blocks, earlier);
         // Rows below each block column in L, in blocks and in scalars.
         let mut below = vec![0usize; blocks];
         let mut scalars_below = vec![0usize; blocks];
-        let mut mark = vec![NONE; blocks];
-        for k in 0..blocks {
-            mark[k] = k;
-            for &i in row(k) {
-                let mut j = i;
-                while mark[j] != k {
-                    mark[j] = k;
-                    below[j] += 1;
-                    scalars_below[j] += pattern.dim[k];
-                    j = parent[j];
-                }
-            }
-        }
+        visit_factor_rows(&parent, earlier, |j, k| {
+            below[j] += 1;
+            scalars_below[j] += pattern.dim[k];
+        });
         let groups = relaxed_groups(pattern, &parent, &below, &scalars_below);
         Self::with_groups(groups, &parent, &below, &row)
     }
@@ -290,25 +282,54 @@ fn lower_rows(pattern: &BlockPattern) -> (Vec<usize>, Vec<usize>) {
     (starts, columns)
 }
 
-/// Liu's algorithm: the parent of each block column (`NONE` for a root), with path-compressed
-/// ancestors.
-fn elimination_tree<'r>(blocks: usize, row: &dyn Fn(usize) -> &'r [usize]) -> Vec<usize> {
-    let mut parent = vec![NONE; blocks];
-    let mut ancestor = vec![NONE; blocks];
-    for k in 0..blocks {
-        for &i in row(k) {
-            let mut j = i;
-            while j != NONE && j < k {
-                let next = ancestor[j];
-                ancestor[j] = k;
+/// Liu's algorithm: the parent of each of `n` columns (`NONE` for a root), with
+/// path-compressed ancestors. `earlier(k)` yields the columns adjacent to `k` (those not before
+/// `k` are skipped, duplicates are harmless).
+pub(crate) fn elimination_tree<I: IntoIterator<Item = usize>>(
+    n: usize,
+    earlier: impl Fn(usize) -> I,
+) -> Vec<usize> {
+    let mut parent = vec![NONE; n];
+    let mut ancestor = vec![NONE; n];
+    for k in 0..n {
+        for mut i in earlier(k) {
+            while i != NONE && i < k {
+                let next = ancestor[i];
+                ancestor[i] = k;
                 if next == NONE {
-                    parent[j] = k;
+                    parent[i] = k;
                 }
-                j = next;
+                i = next;
             }
         }
     }
     parent
+}
+
+/// Calls `visit(j, k)` once for every nonzero `L[k, j]` below the diagonal of the factor: row
+/// `k`'s subtree, walked up the tree `parent` from each column `earlier(k)` yields before `k`
+/// until a column already visited for `k` (Davis, *Direct Methods for Sparse Linear Systems*,
+/// §4.2–4.4). Time is that of the factor's nonzero count.
+pub(crate) fn visit_factor_rows<I: IntoIterator<Item = usize>>(
+    parent: &[usize],
+    earlier: impl Fn(usize) -> I,
+    mut visit: impl FnMut(usize, usize),
+) {
+    let mut marked_for = vec![NONE; parent.len()];
+    for k in 0..parent.len() {
+        marked_for[k] = k;
+        for mut j in earlier(k) {
+            if j > k {
+                continue;
+            }
+            // `k` is an ancestor of every earlier neighbour, and marked: the walk ends.
+            while marked_for[j] != k {
+                marked_for[j] = k;
+                visit(j, k);
+                j = parent[j];
+            }
+        }
+    }
 }
 
 /// The first block of every supernode (and the block count last): fundamental supernodes,

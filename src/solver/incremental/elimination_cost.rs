@@ -1,13 +1,9 @@
-//! What eliminating a graph in a given order costs, from its symbolic factorisation alone.
-//!
-//! The elimination tree comes first (Liu's algorithm with path compression); the rows of
-//! column `j` of the factor are then the vertices whose row subtree reaches `j`: for each
-//! vertex `k`, walking up the tree from each earlier neighbour until a column already marked
-//! for `k` visits exactly the columns with a nonzero in row `k` (Davis, *Direct Methods for
-//! Sparse Linear Systems*, §4.2–4.4). Time is that of the factor's nonzero count, memory linear
-//! in the vertices; no structure is stored.
+//! What eliminating a graph in a given order costs, from its symbolic factorisation alone:
+//! the elimination tree, then the factor's rows by row subtrees (the batch solve's analysis in
+//! [`crate::solver::supernodes`] does the same on its blocks). Time is that of the factor's
+//! nonzero count, memory linear in the vertices; no structure is stored.
 
-const NONE: usize = usize::MAX;
+use crate::solver::supernodes::{elimination_tree, visit_factor_rows};
 
 /// Flops of a block Cholesky factorisation of the symmetric graph `adjacency` (duplicate
 /// and self entries allowed) eliminated in `order` (the vertex at each position), vertex `v`
@@ -29,34 +25,9 @@ pub fn elimination_flops(
             .map(|&u| position[u])
             .filter(move |&i| i < k)
     };
-    let mut parent = vec![NONE; n];
-    let mut ancestor = vec![NONE; n];
-    for k in 0..n {
-        for mut i in earlier(k) {
-            while i != NONE && i < k {
-                let next = ancestor[i];
-                ancestor[i] = k;
-                if next == NONE {
-                    parent[i] = k;
-                }
-                i = next;
-            }
-        }
-    }
+    let parent = elimination_tree(n, earlier);
     let mut rows_below = vec![0usize; n];
-    let mut marked_for = vec![NONE; n];
-    for k in 0..n {
-        marked_for[k] = k;
-        let dk = dim(order[k]);
-        for mut i in earlier(k) {
-            // `k` is an ancestor of every earlier neighbour, and marked: the walk ends.
-            while marked_for[i] != k {
-                rows_below[i] += dk;
-                marked_for[i] = k;
-                i = parent[i];
-            }
-        }
-    }
+    visit_factor_rows(&parent, earlier, |j, k| rows_below[j] += dim(order[k]));
     (0..n)
         .map(|k| {
             let (d, r) = (dim(order[k]) as f64, rows_below[k] as f64);
