@@ -79,9 +79,10 @@ pub struct SymbolicError(faer::sparse::FaerError);
 
 impl SparseCholesky {
     /// Symbolic analysis of `pattern` (already in elimination order, lower triangle). A forced
-    /// supernodal factor is analysed on the blocks ([`BlockSupernodes::analyze`]); when it is sparse
-    /// enough for our loops, faer is not called at all. Otherwise faer analyses the scalar
-    /// pattern and, with `AUTO`, chooses between simplicial and supernodal by its flop ratio.
+    /// supernodal factor is analysed on the blocks ([`BlockSupernodes::analyze`]); when it is
+    /// sparse enough for our loops, faer is not called at all. Otherwise faer analyses the
+    /// scalar pattern and, with `AUTO`, chooses between simplicial and supernodal by its flop
+    /// ratio.
     pub fn analyze(
         pattern: &BlockPattern,
         threshold: SupernodalThreshold,

@@ -118,6 +118,9 @@ impl BlockPattern {
                 pair_cols.extend(std::iter::repeat_n(0, dim[b]));
             }
             col_block_ptr.push(col_blocks.len());
+            if dim[b] == 0 {
+                continue;
+            }
             // The block's first column: the diagonal block's rows, then every off-diagonal block
             // whole. Its column q is that column less its first q rows, copied.
             let first = row_idx.len();

@@ -1,5 +1,5 @@
-//! Numeric `A = L Lᵀ` on a supernodal structure ([`Supernodes`]), with plain loops for the small supernodes
-//! of pose graphs and faer's dense kernels for the large ones.
+//! Numeric `A = L Lᵀ` on a supernodal structure ([`Supernodes`]), with plain loops for the
+//! small supernodes of pose graphs and faer's dense kernels for the large ones.
 //!
 //! Left-looking, as faer's own: supernode by supernode, each
 //! 1. gathers A's lower columns into its dense block (`L_top` c × c over `L_bot`, one row per

@@ -1,4 +1,5 @@
-//! `L Lᵀ x = b` on a supernodal factor ([`Supernodes`]), with plain loops instead of faer's dense kernels.
+//! `L Lᵀ x = b` on a supernodal factor ([`Supernodes`]), with plain loops instead of faer's
+//! dense kernels.
 //!
 //! faer solves supernode by supernode with its general triangular-solve and matrix-multiply
 //! routines, whose dispatch costs more than the arithmetic on the few columns a pose graph's
