@@ -109,7 +109,7 @@ impl SparseCholesky {
         let structure = match symbolic.raw() {
             SymbolicCholeskyRaw::Supernodal(supernodal) => {
                 let supernodes = Supernodes::from_faer(supernodal);
-                if sparse_enough(&supernodes) {
+                if supernodes.flops_per_value() < OWN_LOOPS_BELOW_FLOPS_PER_VALUE {
                     return Ok(Self::own(supernodes, None));
                 }
                 Structure::FaerSupernodal {
@@ -309,12 +309,6 @@ impl SparseCholesky {
     }
 }
 
-/// Whether our loops factorise `supernodes` faster than faer would (see
-/// [`OWN_LOOPS_BELOW_FLOPS_PER_VALUE`]).
-fn sparse_enough(supernodes: &Supernodes) -> bool {
-    supernodes.factor_flops() < OWN_LOOPS_BELOW_FLOPS_PER_VALUE * supernodes.values_len() as f64
-}
-
 /// See [`SparseCholesky::factor_flops`]: a simplicial factor's columns.
 fn simplicial_flops(symbolic: &SymbolicCholesky<usize>) -> f64 {
     match symbolic.raw() {
@@ -326,7 +320,9 @@ fn simplicial_flops(symbolic: &SymbolicCholesky<usize>) -> f64 {
                 1.0 + 2.0 * below + below * below
             })
             .sum(),
-        SymbolicCholeskyRaw::Supernodal(s) => Supernodes::from_faer(s).factor_flops(),
+        SymbolicCholeskyRaw::Supernodal(_) => {
+            unreachable!("a simplicial structure holds faer's simplicial analysis")
+        }
     }
 }
 

@@ -93,6 +93,11 @@ impl Supernodes {
             .sum()
     }
 
+    /// Multiply-adds per stored value (see [`BlockSupernodes::flops_per_value`]).
+    pub fn flops_per_value(&self) -> f64 {
+        self.factor_flops() / self.values_len().max(1) as f64
+    }
+
     /// The structure faer's symbolic analysis found (for a factor faer factorises itself).
     pub fn from_faer(symbolic: &SymbolicSupernodalCholesky<usize>) -> Self {
         let count = symbolic.n_supernodes();
@@ -501,7 +506,7 @@ mod tests {
             let blocks = BlockSupernodes::analyze(&p);
             let expanded = blocks.expand(&p);
             assert_eq!(expanded, faer_supernodes(&p), "case {case}");
-            let per_value = expanded.factor_flops() / expanded.values_len().max(1) as f64;
+            let per_value = expanded.flops_per_value();
             let estimate = blocks.flops_per_value(&p);
             assert!(
                 (estimate - per_value).abs() <= 1e-9 * per_value,
