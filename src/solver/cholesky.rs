@@ -183,6 +183,16 @@ impl SparseCholesky {
         }
     }
 
+    /// Whose code factorises: our loops on our analysis, or faer's (its supernodal or its
+    /// simplicial factorisation), for the Summary's `linear_solver`.
+    pub fn implementation(&self) -> &'static str {
+        match self.structure {
+            Structure::Own { .. } => "factord's supernodal loops",
+            Structure::FaerSupernodal { .. } => "faer's supernodal",
+            Structure::Simplicial(_) => "faer's simplicial",
+        }
+    }
+
     pub fn factor_nnz(&self) -> usize {
         self.l_values.len()
     }

@@ -73,13 +73,17 @@ impl LinearSolver {
         }
     }
 
-    pub fn label(&self) -> &'static str {
+    /// What solves, and whose code factorises (our loops or faer's).
+    pub fn label(&self) -> String {
         match self {
-            Self::Sparse(_) => "sparse Cholesky (faer)",
-            Self::Schur(s) if s.is_dense() => {
-                "Schur complement, dense Cholesky (faer) of the reduced system"
-            }
-            Self::Schur(_) => "Schur complement, sparse Cholesky (faer) of the reduced system",
+            Self::Sparse(chol) => format!("sparse Cholesky ({})", chol.implementation()),
+            Self::Schur(s) => match s.sparse_factor() {
+                Some(chol) => format!(
+                    "Schur complement, sparse Cholesky ({}) of the reduced system",
+                    chol.implementation()
+                ),
+                None => "Schur complement, dense Cholesky (faer) of the reduced system".into(),
+            },
         }
     }
 

@@ -229,7 +229,7 @@ pub(super) struct Run {
     pub timings: Timings,
     pub factorization: &'static str,
     pub factor_nnz: usize,
-    pub linear_solver: &'static str,
+    pub linear_solver: String,
     pub ordering: &'static str,
     pub schur: Option<SchurReport>,
 }
@@ -260,7 +260,7 @@ impl Run {
             given_options: options.clone(),
             used: UsedOptions {
                 method: options.method.name().into(),
-                linear_solver: self.linear_solver.into(),
+                linear_solver: self.linear_solver,
                 factorization: self.factorization.into(),
                 ordering: self.ordering.into(),
                 threads: 1,

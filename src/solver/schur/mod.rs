@@ -40,6 +40,7 @@ mod reduced;
 mod tests;
 
 use super::budget::FactorCost;
+use super::cholesky::SparseCholesky;
 use super::structure::BlockPattern;
 
 pub(in crate::solver) use eliminate::small_cholesky;
@@ -111,6 +112,14 @@ impl std::fmt::Debug for SchurSolver {
 impl SchurSolver {
     pub fn is_dense(&self) -> bool {
         matches!(self.backend, Backend::Dense { .. })
+    }
+
+    /// The reduced system's sparse factor, unless it is factorised dense.
+    pub fn sparse_factor(&self) -> Option<&SparseCholesky> {
+        match &self.backend {
+            Backend::Sparse(chol) => Some(chol),
+            Backend::Dense { .. } => None,
+        }
     }
 
     pub fn eliminated_blocks(&self) -> usize {
