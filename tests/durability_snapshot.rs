@@ -45,11 +45,6 @@ fn snapshot_sequence(state: &Path, name: &str) -> Option<u64> {
     serde_json::from_slice::<Value>(&text).ok()?["sequence"].as_u64()
 }
 
-/// A session large enough that a snapshot takes a while (20 000 poses), streamed into with a
-/// snapshot every 40 entries, killed at random moments: every acknowledged pose comes back, and
-/// the restarts come back from a snapshot plus the journal after it (entries journalled while a
-/// snapshot was written are kept by its compaction; emptying the journal, as a snapshot under
-/// the lock could, would lose them and fail here).
 /// The sequences of the snapshots a server log shows: written ones, and those a restart
 /// recovered from.
 fn snapshot_sequences(log: &str) -> std::collections::BTreeSet<u64> {
@@ -69,6 +64,11 @@ fn snapshot_sequences(log: &str) -> std::collections::BTreeSet<u64> {
         .collect()
 }
 
+/// A session large enough that a snapshot takes a while (20 000 poses), streamed into with a
+/// snapshot every 40 entries, killed at random moments: every acknowledged pose comes back, and
+/// the restarts come back from a snapshot plus the journal after it (entries journalled while a
+/// snapshot was written are kept by its compaction; emptying the journal, as a snapshot under
+/// the lock could, would lose them and fail here).
 #[tokio::test(flavor = "multi_thread")]
 async fn kill_9_while_snapshots_are_written_loses_no_acknowledged_batch() {
     const BASE: u64 = 20_000;

@@ -91,8 +91,7 @@ impl LinearSolver {
     pub fn factorization(&self) -> &'static str {
         match self {
             Self::Sparse(chol) => chol.kind(),
-            Self::Schur(s) if s.is_dense() => "dense",
-            Self::Schur(_) => "supernodal",
+            Self::Schur(s) => s.sparse_factor().map_or("dense", SparseCholesky::kind),
         }
     }
 

@@ -111,7 +111,7 @@ impl std::fmt::Debug for SchurSolver {
 
 impl SchurSolver {
     pub fn is_dense(&self) -> bool {
-        matches!(self.backend, Backend::Dense { .. })
+        self.sparse_factor().is_none()
     }
 
     /// The reduced system's sparse factor, unless it is factorised dense.
