@@ -136,6 +136,8 @@ pub struct IncrementalEngine {
     mark: Vec<bool>,
     last: Vec<bool>,
     local: Vec<u32>,
+    /// Which sizes of refactored parts were worth a nested-dissection trial last time.
+    trials: ordering::TrialHistory,
 }
 
 impl IncrementalEngine {
@@ -400,6 +402,7 @@ impl IncrementalEngine {
                 &self.last,
                 &self.dims,
                 &mut self.local,
+                &mut self.trials,
             );
             (order, reaching, kept_roots, start.elapsed())
         };

@@ -39,6 +39,7 @@ pub fn order_affected(
     last: &[bool],
     dims: &[usize],
     local: &mut [u32],
+    trials: &mut TrialHistory,
 ) -> Vec<usize> {
     for (i, &v) in affected.iter().enumerate() {
         local[v] = i as u32;
@@ -79,21 +80,73 @@ pub fn order_affected(
     let chosen = if affected.len() < NESTED_DISSECTION_FROM {
         constrained_last(BlockOrdering::amd(adjacency).block_at)
     } else {
-        let by_amd = constrained_last(BlockOrdering::amd(adjacency.clone()).block_at);
         let flops = |order: &[usize]| elimination_flops(&adjacency, order, |i| dims[affected[i]]);
-        let amd_flops = flops(&by_amd);
+        let by_amd = || {
+            let order = constrained_last(BlockOrdering::amd(adjacency.clone()).block_at);
+            let flops = flops(&order);
+            (order, flops)
+        };
+        let by_nd = || {
+            let order = constrained_last(nested_dissection(&adjacency)?);
+            let flops = flops(&order);
+            Some((order, flops))
+        };
+        // Where the last part of this size needed the trial, METIS starts at once on a second
+        // thread, beside AMD: the trial is decided on AMD's flops as before, so the order kept
+        // is the same, only sooner (sphere2500 tries nearly every part).
+        let ((by_amd, amd_flops), speculative) = if trials.expects_trial(affected.len()) {
+            std::thread::scope(|scope| {
+                let helper = scope.spawn(by_nd);
+                let amd = by_amd();
+                let nd = helper
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                (amd, Some(nd))
+            })
+        } else {
+            (by_amd(), None)
+        };
         let worth_trying =
             amd_flops >= NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE * affected.len() as f64;
-        match worth_trying
-            .then(|| nested_dissection(&adjacency))
-            .flatten()
-            .map(constrained_last)
-        {
-            Some(by_nd) if flops(&by_nd) < amd_flops => by_nd,
+        trials.record(affected.len(), worth_trying);
+        let by_nd = if worth_trying {
+            speculative.unwrap_or_else(by_nd)
+        } else {
+            None
+        };
+        match by_nd {
+            Some((by_nd, nd_flops)) if nd_flops < amd_flops => by_nd,
             _ => by_amd,
         }
     };
     chosen.into_iter().map(|i| affected[i]).collect()
+}
+
+/// Per size class of refactored parts (powers of two of their variables), whether the last
+/// part of that class was worth a nested-dissection trial: a stream's parts of one size are
+/// alike (sphere2500's always are, the 2D files' small parts never), so the next one likely is.
+#[derive(Debug, Default, Clone)]
+pub struct TrialHistory {
+    worth_trying: u64,
+}
+
+impl TrialHistory {
+    fn class(variables: usize) -> u32 {
+        (usize::BITS - variables.leading_zeros()).min(63)
+    }
+
+    fn expects_trial(&self, variables: usize) -> bool {
+        self.worth_trying & (1 << Self::class(variables)) != 0
+    }
+
+    fn record(&mut self, variables: usize, worth_trying: bool) {
+        let bit = 1 << Self::class(variables);
+        if worth_trying {
+            self.worth_trying |= bit;
+        } else {
+            self.worth_trying &= !bit;
+        }
+    }
 }
 
 /// Held while METIS runs. METIS seeds its random generator at every call, but the generator's
@@ -166,6 +219,7 @@ mod tests {
             &last,
             &[3; 5],
             &mut local,
+            &mut TrialHistory::default(),
         );
         let mut sorted = order.clone();
         sorted.sort_unstable();
@@ -211,24 +265,79 @@ mod tests {
             &last,
             &dims,
             &mut local,
+            &mut TrialHistory::default(),
         );
         let mut sorted = order.clone();
         sorted.sort_unstable();
         assert_eq!(sorted, affected);
         assert!(order[n - side..].iter().all(|&v| last[v]));
-        let (mut by_amd, constrained): (Vec<usize>, Vec<usize>) =
-            BlockOrdering::amd(adjacency.clone())
-                .block_at
-                .into_iter()
-                .partition(|&v| !last[v]);
-        by_amd.extend(constrained);
         let kept = elimination_flops(&adjacency, &order, |_| 6);
-        let amd = elimination_flops(&adjacency, &by_amd, |_| 6);
+        let amd = elimination_flops(&adjacency, &amd_order(&adjacency, &last), |_| 6);
         assert!(
             amd >= NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE * n as f64,
             "{amd}"
         );
         assert!(kept < amd, "kept {kept} flops, AMD {amd}");
+    }
+
+    #[test]
+    fn a_trial_started_beside_amd_keeps_the_order_of_one_run_after_it() {
+        // METIS started at once (the history expects a trial) must give the order the trial
+        // decided on AMD's flops gives: on a grid of 6-dim variables the trial runs and wins;
+        // on a larger grid of 1-dim variables it is not worth trying, and AMD's order stays
+        // although METIS's needs fewer flops there.
+        for (side, dim) in [(40, 6), (60, 1)] {
+            let adjacency = grid(side);
+            let n = side * side;
+            let affected: Vec<usize> = (0..n).collect();
+            let last: Vec<bool> = (0..n).map(|v| v + side >= n).collect();
+            let dims = vec![dim; n];
+            let order_with = |trials: &mut TrialHistory| {
+                let mut local = vec![0; n];
+                order_affected(
+                    &affected,
+                    |v, out| out.extend(&adjacency[v]),
+                    &[],
+                    &last,
+                    &dims,
+                    &mut local,
+                    trials,
+                )
+            };
+            let mut fresh = TrialHistory::default();
+            let after = order_with(&mut fresh);
+            let mut expecting = TrialHistory::default();
+            expecting.record(n, true);
+            assert!(expecting.expects_trial(n));
+            let beside = order_with(&mut expecting);
+            assert!(
+                beside == after,
+                "{side} × {side}, dimension {dim}: orders differ"
+            );
+            // Both histories now hold what this part needed.
+            assert_eq!(fresh.expects_trial(n), dim == 6);
+            assert_eq!(expecting.expects_trial(n), dim == 6);
+            let (mut by_nd, constrained): (Vec<usize>, Vec<usize>) = nested_dissection(&adjacency)
+                .expect("METIS orders a grid")
+                .into_iter()
+                .partition(|&v| !last[v]);
+            by_nd.extend(constrained);
+            let flops = |order: &[usize]| elimination_flops(&adjacency, order, |_| dim);
+            // METIS's order needs fewer flops in both cases: only the trial rule tells them
+            // apart.
+            assert!(flops(&by_nd) < flops(&amd_order(&adjacency, &last)));
+            assert_eq!(after == by_nd, dim == 6, "{side} × {side}, dimension {dim}");
+        }
+    }
+
+    fn amd_order(adjacency: &[Vec<usize>], last: &[bool]) -> Vec<usize> {
+        let (mut order, constrained): (Vec<usize>, Vec<usize>) =
+            BlockOrdering::amd(adjacency.to_vec())
+                .block_at
+                .into_iter()
+                .partition(|&v| !last[v]);
+        order.extend(constrained);
+        order
     }
 
     #[test]
