@@ -233,6 +233,12 @@ pub struct BlockOrdering {
 }
 
 impl BlockOrdering {
+    /// The block at each position of AMD's order of `adjacency`, for a caller that needs
+    /// neither the graph kept nor the inverse permutation (no copy of the graph is made).
+    pub fn amd_order(adjacency: &[Vec<usize>]) -> Vec<usize> {
+        block_amd(adjacency).1
+    }
+
     /// Approximate minimum degree on the block graph `adjacency`.
     pub fn amd(adjacency: Vec<Vec<usize>>) -> Self {
         let (position, block_at) = block_amd(&adjacency);

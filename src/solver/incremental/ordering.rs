@@ -78,11 +78,11 @@ pub fn order_affected(
         order
     };
     let chosen = if affected.len() < NESTED_DISSECTION_FROM {
-        constrained_last(BlockOrdering::amd(adjacency).block_at)
+        constrained_last(BlockOrdering::amd_order(&adjacency))
     } else {
         let flops = |order: &[usize]| elimination_flops(&adjacency, order, |i| dims[affected[i]]);
         let by_amd = || {
-            let order = constrained_last(BlockOrdering::amd(adjacency.clone()).block_at);
+            let order = constrained_last(BlockOrdering::amd_order(&adjacency));
             let flops = flops(&order);
             (order, flops)
         };
@@ -332,8 +332,7 @@ mod tests {
 
     fn amd_order(adjacency: &[Vec<usize>], last: &[bool]) -> Vec<usize> {
         let (mut order, constrained): (Vec<usize>, Vec<usize>) =
-            BlockOrdering::amd(adjacency.to_vec())
-                .block_at
+            BlockOrdering::amd_order(adjacency)
                 .into_iter()
                 .partition(|&v| !last[v]);
         order.extend(constrained);
