@@ -254,22 +254,11 @@ mod tests {
         let side = 40;
         let adjacency = grid(side);
         let n = side * side;
-        let affected: Vec<usize> = (0..n).collect();
         let last: Vec<bool> = (0..n).map(|v| v >= n - side).collect();
-        let dims = vec![6; n];
-        let mut local = vec![0; n];
-        let order = order_affected(
-            &affected,
-            |v, out| out.extend(&adjacency[v]),
-            &[],
-            &last,
-            &dims,
-            &mut local,
-            &mut TrialHistory::default(),
-        );
+        let order = order_whole_graph(&adjacency, &last, 6, &mut TrialHistory::default());
         let mut sorted = order.clone();
         sorted.sort_unstable();
-        assert_eq!(sorted, affected);
+        assert_eq!(sorted, (0..n).collect::<Vec<_>>());
         assert!(order[n - side..].iter().all(|&v| last[v]));
         let kept = elimination_flops(&adjacency, &order, |_| 6);
         let amd = elimination_flops(&adjacency, &amd_order(&adjacency, &last), |_| 6);
@@ -289,21 +278,9 @@ mod tests {
         for (side, dim) in [(40, 6), (60, 1)] {
             let adjacency = grid(side);
             let n = side * side;
-            let affected: Vec<usize> = (0..n).collect();
             let last: Vec<bool> = (0..n).map(|v| v + side >= n).collect();
-            let dims = vec![dim; n];
-            let order_with = |trials: &mut TrialHistory| {
-                let mut local = vec![0; n];
-                order_affected(
-                    &affected,
-                    |v, out| out.extend(&adjacency[v]),
-                    &[],
-                    &last,
-                    &dims,
-                    &mut local,
-                    trials,
-                )
-            };
+            let order_with =
+                |trials: &mut TrialHistory| order_whole_graph(&adjacency, &last, dim, trials);
             let mut fresh = TrialHistory::default();
             let after = order_with(&mut fresh);
             let mut expecting = TrialHistory::default();
@@ -328,6 +305,27 @@ mod tests {
             assert!(flops(&by_nd) < flops(&amd_order(&adjacency, &last)));
             assert_eq!(after == by_nd, dim == 6, "{side} × {side}, dimension {dim}");
         }
+    }
+
+    /// `order_affected` of every vertex of `adjacency`, each of dimension `dim`, without
+    /// cliques.
+    fn order_whole_graph(
+        adjacency: &[Vec<usize>],
+        last: &[bool],
+        dim: usize,
+        trials: &mut TrialHistory,
+    ) -> Vec<usize> {
+        let n = adjacency.len();
+        let affected: Vec<usize> = (0..n).collect();
+        order_affected(
+            &affected,
+            |v, out| out.extend(&adjacency[v]),
+            &[],
+            last,
+            &vec![dim; n],
+            &mut vec![0; n],
+            trials,
+        )
     }
 
     fn amd_order(adjacency: &[Vec<usize>], last: &[bool]) -> Vec<usize> {
