@@ -23,6 +23,7 @@
 //! optimum.
 
 mod add_factors;
+mod beside;
 mod block_factor;
 mod budget;
 mod dense;
@@ -423,14 +424,7 @@ impl IncrementalEngine {
         };
         let ((order, reaching, kept_roots, order_time), (change, linearize_time)) =
             if pending.len() >= LINEARIZE_BESIDE_FROM {
-                std::thread::scope(|scope| {
-                    let helper = scope.spawn(linearize_part);
-                    let ordered = order_part();
-                    let linearized = helper
-                        .join()
-                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-                    (ordered, linearized)
-                })
+                beside::run_beside(order_part, linearize_part)
             } else {
                 let linearized = linearize_part();
                 (order_part(), linearized)

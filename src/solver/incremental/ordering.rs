@@ -9,6 +9,7 @@
 //! (odometry from the newest pose) refactors a column or two, while a loop closure refactors
 //! a path to the root, not the map.
 
+use super::beside::run_beside;
 use super::elimination_cost::elimination_flops;
 use std::sync::{Mutex, PoisonError};
 
@@ -95,14 +96,8 @@ pub fn order_affected(
         // thread, beside AMD: the trial is decided on AMD's flops as before, so the order kept
         // is the same, only sooner (sphere2500 tries nearly every part).
         let ((by_amd, amd_flops), speculative) = if trials.expects_trial(affected.len()) {
-            std::thread::scope(|scope| {
-                let helper = scope.spawn(by_nd);
-                let amd = by_amd();
-                let nd = helper
-                    .join()
-                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-                (amd, Some(nd))
-            })
+            let (amd, nd) = run_beside(by_amd, by_nd);
+            (amd, Some(nd))
         } else {
             (by_amd(), None)
         };
