@@ -32,7 +32,8 @@ const NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE: f64 = 3e4;
 
 /// `affected` in the order to eliminate them. `neighbours(v, out)` lists the affected
 /// variables sharing a factor with `v`; `cliques` are groups of affected variables that fill
-/// in together; `last[v]` marks the variables to eliminate last.
+/// in together; `last[v]` marks the variables to eliminate last; `trials` remembers, per size
+/// of part, whether METIS was worth trying (the next part that size starts it beside AMD).
 pub fn order_affected(
     affected: &[usize],
     mut neighbours: impl FnMut(usize, &mut Vec<usize>),
@@ -289,11 +290,10 @@ mod tests {
             // Both histories now hold what this part needed.
             assert_eq!(fresh.expects_trial(n), dim == 6);
             assert_eq!(expecting.expects_trial(n), dim == 6);
-            let (mut by_nd, constrained): (Vec<usize>, Vec<usize>) = nested_dissection(&adjacency)
-                .expect("METIS orders a grid")
-                .into_iter()
-                .partition(|&v| !last[v]);
-            by_nd.extend(constrained);
+            let by_nd = moved_last(
+                nested_dissection(&adjacency).expect("METIS orders a grid"),
+                &last,
+            );
             let flops = |order: &[usize]| elimination_flops(&adjacency, order, |_| dim);
             // METIS's order needs fewer flops in both cases: only the trial rule tells them
             // apart.
@@ -324,10 +324,13 @@ mod tests {
     }
 
     fn amd_order(adjacency: &[Vec<usize>], last: &[bool]) -> Vec<usize> {
+        moved_last(BlockOrdering::amd_order(adjacency), last)
+    }
+
+    /// `order` with the vertices marked in `last` moved to its end (in that order otherwise).
+    fn moved_last(order: Vec<usize>, last: &[bool]) -> Vec<usize> {
         let (mut order, constrained): (Vec<usize>, Vec<usize>) =
-            BlockOrdering::amd_order(adjacency)
-                .into_iter()
-                .partition(|&v| !last[v]);
+            order.into_iter().partition(|&v| !last[v]);
         order.extend(constrained);
         order
     }
