@@ -121,7 +121,7 @@ pub fn order_affected(
 /// Per size class of refactored parts (powers of two of their variables), whether the last
 /// part of that class was worth a nested-dissection trial: a stream's parts of one size are
 /// alike (sphere2500's always are, the 2D files' small parts never), so the next one likely is.
-#[derive(Debug, Default, Clone)]
+#[derive(Debug, Default)]
 pub struct TrialHistory {
     worth_trying: u64,
 }
