@@ -16,8 +16,9 @@ Build and run (from the repository root; any python3, no packages needed here):
     # quick look: the first 2000 poses of a generated 10k graph, factord over HTTP only
     python3 benches/incremental/acceptance.py gen:10000 --limit 2000 --systems isam2,http
 
-Files: g2o paths, or `gen:N[:SEED]` for a Manhattan-world graph of N poses made by
-manhattan_gen.py (seed 1 by default) into ~/.cache/factord/data/ (made once, then reused).
+Files: g2o paths, `gen:N[:SEED]` for a Manhattan-world graph of N poses made by
+manhattan_gen.py, or `garage:N[:SEED]` for a 3D one of several storeys made by garage_gen.py
+(seed 1 by default), into ~/.cache/factord/data/ (made once, then reused).
 
 Each round runs, for each file in turn: iSAM2 (isam2_stream.py in the gtsam venv, 0.1 / 1 by
 default: --relinearize-threshold/--relinearize-skip), then factord over HTTP, then over zenoh
@@ -73,15 +74,20 @@ def factord_binary() -> str:
     return max(found, key=os.path.getmtime)
 
 
+GENERATORS = {"gen": ("manhattan", "manhattan_gen.py"), "garage": ("garage", "garage_gen.py")}
+
+
 def resolve(spec: str) -> str:
-    """A file path, or gen:N[:SEED] made (once) by manhattan_gen.py."""
-    if not spec.startswith("gen:"):
+    """A file path, or gen:N[:SEED] / garage:N[:SEED] made (once) by its generator."""
+    kind = spec.split(":")[0]
+    if kind not in GENERATORS or os.path.exists(spec):
         return spec
     parts = spec.split(":")
     poses, seed = int(parts[1]), int(parts[2]) if len(parts) > 2 else 1
-    out = os.path.join(DATA, f"manhattan_{poses}_s{seed}.g2o")
+    name, generator = GENERATORS[kind]
+    out = os.path.join(DATA, f"{name}_{poses}_s{seed}.g2o")
     if not os.path.exists(out):
-        subprocess.run([GTSAM_PYTHON, os.path.join(HERE, "manhattan_gen.py"), "--poses", str(poses),
+        subprocess.run([GTSAM_PYTHON, os.path.join(HERE, generator), "--poses", str(poses),
                         "--seed", str(seed), "--out", out], check=True, stdout=sys.stderr)
     return out
 
@@ -162,7 +168,7 @@ def table(name, rounds, systems):
 
 def main():
     p = argparse.ArgumentParser(description="issue 16 acceptance: iSAM2 vs factord over HTTP and zenoh")
-    p.add_argument("files", nargs="+", help="g2o files or gen:N[:SEED]")
+    p.add_argument("files", nargs="+", help="g2o files, gen:N[:SEED] or garage:N[:SEED]")
     p.add_argument("--systems", default=",".join(SYSTEMS), help="subset of " + ",".join(SYSTEMS))
     p.add_argument("--rounds", type=int, default=1)
     p.add_argument("--limit", type=int)
