@@ -44,11 +44,10 @@ import sys
 
 import numpy as np
 
-AREA_PER_POSE = 1.5  # m^2 per floor, as manhattan_gen.py (M3500)
-MIN_GAP = 4
-# At an intersection: straight, left, right, back (M3500's frequencies), as manhattan_gen.py.
-TURN_STEPS = (0, 1, 3, 2)  # quarter turns
-TURN_P = np.array([0.05, 0.31, 0.31, 0.33])
+from manhattan_gen import M3500_AREA_PER_POSE, MIN_GAP, TURN_P, add_closure_args
+
+# manhattan_gen.py's turns at an intersection (straight, left, right, back) in quarter turns.
+TURN_STEPS = (0, 1, 3, 2)
 HEADINGS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 
 
@@ -64,9 +63,7 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--ramp-probability", type=float, default=0.1)
     p.add_argument("--sigma-t", type=float, default=0.02)
     p.add_argument("--sigma-r", type=float, default=0.01)
-    p.add_argument("--closure-radius", type=float, default=2.0)
-    p.add_argument("--closure-probability", type=float, default=0.03)
-    p.add_argument("--max-closures", type=int, default=5)
+    add_closure_args(p)
     a = p.parse_args()
     if a.poses < 2 or a.floors < 1 or a.block < 1:
         p.error("--poses must be >= 2, --floors and --block >= 1")
@@ -138,7 +135,7 @@ def walk(a: argparse.Namespace, side: int, rng: np.random.Generator):
 def main() -> int:
     a = parse_args()
     rng = np.random.default_rng(a.seed)
-    side = a.side if a.side is not None else math.sqrt(AREA_PER_POSE * a.poses / a.floors)
+    side = a.side if a.side is not None else math.sqrt(M3500_AREA_PER_POSE * a.poses / a.floors)
     side = max(2 * a.block, a.block * 2 * round(side / (2 * a.block)))
     grid = walk(a, int(side), rng)
     truth = []

@@ -55,6 +55,13 @@ TURNS = np.array([0.0, math.pi / 2, -math.pi / 2, math.pi])
 TURN_P = np.array([0.05, 0.31, 0.31, 0.33])
 
 
+def add_closure_args(p: argparse.ArgumentParser) -> None:
+    """The loop-closure options, shared with garage_gen.py."""
+    p.add_argument("--closure-radius", type=float, default=2.0)
+    p.add_argument("--closure-probability", type=float, default=0.03)
+    p.add_argument("--max-closures", type=int, default=5)
+
+
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--poses", type=int, required=True)
@@ -65,9 +72,7 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--block", type=int, default=4)
     p.add_argument("--sigma-xy", type=float, default=0.02)
     p.add_argument("--sigma-theta", type=float, default=0.02)
-    p.add_argument("--closure-radius", type=float, default=2.0)
-    p.add_argument("--closure-probability", type=float, default=0.03)
-    p.add_argument("--max-closures", type=int, default=5)
+    add_closure_args(p)
     a = p.parse_args()
     if a.poses < 2:
         p.error("--poses must be >= 2")
