@@ -44,7 +44,7 @@ import sys
 
 import numpy as np
 
-from manhattan_gen import M3500_AREA_PER_POSE, MIN_GAP, TURN_P, add_closure_args
+from manhattan_gen import M3500_AREA_PER_POSE, MIN_GAP, TURN_P, add_closure_args, draw_closures
 
 # manhattan_gen.py's turns at an intersection (straight, left, right, back) in quarter turns.
 TURN_STEPS = (0, 1, 3, 2)
@@ -175,13 +175,9 @@ def main() -> int:
                         d = float(np.linalg.norm(truth[j][1] - truth[i][1]))
                         if d <= radius:
                             near.append((d, j))
-        near.sort()
-        if near:
-            keep = rng.random(len(near)) < a.closure_probability
-            kept = [j for (_, j), k in zip(near, keep) if k][: a.max_closures]
-            for j in sorted(kept):
-                edges.append((j, i, measure(j, i)))
-            closures_per_pose[i] = len(kept)
+        kept = draw_closures(near, a, rng)
+        edges.extend((j, i, measure(j, i)) for j in kept)
+        closures_per_pose[i] = len(kept)
 
     def pose_text(r, t):
         q = quaternion(r)

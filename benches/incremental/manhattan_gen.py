@@ -62,6 +62,17 @@ def add_closure_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-closures", type=int, default=5)
 
 
+def draw_closures(near: list, a: argparse.Namespace, rng: np.random.Generator) -> list:
+    """The loop closures kept among the candidates `near`, (distance, earlier pose) pairs: each
+    with --closure-probability, at most --max-closures, the nearest first; in pose order. Draws
+    nothing when there is no candidate (so the stream of draws is the same as it always was)."""
+    if not near:
+        return []
+    near.sort()
+    keep = rng.random(len(near)) < a.closure_probability
+    return sorted([j for (_, j), k in zip(near, keep) if k][: a.max_closures])
+
+
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--poses", type=int, required=True)
@@ -153,13 +164,9 @@ def main() -> int:
                 d = math.hypot(dx, dy)
                 if d <= r:
                     near.extend((d, j) for j in cells.get((x + dx, y + dy), ()))
-        near.sort()
-        if near:
-            keep = rng.random(len(near)) < a.closure_probability
-            kept = [j for (_, j), k in zip(near, keep) if k][: a.max_closures]
-            for j in sorted(kept):
-                edges.append((j, i, measure(j, i)))
-            closures_per_pose[i] = len(kept)
+        kept = draw_closures(near, a, rng)
+        edges.extend((j, i, measure(j, i)) for j in kept)
+        closures_per_pose[i] = len(kept)
     values = guess if a.values == "odometry" else truth
 
     out = a.out or os.path.expanduser(f"~/.cache/factord/data/manhattan_{a.poses}_s{a.seed}.g2o")
