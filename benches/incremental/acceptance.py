@@ -35,6 +35,9 @@ convention against its own batch optimum (factord: factord's solver in the bench
 iSAM2: GTSAM Gauss-Newton), the optimum being the lower of a solve from the file's values and one
 from the streamed estimate.
 
+A system that gives up mid-stream (GTSAM throwing, e.g. IndeterminateSystemException) is
+reported with the updates it answered until then (the `updates answered` row) and no chi2.
+
 --windows A:B,C:D  adds p99 over updates [A, B) of the stream for each system (the "latency stays
 flat as the map grows" target: p99 of 99k-100k <= 2 x p99 of 9k-10k); --every W adds p99 of every
 consecutive W updates. --limit N streams only the first N poses.
@@ -118,10 +121,12 @@ def run(system: str, path: str, args, binary: str, workdir: str):
 def stats(report, windows, every):
     lat = report["latencies_ms"]
     s = sorted(lat)
+    # A stream the system could not finish (isam2_stream.py's `failed_at_pose`) has no chi2.
+    gap = report["chi2_gap"] if report["chi2_gap"] is not None else float("nan")
     out = {"total_s": sum(lat) / 1e3, "p50_ms": percentile(s, 0.5), "p99_ms": percentile(s, 0.99),
-           "worst_ms": s[-1], "chi2_gap": report["chi2_gap"],
+           "worst_ms": s[-1], "chi2_gap": gap,
            # factord after it was idle and polished (iSAM2 has no idle work: same as above)
-           "idle_chi2_gap": report.get("idle_chi2_gap", report["chi2_gap"]),
+           "idle_chi2_gap": report.get("idle_chi2_gap", gap),
            "peak_rss_mb": (report.get("peak_rss_kb") or float("nan")) / 1024, "steps": len(lat)}
     for a, b in windows:
         part = sorted(lat[a:b])
@@ -132,7 +137,7 @@ def stats(report, windows, every):
     return out
 
 
-ROWS = [("total (s)", "total_s", "{:.2f}", 0.5), ("p50 update (ms)", "p50_ms", "{:.2f}", None),
+ROWS = [("updates answered", "steps", "{:.0f}", None), ("total (s)", "total_s", "{:.2f}", 0.5), ("p50 update (ms)", "p50_ms", "{:.2f}", None),
         ("p99 update (ms)", "p99_ms", "{:.2f}", 0.5), ("worst update (ms)", "worst_ms", "{:.1f}", 1.0),
         ("chi2 gap vs batch optimum", "chi2_gap", "{:+.1e}", None),
         ("chi2 gap once idle", "idle_chi2_gap", "{:+.1e}", None),
@@ -154,7 +159,7 @@ def table(name, rounds, systems):
         if has_isam2:
             base = med["isam2"][key]
             for sy in ours:
-                if key in ("chi2_gap", "idle_chi2_gap"):
+                if key in ("steps", "chi2_gap", "idle_chi2_gap"):
                     cells.append("")
                 else:
                     ratio = med[sy][key] / base if base else float("nan")
@@ -199,6 +204,9 @@ def main():
                     rep = run(sy, f, args, binary, workdir)
                     round_stats[sy], round_raw[sy] = stats(rep, windows, args.every), rep
                     st = round_stats[sy]
+                    if rep.get("failed_at_pose") is not None:
+                        print(f"round {r + 1} {os.path.basename(f)} {LABEL[sy]} FAILED at pose "
+                              f"{rep['failed_at_pose']}: {rep['error']}", file=sys.stderr)
                     print(f"round {r + 1} {os.path.basename(f)} {LABEL[sy]}: total {st['total_s']:.2f} s, "
                           f"p50 {st['p50_ms']:.2f} ms, p99 {st['p99_ms']:.2f} ms, worst {st['worst_ms']:.1f} ms, "
                           f"chi2 gap {st['chi2_gap']:+.1e}, peak {st['peak_rss_mb']:.0f} MB"

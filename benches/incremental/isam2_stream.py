@@ -199,6 +199,39 @@ def peak_rss_kb() -> int | None:
     return None
 
 
+def write_failure(args, graph: PoseGraph, latencies: list, peak_kb, failure: dict) -> int:
+    """The report of a stream GTSAM could not finish: the updates answered until it failed (no
+    chi2: the estimate is the last one before the failure and no batch solve is attempted)."""
+    ms = np.array(latencies) * 1e3
+    result = {
+        "system": "gtsam-isam2",
+        "gtsam_version": importlib.metadata.version("gtsam"),
+        "dataset": os.path.splitext(os.path.basename(args.file))[0],
+        "file": os.path.abspath(args.file),
+        "limit": args.limit,
+        "steps": len(latencies),
+        "edges": len(graph.edges),
+        "total_seconds": float(ms.sum() / 1e3),
+        "p50_ms": float(np.percentile(ms, 50)) if len(ms) else None,
+        "p99_ms": float(np.percentile(ms, 99)) if len(ms) else None,
+        "max_ms": float(ms.max()) if len(ms) else None,
+        "peak_rss_kb": peak_kb,
+        "chi2_gap": None,
+        "relinearize_threshold": args.relinearize_threshold,
+        "relinearize_skip": args.relinearize_skip,
+        **failure,
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+    if args.dump_latencies:
+        with open(args.dump_latencies, "w") as fh:
+            fh.writelines(f"{v:.6f}\n" for v in ms)
+    return 0
+
+
 def main() -> int:
     args = parse_args()
     full = read_pose_graph(args.file)
@@ -231,12 +264,22 @@ def main() -> int:
         pose, how = initial_guess(k, prev, steps[k], estimate, graph.vertices[k], dim)
         new_values = gtsam.Values()
         new_values.insert(k, pose)
-        isam.update(new_factors, new_values)
-        estimate = isam.calculateEstimate()
+        try:
+            isam.update(new_factors, new_values)
+            estimate = isam.calculateEstimate()
+        except RuntimeError as exc:
+            # GTSAM gave up (e.g. IndeterminateSystemException): the stream ends here, and the
+            # report says so with the latencies of the updates that were answered.
+            failure = {"failed_at_pose": k, "error": str(exc).strip().splitlines()[0]}
+            break
         latencies.append(time.perf_counter() - t0)
         guess_sources[how] += 1
         prev = k
+    else:
+        failure = None
     peak_kb = peak_rss_kb()
+    if failure is not None:
+        return write_failure(args, graph, latencies, peak_kb, failure)
 
     # ---- chi2 of the final estimate and of the batch optimum (not timed) ----------------------
     factors = gtsam.NonlinearFactorGraph()
