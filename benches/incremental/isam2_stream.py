@@ -199,28 +199,8 @@ def peak_rss_kb() -> int | None:
     return None
 
 
-def write_failure(args, graph: PoseGraph, latencies: list, peak_kb, failure: dict) -> int:
-    """The report of a stream GTSAM could not finish: the updates answered until it failed (no
-    chi2: the estimate is the last one before the failure and no batch solve is attempted)."""
-    ms = np.array(latencies) * 1e3
-    result = {
-        "system": "gtsam-isam2",
-        "gtsam_version": importlib.metadata.version("gtsam"),
-        "dataset": os.path.splitext(os.path.basename(args.file))[0],
-        "file": os.path.abspath(args.file),
-        "limit": args.limit,
-        "steps": len(latencies),
-        "edges": len(graph.edges),
-        "total_seconds": float(ms.sum() / 1e3),
-        "p50_ms": float(np.percentile(ms, 50)) if len(ms) else None,
-        "p99_ms": float(np.percentile(ms, 99)) if len(ms) else None,
-        "max_ms": float(ms.max()) if len(ms) else None,
-        "peak_rss_kb": peak_kb,
-        "chi2_gap": None,
-        "relinearize_threshold": args.relinearize_threshold,
-        "relinearize_skip": args.relinearize_skip,
-        **failure,
-    }
+def emit(args, result: dict, ms: np.ndarray) -> int:
+    """Prints the report (and writes it to --json), and the latencies to --dump-latencies."""
     text = json.dumps(result, indent=2)
     print(text)
     if args.json:
@@ -230,6 +210,38 @@ def write_failure(args, graph: PoseGraph, latencies: list, peak_kb, failure: dic
         with open(args.dump_latencies, "w") as fh:
             fh.writelines(f"{v:.6f}\n" for v in ms)
     return 0
+
+
+def stream_report(args, graph: PoseGraph, ms: np.ndarray, peak_kb) -> dict:
+    """What every report has: the dataset, the updates answered and their latencies (ms)."""
+    some = len(ms) > 0
+    return {
+        "system": "gtsam-isam2",
+        "gtsam_version": importlib.metadata.version("gtsam"),
+        "dataset": os.path.splitext(os.path.basename(args.file))[0],
+        "file": os.path.abspath(args.file),
+        "limit": args.limit,
+        "steps": len(ms),
+        "edges": len(graph.edges),
+        "total_seconds": float(ms.sum() / 1e3),
+        "mean_ms": float(ms.mean()) if some else None,
+        "p50_ms": float(np.percentile(ms, 50)) if some else None,
+        "p90_ms": float(np.percentile(ms, 90)) if some else None,
+        "p99_ms": float(np.percentile(ms, 99)) if some else None,
+        "max_ms": float(ms.max()) if some else None,
+        "dim": graph.dim,
+        "peak_rss_kb": peak_kb,
+        "relinearize_threshold": args.relinearize_threshold,
+        "relinearize_skip": args.relinearize_skip,
+    }
+
+
+def write_failure(args, graph: PoseGraph, latencies: list, peak_kb, failure: dict) -> int:
+    """The report of a stream GTSAM could not finish: the updates answered until it failed (no
+    chi2: the estimate is the last one before the failure and no batch solve is attempted)."""
+    ms = np.array(latencies) * 1e3
+    result = {**stream_report(args, graph, ms, peak_kb), "chi2_gap": None, **failure}
+    return emit(args, result, ms)
 
 
 def main() -> int:
@@ -296,21 +308,7 @@ def main() -> int:
     batch_chi2 = 2.0 * factors.error(batch)
     polished_chi2 = 2.0 * factors.error(polished)
     result = {
-        "system": "gtsam-isam2",
-        "gtsam_version": importlib.metadata.version("gtsam"),
-        "dataset": os.path.splitext(os.path.basename(args.file))[0],
-        "file": os.path.abspath(args.file),
-        "limit": args.limit,
-        "steps": len(ids),
-        "edges": len(graph.edges),
-        "total_seconds": float(ms.sum() / 1e3),
-        "mean_ms": float(ms.mean()),
-        "p50_ms": float(np.percentile(ms, 50)),
-        "p90_ms": float(np.percentile(ms, 90)),
-        "p99_ms": float(np.percentile(ms, 99)),
-        "max_ms": float(ms.max()),
-        "dim": dim,
-        "peak_rss_kb": peak_kb,
+        **stream_report(args, graph, ms, peak_kb),
         "final_chi2": final_chi2,
         "final_chi2_t2v": chi2_g2o_convention(graph, as_tuples(estimate, ids, dim)),
         "batch_chi2": batch_chi2,
@@ -321,21 +319,11 @@ def main() -> int:
         "batch_from_isam2_iterations": polished_iterations,
         "initial_chi2_file": 2.0 * factors.error(file_values),
         "prior": "prior sigma 1e-6",
-        "relinearize_threshold": args.relinearize_threshold,
-        "relinearize_skip": args.relinearize_skip,
         "factorization": str(params.getFactorization()),
         "initial_guess": guess_sources,
         "timed": "per step: build factors+values, isam.update, isam.calculateEstimate",
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        with open(args.json, "w") as fh:
-            fh.write(text + "\n")
-    if args.dump_latencies:
-        with open(args.dump_latencies, "w") as fh:
-            fh.writelines(f"{v:.6f}\n" for v in ms)
-    return 0
+    return emit(args, result, ms)
 
 
 if __name__ == "__main__":
