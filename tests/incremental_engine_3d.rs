@@ -157,6 +157,18 @@ impl Stream {
     }
 }
 
+/// Relinearise past `threshold` as often as it takes, every column below a change solved again:
+/// an update ends at a Gauss-Newton fixed point to that threshold.
+fn to_fixed_point(threshold: f64) -> UpdateParams {
+    UpdateParams {
+        relinearize_threshold: threshold,
+        wildfire_threshold: 0.0,
+        max_passes: 20,
+        relinearize_scalars: usize::MAX,
+        defer_from: usize::MAX,
+    }
+}
+
 /// What an update's report says it did, summed over a stream: the paths the test must have
 /// taken for its comparison to cover them.
 #[derive(Default, Debug)]
@@ -181,13 +193,7 @@ impl Coverage {
 /// has: each one is the batch solve's answer, not only the last.
 #[test]
 fn every_update_of_a_3d_stream_ends_at_the_batch_optimum_so_far() {
-    let params = UpdateParams {
-        relinearize_threshold: 1e-4,
-        wildfire_threshold: 0.0,
-        max_passes: 20,
-        relinearize_scalars: usize::MAX,
-        defer_from: usize::MAX,
-    };
+    let params = to_fixed_point(1e-4);
     let mut stream = Stream::new(11);
     let mut coverage = Coverage::default();
     let mut worst = (0.0f64, 0);
@@ -217,13 +223,7 @@ fn streamed_3d_updates_stay_near_the_optimum_and_polishes_between_them_reach_it(
         relinearize_scalars: usize::MAX,
         defer_from: usize::MAX,
     };
-    let polish = UpdateParams {
-        relinearize_threshold: 1e-6,
-        wildfire_threshold: 0.0,
-        max_passes: 20,
-        relinearize_scalars: usize::MAX,
-        defer_from: usize::MAX,
-    };
+    let polish = to_fixed_point(1e-6);
     let mut stream = Stream::new(5);
     let mut coverage = Coverage::default();
     let mut gaps = Vec::new();
