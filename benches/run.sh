@@ -7,6 +7,8 @@ cd "$(dirname "$0")/.."
 data="${FACTORD_BENCH_DATA:-$(pwd)/../shared/data}"
 export FACTORD_BENCH_DATA="$data"
 bin="${FACTORD_BENCH_BIN:-$HOME/.cache/factord/bin}"
+# The build directory .ci/run uses; run_benchmarks.py looks for factord there too.
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/factord/target}"
 cargo build --release --locked
 benches/reference/setup.sh
 benches/reference/ceres/build.sh
@@ -22,7 +24,7 @@ for spec in "intel:2d/ls_slam/intel-v.dat:2d/ls_slam/intel-e.dat" "killian:2d/ls
             "input_M3500_g2o:2d/carlone/input_M3500_g2o.g2o:" "sphere2500:3d/sesync/sphere2500.g2o:"; do
   IFS=: read -r name graph edges <<<"$spec"
   args=("$data/$graph"); [ -n "$edges" ] && args+=(--edges "$data/$edges")
-  target/release/factord bench-cholesky "${args[@]}" --json --repeat 30 --write-mtx "$tmp/$name.mtx" >"$tmp/f.json"
+  "$CARGO_TARGET_DIR/release/factord" bench-cholesky "${args[@]}" --json --repeat 30 --write-mtx "$tmp/$name.mtx" >"$tmp/f.json"
   "$bin/cholmod_bench" --matrix "$tmp/$name.mtx" --repeat 30 --mode supernodal --ordering amd >"$tmp/a.json"
   "$bin/cholmod_bench" --matrix "$tmp/$name.mtx" --repeat 30 --mode simplicial --ordering amd >"$tmp/b.json"
   python3 - "$name" "$tmp" <<'PY'
