@@ -49,10 +49,9 @@ REFERENCE_DIR = REPO / "benches" / "reference"
 DEFAULT_DATA = Path(os.environ.get("FACTORD_BENCH_DATA", "/work/shared/data"))
 VENVS = Path(os.environ.get("FACTORD_BENCH_VENVS", Path.home() / ".cache" / "factord" / "venvs"))
 BIN_DIR = Path(os.environ.get("FACTORD_BENCH_BIN", Path.home() / ".cache" / "factord" / "bin"))
-# The build directory the README, .ci/run and benches/run.sh use: $CARGO_TARGET_DIR, kept outside
-# the clone by default.
-TARGET_DIR = Path(os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache" / "factord" / "target"))
-DEFAULT_FACTORD = TARGET_DIR / "release" / "factord"
+# In the build directory of .ci/run and benches/run.sh, as every other bench script looks for it.
+TARGET = os.environ.get("CARGO_TARGET_DIR", Path.home() / ".cache" / "factord" / "target")
+DEFAULT_FACTORD = Path(TARGET) / "release" / "factord"
 DEFAULT_CERES = BIN_DIR / "ceres_pose_graph"
 
 TOLERANCE = {2: 1e-6, 3: 1e-3}

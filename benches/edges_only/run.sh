@@ -8,15 +8,16 @@ cd "$(dirname "$0")/../.."
 data="${FACTORD_BENCH_DATA:-$(pwd)/../shared/data}"
 repeat=5
 [ "${1:-}" = "--repeat" ] && repeat="$2"
+# The build directory .ci/run and benches/run.sh use (a clean build in the clone takes ~30 min).
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/factord/target}"
 cargo build --release --locked
 benches/reference/setup.sh >/dev/null
 py="${FACTORD_BENCH_VENVS:-$HOME/.cache/factord/venvs}/gtsam/bin/python"
-target="${CARGO_TARGET_DIR:-target}"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 for graph in 2d/gtsam/w20000.txt 2d/sesync/CSAIL.g2o 2d/gtsam/victoria_park.txt; do
   [ -f "$data/$graph" ] || { echo "skipped $graph: not in $data" >&2; continue; }
-  /usr/bin/time -f "%M" -o "$tmp/rss" "$target/release/factord" solve "$data/$graph" --repeat "$repeat" \
+  /usr/bin/time -f "%M" -o "$tmp/rss" "$CARGO_TARGET_DIR/release/factord" solve "$data/$graph" --repeat "$repeat" \
     --summary-json "$tmp/summary.json" --out "$tmp/ours.g2o" --quiet
   "$py" benches/edges_only/gtsam_no_vertices.py --file "$data/$graph" --ours "$tmp/ours.g2o" >"$tmp/gtsam.json"
   python3 - "$graph" "$tmp" <<'PY'
