@@ -21,7 +21,8 @@ use std::sync::{Arc, Mutex, RwLock};
 use serde::Serialize;
 use tokio::sync::{watch, Notify};
 
-use super::fleet_lock::{LockError, SessionLock};
+pub use super::fleet_lock::LockError;
+use super::fleet_lock::SessionLock;
 use super::placement;
 use super::{Caller, Service, ServiceError};
 use crate::journal::SessionDir;
@@ -60,6 +61,9 @@ pub struct FleetInfo {
     /// The sessions loaded here, as the asking caller may see them.
     pub sessions: Vec<serde_json::Value>,
     pub load: FleetLoad,
+    /// Whether this instance serves the fleet's `<p>/rpc` now (one instance at a time does).
+    #[serde(default)]
+    pub rpc_gateway: bool,
 }
 
 #[derive(Clone, Debug, Serialize, serde::Deserialize)]
@@ -88,6 +92,17 @@ pub struct Fleet {
     loaded: watch::Sender<BTreeSet<String>>,
     /// Membership changed: rebalance now.
     pub(super) changed: Notify,
+    /// This instance serves the fleet's `<p>/rpc` (set by the transport that serves it).
+    rpc_gateway: AtomicBool,
+}
+
+/// Held while this instance serves the fleet's `<p>/rpc`: on the state directory the fleet
+/// shares, the kernel lets one instance at a time hold it, so two instances that each believe
+/// they were elected (their views of the membership differ for a moment) cannot both serve.
+/// Dropping it releases it.
+#[derive(Debug)]
+pub struct GatewayLock {
+    _lock: SessionLock,
 }
 
 /// An instance id: 1-64 characters of `[A-Za-z0-9._-]`.
@@ -144,6 +159,17 @@ impl Fleet {
 
     pub fn settled(&self) -> bool {
         self.settled.load(Ordering::SeqCst)
+    }
+
+    /// Takes the rpc gateway's lock (`<state_dir>/fleet-gateway.lock`), without waiting.
+    pub fn gateway_lock(&self) -> Result<GatewayLock, LockError> {
+        SessionLock::try_acquire_file(&self.state_dir.join("fleet-gateway.lock"))
+            .map(|lock| GatewayLock { _lock: lock })
+    }
+
+    /// Records whether this instance serves the fleet's `<p>/rpc` (shown in its info).
+    pub fn set_rpc_gateway(&self, serving: bool) {
+        self.rpc_gateway.store(serving, Ordering::SeqCst);
     }
 
     /// The live instances, this one included, sorted.
@@ -278,6 +304,7 @@ impl Service {
             broken: Mutex::new(HashSet::new()),
             loaded: watch::channel(BTreeSet::new()).0,
             changed: Notify::new(),
+            rpc_gateway: AtomicBool::new(false),
         });
         if self.fleet.set(Arc::clone(&fleet)).is_err() {
             return self.fleet.get().cloned();
@@ -362,6 +389,7 @@ impl Service {
                 queued: health.queued,
             },
             sessions,
+            rpc_gateway: fleet.rpc_gateway.load(Ordering::SeqCst),
         })
     }
 }

@@ -7,7 +7,8 @@
 //!   sessions, load) and `<p>/@fleet/<instance>/rpc`, commands other instances forward to it
 //!   (run here, never forwarded again);
 //! - declares the keys of the sessions it holds, as it loads and releases them
-//!   (`fleet_routes`).
+//!   (`fleet_routes`);
+//! - once settled, takes part in electing the one instance that serves `<p>/rpc` (`gateway`).
 //!
 //! `@fleet` is a verbatim chunk: `<p>/*/…` wildcards never match it, so it cannot be a session.
 
@@ -98,10 +99,14 @@ pub(super) async fn start(
             }
         }
     }));
+    let ctx = c.clone();
     tasks.push(tokio::spawn(async move {
         tokio::time::sleep(SETTLE).await;
         tracing::info!(live = ?fleet.live(), "fleet: membership settled");
         fleet.set_settled();
+        if let Err(e) = super::gateway::run(ctx, fleet).await {
+            tracing::error!("fleet: the rpc gateway election stopped: {e}");
+        }
     }));
     Ok(tasks)
 }

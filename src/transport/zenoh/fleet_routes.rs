@@ -1,6 +1,6 @@
 //! Routing a fleet's commands over zenoh.
 //!
-//! - `<p>/rpc` (every instance, complete: a query reaches one of them) and `<p>/<s>/rpc` (the
+//! - `<p>/rpc` (the one instance elected its gateway, `gateway.rs`) and `<p>/<s>/rpc` (the
 //!   owner of `s`): a command without a session is answered here (`health`: this instance;
 //!   `list_sessions`: every instance's, merged from their `info`); `create_session` without a
 //!   name is named first (`Fleet::generate_name`); a command naming a session runs here when

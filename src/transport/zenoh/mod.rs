@@ -14,10 +14,11 @@
 //! - `<p>/<session>/bin/poses` — the estimates of `out/poses` in binary (`proto/v1/poses-binary.md`,
 //!   `crate::api::poses_binary`); a `lagged` marker there is JSON.
 //!
-//! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: each
-//! instance declares `<p>/rpc` (complete, so a query reaches one instance, which forwards it
-//! to the session's owner), and the owner of a session alone declares its `in/*`, `estimate`
-//! and `rpc` keys and publishes its `out/*`; membership lives under `<p>/@fleet/`.
+//! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: one
+//! instance at a time declares `<p>/rpc` (the gateway, `gateway.rs`: a query must never reach
+//! two instances), answering or forwarding to the session's owner, and the owner of a session
+//! alone declares its `in/*`, `estimate` and `rpc` keys and publishes its `out/*`; membership
+//! lives under `<p>/@fleet/`.
 
 use std::sync::Arc;
 
@@ -32,6 +33,7 @@ mod config;
 mod fleet;
 mod fleet_routes;
 mod forward;
+mod gateway;
 mod inputs;
 
 use config::{caller, config, zenoh_error};
@@ -111,32 +113,23 @@ pub async fn start(
     let fleet = service.fleet().cloned();
     let mut tasks = Vec::new();
 
-    // In a fleet every instance declares it, complete: a query reaches one of them, which
-    // answers or forwards to the session's owner (`fleet_routes`).
-    let rpc = session
-        .declare_queryable(format!("{prefix}/rpc"))
-        .complete(fleet.is_some())
-        .await
-        .map_err(zenoh_error)?;
-    let c = ctx.clone();
-    let routed = fleet.is_some();
-    tasks.push(tokio::spawn(async move {
-        while let Ok(query) = rpc.recv_async().await {
-            let c = c.clone();
-            // Commands with `wait` may take a while: never block the queryable.
-            tokio::spawn(async move {
-                match routed {
-                    true => fleet_routes::route_rpc(&c, &query, fleet_routes::Forward::Yes).await,
-                    false => answer_rpc(&c, &query).await,
-                }
-            });
-        }
-    }));
-
     match fleet {
-        // Sessions' keys are declared by their owner only, as it loads them.
+        // Sessions' keys are declared by their owner only, as it loads them; `<p>/rpc` by one
+        // instance at a time (`gateway`).
         Some(fleet) => tasks.extend(fleet::start(&ctx, fleet).await?),
         None => {
+            let rpc = session
+                .declare_queryable(format!("{prefix}/rpc"))
+                .await
+                .map_err(zenoh_error)?;
+            let c = ctx.clone();
+            tasks.push(tokio::spawn(async move {
+                while let Ok(query) = rpc.recv_async().await {
+                    let c = c.clone();
+                    // Commands with `wait` may take a while: never block the queryable.
+                    tokio::spawn(async move { answer_rpc(&c, &query).await });
+                }
+            }));
             let estimates = session
                 .declare_queryable(format!("{prefix}/*/estimate"))
                 .await
