@@ -120,16 +120,14 @@ async fn every_command_runs_once(z: &zenoh::Session, tag: &str) {
         &json!({"op": "optimize", "session": name, "wait": true}),
     )
     .await;
-    let stats = once(
-        z,
-        "stats",
-        &json!({"op": "get_stats", "session": name}),
-    )
-    .await;
+    let stats = once(z, "stats", &json!({"op": "get_stats", "session": name})).await;
     assert_eq!(stats["sequence"], 2, "{stats}");
     assert_eq!(stats["num_factors"], 2, "{stats}");
     assert_eq!(stats["num_variables"], 3, "{stats}");
-    assert_eq!(stats["solves"], 1, "one optimize, no automatic solve: {stats}");
+    assert_eq!(
+        stats["solves"], 1,
+        "one optimize, no automatic solve: {stats}"
+    );
 
     once(
         z,
@@ -177,7 +175,11 @@ async fn the_readme_star_and_client_callers() {
     let peer = zenoh_session("peer", "connect", &fleet.instance(2).zenoh).await;
     check(
         &fleet,
-        &[("star-hub", hub), ("star-spoke", spoke), ("star-peer", peer)],
+        &[
+            ("star-hub", hub),
+            ("star-spoke", spoke),
+            ("star-peer", peer),
+        ],
     )
     .await;
 }

@@ -34,7 +34,10 @@ fn four_tests_making_one_venv_from_nothing_at_once_all_get_a_working_one() {
             }
         };
         let out = Command::new(&python)
-            .args(["-c", "import pip, xxhash; print(xxhash.xxh64(b'factord').hexdigest())"])
+            .args([
+                "-c",
+                "import pip, xxhash; print(xxhash.xxh64(b'factord').hexdigest())",
+            ])
             .output()
             .expect("python runs");
         assert!(

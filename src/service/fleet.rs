@@ -21,6 +21,7 @@ use std::sync::{Arc, Mutex, RwLock};
 use serde::Serialize;
 use tokio::sync::{watch, Notify};
 
+use super::fleet_key::FleetKey;
 pub use super::fleet_lock::LockError;
 use super::fleet_lock::SessionLock;
 use super::placement;
@@ -94,6 +95,8 @@ pub struct Fleet {
     pub(super) changed: Notify,
     /// This instance serves the fleet's `<p>/rpc` (set by the transport that serves it).
     rpc_gateway: AtomicBool,
+    /// The fleet's secret; `None` on a trusted network.
+    key: Option<Arc<FleetKey>>,
 }
 
 /// Held while this instance serves the fleet's `<p>/rpc`: on the state directory the fleet
@@ -120,6 +123,12 @@ impl Fleet {
 
     pub fn http(&self) -> &str {
         &self.http
+    }
+
+    /// The fleet's secret, with which members prove membership; `None` on a network
+    /// declared trusted (`fleet.trusted_network`), where every announced peer is a member.
+    pub fn key(&self) -> Option<&FleetKey> {
+        self.key.as_deref()
     }
 
     /// Instance `id` is live (announced, or its URL learnt).
@@ -291,7 +300,13 @@ pub use crate::session::moving;
 impl Service {
     /// Makes this service instance `instance` of a fleet whose HTTP is reached at `http`.
     /// Needs the journal (the shared state directory); call before [`Self::recover_sessions`].
-    pub fn join_fleet(self: &Arc<Self>, instance: &str, http: &str) -> Option<Arc<Fleet>> {
+    /// `key`: the fleet's secret (`None`: a trusted network, every announced peer a member).
+    pub fn join_fleet(
+        self: &Arc<Self>,
+        instance: &str,
+        http: &str,
+        key: Option<FleetKey>,
+    ) -> Option<Arc<Fleet>> {
         let (state_dir, _) = self.journal.clone()?;
         let fleet = Arc::new(Fleet {
             instance: instance.to_string(),
@@ -305,6 +320,7 @@ impl Service {
             loaded: watch::channel(BTreeSet::new()).0,
             changed: Notify::new(),
             rpc_gateway: AtomicBool::new(false),
+            key: key.map(Arc::new),
         });
         if self.fleet.set(Arc::clone(&fleet)).is_err() {
             return self.fleet.get().cloned();
@@ -420,7 +436,7 @@ mod tests {
         let journal = Some((dir.to_path_buf(), JournalConfig::default()));
         let service = Service::with_journal(Limits::default(), journal);
         let fleet = service
-            .join_fleet(id, &format!("http://{id}:8080"))
+            .join_fleet(id, &format!("http://{id}:8080"), None)
             .unwrap();
         (service, fleet)
     }

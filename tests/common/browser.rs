@@ -38,14 +38,22 @@ pub fn install() -> Result<(), String> {
         match failure {
             None if present() => Ok(()),
             None => Err("apt-get installed chromium, but not where expected".into()),
-            Some(why) => Err(format!("cannot install chromium and chromium-driver: {why}")),
+            Some(why) => Err(format!(
+                "cannot install chromium and chromium-driver: {why}"
+            )),
         }
     })?
 }
 
 /// Installs chromium and chromium-driver; `Some(why)` when apt-get failed.
 fn apt_install() -> Option<String> {
-    let packages = ["install", "-y", "--no-install-recommends", "chromium", "chromium-driver"];
+    let packages = [
+        "install",
+        "-y",
+        "--no-install-recommends",
+        "chromium",
+        "chromium-driver",
+    ];
     apt(&packages).err()
 }
 

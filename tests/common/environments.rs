@@ -70,7 +70,13 @@ pub fn python_venv_in(
         let python = venv.join("bin/python");
         for args in installs {
             let mut install = Command::new(&python);
-            install.args(["-m", "pip", "install", "--quiet", "--disable-pip-version-check"]);
+            install.args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ]);
             if pip == Pip::NoCache {
                 install.arg("--no-cache-dir");
             }

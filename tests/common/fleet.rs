@@ -101,6 +101,15 @@ impl Fleet {
         fleet
     }
 
+    /// The fleet's shared secret (beside the state directory), written on first use.
+    pub fn secret_file(&self) -> PathBuf {
+        let path = self.state_dir.with_extension("fleet-secret");
+        if !path.exists() {
+            std::fs::write(&path, format!("secret of {}\n", path.display())).unwrap();
+        }
+        path
+    }
+
     /// Where instance `i` logs (beside the state directory).
     fn stderr_path(&self, i: usize) -> PathBuf {
         self.state_dir
@@ -135,6 +144,7 @@ impl Fleet {
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
         cmd.arg("serve")
             .args(["--fleet", "--instance-id", &id])
+            .env("FACTORD_FLEET_SECRET_FILE", self.secret_file())
             .args(["--listen", "127.0.0.1:0"])
             .args(["--zenoh-listen", &self.zenoh[i]])
             .args(["--zenoh-multicast", "off"])

@@ -5,11 +5,11 @@ pub mod ack_proxy;
 pub mod browser;
 pub mod cli;
 pub mod docker;
+pub mod environments;
 pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;
 pub mod producer;
-pub mod environments;
 pub mod server;
 
 #[allow(unused_imports)]

@@ -151,6 +151,18 @@ pub async fn require_token(
     mut request: Request,
     next: Next,
 ) -> Response {
+    // A request a fleet member forwarded, whose asserted caller was verified (`fleet_caller`).
+    let asserted = request
+        .extensions()
+        .get::<super::fleet_caller::AssertedCaller>()
+        .map(|a| a.0.clone());
+    if let Some(caller) = asserted {
+        request.extensions_mut().insert(caller);
+        request
+            .extensions_mut()
+            .insert(super::login::LoginTokens(Some(tokens)));
+        return next.run(request).await;
+    }
     let path = request.uri().path();
     let open = path == "/v1/health"
         || path == "/v1/openapi.json"

@@ -11,7 +11,9 @@
 //! Election, evaluated on every membership change and on a tick:
 //! - an instance declares the liveliness token `<p>/@fleet/<id>/ready` once it has settled
 //!   (learnt the membership), so an instance just starting is never elected before it serves;
-//! - the elected one is the smallest ready id; it declares `<p>/rpc` only when no other
+//! - the elected one is the smallest ready id among the members (with a fleet secret, those
+//!   that proved membership: a rogue peer's tokens neither take nor block the gateway); it
+//!   declares `<p>/rpc` only when no other
 //!   instance holds the token `<p>/@fleet/<id>/gateway` and it holds the gateway lock
 //!   ([`Fleet::gateway_lock`], an OS lock on the shared state directory), then declares its own
 //!   gateway token;
@@ -64,7 +66,8 @@ impl Serving {
                 let ctx = ctx.clone();
                 // Commands with `wait` may take a while: never hold zenoh's thread.
                 runtime.spawn(async move {
-                    fleet_routes::route_rpc(&ctx, &query, Forward::Yes).await
+                    let answer = fleet_routes::route_rpc(&ctx, &query, Forward::Yes).await;
+                    answer.send(&query).await
                 });
             })
             .await
@@ -110,6 +113,19 @@ impl Holders {
     }
 }
 
+impl Holders {
+    /// Those of the fleet's members (itself included): a token from a peer that has not
+    /// proved membership (`fleet_proof`) neither takes nor blocks the gateway.
+    fn members(&self, fleet: &Fleet) -> Holders {
+        let me = fleet.instance();
+        let ids = self
+            .0
+            .iter()
+            .filter(|id| *id == me || fleet.member(id).is_some());
+        Holders(ids.cloned().collect())
+    }
+}
+
 /// Whether `me` should serve: the smallest of the ready instances.
 fn elected(ready: &Holders, me: &str) -> bool {
     ready.0.first().is_none_or(|first| first == me)
@@ -123,7 +139,9 @@ pub(super) async fn run(c: Context, fleet: Arc<Fleet>) -> Result<(), ZenohError>
             .declare_subscriber(format!("{p}/@fleet/*/{what}"))
             .history(true)
     };
-    let ready_tokens = liveliness("ready").await.map_err(super::config::zenoh_error)?;
+    let ready_tokens = liveliness("ready")
+        .await
+        .map_err(super::config::zenoh_error)?;
     let gateway_tokens = liveliness("gateway")
         .await
         .map_err(super::config::zenoh_error)?;
@@ -150,7 +168,7 @@ pub(super) async fn run(c: Context, fleet: Arc<Fleet>) -> Result<(), ZenohError>
             _ = tick.tick() => {}
         }
         ready.0.insert(me.clone());
-        let elect = elected(&ready, &me);
+        let elect = elected(&ready.members(&fleet), &me);
         if !elect {
             waiting_since = None;
             if let Some(s) = serving.take() {
@@ -160,7 +178,7 @@ pub(super) async fn run(c: Context, fleet: Arc<Fleet>) -> Result<(), ZenohError>
             }
             continue;
         }
-        let others_serve = gateways.0.iter().any(|g| *g != me);
+        let others_serve = gateways.members(&fleet).0.iter().any(|g| *g != me);
         if serving.is_some() || others_serve {
             continue;
         }

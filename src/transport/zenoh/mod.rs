@@ -22,6 +22,7 @@
 
 use std::sync::Arc;
 
+use zenoh::bytes::ZBytes;
 use zenoh::query::Query;
 
 use crate::api::wire::EstimateQuery;
@@ -31,6 +32,7 @@ use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 
 mod config;
 mod fleet;
+mod fleet_proof;
 mod fleet_routes;
 mod forward;
 mod gateway;
@@ -172,6 +174,11 @@ pub async fn start(
 
 /// `<p>/rpc` outside a fleet: any command, run here.
 pub(super) async fn answer_rpc(c: &Context, query: &Query) {
+    rpc_answer(c, query).await.send(query).await;
+}
+
+/// The answer to the command in `query`, run here.
+pub(super) async fn rpc_answer(c: &Context, query: &Query) -> Answer {
     let max_items = c.service.limits().max_batch_items;
     let result = match oversized(query.payload(), c.max_payload) {
         Some(refusal) => Err(refusal),
@@ -180,7 +187,7 @@ pub(super) async fn answer_rpc(c: &Context, query: &Query) {
             Err(e) => Err(e),
         },
     };
-    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+    Answer::of(result.map(|r| serde_json::to_vec(&r)))
 }
 
 /// `<p>/<session>/estimate`.
@@ -220,19 +227,41 @@ pub(super) async fn reply(
     query: &Query,
     result: Result<serde_json::Result<Vec<u8>>, ServiceError>,
 ) {
-    let outcome = match result {
-        Ok(Ok(body)) => query.reply(query.key_expr().clone(), body).await,
-        Ok(Err(e)) => {
-            let body = serde_json::json!({ "error": ServiceError::internal(e.to_string()).body });
-            query.reply_err(body.to_string()).await
+    Answer::of(result).send(query).await;
+}
+
+/// A command's answer as zenoh carries it: a reply's payload, or an error reply's
+/// (`{"error": {…}}`).
+#[must_use = "an answer must be sent, or the query gets no reply"]
+pub(super) enum Answer {
+    Reply(ZBytes),
+    Error(ZBytes),
+}
+
+impl Answer {
+    pub(super) fn of(result: Result<serde_json::Result<Vec<u8>>, ServiceError>) -> Self {
+        match result {
+            Ok(Ok(body)) => Answer::Reply(body.into()),
+            Ok(Err(e)) => Answer::error(ServiceError::internal(e.to_string())),
+            Err(e) => {
+                crate::runtime::metrics::count_rejection(&e.body);
+                Answer::error(e)
+            }
         }
-        Err(e) => {
-            crate::runtime::metrics::count_rejection(&e.body);
-            let body = serde_json::json!({ "error": e.body });
-            query.reply_err(body.to_string()).await
+    }
+
+    pub(super) fn error(e: ServiceError) -> Self {
+        Answer::Error(serde_json::json!({ "error": e.body }).to_string().into())
+    }
+
+    /// Sends it as the answer to `query`.
+    pub(super) async fn send(self, query: &Query) {
+        let outcome = match self {
+            Answer::Reply(body) => query.reply(query.key_expr().clone(), body).await,
+            Answer::Error(body) => query.reply_err(body).await,
+        };
+        if let Err(e) = outcome {
+            tracing::warn!("zenoh reply failed: {e}");
         }
-    };
-    if let Err(e) = outcome {
-        tracing::warn!("zenoh reply failed: {e}");
     }
 }
