@@ -1,7 +1,7 @@
-//! Damaged session files against the real binary: a byte flipped in the middle of a journal, or
-//! in a snapshot, after a `kill -9`. Nothing acknowledged may vanish silently: the session comes
-//! back with what precedes the damage, read-only (409 `session_corrupt`), says where in
-//! `last_error`, its files stay byte for byte as they were, and DELETE removes it.
+//! Damaged session files against the real binary, after a `kill -9`: a byte flipped in a
+//! journal (in the middle, or in its last record) or in a snapshot. Nothing acknowledged may vanish silently: the session comes back with what
+//! precedes the damage, read-only (409 `session_corrupt`), says where in `last_error`, its files
+//! stay byte for byte as they were, and DELETE removes it; no sequence is ever reused.
 
 mod common;
 
@@ -127,6 +127,51 @@ async fn assert_deleted(c: &reqwest::Client, s: &TestServer, name: &str) {
     assert!(left.is_empty(), "files left after DELETE: {left:?}");
 }
 
+/// Restarts the server on `state` twice, its journal damaged at byte `damaged` (now `bytes`):
+/// each time the session comes back with the `sequence` batches before the damage, read-only,
+/// `last_error` naming the file and the offset, the journal byte for byte as it was. Then
+/// DELETE removes it.
+async fn assert_journal_damage_kept(state: &Path, bytes: &[u8], damaged: usize, sequence: u64) {
+    let journal = state.join("sessions/robot/journal.log");
+    let c = client();
+    let s = TestServer::start_at(state, &["--no-zenoh"], &[]);
+    let stats = settled(&c, &s, "robot").await;
+    println!("stats after recovery: {stats:#}");
+    assert_eq!(
+        (&stats["corrupt"], &stats["recovering"]),
+        (&json!(true), &json!(false)),
+        "{stats}"
+    );
+    assert_eq!(stats["sequence"], sequence, "what precedes the damage: {stats}");
+    let error = stats["last_error"].as_str().unwrap_or_default();
+    assert!(
+        error.contains(&journal.display().to_string())
+            && error.contains(&format!("byte {damaged}"))
+            && error.contains("read-only"),
+        "last_error names the file and the offset: {stats}"
+    );
+    assert_read_only(&c, &s, "robot", sequence).await;
+    assert_eq!(
+        std::fs::read(&journal).unwrap(),
+        bytes,
+        "the journal is unchanged"
+    );
+    assert!(s.stderr().contains("journal damaged"), "{}", s.stderr());
+    s.assert_no_panic();
+
+    // A second restart finds the same: no sequence was reused, nothing was cut.
+    s.kill();
+    let s = TestServer::start_at(state, &["--no-zenoh"], &[]);
+    let stats = settled(&c, &s, "robot").await;
+    assert_eq!(
+        (&stats["corrupt"], &stats["sequence"]),
+        (&json!(true), &json!(sequence))
+    );
+    assert_eq!(std::fs::read(&journal).unwrap(), bytes);
+    assert_deleted(&c, &s, "robot").await;
+    s.assert_no_panic();
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_byte_flipped_mid_journal_keeps_the_file_and_makes_the_session_read_only() {
     let state = common::temp_dir("damage-journal");
@@ -138,44 +183,23 @@ async fn a_byte_flipped_mid_journal_keeps_the_file_and_makes_the_session_read_on
     let damaged = offsets[offsets.len() - BATCHES + 50];
     bytes[damaged + 8 + 40] ^= 0x01;
     std::fs::write(&journal, &bytes).unwrap();
+    assert_journal_damage_kept(&state, &bytes, damaged, 50).await;
+}
 
-    let c = client();
-    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    let stats = settled(&c, &s, "robot").await;
-    println!("stats after recovery: {stats:#}");
-    assert_eq!(
-        (&stats["corrupt"], &stats["recovering"]),
-        (&json!(true), &json!(false)),
-        "{stats}"
-    );
-    assert_eq!(stats["sequence"], 50, "what precedes the damage: {stats}");
-    let error = stats["last_error"].as_str().unwrap_or_default();
-    assert!(
-        error.contains(&journal.display().to_string())
-            && error.contains(&format!("byte {damaged}"))
-            && error.contains("read-only"),
-        "last_error names the file and the offset: {stats}"
-    );
-    assert_read_only(&c, &s, "robot", 50).await;
-    assert_eq!(
-        std::fs::read(&journal).unwrap(),
-        bytes,
-        "the journal is unchanged"
-    );
-    assert!(s.stderr().contains("journal damaged"), "{}", s.stderr());
-    s.assert_no_panic();
-
-    // A second restart finds the same: no sequence was reused, nothing was cut.
-    s.kill();
-    let s = TestServer::start_at(&state, &["--no-zenoh"], &[]);
-    let stats = settled(&c, &s, "robot").await;
-    assert_eq!(
-        (&stats["corrupt"], &stats["sequence"]),
-        (&json!(true), &json!(50))
-    );
-    assert_eq!(std::fs::read(&journal).unwrap(), bytes);
-    assert_deleted(&c, &s, "robot").await;
-    s.assert_no_panic();
+/// Issue 52, item 9: a byte flipped in the last record, batch 101, acknowledged under the
+/// default `fsync: always`. The record was written whole (its length fits, none of it reads as
+/// zeros), so this is damage, not a torn tail: it used to be cut with an INFO line, `last_error`
+/// stayed empty and sequence 101 went to the next batch.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_byte_flipped_in_the_last_acknowledged_record_is_damage_not_a_torn_tail() {
+    let state = common::temp_dir("damage-last-record");
+    write_101_batches(&state, "robot", &["--no-zenoh"]).await;
+    let journal = state.join("sessions/robot/journal.log");
+    let mut bytes = std::fs::read(&journal).unwrap();
+    let damaged = *record_offsets(&bytes).last().unwrap();
+    bytes[damaged + 8 + 40] ^= 0x01;
+    std::fs::write(&journal, &bytes).unwrap();
+    assert_journal_damage_kept(&state, &bytes, damaged, BATCHES as u64 - 1).await;
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -1,15 +1,20 @@
 //! A checksummed append-only record file.
 //!
 //! Each record is `[payload length: u32 LE][CRC-32 of the payload: u32 LE][payload]`. A crash in
-//! the middle of an append leaves a record whose length runs past the end of the file or whose
-//! checksum does not match; reading stops at the first such record and the file is truncated
-//! there, so a torn tail is dropped, never misread. Everything before it was acknowledged only
-//! after its append (and, under `fsync always`, its fsync) returned.
+//! the middle of an append leaves a record whose length runs past the end of the file, or some of
+//! whose bytes still read as the zeros they were written over (a sector the disk had not written,
+//! or the end of a write cut short). Reading stops at the first bad record and, when it is such a
+//! torn tail, the file is truncated there, so it is dropped, never misread. Everything before it
+//! was acknowledged only after its append (and, under `fsync always`, its fsync) returned.
 //!
 //! A bad record with an intact record anywhere after it is not a torn tail: an append only ever
 //! tears the last record, so what follows was acknowledged and the file was damaged later (a bad
-//! sector, a stray write). Cutting there would drop acknowledged records without a trace, so the
-//! file is then left exactly as it is and the damage is reported ([`Corruption`]).
+//! sector, a stray write). Nor is a last record that was written whole (its length fits the file,
+//! none of its sectors and not its last byte reads as zeros) but fails its checksum: under `fsync
+//! always` it was acknowledged. Cutting either would drop acknowledged records without a trace,
+//! so the file is then left exactly as it is and the damage is reported ([`Corruption`], see
+//! `read`). A damaged length field of the last record can still pass for a torn tail: the record
+//! it describes runs past the file or into the zeros after it, as a torn one does.
 //!
 //! The file is grown ahead of the records, with zeros written for real (64 KiB, then by its own
 //! size up to 1 MiB at a time), and records are written into that space at their offset. An

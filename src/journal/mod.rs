@@ -165,8 +165,9 @@ pub struct Recovered {
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
     pub truncated_bytes: u64,
-    /// The journal is damaged before its end: `entries` are those before the damage, the file
-    /// is unchanged, and this says where (file and byte offset).
+    /// The journal is damaged (a bad record that is not a torn tail, see `log`): `entries` are
+    /// those before the damage, the file is unchanged, and this says where (file and byte
+    /// offset) and why it is damage.
     pub corruption: Option<String>,
 }
 

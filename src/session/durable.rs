@@ -37,8 +37,8 @@ pub struct Recovery {
     pub entries: usize,
     pub truncated_bytes: u64,
     pub seconds: f64,
-    /// The journal was damaged before its end: the session holds the entries before the damage
-    /// and is read-only (see [`Session::corruption`]).
+    /// The journal was damaged (a bad record that is not a torn tail): the session holds the
+    /// entries before the damage and is read-only (see [`Session::corruption`]).
     pub corruption: Option<String>,
 }
 

@@ -18,32 +18,57 @@ pub struct LogContents {
     pub corruption: Option<Corruption>,
 }
 
-/// Where a record file is damaged: the first bad record, and the first intact record after it
-/// (which proves the damage is not a torn tail).
+/// The smallest unit a disk writes whole or not at all. A crash leaves each sector of an append
+/// written or as it was (zeros: records are written into zeros or past the file's end, see the
+/// parent module); a larger sector is whole pieces of this size.
+const SECTOR: usize = 512;
+
+/// Where a record file is damaged, and why that is not a torn tail.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Corruption {
     /// Byte offset of the first record whose length or checksum is wrong.
     pub offset: u64,
-    /// Byte offset of the first intact record after it.
-    pub next_intact: u64,
+    pub evidence: Evidence,
     /// Size of the file.
     pub file_bytes: u64,
 }
 
+/// What proves a bad record was damaged after it was written, not torn by a crash.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Evidence {
+    /// An intact record starts at this offset after it: an append only ever tears the last one.
+    IntactAfter(u64),
+    /// It is the last record but was written whole: its length fits the file, no sector's share
+    /// of its payload reads as zeros and neither does its last byte (see [`written_whole`]). Its
+    /// checksum fails because its bytes changed later; under `fsync always` it was
+    /// acknowledged.
+    WrittenWhole { payload_bytes: u64 },
+}
+
 impl std::fmt::Display for Corruption {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "the record at byte {} is damaged (its length or checksum does not match) and intact \
-             records follow from byte {} (file size {} bytes): not a torn tail",
-            self.offset, self.next_intact, self.file_bytes
-        )
+        let (offset, size) = (self.offset, self.file_bytes);
+        match self.evidence {
+            Evidence::IntactAfter(next) => write!(
+                f,
+                "the record at byte {offset} is damaged (its length or checksum does not match) \
+                 and intact records follow from byte {next} (file size {size} bytes): not a torn \
+                 tail"
+            ),
+            Evidence::WrittenWhole { payload_bytes } => write!(
+                f,
+                "the last record, at byte {offset}, is damaged: its checksum does not match, yet \
+                 all of its {payload_bytes} bytes were written (its length fits the file, none of \
+                 its sectors reads as zeros; file size {size} bytes): not a torn tail, and it may \
+                 have been acknowledged"
+            ),
+        }
     }
 }
 
-/// Reads every intact record of `path`. A torn tail (a bad record with nothing intact after it)
-/// is cut off; a bad record with intact records after it is reported as [`Corruption`] and the
-/// file is not changed. A missing file has no records.
+/// Reads every intact record of `path`. A torn tail (a bad last record that a crash could have
+/// left) is cut off; a bad record that is damage ([`Evidence`]) is reported as [`Corruption`] and
+/// the file is not changed. A missing file has no records.
 pub fn read_log(path: &Path) -> io::Result<LogContents> {
     let mut data = Vec::new();
     match File::open(path) {
@@ -69,14 +94,14 @@ pub fn read_log(path: &Path) -> io::Result<LogContents> {
             corruption: None,
         });
     }
-    // A bad record: damage when an intact one follows, else a torn tail.
-    if let Some(next_intact) = next_intact_record(&data, valid + 1) {
+    // A bad record: damage when something proves it, else a torn tail.
+    if let Some(evidence) = damage_evidence(&data, valid) {
         return Ok(LogContents {
             records,
             truncated_bytes: 0,
             corruption: Some(Corruption {
                 offset: valid as u64,
-                next_intact: next_intact as u64,
+                evidence,
                 file_bytes: data.len() as u64,
             }),
         });
@@ -124,6 +149,33 @@ fn parse(data: &[u8]) -> (Vec<Vec<u8>>, usize) {
 fn next_intact_record(data: &[u8], from: usize) -> Option<usize> {
     (from..data.len().saturating_sub(HEADER))
         .find(|&at| record_at(data, at).is_some_and(|(payload, _)| !payload.is_empty()))
+}
+
+/// Why the bad record at `at` is damage, not a torn tail; `None` when a crash could have left it.
+fn damage_evidence(data: &[u8], at: usize) -> Option<Evidence> {
+    if let Some(next) = next_intact_record(data, at + 1) {
+        return Some(Evidence::IntactAfter(next as u64));
+    }
+    written_whole(data, at).map(|payload_bytes| Evidence::WrittenWhole { payload_bytes })
+}
+
+/// The payload length of the record at `at` when all of it was written: its length fits the
+/// file, its last byte is not zero (a write cut short leaves zeros after what it wrote), and no
+/// sector's share of it is all zeros (a crash may write an append's sectors in any order). A
+/// payload is JSON, which has no zero byte. A flipped byte in the last record passes; a record
+/// torn in the zeros the file was grown by does not.
+fn written_whole(data: &[u8], at: usize) -> Option<u64> {
+    let header = data.get(at..at.checked_add(HEADER)?)?;
+    let len = u32::from_le_bytes([header[0], header[1], header[2], header[3]]) as usize;
+    if len == 0 || len > MAX_RECORD {
+        return None;
+    }
+    let start = at + HEADER;
+    let payload = data.get(start..start.checked_add(len)?)?;
+    let blank = |piece: &[u8]| piece.iter().all(|&b| b == 0);
+    let (first, rest) = payload.split_at((SECTOR - start % SECTOR).min(len));
+    let whole = payload.last() != Some(&0) && !blank(first) && !rest.chunks(SECTOR).any(blank);
+    whole.then_some(len as u64)
 }
 
 #[cfg(test)]
@@ -189,7 +241,7 @@ mod tests {
             read.corruption,
             Some(Corruption {
                 offset: 2 * record as u64,
-                next_intact: 3 * record as u64,
+                evidence: Evidence::IntactAfter(3 * record as u64),
                 file_bytes: bytes.len() as u64,
             })
         );
@@ -207,44 +259,78 @@ mod tests {
         let read = read_log(&path).unwrap();
         assert_eq!(read.records.len(), 1);
         assert_eq!(
-            read.corruption.map(|c| c.next_intact),
-            Some(2 * record as u64)
+            read.corruption.map(|c| c.evidence),
+            Some(Evidence::IntactAfter(2 * record as u64))
         );
     }
 
+    /// Item 9 of issue 52: the last record, acknowledged under `fsync always`, damaged later.
     #[test]
-    fn a_flipped_bit_in_the_last_record_is_a_torn_tail() {
+    fn a_flipped_bit_in_the_last_record_is_damage_and_the_file_is_kept() {
         let path = temp("flip-last");
         let mut w = LogWriter::open(&path, Fsync::Never).unwrap();
         for i in 0..4 {
             w.append(format!("record {i}").as_bytes()).unwrap();
         }
         drop(w);
-        let mut bytes = std::fs::read(&path).unwrap();
-        let third = 3 * (HEADER + 8) + HEADER + 3;
-        bytes[third] ^= 0x10;
-        // Zeros after it (a file system's torn tail, or the space the file was grown by) are not
-        // an intact (empty) record.
-        bytes.extend_from_slice(&[0; 24]);
-        std::fs::write(&path, &bytes).unwrap();
-        let read = read_log(&path).unwrap();
-        assert_eq!(read.records.len(), 3);
-        assert_eq!(read.corruption, None);
-        assert_eq!(
-            read.truncated_bytes,
-            (bytes.len() - 3 * (HEADER + 8)) as u64
-        );
-        // Appending after recovery continues a valid log.
-        let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
-        w.append(b"after").unwrap();
-        assert_eq!(read_log(&path).unwrap().records.len(), 4);
-        // A header claiming an absurd length is a torn header, not an allocation.
-        let mut bytes = std::fs::read(&path).unwrap();
-        bytes.truncate(w.bytes() as usize);
-        bytes.extend_from_slice(&u32::MAX.to_le_bytes());
-        bytes.extend_from_slice(&[0; 4]);
-        std::fs::write(&path, &bytes).unwrap();
-        assert_eq!(read_log(&path).unwrap().truncated_bytes, 8);
+        let last = 3 * (HEADER + 8);
+        let whole = std::fs::read(&path).unwrap();
+        // A bit of its payload, of its checksum field.
+        for (at, bit) in [(last + HEADER + 3, 0x10), (last + 5, 0x01)] {
+            let mut bytes = whole.clone();
+            bytes[at] ^= bit;
+            std::fs::write(&path, &bytes).unwrap();
+            let read = read_log(&path).unwrap();
+            assert_eq!(read.records.len(), 3, "byte {at}");
+            let payload_bytes = u32::from_le_bytes(bytes[last..last + 4].try_into().unwrap());
+            assert_eq!(
+                read.corruption,
+                Some(Corruption {
+                    offset: last as u64,
+                    evidence: Evidence::WrittenWhole {
+                        payload_bytes: payload_bytes.into()
+                    },
+                    file_bytes: bytes.len() as u64,
+                }),
+                "byte {at}"
+            );
+            assert_eq!(read.truncated_bytes, 0);
+            assert_eq!(std::fs::read(&path).unwrap(), bytes, "the file is kept");
+        }
     }
 
+    /// What a crash can leave of the last append (its unwritten bytes read as zeros, or are past
+    /// the file's end) is a torn tail: cut, and appending goes on after the records before it.
+    #[test]
+    fn a_last_record_a_crash_could_have_torn_is_cut() {
+        let path = temp("torn-last");
+        let payload = |i: u8| format!("{{\"record\":{i},\"pad\":\"{}\"}}", "x".repeat(1500));
+        let mut w = LogWriter::open(&path, Fsync::Never).unwrap();
+        w.append(payload(0).as_bytes()).unwrap();
+        let last = w.bytes() as usize;
+        w.append(payload(1).as_bytes()).unwrap();
+        let end = w.bytes() as usize;
+        drop(w);
+        let whole = std::fs::read(&path).unwrap();
+        let sector = (last + HEADER + 600) / SECTOR * SECTOR;
+        let absurd = |b: &mut Vec<u8>| b[last..last + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let cases: [(&str, &dyn Fn(&mut Vec<u8>)); 4] = [
+            ("a write cut short", &|b| b[end - 100..end].fill(0)),
+            ("a sector not written", &|b| b[sector..sector + SECTOR].fill(0)),
+            ("its end past the file's", &|b| b.truncate(end - 10)),
+            ("an absurd length", &absurd),
+        ];
+        for (what, damage) in cases {
+            let mut bytes = whole.clone();
+            damage(&mut bytes);
+            std::fs::write(&path, &bytes).unwrap();
+            let read = read_log(&path).unwrap();
+            assert_eq!(read.records, [payload(0).into_bytes()], "{what}");
+            assert_eq!(read.corruption, None, "{what}");
+            assert_eq!(read.truncated_bytes, (bytes.len() - last) as u64, "{what}");
+            let mut w = LogWriter::open(&path, Fsync::Always).unwrap();
+            w.append(b"after").unwrap();
+            assert_eq!(read_log(&path).unwrap().records.len(), 2, "{what}");
+        }
+    }
 }
