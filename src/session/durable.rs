@@ -253,6 +253,23 @@ impl Session {
         ));
     }
 
+    /// The session's sequence is `u64::MAX` (only damaged or edited files lead there: see
+    /// `journal::snapshot_file`): it becomes read-only for good rather than give the next batch
+    /// sequence 0 and reuse acknowledged sequences.
+    pub(super) fn sequences_exhausted(&self) -> ServiceError {
+        let reason = format!(
+            "its sequence is {}, the last there is: another batch would wrap to sequence 0 and \
+             reuse acknowledged sequences; the session is read-only (DELETE removes it)",
+            u64::MAX
+        );
+        tracing::error!(session = self.name, "{reason}");
+        self.mark_corrupt(reason.clone());
+        ServiceError::conflict(
+            "session_corrupt",
+            format!("session `{}` is read-only: {reason}", self.name),
+        )
+    }
+
     /// Makes the session read-only for good, with `reason` as its `last_error`. Set before
     /// `recovering` clears (when it is recovering), so no write slips in between.
     fn mark_corrupt(&self, reason: String) {
