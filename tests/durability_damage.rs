@@ -143,7 +143,10 @@ async fn assert_journal_damage_kept(state: &Path, bytes: &[u8], damaged: usize, 
         (&json!(true), &json!(false)),
         "{stats}"
     );
-    assert_eq!(stats["sequence"], sequence, "what precedes the damage: {stats}");
+    assert_eq!(
+        stats["sequence"], sequence,
+        "what precedes the damage: {stats}"
+    );
     let error = stats["last_error"].as_str().unwrap_or_default();
     assert!(
         error.contains(&journal.display().to_string())
@@ -283,10 +286,21 @@ async fn a_snapshot_whose_checksum_fails_is_damage() {
         .windows(9)
         .position(|w| w == b"\"value\":[")
         .expect("a variable with its value");
-    let digit = values + snapshot[values..].iter().position(u8::is_ascii_digit).unwrap();
+    let digit = values
+        + snapshot[values..]
+            .iter()
+            .position(u8::is_ascii_digit)
+            .unwrap();
     // Never '0': a leading zero would not be JSON.
-    snapshot[digit] = if snapshot[digit] == b'9' { b'8' } else { snapshot[digit] + 1 };
-    assert_eq!(snapshot_json(&snapshot)["sequence"].as_u64().map(|s| s > 0), Some(true));
+    snapshot[digit] = if snapshot[digit] == b'9' {
+        b'8'
+    } else {
+        snapshot[digit] + 1
+    };
+    assert_eq!(
+        snapshot_json(&snapshot)["sequence"].as_u64().map(|s| s > 0),
+        Some(true)
+    );
     assert_snapshot_damage_kept(&state, &extra, &snapshot, &["checksum mismatch"]).await;
 }
 
@@ -324,12 +338,20 @@ async fn a_snapshot_without_a_checksum_still_loads() {
     let s = TestServer::start_at(&state, &extra, &[]);
     let stats = settled(&c, &s, "robot").await;
     assert_eq!(
-        (&stats["corrupt"], &stats["sequence"], &stats["num_variables"]),
+        (
+            &stats["corrupt"],
+            &stats["sequence"],
+            &stats["num_variables"]
+        ),
         (&json!(false), &json!(BATCHES), &json!(BATCHES)),
         "{stats}"
     );
     let batch = json!({"variables": [{"key": 100000, "kind": "se2", "value": [0, 0, 0]}]});
     let (status, v) = post(&c, &s.url("/v1/sessions/robot/batches"), &batch).await;
-    assert_eq!((status, v["sequence"].as_u64()), (200, Some(BATCHES as u64 + 1)), "{v}");
+    assert_eq!(
+        (status, v["sequence"].as_u64()),
+        (200, Some(BATCHES as u64 + 1)),
+        "{v}"
+    );
     s.assert_no_panic();
 }

@@ -95,8 +95,10 @@ mod tests {
     use super::*;
 
     fn snapshot(sequence: u64) -> Vec<u8> {
-        serde_json::to_vec(&serde_json::json!({"sequence": sequence, "next_factor_id": 3,
-            "auto_optimize": {"policy": "manual"}, "variables": [], "factors": []}))
+        serde_json::to_vec(
+            &serde_json::json!({"sequence": sequence, "next_factor_id": 3,
+            "auto_optimize": {"policy": "manual"}, "variables": [], "factors": []}),
+        )
         .unwrap()
     }
 
@@ -121,7 +123,10 @@ mod tests {
         bytes[at] = b'3';
         let e = decode(Path::new("s.json"), &bytes).unwrap_err();
         assert!(matches!(e, JournalError::SnapshotChecksum { .. }), "{e}");
-        assert!(e.to_string().starts_with("s.json: checksum mismatch"), "{e}");
+        assert!(
+            e.to_string().starts_with("s.json: checksum mismatch"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -152,6 +157,11 @@ mod tests {
             assert!(matches!(e, JournalError::LastSequence { .. }), "{e}");
             assert!(e.to_string().contains("18446744073709551615"), "{e}");
         }
-        assert_eq!(decode(Path::new("s.json"), &file(&snapshot(u64::MAX - 1))).unwrap().sequence, u64::MAX - 1);
+        assert_eq!(
+            decode(Path::new("s.json"), &file(&snapshot(u64::MAX - 1)))
+                .unwrap()
+                .sequence,
+            u64::MAX - 1
+        );
     }
 }

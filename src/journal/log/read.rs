@@ -316,7 +316,9 @@ mod tests {
         let absurd = |b: &mut Vec<u8>| b[last..last + 4].copy_from_slice(&u32::MAX.to_le_bytes());
         let cases: [(&str, &dyn Fn(&mut Vec<u8>)); 4] = [
             ("a write cut short", &|b| b[end - 100..end].fill(0)),
-            ("a sector not written", &|b| b[sector..sector + SECTOR].fill(0)),
+            ("a sector not written", &|b| {
+                b[sector..sector + SECTOR].fill(0)
+            }),
             ("its end past the file's", &|b| b.truncate(end - 10)),
             ("an absurd length", &absurd),
         ];
