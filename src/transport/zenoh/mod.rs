@@ -158,13 +158,20 @@ pub async fn start(
     let runtime = tokio::runtime::Handle::current();
     // Weak: the observer is kept by the service itself.
     let bound_service = Arc::downgrade(&service);
+    let max_payload = policy.max_payload_bytes;
     service.observe_sessions(Box::new(move |s| {
         if caller.may_see(s) {
             let _guard = runtime.enter();
             forward(publisher.clone(), fwd_prefix.clone(), s);
             // A session with a ROS 2 binding joins the robots' ROS graph on this zenoh session.
             if let Some(service) = bound_service.upgrade() {
-                super::ros2::bind(publisher.clone(), service, Arc::clone(&caller), s);
+                let context = super::ros2::Context {
+                    zenoh: publisher.clone(),
+                    service,
+                    caller: Arc::clone(&caller),
+                    max_payload,
+                };
+                super::ros2::bind(context, s);
             }
         }
     }));
