@@ -18,30 +18,9 @@ mod common;
 
 use std::time::Duration;
 
-use common::fleet::{Fleet, Wiring};
+use common::fleet::{zenoh_replies, Fleet, Wiring};
 use common::server::{free_port, zenoh_session};
 use serde_json::{json, Value};
-
-type Replies = Vec<Result<Value, Value>>;
-
-/// Every reply to `payload` on `key`, each as it came (no consolidation).
-async fn replies(z: &zenoh::Session, key: &str, payload: &Value) -> Replies {
-    let replies = z
-        .get(key)
-        .payload(payload.to_string())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(Duration::from_secs(10))
-        .await
-        .expect("query sent");
-    let mut out = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
-        out.push(match reply.result() {
-            Ok(s) => Ok(serde_json::from_slice(&s.payload().to_bytes()).unwrap()),
-            Err(e) => Err(serde_json::from_slice(&e.payload().to_bytes()).unwrap()),
-        });
-    }
-    out
-}
 
 /// `payload` on `factord/rpc`: exactly one reply, a success; returns it. Until the fleet's
 /// gateway is known to the caller's zenoh, a query may find no queryable at all (no reply):
@@ -49,7 +28,7 @@ async fn replies(z: &zenoh::Session, key: &str, payload: &Value) -> Replies {
 async fn once(z: &zenoh::Session, what: &str, payload: &Value) -> Value {
     let mut tries = 0;
     loop {
-        let got = replies(z, "factord/rpc", payload).await;
+        let got = zenoh_replies(z, "factord/rpc", payload).await;
         match got.as_slice() {
             [] if tries < 50 => {
                 tries += 1;
@@ -63,7 +42,7 @@ async fn once(z: &zenoh::Session, what: &str, payload: &Value) -> Value {
 
 /// `payload` on `factord/rpc`: exactly one reply, an error with `code`.
 async fn refused_once(z: &zenoh::Session, what: &str, payload: &Value, code: &str) {
-    let got = replies(z, "factord/rpc", payload).await;
+    let got = zenoh_replies(z, "factord/rpc", payload).await;
     match got.as_slice() {
         [Err(e)] => assert_eq!(e["error"]["code"], code, "{what}: {e}"),
         other => panic!("{what}: expected one refusal `{code}`, got {other:?}"),

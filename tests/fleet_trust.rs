@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use common::fleet::{infos, Fleet};
-use common::server::{free_port, zenoh_peer};
+use common::server::{client, free_port, zenoh_peer};
 use serde_json::{json, Value};
 
 const ALICE: &str = "alice-token-0123456789abcdef";
@@ -109,13 +109,6 @@ impl RoguePeer {
             forwarded,
         }
     }
-}
-
-fn client() -> reqwest::Client {
-    reqwest::Client::builder()
-        .timeout(Duration::from_secs(20))
-        .build()
-        .unwrap()
 }
 
 /// A request with `token`, repeated while a session moves (503); the status and JSON answer.

@@ -184,17 +184,7 @@ async fn stamps(server: &TestServer, name: &str, count: usize) -> Vec<f64> {
 /// The server's peak resident set (VmHWM) after resetting it to the current one, in bytes.
 fn reset_peak(server: &TestServer) -> u64 {
     std::fs::write(format!("/proc/{}/clear_refs", server.pid()), "5").expect("clear_refs");
-    peak_rss(server)
-}
-
-fn peak_rss(server: &TestServer) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{}/status", server.pid())).unwrap();
-    let line = status
-        .lines()
-        .find(|l| l.starts_with("VmHWM:"))
-        .expect("VmHWM");
-    let kib: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
-    kib << 10
+    server.peak_rss()
 }
 
 /// Item 5: a ROS message beyond `max_body_bytes` is refused on its size, with an event and a
@@ -273,7 +263,7 @@ async fn out_of_bounds_ros_values_are_refused_naming_the_field() {
         "header.frame_id has a length of 4294967280 bytes",
     )
     .await;
-    let grown = peak_rss(&server).saturating_sub(before);
+    let grown = server.peak_rss().saturating_sub(before);
     assert!(grown < 64 << 20, "the peak RSS grew {} MB", grown >> 20);
 
     // Absolute poses: the same value and stamp bounds.

@@ -359,24 +359,12 @@ mod tests {
     use serde_json::json;
 
     use super::*;
-    use crate::api::wire::AutoOptimize;
 
     /// Issue 52, item 10: at sequence `u64::MAX` the next batch is refused and the session made
     /// read-only; it is never acknowledged with sequence 0.
     #[test]
     fn the_batch_after_the_last_sequence_is_refused_not_wrapped() {
-        let runtime = tokio::runtime::Runtime::new().unwrap();
-        let pool = crate::runtime::pool::WorkerPool::new(1);
-        let kind = catalogue::session_kind("pose_graph_2d").unwrap();
-        let session = Session::new(
-            "last".into(),
-            kind,
-            (kind.default_options)(),
-            AutoOptimize::Manual {},
-            runtime.handle().clone(),
-            pool.handle(),
-            crate::api::Limits::default(),
-        );
+        let (_runtime, pool, session) = crate::session::test_session("last");
         session.lock().sequence = u64::MAX - 1;
         let pose = |key: u64| -> Batch {
             serde_json::from_value(json!({"variables": [{"key": key, "kind": "se2",

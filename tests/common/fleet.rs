@@ -244,6 +244,30 @@ impl Fleet {
     }
 }
 
+/// Every reply to `payload` on `key`, each as it came (no consolidation): the JSON of a reply,
+/// or of an error reply.
+pub async fn zenoh_replies(
+    z: &zenoh::Session,
+    key: &str,
+    payload: &Value,
+) -> Vec<Result<Value, Value>> {
+    let replies = z
+        .get(key)
+        .payload(payload.to_string())
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_secs(10))
+        .await
+        .expect("query sent");
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        out.push(match reply.result() {
+            Ok(s) => Ok(serde_json::from_slice(&s.payload().to_bytes()).unwrap()),
+            Err(e) => Err(serde_json::from_slice(&e.payload().to_bytes()).unwrap()),
+        });
+    }
+    out
+}
+
 /// Every instance's `info` (zenoh `factord/@fleet/*/info`).
 pub async fn infos(z: &zenoh::Session) -> Vec<Value> {
     let replies = z
