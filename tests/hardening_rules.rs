@@ -1,6 +1,7 @@
 //! The smaller holes of issue 14 (item 10), each over the wire: an overflowing cost, an endless
 //! window, an inexact float key, unnamed sessions after a restart, and marginal factorisations
-//! counted in `memory_bytes`.
+//! counted in `memory_bytes`. Then those of issue 52 (item 12): robust scales out of range,
+//! internal factor names as user types, far-off quaternions, unnamed sessions after a named `s1`.
 
 mod common;
 
@@ -121,4 +122,34 @@ async fn marginal_factorisations_count_in_memory_bytes() {
         grown >= 8 * 9000,
         "memory_bytes grew {grown} bytes: {before} → {after}"
     );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn robust_scales_out_of_range_are_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "r", "kind": "pose_graph_2d"})).await;
+    let batch = |kind: &str, scale: f64| {
+        json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}],
+               "factors": [{"type": "prior_se2", "keys": [0], "measurement": [1, 0, 0],
+                            "sigmas": [1, 1, 1], "robust": {"kind": kind, "scale": scale}}]})
+    };
+    let url = s.url("/v1/sessions/r/batches?wait=true");
+    for (kind, scale) in [
+        ("tukey", 1e300),
+        ("cauchy", 1e-300),
+        ("huber", 2e9),
+        ("huber", 1e-10),
+    ] {
+        let (status, v) = post(&c, &url, &batch(kind, scale)).await;
+        assert_eq!(status, 400, "{kind} {scale}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_value", "{v}");
+        assert_eq!(v["error"]["field"], "factors[0].robust.scale", "{v}");
+    }
+    let (_, stats) = get(&c, &s.url("/v1/sessions/r")).await;
+    assert_eq!(stats["num_variables"], 0, "nothing applied: {stats}");
+    let (status, v) = post(&c, &url, &batch("cauchy", 1e-9)).await;
+    assert_eq!(status, 200, "the smallest scale is accepted: {v}");
+    let (status, v) = post(&c, &url, &batch("tukey", 1e9)).await;
+    assert_eq!(status, 200, "the largest scale is accepted: {v}");
 }
