@@ -153,3 +153,31 @@ async fn robust_scales_out_of_range_are_refused() {
     let (status, v) = post(&c, &url, &batch("tukey", 1e9)).await;
     assert_eq!(status, 200, "the largest scale is accepted: {v}");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn internal_factor_names_are_refused_as_user_type_names() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    let names = [
+        "imu_preintegration",
+        "prior_nav",
+        "pose_prior_nav",
+        "position_prior_nav",
+        "relative_pose_nav",
+        "marginal_prior",
+        "photometric_patch",
+    ];
+    for name in names {
+        let mut ty = common::user_between_se2();
+        ty["name"] = json!(name);
+        let body = json!({"session": "u", "kind": "pose_graph_2d",
+                          "factor_types": [common::user_between_se2(), ty]});
+        let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+        assert_eq!(status, 400, "{name}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_factor_type", "{v}");
+        assert_eq!(v["error"]["field"], "factor_types[1].name", "{v}");
+    }
+    let body = json!({"session": "u", "kind": "pose_graph_2d",
+                      "factor_types": [common::user_between_se2()]});
+    create(&c, &s, &body).await;
+}
