@@ -181,3 +181,54 @@ async fn internal_factor_names_are_refused_as_user_type_names() {
                       "factor_types": [common::user_between_se2()]});
     create(&c, &s, &body).await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn quaternions_far_from_unit_norm_are_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "q", "kind": "sliding_window"})).await;
+    let start = |q: Value| {
+        json!({"messages": [{"type": "start", "t": 0.0, "position": [0, 0, 0],
+            "rotation_xyzw": q,
+            "sigmas": {"position": 0.1, "rotation": 0.1, "velocity": 0.1,
+                       "accel_bias": 0.1, "gyro_bias": 0.1}}]})
+    };
+    let url = s.url("/v1/sessions/q/fusion");
+    for q in [
+        json!([0, 0, 0, 1e-160]),
+        json!([0, 0, 0, 0]),
+        json!([0, 0, 0, 2]),
+    ] {
+        let (status, v) = post(&c, &url, &start(q.clone())).await;
+        assert_eq!(status, 400, "{q}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_message", "{v}");
+        assert_eq!(v["error"]["field"], "messages[0]", "{v}");
+        let message = v["error"]["message"].as_str().unwrap();
+        assert!(message.contains("rotation_xyzw"), "{v}");
+    }
+    // Rounded output (norm 1.00004) is accepted and stored normalised.
+    let (status, v) = post(&c, &url, &start(json!([0.0006, 0.0011, 0.0038, 1.00004]))).await;
+    assert_eq!(status, 200, "{v}");
+    let q = v["latest"]["rotation_xyzw"]
+        .as_array()
+        .expect("the state after start");
+    let norm: f64 = q
+        .iter()
+        .map(|x| x.as_f64().unwrap().powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!((norm - 1.0).abs() < 1e-12, "{v}");
+    // A relative pose's quaternion too.
+    let relative = json!({"messages": [{"type": "relative_pose", "from": 0, "to": 0,
+        "position": [0, 0, 0], "rotation_xyzw": [0, 0, 1e-160, 0],
+        "sigma_position": 0.1, "sigma_rotation": 0.1}]});
+    let (status, v) = post(&c, &url, &relative).await;
+    assert_eq!(status, 400, "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("rotation_xyzw"),
+        "{v}"
+    );
+}
