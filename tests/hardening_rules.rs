@@ -232,3 +232,18 @@ async fn quaternions_far_from_unit_norm_are_refused() {
         "{v}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unnamed_creation_skips_names_clients_took() {
+    let dir = common::temp_dir("unnamed-skip");
+    let c = client();
+    let s = TestServer::start_at(&dir, &["--no-zenoh"], &[]);
+    create(&c, &s, &json!({"session": "s1", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "s2", "kind": "pose_graph_2d"})).await;
+    let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+    assert_eq!(v["session"], "s3", "{v}");
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    create(&c, &s, &json!({"session": "s1", "kind": "pose_graph_2d"})).await;
+    let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+    assert_eq!(v["session"], "s2", "{v}");
+}
