@@ -247,3 +247,42 @@ async fn unnamed_creation_skips_names_clients_took() {
     let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
     assert_eq!(v["session"], "s2", "{v}");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn distinct_producers_beyond_the_limit_are_refused() {
+    let config = common::temp_dir("producers").join("config.json");
+    std::fs::write(
+        &config,
+        json!({"limits": {"max_producers_per_session": 3}}).to_string(),
+    )
+    .unwrap();
+    let s = TestServer::start(&[
+        "--no-zenoh",
+        "--no-journal",
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    let c = client();
+    create(&c, &s, &json!({"session": "p", "kind": "pose_graph_2d"})).await;
+    let url = s.url("/v1/sessions/p/batches");
+    let batch = |producer: &str, seq: u64, key: u64| {
+        json!({"producer": producer, "producer_seq": seq,
+               "variables": [{"key": key, "kind": "se2", "value": [0, 0, 0]}]})
+    };
+    for (k, producer) in ["a", "b", "c"].into_iter().enumerate() {
+        let (status, v) = post(&c, &url, &batch(producer, 1, k as u64)).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    let (status, v) = post(&c, &url, &batch("d", 1, 9)).await;
+    assert_eq!(status, 422, "{v}");
+    assert_eq!(v["error"]["code"], "too_many_producers", "{v}");
+    assert_eq!(v["error"]["field"], "producer", "{v}");
+    // Producers already counted go on.
+    let (status, v) = post(&c, &url, &batch("a", 2, 10)).await;
+    assert_eq!(status, 200, "{v}");
+    let (_, stats) = get(&c, &s.url("/v1/sessions/p")).await;
+    assert_eq!(
+        stats["num_variables"], 4,
+        "the refused batch applied nothing: {stats}"
+    );
+}
