@@ -286,3 +286,48 @@ async fn distinct_producers_beyond_the_limit_are_refused() {
         "the refused batch applied nothing: {stats}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_documented_expression_depth_is_the_real_one() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    // translation(inverse^k(between(z, between(a, b)))): its leaves `a`, `b` are k + 3 deep.
+    let typed = |k: usize| {
+        let mut e = json!({"between": ["z", {"between": ["a", "b"]}]});
+        for _ in 0..k {
+            e = json!({"inverse": [e]});
+        }
+        let mut ty = common::user_between_se2();
+        ty["residual"] = json!({"translation": [e]});
+        ty
+    };
+    // One deeper than the maximum (48): the depth rule's error, not malformed_json.
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(46)]});
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["error"]["code"], "invalid_factor_type", "{v}");
+    let field = v["error"]["field"].as_str().unwrap();
+    let deep = format!(
+        "factor_types[0].residual.translation[0]{}",
+        ".inverse[0]".repeat(46)
+    );
+    assert!(field.starts_with(&deep), "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("deeper than 48"),
+        "{v}"
+    );
+    // Far deeper still: the same rule (the JSON nesting limit is not what answers).
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(58)]});
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+    assert_eq!(
+        (status, &v["error"]["code"]),
+        (400, &json!("invalid_factor_type")),
+        "{v}"
+    );
+    // The maximum itself is accepted.
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(45)]});
+    create(&c, &s, &body).await;
+}
