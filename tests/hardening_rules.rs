@@ -130,8 +130,10 @@ async fn robust_scales_out_of_range_are_refused() {
     let c = client();
     create(&c, &s, &json!({"session": "r", "kind": "pose_graph_2d"})).await;
     let batch = |kind: &str, scale: f64| {
-        json!({"variables": [{"key": 0, "kind": "se2", "value": [0, 0, 0]}],
-               "factors": [{"type": "prior_se2", "keys": [0], "measurement": [1, 0, 0],
+        // A new variable each time: the key is the scale's exponent, made non-negative.
+        let key = (scale.log10().round() + 400.0) as u64;
+        json!({"variables": [{"key": key, "kind": "se2", "value": [0, 0, 0]}],
+               "factors": [{"type": "prior_se2", "keys": [key], "measurement": [1, 0, 0],
                             "sigmas": [1, 1, 1], "robust": {"kind": kind, "scale": scale}}]})
     };
     let url = s.url("/v1/sessions/r/batches?wait=true");
