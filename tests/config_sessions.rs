@@ -127,3 +127,35 @@ fn a_bad_configured_session_stops_the_start_naming_its_field() {
         assert!(stderr.contains(field), "{field}: {stderr}");
     }
 }
+
+#[test]
+fn a_session_named_twice_in_the_config_stops_the_start() {
+    let dir = common::temp_dir("config-sessions-twice");
+    let config = write_config(
+        &dir.join("twice.json"),
+        json!({"sessions": [{"session": "a", "kind": "pose_graph_2d"},
+                            {"session": "b", "kind": "pose_graph_2d"},
+                            {"session": "a", "kind": "pose_graph_3d"}]}),
+    );
+    let out = factord()
+        .args([
+            "serve",
+            "--no-zenoh",
+            "--listen",
+            "127.0.0.1:0",
+            "--config",
+            &config,
+        ])
+        .arg("--state-dir")
+        .arg(dir.join("state"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("sessions[2].session"), "{stderr}");
+    assert!(stderr.contains("sessions[0]"), "{stderr}");
+    assert!(
+        !dir.join("state/sessions/a").exists(),
+        "nothing is created before the refusal"
+    );
+}

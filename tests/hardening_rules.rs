@@ -1,6 +1,7 @@
 //! The smaller holes of issue 14 (item 10), each over the wire: an overflowing cost, an endless
 //! window, an inexact float key, unnamed sessions after a restart, and marginal factorisations
-//! counted in `memory_bytes`.
+//! counted in `memory_bytes`. Then those of issue 52 (item 12): robust scales out of range,
+//! internal factor names as user types, far-off quaternions, unnamed sessions after a named `s1`.
 
 mod common;
 
@@ -121,4 +122,214 @@ async fn marginal_factorisations_count_in_memory_bytes() {
         grown >= 8 * 9000,
         "memory_bytes grew {grown} bytes: {before} → {after}"
     );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn robust_scales_out_of_range_are_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "r", "kind": "pose_graph_2d"})).await;
+    let batch = |kind: &str, scale: f64| {
+        // A new variable each time: the key is the scale's exponent, made non-negative.
+        let key = (scale.log10().round() + 400.0) as u64;
+        json!({"variables": [{"key": key, "kind": "se2", "value": [0, 0, 0]}],
+               "factors": [{"type": "prior_se2", "keys": [key], "measurement": [1, 0, 0],
+                            "sigmas": [1, 1, 1], "robust": {"kind": kind, "scale": scale}}]})
+    };
+    let url = s.url("/v1/sessions/r/batches?wait=true");
+    for (kind, scale) in [
+        ("tukey", 1e300),
+        ("cauchy", 1e-300),
+        ("huber", 2e9),
+        ("huber", 1e-10),
+    ] {
+        let (status, v) = post(&c, &url, &batch(kind, scale)).await;
+        assert_eq!(status, 400, "{kind} {scale}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_value", "{v}");
+        assert_eq!(v["error"]["field"], "factors[0].robust.scale", "{v}");
+    }
+    let (_, stats) = get(&c, &s.url("/v1/sessions/r")).await;
+    assert_eq!(stats["num_variables"], 0, "nothing applied: {stats}");
+    let (status, v) = post(&c, &url, &batch("cauchy", 1e-9)).await;
+    assert_eq!(status, 200, "the smallest scale is accepted: {v}");
+    let (status, v) = post(&c, &url, &batch("tukey", 1e9)).await;
+    assert_eq!(status, 200, "the largest scale is accepted: {v}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn internal_factor_names_are_refused_as_user_type_names() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    let names = [
+        "imu_preintegration",
+        "prior_nav",
+        "pose_prior_nav",
+        "position_prior_nav",
+        "relative_pose_nav",
+        "marginal_prior",
+        "photometric_patch",
+    ];
+    for name in names {
+        let mut ty = common::user_between_se2();
+        ty["name"] = json!(name);
+        let body = json!({"session": "u", "kind": "pose_graph_2d",
+                          "factor_types": [common::user_between_se2(), ty]});
+        let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+        assert_eq!(status, 400, "{name}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_factor_type", "{v}");
+        assert_eq!(v["error"]["field"], "factor_types[1].name", "{v}");
+    }
+    let body = json!({"session": "u", "kind": "pose_graph_2d",
+                      "factor_types": [common::user_between_se2()]});
+    create(&c, &s, &body).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn quaternions_far_from_unit_norm_are_refused() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    create(&c, &s, &json!({"session": "q", "kind": "sliding_window"})).await;
+    let start = |q: Value| {
+        json!({"messages": [{"type": "start", "t": 0.0, "position": [0, 0, 0],
+            "rotation_xyzw": q,
+            "sigmas": {"position": 0.1, "rotation": 0.1, "velocity": 0.1,
+                       "accel_bias": 0.1, "gyro_bias": 0.1}}]})
+    };
+    let url = s.url("/v1/sessions/q/fusion");
+    for q in [
+        json!([0, 0, 0, 1e-160]),
+        json!([0, 0, 0, 0]),
+        json!([0, 0, 0, 2]),
+    ] {
+        let (status, v) = post(&c, &url, &start(q.clone())).await;
+        assert_eq!(status, 400, "{q}: {v}");
+        assert_eq!(v["error"]["code"], "invalid_message", "{v}");
+        assert_eq!(v["error"]["field"], "messages[0]", "{v}");
+        let message = v["error"]["message"].as_str().unwrap();
+        assert!(message.contains("rotation_xyzw"), "{v}");
+    }
+    // Rounded output (norm 1.00004) is accepted and stored normalised.
+    let (status, v) = post(&c, &url, &start(json!([0.0006, 0.0011, 0.0038, 1.00004]))).await;
+    assert_eq!(status, 200, "{v}");
+    let q = v["latest"]["rotation_xyzw"]
+        .as_array()
+        .expect("the state after start");
+    let norm: f64 = q
+        .iter()
+        .map(|x| x.as_f64().unwrap().powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!((norm - 1.0).abs() < 1e-12, "{v}");
+    // A relative pose's quaternion too.
+    let relative = json!({"messages": [{"type": "relative_pose", "from": 0, "to": 0,
+        "position": [0, 0, 0], "rotation_xyzw": [0, 0, 1e-160, 0],
+        "sigma_position": 0.1, "sigma_rotation": 0.1}]});
+    let (status, v) = post(&c, &url, &relative).await;
+    assert_eq!(status, 400, "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("rotation_xyzw"),
+        "{v}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unnamed_creation_skips_names_clients_took() {
+    let dir = common::temp_dir("unnamed-skip");
+    let c = client();
+    let s = TestServer::start_at(&dir, &["--no-zenoh"], &[]);
+    create(&c, &s, &json!({"session": "s1", "kind": "pose_graph_2d"})).await;
+    create(&c, &s, &json!({"session": "s2", "kind": "pose_graph_2d"})).await;
+    let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+    assert_eq!(v["session"], "s3", "{v}");
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    create(&c, &s, &json!({"session": "s1", "kind": "pose_graph_2d"})).await;
+    let v = create(&c, &s, &json!({"kind": "pose_graph_2d"})).await;
+    assert_eq!(v["session"], "s2", "{v}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn distinct_producers_beyond_the_limit_are_refused() {
+    let config = common::temp_dir("producers").join("config.json");
+    std::fs::write(
+        &config,
+        json!({"limits": {"max_producers_per_session": 3}}).to_string(),
+    )
+    .unwrap();
+    let s = TestServer::start(&[
+        "--no-zenoh",
+        "--no-journal",
+        "--config",
+        config.to_str().unwrap(),
+    ]);
+    let c = client();
+    create(&c, &s, &json!({"session": "p", "kind": "pose_graph_2d"})).await;
+    let url = s.url("/v1/sessions/p/batches");
+    let batch = |producer: &str, seq: u64, key: u64| {
+        json!({"producer": producer, "producer_seq": seq,
+               "variables": [{"key": key, "kind": "se2", "value": [0, 0, 0]}]})
+    };
+    for (k, producer) in ["a", "b", "c"].into_iter().enumerate() {
+        let (status, v) = post(&c, &url, &batch(producer, 1, k as u64)).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    let (status, v) = post(&c, &url, &batch("d", 1, 9)).await;
+    assert_eq!(status, 422, "{v}");
+    assert_eq!(v["error"]["code"], "too_many_producers", "{v}");
+    assert_eq!(v["error"]["field"], "producer", "{v}");
+    // Producers already counted go on.
+    let (status, v) = post(&c, &url, &batch("a", 2, 10)).await;
+    assert_eq!(status, 200, "{v}");
+    let (_, stats) = get(&c, &s.url("/v1/sessions/p")).await;
+    assert_eq!(
+        stats["num_variables"], 4,
+        "the refused batch applied nothing: {stats}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_documented_expression_depth_is_the_real_one() {
+    let s = TestServer::start(&["--no-zenoh", "--no-journal"]);
+    let c = client();
+    // translation(inverse^k(between(z, between(a, b)))): its leaves `a`, `b` are k + 3 deep.
+    let typed = |k: usize| {
+        let mut e = json!({"between": ["z", {"between": ["a", "b"]}]});
+        for _ in 0..k {
+            e = json!({"inverse": [e]});
+        }
+        let mut ty = common::user_between_se2();
+        ty["residual"] = json!({"translation": [e]});
+        ty
+    };
+    // One deeper than the maximum (48): the depth rule's error, not malformed_json.
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(46)]});
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["error"]["code"], "invalid_factor_type", "{v}");
+    let field = v["error"]["field"].as_str().unwrap();
+    let deep = format!(
+        "factor_types[0].residual.translation[0]{}",
+        ".inverse[0]".repeat(46)
+    );
+    assert!(field.starts_with(&deep), "{v}");
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("deeper than 48"),
+        "{v}"
+    );
+    // Far deeper still: the same rule (the JSON nesting limit is not what answers).
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(58)]});
+    let (status, v) = post(&c, &s.url("/v1/sessions"), &body).await;
+    assert_eq!(
+        (status, &v["error"]["code"]),
+        (400, &json!("invalid_factor_type")),
+        "{v}"
+    );
+    // The maximum itself is accepted.
+    let body = json!({"session": "d", "kind": "pose_graph_2d", "factor_types": [typed(45)]});
+    create(&c, &s, &body).await;
 }

@@ -34,6 +34,9 @@ pub struct Limits {
     /// one it has not taken) before it gets a `lagged` marker and the latest values instead of
     /// the events it missed. The session holds that many events for its slowest subscriber.
     pub max_subscriber_lag: usize,
+    /// Distinct producer ids (exactly-once ingest) one session keeps before a batch naming a
+    /// new one gets 422 `too_many_producers`: each is kept, with its acknowledgements, for good.
+    pub max_producers_per_session: usize,
 }
 
 impl Default for Limits {
@@ -53,6 +56,7 @@ impl Default for Limits {
             max_job_memory_bytes: 4 << 30,
             max_subscribers: 64,
             max_subscriber_lag: 4096,
+            max_producers_per_session: 1024,
         }
     }
 }

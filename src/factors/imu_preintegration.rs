@@ -111,9 +111,12 @@ impl ImuFactor {
     }
 }
 
+/// The name ImuFactor answers (internal: refused as a user-defined type name).
+pub const NAME: &str = "imu_preintegration";
+
 impl Factor for ImuFactor {
     fn name(&self) -> &'static str {
-        "imu_preintegration"
+        NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys

@@ -48,9 +48,12 @@ impl MarginalPrior {
     }
 }
 
+/// The name MarginalPrior answers (internal: refused as a user-defined type name).
+pub const NAME: &str = "marginal_prior";
+
 impl Factor for MarginalPrior {
     fn name(&self) -> &'static str {
-        "marginal_prior"
+        NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys

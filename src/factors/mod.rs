@@ -116,6 +116,19 @@ pub use robust::RobustKernel;
 
 use crate::variables::{Key, Variable};
 
+/// The names of the factors the server builds itself (the window's IMU, navigation-state and
+/// marginal factors, the direct-BA patches), and `prior_nav`, their family's name: not in the
+/// wire catalogue, yet reserved, so that a user-defined type can never be taken for one.
+pub const INTERNAL_FACTOR_NAMES: &[&str] = &[
+    imu_preintegration::NAME,
+    relative_pose_nav::NAME,
+    prior_nav::POSE_NAME,
+    prior_nav::POSITION_NAME,
+    "prior_nav",
+    marginal_prior::NAME,
+    photometric_patch::NAME,
+];
+
 /// Builds a factor from its keys and measurement (lengths already checked), or says why not.
 pub type BuildFactor = fn(&[Key], &[f64]) -> Result<Box<dyn Factor>, String>;
 

@@ -81,9 +81,12 @@ impl PhotometricPatch {
     }
 }
 
+/// The name PhotometricPatch answers (internal: refused as a user-defined type name).
+pub const NAME: &str = "photometric_patch";
+
 impl Factor for PhotometricPatch {
     fn name(&self) -> &'static str {
-        "photometric_patch"
+        NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys

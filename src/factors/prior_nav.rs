@@ -35,9 +35,14 @@ impl PosePriorNav {
     }
 }
 
+/// The name PosePriorNav answers (internal: refused as a user-defined type name).
+pub const POSE_NAME: &str = "pose_prior_nav";
+/// The name PositionPriorNav answers (internal: refused as a user-defined type name).
+pub const POSITION_NAME: &str = "position_prior_nav";
+
 impl Factor for PosePriorNav {
     fn name(&self) -> &'static str {
-        "pose_prior_nav"
+        POSE_NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys
@@ -88,7 +93,7 @@ impl PositionPriorNav {
 
 impl Factor for PositionPriorNav {
     fn name(&self) -> &'static str {
-        "position_prior_nav"
+        POSITION_NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys

@@ -48,9 +48,12 @@ impl RelativePoseNav {
     }
 }
 
+/// The name RelativePoseNav answers (internal: refused as a user-defined type name).
+pub const NAME: &str = "relative_pose_nav";
+
 impl Factor for RelativePoseNav {
     fn name(&self) -> &'static str {
-        "relative_pose_nav"
+        NAME
     }
     fn keys(&self) -> &[Key] {
         &self.keys

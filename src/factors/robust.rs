@@ -40,8 +40,19 @@ pub enum RobustKernel {
 pub enum KernelParseError {
     #[error("unknown robust kernel `{0}` (expected huber, cauchy, tukey or geman_mcclure, as <name>:<scale>)")]
     Unknown(String),
-    #[error("robust kernel scale `{0}` must be a positive finite number")]
+    #[error("robust kernel scale `{0}` must be a number from 1e-9 to 1e9")]
     BadScale(String),
+}
+
+/// The smallest and largest robust-kernel scale accepted. δ² enters ρ and its derivatives, so a
+/// scale whose square under- or overflows (1e-300, 1e300) makes the cost non-finite; a scale in
+/// whitened units beyond these bounds has no use either.
+pub const MIN_SCALE: f64 = 1e-9;
+pub const MAX_SCALE: f64 = 1e9;
+
+/// Whether `delta` is a scale a kernel is given: finite, from [`MIN_SCALE`] to [`MAX_SCALE`].
+pub fn scale_in_range(delta: f64) -> bool {
+    (MIN_SCALE..=MAX_SCALE).contains(&delta)
 }
 
 impl RobustKernel {
@@ -51,7 +62,7 @@ impl RobustKernel {
         let delta: f64 = scale
             .parse()
             .map_err(|_| KernelParseError::BadScale(scale.into()))?;
-        if !(delta.is_finite() && delta > 0.0) {
+        if !scale_in_range(delta) {
             return Err(KernelParseError::BadScale(scale.into()));
         }
         match name.to_ascii_lowercase().as_str() {
@@ -198,5 +209,9 @@ mod tests {
         assert!(RobustKernel::parse("welsch:1").is_err());
         assert!(RobustKernel::parse("huber:-1").is_err());
         assert!(RobustKernel::parse("huber:nan").is_err());
+        assert!(RobustKernel::parse("tukey:1e300").is_err());
+        assert!(RobustKernel::parse("cauchy:1e-300").is_err());
+        assert!(RobustKernel::parse("cauchy:1e-9").is_ok());
+        assert!(RobustKernel::parse("cauchy:1e9").is_ok());
     }
 }

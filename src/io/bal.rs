@@ -147,7 +147,7 @@ struct Tokens<'a> {
 
 impl<'a> Tokens<'a> {
     fn new(path: &'a Path, text: &'a str) -> Self {
-        let items = text
+        let items = super::without_bom(text)
             .lines()
             .enumerate()
             .flat_map(|(i, l)| l.split_whitespace().map(move |t| (i + 1, t)))

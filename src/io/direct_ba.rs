@@ -182,7 +182,7 @@ fn numbers(path: &Path, line: usize, text: &str, count: usize) -> Result<Vec<f64
 /// T_cw per line of `poses.txt`.
 pub fn parse_poses(path: &Path, text: &str) -> Result<Vec<Se3>, IoError> {
     let mut poses = Vec::new();
-    for (index, line) in text.lines().enumerate() {
+    for (index, line) in super::without_bom(text).lines().enumerate() {
         if line.trim().is_empty() {
             continue;
         }
@@ -212,7 +212,7 @@ pub type PatchPoint = (Vector3<f64>, [f64; PATCH_PIXELS]);
 /// (world point, patch) per line of `points.txt`.
 pub fn parse_points(path: &Path, text: &str) -> Result<Vec<PatchPoint>, IoError> {
     let mut points = Vec::new();
-    for (index, line) in text.lines().enumerate() {
+    for (index, line) in super::without_bom(text).lines().enumerate() {
         if line.trim().is_empty() {
             continue;
         }

@@ -43,10 +43,7 @@ fn parse_error(path: &Path, line: usize, reason: impl Into<String>) -> IoError {
 }
 
 fn read(path: &Path) -> Result<String, IoError> {
-    std::fs::read_to_string(path).map_err(|source| IoError::Read {
-        file: path.to_path_buf(),
-        source,
-    })
+    super::read_text(path).map(|text| super::without_bom(&text).to_string())
 }
 
 fn finite_numbers<'a>(

@@ -71,8 +71,14 @@ pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
     })
 }
 
+/// `text` without a leading UTF-8 byte-order mark, which editors on Windows write and which is
+/// no part of the first record.
+pub(crate) fn without_bom(text: &str) -> &str {
+    text.strip_prefix('\u{feff}').unwrap_or(text)
+}
+
 pub(crate) fn lines(text: &str) -> impl Iterator<Item = Line<'_>> {
-    text.lines().enumerate().filter_map(|(i, l)| {
+    without_bom(text).lines().enumerate().filter_map(|(i, l)| {
         let l = l.trim();
         (!l.is_empty() && !l.starts_with('#')).then(|| Line {
             number: i + 1,
@@ -213,5 +219,40 @@ pub fn parse_pair(
             }
         }
         None => parse_text(text, path, None),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BOM: &str = "\u{feff}";
+
+    #[test]
+    fn a_leading_byte_order_mark_is_skipped_by_every_text_reader() {
+        let name = Path::new("bom");
+        let g2o = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n";
+        let toro = "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n";
+        for (text, format) in [(g2o, Format::G2o), (toro, Format::Toro)] {
+            let with_bom = format!("{BOM}{text}");
+            let graph = parse_text(&with_bom, name, None).expect("a BOM is skipped");
+            assert_eq!(graph.vertex_order, [0, 1], "{format:?}");
+            assert!(
+                parse_text(&with_bom, name, Some(format)).is_ok(),
+                "{format:?}"
+            );
+        }
+        let bal = "1 1 1\n0 0 1.0 2.0\n0 0 0 0 0 0 500 0 0\n0 0 5\n";
+        let problem = bal::parse(name, &format!("{BOM}{bal}")).expect("a BOM is skipped");
+        assert_eq!((problem.num_cameras, problem.num_points), (1, 1));
+        let stamps = format!("{BOM}0 1.5\n");
+        assert!(tum::parse_stamps(name, &stamps).is_ok());
+        // Only at the start: anywhere else it is no whitespace and stays an error.
+        assert!(parse_text(
+            &format!("VERTEX_SE2 0 0 0 0\n{BOM}VERTEX_SE2 1 1 0 0\n"),
+            name,
+            None
+        )
+        .is_err());
     }
 }

@@ -9,6 +9,9 @@
 //! request (the state directory holds an unloadable session of that name, the session cap) is
 //! logged and the start goes on: the server is still of use for the rest.
 //!
+//! A name listed twice stops the start before anything is created: the second entry would
+//! otherwise be taken for the first, which exists by then, and silently ignored.
+//!
 //! Each goes through the command API as a client's creation would (the config's server-wide
 //! factor types included), unowned: any token reaches it, as with an anonymous zenoh client.
 
@@ -18,6 +21,7 @@ use crate::service::{Command, Reply, Service};
 
 /// Creates the missing ones; `Err` with the message for a request that is wrong.
 pub(super) async fn ensure(service: &Service, requests: &[CreateSession]) -> Result<(), String> {
+    named_once(requests)?;
     for (i, request) in requests.iter().enumerate() {
         let Some(name) = request.session.as_deref() else {
             return Err(format!(
@@ -46,6 +50,22 @@ pub(super) async fn ensure(service: &Service, requests: &[CreateSession]) -> Res
                 e.body.message,
                 e.body.code
             ),
+        }
+    }
+    Ok(())
+}
+
+/// Refuses a name given to two entries, naming the second.
+fn named_once(requests: &[CreateSession]) -> Result<(), String> {
+    let mut first = std::collections::HashMap::new();
+    for (i, request) in requests.iter().enumerate() {
+        if let Some(name) = request.session.as_deref() {
+            if let Some(j) = first.insert(name, i) {
+                return Err(format!(
+                    "sessions[{i}].session: `{name}` is already the name of sessions[{j}]; \
+                     a configured session is listed once"
+                ));
+            }
         }
     }
     Ok(())

@@ -62,6 +62,13 @@ impl Service {
         }
     }
 
+    /// Whether session `name` has a directory in the state directory (journal enabled).
+    pub(super) fn directory_on_disk(&self, name: &str) -> bool {
+        self.journal.as_ref().is_some_and(|(state_dir, _)| {
+            std::fs::symlink_metadata(SessionDir::sessions_root(state_dir).join(name)).is_ok()
+        })
+    }
+
     /// Before creating `name` (a name not loaded): refuses it when its directory is on disk
     /// (found unloadable at start, or an unfinished creation), and returns how many directories
     /// on disk were not loaded at start, which count against `max_sessions`. A `stat`, no file

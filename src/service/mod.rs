@@ -452,7 +452,7 @@ impl Service {
                     format!("`{name}` is not 1-64 characters of [A-Za-z0-9_-]"),
                 ))
             }
-            None => format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst)),
+            None => self.generated_name(),
         };
         let session = self.build_session(name.clone(), request.clone(), factor_types)?;
         if let Some(owner) = &owner {
@@ -500,6 +500,18 @@ impl Service {
         self.notify_observers(&session);
         sessions.insert(name, Arc::clone(&session));
         Ok(session.info())
+    }
+
+    /// A name for an unnamed creation: the next `s<n>` that no session holds, listed or on disk
+    /// (a client may have named one `s1`).
+    fn generated_name(&self) -> String {
+        let sessions = self.sessions.read().unwrap_or_else(|p| p.into_inner());
+        loop {
+            let name = format!("s{}", self.next_id.fetch_add(1, Ordering::SeqCst));
+            if !sessions.contains_key(&name) && !self.directory_on_disk(&name) {
+                return name;
+            }
+        }
     }
 
     /// A validated, empty session (not yet listed).

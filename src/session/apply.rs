@@ -42,7 +42,10 @@ impl Session {
         }
         // A replay applies what the journal holds: it is the truth the table is rebuilt from.
         if let (Some(origin), true) = (&origin, journal) {
-            if let Admission::Repeat(kept) = st.producers.admit(&self.name, origin)? {
+            if let Admission::Repeat(kept) =
+                st.producers
+                    .admit(&self.name, origin, self.limits.max_producers_per_session)?
+            {
                 return Ok(self.repeat(&st, origin, &kept));
             }
         }

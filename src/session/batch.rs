@@ -14,7 +14,7 @@ use super::MirrorEntry;
 use crate::api::catalogue::{self, SessionKind};
 use crate::api::wire::{Batch, FactorId, FactorSpec};
 use crate::api::ServiceError;
-use crate::factors::{Factor, RobustKernel, SqrtInformation};
+use crate::factors::{robust, Factor, RobustKernel, SqrtInformation};
 use crate::problem::{Key, Variable};
 
 pub(crate) struct PreparedFactor {
@@ -297,11 +297,15 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             .map_err(|m| ServiceError::bad_request("invalid_value", field(".measurement"), m))?;
         let sqrt_information = information(spec, codec.residual_dim(), &|| field(""))?;
         if let Some(s) = spec.robust.map(|k| k.scale()) {
-            if !(s.is_finite() && s > 0.0) {
+            if !robust::scale_in_range(s) {
                 return Err(ServiceError::bad_request(
                     "invalid_value",
                     field(".robust.scale"),
-                    "robust kernel scale must be a positive finite number",
+                    format!(
+                        "robust kernel scale must be a number from {:e} to {:e}, got {s:e}",
+                        robust::MIN_SCALE,
+                        robust::MAX_SCALE
+                    ),
                 ));
             }
         }

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use crate::api::catalogue::{self, FactorCodec, SessionKind, SLIDING_WINDOW};
 use crate::api::ServiceError;
 use crate::factors::expression::{ExpressionType, FactorTypeDefinition};
-use crate::factors::Factor;
+use crate::factors::{Factor, INTERNAL_FACTOR_NAMES};
 use crate::problem::Key;
 
 /// At most this many declared types per session.
@@ -137,7 +137,9 @@ impl FactorTypes {
         kind: Option<&SessionKind>,
     ) -> Result<Arc<ExpressionType>, ServiceError> {
         let field = |suffix: &str| format!("factor_types[{i}].{suffix}");
-        if catalogue::factor_codec(&definition.name).is_some() {
+        if catalogue::factor_codec(&definition.name).is_some()
+            || INTERNAL_FACTOR_NAMES.contains(&definition.name.as_str())
+        {
             return Err(refused(
                 field("name"),
                 format!("`{}` is a built-in factor type", definition.name),

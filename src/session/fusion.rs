@@ -9,7 +9,7 @@
 use std::sync::MutexGuard;
 use std::time::Instant;
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 
 use super::engine::{self, Engine, SmoothedKeyframe};
 use super::Session;
@@ -34,6 +34,27 @@ fn finite(values: &[f64]) -> Result<(), FusionError> {
             reason: "a number is not finite".into(),
         })
     }
+}
+
+/// How far a quaternion's norm may be from 1, as for batches (B5) and ROS inputs (S31).
+const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
+
+/// `q` (x, y, z, w) as a unit quaternion, refused unless finite with a norm within
+/// [`QUATERNION_NORM_TOLERANCE`] of 1: normalising a far-off one (1e-160, all zeros) would
+/// store a rotation the client never meant, or NaN.
+fn unit_quaternion(field: &'static str, q: &[f64; 4]) -> Result<UnitQuaternion<f64>, FusionError> {
+    finite(q)?;
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !((norm - 1.0).abs() <= QUATERNION_NORM_TOLERANCE) {
+        return Err(FusionError::Invalid {
+            field,
+            reason: format!(
+                "a rotation quaternion's norm must be within {QUATERNION_NORM_TOLERANCE} of 1, \
+                 got {norm:e}"
+            ),
+        });
+    }
+    Ok(quaternion_xyzw(q))
 }
 
 /// Applies one message; `Ok(Some(key))` when it created a keyframe.
@@ -62,10 +83,10 @@ fn apply(
         }
         finite(&[t])?;
         finite(&position)?;
-        finite(&rotation_xyzw)?;
+        let rotation = unit_quaternion("rotation_xyzw", &rotation_xyzw)?;
         let first = NavState {
             position: Vector3::from(position),
-            rotation: quaternion_xyzw(&rotation_xyzw),
+            rotation,
             velocity: Vector3::from(velocity),
             accel_bias: Vector3::from(accel_bias),
             gyro_bias: Vector3::from(gyro_bias),
@@ -146,9 +167,10 @@ fn apply(
                 Vector3::from(gyro_bias),
             );
             measurement.delta_t = delta_t;
-            measurement.delta_rotation = quaternion_xyzw(&delta_rotation_xyzw)
-                .to_rotation_matrix()
-                .into_inner();
+            measurement.delta_rotation =
+                unit_quaternion("delta_rotation_xyzw", &delta_rotation_xyzw)?
+                    .to_rotation_matrix()
+                    .into_inner();
             measurement.delta_velocity = Vector3::from(delta_velocity);
             measurement.delta_position = Vector3::from(delta_position);
             measurement.d_rotation_d_gyro_bias = matrix(&d_rotation_d_gyro_bias);
@@ -170,9 +192,8 @@ fn apply(
             sigma_rotation,
         } => {
             finite(&position)?;
-            finite(&rotation_xyzw)?;
+            let q = unit_quaternion("rotation_xyzw", &rotation_xyzw)?;
             let info = diagonal_information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
-            let q = quaternion_xyzw(&rotation_xyzw);
             w.add_relative_pose(from, to, Vector3::from(position), q, &info)?;
             Ok(None)
         }
@@ -184,14 +205,9 @@ fn apply(
             sigma_rotation,
         } => {
             finite(&position)?;
-            finite(&rotation_xyzw)?;
+            let q = unit_quaternion("rotation_xyzw", &rotation_xyzw)?;
             let info = diagonal_information(&[(sigma_position, 3), (sigma_rotation, 3)])?;
-            w.add_pose_prior(
-                key,
-                Vector3::from(position),
-                quaternion_xyzw(&rotation_xyzw),
-                &info,
-            )?;
+            w.add_pose_prior(key, Vector3::from(position), q, &info)?;
             Ok(None)
         }
         FusionMessage::PositionPrior {

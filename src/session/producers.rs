@@ -105,8 +105,27 @@ pub fn check_producer_id(producer: &str, field: &str) -> Result<(), ServiceError
 impl Producers {
     /// Whether `origin`'s batch is the producer's next (409 for a gap, or a repeat whose
     /// acknowledgement is no longer kept).
-    pub(super) fn admit(&self, session: &str, origin: &Origin) -> Result<Admission, ServiceError> {
+    /// A producer not seen before is refused (422 `too_many_producers`) when the session
+    /// already counts `max_producers`: each one is kept for good (its acknowledgements are in
+    /// every snapshot).
+    pub(super) fn admit(
+        &self,
+        session: &str,
+        origin: &Origin,
+        max_producers: usize,
+    ) -> Result<Admission, ServiceError> {
         let through = self.accepted_through(&origin.producer);
+        if !self.by_id.contains_key(&origin.producer) && self.by_id.len() >= max_producers {
+            return Err(ServiceError::invalid(
+                "too_many_producers",
+                "producer",
+                format!(
+                    "session `{session}` already counts {} producers, its maximum \
+                     (limits.max_producers_per_session); a new producer id is refused",
+                    self.by_id.len()
+                ),
+            ));
+        }
         if origin.seq == through + 1 {
             return Ok(Admission::Next);
         }
@@ -309,16 +328,40 @@ mod tests {
     }
 
     #[test]
+    fn a_new_producer_beyond_the_maximum_is_refused() {
+        let mut p = Producers::default();
+        for id in ["a", "b"] {
+            let o = Origin {
+                producer: id.into(),
+                seq: 1,
+            };
+            assert!(matches!(p.admit("s", &o, 2), Ok(Admission::Next)));
+            p.record(&o, &ack(1, vec![]));
+        }
+        let new = Origin {
+            producer: "c".into(),
+            seq: 1,
+        };
+        let refused = p.admit("s", &new, 2).err().unwrap();
+        assert_eq!(refused.body.code, "too_many_producers");
+        let known = Origin {
+            producer: "a".into(),
+            seq: 2,
+        };
+        assert!(matches!(p.admit("s", &known, 2), Ok(Admission::Next)));
+    }
+
+    #[test]
     fn the_next_number_is_admitted_a_repeat_gets_its_ack_a_gap_is_refused() {
         let mut p = Producers::default();
-        assert!(matches!(p.admit("s", &origin(1)), Ok(Admission::Next)));
+        assert!(matches!(p.admit("s", &origin(1), 8), Ok(Admission::Next)));
         assert_eq!(
-            p.admit("s", &origin(2)).err().unwrap().body.code,
+            p.admit("s", &origin(2), 8).err().unwrap().body.code,
             "producer_sequence_gap"
         );
         p.record(&origin(1), &ack(5, vec![10, 11, 12]));
         p.record(&origin(2), &ack(6, vec![13, 20]));
-        let Ok(Admission::Repeat(kept)) = p.admit("s", &origin(1)) else {
+        let Ok(Admission::Repeat(kept)) = p.admit("s", &origin(1), 8) else {
             panic!("a repeat")
         };
         let again = original_ack(&kept, "s", "robot-1", 5);
@@ -327,11 +370,11 @@ mod tests {
             (again.sequence, again.reflected, again.duplicate),
             (5, true, true)
         );
-        let Ok(Admission::Repeat(kept)) = p.admit("s", &origin(2)) else {
+        let Ok(Admission::Repeat(kept)) = p.admit("s", &origin(2), 8) else {
             panic!("a repeat")
         };
         assert_eq!(kept.factor_ids, vec![[13, 1], [20, 1]]);
-        let gap = p.admit("s", &origin(4)).err().unwrap();
+        let gap = p.admit("s", &origin(4), 8).err().unwrap();
         assert_eq!(gap.body.field.as_deref(), Some("producer_seq"));
         assert!(
             gap.body.message.contains("expects batch 3"),
@@ -350,11 +393,11 @@ mod tests {
         }
         let bytes = p.bytes();
         assert_eq!(
-            p.admit("s", &origin(3)).err().unwrap().body.code,
+            p.admit("s", &origin(3), 8).err().unwrap().body.code,
             "producer_sequence_forgotten"
         );
         assert!(matches!(
-            p.admit("s", &origin(11)),
+            p.admit("s", &origin(11), 8),
             Ok(Admission::Repeat(_))
         ));
         p.record(&origin(KEPT_ACKS as u64 + 11), &ack(9, vec![1]));

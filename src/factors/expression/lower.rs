@@ -73,7 +73,11 @@ pub const OPERATIONS: &[(&str, usize, &str)] = &[
 
 /// Bounds on a definition: nodes read and nesting depth.
 pub const MAX_NODES: usize = 4096;
-pub const MAX_DEPTH: usize = 64;
+/// An operation node is two JSON levels (`{"inverse": [x]}`) and JSON parsers stop at 128
+/// levels (serde_json's recursion limit), counting the request, journal record or snapshot
+/// around the definition too: 48 keeps every definition this accepts readable wherever it is
+/// carried, so a deeper one gets this rule's error, not `malformed_json`.
+pub const MAX_DEPTH: usize = 48;
 
 pub(super) struct Lowering<'a> {
     pub builder: &'a mut Builder,

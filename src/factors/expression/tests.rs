@@ -270,7 +270,7 @@ fn bad_definitions_are_refused_with_the_path_of_the_bad_node() {
             "residual.sqrt",
             "not finite at any",
         ),
-        (with_residual(deep), &deep_path, "deeper than 64"),
+        (with_residual(deep), &deep_path, "deeper than 48"),
         (
             with_residual(Value::Array(wide)),
             "residual[4095]",
