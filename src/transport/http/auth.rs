@@ -20,6 +20,7 @@ use axum::http::{header, HeaderValue, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
+use super::admission::ConnectionContext;
 use crate::api::ErrorKind;
 use crate::service::{Caller, ServiceError};
 
@@ -164,8 +165,19 @@ pub async fn require_token(
         .check(request.headers().get(header::AUTHORIZATION))
         .or_else(|| tokens.check_cookie(&request));
     let caller = match principal {
-        Some(label) => Caller::Principal(label),
-        None if open => Caller::Anonymous,
+        Some(label) => {
+            if let Some(connection) = request.extensions().get::<ConnectionContext>() {
+                connection.authenticated();
+            }
+            Caller::Principal(label)
+        }
+        None if open => {
+            request = match super::body_limits::limit_anonymous(request) {
+                Ok(request) => request,
+                Err(refusal) => return refusal,
+            };
+            Caller::Anonymous
+        }
         None => {
             let message = if request.headers().contains_key(header::AUTHORIZATION) {
                 "the bearer token is not valid"
@@ -184,6 +196,9 @@ pub async fn require_token(
 
 /// Without tokens every HTTP caller is trusted (HTTP then listens on loopback only).
 pub async fn trust_everyone(mut request: Request, next: Next) -> Response {
+    if let Some(connection) = request.extensions().get::<ConnectionContext>() {
+        connection.authenticated();
+    }
     request.extensions_mut().insert(Caller::Trusted);
     request
         .extensions_mut()

@@ -48,7 +48,7 @@ const COOKIE_HOURS: u64 = 12;
     request_body = LoginRequest,
     responses((status = 200,
             description = "Logged in (`Set-Cookie`), or tokens are off (`auth: false`, no cookie).",
-            body = LoginReply), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected)))]
+            body = LoginReply), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 408, response = RequestTimeout), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected)))]
 pub(super) async fn login(
     Extension(tokens): Extension<LoginTokens>,
     body: Result<Bytes, BytesRejection>,

@@ -12,9 +12,13 @@
 //!   carries;
 //! - `login`: the web view's login, which exchanges a token for that cookie;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
-//! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts.
+//! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts;
+//! - `admission`: which connections get a slot, and which give theirs up to newcomers;
+//! - `body_limits`: how fast a body must arrive, and how large one without a credential may be.
 
+mod admission;
 pub mod auth;
+mod body_limits;
 mod connection_io;
 mod errors;
 pub mod forward;

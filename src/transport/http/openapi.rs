@@ -151,8 +151,12 @@ error_responses! {
         `no_route`.";
     Conflict: "`session_exists` / `session_on_disk` (create), or `session_corrupt` (writes to \
         a session whose files could not be recovered whole: read-only, DELETE removes it).";
-    PayloadTooLarge: "`body_too_large` (over `max_body_bytes`), `batch_too_large` (more items \
-        than `limits.max_batch_items`), `list_too_long`, or a job over its memory limit.";
+    RequestTimeout: "`body_timeout` (field `body`): the request body arrived slower than \
+        `http.body_min_bytes_per_s`, or, without a valid token, not within \
+        `http.header_timeout_ms`.";
+    PayloadTooLarge: "`body_too_large` (over `max_body_bytes`; without a valid token over 4096 \
+        bytes, field `content-length` or `body`), `batch_too_large` (more items than \
+        `limits.max_batch_items`), `list_too_long`, or a job over its memory limit.";
     UnsupportedMediaType: "`unsupported_media_type` (field `content-type`): this route reads \
         JSON and needs `Content-Type: application/json`.";
     Misdirected: "`forbidden_host` (field `host`): the Host header names neither a loopback \
@@ -200,6 +204,7 @@ error_responses! {
             Forbidden,
             NotFound,
             Conflict,
+            RequestTimeout,
             PayloadTooLarge,
             UnsupportedMediaType,
             Misdirected,
