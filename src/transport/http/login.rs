@@ -4,6 +4,7 @@
 //! form cannot change anything with it, and EventSource, which cannot send headers, can stream.
 //! `POST /v1/logout` clears it. Without tokens there is nothing to log in to (`auth: false`).
 
+use std::net::IpAddr;
 use std::sync::Arc;
 
 use axum::body::Bytes;
@@ -19,9 +20,10 @@ use super::openapi::*;
 use crate::api::ErrorKind;
 use crate::service::{parse_json, ServiceError};
 
-/// The tokens a login is checked against (none: tokens are off), left by the auth layer.
+/// The tokens a login is checked against (none: tokens are off) and the peer it comes from
+/// (its failures are throttled), left by the auth layer.
 #[derive(Clone)]
-pub struct LoginTokens(pub Option<Arc<Tokens>>);
+pub struct LoginTokens(pub Option<Arc<Tokens>>, pub Option<IpAddr>);
 
 /// A token to exchange for the web view's cookie.
 #[derive(Deserialize, utoipa::ToSchema)]
@@ -48,20 +50,27 @@ const COOKIE_HOURS: u64 = 12;
     request_body = LoginRequest,
     responses((status = 200,
             description = "Logged in (`Set-Cookie`), or tokens are off (`auth: false`, no cookie).",
-            body = LoginReply), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 408, response = RequestTimeout), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected)))]
+            body = LoginReply), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 408, response = RequestTimeout), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 429, response = TooMany)))]
 pub(super) async fn login(
-    Extension(tokens): Extension<LoginTokens>,
+    Extension(LoginTokens(tokens, peer)): Extension<LoginTokens>,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let request: LoginRequest = parse_json(&body.map_err(body_error)?)?;
-    let Some(tokens) = tokens.0 else {
+    let Some(tokens) = tokens else {
         let reply = LoginReply {
             auth: false,
             principal: None,
         };
         return Ok(Json(reply).into_response());
     };
-    let Some(label) = tokens.label_of(request.token.trim()) else {
+    if let Some(peer) = peer {
+        tokens.failures.check(peer)?;
+    }
+    // Exactly the token: one with anything around it is another token.
+    let Some(label) = tokens.label_of(&request.token) else {
+        if let Some(peer) = peer {
+            tokens.failures.failed(peer);
+        }
         return Err(ServiceError::new(
             ErrorKind::Unauthorized,
             "unauthorized",
@@ -72,7 +81,7 @@ pub(super) async fn login(
     };
     let cookie = format!(
         "{COOKIE}={}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}",
-        hex(request.token.trim()),
+        hex(&request.token),
         COOKIE_HOURS * 3600
     );
     let reply = LoginReply {

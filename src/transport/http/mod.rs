@@ -11,6 +11,7 @@
 //! - `auth`: bearer tokens (or the web view's cookie, for reads), and the caller each request
 //!   carries;
 //! - `login`: the web view's login, which exchanges a token for that cookie;
+//! - `throttle`: failed authentications per peer;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
 //! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts;
 //! - `admission`: which connections get a slot, and which give theirs up to newcomers;
@@ -28,6 +29,7 @@ pub mod listener;
 mod login;
 pub mod openapi;
 mod streams;
+mod throttle;
 
 pub use errors::HttpError;
 

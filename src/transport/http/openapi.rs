@@ -164,7 +164,8 @@ error_responses! {
     Unprocessable: "Well-formed but invalid against the session's contents (`unknown_variable`, \
         `duplicate_variable`, `wrong_kind`, `unknown_factor`, `missing_value`, \
         `non_finite_residual`, `indeterminate_system`, …).";
-    TooMany: "`too_many_pending` or `too_many_subscribers`: retry after `Retry-After` seconds.";
+    TooMany: "`too_many_pending`, `too_many_subscribers`, or `too_many_failures` (too many \
+        wrong credentials from this address): retry after `Retry-After` seconds.";
     Unavailable: "The service is at capacity (`too_many_sessions`, `too_many_jobs`), shutting \
         down (`shutting_down`), the session is `recovering` from its journal, a journal write \
         failed (`journal_failed`), or a wait timed out (`solving`); `Retry-After` says when \
