@@ -25,6 +25,7 @@ use axum::response::{IntoResponse, Response};
 
 use super::admission::ConnectionContext;
 use super::throttle::FailureThrottle;
+use super::web_sessions::WebSessions;
 use crate::api::ErrorKind;
 use crate::service::{Caller, ServiceError};
 
@@ -34,6 +35,8 @@ pub struct Tokens {
     tokens: Vec<(Box<[u8]>, Arc<str>)>,
     /// Failed authentications per peer.
     pub(super) failures: FailureThrottle,
+    /// The web view's logins, which its cookie names.
+    pub(super) web_sessions: WebSessions,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -123,9 +126,7 @@ impl Tokens {
         let label = match presented {
             Presented::Nothing => return Ok(None),
             Presented::Bearer(token) => token.and_then(|t| self.label_of(t)),
-            Presented::Cookies(values) => values
-                .iter()
-                .find_map(|v| self.label_of(&super::login::unhex(v)?)),
+            Presented::Cookies(ids) => ids.iter().find_map(|id| self.web_sessions.label_of(id)),
         };
         label.map(Some).ok_or(())
     }
@@ -171,7 +172,7 @@ impl<'a> Presented<'a> {
 }
 
 /// The web view's cookie (see `login`).
-pub const COOKIE: &str = "factord_token";
+pub const COOKIE: &str = "factord_session";
 
 /// The values of the web view's cookie in `headers`.
 pub(super) fn cookie_values(headers: &HeaderMap) -> impl Iterator<Item = &str> {

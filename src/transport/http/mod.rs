@@ -10,7 +10,8 @@
 //! - `openapi`: the OpenAPI document generated from the handlers, served at `/v1/openapi.json`;
 //! - `auth`: bearer tokens (or the web view's cookie, for reads), and the caller each request
 //!   carries;
-//! - `login`: the web view's login, which exchanges a token for that cookie;
+//! - `login`, `web_sessions`: the web view's login, which exchanges a token for that cookie,
+//!   naming a server-side login session;
 //! - `throttle`: failed authentications per peer;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
 //! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts;
@@ -30,6 +31,7 @@ mod login;
 pub mod openapi;
 mod streams;
 mod throttle;
+mod web_sessions;
 
 pub use errors::HttpError;
 
