@@ -119,7 +119,7 @@ fn describe() {
         (ACCEPTED_BATCHES, "Batches accepted (and journalled)"),
         (
             AUTH_FAILURES,
-            "HTTP requests with a wrong bearer token or login cookie, and failed logins",
+            "HTTP requests with a wrong bearer token, and failed logins",
         ),
         (
             SLOW_FSYNCS,
@@ -182,7 +182,7 @@ pub fn count_accepted_batch() {
     counter!(ACCEPTED_BATCHES).increment(1);
 }
 
-/// A wrong credential over HTTP (throttled per peer: see `transport::http::throttle`).
+/// A wrong bearer token or login over HTTP (throttled per peer: see `transport::http::throttle`).
 pub fn count_auth_failure() {
     exporter();
     counter!(AUTH_FAILURES).increment(1);

@@ -245,10 +245,10 @@ pub async fn require_token(
 }
 
 /// The principal of the request's credential (`None`: it presents none, or on an `open` route
-/// one that is wrong or is not looked at). Elsewhere, 429 for a peer with too many failures
-/// and 401 for a wrong credential. A wrong bearer token counts as a failure wherever it is
-/// sent; a wrong cookie only where it is refused (a browser with a stale cookie still loads the
-/// pages and the login form).
+/// one that is wrong or is not looked at). Elsewhere 401 for a wrong credential, and 429 for
+/// a bearer token from a peer with too many failures. Only bearer tokens (and logins) are
+/// throttled: they are the guessable secrets. A login cookie is 32 random bytes, and a browser
+/// holding a stale one (after a restart) must not lock its own address out of logging in.
 // A Response is large, but the refusals are the rare path and are sent as they are.
 #[allow(clippy::result_large_err)]
 fn authenticate(
@@ -258,10 +258,12 @@ fn authenticate(
     open: bool,
 ) -> Result<Option<Arc<str>>, Response> {
     let presented = Presented::of(request);
-    if matches!(presented, Presented::Nothing) {
-        return Ok(None);
-    }
-    if let Some(throttled) = peer.and_then(|p| tokens.failures.check(p).err()) {
+    let bearer = match presented {
+        Presented::Nothing => return Ok(None),
+        Presented::Bearer(_) => peer,
+        Presented::Cookies(_) => None,
+    };
+    if let Some(throttled) = bearer.and_then(|p| tokens.failures.check(p).err()) {
         return match open {
             true => Ok(None),
             false => Err(super::HttpError::from(throttled).into_response()),
@@ -270,14 +272,13 @@ fn authenticate(
     if let Ok(principal) = tokens.principal(&presented) {
         return Ok(principal);
     }
-    let bearer = matches!(presented, Presented::Bearer(_));
-    if let Some(peer) = peer.filter(|_| bearer || !open) {
+    if let Some(peer) = bearer {
         tokens.failures.failed(peer);
     }
-    match (open, bearer) {
+    match (open, presented) {
         (true, _) => Ok(None),
-        (false, true) => Err(unauthorized("the bearer token is not valid")),
-        (false, false) => Err(unauthorized("the login cookie is not valid (log in again)")),
+        (false, Presented::Bearer(_)) => Err(unauthorized("the bearer token is not valid")),
+        (false, _) => Err(unauthorized("the login cookie is not valid (log in again)")),
     }
 }
 

@@ -1,9 +1,10 @@
 //! Failed authentications per peer (issue 52, item 8: 3 000 wrong logins were answered at
-//! 8 408/s). Each peer has a budget of [`BURST`] failures that refills at one per
-//! [`REFILL_EVERY`]; a peer whose budget is spent gets 429 `too_many_failures` (with
-//! `Retry-After`) for every request that presents a credential, right or wrong, until it has
-//! refilled by one: answering right guesses while refusing wrong ones would tell a guesser when
-//! it had won. Requests without a credential (health, the pages) are not affected.
+//! 8 408/s). A wrong bearer token or a failed login spends one of a peer's [`BURST`] failures,
+//! which refill at one per [`REFILL_EVERY`]; a peer whose budget is spent gets 429
+//! `too_many_failures` (with `Retry-After`) for every bearer token and login, right or wrong,
+//! until it has refilled by one: answering right guesses while refusing wrong ones would tell a
+//! guesser when it had won. Requests without a credential (health, the pages) and login
+//! cookies (random ids, not guessable) are not affected.
 //!
 //! A peer is its IPv4 address, or its IPv6 /64 (one host usually holds a whole /64). Behind a
 //! reverse proxy every client is the proxy: its clients then share one budget.
