@@ -121,6 +121,15 @@ impl Tokens {
         found.cloned()
     }
 
+    /// `Bearer <token>` for a token of `label`: what a request authenticated by a login cookie
+    /// carries when it is forwarded to another instance of a fleet, which shares the tokens
+    /// but not this process's logins.
+    pub(super) fn bearer_for(&self, label: &str) -> Option<HeaderValue> {
+        let (token, _) = self.tokens.iter().find(|(_, l)| &**l == label)?;
+        let token = std::str::from_utf8(token).ok()?;
+        HeaderValue::from_str(&format!("Bearer {token}")).ok()
+    }
+
     /// The principal a request's credential names; `Err` when it presents one that is wrong.
     fn principal(&self, presented: &Presented<'_>) -> Result<Option<Arc<str>>, ()> {
         let label = match presented {

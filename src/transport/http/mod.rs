@@ -94,7 +94,7 @@ pub fn router(
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(max_body_bytes));
     // In a fleet, requests for other instances' sessions go there (after the checks below).
-    let routes = match forward::Forwarder::for_fleet(&service, max_body_bytes) {
+    let routes = match forward::Forwarder::for_fleet(&service, max_body_bytes, tokens.clone()) {
         Some(f) => routes.layer(axum::middleware::from_fn_with_state(f, forward::forward)),
         None => routes,
     };
