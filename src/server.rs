@@ -58,6 +58,13 @@ pub struct FleetConfig {
     /// The URL the other instances reach this one's HTTP at (`http://host:port`) [default:
     /// `http://` + the bound address; required when listening on 0.0.0.0 or ::].
     pub advertise_http: Option<String>,
+    /// A file holding the fleet's shared secret (at least 32 bytes; the same file on every
+    /// instance): members prove membership with it, and forwarded requests carry a signed
+    /// assertion of the caller instead of the caller's token (`service::fleet_key`).
+    pub secret_file: Option<PathBuf>,
+    /// Start a fleet without a secret: every zenoh peer that announces itself is a member.
+    /// Only for a network nobody else can reach; said at start.
+    pub trusted_network: bool,
 }
 
 impl Default for ServeConfig {
@@ -246,6 +253,10 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServeError> {
     let instance = fleet::instance_id(&config)?;
+    let mut key = match instance {
+        Some(_) => fleet::fleet_key(&config.fleet)?,
+        None => None,
+    };
     let state = StateDir::open(&config.state_dir, instance.is_some())?;
     // Every connection is a file: use all the process may have, and cap connections below it.
     let file_limit = http_listener::raise_file_limit();
@@ -269,7 +280,7 @@ pub async fn run(
         })?;
     if let Some(instance) = &instance {
         let http = fleet::advertised_http(&config.fleet, &http_addr)?;
-        service.join_fleet(instance, &http);
+        service.join_fleet(instance, &http, key.take());
         tracing::info!("fleet instance `{instance}`, reached at {http}");
     }
     let recovering = service

@@ -144,6 +144,13 @@ fn compose_services_start_as_processes_and_pass_their_health_checks() {
     let tokens = dir.join("tokens");
     // What a user does first: the example tokens file becomes the secret.
     std::fs::copy(repo().join("docker/tokens.example"), &tokens).unwrap();
+    // And the fleet's secret, as the compose file's header says to make it.
+    let fleet_secret = dir.join("fleet-secret");
+    std::fs::write(
+        &fleet_secret,
+        "a random secret of forty-eight bytes, base64'd\n",
+    )
+    .unwrap();
     let services = factord_services(&doc);
 
     let router_port = free_port();
@@ -163,6 +170,10 @@ fn compose_services_start_as_processes_and_pass_their_health_checks() {
         (
             "/run/secrets/factord_tokens".into(),
             tokens.display().to_string(),
+        ),
+        (
+            "/run/secrets/factord_fleet_secret".into(),
+            fleet_secret.display().to_string(),
         ),
     ];
     for ((name, _), port) in services.iter().zip(&http_ports) {

@@ -42,7 +42,8 @@ fn next_pose(k: u64) -> Value {
 
 fn snapshot_sequence(state: &Path, name: &str) -> Option<u64> {
     let text = std::fs::read(state.join(format!("sessions/{name}/snapshot.json"))).ok()?;
-    serde_json::from_slice::<Value>(&text).ok()?["sequence"].as_u64()
+    // The snapshot inside its checksum envelope.
+    serde_json::from_slice::<Value>(&text).ok()?["snapshot"]["sequence"].as_u64()
 }
 
 /// The sequences of the snapshots a server log shows: written ones, and those a restart

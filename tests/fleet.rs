@@ -8,7 +8,7 @@ mod common;
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use common::fleet::Fleet;
+use common::fleet::{zenoh_replies, Fleet};
 use common::server::{g2o_batches, zenoh_peer};
 use serde_json::{json, Value};
 
@@ -100,28 +100,6 @@ fn small_batch(producer: &str, seq: u64) -> Value {
                      "sigmas": [0.1, 0.1, 0.05]}],
         "producer": producer, "producer_seq": seq,
     })
-}
-
-async fn zenoh_replies(
-    z: &zenoh::Session,
-    key: &str,
-    payload: &Value,
-) -> Vec<Result<Value, Value>> {
-    let replies = z
-        .get(key)
-        .payload(payload.to_string())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(Duration::from_secs(10))
-        .await
-        .unwrap();
-    let mut out = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
-        out.push(match reply.result() {
-            Ok(s) => Ok(serde_json::from_slice(&s.payload().to_bytes()).unwrap()),
-            Err(e) => Err(serde_json::from_slice(&e.payload().to_bytes()).unwrap()),
-        });
-    }
-    out
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -8,17 +8,6 @@ use std::time::Duration;
 use common::server::{client, create, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
-/// The server's peak resident set (VmHWM), in bytes.
-fn peak_rss(s: &TestServer) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{}/status", s.pid())).unwrap();
-    let line = status
-        .lines()
-        .find(|l| l.starts_with("VmHWM:"))
-        .expect("VmHWM");
-    let kib: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
-    kib << 10
-}
-
 /// `{"remove_factors": [1,1,…]}` of about `bytes` bytes: the cheapest way to write many items.
 fn removals(bytes: usize) -> String {
     let mut text = String::with_capacity(bytes + 32);
@@ -44,11 +33,11 @@ fn long_lists(bytes: usize, numbers: usize) -> String {
 /// that each probe's peak is its own.
 fn reset_peak(s: &TestServer) -> u64 {
     std::fs::write(format!("/proc/{}/clear_refs", s.pid()), "5").unwrap();
-    peak_rss(s)
+    s.peak_rss()
 }
 
 fn assert_bounded(s: &TestServer, before: u64, input_bytes: usize, what: &str) {
-    let grown = peak_rss(s).saturating_sub(before);
+    let grown = s.peak_rss().saturating_sub(before);
     println!(
         "{what}: {} MB refused, peak RSS grew {} MB",
         input_bytes >> 20,

@@ -100,12 +100,17 @@ impl Server {
     /// started before it.
     pub fn fleet(n: usize, extra: &[&str]) -> (Vec<Self>, PathBuf) {
         let dir = temp_dir("fleet");
+        let secret = dir.with_extension("fleet-secret");
+        std::fs::write(&secret, "the benchmark fleet's secret, 32 bytes or more\n")
+            .expect("the fleet secret is written");
+        let secret = secret.display().to_string();
         let mut out: Vec<Self> = Vec::new();
         for i in 1..=n {
             let id = format!("f{i}");
             let zenoh = format!("tcp/127.0.0.1:{}", free_port());
             let connect: Vec<String> = out.iter().map(|s| s.zenoh.clone()).collect();
             let mut flags = vec!["--fleet", "--instance-id", id.as_str()];
+            flags.extend_from_slice(&["--fleet-secret-file", secret.as_str()]);
             flags.extend_from_slice(extra);
             let info = format!("server-{id}.json");
             out.push(Self::start(&dir, &info, &zenoh, &connect, &flags));

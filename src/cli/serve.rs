@@ -74,6 +74,15 @@ pub struct ServeArgs {
     /// [default: http://<listen address>; required when listening on 0.0.0.0]
     #[arg(long, env = "FACTORD_ADVERTISE_HTTP")]
     advertise_http: Option<String>,
+    /// A file with the fleet's shared secret (at least 32 bytes, the same on every instance):
+    /// members prove membership with it; a fleet refuses to start without one unless
+    /// --fleet-trusted-network is given
+    #[arg(long, env = "FACTORD_FLEET_SECRET_FILE")]
+    fleet_secret_file: Option<PathBuf>,
+    /// Run a fleet without a secret: any zenoh peer that announces itself joins it (only on a
+    /// network nobody else can reach) [env FACTORD_FLEET_TRUSTED_NETWORK: 1, true, on, yes]
+    #[arg(long, env = "FACTORD_FLEET_TRUSTED_NETWORK", value_parser = clap::builder::FalseyValueParser::new())]
+    fleet_trusted_network: bool,
     /// Log filter: a level (error | warn | info | debug | trace | off) or RUST_LOG-style
     /// directives, e.g. factord=debug,zenoh=warn [default: info]
     #[arg(long, env = "FACTORD_LOG", default_value = "info", value_parser = parse_log_filter)]
@@ -165,5 +174,11 @@ fn overlay(args: ServeArgs, config: &mut ServeConfig) {
     }
     if let Some(v) = args.advertise_http {
         config.fleet.advertise_http = Some(v);
+    }
+    if let Some(v) = args.fleet_secret_file {
+        config.fleet.secret_file = Some(v);
+    }
+    if args.fleet_trusted_network {
+        config.fleet.trusted_network = true;
     }
 }

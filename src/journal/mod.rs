@@ -7,7 +7,8 @@
 //! ```text
 //! sessions/<name>/session.json    the creation request (kind, options, policy), written once
 //! sessions/<name>/owner           the label of the token that created it (when there was one)
-//! sessions/<name>/snapshot.json   the last snapshot (written to a temporary file, fsynced, renamed)
+//! sessions/<name>/snapshot.json   the last snapshot with its checksum (written to a temporary
+//!                                 file, fsynced, renamed; see `snapshot_file`)
 //! sessions/<name>/journal.log     checksummed entries since that snapshot (see `log`)
 //! sessions/.deleted-<name>-<n>/   a deleted session's directory, renamed before it is removed
 //! ```
@@ -28,6 +29,7 @@
 
 pub mod compact;
 pub mod log;
+mod snapshot_file;
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -165,8 +167,9 @@ pub struct Recovered {
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
     pub truncated_bytes: u64,
-    /// The journal is damaged before its end: `entries` are those before the damage, the file
-    /// is unchanged, and this says where (file and byte offset).
+    /// The journal is damaged (a bad record that is not a torn tail, see `log`): `entries` are
+    /// those before the damage, the file is unchanged, and this says where (file and byte
+    /// offset) and why it is damage.
     pub corruption: Option<String>,
 }
 
@@ -176,6 +179,24 @@ pub enum JournalError {
     Io { path: PathBuf, source: io::Error },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
+    /// A snapshot whose content does not match the checksum written with it.
+    #[error(
+        "{path}: checksum mismatch: written with CRC-32 {recorded:08x}, its snapshot now hashes \
+         to {computed:08x}: the file was damaged after it was written"
+    )]
+    SnapshotChecksum {
+        path: PathBuf,
+        recorded: u32,
+        computed: u32,
+    },
+    /// A snapshot at sequence `u64::MAX`: no batch can follow it without reusing a sequence.
+    #[error(
+        "{path}: the snapshot is at sequence {max}, the last there is: the next batch would \
+         wrap to sequence 0 and reuse acknowledged sequences, and no session gets there by \
+         accepting batches (the file was damaged or edited)",
+        max = u64::MAX
+    )]
+    LastSequence { path: PathBuf },
     /// A directory of that name is on disk already (never overwritten).
     #[error("{path} already exists")]
     Exists { path: PathBuf },
@@ -245,11 +266,11 @@ impl SessionDir {
         let created = Self { dir };
         let fill = || -> Result<(), JournalError> {
             if let Some(owner) = owner {
-                write_atomically(&created.dir.join("owner"), owner.as_bytes())?;
+                write_atomically(&created.dir.join("owner"), &[owner.as_bytes()])?;
             }
             // Written last: a directory without it is an unfinished creation, not listed.
             let text = serde_json::to_vec_pretty(request).expect("serialisable");
-            write_atomically(&created.dir.join("session.json"), &text)?;
+            write_atomically(&created.dir.join("session.json"), &[&text])?;
             sync_dir(&root)
         };
         match fill() {
@@ -399,14 +420,7 @@ impl SessionDir {
     pub fn load_state(&self) -> Result<Recovered, JournalError> {
         let snapshot_path = self.dir.join("snapshot.json");
         let snapshot = match std::fs::read(&snapshot_path) {
-            Ok(bytes) => {
-                Some(
-                    serde_json::from_slice(&bytes).map_err(|e| JournalError::Corrupt {
-                        path: snapshot_path.clone(),
-                        message: e.to_string(),
-                    })?,
-                )
-            }
+            Ok(bytes) => Some(snapshot_file::decode(&snapshot_path, &bytes)?),
             Err(e) if e.kind() == io::ErrorKind::NotFound => None,
             Err(e) => return Err(io_at(&snapshot_path)(e)),
         };
@@ -433,12 +447,16 @@ impl SessionDir {
         })
     }
 
-    /// Makes a serialised snapshot (a [`SnapshotOut`]) durable: written to a temporary file,
-    /// fsynced, renamed over the last one. The journal is compacted afterwards (see
-    /// [`Compaction`]); a crash between the two leaves records the snapshot already holds,
-    /// which replay skips by sequence.
+    /// Makes a serialised snapshot (a [`SnapshotOut`]) durable with its checksum (see
+    /// `snapshot_file`): written to a temporary file, fsynced, renamed over the last one. The
+    /// journal is compacted afterwards (see [`Compaction`]); a crash between the two leaves
+    /// records the snapshot already holds, which replay skips by sequence.
     pub fn write_snapshot(&self, bytes: &[u8]) -> Result<(), JournalError> {
-        write_atomically(&self.dir.join("snapshot.json"), bytes)
+        let head = snapshot_file::envelope_head(bytes);
+        write_atomically(
+            &self.dir.join("snapshot.json"),
+            &[&head, bytes, snapshot_file::CLOSE],
+        )
     }
 
     /// Replaces the session's history file (`history.json`, see `session::history`): written
@@ -470,16 +488,19 @@ impl SessionDir {
 /// behind it for as long.
 const SYNC_PIECE: usize = 4 << 20;
 
-/// Writes `path` so that a crash leaves either the old or the new content.
-fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), JournalError> {
+/// Writes `parts`, one after the other, to `path` so that a crash leaves either the old or the
+/// new content.
+fn write_atomically(path: &Path, parts: &[&[u8]]) -> Result<(), JournalError> {
     let tmp = path.with_extension("tmp");
     let mut file = File::create(&tmp).map_err(io_at(&tmp))?;
-    let mut pieces = bytes.chunks(SYNC_PIECE).peekable();
-    while let Some(piece) = pieces.next() {
-        file.write_all(piece).map_err(io_at(&tmp))?;
-        if pieces.peek().is_some() {
+    let mut unsynced = 0;
+    for piece in parts.iter().flat_map(|part| part.chunks(SYNC_PIECE)) {
+        if unsynced >= SYNC_PIECE {
             file.sync_data().map_err(io_at(&tmp))?;
+            unsynced = 0;
         }
+        file.write_all(piece).map_err(io_at(&tmp))?;
+        unsynced += piece.len();
     }
     file.sync_all().map_err(io_at(&tmp))?;
     std::fs::rename(&tmp, path).map_err(io_at(path))?;

@@ -6,6 +6,7 @@ use std::net::SocketAddr;
 
 use super::{FleetConfig, ServeConfig, ServeError};
 use crate::service::fleet::valid_instance_id;
+use crate::service::fleet_key::FleetKey;
 
 /// This instance's id when the fleet is on (`None` when off); refuses a fleet without zenoh
 /// or without the journal.
@@ -37,6 +38,26 @@ pub(super) fn instance_id(config: &ServeConfig) -> Result<Option<String>, ServeE
         None => default_instance_id(),
     };
     Ok(Some(id))
+}
+
+/// The fleet's secret from `secret_file`; without one, a fleet starts only when told its
+/// network is trusted, and says so.
+pub(super) fn fleet_key(fleet: &FleetConfig) -> Result<Option<FleetKey>, ServeError> {
+    match (&fleet.secret_file, fleet.trusted_network) {
+        (Some(path), _) => FleetKey::from_file(path)
+            .map(Some)
+            .map_err(|e| ServeError::Fleet(e.to_string())),
+        (None, true) => {
+            tracing::warn!(
+                "fleet: no secret (--fleet-trusted-network): every zenoh peer that declares                  `<p>/@fleet/<id>` is taken for an instance, receives sessions and the                  requests forwarded to them with their bearer tokens; run it so only on a                  network nobody else can reach"
+            );
+            Ok(None)
+        }
+        (None, false) => Err(ServeError::Fleet(
+            "needs a shared secret to tell its instances from any other zenoh peer: give              every instance --fleet-secret-file (the same file of at least 32 bytes), or              --fleet-trusted-network on a network nobody else can reach"
+                .into(),
+        )),
+    }
 }
 
 /// `<hostname>-<pid>`, the host name cut to what an id may hold.

@@ -21,7 +21,9 @@ use std::sync::{Arc, Mutex, RwLock};
 use serde::Serialize;
 use tokio::sync::{watch, Notify};
 
-use super::fleet_lock::{LockError, SessionLock};
+use super::fleet_key::FleetKey;
+pub use super::fleet_lock::LockError;
+use super::fleet_lock::SessionLock;
 use super::placement;
 use super::{Caller, Service, ServiceError};
 use crate::journal::SessionDir;
@@ -60,6 +62,9 @@ pub struct FleetInfo {
     /// The sessions loaded here, as the asking caller may see them.
     pub sessions: Vec<serde_json::Value>,
     pub load: FleetLoad,
+    /// Whether this instance serves the fleet's `<p>/rpc` now (one instance at a time does).
+    #[serde(default)]
+    pub rpc_gateway: bool,
 }
 
 #[derive(Clone, Debug, Serialize, serde::Deserialize)]
@@ -88,6 +93,19 @@ pub struct Fleet {
     loaded: watch::Sender<BTreeSet<String>>,
     /// Membership changed: rebalance now.
     pub(super) changed: Notify,
+    /// This instance serves the fleet's `<p>/rpc` (set by the transport that serves it).
+    rpc_gateway: AtomicBool,
+    /// The fleet's secret; `None` on a trusted network.
+    key: Option<Arc<FleetKey>>,
+}
+
+/// Held while this instance serves the fleet's `<p>/rpc`: on the state directory the fleet
+/// shares, the kernel lets one instance at a time hold it, so two instances that each believe
+/// they were elected (their views of the membership differ for a moment) cannot both serve.
+/// Dropping it releases it.
+#[derive(Debug)]
+pub struct GatewayLock {
+    _lock: SessionLock,
 }
 
 /// An instance id: 1-64 characters of `[A-Za-z0-9._-]`.
@@ -105,6 +123,12 @@ impl Fleet {
 
     pub fn http(&self) -> &str {
         &self.http
+    }
+
+    /// The fleet's secret, with which members prove membership; `None` on a network
+    /// declared trusted (`fleet.trusted_network`), where every announced peer is a member.
+    pub fn key(&self) -> Option<&FleetKey> {
+        self.key.as_deref()
     }
 
     /// Instance `id` is live (announced, or its URL learnt).
@@ -144,6 +168,17 @@ impl Fleet {
 
     pub fn settled(&self) -> bool {
         self.settled.load(Ordering::SeqCst)
+    }
+
+    /// Takes the rpc gateway's lock (`<state_dir>/fleet-gateway.lock`), without waiting.
+    pub fn gateway_lock(&self) -> Result<GatewayLock, LockError> {
+        SessionLock::try_acquire_file(&self.state_dir.join("fleet-gateway.lock"))
+            .map(|lock| GatewayLock { _lock: lock })
+    }
+
+    /// Records whether this instance serves the fleet's `<p>/rpc` (shown in its info).
+    pub fn set_rpc_gateway(&self, serving: bool) {
+        self.rpc_gateway.store(serving, Ordering::SeqCst);
     }
 
     /// The live instances, this one included, sorted.
@@ -265,7 +300,13 @@ pub use crate::session::moving;
 impl Service {
     /// Makes this service instance `instance` of a fleet whose HTTP is reached at `http`.
     /// Needs the journal (the shared state directory); call before [`Self::recover_sessions`].
-    pub fn join_fleet(self: &Arc<Self>, instance: &str, http: &str) -> Option<Arc<Fleet>> {
+    /// `key`: the fleet's secret (`None`: a trusted network, every announced peer a member).
+    pub fn join_fleet(
+        self: &Arc<Self>,
+        instance: &str,
+        http: &str,
+        key: Option<FleetKey>,
+    ) -> Option<Arc<Fleet>> {
         let (state_dir, _) = self.journal.clone()?;
         let fleet = Arc::new(Fleet {
             instance: instance.to_string(),
@@ -278,6 +319,8 @@ impl Service {
             broken: Mutex::new(HashSet::new()),
             loaded: watch::channel(BTreeSet::new()).0,
             changed: Notify::new(),
+            rpc_gateway: AtomicBool::new(false),
+            key: key.map(Arc::new),
         });
         if self.fleet.set(Arc::clone(&fleet)).is_err() {
             return self.fleet.get().cloned();
@@ -362,6 +405,7 @@ impl Service {
                 queued: health.queued,
             },
             sessions,
+            rpc_gateway: fleet.rpc_gateway.load(Ordering::SeqCst),
         })
     }
 }
@@ -392,7 +436,7 @@ mod tests {
         let journal = Some((dir.to_path_buf(), JournalConfig::default()));
         let service = Service::with_journal(Limits::default(), journal);
         let fleet = service
-            .join_fleet(id, &format!("http://{id}:8080"))
+            .join_fleet(id, &format!("http://{id}:8080"), None)
             .unwrap();
         (service, fleet)
     }

@@ -1,5 +1,6 @@
 //! One session's lock in a fleet: an OS lock (`flock`) on `sessions/<name>/lock`, taken without
-//! waiting and held by the open file for as long as the session is loaded. The kernel releases
+//! waiting and held by the open file for as long as the session is loaded. The fleet's rpc
+//! gateway holds one the same way, on `<state_dir>/fleet-gateway.lock` (`Fleet::gateway_lock`). The kernel releases
 //! it however the process ends (a `kill -9` included), so a survivor can adopt the session at
 //! once, and two instances can never both hold it: one journal, one writer.
 //!
@@ -13,7 +14,7 @@ use std::io;
 use std::os::unix::fs::MetadataExt;
 use std::path::Path;
 
-/// A held session lock; dropping it releases the lock.
+/// A held lock (a session's, or the rpc gateway's); dropping it releases the lock.
 #[derive(Debug)]
 pub struct SessionLock {
     _file: File,
@@ -35,13 +36,18 @@ pub enum LockError {
 impl SessionLock {
     /// Takes the lock of the session directory `dir`, without waiting.
     pub fn try_acquire(dir: &Path) -> Result<Self, LockError> {
-        let path = dir.join("lock");
+        Self::try_acquire_file(&dir.join("lock"))
+    }
+
+    /// Takes the lock of the file at `path` (created if missing, in a directory that must
+    /// exist), without waiting.
+    pub fn try_acquire_file(path: &Path) -> Result<Self, LockError> {
         let file = match OpenOptions::new()
             .read(true)
             .write(true)
             .create(true)
             .truncate(false)
-            .open(&path)
+            .open(path)
         {
             Ok(file) => file,
             Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(LockError::Gone),
@@ -53,7 +59,7 @@ impl SessionLock {
             Err(std::fs::TryLockError::Error(e)) => return Err(e.into()),
         }
         let held = file.metadata()?;
-        match std::fs::metadata(&path) {
+        match std::fs::metadata(path) {
             Ok(now) if now.ino() == held.ino() && now.dev() == held.dev() => {
                 Ok(Self { _file: file })
             }

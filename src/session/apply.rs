@@ -79,7 +79,9 @@ impl Session {
         if journal {
             self.check_session_size(&st, &prepared)?;
         }
-        let sequence = st.sequence + 1;
+        let Some(sequence) = st.sequence.checked_add(1) else {
+            return Err(self.sequences_exhausted());
+        };
         let wire_copy = match (durable.as_mut(), wire_copy, journal) {
             (Some(d), Some(copy), true) => {
                 Some(d.write_batch(&self.name, sequence, copy, &prepared)?)
@@ -349,5 +351,35 @@ impl Session {
             st.dirty = true;
             st.converged = false;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use serde_json::json;
+
+    use super::*;
+
+    /// Issue 52, item 10: at sequence `u64::MAX` the next batch is refused and the session made
+    /// read-only; it is never acknowledged with sequence 0.
+    #[test]
+    fn the_batch_after_the_last_sequence_is_refused_not_wrapped() {
+        let (_runtime, pool, session) = crate::session::test_session("last");
+        session.lock().sequence = u64::MAX - 1;
+        let pose = |key: u64| -> Batch {
+            serde_json::from_value(json!({"variables": [{"key": key, "kind": "se2",
+                "value": [0, 0, 0], "fixed": true}]}))
+            .unwrap()
+        };
+        let (ack, _) = session.apply_batch(pose(0)).unwrap();
+        assert_eq!(ack.sequence, u64::MAX);
+        let refused = session.apply_batch(pose(1)).unwrap_err();
+        assert_eq!(refused.body.code, "session_corrupt", "{refused:?}");
+        assert!(refused.body.message.contains("read-only"), "{refused:?}");
+        assert_eq!(session.lock().sequence, u64::MAX);
+        assert!(session.lock().mirror.get(&1).is_none(), "nothing applied");
+        assert!(session.corruption().is_some());
+        drop(session);
+        pool.shutdown(std::time::Duration::from_secs(5));
     }
 }

@@ -37,8 +37,8 @@ pub struct Recovery {
     pub entries: usize,
     pub truncated_bytes: u64,
     pub seconds: f64,
-    /// The journal was damaged before its end: the session holds the entries before the damage
-    /// and is read-only (see [`Session::corruption`]).
+    /// The journal was damaged (a bad record that is not a torn tail): the session holds the
+    /// entries before the damage and is read-only (see [`Session::corruption`]).
     pub corruption: Option<String>,
 }
 
@@ -251,6 +251,23 @@ impl Session {
             "recovery stopped: {reason}; the session keeps what was rebuilt and is read-only \
              (its files are kept unchanged; DELETE removes them)"
         ));
+    }
+
+    /// The session's sequence is `u64::MAX` (only damaged or edited files lead there: see
+    /// `journal::snapshot_file`): it becomes read-only for good rather than give the next batch
+    /// sequence 0 and reuse acknowledged sequences.
+    pub(super) fn sequences_exhausted(&self) -> ServiceError {
+        let reason = format!(
+            "its sequence is {}, the last there is: another batch would wrap to sequence 0 and \
+             reuse acknowledged sequences; the session is read-only (DELETE removes it)",
+            u64::MAX
+        );
+        tracing::error!(session = self.name, "{reason}");
+        self.mark_corrupt(reason.clone());
+        ServiceError::conflict(
+            "session_corrupt",
+            format!("session `{}` is read-only: {reason}", self.name),
+        )
     }
 
     /// Makes the session read-only for good, with `reason` as its `last_error`. Set before

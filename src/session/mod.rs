@@ -207,3 +207,28 @@ impl Session {
         self.mark_deleted();
     }
 }
+
+/// What unit tests of a session need: one of kind `pose_graph_2d` with manual solving, on a
+/// runtime and a one-worker pool of its own (kept alive by the caller).
+#[cfg(test)]
+pub(crate) fn test_session(
+    name: &str,
+) -> (
+    tokio::runtime::Runtime,
+    crate::runtime::pool::WorkerPool,
+    std::sync::Arc<Session>,
+) {
+    let runtime = tokio::runtime::Runtime::new().expect("a test runtime");
+    let pool = crate::runtime::pool::WorkerPool::new(1);
+    let kind = crate::api::catalogue::session_kind("pose_graph_2d").expect("a built-in kind");
+    let session = Session::new(
+        name.into(),
+        kind,
+        (kind.default_options)(),
+        crate::api::wire::AutoOptimize::Manual {},
+        runtime.handle().clone(),
+        pool.handle(),
+        crate::api::Limits::default(),
+    );
+    (runtime, pool, session)
+}

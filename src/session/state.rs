@@ -146,7 +146,7 @@ mod tests {
 
     use super::super::{Durability, Session};
     use super::*;
-    use crate::api::wire::{AutoOptimize, Batch};
+    use crate::api::wire::Batch;
     use crate::journal::{JournalConfig, SessionDir};
 
     /// What [`problem_bytes`] estimated before it was kept: a walk over every factor.
@@ -199,18 +199,7 @@ mod tests {
 
     #[test]
     fn maintained_byte_counts_equal_the_walked_ones() {
-        let runtime = tokio::runtime::Runtime::new().unwrap();
-        let pool = crate::runtime::pool::WorkerPool::new(1);
-        let kind = crate::api::catalogue::session_kind("pose_graph_2d").unwrap();
-        let session = Session::new(
-            "bytes".into(),
-            kind,
-            (kind.default_options)(),
-            AutoOptimize::Manual {},
-            runtime.handle().clone(),
-            pool.handle(),
-            crate::api::Limits::default(),
-        );
+        let (runtime, pool, session) = crate::session::test_session("bytes");
         let state_dir = std::env::temp_dir().join(format!("factord-bytes-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&state_dir);
         let request =

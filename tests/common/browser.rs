@@ -17,29 +17,55 @@ use serde_json::{json, Value};
 pub const CHROMIUM: &str = "/usr/bin/chromium";
 pub const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 
-/// Debian's chromium and chromedriver, installed on first use when we may (root with apt).
+/// Debian's chromium and chromedriver, installed on first use when we may (root with apt), by
+/// one test at a time (apt takes one install at a time; see `environments::locked`), after
+/// `apt-get update` when the package lists of a fresh machine do not know them.
 pub fn install() -> Result<(), String> {
-    if Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists() {
+    let present = || Path::new(CHROMIUM).exists() && Path::new(CHROMEDRIVER).exists();
+    if present() {
         return Ok(());
     }
+    let cache = super::environments::cache_dir()?;
+    super::environments::locked(&cache, "browser", || {
+        if present() {
+            return Ok(());
+        }
+        let mut failure = apt_install();
+        if failure.is_some() {
+            apt(&["update"]).map_err(|e| format!("apt-get update: {e}"))?;
+            failure = apt_install();
+        }
+        match failure {
+            None if present() => Ok(()),
+            None => Err("apt-get installed chromium, but not where expected".into()),
+            Some(why) => Err(format!(
+                "cannot install chromium and chromium-driver: {why}"
+            )),
+        }
+    })?
+}
+
+/// Installs chromium and chromium-driver; `Some(why)` when apt-get failed.
+fn apt_install() -> Option<String> {
+    let packages = [
+        "install",
+        "-y",
+        "--no-install-recommends",
+        "chromium",
+        "chromium-driver",
+    ];
+    apt(&packages).err()
+}
+
+fn apt(args: &[&str]) -> Result<(), String> {
     let out = Command::new("apt-get")
-        .args([
-            "install",
-            "-y",
-            "--no-install-recommends",
-            "chromium",
-            "chromium-driver",
-        ])
+        .args(args)
         .env("DEBIAN_FRONTEND", "noninteractive")
         .output()
         .map_err(|e| format!("apt-get: {e}"))?;
-    if out.status.success() && Path::new(CHROMEDRIVER).exists() {
-        Ok(())
-    } else {
-        Err(format!(
-            "cannot install chromium and chromium-driver: {}",
-            String::from_utf8_lossy(&out.stderr)
-        ))
+    match out.status.success() {
+        true => Ok(()),
+        false => Err(String::from_utf8_lossy(&out.stderr).into_owned()),
     }
 }
 

@@ -1,6 +1,7 @@
 //! A fleet of real `factord serve --fleet` processes on loopback: distinct HTTP and zenoh
-//! ports, one shared state directory, each instance connected over zenoh to those started
-//! before it (zenoh's gossip completes the mesh). Instances can be killed (-9) and restarted.
+//! ports, one shared state directory, each instance connected over zenoh as its [`Wiring`]
+//! says (by default to those started before it; zenoh's gossip completes the mesh).
+//! Instances can be killed (-9) and restarted.
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
@@ -37,6 +38,18 @@ impl Drop for Instance {
     }
 }
 
+/// Whom each instance connects to over zenoh.
+#[derive(Clone, Debug)]
+pub enum Wiring {
+    /// Every instance running when it starts (peers; gossip completes the mesh).
+    Mesh,
+    /// The README's fleet: the first instance listens, every other connects to it alone.
+    Star,
+    /// Instance `i` connects to `endpoints[i]` only: routers', or other instances' endpoints
+    /// chosen in advance with [`Fleet::zenoh_endpoints`] and given to [`Fleet::start_on`].
+    Explicit(Vec<Vec<String>>),
+}
+
 pub struct Fleet {
     pub state_dir: PathBuf,
     /// By index; `None` while killed.
@@ -44,21 +57,40 @@ pub struct Fleet {
     ids: Vec<String>,
     zenoh: Vec<String>,
     extra: Vec<String>,
+    wiring: Wiring,
 }
 
 impl Fleet {
     /// `n` instances `f1`..`fn` on a fresh state directory, started one after the other, plus
     /// `extra` flags for each.
     pub fn start(n: usize, extra: &[&str]) -> Self {
+        Self::start_wired(n, extra, Wiring::Mesh)
+    }
+
+    /// As [`Fleet::start`], connected as `wiring` says.
+    pub fn start_wired(n: usize, extra: &[&str], wiring: Wiring) -> Self {
+        Self::start_on(Self::zenoh_endpoints(n), extra, wiring)
+    }
+
+    /// `n` fresh zenoh endpoints on loopback, one per instance: for an [`Wiring::Explicit`]
+    /// that names instances, pass the same ones to [`Fleet::start_on`].
+    pub fn zenoh_endpoints(n: usize) -> Vec<String> {
+        (0..n)
+            .map(|_| format!("tcp/127.0.0.1:{}", free_port()))
+            .collect()
+    }
+
+    /// Instances listening on `zenoh` (one endpoint each), connected as `wiring` says.
+    pub fn start_on(zenoh: Vec<String>, extra: &[&str], wiring: Wiring) -> Self {
+        let n = zenoh.len();
         let state_dir = super::temp_dir("fleet-state");
         let mut fleet = Self {
             state_dir,
             instances: (0..n).map(|_| None).collect(),
             ids: (1..=n).map(|i| format!("f{i}")).collect(),
-            zenoh: (0..n)
-                .map(|_| format!("tcp/127.0.0.1:{}", free_port()))
-                .collect(),
+            zenoh,
             extra: extra.iter().map(|s| s.to_string()).collect(),
+            wiring,
         };
         for i in 0..n {
             // Appended to across restarts; one left by an earlier run with this process id is
@@ -69,13 +101,35 @@ impl Fleet {
         fleet
     }
 
+    /// The fleet's shared secret (beside the state directory), written on first use.
+    pub fn secret_file(&self) -> PathBuf {
+        let path = self.state_dir.with_extension("fleet-secret");
+        if !path.exists() {
+            std::fs::write(&path, format!("secret of {}\n", path.display())).unwrap();
+        }
+        path
+    }
+
     /// Where instance `i` logs (beside the state directory).
     fn stderr_path(&self, i: usize) -> PathBuf {
         self.state_dir
             .with_extension(format!("{}.stderr", self.ids[i]))
     }
 
-    /// Starts (or restarts) instance `i`, connected to every running instance.
+    /// The zenoh endpoints instance `i` connects to.
+    fn connect_of(&self, i: usize) -> Vec<String> {
+        match &self.wiring {
+            Wiring::Mesh => (0..self.ids.len())
+                .filter(|&j| j != i && self.instances[j].is_some())
+                .map(|j| self.zenoh[j].clone())
+                .collect(),
+            Wiring::Star if i == 0 => Vec::new(),
+            Wiring::Star => vec![self.zenoh[0].clone()],
+            Wiring::Explicit(endpoints) => endpoints[i].clone(),
+        }
+    }
+
+    /// Starts (or restarts) instance `i`, connected as the fleet's [`Wiring`] says.
     pub fn start_instance(&mut self, i: usize) {
         let id = self.ids[i].clone();
         let info = self.state_dir.join(format!("server-{id}.json"));
@@ -86,13 +140,11 @@ impl Fleet {
             .append(true)
             .open(&stderr_path)
             .expect("stderr file");
-        let connect: Vec<String> = (0..self.ids.len())
-            .filter(|&j| j != i && self.instances[j].is_some())
-            .map(|j| self.zenoh[j].clone())
-            .collect();
+        let connect = self.connect_of(i);
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
         cmd.arg("serve")
             .args(["--fleet", "--instance-id", &id])
+            .env("FACTORD_FLEET_SECRET_FILE", self.secret_file())
             .args(["--listen", "127.0.0.1:0"])
             .args(["--zenoh-listen", &self.zenoh[i]])
             .args(["--zenoh-multicast", "off"])
@@ -190,6 +242,30 @@ impl Fleet {
             .map(|&i| format!("--- {} ---\n{}", self.ids[i], self.instance(i).stderr()))
             .collect()
     }
+}
+
+/// Every reply to `payload` on `key`, each as it came (no consolidation): the JSON of a reply,
+/// or of an error reply.
+pub async fn zenoh_replies(
+    z: &zenoh::Session,
+    key: &str,
+    payload: &Value,
+) -> Vec<Result<Value, Value>> {
+    let replies = z
+        .get(key)
+        .payload(payload.to_string())
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_secs(10))
+        .await
+        .expect("query sent");
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        out.push(match reply.result() {
+            Ok(s) => Ok(serde_json::from_slice(&s.payload().to_bytes()).unwrap()),
+            Err(e) => Err(serde_json::from_slice(&e.payload().to_bytes()).unwrap()),
+        });
+    }
+    out
 }
 
 /// Every instance's `info` (zenoh `factord/@fleet/*/info`).

@@ -5,11 +5,15 @@ pub mod ack_proxy;
 pub mod browser;
 pub mod cli;
 pub mod docker;
+pub mod environments;
 pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;
 pub mod producer;
 pub mod server;
+
+#[allow(unused_imports)]
+pub use environments::{gtsam_python, python_venv};
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -265,50 +269,4 @@ pub fn skip_or_fail<T>(reason: &str) -> Option<T> {
     }
     eprintln!("skipping: {reason}");
     None
-}
-
-/// The python of the GTSAM venv (`pip install gtsam`), or `None` (skipped; a failure under CI).
-#[allow(dead_code)]
-pub fn gtsam_python() -> Option<PathBuf> {
-    match python_venv("gtsam", &[vec!["gtsam".into()]]) {
-        Ok(python) => Some(python),
-        Err(reason) => skip_or_fail(&format!("no GTSAM Python environment: {reason}")),
-    }
-}
-
-/// The python of the venv `~/.cache/factord/venvs/<name>`, created if missing, after
-/// `pip install <args>` of each entry of `installs` (PyPI must be reachable the first time).
-#[allow(dead_code)]
-pub fn python_venv(name: &str, installs: &[Vec<std::ffi::OsString>]) -> Result<PathBuf, String> {
-    use std::process::Command;
-    let home = std::env::var_os("HOME").ok_or("HOME is not set")?;
-    let venv = PathBuf::from(home).join(".cache/factord/venvs").join(name);
-    let python = venv.join("bin/python");
-    let run = |cmd: &mut Command| -> Result<(), String> {
-        let out = cmd.output().map_err(|e| format!("{cmd:?}: {e}"))?;
-        if out.status.success() {
-            Ok(())
-        } else {
-            Err(format!(
-                "{cmd:?} failed:\n{}{}",
-                String::from_utf8_lossy(&out.stdout),
-                String::from_utf8_lossy(&out.stderr)
-            ))
-        }
-    };
-    if !python.exists() {
-        run(Command::new("python3").args(["-m", "venv"]).arg(&venv))?;
-    }
-    for args in installs {
-        run(Command::new(&python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--disable-pip-version-check",
-            ])
-            .args(args))?;
-    }
-    Ok(python)
 }

@@ -134,6 +134,17 @@ impl TestServer {
         self.child.as_ref().expect("running").id()
     }
 
+    /// The server's peak resident set (VmHWM), in bytes.
+    pub fn peak_rss(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.pid())).unwrap();
+        let line = status
+            .lines()
+            .find(|l| l.starts_with("VmHWM:"))
+            .expect("VmHWM");
+        let kib: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        kib << 10
+    }
+
     /// SIGTERM, then wait (at most `timeout`); returns the exit status and the log.
     pub fn terminate(mut self, timeout: Duration) -> (Option<ExitStatus>, String) {
         let mut child = self.child.take().expect("running");

@@ -226,7 +226,13 @@ pub async fn require_token(
         .extensions()
         .get::<ConnectionContext>()
         .map(|c| c.peer.ip());
-    let principal = match authenticate(&tokens, &request, peer, open) {
+    // A request a fleet member forwarded, whose asserted caller was verified (`fleet_caller`):
+    // it runs as that caller, and its connection (another member's) counts as authenticated.
+    let asserted = request
+        .extensions()
+        .get::<super::fleet_caller::AssertedCaller>()
+        .map(|a| Ok(a.principal()));
+    let principal = match asserted.unwrap_or_else(|| authenticate(&tokens, &request, peer, open)) {
         Ok(principal) => principal,
         Err(refusal) => return refusal,
     };

@@ -1,7 +1,8 @@
 //! HTTP in a fleet: any instance answers for any session. A request under
 //! `/v1/sessions/<s>/…` for a session another instance owns is forwarded to the owner's
-//! advertised URL (method, path, query, headers with `Authorization`, body; the answer streamed
-//! back, so SSE works through it); a WebSocket is redirected there (307). `POST /v1/sessions`
+//! advertised URL (method, path, query, headers, body; the answer streamed back, so SSE works
+//! through it; with a fleet secret the caller's token and cookies stay here and the owner gets
+//! a signed assertion of the caller instead, `fleet_caller`); a WebSocket is redirected there (307). `POST /v1/sessions`
 //! goes to the owner of the name (an unnamed creation is named first, fleet-wide), and
 //! `GET /v1/sessions` lists every instance's sessions.
 //!
@@ -24,8 +25,8 @@ use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
 
 use super::auth::Tokens;
-use super::HttpError;
-use crate::service::fleet::{merge_session_lists, moving, Route};
+use super::{fleet_caller, HttpError};
+use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
 use crate::service::{Caller, Command, Reply, Service, ServiceError};
 
 /// Names the instance a request was forwarded by: its receiver answers, never forwards.
@@ -150,10 +151,12 @@ fn strip_hop_by_hop(headers: &mut HeaderMap) {
 /// Sends `request` to the instance at `base` and streams its answer back.
 async fn proxy(f: &Forwarder, base: &str, mut request: Request) -> Response {
     let name = session_of(request.uri().path());
-    let target = format!(
-        "{base}{}",
-        request.uri().path_and_query().map_or("/", |p| p.as_str())
-    );
+    let path_and_query = request
+        .uri()
+        .path_and_query()
+        .map_or("/", |p| p.as_str())
+        .to_string();
+    let target = format!("{base}{path_and_query}");
     let Ok(uri) = target.parse::<Uri>() else {
         return HttpError::from(ServiceError::internal(format!("bad owner URL `{target}`")))
             .into_response();
@@ -172,6 +175,10 @@ async fn proxy(f: &Forwarder, base: &str, mut request: Request) -> Response {
         if let Ok(me) = HeaderValue::from_str(fleet.instance()) {
             headers.insert(FORWARDED_BY, me);
         }
+        let caller = caller_of(&request);
+        let method = request.method().clone();
+        let headers = request.headers_mut();
+        fleet_caller::assert_caller(fleet, headers, &method, &path_and_query, &caller);
     }
     match f.client.request(request).await {
         Ok(answer) => {
@@ -246,12 +253,17 @@ fn too_large(e: axum::Error) -> ServiceError {
 }
 
 /// `GET /v1/sessions`: this instance's sessions and every other live instance's, merged.
-async fn list(f: &Forwarder, request: Request) -> Response {
-    let caller = request
+/// The caller the checks before this middleware found (none: anonymous, failing closed).
+fn caller_of(request: &Request) -> Caller {
+    request
         .extensions()
         .get::<Caller>()
         .cloned()
-        .unwrap_or(Caller::Anonymous);
+        .unwrap_or(Caller::Anonymous)
+}
+
+async fn list(f: &Forwarder, request: Request) -> Response {
+    let caller = caller_of(&request);
     let own = match f.service.execute_as(&caller, Command::ListSessions).await {
         Ok(Reply::Sessions { sessions }) => sessions
             .into_iter()
@@ -276,7 +288,7 @@ async fn list(f: &Forwarder, request: Request) -> Response {
         .collect();
     let asks = others
         .iter()
-        .map(|url| remote_list(f, url, authorization.clone(), fleet.instance()));
+        .map(|url| remote_list(f, fleet, url, authorization.clone(), &caller));
     let mut lists = futures_util::future::join_all(asks).await;
     lists.push(own);
     let sessions = merge_session_lists(lists);
@@ -290,20 +302,22 @@ async fn list(f: &Forwarder, request: Request) -> Response {
 /// Another instance's own sessions (empty when it does not answer in time).
 async fn remote_list(
     f: &Forwarder,
+    fleet: &Fleet,
     base: &str,
     authorization: Option<HeaderValue>,
-    me: &str,
+    caller: &Caller,
 ) -> Vec<serde_json::Value> {
-    let mut request = Request::get(format!("{base}/v1/sessions"));
-    if let Some(a) = authorization {
-        request = request.header(header::AUTHORIZATION, a);
-    }
-    if let Ok(me) = HeaderValue::from_str(me) {
-        request = request.header(FORWARDED_BY, me);
-    }
-    let Ok(request) = request.body(Body::empty()) else {
+    let Ok(mut request) = Request::get(format!("{base}/v1/sessions")).body(Body::empty()) else {
         return Vec::new();
     };
+    let headers = request.headers_mut();
+    if let Some(a) = authorization {
+        headers.insert(header::AUTHORIZATION, a);
+    }
+    if let Ok(me) = HeaderValue::from_str(fleet.instance()) {
+        headers.insert(FORWARDED_BY, me);
+    }
+    fleet_caller::assert_caller(fleet, headers, &Method::GET, "/v1/sessions", caller);
     let ask = async {
         let answer = f.client.request(request).await.ok()?;
         if !answer.status().is_success() {

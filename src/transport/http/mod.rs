@@ -23,6 +23,7 @@ pub mod auth;
 mod body_limits;
 mod connection_io;
 mod errors;
+pub mod fleet_caller;
 pub mod forward;
 pub mod guard;
 mod handlers;
@@ -106,6 +107,15 @@ pub fn router(
             auth::require_token,
         )),
         None => routes.layer(axum::middleware::from_fn(auth::trust_everyone)),
+    };
+    // Before the token check: a request another member forwarded runs as the caller it
+    // asserts, when the assertion's proof holds.
+    let routes = match service.fleet() {
+        Some(_) => routes.layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&service),
+            fleet_caller::accept_asserted,
+        )),
+        None => routes,
     };
     routes
         .layer(axum::middleware::from_fn(json_errors))

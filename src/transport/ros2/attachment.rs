@@ -15,7 +15,7 @@
 /// `RMW_GID_STORAGE_SIZE` since Iron.
 pub const GID_SIZE: usize = 16;
 
-const ENCODED_SIZE: usize = 8 + 8 + 1 + GID_SIZE;
+pub const ENCODED_SIZE: usize = 8 + 8 + 1 + GID_SIZE;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Attachment {

@@ -1,17 +1,34 @@
 //! CDR, as rmw_zenoh carries it: the 4-byte encapsulation header (`00 01 00 00`, CDR little
 //! endian, on what we write; either endianness on what we read) then the message, aligned from
-//! the end of that header. Encoding and decoding are the `cdr` crate's.
+//! the end of that header. Encoding and decoding are the `cdr` crate's, but for the strings we
+//! read ([`name_string`]).
 
-use serde::de::DeserializeOwned;
-use serde::Serialize;
+use std::io::Read;
+
+use serde::de::{DeserializeOwned, Error as _, SeqAccess, Visitor};
+use serde::{Deserializer, Serialize};
+
+/// The longest string a message we read may hold, in bytes: ROS frame names are short
+/// (`base_link`, `robot1/odom`), and a longer one is not a name.
+pub const MAX_NAME_BYTES: usize = 256;
 
 /// A payload that is not the CDR of the expected message.
 #[derive(Debug, thiserror::Error)]
-#[error("not a CDR-encoded {type_name}: {source}")]
+#[error("not a CDR-encoded {type_name}: {}", explain(source))]
 pub struct CdrError {
     pub type_name: &'static str,
     #[source]
     pub source: cdr::Error,
+}
+
+/// The cdr crate's reasons, in the terms of a message that is too short.
+fn explain(source: &cdr::Error) -> String {
+    let ended = |kind: std::io::ErrorKind| kind == std::io::ErrorKind::UnexpectedEof;
+    match source {
+        cdr::Error::SizeLimit => "the payload ends before the message does".into(),
+        cdr::Error::Io(e) if ended(e.kind()) => "the payload ends before the message does".into(),
+        other => other.to_string(),
+    }
 }
 
 /// `message` as CDR little endian with its encapsulation header.
@@ -20,11 +37,64 @@ pub fn encode<T: Serialize>(message: &T) -> Vec<u8> {
         .expect("ROS messages of plain structs, strings and sequences always serialise")
 }
 
-/// The message of `payload`; reads no further than the payload (a length field beyond it is a
-/// truncated message, not an allocation).
+/// The message of `payload` (see [`decode_from`]).
+#[cfg(test)]
 pub fn decode<T: DeserializeOwned>(payload: &[u8], type_name: &'static str) -> Result<T, CdrError> {
-    cdr::deserialize_from(payload, cdr::Bounded(payload.len() as u64))
+    decode_from(payload, payload.len(), type_name)
+}
+
+/// The message read from `payload`, `len` bytes, read as it is decoded (never copied whole);
+/// reads no further than `len` bytes (a length field beyond them is a truncated message, not
+/// an allocation).
+pub fn decode_from<T: DeserializeOwned>(
+    payload: impl Read,
+    len: usize,
+    type_name: &'static str,
+) -> Result<T, CdrError> {
+    cdr::deserialize_from(payload, cdr::Bounded(len as u64))
         .map_err(|source| CdrError { type_name, source })
+}
+
+/// A CDR string (a u32 length counting the terminating NUL, then the bytes) of at most
+/// [`MAX_NAME_BYTES`], refused at its length: the cdr crate's own string reading allocates and
+/// zeroes the length it reads before it checks it against the payload (4 GiB for a length of
+/// 0xFFFFFFF0). Read as a tuple, CDR's sequence of elements without a length, one byte at a
+/// time: never more memory than bytes read. `field` names it in the refusal.
+pub fn name_string<'de, D: Deserializer<'de>>(
+    deserializer: D,
+    field: &'static str,
+) -> Result<String, D::Error> {
+    struct Name {
+        field: &'static str,
+    }
+    impl<'de> Visitor<'de> for Name {
+        type Value = String;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            write!(f, "a string of at most {MAX_NAME_BYTES} bytes")
+        }
+        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<String, A::Error> {
+            let field = self.field;
+            let missing = |i| A::Error::invalid_length(i, &self);
+            let len: u32 = seq.next_element()?.ok_or_else(|| missing(0))?;
+            let len = len as usize;
+            if len > MAX_NAME_BYTES + 1 {
+                return Err(A::Error::custom(format!(
+                    "{field} has a length of {len} bytes: at most {MAX_NAME_BYTES} are taken \
+                     (ROS names are short)"
+                )));
+            }
+            let mut bytes = Vec::with_capacity(len);
+            for i in 0..len {
+                bytes.push(seq.next_element::<u8>()?.ok_or_else(|| missing(i + 1))?);
+            }
+            if bytes.last() == Some(&0) {
+                bytes.pop();
+            }
+            String::from_utf8(bytes).map_err(|_| A::Error::custom(format!("{field} is not UTF-8")))
+        }
+    }
+    // The length and up to MAX_NAME_BYTES + 1 bytes: the tuple ends where the string does.
+    deserializer.deserialize_tuple(MAX_NAME_BYTES + 2, Name { field })
 }
 
 #[cfg(test)]
@@ -50,6 +120,34 @@ mod tests {
         assert_eq!(bytes.len(), 4 + 16 + 8 * (7 + 36));
         let back: PoseWithCovarianceStamped = decode(&bytes, "x").unwrap();
         assert_eq!(back, message);
+    }
+
+    /// A frame id of `len` bytes ("aaa…") in an otherwise well-formed message.
+    fn with_frame_id(len: usize) -> Vec<u8> {
+        let mut message = PoseWithCovarianceStamped::default();
+        message.header.frame_id = "a".repeat(len);
+        encode(&message)
+    }
+
+    #[test]
+    fn names_are_bounded_at_their_length() {
+        let back: PoseWithCovarianceStamped = decode(&with_frame_id(256), "x").unwrap();
+        assert_eq!(back.header.frame_id.len(), 256);
+        let error = decode::<PoseWithCovarianceStamped>(&with_frame_id(257), "x").unwrap_err();
+        assert!(
+            error
+                .to_string()
+                .contains("header.frame_id has a length of 258"),
+            "{error}"
+        );
+        // A length beyond the payload, within the bound, is a message cut short; far beyond it
+        // (0xFFFFFFF0) is refused before anything is allocated for it.
+        let mut bytes = with_frame_id(3)[..20].to_vec();
+        for (len, expected) in [(200u32, "ends before"), (0xFFFF_FFF0, "4294967280 bytes")] {
+            bytes[12..16].copy_from_slice(&len.to_le_bytes());
+            let error = decode::<PoseWithCovarianceStamped>(&bytes, "x").unwrap_err();
+            assert!(error.to_string().contains(expected), "{error}");
+        }
     }
 
     #[test]

@@ -1,11 +1,14 @@
 //! The binding's subscriptions: odometry, absolute poses and IMU samples, in the order they
-//! arrive, decoded from CDR, turned into batches by the [`Keyframer`] (pose graphs) or fusion
-//! messages by the [`WindowFeed`] (sliding windows), and executed as any client's commands.
+//! arrive, decoded from CDR, checked (`bounds`), turned into batches by the [`Keyframer`] (pose
+//! graphs) or fusion messages by the [`WindowFeed`] (sliding windows), and executed as any
+//! client's commands.
 //!
-//! A message that cannot be used (not CDR of the expected type, a bad covariance, a prior
+//! A message that cannot be used (larger than `max_body_bytes`, not CDR of the expected type, a
+//! value out of bounds, a stamp not after its topic's previous one, a bad covariance, a prior
 //! before any keyframe) is counted and reported on the session's error stream (SSE, zenoh
 //! `out/errors`) with code `ros2_bad_message`; nothing of it reaches the session.
 
+use std::io::Read;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
@@ -13,7 +16,8 @@ use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::Sample;
 
-use super::attachment::{Attachment, AttachmentError};
+use super::attachment::{self, Attachment, AttachmentError};
+use super::bounds::{self, BadValue, Stamps, Stream};
 use super::cdr_codec;
 use super::keyframes::{Keyframer, MessageError};
 use super::messages::{
@@ -29,8 +33,14 @@ pub(super) type Samples = Subscriber<FifoChannelHandler<Sample>>;
 /// Why a ROS message was not used.
 #[derive(Debug, thiserror::Error)]
 enum Unusable {
+    /// Refused on its size alone, before a byte of it is copied or decoded, as factord's own
+    /// keys refuse a put beyond `max_body_bytes` (`transport::zenoh::oversized`).
+    #[error("the payload has {len} bytes; the limit is {limit} (max_body_bytes)")]
+    TooLarge { len: usize, limit: usize },
     #[error(transparent)]
     Cdr(#[from] cdr_codec::CdrError),
+    #[error(transparent)]
+    Value(#[from] BadValue),
     #[error(transparent)]
     Message(#[from] MessageError),
     #[error(transparent)]
@@ -52,12 +62,51 @@ enum Topic {
     Imu,
 }
 
+/// A decoded message (its values still to check: [`Message::checked_stamp`]).
+enum Message {
+    Odometry(Odometry),
+    Prior(PoseWithCovarianceStamped),
+    Imu(Imu),
+}
+
 impl Topic {
     fn field(self) -> &'static str {
         match self {
             Topic::Odometry => "ros2.odometry_topic",
             Topic::Prior => "ros2.prior_topic",
             Topic::Imu => "ros2.imu_topic",
+        }
+    }
+
+    fn stream(self) -> Stream {
+        match self {
+            Topic::Odometry => Stream::Odometry,
+            Topic::Prior => Stream::Prior,
+            Topic::Imu => Stream::Imu,
+        }
+    }
+
+    /// The message of a `len`-byte payload of this topic, read from `payload`.
+    fn decode(self, payload: impl Read, len: usize) -> Result<Message, cdr_codec::CdrError> {
+        use cdr_codec::decode_from;
+        Ok(match self {
+            Topic::Odometry => Message::Odometry(decode_from(payload, len, ODOMETRY.name)?),
+            Topic::Prior => {
+                let name = POSE_WITH_COVARIANCE_STAMPED.name;
+                Message::Prior(decode_from(payload, len, name)?)
+            }
+            Topic::Imu => Message::Imu(decode_from(payload, len, IMU.name)?),
+        })
+    }
+}
+
+impl Message {
+    /// Its stamp in seconds, once its values are within bounds (not yet the stamp's order).
+    fn checked_stamp(&self) -> Result<f64, BadValue> {
+        match self {
+            Message::Odometry(m) => bounds::odometry(m),
+            Message::Prior(m) => bounds::prior(m),
+            Message::Imu(m) => bounds::imu(m),
         }
     }
 }
@@ -74,6 +123,20 @@ pub(super) struct Inputs {
     pub tf: Option<Arc<TfBroadcaster>>,
     /// Messages refused so far (reported with each refusal).
     pub refused: Arc<AtomicU64>,
+    /// The largest payload taken, `max_body_bytes` as for factord's own keys.
+    pub max_payload: usize,
+    /// The newest stamp used on each topic.
+    pub stamps: Stamps,
+}
+
+/// rmw_zenoh always attaches one; a sample without (a plain zenoh put) is taken, one with
+/// something else is not from rmw_zenoh and is refused, on its length before it is copied.
+fn check_attachment(sample: &Sample) -> Result<(), AttachmentError> {
+    match sample.attachment() {
+        None => Ok(()),
+        Some(a) if a.len() != attachment::ENCODED_SIZE => Err(AttachmentError { len: a.len() }),
+        Some(a) => Attachment::decode(&a.to_bytes()).map(drop),
+    }
 }
 
 /// The next sample of an optional subscription (never, without one).
@@ -94,17 +157,7 @@ impl Inputs {
                 s = next(&self.imu) => (s, Topic::Imu),
             };
             let Ok(sample) = sample else { return };
-            let payload = sample.payload().to_bytes();
-            // rmw_zenoh always attaches one; a sample without (a plain zenoh put) is taken, one
-            // with something else is not from rmw_zenoh and is refused.
-            let used = match sample
-                .attachment()
-                .map(|a| Attachment::decode(&a.to_bytes()))
-            {
-                Some(Err(e)) => Err(e.into()),
-                _ => self.take(topic, &payload).await,
-            };
-            match used {
+            match self.use_sample(topic, &sample).await {
                 Ok(commands) => {
                     for command in commands {
                         self.deliver(Ok(command)).await;
@@ -115,8 +168,29 @@ impl Inputs {
         }
     }
 
+    /// The commands a sample makes: its size and attachment checked before anything of it is
+    /// copied, then decoded as it is read, its values and stamp checked, and taken.
+    async fn use_sample(
+        &mut self,
+        topic: Topic,
+        sample: &Sample,
+    ) -> Result<Vec<Command>, Unusable> {
+        let payload = sample.payload();
+        let (len, limit) = (payload.len(), self.max_payload);
+        if len > limit {
+            return Err(Unusable::TooLarge { len, limit });
+        }
+        check_attachment(sample)?;
+        let message = topic.decode(payload.reader(), len)?;
+        let t = message.checked_stamp()?;
+        self.stamps.check(topic.stream(), t)?;
+        let commands = self.take(message).await?;
+        self.stamps.record(topic.stream(), t);
+        Ok(commands)
+    }
+
     /// The commands a message makes, in order (none while odometry has not moved enough).
-    async fn take(&mut self, topic: Topic, payload: &[u8]) -> Result<Vec<Command>, Unusable> {
+    async fn take(&mut self, message: Message) -> Result<Vec<Command>, Unusable> {
         let session = &self.session;
         let graph = |batch: Option<Batch>| {
             batch
@@ -137,9 +211,8 @@ impl Inputs {
                 })
                 .collect()
         };
-        Ok(match (topic, &mut self.feeder) {
-            (Topic::Odometry, feeder) => {
-                let odometry: Odometry = cdr_codec::decode(payload, ODOMETRY.name)?;
+        Ok(match (message, &mut self.feeder) {
+            (Message::Odometry(odometry), feeder) => {
                 let (commands, keyframes) = match feeder {
                     Feeder::Graph(keyframer) => {
                         let batch = keyframer.on_odometry(&odometry)?;
@@ -159,16 +232,11 @@ impl Inputs {
                 }
                 commands
             }
-            (Topic::Prior, feeder) => {
-                let prior: PoseWithCovarianceStamped =
-                    cdr_codec::decode(payload, POSE_WITH_COVARIANCE_STAMPED.name)?;
-                match feeder {
-                    Feeder::Graph(keyframer) => graph(Some(keyframer.on_prior(&prior)?)),
-                    Feeder::Window(feed) => fusion(feed.on_prior(&prior)?),
-                }
-            }
-            (Topic::Imu, Feeder::Window(feed)) => {
-                let imu: Imu = cdr_codec::decode(payload, IMU.name)?;
+            (Message::Prior(prior), feeder) => match feeder {
+                Feeder::Graph(keyframer) => graph(Some(keyframer.on_prior(&prior)?)),
+                Feeder::Window(feed) => fusion(feed.on_prior(&prior)?),
+            },
+            (Message::Imu(imu), Feeder::Window(feed)) => {
                 let feed = feed.on_imu(&imu)?;
                 if let (Some(tf), false) = (&self.tf, feed.keyframes.is_empty()) {
                     tf.on_keyframes(&feed.keyframes).await;
@@ -176,13 +244,21 @@ impl Inputs {
                 fusion(feed)
             }
             // A pose graph's binding subscribes to no IMU (`Ros2Binding::check_kind`).
-            (Topic::Imu, Feeder::Graph(_)) => Vec::new(),
+            (Message::Imu(_), Feeder::Graph(_)) => Vec::new(),
         })
     }
 
     async fn refuse(&self, unusable: Unusable, topic: Topic) {
         let refused = self.refused.fetch_add(1, Ordering::Relaxed) + 1;
-        tracing::debug!(session = self.session, "ROS message refused: {unusable}");
+        let (session, field) = (&self.session, topic.field());
+        match unusable {
+            // A robot does not send these by mistake: the operator should know (each costs the
+            // sender at least `max_body_bytes`, so they cannot flood the log).
+            Unusable::TooLarge { .. } => {
+                tracing::warn!(session, field, "ROS message refused: {unusable}")
+            }
+            _ => tracing::debug!(session, field, "ROS message refused: {unusable}"),
+        }
         let error = ServiceError::bad_request(
             "ros2_bad_message",
             topic.field(),

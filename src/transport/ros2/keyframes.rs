@@ -16,6 +16,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::{Isometry3, Matrix6, Quaternion as NaQuaternion, Translation3, UnitQuaternion};
 
+use super::bounds::{self, BadValue};
 use super::messages::{Covariance, Odometry, Pose, PoseWithCovarianceStamped};
 use crate::api::ros2::Ros2Binding;
 use crate::api::wire::{Batch, FactorSpec, VariableSpec};
@@ -32,18 +33,10 @@ const ANCHOR_SIGMAS: [f64; 6] = [100.0, 100.0, 100.0, 3.0, 3.0, 3.0];
 pub enum MessageError {
     #[error("the {what} covariance is not symmetric positive definite")]
     Covariance { what: &'static str },
-    #[error("the {what} orientation is not a unit quaternion (norm {norm})")]
-    Orientation { what: &'static str, norm: f64 },
-    #[error("the {what} pose has a non-finite value")]
-    NonFinite { what: &'static str },
+    #[error(transparent)]
+    Value(#[from] BadValue),
     #[error("an absolute pose arrived before any keyframe: there is nothing to attach it to")]
     NoKeyframeYet,
-    #[error("the {what} stamp {t} is not after the previous one ({previous})")]
-    OutOfOrder {
-        what: &'static str,
-        t: f64,
-        previous: f64,
-    },
     #[error("{held} IMU samples are held waiting for odometry to make a keyframe: no more")]
     TooManyHeld { held: usize },
 }
@@ -91,7 +84,7 @@ impl Keyframer {
     /// keyframer's state changes only when a batch is returned: the caller must apply it (a
     /// refused batch leaves a gap its next keyframe's factor would reach across).
     pub fn on_odometry(&mut self, odometry: &Odometry) -> Result<Option<Batch>, MessageError> {
-        let pose = isometry(&odometry.pose.pose, "odometry")?;
+        let pose = isometry(&odometry.pose.pose)?;
         let stamp = odometry.header.stamp.seconds();
         let key = self.next_key;
         let batch = match &self.last {
@@ -150,7 +143,7 @@ impl Keyframer {
 
     /// A `prior_se3` on the keyframe nearest `prior`'s stamp.
     pub fn on_prior(&self, prior: &PoseWithCovarianceStamped) -> Result<Batch, MessageError> {
-        let pose = isometry(&prior.pose.pose, "prior")?;
+        let pose = isometry(&prior.pose.pose)?;
         let information = information(&prior.pose.covariance, "prior")?
             .ok_or(MessageError::Covariance { what: "prior" })?;
         let key = nearest_key(&self.by_stamp, stamp_ns(prior.header.stamp.seconds()))
@@ -244,23 +237,14 @@ pub fn from_wire_pose(value: &[f64]) -> Option<Isometry3<f64>> {
     ))
 }
 
-/// A ROS pose as an isometry; its quaternion must be unit within 1e-3 (then normalised).
-pub fn isometry(pose: &Pose, what: &'static str) -> Result<Isometry3<f64>, MessageError> {
+/// A ROS pose as an isometry: finite, within bounds, its quaternion unit within
+/// [`bounds::UNIT_TOLERANCE`] (then normalised).
+pub fn isometry(pose: &Pose) -> Result<Isometry3<f64>, MessageError> {
+    bounds::pose(pose)?;
     let (p, o) = (pose.position, pose.orientation);
-    if ![p.x, p.y, p.z, o.x, o.y, o.z, o.w]
-        .iter()
-        .all(|v| v.is_finite())
-    {
-        return Err(MessageError::NonFinite { what });
-    }
-    let q = NaQuaternion::new(o.w, o.x, o.y, o.z);
-    let norm = q.norm();
-    if (norm - 1.0).abs() > 1e-3 {
-        return Err(MessageError::Orientation { what, norm });
-    }
     Ok(Isometry3::from_parts(
         Translation3::new(p.x, p.y, p.z),
-        UnitQuaternion::from_quaternion(q),
+        UnitQuaternion::from_quaternion(NaQuaternion::new(o.w, o.x, o.y, o.z)),
     ))
 }
 
@@ -383,7 +367,7 @@ mod tests {
         o.pose.pose.orientation.w = 2.0;
         assert!(matches!(
             k.on_odometry(&o),
-            Err(MessageError::Orientation { .. })
+            Err(MessageError::Value(BadValue::NotUnit { .. }))
         ));
         // Nothing was taken from the refused messages: the next keyframe is still key 1.
         let b = k.on_odometry(&odometry(5.0, 0.0, 3)).unwrap().unwrap();

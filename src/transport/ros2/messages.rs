@@ -14,6 +14,8 @@ use serde::de::{Error as _, SeqAccess, Visitor};
 use serde::ser::SerializeTuple;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
+use super::cdr_codec::name_string;
+
 /// A ROS 2 message type as rmw_zenoh names it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RosType {
@@ -96,7 +98,16 @@ impl Time {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Header {
     pub stamp: Time,
+    #[serde(deserialize_with = "frame_id")]
     pub frame_id: String,
+}
+
+fn frame_id<'de, D: Deserializer<'de>>(deserializer: D) -> Result<String, D::Error> {
+    name_string(deserializer, "header.frame_id")
+}
+
+fn child_frame_id<'de, D: Deserializer<'de>>(deserializer: D) -> Result<String, D::Error> {
+    name_string(deserializer, "child_frame_id")
 }
 
 /// `geometry_msgs/Point`.
@@ -231,6 +242,7 @@ pub struct TwistWithCovariance {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Odometry {
     pub header: Header,
+    #[serde(deserialize_with = "child_frame_id")]
     pub child_frame_id: String,
     pub pose: PoseWithCovariance,
     pub twist: TwistWithCovariance,

@@ -23,6 +23,7 @@
 //! that released it leaves the ROS graph (its event stream ended).
 
 mod attachment;
+mod bounds;
 mod cdr_codec;
 mod inputs;
 mod keyframes;
@@ -40,6 +41,7 @@ use zenoh::liveliness::LivelinessToken;
 use crate::api::ros2::Ros2Binding;
 use crate::service::{Caller, Service};
 use crate::session::{EventStream, Session};
+use bounds::Stamps;
 use inputs::Feeder;
 use keyframes::Keyframer;
 use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
@@ -63,33 +65,41 @@ pub struct BindError {
     source: zenoh::Error,
 }
 
+/// What a binding runs with: the zenoh adapter's session, the service and who its commands
+/// run as, and the largest payload taken (`max_body_bytes`, as for the adapter's own keys).
+pub struct Context {
+    pub zenoh: zenoh::Session,
+    pub service: Arc<Service>,
+    pub caller: Arc<Caller>,
+    pub max_payload: usize,
+}
+
 /// Starts `session`'s binding when it has one. It runs while the session lives here: it holds
 /// only the session's event stream, which ends when the session is deleted or moves to
 /// another fleet instance (whose adoption binds it there).
-pub fn bind(
-    zenoh: zenoh::Session,
-    service: Arc<Service>,
-    caller: Arc<Caller>,
-    session: &Arc<Session>,
-) {
+pub fn bind(context: Context, session: &Arc<Session>) {
     let Some(binding) = session.ros2_binding().cloned() else {
         return;
     };
     let (name, events) = (session.name.clone(), session.stream());
     tokio::spawn(async move {
-        if let Err(e) = run(zenoh, service, caller, (name, events), binding).await {
+        if let Err(e) = run(context, (name, events), binding).await {
             tracing::error!("{e}");
         }
     });
 }
 
 async fn run(
-    zenoh: zenoh::Session,
-    service: Arc<Service>,
-    caller: Arc<Caller>,
+    context: Context,
     (session, events): (String, EventStream),
     binding: Ros2Binding,
 ) -> Result<(), BindError> {
+    let Context {
+        zenoh,
+        service,
+        caller,
+        max_payload,
+    } = context;
     let failed = |source| BindError {
         session: session.clone(),
         source,
@@ -175,10 +185,14 @@ async fn run(
         Some(_) => Feeder::Window(Box::new(WindowFeed::new(&binding))),
         None => Feeder::Graph(Keyframer::new(&binding)),
     };
-    if let Some(max_key) = existing_max_key(&service, &caller, &session).await {
+    let mut stamps = Stamps::default();
+    if let Some((max_key, newest)) = existing_keyframes(&service, &caller, &session).await {
         match &mut feeder {
             Feeder::Window(feed) => feed.resume_after(max_key),
             Feeder::Graph(keyframer) => keyframer.resume_after(max_key),
+        }
+        if let Some(t) = newest {
+            stamps.resume_after(t);
         }
     }
     let inputs = inputs::Inputs {
@@ -191,6 +205,8 @@ async fn run(
         imu,
         tf: tf.clone(),
         refused: Arc::default(),
+        max_payload,
+        stamps,
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {
@@ -210,13 +226,20 @@ async fn run(
     Ok(())
 }
 
-/// The highest key of a session that already has variables (recovered after a restart).
-async fn existing_max_key(service: &Service, caller: &Caller, session: &str) -> Option<u64> {
+/// The highest key of a session that already has variables (recovered after a restart), and
+/// the newest stamp among them.
+async fn existing_keyframes(
+    service: &Service,
+    caller: &Caller,
+    session: &str,
+) -> Option<(u64, Option<f64>)> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
     match service.execute_as(caller, command).await {
         Ok(crate::service::Reply::Estimate(estimate)) => {
-            estimate.variables.iter().map(|v| v.key).max()
+            let variables = &estimate.variables;
+            let newest = variables.iter().filter_map(|v| v.stamp).reduce(f64::max);
+            Some((variables.iter().map(|v| v.key).max()?, newest))
         }
         _ => None,
     }

@@ -1,6 +1,6 @@
 //! Routing a fleet's commands over zenoh.
 //!
-//! - `<p>/rpc` (every instance, complete: a query reaches one of them) and `<p>/<s>/rpc` (the
+//! - `<p>/rpc` (the one instance elected its gateway, `gateway.rs`) and `<p>/<s>/rpc` (the
 //!   owner of `s`): a command without a session is answered here (`health`: this instance;
 //!   `list_sessions`: every instance's, merged from their `info`); `create_session` without a
 //!   name is named first (`Fleet::generate_name`); a command naming a session runs here when
@@ -19,7 +19,8 @@ use std::time::Duration;
 use zenoh::query::Query;
 
 use super::config::zenoh_error;
-use super::{answer_estimate, oversized, payload, reply, Context};
+use super::fleet_proof;
+use super::{answer_estimate, oversized, payload, Answer, Context};
 use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
 use crate::service::ServiceError;
 
@@ -31,90 +32,96 @@ pub(super) enum Forward {
     No,
 }
 
-/// Answers an rpc query as the fleet: see the module's documentation.
-pub(super) async fn route_rpc(c: &Context, query: &Query, forward: Forward) {
+/// The fleet's answer to an rpc query: see the module's documentation.
+pub(super) async fn route_rpc(c: &Context, query: &Query, forward: Forward) -> Answer {
     if let Some(refusal) = oversized(query.payload(), c.max_payload) {
-        return reply(query, Err(refusal)).await;
+        return Answer::of(Err(refusal));
     }
     let mut bytes = payload(query);
     // Undecodable: the command's own parser says why, here.
     let Ok(mut command) = serde_json::from_slice::<serde_json::Value>(&bytes) else {
-        return super::answer_rpc(c, query).await;
+        return super::rpc_answer(c, query).await;
     };
     let fleet = c.service.fleet().cloned();
     let Some(fleet) = fleet else {
-        return super::answer_rpc(c, query).await;
+        return super::rpc_answer(c, query).await;
     };
     match command.get("op").and_then(|op| op.as_str()) {
-        Some("list_sessions") => return list_sessions(c, query).await,
+        Some("list_sessions") => return list_sessions(c).await,
         Some("create_session") if command.get("session").is_none_or(|s| s.is_null()) => {
             let f = Arc::clone(&fleet);
-            let name = tokio::task::spawn_blocking(move || f.generate_name()).await;
-            match name {
+            match tokio::task::spawn_blocking(move || f.generate_name()).await {
                 Ok(Ok(name)) => {
                     command["session"] = serde_json::Value::String(name);
                     bytes = serde_json::to_vec(&command).expect("JSON serialises");
                 }
-                Ok(Err(e)) => return reply(query, Err(e)).await,
-                Err(e) => return reply(query, Err(ServiceError::internal(e.to_string()))).await,
+                Ok(Err(e)) => return Answer::of(Err(e)),
+                Err(e) => return Answer::of(Err(ServiceError::internal(e.to_string()))),
             }
         }
         _ => {}
     }
     let Some(session) = command.get("session").and_then(|s| s.as_str()) else {
-        return run_here(c, query, &bytes).await;
+        return run_here(c, &bytes).await;
     };
     match c.service.route(session) {
-        Route::Local => run_here(c, query, &bytes).await,
-        Route::Moving => reply(query, Err(moving(session))).await,
-        Route::Remote { .. } if forward == Forward::No => reply(query, Err(moving(session))).await,
-        Route::Remote { instance, .. } => relay(c, query, &instance, session, bytes).await,
+        Route::Local => run_here(c, &bytes).await,
+        Route::Moving => Answer::of(Err(moving(session))),
+        Route::Remote { .. } if forward == Forward::No => Answer::of(Err(moving(session))),
+        Route::Remote { instance, .. } => relay(c, &fleet, &instance, session, bytes).await,
     }
 }
 
-async fn run_here(c: &Context, query: &Query, bytes: &[u8]) {
+async fn run_here(c: &Context, bytes: &[u8]) -> Answer {
     let max_items = c.service.limits().max_batch_items;
     let result = match crate::service::parse_command(bytes, max_items) {
         Ok(command) => c.service.execute_as(&c.caller, command).await,
         Err(e) => Err(e),
     };
-    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+    Answer::of(result.map(|r| serde_json::to_vec(&r)))
 }
 
-/// Forwards the command to `instance` and relays its answer; none in time is a move.
-async fn relay(c: &Context, query: &Query, instance: &str, session: &str, bytes: Vec<u8>) {
+/// Forwards the command to `instance` and returns its answer; none in time (or none that
+/// proves it came from a member, see `fleet_proof`) is a move.
+async fn relay(
+    c: &Context,
+    fleet: &Fleet,
+    instance: &str,
+    session: &str,
+    bytes: Vec<u8>,
+) -> Answer {
     // A command may wait for a solve (`wait`) or for a producer's batches (`after`).
     let timeout =
         Duration::from_millis(c.service.limits().wait_timeout_ms) + Duration::from_secs(65);
+    let stamp = fleet_proof::stamp_rpc(fleet.key(), instance, &bytes);
     let get = c
         .zenoh
         .get(format!("{}/@fleet/{instance}/rpc", c.prefix))
         .payload(bytes)
+        .attachment(stamp.as_ref().map(|s| s.encode()))
         .timeout(timeout)
         .await;
-    let answer = match get {
-        Ok(replies) => replies.recv_async().await.ok(),
+    let replies = match get {
+        Ok(replies) => replies,
         Err(e) => {
             tracing::warn!(instance, "fleet: forwarding an rpc failed: {e}");
-            None
+            return Answer::of(Err(moving(session)));
         }
     };
-    let outcome = match answer.as_ref().map(|r| r.result()) {
-        Some(Ok(sample)) => {
-            query
-                .reply(query.key_expr().clone(), sample.payload().clone())
-                .await
+    while let Ok(reply) = replies.recv_async().await {
+        match fleet_proof::open_answer(fleet.key(), stamp.as_ref(), &reply) {
+            Some(answer) => return answer,
+            None => tracing::warn!(
+                instance,
+                "fleet: an answer to a forwarded rpc without a valid fleet proof, ignored"
+            ),
         }
-        Some(Err(error)) => query.reply_err(error.payload().clone()).await,
-        None => return reply(query, Err(moving(session))).await,
-    };
-    if let Err(e) = outcome {
-        tracing::warn!("zenoh reply failed: {e}");
     }
+    Answer::of(Err(moving(session)))
 }
 
 /// Every instance's sessions, as zenoh peers may see them.
-async fn list_sessions(c: &Context, query: &Query) {
+async fn list_sessions(c: &Context) -> Answer {
     let infos = super::fleet::infos(c, "*").await;
     let mut lists: Vec<_> = infos.into_iter().map(|i| i.sessions).collect();
     // This instance's own, even if its info query did not come back.
@@ -122,7 +129,7 @@ async fn list_sessions(c: &Context, query: &Query) {
         lists.push(own.sessions);
     }
     let body = serde_json::json!({ "sessions": merge_session_lists(lists) });
-    reply(query, Ok(serde_json::to_vec(&body))).await;
+    Answer::of(Ok(serde_json::to_vec(&body)))
 }
 
 /// Keeps the keys of the sessions loaded here declared, and only those.
@@ -201,7 +208,12 @@ impl SessionKeys {
         tasks.push(tokio::spawn(async move {
             while let Ok(query) = rpc.recv_async().await {
                 let ctx = ctx.clone();
-                tokio::spawn(async move { route_rpc(&ctx, &query, Forward::Yes).await });
+                tokio::spawn(async move {
+                    route_rpc(&ctx, &query, Forward::Yes)
+                        .await
+                        .send(&query)
+                        .await
+                });
             }
         }));
         Ok(Self { tasks })

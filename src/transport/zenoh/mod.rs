@@ -14,13 +14,15 @@
 //! - `<p>/<session>/bin/poses` — the estimates of `out/poses` in binary (`proto/v1/poses-binary.md`,
 //!   `crate::api::poses_binary`); a `lagged` marker there is JSON.
 //!
-//! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: each
-//! instance declares `<p>/rpc` (complete, so a query reaches one instance, which forwards it
-//! to the session's owner), and the owner of a session alone declares its `in/*`, `estimate`
-//! and `rpc` keys and publishes its `out/*`; membership lives under `<p>/@fleet/`.
+//! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: one
+//! instance at a time declares `<p>/rpc` (the gateway, `gateway.rs`: a query must never reach
+//! two instances), answering or forwarding to the session's owner, and the owner of a session
+//! alone declares its `in/*`, `estimate` and `rpc` keys and publishes its `out/*`; membership
+//! lives under `<p>/@fleet/`.
 
 use std::sync::Arc;
 
+use zenoh::bytes::ZBytes;
 use zenoh::query::Query;
 
 use crate::api::wire::EstimateQuery;
@@ -30,8 +32,10 @@ use crate::service::{parse_query, Caller, Command, Service, ServiceError};
 
 mod config;
 mod fleet;
+mod fleet_proof;
 mod fleet_routes;
 mod forward;
+mod gateway;
 mod inputs;
 
 use config::{caller, config, zenoh_error};
@@ -111,32 +115,23 @@ pub async fn start(
     let fleet = service.fleet().cloned();
     let mut tasks = Vec::new();
 
-    // In a fleet every instance declares it, complete: a query reaches one of them, which
-    // answers or forwards to the session's owner (`fleet_routes`).
-    let rpc = session
-        .declare_queryable(format!("{prefix}/rpc"))
-        .complete(fleet.is_some())
-        .await
-        .map_err(zenoh_error)?;
-    let c = ctx.clone();
-    let routed = fleet.is_some();
-    tasks.push(tokio::spawn(async move {
-        while let Ok(query) = rpc.recv_async().await {
-            let c = c.clone();
-            // Commands with `wait` may take a while: never block the queryable.
-            tokio::spawn(async move {
-                match routed {
-                    true => fleet_routes::route_rpc(&c, &query, fleet_routes::Forward::Yes).await,
-                    false => answer_rpc(&c, &query).await,
-                }
-            });
-        }
-    }));
-
     match fleet {
-        // Sessions' keys are declared by their owner only, as it loads them.
+        // Sessions' keys are declared by their owner only, as it loads them; `<p>/rpc` by one
+        // instance at a time (`gateway`).
         Some(fleet) => tasks.extend(fleet::start(&ctx, fleet).await?),
         None => {
+            let rpc = session
+                .declare_queryable(format!("{prefix}/rpc"))
+                .await
+                .map_err(zenoh_error)?;
+            let c = ctx.clone();
+            tasks.push(tokio::spawn(async move {
+                while let Ok(query) = rpc.recv_async().await {
+                    let c = c.clone();
+                    // Commands with `wait` may take a while: never block the queryable.
+                    tokio::spawn(async move { answer_rpc(&c, &query).await });
+                }
+            }));
             let estimates = session
                 .declare_queryable(format!("{prefix}/*/estimate"))
                 .await
@@ -163,13 +158,20 @@ pub async fn start(
     let runtime = tokio::runtime::Handle::current();
     // Weak: the observer is kept by the service itself.
     let bound_service = Arc::downgrade(&service);
+    let max_payload = policy.max_payload_bytes;
     service.observe_sessions(Box::new(move |s| {
         if caller.may_see(s) {
             let _guard = runtime.enter();
             forward(publisher.clone(), fwd_prefix.clone(), s);
             // A session with a ROS 2 binding joins the robots' ROS graph on this zenoh session.
             if let Some(service) = bound_service.upgrade() {
-                super::ros2::bind(publisher.clone(), service, Arc::clone(&caller), s);
+                let context = super::ros2::Context {
+                    zenoh: publisher.clone(),
+                    service,
+                    caller: Arc::clone(&caller),
+                    max_payload,
+                };
+                super::ros2::bind(context, s);
             }
         }
     }));
@@ -179,6 +181,11 @@ pub async fn start(
 
 /// `<p>/rpc` outside a fleet: any command, run here.
 pub(super) async fn answer_rpc(c: &Context, query: &Query) {
+    rpc_answer(c, query).await.send(query).await;
+}
+
+/// The answer to the command in `query`, run here.
+pub(super) async fn rpc_answer(c: &Context, query: &Query) -> Answer {
     let max_items = c.service.limits().max_batch_items;
     let result = match oversized(query.payload(), c.max_payload) {
         Some(refusal) => Err(refusal),
@@ -187,7 +194,7 @@ pub(super) async fn answer_rpc(c: &Context, query: &Query) {
             Err(e) => Err(e),
         },
     };
-    reply(query, result.map(|r| serde_json::to_vec(&r))).await;
+    Answer::of(result.map(|r| serde_json::to_vec(&r)))
 }
 
 /// `<p>/<session>/estimate`.
@@ -227,19 +234,41 @@ pub(super) async fn reply(
     query: &Query,
     result: Result<serde_json::Result<Vec<u8>>, ServiceError>,
 ) {
-    let outcome = match result {
-        Ok(Ok(body)) => query.reply(query.key_expr().clone(), body).await,
-        Ok(Err(e)) => {
-            let body = serde_json::json!({ "error": ServiceError::internal(e.to_string()).body });
-            query.reply_err(body.to_string()).await
+    Answer::of(result).send(query).await;
+}
+
+/// A command's answer as zenoh carries it: a reply's payload, or an error reply's
+/// (`{"error": {…}}`).
+#[must_use = "an answer must be sent, or the query gets no reply"]
+pub(super) enum Answer {
+    Reply(ZBytes),
+    Error(ZBytes),
+}
+
+impl Answer {
+    pub(super) fn of(result: Result<serde_json::Result<Vec<u8>>, ServiceError>) -> Self {
+        match result {
+            Ok(Ok(body)) => Answer::Reply(body.into()),
+            Ok(Err(e)) => Answer::error(ServiceError::internal(e.to_string())),
+            Err(e) => {
+                crate::runtime::metrics::count_rejection(&e.body);
+                Answer::error(e)
+            }
         }
-        Err(e) => {
-            crate::runtime::metrics::count_rejection(&e.body);
-            let body = serde_json::json!({ "error": e.body });
-            query.reply_err(body.to_string()).await
+    }
+
+    pub(super) fn error(e: ServiceError) -> Self {
+        Answer::Error(serde_json::json!({ "error": e.body }).to_string().into())
+    }
+
+    /// Sends it as the answer to `query`.
+    pub(super) async fn send(self, query: &Query) {
+        let outcome = match self {
+            Answer::Reply(body) => query.reply(query.key_expr().clone(), body).await,
+            Answer::Error(body) => query.reply_err(body).await,
+        };
+        if let Err(e) = outcome {
+            tracing::warn!("zenoh reply failed: {e}");
         }
-    };
-    if let Err(e) = outcome {
-        tracing::warn!("zenoh reply failed: {e}");
     }
 }
