@@ -346,6 +346,7 @@ pub async fn run(
         file_limit.map_or("unknown".into(), |l| l.to_string()),
     );
 
+    let tokens_required = tokens.is_some();
     let guard = http::guard::HttpGuard::new(&config.listen, &http_addr, &config.http);
     let app = http::router(
         Arc::clone(&service),
@@ -374,9 +375,16 @@ pub async fn run(
         });
     }
     let mut http_stop = stop_rx.clone();
-    let serve = http_listener::serve(listener, app, &config.http, connection_cap, async move {
-        let _ = http_stop.wait_for(|s| *s).await;
-    });
+    let serve = http_listener::serve(
+        listener,
+        app,
+        &config.http,
+        connection_cap,
+        tokens_required,
+        async move {
+            let _ = http_stop.wait_for(|s| *s).await;
+        },
+    );
     // Event streams (SSE, WebSocket) never end by themselves, and graceful shutdown would wait
     // for them forever: once the service has stopped, whatever is still open gets
     // `STREAM_GRACE` and is then closed.

@@ -157,7 +157,7 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
     // The cookie is HttpOnly: the page's scripts never see the token.
     let cookies = browser.script("return document.cookie;").await;
     assert!(
-        !cookies.as_str().unwrap().contains("factord_token"),
+        !cookies.as_str().unwrap().contains("factord_session"),
         "{cookies}"
     );
     browser.screenshot(&shots.join("operator-index.png")).await;

@@ -35,6 +35,8 @@ pub enum ErrorKind {
     MethodNotAllowed,
     /// The request contradicts the state (an existing name, a damaged journal).
     Conflict,
+    /// The request (its body) did not arrive in time.
+    RequestTimeout,
     /// The request or the work it asks for is bigger than the limits allow.
     TooLarge,
     UriTooLong,
@@ -61,6 +63,7 @@ impl ErrorKind {
             Self::NotFound => 404,
             Self::MethodNotAllowed => 405,
             Self::Conflict => 409,
+            Self::RequestTimeout => 408,
             Self::TooLarge => 413,
             Self::UriTooLong => 414,
             Self::UnsupportedMediaType => 415,
@@ -77,13 +80,14 @@ impl ErrorKind {
     /// library, say); statuses without a kind of their own count as bad requests or, from 500
     /// on, as internal errors.
     pub fn from_status(status: u16) -> Self {
-        const ALL: [ErrorKind; 15] = [
+        const ALL: [ErrorKind; 16] = [
             ErrorKind::BadRequest,
             ErrorKind::Unauthorized,
             ErrorKind::Forbidden,
             ErrorKind::NotFound,
             ErrorKind::MethodNotAllowed,
             ErrorKind::Conflict,
+            ErrorKind::RequestTimeout,
             ErrorKind::TooLarge,
             ErrorKind::UriTooLong,
             ErrorKind::UnsupportedMediaType,

@@ -19,6 +19,7 @@ const SLOW_FSYNCS: &str = "factord_journal_slow_fsyncs_total";
 const SOLVES: &str = "factord_solves_total";
 const ITERATIONS: &str = "factord_solver_iterations_total";
 const ACCEPTED_BATCHES: &str = "factord_batches_accepted_total";
+const AUTH_FAILURES: &str = "factord_http_auth_failures_total";
 const REJECTED: &str = "factord_rejected_inputs_total";
 const REJECTED_HELP: &str = "Inputs refused, by error code";
 const BUILD_INFO: &str = "factord_build_info";
@@ -117,6 +118,10 @@ fn describe() {
         (ITERATIONS, "Solver iterations of session solves"),
         (ACCEPTED_BATCHES, "Batches accepted (and journalled)"),
         (
+            AUTH_FAILURES,
+            "HTTP requests with a wrong bearer token, and failed logins",
+        ),
+        (
             SLOW_FSYNCS,
             "Journal fsyncs of 50 ms or more (a disk holding answers)",
         ),
@@ -175,6 +180,12 @@ pub fn observe_solve(d: Duration, iterations: usize) {
 pub fn count_accepted_batch() {
     exporter();
     counter!(ACCEPTED_BATCHES).increment(1);
+}
+
+/// A wrong bearer token or login over HTTP (throttled per peer: see `transport::http::throttle`).
+pub fn count_auth_failure() {
+    exporter();
+    counter!(AUTH_FAILURES).increment(1);
 }
 
 /// A refused input (any 4xx), by its error code.

@@ -6,27 +6,37 @@
 //! pages and the API's description (`/v1/openapi.json`, `/v1/docs`: not secret, like the pages'
 //! own code) needs `Authorization: Bearer <token>` (401 otherwise), or on reads (GET and HEAD,
 //! not WebSocket upgrades) the web view's cookie set by `POST /v1/login` (see `login`): a
-//! cross-site form cannot change anything with it. A session belongs to the
+//! cross-site form cannot change anything with it. A bearer header, when present, is the only
+//! credential looked at (a wrong one is not rescued by a valid cookie); tokens are compared
+//! exactly, in constant time, and a peer's failures are throttled (see `throttle`). A session
+//! belongs to the
 //! label of the token that created it: to any other caller it does not exist (404), nor is it
 //! listed or counted (see `service::caller`). Sessions created over an unauthenticated zenoh or
 //! before tokens were configured belong to nobody and are reachable with any valid token.
 
-use std::collections::HashMap;
+use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
-use axum::http::{header, HeaderValue, Method};
+use axum::http::{header, HeaderMap, HeaderValue, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
+use super::admission::ConnectionContext;
+use super::throttle::FailureThrottle;
+use super::web_sessions::WebSessions;
 use crate::api::ErrorKind;
 use crate::service::{Caller, ServiceError};
 
 #[derive(Debug, Default)]
 pub struct Tokens {
-    /// token → label
-    by_token: HashMap<String, Arc<str>>,
+    /// (token, label), compared in constant time (see [`Tokens::label_of`]).
+    tokens: Vec<(Box<[u8]>, Arc<str>)>,
+    /// Failed authentications per peer.
+    pub(super) failures: FailureThrottle,
+    /// The web view's logins, which its cookie names.
+    pub(super) web_sessions: WebSessions,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -85,51 +95,103 @@ impl Tokens {
                 message: format!("token `{label}` must be at least 16 printable characters"),
             });
         }
-        self.by_token.insert(token.to_string(), label.into());
+        self.tokens.retain(|(known, _)| **known != *token.as_bytes());
+        self.tokens.push((token.as_bytes().into(), label.into()));
         Ok(())
     }
 
     pub fn is_empty(&self) -> bool {
-        self.by_token.is_empty()
+        self.tokens.is_empty()
     }
 
     pub fn len(&self) -> usize {
-        self.by_token.len()
+        self.tokens.len()
     }
 
-    fn check(&self, header: Option<&HeaderValue>) -> Option<Arc<str>> {
-        let value = header?.to_str().ok()?;
-        let token = value.strip_prefix("Bearer ")?.trim();
-        self.label_of(token)
-    }
-
-    /// The label of `token`, when it is one of ours.
+    /// The label of `token` exactly (no trimming, no prefix), when it is one of ours. Every
+    /// token is compared over its whole length, whatever the guess: how long this takes says
+    /// nothing about how much of a guess was right.
     pub fn label_of(&self, token: &str) -> Option<Arc<str>> {
-        self.by_token.get(token).cloned()
+        let mut found = None;
+        for (known, label) in &self.tokens {
+            if constant_time_eq(known, token.as_bytes()) {
+                found = Some(label);
+            }
+        }
+        found.cloned()
     }
 
-    /// The web view's cookie, on a read only: GET or HEAD, and not a WebSocket upgrade (whose
-    /// stream takes batches). A cookie is sent by the browser by itself; the methods that change
-    /// state need the bearer header, which a cross-site page cannot make it send.
-    fn check_cookie(&self, request: &Request) -> Option<Arc<str>> {
+    /// `Bearer <token>` for a token of `label`: what a request authenticated by a login cookie
+    /// carries when it is forwarded to another instance of a fleet, which shares the tokens
+    /// but not this process's logins.
+    pub(super) fn bearer_for(&self, label: &str) -> Option<HeaderValue> {
+        let (token, _) = self.tokens.iter().find(|(_, l)| &**l == label)?;
+        let token = std::str::from_utf8(token).ok()?;
+        HeaderValue::from_str(&format!("Bearer {token}")).ok()
+    }
+
+    /// The principal a request's credential names; `Err` when it presents one that is wrong.
+    fn principal(&self, presented: &Presented<'_>) -> Result<Option<Arc<str>>, ()> {
+        let label = match presented {
+            Presented::Nothing => return Ok(None),
+            Presented::Bearer(token) => token.and_then(|t| self.label_of(t)),
+            Presented::Cookies(ids) => ids.iter().find_map(|id| self.web_sessions.label_of(id)),
+        };
+        label.map(Some).ok_or(())
+    }
+}
+
+/// Equal bytes, in a time that depends on `known`'s length alone.
+fn constant_time_eq(known: &[u8], guess: &[u8]) -> bool {
+    let mut diff = u8::from(known.len() != guess.len());
+    for (i, k) in known.iter().enumerate() {
+        diff |= k ^ guess.get(i).copied().unwrap_or(0);
+    }
+    std::hint::black_box(diff) == 0
+}
+
+/// The credential a request presents. A bearer header is the only one looked at when present:
+/// a wrong bearer token is never rescued by a valid cookie. The web view's cookie counts on a
+/// read only: GET or HEAD, and not a WebSocket upgrade (whose stream takes batches). A cookie
+/// is sent by the browser by itself; the methods that change state need the bearer header,
+/// which a cross-site page cannot make it send.
+enum Presented<'a> {
+    Nothing,
+    /// The token after `Bearer `; `None` when the header is not a bearer token at all.
+    Bearer(Option<&'a str>),
+    Cookies(Vec<&'a str>),
+}
+
+impl<'a> Presented<'a> {
+    fn of(request: &'a Request) -> Self {
+        if let Some(value) = request.headers().get(header::AUTHORIZATION) {
+            return Self::Bearer(value.to_str().ok().and_then(|v| v.strip_prefix("Bearer ")));
+        }
         let read = matches!(*request.method(), Method::GET | Method::HEAD)
             && !request.headers().contains_key(header::UPGRADE);
         if !read {
-            return None;
+            return Self::Nothing;
         }
-        request
-            .headers()
-            .get_all(header::COOKIE)
-            .iter()
-            .filter_map(|v| v.to_str().ok())
-            .flat_map(|v| v.split(';'))
-            .filter_map(|pair| pair.trim().strip_prefix(COOKIE)?.strip_prefix('='))
-            .find_map(|value| self.label_of(&super::login::unhex(value)?))
+        let cookies: Vec<&str> = cookie_values(request.headers()).collect();
+        match cookies.is_empty() {
+            true => Self::Nothing,
+            false => Self::Cookies(cookies),
+        }
     }
 }
 
 /// The web view's cookie (see `login`).
-pub const COOKIE: &str = "factord_token";
+pub const COOKIE: &str = "factord_session";
+
+/// The values of the web view's cookie in `headers`.
+pub(super) fn cookie_values(headers: &HeaderMap) -> impl Iterator<Item = &str> {
+    headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(';'))
+        .filter_map(|pair| pair.trim().strip_prefix(COOKIE)?.strip_prefix('='))
+}
 
 fn unauthorized(message: &str) -> Response {
     let mut response = super::HttpError::from(
@@ -151,18 +213,6 @@ pub async fn require_token(
     mut request: Request,
     next: Next,
 ) -> Response {
-    // A request a fleet member forwarded, whose asserted caller was verified (`fleet_caller`).
-    let asserted = request
-        .extensions()
-        .get::<super::fleet_caller::AssertedCaller>()
-        .map(|a| a.0.clone());
-    if let Some(caller) = asserted {
-        request.extensions_mut().insert(caller);
-        request
-            .extensions_mut()
-            .insert(super::login::LoginTokens(Some(tokens)));
-        return next.run(request).await;
-    }
     let path = request.uri().path();
     let open = path == "/v1/health"
         || path == "/v1/openapi.json"
@@ -172,33 +222,89 @@ pub async fn require_token(
         || path == "/v1/logout"
         || path.starts_with("/sessions/")
         || path.starts_with("/assets/");
-    let principal = tokens
-        .check(request.headers().get(header::AUTHORIZATION))
-        .or_else(|| tokens.check_cookie(&request));
+    let peer = request
+        .extensions()
+        .get::<ConnectionContext>()
+        .map(|c| c.peer.ip());
+    // A request a fleet member forwarded, whose asserted caller was verified (`fleet_caller`):
+    // it runs as that caller, and its connection (another member's) counts as authenticated.
+    let asserted = request
+        .extensions()
+        .get::<super::fleet_caller::AssertedCaller>()
+        .map(|a| Ok(a.principal()));
+    let principal = match asserted.unwrap_or_else(|| authenticate(&tokens, &request, peer, open)) {
+        Ok(principal) => principal,
+        Err(refusal) => return refusal,
+    };
     let caller = match principal {
-        Some(label) => Caller::Principal(label),
-        None if open => Caller::Anonymous,
-        None => {
-            let message = if request.headers().contains_key(header::AUTHORIZATION) {
-                "the bearer token is not valid"
-            } else {
-                "this server requires `Authorization: Bearer <token>`"
-            };
-            return unauthorized(message);
+        Some(label) => {
+            if let Some(connection) = request.extensions().get::<ConnectionContext>() {
+                connection.authenticated();
+            }
+            Caller::Principal(label)
         }
+        None if open => {
+            request = match super::body_limits::limit_anonymous(request) {
+                Ok(request) => request,
+                Err(refusal) => return refusal,
+            };
+            Caller::Anonymous
+        }
+        None => return unauthorized("this server requires `Authorization: Bearer <token>`"),
     };
     request.extensions_mut().insert(caller);
     request
         .extensions_mut()
-        .insert(super::login::LoginTokens(Some(tokens)));
+        .insert(super::login::LoginTokens(Some(tokens), peer));
     next.run(request).await
+}
+
+/// The principal of the request's credential (`None`: it presents none, or on an `open` route
+/// one that is wrong or is not looked at). Elsewhere 401 for a wrong credential, and 429 for
+/// a bearer token from a peer with too many failures. Only bearer tokens (and logins) are
+/// throttled: they are the guessable secrets. A login cookie is 32 random bytes, and a browser
+/// holding a stale one (after a restart) must not lock its own address out of logging in.
+// A Response is large, but the refusals are the rare path and are sent as they are.
+#[allow(clippy::result_large_err)]
+fn authenticate(
+    tokens: &Tokens,
+    request: &Request,
+    peer: Option<IpAddr>,
+    open: bool,
+) -> Result<Option<Arc<str>>, Response> {
+    let presented = Presented::of(request);
+    let bearer = match presented {
+        Presented::Nothing => return Ok(None),
+        Presented::Bearer(_) => peer,
+        Presented::Cookies(_) => None,
+    };
+    if let Some(throttled) = bearer.and_then(|p| tokens.failures.check(p).err()) {
+        return match open {
+            true => Ok(None),
+            false => Err(super::HttpError::from(throttled).into_response()),
+        };
+    }
+    if let Ok(principal) = tokens.principal(&presented) {
+        return Ok(principal);
+    }
+    if let Some(peer) = bearer {
+        tokens.failures.failed(peer);
+    }
+    match (open, presented) {
+        (true, _) => Ok(None),
+        (false, Presented::Bearer(_)) => Err(unauthorized("the bearer token is not valid")),
+        (false, _) => Err(unauthorized("the login cookie is not valid (log in again)")),
+    }
 }
 
 /// Without tokens every HTTP caller is trusted (HTTP then listens on loopback only).
 pub async fn trust_everyone(mut request: Request, next: Next) -> Response {
+    if let Some(connection) = request.extensions().get::<ConnectionContext>() {
+        connection.authenticated();
+    }
     request.extensions_mut().insert(Caller::Trusted);
     request
         .extensions_mut()
-        .insert(super::login::LoginTokens(None));
+        .insert(super::login::LoginTokens(None, None));
     next.run(request).await
 }

@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::TcpStream;
-use tokio::sync::OwnedSemaphorePermit;
 
+use super::admission::SlotCell;
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 
@@ -78,8 +78,9 @@ impl Drop for Answering {
 pub(super) struct ConnectionIo {
     stream: TcpStream,
     activity: Arc<Activity>,
-    /// The connection's place under the cap, released when the socket is dropped.
-    _slot: Option<OwnedSemaphorePermit>,
+    /// The connection's place under the cap, released when the socket is dropped (or emptied
+    /// earlier when a newcomer takes it over).
+    _slot: Option<Arc<SlotCell>>,
     /// A JSON answer replacing hyper's bodiless one, and how much of it is written.
     replacement: Option<(Vec<u8>, usize)>,
 }
@@ -88,7 +89,7 @@ impl ConnectionIo {
     pub(super) fn new(
         stream: TcpStream,
         activity: Arc<Activity>,
-        slot: Option<OwnedSemaphorePermit>,
+        slot: Option<Arc<SlotCell>>,
     ) -> Self {
         Self {
             stream,

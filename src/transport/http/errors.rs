@@ -72,6 +72,10 @@ impl IntoResponse for HttpError {
 pub(super) type HttpResult = Result<Response, HttpError>;
 
 pub(super) fn body_error(rejection: BytesRejection) -> HttpError {
+    // A body cut off by the listener's limits (too slow, or too large without a credential).
+    if let Some(refusal) = super::body_limits::BodyRefusal::find(&rejection) {
+        return HttpError(refusal.to_service_error());
+    }
     let status = rejection.status();
     let code = if status == StatusCode::PAYLOAD_TOO_LARGE {
         "body_too_large"

@@ -31,6 +31,17 @@ pub const FORWARDED_PROOF: HeaderName = HeaderName::from_static("factord-forward
 #[derive(Clone, Debug)]
 pub struct AssertedCaller(pub Caller);
 
+impl AssertedCaller {
+    /// The token label it acts for, where tokens are in force: a principal's; none for an
+    /// anonymous caller (a trusted one exists only where no tokens are, and is not one here).
+    pub fn principal(&self) -> Option<Arc<str>> {
+        match &self.0 {
+            Caller::Principal(label) => Some(Arc::clone(label)),
+            Caller::Trusted | Caller::Anonymous => None,
+        }
+    }
+}
+
 fn encode(caller: &Caller) -> String {
     match caller {
         Caller::Trusted => "trusted".into(),

@@ -24,6 +24,7 @@ use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
 
+use super::auth::Tokens;
 use super::{fleet_caller, HttpError};
 use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
 use crate::service::{Caller, Command, Reply, Service, ServiceError};
@@ -40,11 +41,16 @@ pub struct Forwarder {
     service: Arc<Service>,
     client: Client<HttpConnector, Body>,
     max_body_bytes: usize,
+    tokens: Option<Arc<Tokens>>,
 }
 
 impl Forwarder {
     /// The forwarder of a service in a fleet; `None` outside one.
-    pub fn for_fleet(service: &Arc<Service>, max_body_bytes: usize) -> Option<Arc<Self>> {
+    pub fn for_fleet(
+        service: &Arc<Service>,
+        max_body_bytes: usize,
+        tokens: Option<Arc<Tokens>>,
+    ) -> Option<Arc<Self>> {
         service.fleet()?;
         let mut connector = HttpConnector::new();
         connector.set_connect_timeout(Some(CONNECT_TIMEOUT));
@@ -54,7 +60,21 @@ impl Forwarder {
             service: Arc::clone(service),
             client,
             max_body_bytes,
+            tokens,
         }))
+    }
+
+    /// The `Authorization` a forwarded request carries: its own, or for one authenticated by a
+    /// login cookie (which only this process knows) a bearer token of the same principal.
+    /// Cookies authenticate reads only, so only reads are forwarded this way.
+    fn authorization(&self, request: &Request) -> Option<HeaderValue> {
+        if let Some(own) = request.headers().get(header::AUTHORIZATION) {
+            return Some(own.clone());
+        }
+        match request.extensions().get::<Caller>() {
+            Some(Caller::Principal(label)) => self.tokens.as_ref()?.bearer_for(label),
+            _ => None,
+        }
     }
 }
 
@@ -142,8 +162,12 @@ async fn proxy(f: &Forwarder, base: &str, mut request: Request) -> Response {
             .into_response();
     };
     *request.uri_mut() = uri;
+    let authorization = f.authorization(&request);
     let headers = request.headers_mut();
     strip_hop_by_hop(headers);
+    if let Some(authorization) = authorization {
+        headers.insert(header::AUTHORIZATION, authorization);
+    }
     // The client names the owner in `Host`; the origin was checked here already.
     headers.remove(header::HOST);
     headers.remove(header::ORIGIN);
@@ -248,6 +272,7 @@ async fn list(f: &Forwarder, request: Request) -> Response {
         Ok(_) => Vec::new(),
         Err(e) => return HttpError::from(e).into_response(),
     };
+    let authorization = f.authorization(&request);
     let Some(fleet) = f.service.fleet() else {
         return (
             StatusCode::OK,
@@ -263,7 +288,7 @@ async fn list(f: &Forwarder, request: Request) -> Response {
         .collect();
     let asks = others
         .iter()
-        .map(|url| remote_list(f, fleet, url, request.headers(), &caller));
+        .map(|url| remote_list(f, fleet, url, authorization.clone(), &caller));
     let mut lists = futures_util::future::join_all(asks).await;
     lists.push(own);
     let sessions = merge_session_lists(lists);
@@ -279,15 +304,15 @@ async fn remote_list(
     f: &Forwarder,
     fleet: &Fleet,
     base: &str,
-    asked: &HeaderMap,
+    authorization: Option<HeaderValue>,
     caller: &Caller,
 ) -> Vec<serde_json::Value> {
     let Ok(mut request) = Request::get(format!("{base}/v1/sessions")).body(Body::empty()) else {
         return Vec::new();
     };
     let headers = request.headers_mut();
-    if let Some(a) = asked.get(header::AUTHORIZATION) {
-        headers.insert(header::AUTHORIZATION, a.clone());
+    if let Some(a) = authorization {
+        headers.insert(header::AUTHORIZATION, a);
     }
     if let Ok(me) = HeaderValue::from_str(fleet.instance()) {
         headers.insert(FORWARDED_BY, me);

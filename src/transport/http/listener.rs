@@ -2,12 +2,17 @@
 //! idle timeouts, so idle or half-open sockets cannot take every file descriptor.
 //!
 //! - Up to `max_connections` connections are served normally.
+//! - With tokens on, a connection that has not yet authenticated gives its slot to a newcomer
+//!   once the cap is reached (see `admission`).
 //! - Beyond the cap, a small reserve ([`RESERVE_CONNECTIONS`]) still answers `GET /v1/health`
 //!   and `GET /metrics` (one request per connection, a short header timeout); anything else
 //!   there gets 503 `too_many_connections` and the connection closes. When the reserve is full,
 //!   a newcomer takes the place of the oldest reserve connection that has not sent a request
 //!   yet, so sockets that only hold a place cannot keep probes out.
 //! - Beyond that, connections are closed as soon as they are accepted.
+//!
+//! A request body must keep up a minimum rate (see `body_limits`): a handler waiting for one
+//! counts as work, which the idle timeout below does not interrupt.
 //!
 //! A connection has `header_timeout_ms` to deliver a request head, counted from when the server
 //! starts waiting for one (a new connection, or a kept-alive one after its last answer). One on
@@ -17,10 +22,10 @@
 
 use std::future::Future;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 use std::time::Duration;
 
+use axum::body::Body;
 use axum::extract::Request;
 use axum::http::{header, HeaderValue, Method};
 use axum::response::{IntoResponse, Response};
@@ -30,8 +35,11 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
-use tokio::sync::{oneshot, watch, Semaphore};
+use tokio::sync::watch;
 
+pub use super::admission::RESERVE_CONNECTIONS;
+use super::admission::{Admission, ConnectionContext, Ticket};
+use super::body_limits::{Pace, PacedBody};
 use super::connection_io::{Activity, ConnectionIo, MAX_HEAD_BYTES};
 use crate::api::ServiceError;
 
@@ -45,6 +53,9 @@ pub struct HttpConfig {
     pub header_timeout_ms: u64,
     /// A connection on which nothing moves this long, with no request being worked on, closes.
     pub idle_timeout_ms: u64,
+    /// A request body must arrive at this many bytes per second on average, counted after a
+    /// grace of `header_timeout_ms` (0: no minimum).
+    pub body_min_bytes_per_s: u64,
     /// Host names (no port) accepted in `Host` besides the listen address's own and, on
     /// loopback, `localhost`, `127.0.0.1` and `[::1]` (see `transport::http_guard`).
     pub allowed_hosts: Vec<String>,
@@ -59,14 +70,13 @@ impl Default for HttpConfig {
             max_connections: None,
             header_timeout_ms: 10_000,
             idle_timeout_ms: 60_000,
+            body_min_bytes_per_s: 1024,
             allowed_hosts: Vec::new(),
             allowed_origins: Vec::new(),
         }
     }
 }
 
-/// Connections beyond the cap that may still ask for health and metrics.
-pub const RESERVE_CONNECTIONS: usize = 32;
 /// Header timeout of a reserve connection: a probe sends its request at once.
 const RESERVE_HEADER_TIMEOUT: Duration = Duration::from_secs(1);
 /// Never fewer connections than this, whatever the file limit says.
@@ -108,62 +118,30 @@ pub fn connection_cap(config: &HttpConfig, file_limit: Option<u64>) -> usize {
     })
 }
 
-/// Reserve connections waiting for their request, oldest first: the ones a newcomer may evict.
-struct Reserve {
-    waiting: Mutex<Vec<ReservePlace>>,
-}
-
-struct ReservePlace {
-    /// Closes the connection when sent to (or dropped); closed once the connection ended.
-    evict: oneshot::Sender<()>,
-    has_request: Arc<AtomicBool>,
-}
-
-impl Reserve {
-    /// A place in the reserve, evicting the oldest connection without a request when full.
-    fn admit(&self) -> Option<(oneshot::Receiver<()>, Arc<AtomicBool>)> {
-        let mut waiting = self.waiting.lock().unwrap_or_else(PoisonError::into_inner);
-        waiting.retain(|place| !place.evict.is_closed());
-        if waiting.len() >= RESERVE_CONNECTIONS {
-            let oldest_idle = waiting
-                .iter()
-                .position(|p| !p.has_request.load(Ordering::Relaxed))?;
-            // Dropping the sender closes that connection.
-            waiting.remove(oldest_idle);
-        }
-        let (evict, evicted) = oneshot::channel();
-        let has_request = Arc::new(AtomicBool::new(false));
-        waiting.push(ReservePlace {
-            evict,
-            has_request: Arc::clone(&has_request),
-        });
-        Some((evicted, has_request))
-    }
-}
-
 /// How one connection is served.
 #[derive(Clone, Copy)]
 struct Timeouts {
     header: Duration,
     idle: Duration,
+    body_min_rate: u64,
 }
 
 /// Serves `app` on `listener` until `shutdown` resolves, then stops accepting, lets open
-/// connections finish their requests and returns once they have all closed.
+/// connections finish their requests and returns once they have all closed. With
+/// `tokens_required`, connections that have not authenticated give way to newcomers at the cap.
 pub async fn serve(
     listener: TcpListener,
     app: Router,
     config: &HttpConfig,
     cap: usize,
+    tokens_required: bool,
     shutdown: impl Future<Output = ()> + Send,
 ) {
-    let slots = Arc::new(Semaphore::new(cap));
-    let reserve = Reserve {
-        waiting: Mutex::new(Vec::new()),
-    };
+    let admission = Admission::new(cap, tokens_required);
     let timeouts = Timeouts {
         header: Duration::from_millis(config.header_timeout_ms.max(1)),
         idle: Duration::from_millis(config.idle_timeout_ms.max(1)),
+        body_min_rate: config.body_min_bytes_per_s,
     };
     // Every connection task holds a receiver of `stopping`; `closed()` is when all are gone.
     let (stopping, stop_seen) = watch::channel(false);
@@ -184,28 +162,26 @@ pub async fn serve(
         };
         let _ = stream.set_nodelay(true);
         let stop_seen = stop_seen.clone();
-        if let Ok(slot) = Arc::clone(&slots).try_acquire_owned() {
-            let io = ConnectionIo::new(stream, Activity::new(), Some(slot));
-            let connection = Connection {
-                app: app.clone(),
-                timeouts,
-                reserve: None,
-            };
-            tokio::spawn(connection.run(io, stop_seen, peer));
-        } else if let Some((evicted, has_request)) = reserve.admit() {
-            let io = ConnectionIo::new(stream, Activity::new(), None);
-            let connection = Connection {
-                app: app.clone(),
-                timeouts: Timeouts {
-                    header: timeouts.header.min(RESERVE_HEADER_TIMEOUT),
-                    idle: timeouts.idle.min(RESERVE_HEADER_TIMEOUT),
-                },
-                reserve: Some((evicted, has_request)),
-            };
-            tokio::spawn(connection.run(io, stop_seen, peer));
-        } else {
+        let Some(ticket) = admission.admit() else {
             tracing::debug!("{peer}: closed at once, {cap} connections and the reserve in use");
-        }
+            continue;
+        };
+        let in_reserve = ticket.slot.is_none();
+        let io = ConnectionIo::new(stream, Activity::new(), ticket.slot.clone());
+        let timeouts = match in_reserve {
+            false => timeouts,
+            true => Timeouts {
+                header: timeouts.header.min(RESERVE_HEADER_TIMEOUT),
+                idle: timeouts.idle.min(RESERVE_HEADER_TIMEOUT),
+                ..timeouts
+            },
+        };
+        let connection = Connection {
+            app: app.clone(),
+            timeouts,
+            ticket,
+        };
+        tokio::spawn(connection.run(io, stop_seen, peer));
     }
     tracing::info!("shutting down: no new connections");
     drop(listener);
@@ -217,26 +193,38 @@ pub async fn serve(
 struct Connection {
     app: Router,
     timeouts: Timeouts,
-    /// For a reserve connection: its eviction notice and whether it has sent a request.
-    reserve: Option<(oneshot::Receiver<()>, Arc<AtomicBool>)>,
+    /// Its place: the eviction notice, its standing, its slot (none in the reserve).
+    ticket: Ticket,
 }
 
 impl Connection {
     async fn run(self, io: ConnectionIo, mut stop_seen: watch::Receiver<bool>, peer: SocketAddr) {
         let activity = io.activity();
-        let (mut evicted, has_request) = match self.reserve {
-            Some((evicted, has_request)) => (Some(evicted), Some(has_request)),
-            None => (None, None),
+        let Ticket {
+            mut evicted,
+            standing,
+            slot,
+        } = self.ticket;
+        let in_reserve = slot.is_none();
+        let context = ConnectionContext {
+            peer,
+            header_timeout: self.timeouts.header,
+            standing,
         };
-        let in_reserve = has_request.is_some();
+        let pace = Pace {
+            min_rate: self.timeouts.body_min_rate,
+            grace: self.timeouts.header,
+            deadline: None,
+            max_bytes: None,
+        };
         let router = TowerToHyperService::new(self.app);
         let answering = Arc::clone(&activity);
         let service = hyper::service::service_fn(move |request: Request<Incoming>| {
-            if let Some(flag) = &has_request {
-                flag.store(true, Ordering::Relaxed);
-            }
+            context.standing.request_arrived();
             let busy = answering.begin_answer();
             let refused = in_reserve && !is_probe(&request);
+            let mut request = request.map(|body| Body::new(PacedBody::new(body, pace)));
+            request.extensions_mut().insert(context.clone());
             let answer = (!refused).then(|| hyper::service::Service::call(&router, request));
             async move {
                 let _busy = busy;
@@ -257,12 +245,10 @@ impl Connection {
             .serve_connection(TokioIo::new(io), service)
             .with_upgrades();
         let mut connection = std::pin::pin!(connection);
+        // Only a sent notice evicts; the accept loop also drops places it no longer tracks.
         let evicted = async {
-            match evicted.as_mut() {
-                Some(evicted) => {
-                    let _ = evicted.await;
-                }
-                None => std::future::pending().await,
+            if (&mut evicted).await.is_err() {
+                std::future::pending::<()>().await;
             }
         };
         let mut evicted = std::pin::pin!(evicted);
@@ -280,7 +266,7 @@ impl Connection {
                     break;
                 }
                 () = &mut evicted => {
-                    tracing::debug!("{peer}: reserve place taken by a newer connection");
+                    tracing::debug!("{peer}: place taken by a newer connection");
                     break;
                 }
                 changed = stop_seen.changed(), if !stopping => {

@@ -10,11 +10,17 @@
 //! - `openapi`: the OpenAPI document generated from the handlers, served at `/v1/openapi.json`;
 //! - `auth`: bearer tokens (or the web view's cookie, for reads), and the caller each request
 //!   carries;
-//! - `login`: the web view's login, which exchanges a token for that cookie;
+//! - `login`, `web_sessions`: the web view's login, which exchanges a token for that cookie,
+//!   naming a server-side login session;
+//! - `throttle`: failed authentications per peer;
 //! - `guard`: cross-site requests (Host, Origin, Content-Type);
-//! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts.
+//! - `listener` and `connection_io`: accepting connections, their cap, reserve and timeouts;
+//! - `admission`: which connections get a slot, and which give theirs up to newcomers;
+//! - `body_limits`: how fast a body must arrive, and how large one without a credential may be.
 
+mod admission;
 pub mod auth;
+mod body_limits;
 mod connection_io;
 mod errors;
 pub mod fleet_caller;
@@ -25,6 +31,8 @@ pub mod listener;
 mod login;
 pub mod openapi;
 mod streams;
+mod throttle;
+mod web_sessions;
 
 pub use errors::HttpError;
 
@@ -87,7 +95,7 @@ pub fn router(
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(max_body_bytes));
     // In a fleet, requests for other instances' sessions go there (after the checks below).
-    let routes = match forward::Forwarder::for_fleet(&service, max_body_bytes) {
+    let routes = match forward::Forwarder::for_fleet(&service, max_body_bytes, tokens.clone()) {
         Some(f) => routes.layer(axum::middleware::from_fn_with_state(f, forward::forward)),
         None => routes,
     };

@@ -151,8 +151,12 @@ error_responses! {
         `no_route`.";
     Conflict: "`session_exists` / `session_on_disk` (create), or `session_corrupt` (writes to \
         a session whose files could not be recovered whole: read-only, DELETE removes it).";
-    PayloadTooLarge: "`body_too_large` (over `max_body_bytes`), `batch_too_large` (more items \
-        than `limits.max_batch_items`), `list_too_long`, or a job over its memory limit.";
+    RequestTimeout: "`body_timeout` (field `body`): the request body arrived slower than \
+        `http.body_min_bytes_per_s`, or, without a valid token, not within \
+        `http.header_timeout_ms`.";
+    PayloadTooLarge: "`body_too_large` (over `max_body_bytes`; without a valid token over 4096 \
+        bytes, field `content-length` or `body`), `batch_too_large` (more items than \
+        `limits.max_batch_items`), `list_too_long`, or a job over its memory limit.";
     UnsupportedMediaType: "`unsupported_media_type` (field `content-type`): this route reads \
         JSON and needs `Content-Type: application/json`.";
     Misdirected: "`forbidden_host` (field `host`): the Host header names neither a loopback \
@@ -160,7 +164,8 @@ error_responses! {
     Unprocessable: "Well-formed but invalid against the session's contents (`unknown_variable`, \
         `duplicate_variable`, `wrong_kind`, `unknown_factor`, `missing_value`, \
         `non_finite_residual`, `indeterminate_system`, …).";
-    TooMany: "`too_many_pending` or `too_many_subscribers`: retry after `Retry-After` seconds.";
+    TooMany: "`too_many_pending`, `too_many_subscribers`, or `too_many_failures` (too many \
+        wrong credentials from this address): retry after `Retry-After` seconds.";
     Unavailable: "The service is at capacity (`too_many_sessions`, `too_many_jobs`), shutting \
         down (`shutting_down`), the session is `recovering` from its journal, a journal write \
         failed (`journal_failed`), or a wait timed out (`solving`); `Retry-After` says when \
@@ -200,6 +205,7 @@ error_responses! {
             Forbidden,
             NotFound,
             Conflict,
+            RequestTimeout,
             PayloadTooLarge,
             UnsupportedMediaType,
             Misdirected,

@@ -21,7 +21,8 @@
       try {
         const res = await fetch('/v1/login', {
           method: 'POST', headers: { 'Content-Type': 'application/json' },
-          body: JSON.stringify({ token: input.value }),
+          // The server takes the token exactly; tokens never hold whitespace, a paste may.
+          body: JSON.stringify({ token: input.value.trim() }),
         });
         const body = await res.json().catch(() => null);
         if (!res.ok) throw new Error((body && body.error && body.error.message) || res.statusText);
