@@ -18,6 +18,7 @@ use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
 use super::options::{Initialization, SolverOptions};
 use super::schur::{self, SchurSolver};
+use super::stopping::stopped;
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
@@ -65,11 +66,22 @@ pub fn optimize_warm(
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ordering: &mut OrderingCache,
 ) -> Result<Summary, SolverError> {
+    optimize_warm_within(problem, options, on_iteration, ordering, &Unlimited)
+}
+
+/// [`optimize_warm`] within a [`Budget`], as [`optimize_within`].
+pub fn optimize_warm_within(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ordering: &mut OrderingCache,
+    budget: &dyn Budget,
+) -> Result<Summary, SolverError> {
     let options = SolverOptions {
         initialization: Initialization::None,
         ..options.clone()
     };
-    optimize_from(problem, &options, on_iteration, Some(ordering), &Unlimited)
+    optimize_from(problem, &options, on_iteration, Some(ordering), budget)
 }
 
 fn optimize_from(
@@ -190,6 +202,11 @@ fn optimize_from(
         }
     };
     let outcome = start_point.and_then(|(label, initialized_chi2, first)| {
+        // Stopped in the first linearisation: the values are the given ones, whose chi2 is
+        // known (evaluating it again would cost what the budget just refused).
+        if first.is_break() {
+            return Ok((label, initialized_chi2, initial_chi2, stopped(0)));
+        }
         let (chi2, termination) = solver.run_linearized(
             problem.factors(),
             &mut values,

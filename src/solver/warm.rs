@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
 
+use super::budget::Budget;
 use super::cholesky::SparseCholesky;
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, free_blocks, linearize, Scratch, SystemLayout};
@@ -88,6 +89,25 @@ pub fn optimize_region(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
+    optimize_region_within(
+        problem,
+        fixed,
+        factors,
+        options,
+        on_iteration,
+        &super::Unlimited,
+    )
+}
+
+/// [`optimize_region`] within a [`Budget`], as [`super::optimize_within`].
+pub fn optimize_region_within(
+    problem: &mut Problem,
+    fixed: &[bool],
+    factors: &[usize],
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    budget: &dyn Budget,
+) -> Result<Summary, SolverError> {
     let start = Instant::now();
     let options = SolverOptions {
         initialization: Initialization::None,
@@ -117,7 +137,7 @@ pub fn optimize_region(
             &options,
             on_iteration,
             true,
-            &super::Unlimited,
+            budget,
         )?;
         let free = layout.var_at.len();
         Ok(run.summary(
