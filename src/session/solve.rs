@@ -245,7 +245,15 @@ impl Session {
                 st.converged = false;
                 // Whatever moved, the next solve starts from a clean slate.
                 st.structural = true;
-                let message = e.to_string();
+                // Stopped by the time limit before the first step: say which limit.
+                let message = if timed_out {
+                    format!(
+                        "the solve stopped at the time limit of {} ms (limits.max_solve_ms): {e}",
+                        self.limits.max_solve_ms
+                    )
+                } else {
+                    e.to_string()
+                };
                 st.last_error = Some(message.clone());
                 // Keep the last good values: the mirror is not refreshed from a failed solve.
                 self.emit(SessionEvent::Error {

@@ -22,7 +22,7 @@ use super::stopping::stopped;
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
-use super::{evaluate_chi2, SolverError};
+use super::{evaluate_chi2_within, SolverError};
 use crate::problem::FactorEntry;
 use crate::problem::{Gauge, Problem, Values};
 
@@ -103,7 +103,12 @@ fn optimize_from(
             Vec::new(),
         ),
     };
-    let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values)?;
+    // Checked like a linearisation: with costly factors this one evaluation takes seconds.
+    let ControlFlow::Continue(initial_chi2) =
+        evaluate_chi2_within(problem.factors(), &problem.values, budget)?
+    else {
+        return Err(SolverError::Interrupted);
+    };
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
     }
