@@ -60,7 +60,7 @@ impl Session {
                 mirror: &st.mirror,
                 live_factors: &st.live_factors,
                 factor_types: &factor_types,
-                deadline: journal.then(|| AdmissionDeadline::after(self.limits.max_solve_ms)),
+                deadline: journal.then(|| AdmissionDeadline::after(self.limits.max_admission_ms)),
             },
         )?;
         if st.problem.is_none()

@@ -65,8 +65,8 @@ pub(crate) struct SessionView<'a> {
 
 /// Admission runs under the session's lock, and a user-defined factor type can cost
 /// milliseconds per factor to build and check: without a bound a large batch held the session
-/// (and its worker) for longer than any solve may run. So it has the solve's bound,
-/// `limits.max_solve_ms`, checked every [`FACTORS_PER_CHECK`] factors.
+/// for longer than any solve may run. So it has a bound of its own, `limits.max_admission_ms`,
+/// checked every [`FACTORS_PER_CHECK`] factors.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct AdmissionDeadline {
     pub at: Instant,
@@ -94,7 +94,7 @@ fn in_time(view: &SessionView, done: usize, total: usize, step: &str) -> Result<
     Err(ServiceError::too_large(
         "batch_too_costly",
         format!(
-            "admitting the batch took longer than limits.max_solve_ms ({} ms): {step} stopped at factor {done} of {total}; send its factors in smaller batches",
+            "admitting the batch took longer than limits.max_admission_ms ({} ms): {step} stopped at factor {done} of {total}; send its factors in smaller batches",
             deadline.limit_ms
         ),
     )
