@@ -61,9 +61,9 @@ pub enum SolverError {
         limit: u64,
         factor_nnz: usize,
     },
-    /// The budget stopped the solve while it evaluated the cost at the given values, before any
-    /// step: there is no Summary to give (its initial chi2 is unknown), and nothing changed.
-    #[error("interrupted by the solve's budget (time limit, cancellation or shutdown) while evaluating the initial cost; the values are unchanged")]
+    /// The budget (a cancellation, a shutdown) stopped the solve while it evaluated the cost at
+    /// the given values, before any step: there is no Summary to give, and nothing changed.
+    #[error("interrupted by the solve's budget (cancellation or shutdown) while evaluating the initial cost; the values are unchanged")]
     Interrupted,
     #[error("internal error: {0}")]
     Internal(String),

@@ -22,7 +22,7 @@ use super::stopping::stopped;
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
-use super::{evaluate_chi2_within, SolverError};
+use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
 use crate::problem::FactorEntry;
 use crate::problem::{Gauge, Problem, Values};
 
@@ -103,12 +103,7 @@ fn optimize_from(
             Vec::new(),
         ),
     };
-    // Checked like a linearisation: with costly factors this one evaluation takes seconds.
-    let ControlFlow::Continue(initial_chi2) =
-        evaluate_chi2_within(problem.factors(), &problem.values, budget)?
-    else {
-        return Err(SolverError::Interrupted);
-    };
+    let initial_chi2 = initial_chi2(problem.factors(), &problem.values, budget)?;
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
     }
@@ -256,4 +251,22 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     let mut solver = Iterations::new(layout, chol, timings, values, warm, budget);
     let (chi2, termination) = solver.run(factors, values, options, on_iteration)?;
     Ok(solver.finish(chi2, termination))
+}
+
+/// The cost at the given values, checked like a linearisation: with costly factors this one
+/// evaluation takes seconds. A budget that stops it because it was cancelled (time left) fails
+/// the solve with nothing changed; one out of time lets it finish, so that the solve answers
+/// with an interrupted Summary at the given values, as it would a moment later.
+pub(super) fn initial_chi2<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    budget: &dyn Budget,
+) -> Result<f64, SolverError> {
+    match evaluate_chi2_within(factors, values, budget)? {
+        ControlFlow::Continue(chi2) => Ok(chi2),
+        ControlFlow::Break(()) if budget.remaining().is_some_and(|left| left.is_zero()) => {
+            Ok(evaluate_chi2(factors, values)?)
+        }
+        ControlFlow::Break(()) => Err(SolverError::Interrupted),
+    }
 }

@@ -15,7 +15,7 @@ use super::optimizer::{dot, iterate, Context};
 use super::options::{Initialization, SolverOptions};
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Summary, Timings};
-use super::{evaluate_chi2_within, SolverError};
+use super::SolverError;
 use crate::problem::FactorEntry;
 use crate::problem::Problem;
 
@@ -118,10 +118,7 @@ pub fn optimize_region_within(
     let all = problem.factors();
     let subset: Vec<&FactorEntry> = factors.iter().map(|&f| &all[f]).collect();
     let result = (|| {
-        let ControlFlow::Continue(initial_chi2) = evaluate_chi2_within(&subset, &values, budget)?
-        else {
-            return Err(SolverError::Interrupted);
-        };
+        let initial_chi2 = super::optimizer::initial_chi2(&subset, &values, budget)?;
         if !initial_chi2.is_finite() {
             return Err(SolverError::NonFiniteInitialCost);
         }
