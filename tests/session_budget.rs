@@ -1,7 +1,7 @@
 //! A session's work stays within its bounds when one factor is expensive (issue 52, item 7):
 //! a user-defined type near the cost bound makes one iteration take seconds, yet a DELETE stops
 //! the running solve at once, a solve stops near `max_solve_ms`, and a batch whose admission
-//! would outlast `max_solve_ms` is refused. Each against a real `factord serve`.
+//! would outlast `max_admission_ms` is refused. Each against a real `factord serve`.
 
 mod common;
 
@@ -78,7 +78,7 @@ fn heavy_batch(first: u64, poses: u64, factors: u64, with_poses: bool) -> Value 
 }
 
 /// Adds `factors` heavy factors over 200 poses, in batches small enough to be admitted well
-/// within any `max_solve_ms` used here (150 factors: ~0.1 s).
+/// within any `max_admission_ms` used here (150 factors: ~0.1 s).
 async fn fill(c: &reqwest::Client, s: &TestServer, name: &str, factors: u64) {
     let url = s.url(&format!("/v1/sessions/{name}/batches"));
     let (status, v) = post(c, &url, &heavy_batch(0, 200, 0, true)).await;
@@ -151,18 +151,19 @@ async fn a_deleted_sessions_solve_stops_at_once() {
 /// iteration (6.4 s measured). Now it stops within a chunk of factors of the limit.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_solve_with_a_slow_iteration_stops_near_max_solve_ms() {
-    let limit = Duration::from_millis(1000);
+    let limit = Duration::from_millis(300);
     let s = start_with_limits(&json!({"max_solve_ms": limit.as_millis() as u64}));
     let c = client();
     heavy_session(&c, &s, "slow").await;
-    fill(&c, &s, "slow", 6000).await;
+    fill(&c, &s, "slow", 12_000).await;
     let start = Instant::now();
     let url = s.url("/v1/sessions/slow/optimize?wait=true");
     let (status, v) = post(&c, &url, &json!(null)).await;
     let wall = start.elapsed();
     eprintln!("solve with max_solve_ms {limit:?}: answered in {wall:?}: {v}");
     assert_eq!(status, 200, "{v}");
-    assert!(wall < 3 * limit, "{wall:?}");
+    // The first evaluation of the cost finishes even out of time (~0.4 s here when idle).
+    assert!(wall < Duration::from_secs(2), "{wall:?}");
     let (_, info) = get(&c, &s.url("/v1/sessions/slow")).await;
     let error = info["last_error"].as_str().unwrap_or_default();
     assert!(error.contains("max_solve_ms"), "{info}");
@@ -170,12 +171,12 @@ async fn a_solve_with_a_slow_iteration_stops_near_max_solve_ms() {
 }
 
 /// Before: a batch of heavy factors was admitted however long building and checking them took
-/// (24 s in the issue, with `max_solve_ms` 5 000). Now it is refused whole once it outlasts
-/// `max_solve_ms`, and the same factors in smaller batches are admitted.
+/// (24 s in the issue; 12.8 s here). Now it is refused whole once it outlasts
+/// `max_admission_ms`, and the same factors in smaller batches are admitted.
 #[tokio::test(flavor = "multi_thread")]
-async fn a_batch_whose_admission_outlasts_max_solve_ms_is_refused() {
+async fn a_batch_whose_admission_outlasts_max_admission_ms_is_refused() {
     let limit = Duration::from_millis(1000);
-    let s = start_with_limits(&json!({"max_solve_ms": limit.as_millis() as u64}));
+    let s = start_with_limits(&json!({"max_admission_ms": limit.as_millis() as u64}));
     let c = client();
     heavy_session(&c, &s, "big").await;
     let url = s.url("/v1/sessions/big/batches");
@@ -191,7 +192,7 @@ async fn a_batch_whose_admission_outlasts_max_solve_ms_is_refused() {
         v["error"]["message"]
             .as_str()
             .unwrap()
-            .contains("max_solve_ms"),
+            .contains("max_admission_ms"),
         "{v}"
     );
     assert!(wall < 3 * limit, "{wall:?}");
