@@ -24,6 +24,10 @@ pub struct Limits {
     /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
     /// `interrupted` termination (jobs) says so.
     pub max_solve_ms: u64,
+    /// Admitting one batch (building its factors, checking their residuals, under the
+    /// session's lock) is refused with 413 `batch_too_costly` past this long. Its own limit, not
+    /// `max_solve_ms`: a short solve bound must not refuse ordinary large batches.
+    pub max_admission_ms: u64,
     /// A batch job whose solve is estimated (from the graph and its symbolic factorisation) to
     /// need more memory than this is refused with 413 `job_too_large` before it starts.
     pub max_job_memory_bytes: u64,
@@ -52,6 +56,9 @@ impl Default for Limits {
             max_variables_per_session: 10_000_000,
             max_factors_per_session: 50_000_000,
             max_solve_ms: 600_000,
+            // Ten seconds of one session's lock: the costliest user-defined factors admit
+            // ~20 000 in that time; ordinary ones millions.
+            max_admission_ms: 10_000,
             // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
             max_job_memory_bytes: 4 << 30,
             max_subscribers: 64,

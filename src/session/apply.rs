@@ -4,7 +4,7 @@
 use std::collections::HashSet;
 use std::sync::Arc;
 
-use super::batch::{self, PreparedBatch, SessionView};
+use super::batch::{self, AdmissionDeadline, PreparedBatch, SessionView};
 use super::engine::{self, Engine};
 use super::mirror::{heap_values, value_of, WireValue};
 use super::producers::{self, Admission, Origin};
@@ -63,6 +63,7 @@ impl Session {
                 mirror: &st.mirror,
                 live_factors: &st.live_factors,
                 factor_types: &factor_types,
+                deadline: journal.then(|| AdmissionDeadline::after(self.limits.max_admission_ms)),
             },
         )?;
         if st.problem.is_none()

@@ -6,6 +6,7 @@
 //! fail afterwards, so a batch is applied whole or, when `prepare` errs, not at all.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
+use std::time::{Duration, Instant};
 
 use nalgebra::DMatrix;
 
@@ -16,6 +17,7 @@ use crate::api::wire::{Batch, FactorId, FactorSpec};
 use crate::api::ServiceError;
 use crate::factors::{robust, Factor, RobustKernel, SqrtInformation};
 use crate::problem::{Key, Variable};
+use crate::solver::budget::FACTORS_PER_CHECK;
 
 pub(crate) struct PreparedFactor {
     pub factor: Box<dyn Factor>,
@@ -56,6 +58,47 @@ pub(crate) struct SessionView<'a> {
     pub live_factors: &'a HashSet<FactorId>,
     /// Factor types the session's client declared.
     pub factor_types: &'a FactorTypes,
+    /// When admitting the batch must be over; `None` for a journal replay, which restores what
+    /// was accepted once.
+    pub deadline: Option<AdmissionDeadline>,
+}
+
+/// Admission runs under the session's lock, and a user-defined factor type can cost
+/// milliseconds per factor to build and check: without a bound a large batch held the session
+/// for longer than any solve may run. So it has a bound of its own, `limits.max_admission_ms`,
+/// checked every [`FACTORS_PER_CHECK`] factors.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct AdmissionDeadline {
+    pub at: Instant,
+    pub limit_ms: u64,
+}
+
+impl AdmissionDeadline {
+    pub fn after(limit_ms: u64) -> Self {
+        Self {
+            at: Instant::now() + Duration::from_millis(limit_ms),
+            limit_ms,
+        }
+    }
+}
+
+/// Checks the deadline every [`FACTORS_PER_CHECK`] factors: 413 `batch_too_costly` once it is
+/// past (the batch is refused whole; smaller batches of the same factors are admitted).
+fn in_time(view: &SessionView, done: usize, total: usize, step: &str) -> Result<(), ServiceError> {
+    let Some(deadline) = view.deadline.filter(|_| done % FACTORS_PER_CHECK == 0) else {
+        return Ok(());
+    };
+    if Instant::now() < deadline.at {
+        return Ok(());
+    }
+    Err(ServiceError::too_large(
+        "batch_too_costly",
+        format!(
+            "admitting the batch took longer than limits.max_admission_ms ({} ms): {step} stopped at factor {done} of {total}; send its factors in smaller batches",
+            deadline.limit_ms
+        ),
+    )
+    .at("factors"))
 }
 
 /// The name of a field in a request, formatted only when an error names it: a valid batch of a
@@ -219,6 +262,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
     // Factors.
     let mut factors = Vec::with_capacity(batch.factors.len());
     for (i, spec) in batch.factors.iter().enumerate() {
+        in_time(view, i, batch.factors.len(), "building the factors")?;
         let field = |suffix: &str| format!("factors[{i}]{suffix}");
         let codec = view
             .factor_types
@@ -418,6 +462,7 @@ fn check_residuals(
         }
     }
     for (i, f) in factors.iter().enumerate() {
+        in_time(view, i, factors.len(), "checking the residuals")?;
         let vars: Vec<&dyn Variable> = f
             .factor
             .keys()

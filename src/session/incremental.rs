@@ -118,8 +118,9 @@ impl RegionIndex {
         problem: &mut Problem,
         options: &SolverOptions,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+        budget: &dyn solver::Budget,
     ) -> Result<Summary, SolverError> {
-        solver::optimize_warm(problem, options, on_iteration, &mut self.ordering)
+        solver::optimize_warm_within(problem, options, on_iteration, &mut self.ordering, budget)
     }
 
     /// Rebuilds from scratch (after factors were removed, which renumbers them).
@@ -268,6 +269,7 @@ pub(crate) fn resolve(
     debt: &mut f64,
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    budget: &dyn solver::Budget,
 ) -> Result<Resolved, SolverError> {
     let n = problem.values.len();
     let mut size = FIRST_REGION;
@@ -286,13 +288,19 @@ pub(crate) fn resolve(
                 *f |= !inside[v];
             }
             let factors = factors_touching(index, &region);
-            let summary =
-                match solver::optimize_region(problem, &fixed, &factors, options, on_iteration) {
-                    Ok(summary) => summary,
-                    // A region without an anchor (a new component): solve the whole problem.
-                    Err(SolverError::IndeterminateSystem { .. }) => break,
-                    Err(e) => return Err(e),
-                };
+            let summary = match solver::optimize_region_within(
+                problem,
+                &fixed,
+                &factors,
+                options,
+                on_iteration,
+                budget,
+            ) {
+                Ok(summary) => summary,
+                // A region without an anchor (a new component): solve the whole problem.
+                Err(SolverError::IndeterminateSystem { .. }) => break,
+                Err(e) => return Err(e),
+            };
             total -= summary.initial_chi2 - summary.final_chi2;
             if summary.termination.reason == solver::TerminationReason::Interrupted {
                 return Ok(Resolved {
@@ -330,7 +338,7 @@ pub(crate) fn resolve(
             size *= 4;
         }
     }
-    let summary = index.solve_whole(problem, options, on_iteration)?;
+    let summary = index.solve_whole(problem, options, on_iteration, budget)?;
     *debt = 0.0;
     Ok(Resolved {
         total_chi2: summary.final_chi2,

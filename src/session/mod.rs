@@ -24,6 +24,7 @@
 //! - `schedule.rs`: when solves run (auto-optimise policy, `optimize`), waiting for them and
 //!   cancelling them.
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
+//! - `solve_budget.rs`: what stops a running solve inside an iteration (cancel, delete, time).
 //! - `incremental.rs`: re-solving only the region new factors reach.
 //! - `events.rs`: the event channel (publishing, rejections, raw subscriptions).
 //! - `history.rs`: the bounded timeline and event log every published event feeds (web view).
@@ -49,6 +50,7 @@ mod ordering;
 mod producers;
 mod schedule;
 mod solve;
+mod solve_budget;
 mod state;
 mod stats;
 mod stream;

@@ -117,7 +117,8 @@ impl Session {
         Ok(())
     }
 
-    /// Stops the running solve after its current iteration; returns whether one was running.
+    /// Stops the running solve at its next budget checkpoint (see `solve_budget`: within a few
+    /// dozen factors of work, not at the end of the iteration); returns whether one was running.
     pub fn cancel(&self) -> bool {
         let st = self.lock();
         if st.solving {
@@ -126,6 +127,8 @@ impl Session {
         st.solving
     }
 
+    /// No solve is scheduled for a deleted session again (`maybe_schedule`, `take_work` and the
+    /// polish timer check `deleted`), and the running one stops at its next checkpoint.
     pub(crate) fn mark_deleted(&self) {
         let mut st = self.lock();
         st.deleted = true;

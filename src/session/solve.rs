@@ -9,13 +9,14 @@ use std::time::Instant;
 
 use super::incremental::{self, RegionIndex};
 use super::mirror;
+use super::solve_budget::SolveBudget;
 use super::Session;
 use crate::api::wire::{Estimate, SessionEvent};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::problem::{Key, Problem};
 use crate::runtime::pool::TIME_SLICE;
-use crate::solver::{self, SolverOptions};
+use crate::solver::{self, Budget as _, SolverOptions};
 
 /// How long a session must be idle before it polishes its estimate.
 const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(20);
@@ -96,9 +97,8 @@ impl Session {
             tracing::info_span!("session", session = %self.name, solve = solve_number).entered();
         let start = Instant::now();
         let mut preempted = false;
-        let mut timed_out = false;
-        let max_solve = std::time::Duration::from_millis(self.limits.max_solve_ms);
         let carried = self.lock().solve_carried;
+        let budget = SolveBudget::new(&self, start, carried);
         let mut on_iteration = |report: &solver::IterationReport| {
             // Nothing is published of a batch before it is durable (see `journal_barrier`).
             self.journal_barrier();
@@ -108,11 +108,7 @@ impl Session {
                 sequence,
                 report: report.clone(),
             });
-            if self.cancel.load(Ordering::SeqCst) || self.pool.is_stopping() {
-                return ControlFlow::Break(());
-            }
-            if carried + start.elapsed() >= max_solve {
-                timed_out = true;
+            if budget.checkpoint().is_break() {
                 return ControlFlow::Break(());
             }
             if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
@@ -148,6 +144,7 @@ impl Session {
                             &options,
                             &gauge,
                             &mut on_iteration,
+                            &budget,
                         )
                     }
                 }
@@ -155,9 +152,9 @@ impl Session {
             // Later solves warm-start from the current estimate; initialisation is for the first.
             debt = 0.0;
             let solved = if solve_number > 1 {
-                index.solve_whole(&mut problem, &options, &mut on_iteration)
+                index.solve_whole(&mut problem, &options, &mut on_iteration, &budget)
             } else {
-                solver::optimize(&mut problem, &options, &mut on_iteration)
+                solver::optimize_within(&mut problem, &options, &mut on_iteration, &budget)
             };
             let summary = solved?;
             if summary.converged {
@@ -173,6 +170,7 @@ impl Session {
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
+        let timed_out = budget.timed_out();
 
         match &result {
             Ok(r) => {
@@ -247,7 +245,15 @@ impl Session {
                 st.converged = false;
                 // Whatever moved, the next solve starts from a clean slate.
                 st.structural = true;
-                let message = e.to_string();
+                // Stopped by the time limit before the first step: say which limit.
+                let message = if timed_out {
+                    format!(
+                        "the solve stopped at the time limit of {} ms (limits.max_solve_ms): {e}",
+                        self.limits.max_solve_ms
+                    )
+                } else {
+                    e.to_string()
+                };
                 st.last_error = Some(message.clone());
                 // Keep the last good values: the mirror is not refreshed from a failed solve.
                 self.emit(SessionEvent::Error {
@@ -302,6 +308,7 @@ impl Session {
         options: &SolverOptions,
         gauge: &[Key],
         on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+        budget: &dyn solver::Budget,
     ) -> Result<incremental::Resolved, solver::SolverError> {
         // Held fixed: what the client fixed, and the gauge anchors of the last full solve (a
         // region never reaches a component without one: it would be singular and the re-solve
@@ -316,6 +323,7 @@ impl Session {
             debt,
             options,
             on_iteration,
+            budget,
         )
     }
 
@@ -325,6 +333,11 @@ impl Session {
         st.problem_bytes = super::state::problem_bytes(&problem) + index.engine_bytes();
         st.problem = Some(problem);
         st.index = Some(index);
+        // A deleted session's queued batches would only cost CPU for nobody.
+        if st.deleted {
+            st.pending.clear();
+            st.pending_factors = 0;
+        }
         while let Some((seq, prepared, ids)) = st.pending.pop_front() {
             st.pending_factors -= prepared.factor_count();
             self.apply_prepared(st, seq, prepared, ids);

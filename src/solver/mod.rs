@@ -29,10 +29,10 @@ pub mod supernodes;
 mod warm;
 
 pub use budget::{Budget, Unlimited};
-pub use optimizer::{optimize, optimize_warm, optimize_within};
+pub use optimizer::{optimize, optimize_warm, optimize_warm_within, optimize_within};
 pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
-pub use warm::{newton_decrement, optimize_region, OrderingCache};
+pub use warm::{newton_decrement, optimize_region, optimize_region_within, OrderingCache};
 
 use crate::factors::EvaluationError;
 pub use crate::problem::evaluate_chi2;
@@ -61,6 +61,10 @@ pub enum SolverError {
         limit: u64,
         factor_nnz: usize,
     },
+    /// The budget (a cancellation, a shutdown) stopped the solve while it evaluated the cost at
+    /// the given values, before any step: there is no Summary to give, and nothing changed.
+    #[error("interrupted by the solve's budget (cancellation or shutdown) while evaluating the initial cost; the values are unchanged")]
+    Interrupted,
     #[error("internal error: {0}")]
     Internal(String),
 }

@@ -18,10 +18,11 @@ use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
 use super::options::{Initialization, SolverOptions};
 use super::schur::{self, SchurSolver};
+use super::stopping::stopped;
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
-use super::{evaluate_chi2, SolverError};
+use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
 use crate::problem::FactorEntry;
 use crate::problem::{Gauge, Problem, Values};
 
@@ -65,11 +66,22 @@ pub fn optimize_warm(
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ordering: &mut OrderingCache,
 ) -> Result<Summary, SolverError> {
+    optimize_warm_within(problem, options, on_iteration, ordering, &Unlimited)
+}
+
+/// [`optimize_warm`] within a [`Budget`], as [`optimize_within`].
+pub fn optimize_warm_within(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ordering: &mut OrderingCache,
+    budget: &dyn Budget,
+) -> Result<Summary, SolverError> {
     let options = SolverOptions {
         initialization: Initialization::None,
         ..options.clone()
     };
-    optimize_from(problem, &options, on_iteration, Some(ordering), &Unlimited)
+    optimize_from(problem, &options, on_iteration, Some(ordering), budget)
 }
 
 fn optimize_from(
@@ -91,7 +103,7 @@ fn optimize_from(
             Vec::new(),
         ),
     };
-    let initial_chi2 = evaluate_chi2(problem.factors(), &problem.values)?;
+    let initial_chi2 = initial_chi2(problem.factors(), &problem.values, budget)?;
     if !initial_chi2.is_finite() {
         return Err(SolverError::NonFiniteInitialCost);
     }
@@ -190,6 +202,11 @@ fn optimize_from(
         }
     };
     let outcome = start_point.and_then(|(label, initialized_chi2, first)| {
+        // Stopped in the first linearisation: the values are the given ones, whose chi2 is
+        // known (evaluating it again would cost what the budget just refused).
+        if first.is_break() {
+            return Ok((label, initialized_chi2, initial_chi2, stopped(0)));
+        }
         let (chi2, termination) = solver.run_linearized(
             problem.factors(),
             &mut values,
@@ -234,4 +251,22 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
     let mut solver = Iterations::new(layout, chol, timings, values, warm, budget);
     let (chi2, termination) = solver.run(factors, values, options, on_iteration)?;
     Ok(solver.finish(chi2, termination))
+}
+
+/// The cost at the given values, checked like a linearisation: with costly factors this one
+/// evaluation takes seconds. A budget that stops it because it was cancelled (time left) fails
+/// the solve with nothing changed; one out of time lets it finish, so that the solve answers
+/// with an interrupted Summary at the given values, as it would a moment later.
+pub(super) fn initial_chi2<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    budget: &dyn Budget,
+) -> Result<f64, SolverError> {
+    match evaluate_chi2_within(factors, values, budget)? {
+        ControlFlow::Continue(chi2) => Ok(chi2),
+        ControlFlow::Break(()) if budget.remaining().is_some_and(|left| left.is_zero()) => {
+            Ok(evaluate_chi2(factors, values)?)
+        }
+        ControlFlow::Break(()) => Err(SolverError::Interrupted),
+    }
 }

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
 
+use super::budget::Budget;
 use super::cholesky::SparseCholesky;
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, free_blocks, linearize, Scratch, SystemLayout};
@@ -14,7 +15,7 @@ use super::optimizer::{dot, iterate, Context};
 use super::options::{Initialization, SolverOptions};
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Summary, Timings};
-use super::{evaluate_chi2, SolverError};
+use super::SolverError;
 use crate::problem::FactorEntry;
 use crate::problem::Problem;
 
@@ -88,6 +89,25 @@ pub fn optimize_region(
     options: &SolverOptions,
     on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
 ) -> Result<Summary, SolverError> {
+    optimize_region_within(
+        problem,
+        fixed,
+        factors,
+        options,
+        on_iteration,
+        &super::Unlimited,
+    )
+}
+
+/// [`optimize_region`] within a [`Budget`], as [`super::optimize_within`].
+pub fn optimize_region_within(
+    problem: &mut Problem,
+    fixed: &[bool],
+    factors: &[usize],
+    options: &SolverOptions,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    budget: &dyn Budget,
+) -> Result<Summary, SolverError> {
     let start = Instant::now();
     let options = SolverOptions {
         initialization: Initialization::None,
@@ -98,7 +118,7 @@ pub fn optimize_region(
     let all = problem.factors();
     let subset: Vec<&FactorEntry> = factors.iter().map(|&f| &all[f]).collect();
     let result = (|| {
-        let initial_chi2 = evaluate_chi2(&subset, &values)?;
+        let initial_chi2 = super::optimizer::initial_chi2(&subset, &values, budget)?;
         if !initial_chi2.is_finite() {
             return Err(SolverError::NonFiniteInitialCost);
         }
@@ -117,7 +137,7 @@ pub fn optimize_region(
             &options,
             on_iteration,
             true,
-            &super::Unlimited,
+            budget,
         )?;
         let free = layout.var_at.len();
         Ok(run.summary(
