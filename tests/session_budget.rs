@@ -11,11 +11,11 @@ use common::server::{client, create, delete_session, get, post, start_with_limit
 use serde_json::{json, Value};
 
 /// Chains of compositions in the heavy type, and compositions per chain: about 1 800 distinct
-/// SE(2) compositions, within the 4096 nodes and depth 64 of a definition and under its cost
+/// SE(2) compositions, within the 4096 nodes and depth 48 of a definition and under its cost
 /// bound. Measured on a loaded 2-core machine: admitting one factor ~0.5 ms, one linearisation
 /// of 6 000 of them ~5 s.
-const CHAINS: usize = 32;
-const DEPTH: usize = 56;
+const CHAINS: usize = 44;
+const DEPTH: usize = 40;
 
 /// A residual over poses `a`, `b` and a measured pose `z` that no solver can shorten: the norm
 /// of the translations of `CHAINS` long products, each starting from a different constant.
