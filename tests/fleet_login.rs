@@ -43,14 +43,21 @@ async fn a_cookie_reads_sessions_owned_by_another_instance() {
         .unwrap();
     let cookie = login.headers()["set-cookie"].to_str().unwrap();
     let cookie = cookie.split(';').next().unwrap().to_string();
-    let remote = names.iter().find(|n| fleet.owner(n) == 1).expect("one on f2");
+    let remote = names
+        .iter()
+        .find(|n| fleet.owner(n) == 1)
+        .expect("one on f2");
     let r = c
         .get(fleet.instance(0).url(&format!("/v1/sessions/{remote}")))
         .header("cookie", &cookie)
         .send()
         .await
         .unwrap();
-    assert_eq!(r.status(), 200, "a read of {remote} on f2 through f1 with f1's cookie");
+    assert_eq!(
+        r.status(),
+        200,
+        "a read of {remote} on f2 through f1 with f1's cookie"
+    );
     let list: Value = c
         .get(fleet.instance(0).url("/v1/sessions"))
         .header("cookie", &cookie)

@@ -16,9 +16,9 @@
 
 mod common;
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use common::fleet::{zenoh_replies, Fleet, Wiring};
+use common::fleet::{infos, zenoh_replies, Fleet, Wiring};
 use common::server::{free_port, zenoh_session};
 use serde_json::{json, Value};
 
@@ -187,4 +187,49 @@ async fn mixed_routers_and_peers() {
     let client = zenoh_session("client", "connect", &fleet.instance(2).zenoh).await;
     let peer = zenoh_session("peer", "connect", &router).await;
     check(&fleet, &[("mixed-client", client), ("mixed-peer", peer)]).await;
+}
+
+/// The instances whose `info` says they serve `factord/rpc` now.
+async fn gateways(z: &zenoh::Session) -> Vec<String> {
+    infos(z)
+        .await
+        .into_iter()
+        .filter(|i| i["rpc_gateway"] == true)
+        .map(|i| i["instance"].as_str().unwrap_or_default().to_string())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_gateway_killed_with_sigkill_is_replaced_and_commands_still_run_once() {
+    let mut fleet = Fleet::start(3, &[]);
+    let z = zenoh_session("client", "connect", &fleet.instance(1).zenoh).await;
+    fleet.wait_settled(&z).await;
+    // The smallest id serves: f1.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while gateways(&z).await != ["f1"] {
+        assert!(Instant::now() < deadline, "f1 never became the gateway");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let killed = Instant::now();
+    fleet.kill(0);
+    // Until a successor serves, a command finds no queryable (no reply, nothing run); never two.
+    loop {
+        let got = zenoh_replies(&z, "factord/rpc", &json!({"op": "health"})).await;
+        match got.len() {
+            0 => assert!(
+                killed.elapsed() < Duration::from_secs(10),
+                "no gateway 10 s after the kill: {}",
+                fleet.logs()
+            ),
+            1 => break,
+            n => panic!("{n} replies to one health query: {got:?}"),
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    eprintln!(
+        "rpc served again {:?} after the gateway's kill -9 was sent",
+        killed.elapsed()
+    );
+    assert_eq!(gateways(&z).await, ["f2"]);
+    every_command_runs_once(&z, "after-kill").await;
 }

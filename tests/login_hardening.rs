@@ -60,7 +60,11 @@ async fn tokens_are_exact_and_the_cookie_is_an_opaque_revocable_login() {
     let c = client();
 
     // The token with anything around it is another token, in a login or a bearer header.
-    for padded in [format!(" {ALICE}"), format!("{ALICE}\n"), format!("\t{ALICE} ")] {
+    for padded in [
+        format!(" {ALICE}"),
+        format!("{ALICE}\n"),
+        format!("\t{ALICE} "),
+    ] {
         let (status, v, _) = login(&c, &s, &padded).await;
         assert_eq!(status, 401, "login with {padded:?}: {v}");
     }
@@ -129,7 +133,10 @@ async fn a_peers_failed_attempts_are_throttled_and_counted() {
     // A stale login cookie (a restart, a logout) is refused but spends nothing: it is a random
     // id, not a guess, and a browser polling with one must not lock its address out.
     for _ in 0..25 {
-        assert_eq!(list_with(&attacker, &s, "factord_session=00ff", None).await, 401);
+        assert_eq!(
+            list_with(&attacker, &s, "factord_session=00ff", None).await,
+            401
+        );
     }
 
     // Wrong logins and wrong bearer tokens from one address: after 20, 429 with Retry-After.

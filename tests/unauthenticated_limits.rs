@@ -73,13 +73,19 @@ fn field_of(v: &Value) -> (&str, &str) {
 }
 
 /// One stalled login, re-opened whenever the server closes it, until `stop`.
-async fn keep_stalling(address: String, length: u64, stop: Arc<AtomicBool>, opened: Arc<AtomicUsize>) {
+async fn keep_stalling(
+    address: String,
+    length: u64,
+    stop: Arc<AtomicBool>,
+    opened: Arc<AtomicUsize>,
+) {
     while !stop.load(Ordering::Relaxed) {
         if let Ok(mut stream) = TcpStream::connect(&address).await {
             opened.fetch_add(1, Ordering::Relaxed);
             if stream.write_all(&stalled_login(length)).await.is_ok() {
                 let mut sink = [0u8; 1024];
-                let held = async { while matches!(stream.read(&mut sink).await, Ok(n) if n > 0) {} };
+                let held =
+                    async { while matches!(stream.read(&mut sink).await, Ok(n) if n > 0) {} };
                 let _ = tokio::time::timeout(Duration::from_secs(30), held).await;
             }
         }
@@ -117,7 +123,11 @@ async fn stalled_logins_leave_authenticated_clients_served() {
     let lone = answer(&mut lone, HEADER_TIMEOUT + Duration::from_secs(3)).await;
     let took = started.elapsed();
     let (status, v) = lone.unwrap_or_else(|| panic!("no answer to a stalled login in {took:?}"));
-    assert_eq!((status, field_of(&v)), (408, ("body_timeout", "body")), "{v}");
+    assert_eq!(
+        (status, field_of(&v)),
+        (408, ("body_timeout", "body")),
+        "{v}"
+    );
     assert!(took < HEADER_TIMEOUT + Duration::from_secs(2), "{took:?}");
 
     // Half again as many stalled logins as the cap, re-opened as they close; half announce a
@@ -222,7 +232,11 @@ async fn unauthenticated_bodies_are_bounded_before_they_are_read() {
     chunked.write_all(request.as_bytes()).await.unwrap();
     let refused = answer(&mut chunked, Duration::from_secs(3)).await;
     let (status, v) = refused.expect("an answer to a chunked body past the bound");
-    assert_eq!((status, field_of(&v)), (413, ("body_too_large", "body")), "{v}");
+    assert_eq!(
+        (status, field_of(&v)),
+        (413, ("body_too_large", "body")),
+        "{v}"
+    );
 
     // 8 × 200 MB at once: the server's peak memory does not grow with them.
     let before = peak_rss_kib(s.pid());

@@ -222,7 +222,10 @@ mod tests {
         third.standing.authenticated.store(true, Ordering::Relaxed);
         fourth.standing.authenticated.store(true, Ordering::Relaxed);
         let fifth = admission.admit().unwrap();
-        assert!(fifth.slot.is_none(), "all proven: the newcomer goes to the reserve");
+        assert!(
+            fifth.slot.is_none(),
+            "all proven: the newcomer goes to the reserve"
+        );
     }
 
     #[test]

@@ -95,7 +95,8 @@ impl Tokens {
                 message: format!("token `{label}` must be at least 16 printable characters"),
             });
         }
-        self.tokens.retain(|(known, _)| **known != *token.as_bytes());
+        self.tokens
+            .retain(|(known, _)| **known != *token.as_bytes());
         self.tokens.push((token.as_bytes().into(), label.into()));
         Ok(())
     }

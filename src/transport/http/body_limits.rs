@@ -260,7 +260,10 @@ mod tests {
         let error = collect(body).await.unwrap_err();
         // 300 bytes at 1000 bytes/s buy 0.3 s beyond the 0.2 s grace.
         let took = started.elapsed();
-        assert!(took >= Duration::from_millis(500) && took < Duration::from_secs(2), "{took:?}");
+        assert!(
+            took >= Duration::from_millis(500) && took < Duration::from_secs(2),
+            "{took:?}"
+        );
         let refusal = BodyRefusal::find(&*error).unwrap();
         assert_eq!(refusal.to_service_error().body.code, "body_timeout");
     }

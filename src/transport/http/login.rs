@@ -18,9 +18,9 @@ use axum::{Extension, Json};
 use serde::{Deserialize, Serialize};
 
 use super::auth::{Tokens, COOKIE};
-use super::web_sessions::LIFETIME;
 use super::errors::{body_error, HttpResult};
 use super::openapi::*;
+use super::web_sessions::LIFETIME;
 use crate::api::ErrorKind;
 use crate::service::{parse_json, ServiceError};
 
