@@ -10,6 +10,21 @@ use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 const SMALL_ANGLE: f64 = 1e-5;
 
 /// The skew-symmetric matrix `[v]×` with `[v]× w = v × w`.
+/// How far a quaternion's norm may be from 1 before it is refused instead of normalised: one rule
+/// for poses in batches, fusion messages and ROS orientations. Normalising a far-off one (norm
+/// 1e-160, all zeros) would store a rotation nobody meant, or NaN.
+pub const UNIT_NORM_TOLERANCE: f64 = 1e-3;
+
+/// The rotation of `q`, normalised, when its norm is within [`UNIT_NORM_TOLERANCE`] of 1;
+/// otherwise `Err` with the norm (a NaN norm included).
+pub fn unit_within_tolerance(q: Quaternion<f64>) -> Result<UnitQuaternion<f64>, f64> {
+    let norm = q.norm();
+    match (norm - 1.0).abs() <= UNIT_NORM_TOLERANCE {
+        true => Ok(UnitQuaternion::from_quaternion(q)),
+        false => Err(norm),
+    }
+}
+
 pub fn hat(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
 }

@@ -9,7 +9,7 @@
 use std::sync::MutexGuard;
 use std::time::Instant;
 
-use nalgebra::{UnitQuaternion, Vector3};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use super::engine::{self, Engine, SmoothedKeyframe};
 use super::Session;
@@ -18,11 +18,9 @@ use crate::api::fusion::{
 };
 use crate::api::wire::{SessionEvent, VariableValue};
 use crate::api::ServiceError;
-use crate::fusion::window::{
-    diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
-};
+use crate::fusion::window::{diagonal_information, FusionError, SlidingWindow, WindowOptions};
 use crate::geometry::preintegration::{Matrix15, Preintegrated};
-use crate::geometry::NavState;
+use crate::geometry::{so3, NavState};
 use crate::problem::Key;
 
 fn finite(values: &[f64]) -> Result<(), FusionError> {
@@ -36,25 +34,19 @@ fn finite(values: &[f64]) -> Result<(), FusionError> {
     }
 }
 
-/// How far a quaternion's norm may be from 1, as for batches (B5) and ROS inputs (S31).
-const QUATERNION_NORM_TOLERANCE: f64 = 1e-3;
-
 /// `q` (x, y, z, w) as a unit quaternion, refused unless finite with a norm within
-/// [`QUATERNION_NORM_TOLERANCE`] of 1: normalising a far-off one (1e-160, all zeros) would
-/// store a rotation the client never meant, or NaN.
+/// [`so3::UNIT_NORM_TOLERANCE`] of 1, as batches (B5) and ROS inputs (S31) are.
 fn unit_quaternion(field: &'static str, q: &[f64; 4]) -> Result<UnitQuaternion<f64>, FusionError> {
     finite(q)?;
-    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    if !((norm - 1.0).abs() <= QUATERNION_NORM_TOLERANCE) {
-        return Err(FusionError::Invalid {
+    so3::unit_within_tolerance(Quaternion::new(q[3], q[0], q[1], q[2])).map_err(|norm| {
+        FusionError::Invalid {
             field,
             reason: format!(
-                "a rotation quaternion's norm must be within {QUATERNION_NORM_TOLERANCE} of 1, \
-                 got {norm:e}"
+                "a rotation quaternion's norm must be within {} of 1, got {norm:e}",
+                so3::UNIT_NORM_TOLERANCE
             ),
-        });
-    }
-    Ok(quaternion_xyzw(q))
+        }
+    })
 }
 
 /// Applies one message; `Ok(Some(key))` when it created a keyframe.

@@ -2,7 +2,7 @@
 
 use std::any::Any;
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Quaternion, Vector3};
 
 use super::{encode_as, Shape, Variable, VariableWire};
 use crate::geometry::{so3, Se3};
@@ -25,19 +25,12 @@ pub const WIRE: VariableWire = VariableWire {
 };
 
 /// Decodes `[x, y, z, qx, qy, qz, qw]` (length checked by the caller), refusing a quaternion
-/// whose norm is not 1 within 1e-3.
+/// whose norm is not 1 within [`so3::UNIT_NORM_TOLERANCE`].
 pub fn decode_se3(v: &[f64]) -> Result<Se3, String> {
     let q = Quaternion::new(v[6], v[3], v[4], v[5]);
-    let norm = q.norm();
-    if (norm - 1.0).abs() > 1e-3 {
-        return Err(format!(
-            "quaternion (qx, qy, qz, qw) has norm {norm}, expected 1"
-        ));
-    }
-    Ok(Se3::new(
-        UnitQuaternion::from_quaternion(q),
-        Vector3::new(v[0], v[1], v[2]),
-    ))
+    let rotation = so3::unit_within_tolerance(q)
+        .map_err(|norm| format!("quaternion (qx, qy, qz, qw) has norm {norm}, expected 1"))?;
+    Ok(Se3::new(rotation, Vector3::new(v[0], v[1], v[2])))
 }
 
 /// SE(3) retraction on the right, translation in the body frame:

@@ -31,7 +31,7 @@ pub const MAX_ANGULAR_VELOCITY: f64 = 1e3;
 pub const MAX_ACCELERATION: f64 = 1e4;
 /// How far from 1 a quaternion's norm may be (ROS publishes unit quaternions; tf2 itself refuses
 /// those off by more than 1e-2).
-pub const UNIT_TOLERANCE: f64 = 1e-3;
+pub use crate::geometry::so3::UNIT_NORM_TOLERANCE as UNIT_TOLERANCE;
 
 /// A value of a ROS message outside what is taken.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -141,13 +141,11 @@ pub fn pose(pose: &Pose) -> Result<(), BadValue> {
     for (field, value) in fields {
         finite(field, value)?;
     }
-    let norm = (o.x * o.x + o.y * o.y + o.z * o.z + o.w * o.w).sqrt();
-    if (norm - 1.0).abs() > UNIT_TOLERANCE {
-        return Err(BadValue::NotUnit {
-            field: "pose.pose.orientation",
-            norm,
-        });
-    }
+    let q = nalgebra::Quaternion::new(o.w, o.x, o.y, o.z);
+    crate::geometry::so3::unit_within_tolerance(q).map_err(|norm| BadValue::NotUnit {
+        field: "pose.pose.orientation",
+        norm,
+    })?;
     Ok(())
 }
 
