@@ -10,7 +10,7 @@ Without --server:
       (longest match; when the rest of the name is one of that schema's $defs, e.g.
       `reply-deleted`, against that definition);
   (b) proto/v1/openapi.json is OpenAPI 3.1 and its $refs resolve. It is generated from the
-      server's types and handlers; `cargo test --test openapi` keeps it equal to what the server
+      server's types and handlers; `cargo test --test api openapi::` keeps it equal to what the server
       serves, checks its routes against the router's and its schemas against the files here.
 With --server it also (c) drives that server through a scripted sequence (sessions, batches,
 estimates, graphs, marginal covariances, events over SSE, a batch job, error cases, the web

@@ -1,5 +1,5 @@
 """GTSAM's Marginals on a 2D g2o pose graph at a given estimate: the reference for factord's
-marginal covariances (tests/marginals.rs) and the timing in BENCHMARKS.md.
+marginal covariances (tests/service/marginals.rs) and the timing in BENCHMARKS.md.
 
     python gtsam_marginals.py GRAPH.g2o ESTIMATE.g2o --keys 1227,600 [--anchor-sigma 1e-6]
 

@@ -1,7 +1,7 @@
 //! The JSON Schema of a batch's factor specs, generated from the catalogue's [`FactorWire`]
 //! declarations: `proto/v1/factors.schema.json` is this function's output, and
-//! `tests/factor_schema.rs` fails when the committed file differs (`FACTORD_BLESS=1 cargo test
-//! --test factor_schema` rewrites it). So the schema cannot drift from the code: a factor's
+//! `tests/api/factor_schema.rs` fails when the committed file differs (`FACTORD_BLESS=1 cargo test
+//! --test api factor_schema::` rewrites it). So the schema cannot drift from the code: a factor's
 //! `type`, its number of keys, its measurement length and its residual dimension (the sizes of
 //! `information` and `sigmas`) are written once, in the factor's file.
 
@@ -35,7 +35,7 @@ pub fn factor_schema() -> Value {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://factord.invalid/proto/v1/factors.schema.json",
         "title": "Factor",
-        "description": "A new factor (measurement): an item of a batch's `factors`. GENERATED from the factors' WIRE declarations (src/factors/*.rs) by src/api/factor_schema.rs; do not edit: `FACTORD_BLESS=1 cargo test --test factor_schema` rewrites it. Give exactly one of `information` and `sigmas` (400 missing_noise otherwise); the information matrix must be symmetric positive definite (400 bad_information). Each type's exact lengths are in `$defs/<type>`.",
+        "description": "A new factor (measurement): an item of a batch's `factors`. GENERATED from the factors' WIRE declarations (src/factors/*.rs) by src/api/factor_schema.rs; do not edit: `FACTORD_BLESS=1 cargo test --test api factor_schema::` rewrites it. Give exactly one of `information` and `sigmas` (400 missing_noise otherwise); the information matrix must be symmetric positive definite (400 bad_information). Each type's exact lengths are in `$defs/<type>`.",
         "type": "object",
         "required": ["type", "keys", "measurement"],
         "additionalProperties": false,

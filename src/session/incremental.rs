@@ -41,7 +41,7 @@ const DEBT_LIMIT: f64 = 10.0;
 
 /// An update on the request path: relinearise what moved more than this (max-norm of the
 /// tangent step), in one round. The estimate then sits within ~3e-5 relative chi2 of the
-/// optimum (tests/incremental_engine.rs `threshold_sweep`); the polish closes the rest.
+/// optimum (tests/library/incremental_engine.rs `threshold_sweep`); the polish closes the rest.
 const STREAM: UpdateParams = UpdateParams {
     relinearize_threshold: 0.05,
     wildfire_threshold: 1e-5,

@@ -1,5 +1,5 @@
 //! Reading the container files (docker/Dockerfile, docker/compose.yaml) for the tests that
-//! check them (`tests/docker.rs`) and run their command lines (`tests/docker_run.rs`).
+//! check them (`tests/tools/docker.rs`) and run their command lines (`tests/tools/docker_run.rs`).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;

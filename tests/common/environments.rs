@@ -7,7 +7,7 @@
 //! since each takes it through its own open file), and a venv counts as made only once a marker
 //! written after its creation exists: a venv left half-made by a killed run is made again. On
 //! a fresh machine four tests once created the `ros2` venv at the same time, and two found
-//! `bin/python` before pip was in it. `tests/fresh_environments.rs` makes a venv from nothing,
+//! `bin/python` before pip was in it. `tests/tools/fresh_environments.rs` makes a venv from nothing,
 //! from several threads at once, on every run.
 
 use std::fs::File;

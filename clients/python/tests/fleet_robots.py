@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Robots of a factord fleet: one process, one StreamProducer per robot session, paced.
 
-Driven by tests/fleet_robots.rs, which starts three `factord serve --fleet` instances, writes one
+Driven by tests/fleet/fleet_robots.rs, which starts three `factord serve --fleet` instances, writes one
 g2o graph per robot, runs this script, kills (-9) an instance mid-stream and checks the results:
 
     python clients/python/tests/fleet_robots.py --http URL1,URL2,URL3 --zenoh EP1,EP2,EP3 \

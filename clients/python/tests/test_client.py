@@ -27,7 +27,7 @@ from factord_client import FactordError, HttpClient, ZenohClient, g2o, gtsam_tex
 
 STREAM_DATASET = "2d/carlone/input_M3500_g2o.g2o"
 JOB_DATASET = "2d/converted/intel_lsslam.g2o"
-JOB_FINAL_CHI2 = 65.402048  # the reference optimum of intel_lsslam (tests/datasets.rs)
+JOB_FINAL_CHI2 = 65.402048  # the reference optimum of intel_lsslam (tests/library/datasets.rs)
 DATASET_3D = "3d/gtsam/pose3example-grid.txt"
 LANDMARK_DATASET = "2d/gtsam/victoria_park.txt"
 LANDMARK_POSES = 300

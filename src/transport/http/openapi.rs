@@ -1,6 +1,6 @@
 //! The OpenAPI document of the HTTP routes, generated from the handlers' `#[utoipa::path]`
 //! annotations and the wire types' `ToSchema` derives; served at `GET /v1/openapi.json` and
-//! committed as `proto/v1/openapi.json` (`tests/openapi.rs` keeps the two equal).
+//! committed as `proto/v1/openapi.json` (`tests/api/openapi.rs` keeps the two equal).
 //!
 //! Here too: the shapes that exist only on the HTTP side (the error envelope, the replies that
 //! are inline variants of [`crate::api::Reply`], the path and job parameters) and the error

@@ -1,0 +1,16 @@
+//! Fleets of real instances over zenoh in every topology: placement, failover, the rpc gateway, membership proofs, robots, ACLs and routers.
+//!
+//! One test binary per area (each file below was a binary of its own): a change to the library
+//! relinks a handful of binaries instead of sixty. Run one file's tests with
+//! `cargo test --release --test fleet <file>::`.
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod fleet;
+mod fleet_login;
+mod fleet_robots;
+mod fleet_rpc_once;
+mod fleet_trust;
+mod zenoh_acl;
+mod zenoh_router;

@@ -1,0 +1,118 @@
+//! ROS 2 over rmw_zenoh (issue 19): a robot written in Python publishes real CDR messages the
+//! way rmw_zenoh_cpp does (key expressions, attachment, liveliness tokens) to a real `factord
+//! serve` process bound to its topics, and reads the optimised path and pose back with the
+//! same tools (`tests/ros2/robot_odometry.py`).
+//!
+//! The venv `~/.cache/factord/venvs/ros2` holds rosbags (CDR and the Jazzy type store),
+//! eclipse-zenoh (the client's version), numpy and xxhash; it is made once (PyPI must be
+//! reachable). Without Python or PyPI the test skips with the reason, except under `CI=true`.
+
+use crate::common;
+
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Duration;
+
+use common::server::{
+    client, create, delete_session, holders, ros_nodes_until, zenoh_peer, TestServer,
+};
+use serde_json::json;
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn python() -> Option<PathBuf> {
+    let installs = [vec![
+        "rosbags==0.11.9".into(),
+        "eclipse-zenoh==1.10.2".into(),
+        "numpy".into(),
+        "xxhash".into(),
+    ]];
+    match common::python_venv("ros2", &installs) {
+        Ok(python) => Some(python),
+        Err(reason) => common::skip_or_fail(&format!("no Python environment for ROS 2: {reason}")),
+    }
+}
+
+fn run_script(python: &std::path::Path, server: &TestServer, script: &str, extra: &[&str]) {
+    let out = Command::new(python)
+        .arg(script)
+        .args(["--http", &server.http, "--zenoh", &server.zenoh])
+        .args(extra)
+        .current_dir(repo())
+        .output()
+        .expect("python runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(
+        out.status.success(),
+        "{script} failed:\n{stdout}\n{}\n--- factord:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        server.stderr()
+    );
+    server.assert_no_panic();
+}
+
+#[test]
+fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
+}
+
+#[test]
+fn a_ros2_robot_with_an_imu_feeds_a_sliding_window() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &server, "tests/ros2/robot_imu.py", &[]);
+}
+
+/// A ROS 2 bag (MCAP, written by rosbags from sphere2500's first 300 poses) replayed into a
+/// session as `ros2 bag play` over rmw_zenoh would: the recorded CDR bytes, unchanged.
+#[test]
+fn a_ros2_bag_replayed_over_rmw_zenoh_becomes_the_sessions_path() {
+    let Some(python) = python() else { return };
+    let data = std::env::var_os("FACTORD_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join("../shared/data"));
+    let g2o = data.join("3d/sesync/sphere2500.g2o");
+    if !g2o.exists() {
+        common::skip_or_fail::<()>(&format!("no dataset at {}", g2o.display()));
+        return;
+    }
+    let server = TestServer::start(&[]);
+    let g2o = g2o.to_str().expect("a utf-8 path");
+    run_script(
+        &python,
+        &server,
+        "tests/ros2/bag_replay.py",
+        &["--g2o", g2o],
+    );
+}
+
+/// A binding lives as long as its session here: deleted, its node leaves the ROS graph (the
+/// binding must not keep the session alive, nor feed a session that is gone).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_deleted_sessions_node_leaves_the_ros_graph() {
+    let server = TestServer::start(&[]);
+    let c = client();
+    let session = json!({"session": "gone", "kind": "pose_graph_3d",
+                         "ros2": {"domain_id": 3, "odometry_topic": "/odom", "path_topic": "/path"}});
+    create(&c, &server, &session).await;
+    let z = zenoh_peer(&server.zenoh).await;
+    let within = Duration::from_secs(10);
+    let ours = |nodes: &[(String, String)]| !holders(nodes, "factord_gone").is_empty();
+    assert!(
+        ours(&ros_nodes_until(&z, 3, within, ours).await),
+        "the node joins"
+    );
+    let (status, v) = delete_session(&c, &server, "gone").await;
+    assert!((200..300).contains(&status), "{status}: {v}");
+    let left = ros_nodes_until(&z, 3, within, |nodes| !ours(nodes)).await;
+    assert!(
+        !ours(&left),
+        "the deleted session's node is still in the ROS graph: {left:?}"
+    );
+    server.assert_no_panic();
+}

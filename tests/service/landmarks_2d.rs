@@ -1,0 +1,136 @@
+//! 2D landmark SLAM in a `pose_graph_2d` session, over HTTP: poses streamed one by one with
+//! odometry, `point2` landmarks added without a value (predicted from their first
+//! `bearing_range_se2` sighting), later sightings closing the loop; the estimate after a solve
+//! has every landmark where it is, and a sighting with a negative range or a point2 used as a
+//! pose is refused naming the field.
+
+use crate::common;
+
+use common::server::{client, create, get, post, TestServer};
+use serde_json::{json, Value};
+
+const LANDMARK_BASE: u64 = 1000;
+
+/// Pose k on a circle of radius 10 (heading along it), 8 landmarks on a circle of radius 14.
+fn pose(k: usize) -> [f64; 3] {
+    let a = k as f64 * 0.1;
+    [
+        10.0 * a.cos(),
+        10.0 * a.sin(),
+        a + std::f64::consts::FRAC_PI_2,
+    ]
+}
+
+fn landmark(l: usize) -> [f64; 2] {
+    let a = l as f64 * std::f64::consts::PI / 4.0;
+    [14.0 * a.cos(), 14.0 * a.sin()]
+}
+
+/// Bearing and range of landmark `l` from pose `k` (exact).
+fn sighting(k: usize, l: usize) -> [f64; 2] {
+    let [x, y, th] = pose(k);
+    let [lx, ly] = landmark(l);
+    let (dx, dy) = (lx - x, ly - y);
+    let (bx, by) = (
+        th.cos() * dx + th.sin() * dy,
+        -th.sin() * dx + th.cos() * dy,
+    );
+    [by.atan2(bx), bx.hypot(by)]
+}
+
+fn odometry(k: usize) -> [f64; 3] {
+    let ([x0, y0, t0], [x1, y1, t1]) = (pose(k - 1), pose(k));
+    let (dx, dy) = (x1 - x0, y1 - y0);
+    [
+        t0.cos() * dx + t0.sin() * dy,
+        -t0.sin() * dx + t0.cos() * dy,
+        t1 - t0,
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn landmarks_stream_into_a_pose_graph_session() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "trees", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    let url = s.url("/v1/sessions/trees/batches");
+    let mut seen = std::collections::BTreeSet::new();
+    let poses = 70; // more than one turn: the landmarks are seen again
+    for k in 0..poses {
+        let mut variables = vec![];
+        let mut factors = vec![];
+        if k == 0 {
+            variables.push(json!({"key": 0, "kind": "se2", "value": pose(0), "fixed": true}));
+        } else {
+            variables.push(json!({"key": k, "kind": "se2"}));
+            factors.push(json!({"type": "between_se2", "keys": [k - 1, k],
+                "measurement": odometry(k), "sigmas": [0.05, 0.05, 0.01]}));
+        }
+        for l in 0..8 {
+            let [b, r] = sighting(k, l);
+            if b.abs() > 1.2 || r > 12.0 {
+                continue; // out of the sensor's view
+            }
+            let key = LANDMARK_BASE + l as u64;
+            if seen.insert(l) {
+                variables.push(json!({"key": key, "kind": "point2"}));
+            }
+            factors.push(json!({"type": "bearing_range_se2", "keys": [k, key],
+                "measurement": [b, r], "sigmas": [0.01, 0.05]}));
+        }
+        let (status, ack) = post(
+            &c,
+            &url,
+            &json!({"variables": variables, "factors": factors}),
+        )
+        .await;
+        assert!(status < 300, "pose {k}: {ack}");
+    }
+    assert!(seen.len() >= 6, "landmarks seen: {seen:?}");
+    let (status, solved) = post(
+        &c,
+        &s.url("/v1/sessions/trees/optimize?wait=true"),
+        &json!({}),
+    )
+    .await;
+    assert_eq!(status, 200, "{solved}");
+    let (status, estimate) = get(&c, &s.url("/v1/sessions/trees/estimate")).await;
+    assert_eq!(status, 200);
+    let variables = estimate["variables"].as_array().unwrap();
+    let mut checked = 0;
+    for v in variables {
+        let key = v["key"].as_u64().unwrap();
+        if key >= LANDMARK_BASE {
+            assert_eq!(v["kind"], "point2", "{v}");
+            let [lx, ly] = landmark((key - LANDMARK_BASE) as usize);
+            let value: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
+            assert!(
+                (value[0] - lx).abs() < 1e-6 && (value[1] - ly).abs() < 1e-6,
+                "{v}"
+            );
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, seen.len());
+    let (_, info) = get(&c, &s.url("/v1/sessions/trees")).await;
+    assert!(info["chi2"].as_f64().unwrap_or(f64::NAN) < 1e-9, "{info}");
+
+    // Refusals name the field; nothing is applied.
+    let bad: Value = json!({"factors": [{"type": "bearing_range_se2", "keys": [1, LANDMARK_BASE],
+        "measurement": [0.1, -2.0], "sigmas": [0.01, 0.05]}]});
+    let (status, e) = post(&c, &url, &bad).await;
+    assert_eq!(status, 400, "{e}");
+    assert_eq!(e["error"]["field"], "factors[0].measurement", "{e}");
+    let swapped = json!({"factors": [{"type": "bearing_range_se2", "keys": [LANDMARK_BASE, 1],
+        "measurement": [0.1, 2.0], "sigmas": [0.01, 0.05]}]});
+    let (status, e) = post(&c, &url, &swapped).await;
+    assert_eq!(status, 422, "{e}");
+    assert_eq!(e["error"]["code"], "wrong_kind", "{e}");
+    assert_eq!(e["error"]["field"], "factors[0].keys[0]", "{e}");
+    s.assert_no_panic();
+}
