@@ -4,7 +4,7 @@
 # at every target path the manifest names (`path = "..."` lines of [[bench]] and the like), so
 # that `cargo build --release --locked` compiles every dependency without our sources. The real
 # build replaces them; if a stub binary were ever kept by mistake, `factord --version` at the end
-# of the build fails on its 99. tests/docker.rs runs this script and checks that cargo finds
+# of the build fails on its 99. tests/tools/docker.rs runs this script and checks that cargo finds
 # every target it names.
 set -eu
 mkdir -p src

@@ -1,4 +1,4 @@
-//! Layers point one way (DEVELOPERS.md, docs/ARCHITECTURE.md): a module may use what is below it
+//! Layers point one way (docs/ARCHITECTURE.md): a module may use what is below it
 //! or beside it, never what is above. An upward import fails this test with its file and line,
 //! and so does a top-level module missing from [`LAYERS`] (every module has a place).
 //!
