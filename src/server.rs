@@ -47,7 +47,7 @@ pub struct ServeConfig {
     pub sessions: Vec<crate::api::wire::CreateSession>,
 }
 
-/// `fleet` in the config file (see README, "Fleet").
+/// `fleet` in the config file (see docs/guide/fleets.md).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FleetConfig {

@@ -11,8 +11,8 @@ order) and prints one JSON line describing it. Default output:
 numpy's PCG64 seeded with --seed, every draw made in a fixed order, numbers printed with %.9g,
 so the same arguments give the same bytes on any machine (the JSON line includes the sha256).
 
-The world (measured on input_M3500_g2o's optimum, see BENCHMARKS.md, "Issue 16 acceptance
-harness"): streets on a square grid with intersections every --block (4) metres; the robot
+The world (measured on input_M3500_g2o's optimum, see benches/history/issue-16-incremental-engine.md,
+"Issue 16 acceptance harness"): streets on a square grid with intersections every --block (4) metres; the robot
 moves 1 m per pose along a street; at an intersection it goes straight with probability 0.05,
 turns left or right with 0.31 each and turns back with 0.33 (M3500: 5 %, 31 %, 31 %, 32 %),
 never leaving the square world of side --side metres. The odometry of a step that turns by t is

@@ -51,13 +51,13 @@ pub struct CreateSession {
     #[serde(default)]
     pub auto_optimize: AutoOptimize,
     /// Factor types of this session's own, each a residual written as an expression and
-    /// differentiated automatically; batches then use their names as `type` (see README,
-    /// "User-defined factors"). Graph kinds only.
+    /// differentiated automatically; batches then use their names as `type` (see
+    /// docs/guide/factor-types.md, "User-defined factors"). Graph kinds only.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
     /// Bind the session to ROS 2 topics of robots that speak rmw_zenoh (odometry, priors and,
     /// for a `sliding_window`, IMU in; the optimised path, pose and `map → odom` out);
-    /// `pose_graph_3d` and `sliding_window`. See README, "ROS 2". Boxed: most requests have
+    /// `pose_graph_3d` and `sliding_window`. See docs/guide/ros2.md. Boxed: most requests have
     /// none, and a command holds its request.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ros2: Option<Box<super::ros2::Ros2Binding>>,

@@ -3,7 +3,7 @@
 //! gain ratio), `tr_radius` (Levenberg-Marquardt's 1/λ, as Ceres reports its LM radius), and the
 //! printf field widths of Ceres' `LoggingCallback` and `Summary::FullReport`.
 //!
-//! One difference remains, said in the README: `|gradient|` is the gradient at the point the
+//! One difference remains, said in docs/guide/jobs-and-cli.md: `|gradient|` is the gradient at the point the
 //! iteration started from, where Ceres shows it at the point it ended at.
 
 use std::time::Instant;

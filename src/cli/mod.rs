@@ -44,7 +44,7 @@ pub struct Cli {
 enum Command {
     /// Optimise a pose graph file (g2o, TORO, or a course vertices/edges pair).
     Solve(solve::SolveArgs),
-    /// Run the service: HTTP API, zenoh peer, worker pool (see README).
+    /// Run the service: HTTP API, zenoh peer, worker pool (see docs/guide/operations.md).
     Serve(serve::ServeArgs),
     /// Bundle adjustment of a BAL problem (optionally normalised and perturbed, as the course).
     Ba(ba::BaArgs),

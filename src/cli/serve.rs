@@ -15,7 +15,7 @@ use super::CliError;
 /// flags.
 #[derive(clap::Args)]
 pub struct ServeArgs {
-    /// JSON config file (the fields of `ServeConfig`, see README).
+    /// JSON config file (the fields of `ServeConfig`, see docs/guide/operations.md).
     #[arg(long, env = "FACTORD_CONFIG")]
     config: Option<PathBuf>,
     /// HTTP address [default: 127.0.0.1:8080]
@@ -63,7 +63,7 @@ pub struct ServeArgs {
     #[arg(long, env = "FACTORD_MAX_BODY_BYTES")]
     max_body_bytes: Option<usize>,
     /// Join a fleet: several instances on one shared state directory, joined by zenoh, form
-    /// one service (needs zenoh and the journal; see README, "Fleet").
+    /// one service (needs zenoh and the journal; see docs/guide/fleets.md).
     /// [env FACTORD_FLEET: 1, true, on, yes; 0, false, off, no]
     #[arg(long, env = "FACTORD_FLEET", value_parser = clap::builder::FalseyValueParser::new())]
     fleet: bool,

@@ -43,7 +43,8 @@ impl Drop for Instance {
 pub enum Wiring {
     /// Every instance running when it starts (peers; gossip completes the mesh).
     Mesh,
-    /// The README's fleet: the first instance listens, every other connects to it alone.
+    /// The guide's fleet (docs/guide/fleets.md): the first instance listens, every other connects
+    /// to it alone.
     Star,
     /// Instance `i` connects to `endpoints[i]` only: routers', or other instances' endpoints
     /// chosen in advance with [`Fleet::zenoh_endpoints`] and given to [`Fleet::start_on`].

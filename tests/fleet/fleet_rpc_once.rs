@@ -8,8 +8,9 @@
 //! build each topology a user can build, with real processes, and count the replies and what
 //! the session holds afterwards:
 //! - peers in a mesh, the caller a peer;
-//! - the README's star (the first instance listens, the others connect to it), the caller a
-//!   zenoh client (eclipse-zenoh's default mode) of the hub, and one of a spoke;
+//! - the guide's star (docs/guide/fleets.md; the first instance listens, the others connect to
+//!   it), the caller a zenoh client (eclipse-zenoh's default mode) of the hub, and one of a
+//!   spoke;
 //! - every instance and the caller connected to a zenoh router (a session in `router` mode in
 //!   this test process, as `zenohd` runs it), the caller a client and a peer;
 //! - mixed: two instances on the router, the third a peer of the first, callers on both sides.

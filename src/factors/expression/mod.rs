@@ -41,7 +41,7 @@ pub struct FactorTypeDefinition {
     /// (`se3`: 7 numbers, `se2`: 3, `vector` of `len`: len, `scalar`: 1).
     #[serde(default)]
     pub parameters: Vec<Declared>,
-    /// The residual: an expression of type scalar or vector (see the README's language).
+    /// The residual: an expression of type scalar or vector (see docs/guide/factor-types.md).
     #[schema(value_type = Object)]
     pub residual: serde_json::Value,
     /// When given, must equal the residual's length.

@@ -242,8 +242,8 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
 /// holds the batch back as long as it keeps growing; right after a large estimate's fragments,
 /// the summary that completes an update waited there (manhattanOlson3500 over zenoh with the
 /// poses subscribed, 6 interleaved pairs: total median 4.59 → 3.94 s, p90 2.92 → 2.18 ms sent
-/// at once; see BENCHMARKS). Iteration statistics may be dropped (the next one supersedes
-/// them) and batched.
+/// at once; see benches/history/issue-16-incremental-engine.md). Iteration statistics may be
+/// dropped (the next one supersedes them) and batched.
 fn put_event<'a>(
     zenoh: &'a zenoh::Session,
     key: &'a str,
