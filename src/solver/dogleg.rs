@@ -4,14 +4,85 @@
 
 use std::ops::ControlFlow;
 
-use super::iterations::{dot, Iterations, StepTimes};
+use super::iterations::{Iterations, StepTimes};
 use super::linearize::symmetric_multiply;
+use super::options::SolverOptions;
+use super::stopping::termination;
+use super::strategy::Proposal;
+use super::summary::{Termination, TerminationReason};
+use super::vector::dot;
 use super::SolverError;
 use crate::problem::Values;
 
+/// Below this radius the steps are too short to matter: the solve ends without progress.
+const MIN_TRUST_RADIUS: f64 = 1e-16;
+
+/// A singular H gets the damping μ·I for the Gauss-Newton step, μ starting here and growing by
+/// [`SINGULAR_DAMPING_GROWTH`] until the factorisation works, up to [`SINGULAR_DAMPING_MAX`].
+const SINGULAR_DAMPING_START: f64 = 1e-10;
+const SINGULAR_DAMPING_GROWTH: f64 = 100.0;
+const SINGULAR_DAMPING_MAX: f64 = 1e8;
+
+pub(super) struct Dogleg {
+    pub(super) radius: f64,
+    /// `work` holds the Gauss-Newton step of the current point (kept across rejections: only
+    /// the radius changes until a step is accepted).
+    have_gn_step: bool,
+}
+
+impl Dogleg {
+    pub(super) fn new(options: &SolverOptions) -> Self {
+        Self {
+            radius: options.initial_trust_radius,
+            have_gn_step: false,
+        }
+    }
+
+    pub(super) fn compute_step(
+        &mut self,
+        it: &mut Iterations<'_>,
+        values: &Values,
+        times: &mut StepTimes,
+    ) -> Result<ControlFlow<(), Proposal>, SolverError> {
+        if !self.have_gn_step {
+            if it.dogleg_gauss_newton_step(values, times)?.is_break() {
+                return Ok(ControlFlow::Break(()));
+            }
+            self.have_gn_step = true;
+        }
+        Ok(ControlFlow::Continue(Proposal::Step {
+            predicted: it.dogleg_step(self.radius),
+        }))
+    }
+
+    /// Accepts a finite trial with a positive gain ratio; the radius follows the gain ratio.
+    pub(super) fn judge(&mut self, chi2: f64, trial: f64, predicted: f64, step: f64) -> bool {
+        let rho = (chi2 - trial) / predicted;
+        self.radius = update_trust_radius(self.radius, rho, step, trial.is_finite());
+        trial.is_finite() && rho > 0.0 && predicted > 0.0
+    }
+
+    pub(super) fn step_done(&mut self, accepted: bool) {
+        if accepted {
+            self.have_gn_step = false;
+        }
+    }
+
+    pub(super) fn out_of_range(&self) -> Option<Termination> {
+        (self.radius < MIN_TRUST_RADIUS).then(|| {
+            termination(
+                TerminationReason::NoProgress,
+                self.radius,
+                MIN_TRUST_RADIUS,
+                "no acceptable step: damping / trust region out of range",
+            )
+        })
+    }
+}
+
 impl Iterations<'_> {
     /// Gauss-Newton step for Dogleg into `work`; a singular H gets the smallest damping that works.
-    pub(super) fn dogleg_gauss_newton_step(
+    fn dogleg_gauss_newton_step(
         &mut self,
         values: &Values,
         times: &mut StepTimes,
@@ -21,8 +92,9 @@ impl Iterations<'_> {
             match self.solve_damped(mu, times) {
                 Ok(ControlFlow::Break(())) => return Ok(ControlFlow::Break(())),
                 Ok(ControlFlow::Continue(())) => break,
-                Err(e) if mu > 1e8 => return Err(self.indeterminate(values, e)),
-                Err(_) => mu = if mu == 0.0 { 1e-10 } else { mu * 100.0 },
+                Err(e) if mu > SINGULAR_DAMPING_MAX => return Err(self.indeterminate(values, e)),
+                Err(_) if mu == 0.0 => mu = SINGULAR_DAMPING_START,
+                Err(_) => mu *= SINGULAR_DAMPING_GROWTH,
             }
         }
         std::mem::swap(&mut self.work, &mut self.delta);
@@ -31,7 +103,7 @@ impl Iterations<'_> {
 
     /// Powell's dogleg inside `radius` from the GN step (in `work`) and the Cauchy point; writes
     /// the step to `delta` and returns the model decrease 2Δᵀb − ΔᵀHΔ.
-    pub(super) fn dogleg_step(&mut self, radius: f64) -> f64 {
+    fn dogleg_step(&mut self, radius: f64) -> f64 {
         let pattern = &self.layout.pattern;
         let gn_norm = dot(&self.work, &self.work).sqrt();
         if gn_norm <= radius {
@@ -67,7 +139,7 @@ impl Iterations<'_> {
 
 /// The next trust radius after a step of length `step` with gain ratio `rho`: grow it after a
 /// step the model predicted well, shrink it after a poor or non-finite one.
-pub(super) fn update_trust_radius(radius: f64, rho: f64, step: f64, trial_finite: bool) -> f64 {
+fn update_trust_radius(radius: f64, rho: f64, step: f64, trial_finite: bool) -> f64 {
     if rho > 0.75 {
         radius.max(3.0 * step)
     } else if rho < 0.25 || !trial_finite {

@@ -13,13 +13,13 @@ use std::time::Instant;
 
 use super::budget::{Budget, FactorCost};
 use super::cholesky::NotPositiveDefinite;
-use super::damping::{decrease_damping, increase_damping};
-use super::dogleg::update_trust_radius;
 use super::linear::LinearSolver;
 use super::linearize::{gradient_within, linearize_within, Scratch, SystemLayout};
-use super::options::{Method, SolverOptions};
+use super::options::SolverOptions;
 use super::stopping::{accepted_step_stop, stopped, termination};
+use super::strategy::{Proposal, Strategy};
 use super::summary::{IterationReport, Run, Termination, TerminationReason, Timings};
+use super::vector::{dot, max_abs};
 use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
 use crate::problem::FactorEntry;
 use crate::problem::Values;
@@ -51,26 +51,12 @@ pub(super) struct Iterations<'a> {
     pub(super) hessian_stale: bool,
 }
 
-/// A chord step is tried only after a step that lowered chi2 by less than this fraction:
-/// Gauss-Newton is then in its fast local phase and H barely changes. After larger steps the
-/// old factorisation was never good enough on the graphs measured (M3500's first step: 21%),
-/// and trying it costs a solve.
-const CHORD_AFTER_DECREASE: f64 = 0.1;
-
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
-}
-
-pub(super) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
-}
-
 /// Per-iteration times of the linear algebra, for the report.
 #[derive(Default, Clone, Copy)]
 pub(super) struct StepTimes {
-    linearize: f64,
-    factorize: f64,
-    solve: f64,
+    pub(super) linearize: f64,
+    pub(super) factorize: f64,
+    pub(super) solve: f64,
 }
 
 impl<'a> Iterations<'a> {
@@ -264,24 +250,6 @@ impl<'a> Iterations<'a> {
         Ok(ControlFlow::Continue(()))
     }
 
-    /// A Gauss-Newton step at the current point with the previous point's factorisation (a
-    /// chord step): `delta = H_prev⁻¹ b`. Worth taking instead of a fresh factorisation when its
-    /// predicted decrease `deltaᵀb` is already within the function tolerance of `chi2`: the
-    /// solve is then about to stop, and that step only has to be small and downhill, which the
-    /// trial evaluation checks (the stopping test is still on the actual decrease). Returns
-    /// whether `delta` holds such a step; near the optimum H barely changes between
-    /// iterations, so this saves the last factorisation of a solve.
-    fn chord_step(&mut self, options: &SolverOptions, chi2: f64, times: &mut StepTimes) -> bool {
-        let t = Instant::now();
-        self.delta.copy_from_slice(&self.b);
-        self.chol.solve_in_place(&mut self.delta);
-        let s = t.elapsed().as_secs_f64();
-        self.timings.linear_solve_seconds += s;
-        times.solve += s;
-        let predicted = dot(&self.delta, &self.b);
-        predicted >= 0.0 && predicted <= options.function_tolerance * chi2
-    }
-
     pub(super) fn run<E: Borrow<FactorEntry>>(
         &mut self,
         factors: &[E],
@@ -316,183 +284,50 @@ impl<'a> Iterations<'a> {
                 termination(TerminationReason::Trivial, 0.0, 0.0, "nothing to optimise"),
             ));
         }
-        // LM tries an undamped (Gauss-Newton) step first unless told otherwise; damping starts at
-        // the first rejection.
-        let mut lambda = if options.method == Method::LevenbergMarquardt && options.damp_first_step
-        {
-            options.initial_lambda
-        } else {
-            0.0
-        };
-        let mut nu = 2.0;
-        let mut radius = options.initial_trust_radius;
-        let mut have_gn_step = false;
-        // The factorisation in hand is of the last point's H, whose (fresh) step was accepted.
-        let mut chord_allowed = false;
+        let mut strategy = Strategy::new(options);
         for iteration in 1..=options.max_iterations {
             let gradient = max_abs(&self.b);
-            if options.gradient_tolerance > 0.0 && gradient <= options.gradient_tolerance {
-                return Ok((
-                    chi2,
-                    termination(
-                        TerminationReason::GradientTolerance,
-                        gradient,
-                        options.gradient_tolerance,
-                        &format!(
-                            "gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}",
-                            options.gradient_tolerance
-                        ),
-                    ),
-                ));
+            if let Some(end) = gradient_stop(options, gradient) {
+                return Ok((chi2, end));
             }
-            // Model decrease L(0) − L(Δ) of the step, for LM/Dogleg's gain ratio and the warm stop.
-            let mut predicted = f64::NAN;
             // Inside an iteration the budget is checked before each factorisation and every few
             // thousand factors; stopping there keeps the last accepted values.
-            macro_rules! or_stop {
-                ($flow:expr) => {
-                    match $flow {
-                        ControlFlow::Continue(v) => v,
-                        ControlFlow::Break(()) => return Ok((chi2, stopped(iteration))),
-                    }
-                };
-            }
-            // Gauss-Newton: whether this iteration's step reuses the last factorisation.
-            let mut chord = false;
-            let (accepted, trial_chi2) = match options.method {
-                Method::GaussNewton => {
-                    chord = chord_allowed && self.chord_step(options, chi2, &mut times);
-                    if !chord {
-                        if self.hessian_stale {
-                            or_stop!(self.linearize_at(factors, values, &mut times)?);
-                        }
-                        or_stop!(self
-                            .solve_damped(0.0, &mut times)
-                            .map_err(|e| self.indeterminate(values, e))?);
-                    }
-                    predicted = dot(&self.delta, &self.b);
-                    let trial = or_stop!(self.evaluate_trial(factors, values)?);
-                    // Not at most chi2 (NaN included).
-                    let worse = !matches!(
-                        trial.partial_cmp(&chi2),
-                        Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
-                    );
-                    if chord && worse {
-                        // The old factorisation was not good enough here: discard the step, and
-                        // factorise at this point next.
-                        (false, trial)
-                    } else if !trial.is_finite() {
-                        return Err(SolverError::Diverged { iteration });
-                    } else {
-                        (true, trial)
-                    }
-                }
-                Method::LevenbergMarquardt => match self.solve_damped(lambda, &mut times) {
-                    Ok(ControlFlow::Break(())) => return Ok((chi2, stopped(iteration))),
-                    Ok(ControlFlow::Continue(())) => {
-                        predicted = dot(&self.delta, &self.b) + self.damping_term(lambda);
-                        let trial = or_stop!(self.evaluate_trial(factors, values)?);
-                        let rho = (chi2 - trial) / predicted;
-                        if trial.is_finite() && rho > 0.0 && predicted > 0.0 {
-                            lambda = decrease_damping(lambda, rho);
-                            nu = 2.0;
-                            (true, trial)
-                        } else {
-                            lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
-                            (false, trial)
-                        }
-                    }
-                    Err(_) => {
-                        // Not positive definite at this damping: damp more.
-                        lambda = increase_damping(lambda, &mut nu, options.initial_lambda);
-                        self.delta.fill(0.0);
-                        (false, f64::INFINITY)
-                    }
-                },
-                Method::Dogleg => {
-                    if !have_gn_step {
-                        or_stop!(self.dogleg_gauss_newton_step(values, &mut times)?);
-                        have_gn_step = true;
-                    }
-                    predicted = self.dogleg_step(radius);
-                    let trial = or_stop!(self.evaluate_trial(factors, values)?);
-                    let rho = (chi2 - trial) / predicted;
-                    let step = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
-                    radius = update_trust_radius(radius, rho, step, trial.is_finite());
-                    (trial.is_finite() && rho > 0.0 && predicted > 0.0, trial)
-                }
+            let step = match self.take_step(
+                &mut strategy,
+                factors,
+                values,
+                options,
+                chi2,
+                iteration,
+                &mut times,
+            )? {
+                ControlFlow::Continue(step) => step,
+                ControlFlow::Break(()) => return Ok((chi2, stopped(iteration))),
             };
-            let step_norm = max_abs(&self.delta);
-            let step_two_norm = self.delta.iter().map(|v| v * v).sum::<f64>().sqrt();
-            let gain_ratio = Some((chi2 - trial_chi2) / predicted)
-                .filter(|r| r.is_finite())
-                .unwrap_or(0.0);
             let previous = chi2;
-            if accepted {
-                std::mem::swap(values, &mut self.trial);
-                have_gn_step = false;
-            }
-            let relative_decrease = if accepted {
-                (previous - trial_chi2) / previous.max(f64::MIN_POSITIVE)
-            } else {
-                0.0
-            };
-            let stop = if accepted {
-                accepted_step_stop(
-                    options,
-                    self.warm,
-                    relative_decrease,
-                    previous,
-                    trial_chi2,
-                    predicted,
-                    step_norm,
-                )
-            } else {
-                None
-            };
-            // Relinearise at the new point, unless this step ends the solve: then its chi2 (already
-            // evaluated) is all that is needed. A budget that stops the relinearisation ends the
-            // solve at the accepted point after this iteration's report.
-            chord_allowed = accepted
-                && !chord
-                && !self.warm
-                && options.method == Method::GaussNewton
-                && options.function_tolerance > 0.0
-                && relative_decrease > 0.0
-                && relative_decrease < CHORD_AFTER_DECREASE;
-            let mut budget_stop = None;
-            if accepted {
-                let relinearized = match stop {
-                    Some(_) => None,
-                    // A chord step comes next: it needs only the gradient (H follows if the
-                    // chord step is not taken after all).
-                    None if chord_allowed => Some(self.gradient_at(factors, values, &mut times)?),
-                    None => Some(self.linearize_at(factors, values, &mut times)?),
-                };
-                chi2 = match relinearized {
-                    None => trial_chi2,
-                    Some(flow) => match flow {
-                        ControlFlow::Continue(chi2) => chi2,
-                        ControlFlow::Break(()) => {
-                            budget_stop = Some(stopped(iteration));
-                            trial_chi2
-                        }
-                    },
-                };
-            }
-            let stop = stop.or(budget_stop);
+            let (now, stop) = self.advance(
+                &mut strategy,
+                factors,
+                values,
+                options,
+                &step,
+                previous,
+                iteration,
+                &mut times,
+            )?;
+            chi2 = now;
             let report = IterationReport {
                 iteration,
                 chi2,
-                trial_chi2,
-                relative_decrease,
+                trial_chi2: step.trial_chi2,
+                relative_decrease: step.relative_decrease(previous),
                 gradient_max_norm: gradient,
-                step_norm,
-                step_two_norm,
-                gain_ratio,
-                lambda: (options.method == Method::LevenbergMarquardt).then_some(lambda),
-                trust_radius: (options.method == Method::Dogleg).then_some(radius),
-                accepted,
+                step_norm: step.norm,
+                step_two_norm: step.two_norm,
+                gain_ratio: step.gain_ratio(previous),
+                lambda: strategy.lambda(),
+                trust_radius: strategy.radius(),
+                accepted: step.accepted,
                 linearize_seconds: times.linearize,
                 factorize_seconds: times.factorize,
                 solve_seconds: times.solve,
@@ -514,21 +349,8 @@ impl<'a> Iterations<'a> {
                     ),
                 ));
             }
-            if lambda > 1e16 || radius < 1e-16 {
-                let (value, threshold) = if lambda > 1e16 {
-                    (lambda, 1e16)
-                } else {
-                    (radius, 1e-16)
-                };
-                return Ok((
-                    chi2,
-                    termination(
-                        TerminationReason::NoProgress,
-                        value,
-                        threshold,
-                        "no acceptable step: damping / trust region out of range",
-                    ),
-                ));
+            if let Some(end) = strategy.out_of_range() {
+                return Ok((chi2, end));
             }
         }
         let n = options.max_iterations as f64;
@@ -545,6 +367,134 @@ impl<'a> Iterations<'a> {
             ),
         ))
     }
+
+    /// One step of `strategy` from `values` (chi2 `chi2`): computed, its trial point evaluated
+    /// (left in `self.trial`) and judged. `Break`: the budget stopped it.
+    #[allow(clippy::too_many_arguments)]
+    fn take_step<E: Borrow<FactorEntry>>(
+        &mut self,
+        strategy: &mut Strategy,
+        factors: &[E],
+        values: &Values,
+        options: &SolverOptions,
+        chi2: f64,
+        iteration: usize,
+        times: &mut StepTimes,
+    ) -> Result<ControlFlow<(), Step>, SolverError> {
+        let proposal = match strategy.compute_step(self, factors, values, chi2, options, times)? {
+            ControlFlow::Continue(proposal) => proposal,
+            ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
+        };
+        let two_norm = dot(&self.delta, &self.delta).sqrt();
+        let (trial_chi2, predicted, accepted) = match proposal {
+            Proposal::Step { predicted } => {
+                let trial = match self.evaluate_trial(factors, values)? {
+                    ControlFlow::Continue(trial) => trial,
+                    ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
+                };
+                let accepted = strategy.judge(chi2, trial, predicted, two_norm, iteration)?;
+                (trial, predicted, accepted)
+            }
+            Proposal::Skip => (f64::INFINITY, f64::NAN, false),
+        };
+        Ok(ControlFlow::Continue(Step {
+            accepted,
+            trial_chi2,
+            predicted,
+            norm: max_abs(&self.delta),
+            two_norm,
+        }))
+    }
+
+    /// Moves to the trial point of an accepted `step` and relinearises there, unless the step
+    /// ends the solve (its chi2, already evaluated, is then all that is needed). Returns the chi2
+    /// of the point the loop is at and, when the solve ends here, why: a convergence test, or a
+    /// budget that stopped the relinearisation (the solve ends at the accepted point).
+    #[allow(clippy::too_many_arguments)]
+    fn advance<E: Borrow<FactorEntry>>(
+        &mut self,
+        strategy: &mut Strategy,
+        factors: &[E],
+        values: &mut Values,
+        options: &SolverOptions,
+        step: &Step,
+        chi2: f64,
+        iteration: usize,
+        times: &mut StepTimes,
+    ) -> Result<(f64, Option<Termination>), SolverError> {
+        let relative_decrease = step.relative_decrease(chi2);
+        let gradient_only =
+            strategy.step_done(step.accepted, relative_decrease, self.warm, options);
+        if !step.accepted {
+            return Ok((chi2, None));
+        }
+        std::mem::swap(values, &mut self.trial);
+        let stop = accepted_step_stop(
+            options,
+            self.warm,
+            relative_decrease,
+            chi2,
+            step.trial_chi2,
+            step.predicted,
+            step.norm,
+        );
+        if stop.is_some() {
+            return Ok((step.trial_chi2, stop));
+        }
+        let relinearized = if gradient_only {
+            self.gradient_at(factors, values, times)?
+        } else {
+            self.linearize_at(factors, values, times)?
+        };
+        Ok(match relinearized {
+            ControlFlow::Continue(chi2) => (chi2, None),
+            ControlFlow::Break(()) => (step.trial_chi2, Some(stopped(iteration))),
+        })
+    }
+}
+
+/// One iteration's step, as the report and the convergence tests see it.
+struct Step {
+    accepted: bool,
+    trial_chi2: f64,
+    /// The model decrease L(0) − L(Δ) (NaN: no step was computed).
+    predicted: f64,
+    /// max |Δᵢ| and ‖Δ‖₂.
+    norm: f64,
+    two_norm: f64,
+}
+
+impl Step {
+    /// The fraction of `previous` the step removed (0 when rejected).
+    fn relative_decrease(&self, previous: f64) -> f64 {
+        if self.accepted {
+            (previous - self.trial_chi2) / previous.max(f64::MIN_POSITIVE)
+        } else {
+            0.0
+        }
+    }
+
+    /// ρ = actual / predicted decrease (0 when not finite).
+    fn gain_ratio(&self, previous: f64) -> f64 {
+        Some((previous - self.trial_chi2) / self.predicted)
+            .filter(|r| r.is_finite())
+            .unwrap_or(0.0)
+    }
+}
+
+/// The gradient test before each iteration: the solve ends when |g|∞ is within the tolerance.
+fn gradient_stop(options: &SolverOptions, gradient: f64) -> Option<Termination> {
+    (options.gradient_tolerance > 0.0 && gradient <= options.gradient_tolerance).then(|| {
+        termination(
+            TerminationReason::GradientTolerance,
+            gradient,
+            options.gradient_tolerance,
+            &format!(
+                "gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}",
+                options.gradient_tolerance
+            ),
+        )
+    })
 }
 
 #[cfg(test)]

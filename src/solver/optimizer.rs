@@ -27,7 +27,6 @@ use crate::problem::FactorEntry;
 use crate::problem::{Gauge, Problem, Values};
 
 // The warm re-solve reaches these through this module; they live with their own concepts.
-pub(super) use super::iterations::dot;
 pub(super) use super::summary::Context;
 
 /// Optimises `problem.values` in place. `on_iteration` sees every iteration as it finishes and

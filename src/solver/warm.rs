@@ -11,10 +11,11 @@ use super::budget::Budget;
 use super::cholesky::SparseCholesky;
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, free_blocks, linearize, Scratch, SystemLayout};
-use super::optimizer::{dot, iterate, Context};
+use super::optimizer::{iterate, Context};
 use super::options::{Initialization, SolverOptions};
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Summary, Timings};
+use super::vector::dot;
 use super::SolverError;
 use crate::problem::FactorEntry;
 use crate::problem::Problem;
@@ -81,7 +82,7 @@ impl OrderingCache {
 /// the factors listed in `factors` (indices into `problem.factors()`): a session re-solving the
 /// neighbourhood of an update. Chi2 values in the Summary are those of these factors only. The
 /// caller fixes the gauge (the region's boundary, or the problem's anchors). Warm start as
-/// [`optimize_warm`].
+/// [`optimize_warm`](super::optimize_warm).
 pub fn optimize_region(
     problem: &mut Problem,
     fixed: &[bool],
