@@ -17,6 +17,8 @@
 
 #[path = "../args.rs"]
 mod args;
+#[path = "../stats.rs"]
+mod stats;
 
 use std::time::Instant;
 
@@ -70,11 +72,6 @@ fn compile(json: &str) -> Arc<ExpressionType> {
     ExpressionType::compile(definition).expect("the definition compiles")
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 /// Solves a fresh copy of `problem` `rounds` times; the median solve time and the last result.
 fn solve(
     problem: &Problem,
@@ -99,7 +96,11 @@ fn solve(
         iterations = summary.iterations;
         last = Some(p);
     }
-    (median(times), last.expect("at least one round"), iterations)
+    (
+        stats::median(&mut times),
+        last.expect("at least one round"),
+        iterations,
+    )
 }
 
 fn main() {

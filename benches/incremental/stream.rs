@@ -14,6 +14,8 @@ mod common;
 
 #[path = "../args.rs"]
 mod args;
+#[path = "../stats.rs"]
+mod stats;
 
 use std::time::Instant;
 
@@ -25,11 +27,6 @@ use factord::solver::{optimize, SolverOptions};
 
 /// Updates per progress line on stderr (that window's p50, p99 and worst).
 const PROGRESS_EVERY: usize = 1000;
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    let idx = ((sorted.len() as f64 - 1.0) * p).round() as usize;
-    sorted[idx]
-}
 
 fn main() {
     let args = args::Args::from_env();
@@ -126,8 +123,8 @@ fn main() {
                 eprintln!(
                     "updates {}: p50 {:.3} ms, p99 {:.3} ms, worst {:.3} ms",
                     latencies.len(),
-                    percentile(&window, 0.5),
-                    percentile(&window, 0.99),
+                    stats::percentile(&window, 0.5),
+                    stats::percentile(&window, 0.99),
                     window[PROGRESS_EVERY - 1]
                 );
             }
@@ -214,9 +211,9 @@ fn main() {
         "steps": latencies.len(),
         "total_seconds": total,
         "mean_ms": mean,
-        "p50_ms": percentile(&latencies, 0.5),
-        "p90_ms": percentile(&latencies, 0.9),
-        "p99_ms": percentile(&latencies, 0.99),
+        "p50_ms": stats::percentile(&latencies, 0.5),
+        "p90_ms": stats::percentile(&latencies, 0.9),
+        "p99_ms": stats::percentile(&latencies, 0.99),
         "max_ms": latencies.last(),
         "solves": stats.solves,
         "skipped_solves": stats.skipped_solves,

@@ -13,6 +13,8 @@ mod common;
 
 #[path = "../args.rs"]
 mod args;
+#[path = "../stats.rs"]
+mod stats;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -45,14 +47,6 @@ impl Tally {
         };
         self.garbage_unexpected.lock().unwrap().push(unexpected);
     }
-}
-
-fn percentile(v: &mut [f64], p: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() as f64 - 1.0) * p).round() as usize]
 }
 
 fn peak_rss_kib(pid: u32) -> u64 {
@@ -294,6 +288,8 @@ fn main() {
         s.assert_no_panic();
         let mut http = tally.http_latency.lock().unwrap().clone();
         let mut zen = tally.zenoh_latency.lock().unwrap().clone();
+        http.sort_by(f64::total_cmp);
+        zen.sort_by(f64::total_cmp);
         let rejected_lines: Vec<&str> = metrics.lines().filter(|l| l.starts_with("factord_rejected_inputs_total{")).collect();
         json!({
             "sessions": sessions, "poses_per_session": poses, "fsync": fsync,
@@ -301,8 +297,8 @@ fn main() {
             "factors_acknowledged": tally.factors.load(Ordering::Relaxed),
             "factors_per_second": tally.factors.load(Ordering::Relaxed) as f64 / streamed,
             "batches_acknowledged": http.len() + zen.len(),
-            "http_ack_ms": {"p50": 1e3 * percentile(&mut http, 0.5), "p99": 1e3 * percentile(&mut http, 0.99), "max": 1e3 * percentile(&mut http, 1.0)},
-            "zenoh_ack_ms": {"p50": 1e3 * percentile(&mut zen, 0.5), "p99": 1e3 * percentile(&mut zen, 0.99), "max": 1e3 * percentile(&mut zen, 1.0)},
+            "http_ack_ms": {"p50": 1e3 * stats::percentile(&http, 0.5), "p99": 1e3 * stats::percentile(&http, 0.99), "max": 1e3 * stats::percentile(&http, 1.0)},
+            "zenoh_ack_ms": {"p50": 1e3 * stats::percentile(&zen, 0.5), "p99": 1e3 * stats::percentile(&zen, 0.99), "max": 1e3 * stats::percentile(&zen, 1.0)},
             "peak_rss_mib": rss as f64 / 1024.0,
             "sessions_incomplete": incomplete,
             "good_client_errors": *tally.good_errors.lock().unwrap(),

@@ -14,6 +14,8 @@ mod common;
 
 #[path = "../args.rs"]
 mod args;
+#[path = "../stats.rs"]
+mod stats;
 
 use std::process::Command;
 use std::time::Instant;
@@ -22,11 +24,6 @@ use common::server::{client, g2o_batches, get, post, TestServer};
 use factord::solver::marginals::Marginals;
 use factord::solver::{self, SolverOptions};
 use serde_json::{json, Value};
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn main() {
     let args = args::Args::from_env();
@@ -80,8 +77,8 @@ fn main() {
                 String::from_utf8_lossy(&out.stderr)
             );
             let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-            let build: Vec<f64> = serde_json::from_value(v["build_seconds"].clone()).unwrap();
-            json!({"marginals_constructor_seconds": median(build),
+            let mut build: Vec<f64> = serde_json::from_value(v["build_seconds"].clone()).unwrap();
+            json!({"marginals_constructor_seconds": stats::median(&mut build),
                    "marginal_covariance_seconds": v["query_seconds"][key.to_string()]})
         }
         Err(reason) => json!({"skipped": reason}),
@@ -147,16 +144,16 @@ fn main() {
             assert_eq!(v["reused_factorization"], true);
         }
         s.assert_no_panic();
-        json!({"first_request_seconds": median(first),
-               "first_request_server_seconds": median(server_first),
-               "repeated_request_seconds": median(again)})
+        json!({"first_request_seconds": stats::median(&mut first),
+               "first_request_server_seconds": stats::median(&mut server_first),
+               "repeated_request_seconds": stats::median(&mut again)})
     });
     let report = json!({
         "dataset": file, "key": key, "rounds": rounds,
         "variables": values.len(), "factors": graph.problem.factors().len(),
         "final_chi2": summary.final_chi2,
-        "factord": {"linearize_and_factorize_seconds": median(factorize),
-                    "covariance_query_seconds": median(query)},
+        "factord": {"linearize_and_factorize_seconds": stats::median(&mut factorize),
+                    "covariance_query_seconds": stats::median(&mut query)},
         "factord_http": http,
         "gtsam": gtsam,
     });

@@ -18,6 +18,8 @@ mod common;
 
 #[path = "../args.rs"]
 mod args;
+#[path = "../stats.rs"]
+mod stats;
 
 use std::process::Command;
 use std::sync::{Arc, Mutex};
@@ -25,15 +27,6 @@ use std::time::{Duration, Instant};
 
 use common::server::{g2o_batches, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
-}
 
 async fn rpc(z: &zenoh::Session, command: Value) -> Value {
     zenoh_get(z, "factord/rpc", Some(&command))
@@ -97,7 +90,7 @@ async fn job_vs_cli(s: &TestServer, file: &str, rounds: usize) -> Value {
         let v: Value = serde_json::from_str(&text).unwrap();
         chi2.1 = v["summary"]["final_chi2"].as_f64().unwrap();
     }
-    let (h, c) = (median(&mut http), median(&mut cli));
+    let (h, c) = (stats::median(&mut http), stats::median(&mut cli));
     json!({"http_job_seconds_median": h, "cli_solve_seconds_median": c, "ratio": h / c,
            "http_runs": http, "cli_runs": cli, "final_chi2_cli": chi2.0, "final_chi2_http": chi2.1})
 }
@@ -247,8 +240,8 @@ async fn latency(z: &zenoh::Session, text: &str) -> Value {
     let mean = latencies.iter().sum::<f64>() / latencies.len() as f64;
     latencies.sort_by(f64::total_cmp);
     json!({"poses": latencies.len(), "total_seconds": total, "mean_ms": mean,
-           "p50_ms": percentile(&latencies, 0.5), "p90_ms": percentile(&latencies, 0.9),
-           "p99_ms": percentile(&latencies, 0.99), "max_ms": latencies.last(),
+           "p50_ms": stats::percentile(&latencies, 0.5), "p90_ms": stats::percentile(&latencies, 0.9),
+           "p99_ms": stats::percentile(&latencies, 0.99), "max_ms": latencies.last(),
            "final_chi2": final_chi2})
 }
 

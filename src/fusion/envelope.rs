@@ -10,6 +10,8 @@
 //! Storage: row `r` keeps its columns `first[r] ..= r` contiguously, so the inner products of
 //! the factorisation and of the triangular solves run over contiguous slices.
 
+use crate::solver::vector::dot_interleaved as dot;
+
 /// The envelope of the lower triangle of a symmetric matrix, with reusable buffers.
 #[derive(Debug, Default)]
 pub struct Envelope {
@@ -32,28 +34,6 @@ pub struct Envelope {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct NotPositiveDefinite {
     pub row: usize,
-}
-
-/// `Σ a_k b_k` with four independent partial sums, so that the compiler can keep them in one
-/// vector register (a single running sum is a chain of dependent additions). The envelope's
-/// products are short (a row reaches about two blocks back), hence four and not more.
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f64; 4];
-    let mut chunks_a = a.chunks_exact(4);
-    let mut chunks_b = b.chunks_exact(4);
-    for (x, y) in (&mut chunks_a).zip(&mut chunks_b) {
-        for k in 0..4 {
-            acc[k] += x[k] * y[k];
-        }
-    }
-    let mut tail = 0.0;
-    for (x, y) in chunks_a.remainder().iter().zip(chunks_b.remainder()) {
-        tail += x * y;
-    }
-    (acc[0] + acc[2]) + (acc[1] + acc[3]) + tail
 }
 
 impl Envelope {
@@ -146,7 +126,7 @@ impl Envelope {
     /// Replaces the matrix by its Cholesky factor L (A = L Lᵀ) in place.
     pub fn factorize(&mut self) -> Result<(), NotPositiveDefinite> {
         #[cfg(target_arch = "x86_64")]
-        if wide_vectors() {
+        if crate::solver::simd::has_wide_vectors() {
             // SAFETY: the CPU has the features `factorize_wide` is compiled for.
             return unsafe { self.factorize_wide() };
         }
@@ -212,12 +192,6 @@ impl Envelope {
     }
 }
 
-/// Whether the CPU has AVX2 and FMA (checked once by the standard library, then cached).
-#[cfg(target_arch = "x86_64")]
-pub fn wide_vectors() -> bool {
-    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -278,13 +252,5 @@ mod tests {
         env.add(1, 0, 2.0);
         env.add(1, 1, 1.0);
         assert_eq!(env.factorize(), Err(NotPositiveDefinite { row: 1 }));
-    }
-
-    #[test]
-    fn dot_matches_the_plain_sum() {
-        let a: Vec<f64> = (0..29).map(|i| i as f64 * 0.5).collect();
-        let b: Vec<f64> = (0..29).map(|i| 1.0 - i as f64).collect();
-        let plain: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
-        assert!((dot(&a, &b) - plain).abs() < 1e-9);
     }
 }

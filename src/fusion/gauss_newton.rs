@@ -20,6 +20,8 @@
 
 use crate::factors::EvaluationError;
 use crate::problem::{FactorEntry, Key, Problem, Values, Variable};
+use crate::solver::union_find::find_root as find;
+use crate::solver::vector::max_abs;
 use crate::solver::{SolverError, SolverOptions};
 
 use super::envelope::Envelope;
@@ -77,18 +79,6 @@ pub struct WindowSolver {
     gradient: Vec<f64>,
     /// The window's values before a step (restored when the step's cost is not finite).
     backup: Vec<Box<dyn Variable>>,
-}
-
-fn find(parent: &mut [usize], mut x: usize) -> usize {
-    while parent[x] != x {
-        parent[x] = parent[parent[x]];
-        x = parent[x];
-    }
-    x
-}
-
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
 }
 
 impl WindowSolver {
@@ -277,7 +267,7 @@ impl WindowSolver {
         values: &Values,
     ) -> Result<f64, EvaluationError> {
         #[cfg(target_arch = "x86_64")]
-        if super::envelope::wide_vectors() {
+        if crate::solver::simd::has_wide_vectors() {
             // SAFETY: the CPU has the features `linearize_wide` is compiled for.
             return unsafe { self.linearize_wide(factors, values) };
         }

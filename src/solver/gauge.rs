@@ -2,6 +2,7 @@
 //! Every connected component of the factor graph that has neither a fixed variable nor a unary
 //! factor (a prior) gets its lowest-keyed pose fixed for the solve, and the Summary says which.
 
+use super::union_find::find_root as find;
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
 
@@ -9,13 +10,6 @@ use crate::problem::{Key, Values};
 pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>, Vec<Key>) {
     let n = values.len();
     let mut parent: Vec<usize> = (0..n).collect();
-    fn find(parent: &mut [usize], mut x: usize) -> usize {
-        while parent[x] != x {
-            parent[x] = parent[parent[x]];
-            x = parent[x];
-        }
-        x
-    }
     // A fixed variable or a unary factor (a prior) anchors its component.
     let mut anchored: Vec<bool> = (0..n).map(|v| values.is_fixed(v)).collect();
     for f in factors {

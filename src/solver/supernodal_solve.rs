@@ -17,6 +17,7 @@
 
 use super::simd::has_wide_vectors;
 use super::supernodes::Supernodes;
+use super::vector::dot_interleaved as dot;
 
 /// Solves `L Lᵀ x = b` in place (`x` holds `b` on entry); `below` is scratch (one supernode's
 /// pattern). Compiled with AVX2 + FMA where the CPU has them (see `solver::simd`).
@@ -79,26 +80,6 @@ fn solve_in_place_with(symbolic: &Supernodes, values: &[f64], x: &mut [f64], bel
             x[begin + j] = (x[begin + j] - from_below - from_top) / column[j];
         }
     }
-}
-
-/// `Σ aᵢ bᵢ` in four interleaved sums, so that the compiler may keep them in one vector
-/// register (a single running sum must be added in order).
-#[inline(always)]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut sums = [0.0; 4];
-    let (a_chunks, b_chunks) = (a.chunks_exact(4), b.chunks_exact(4));
-    let tail: f64 = a_chunks
-        .remainder()
-        .iter()
-        .zip(b_chunks.remainder())
-        .map(|(a, b)| a * b)
-        .sum();
-    for (a, b) in a_chunks.zip(b_chunks) {
-        for lane in 0..4 {
-            sums[lane] += a[lane] * b[lane];
-        }
-    }
-    sums[0] + sums[1] + sums[2] + sums[3] + tail
 }
 
 /// Supernode `s`: its first column, its values (column-major, own columns then the pattern's

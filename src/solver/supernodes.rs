@@ -434,23 +434,12 @@ mod tests {
         }
     }
 
-    /// A deterministic pseudo-random sequence (xorshift), so a failure can be replayed.
-    struct Random(u64);
-    impl Random {
-        fn below(&mut self, n: usize) -> usize {
-            self.0 ^= self.0 << 13;
-            self.0 ^= self.0 >> 7;
-            self.0 ^= self.0 << 17;
-            (self.0 % n as u64) as usize
-        }
-    }
-
     /// The block analysis finds faer's supernodes exactly (columns, patterns, value offsets):
     /// chains with loop closures (pose graphs), grids, and random graphs, with uniform and
     /// mixed block sizes (so fundamental supernodes and every relaxation threshold occur).
     #[test]
     fn finds_faers_supernodes() {
-        let mut random = Random(0x2545_f491_4f6c_dd1d);
+        let mut random = crate::factors::testing::Rng::new(0x2545_f491_4f6c_dd1d);
         for case in 0..60 {
             let blocks = 1 + random.below(300);
             let mut adjacency = vec![Vec::new(); blocks];

@@ -6,6 +6,7 @@
 
 use std::ops::ControlFlow;
 
+use factord::factors::testing::Rng;
 use factord::factors::BetweenSe2;
 use factord::geometry::Se2;
 use factord::problem::Problem;
@@ -13,27 +14,11 @@ use factord::solver::incremental::{IncrementalEngine, UpdateParams};
 use factord::solver::{optimize, SolverOptions};
 use nalgebra::DMatrix;
 
-/// A deterministic pseudo-random sequence (no dependency for a test generator).
-struct Lcg(u64);
-impl Lcg {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn normal(&mut self) -> f64 {
-        let (u, v) = (self.uniform().max(1e-300), self.uniform());
-        (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
-    }
-}
-
 /// Poses on a grid walk (unit steps, random turns), edges: odometry and, whenever the robot is
 /// back on a cell it visited, a loop closure to the earliest visit. Measurements are the true
 /// relative poses with noise.
 fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
-    let mut rng = Lcg(seed);
+    let mut rng = Rng::new(seed);
     let mut truth = vec![Se2::new(0.0, 0.0, 0.0)];
     let mut visited = std::collections::HashMap::new();
     visited.insert((0i64, 0i64), 0usize);
@@ -59,7 +44,7 @@ fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
             y as f64,
             factord::geometry::wrap_angle(theta),
         ));
-        let noisy = |rng: &mut Lcg, a: &Se2, b: &Se2| {
+        let noisy = |rng: &mut Rng, a: &Se2, b: &Se2| {
             let z = a.inverse().compose(b);
             Se2::new(
                 z.x + 0.02 * rng.normal(),

@@ -34,6 +34,8 @@ mod common;
 
 #[path = "../../args.rs"]
 mod args;
+#[path = "../../stats.rs"]
+mod stats;
 
 mod http;
 mod landmarks;
@@ -57,13 +59,6 @@ pub struct Streamed {
     pub fallbacks: usize,
     /// Bytes and samples the poses subscriber received (zenoh with `--poses json|binary`).
     pub poses_received: Option<(u64, u64)>,
-}
-
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    // Linear interpolation between closest ranks (numpy's default), as isam2_stream.py.
-    let pos = (sorted.len() as f64 - 1.0) * p;
-    let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
-    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
 }
 
 /// A field of `/proc/<pid>/status` in kB (`VmHWM`: peak resident set).
@@ -251,9 +246,9 @@ fn main() {
         "total_seconds": latencies.iter().sum::<f64>() / 1e3,
         "wall_seconds": streamed.wall_seconds,
         "mean_ms": latencies.iter().sum::<f64>() / latencies.len() as f64,
-        "p50_ms": percentile(&sorted, 0.5),
-        "p90_ms": percentile(&sorted, 0.9),
-        "p99_ms": percentile(&sorted, 0.99),
+        "p50_ms": stats::percentile_interpolated(&sorted, 0.5),
+        "p90_ms": stats::percentile_interpolated(&sorted, 0.9),
+        "p99_ms": stats::percentile_interpolated(&sorted, 0.99),
         "max_ms": sorted.last(),
         "peak_rss_kb": peak_kb,
         "rss_at_end_kb": rss_kb,

@@ -6,23 +6,7 @@
 
 use super::*;
 
-/// A small deterministic generator (xorshift), so a failure reproduces.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n as u64) as usize
-    }
-    fn uniform(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-    }
-}
+use crate::factors::testing::Rng;
 
 /// A symmetric block matrix: `blocks[(u, v)]` for `u ≥ v` in variable index (row-major du×dv).
 struct Sparse {
@@ -65,7 +49,7 @@ impl Sparse {
         let (da, db) = (self.dims[a], self.dims[b]);
         let block = self.blocks.entry((a, b)).or_insert(vec![0.0; da * db]);
         for x in block.iter_mut() {
-            *x += rng.uniform();
+            *x += rng.symmetric();
         }
         for (w, d) in [(a, da), (b, db)] {
             let diagonal = self.blocks.entry((w, w)).or_insert(vec![0.0; d * d]);
@@ -167,7 +151,7 @@ fn factored_from_scratch(h: &Sparse) -> BlockFactor {
 
 #[test]
 fn partial_refactors_equal_a_dense_cholesky_and_reuse_kept_subtrees() {
-    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let mut rng = Rng::new(0x9e37_79b9_7f4a_7c15);
     let n = 48;
     // Poses (3) with a few landmarks (2) among them: blocks of two sizes.
     let dims: Vec<usize> = (0..n).map(|v| if v % 7 == 3 { 2 } else { 3 }).collect();
@@ -262,7 +246,7 @@ fn runs_of_a_clique_are_factored_as_dense_fronts() {
     // A band of width 12 in natural order: each column reaches the next 12, so a run of
     // columns forms a clique with the next band beyond it (a front with rows beyond it) all
     // the way down, where a dense tail alone would take only the last dozen columns.
-    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let mut rng = Rng::new(0x2545_f491_4f6c_dd1d);
     let n = 72;
     let dims: Vec<usize> = (0..n).map(|v| if v % 5 == 2 { 6 } else { 3 }).collect();
     let mut h = Sparse {
@@ -314,7 +298,7 @@ fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
     // A chain 0-1-…-5 of 3-dim variables factored in order: 5 is the root and every other
     // column's only row is its parent. Each update refactors the root alone and moves its
     // solution by less than the threshold; over many updates the moves add up far past it.
-    let mut rng = Rng(0x2545_f491_4f6c_dd1d);
+    let mut rng = Rng::new(0x2545_f491_4f6c_dd1d);
     let n = 6;
     let mut h = Sparse {
         dims: vec![3; n],
@@ -329,7 +313,7 @@ fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
     }
     let mut factor = factored_from_scratch(&h);
     let offset: Vec<usize> = (0..n).map(|v| 3 * v).collect();
-    let mut y: Vec<f64> = (0..3 * n).map(|_| rng.uniform()).collect();
+    let mut y: Vec<f64> = (0..3 * n).map(|_| rng.symmetric()).collect();
     let mut x = solved_in_full(&mut factor, &offset, &y);
     let mut propagated = x.clone();
     let threshold = 1e-3;
@@ -374,7 +358,7 @@ fn back_substitution_passes_on_moves_that_add_up_past_the_threshold() {
 /// Random rows `W` (`k` of them) on `vars`, as `add_rows` takes them, with `WᵀW` added to `h`.
 fn random_rows(rng: &mut Rng, h: &mut Sparse, vars: &[usize], k: usize) -> UpdateRows {
     let scalars: usize = vars.iter().map(|&v| h.dims[v]).sum();
-    let transposed: Vec<f64> = (0..scalars * k).map(|_| rng.uniform()).collect();
+    let transposed: Vec<f64> = (0..scalars * k).map(|_| rng.symmetric()).collect();
     let mut start = Vec::new();
     let mut at = 0;
     for &v in vars {
@@ -407,7 +391,7 @@ fn random_rows(rng: &mut Rng, h: &mut Sparse, vars: &[usize], k: usize) -> Updat
 
 #[test]
 fn rank_updates_equal_a_dense_cholesky_with_new_columns_and_refactors_between() {
-    let mut rng = Rng(0x51_7cc1_b727_220a);
+    let mut rng = Rng::new(0x51_7cc1_b727_220a);
     let (n, first_new) = (48, 36);
     let dims: Vec<usize> = (0..n).map(|v| if v % 7 == 3 { 2 } else { 3 }).collect();
     let mut h = Sparse {
