@@ -7,11 +7,9 @@
 //! `HEALTHCHECK` reads them: 0 healthy, 1 unhealthy with a one-line reason on stderr (Docker
 //! reserves 2; clap still exits with 2 on bad arguments).
 //!
-//! The HTTP client is a plain HTTP/1.1 `GET` over a blocking `TcpStream` with `Connection:
-//! close`: two requests per check need no runtime and no client library.
+//! The requests go through hyper's client (the one the server's fleet forwarding uses) on a
+//! runtime of one thread, within one deadline for the whole check.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -41,29 +39,21 @@ pub struct HealthArgs {
 enum Unhealthy {
     #[error("--url {url}: {reason}")]
     Url { url: String, reason: &'static str },
-    #[error("cannot resolve {host}: {source}")]
-    Resolve {
-        host: String,
-        source: std::io::Error,
-    },
     #[error("token file {}: {reason}", path.display())]
     TokenFile { path: PathBuf, reason: String },
-    #[error("cannot connect to {addr}: {source}")]
-    Connect {
-        addr: String,
-        source: std::io::Error,
-    },
+    #[error("cannot connect to {addr}: {reason}")]
+    Connect { addr: String, reason: String },
     #[error("GET {path} on {addr}: no complete answer within {timeout_ms} ms")]
     Timeout {
         addr: String,
         path: String,
         timeout_ms: u64,
     },
-    #[error("GET {path} on {addr}: {source}")]
+    #[error("GET {path} on {addr}: {reason}")]
     Io {
         addr: String,
         path: String,
-        source: std::io::Error,
+        reason: String,
     },
     #[error("GET {path} on {addr}: not an HTTP answer ({reason})")]
     Malformed {
@@ -208,18 +198,6 @@ impl Target {
             prefix: path.trim_end_matches('/').to_string(),
         })
     }
-
-    /// The host's addresses (`[::1]:8080` and `name:8080` both resolve as written).
-    fn addresses(&self) -> Result<Vec<SocketAddr>, Unhealthy> {
-        self.authority
-            .as_str()
-            .to_socket_addrs()
-            .map(Iterator::collect)
-            .map_err(|source| Unhealthy::Resolve {
-                host: self.authority.clone(),
-                source,
-            })
-    }
 }
 
 struct Client<'a> {
@@ -229,7 +207,7 @@ struct Client<'a> {
     timeout_ms: u64,
 }
 
-/// An HTTP answer: status and (de-chunked) body.
+/// An HTTP answer: status and body.
 #[derive(Debug)]
 struct Answer {
     status: u16,
@@ -254,63 +232,74 @@ impl Client<'_> {
     }
 
     fn get(&self, path: &str) -> Result<Answer, Unhealthy> {
-        let addrs = self.target.addresses()?;
-        let mut last = None;
-        let mut stream = None;
-        for addr in &addrs {
-            match TcpStream::connect_timeout(addr, self.remaining(path)?) {
-                Ok(s) => {
-                    stream = Some(s);
-                    break;
-                }
-                Err(e) => last = Some(e),
-            }
-        }
-        let mut stream = stream.ok_or_else(|| Unhealthy::Connect {
-            addr: self.target.authority.clone(),
-            source: last.unwrap_or_else(|| std::io::Error::other("no address")),
-        })?;
-        let io = |source: std::io::Error| match source.kind() {
-            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => self.timeout(path),
-            _ => Unhealthy::Io {
-                addr: self.target.authority.clone(),
-                path: path.into(),
-                source,
-            },
-        };
-        let mut request = format!(
-            "GET {}{path} HTTP/1.1\r\nHost: {}\r\nUser-Agent: factord-health/{}\r\n\
-             Accept: */*\r\nConnection: close\r\n",
-            self.target.prefix,
-            self.target.authority,
-            env!("CARGO_PKG_VERSION")
-        );
-        if let Some(token) = self.token {
-            request.push_str(&format!("Authorization: Bearer {token}\r\n"));
-        }
-        request.push_str("\r\n");
-        stream
-            .set_write_timeout(Some(self.remaining(path)?))
-            .map_err(io)?;
-        stream.write_all(request.as_bytes()).map_err(io)?;
-        let mut raw = Vec::new();
-        let mut buf = [0u8; 8192];
-        loop {
-            stream
-                .set_read_timeout(Some(self.remaining(path)?))
-                .map_err(io)?;
-            match stream.read(&mut buf).map_err(io)? {
-                0 => break,
-                n => raw.extend_from_slice(&buf[..n]),
-            }
-            if raw.len() > MAX_ANSWER_BYTES {
-                break;
-            }
-        }
-        parse_answer(&raw).map_err(|reason| Unhealthy::Malformed {
+        let io = |reason: String| Unhealthy::Io {
             addr: self.target.authority.clone(),
             path: path.into(),
             reason,
+        };
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| io(format!("no runtime: {e}")))?;
+        let left = self.remaining(path)?;
+        runtime.block_on(async {
+            tokio::time::timeout(left, self.fetch(path))
+                .await
+                .unwrap_or_else(|_| Err(self.timeout(path)))
+        })
+    }
+
+    async fn fetch(&self, path: &str) -> Result<Answer, Unhealthy> {
+        use axum::body::Body;
+        use axum::http::{header, Request};
+        let client =
+            hyper_util::client::legacy::Client::builder(hyper_util::rt::TokioExecutor::new())
+                .build_http::<Body>();
+        let uri = format!(
+            "http://{}{}{path}",
+            self.target.authority, self.target.prefix
+        );
+        let mut request = Request::get(&uri).header(
+            header::USER_AGENT,
+            concat!("factord-health/", env!("CARGO_PKG_VERSION")),
+        );
+        if let Some(token) = self.token {
+            request = request.header(header::AUTHORIZATION, format!("Bearer {token}"));
+        }
+        let request = request.body(Body::empty()).map_err(|e| Unhealthy::Url {
+            url: uri.clone(),
+            reason: if e.is::<axum::http::uri::InvalidUri>() {
+                "not a valid address"
+            } else {
+                "not a valid request"
+            },
+        })?;
+        let response = client.request(request).await.map_err(|e| {
+            let reason = error_chain(&e);
+            if e.is_connect() {
+                Unhealthy::Connect {
+                    addr: self.target.authority.clone(),
+                    reason,
+                }
+            } else {
+                Unhealthy::Malformed {
+                    addr: self.target.authority.clone(),
+                    path: path.into(),
+                    reason,
+                }
+            }
+        })?;
+        let status = response.status().as_u16();
+        let body = axum::body::to_bytes(Body::new(response.into_body()), MAX_ANSWER_BYTES)
+            .await
+            .map_err(|e| Unhealthy::Io {
+                addr: self.target.authority.clone(),
+                path: path.into(),
+                reason: error_chain(&e),
+            })?;
+        Ok(Answer {
+            status,
+            body: body.to_vec(),
         })
     }
 
@@ -337,64 +326,16 @@ fn error_message(body: &[u8]) -> String {
     }
 }
 
-/// Status and body of a whole HTTP/1.1 answer read until the server closed the connection.
-fn parse_answer(raw: &[u8]) -> Result<Answer, String> {
-    let end = find(raw, b"\r\n\r\n").ok_or("the connection closed before the headers ended")?;
-    let head = std::str::from_utf8(&raw[..end]).map_err(|_| "headers are not text")?;
-    let mut lines = head.split("\r\n");
-    let status_line = lines.next().unwrap_or_default();
-    let status = match status_line.split(' ').collect::<Vec<_>>()[..] {
-        [version, code, ..] if version.starts_with("HTTP/1.") => code
-            .parse::<u16>()
-            .map_err(|_| format!("status line `{status_line}`"))?,
-        _ => return Err(format!("status line `{status_line}`")),
-    };
-    let mut chunked = false;
-    let mut length = None;
-    for line in lines {
-        let (name, value) = line.split_once(':').unwrap_or((line, ""));
-        let value = value.trim();
-        if name.eq_ignore_ascii_case("transfer-encoding") {
-            chunked = value.to_ascii_lowercase().contains("chunked");
-        } else if name.eq_ignore_ascii_case("content-length") {
-            length = value.parse::<usize>().ok();
-        }
+/// An error and its sources, on one line (hyper's own message is only the outermost).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(inner) = source {
+        text.push_str(": ");
+        text.push_str(&inner.to_string());
+        source = inner.source();
     }
-    let rest = &raw[end + 4..];
-    let body = if chunked {
-        dechunk(rest)?
-    } else {
-        match length {
-            Some(n) if rest.len() < n => return Err(format!("body shorter than {n} bytes")),
-            Some(n) => rest[..n].to_vec(),
-            None => rest.to_vec(),
-        }
-    };
-    Ok(Answer { status, body })
-}
-
-fn dechunk(mut rest: &[u8]) -> Result<Vec<u8>, String> {
-    let mut body = Vec::new();
-    loop {
-        let line_end = find(rest, b"\r\n").ok_or("chunk size line cut")?;
-        let size_text = std::str::from_utf8(&rest[..line_end]).map_err(|_| "chunk size")?;
-        let size_text = size_text.split(';').next().unwrap_or_default().trim();
-        let size = usize::from_str_radix(size_text, 16)
-            .map_err(|_| format!("chunk size `{size_text}`"))?;
-        rest = &rest[line_end + 2..];
-        if size == 0 {
-            return Ok(body);
-        }
-        if rest.len() < size {
-            return Err("chunk cut".into());
-        }
-        body.extend_from_slice(&rest[..size]);
-        rest = rest.get(size + 2..).ok_or("chunk cut")?;
-    }
-}
-
-fn find(haystack: &[u8], needle: &[u8]) -> Option<usize> {
-    haystack.windows(needle.len()).position(|w| w == needle)
+    text
 }
 
 #[cfg(test)]
@@ -421,26 +362,6 @@ mod tests {
         assert!(Target::parse("https://x:1").is_err());
         assert!(Target::parse("ftp://x:1").is_err());
         assert!(Target::parse("http://user@x:1").is_err());
-        let addrs = Target::parse("http://[::1]:9000")
-            .unwrap()
-            .addresses()
-            .unwrap();
-        assert_eq!(addrs, vec!["[::1]:9000".parse().unwrap()]);
-    }
-
-    #[test]
-    fn answers_with_length_or_chunks_are_read() {
-        let a = parse_answer(b"HTTP/1.1 200 OK\r\ncontent-length: 2\r\n\r\n{}").unwrap();
-        assert_eq!((a.status, a.body.as_slice()), (200, &b"{}"[..]));
-        let a = parse_answer(
-            b"HTTP/1.1 401 Unauthorized\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n\
-              2;x=y\r\nde\r\n0\r\n\r\n",
-        )
-        .unwrap();
-        assert_eq!((a.status, a.body.as_slice()), (401, &b"abcde"[..]));
-        assert!(parse_answer(b"HTTP/1.1 200 OK\r\ncontent-length: 9\r\n\r\n{}").is_err());
-        assert!(parse_answer(b"SSH-2.0-OpenSSH\r\n\r\n").is_err());
-        assert!(parse_answer(b"HTTP/1.1 200 OK\r\n").is_err());
     }
 
     #[test]
