@@ -1,10 +1,12 @@
 //! The command API's wire form: every operation both transports send ([`Command`]; zenoh:
 //! this JSON on `factord/rpc`), what it answers ([`Reply`]), and how an rpc payload is decoded
-//! into one ([`parse_command`]). What a command does is [`super::Service::execute_as`]'s.
+//! into one ([`parse_command`]). What a command does is the service's
+//! (`Service::execute_as`, a layer above: not linked from here).
 
 use serde::{Deserialize, Serialize};
 
-use super::error::{parse_json, parse_json_within, ServiceError};
+use super::decode::{parse_json, parse_json_within};
+use super::error::ServiceError;
 use crate::api::wire::*;
 use crate::problem::Key;
 use crate::wire_number;

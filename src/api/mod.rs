@@ -8,6 +8,7 @@
 
 pub mod catalogue;
 pub mod command;
+pub mod decode;
 pub mod error;
 pub mod export;
 pub mod factor_schema;
@@ -20,5 +21,6 @@ pub mod wire;
 pub mod wire_list;
 
 pub use command::{parse_command, Accepted, Command, Health, Reply};
-pub use error::{parse_json, parse_json_within, parse_query, ErrorBody, ErrorKind, ServiceError};
+pub use decode::{parse_json, parse_json_within, parse_query};
+pub use error::{ErrorBody, ErrorKind, ServiceError};
 pub use limits::Limits;

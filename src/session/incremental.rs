@@ -86,10 +86,11 @@ const POLISH: UpdateParams = UpdateParams {
 /// wide steps rather than many narrow ones.
 const FIRST_POLISH_STEP_SCALARS: usize = 2048 * 3;
 
-/// What a session keeps between re-solves, next to its problem: for every variable (dense
-/// index) the factors (indices) that touch it, and the elimination order of full re-solves.
+/// What a session keeps between re-solves, next to its problem: the incremental engine, for
+/// every variable (dense index) the factors (indices) that touch it, the elimination order of
+/// full re-solves, and whether idle time should polish.
 #[derive(Debug, Default)]
-pub(crate) struct RegionIndex {
+pub(crate) struct IncrementalSolver {
     by_variable: Vec<Vec<usize>>,
     ordering: solver::OrderingCache,
     engine: Option<IncrementalEngine>,
@@ -101,7 +102,7 @@ pub(crate) struct RegionIndex {
     deferred_updates: u32,
 }
 
-impl RegionIndex {
+impl IncrementalSolver {
     /// Records factors `from..` of `problem` (call after appending them).
     pub fn extend(&mut self, problem: &Problem, from: usize) {
         self.by_variable.resize(problem.values.len(), Vec::new());
@@ -262,7 +263,7 @@ pub(crate) struct Resolved {
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn resolve(
     problem: &mut Problem,
-    index: &mut RegionIndex,
+    index: &mut IncrementalSolver,
     seeds: &[usize],
     anchors: &[bool],
     total_chi2: f64,
@@ -350,7 +351,12 @@ pub(crate) fn resolve(
 
 /// Up to about `size` variables, breadth-first from `seeds` (whole layers, so the region is a
 /// ball in the factor graph).
-fn grow_region(problem: &Problem, index: &RegionIndex, seeds: &[usize], size: usize) -> Vec<usize> {
+fn grow_region(
+    problem: &Problem,
+    index: &IncrementalSolver,
+    seeds: &[usize],
+    size: usize,
+) -> Vec<usize> {
     let n = problem.values.len();
     let mut seen = vec![false; n];
     let mut region = Vec::with_capacity(size * 2);
@@ -383,7 +389,7 @@ fn grow_region(problem: &Problem, index: &RegionIndex, seeds: &[usize], size: us
 }
 
 /// Every factor touching one of `variables`, once, in index order.
-fn factors_touching(index: &RegionIndex, variables: &[usize]) -> Vec<usize> {
+fn factors_touching(index: &IncrementalSolver, variables: &[usize]) -> Vec<usize> {
     let mut factors: Vec<usize> = variables
         .iter()
         .flat_map(|&v| index.by_variable[v].iter().copied())

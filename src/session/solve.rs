@@ -7,7 +7,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::incremental::{self, RegionIndex};
+use super::incremental::{self, IncrementalSolver};
 use super::mirror;
 use super::solve_budget::SolveBudget;
 use super::Session;
@@ -24,7 +24,7 @@ const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(
 /// What a solve takes out of the session state (the problem moves to the worker).
 struct SolveWork {
     problem: Problem,
-    index: RegionIndex,
+    index: IncrementalSolver,
     options: SolverOptions,
     sequence: u64,
     solve_number: u64,
@@ -301,7 +301,7 @@ impl Session {
     fn resolve_regions(
         &self,
         problem: &mut Problem,
-        index: &mut RegionIndex,
+        index: &mut IncrementalSolver,
         seeds: &[usize],
         total: f64,
         debt: &mut f64,
@@ -329,7 +329,12 @@ impl Session {
 
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
-    pub(super) fn hand_back(&self, st: &mut super::State, problem: Problem, index: RegionIndex) {
+    pub(super) fn hand_back(
+        &self,
+        st: &mut super::State,
+        problem: Problem,
+        index: IncrementalSolver,
+    ) {
         st.problem_bytes = super::state::problem_bytes(&problem) + index.engine_bytes();
         st.problem = Some(problem);
         st.index = Some(index);

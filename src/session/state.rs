@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::time::Duration;
 
 use super::batch::PreparedBatch;
-use super::incremental::RegionIndex;
+use super::incremental::IncrementalSolver;
 use super::producers::Producers;
 use super::MirrorEntry;
 use crate::api::catalogue::SessionKind;
@@ -19,7 +19,7 @@ pub(super) struct State {
     pub(super) auto: AutoOptimize,
     /// `None` while a worker has it (with `index`).
     pub(super) problem: Option<Problem>,
-    pub(super) index: Option<RegionIndex>,
+    pub(super) index: Option<IncrementalSolver>,
     /// Variables (dense indices) touched by factors added since the last solve.
     pub(super) seeds: Vec<usize>,
     /// Since the last solve, something other than additions changed (removals, fixes, guesses):
@@ -79,7 +79,7 @@ impl State {
             options,
             auto,
             problem: Some(Problem::with_gauge(kind.gauge).eliminating(kind.eliminate)),
-            index: Some(RegionIndex::default()),
+            index: Some(IncrementalSolver::default()),
             seeds: Vec::new(),
             structural: true,
             region_debt: 0.0,

@@ -25,11 +25,11 @@
 mod add_factors;
 mod beside;
 mod block_factor;
-mod budget;
 mod dense;
 mod elimination_cost;
 mod linearized;
 mod ordering;
+mod relinearize_budget;
 mod report;
 mod subtree_updates;
 mod summary;
