@@ -53,7 +53,7 @@ pub struct ServeConfig {
 pub struct FleetConfig {
     pub enabled: bool,
     /// This instance's id, 1-64 characters of `[A-Za-z0-9._-]`, unique in the fleet
-    /// [default: `<hostname>-<pid>`].
+    /// (default: `<hostname>-<pid>`).
     pub instance: Option<String>,
     /// The URL the other instances reach this one's HTTP at (`http://host:port`) [default:
     /// `http://` + the bound address; required when listening on 0.0.0.0 or ::].

@@ -59,7 +59,7 @@ pub fn usize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<usize, D::Err
     })
 }
 
-/// A `u64` read as [`u64`] reads it, as a list element.
+/// A `u64` read as [`prim@u64`] reads it, as a list element.
 #[derive(Deserialize)]
 #[serde(transparent)]
 pub(crate) struct Whole(#[serde(deserialize_with = "u64")] u64);

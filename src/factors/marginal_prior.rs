@@ -7,7 +7,7 @@
 //! over the variables that shared a factor with the eliminated one, x̄ their values when it was
 //! eliminated (the linearisation point) and ⊖ the inverse retraction ([`Variable::local`]).
 //! Linearised, it contributes exactly the Schur complement `H* = JᵀJ`, `b* = −Jᵀ r₀` it was built
-//! from (see [`crate::fusion::marginalize`]). The Jacobian reported is `J` itself — the
+//! from (see [`crate::fusion::marginalize()`]). The Jacobian reported is `J` itself — the
 //! first-estimate Jacobian: it is exact at x̄ and kept fixed as the variables move, so the
 //! prior never claims information along directions the eliminated factors did not observe
 //! (the inconsistency that re-linearising a marginal prior introduces).

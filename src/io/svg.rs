@@ -2,7 +2,7 @@
 //! trajectory (initial guess and optimum, loop closures of the optimum) next to the convergence
 //! plot (χ² per iteration on a log scale).
 //!
-//! Positions come from [`Variable::position`]; 3D graphs (any z ≠ 0) are drawn from above (x-y)
+//! Positions come from [`Variable::position`](crate::variables::Variable::position); 3D graphs (any z ≠ 0) are drawn from above (x-y)
 //! and from the side (x-z), each panel with its axes' tick labels in metres. Loop closures are
 //! factors between two drawn variables whose keys are not consecutive.
 

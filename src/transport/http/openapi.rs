@@ -172,7 +172,7 @@ error_responses! {
         to retry.";
 }
 
-/// The document's frame: its paths are added by [`super::routes`] as it builds the router.
+/// The document's frame: its paths are added by [`super::routes()`] as it builds the router.
 #[derive(OpenApi)]
 #[openapi(
     info(

@@ -7,7 +7,7 @@
 //!   reply is the command's answer, or an error reply with `{"error": {…}}`.
 //! - `<p>/<session>/estimate` — queryable: the current estimate; selector parameters `since`,
 //!   `from`, `to` as on HTTP.
-//! - `<p>/<session>/in/batch` — subscriber: a [`Batch`] (robots publish here). Acknowledgements
+//! - `<p>/<session>/in/batch` — subscriber: a [`Batch`](crate::api::wire::Batch) (robots publish here). Acknowledgements
 //!   go to `out/acks`, rejections to `out/errors`.
 //! - `<p>/<session>/in/optimize` — subscriber: solve now.
 //! - `<p>/<session>/out/{acks,stats,poses,summary,errors}` — publications of the session events.
