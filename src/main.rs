@@ -5,6 +5,8 @@ use std::process::ExitCode;
 use clap::Parser;
 
 mod cli;
+#[path = "../eval/mod.rs"]
+mod eval;
 
 fn main() -> ExitCode {
     cli::run(cli::Cli::parse())

@@ -13,10 +13,10 @@ mod common;
 #[path = "../args.rs"]
 mod args;
 
+use common::eval::experiment::{ape, Percentiles};
+use common::eval::fusion_client::run_over_zenoh;
 use common::fusion::inputs;
 use common::server::TestServer;
-use factord::fusion::experiment::{ape, Percentiles};
-use factord::transport::fusion_client::run_over_zenoh;
 use serde_json::json;
 
 #[tokio::main(flavor = "multi_thread", worker_threads = 2)]
@@ -32,7 +32,7 @@ async fn main() {
     let estimates = run_over_zenoh(&server.zenoh, "bench", &inputs)
         .await
         .expect("the stream runs");
-    let ms = |f: &dyn Fn(&factord::fusion::experiment::Estimate) -> f64| {
+    let ms = |f: &dyn Fn(&common::eval::experiment::Estimate) -> f64| {
         Percentiles::of(&estimates.iter().map(|e| f(e) * 1e3).collect::<Vec<_>>())
     };
     let result = json!({

@@ -4,11 +4,21 @@
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use crate::fusion::experiment::InitialSigmas;
 use crate::geometry::preintegration::ImuNoise;
 use crate::geometry::NavState;
 use crate::variables::Key;
 use crate::wire_number;
+
+/// The prior standard deviations of a window's first state (`start.sigmas`): position (m),
+/// rotation (rad), velocity (m/s), accelerometer and gyroscope biases.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct InitialSigmas {
+    pub position: f64,
+    pub rotation: f64,
+    pub velocity: f64,
+    pub accel_bias: f64,
+    pub gyro_bias: f64,
+}
 
 /// A batch of fusion messages (`POST /v1/sessions/{s}/fusion`, zenoh `…/in/fusion`).
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -160,63 +170,6 @@ pub struct PreintegratedKeyframeMessage {
     pub d_position_d_accel_bias: [f64; 9],
     pub d_position_d_gyro_bias: [f64; 9],
     pub covariance: Vec<f64>,
-}
-
-/// The experiment's inputs as a robot sends them: the `start` message, then one batch per
-/// keyframe (its IMU samples, the keyframe, its relative poses and priors).
-pub fn experiment_messages(
-    inputs: &crate::fusion::experiment::FusionInputs,
-) -> (FusionMessage, Vec<Vec<FusionMessage>>) {
-    let i = &inputs.initial;
-    let start = FusionMessage::Start(Box::new(StartMessage {
-        t: i.t,
-        position: i.position,
-        rotation_xyzw: i.rotation_xyzw,
-        velocity: i.velocity,
-        accel_bias: i.accel_bias,
-        gyro_bias: i.gyro_bias,
-        sigmas: i.sigmas.clone(),
-        window: inputs.window,
-        gravity: inputs.gravity,
-        imu_noise: inputs.imu_noise,
-    }));
-    let mut samples = inputs.imu.iter().peekable();
-    let batches = inputs
-        .keyframes
-        .iter()
-        .map(|k| {
-            let mut messages = Vec::new();
-            while let Some(s) = samples.next_if(|s| s[0] <= k.t) {
-                messages.push(FusionMessage::Imu {
-                    t: s[0],
-                    accel: [s[1], s[2], s[3]],
-                    gyro: [s[4], s[5], s[6]],
-                });
-            }
-            messages.push(FusionMessage::Keyframe { t: k.t });
-            for r in inputs.relative_poses.iter().filter(|r| r.to == k.key) {
-                messages.push(FusionMessage::RelativePose {
-                    from: r.from,
-                    to: r.to,
-                    position: r.position,
-                    rotation_xyzw: r.rotation_xyzw,
-                    sigma_position: r.sigma_position,
-                    sigma_rotation: r.sigma_rotation,
-                });
-            }
-            for p in inputs.pose_priors.iter().filter(|p| p.key == k.key) {
-                messages.push(FusionMessage::PosePrior {
-                    key: p.key,
-                    position: p.position,
-                    rotation_xyzw: p.rotation_xyzw,
-                    sigma_position: p.sigma_position,
-                    sigma_rotation: p.sigma_rotation,
-                });
-            }
-            messages
-        })
-        .collect();
-    (start, batches)
 }
 
 /// One keyframe's state on the wire.

@@ -1,7 +1,7 @@
 //! `factord bench-cholesky`: time the numeric sparse Cholesky of a graph's normal equations at its
 //! optimum, and write the matrix in Matrix Market form for comparison with other libraries.
 
-use factord::solver::cholesky_bench;
+use crate::eval::cholesky_bench;
 
 use super::stdio::{one_stdin, one_stdout, InputArg, OutputArg};
 use super::CliError;

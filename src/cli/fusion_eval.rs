@@ -3,9 +3,9 @@
 
 use std::path::PathBuf;
 
-use factord::fusion::experiment::{self, Generation};
+use crate::eval::experiment::{self, Generation};
+use crate::eval::fusion_client::{self, AfterRun};
 use factord::io;
-use factord::transport::fusion_client::{self, AfterRun};
 
 use super::data_dir;
 use super::stdio::{one_stdout, InputArg, OutputArg};

@@ -285,6 +285,12 @@ impl Job {
                 ),
             )
             .at("body")),
+            // Stopped before its first step: at shutdown that is the shutdown's answer, as for a
+            // job stopped later or one still queued (only a time limit too short for one cost
+            // evaluation is the job's own failure).
+            Err(solver::SolverError::Interrupted) if budget.pool.is_stopping() => Err(
+                ServiceError::unavailable("shutting_down", "the job was stopped at shutdown", 5),
+            ),
             Err(e) => Err(ServiceError::new(ErrorKind::Invalid, "solve_failed", e.to_string())),
         };
         // The turn goes back before the answer is sent: the caller may submit more at once.

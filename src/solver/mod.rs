@@ -6,7 +6,6 @@
 
 pub mod budget;
 pub mod cholesky;
-pub mod cholesky_bench;
 mod damping;
 mod dogleg;
 pub mod gauge;

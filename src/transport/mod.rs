@@ -1,7 +1,5 @@
-//! Transports: thin adapters that turn requests into [`crate::api::Command`]s, and the one
-//! client the crate ships (the robot side of the fusion experiment over zenoh).
+//! Transports: thin adapters that turn requests into [`crate::api::Command`]s.
 
-pub mod fusion_client;
 pub mod http;
 mod ros2;
 mod web;

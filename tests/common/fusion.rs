@@ -1,7 +1,6 @@
-//! A robot's fusion stream built from EuRoC by `fusion::experiment`, as wire messages.
+//! A robot's fusion stream built from EuRoC by `eval/experiment.rs`, as wire messages.
 
-use factord::api::fusion::experiment_messages;
-use factord::fusion::experiment::{self, FusionInputs, Generation};
+use super::eval::experiment::{self, experiment_messages, FusionInputs, Generation};
 use factord::io::euroc;
 use serde_json::Value;
 

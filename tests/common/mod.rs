@@ -6,6 +6,8 @@ pub mod browser;
 pub mod cli;
 pub mod docker;
 pub mod environments;
+#[path = "../../eval/mod.rs"]
+pub mod eval;
 pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;

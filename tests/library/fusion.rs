@@ -1,10 +1,10 @@
 //! The sliding-window estimator on real EuRoC V1_01 IMU data: keyframes at 10 Hz, lidar-like
 //! relative poses and 1 Hz map-matching priors made from the ground truth with known noise
-//! (`fusion::experiment`), and its refusals of bad input.
+//! (`eval/experiment.rs`), and its refusals of bad input.
 
 use crate::common;
 
-use factord::fusion::experiment::{self, Generation};
+use crate::common::eval::experiment::{self, Generation};
 use factord::fusion::window::{FusionError, SlidingWindow, WindowOptions};
 use factord::geometry::NavState;
 use factord::io::euroc;

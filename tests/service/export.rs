@@ -8,9 +8,9 @@ use crate::common;
 use std::process::Command;
 use std::time::Duration;
 
+use crate::common::eval::experiment::run_smoothed;
 use common::fusion::{inputs, keyframe_batches, start_message};
 use common::server::{client, create, get, post, post_raw, zenoh_peer, TestServer};
-use factord::fusion::experiment::run_smoothed;
 use serde_json::{json, Value};
 
 /// Three stamped poses (a square's corner), odometry between them, a fixed first pose.

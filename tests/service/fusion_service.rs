@@ -1,15 +1,15 @@
 //! The `sliding_window` session kind end to end: a robot's stream (EuRoC V1_01 IMU samples,
-//! keyframes, relative poses and map priors made by `fusion::experiment`) over HTTP and over
+//! keyframes, relative poses and map priors made by `eval/experiment.rs`) over HTTP and over
 //! zenoh, the states it publishes, and its refusals.
 
 use crate::common;
 
 use std::time::Duration;
 
+use crate::common::eval::experiment::ape;
+use crate::common::eval::fusion_client::run_over_zenoh;
 use common::fusion::{inputs, keyframe_batches, position_error, start_message};
 use common::server::{client, get, post, zenoh_get, zenoh_peer, TestServer};
-use factord::fusion::experiment::ape;
-use factord::transport::fusion_client::run_over_zenoh;
 use serde_json::{json, Value};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -209,7 +209,7 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
         201 - 20,
         "the initial state and 200 keyframes, less 20 in the window"
     );
-    let (_, expected) = factord::fusion::experiment::run_smoothed(&inputs).unwrap();
+    let (_, expected) = crate::common::eval::experiment::run_smoothed(&inputs).unwrap();
     for (got, want) in smoothed.iter().zip(&expected) {
         let p: Vec<f64> = serde_json::from_value(got["position"].clone()).unwrap();
         assert!(

@@ -23,9 +23,9 @@ use nalgebra::{Isometry3, Vector3};
 
 use super::keyframes::{has_moved, isometry, nearest_key, stamp_ns, MessageError};
 use super::messages::{Covariance, Imu, Odometry, PoseWithCovarianceStamped};
+use crate::api::fusion::InitialSigmas;
 use crate::api::fusion::{FusionMessage, StartMessage};
 use crate::api::ros2::Ros2Binding;
-use crate::fusion::experiment::InitialSigmas;
 use crate::geometry::preintegration::ImuNoise;
 use crate::variables::Key;
 

@@ -7,8 +7,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-use crate::api::fusion::experiment_messages;
-use crate::fusion::experiment::{Estimate, FusionInputs, PoseJson};
+use super::experiment::{experiment_messages, Estimate, FusionInputs, PoseJson};
 
 /// A zenoh peer connected to `endpoint` (no scouting).
 async fn connect(endpoint: &str) -> Result<zenoh::Session, String> {

@@ -7,10 +7,10 @@ use std::time::Instant;
 
 use faer::sparse::linalg::SupernodalThreshold;
 
-use super::cholesky::SparseCholesky;
-use super::linearize::{linearize, Scratch, SystemLayout};
-use super::{optimize, SolverOptions};
-use crate::problem::Problem;
+use factord::problem::Problem;
+use factord::solver::cholesky::SparseCholesky;
+use factord::solver::linearize::{linearize, Scratch, SystemLayout};
+use factord::solver::{optimize, SolverOptions};
 
 /// What [`run`] measured: the timings as JSON, and H in Matrix Market form when asked for.
 pub struct CholeskyBench {

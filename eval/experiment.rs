@@ -9,14 +9,15 @@ use std::time::Instant;
 use nalgebra::{Matrix4, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::window::{
+use factord::api::fusion::{FusionMessage, InitialSigmas, StartMessage};
+use factord::factors::testing::Rng;
+use factord::fusion::window::{
     diagonal_information, quaternion_xyzw, FusionError, SlidingWindow, WindowOptions,
 };
-use crate::factors::testing::Rng;
-use crate::geometry::preintegration::ImuNoise;
-use crate::geometry::{so3, NavState};
-use crate::io::euroc::Euroc;
-use crate::problem::Key;
+use factord::geometry::preintegration::ImuNoise;
+use factord::geometry::{so3, NavState};
+use factord::io::euroc::Euroc;
+use factord::problem::Key;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PoseJson {
@@ -39,15 +40,6 @@ impl PoseJson {
     pub fn rotation(&self) -> UnitQuaternion<f64> {
         quaternion_xyzw(&self.rotation_xyzw)
     }
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct InitialSigmas {
-    pub position: f64,
-    pub rotation: f64,
-    pub velocity: f64,
-    pub accel_bias: f64,
-    pub gyro_bias: f64,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -305,9 +297,9 @@ pub fn run_smoothed(inputs: &FusionInputs) -> Result<(Vec<Estimate>, Vec<Estimat
     };
     if !inputs.use_imu {
         // Velocities and biases are then unobserved: LM's damping holds them.
-        options.solver = crate::solver::SolverOptions {
+        options.solver = factord::solver::SolverOptions {
             max_iterations: options.solver.max_iterations,
-            ..crate::solver::SolverOptions::bundle_adjustment()
+            ..factord::solver::SolverOptions::bundle_adjustment()
         };
     }
     let mut window = SlidingWindow::new(options, first, i.t, &information)?;
@@ -492,10 +484,10 @@ pub fn ape(inputs: &FusionInputs, estimates: &[Estimate]) -> (ErrorStatistics, E
 
 /// The estimates as TUM lines (`t x y z qx qy qz qw`, absolute seconds).
 pub fn tum(inputs: &FusionInputs, estimates: &[Estimate]) -> String {
-    let mut out = String::from(crate::io::tum::TIMESTAMP_HEADER);
+    let mut out = String::from(factord::io::tum::TIMESTAMP_HEADER);
     for e in estimates {
         let stamp = inputs.origin as f64 + e.t;
-        crate::io::tum::push_line(&mut out, stamp, e.pose.position, e.pose.rotation_xyzw);
+        factord::io::tum::push_line(&mut out, stamp, e.pose.position, e.pose.rotation_xyzw);
     }
     out
 }
@@ -512,4 +504,59 @@ mod tests {
         assert!((s.rmse - 7.5f64.sqrt()).abs() < 1e-15);
         assert!((s.std - 1.25f64.sqrt()).abs() < 1e-15);
     }
+}
+
+/// The experiment's inputs as a robot sends them: the `start` message, then one batch per
+/// keyframe (its IMU samples, the keyframe, its relative poses and priors).
+pub fn experiment_messages(inputs: &FusionInputs) -> (FusionMessage, Vec<Vec<FusionMessage>>) {
+    let i = &inputs.initial;
+    let start = FusionMessage::Start(Box::new(StartMessage {
+        t: i.t,
+        position: i.position,
+        rotation_xyzw: i.rotation_xyzw,
+        velocity: i.velocity,
+        accel_bias: i.accel_bias,
+        gyro_bias: i.gyro_bias,
+        sigmas: i.sigmas.clone(),
+        window: inputs.window,
+        gravity: inputs.gravity,
+        imu_noise: inputs.imu_noise,
+    }));
+    let mut samples = inputs.imu.iter().peekable();
+    let batches = inputs
+        .keyframes
+        .iter()
+        .map(|k| {
+            let mut messages = Vec::new();
+            while let Some(s) = samples.next_if(|s| s[0] <= k.t) {
+                messages.push(FusionMessage::Imu {
+                    t: s[0],
+                    accel: [s[1], s[2], s[3]],
+                    gyro: [s[4], s[5], s[6]],
+                });
+            }
+            messages.push(FusionMessage::Keyframe { t: k.t });
+            for r in inputs.relative_poses.iter().filter(|r| r.to == k.key) {
+                messages.push(FusionMessage::RelativePose {
+                    from: r.from,
+                    to: r.to,
+                    position: r.position,
+                    rotation_xyzw: r.rotation_xyzw,
+                    sigma_position: r.sigma_position,
+                    sigma_rotation: r.sigma_rotation,
+                });
+            }
+            for p in inputs.pose_priors.iter().filter(|p| p.key == k.key) {
+                messages.push(FusionMessage::PosePrior {
+                    key: p.key,
+                    position: p.position,
+                    rotation_xyzw: p.rotation_xyzw,
+                    sigma_position: p.sigma_position,
+                    sigma_rotation: p.sigma_rotation,
+                });
+            }
+            messages
+        })
+        .collect();
+    (start, batches)
 }
