@@ -225,7 +225,11 @@ pub(super) struct Scratch {
 }
 
 impl Tape {
-    pub fn new(ops: Vec<Op>, varying: Vec<bool>, outputs: Vec<Slot>) -> Self {
+    pub fn new(mut ops: Vec<Op>, mut varying: Vec<bool>, mut outputs: Vec<Slot>) -> Self {
+        // Built by pushing: up to twice the length in capacity, held as long as the type.
+        ops.shrink_to_fit();
+        varying.shrink_to_fit();
+        outputs.shrink_to_fit();
         let varying_ops: Vec<Slot> = (0..ops.len())
             .filter(|&i| varying[i] && ops[i] != Op::Filled)
             .map(|i| i as Slot)
@@ -238,6 +242,7 @@ impl Tape {
             .collect();
         frontier.sort_unstable();
         frontier.dedup();
+        frontier.shrink_to_fit();
         let varying_operands = varying_ops
             .iter()
             .map(|&i| {
@@ -254,6 +259,16 @@ impl Tape {
             frontier,
             varying_operands,
         }
+    }
+
+    /// Bytes its vectors hold.
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.ops.capacity() * size_of::<Op>()
+            + self.varying.capacity()
+            + (self.outputs.capacity() + self.varying_ops.capacity() + self.frontier.capacity())
+                * size_of::<Slot>()
+            + self.varying_operands.capacity() * size_of::<[Option<Slot>; 2]>()
     }
 
     pub fn varying_operations(&self) -> usize {
