@@ -54,11 +54,12 @@ impl TypeCompiler {
     }
 }
 
-/// Whose declarations are compiled: a client's (bounded) or a recovery's (rebuilt as accepted).
+/// Whose declarations are compiled: a client's (bounded), or ones accepted before (a recovery,
+/// a journal replay) or the operator's (the configuration), which are not.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Declaring {
-    Request,
-    Recovery,
+    Client,
+    Trusted,
 }
 
 #[derive(Default, Debug, Clone)]
@@ -99,7 +100,7 @@ impl FactorTypes {
         definitions: &[FactorTypeDefinition],
     ) -> Result<Self, ServiceError> {
         let mut types = Self::new(compiler);
-        types.extend(kind, definitions, Declaring::Recovery)?;
+        types.extend(kind, definitions, Declaring::Trusted)?;
         Ok(types)
     }
 
@@ -131,7 +132,7 @@ impl FactorTypes {
                 ));
             }
         }
-        types.extend(kind, definitions, Declaring::Request)?;
+        types.extend(kind, definitions, Declaring::Client)?;
         Ok(types)
     }
 
@@ -165,7 +166,7 @@ impl FactorTypes {
         for (i, definition) in definitions.iter().enumerate() {
             let compiled = types.compile_one(i, definition, Some(kind), declaring)?;
             types.insert(compiled);
-            if declaring == Declaring::Request {
+            if declaring == Declaring::Client {
                 types.within_bounds(i, definitions.len(), started)?;
             }
         }
@@ -207,7 +208,7 @@ impl FactorTypes {
     ) -> Result<Vec<Arc<ExpressionType>>, ServiceError> {
         let mut types = Self::new(compiler);
         for (i, definition) in definitions.iter().enumerate() {
-            let compiled = types.compile_one(i, definition, None, Declaring::Recovery)?;
+            let compiled = types.compile_one(i, definition, None, Declaring::Trusted)?;
             types.insert(compiled);
         }
         Ok(types
@@ -254,7 +255,7 @@ impl FactorTypes {
                 ));
             }
         }
-        let bound = (declaring == Declaring::Request).then_some(self.compiler.server_bytes);
+        let bound = (declaring == Declaring::Client).then_some(self.compiler.server_bytes);
         match self.compiler.interner.compile(definition.clone(), bound) {
             Ok(compiled) => Ok(compiled),
             Err(InternError::Definition(e)) => Err(refused(field(&e.path), e.message)),
@@ -373,7 +374,7 @@ impl super::Session {
                 return Err(self.gone());
             }
             let mut extended = self.factor_types().clone();
-            extended.extend(self.kind, &definitions, Declaring::Request)?;
+            extended.extend(self.kind, &definitions, Declaring::Client)?;
             let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
             if let Some(d) = durable.as_mut() {
                 d.append(
@@ -397,7 +398,7 @@ impl super::Session {
         let mut types = self.factor_types.write().unwrap_or_else(|p| p.into_inner());
         let missing = types.missing(definitions);
         types
-            .extend(self.kind, &missing, Declaring::Recovery)
+            .extend(self.kind, &missing, Declaring::Trusted)
             .map_err(|e| e.body.message)
     }
 }
