@@ -7,7 +7,10 @@ creates, the create time, then kills the server (-9), restarts it on the same st
 and port, and prints the time to the first `/health` answer and until every session is
 writable again.
 
-    python3 benches/factor_types/memory.py <factord binary> [sessions=10] [types=32]
+    python3 benches/factor_types/memory.py <factord binary> [sessions=10] [types=32] [distinct]
+
+With `distinct`, each session's definitions are its own (other names): nothing is shared, and
+the server's bound on distinct compiled types (limits.max_factor_type_bytes) is what stops it.
 """
 import json, os, random, shutil, signal, socket, subprocess, sys, tempfile, time
 import requests
@@ -15,14 +18,14 @@ import requests
 LEAVES = 188  # 2 x 256 slots each: ~98k slots x (1 + 3 lanes) under MAX_COST = 400k
 
 
-def heavy_definition(i):
+def heavy_definition(i, prefix="heavy"):
     rng = random.Random(i)
     x = {"mul": [{"at": [{"translation": ["a"]}, 0]}, "m"]}
     leaves = [{"mul": [round(rng.uniform(0.5, 1.5), 9), x]} for _ in range(LEAVES)]
     while len(leaves) > 1:  # a balanced sum: depth log2(LEAVES)
         leaves = [{"add": leaves[k:k + 2]} if k + 1 < len(leaves) else leaves[k]
                   for k in range(0, len(leaves), 2)]
-    return {"name": f"heavy_{i}",
+    return {"name": f"{prefix}_{i}",
             "variables": [{"name": "a", "kind": "se2"}],
             "parameters": [{"name": "m", "kind": "vector", "len": 256}],
             "residual": {"norm": [leaves[0]]}}
@@ -60,6 +63,7 @@ def main():
     binary = sys.argv[1]
     sessions = int(sys.argv[2]) if len(sys.argv) > 2 else 10
     types = int(sys.argv[3]) if len(sys.argv) > 3 else 32
+    distinct = len(sys.argv) > 4 and sys.argv[4] == "distinct"
     definitions = [heavy_definition(i) for i in range(types)]
     state = tempfile.mkdtemp(prefix="types-bench-")
     port = free_port()
@@ -70,16 +74,19 @@ def main():
     print(f"create body: {body_kb:.0f} KB ({types} definitions)")
     times = []
     for s in range(sessions):
+        if distinct:
+            definitions = [heavy_definition(i, f"s{s}") for i in range(types)]
         t0 = time.monotonic()
         r = requests.post(f"{base}/v1/sessions", json={
             "session": f"t{s}", "kind": "pose_graph_2d", "factor_types": definitions},
             timeout=600)
         times.append(time.monotonic() - t0)
         if r.status_code != 201:
-            print(f"create t{s}: {r.status_code} {r.text[:300]}")
+            print(f"create t{s}: {r.status_code} after {times.pop():.2f} s, RSS "
+                  f"{rss_mb(p.pid):.0f} MB: {r.text[:300]}")
             break
         batch = {"variables": [{"key": k, "kind": "se2", "value": [k, 0, 0]} for k in range(3)],
-                 "factors": [{"type": "heavy_0", "keys": [0], "measurement": [0.01] * 256,
+                 "factors": [{"type": definitions[0]["name"], "keys": [0], "measurement": [0.01] * 256,
                               "information": [1.0]}]}
         r = requests.post(f"{base}/v1/sessions/t{s}/batches", json=batch, timeout=60)
         assert r.status_code == 200, r.text

@@ -58,6 +58,8 @@ pub struct Service {
     server_factor_types: std::sync::OnceLock<Vec<Arc<crate::factors::expression::ExpressionType>>>,
     /// Where every session's factor types are compiled, shared and bounded.
     type_compiler: TypeCompiler,
+    /// Sessions rebuilt at once in the background (one per worker: see `recovery.rs`).
+    recovery_slots: Arc<tokio::sync::Semaphore>,
 }
 
 /// Runs `work` on a blocking thread (compiling, optimising: milliseconds the async threads
@@ -95,6 +97,7 @@ impl Service {
         let workers = limits.workers.max(1);
         Arc::new(Self {
             type_compiler: TypeCompiler::new(&limits),
+            recovery_slots: Arc::new(tokio::sync::Semaphore::new(workers)),
             sessions: RwLock::new(HashMap::new()),
             pool: WorkerPool::new(workers),
             limits,

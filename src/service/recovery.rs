@@ -84,7 +84,7 @@ impl Service {
         }
         self.register(name.clone(), Arc::clone(&session));
         let config = config.clone();
-        tokio::task::spawn_blocking(move || {
+        let rebuild = move || {
             let _span = tracing::info_span!("session", session = %name).entered();
             // The types first (sessions recovering with the same ones compile them once, see
             // `TypeInterner`), then the snapshot and journal, off start-up: they can be large.
@@ -122,6 +122,14 @@ impl Service {
                     session.recovery_failed(&e);
                 }
             }
+        };
+        // At most one session per worker is rebuilt at a time: ten sessions compiling their
+        // types at once on two cores left start-up itself (the HTTP listener included) a
+        // sixth of the CPU, and spread their memory over ten allocator arenas.
+        let slots = Arc::clone(&self.recovery_slots);
+        tokio::spawn(async move {
+            let _slot = slots.acquire_owned().await;
+            let _ = tokio::task::spawn_blocking(rebuild).await;
         });
         true
     }
