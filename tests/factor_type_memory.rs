@@ -13,7 +13,7 @@ use serde_json::{json, Value};
 
 /// Leaves of the largest definitions: each adds 2 × 256 tape slots (a scaled copy of the
 /// 256-vector parameter and a sum), so 188 of them make ~98 000 slots × 4 derivative lanes,
-/// just under `MAX_COST` — about 6 MB compiled, a tenth of a second to compile.
+/// just under `MAX_COST` — about 4 MB compiled, a tenth of a second to compile.
 const LEAVES: usize = 188;
 
 /// A definition near the size bounds, unique to `name` and `seed` (its constants).
@@ -115,9 +115,9 @@ async fn types_are_counted_in_memory_bytes_and_identical_ones_compiled_once() {
     assert_eq!(status, 201, "{v}");
     let first_growth = rss(&s).saturating_sub(idle);
     let with_types = memory_bytes(&c, &s, "first").await;
-    // Four types of ~98 000 slots: at least their tapes (40-byte operations).
+    // Four types of ~98 000 slots: at least their tapes (16-byte operations and a flag).
     assert!(
-        with_types - plain > 4.0 * 98_000.0 * 40.0,
+        with_types - plain > 4.0 * 98_000.0 * 17.0,
         "memory_bytes {with_types} with the types, {plain} without"
     );
     let after_first = rss(&s);
@@ -198,10 +198,10 @@ async fn types_are_counted_in_memory_bytes_and_identical_ones_compiled_once() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn type_memory_and_compile_time_are_bounded_with_413s_naming_factor_types() {
-    // Four large types hold ~25 MB: a session may hold 20, the server 30.
+    // Four large types hold ~15.6 MB, three ~11.7: a session may hold 12 MiB, the server 20.
     let s = start_with_limits(&json!({
-        "max_factor_type_bytes_per_session": 20 << 20,
-        "max_factor_type_bytes": 30 << 20,
+        "max_factor_type_bytes_per_session": 12 << 20,
+        "max_factor_type_bytes": 20 << 20,
     }));
     let c = client();
     let (status, v) = create_with(&c, &s, "four", &heavies("big_", 4)).await;
@@ -224,7 +224,7 @@ async fn type_memory_and_compile_time_are_bounded_with_413s_naming_factor_types(
     assert_eq!(v["error"]["code"], "factor_types_too_large", "{v}");
     assert_eq!(v["error"]["field"], "factor_types", "{v}");
 
-    // Three other types would take the server past its 30 MB…
+    // Three other types would take the server past its 20 MiB…
     let (status, v) = create_with(&c, &s, "others", &heavies("other_", 3)).await;
     assert_eq!(status, 413, "{v}");
     assert_eq!(v["error"]["code"], "factor_types_server_full", "{v}");
@@ -319,9 +319,9 @@ async fn a_restart_with_large_types_answers_at_once_and_recovers_them_in_the_bac
         for field in ["sequence", "num_variables", "num_factors", "factor_types"] {
             assert_eq!(after[field], before[field], "{name}.{field}");
         }
-        // The recompiled types are counted again (12 × ~6 MB).
+        // The recompiled types are counted again (12 × ~4 MB).
         assert!(
-            after["memory_bytes"].as_f64().unwrap() > 12.0 * 4e6,
+            after["memory_bytes"].as_f64().unwrap() > 12.0 * 3e6,
             "{after}"
         );
         assert_eq!(after["corrupt"], false, "{after}");

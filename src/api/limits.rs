@@ -69,8 +69,9 @@ impl Default for Limits {
             max_admission_ms: 10_000,
             // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
             max_job_memory_bytes: 4 << 30,
-            // The largest type compiles to ~6 MB: 32 of them fit one session. Ten sessions
-            // of such types, all different, fill the server's bound (a twelfth of 24 GB).
+            // The largest type compiles to ~4 MB: 32 of them fit one session. Sixteen
+            // sessions of such types, all different, fill the server's bound (a twelfth of
+            // 24 GB).
             max_factor_type_bytes_per_session: 256 << 20,
             max_factor_type_bytes: 2 << 30,
             max_subscribers: 64,

@@ -80,7 +80,8 @@ mod tests {
         let large = ExpressionType::compile(definition(60)).unwrap();
         let (ops, _) = large.operations();
         assert!(large.memory_bytes() > small.memory_bytes());
-        // Each operation is at least its tape entry and its flag.
+        // Each operation is at least its tape entry and its flag; an entry is 16 bytes.
+        assert_eq!(std::mem::size_of::<super::super::tape::Op>(), 16);
         assert!(large.memory_bytes() > ops * (std::mem::size_of::<super::super::tape::Op>() + 1));
         // And the definition it keeps: its JSON is at least as large as its text.
         let text = serde_json::to_string(&large.definition).unwrap().len();
