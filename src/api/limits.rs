@@ -31,6 +31,14 @@ pub struct Limits {
     /// A batch job whose solve is estimated (from the graph and its symbolic factorisation) to
     /// need more memory than this is refused with 413 `job_too_large` before it starts.
     pub max_job_memory_bytes: u64,
+    /// What one session's user-defined factor types may hold (estimated bytes of their
+    /// compiled tapes and definitions, each type counted in full even when shared with other
+    /// sessions): declarations past it are refused with 413 `factor_types_too_large`.
+    pub max_factor_type_bytes_per_session: usize,
+    /// What the server's compiled factor types may hold, each distinct type counted once:
+    /// declaring a type no session holds yet is refused past it with 413
+    /// `factor_types_server_full` (a type already held is shared at no cost).
+    pub max_factor_type_bytes: usize,
     /// Event-stream subscribers per session (SSE and WebSocket clients; the zenoh publisher
     /// counts as one) before new ones get 429.
     pub max_subscribers: usize,
@@ -61,6 +69,11 @@ impl Default for Limits {
             max_admission_ms: 10_000,
             // A sixth of a 24 GB machine: a few such jobs fit at once, with the sessions.
             max_job_memory_bytes: 4 << 30,
+            // The largest type compiles to ~4 MB: 32 of them fit one session. Sixteen
+            // sessions of such types, all different, fill the server's bound (a twelfth of
+            // 24 GB).
+            max_factor_type_bytes_per_session: 256 << 20,
+            max_factor_type_bytes: 2 << 30,
             max_subscribers: 64,
             max_subscriber_lag: 4096,
             max_producers_per_session: 1024,

@@ -23,6 +23,8 @@ const AUTH_FAILURES: &str = "factord_http_auth_failures_total";
 const REJECTED: &str = "factord_rejected_inputs_total";
 const REJECTED_HELP: &str = "Inputs refused, by error code";
 const BUILD_INFO: &str = "factord_build_info";
+const TYPE_COMPILES: &str = "factord_factor_type_compiles_total";
+const TYPE_REUSES: &str = "factord_factor_type_reuses_total";
 
 /// Upper bounds of the histograms' buckets, in seconds.
 const SOLVE_BUCKETS: &[f64] = &[
@@ -40,7 +42,7 @@ const SLOW_FSYNC: Duration = Duration::from_millis(50);
 const SLOW_FSYNC_WARN_EVERY: Duration = Duration::from_secs(10);
 
 /// The service's gauges: name, help.
-const GAUGES: [(&str, &str); 7] = [
+const GAUGES: [(&str, &str); 9] = [
     ("factord_sessions", "Sessions held"),
     (
         "factord_sessions_recovering",
@@ -54,7 +56,15 @@ const GAUGES: [(&str, &str); 7] = [
     ("factord_workers", "Worker threads"),
     (
         "factord_session_memory_bytes",
-        "Estimated memory held by all sessions",
+        "Estimated memory held by all sessions (a factor type several share counted once)",
+    ),
+    (
+        "factord_factor_types",
+        "Distinct compiled factor types held (identical definitions share one)",
+    ),
+    (
+        "factord_factor_type_bytes",
+        "Estimated memory of the distinct compiled factor types",
     ),
     ("factord_uptime_seconds", "Time since start"),
 ];
@@ -124,6 +134,11 @@ fn describe() {
         (
             SLOW_FSYNCS,
             "Journal fsyncs of 50 ms or more (a disk holding answers)",
+        ),
+        (TYPE_COMPILES, "Factor type definitions compiled"),
+        (
+            TYPE_REUSES,
+            "Factor type declarations served with a type already compiled",
         ),
     ] {
         describe_counter!(name, help);
@@ -206,6 +221,10 @@ pub struct Gauges {
     pub busy_workers: usize,
     pub workers: usize,
     pub session_memory_bytes: usize,
+    pub factor_types: usize,
+    pub factor_type_bytes: usize,
+    pub factor_type_compiles: u64,
+    pub factor_type_reuses: u64,
     pub uptime_seconds: f64,
 }
 
@@ -224,11 +243,16 @@ pub fn render(g: &Gauges) -> String {
         g.busy_workers as f64,
         g.workers as f64,
         g.session_memory_bytes as f64,
+        g.factor_types as f64,
+        g.factor_type_bytes as f64,
         g.uptime_seconds,
     ];
     for ((name, _), value) in GAUGES.iter().zip(values) {
         gauge!(*name).set(value);
     }
+    // Kept by the service's interner; absolute, like the gauges, as of this scrape.
+    counter!(TYPE_COMPILES).absolute(g.factor_type_compiles);
+    counter!(TYPE_REUSES).absolute(g.factor_type_reuses);
     exporter.process.collect();
     let mut text = exporter.handle.render();
     // The exporter lists a labelled counter from its first sample; this one is documented (and
@@ -253,6 +277,10 @@ mod tests {
             busy_workers: 2,
             workers: 4,
             session_memory_bytes: 1 << 20,
+            factor_types: 2,
+            factor_type_bytes: 4096,
+            factor_type_compiles: 5,
+            factor_type_reuses: 7,
             uptime_seconds: 1.5,
         }
     }
@@ -297,6 +325,8 @@ mod tests {
             Some(1048576.0)
         );
         assert_eq!(sample(&text, "factord_uptime_seconds"), Some(1.5));
+        assert_eq!(sample(&text, "factord_factor_type_bytes"), Some(4096.0));
+        assert_eq!(sample(&text, TYPE_REUSES), Some(7.0));
         for (name, kind) in [
             ("factord_workers", "gauge"),
             (SOLVES, "counter"),

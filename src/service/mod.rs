@@ -12,6 +12,7 @@ pub mod fleet;
 pub mod fleet_key;
 mod fleet_lock;
 mod fleet_moves;
+mod gauges;
 pub mod jobs;
 mod marginals;
 pub mod placement;
@@ -31,7 +32,7 @@ pub use delivery::Delivery;
 
 use crate::api::export::EstimateFormat;
 use crate::api::{catalogue, wire::*};
-use crate::session::factor_types::FactorTypes;
+use crate::session::factor_types::{FactorTypes, TypeCompiler};
 use crate::session::Session;
 
 /// Called for every new session before its creation is acknowledged, so an adapter can follow
@@ -55,6 +56,10 @@ pub struct Service {
     fleet: std::sync::OnceLock<Arc<fleet::Fleet>>,
     /// Factor types from the server's configuration, compiled at start.
     server_factor_types: std::sync::OnceLock<Vec<Arc<crate::factors::expression::ExpressionType>>>,
+    /// Where every session's factor types are compiled, shared and bounded.
+    type_compiler: TypeCompiler,
+    /// Sessions rebuilt at once in the background (one per worker: see `recovery.rs`).
+    recovery_slots: Arc<tokio::sync::Semaphore>,
 }
 
 /// Runs `work` on a blocking thread (compiling, optimising: milliseconds the async threads
@@ -91,6 +96,8 @@ impl Service {
         let journal = journal.filter(|(_, config)| config.enabled);
         let workers = limits.workers.max(1);
         Arc::new(Self {
+            type_compiler: TypeCompiler::new(&limits),
+            recovery_slots: Arc::new(tokio::sync::Semaphore::new(workers)),
             sessions: RwLock::new(HashMap::new()),
             pool: WorkerPool::new(workers),
             limits,
@@ -111,10 +118,11 @@ impl Service {
         &self,
         definitions: &[crate::factors::expression::FactorTypeDefinition],
     ) -> Result<(), String> {
-        let compiled = FactorTypes::compile_server_wide(definitions).map_err(|e| {
-            let field = e.body.field.unwrap_or_default();
-            format!("{field}: {}", e.body.message)
-        })?;
+        let compiled = FactorTypes::compile_server_wide(self.type_compiler.clone(), definitions)
+            .map_err(|e| {
+                let field = e.body.field.unwrap_or_default();
+                format!("{field}: {}", e.body.message)
+            })?;
         if !compiled.is_empty() {
             let names: Vec<&str> = compiled.iter().map(|t| t.name()).collect();
             tracing::info!("factor types for every new session: {names:?}");
@@ -255,8 +263,9 @@ impl Service {
                         let server_wide =
                             self.server_factor_types.get().cloned().unwrap_or_default();
                         let definitions = request.factor_types.clone();
+                        let compiler = self.type_compiler.clone();
                         let compiled = off_async("factor types", move || {
-                            FactorTypes::for_new_session(kind, &server_wide, &definitions)
+                            FactorTypes::for_new_session(compiler, kind, &server_wide, &definitions)
                         })
                         .await?;
                         Some(compiled)
@@ -400,22 +409,6 @@ impl Service {
         }
     }
 
-    /// The Prometheus text of `GET /metrics`: the process's counters, histograms and `process_*`
-    /// metrics, and this service's gauges.
-    pub fn metrics_text(&self) -> String {
-        let health = self.health(&Caller::Trusted);
-        let sessions = self.sessions();
-        metrics::render(&metrics::Gauges {
-            sessions: health.sessions,
-            sessions_recovering: sessions.iter().filter(|s| s.is_recovering()).count(),
-            queued: health.queued,
-            busy_workers: health.busy_workers,
-            workers: health.workers,
-            session_memory_bytes: sessions.iter().map(|s| s.memory_bytes()).sum(),
-            uptime_seconds: health.uptime_seconds,
-        })
-    }
-
     /// The service's health; `sessions` counts the sessions `caller` may see.
     pub fn health(&self, caller: &Caller) -> Health {
         let pool = self.pool.handle();
@@ -535,7 +528,9 @@ impl Service {
         })?;
         let factor_types = match factor_types {
             Some(compiled) => compiled,
-            None => FactorTypes::compile(kind, &request.factor_types)?,
+            None => {
+                FactorTypes::recovered(self.type_compiler.clone(), kind, &request.factor_types)?
+            }
         };
         let session = Session::new(
             name,

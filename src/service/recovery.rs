@@ -55,7 +55,7 @@ impl Service {
         dir: SessionDir,
         config: &JournalConfig,
     ) -> bool {
-        let identity = match dir.load_identity() {
+        let mut identity = match dir.load_identity() {
             Ok(identity) => identity,
             Err(e) => {
                 tracing::error!(
@@ -66,7 +66,12 @@ impl Service {
             }
         };
         let auto_optimize = identity.request.auto_optimize;
-        let session = match self.build_session(name.clone(), identity.request, None) {
+        // Compiled in the background with the rest: many large types take seconds, and the
+        // HTTP listener only opens once every session is listed.
+        let factor_types = std::mem::take(&mut identity.request.factor_types);
+        let compiler = self.type_compiler.clone();
+        let no_types_yet = FactorTypes::new(compiler.clone());
+        let session = match self.build_session(name.clone(), identity.request, Some(no_types_yet)) {
             Ok(session) => session,
             Err(e) => {
                 tracing::error!(session = %name, "not recovered: {}", e.body.message);
@@ -79,13 +84,18 @@ impl Service {
         }
         self.register(name.clone(), Arc::clone(&session));
         let config = config.clone();
-        tokio::task::spawn_blocking(move || {
+        let rebuild = move || {
             let _span = tracing::info_span!("session", session = %name).entered();
-            // The snapshot and journal are read here, off start-up: they can be large.
-            let outcome = dir
-                .load_state()
-                .and_then(|recovered| Ok((recovered, dir.open_journal(config.fsync)?)))
-                .map_err(|e| e.to_string())
+            // The types first (sessions recovering with the same ones compile them once, see
+            // `TypeInterner`), then the snapshot and journal, off start-up: they can be large.
+            let outcome = FactorTypes::recovered(compiler, session.kind, &factor_types)
+                .map(|types| session.set_factor_types(types))
+                .map_err(|e| format!("factor types: {}", e.body.message))
+                .and_then(|()| dir.load_state().map_err(|e| e.to_string()))
+                .and_then(|recovered| {
+                    let journal = dir.open_journal(config.fsync).map_err(|e| e.to_string())?;
+                    Ok((recovered, journal))
+                })
                 .and_then(|(recovered, journal)| {
                     let durability = crate::session::Durability {
                         dir,
@@ -112,6 +122,14 @@ impl Service {
                     session.recovery_failed(&e);
                 }
             }
+        };
+        // At most one session per worker is rebuilt at a time: ten sessions compiling their
+        // types at once on two cores left start-up itself (the HTTP listener included) a
+        // sixth of the CPU, and spread their memory over ten allocator arenas.
+        let slots = Arc::clone(&self.recovery_slots);
+        tokio::spawn(async move {
+            let _slot = slots.acquire_owned().await;
+            let _ = tokio::task::spawn_blocking(rebuild).await;
         });
         true
     }
@@ -172,4 +190,5 @@ impl Service {
     }
 }
 
+use crate::session::factor_types::FactorTypes;
 use crate::session::Session;

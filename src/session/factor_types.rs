@@ -8,21 +8,69 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use crate::api::catalogue::{self, FactorCodec, SessionKind, SLIDING_WINDOW};
+use crate::api::Limits;
 use crate::api::ServiceError;
-use crate::factors::expression::{ExpressionType, FactorTypeDefinition};
+use crate::factors::expression::{ExpressionType, FactorTypeDefinition, InternError, TypeInterner};
 use crate::factors::{Factor, INTERNAL_FACTOR_NAMES};
 use crate::problem::Key;
 
 /// At most this many declared types per session.
 pub const MAX_FACTOR_TYPES: usize = 32;
 
+/// Where a service's sessions compile their types: one [`TypeInterner`] shared by all of them,
+/// and the bounds a client's declarations meet (a session's own total, the server's, the time
+/// compiling may take). Recovery meets none of them: it rebuilds what was accepted once.
+#[derive(Clone, Debug)]
+pub struct TypeCompiler {
+    pub interner: Arc<TypeInterner>,
+    per_session_bytes: usize,
+    server_bytes: usize,
+    admission: Duration,
+}
+
+impl Default for TypeCompiler {
+    /// Unbounded, with an interner of its own (a session built outside a service).
+    fn default() -> Self {
+        Self {
+            interner: Arc::default(),
+            per_session_bytes: usize::MAX,
+            server_bytes: usize::MAX,
+            admission: Duration::MAX,
+        }
+    }
+}
+
+impl TypeCompiler {
+    pub fn new(limits: &Limits) -> Self {
+        Self {
+            interner: Arc::default(),
+            per_session_bytes: limits.max_factor_type_bytes_per_session,
+            server_bytes: limits.max_factor_type_bytes,
+            admission: Duration::from_millis(limits.max_admission_ms),
+        }
+    }
+}
+
+/// Whose declarations are compiled: a client's (bounded), or ones accepted before (a recovery,
+/// a journal replay) or the operator's (the configuration), which are not.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Declaring {
+    Client,
+    Trusted,
+}
+
 #[derive(Default, Debug, Clone)]
 pub struct FactorTypes {
     by_name: HashMap<String, Arc<ExpressionType>>,
     /// Declaration order, for listing.
     names: Vec<String>,
+    compiler: TypeCompiler,
+    /// What the types hold, each counted in full (shared with other sessions or not): the
+    /// session's `memory_bytes` and its bound count this.
+    bytes: usize,
 }
 
 fn refused(field: String, message: impl Into<String>) -> ServiceError {
@@ -37,25 +85,34 @@ fn refused_in_windows() -> ServiceError {
 }
 
 impl FactorTypes {
-    /// Compiles a creation request's declarations for a session of `kind`; errors name the
-    /// field or expression node (`factor_types[0].residual.compose[1]`).
-    pub fn compile(
+    /// No types yet, compiled through `compiler` when declared.
+    pub fn new(compiler: TypeCompiler) -> Self {
+        Self {
+            compiler,
+            ..Self::default()
+        }
+    }
+
+    /// A recovered session's types, from its creation record (unbounded: accepted once).
+    pub fn recovered(
+        compiler: TypeCompiler,
         kind: &SessionKind,
         definitions: &[FactorTypeDefinition],
     ) -> Result<Self, ServiceError> {
-        let mut types = Self::default();
-        types.extend(kind, definitions)?;
+        let mut types = Self::new(compiler);
+        types.extend(kind, definitions, Declaring::Trusted)?;
         Ok(types)
     }
 
     /// A new session's types: the server-wide ones whose variable kinds a session of `kind`
     /// holds (graph kinds), then the request's `definitions`, which may not reuse their names.
     pub fn for_new_session(
+        compiler: TypeCompiler,
         kind: &SessionKind,
         server_wide: &[Arc<ExpressionType>],
         definitions: &[FactorTypeDefinition],
     ) -> Result<Self, ServiceError> {
-        let mut types = Self::default();
+        let mut types = Self::new(compiler);
         if kind.name != SLIDING_WINDOW {
             for ty in server_wide {
                 if ty
@@ -75,20 +132,23 @@ impl FactorTypes {
                 ));
             }
         }
-        types.extend(kind, definitions)?;
+        types.extend(kind, definitions, Declaring::Client)?;
         Ok(types)
     }
 
     /// Adds `definitions` (all of them, or none when one is refused); a name already declared
-    /// is refused.
+    /// is refused. A client's declarations must also fit the session's and the server's type
+    /// memory and be compiled within `limits.max_admission_ms`.
     pub fn extend(
         &mut self,
         kind: &SessionKind,
         definitions: &[FactorTypeDefinition],
+        declaring: Declaring,
     ) -> Result<(), ServiceError> {
         if definitions.is_empty() {
             return Ok(());
         }
+        let started = Instant::now();
         let mut types = self.clone();
         if kind.name == SLIDING_WINDOW {
             return Err(refused_in_windows());
@@ -104,21 +164,51 @@ impl FactorTypes {
             ));
         }
         for (i, definition) in definitions.iter().enumerate() {
-            let compiled = types.compile_one(i, definition, Some(kind))?;
+            let compiled = types.compile_one(i, definition, Some(kind), declaring)?;
             types.insert(compiled);
+            if declaring == Declaring::Client {
+                types.within_bounds(i, definitions.len(), started)?;
+            }
         }
         *self = types;
         Ok(())
     }
 
-    /// The server configuration's types, compiled once at start; each new graph session then
-    /// takes those its kinds fit ([`FactorTypes::for_new_session`]).
+    /// After definition `i` of `count`: the session's bound and the admission time.
+    fn within_bounds(&self, i: usize, count: usize, started: Instant) -> Result<(), ServiceError> {
+        let bound = self.compiler.per_session_bytes;
+        if self.bytes > bound {
+            return Err(ServiceError::too_large(
+                "factor_types_too_large",
+                format!(
+                    "with definition {i} this session's factor types hold {} bytes, over its bound of {bound} (limits.max_factor_type_bytes_per_session): declare fewer or smaller types",
+                    self.bytes
+                ),
+            )
+            .at("factor_types"));
+        }
+        if started.elapsed() > self.compiler.admission {
+            return Err(ServiceError::too_large(
+                "factor_types_too_costly",
+                format!(
+                    "compiling the factor types took longer than limits.max_admission_ms ({} ms): stopped after definition {i} of {count}; declare them in smaller requests",
+                    self.compiler.admission.as_millis()
+                ),
+            )
+            .at("factor_types"));
+        }
+        Ok(())
+    }
+
+    /// The server configuration's types, compiled once at start (unbounded: the operator's);
+    /// each new graph session then takes those its kinds fit ([`FactorTypes::for_new_session`]).
     pub fn compile_server_wide(
+        compiler: TypeCompiler,
         definitions: &[FactorTypeDefinition],
     ) -> Result<Vec<Arc<ExpressionType>>, ServiceError> {
-        let mut types = Self::default();
+        let mut types = Self::new(compiler);
         for (i, definition) in definitions.iter().enumerate() {
-            let compiled = types.compile_one(i, definition, None)?;
+            let compiled = types.compile_one(i, definition, None, Declaring::Trusted)?;
             types.insert(compiled);
         }
         Ok(types
@@ -128,13 +218,15 @@ impl FactorTypes {
             .collect())
     }
 
-    /// Compiles `definitions[i]` for these types: its name new and not built in, its variables
-    /// of `kind`'s kinds (any kind for the server-wide list).
+    /// Compiles `definitions[i]` for these types (or shares the server's compiled copy): its
+    /// name new and not built in, its variables of `kind`'s kinds (any kind for the
+    /// server-wide list).
     fn compile_one(
         &self,
         i: usize,
         definition: &FactorTypeDefinition,
         kind: Option<&SessionKind>,
+        declaring: Declaring,
     ) -> Result<Arc<ExpressionType>, ServiceError> {
         let field = |suffix: &str| format!("factor_types[{i}].{suffix}");
         if catalogue::factor_codec(&definition.name).is_some()
@@ -163,10 +255,25 @@ impl FactorTypes {
                 ));
             }
         }
-        ExpressionType::compile(definition.clone()).map_err(|e| refused(field(&e.path), e.message))
+        let bound = (declaring == Declaring::Client).then_some(self.compiler.server_bytes);
+        match self.compiler.interner.compile(definition.clone(), bound) {
+            Ok(compiled) => Ok(compiled),
+            Err(InternError::Definition(e)) => Err(refused(field(&e.path), e.message)),
+            Err(full @ InternError::ServerFull { .. }) => Err(ServiceError::too_large(
+                "factor_types_server_full",
+                format!("definition {i}: {full}; types other sessions already declared are shared at no cost"),
+            )
+            .at("factor_types")),
+        }
+    }
+
+    /// Bytes these types hold, each counted in full.
+    pub fn bytes(&self) -> usize {
+        self.bytes
     }
 
     fn insert(&mut self, compiled: Arc<ExpressionType>) {
+        self.bytes += compiled.memory_bytes();
         self.names.push(compiled.name().to_string());
         self.by_name.insert(compiled.name().to_string(), compiled);
     }
@@ -267,7 +374,7 @@ impl super::Session {
                 return Err(self.gone());
             }
             let mut extended = self.factor_types().clone();
-            extended.extend(self.kind, &definitions)?;
+            extended.extend(self.kind, &definitions, Declaring::Client)?;
             let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
             if let Some(d) = durable.as_mut() {
                 d.append(
@@ -291,7 +398,7 @@ impl super::Session {
         let mut types = self.factor_types.write().unwrap_or_else(|p| p.into_inner());
         let missing = types.missing(definitions);
         types
-            .extend(self.kind, &missing)
+            .extend(self.kind, &missing, Declaring::Trusted)
             .map_err(|e| e.body.message)
     }
 }

@@ -63,8 +63,8 @@ impl Session {
     }
 
     /// Estimated bytes this session holds: the estimate clients read, the problem (variables,
-    /// factors with their square-root information), queued batches and the wire copies kept for
-    /// snapshots. An estimate from sizes, not an allocator count.
+    /// factors with their square-root information), queued batches, the wire copies kept for
+    /// snapshots and its compiled factor types. An estimate from sizes, not an allocator count.
     pub fn memory_bytes(&self) -> usize {
         let st = self.lock();
         self.memory_bytes_locked(&st)
@@ -100,6 +100,18 @@ impl Session {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .bytes();
-        mirror + factors + problem + marginals + producers + history + self.durable_memory_bytes()
+        mirror
+            + factors
+            + problem
+            + marginals
+            + producers
+            + history
+            + self.durable_memory_bytes()
+            + self.factor_type_bytes()
+    }
+
+    /// What its factor types hold, each counted in full (also when other sessions share it).
+    pub fn factor_type_bytes(&self) -> usize {
+        self.factor_types().bytes()
     }
 }

@@ -9,6 +9,7 @@ mod common;
 
 mod config_sessions;
 mod export;
+mod factor_type_memory;
 mod fusion_service;
 mod gnss_factor;
 mod incremental;

@@ -46,6 +46,9 @@ pub(super) struct Builder {
     /// Depends on neither a variable nor a parameter: the same at every evaluation.
     constant: Vec<bool>,
     shared: HashMap<Op, Slot>,
+    /// The rotations `LogSo3` reads, each once (see `Op::LogSo3`).
+    rotations: Vec<[Slot; 9]>,
+    rotation_index: HashMap<[Slot; 9], u32>,
     /// Index into `paths` of the node that created each slot.
     origin: Vec<u32>,
     pub paths: Vec<String>,
@@ -65,7 +68,7 @@ impl Builder {
     /// The tape, which slots are constant, and each slot's node.
     pub fn finish(self, outputs: Vec<Slot>) -> (Tape, Vec<bool>, Vec<u32>, Vec<String>) {
         (
-            Tape::new(self.ops, self.varying, outputs),
+            Tape::new(self.ops, self.varying, outputs, self.rotations),
             self.constant,
             self.origin,
             self.paths,
@@ -77,7 +80,7 @@ impl Builder {
         if let Some(&slot) = self.shared.get(&op) {
             return slot;
         }
-        let args = op.arguments();
+        let args = op.arguments(&self.rotations);
         let varying = matches!(op, Op::Input(_)) || args.iter().any(|&a| self.varying[a as usize]);
         let constant = matches!(op, Op::Const(_))
             || (!args.is_empty() && args.iter().all(|&a| self.constant[a as usize]));
@@ -225,7 +228,12 @@ impl Builder {
     }
 
     pub fn so3_log(&mut self, r: [Slot; 9]) -> [Slot; 3] {
-        let first = self.push(Op::LogSo3(r));
+        let next = self.rotations.len() as u32;
+        let k = *self.rotation_index.entry(r).or_insert(next);
+        if k == next {
+            self.rotations.push(r);
+        }
+        let first = self.push(Op::LogSo3(k));
         [first, first + 1, first + 2]
     }
 

@@ -112,9 +112,12 @@ pub struct ExpressionType {
     constant: Vec<bool>,
     /// Sum of the variables' tangent dimensions: the dual numbers' width.
     lanes: usize,
-    /// For error reports: the node each slot came from.
+    /// For error reports: the node each slot came from. Like `constant`, only the checks at
+    /// compile time read it: emptied once they pass (about a tenth of a large type's memory).
     origin: Vec<u32>,
     paths: Vec<String>,
+    /// What it holds, estimated once compiled ([`ExpressionType::memory_bytes`]).
+    memory_bytes: usize,
 }
 
 thread_local! {
@@ -272,7 +275,7 @@ impl ExpressionType {
             ));
         }
         let (tape, constant, origin, paths) = builder.finish(outputs);
-        let compiled = Arc::new(Self {
+        let mut compiled = Arc::new(Self {
             definition,
             layouts: kinds.iter().map(|k| layout(k)).collect(),
             inputs: input as usize,
@@ -284,9 +287,29 @@ impl ExpressionType {
             lanes,
             origin,
             paths,
+            memory_bytes: 0,
         });
         super::check::check(&compiled)?;
+        let ty = Arc::get_mut(&mut compiled).expect("the checks keep no reference");
+        ty.constant = Vec::new();
+        ty.origin = Vec::new();
+        ty.paths = Vec::new();
+        ty.memory_bytes = super::memory::type_bytes(
+            std::mem::size_of::<Self>(),
+            &ty.definition,
+            ty.tape.heap_bytes(),
+            ty.kinds.capacity() * std::mem::size_of::<&str>()
+                + ty.layouts.capacity() * std::mem::size_of::<&KindLayout>()
+                + ty.params.capacity() * std::mem::size_of::<ParamKind>(),
+        );
         Ok(compiled)
+    }
+
+    /// Estimated bytes this compiled type holds: its tape, its definition (kept for creation
+    /// records and snapshots) and the rest, from their sizes. What each session that declares it
+    /// is charged; shared types count once in the server's total (see `interner`).
+    pub fn memory_bytes(&self) -> usize {
+        self.memory_bytes
     }
 
     pub fn name(&self) -> &str {

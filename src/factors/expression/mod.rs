@@ -18,7 +18,9 @@
 mod builder;
 mod check;
 mod factor;
+mod interner;
 mod lower;
+mod memory;
 mod tape;
 #[cfg(test)]
 mod tests;
@@ -26,6 +28,7 @@ mod tests;
 use serde::{Deserialize, Serialize};
 
 pub use factor::{ExpressionFactor, ExpressionType};
+pub use interner::{InternError, TypeInterner, TypesHeld};
 pub use lower::{MAX_DEPTH, MAX_NODES, OPERATIONS};
 
 /// A factor type as a client declares it.

@@ -55,8 +55,9 @@ pub(super) enum Op {
     /// sin and cos of one slot: two outputs (an angle's are nearly always both needed, and
     /// one `sin_cos` costs what one of them does).
     SinCos(Slot),
-    /// Log of the rotation in nine row-major slots: three outputs.
-    LogSo3([Slot; 9]),
+    /// Log of the rotation in the nine row-major slots `Tape::rotations[k]`: three outputs.
+    /// (Those nine slots in line made every operation 40 bytes instead of 16.)
+    LogSo3(u32),
     /// Exp of the vector in three slots: nine outputs (row-major rotation matrix).
     ExpSo3([Slot; 3]),
     /// Written by the multi-output operation before it.
@@ -89,15 +90,15 @@ impl Op {
         }
     }
 
-    /// The slots it reads.
-    pub fn arguments(&self) -> Vec<Slot> {
+    /// The slots it reads (`rotations`: the tape's, which `LogSo3` points into).
+    pub fn arguments(&self, rotations: &[[Slot; 9]]) -> Vec<Slot> {
         use Op::*;
         match *self {
             Input(_) | Param(_) | Const(_) | Filled => vec![],
             Add(a, b) | Sub(a, b) | Mul(a, b) | Div(a, b) | Atan2(a, b) | Pow(a, b) => vec![a, b],
             Neg(a) | Tan(a) | Asin(a) | Acos(a) | Atan(a) | Sqrt(a) | Exp(a) | Ln(a) | Abs(a)
             | Wrap(a) | Sinc(a) | Cosc(a) | HalfCotHalf(a) | SinCos(a) => vec![a],
-            LogSo3(r) => r.to_vec(),
+            LogSo3(k) => rotations[k as usize].to_vec(),
             ExpSo3(w) => w.to_vec(),
         }
     }
@@ -203,6 +204,8 @@ pub(super) struct Tape {
     /// Whether slot `i` depends on a variable (its gradient is meaningful).
     pub varying: Vec<bool>,
     pub outputs: Vec<Slot>,
+    /// The rotations `LogSo3` operations read, by index.
+    rotations: Vec<[Slot; 9]>,
     /// Indices of the operations that vary, in order.
     varying_ops: Vec<Slot>,
     /// Fixed slots read by a varying operation or part of the residual.
@@ -225,19 +228,30 @@ pub(super) struct Scratch {
 }
 
 impl Tape {
-    pub fn new(ops: Vec<Op>, varying: Vec<bool>, outputs: Vec<Slot>) -> Self {
+    pub fn new(
+        mut ops: Vec<Op>,
+        mut varying: Vec<bool>,
+        mut outputs: Vec<Slot>,
+        mut rotations: Vec<[Slot; 9]>,
+    ) -> Self {
+        // Built by pushing: up to twice the length in capacity, held as long as the type.
+        ops.shrink_to_fit();
+        varying.shrink_to_fit();
+        outputs.shrink_to_fit();
+        rotations.shrink_to_fit();
         let varying_ops: Vec<Slot> = (0..ops.len())
             .filter(|&i| varying[i] && ops[i] != Op::Filled)
             .map(|i| i as Slot)
             .collect();
         let mut frontier: Vec<Slot> = varying_ops
             .iter()
-            .flat_map(|&i| ops[i as usize].arguments())
+            .flat_map(|&i| ops[i as usize].arguments(&rotations))
             .chain(outputs.iter().copied())
             .filter(|&s| !varying[s as usize])
             .collect();
         frontier.sort_unstable();
         frontier.dedup();
+        frontier.shrink_to_fit();
         let varying_operands = varying_ops
             .iter()
             .map(|&i| {
@@ -250,10 +264,22 @@ impl Tape {
             ops,
             varying,
             outputs,
+            rotations,
             varying_ops,
             frontier,
             varying_operands,
         }
+    }
+
+    /// Bytes its vectors hold.
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.ops.capacity() * size_of::<Op>()
+            + self.varying.capacity()
+            + (self.outputs.capacity() + self.varying_ops.capacity() + self.frontier.capacity())
+                * size_of::<Slot>()
+            + self.varying_operands.capacity() * size_of::<[Option<Slot>; 2]>()
+            + self.rotations.capacity() * size_of::<[Slot; 9]>()
     }
 
     pub fn varying_operations(&self) -> usize {
@@ -271,7 +297,7 @@ impl Tape {
                 Op::Param(k) => values[i] = params[k as usize],
                 Op::Filled => {}
                 Op::SinCos(a) => (values[i], values[i + 1]) = values[a as usize].sin_cos(),
-                Op::LogSo3(r) => log_so3(i, r, values, &mut [], 0, None),
+                Op::LogSo3(k) => log_so3(i, self.rotations[k as usize], values, &mut [], 0, None),
                 Op::ExpSo3(w) => exp_so3(i, w, values, &mut [], 0, None),
                 op => values[i] = scalar(op, values).0,
             }
@@ -350,9 +376,16 @@ impl Tape {
                         }
                     }
                 }
-                Op::LogSo3(r) => {
+                Op::LogSo3(k) => {
                     let grad = with_gradient.then_some(&self.varying[..]);
-                    log_so3(i, r, values, gradients, lanes, grad)
+                    log_so3(
+                        i,
+                        self.rotations[k as usize],
+                        values,
+                        gradients,
+                        lanes,
+                        grad,
+                    )
                 }
                 Op::ExpSo3(w) => {
                     let grad = with_gradient.then_some(&self.varying[..]);
