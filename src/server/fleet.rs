@@ -28,6 +28,15 @@ pub(super) fn instance_id(config: &ServeConfig) -> Result<Option<String>, ServeE
                 .into(),
         ));
     }
+    let lease = crate::service::fleet::LEASE_MS_RANGE;
+    if !lease.contains(&config.fleet.lease_ms) {
+        return Err(ServeError::Fleet(format!(
+            "fleet.lease_ms is {}; it must be {}-{} (ms)",
+            config.fleet.lease_ms,
+            lease.start(),
+            lease.end()
+        )));
+    }
     let id = match &config.fleet.instance {
         Some(id) if valid_instance_id(id) => id.clone(),
         Some(id) => {

@@ -9,6 +9,7 @@ pub mod caller;
 mod delivery;
 mod durability;
 pub mod fleet;
+mod fleet_heartbeat;
 pub mod fleet_key;
 mod fleet_lock;
 mod fleet_moves;

@@ -87,10 +87,15 @@ impl Durable {
         Ok(())
     }
 
-    /// Makes every entry written so far durable (under `fsync always`).
+    /// Makes every entry written so far durable (under `fsync always`), then checks that this
+    /// instance still owns the session (the fence, see `journal::takeover`): nothing written
+    /// after another instance took it over may be acknowledged.
     pub(super) fn sync(&mut self, name: &str) -> Result<(), ServiceError> {
         self.last_fsync = self.journal.sync().map_err(|e| journal_failed(name, e))?;
         crate::runtime::metrics::observe_fsync(self.last_fsync);
+        if self.dir.superseded() {
+            return Err(super::ownership_lost(name));
+        }
         Ok(())
     }
 
@@ -466,6 +471,40 @@ impl Session {
         error
     }
 
+    /// A write's sync was refused: the session was taken over elsewhere (it steps down here:
+    /// every later request hears `session_moving` and goes to the new owner), or its journal
+    /// failed ([`Self::journal_sync_failed`]). Call without the journal held.
+    pub(super) fn sync_refused(&self, error: ServiceError) -> ServiceError {
+        if error.body.code != "ownership_lost" {
+            return self.journal_sync_failed(error);
+        }
+        tracing::warn!(
+            session = self.name,
+            "taken over by another instance: stepping down"
+        );
+        self.mark_moved();
+        error
+    }
+
+    /// Whether another instance of the fleet took the session over (see `journal::takeover`).
+    /// Waits for a write's fsync under way.
+    pub fn ownership_superseded(&self) -> bool {
+        self.durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .is_some_and(|d| d.dir.superseded())
+    }
+
+    /// Its directory, at the ownership epoch it writes (`None` outside the journal).
+    pub fn journal_dir(&self) -> Option<SessionDir> {
+        self.durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .map(|d| d.dir.clone())
+    }
+
     /// Under `fsync: interval`: makes what was appended so far durable.
     pub fn sync_journal(&self) {
         let handle = self
@@ -501,6 +540,12 @@ impl Session {
             .as_ref()
             .map(|f| f.lock().unwrap_or_else(|p| p.into_inner()));
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        // Another instance took the session over: its directory is that one's now.
+        if let Some(dir) = durable.as_ref().map(|d| &d.dir).filter(|d| d.superseded()) {
+            return Err(JournalError::Superseded {
+                path: dir.path().to_path_buf(),
+            });
+        }
         let buried = bury()?;
         durable.take();
         if let Some(alive) = alive.as_mut() {
