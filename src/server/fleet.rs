@@ -125,6 +125,25 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_fleet_lease_is_bounded() {
+        let mut config = ServeConfig::default();
+        config.fleet.enabled = true;
+        config.fleet.instance = Some("a".into());
+        assert_eq!(
+            config.fleet.lease_ms,
+            crate::service::fleet::DEFAULT_LEASE_MS
+        );
+        assert!(instance_id(&config).is_ok());
+        for bad in [0, 499, 60_001] {
+            config.fleet.lease_ms = bad;
+            let refused = instance_id(&config).unwrap_err().to_string();
+            assert!(refused.contains("fleet.lease_ms"), "{refused}");
+        }
+        config.fleet.lease_ms = 500;
+        assert!(instance_id(&config).is_ok());
+    }
+
+    #[test]
     fn a_fleet_needs_zenoh_the_journal_and_a_valid_id() {
         let mut config = ServeConfig::default();
         assert_eq!(instance_id(&config).unwrap(), None);
