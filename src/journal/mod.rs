@@ -31,6 +31,7 @@
 
 pub mod compact;
 pub mod epoch;
+pub mod group_commit;
 pub mod log;
 mod snapshot_file;
 mod takeover;

@@ -23,6 +23,8 @@ const AUTH_FAILURES: &str = "factord_http_auth_failures_total";
 const REJECTED: &str = "factord_rejected_inputs_total";
 const REJECTED_HELP: &str = "Inputs refused, by error code";
 const BUILD_INFO: &str = "factord_build_info";
+const GROUP_FSYNCS: &str = "factord_journal_group_fsyncs_total";
+const GROUP_RECORDS: &str = "factord_journal_group_fsynced_records_total";
 
 /// Upper bounds of the histograms' buckets, in seconds.
 const SOLVE_BUCKETS: &[f64] = &[
@@ -124,6 +126,14 @@ fn describe() {
         (
             SLOW_FSYNCS,
             "Journal fsyncs of 50 ms or more (a disk holding answers)",
+        ),
+        (
+            GROUP_FSYNCS,
+            "Journal fdatasyncs under fsync always (one per group of records, group commit)",
+        ),
+        (
+            GROUP_RECORDS,
+            "Journal records those fdatasyncs made durable (divided by the fdatasyncs: records per fsync)",
         ),
     ] {
         describe_counter!(name, help);
@@ -229,6 +239,9 @@ pub fn render(g: &Gauges) -> String {
     for ((name, _), value) in GAUGES.iter().zip(values) {
         gauge!(*name).set(value);
     }
+    let (fsyncs, records) = crate::journal::group_commit::totals();
+    counter!(GROUP_FSYNCS).absolute(fsyncs);
+    counter!(GROUP_RECORDS).absolute(records);
     exporter.process.collect();
     let mut text = exporter.handle.render();
     // The exporter lists a labelled counter from its first sample; this one is documented (and

@@ -180,19 +180,23 @@ impl Session {
         if let (Some(d), true) = (durable.as_mut(), journal) {
             d.maybe_snapshot(self, &st);
         }
-        // The fsync runs with the session unlocked, so the solve just scheduled (and reads) run
-        // meanwhile; the journal stays locked, so the acknowledgement below, and everything a
+        // The fsync runs with the session and its journal unlocked, so the solve just scheduled
+        // (and reads) run meanwhile, and the session's next batches are written and share it
+        // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
         // solve publishes (it passes `journal_barrier` first), wait for the batch to be durable.
         drop(st);
-        let synced = match (durable.as_mut(), journal) {
-            (Some(d), true) => d.sync(&self.name),
-            _ => Ok(()),
+        let pending = match (durable.as_ref(), journal) {
+            (Some(d), true) => Some(d.pending()),
+            _ => None,
         };
-        if let Err(e) = synced {
-            drop(durable);
+        drop(durable);
+        if let Err(e) = pending.map_or(Ok(()), |p| p.wait(&self.name)) {
             return Err(self.sync_refused(e));
         }
-        self.accepted.send_replace(sequence);
+        // Batches sharing an fsync may get here in any order.
+        self.accepted.send_if_modified(|accepted| {
+            std::mem::replace(accepted, sequence.max(*accepted)) < sequence
+        });
         // A replay (recovery, adoption) restores what was acknowledged before: acknowledging it
         // again would tell subscribers something new was applied, with a producer's
         // `accepted_through` going backwards. The recovery's solve publishes the estimate.

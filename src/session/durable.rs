@@ -61,6 +61,28 @@ pub(super) struct Durable {
     pub(super) last_fsync: Duration,
 }
 
+/// A batch written to the journal, to be made durable without holding the journal: batches of
+/// one session (and the fdatasyncs of many) are then grouped (`journal::group_commit`).
+pub(super) struct PendingSync {
+    ticket: Option<crate::journal::group_commit::Ticket>,
+    dir: SessionDir,
+}
+
+impl PendingSync {
+    /// Waits until the batch's record is durable (under `fsync always`), then checks that this
+    /// instance still owns the session (the fence, see `journal::takeover`).
+    pub(super) fn wait(self, name: &str) -> Result<(), ServiceError> {
+        if let Some(ticket) = self.ticket {
+            let waited = ticket.wait().map_err(|e| journal_failed(name, e))?;
+            crate::runtime::metrics::observe_fsync(waited);
+        }
+        if self.dir.superseded() {
+            return Err(super::ownership_lost(name));
+        }
+        Ok(())
+    }
+}
+
 fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
     // The update was not made durable, so it is not acknowledged (nor applied, unless only its
     // fsync failed: see `Session::journal_sync_failed`).
@@ -97,6 +119,15 @@ impl Durable {
             return Err(super::ownership_lost(name));
         }
         Ok(())
+    }
+
+    /// What a batch just written waits for, after releasing the journal (see
+    /// [`PendingSync::wait`]).
+    pub(super) fn pending(&self) -> PendingSync {
+        PendingSync {
+            ticket: self.journal.last_ticket(),
+            dir: self.dir.clone(),
+        }
     }
 
     /// Fills in the values the server predicted for variables sent without one (so a replay
@@ -449,11 +480,19 @@ impl Session {
         result
     }
 
-    /// Waits until every batch whose entry is in the journal is durable: a batch holds the
-    /// journal from its write through its fsync (see `apply.rs`), so passing its lock is enough.
-    /// What a solve publishes, and a repeated acknowledgement, pass it first.
+    /// Waits until every batch whose entry is in the journal is durable (a failure is the
+    /// batch's own to report). What a solve publishes, and a repeated acknowledgement, pass it
+    /// first.
     pub(super) fn journal_barrier(&self) {
-        drop(self.durable.lock().unwrap_or_else(|p| p.into_inner()));
+        let ticket = self
+            .durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .and_then(|d| d.journal.last_ticket());
+        if let Some(ticket) = ticket {
+            let _ = ticket.wait();
+        }
     }
 
     /// A batch was applied but its journal entry could not be made durable: whether it reached
@@ -484,6 +523,15 @@ impl Session {
         );
         self.mark_moved();
         error
+    }
+
+    /// Whether an accepted write waits for an fsync (a durable session under `fsync always`).
+    pub fn waits_for_fsync(&self) -> bool {
+        self.durable
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .as_ref()
+            .is_some_and(|d| d.config.fsync == crate::journal::Fsync::Always)
     }
 
     /// Whether another instance of the fleet took the session over (see `journal::takeover`).
