@@ -48,7 +48,7 @@ pub struct ServeConfig {
 }
 
 /// `fleet` in the config file (see docs/guide/fleets.md).
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FleetConfig {
     pub enabled: bool,
@@ -65,6 +65,22 @@ pub struct FleetConfig {
     /// Start a fleet without a secret: every zenoh peer that announces itself is a member.
     /// Only for a network nobody else can reach; said at start.
     pub trusted_network: bool,
+    /// How long a member may be silent before the others count it gone, and take over what
+    /// it held once its heartbeat stopped as long (`service::fleet_heartbeat`), in ms.
+    pub lease_ms: u64,
+}
+
+impl Default for FleetConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            instance: None,
+            advertise_http: None,
+            secret_file: None,
+            trusted_network: false,
+            lease_ms: crate::service::fleet::DEFAULT_LEASE_MS,
+        }
+    }
 }
 
 impl Default for ServeConfig {
@@ -280,7 +296,8 @@ pub async fn run(
         })?;
     if let Some(instance) = &instance {
         let http = fleet::advertised_http(&config.fleet, &http_addr)?;
-        service.join_fleet(instance, &http, key.take());
+        let lease = Duration::from_millis(config.fleet.lease_ms);
+        service.join_fleet(instance, &http, key.take(), lease);
         tracing::info!("fleet instance `{instance}`, reached at {http}");
     }
     let recovering = service

@@ -83,6 +83,11 @@ pub struct ServeArgs {
     /// network nobody else can reach) [env FACTORD_FLEET_TRUSTED_NETWORK: 1, true, on, yes]
     #[arg(long, env = "FACTORD_FLEET_TRUSTED_NETWORK", value_parser = clap::builder::FalseyValueParser::new())]
     fleet_trusted_network: bool,
+    /// How long a fleet member may be silent before the others count it gone (zenoh's link
+    /// lease), and, when its heartbeat on the state directory stopped as long, take its
+    /// sessions and the rpc gateway over, 500-60000 [default: 2000]
+    #[arg(long, env = "FACTORD_FLEET_LEASE_MS", value_parser = clap::value_parser!(u64).range(500..=60_000))]
+    fleet_lease_ms: Option<u64>,
     /// Log filter: a level (error | warn | info | debug | trace | off) or RUST_LOG-style
     /// directives, e.g. factord=debug,zenoh=warn [default: info]
     #[arg(long, env = "FACTORD_LOG", default_value = "info", value_parser = parse_log_filter)]
@@ -180,5 +185,8 @@ fn overlay(args: ServeArgs, config: &mut ServeConfig) {
     }
     if args.fleet_trusted_network {
         config.fleet.trusted_network = true;
+    }
+    if let Some(v) = args.fleet_lease_ms {
+        config.fleet.lease_ms = v;
     }
 }

@@ -113,7 +113,9 @@ impl Compaction {
         // From here on the directory names the new file: the writer must append there whatever
         // the directory's fsync says.
         journal.replace_file(file, end - self.prefix);
-        File::open(path.parent().expect("a journal in a directory"))?.sync_all()
+        File::open(path.parent().expect("a journal in a directory"))?.sync_all()?;
+        journal.copy_made_durable();
+        Ok(())
     }
 }
 

@@ -35,7 +35,9 @@ use std::io;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use super::group_commit::{Durability, Ticket};
 
 const HEADER: usize = 8;
 /// No record is larger (a batch is bounded by the request body limit); a larger length field is
@@ -75,6 +77,8 @@ pub struct LogWriter {
     records: u64,
     /// A failed write left part of a record that could not be cut off: nothing may follow it.
     torn: bool,
+    /// Under `fsync always`: the records written and made durable (`group_commit`).
+    durability: Arc<Durability>,
 }
 
 impl LogWriter {
@@ -90,8 +94,10 @@ impl LogWriter {
             .open(path)?;
         let allocated = file.metadata()?.len();
         let bytes = end_of_records(&file, allocated)?;
+        let file = Arc::new(file);
         Ok(Self {
-            file: Arc::new(file),
+            durability: Durability::new(Arc::clone(&file)),
+            file,
             path: path.into(),
             fsync,
             bytes,
@@ -149,18 +155,29 @@ impl LogWriter {
         }
         self.bytes = end;
         self.records += 1;
+        self.durability.written();
         Ok(())
     }
 
-    /// Under `fsync always`, makes every record written so far durable; returns how long the
-    /// fsync took (zero when the policy skips it).
+    /// Under `fsync always`, makes every record written so far durable (sharing one
+    /// fdatasync with other waiters, see `group_commit`); returns how long it waited (zero
+    /// when the policy skips it).
     pub fn sync(&self) -> io::Result<Duration> {
-        if self.fsync != Fsync::Always {
-            return Ok(Duration::ZERO);
+        match self.last_ticket() {
+            Some(ticket) => ticket.wait(),
+            None => Ok(Duration::ZERO),
         }
-        let start = Instant::now();
-        self.file.sync_data()?;
-        Ok(start.elapsed())
+    }
+
+    /// Under `fsync always`: what to wait for, without this writer, until every record written
+    /// so far is durable (`None` when the policy skips the fsync).
+    pub fn last_ticket(&self) -> Option<Ticket> {
+        (self.fsync == Fsync::Always).then(|| self.durability.last())
+    }
+
+    /// The records written and made durable through this writer.
+    pub fn durability(&self) -> &Durability {
+        &self.durability
     }
 
     /// Grows the file with zeros after `end`, where the record about to be written ends (see the
@@ -188,6 +205,7 @@ impl LogWriter {
         self.file.sync_all()?;
         self.bytes = 0;
         self.allocated = 0;
+        self.durability.all_durable();
         Ok(())
     }
 
@@ -197,6 +215,13 @@ impl LogWriter {
         self.file = Arc::new(file);
         self.bytes = bytes;
         self.allocated = bytes;
+        self.durability.switched(Arc::clone(&self.file));
+    }
+
+    /// The new file holds every record written so far, fdatasynced, and its directory entry
+    /// is durable (`Compaction::finish`): their writers need no fdatasync of their own.
+    pub(super) fn copy_made_durable(&self) {
+        self.durability.all_durable();
     }
 
     /// The file handle, for a background syncer under `Fsync::Interval`.

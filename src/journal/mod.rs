@@ -10,6 +10,8 @@
 //! sessions/<name>/snapshot.json   the last snapshot with its checksum (written to a temporary
 //!                                 file, fsynced, renamed; see `snapshot_file`)
 //! sessions/<name>/journal.log     checksummed entries since that snapshot (see `log`)
+//! sessions/<name>/epoch-<n>       in a fleet: ownership claims; the files above are then
+//!                                 snapshot-<n>.json and journal-<n>.log (see `takeover`)
 //! sessions/.deleted-<name>-<n>/   a deleted session's directory, renamed before it is removed
 //! ```
 //!
@@ -28,8 +30,11 @@
 //! Layer 7: imports `api` (entries are its wire types); never `session` or above.
 
 pub mod compact;
+pub mod epoch;
+pub mod group_commit;
 pub mod log;
 mod snapshot_file;
+mod takeover;
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -197,6 +202,12 @@ pub enum JournalError {
         max = u64::MAX
     )]
     LastSequence { path: PathBuf },
+    /// Another instance claimed the ownership epoch first (see `takeover`).
+    #[error("{path}: another instance claimed the session's next ownership epoch first")]
+    Taken { path: PathBuf },
+    /// The ownership epoch this instance holds is over: another instance took the session.
+    #[error("{path}: another instance has taken the session over")]
+    Superseded { path: PathBuf },
     /// A directory of that name is on disk already (never overwritten).
     #[error("{path} already exists")]
     Exists { path: PathBuf },
@@ -236,6 +247,9 @@ fn io_at(path: &Path) -> impl Fn(io::Error) -> JournalError + '_ {
 #[derive(Debug, Clone)]
 pub struct SessionDir {
     dir: PathBuf,
+    /// The ownership epoch whose files this writes and reads (see `epoch` and `takeover`):
+    /// 0, the unnumbered files, outside a fleet.
+    epoch: u64,
 }
 
 impl SessionDir {
@@ -263,7 +277,7 @@ impl SessionDir {
             }
             Err(e) => return Err(io_at(&dir)(e)),
         }
-        let created = Self { dir };
+        let created = Self { dir, epoch: 0 };
         let fill = || -> Result<(), JournalError> {
             if let Some(owner) = owner {
                 write_atomically(&created.dir.join("owner"), &[owner.as_bytes()])?;
@@ -373,7 +387,13 @@ impl SessionDir {
             let path = entry.path();
             let name = entry.file_name().to_string_lossy().into_owned();
             if path.join("session.json").exists() && !name.starts_with(TOMBSTONE_PREFIX) {
-                out.push((name, Self { dir: path }));
+                out.push((
+                    name,
+                    Self {
+                        dir: path,
+                        epoch: 0,
+                    },
+                ));
             }
         }
         out.sort_by(|a, b| a.0.cmp(&b.0));
@@ -385,7 +405,11 @@ impl SessionDir {
     }
 
     fn journal_path(&self) -> PathBuf {
-        self.dir.join("journal.log")
+        segment_file(&self.dir, "journal", "log", self.epoch)
+    }
+
+    fn snapshot_path(&self) -> PathBuf {
+        segment_file(&self.dir, "snapshot", "json", self.epoch)
     }
 
     fn history_path(&self) -> PathBuf {
@@ -418,7 +442,7 @@ impl SessionDir {
     /// Reads the snapshot and the journal after it (cutting a torn tail, keeping a damaged
     /// journal as it is): the session's state, possibly large.
     pub fn load_state(&self) -> Result<Recovered, JournalError> {
-        let snapshot_path = self.dir.join("snapshot.json");
+        let snapshot_path = self.snapshot_path();
         let snapshot = match std::fs::read(&snapshot_path) {
             Ok(bytes) => Some(snapshot_file::decode(&snapshot_path, &bytes)?),
             Err(e) if e.kind() == io::ErrorKind::NotFound => None,
@@ -453,10 +477,7 @@ impl SessionDir {
     /// records the snapshot already holds, which replay skips by sequence.
     pub fn write_snapshot(&self, bytes: &[u8]) -> Result<(), JournalError> {
         let head = snapshot_file::envelope_head(bytes);
-        write_atomically(
-            &self.dir.join("snapshot.json"),
-            &[&head, bytes, snapshot_file::CLOSE],
-        )
+        write_atomically(&self.snapshot_path(), &[&head, bytes, snapshot_file::CLOSE])
     }
 
     /// Replaces the session's history file (`history.json`, see `session::history`): written
@@ -480,6 +501,14 @@ impl SessionDir {
             Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
             Err(e) => Err(io_at(&path)(e)),
         }
+    }
+}
+
+/// `<stem>.<ext>` for epoch 0, `<stem>-<epoch>.<ext>` after (see `takeover`).
+fn segment_file(dir: &Path, stem: &str, ext: &str, epoch: u64) -> PathBuf {
+    match epoch {
+        0 => dir.join(format!("{stem}.{ext}")),
+        n => dir.join(format!("{stem}-{n}.{ext}")),
     }
 }
 

@@ -25,6 +25,8 @@ const REJECTED_HELP: &str = "Inputs refused, by error code";
 const BUILD_INFO: &str = "factord_build_info";
 const TYPE_COMPILES: &str = "factord_factor_type_compiles_total";
 const TYPE_REUSES: &str = "factord_factor_type_reuses_total";
+const GROUP_FSYNCS: &str = "factord_journal_group_fsyncs_total";
+const GROUP_RECORDS: &str = "factord_journal_group_fsynced_records_total";
 
 /// Upper bounds of the histograms' buckets, in seconds.
 const SOLVE_BUCKETS: &[f64] = &[
@@ -140,6 +142,14 @@ fn describe() {
             TYPE_REUSES,
             "Factor type declarations served with a type already compiled",
         ),
+        (
+            GROUP_FSYNCS,
+            "Journal fdatasyncs under fsync always (one per group of records, group commit)",
+        ),
+        (
+            GROUP_RECORDS,
+            "Journal records those fdatasyncs made durable (divided by the fdatasyncs: records per fsync)",
+        ),
     ] {
         describe_counter!(name, help);
         counter!(name).absolute(0);
@@ -253,6 +263,9 @@ pub fn render(g: &Gauges) -> String {
     // Kept by the service's interner; absolute, like the gauges, as of this scrape.
     counter!(TYPE_COMPILES).absolute(g.factor_type_compiles);
     counter!(TYPE_REUSES).absolute(g.factor_type_reuses);
+    let (fsyncs, records) = crate::journal::group_commit::totals();
+    counter!(GROUP_FSYNCS).absolute(fsyncs);
+    counter!(GROUP_RECORDS).absolute(records);
     exporter.process.collect();
     let mut text = exporter.handle.render();
     // The exporter lists a labelled counter from its first sample; this one is documented (and

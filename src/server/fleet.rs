@@ -28,6 +28,15 @@ pub(super) fn instance_id(config: &ServeConfig) -> Result<Option<String>, ServeE
                 .into(),
         ));
     }
+    let lease = crate::service::fleet::LEASE_MS_RANGE;
+    if !lease.contains(&config.fleet.lease_ms) {
+        return Err(ServeError::Fleet(format!(
+            "fleet.lease_ms is {}; it must be {}-{} (ms)",
+            config.fleet.lease_ms,
+            lease.start(),
+            lease.end()
+        )));
+    }
     let id = match &config.fleet.instance {
         Some(id) if valid_instance_id(id) => id.clone(),
         Some(id) => {
@@ -114,6 +123,25 @@ pub(super) fn advertised_http(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_fleet_lease_is_bounded() {
+        let mut config = ServeConfig::default();
+        config.fleet.enabled = true;
+        config.fleet.instance = Some("a".into());
+        assert_eq!(
+            config.fleet.lease_ms,
+            crate::service::fleet::DEFAULT_LEASE_MS
+        );
+        assert!(instance_id(&config).is_ok());
+        for bad in [0, 499, 60_001] {
+            config.fleet.lease_ms = bad;
+            let refused = instance_id(&config).unwrap_err().to_string();
+            assert!(refused.contains("fleet.lease_ms"), "{refused}");
+        }
+        config.fleet.lease_ms = 500;
+        assert!(instance_id(&config).is_ok());
+    }
 
     #[test]
     fn a_fleet_needs_zenoh_the_journal_and_a_valid_id() {

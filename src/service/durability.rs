@@ -112,7 +112,14 @@ impl Service {
         if let (Ok(_), Some(fleet)) = (&created, self.fleet()) {
             fleet.lock_created(name)?;
         }
-        let created = created.and_then(|dir| {
+        let created = created.and_then(|mut dir| {
+            // In a fleet its files are those of ownership epoch 1, this instance's (see
+            // `journal::takeover`).
+            if let Some(fleet) = self.fleet() {
+                if let Err(e) = dir.claim_first(fleet.instance()) {
+                    return Err(dir.roll_back(e));
+                }
+            }
             let journal = dir.open_journal(config.fsync);
             match journal {
                 Ok(journal) => Ok(Durability {
@@ -157,6 +164,10 @@ impl Service {
             Some((state_dir, _)) => session
                 .bury_files(|| SessionDir::bury(state_dir, name))
                 .map_err(|e| {
+                    if let crate::journal::JournalError::Superseded { .. } = e {
+                        session.mark_moved();
+                        return crate::session::ownership_lost(name);
+                    }
                     tracing::error!(session = name, "delete refused: {e}");
                     ServiceError::unavailable(
                         "delete_failed",

@@ -14,19 +14,20 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::io::{Read, Seek, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
 use serde::Serialize;
 use tokio::sync::{watch, Notify};
 
+use super::fleet_heartbeat::Heartbeats;
 use super::fleet_key::FleetKey;
 pub use super::fleet_lock::LockError;
 use super::fleet_lock::SessionLock;
 use super::placement;
 use super::{Caller, Service, ServiceError};
-use crate::journal::SessionDir;
+use crate::journal::{epoch, SessionDir};
 
 /// Another live instance, as it announced itself.
 #[derive(Clone, Debug, Default)]
@@ -97,15 +98,61 @@ pub struct Fleet {
     rpc_gateway: AtomicBool,
     /// The fleet's secret; `None` on a trusted network.
     key: Option<Arc<FleetKey>>,
+    /// How long a member may be silent before it counts as gone (zenoh's transport lease) and,
+    /// when its heartbeat stopped as long, as stopped (see `fleet_heartbeat`).
+    lease: std::time::Duration,
+    heartbeats: Arc<Heartbeats>,
 }
+
+/// The default of [`Fleet::lease`]: a stopped host is noticed, and its sessions served by
+/// another instance, within about twice this.
+pub const DEFAULT_LEASE_MS: u64 = 2000;
+/// The bounds of `--fleet-lease-ms`: below 500 ms a loaded machine's scheduling delays would
+/// pass for stopped hosts; above 60 s a stopped host's sessions wait a minute.
+pub const LEASE_MS_RANGE: std::ops::RangeInclusive<u64> = 500..=60_000;
 
 /// Held while this instance serves the fleet's `<p>/rpc`: on the state directory the fleet
 /// shares, the kernel lets one instance at a time hold it, so two instances that each believe
 /// they were elected (their views of the membership differ for a moment) cannot both serve.
 /// Dropping it releases it.
+/// It also holds an ownership epoch of `<state_dir>/fleet-gateway/` (see `journal::epoch`):
+/// a successor takes the gateway over from a stopped instance, whose OS lock stays held,
+/// by claiming the next epoch, and the stopped one, should it resume, answers nothing once it
+/// sees its epoch is over ([`GatewayLock::superseded`]).
 #[derive(Debug)]
 pub struct GatewayLock {
-    _lock: SessionLock,
+    /// `None` when taken over from a stopped instance that still holds the OS lock.
+    _lock: Option<SessionLock>,
+    fence: GatewayFence,
+}
+
+/// The gateway's ownership epoch, checked before every command it runs.
+#[derive(Clone, Debug)]
+pub struct GatewayFence {
+    dir: PathBuf,
+    epoch: u64,
+}
+
+impl GatewayFence {
+    /// Another instance serves the fleet's rpc now: answer nothing more.
+    pub fn superseded(&self) -> bool {
+        epoch::superseded(&self.dir, self.epoch)
+    }
+}
+
+impl GatewayLock {
+    pub fn fence(&self) -> GatewayFence {
+        self.fence.clone()
+    }
+}
+
+impl Drop for GatewayLock {
+    /// Stepping down cleanly: the successor need not wait to see this instance stopped.
+    fn drop(&mut self) {
+        if !self.fence.superseded() {
+            let _ = epoch::release(&self.fence.dir, self.fence.epoch);
+        }
+    }
 }
 
 /// An instance id: 1-64 characters of `[A-Za-z0-9._-]`.
@@ -170,10 +217,46 @@ impl Fleet {
         self.settled.load(Ordering::SeqCst)
     }
 
-    /// Takes the rpc gateway's lock (`<state_dir>/fleet-gateway.lock`), without waiting.
+    /// Takes the rpc gateway's lock (`<state_dir>/fleet-gateway.lock`), without waiting, or
+    /// takes the gateway over from a stopped instance that holds it; then claims the next
+    /// ownership epoch of the gateway (see [`GatewayLock`]).
     pub fn gateway_lock(&self) -> Result<GatewayLock, LockError> {
-        SessionLock::try_acquire_file(&self.state_dir.join("fleet-gateway.lock"))
-            .map(|lock| GatewayLock { _lock: lock })
+        let dir = self.state_dir.join("fleet-gateway");
+        std::fs::create_dir_all(&dir)?;
+        let lock = match SessionLock::try_acquire_file(&self.state_dir.join("fleet-gateway.lock")) {
+            Ok(lock) => Some(lock),
+            Err(LockError::Held) if self.may_take_over(epoch::current(&dir)?, &dir) => {
+                tracing::warn!("fleet: taking the rpc gateway over from a stopped instance");
+                None
+            }
+            Err(e) => return Err(e),
+        };
+        let next = epoch::current(&dir)?.map_or(0, |(n, _)| n) + 1;
+        if !epoch::claim(&dir, next, &self.instance)? {
+            return Err(LockError::Held);
+        }
+        Ok(GatewayLock {
+            _lock: lock,
+            fence: GatewayFence { dir, epoch: next },
+        })
+    }
+
+    /// Whether what `latest` (a directory's latest ownership claim, see `journal::epoch`)
+    /// holds may be taken over although its OS lock is held: its holder handed it over
+    /// cleanly, or is gone from the membership and has stopped (`fleet_heartbeat`).
+    pub(super) fn may_take_over(&self, latest: Option<(u64, String)>, dir: &Path) -> bool {
+        let Some((n, holder)) = latest else {
+            return false; // a creation between its lock and its claim
+        };
+        epoch::released(dir, n)
+            || (holder != self.instance
+                && self.member(&holder).is_none()
+                && self.heartbeats.stalled(&holder))
+    }
+
+    /// How long a silent member takes to count as gone (zenoh's transport lease).
+    pub fn lease(&self) -> std::time::Duration {
+        self.lease
     }
 
     /// Records whether this instance serves the fleet's `<p>/rpc` (shown in its info).
@@ -253,6 +336,22 @@ impl Fleet {
         }
     }
 
+    /// Makes sure this instance holds the lock of session `name`, loaded here: one taken over
+    /// from a stopped instance is locked once that instance lets go. Returns whether it is held.
+    pub(super) fn lock_loaded(&self, name: &str) -> bool {
+        let mut locks = self.locks.lock().unwrap_or_else(|p| p.into_inner());
+        if locks.contains_key(name) {
+            return true;
+        }
+        match SessionLock::try_acquire(&self.session_dir(name)) {
+            Ok(lock) => {
+                locks.insert(name.to_string(), lock);
+                true
+            }
+            Err(_) => false,
+        }
+    }
+
     /// Drops the lock of session `name` (deleted or released here).
     pub(super) fn unlock(&self, name: &str) {
         self.locks
@@ -301,13 +400,16 @@ impl Service {
     /// Makes this service instance `instance` of a fleet whose HTTP is reached at `http`.
     /// Needs the journal (the shared state directory); call before [`Self::recover_sessions`].
     /// `key`: the fleet's secret (`None`: a trusted network, every announced peer a member).
+    /// `lease`: see [`Fleet::lease`].
     pub fn join_fleet(
         self: &Arc<Self>,
         instance: &str,
         http: &str,
         key: Option<FleetKey>,
+        lease: std::time::Duration,
     ) -> Option<Arc<Fleet>> {
         let (state_dir, _) = self.journal.clone()?;
+        let heartbeats = Heartbeats::start(&state_dir, instance, lease);
         let fleet = Arc::new(Fleet {
             instance: instance.to_string(),
             http: http.to_string(),
@@ -321,6 +423,8 @@ impl Service {
             changed: Notify::new(),
             rpc_gateway: AtomicBool::new(false),
             key: key.map(Arc::new),
+            lease,
+            heartbeats,
         });
         if self.fleet.set(Arc::clone(&fleet)).is_err() {
             return self.fleet.get().cloned();
@@ -436,7 +540,12 @@ mod tests {
         let journal = Some((dir.to_path_buf(), JournalConfig::default()));
         let service = Service::with_journal(Limits::default(), journal);
         let fleet = service
-            .join_fleet(id, &format!("http://{id}:8080"), None)
+            .join_fleet(
+                id,
+                &format!("http://{id}:8080"),
+                None,
+                std::time::Duration::from_millis(DEFAULT_LEASE_MS),
+            )
             .unwrap();
         (service, fleet)
     }

@@ -3,8 +3,16 @@
 //!
 //! - **Adoption**: a session directory on disk that this instance owns and has not loaded is
 //!   locked (without waiting; a lock still held by an instance releasing it, or by one not yet
-//!   dead, is tried again on the next, faster tick) and recovered from its snapshot and journal
-//!   as at start ([`Service::recover_one`]).
+//!   dead, is tried again on the next, faster tick), its next ownership epoch claimed and its
+//!   files carried over (`journal::takeover`), and it is recovered from them as at start
+//!   ([`Service::recover_one`]).
+//! - **Takeover from a stopped instance**: a lock held by an instance that is gone from the
+//!   membership and whose heartbeat stopped a lease ago (`fleet_heartbeat`), or by one that
+//!   released the session cleanly, does not stop an adoption: the new epoch fences the holder
+//!   (it acknowledges nothing more, `ownership_lost`), and the lock is taken once it is free.
+//! - **Stepping down**: a loaded session whose epoch another instance claimed (this instance
+//!   was stopped meanwhile) is dropped here without touching its files: writes hear
+//!   `session_moving` and go to the new owner.
 //! - **Release**: a loaded session another instance now owns (it joined) stops taking writes
 //!   (503 `session_moving`), its running solve is stopped, its journal synced and closed (a
 //!   snapshot being written finishes first), it leaves the registry and its lock is dropped; the
@@ -58,10 +66,18 @@ impl Service {
     /// One pass: releases what others own, adopts what this instance owns. Returns whether a
     /// session this instance owns could not be locked yet (try again soon).
     fn rebalance(self: &Arc<Self>, fleet: &Arc<Fleet>) -> bool {
+        let mut again = false;
         for session in self.sessions() {
-            if fleet.owner_of(&session.name) != fleet.instance() && !fleet.is_moving(&session.name)
-            {
+            if fleet.is_moving(&session.name) {
+                continue;
+            }
+            if session.ownership_superseded() {
+                self.step_down(fleet, &session.name);
+            } else if fleet.owner_of(&session.name) != fleet.instance() {
                 self.release(fleet, &session.name);
+            } else {
+                // Taken over without its lock (its holder stopped): lock it once it is free.
+                fleet.lock_loaded(&session.name);
             }
         }
         let Some((state_dir, config)) = self.journal.clone() else {
@@ -74,7 +90,6 @@ impl Service {
                 return true;
             }
         };
-        let mut again = false;
         for (name, dir) in found {
             if fleet.owner_of(&name) != fleet.instance()
                 || self.session(&name).is_ok()
@@ -88,11 +103,22 @@ impl Service {
                 continue;
             }
             let lock = match SessionLock::try_acquire(dir.path()) {
-                Ok(lock) => lock,
-                Err(LockError::Held) => {
-                    again = true;
-                    continue;
-                }
+                Ok(lock) => Some(lock),
+                Err(LockError::Held) => match dir.latest_claim() {
+                    Ok(Some((n, holder, _)))
+                        if fleet.may_take_over(Some((n, holder.clone())), dir.path()) =>
+                    {
+                        tracing::warn!(
+                            session = %name,
+                            "fleet: taking over from `{holder}` (stopped, or released it)"
+                        );
+                        None
+                    }
+                    _ => {
+                        again = true;
+                        continue;
+                    }
+                },
                 Err(LockError::Gone) => continue,
                 Err(LockError::Io(e)) => {
                     tracing::warn!(session = %name, "fleet: cannot lock its directory: {e}");
@@ -104,12 +130,22 @@ impl Service {
             if !dir.path().join("session.json").exists() {
                 continue;
             }
-            fleet
-                .locks
-                .lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .insert(name.clone(), lock);
-            tracing::info!(session = %name, "fleet: adopting");
+            let dir = match dir.take_over(fleet.instance()) {
+                Ok(dir) => dir,
+                Err(e) => {
+                    tracing::warn!(session = %name, "fleet: cannot take it over yet: {e}");
+                    again = true;
+                    continue;
+                }
+            };
+            if let Some(lock) = lock {
+                fleet
+                    .locks
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .insert(name.clone(), lock);
+            }
+            tracing::info!(session = %name, epoch = dir.epoch(), "fleet: adopting");
             if !self.recover_one(name.clone(), dir, &config) {
                 fleet.unlock(&name);
                 fleet
@@ -138,10 +174,16 @@ impl Service {
         session.mark_moved();
         session.sync_journal();
         session.persist_history();
+        let dir = session.journal_dir();
         // Waits for a snapshot being written, then closes the journal: nothing writes there
-        // from here on.
-        if let Err(e) = session.bury_files(|| Ok(())) {
-            tracing::warn!(session = name, "fleet: closing its journal: {e}");
+        // from here on, and the successor need not wait for this instance's lock.
+        match session.bury_files(|| Ok(())) {
+            Ok(()) => {
+                if let Some(Err(e)) = dir.map(|d| d.release()) {
+                    tracing::warn!(session = name, "fleet: marking it released: {e}");
+                }
+            }
+            Err(e) => tracing::warn!(session = name, "fleet: closing its journal: {e}"),
         }
         {
             let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
@@ -157,5 +199,26 @@ impl Service {
             .unwrap_or_else(|p| p.into_inner())
             .remove(name);
         tracing::info!(session = name, "fleet: released");
+    }
+
+    /// Drops session `name`, which another instance took over while this one was stopped:
+    /// its files are the new owner's, so nothing is synced or written (see the module doc).
+    fn step_down(self: &Arc<Self>, fleet: &Arc<Fleet>, name: &str) {
+        let Ok(session) = self.session(name) else {
+            return;
+        };
+        tracing::warn!(
+            session = name,
+            "fleet: taken over by another instance: stepping down"
+        );
+        session.mark_moved();
+        {
+            let mut sessions = self.sessions.write().unwrap_or_else(|p| p.into_inner());
+            if sessions.get(name).is_some_and(|s| Arc::ptr_eq(s, &session)) {
+                sessions.remove(name);
+            }
+        }
+        fleet.set_loaded(name, false);
+        fleet.unlock(name);
     }
 }

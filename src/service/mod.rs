@@ -9,6 +9,7 @@ pub mod caller;
 mod delivery;
 mod durability;
 pub mod fleet;
+mod fleet_heartbeat;
 pub mod fleet_key;
 mod fleet_lock;
 mod fleet_moves;
@@ -292,7 +293,15 @@ impl Service {
                 wait,
             } => {
                 let session = self.writable_as(caller, &session)?;
-                let (ack, will_solve) = session.apply_batch(batch)?;
+                // A batch waits for its fsync: on a blocking thread, never an async one (a disk
+                // stall would stop every other session's requests on this instance), and many
+                // at once, so their fsyncs are grouped (`journal::group_commit`).
+                let (ack, will_solve) = if session.waits_for_fsync() {
+                    let applying = Arc::clone(&session);
+                    off_async("batch", move || applying.apply_batch(batch)).await?
+                } else {
+                    session.apply_batch(batch)?
+                };
                 metrics::count_accepted_batch();
                 let solved = if wait && will_solve {
                     let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;

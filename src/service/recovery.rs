@@ -37,6 +37,22 @@ impl Service {
         let on_disk = names_on_disk.len();
         let mut count = 0;
         for (name, dir) in found {
+            // A fleet's directory (ownership epochs): this single instance takes the latest
+            // epoch's files over, as an instance of the fleet would (`journal::takeover`).
+            let dir = match dir.latest_claim() {
+                Ok(None) => dir,
+                Ok(Some(_)) => match dir.take_over("standalone") {
+                    Ok(dir) => dir,
+                    Err(e) => {
+                        tracing::error!(session = %name, "not recovered: {e}");
+                        continue;
+                    }
+                },
+                Err(e) => {
+                    tracing::error!(session = %name, "not recovered: {e}");
+                    continue;
+                }
+            };
             if self.recover_one(name, dir, &config) {
                 count += 1;
             }

@@ -180,16 +180,23 @@ impl Session {
         if let (Some(d), true) = (durable.as_mut(), journal) {
             d.maybe_snapshot(self, &st);
         }
-        // The fsync runs with the session unlocked, so the solve just scheduled (and reads) run
-        // meanwhile; the journal stays locked, so the acknowledgement below, and everything a
+        // The fsync runs with the session and its journal unlocked, so the solve just scheduled
+        // (and reads) run meanwhile, and the session's next batches are written and share it
+        // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
         // solve publishes (it passes `journal_barrier` first), wait for the batch to be durable.
         drop(st);
-        if let (Some(d), true) = (durable.as_mut(), journal) {
-            if let Err(e) = d.sync(&self.name) {
-                return Err(self.journal_sync_failed(e));
-            }
+        let pending = match (durable.as_ref(), journal) {
+            (Some(d), true) => Some(d.pending()),
+            _ => None,
+        };
+        drop(durable);
+        if let Err(e) = pending.map_or(Ok(()), |p| p.wait(&self.name)) {
+            return Err(self.sync_refused(e));
         }
-        self.accepted.send_replace(sequence);
+        // Batches sharing an fsync may get here in any order.
+        self.accepted.send_if_modified(|accepted| {
+            std::mem::replace(accepted, sequence.max(*accepted)) < sequence
+        });
         // A replay (recovery, adoption) restores what was acknowledged before: acknowledging it
         // again would tell subscribers something new was applied, with a producer's
         // `accepted_through` going backwards. The recovery's solve publishes the estimate.
@@ -385,5 +392,47 @@ mod tests {
         assert!(session.corruption().is_some());
         drop(session);
         pool.shutdown(std::time::Duration::from_secs(5));
+    }
+
+    /// Issue 52, item 14: once another instance has claimed the session's next ownership epoch
+    /// (it took the session over while this one was stopped), a batch is applied and written
+    /// here but never acknowledged, the session steps down, and the new owner's files hold
+    /// only what was acknowledged before.
+    #[test]
+    fn a_write_after_a_takeover_elsewhere_is_not_acknowledged() {
+        use crate::journal::{JournalConfig, SessionDir};
+        let (_runtime, pool, session) = crate::session::test_session("fenced");
+        let state = std::env::temp_dir().join(format!("factord-fenced-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&state);
+        let request = serde_json::from_value(json!({"session": "fenced",
+            "kind": "pose_graph_2d"}))
+        .unwrap();
+        let mut dir = SessionDir::create(&state, "fenced", &request, None).unwrap();
+        dir.claim_first("a").unwrap();
+        let config = JournalConfig::default();
+        let journal = dir.open_journal(config.fsync).unwrap();
+        session.attach(crate::session::Durability {
+            dir: dir.clone(),
+            journal,
+            config,
+        });
+        let pose = |key: u64| -> Batch {
+            serde_json::from_value(json!({"variables": [{"key": key, "kind": "se2",
+                "value": [0, 0, 0], "fixed": true}]}))
+            .unwrap()
+        };
+        assert_eq!(session.apply_batch(pose(0)).unwrap().0.sequence, 1);
+        let taken = dir.take_over("b").unwrap();
+        let refused = session.apply_batch(pose(1)).unwrap_err();
+        assert_eq!(refused.body.code, "ownership_lost", "{refused:?}");
+        assert_eq!(refused.body.retry_after, Some(1));
+        let after = session.apply_batch(pose(2)).unwrap_err();
+        assert_eq!(after.body.code, "session_moving", "{after:?}");
+        assert!(session.ownership_superseded());
+        let kept = taken.load_state().unwrap();
+        assert_eq!(kept.entries.len(), 1, "only the acknowledged batch");
+        drop(session);
+        pool.shutdown(std::time::Duration::from_secs(5));
+        std::fs::remove_dir_all(&state).unwrap();
     }
 }

@@ -191,6 +191,21 @@ pub fn moving(name: &str) -> crate::api::ServiceError {
     )
 }
 
+/// A write this instance may no longer acknowledge: another instance of the fleet took the
+/// session over (this one stopped answering for longer than the fleet's lease, see
+/// `journal::takeover`). Not acknowledged is all it says: the new owner may hold the write (a
+/// producer's retry is recognised by its sequence). Clients retry, and reach the new owner.
+pub fn ownership_lost(name: &str) -> crate::api::ServiceError {
+    crate::api::ServiceError::unavailable(
+        "ownership_lost",
+        format!(
+            "session `{name}` was taken over by another instance of the fleet while this one \
+             was not answering; this write was not acknowledged: retry it"
+        ),
+        1,
+    )
+}
+
 impl Session {
     /// What a request to this session gets once it is gone from here: 404, or 503
     /// `session_moving` when it was handed to another instance.

@@ -14,4 +14,5 @@ mod durability_history;
 mod durability_snapshot;
 mod exactly_once;
 mod exactly_once_faults;
+mod group_commit;
 mod state_dir_lock;

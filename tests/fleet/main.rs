@@ -11,6 +11,7 @@ mod fleet;
 mod fleet_login;
 mod fleet_robots;
 mod fleet_rpc_once;
+mod fleet_stopped_host;
 mod fleet_trust;
 mod zenoh_acl;
 mod zenoh_router;

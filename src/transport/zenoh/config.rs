@@ -64,6 +64,22 @@ pub(super) fn config(cfg: &ZenohConfig) -> Result<zenoh::Config, ZenohError> {
     Ok(config)
 }
 
+/// A fleet's members notice a member gone when its links' lease runs out: `lease` instead of
+/// zenoh's 10 s, with zenoh's four keep-alives per lease (a stopped host is then noticed within
+/// about `lease`, see `service::fleet`). On top of a `config_file`, as the settings above are.
+pub(super) fn set_fleet_lease(
+    config: &mut zenoh::Config,
+    lease: std::time::Duration,
+) -> Result<(), ZenohError> {
+    let key = "transport/link/tx/lease";
+    config
+        .insert_json5(key, &lease.as_millis().to_string())
+        .map_err(|e| ZenohError::Config {
+            key: key.into(),
+            message: e.to_string(),
+        })
+}
+
 /// Whether zenoh authenticates every peer before it may send anything: user/password on every
 /// link, or mutual TLS with only TLS endpoints (a plain `tcp/` endpoint beside it is open).
 fn authenticated(config: &zenoh::Config, cfg: &ZenohConfig) -> bool {

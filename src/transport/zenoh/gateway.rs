@@ -21,7 +21,18 @@
 //!   releases the lock: its successor starts serving only after seeing the token go, so no
 //!   query can be answered by both. A gateway that dies loses its tokens with its links (and
 //!   the kernel drops its lock): the next ready instance takes over within milliseconds on a
-//!   `kill -9`, within zenoh's lease when a host stops answering.
+//!   `kill -9`. A host that stops answering (SIGSTOP, frozen) loses its tokens after zenoh's
+//!   lease (`--fleet-lease-ms`) but keeps its lock: the elected successor takes the gateway
+//!   over once that instance's heartbeat has stopped as long ([`Fleet::gateway_lock`]), by
+//!   claiming the gateway's next ownership epoch.
+//!
+//! Why a resumed gateway cannot run a command twice: it checks its epoch before every command
+//! and on every tick, and answers nothing once the epoch is over (it then withdraws `<p>/rpc`).
+//! A query reaches two queryables only when both are declared when it is routed, so one that
+//! the successor also received reaches the old gateway after the successor's claim: the check
+//! drops it there. A command the old gateway had started before it stopped was never sent to
+//! the successor; and a write it then runs on a session, here or forwarded, goes through that
+//! session's own epoch fence (`journal::takeover`).
 //!
 //! The gateway answers as every instance used to (`fleet_routes::route_rpc`): commands without
 //! a session itself, a session's command where the session lives. While no instance serves
@@ -50,7 +61,7 @@ const LOCK_WARNING: Duration = Duration::from_secs(5);
 struct Serving {
     queryable: Queryable<()>,
     token: LivelinessToken,
-    _lock: GatewayLock,
+    lock: GatewayLock,
 }
 
 impl Serving {
@@ -58,11 +69,17 @@ impl Serving {
         let p = &c.prefix;
         let runtime = tokio::runtime::Handle::current();
         let ctx = c.clone();
+        let fence = lock.fence();
         let queryable = c
             .zenoh
             .declare_queryable(format!("{p}/rpc"))
             .complete(true)
             .callback(move |query| {
+                // Taken over while this instance was stopped: no reply, nothing run (the
+                // caller retries and reaches the successor).
+                if fence.superseded() {
+                    return;
+                }
                 let ctx = ctx.clone();
                 // Commands with `wait` may take a while: never hold zenoh's thread.
                 runtime.spawn(async move {
@@ -81,7 +98,7 @@ impl Serving {
         Ok(Self {
             queryable,
             token,
-            _lock: lock,
+            lock,
         })
     }
 
@@ -168,6 +185,19 @@ pub(super) async fn run(c: Context, fleet: Arc<Fleet>) -> Result<(), ZenohError>
             _ = tick.tick() => {}
         }
         ready.0.insert(me.clone());
+        if serving
+            .as_ref()
+            .is_some_and(|s| s.lock.fence().superseded())
+        {
+            if let Some(s) = serving.take() {
+                s.stop().await;
+            }
+            fleet.set_rpc_gateway(false);
+            tracing::warn!(
+                instance = me,
+                "fleet: another instance took the rpc gateway over while this one was stopped"
+            );
+        }
         let elect = elected(&ready.members(&fleet), &me);
         if !elect {
             waiting_since = None;

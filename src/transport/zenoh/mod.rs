@@ -102,7 +102,10 @@ pub async fn start(
     policy: ZenohPolicy,
 ) -> Result<ZenohAdapter, ZenohError> {
     let prefix = prefix(cfg);
-    let config = config(cfg)?;
+    let mut config = config(cfg)?;
+    if let Some(fleet) = service.fleet() {
+        config::set_fleet_lease(&mut config, fleet.lease())?;
+    }
     let caller = Arc::new(caller(&config, cfg, policy.tokens_required)?);
     let session = zenoh::open(config).await.map_err(zenoh_error)?;
     let ctx = Context {
