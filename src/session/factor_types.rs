@@ -5,6 +5,11 @@
 //! The declarations are part of the session's creation record, so a restart, a journal replay
 //! and a move to another instance of a fleet compile the same types again before any batch is
 //! replayed.
+//!
+//! Types are compiled through the service's [`TypeInterner`]: a definition another session
+//! already declared (byte for byte) is shared, not compiled again. Each session is charged its
+//! types in full (its `memory_bytes`, `limits.max_factor_type_bytes_per_session`); the server's
+//! distinct types count once (`limits.max_factor_type_bytes`).
 
 use std::collections::HashMap;
 use std::sync::Arc;
