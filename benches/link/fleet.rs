@@ -303,6 +303,9 @@ pub async fn run(args: &crate::args::Args) -> Vec<Value> {
                 "solve_duration_seconds_sum",
                 "solve_duration_seconds_count",
                 "batches_accepted_total",
+                // Group commit (journal::group_commit): fdatasyncs and the records they covered.
+                "group_fsyncs_total",
+                "group_fsynced_records_total",
             ],
         )
         .await;

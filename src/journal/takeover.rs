@@ -25,6 +25,14 @@
 //! claim without a journal: the next one copies from epoch `m` again (nothing was acknowledged
 //! in the unfinished epoch).
 //!
+//! The session's history (`history.json`, the operators' timeline, not its state) is shared by
+//! the epochs: a resumed old holder may rewrite it once before it steps down.
+//!
+//! Once epoch `n` is complete, the files of the epochs before `m` are removed: no takeover
+//! reads them any more (a concurrent one copies from `m` or later), and a stopped holder of
+//! one of them writes into files already unlinked. Each session keeps at most two epochs'
+//! files; the claims themselves (a few bytes each) stay.
+//!
 //! The shared file system must show one process's writes to another at once (a local file
 //! system, or a cluster file system with that guarantee): the copy relies on it.
 
@@ -77,11 +85,14 @@ impl SessionDir {
         }
         let journal = segment_file(&self.dir, "journal", "log", next);
         let copy = self.dir.join(format!(".journal-{next}.copy"));
-        copy_synced(&segment_file(&self.dir, "journal", "log", source), &copy)?;
+        // Only epoch 0's journal may be missing (a session whose journal was never opened);
+        // a later epoch is complete only once its journal is in place.
+        let from = segment_file(&self.dir, "journal", "log", source);
+        copy_synced(&from, &copy, source == 0)?;
         let snapshot = segment_file(&self.dir, "snapshot", "json", source);
         if snapshot.exists() {
             let snapshot_copy = self.dir.join(format!(".snapshot-{next}.copy"));
-            copy_synced(&snapshot, &snapshot_copy)?;
+            copy_synced(&snapshot, &snapshot_copy, false)?;
             let target = segment_file(&self.dir, "snapshot", "json", next);
             std::fs::rename(&snapshot_copy, &target).map_err(io_at(&target))?;
         }
@@ -89,10 +100,33 @@ impl SessionDir {
         File::open(&self.dir)
             .and_then(|d| d.sync_all())
             .map_err(io_at(&self.dir))?;
+        self.remove_epochs_before(source);
         Ok(SessionDir {
             dir: self.dir.clone(),
             epoch: next,
         })
+    }
+
+    /// Removes the journals, snapshots and unfinished copies of the epochs before `epoch`
+    /// (see the module doc); best effort: what is left is never read.
+    fn remove_epochs_before(&self, epoch: u64) {
+        let Ok(entries) = std::fs::read_dir(&self.dir) else {
+            return;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let of = match name.as_str() {
+                "journal.log" | "snapshot.json" | "journal.tmp" | "snapshot.tmp" => Some(0),
+                other => ["journal-", "snapshot-", ".journal-", ".snapshot-"]
+                    .iter()
+                    .find_map(|prefix| other.strip_prefix(prefix))
+                    .and_then(|rest| rest.split('.').next())
+                    .and_then(|n| n.parse::<u64>().ok()),
+            };
+            if of.is_some_and(|n| n < epoch) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
     }
 
     /// Whether this epoch is over (see `epoch`): nothing may be acknowledged from it.
@@ -109,11 +143,11 @@ impl SessionDir {
     }
 }
 
-/// Copies `from` (absent: an empty file) to `to`, fsynced.
-fn copy_synced(from: &Path, to: &Path) -> Result<(), JournalError> {
+/// Copies `from` (absent, when `may_be_absent`: an empty file) to `to`, fsynced.
+fn copy_synced(from: &Path, to: &Path, may_be_absent: bool) -> Result<(), JournalError> {
     match std::fs::copy(from, to) {
         Ok(_) => {}
-        Err(e) if e.kind() == io::ErrorKind::NotFound => {
+        Err(e) if may_be_absent && e.kind() == io::ErrorKind::NotFound => {
             File::create(to).map_err(io_at(to))?;
         }
         Err(e) => return Err(io_at(from)(e)),
@@ -159,6 +193,9 @@ mod tests {
         let third = second.take_over("c").unwrap();
         let records = crate::journal::read_log(&third.journal_path()).unwrap();
         assert_eq!(records.records.len(), 3);
+        // Two epochs' files are kept: epoch 1's journal went with the third takeover.
+        assert!(!first.journal_path().exists());
+        assert!(second.journal_path().exists());
         std::fs::remove_dir_all(&state).unwrap();
     }
 }

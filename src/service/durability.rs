@@ -202,3 +202,20 @@ impl Service {
         }
     }
 }
+
+/// Applies a batch that waits for its fsync without holding an async thread: a disk stall
+/// would otherwise stop every other request of this instance, and the fsyncs of many batches
+/// run at once, so they are grouped (`journal::group_commit`). `block_in_place` keeps the batch
+/// on its thread (no hand-off to wait for) and hands the thread's other tasks to another one;
+/// a current-thread runtime (tests, embedding) has no other thread: a blocking one is used.
+pub(super) async fn apply_waiting_for_fsync(
+    session: &Arc<crate::session::Session>,
+    batch: crate::api::wire::Batch,
+) -> Result<(crate::api::wire::BatchAck, bool), ServiceError> {
+    use tokio::runtime::{Handle, RuntimeFlavor};
+    if Handle::current().runtime_flavor() == RuntimeFlavor::MultiThread {
+        return tokio::task::block_in_place(|| session.apply_batch(batch));
+    }
+    let session = Arc::clone(session);
+    super::off_async("batch", move || session.apply_batch(batch)).await
+}

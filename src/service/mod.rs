@@ -293,12 +293,8 @@ impl Service {
                 wait,
             } => {
                 let session = self.writable_as(caller, &session)?;
-                // A batch waits for its fsync: on a blocking thread, never an async one (a disk
-                // stall would stop every other session's requests on this instance), and many
-                // at once, so their fsyncs are grouped (`journal::group_commit`).
                 let (ack, will_solve) = if session.waits_for_fsync() {
-                    let applying = Arc::clone(&session);
-                    off_async("batch", move || applying.apply_batch(batch)).await?
+                    durability::apply_waiting_for_fsync(&session, batch).await?
                 } else {
                     session.apply_batch(batch)?
                 };

@@ -54,6 +54,10 @@ impl Session {
             self.check_batch_size(&batch)?;
         }
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        // Taken with the journal held, before the batch is written or a solve of it scheduled:
+        // a solve's `journal_barrier` then waits for this batch's acknowledgement.
+        let acknowledging =
+            journal.then(|| self.acknowledging.read().unwrap_or_else(|p| p.into_inner()));
         let wire_copy = durable.is_some().then(|| batch.clone());
         let factor_types = self.factor_types();
         let prepared = batch::prepare(
@@ -191,6 +195,8 @@ impl Session {
         };
         drop(durable);
         if let Err(e) = pending.map_or(Ok(()), |p| p.wait(&self.name)) {
+            // Nothing is acknowledged; the step-down below takes the session's locks.
+            drop(acknowledging);
             return Err(self.sync_refused(e));
         }
         // Batches sharing an fsync may get here in any order.

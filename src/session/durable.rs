@@ -6,6 +6,7 @@
 //! session lock: `snapshot.rs`; the operators' history of the stream is kept beside them:
 //! `history_file.rs`.
 
+mod commit;
 mod history_file;
 mod snapshot;
 
@@ -61,28 +62,6 @@ pub(super) struct Durable {
     pub(super) last_fsync: Duration,
 }
 
-/// A batch written to the journal, to be made durable without holding the journal: batches of
-/// one session (and the fdatasyncs of many) are then grouped (`journal::group_commit`).
-pub(super) struct PendingSync {
-    ticket: Option<crate::journal::group_commit::Ticket>,
-    dir: SessionDir,
-}
-
-impl PendingSync {
-    /// Waits until the batch's record is durable (under `fsync always`), then checks that this
-    /// instance still owns the session (the fence, see `journal::takeover`).
-    pub(super) fn wait(self, name: &str) -> Result<(), ServiceError> {
-        if let Some(ticket) = self.ticket {
-            let waited = ticket.wait().map_err(|e| journal_failed(name, e))?;
-            crate::runtime::metrics::observe_fsync(waited);
-        }
-        if self.dir.superseded() {
-            return Err(super::ownership_lost(name));
-        }
-        Ok(())
-    }
-}
-
 fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
     // The update was not made durable, so it is not acknowledged (nor applied, unless only its
     // fsync failed: see `Session::journal_sync_failed`).
@@ -119,15 +98,6 @@ impl Durable {
             return Err(super::ownership_lost(name));
         }
         Ok(())
-    }
-
-    /// What a batch just written waits for, after releasing the journal (see
-    /// [`PendingSync::wait`]).
-    pub(super) fn pending(&self) -> PendingSync {
-        PendingSync {
-            ticket: self.journal.last_ticket(),
-            dir: self.dir.clone(),
-        }
     }
 
     /// Fills in the values the server predicted for variables sent without one (so a replay
@@ -480,21 +450,6 @@ impl Session {
         result
     }
 
-    /// Waits until every batch whose entry is in the journal is durable (a failure is the
-    /// batch's own to report). What a solve publishes, and a repeated acknowledgement, pass it
-    /// first.
-    pub(super) fn journal_barrier(&self) {
-        let ticket = self
-            .durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-            .and_then(|d| d.journal.last_ticket());
-        if let Some(ticket) = ticket {
-            let _ = ticket.wait();
-        }
-    }
-
     /// A batch was applied but its journal entry could not be made durable: whether it reached
     /// the disk is unknown (a failed fsync may have dropped the written pages), so the session
     /// stops taking writes rather than go on from a state its files may not hold. A restart
@@ -508,49 +463,6 @@ impl Session {
         tracing::error!(session = self.name, "{reason}");
         self.mark_corrupt(reason);
         error
-    }
-
-    /// A write's sync was refused: the session was taken over elsewhere (it steps down here:
-    /// every later request hears `session_moving` and goes to the new owner), or its journal
-    /// failed ([`Self::journal_sync_failed`]). Call without the journal held.
-    pub(super) fn sync_refused(&self, error: ServiceError) -> ServiceError {
-        if error.body.code != "ownership_lost" {
-            return self.journal_sync_failed(error);
-        }
-        tracing::warn!(
-            session = self.name,
-            "taken over by another instance: stepping down"
-        );
-        self.mark_moved();
-        error
-    }
-
-    /// Whether an accepted write waits for an fsync (a durable session under `fsync always`).
-    pub fn waits_for_fsync(&self) -> bool {
-        self.durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-            .is_some_and(|d| d.config.fsync == crate::journal::Fsync::Always)
-    }
-
-    /// Whether another instance of the fleet took the session over (see `journal::takeover`).
-    /// Waits for a write's fsync under way.
-    pub fn ownership_superseded(&self) -> bool {
-        self.durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-            .is_some_and(|d| d.dir.superseded())
-    }
-
-    /// Its directory, at the ownership epoch it writes (`None` outside the journal).
-    pub fn journal_dir(&self) -> Option<SessionDir> {
-        self.durable
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_ref()
-            .map(|d| d.dir.clone())
     }
 
     /// Under `fsync: interval`: makes what was appended so far durable.

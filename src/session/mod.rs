@@ -94,6 +94,11 @@ pub struct Session {
     engine: Engine,
     /// Where the session is kept on disk, when it is durable.
     durable: Mutex<Option<durable::Durable>>,
+    /// Held shared by a journalled batch from its journal write to its acknowledgement, and
+    /// taken exclusively by everything that publishes a solve's results (`journal_barrier`):
+    /// the fsync runs with the journal unlocked (group commit), so the journal lock no longer
+    /// orders an acknowledgement before what a solve publishes of the batch; this does.
+    acknowledging: std::sync::RwLock<()>,
     /// Being rebuilt from its journal: writes are refused until it is done.
     recovering: AtomicBool,
     /// Handed to another instance of a fleet: what still reaches it is refused with 503
@@ -136,6 +141,7 @@ impl Session {
             cancel: AtomicBool::new(false),
             engine: Engine::for_kind(kind),
             durable: Mutex::new(None),
+            acknowledging: std::sync::RwLock::new(()),
             recovering: AtomicBool::new(false),
             moved: AtomicBool::new(false),
             corruption: std::sync::OnceLock::new(),

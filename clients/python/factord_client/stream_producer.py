@@ -23,7 +23,7 @@ _TRANSIENT_STATUS = (429, 503)
 _GAP = "producer_sequence_gap"
 # Refusals that end within milliseconds (a recovery, a fleet move): retried after _BRIEF_RETRY
 # seconds rather than their whole-second Retry-After.
-_BRIEF_UNAVAILABLE = ("recovering", "session_moving")
+_BRIEF_UNAVAILABLE = ("recovering", "session_moving", "ownership_lost")
 _BRIEF_RETRY = 0.05
 _FORGOTTEN = "producer_sequence_forgotten"
 
