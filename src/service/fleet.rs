@@ -118,7 +118,7 @@ pub const LEASE_MS_RANGE: std::ops::RangeInclusive<u64> = 500..=60_000;
 /// It also holds an ownership epoch of `<state_dir>/fleet-gateway/` (see `journal::epoch`):
 /// a successor takes the gateway over from a stopped instance, whose OS lock stays held,
 /// by claiming the next epoch, and the stopped one, should it resume, answers nothing once it
-/// sees its epoch is over ([`GatewayLock::superseded`]).
+/// sees its epoch is over ([`GatewayFence::superseded`]).
 #[derive(Debug)]
 pub struct GatewayLock {
     /// `None` when taken over from a stopped instance that still holds the OS lock.
