@@ -5,7 +5,6 @@
 
 use std::borrow::Borrow;
 use std::ops::ControlFlow;
-use std::time::Instant;
 
 use super::iterations::{Iterations, StepTimes};
 use super::options::SolverOptions;
@@ -109,12 +108,7 @@ fn chord_step(
     chi2: f64,
     times: &mut StepTimes,
 ) -> bool {
-    let t = Instant::now();
-    it.delta.copy_from_slice(&it.b);
-    it.chol.solve_in_place(&mut it.delta);
-    let s = t.elapsed().as_secs_f64();
-    it.timings.linear_solve_seconds += s;
-    times.solve += s;
+    it.solve_with_factor(times);
     let predicted = dot(&it.delta, &it.b);
     predicted >= 0.0 && predicted <= options.function_tolerance * chi2
 }

@@ -241,13 +241,18 @@ impl<'a> Iterations<'a> {
         if result?.is_break() {
             return Ok(ControlFlow::Break(()));
         }
+        self.solve_with_factor(times);
+        Ok(ControlFlow::Continue(()))
+    }
+
+    /// `delta` = (the factorised matrix)⁻¹ `b`, with the factorisation in hand.
+    pub(super) fn solve_with_factor(&mut self, times: &mut StepTimes) {
         let t = Instant::now();
         self.delta.copy_from_slice(&self.b);
         self.chol.solve_in_place(&mut self.delta);
         let s = t.elapsed().as_secs_f64();
         self.timings.linear_solve_seconds += s;
         times.solve += s;
-        Ok(ControlFlow::Continue(()))
     }
 
     pub(super) fn run<E: Borrow<FactorEntry>>(
