@@ -492,20 +492,6 @@ pub fn tum(inputs: &FusionInputs, estimates: &[Estimate]) -> String {
     out
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn statistics_are_evos() {
-        let s = ErrorStatistics::of(&[1.0, 2.0, 4.0, 3.0]);
-        assert_eq!((s.min, s.max, s.median, s.mean), (1.0, 4.0, 2.5, 2.5));
-        assert_eq!(s.sse, 30.0);
-        assert!((s.rmse - 7.5f64.sqrt()).abs() < 1e-15);
-        assert!((s.std - 1.25f64.sqrt()).abs() < 1e-15);
-    }
-}
-
 /// The experiment's inputs as a robot sends them: the `start` message, then one batch per
 /// keyframe (its IMU samples, the keyframe, its relative poses and priors).
 pub fn experiment_messages(inputs: &FusionInputs) -> (FusionMessage, Vec<Vec<FusionMessage>>) {

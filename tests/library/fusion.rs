@@ -237,3 +237,13 @@ fn preintegrated_deltas_and_raw_samples_give_the_same_keyframe() {
         Err(FusionError::KeyframeWithoutImu { .. })
     ));
 }
+
+/// The APE statistics are evo's (min, max, median, mean, SSE, RMSE, standard deviation).
+#[test]
+fn statistics_are_evos() {
+    let s = experiment::ErrorStatistics::of(&[1.0, 2.0, 4.0, 3.0]);
+    assert_eq!((s.min, s.max, s.median, s.mean), (1.0, 4.0, 2.5, 2.5));
+    assert_eq!(s.sse, 30.0);
+    assert!((s.rmse - 7.5f64.sqrt()).abs() < 1e-15);
+    assert!((s.std - 1.25f64.sqrt()).abs() < 1e-15);
+}
