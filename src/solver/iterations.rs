@@ -16,7 +16,9 @@ use super::cholesky::NotPositiveDefinite;
 use super::linear::LinearSolver;
 use super::linearize::{gradient_within, linearize_within, Scratch, SystemLayout};
 use super::options::SolverOptions;
-use super::stopping::{accepted_step_stop, stopped, termination};
+use super::stopping::{
+    accepted_step_stop, gradient_stop, interrupted_by_caller, max_iterations, stopped, termination,
+};
 use super::strategy::{Proposal, Strategy};
 use super::summary::{IterationReport, Run, Termination, TerminationReason, Timings};
 use super::vector::{dot, max_abs};
@@ -321,22 +323,7 @@ impl<'a> Iterations<'a> {
                 &mut times,
             )?;
             chi2 = now;
-            let report = IterationReport {
-                iteration,
-                chi2,
-                trial_chi2: step.trial_chi2,
-                relative_decrease: step.relative_decrease(previous),
-                gradient_max_norm: gradient,
-                step_norm: step.norm,
-                step_two_norm: step.two_norm,
-                gain_ratio: step.gain_ratio(previous),
-                lambda: strategy.lambda(),
-                trust_radius: strategy.radius(),
-                accepted: step.accepted,
-                linearize_seconds: times.linearize,
-                factorize_seconds: times.factorize,
-                solve_seconds: times.solve,
-            };
+            let report = step.report(iteration, previous, chi2, gradient, &strategy, &times);
             times = StepTimes::default();
             let control = on_iteration(&report);
             self.log.push(report);
@@ -344,33 +331,13 @@ impl<'a> Iterations<'a> {
                 return Ok((chi2, stop));
             }
             if control.is_break() {
-                return Ok((
-                    chi2,
-                    termination(
-                        TerminationReason::Interrupted,
-                        iteration as f64,
-                        0.0,
-                        "interrupted by the caller after this iteration",
-                    ),
-                ));
+                return Ok((chi2, interrupted_by_caller(iteration)));
             }
             if let Some(end) = strategy.out_of_range() {
                 return Ok((chi2, end));
             }
         }
-        let n = options.max_iterations as f64;
-        Ok((
-            chi2,
-            termination(
-                TerminationReason::MaxIterations,
-                n,
-                n,
-                &format!(
-                    "maximum number of iterations reached ({})",
-                    options.max_iterations
-                ),
-            ),
-        ))
+        Ok((chi2, max_iterations(options)))
     }
 
     /// One step of `strategy` from `values` (chi2 `chi2`): computed, its trial point evaluated
@@ -479,27 +446,42 @@ impl Step {
         }
     }
 
+    /// The iteration's report: the step from chi2 `previous` to `chi2` (the point the loop is at
+    /// now), the gradient it started from, the strategy's parameters and the linear algebra's
+    /// times.
+    fn report(
+        &self,
+        iteration: usize,
+        previous: f64,
+        chi2: f64,
+        gradient: f64,
+        strategy: &Strategy,
+        times: &StepTimes,
+    ) -> IterationReport {
+        IterationReport {
+            iteration,
+            chi2,
+            trial_chi2: self.trial_chi2,
+            relative_decrease: self.relative_decrease(previous),
+            gradient_max_norm: gradient,
+            step_norm: self.norm,
+            step_two_norm: self.two_norm,
+            gain_ratio: self.gain_ratio(previous),
+            lambda: strategy.lambda(),
+            trust_radius: strategy.radius(),
+            accepted: self.accepted,
+            linearize_seconds: times.linearize,
+            factorize_seconds: times.factorize,
+            solve_seconds: times.solve,
+        }
+    }
+
     /// ρ = actual / predicted decrease (0 when not finite).
     fn gain_ratio(&self, previous: f64) -> f64 {
         Some((previous - self.trial_chi2) / self.predicted)
             .filter(|r| r.is_finite())
             .unwrap_or(0.0)
     }
-}
-
-/// The gradient test before each iteration: the solve ends when |g|∞ is within the tolerance.
-fn gradient_stop(options: &SolverOptions, gradient: f64) -> Option<Termination> {
-    (options.gradient_tolerance > 0.0 && gradient <= options.gradient_tolerance).then(|| {
-        termination(
-            TerminationReason::GradientTolerance,
-            gradient,
-            options.gradient_tolerance,
-            &format!(
-                "gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}",
-                options.gradient_tolerance
-            ),
-        )
-    })
 }
 
 #[cfg(test)]

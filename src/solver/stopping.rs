@@ -66,6 +66,45 @@ pub(super) fn stopped(iteration: usize) -> Termination {
     )
 }
 
+/// The gradient test before each iteration: the solve ends when |g|∞ is within the tolerance.
+pub(super) fn gradient_stop(options: &SolverOptions, gradient: f64) -> Option<Termination> {
+    (options.gradient_tolerance > 0.0 && gradient <= options.gradient_tolerance).then(|| {
+        termination(
+            TerminationReason::GradientTolerance,
+            gradient,
+            options.gradient_tolerance,
+            &format!(
+                "gradient tolerance reached: |g|inf = {gradient:.3e} <= {:.3e}",
+                options.gradient_tolerance
+            ),
+        )
+    })
+}
+
+/// The caller's `on_iteration` stopped the solve after iteration `iteration`.
+pub(super) fn interrupted_by_caller(iteration: usize) -> Termination {
+    termination(
+        TerminationReason::Interrupted,
+        iteration as f64,
+        0.0,
+        "interrupted by the caller after this iteration",
+    )
+}
+
+/// Every iteration `options` allows ran without another stop.
+pub(super) fn max_iterations(options: &SolverOptions) -> Termination {
+    let n = options.max_iterations as f64;
+    termination(
+        TerminationReason::MaxIterations,
+        n,
+        n,
+        &format!(
+            "maximum number of iterations reached ({})",
+            options.max_iterations
+        ),
+    )
+}
+
 pub(super) fn termination(
     reason: TerminationReason,
     value: f64,

@@ -289,6 +289,16 @@ pub async fn infos(z: &zenoh::Session) -> Vec<Value> {
     out
 }
 
+/// The instances whose `info` says they serve `factord/rpc` now.
+pub async fn gateways(z: &zenoh::Session) -> Vec<String> {
+    infos(z)
+        .await
+        .into_iter()
+        .filter(|i| i["rpc_gateway"] == true)
+        .map(|i| i["instance"].as_str().unwrap_or_default().to_string())
+        .collect()
+}
+
 fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_default()
 }

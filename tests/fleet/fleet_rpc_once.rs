@@ -19,7 +19,7 @@ use crate::common;
 
 use std::time::{Duration, Instant};
 
-use common::fleet::{infos, zenoh_replies, Fleet, Wiring};
+use common::fleet::{gateways, zenoh_replies, Fleet, Wiring};
 use common::server::{free_port, zenoh_session};
 use serde_json::{json, Value};
 
@@ -188,16 +188,6 @@ async fn mixed_routers_and_peers() {
     let client = zenoh_session("client", "connect", &fleet.instance(2).zenoh).await;
     let peer = zenoh_session("peer", "connect", &router).await;
     check(&fleet, &[("mixed-client", client), ("mixed-peer", peer)]).await;
-}
-
-/// The instances whose `info` says they serve `factord/rpc` now.
-async fn gateways(z: &zenoh::Session) -> Vec<String> {
-    infos(z)
-        .await
-        .into_iter()
-        .filter(|i| i["rpc_gateway"] == true)
-        .map(|i| i["instance"].as_str().unwrap_or_default().to_string())
-        .collect()
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -12,7 +12,7 @@ use crate::common;
 
 use std::time::{Duration, Instant};
 
-use common::fleet::{infos, zenoh_replies, Fleet};
+use common::fleet::{gateways, zenoh_replies, Fleet};
 use common::server::zenoh_session;
 use serde_json::{json, Value};
 
@@ -94,15 +94,6 @@ async fn rpc_served_within(z: &zenoh::Session, since: Instant, within: Duration)
         }
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-}
-
-async fn gateways(z: &zenoh::Session) -> Vec<String> {
-    infos(z)
-        .await
-        .into_iter()
-        .filter(|i| i["rpc_gateway"] == true)
-        .map(|i| i["instance"].as_str().unwrap_or_default().to_string())
-        .collect()
 }
 
 #[tokio::test(flavor = "multi_thread")]
