@@ -119,6 +119,9 @@ pub struct AuthConfig {
     /// Require tokens: `true`, `false`, or absent for "when HTTP listens beyond loopback".
     /// `false` beyond loopback is refused: an open back-end on the network is never the intent.
     pub required: Option<bool>,
+    /// Token labels that may read `GET /metrics` (every tenant's figures). Absent: the only
+    /// label when there is one; with several labels, nobody (the server warns at start).
+    pub operators: Option<Vec<String>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -456,6 +459,17 @@ fn tokens_for(
         }
         _ if tokens.is_empty() => Ok(None),
         _ => {
+            if let Some(operators) = &auth.operators {
+                tokens
+                    .set_operators(operators)
+                    .map_err(|e| ServeError::Auth(e.to_string()))?;
+            }
+            if tokens.metrics_closed() {
+                tracing::warn!(
+                    "GET /metrics answers 403 to every token: several token labels are \
+                     configured and auth.operators (--operators) names none of them"
+                );
+            }
             tracing::info!("HTTP requires bearer tokens ({} configured)", tokens.len());
             Ok(Some(Arc::new(tokens)))
         }

@@ -2,7 +2,7 @@
 //!
 //! Asks `GET /v1/health` (open without a token) and wants `200` with `"status": "ok"`; with a
 //! token it also asks `GET /metrics`, which needs one, so a token the server refuses is reported
-//! too. Both routes are answered even when the server is at its connection limit (its reserve
+//! too (a valid token that is not an operator's gets 403 there, and counts as accepted). Both routes are answered even when the server is at its connection limit (its reserve
 //! connections), so a busy server is not reported unhealthy. Exit codes as Docker's
 //! `HEALTHCHECK` reads them: 0 healthy, 1 unhealthy with a one-line reason on stderr (Docker
 //! reserves 2; clap still exits with 2 on bad arguments).
@@ -129,6 +129,8 @@ fn check(args: &HealthArgs) -> Result<String, Unhealthy> {
         let metrics = client.get("/metrics")?;
         match metrics.status {
             200 => line.push_str(", token accepted"),
+            // Valid, but not an operator's: /metrics is withheld from tenants.
+            403 => line.push_str(", token accepted (not an operator: /metrics withheld)"),
             401 => return Err(Unhealthy::TokenRefused(error_message(&metrics.body))),
             _ => return Err(client.status_error("/metrics", &metrics)),
         }

@@ -53,6 +53,10 @@ pub struct ServeArgs {
     /// comma-separated ones); required automatically when --listen is beyond loopback.
     #[arg(long, env = "FACTORD_TOKENS_FILE")]
     tokens_file: Option<PathBuf>,
+    /// Token labels (comma-separated) that may read GET /metrics, which shows every tenant's
+    /// figures [default: the only label when there is one, else nobody]
+    #[arg(long, env = "FACTORD_OPERATORS", value_delimiter = ',')]
+    operators: Option<Vec<String>>,
     /// Keep sessions in memory only (no journal, nothing recovered at start).
     #[arg(long, env = "FACTORD_NO_JOURNAL")]
     no_journal: bool,
@@ -170,6 +174,9 @@ fn overlay(args: ServeArgs, config: &mut ServeConfig) {
     }
     if let Some(v) = args.tokens_file {
         config.auth.tokens_file = Some(v);
+    }
+    if let Some(v) = args.operators {
+        config.auth.operators = Some(v);
     }
     if args.fleet {
         config.fleet.enabled = true;

@@ -44,7 +44,11 @@ async fn tokens_guard_every_route_and_sessions_belong_to_their_token() {
     std::fs::write(&tokens, format!("# who\nalice {ALICE}\nbob {BOB}\n")).unwrap();
     let tokens = tokens.display().to_string();
     let state = dir.join("state");
-    let s = TestServer::start_at(&state, &["--no-zenoh", "--tokens-file", &tokens], &[]);
+    let s = TestServer::start_at(
+        &state,
+        &["--no-zenoh", "--tokens-file", &tokens, "--operators", "bob"],
+        &[],
+    );
     let c = client();
     use reqwest::Method as M;
 
@@ -125,12 +129,17 @@ async fn tokens_guard_every_route_and_sessions_belong_to_their_token() {
     assert_eq!(list["sessions"], json!([]));
     let (_, list, _) = call(&c, M::GET, &s.url("/v1/sessions"), Some(ALICE), None).await;
     assert_eq!(list["sessions"][0]["session"], "alices");
+    // Server-wide figures are the operator's (bob here), not every tenant's (A12).
     let (status, metrics, _) = call(&c, M::GET, &s.url("/metrics"), Some(BOB), None).await;
     assert_eq!(status, 200);
-    assert!(metrics
-        .as_str()
-        .unwrap()
-        .contains("factord_rejected_inputs_total{reason=\"unauthorized\"}"));
+    let metrics = metrics.as_str().unwrap();
+    assert!(metrics.contains("factord_rejected_inputs_total{reason=\"unauthorized\"}"));
+    assert!(metrics.contains("\nfactord_sessions 1\n"), "{metrics}");
+    let (status, v, _) = call(&c, M::GET, &s.url("/metrics"), Some(ALICE), None).await;
+    assert_eq!(status, 403, "{v}");
+    assert_eq!(v["error"]["code"], "operator_only");
+    assert_eq!(v["error"]["field"], "authorization");
+    assert!(!v.to_string().contains("factord_sessions"));
     s.assert_no_panic();
     s.kill();
 
@@ -181,6 +190,70 @@ fn beyond_loopback_tokens_are_required() {
     assert!(stderr.contains("requires bearer tokens"), "{stderr}");
     // A token too short to be safe is refused as well.
     assert!(refusal(Some("short")).contains("at least 16"));
+}
+
+/// `/metrics` without an operator list: a single label is its own operator; several labels
+/// leave it closed (and the server says so); a list naming an unknown label stops the start.
+#[tokio::test(flavor = "multi_thread")]
+async fn metrics_answer_the_operator_only() {
+    let dir = common::temp_dir("auth-operators");
+    let c = client();
+    let metrics = |s: &TestServer| s.url("/metrics");
+
+    let one = dir.join("one");
+    std::fs::write(&one, format!("alice {ALICE}\n")).unwrap();
+    let s = TestServer::start_at(
+        &dir.join("state-one"),
+        &["--no-zenoh", "--tokens-file", one.to_str().unwrap()],
+        &[],
+    );
+    let (status, _, _) = call(&c, reqwest::Method::GET, &metrics(&s), Some(ALICE), None).await;
+    assert_eq!(status, 200);
+    s.kill();
+
+    let two = dir.join("two");
+    std::fs::write(&two, format!("alice {ALICE}\nbob {BOB}\n")).unwrap();
+    let s = TestServer::start_at(
+        &dir.join("state-two"),
+        &["--no-zenoh", "--tokens-file", two.to_str().unwrap()],
+        &[],
+    );
+    for token in [ALICE, BOB] {
+        let (status, v, _) = call(&c, reqwest::Method::GET, &metrics(&s), Some(token), None).await;
+        assert_eq!(
+            (status, &v["error"]["code"]),
+            (403, &json!("operator_only"))
+        );
+    }
+    assert!(s
+        .stderr()
+        .contains("GET /metrics answers 403 to every token"));
+    s.kill();
+
+    let out = Command::new(env!("CARGO_BIN_EXE_factord"))
+        .args([
+            "serve",
+            "--no-zenoh",
+            "--listen",
+            "127.0.0.1:0",
+            "--state-dir",
+        ])
+        .arg(dir.join("state-three"))
+        .args([
+            "--tokens-file",
+            two.to_str().unwrap(),
+            "--operators",
+            "carol",
+        ])
+        .stdout(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("`carol`, which is the label of no token"),
+        "{stderr}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -390,9 +390,19 @@ fn health(url: &str, args: &[&str], env: &[(&str, &str)]) -> (Option<i32>, Strin
 fn health_tells_healthy_refused_token_nothing_listening_and_no_answer_apart() {
     let dir = common::temp_dir("health");
     let tokens = dir.join("tokens");
-    std::fs::write(&tokens, "ops a-token-of-at-least-16-chars\n").unwrap();
+    std::fs::write(
+        &tokens,
+        "ops a-token-of-at-least-16-chars\ntenant a-tenants-token-16-chars\n",
+    )
+    .unwrap();
     let tokens_arg = tokens.display().to_string();
-    let server = TestServer::start(&["--no-zenoh", "--tokens-file", &tokens_arg]);
+    let server = TestServer::start(&[
+        "--no-zenoh",
+        "--tokens-file",
+        &tokens_arg,
+        "--operators",
+        "ops",
+    ]);
     let url = server.http.clone();
 
     let (code, said, _) = health(&url, &[], &[]);
@@ -410,6 +420,10 @@ fn health_tells_healthy_refused_token_nothing_listening_and_no_answer_apart() {
         &[("FACTORD_TOKEN", "a-token-of-at-least-16-chars")],
     );
     assert_eq!(code, Some(0), "{said}");
+    // A tenant's token is valid, though /metrics is the operator's (403 there).
+    let (code, said, _) = health(&url, &[], &[("FACTORD_TOKEN", "a-tenants-token-16-chars")]);
+    assert_eq!(code, Some(0), "{said}");
+    assert!(said.contains("token accepted (not an operator"), "{said}");
     let (code, said, _) = health(&url, &[], &[("FACTORD_TOKEN", "wrong-token-wrong-token")]);
     assert_eq!(code, Some(1), "{said}");
     assert_eq!(said.lines().count(), 1, "one line: {said}");

@@ -13,7 +13,12 @@
 //! label of the token that created it: to any other caller it does not exist (404), nor is it
 //! listed or counted (see `service::caller`). Sessions created over an unauthenticated zenoh or
 //! before tokens were configured belong to nobody and are reachable with any valid token.
+//!
+//! `GET /metrics` counts every tenant's sessions, memory and failures, so with several token
+//! labels it answers only to the operators (`auth.operators`); a single label is its own
+//! operator (there is no other tenant to learn about). Anyone else gets 403 `operator_only`.
 
+use std::collections::HashSet;
 use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -37,12 +42,16 @@ pub struct Tokens {
     pub(super) failures: FailureThrottle,
     /// The web view's logins, which its cookie names.
     pub(super) web_sessions: WebSessions,
+    /// The labels that may read server-wide figures (`auth.operators`); `None`: not configured.
+    operators: Option<HashSet<Arc<str>>>,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum TokensError {
     #[error("tokens file {file}: {message}")]
     File { file: PathBuf, message: String },
+    #[error("{0}")]
+    Operators(String),
 }
 
 impl Tokens {
@@ -99,6 +108,45 @@ impl Tokens {
             .retain(|(known, _)| **known != *token.as_bytes());
         self.tokens.push((token.as_bytes().into(), label.into()));
         Ok(())
+    }
+
+    /// Sets the labels that may read `/metrics`; each must be a label of a configured token.
+    pub fn set_operators(&mut self, labels: &[String]) -> Result<(), TokensError> {
+        let known = self.labels();
+        let mut operators = HashSet::new();
+        for label in labels {
+            let known = known.iter().find(|k| ****k == **label).ok_or_else(|| {
+                TokensError::Operators(format!(
+                    "auth.operators names `{label}`, which is the label of no token"
+                ))
+            })?;
+            operators.insert((*known).clone());
+        }
+        self.operators = Some(operators);
+        Ok(())
+    }
+
+    /// The distinct labels of the configured tokens.
+    fn labels(&self) -> Vec<&Arc<str>> {
+        let mut labels: Vec<&Arc<str>> = self.tokens.iter().map(|(_, label)| label).collect();
+        labels.sort();
+        labels.dedup();
+        labels
+    }
+
+    /// Whether several tenants share this server and no operator is named: `/metrics` is then
+    /// refused to everyone (the server says so at start).
+    pub fn metrics_closed(&self) -> bool {
+        self.operators.is_none() && self.labels().len() > 1
+    }
+
+    /// Whether `label` may read server-wide figures: a listed operator, or, with none listed,
+    /// the only label there is.
+    fn is_operator(&self, label: &str) -> bool {
+        match &self.operators {
+            Some(operators) => operators.contains(label),
+            None => self.labels().len() == 1,
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -194,6 +242,22 @@ pub(super) fn cookie_values(headers: &HeaderMap) -> impl Iterator<Item = &str> {
         .filter_map(|pair| pair.trim().strip_prefix(COOKIE)?.strip_prefix('='))
 }
 
+/// 403 for a valid token that is not an operator's on an operator-only route.
+fn operator_only(label: &str) -> Response {
+    super::HttpError::from(
+        ServiceError::new(
+            ErrorKind::Forbidden,
+            "operator_only",
+            format!(
+                "`/metrics` shows every tenant's figures and answers only to the token labels \
+                 listed in `auth.operators` (--operators); `{label}` is not one of them"
+            ),
+        )
+        .at("authorization"),
+    )
+    .into_response()
+}
+
 fn unauthorized(message: &str) -> Response {
     let mut response = super::HttpError::from(
         ServiceError::new(ErrorKind::Unauthorized, "unauthorized", message).at("authorization"),
@@ -238,6 +302,9 @@ pub async fn require_token(
         Err(refusal) => return refusal,
     };
     let caller = match principal {
+        Some(label) if path == "/metrics" && !tokens.is_operator(&label) => {
+            return operator_only(&label);
+        }
         Some(label) => {
             if let Some(connection) = request.extensions().get::<ConnectionContext>() {
                 connection.authenticated();
