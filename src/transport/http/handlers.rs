@@ -39,7 +39,8 @@ pub(super) async fn run(
     responses(
         (status = 200, description = "Prometheus text exposition (format 0.0.4).",
             content_type = "text/plain; version=0.0.4; charset=utf-8", body = String),
-        (status = 401, response = Unauthorized), (status = 421, response = Misdirected)))]
+        (status = 401, response = Unauthorized), (status = 403, response = Forbidden),
+        (status = 421, response = Misdirected)))]
 pub(super) async fn metrics(State(service): Shared) -> Response {
     (
         [(

@@ -146,7 +146,8 @@ error_responses! {
     Unauthorized: "`unauthorized`: tokens are in force and the request has no valid \
         `Authorization: Bearer <token>` (with `WWW-Authenticate: Bearer`).";
     Forbidden: "`forbidden_origin`: a state-changing request (or a WebSocket upgrade) from a \
-        web page of another origin than this server's or `http.allowed_origins`.";
+        web page of another origin than this server's or `http.allowed_origins`; \
+        `operator_only`: `/metrics` with a token whose label is not in `auth.operators`.";
     NotFound: "`unknown_session` (also for a session of another token), `no_summary`, or \
         `no_route`.";
     Conflict: "`session_exists` / `session_on_disk` (create), or `session_corrupt` (writes to \
