@@ -22,7 +22,8 @@ use std::time::Instant;
 use nalgebra::{DMatrix, SymmetricEigen};
 
 use super::block_factor::{rank_update_flops, UpdateRows};
-use super::{add_block, IncrementalEngine, UpdateParams, UpdateReport};
+use super::refactor_pass::add_block;
+use super::{IncrementalEngine, UpdateParams, UpdateReport};
 use crate::problem::{FactorEntry, Problem};
 use crate::solver::schur::small_cholesky;
 use crate::solver::SolverError;

@@ -29,6 +29,7 @@ mod dense;
 mod elimination_cost;
 mod linearized;
 mod ordering;
+mod refactor_pass;
 mod relinearize_budget;
 mod report;
 mod subtree_updates;
@@ -36,7 +37,7 @@ mod summary;
 
 use std::time::Instant;
 
-use block_factor::{Accumulator, BlockFactor, Solution};
+use block_factor::BlockFactor;
 use linearized::{linearize_factor, Linearized};
 pub use report::UpdateReport;
 pub use summary::UpdateContext;
@@ -191,52 +192,12 @@ impl IncrementalEngine {
     ) -> Result<UpdateReport, SolverError> {
         let mut report = UpdateReport::default();
         let start = Instant::now();
-        let n = problem.values.len();
         let known = self.theta.len();
-        report.new_variables = n - known;
-        for v in known..n {
-            let variable = problem.values.variable(v);
-            let is_fixed = match fixed_at_start {
-                Some(fixed) => fixed[v],
-                None => problem.values.is_fixed(v),
-            };
-            let d = if is_fixed { 0 } else { variable.tangent_dim() };
-            self.theta.push(variable.clone_box());
-            self.free.push(!is_fixed);
-            self.columns += usize::from(!is_fixed);
-            self.offset.push(self.delta.len());
-            self.dims.push(d);
-            self.delta.resize(self.delta.len() + d, 0.0);
-            self.step.push(0.0);
-            self.propagated.resize(self.delta.len(), 0.0);
-            self.y.resize(self.y.len() + d, 0.0);
-            self.partial.resize(self.partial.len() + d, 0.0);
-            self.by_variable.push(Vec::new());
-        }
-        self.factor.grow(&self.dims);
-        self.mark.resize(n, false);
-        self.last.resize(n, false);
-        self.local.resize(n, 0);
-        let mut touched: Vec<usize> = (known..n).filter(|&v| self.free[v]).collect();
-        let factors = problem.factors();
+        report.new_variables = problem.values.len() - known;
+        let mut touched = self.add_variables(problem, fixed_at_start);
         let first_new = self.linearized.len();
-        report.new_factors = factors.len() - first_new;
-        for (f, entry) in factors.iter().enumerate().skip(first_new) {
-            let mut lin = Linearized::default();
-            linearize_factor(entry, &self.theta, &mut self.scratch, &mut lin)?;
-            self.residual_chi2 += lin.chi2;
-            self.residuals += entry.factor.residual_dim();
-            self.linearized_bytes += LINEARIZED_OVERHEAD
-                + 8 * (lin.gram.len() + lin.gradient.len() + lin.col_offset.len());
-            self.linearized.push(lin);
-            for &v in entry.variables() {
-                self.by_variable[v].push(f as u32);
-                if self.free[v] {
-                    self.jacobian_blocks += 1;
-                    touched.push(v);
-                }
-            }
-        }
+        report.new_factors = problem.factors().len() - first_new;
+        self.linearize_new_factors(problem, &mut touched)?;
         // The new factors' variables are eliminated last (they are where the next update lands).
         let constrained = touched.clone();
         for &v in &constrained {
@@ -275,7 +236,74 @@ impl IncrementalEngine {
             self.pending.is_empty(),
             "a relinearisation always reaches solve_pass"
         );
-        // Publish θ ⊕ Δ of what changed.
+        self.publish(problem, changed, &mut report);
+        Ok(report)
+    }
+
+    /// Takes the variables appended to `problem` since the last update (θ at their values, Δ
+    /// zero); returns the free ones, which the next solve must reach.
+    fn add_variables(&mut self, problem: &Problem, fixed_at_start: Option<&[bool]>) -> Vec<usize> {
+        let (known, n) = (self.theta.len(), problem.values.len());
+        for v in known..n {
+            let variable = problem.values.variable(v);
+            let is_fixed = match fixed_at_start {
+                Some(fixed) => fixed[v],
+                None => problem.values.is_fixed(v),
+            };
+            let d = if is_fixed { 0 } else { variable.tangent_dim() };
+            self.theta.push(variable.clone_box());
+            self.free.push(!is_fixed);
+            self.columns += usize::from(!is_fixed);
+            self.offset.push(self.delta.len());
+            self.dims.push(d);
+            self.delta.resize(self.delta.len() + d, 0.0);
+            self.step.push(0.0);
+            self.propagated.resize(self.delta.len(), 0.0);
+            self.y.resize(self.y.len() + d, 0.0);
+            self.partial.resize(self.partial.len() + d, 0.0);
+            self.by_variable.push(Vec::new());
+        }
+        self.factor.grow(&self.dims);
+        self.mark.resize(n, false);
+        self.last.resize(n, false);
+        self.local.resize(n, 0);
+        (known..n).filter(|&v| self.free[v]).collect()
+    }
+
+    /// Linearises the factors appended to `problem` since the last update at θ and adds their
+    /// free variables to `touched`.
+    fn linearize_new_factors(
+        &mut self,
+        problem: &Problem,
+        touched: &mut Vec<usize>,
+    ) -> Result<(), SolverError> {
+        let first_new = self.linearized.len();
+        for (f, entry) in problem.factors().iter().enumerate().skip(first_new) {
+            let mut lin = Linearized::default();
+            linearize_factor(entry, &self.theta, &mut self.scratch, &mut lin)?;
+            self.residual_chi2 += lin.chi2;
+            self.residuals += entry.factor.residual_dim();
+            self.linearized_bytes += LINEARIZED_OVERHEAD
+                + 8 * (lin.gram.len() + lin.gradient.len() + lin.col_offset.len());
+            self.linearized.push(lin);
+            for &v in entry.variables() {
+                self.by_variable[v].push(f as u32);
+                if self.free[v] {
+                    self.jacobian_blocks += 1;
+                    touched.push(v);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes θ ⊕ Δ of what changed into the problem, and the update's totals into `report`.
+    fn publish(
+        &mut self,
+        problem: &mut Problem,
+        mut changed: Vec<usize>,
+        report: &mut UpdateReport,
+    ) {
         changed.sort_unstable();
         changed.dedup();
         for &v in &changed {
@@ -290,7 +318,6 @@ impl IncrementalEngine {
         report.columns = self.columns;
         report.model_chi2 = self.residual_chi2 - self.yty;
         report.max_delta = self.step.iter().fold(0.0f64, |m, &s| m.max(s));
-        Ok(report)
     }
 
     /// Moves θ of the free variables whose step exceeds the threshold (within the budget, see
@@ -341,219 +368,5 @@ impl IncrementalEngine {
         }
         self.pending = factors;
         report.linearize_seconds += start.elapsed().as_secs_f64();
-    }
-}
-
-impl IncrementalEngine {
-    /// One round: refactor the touched variables and their ancestors, then solve.
-    fn solve_pass(
-        &mut self,
-        problem: &Problem,
-        touched: &mut Vec<usize>,
-        params: &UpdateParams,
-        report: &mut UpdateReport,
-        changed: &mut Vec<usize>,
-    ) -> Result<(), SolverError> {
-        let start = Instant::now();
-        let mut affected = Vec::new();
-        for &v in touched.iter() {
-            let mut u = v;
-            while !self.mark[u] {
-                self.mark[u] = true;
-                affected.push(u);
-                match self.factor.parent(u) {
-                    Some(p) => u = p,
-                    None => break,
-                }
-            }
-        }
-        touched.clear();
-        let entries = problem.factors();
-        // The roots of the kept subtrees hanging off the refactored part: a deeper column's rows
-        // in it are a subset of its subtree root's (a column's structure, less its parent, is
-        // within its parent's), so their cliques carry all the fill the ordering must see, and
-        // only their parents can change.
-        let mut order_part = || {
-            let mark = &self.mark;
-            let reaching = self.factor.reaching(&affected, mark);
-            let kept_roots: Vec<usize> = reaching
-                .iter()
-                .copied()
-                .filter(|&k| self.factor.parent(k).is_some_and(|p| mark[p]))
-                .collect();
-            let cliques: Vec<Vec<usize>> = kept_roots
-                .iter()
-                .map(|&k| self.factor.rows_of(k).filter(|&u| mark[u]).collect())
-                .filter(|c: &Vec<usize>| c.len() > 1)
-                .collect();
-            let by_variable = &self.by_variable;
-            let order = ordering::order_affected(
-                &affected,
-                |v, out| {
-                    for &f in &by_variable[v] {
-                        out.extend(
-                            entries[f as usize]
-                                .variables()
-                                .iter()
-                                .filter(|&&u| u != v && mark[u]),
-                        );
-                    }
-                },
-                &cliques,
-                &self.last,
-                &self.dims,
-                &mut self.local,
-                &mut self.trials,
-            );
-            (order, reaching, kept_roots, start.elapsed())
-        };
-        // The factors whose linearisation point moved are linearised again meanwhile: the
-        // ordering reads only the structure. Many of them (a loop closure's correction) take a
-        // second thread, which a streaming client's server has idle while its update runs.
-        let pending = std::mem::take(&mut self.pending);
-        let mut linearize_part = || {
-            let start = Instant::now();
-            let change = linearized::relinearize_factors(
-                &pending,
-                entries,
-                &self.theta,
-                &mut self.scratch,
-                &mut self.linearized,
-            );
-            (change, start.elapsed())
-        };
-        let ((order, reaching, kept_roots, order_time), (change, linearize_time)) =
-            if pending.len() >= LINEARIZE_BESIDE_FROM {
-                beside::run_beside(order_part, linearize_part)
-            } else {
-                let linearized = linearize_part();
-                (order_part(), linearized)
-            };
-        self.residual_chi2 += change?;
-        report.linearize_seconds += linearize_time.as_secs_f64();
-        report.order_seconds += order_time.as_secs_f64();
-
-        let start = Instant::now();
-        self.factor
-            .withdraw(&order, &self.offset, &self.y, &mut self.partial);
-        let dense_before = self.factor.dense_columns();
-        let (linearized, free, dims) = (&self.linearized, &self.free, &self.dims);
-        let by_variable = &self.by_variable;
-        let assemble = |r: usize, rank: &[u64], acc: &mut Accumulator| {
-            let dr = dims[r];
-            for &f in &by_variable[r] {
-                let (lin, vars) = (&linearized[f as usize], entries[f as usize].variables());
-                let Some(i) = vars.iter().position(|&v| v == r) else {
-                    continue;
-                };
-                let cols = lin.cols();
-                let ci = lin.col_offset[i];
-                add_block(acc.diagonal_mut(), &lin.gram, cols, (ci, ci), (dr, dr));
-                for (j, &u) in vars.iter().enumerate() {
-                    if j != i && free[u] && rank[u] > rank[r] {
-                        let du = dims[u];
-                        let block = acc.block_mut(u, du);
-                        add_block(block, &lin.gram, cols, (lin.col_offset[j], ci), (du, dr));
-                    }
-                }
-            }
-        };
-        self.factor
-            .refactor(&order, &self.mark, &reaching, assemble)
-            .map_err(|e| SolverError::IndeterminateSystem {
-                keys: vec![problem.values.key(e.0)],
-            })?;
-        self.factor.reparent(&kept_roots);
-        report.dense_columns += self.factor.dense_columns() - dense_before;
-        report.factorize_seconds += start.elapsed().as_secs_f64();
-
-        self.refactor_flops = order
-            .iter()
-            .map(|&r| self.factor.elimination_flops(r))
-            .sum();
-        self.update_flops = 0.0;
-        self.resolve(problem, &order, params, report, changed);
-        report.refactored_columns += affected.len();
-        report.reused_subtrees += kept_roots.len();
-        for &v in &affected {
-            self.mark[v] = false;
-        }
-        Ok(())
-    }
-
-    /// Forward substitution of the columns of `order` (in that order; every other column keeps
-    /// its `y`), then back substitution from the root into what moved. `mark` holds `order`.
-    fn resolve(
-        &mut self,
-        problem: &Problem,
-        order: &[usize],
-        params: &UpdateParams,
-        report: &mut UpdateReport,
-        changed: &mut Vec<usize>,
-    ) {
-        let start = Instant::now();
-        let entries = problem.factors();
-        for &r in order {
-            let (o, d) = (self.offset[r], self.dims[r]);
-            self.yty -= self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
-        }
-        let (linearized, by_variable) = (&self.linearized, &self.by_variable);
-        self.factor.forward(
-            order,
-            &self.offset,
-            &mut self.y,
-            &mut self.partial,
-            |r, out| {
-                for &f in &by_variable[r] {
-                    let (lin, vars) = (&linearized[f as usize], entries[f as usize].variables());
-                    if let Some(i) = vars.iter().position(|&v| v == r) {
-                        let c = lin.col_offset[i];
-                        for (o, g) in out.iter_mut().zip(&lin.gradient[c..]) {
-                            *o -= g;
-                        }
-                    }
-                }
-            },
-        );
-        for &r in order {
-            let (o, d) = (self.offset[r], self.dims[r]);
-            self.yty += self.y[o..o + d].iter().map(|v| v * v).sum::<f64>();
-        }
-        let first_changed = changed.len();
-        report.solved_columns += self.factor.back_substitute(
-            &self.mark,
-            &self.offset,
-            &self.y,
-            Solution {
-                x: &mut self.delta,
-                propagated: &mut self.propagated,
-            },
-            params.wildfire_threshold,
-            changed,
-        );
-        for &v in &changed[first_changed..] {
-            let (o, d) = (self.offset[v], self.dims[v]);
-            self.step[v] = self.delta[o..o + d]
-                .iter()
-                .fold(0.0f64, |m, s| m.max(s.abs()));
-        }
-        report.solve_seconds += start.elapsed().as_secs_f64();
-    }
-}
-
-/// `dst (rows × cols of the block) += gram[origin..]` for a block of a factor's Gram matrix
-/// (`stride` columns, row-major).
-fn add_block(
-    dst: &mut [f64],
-    gram: &[f64],
-    stride: usize,
-    (row0, col0): (usize, usize),
-    (rows, cols): (usize, usize),
-) {
-    for i in 0..rows {
-        let source = &gram[(row0 + i) * stride + col0..(row0 + i) * stride + col0 + cols];
-        for (d, s) in dst[i * cols..(i + 1) * cols].iter_mut().zip(source) {
-            *d += s;
-        }
     }
 }
