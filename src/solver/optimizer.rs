@@ -107,43 +107,11 @@ fn optimize_from(
         return Err(SolverError::NonFiniteInitialCost);
     }
 
-    // One fill-reducing order of the variable graph serves the initialisation and the solve;
-    // with a Schur complement the eliminated variables come first.
-    let schur_plan = schur::plan(
-        problem.factors(),
-        &problem.values,
-        &fixed,
-        &problem.eliminate,
-        options.linear_solver,
-    );
-    let ordering = match (&schur_plan, cache) {
-        (Some(plan), _) => plan.ordering.clone(),
-        (None, Some(cache)) => cache.ordering(problem.factors(), &fixed),
-        (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), &fixed)),
-    };
-    // The system's layout and symbolic factorisation only need the structure, so they come
-    // before the initialisation: a solve too big for its memory budget is refused before any
-    // numeric work.
-    let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &ordering);
-    let chol = match &schur_plan {
-        Some(plan) => LinearSolver::Schur(SchurSolver::new(&layout.pattern, plan)?),
-        // Supernodal on every pattern we measured: the block ordering makes variables supernodes
-        // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
-        None => LinearSolver::Sparse(SparseCholesky::analyze(
-            &layout.pattern,
-            SupernodalThreshold::FORCE_SUPERNODAL,
-        )?),
-    };
-    if let Some(limit) = budget.max_memory_bytes() {
-        let estimated = super::budget::estimate_memory(problem, &layout, &chol, options);
-        if estimated > limit {
-            return Err(SolverError::MemoryLimit {
-                estimated,
-                limit,
-                factor_nnz: chol.factor_nnz(),
-            });
-        }
-    }
+    let System {
+        ordering,
+        layout,
+        chol,
+    } = analyze(problem, options, &fixed, cache, budget)?;
     timings.preprocess_seconds = start.elapsed().as_secs_f64();
 
     let init_start = Instant::now();
@@ -162,44 +130,15 @@ fn optimize_from(
     let mut solver =
         Iterations::with_trial(&layout, chol, timings, Values::default(), warm, budget);
     let mut times = StepTimes::default();
-    // The solve starts from the chordal estimate when its chi2 is low enough; the first
-    // linearisation there gives that chi2 (a separate evaluation cost a tenth of a small
-    // solve). A rejected estimate costs a second linearisation, at the given values.
-    let start_point = match estimate {
-        Ok(estimate) => {
-            let given = std::mem::replace(&mut values, estimate);
-            match solver.linearize_at(problem.factors(), &values, &mut times) {
-                Err(e) => Err(e),
-                Ok(ControlFlow::Continue(chi2)) => {
-                    match take_estimate(options.initialization, chi2, initial_chi2) {
-                        Ok(label) => {
-                            solver.trial = given;
-                            Ok((label, Some(chi2), ControlFlow::Continue(chi2)))
-                        }
-                        Err(label) => {
-                            solver.trial = std::mem::replace(&mut values, given);
-                            times = StepTimes::default();
-                            solver
-                                .linearize_at(problem.factors(), &values, &mut times)
-                                .map(|first| (label, Some(initial_chi2), first))
-                        }
-                    }
-                }
-                // The budget stopped the solve while linearising: it ends at the given values.
-                Ok(ControlFlow::Break(())) => {
-                    solver.trial = std::mem::replace(&mut values, given);
-                    let label = "none (stopped by the solve's budget)".to_string();
-                    Ok((label, None, ControlFlow::Break(())))
-                }
-            }
-        }
-        Err(label) => {
-            solver.trial = values.clone();
-            solver
-                .linearize_at(problem.factors(), &values, &mut times)
-                .map(|first| (label, None, first))
-        }
-    };
+    let start_point = start_point(
+        &mut solver,
+        problem.factors(),
+        &mut values,
+        estimate,
+        options.initialization,
+        initial_chi2,
+        &mut times,
+    );
     let outcome = start_point.and_then(|(label, initialized_chi2, first)| {
         // Stopped in the first linearisation: the values are the given ones, whose chi2 is
         // known (evaluating it again would cost what the budget just refused).
@@ -233,6 +172,110 @@ fn optimize_from(
             region: None,
         },
     ))
+}
+
+/// The structure's half of a solve: one fill-reducing order of the variable graph (it serves
+/// the initialisation and the solve; with a Schur complement the eliminated variables come
+/// first), the system's layout and its symbolic factorisation. They only need the structure,
+/// so they come before the initialisation: a solve too big for its memory budget is refused
+/// before any numeric work.
+struct System {
+    ordering: BlockOrdering,
+    layout: SystemLayout,
+    chol: LinearSolver,
+}
+
+fn analyze(
+    problem: &Problem,
+    options: &SolverOptions,
+    fixed: &[bool],
+    cache: Option<&mut OrderingCache>,
+    budget: &dyn Budget,
+) -> Result<System, SolverError> {
+    let schur_plan = schur::plan(
+        problem.factors(),
+        &problem.values,
+        fixed,
+        &problem.eliminate,
+        options.linear_solver,
+    );
+    let ordering = match (&schur_plan, cache) {
+        (Some(plan), _) => plan.ordering.clone(),
+        (None, Some(cache)) => cache.ordering(problem.factors(), fixed),
+        (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), fixed)),
+    };
+    let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering);
+    let chol = match &schur_plan {
+        Some(plan) => LinearSolver::Schur(SchurSolver::new(&layout.pattern, plan)?),
+        // Supernodal on every pattern we measured: the block ordering makes variables supernodes
+        // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
+        None => LinearSolver::Sparse(SparseCholesky::analyze(
+            &layout.pattern,
+            SupernodalThreshold::FORCE_SUPERNODAL,
+        )?),
+    };
+    if let Some(limit) = budget.max_memory_bytes() {
+        let estimated = super::budget::estimate_memory(problem, &layout, &chol, options);
+        if estimated > limit {
+            return Err(SolverError::MemoryLimit {
+                estimated,
+                limit,
+                factor_nnz: chol.factor_nnz(),
+            });
+        }
+    }
+    Ok(System {
+        ordering,
+        layout,
+        chol,
+    })
+}
+
+/// Where the iterations start, linearised there: the chordal estimate when its chi2 is low
+/// enough (the first linearisation there gives that chi2; a separate evaluation costs a tenth
+/// of a small solve), else the given values (a rejected estimate costs a second
+/// linearisation). `values` ends as the start, `solver.trial` as the other one. Returns the
+/// initialisation's label, the chi2 it reached, and the first linearisation's outcome.
+fn start_point<E: Borrow<FactorEntry>>(
+    solver: &mut Iterations,
+    factors: &[E],
+    values: &mut Values,
+    estimate: Result<Values, String>,
+    initialization: Initialization,
+    initial_chi2: f64,
+    times: &mut StepTimes,
+) -> Result<(String, Option<f64>, ControlFlow<(), f64>), SolverError> {
+    let estimate = match estimate {
+        Ok(estimate) => estimate,
+        Err(label) => {
+            solver.trial = values.clone();
+            return solver
+                .linearize_at(factors, values, times)
+                .map(|first| (label, None, first));
+        }
+    };
+    let given = std::mem::replace(values, estimate);
+    match solver.linearize_at(factors, values, times)? {
+        ControlFlow::Continue(chi2) => match take_estimate(initialization, chi2, initial_chi2) {
+            Ok(label) => {
+                solver.trial = given;
+                Ok((label, Some(chi2), ControlFlow::Continue(chi2)))
+            }
+            Err(label) => {
+                solver.trial = std::mem::replace(values, given);
+                *times = StepTimes::default();
+                solver
+                    .linearize_at(factors, values, times)
+                    .map(|first| (label, Some(initial_chi2), first))
+            }
+        },
+        // The budget stopped the solve while linearising: it ends at the given values.
+        ControlFlow::Break(()) => {
+            solver.trial = std::mem::replace(values, given);
+            let label = "none (stopped by the solve's budget)".to_string();
+            Ok((label, None, ControlFlow::Break(())))
+        }
+    }
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -58,36 +58,11 @@ impl BlockPattern {
             offset[p] = n;
             n += dims[b];
         }
-        // Lower column blocks per elimination position, sorted and without duplicates, in one
-        // flat array: visiting the rows in elimination order appends each row to a column in
-        // increasing order, so a repeated (row, column) pair is always the column's last entry.
-        // (Assumes each edge is listed from both ends, as `adjacency` is.)
-        let mut below_start = vec![0usize; nb + 1];
-        for (i, neighbours) in adjacency.iter().enumerate() {
-            let pi = position[i];
-            for &j in neighbours {
-                if pi > position[j] {
-                    below_start[position[j] + 1] += 1;
-                }
-            }
-        }
-        for b in 0..nb {
-            below_start[b + 1] += below_start[b];
-        }
-        let mut below = vec![0usize; below_start[nb]];
-        let mut below_len = vec![0usize; nb];
-        for (pi, &i) in block_at.iter().enumerate() {
-            for &j in &adjacency[i] {
-                let pj = position[j];
-                if pj < pi {
-                    let (s, l) = (below_start[pj], below_len[pj]);
-                    if l == 0 || below[s + l - 1] != pi {
-                        below[s + l] = pi;
-                        below_len[pj] += 1;
-                    }
-                }
-            }
-        }
+        let LowerBlocks {
+            below_start,
+            below,
+            below_len,
+        } = LowerBlocks::new(adjacency, &position, &block_at);
         let lower = |b: usize| {
             std::iter::once(b).chain(
                 below[below_start[b]..below_start[b] + below_len[b]]
@@ -317,6 +292,55 @@ fn block_amd(adjacency: &[Vec<usize>]) -> (Vec<usize>, Vec<usize>) {
         // fwd[new] = old, inv[old] = new.
         Ok(_) => (inv, fwd),
         Err(_) => identity(),
+    }
+}
+
+/// The blocks below the diagonal in each block column of the factor (elimination positions),
+/// sorted and without duplicates, in one flat array: column `b`'s are
+/// `below[below_start[b]..below_start[b] + below_len[b]]`.
+struct LowerBlocks {
+    below_start: Vec<usize>,
+    below: Vec<usize>,
+    below_len: Vec<usize>,
+}
+
+impl LowerBlocks {
+    /// Visiting the rows in elimination order appends each row to a column in increasing order,
+    /// so a repeated (row, column) pair is always the column's last entry. (Assumes each edge
+    /// is listed from both ends, as `adjacency` is.)
+    fn new(adjacency: &[Vec<usize>], position: &[usize], block_at: &[usize]) -> Self {
+        let nb = position.len();
+        let mut below_start = vec![0usize; nb + 1];
+        for (i, neighbours) in adjacency.iter().enumerate() {
+            let pi = position[i];
+            for &j in neighbours {
+                if pi > position[j] {
+                    below_start[position[j] + 1] += 1;
+                }
+            }
+        }
+        for b in 0..nb {
+            below_start[b + 1] += below_start[b];
+        }
+        let mut below = vec![0usize; below_start[nb]];
+        let mut below_len = vec![0usize; nb];
+        for (pi, &i) in block_at.iter().enumerate() {
+            for &j in &adjacency[i] {
+                let pj = position[j];
+                if pj < pi {
+                    let (s, l) = (below_start[pj], below_len[pj]);
+                    if l == 0 || below[s + l - 1] != pi {
+                        below[s + l] = pi;
+                        below_len[pj] += 1;
+                    }
+                }
+            }
+        }
+        Self {
+            below_start,
+            below,
+            below_len,
+        }
     }
 }
 

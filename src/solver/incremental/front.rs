@@ -270,6 +270,9 @@ impl BlockFactor {
     /// Eliminates the front `front` (consecutive columns of the order; its first column is
     /// gathered in `acc` already, see [`front_at`]) as one dense matrix, stores its columns and
     /// keeps its update matrix for the rows beyond it.
+    // Kept whole (127 lines, a written exception to the ~80-line rule): gathering the panel,
+    // factoring it and storing its columns share the front's reused buffers (taken from and
+    // returned to `self.fronts`) and its row map; split, each part would pass them all along.
     pub(super) fn eliminate_front<A: FnMut(usize, &[u64], &mut Accumulator)>(
         &mut self,
         front: &[usize],

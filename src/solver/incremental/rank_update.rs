@@ -122,6 +122,8 @@ impl BlockFactor {
     /// Rotates column `c` with the rows of `meeting` (every group with a variable at `c`): adds
     /// the groups' other variables to `c`'s rows (fill), zeroes their rows at `c` and returns
     /// them merged, on `c`'s rows, with the flops spent.
+    // Kept whole (84 lines): one column's Givens rotations over its merged rows, the inner
+    // loop of every rank update.
     fn rotate_column(
         &mut self,
         c: usize,

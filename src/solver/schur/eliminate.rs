@@ -81,6 +81,8 @@ impl SchurSolver {
     /// Eliminates block `e` (of dimension `D`, or any when `D` is 0; its neighbours all of
     /// dimension `K`, or any when `K` is 0): V⁻¹, Y = W V⁻¹ and
     /// S −= Y Wᵀ over every pair of its neighbours. Errs with the failing pivot of V.
+    // Kept whole (99 lines): the const-generic kernel BA time is spent in, monomorphised per
+    // block size and inlined into its caller; its three products share the same stack blocks.
     #[inline(always)]
     fn eliminate<const D: usize, const K: usize>(
         &mut self,

@@ -10,6 +10,8 @@ use super::{Neighbour, SchurPlan, SchurSolver, CAMERA};
 
 impl SchurSolver {
     /// `full` is the pattern laid out with `plan.ordering`.
+    // Kept whole (~100 lines): one pass over the eliminated blocks fills seven arrays that
+    // index each other (V, Y and S offsets, neighbours); split, the parts would pass them all.
     pub fn new(full: &BlockPattern, plan: &SchurPlan) -> Result<Self, SymbolicError> {
         let ne = plan.eliminated;
         // The reduced graph numbers its blocks in free-block order; full position ne + k holds
@@ -23,10 +25,6 @@ impl SchurSolver {
         let reduced = BlockPattern::with_ordering(&dims_by_block, &plan.reduced);
         let n = reduced.n;
         let eliminated_rows = full.n - n;
-        // Where an S block (a ≥ b, reduced positions) starts, and element (r, q) of it.
-        let dense_index = |a: usize, b: usize, r: usize, q: usize| {
-            (reduced.offset[b] + q) * n + reduced.offset[a] + r
-        };
         let mut dim = Vec::with_capacity(ne);
         let mut offset = Vec::with_capacity(ne);
         let mut v_start = Vec::with_capacity(ne + 1);
@@ -67,7 +65,7 @@ impl SchurSolver {
                 for l in first..=k {
                     let (a, b) = (neighbours[k].block, neighbours[l].block);
                     s_blocks.push(if plan.dense {
-                        dense_index(a, b, 0, 0)
+                        dense_index(&reduced, a, b, 0, 0)
                     } else {
                         reduced.pair(a, b).expect(
                             "the reduced pattern holds every pair sharing an eliminated block",
@@ -86,27 +84,7 @@ impl SchurSolver {
                     .all(|n| reduced.dim[n.block] == CAMERA)
             })
             .collect();
-        let mut u_map = Vec::new();
-        for b in ne..full.dim.len() {
-            for &(a, pair) in full.column_blocks(b) {
-                let diagonal = a == b;
-                let (ra, rb) = (a - ne, b - ne);
-                let s_pair = reduced
-                    .pair(ra, rb)
-                    .expect("the reduced pattern holds every direct pair");
-                for q in 0..full.dim[b] {
-                    let rows = if diagonal { q } else { 0 };
-                    for r in rows..full.dim[a] {
-                        let to = if plan.dense {
-                            dense_index(ra, rb, r, q)
-                        } else {
-                            reduced.value_index(s_pair, diagonal, r, q)
-                        };
-                        u_map.push((full.value_index(pair, diagonal, r, q), to));
-                    }
-                }
-            }
-        }
+        let u_map = u_map(full, &reduced, ne, plan.dense);
         let backend = Backend::new(&reduced, plan.dense)?;
         let s_len = backend.values_len(&reduced);
         let reduced_cost = FactorCost {
@@ -135,4 +113,40 @@ impl SchurSolver {
             reduced_cost,
         })
     }
+}
+
+/// Where element (r, q) of the S block (a ≥ b, reduced positions) lives in the dense buffer.
+fn dense_index(reduced: &BlockPattern, a: usize, b: usize, r: usize, q: usize) -> usize {
+    (reduced.offset[b] + q) * reduced.n + reduced.offset[a] + r
+}
+
+/// Where each U entry (between kept blocks, at `full`'s value index) is copied into S.
+fn u_map(
+    full: &BlockPattern,
+    reduced: &BlockPattern,
+    ne: usize,
+    dense: bool,
+) -> Vec<(usize, usize)> {
+    let mut u_map = Vec::new();
+    for b in ne..full.dim.len() {
+        for &(a, pair) in full.column_blocks(b) {
+            let diagonal = a == b;
+            let (ra, rb) = (a - ne, b - ne);
+            let s_pair = reduced
+                .pair(ra, rb)
+                .expect("the reduced pattern holds every direct pair");
+            for q in 0..full.dim[b] {
+                let rows = if diagonal { q } else { 0 };
+                for r in rows..full.dim[a] {
+                    let to = if dense {
+                        dense_index(reduced, ra, rb, r, q)
+                    } else {
+                        reduced.value_index(s_pair, diagonal, r, q)
+                    };
+                    u_map.push((full.value_index(pair, diagonal, r, q), to));
+                }
+            }
+        }
+    }
+    u_map
 }

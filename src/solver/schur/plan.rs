@@ -55,36 +55,8 @@ pub fn plan<E: Borrow<FactorEntry>>(
     if eliminated == 0 || eliminated == count {
         return None;
     }
-    // Reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one.
-    let mut reduced_index = vec![usize::MAX; count];
-    let mut next = 0;
-    for b in 0..count {
-        if !eliminate[b] {
-            reduced_index[b] = next;
-            next += 1;
-        }
-    }
-    let reduced_count = next;
-    let mut reduced_adjacency = vec![Vec::new(); reduced_count];
-    for b in 0..count {
-        if eliminate[b] {
-            let around: Vec<usize> = adjacency[b].iter().map(|&n| reduced_index[n]).collect();
-            for &x in &around {
-                reduced_adjacency[x].extend(around.iter().filter(|&&y| y != x));
-            }
-        } else {
-            reduced_adjacency[reduced_index[b]].extend(
-                adjacency[b]
-                    .iter()
-                    .filter(|&&n| !eliminate[n])
-                    .map(|&n| reduced_index[n]),
-            );
-        }
-    }
-    for list in &mut reduced_adjacency {
-        list.sort_unstable();
-        list.dedup();
-    }
+    let (reduced_index, reduced_adjacency) = reduced_graph(&adjacency, &eliminate);
+    let reduced_count = reduced_adjacency.len();
     let reduced_dim: usize = (0..count).filter(|&b| !eliminate[b]).map(|b| dims[b]).sum();
     let dense = match choice {
         LinearSolverChoice::DenseSchur => true,
@@ -104,6 +76,63 @@ pub fn plan<E: Borrow<FactorEntry>>(
     } else {
         BlockOrdering::amd(reduced_adjacency)
     };
+    let (position, block_at) = full_order(&eliminate, &reduced_index, &reduced);
+    Some(SchurPlan {
+        ordering: BlockOrdering {
+            adjacency,
+            position,
+            block_at,
+        },
+        eliminated,
+        reduced,
+        dense,
+    })
+}
+
+/// The reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one;
+/// with each kept block's index in it (`usize::MAX` for the eliminated).
+fn reduced_graph(adjacency: &[Vec<usize>], eliminate: &[bool]) -> (Vec<usize>, Vec<Vec<usize>>) {
+    let count = eliminate.len();
+    let mut reduced_index = vec![usize::MAX; count];
+    let mut next = 0;
+    for b in 0..count {
+        if !eliminate[b] {
+            reduced_index[b] = next;
+            next += 1;
+        }
+    }
+    let mut reduced_adjacency = vec![Vec::new(); next];
+    for b in 0..count {
+        if eliminate[b] {
+            let around: Vec<usize> = adjacency[b].iter().map(|&n| reduced_index[n]).collect();
+            for &x in &around {
+                reduced_adjacency[x].extend(around.iter().filter(|&&y| y != x));
+            }
+        } else {
+            reduced_adjacency[reduced_index[b]].extend(
+                adjacency[b]
+                    .iter()
+                    .filter(|&&n| !eliminate[n])
+                    .map(|&n| reduced_index[n]),
+            );
+        }
+    }
+    for list in &mut reduced_adjacency {
+        list.sort_unstable();
+        list.dedup();
+    }
+    (reduced_index, reduced_adjacency)
+}
+
+/// The whole problem's order: the eliminated blocks first (in block order), then the kept ones
+/// in the reduced system's order. Returns (position of each block, block at each position).
+fn full_order(
+    eliminate: &[bool],
+    reduced_index: &[usize],
+    reduced: &BlockOrdering,
+) -> (Vec<usize>, Vec<usize>) {
+    let count = eliminate.len();
+    let eliminated = eliminate.iter().filter(|&&e| e).count();
     let mut position = vec![0; count];
     let mut next_eliminated = 0;
     for b in 0..count {
@@ -118,14 +147,5 @@ pub fn plan<E: Borrow<FactorEntry>>(
     for (b, &p) in position.iter().enumerate() {
         block_at[p] = b;
     }
-    Some(SchurPlan {
-        ordering: BlockOrdering {
-            adjacency,
-            position,
-            block_at,
-        },
-        eliminated,
-        reduced,
-        dense,
-    })
+    (position, block_at)
 }
