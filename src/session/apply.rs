@@ -19,12 +19,6 @@ use crate::api::ServiceError;
 use crate::journal::KeptAck;
 use crate::solver;
 
-/// What accepting a batch changed: its acknowledgement, and the variables it gave values.
-struct Accepted {
-    ack: BatchAck,
-    new_values: Vec<VariableValue>,
-}
-
 impl Session {
     /// Validates and accepts a batch, journals it (durable sessions) and only then acknowledges
     /// it; returns the acknowledgement and whether a solve reflecting it is scheduled (so a
@@ -52,23 +46,25 @@ impl Session {
         // a solve's `journal_barrier` then waits for this batch's acknowledgement.
         let acknowledging = self.acknowledging.read().unwrap_or_else(|p| p.into_inner());
         let wire_copy = durable.is_some().then(|| batch.clone());
+        // Step 1, validate.
         let deadline = AdmissionDeadline::after(self.limits.max_admission_ms);
         let prepared = self.validate(&st, batch, Some(deadline))?;
         self.check_session_size(&st, &prepared)?;
         let sequence = self.next_sequence(&st)?;
+        // Step 2, journal (not yet durable: the fsync below runs with the session unlocked).
         let wire_copy = match (durable.as_mut(), wire_copy) {
             (Some(d), Some(copy)) => Some(d.write_batch(&self.name, sequence, copy, &prepared)?),
             _ => None,
         };
-        let accepted = self.accept(
+        let (factor_ids, new_values) = self.mirror_batch(
             &mut st,
             durable.as_mut(),
             wire_copy,
             sequence,
-            prepared,
+            &prepared,
             None,
-            origin.as_ref(),
         );
+        let ack = self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
         let will_solve = st.results.solved_sequence < sequence && st.schedule.phase.solve_coming();
         if let Some(d) = durable.as_mut() {
             d.maybe_snapshot(self, &st);
@@ -86,7 +82,6 @@ impl Session {
             return Err(self.sync_refused(e));
         }
         self.publish_accepted(sequence);
-        let Accepted { ack, new_values } = accepted;
         self.emit(SessionEvent::Ack(ack.clone()));
         if !new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
@@ -122,15 +117,15 @@ impl Session {
         let wire_copy = durable.is_some().then(|| batch.clone());
         let prepared = self.validate(&st, batch, None)?;
         let sequence = self.next_sequence(&st)?;
-        self.accept(
+        let (factor_ids, _) = self.mirror_batch(
             &mut st,
             durable.as_mut(),
             wire_copy,
             sequence,
-            prepared,
+            &prepared,
             ids,
-            origin.as_ref(),
         );
+        self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
         drop(st);
         drop(durable);
         self.publish_accepted(sequence);
@@ -182,28 +177,39 @@ impl Session {
             .ok_or_else(|| self.sequences_exhausted())
     }
 
-    /// Steps 3 and 4, once the batch is validated (and journalled): give it its sequence and
-    /// factor ids, update the mirror, apply it to the problem or queue it, record the
-    /// producer's progress and maybe start a solve. `wire_copy`: the batch as the journal holds
-    /// it, kept for the next snapshot of a durable session.
-    #[allow(clippy::too_many_arguments)]
-    fn accept(
-        self: &Arc<Self>,
+    /// Step 3, mirror: gives the validated (and journalled) batch its sequence and factor ids
+    /// and updates the mirror, first: later batches validate against it even while this one
+    /// waits for the problem. `wire_copy`: the batch as the journal holds it, kept for the
+    /// next snapshot of a durable session. Returns the ids and the values it set.
+    fn mirror_batch(
+        &self,
         st: &mut State,
         durable: Option<&mut Durable>,
         wire_copy: Option<Batch>,
         sequence: u64,
-        prepared: PreparedBatch,
+        prepared: &PreparedBatch,
         ids: Option<Vec<FactorId>>,
-        origin: Option<&Origin>,
-    ) -> Accepted {
+    ) -> (Vec<FactorId>, Vec<VariableValue>) {
         st.mirror.sequence = sequence;
         let factor_ids = st.mirror.assign_factor_ids(ids, prepared.factors.len());
         if let (Some(d), Some(copy)) = (durable, wire_copy) {
-            d.track(copy.factors, &factor_ids, &prepared);
+            d.track(copy.factors, &factor_ids, prepared);
         }
-        // Mirror first: later batches validate against it even while this one waits.
-        let new_values = st.mirror.accept(&prepared, &factor_ids, sequence);
+        let new_values = st.mirror.accept(prepared, &factor_ids, sequence);
+        (factor_ids, new_values)
+    }
+
+    /// Step 4, schedule: applies the batch to the problem (or queues it behind the running
+    /// solve), records the producer's progress, maybe starts a solve, and returns the
+    /// acknowledgement.
+    fn schedule_batch(
+        self: &Arc<Self>,
+        st: &mut State,
+        sequence: u64,
+        prepared: PreparedBatch,
+        factor_ids: Vec<FactorId>,
+        origin: Option<&Origin>,
+    ) -> BatchAck {
         let predicted = prepared.predicted.clone();
         if st.model.problem.is_some() {
             self.apply_prepared(st, sequence, prepared, factor_ids.clone());
@@ -229,7 +235,7 @@ impl Session {
             ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
         }
         self.maybe_schedule(st);
-        Accepted { ack, new_values }
+        ack
     }
 
     /// Tells requests waiting for `sequence` (`after`) that it is accepted.

@@ -39,8 +39,8 @@ struct SolveWork {
 }
 
 impl Session {
-    /// Takes the problem and what the next solve needs out of the state, or `None` when
-    /// there is nothing to do.
+    /// Starts the queued solve: takes the problem and what it needs out of the state, or
+    /// `None` when the session was deleted since (see `SolveSchedule::start`).
     fn take_work(&self) -> Option<SolveWork> {
         let mut st = self.lock();
         let forced = st.schedule.phase.start()?;
