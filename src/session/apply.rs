@@ -339,7 +339,7 @@ impl Session {
         {
             // An empty batch: whatever reflected the last one reflects this one (a `wait` on it
             // must not wait for a timer, or for ever under `manual`).
-            st.results.solved_sequence = sequence;
+            st.results.reflected(sequence);
             self.solved.send_replace(sequence);
             return;
         }
@@ -351,8 +351,7 @@ impl Session {
         st.results.chi2 = st.results.chi2.map(|_| total);
         if was_converged && !change.structural && negligible {
             st.schedule.seeds.clear();
-            st.results.solved_sequence = sequence;
-            st.results.skipped_solves += 1;
+            st.results.skipped(sequence);
             self.solved.send_replace(sequence);
         } else {
             st.schedule.phase.mark_dirty();

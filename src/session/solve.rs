@@ -243,9 +243,14 @@ impl Session {
         if summary.used.region_variables.is_none() {
             st.model.gauge = summary.used.gauge_fixed.clone();
         }
-        st.results.chi2 = Some(resolved.total_chi2);
-        st.results.converged = resolved.converged;
-        st.results.last_error = None;
+        let stopped = run.timed_out.then(|| {
+            format!(
+                "the solve stopped at the time limit of {} ms (limits.max_solve_ms) after {} iterations; the estimate is the best it reached",
+                self.limits.max_solve_ms, summary.iterations
+            )
+        });
+        st.results
+            .solved(resolved.total_chi2, resolved.converged, stopped);
         // A preempted solve continues in its next turn (its time counts towards the limit); a
         // cancelled or timed-out one waits for news.
         if run.preempted && !run.timed_out {
@@ -253,13 +258,6 @@ impl Session {
             st.schedule.carried = run.carried + run.start.elapsed();
         } else {
             st.schedule.carried = std::time::Duration::ZERO;
-        }
-        if run.timed_out {
-            st.results.converged = false;
-            st.results.last_error = Some(format!(
-                "the solve stopped at the time limit of {} ms (limits.max_solve_ms) after {} iterations; the estimate is the best it reached",
-                self.limits.max_solve_ms, summary.iterations
-            ));
         }
         let changed = mirror::refresh(
             &mut st.mirror.entries,
@@ -285,7 +283,6 @@ impl Session {
 
     /// Records a failed solve and publishes its error; the mirror keeps the last good values.
     fn publish_failed(&self, st: &mut State, run: &Run, e: solver::SolverError) {
-        st.results.converged = false;
         // Whatever moved, the next solve starts from a clean slate.
         st.schedule.structural = true;
         // Stopped by the time limit before the first step: say which limit.
@@ -297,7 +294,7 @@ impl Session {
         } else {
             e.to_string()
         };
-        st.results.last_error = Some(message.clone());
+        st.results.failed(message.clone());
         self.emit(SessionEvent::Error {
             session: self.name.clone(),
             sequence: Some(run.sequence),

@@ -227,6 +227,33 @@ impl Schedule {
     }
 }
 
+impl SolveResults {
+    /// A solve finished at `chi2`; `stopped`: why it stopped short (the time limit), which
+    /// leaves it unconverged, else the last error is cleared.
+    pub(super) fn solved(&mut self, chi2: f64, converged: bool, stopped: Option<String>) {
+        self.chi2 = Some(chi2);
+        self.converged = converged && stopped.is_none();
+        self.last_error = stopped;
+    }
+
+    /// A solve failed: `message` says why; the estimate is the last good one, unconverged.
+    pub(super) fn failed(&mut self, message: String) {
+        self.converged = false;
+        self.last_error = Some(message);
+    }
+
+    /// Whatever reflected the last batch reflects `sequence` (it changed nothing to solve).
+    pub(super) fn reflected(&mut self, sequence: u64) {
+        self.solved_sequence = sequence;
+    }
+
+    /// A solve of the batch `sequence` would not gain more than its tolerance: skipped.
+    pub(super) fn skipped(&mut self, sequence: u64) {
+        self.solved_sequence = sequence;
+        self.skipped_solves += 1;
+    }
+}
+
 /// Map node and allocation overhead.
 const NODE: usize = 48;
 const MIRROR_ENTRY_BYTES: usize =
