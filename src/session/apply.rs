@@ -1,16 +1,19 @@
-//! Accepting a batch: size limits, validation against the mirror, journalling, updating the
-//! mirror, and applying it to the problem now or queueing it behind a running solve.
+//! Accepting a batch, in four steps: validate (limits, the batch against the mirror), journal
+//! (durable sessions), mirror (what clients read and later batches validate against), schedule
+//! (apply it to the problem now, or queue it behind a running solve, and maybe start a solve).
+//! A client's batch is acknowledged once durable ([`Session::apply_batch`]); a batch replayed
+//! from the journal or a snapshot skips the client's limits, the journal and the
+//! acknowledgement ([`Session::replay_batch`]).
 
 use std::collections::HashSet;
 use std::sync::Arc;
 
 use super::batch::{self, AdmissionDeadline, PreparedBatch, SessionView};
+use super::durable::Durable;
 use super::engine::{self, Engine};
-use super::mirror::{heap_values, value_of, WireValue};
 use super::producers::{self, Admission, Origin};
-use super::{inspect, MirrorEntry, Session, State};
-use crate::api::catalogue;
-use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent};
+use super::{Session, State};
+use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent, VariableValue};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::journal::KeptAck;
@@ -21,27 +24,15 @@ impl Session {
     /// it; returns the acknowledgement and whether a solve reflecting it is scheduled (so a
     /// caller may wait for it).
     pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
-        self.accept_batch(batch, None, true)
-    }
-
-    /// `ids`: the factor ids to give the batch's factors (a snapshot's), else the next ones.
-    /// `journal`: append it to the journal (not when it is being replayed from there).
-    pub(super) fn accept_batch(
-        self: &Arc<Self>,
-        batch: Batch,
-        ids: Option<Vec<FactorId>>,
-        journal: bool,
-    ) -> Result<(BatchAck, bool), ServiceError> {
         let Engine::Graph(_) = &self.engine else {
             return Err(engine::batches_refused(&self.name));
         };
         let origin = Origin::of(&batch)?;
         let mut st = self.lock();
-        if st.deleted {
+        if st.schedule.phase.is_deleted() {
             return Err(self.gone());
         }
-        // A replay applies what the journal holds: it is the truth the table is rebuilt from.
-        if let (Some(origin), true) = (&origin, journal) {
+        if let Some(origin) = &origin {
             if let Admission::Repeat(kept) =
                 st.producers
                     .admit(&self.name, origin, self.limits.max_producers_per_session)?
@@ -49,139 +40,33 @@ impl Session {
                 return Ok(self.repeat(&st, origin, &kept));
             }
         }
-        // Limits hold for what clients send; a journal replay restores what was accepted.
-        if journal {
-            self.check_batch_size(&batch)?;
-        }
+        self.check_batch_size(&batch)?;
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         // Taken with the journal held, before the batch is written or a solve of it scheduled:
         // a solve's `journal_barrier` then waits for this batch's acknowledgement.
-        let acknowledging =
-            journal.then(|| self.acknowledging.read().unwrap_or_else(|p| p.into_inner()));
+        let acknowledging = self.acknowledging.read().unwrap_or_else(|p| p.into_inner());
         let wire_copy = durable.is_some().then(|| batch.clone());
-        let factor_types = self.factor_types();
-        let prepared = batch::prepare(
-            batch,
-            &SessionView {
-                kind: self.kind,
-                mirror: &st.mirror,
-                live_factors: &st.live_factors,
-                factor_types: &factor_types,
-                deadline: journal.then(|| AdmissionDeadline::after(self.limits.max_admission_ms)),
-            },
-        )?;
-        if st.problem.is_none()
-            && st.pending_factors + prepared.factor_count() > self.limits.max_pending_factors
-        {
-            return Err(ServiceError::too_many(
-                format!(
-                    "session `{}` has {} factors waiting for the running solve; {} more would exceed the limit of {}",
-                    self.name,
-                    st.pending_factors,
-                    prepared.factor_count(),
-                    self.limits.max_pending_factors
-                ),
-                1,
-            ));
-        }
-        if journal {
-            self.check_session_size(&st, &prepared)?;
-        }
-        let Some(sequence) = st.sequence.checked_add(1) else {
-            return Err(self.sequences_exhausted());
+        // Step 1, validate.
+        let deadline = AdmissionDeadline::after(self.limits.max_admission_ms);
+        let prepared = self.validate(&st, batch, Some(deadline))?;
+        self.check_session_size(&st, &prepared)?;
+        let sequence = self.next_sequence(&st)?;
+        // Step 2, journal (not yet durable: the fsync below runs with the session unlocked).
+        let wire_copy = match (durable.as_mut(), wire_copy) {
+            (Some(d), Some(copy)) => Some(d.write_batch(&self.name, sequence, copy, &prepared)?),
+            _ => None,
         };
-        let wire_copy = match (durable.as_mut(), wire_copy, journal) {
-            (Some(d), Some(copy), true) => {
-                Some(d.write_batch(&self.name, sequence, copy, &prepared)?)
-            }
-            (_, copy, _) => copy,
-        };
-        st.sequence = sequence;
-        let factor_ids: Vec<FactorId> = match ids {
-            Some(ids) => ids,
-            None => (0..prepared.factors.len() as u64)
-                .map(|k| st.next_factor_id + k)
-                .collect(),
-        };
-        st.next_factor_id = factor_ids
-            .iter()
-            .map(|id| id + 1)
-            .fold(st.next_factor_id, u64::max);
-        if let (Some(d), Some(copy)) = (durable.as_mut(), wire_copy) {
-            d.track(copy.factors, &factor_ids, &prepared);
-        }
-        // Mirror first: later batches validate against it even while this one waits.
-        let mut new_values = Vec::new();
-        for v in &prepared.variables {
-            let kind = v.value.kind();
-            let value = WireValue::from_vec(catalogue::encode_variable(v.value.as_ref()));
-            let entry = MirrorEntry {
-                kind,
-                initial: inspect::position(kind, &value),
-                value,
-                changed: sequence,
-                fixed: v.fixed,
-                stamp: v.stamp,
-            };
-            new_values.push(value_of(v.key, &entry));
-            st.mirror_values += heap_values(&entry.value);
-            if let Some(old) = st.mirror.insert(v.key, entry) {
-                st.mirror_values -= heap_values(&old.value);
-            }
-        }
-        for (key, v) in &prepared.guesses {
-            let value = WireValue::from_vec(catalogue::encode_variable(v.as_ref()));
-            let added = heap_values(&value);
-            let entry = st.mirror.get_mut(key).expect("validated");
-            let removed = heap_values(&entry.value);
-            entry.initial = inspect::position(entry.kind, &value);
-            entry.value = value;
-            entry.changed = sequence;
-            new_values.push(value_of(*key, entry));
-            st.mirror_values = st.mirror_values + added - removed;
-        }
-        for &(key, fixed) in &prepared.fix {
-            st.mirror.get_mut(&key).expect("validated").fixed = fixed;
-        }
-        st.live_factors.extend(factor_ids.iter().copied());
-        for (f, &id) in prepared.factors.iter().zip(&factor_ids) {
-            if let Some(edge) = inspect::edge(&st.mirror, f.factor.keys()) {
-                st.edges.insert(id, edge);
-            }
-        }
-        for id in &prepared.remove {
-            st.live_factors.remove(id);
-            st.edges.remove(id);
-        }
-        let predicted = prepared.predicted.clone();
-        if st.problem.is_some() {
-            self.apply_prepared(&mut st, sequence, prepared, factor_ids.clone());
-        } else {
-            st.pending_factors += prepared.factor_count();
-            st.pending
-                .push_back((sequence, prepared, factor_ids.clone()));
-            st.dirty = true;
-        }
-        let mut ack = BatchAck {
-            session: self.name.clone(),
+        let (factor_ids, new_values) = self.mirror_batch(
+            &mut st,
+            durable.as_mut(),
+            wire_copy,
             sequence,
-            factor_ids,
-            predicted,
-            reflected: st.solved_sequence >= sequence,
-            producer: None,
-            producer_seq: None,
-            accepted_through: None,
-            duplicate: false,
-        };
-        if let Some(origin) = &origin {
-            st.producers.record(origin, &ack);
-            ack.producer = Some(origin.producer.clone());
-            ack.producer_seq = Some(origin.seq);
-            ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
-        }
-        self.maybe_schedule(&mut st);
-        let will_solve = st.solved_sequence < sequence && (st.scheduled || st.timer_armed);
-        if let (Some(d), true) = (durable.as_mut(), journal) {
+            &prepared,
+            None,
+        );
+        let ack = self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
+        let will_solve = st.results.solved_sequence < sequence && st.schedule.phase.solve_coming();
+        if let Some(d) = durable.as_mut() {
             d.maybe_snapshot(self, &st);
         }
         // The fsync runs with the session and its journal unlocked, so the solve just scheduled
@@ -189,27 +74,16 @@ impl Session {
         // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
         // solve publishes (it passes `journal_barrier` first), wait for the batch to be durable.
         drop(st);
-        let pending = match (durable.as_ref(), journal) {
-            (Some(d), true) => Some(d.pending()),
-            _ => None,
-        };
+        let pending = durable.as_ref().map(|d| d.pending());
         drop(durable);
         if let Err(e) = pending.map_or(Ok(()), |p| p.wait(&self.name)) {
             // Nothing is acknowledged; the step-down below takes the session's locks.
             drop(acknowledging);
             return Err(self.sync_refused(e));
         }
-        // Batches sharing an fsync may get here in any order.
-        self.accepted.send_if_modified(|accepted| {
-            std::mem::replace(accepted, sequence.max(*accepted)) < sequence
-        });
-        // A replay (recovery, adoption) restores what was acknowledged before: acknowledging it
-        // again would tell subscribers something new was applied, with a producer's
-        // `accepted_through` going backwards. The recovery's solve publishes the estimate.
-        if journal {
-            self.emit(SessionEvent::Ack(ack.clone()));
-        }
-        if journal && !new_values.is_empty() {
+        self.publish_accepted(sequence);
+        self.emit(SessionEvent::Ack(ack.clone()));
+        if !new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),
                 sequence,
@@ -219,16 +93,174 @@ impl Session {
         Ok((ack, will_solve))
     }
 
+    /// Applies a batch the journal (or a snapshot) holds, in recovery or adoption: it is the
+    /// truth the session is rebuilt from, so neither a client's limits nor a producer's repeat
+    /// check apply, and nothing is journalled or acknowledged again: acknowledging it again
+    /// would tell subscribers something new was applied, with a producer's `accepted_through`
+    /// going backwards. The recovery's solve publishes the estimate.
+    /// `ids`: the factor ids to give the batch's factors (a snapshot's), else the next ones.
+    pub(super) fn replay_batch(
+        self: &Arc<Self>,
+        batch: Batch,
+        ids: Option<Vec<FactorId>>,
+    ) -> Result<(), ServiceError> {
+        let Engine::Graph(_) = &self.engine else {
+            return Err(engine::batches_refused(&self.name));
+        };
+        let origin = Origin::of(&batch)?;
+        let mut st = self.lock();
+        if st.schedule.phase.is_deleted() {
+            return Err(self.gone());
+        }
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        // Kept for the next snapshot's base, as a journalled batch is.
+        let wire_copy = durable.is_some().then(|| batch.clone());
+        let prepared = self.validate(&st, batch, None)?;
+        let sequence = self.next_sequence(&st)?;
+        let (factor_ids, _) = self.mirror_batch(
+            &mut st,
+            durable.as_mut(),
+            wire_copy,
+            sequence,
+            &prepared,
+            ids,
+        );
+        self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
+        drop(st);
+        drop(durable);
+        self.publish_accepted(sequence);
+        Ok(())
+    }
+
+    /// Step 1, validate: the batch against the mirror (and the factor types), into typed parts
+    /// that cannot fail to apply; refused when too many factors already wait for the running
+    /// solve. `deadline`: how long a client's batch may take (none for a replay).
+    fn validate(
+        &self,
+        st: &State,
+        batch: Batch,
+        deadline: Option<AdmissionDeadline>,
+    ) -> Result<PreparedBatch, ServiceError> {
+        let factor_types = self.factor_types();
+        let prepared = batch::prepare(
+            batch,
+            &SessionView {
+                kind: self.kind,
+                mirror: &st.mirror.entries,
+                live_factors: &st.mirror.live_factors,
+                factor_types: &factor_types,
+                deadline,
+            },
+        )?;
+        let queued = st.schedule.queued_factors();
+        if st.model.problem.is_none()
+            && queued + prepared.factor_count() > self.limits.max_pending_factors
+        {
+            return Err(ServiceError::too_many(
+                format!(
+                    "session `{}` has {} factors waiting for the running solve; {} more would exceed the limit of {}",
+                    self.name,
+                    queued,
+                    prepared.factor_count(),
+                    self.limits.max_pending_factors
+                ),
+                1,
+            ));
+        }
+        Ok(prepared)
+    }
+
+    fn next_sequence(&self, st: &State) -> Result<u64, ServiceError> {
+        st.mirror
+            .sequence
+            .checked_add(1)
+            .ok_or_else(|| self.sequences_exhausted())
+    }
+
+    /// Step 3, mirror: gives the validated (and journalled) batch its sequence and factor ids
+    /// and updates the mirror, first: later batches validate against it even while this one
+    /// waits for the problem. `wire_copy`: the batch as the journal holds it, kept for the
+    /// next snapshot of a durable session. Returns the ids and the values it set.
+    fn mirror_batch(
+        &self,
+        st: &mut State,
+        durable: Option<&mut Durable>,
+        wire_copy: Option<Batch>,
+        sequence: u64,
+        prepared: &PreparedBatch,
+        ids: Option<Vec<FactorId>>,
+    ) -> (Vec<FactorId>, Vec<VariableValue>) {
+        st.mirror.sequence = sequence;
+        let factor_ids = st.mirror.assign_factor_ids(ids, prepared.factors.len());
+        if let (Some(d), Some(copy)) = (durable, wire_copy) {
+            d.track(copy.factors, &factor_ids, prepared);
+        }
+        let new_values = st.mirror.accept(prepared, &factor_ids, sequence);
+        (factor_ids, new_values)
+    }
+
+    /// Step 4, schedule: applies the batch to the problem (or queues it behind the running
+    /// solve), records the producer's progress, maybe starts a solve, and returns the
+    /// acknowledgement.
+    fn schedule_batch(
+        self: &Arc<Self>,
+        st: &mut State,
+        sequence: u64,
+        prepared: PreparedBatch,
+        factor_ids: Vec<FactorId>,
+        origin: Option<&Origin>,
+    ) -> BatchAck {
+        let predicted = prepared.predicted.clone();
+        if st.model.problem.is_some() {
+            self.apply_prepared(st, sequence, prepared, factor_ids.clone());
+        } else {
+            st.schedule
+                .queue_batch(sequence, prepared, factor_ids.clone());
+        }
+        let mut ack = BatchAck {
+            session: self.name.clone(),
+            sequence,
+            factor_ids,
+            predicted,
+            reflected: st.results.solved_sequence >= sequence,
+            producer: None,
+            producer_seq: None,
+            accepted_through: None,
+            duplicate: false,
+        };
+        if let Some(origin) = origin {
+            st.producers.record(origin, &ack);
+            ack.producer = Some(origin.producer.clone());
+            ack.producer_seq = Some(origin.seq);
+            ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
+        }
+        self.maybe_schedule(st);
+        ack
+    }
+
+    /// Tells requests waiting for `sequence` (`after`) that it is accepted.
+    fn publish_accepted(&self, sequence: u64) {
+        // Batches sharing an fsync may get here in any order.
+        self.accepted.send_if_modified(|accepted| {
+            std::mem::replace(accepted, sequence.max(*accepted)) < sequence
+        });
+    }
+
     /// The answer to a repeat of `origin`'s batch: its original acknowledgement (published again,
     /// so a zenoh producer that lost it hears it), nothing applied.
     fn repeat(&self, st: &State, origin: &Origin, kept: &KeptAck) -> (BatchAck, bool) {
         // The original may still be on its way to the disk.
         self.journal_barrier();
-        let mut ack =
-            producers::original_ack(kept, &self.name, &origin.producer, st.solved_sequence);
+        let mut ack = producers::original_ack(
+            kept,
+            &self.name,
+            &origin.producer,
+            st.results.solved_sequence,
+        );
         ack.accepted_through = Some(st.producers.accepted_through(&origin.producer));
         self.emit(SessionEvent::Ack(ack.clone()));
-        let will_solve = st.solved_sequence < ack.sequence && (st.scheduled || st.timer_armed);
+        let will_solve =
+            st.results.solved_sequence < ack.sequence && st.schedule.phase.solve_coming();
         (ack, will_solve)
     }
 
@@ -258,7 +290,7 @@ impl Session {
         st: &State,
         prepared: &PreparedBatch,
     ) -> Result<(), ServiceError> {
-        let variables = st.mirror.len() + prepared.variables.len();
+        let variables = st.mirror.entries.len() + prepared.variables.len();
         if variables > self.limits.max_variables_per_session {
             return Err(ServiceError::invalid(
                 "session_full",
@@ -269,8 +301,8 @@ impl Session {
                 ),
             ));
         }
-        let factors =
-            (st.live_factors.len() + prepared.factors.len()).saturating_sub(prepared.remove.len());
+        let factors = (st.mirror.live_factors.len() + prepared.factors.len())
+            .saturating_sub(prepared.remove.len());
         if factors > self.limits.max_factors_per_session {
             return Err(ServiceError::invalid(
                 "session_full",
@@ -284,7 +316,8 @@ impl Session {
         Ok(())
     }
 
-    /// Applies a validated batch to the problem (present in `st`).
+    /// Step 4 with the problem here: applies a validated batch to it and decides whether it
+    /// needs a solve.
     pub(super) fn apply_prepared(
         &self,
         st: &mut State,
@@ -292,82 +325,112 @@ impl Session {
         prepared: PreparedBatch,
         factor_ids: Vec<FactorId>,
     ) {
-        let State {
-            problem,
-            index,
-            factor_ids: ids,
-            seeds,
-            ..
-        } = st;
-        let problem = problem.as_mut().expect("caller checked");
-        let index = index.as_mut().expect("kept with the problem");
-        let first_new_factor = problem.factors().len();
-        let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
-        let adds_variables = !prepared.variables.is_empty();
-        for v in prepared.variables {
-            problem.add_variable(v.key, v.value).expect("validated");
-            if v.fixed {
-                problem.set_fixed(v.key, true).expect("validated");
-            }
-        }
-        let added = prepared.factors.len();
-        for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
-            // No label: `prepare` checked what the problem's errors would name, and a session's
-            // factor is named by its id.
-            problem
-                .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, String::new())
-                .expect("validated");
-            ids.push(id);
-        }
-        // chi2 the new factors add at the current estimate, before removals shift indices.
-        let new_chi2 =
-            solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
-                .unwrap_or(f64::INFINITY);
-        index.extend(problem, first_new_factor);
-        for f in &problem.factors()[first_new_factor..] {
-            seeds.extend_from_slice(f.variables());
-        }
-        if !prepared.remove.is_empty() {
-            let remove: HashSet<FactorId> = prepared.remove.into_iter().collect();
-            let keep: Vec<bool> = ids.iter().map(|id| !remove.contains(id)).collect();
-            problem.retain_factors(|i| keep[i]);
-            ids.retain(|id| !remove.contains(id));
-            index.rebuild(problem);
-        }
-        for (key, fixed) in prepared.fix {
-            problem.set_fixed(key, fixed).expect("validated");
-        }
-        for (key, v) in &prepared.guesses {
-            let idx = problem.values.index_of(*key).expect("validated");
-            problem.values.set(idx, v.as_ref());
-            structural = true;
-        }
-        st.factors_since_solve += added;
-        st.structural |= structural;
+        let change = add_to_problem(st, prepared, factor_ids);
+        st.schedule.factors_since_solve += change.added_factors;
+        st.schedule.structural |= change.structural;
         // A batch that only adds factors whose total chi2 at the current (converged) estimate is
         // below the function tolerance of the whole cannot make a solve gain more than that
         // tolerance: the estimate stays the optimum to within what a solve would reach. This is
         // what makes appending an odometry-predicted pose free.
-        if !adds_variables && added == 0 && !structural && !st.dirty {
+        if !change.adds_variables
+            && change.added_factors == 0
+            && !change.structural
+            && !st.schedule.phase.is_dirty()
+        {
             // An empty batch: whatever reflected the last one reflects this one (a `wait` on it
             // must not wait for a timer, or for ever under `manual`).
-            st.solved_sequence = sequence;
+            st.results.reflected(sequence);
             self.solved.send_replace(sequence);
             return;
         }
-        let total = st.chi2.unwrap_or(0.0) + new_chi2;
+        let new_chi2 = change.new_chi2;
+        let total = st.results.chi2.unwrap_or(0.0) + new_chi2;
         let negligible = new_chi2 <= st.options.function_tolerance * total || new_chi2 == 0.0;
-        let was_converged = st.converged && !st.dirty && st.chi2.is_some();
-        st.chi2 = st.chi2.map(|_| total);
-        if was_converged && !structural && negligible {
-            st.seeds.clear();
-            st.solved_sequence = sequence;
-            st.skipped_solves += 1;
+        let was_converged =
+            st.results.converged && !st.schedule.phase.is_dirty() && st.results.chi2.is_some();
+        st.results.chi2 = st.results.chi2.map(|_| total);
+        if was_converged && !change.structural && negligible {
+            st.schedule.seeds.clear();
+            st.results.skipped(sequence);
             self.solved.send_replace(sequence);
         } else {
-            st.dirty = true;
-            st.converged = false;
+            st.schedule.phase.mark_dirty();
+            st.results.converged = false;
         }
+    }
+}
+
+/// What applying a batch to the problem changed.
+struct ProblemChange {
+    added_factors: usize,
+    adds_variables: bool,
+    /// Removals, fixes or guesses: the next solve is of the whole problem.
+    structural: bool,
+    /// What the new factors add to chi2 at the current estimate.
+    new_chi2: f64,
+}
+
+/// Adds a validated batch's variables and factors to the problem (present in `st`), removes,
+/// fixes and guesses what it says, and seeds the next solve with what the new factors touch.
+fn add_to_problem(
+    st: &mut State,
+    prepared: PreparedBatch,
+    factor_ids: Vec<FactorId>,
+) -> ProblemChange {
+    let super::state::Model {
+        problem,
+        index,
+        factor_ids: ids,
+        ..
+    } = &mut st.model;
+    let seeds = &mut st.schedule.seeds;
+    let problem = problem.as_mut().expect("caller checked");
+    let index = index.as_mut().expect("kept with the problem");
+    let first_new_factor = problem.factors().len();
+    let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
+    let adds_variables = !prepared.variables.is_empty();
+    for v in prepared.variables {
+        problem.add_variable(v.key, v.value).expect("validated");
+        if v.fixed {
+            problem.set_fixed(v.key, true).expect("validated");
+        }
+    }
+    let added_factors = prepared.factors.len();
+    for (f, id) in prepared.factors.into_iter().zip(factor_ids) {
+        // No label: `prepare` checked what the problem's errors would name, and a session's
+        // factor is named by its id.
+        problem
+            .add_checked_factor_sqrt(f.factor, f.sqrt_information, f.robust, String::new())
+            .expect("validated");
+        ids.push(id);
+    }
+    // chi2 the new factors add at the current estimate, before removals shift indices.
+    let new_chi2 = solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
+        .unwrap_or(f64::INFINITY);
+    index.extend(problem, first_new_factor);
+    for f in &problem.factors()[first_new_factor..] {
+        seeds.extend_from_slice(f.variables());
+    }
+    if !prepared.remove.is_empty() {
+        let remove: HashSet<FactorId> = prepared.remove.into_iter().collect();
+        let keep: Vec<bool> = ids.iter().map(|id| !remove.contains(id)).collect();
+        problem.retain_factors(|i| keep[i]);
+        ids.retain(|id| !remove.contains(id));
+        index.rebuild(problem);
+    }
+    for (key, fixed) in prepared.fix {
+        problem.set_fixed(key, fixed).expect("validated");
+    }
+    for (key, v) in &prepared.guesses {
+        let idx = problem.values.index_of(*key).expect("validated");
+        problem.values.set(idx, v.as_ref());
+        structural = true;
+    }
+    ProblemChange {
+        added_factors,
+        adds_variables,
+        structural,
+        new_chi2,
     }
 }
 
@@ -382,7 +445,7 @@ mod tests {
     #[test]
     fn the_batch_after_the_last_sequence_is_refused_not_wrapped() {
         let (_runtime, pool, session) = crate::session::test_session("last");
-        session.lock().sequence = u64::MAX - 1;
+        session.lock().mirror.sequence = u64::MAX - 1;
         let pose = |key: u64| -> Batch {
             serde_json::from_value(json!({"variables": [{"key": key, "kind": "se2",
                 "value": [0, 0, 0], "fixed": true}]}))
@@ -393,8 +456,11 @@ mod tests {
         let refused = session.apply_batch(pose(1)).unwrap_err();
         assert_eq!(refused.body.code, "session_corrupt", "{refused:?}");
         assert!(refused.body.message.contains("read-only"), "{refused:?}");
-        assert_eq!(session.lock().sequence, u64::MAX);
-        assert!(session.lock().mirror.get(&1).is_none(), "nothing applied");
+        assert_eq!(session.lock().mirror.sequence, u64::MAX);
+        assert!(
+            session.lock().mirror.entries.get(&1).is_none(),
+            "nothing applied"
+        );
         assert!(session.corruption().is_some());
         drop(session);
         pool.shutdown(std::time::Duration::from_secs(5));

@@ -212,10 +212,57 @@ fn information(
     })
 }
 
+/// The kind of a variable, by key: this batch's or the mirror's.
+type KindOf<'a> = dyn Fn(Key) -> Option<&'static str> + 'a;
+
 /// Validates `batch` whole against the session; nothing is changed.
 pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch, ServiceError> {
+    let (new_kind, mut values) = new_variables(&batch, view)?;
+    let kind_of = |key: Key| -> Option<&'static str> {
+        new_kind
+            .get(&key)
+            .copied()
+            .or_else(|| view.mirror.get(&key).map(|e| e.kind))
+    };
+    let mut factors = Vec::with_capacity(batch.factors.len());
+    for (i, spec) in batch.factors.iter().enumerate() {
+        in_time(view, i, batch.factors.len(), "building the factors")?;
+        factors.push(prepare_factor(i, spec, view, &kind_of)?);
+    }
+    let predicted = predict_missing(&batch, &mut values, &factors, view)?;
+    check_removals(&batch, view)?;
+    let fix = fixes(&batch, &kind_of)?;
+    let guesses = guesses(&batch, &kind_of)?;
+    let variables: Vec<NewVariable> = batch
+        .variables
+        .iter()
+        .zip(values)
+        .map(|(spec, v)| NewVariable {
+            key: spec.key,
+            value: v.expect("predicted above"),
+            fixed: spec.fixed,
+            stamp: spec.stamp,
+        })
+        .collect();
+    check_residuals(&factors, &variables, &guesses, view)?;
+    Ok(PreparedBatch {
+        variables,
+        factors,
+        remove: batch.remove_factors,
+        fix,
+        guesses,
+        predicted,
+    })
+}
+
+/// The batch's new variables: kind, uniqueness, value (when given). Returns the kind of each
+/// and their values, in order.
+#[allow(clippy::type_complexity)]
+fn new_variables(
+    batch: &Batch,
+    view: &SessionView,
+) -> Result<(HashMap<Key, &'static str>, Vec<Option<Box<dyn Variable>>>), ServiceError> {
     let kind = view.kind;
-    // New variables: kind, uniqueness, value.
     let mut new_kind: HashMap<Key, &'static str> = HashMap::new();
     let mut values: Vec<Option<Box<dyn Variable>>> = Vec::with_capacity(batch.variables.len());
     for (i, spec) in batch.variables.iter().enumerate() {
@@ -252,117 +299,123 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             None => None,
         });
     }
-    let kind_of = |key: Key| -> Option<&'static str> {
-        new_kind
-            .get(&key)
-            .copied()
-            .or_else(|| view.mirror.get(&key).map(|e| e.kind))
-    };
+    Ok((new_kind, values))
+}
 
-    // Factors.
-    let mut factors = Vec::with_capacity(batch.factors.len());
-    for (i, spec) in batch.factors.iter().enumerate() {
-        in_time(view, i, batch.factors.len(), "building the factors")?;
-        let field = |suffix: &str| format!("factors[{i}]{suffix}");
-        let codec = view
-            .factor_types
-            .resolve(kind, &spec.factor_type)
-            .ok_or_else(|| {
-                let mut accepted: Vec<&str> = kind.factor_types.to_vec();
-                accepted.extend(view.factor_types.names().iter().map(String::as_str));
-                ServiceError::bad_request(
-                    "unknown_factor_type",
-                    field(".type"),
-                    format!(
-                        "a {} session accepts factors {accepted:?}, not `{}`",
-                        kind.name, spec.factor_type
-                    ),
-                )
-            })?;
-        if spec.keys.len() != codec.variable_kinds().len() {
-            return Err(ServiceError::bad_request(
-                "wrong_dimension",
-                field(".keys"),
+/// The batch's factor `i`: its type, keys, measurement, noise and robust kernel.
+fn prepare_factor(
+    i: usize,
+    spec: &FactorSpec,
+    view: &SessionView,
+    kind_of: &KindOf,
+) -> Result<PreparedFactor, ServiceError> {
+    let kind = view.kind;
+    let field = |suffix: &str| format!("factors[{i}]{suffix}");
+    let codec = view
+        .factor_types
+        .resolve(kind, &spec.factor_type)
+        .ok_or_else(|| {
+            let mut accepted: Vec<&str> = kind.factor_types.to_vec();
+            accepted.extend(view.factor_types.names().iter().map(String::as_str));
+            ServiceError::bad_request(
+                "unknown_factor_type",
+                field(".type"),
                 format!(
-                    "{} connects {} variables, got {} keys",
-                    codec.name(),
-                    codec.variable_kinds().len(),
-                    spec.keys.len()
+                    "a {} session accepts factors {accepted:?}, not `{}`",
+                    kind.name, spec.factor_type
                 ),
-            ));
-        }
-        for (k, (&key, &expected)) in spec.keys.iter().zip(codec.variable_kinds()).enumerate() {
-            let key_field = || field(&format!(".keys[{k}]"));
-            if spec.keys[..k].contains(&key) {
-                return Err(ServiceError::bad_request(
-                    "repeated_variable",
-                    key_field(),
-                    format!("variable {key} appears twice"),
-                ));
-            }
-            match kind_of(key) {
-                None => {
-                    return Err(ServiceError::invalid(
-                        "unknown_variable",
-                        key_field(),
-                        format!(
-                            "variable {key} does not exist (add it in this or an earlier batch)"
-                        ),
-                    ))
-                }
-                Some(found) if found != expected => {
-                    return Err(ServiceError::invalid(
-                        "wrong_kind",
-                        key_field(),
-                        format!(
-                            "{} needs a {expected} here, variable {key} is a {found}",
-                            codec.name()
-                        ),
-                    ))
-                }
-                Some(_) => {}
-            }
-        }
-        if spec.measurement.len() != codec.measurement_len() {
-            return Err(ServiceError::bad_request(
-                "wrong_dimension",
-                field(".measurement"),
-                format!(
-                    "{} measurement has {} numbers, got {}",
-                    codec.name(),
-                    codec.measurement_len(),
-                    spec.measurement.len()
-                ),
-            ));
-        }
-        finite(&spec.measurement, &|| field(".measurement"))?;
-        let factor = codec
-            .build(&spec.keys, &spec.measurement)
-            .map_err(|m| ServiceError::bad_request("invalid_value", field(".measurement"), m))?;
-        let sqrt_information = information(spec, codec.residual_dim(), &|| field(""))?;
-        if let Some(s) = spec.robust.map(|k| k.scale()) {
-            if !robust::scale_in_range(s) {
-                return Err(ServiceError::bad_request(
-                    "invalid_value",
-                    field(".robust.scale"),
-                    format!(
-                        "robust kernel scale must be a number from {:e} to {:e}, got {s:e}",
-                        robust::MIN_SCALE,
-                        robust::MAX_SCALE
-                    ),
-                ));
-            }
-        }
-        factors.push(PreparedFactor {
-            factor,
-            sqrt_information,
-            robust: spec.robust,
-        });
+            )
+        })?;
+    check_factor_keys(spec, codec.name(), codec.variable_kinds(), kind_of, &field)?;
+    if spec.measurement.len() != codec.measurement_len() {
+        return Err(ServiceError::bad_request(
+            "wrong_dimension",
+            field(".measurement"),
+            format!(
+                "{} measurement has {} numbers, got {}",
+                codec.name(),
+                codec.measurement_len(),
+                spec.measurement.len()
+            ),
+        ));
     }
+    finite(&spec.measurement, &|| field(".measurement"))?;
+    let factor = codec
+        .build(&spec.keys, &spec.measurement)
+        .map_err(|m| ServiceError::bad_request("invalid_value", field(".measurement"), m))?;
+    let sqrt_information = information(spec, codec.residual_dim(), &|| field(""))?;
+    if let Some(s) = spec.robust.map(|k| k.scale()) {
+        if !robust::scale_in_range(s) {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                field(".robust.scale"),
+                format!(
+                    "robust kernel scale must be a number from {:e} to {:e}, got {s:e}",
+                    robust::MIN_SCALE,
+                    robust::MAX_SCALE
+                ),
+            ));
+        }
+    }
+    Ok(PreparedFactor {
+        factor,
+        sqrt_information,
+        robust: spec.robust,
+    })
+}
 
-    let predicted = predict_missing(&batch, &mut values, &factors, view)?;
+/// A factor's keys: as many as its type connects, each once, each an existing variable of the
+/// kind its type needs there.
+fn check_factor_keys(
+    spec: &FactorSpec,
+    name: &str,
+    expected_kinds: &[&'static str],
+    kind_of: &KindOf,
+    field: &dyn Fn(&str) -> String,
+) -> Result<(), ServiceError> {
+    if spec.keys.len() != expected_kinds.len() {
+        return Err(ServiceError::bad_request(
+            "wrong_dimension",
+            field(".keys"),
+            format!(
+                "{name} connects {} variables, got {} keys",
+                expected_kinds.len(),
+                spec.keys.len()
+            ),
+        ));
+    }
+    for (k, (&key, &expected)) in spec.keys.iter().zip(expected_kinds).enumerate() {
+        let key_field = || field(&format!(".keys[{k}]"));
+        if spec.keys[..k].contains(&key) {
+            return Err(ServiceError::bad_request(
+                "repeated_variable",
+                key_field(),
+                format!("variable {key} appears twice"),
+            ));
+        }
+        match kind_of(key) {
+            None => {
+                return Err(ServiceError::invalid(
+                    "unknown_variable",
+                    key_field(),
+                    format!("variable {key} does not exist (add it in this or an earlier batch)"),
+                ))
+            }
+            Some(found) if found != expected => {
+                return Err(ServiceError::invalid(
+                    "wrong_kind",
+                    key_field(),
+                    format!("{name} needs a {expected} here, variable {key} is a {found}"),
+                ))
+            }
+            Some(_) => {}
+        }
+    }
+    Ok(())
+}
 
-    // Removals.
+/// Every factor the batch removes is live, and removed once.
+fn check_removals(batch: &Batch, view: &SessionView) -> Result<(), ServiceError> {
     let mut removed = HashSet::new();
     for (i, &id) in batch.remove_factors.iter().enumerate() {
         if !view.live_factors.contains(&id) || !removed.insert(id) {
@@ -373,8 +426,11 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             ));
         }
     }
+    Ok(())
+}
 
-    // Fix / unfix.
+/// Fix and unfix: existing (or this batch's) variables, none both.
+fn fixes(batch: &Batch, kind_of: &KindOf) -> Result<Vec<(Key, bool)>, ServiceError> {
     let mut fix = Vec::new();
     for (list, fixed, name) in [(&batch.fix, true, "fix"), (&batch.unfix, false, "unfix")] {
         for (i, &key) in list.iter().enumerate() {
@@ -395,8 +451,12 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             fix.push((key, fixed));
         }
     }
+    Ok(fix)
+}
 
-    // Guesses for existing (or this batch's) variables.
+/// Guesses for existing (or this batch's) variables, decoded.
+#[allow(clippy::type_complexity)]
+fn guesses(batch: &Batch, kind_of: &KindOf) -> Result<Vec<(Key, Box<dyn Variable>)>, ServiceError> {
     let mut guesses = Vec::with_capacity(batch.guesses.len());
     for (i, g) in batch.guesses.iter().enumerate() {
         let field = |suffix: &str| format!("guesses[{i}]{suffix}");
@@ -412,27 +472,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
             decode_value(var_kind, &g.value, &|| field(".value"))?,
         ));
     }
-
-    let variables: Vec<NewVariable> = batch
-        .variables
-        .iter()
-        .zip(values)
-        .map(|(spec, v)| NewVariable {
-            key: spec.key,
-            value: v.expect("predicted above"),
-            fixed: spec.fixed,
-            stamp: spec.stamp,
-        })
-        .collect();
-    check_residuals(&factors, &variables, &guesses, view)?;
-    Ok(PreparedBatch {
-        variables,
-        factors,
-        remove: batch.remove_factors,
-        fix,
-        guesses,
-        predicted,
-    })
+    Ok(guesses)
 }
 
 /// Every new factor must have a finite residual at the values it will start from (a camera

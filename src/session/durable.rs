@@ -172,8 +172,8 @@ impl Durable {
         };
         let started = Instant::now();
         let capture = Capture {
-            sequence: st.sequence,
-            next_factor_id: st.next_factor_id,
+            sequence: st.mirror.sequence,
+            next_factor_id: st.mirror.next_factor_id,
             auto: st.auto,
             producers: st.producers.records(),
             factor_types: session.factor_types().definitions(),
@@ -189,7 +189,7 @@ impl Durable {
         self.entries_since_snapshot = 0;
         tracing::debug!(
             session = session.name,
-            sequence = st.sequence,
+            sequence = st.mirror.sequence,
             micros = started.elapsed().as_secs_f64() * 1e6,
             "snapshot captured under the lock"
         );
@@ -315,18 +315,18 @@ impl Session {
                 factors,
                 ..Batch::default()
             };
-            self.accept_batch(batch, Some(ids), false)
+            self.replay_batch(batch, Some(ids))
                 .map_err(|e| format!("snapshot: {}", e.body.message))?;
             let mut st = self.lock();
             st.producers = super::producers::Producers::from_records(snapshot.producers);
-            st.sequence = snapshot.sequence;
-            st.next_factor_id = st.next_factor_id.max(snapshot.next_factor_id);
+            st.mirror.sequence = snapshot.sequence;
+            st.mirror.next_factor_id = st.mirror.next_factor_id.max(snapshot.next_factor_id);
         }
         let entries = recovered.entries.len();
         for (i, entry) in recovered.entries.into_iter().enumerate() {
             match entry {
                 Entry::Batch { sequence, batch } => {
-                    let current = self.lock().sequence;
+                    let current = self.lock().mirror.sequence;
                     if sequence <= current {
                         continue; // already in the snapshot
                     }
@@ -336,7 +336,7 @@ impl Session {
                             current + 1
                         ));
                     }
-                    self.accept_batch(batch, None, false)
+                    self.replay_batch(batch, None)
                         .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
                 }
                 Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
@@ -380,7 +380,7 @@ impl Session {
         let sequence = {
             let mut st = self.lock();
             st.auto = auto;
-            st.sequence
+            st.mirror.sequence
         };
         match &corruption {
             Some(reason) => self.mark_corrupt(format!(

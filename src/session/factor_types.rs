@@ -375,7 +375,7 @@ impl super::Session {
         }
         {
             let st = self.lock();
-            if st.deleted {
+            if st.schedule.phase.is_deleted() {
                 return Err(self.gone());
             }
             let mut extended = self.factor_types().clone();

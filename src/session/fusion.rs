@@ -19,7 +19,7 @@ use crate::api::fusion::{
 use crate::api::wire::{SessionEvent, VariableValue};
 use crate::api::ServiceError;
 use crate::fusion::window::{diagonal_information, FusionError, SlidingWindow, WindowOptions};
-use crate::geometry::preintegration::{Matrix15, Preintegrated};
+use crate::geometry::preintegration::{ImuNoise, Matrix15, Preintegrated};
 use crate::geometry::{so3, NavState};
 use crate::problem::Key;
 
@@ -55,49 +55,13 @@ fn apply(
     message: FusionMessage,
 ) -> Result<Option<Key>, FusionError> {
     if let FusionMessage::Start(start) = message {
-        let StartMessage {
-            t,
-            position,
-            rotation_xyzw,
-            velocity,
-            accel_bias,
-            gyro_bias,
-            sigmas,
-            window: size,
-            gravity,
-            imu_noise,
-        } = *start;
         if window.is_some() {
             return Err(FusionError::Invalid {
                 field: "type",
                 reason: "the session has already started".into(),
             });
         }
-        finite(&[t])?;
-        finite(&position)?;
-        let rotation = unit_quaternion("rotation_xyzw", &rotation_xyzw)?;
-        let first = NavState {
-            position: Vector3::from(position),
-            rotation,
-            velocity: Vector3::from(velocity),
-            accel_bias: Vector3::from(accel_bias),
-            gyro_bias: Vector3::from(gyro_bias),
-        };
-        let s = &sigmas;
-        let info = diagonal_information(&[
-            (s.position, 3),
-            (s.rotation, 3),
-            (s.velocity, 3),
-            (s.accel_bias, 3),
-            (s.gyro_bias, 3),
-        ])?;
-        let options = WindowOptions {
-            size,
-            gravity,
-            imu_noise,
-            ..WindowOptions::default()
-        };
-        *window = Some(SlidingWindow::new(options, first, t, &info)?);
+        *window = Some(start_window(*start)?);
         return Ok(Some(0));
     }
     let w = window.as_mut().ok_or_else(|| FusionError::Invalid {
@@ -115,63 +79,8 @@ fn apply(
             Ok(Some(key))
         }
         FusionMessage::PreintegratedKeyframe(keyframe) => {
-            let PreintegratedKeyframeMessage {
-                t,
-                delta_t,
-                delta_rotation_xyzw,
-                delta_velocity,
-                delta_position,
-                accel_bias,
-                gyro_bias,
-                d_rotation_d_gyro_bias,
-                d_velocity_d_accel_bias,
-                d_velocity_d_gyro_bias,
-                d_position_d_accel_bias,
-                d_position_d_gyro_bias,
-                covariance,
-            } = *keyframe;
-            if covariance.len() != 225 {
-                return Err(FusionError::Invalid {
-                    field: "covariance",
-                    reason: format!("expected 225 numbers (15×15), got {}", covariance.len()),
-                });
-            }
-            for values in [
-                &[t, delta_t][..],
-                &delta_rotation_xyzw,
-                &delta_velocity,
-                &delta_position,
-                &accel_bias,
-                &gyro_bias,
-                &d_rotation_d_gyro_bias,
-                &d_velocity_d_accel_bias,
-                &d_velocity_d_gyro_bias,
-                &d_position_d_accel_bias,
-                &d_position_d_gyro_bias,
-                &covariance,
-            ] {
-                finite(values)?;
-            }
-            let matrix = |m: &[f64; 9]| nalgebra::Matrix3::from_row_slice(m);
-            let mut measurement = Preintegrated::new(
-                w.options.imu_noise,
-                Vector3::from(accel_bias),
-                Vector3::from(gyro_bias),
-            );
-            measurement.delta_t = delta_t;
-            measurement.delta_rotation =
-                unit_quaternion("delta_rotation_xyzw", &delta_rotation_xyzw)?
-                    .to_rotation_matrix()
-                    .into_inner();
-            measurement.delta_velocity = Vector3::from(delta_velocity);
-            measurement.delta_position = Vector3::from(delta_position);
-            measurement.d_rotation_d_gyro_bias = matrix(&d_rotation_d_gyro_bias);
-            measurement.d_velocity_d_accel_bias = matrix(&d_velocity_d_accel_bias);
-            measurement.d_velocity_d_gyro_bias = matrix(&d_velocity_d_gyro_bias);
-            measurement.d_position_d_accel_bias = matrix(&d_position_d_accel_bias);
-            measurement.d_position_d_gyro_bias = matrix(&d_position_d_gyro_bias);
-            measurement.covariance = Matrix15::from_row_slice(&covariance);
-            measurement.samples = 1;
+            let t = keyframe.t;
+            let measurement = preintegrated(w.options.imu_noise, *keyframe)?;
             let key = w.add_keyframe_preintegrated(t, measurement)?;
             Ok(Some(key))
         }
@@ -213,6 +122,112 @@ fn apply(
             Ok(None)
         }
     }
+}
+
+/// A new window from a `start` message: its first state, that state's prior and the options.
+fn start_window(start: StartMessage) -> Result<SlidingWindow, FusionError> {
+    let StartMessage {
+        t,
+        position,
+        rotation_xyzw,
+        velocity,
+        accel_bias,
+        gyro_bias,
+        sigmas,
+        window: size,
+        gravity,
+        imu_noise,
+    } = start;
+    finite(&[t])?;
+    finite(&position)?;
+    let rotation = unit_quaternion("rotation_xyzw", &rotation_xyzw)?;
+    let first = NavState {
+        position: Vector3::from(position),
+        rotation,
+        velocity: Vector3::from(velocity),
+        accel_bias: Vector3::from(accel_bias),
+        gyro_bias: Vector3::from(gyro_bias),
+    };
+    let s = &sigmas;
+    let info = diagonal_information(&[
+        (s.position, 3),
+        (s.rotation, 3),
+        (s.velocity, 3),
+        (s.accel_bias, 3),
+        (s.gyro_bias, 3),
+    ])?;
+    let options = WindowOptions {
+        size,
+        gravity,
+        imu_noise,
+        ..WindowOptions::default()
+    };
+    SlidingWindow::new(options, first, t, &info)
+}
+
+/// The IMU preintegration a `preintegrated_keyframe` message carries (the robot integrated
+/// it), checked finite and of the right sizes.
+fn preintegrated(
+    imu_noise: ImuNoise,
+    keyframe: PreintegratedKeyframeMessage,
+) -> Result<Preintegrated, FusionError> {
+    let PreintegratedKeyframeMessage {
+        t,
+        delta_t,
+        delta_rotation_xyzw,
+        delta_velocity,
+        delta_position,
+        accel_bias,
+        gyro_bias,
+        d_rotation_d_gyro_bias,
+        d_velocity_d_accel_bias,
+        d_velocity_d_gyro_bias,
+        d_position_d_accel_bias,
+        d_position_d_gyro_bias,
+        covariance,
+    } = keyframe;
+    if covariance.len() != 225 {
+        return Err(FusionError::Invalid {
+            field: "covariance",
+            reason: format!("expected 225 numbers (15×15), got {}", covariance.len()),
+        });
+    }
+    for values in [
+        &[t, delta_t][..],
+        &delta_rotation_xyzw,
+        &delta_velocity,
+        &delta_position,
+        &accel_bias,
+        &gyro_bias,
+        &d_rotation_d_gyro_bias,
+        &d_velocity_d_accel_bias,
+        &d_velocity_d_gyro_bias,
+        &d_position_d_accel_bias,
+        &d_position_d_gyro_bias,
+        &covariance,
+    ] {
+        finite(values)?;
+    }
+    let matrix = |m: &[f64; 9]| nalgebra::Matrix3::from_row_slice(m);
+    let mut measurement = Preintegrated::new(
+        imu_noise,
+        Vector3::from(accel_bias),
+        Vector3::from(gyro_bias),
+    );
+    measurement.delta_t = delta_t;
+    measurement.delta_rotation = unit_quaternion("delta_rotation_xyzw", &delta_rotation_xyzw)?
+        .to_rotation_matrix()
+        .into_inner();
+    measurement.delta_velocity = Vector3::from(delta_velocity);
+    measurement.delta_position = Vector3::from(delta_position);
+    measurement.d_rotation_d_gyro_bias = matrix(&d_rotation_d_gyro_bias);
+    measurement.d_velocity_d_accel_bias = matrix(&d_velocity_d_accel_bias);
+    measurement.d_velocity_d_gyro_bias = matrix(&d_velocity_d_gyro_bias);
+    measurement.d_position_d_accel_bias = matrix(&d_position_d_accel_bias);
+    measurement.d_position_d_gyro_bias = matrix(&d_position_d_gyro_bias);
+    measurement.covariance = Matrix15::from_row_slice(&covariance);
+    measurement.samples = 1;
+    Ok(measurement)
 }
 
 impl Session {

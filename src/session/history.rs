@@ -181,7 +181,7 @@ impl History {
     pub(super) fn record(&mut self, event: &Arc<SessionEvent>) {
         self.revision += 1;
         let now = unix_ms();
-        let logged = |event: &Arc<SessionEvent>| LoggedEvent {
+        let logged = || LoggedEvent {
             unix_ms: now,
             event: event.topic(),
             data: LoggedData::Live(event.clone()),
@@ -198,13 +198,7 @@ impl History {
                         &mut ignored,
                     );
                 }
-                push_logged(
-                    &mut self.events,
-                    logged(event),
-                    LOGGED_EVENTS,
-                    &mut self.dropped,
-                    &mut self.logged_bytes,
-                );
+                self.log(logged());
             }
             SessionEvent::Summary {
                 solve,
@@ -212,71 +206,29 @@ impl History {
                 summary,
                 ..
             } => {
-                let mut oldest = None;
-                while let Some(&(seq, at)) = self.accepted.front() {
-                    if seq > *sequence {
-                        break;
-                    }
-                    oldest.get_or_insert(at);
-                    self.accepted.pop_front();
-                }
-                let point = TimelinePoint {
-                    unix_ms: now,
-                    solve: *solve,
-                    sequence: *sequence,
-                    chi2: Some(summary.final_chi2).filter(|c| c.is_finite()),
-                    solve_seconds: summary.solve_seconds,
-                    latency_seconds: oldest.map(|at| at.elapsed().as_secs_f64()),
-                    iterations: summary.iterations,
-                    converged: summary.converged,
-                };
-                push_bounded(
-                    &mut self.timeline,
-                    point,
-                    TIMELINE_POINTS,
-                    &mut self.dropped,
-                );
-                push_logged(
-                    &mut self.events,
-                    logged(event),
-                    LOGGED_EVENTS,
-                    &mut self.dropped,
-                    &mut self.logged_bytes,
-                );
+                let point = self.solve_point(now, *solve, *sequence, summary);
+                self.plot(point);
+                self.log(logged());
             }
             SessionEvent::State {
                 iterations,
                 update_seconds,
                 ..
-            } => {
-                let point = TimelinePoint {
-                    unix_ms: now,
-                    solve: 0,
-                    sequence: 0,
-                    chi2: None,
-                    solve_seconds: *update_seconds,
-                    latency_seconds: Some(*update_seconds),
-                    iterations: *iterations,
-                    converged: true,
-                };
-                push_bounded(
-                    &mut self.timeline,
-                    point,
-                    TIMELINE_POINTS,
-                    &mut self.dropped,
-                );
-            }
+            } => self.plot(TimelinePoint {
+                unix_ms: now,
+                solve: 0,
+                sequence: 0,
+                chi2: None,
+                solve_seconds: *update_seconds,
+                latency_seconds: Some(*update_seconds),
+                iterations: *iterations,
+                converged: true,
+            }),
             SessionEvent::Error { .. } => {
-                push_logged(
-                    &mut self.events,
-                    logged(event),
-                    LOGGED_EVENTS,
-                    &mut self.dropped,
-                    &mut self.logged_bytes,
-                );
+                self.log(logged());
                 push_logged(
                     &mut self.rejected,
-                    logged(event),
+                    logged(),
                     REJECTIONS,
                     &mut self.dropped,
                     &mut self.logged_bytes,
@@ -287,6 +239,54 @@ impl History {
             | SessionEvent::Window { .. }
             | SessionEvent::Lagged { .. } => {}
         }
+    }
+
+    /// The timeline point of a finished solve reflecting `sequence`; its latency runs from
+    /// the oldest batch it is the first to reflect.
+    fn solve_point(
+        &mut self,
+        now: u64,
+        solve: u64,
+        sequence: u64,
+        summary: &crate::solver::Summary,
+    ) -> TimelinePoint {
+        let mut oldest = None;
+        while let Some(&(seq, at)) = self.accepted.front() {
+            if seq > sequence {
+                break;
+            }
+            oldest.get_or_insert(at);
+            self.accepted.pop_front();
+        }
+        TimelinePoint {
+            unix_ms: now,
+            solve,
+            sequence,
+            chi2: Some(summary.final_chi2).filter(|c| c.is_finite()),
+            solve_seconds: summary.solve_seconds,
+            latency_seconds: oldest.map(|at| at.elapsed().as_secs_f64()),
+            iterations: summary.iterations,
+            converged: summary.converged,
+        }
+    }
+
+    fn plot(&mut self, point: TimelinePoint) {
+        push_bounded(
+            &mut self.timeline,
+            point,
+            TIMELINE_POINTS,
+            &mut self.dropped,
+        );
+    }
+
+    fn log(&mut self, event: LoggedEvent) {
+        push_logged(
+            &mut self.events,
+            event,
+            LOGGED_EVENTS,
+            &mut self.dropped,
+            &mut self.logged_bytes,
+        );
     }
 }
 

@@ -280,14 +280,7 @@ pub(crate) fn resolve(
     if n >= MIN_VARIABLES_FOR_REGIONS && !seeds.is_empty() && !in_debt {
         while size * 3 < n {
             let region = grow_region(problem, index, seeds, size);
-            let mut fixed: Vec<bool> = anchors.to_vec();
-            let mut inside = vec![false; n];
-            for &v in &region {
-                inside[v] = true;
-            }
-            for (v, f) in fixed.iter_mut().enumerate() {
-                *f |= !inside[v];
-            }
+            let (fixed, inside) = held_outside(anchors, &region);
             let factors = factors_touching(index, &region);
             let summary = match solver::optimize_region_within(
                 problem,
@@ -311,18 +304,7 @@ pub(crate) fn resolve(
                     summary,
                 });
             }
-            // The ring just outside the region, free in the whole problem.
-            let ring: Vec<usize> = factors
-                .iter()
-                .flat_map(|&f| problem.factors()[f].variables().iter().copied())
-                .filter(|&v| !inside[v] && !anchors[v])
-                .collect();
-            let mut ring_fixed = vec![true; n];
-            for &v in &ring {
-                ring_fixed[v] = false;
-            }
-            let ring_factors = factors_touching(index, &ring);
-            let gain = solver::newton_decrement(problem, &ring_fixed, &ring_factors)?;
+            let gain = ring_gain(problem, index, &factors, &inside, anchors)?;
             if gain <= options.function_tolerance * total {
                 *debt += gain;
                 // Report the whole problem's chi2 (the iteration log keeps the region's).
@@ -347,6 +329,42 @@ pub(crate) fn resolve(
         moved: None,
         summary,
     })
+}
+
+/// What a region solve holds fixed (the anchors and everything outside `region`), and which
+/// variables are inside it.
+fn held_outside(anchors: &[bool], region: &[usize]) -> (Vec<bool>, Vec<bool>) {
+    let mut fixed: Vec<bool> = anchors.to_vec();
+    let mut inside = vec![false; anchors.len()];
+    for &v in region {
+        inside[v] = true;
+    }
+    for (v, f) in fixed.iter_mut().enumerate() {
+        *f |= !inside[v];
+    }
+    (fixed, inside)
+}
+
+/// What a Newton step on the ring just outside a solved region (its variables free in the
+/// whole problem, reached by the region's `factors`) would still gain.
+fn ring_gain(
+    problem: &Problem,
+    index: &IncrementalSolver,
+    factors: &[usize],
+    inside: &[bool],
+    anchors: &[bool],
+) -> Result<f64, SolverError> {
+    let ring: Vec<usize> = factors
+        .iter()
+        .flat_map(|&f| problem.factors()[f].variables().iter().copied())
+        .filter(|&v| !inside[v] && !anchors[v])
+        .collect();
+    let mut ring_fixed = vec![true; inside.len()];
+    for &v in &ring {
+        ring_fixed[v] = false;
+    }
+    let ring_factors = factors_touching(index, &ring);
+    solver::newton_decrement(problem, &ring_fixed, &ring_factors)
 }
 
 /// Up to about `size` variables, breadth-first from `seeds` (whole layers, so the region is a

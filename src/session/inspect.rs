@@ -42,23 +42,24 @@ pub(super) fn edge(mirror: &BTreeMap<Key, MirrorEntry>, keys: &[Key]) -> Option<
     (is_pose(a) && is_pose(b)).then_some([*a, *b])
 }
 
-/// Each edge's χ² contribution `ρ(‖R e‖²)` at the estimate, in the order of `st.edges`; none
+/// Each edge's χ² contribution `ρ(‖R e‖²)` at the estimate, in the order of `st.mirror.edges`; none
 /// while a solve holds the problem, for an edge still queued, or where it cannot be evaluated.
 fn edge_chi2(st: &State) -> Vec<Option<f64>> {
-    let Some(problem) = &st.problem else {
-        return vec![None; st.edges.len()];
+    let Some(problem) = &st.model.problem else {
+        return vec![None; st.mirror.edges.len()];
     };
-    let mut by_id = HashMap::with_capacity(st.edges.len());
+    let mut by_id = HashMap::with_capacity(st.mirror.edges.len());
     let mut scratch = Chi2Scratch::default();
-    for (f, id) in problem.factors().iter().zip(&st.factor_ids) {
-        if !st.edges.contains_key(id) {
+    for (f, id) in problem.factors().iter().zip(&st.model.factor_ids) {
+        if !st.mirror.edges.contains_key(id) {
             continue;
         }
         if let Ok(chi2) = scratch.chi2(f, &problem.values) {
             by_id.insert(*id, chi2);
         }
     }
-    st.edges
+    st.mirror
+        .edges
         .keys()
         .map(|id| by_id.get(id).copied().filter(|c| c.is_finite()))
         .collect()
@@ -76,7 +77,7 @@ impl Session {
     fn problem_graph(&self, dimension: u8) -> Graph {
         let st = self.lock();
         let (mut poses, mut points) = (Vec::new(), Vec::new());
-        for (&key, entry) in &st.mirror {
+        for (&key, entry) in &st.mirror.entries {
             let drawn = DrawnVariable {
                 key,
                 position: position(entry.kind, &entry.value),
@@ -90,11 +91,11 @@ impl Session {
         Graph {
             session: self.name.clone(),
             kind: self.kind.name.into(),
-            sequence: st.sequence,
+            sequence: st.mirror.sequence,
             dimension,
             poses,
             points,
-            edges: st.edges.values().copied().collect(),
+            edges: st.mirror.edges.values().copied().collect(),
             edge_chi2: edge_chi2(&st),
         }
     }
@@ -102,7 +103,7 @@ impl Session {
     /// A sliding window's keyframes (marginalised ones stay, fixed) and the factors between two
     /// of them. The window keeps no initial guesses: `initial` is the current position.
     fn window_graph(&self, window: &Window) -> Graph {
-        let sequence = self.lock().sequence;
+        let sequence = self.lock().mirror.sequence;
         let guard = window.window.lock().unwrap_or_else(|p| p.into_inner());
         let (mut poses, mut edges) = (Vec::new(), Vec::new());
         if let Some(window) = guard.as_ref() {
@@ -161,54 +162,17 @@ impl Session {
         };
         // Lock order: the cached factorisation, then the state.
         let mut cache = graph.marginals.lock().unwrap_or_else(|p| p.into_inner());
-        let mut st = self.lock();
-        if st.deleted {
+        let st = self.lock();
+        if st.schedule.phase.is_deleted() {
             return Err(self.gone());
         }
-        let mut variables = Vec::with_capacity(query.keys.len());
-        for (i, key) in query.keys.iter().enumerate() {
-            match st.mirror.get(key) {
-                Some(entry) => variables.push(entry.decode()),
-                None => {
-                    return Err(ServiceError::invalid(
-                        "unknown_variable",
-                        format!("keys[{i}]"),
-                        format!("variable {key} does not exist"),
-                    ))
-                }
-            }
-            if query.keys[..i].contains(key) {
-                return Err(ServiceError::bad_request(
-                    "invalid_value",
-                    format!("keys[{i}]"),
-                    format!("variable {key} is named twice"),
-                ));
-            }
-        }
-        let version = (st.sequence, st.solves);
+        let variables = queried_variables(&st, &query.keys)?;
+        let version = (st.mirror.sequence, st.results.solves);
         let reused = matches!(&*cache, Some((v, _)) if *v == version);
         if !reused {
-            // While the problem is here its values are the estimate clients read (the mirror).
-            if st.problem.is_none() || st.scheduled {
+            let Some(factorized) = self.factorize(st)? else {
                 return Ok(None);
-            }
-            let problem = st.problem.take().expect("checked above");
-            let index = st.index.take().expect("kept with the problem");
-            st.scheduled = true; // no solve takes the problem while it is out
-            drop(st);
-            let factorized = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                marginals::Marginals::new(&problem)
-            }));
-            let mut st = self.lock();
-            self.hand_back(&mut st, problem, index);
-            st.scheduled = false;
-            self.maybe_schedule(&mut st);
-            drop(st);
-            let factorized = factorized
-                .map_err(|_| ServiceError::internal("the factorisation panicked"))?
-                .map_err(|e| {
-                    ServiceError::new(ErrorKind::Invalid, "indeterminate_system", e.to_string())
-                })?;
+            };
             graph.marginals_bytes.store(
                 factorized.memory_bytes(),
                 std::sync::atomic::Ordering::Relaxed,
@@ -254,6 +218,63 @@ impl Session {
             seconds: start.elapsed().as_secs_f64(),
         }))
     }
+}
+
+impl Session {
+    /// Factorises the problem at the current estimate, lending it out of the state meanwhile
+    /// (batches that arrive are queued as during a solve). `None` when a solve holds it or is
+    /// queued for it.
+    fn factorize(
+        self: &Arc<Self>,
+        mut st: std::sync::MutexGuard<'_, State>,
+    ) -> Result<Option<marginals::Marginals>, ServiceError> {
+        // While the problem is here its values are the estimate clients read (the mirror).
+        // No solve takes the problem while it is out.
+        if !st.schedule.phase.lend() {
+            return Ok(None);
+        }
+        let (problem, index) = st.model.take();
+        drop(st);
+        let factorized = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            marginals::Marginals::new(&problem)
+        }));
+        let mut st = self.lock();
+        self.hand_back(&mut st, problem, index);
+        st.schedule.phase.give_back();
+        self.maybe_schedule(&mut st);
+        drop(st);
+        factorized
+            .map_err(|_| ServiceError::internal("the factorisation panicked"))?
+            .map_err(|e| {
+                ServiceError::new(ErrorKind::Invalid, "indeterminate_system", e.to_string())
+            })
+            .map(Some)
+    }
+}
+
+/// The variables a marginals query names, decoded from the mirror: each existing, none twice.
+fn queried_variables(st: &State, keys: &[Key]) -> Result<Vec<Box<dyn Variable>>, ServiceError> {
+    let mut variables = Vec::with_capacity(keys.len());
+    for (i, key) in keys.iter().enumerate() {
+        match st.mirror.entries.get(key) {
+            Some(entry) => variables.push(entry.decode()),
+            None => {
+                return Err(ServiceError::invalid(
+                    "unknown_variable",
+                    format!("keys[{i}]"),
+                    format!("variable {key} does not exist"),
+                ))
+            }
+        }
+        if keys[..i].contains(key) {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                format!("keys[{i}]"),
+                format!("variable {key} is named twice"),
+            ));
+        }
+    }
+    Ok(variables)
 }
 
 /// One variable's answer: its tangent covariance (`block`, row-major) and its position's.

@@ -3,11 +3,13 @@
 
 use std::collections::BTreeMap;
 
+use super::batch::PreparedBatch;
 use super::engine::Engine;
-use super::Session;
+use super::state::Mirror;
+use super::{inspect, Session};
 use crate::api::catalogue;
 use crate::api::export::{self, EstimateFormat, Export};
-use crate::api::wire::{Estimate, EstimateQuery, VariableValue};
+use crate::api::wire::{Estimate, EstimateQuery, FactorId, VariableValue};
 use crate::api::ServiceError;
 use crate::problem::{Key, Problem, Variable};
 
@@ -58,7 +60,7 @@ impl Session {
                     Some(_) => Vec::new(),
                     None => self.window_trajectory_in(&range),
                 };
-                (self.lock().sequence, variables)
+                (self.lock().mirror.sequence, variables)
             }
             Engine::Graph(_) => {
                 let st = self.lock();
@@ -67,12 +69,13 @@ impl Session {
                     Vec::new()
                 } else {
                     st.mirror
+                        .entries
                         .range(range)
                         .filter(|(_, e)| query.since.is_none() || e.changed > since)
                         .map(|(&k, e)| value_of(k, e))
                         .collect()
                 };
-                (st.sequence, variables)
+                (st.mirror.sequence, variables)
             }
         };
         Estimate {
@@ -175,6 +178,61 @@ pub(super) fn refresh(
         }
     }
     changed
+}
+
+impl Mirror {
+    /// Step 3 of accepting a batch: its variables, guesses, fixes and factors as clients see
+    /// them, at `sequence`. Returns the values it set (for the `estimate` event).
+    pub(super) fn accept(
+        &mut self,
+        prepared: &PreparedBatch,
+        factor_ids: &[FactorId],
+        sequence: u64,
+    ) -> Vec<VariableValue> {
+        let mut new_values = Vec::new();
+        for v in &prepared.variables {
+            let kind = v.value.kind();
+            let value = WireValue::from_vec(catalogue::encode_variable(v.value.as_ref()));
+            let entry = MirrorEntry {
+                kind,
+                initial: inspect::position(kind, &value),
+                value,
+                changed: sequence,
+                fixed: v.fixed,
+                stamp: v.stamp,
+            };
+            new_values.push(value_of(v.key, &entry));
+            self.heap_values += heap_values(&entry.value);
+            if let Some(old) = self.entries.insert(v.key, entry) {
+                self.heap_values -= heap_values(&old.value);
+            }
+        }
+        for (key, v) in &prepared.guesses {
+            let value = WireValue::from_vec(catalogue::encode_variable(v.as_ref()));
+            let added = heap_values(&value);
+            let entry = self.entries.get_mut(key).expect("validated");
+            let removed = heap_values(&entry.value);
+            entry.initial = inspect::position(entry.kind, &value);
+            entry.value = value;
+            entry.changed = sequence;
+            new_values.push(value_of(*key, entry));
+            self.heap_values = self.heap_values + added - removed;
+        }
+        for &(key, fixed) in &prepared.fix {
+            self.entries.get_mut(&key).expect("validated").fixed = fixed;
+        }
+        self.live_factors.extend(factor_ids.iter().copied());
+        for (f, &id) in prepared.factors.iter().zip(factor_ids) {
+            if let Some(edge) = inspect::edge(&self.entries, f.factor.keys()) {
+                self.edges.insert(id, edge);
+            }
+        }
+        for id in &prepared.remove {
+            self.live_factors.remove(id);
+            self.edges.remove(id);
+        }
+        new_values
+    }
 }
 
 #[cfg(test)]

@@ -15,14 +15,18 @@
 //! - `mod.rs`: the type, its construction, its lock and who owns it.
 //! - `engine.rs`: the two engines, choosing one from the session kind (the only place that
 //!   names kinds), and the errors for what an engine does not offer.
-//! - `state.rs`: `State`, everything behind that lock, and how a new one starts.
+//! - `state.rs`: `State`, everything behind that lock, split by who changes it: the problem
+//!   (`Model`), the `Mirror`, the `Schedule`, the `SolveResults`, the producers.
 //! - `mirror.rs`: [`MirrorEntry`], variables as clients see them, and the estimate read from them.
-//! - `apply.rs`: accepting a batch (limits, validation, journal, mirror, problem or queue).
+//! - `apply.rs`: accepting a batch as validate → journal → mirror → schedule (a client's,
+//!   acknowledged once durable), and replaying one from the journal (its own path).
 //! - `batch.rs`: validating a wire batch into a prepared one.
 //! - `producers.rs`: exactly-once ingest (producer ids and sequence numbers, kept acks).
 //! - `ordering.rs`: waiting for a producer's batches (`after`) and its progress.
 //! - `schedule.rs`: when solves run (auto-optimise policy, `optimize`), waiting for them and
 //!   cancelling them.
+//! - `schedule_state.rs`: the solve scheduling's state machine (idle, waiting, queued,
+//!   solving, lent), every transition in one place.
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
 //! - `solve_budget.rs`: what stops a running solve inside an iteration (cancel, delete, time).
 //! - `incremental.rs`: re-solving only the region new factors reach.
@@ -49,6 +53,7 @@ mod mirror;
 mod producer_order;
 mod producers;
 mod schedule;
+mod schedule_state;
 mod solve;
 mod solve_budget;
 mod state;

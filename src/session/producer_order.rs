@@ -25,8 +25,8 @@ impl Session {
     pub fn progress(&self) -> Progress {
         let st = self.lock();
         Progress {
-            sequence: st.sequence,
-            reflected_sequence: st.solved_sequence,
+            sequence: st.mirror.sequence,
+            reflected_sequence: st.results.solved_sequence,
             producers: st.producers.progress(),
         }
     }
@@ -38,7 +38,7 @@ impl Session {
             producer: producer.to_string(),
             accepted_through: st.producers.accepted_through(producer),
             sequence: st.producers.last_sequence(producer),
-            reflected_sequence: st.solved_sequence,
+            reflected_sequence: st.results.solved_sequence,
         }
     }
 
@@ -54,7 +54,7 @@ impl Session {
         let mut accepted = self.accepted.subscribe();
         let reached = |session: &Session| {
             let st = session.lock();
-            if st.deleted {
+            if st.schedule.phase.is_deleted() {
                 return Err(session.gone());
             }
             Ok(st.producers.accepted_through(producer))

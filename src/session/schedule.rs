@@ -10,29 +10,29 @@ use crate::api::wire::AutoOptimize;
 use crate::api::ServiceError;
 
 impl Session {
+    /// Queues a solve if changes wait and the auto-optimise policy (or a request) says so.
     pub(super) fn maybe_schedule(self: &Arc<Self>, st: &mut State) {
-        if !st.dirty || st.scheduled || st.deleted {
+        let Some(forced) = st.schedule.phase.ready() else {
             return;
-        }
-        if st.forced {
+        };
+        if forced {
             return self.schedule(st);
         }
         match st.auto {
             AutoOptimize::EveryBatch {} => self.schedule(st),
             AutoOptimize::EveryNFactors { factors } => {
-                if st.factors_since_solve >= factors {
+                if st.schedule.factors_since_solve >= factors {
                     self.schedule(st)
                 }
             }
             AutoOptimize::EveryMs { milliseconds } => {
-                if !st.timer_armed {
-                    st.timer_armed = true;
+                if st.schedule.phase.arm_timer() {
                     let session = Arc::clone(self);
                     self.runtime.spawn(async move {
                         tokio::time::sleep(Duration::from_millis(milliseconds)).await;
                         let mut st = session.lock();
-                        st.timer_armed = false;
-                        if st.dirty && !st.scheduled && !st.deleted {
+                        st.schedule.phase.timer_fired();
+                        if st.schedule.phase.ready().is_some() {
                             session.schedule(&mut st);
                         }
                     });
@@ -42,11 +42,12 @@ impl Session {
         }
     }
 
+    /// Submits a solve to the pool (changes wait: see [`SolveSchedule::ready`](super::schedule_state::SolveSchedule::ready)).
     pub(super) fn schedule(self: &Arc<Self>, st: &mut State) {
-        st.scheduled = true;
+        st.schedule.phase.queue();
         let session = Arc::clone(self);
         if !self.pool.submit(Box::new(move || session.solve_once())) {
-            st.scheduled = false; // the pool is shutting down
+            st.schedule.phase.refused(); // the pool is shutting down
         }
     }
 
@@ -54,20 +55,19 @@ impl Session {
     /// number the solve will have (for [`Session::wait_solve`]).
     pub fn optimize_now(self: &Arc<Self>) -> Result<(u64, u64), ServiceError> {
         let mut st = self.lock();
-        if st.deleted {
+        if st.schedule.phase.is_deleted() {
             return Err(self.gone());
         }
-        st.dirty = true;
-        st.converged = false;
-        st.forced = true;
+        st.schedule.phase.force();
+        st.results.converged = false;
         // Asked for explicitly: the whole problem, not only the region the last updates reach
         // (region solves stop within their tolerance of the optimum; this one goes all the way).
-        st.structural = true;
-        if !st.scheduled {
+        st.schedule.structural = true;
+        if !st.schedule.phase.is_scheduled() {
             self.schedule(&mut st);
         }
         // A running solve started before this request; the one asked for is the next.
-        Ok((st.sequence, st.solves + 1))
+        Ok((st.mirror.sequence, st.results.solves + 1))
     }
 
     /// Waits until a solve reflecting `sequence` finished, at most `timeout`.
@@ -108,7 +108,7 @@ impl Session {
             ));
         }
         let mut st = self.lock();
-        if st.deleted {
+        if st.schedule.phase.is_deleted() {
             return Err(self.gone());
         }
         self.journal_auto_optimize(auto)?;
@@ -121,17 +121,18 @@ impl Session {
     /// dozen factors of work, not at the end of the iteration); returns whether one was running.
     pub fn cancel(&self) -> bool {
         let st = self.lock();
-        if st.solving {
+        let solving = st.schedule.phase.is_solving();
+        if solving {
             self.cancel.store(true, Ordering::SeqCst);
         }
-        st.solving
+        solving
     }
 
     /// No solve is scheduled for a deleted session again (`maybe_schedule`, `take_work` and the
     /// polish timer check `deleted`), and the running one stops at its next checkpoint.
     pub(crate) fn mark_deleted(&self) {
         let mut st = self.lock();
-        st.deleted = true;
+        st.schedule.phase.delete();
         self.cancel.store(true, Ordering::SeqCst);
         drop(st);
         self.release_waiters();

@@ -10,7 +10,8 @@ use std::time::Instant;
 use super::incremental::{self, IncrementalSolver};
 use super::mirror;
 use super::solve_budget::SolveBudget;
-use super::Session;
+use super::{Session, State};
+use crate::api::wire::AutoOptimize;
 use crate::api::wire::{Estimate, SessionEvent};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
@@ -38,38 +39,32 @@ struct SolveWork {
 }
 
 impl Session {
-    /// Takes the problem and what the next solve needs out of the state, or `None` when
-    /// there is nothing to do.
+    /// Starts the queued solve: takes the problem and what it needs out of the state, or
+    /// `None` when the session was deleted since (see `SolveSchedule::start`).
     fn take_work(&self) -> Option<SolveWork> {
         let mut st = self.lock();
-        if st.deleted || !st.dirty {
-            st.scheduled = false;
-            return None;
-        }
-        st.solving = true;
-        st.dirty = false;
+        let forced = st.schedule.phase.start()?;
         // Tight (to convergence): a polish, or a solve the client asked for with nothing new
         // (or under the manual policy, where no polish follows). New factors otherwise take
         // the request-path thresholds and a polish follows.
-        let forced = std::mem::replace(&mut st.forced, false);
-        let tight = forced
-            && (st.seeds.is_empty()
-                || matches!(st.auto, crate::api::wire::AutoOptimize::Manual {}));
-        st.factors_since_solve = 0;
-        st.solves += 1;
+        let tight =
+            forced && (st.schedule.seeds.is_empty() || matches!(st.auto, AutoOptimize::Manual {}));
+        st.schedule.factors_since_solve = 0;
+        st.results.solves += 1;
         self.cancel.store(false, Ordering::SeqCst);
+        let (problem, index) = st.model.take();
         Some(SolveWork {
-            problem: st.problem.take().expect("one solve per session at a time"),
-            index: st.index.take().expect("kept with the problem"),
+            problem,
+            index,
             options: st.options.clone(),
             // Batches are applied as they come while the problem is here: it reflects them all.
-            sequence: st.sequence,
-            solve_number: st.solves,
-            seeds: std::mem::take(&mut st.seeds),
-            structural: std::mem::replace(&mut st.structural, false),
-            chi2: st.chi2,
-            debt: st.region_debt,
-            gauge: st.gauge.clone(),
+            sequence: st.mirror.sequence,
+            solve_number: st.results.solves,
+            seeds: std::mem::take(&mut st.schedule.seeds),
+            structural: std::mem::replace(&mut st.schedule.structural, false),
+            chi2: st.results.chi2,
+            debt: st.schedule.region_debt,
+            gauge: st.model.gauge.clone(),
             tight,
         })
     }
@@ -77,28 +72,75 @@ impl Session {
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
     /// apply what arrived meanwhile, and reschedule if that needs another solve.
     pub(super) fn solve_once(self: Arc<Self>) {
-        let Some(work) = self.take_work() else {
+        let Some(mut work) = self.take_work() else {
             return;
         };
-        let SolveWork {
-            mut problem,
-            mut index,
-            options,
-            sequence,
-            solve_number,
-            seeds,
-            structural,
-            chi2,
-            mut debt,
-            gauge,
-            tight,
-        } = work;
-        let _span =
-            tracing::info_span!("session", session = %self.name, solve = solve_number).entered();
+        let _span = tracing::info_span!("session", session = %self.name, solve = work.solve_number)
+            .entered();
         let start = Instant::now();
-        let mut preempted = false;
-        let carried = self.lock().solve_carried;
+        let carried = self.lock().schedule.carried;
         let budget = SolveBudget::new(&self, start, carried);
+        let (result, preempted) = self.run_solver(&mut work, &budget, start);
+        let run = Run {
+            sequence: work.sequence,
+            solve_number: work.solve_number,
+            start,
+            carried,
+            preempted,
+            timed_out: budget.timed_out(),
+        };
+        match &result {
+            Ok(r) => {
+                crate::runtime::metrics::observe_solve(start.elapsed(), r.summary.iterations);
+                tracing::debug!(
+                    chi2 = r.summary.final_chi2,
+                    iterations = r.summary.iterations,
+                    seconds = start.elapsed().as_secs_f64(),
+                    "solve finished"
+                );
+            }
+            Err(e) => tracing::warn!("solve failed: {e}"),
+        }
+        self.journal_barrier();
+        let mut st = self.lock();
+        self.cancel.store(false, Ordering::SeqCst);
+        let polish = match result {
+            Ok(resolved) => {
+                self.publish_solved(&mut st, &run, resolved, &work.problem);
+                // An engine update that left steps above the threshold polishes once the
+                // session is idle, unless the client decides when solves run: counted from
+                // when this solve is published and handed back (below), so the time a large
+                // update spends there does not count as idle.
+                work.index.polish && !matches!(st.auto, AutoOptimize::Manual {})
+            }
+            Err(e) => {
+                self.publish_failed(&mut st, &run, e);
+                false
+            }
+        };
+        st.results.solved_sequence = st.results.solved_sequence.max(run.sequence);
+        st.schedule.region_debt = work.debt;
+        self.hand_back(&mut st, work.problem, work.index);
+        if polish {
+            self.polish_when_idle(st.mirror.sequence);
+        }
+        st.schedule.phase.finish();
+        self.solved.send_replace(st.results.solved_sequence);
+        self.completed
+            .send_modify(|n| *n = (*n).max(run.solve_number));
+        self.maybe_schedule(&mut st);
+    }
+
+    /// Runs the solver on `work` within `budget`, publishing each iteration; returns its
+    /// result and whether it stopped to let other sessions' solves run (preempted).
+    fn run_solver(
+        &self,
+        work: &mut SolveWork,
+        budget: &SolveBudget,
+        start: Instant,
+    ) -> (Result<incremental::Resolved, solver::SolverError>, bool) {
+        let (solve_number, sequence) = (work.solve_number, work.sequence);
+        let mut preempted = false;
         let mut on_iteration = |report: &solver::IterationReport| {
             // Nothing is published of a batch before it is durable (see `journal_barrier`).
             self.journal_barrier();
@@ -117,165 +159,161 @@ impl Session {
             }
             ControlFlow::Continue(())
         };
-        let solve = std::panic::AssertUnwindSafe(|| {
-            let additions_only = !structural && solve_number > 1;
-            if let Some(total) = chi2.filter(|_| additions_only) {
-                match index.update_engine(
-                    &mut problem,
-                    total,
-                    tight,
-                    &options,
-                    &gauge,
-                    &mut on_iteration,
-                ) {
-                    Some(Ok(resolved)) => return Ok(resolved),
-                    // The engine failed (an indeterminate update): solve in batch below.
-                    Some(Err(e)) => {
-                        tracing::debug!("incremental update failed, solving in batch: {e}")
-                    }
-                    // After additions only, re-solve as far as they reach.
-                    None => {
-                        return self.resolve_regions(
-                            &mut problem,
-                            &mut index,
-                            &seeds,
-                            total,
-                            &mut debt,
-                            &options,
-                            &gauge,
-                            &mut on_iteration,
-                            &budget,
-                        )
-                    }
-                }
-            }
-            // Later solves warm-start from the current estimate; initialisation is for the first.
-            debt = 0.0;
-            let solved = if solve_number > 1 {
-                index.solve_whole(&mut problem, &options, &mut on_iteration, &budget)
-            } else {
-                solver::optimize_within(&mut problem, &options, &mut on_iteration, &budget)
-            };
-            let summary = solved?;
-            if summary.converged {
-                index.rebuild_engine(&mut problem, &summary.used.gauge_fixed);
-            }
-            Ok(incremental::Resolved {
-                total_chi2: summary.final_chi2,
-                converged: summary.converged,
-                moved: None,
-                summary,
-            })
-        });
+        let solve = std::panic::AssertUnwindSafe(|| self.solve(work, &mut on_iteration, budget));
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
-        let timed_out = budget.timed_out();
-
-        match &result {
-            Ok(r) => {
-                crate::runtime::metrics::observe_solve(start.elapsed(), r.summary.iterations);
-                tracing::debug!(
-                    chi2 = r.summary.final_chi2,
-                    iterations = r.summary.iterations,
-                    seconds = start.elapsed().as_secs_f64(),
-                    "solve finished"
-                );
-            }
-            Err(e) => tracing::warn!("solve failed: {e}"),
-        }
-        self.journal_barrier();
-        let mut st = self.lock();
-        st.solving = false;
-        self.cancel.store(false, Ordering::SeqCst);
-        let mut polish = false;
-        match result {
-            Ok(resolved) => {
-                let summary = resolved.summary;
-                if summary.used.region_variables.is_none() {
-                    st.gauge = summary.used.gauge_fixed.clone();
-                }
-                st.chi2 = Some(resolved.total_chi2);
-                st.converged = resolved.converged;
-                st.last_error = None;
-                // A preempted solve continues in its next turn (its time counts towards the
-                // limit); a cancelled or timed-out one waits for news.
-                if preempted && !timed_out {
-                    st.dirty = true;
-                    st.forced = true;
-                    st.solve_carried = carried + start.elapsed();
-                } else {
-                    st.solve_carried = std::time::Duration::ZERO;
-                }
-                // An engine update that left steps above the threshold polishes once the
-                // session is idle, unless the client decides when solves run: counted from
-                // when this solve is published and handed back (below), so the time a large
-                // update spends there does not count as idle.
-                polish =
-                    index.polish && !matches!(st.auto, crate::api::wire::AutoOptimize::Manual {});
-                if timed_out {
-                    st.converged = false;
-                    st.last_error = Some(format!(
-                        "the solve stopped at the time limit of {} ms (limits.max_solve_ms) after {} iterations; the estimate is the best it reached",
-                        self.limits.max_solve_ms, summary.iterations
-                    ));
-                }
-                let changed = mirror::refresh(
-                    &mut st.mirror,
-                    &problem,
-                    resolved.moved.as_deref(),
-                    sequence,
-                );
-                if !changed.is_empty() {
-                    self.emit(SessionEvent::Estimate(Estimate {
-                        session: self.name.clone(),
-                        sequence,
-                        variables: changed,
-                    }));
-                }
-                self.emit(SessionEvent::Summary {
-                    session: self.name.clone(),
-                    solve: solve_number,
-                    sequence,
-                    summary: Box::new(summary.clone()),
-                });
-                st.last_summary = Some(summary);
-            }
-            Err(e) => {
-                st.converged = false;
-                // Whatever moved, the next solve starts from a clean slate.
-                st.structural = true;
-                // Stopped by the time limit before the first step: say which limit.
-                let message = if timed_out {
-                    format!(
-                        "the solve stopped at the time limit of {} ms (limits.max_solve_ms): {e}",
-                        self.limits.max_solve_ms
-                    )
-                } else {
-                    e.to_string()
-                };
-                st.last_error = Some(message.clone());
-                // Keep the last good values: the mirror is not refreshed from a failed solve.
-                self.emit(SessionEvent::Error {
-                    session: self.name.clone(),
-                    sequence: Some(sequence),
-                    error: ServiceError::new(ErrorKind::Invalid, "solve_failed", message).body,
-                    producer: None,
-                    producer_seq: None,
-                });
-            }
-        }
-        st.solved_sequence = st.solved_sequence.max(sequence);
-        st.region_debt = debt;
-        self.hand_back(&mut st, problem, index);
-        if polish {
-            self.polish_when_idle(st.sequence);
-        }
-        st.scheduled = false;
-        self.solved.send_replace(st.solved_sequence);
-        self.completed.send_modify(|n| *n = (*n).max(solve_number));
-        self.maybe_schedule(&mut st);
+        (result, preempted)
     }
+
+    /// The solve itself: after additions only, an engine update or a re-solve of the region
+    /// they reach; otherwise (or when the engine fails) the whole problem.
+    fn solve(
+        &self,
+        work: &mut SolveWork,
+        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+        budget: &SolveBudget,
+    ) -> Result<incremental::Resolved, solver::SolverError> {
+        let SolveWork {
+            problem,
+            index,
+            options,
+            solve_number,
+            seeds,
+            structural,
+            chi2,
+            debt,
+            gauge,
+            tight,
+            ..
+        } = work;
+        let additions_only = !*structural && *solve_number > 1;
+        if let Some(total) = chi2.filter(|_| additions_only) {
+            match index.update_engine(problem, total, *tight, options, gauge, on_iteration) {
+                Some(Ok(resolved)) => return Ok(resolved),
+                // The engine failed (an indeterminate update): solve in batch below.
+                Some(Err(e)) => {
+                    tracing::debug!("incremental update failed, solving in batch: {e}")
+                }
+                // After additions only, re-solve as far as they reach.
+                None => {
+                    return self.resolve_regions(
+                        problem,
+                        index,
+                        seeds,
+                        total,
+                        debt,
+                        options,
+                        gauge,
+                        on_iteration,
+                        budget,
+                    )
+                }
+            }
+        }
+        // Later solves warm-start from the current estimate; initialisation is for the first.
+        *debt = 0.0;
+        let solved = if *solve_number > 1 {
+            index.solve_whole(problem, options, on_iteration, budget)
+        } else {
+            solver::optimize_within(problem, options, on_iteration, budget)
+        };
+        let summary = solved?;
+        if summary.converged {
+            index.rebuild_engine(problem, &summary.used.gauge_fixed);
+        }
+        Ok(incremental::Resolved {
+            total_chi2: summary.final_chi2,
+            converged: summary.converged,
+            moved: None,
+            summary,
+        })
+    }
+
+    /// Records a finished solve, refreshes the mirror from `problem` and publishes the
+    /// estimate changes and the summary.
+    fn publish_solved(
+        &self,
+        st: &mut State,
+        run: &Run,
+        resolved: incremental::Resolved,
+        problem: &Problem,
+    ) {
+        let summary = resolved.summary;
+        if summary.used.region_variables.is_none() {
+            st.model.gauge = summary.used.gauge_fixed.clone();
+        }
+        let stopped = run.timed_out.then(|| {
+            format!(
+                "the solve stopped at the time limit of {} ms (limits.max_solve_ms) after {} iterations; the estimate is the best it reached",
+                self.limits.max_solve_ms, summary.iterations
+            )
+        });
+        st.results
+            .solved(resolved.total_chi2, resolved.converged, stopped);
+        // A preempted solve continues in its next turn (its time counts towards the limit); a
+        // cancelled or timed-out one waits for news.
+        if run.preempted && !run.timed_out {
+            st.schedule.phase.force();
+            st.schedule.carried = run.carried + run.start.elapsed();
+        } else {
+            st.schedule.carried = std::time::Duration::ZERO;
+        }
+        let changed = mirror::refresh(
+            &mut st.mirror.entries,
+            problem,
+            resolved.moved.as_deref(),
+            run.sequence,
+        );
+        if !changed.is_empty() {
+            self.emit(SessionEvent::Estimate(Estimate {
+                session: self.name.clone(),
+                sequence: run.sequence,
+                variables: changed,
+            }));
+        }
+        self.emit(SessionEvent::Summary {
+            session: self.name.clone(),
+            solve: run.solve_number,
+            sequence: run.sequence,
+            summary: Box::new(summary.clone()),
+        });
+        st.results.last_summary = Some(summary);
+    }
+
+    /// Records a failed solve and publishes its error; the mirror keeps the last good values.
+    fn publish_failed(&self, st: &mut State, run: &Run, e: solver::SolverError) {
+        // Whatever moved, the next solve starts from a clean slate.
+        st.schedule.structural = true;
+        // Stopped by the time limit before the first step: say which limit.
+        let message = if run.timed_out {
+            format!(
+                "the solve stopped at the time limit of {} ms (limits.max_solve_ms): {e}",
+                self.limits.max_solve_ms
+            )
+        } else {
+            e.to_string()
+        };
+        st.results.failed(message.clone());
+        self.emit(SessionEvent::Error {
+            session: self.name.clone(),
+            sequence: Some(run.sequence),
+            error: ServiceError::new(ErrorKind::Invalid, "solve_failed", message).body,
+            producer: None,
+            producer_seq: None,
+        });
+    }
+}
+
+/// How a solve ran, for what it publishes.
+struct Run {
+    sequence: u64,
+    solve_number: u64,
+    start: Instant,
+    /// Time it spent in earlier (preempted) turns.
+    carried: std::time::Duration,
+    preempted: bool,
+    timed_out: bool,
 }
 
 impl Session {
@@ -287,9 +325,8 @@ impl Session {
         self.runtime.spawn(async move {
             tokio::time::sleep(POLISH_AFTER_IDLE).await;
             let mut st = session.lock();
-            if st.sequence == sequence && !st.deleted && !st.solving && !st.scheduled {
-                st.dirty = true;
-                st.forced = true;
+            if st.mirror.sequence == sequence && st.schedule.phase.is_at_rest() {
+                st.schedule.phase.force();
                 session.schedule(&mut st);
             }
         });
@@ -329,22 +366,13 @@ impl Session {
 
     /// Returns the problem taken out for a solve (or a factorisation) and applies the batches
     /// that were queued meanwhile.
-    pub(super) fn hand_back(
-        &self,
-        st: &mut super::State,
-        problem: Problem,
-        index: IncrementalSolver,
-    ) {
-        st.problem_bytes = super::state::problem_bytes(&problem) + index.engine_bytes();
-        st.problem = Some(problem);
-        st.index = Some(index);
+    pub(super) fn hand_back(&self, st: &mut State, problem: Problem, index: IncrementalSolver) {
+        st.model.put_back(problem, index);
         // A deleted session's queued batches would only cost CPU for nobody.
-        if st.deleted {
-            st.pending.clear();
-            st.pending_factors = 0;
+        if st.schedule.phase.is_deleted() {
+            st.schedule.drop_queued();
         }
-        while let Some((seq, prepared, ids)) = st.pending.pop_front() {
-            st.pending_factors -= prepared.factor_count();
+        while let Some((seq, prepared, ids)) = st.schedule.next_queued() {
             self.apply_prepared(st, seq, prepared, ids);
         }
     }

@@ -2,7 +2,6 @@
 //! memory it holds.
 
 use super::engine::Engine;
-use super::state::problem_bytes;
 use super::{Session, State};
 use crate::api::wire::{FactorId, SessionInfo, SessionStats};
 use crate::problem::Key;
@@ -24,20 +23,20 @@ impl Session {
         SessionStats {
             session: self.name.clone(),
             kind: self.kind.name.into(),
-            sequence: st.sequence,
-            solved_sequence: st.solved_sequence,
-            num_variables: st.mirror.len(),
-            num_factors: st.live_factors.len(),
-            pending_batches: st.pending.len(),
-            solving: st.solving,
-            solves: st.solves,
-            skipped_solves: st.skipped_solves,
-            chi2: st.chi2,
-            converged: st.converged,
+            sequence: st.mirror.sequence,
+            solved_sequence: st.results.solved_sequence,
+            num_variables: st.mirror.entries.len(),
+            num_factors: st.mirror.live_factors.len(),
+            pending_batches: st.schedule.queued_batches(),
+            solving: st.schedule.phase.is_solving(),
+            solves: st.results.solves,
+            skipped_solves: st.results.skipped_solves,
+            chi2: st.results.chi2,
+            converged: st.results.converged,
             auto_optimize: st.auto,
             options: st.options.clone(),
             last_error: self.last_error_locked(&st),
-            last_summary: st.last_summary.clone(),
+            last_summary: st.results.last_summary.clone(),
             recovering: self.is_recovering(),
             corrupt: self.corruption().is_some(),
             factor_types: self.factor_types().names().to_vec(),
@@ -53,13 +52,15 @@ impl Session {
 
     /// The newest batch sequence a solve has reflected.
     pub fn solved_sequence(&self) -> u64 {
-        self.lock().solved_sequence
+        self.lock().results.solved_sequence
     }
 
     /// Why the last solve failed, or why the session is damaged: a damaged recovery outranks
     /// solve errors, and a later solve does not clear it.
     pub(super) fn last_error_locked(&self, st: &State) -> Option<String> {
-        self.corruption().or(st.last_error.as_ref()).cloned()
+        self.corruption()
+            .or(st.results.last_error.as_ref())
+            .cloned()
     }
 
     /// Estimated bytes this session holds: the estimate clients read, the problem (variables,
@@ -74,15 +75,12 @@ impl Session {
         // Every term is O(1): counts and sums kept as the session changes.
         use std::mem::size_of;
         const NODE: usize = 48; // map/set node and allocation overhead
-        let mirror = st.mirror_bytes();
-        let factors = st.live_factors.len() * (size_of::<FactorId>() + NODE)
-            + st.edges.len() * (size_of::<[Key; 2]>() + NODE)
-            + st.factor_ids.len() * size_of::<FactorId>();
+        let mirror = st.mirror.bytes();
+        let factors = st.mirror.live_factors.len() * (size_of::<FactorId>() + NODE)
+            + st.mirror.edges.len() * (size_of::<[Key; 2]>() + NODE)
+            + st.model.factor_ids.len() * size_of::<FactorId>();
         // While a worker has the problem and its engine, their size when last here.
-        let problem = match (&st.problem, &st.index) {
-            (Some(problem), Some(index)) => problem_bytes(problem) + index.engine_bytes(),
-            _ => st.problem_bytes,
-        };
+        let problem = st.model.memory_bytes();
         let marginals = match &self.engine {
             Engine::Graph(graph) => graph
                 .marginals_bytes

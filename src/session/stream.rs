@@ -60,8 +60,8 @@ impl Session {
         EventStream {
             session: Arc::downgrade(self),
             receiver: self.events.subscribe(),
-            acked: st.sequence,
-            solved: st.solved_sequence,
+            acked: st.mirror.sequence,
+            solved: st.results.solved_sequence,
             queued: VecDeque::new(),
         }
     }
@@ -112,6 +112,7 @@ impl Session {
         let st = self.lock();
         let variables: Vec<_> = st
             .mirror
+            .entries
             .iter()
             .filter(|(_, e)| e.changed >= from)
             .map(|(&k, e)| super::mirror::value_of(k, e))
@@ -119,7 +120,7 @@ impl Session {
         let estimate = (!variables.is_empty()).then(|| {
             SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),
-                sequence: st.sequence,
+                sequence: st.mirror.sequence,
                 variables,
             })
         });

@@ -12,6 +12,7 @@ use super::engine::Window;
 use super::Session;
 use crate::api::wire::{Marginals, MarginalsQuery};
 use crate::api::{ErrorKind, ServiceError};
+use crate::problem::Key;
 use crate::solver::marginals::{self, MarginalsError};
 
 impl Session {
@@ -35,23 +36,8 @@ impl Session {
         };
         let problem = w.problem();
         // The problem also keeps marginalised keyframes, fixed: only the window's are asked.
-        let in_window: Vec<_> = w.window().iter().map(|(key, _, _)| *key).collect();
-        for (i, key) in query.keys.iter().enumerate() {
-            if !in_window.contains(key) {
-                return Err(ServiceError::invalid(
-                    "unknown_variable",
-                    format!("keys[{i}]"),
-                    format!("keyframe {key} is not in the window (marginalised, or never created)"),
-                ));
-            }
-            if query.keys[..i].contains(key) {
-                return Err(ServiceError::bad_request(
-                    "invalid_value",
-                    format!("keys[{i}]"),
-                    format!("variable {key} is named twice"),
-                ));
-            }
-        }
+        let in_window: Vec<Key> = w.window().iter().map(|(key, _, _)| *key).collect();
+        check_in_window(&query.keys, &in_window)?;
         let factorized = marginals::Marginals::new(problem).map_err(|e| {
             ServiceError::new(ErrorKind::Invalid, "indeterminate_system", e.to_string())
         })?;
@@ -79,8 +65,8 @@ impl Session {
         let st = self.lock();
         Ok(Marginals {
             session: self.name.clone(),
-            sequence: st.sequence,
-            solves: st.solves,
+            sequence: st.mirror.sequence,
+            solves: st.results.solves,
             variables,
             joint,
             // Fixed keys the window's own keyframes could be conditioned on (none: the marginalised
@@ -96,4 +82,25 @@ impl Session {
             seconds: start.elapsed().as_secs_f64(),
         })
     }
+}
+
+/// Every key a query names is a keyframe in the window, named once.
+fn check_in_window(keys: &[Key], in_window: &[Key]) -> Result<(), ServiceError> {
+    for (i, key) in keys.iter().enumerate() {
+        if !in_window.contains(key) {
+            return Err(ServiceError::invalid(
+                "unknown_variable",
+                format!("keys[{i}]"),
+                format!("keyframe {key} is not in the window (marginalised, or never created)"),
+            ));
+        }
+        if keys[..i].contains(key) {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                format!("keys[{i}]"),
+                format!("variable {key} is named twice"),
+            ));
+        }
+    }
+    Ok(())
 }

@@ -256,10 +256,10 @@ impl Session {
             let st = self.lock();
             let locked = Instant::now();
             for (&key, meta) in variables.by_ref().take(CHUNK) {
-                let entry = st
-                    .mirror
-                    .get(&key)
-                    .ok_or_else(|| format!("variable {key} is journalled but not in the mirror"))?;
+                let entry =
+                    st.mirror.entries.get(&key).ok_or_else(|| {
+                        format!("variable {key} is journalled but not in the mirror")
+                    })?;
                 out.push(VariableSpec {
                     key,
                     kind: meta.kind.into(),
