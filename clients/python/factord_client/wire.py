@@ -256,9 +256,7 @@ class DrawnVariable(TypedDict):
     initial: List[float]
 
 
-class Graph(TypedDict):
-    """``graph.schema.json``: what the web view draws."""
-
+class _GraphKeys(TypedDict):
     session: str
     kind: str
     sequence: int
@@ -266,6 +264,13 @@ class Graph(TypedDict):
     poses: List[DrawnVariable]
     points: List[DrawnVariable]
     edges: List[List[int]]
+
+
+class Graph(_GraphKeys, total=False):
+    """``graph.schema.json``: what the web view draws; ``edge_chi2`` (each edge's χ², ``None``
+    while a solve holds the problem) absent for sliding windows."""
+
+    edge_chi2: List[Optional[float]]
 
 
 class JobResult(TypedDict):

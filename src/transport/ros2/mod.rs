@@ -235,7 +235,10 @@ async fn existing_keyframes(
 ) -> Option<(u64, Option<f64>)> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
-    match service.execute_as(caller, command).await {
+    match service
+        .execute(caller, command, crate::service::Recording::History)
+        .await
+    {
         Ok(crate::service::Reply::Estimate(estimate)) => {
             let variables = &estimate.variables;
             let newest = variables.iter().filter_map(|v| v.stamp).reduce(f64::max);
