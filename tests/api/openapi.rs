@@ -191,6 +191,7 @@ const SCHEMA_FILES: &[(&str, &str, &str)] = &[
         "/$defs/auto_optimize_set",
     ),
     ("Cancelled", "reply.schema.json", "/$defs/cancelled"),
+    ("ProducerList", "reply.schema.json", "/$defs/producer_list"),
     ("FusionAck", "fusion.schema.json", "/$defs/ack"),
     ("StateReport", "fusion.schema.json", "/$defs/state"),
     ("ErrorBody", "common.schema.json", "/$defs/error_body"),

@@ -25,6 +25,7 @@ const CLASSES: &[(&str, &str)] = &[
     ("SessionList", "SessionList"),
     ("SessionStats", "SessionStats"),
     ("ProducerStatus", "ProducerStatus"),
+    ("ProducerList", "ProducerList"),
     ("Marginals", "Marginals"),
     ("Graph", "Graph"),
     ("DrawnVariable", "DrawnVariable"),

@@ -220,6 +220,14 @@ class ProducerStatus(TypedDict):
     reflected_sequence: int
 
 
+class ProducerList(TypedDict):
+    """``list_producers`` (``GET /v1/sessions/{session}/producers``): every producer that sent
+    the session a numbered batch, by id."""
+
+    session: str
+    producers: List[ProducerStatus]
+
+
 class _MarginalKeys(TypedDict):
     key: int
     kind: str
@@ -294,7 +302,7 @@ class OptimizeAnswer(_OptimizeAnswerKeys, total=False):
 __all__ = [
     "AutoOptimize", "Batch", "BatchAck", "DrawnVariable", "ErrorBody", "Estimate", "Export",
     "ExportFormat", "FactorSpec", "FusionBatch", "Graph", "GuessSpec", "Health", "JobResult",
-    "JsonDict", "Marginal", "Marginals", "OptimizeAnswer", "ProducerStatus", "RobustKernel",
-    "SessionInfo", "SessionKind", "SessionList", "SessionStats", "SolverOptions", "Summary",
-    "VariableKind", "VariableSpec", "VariableValue",
+    "JsonDict", "Marginal", "Marginals", "OptimizeAnswer", "ProducerList", "ProducerStatus",
+    "RobustKernel", "SessionInfo", "SessionKind", "SessionList", "SessionStats", "SolverOptions",
+    "Summary", "VariableKind", "VariableSpec", "VariableValue",
 ]

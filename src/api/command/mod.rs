@@ -30,6 +30,7 @@ pub enum Command {
     DefineFactorTypes(DefineFactorTypes),
     GetEstimate(GetEstimate),
     ProducerStatus(ProducerQuery),
+    ListProducers(ListProducers),
     GetStats(GetStats),
     Cancel(Cancel),
     Fusion(Fusion),
@@ -58,6 +59,7 @@ pub enum Reply {
     Fusion(crate::api::fusion::FusionAck),
     Graph(Box<crate::api::wire::Graph>),
     Producer(ProducerStatus),
+    Producers(ProducerList),
     Marginals(Box<crate::api::wire::Marginals>),
     History(Box<crate::api::history::SessionHistory>),
 }
@@ -74,6 +76,7 @@ impl Command {
             Command::DefineFactorTypes(r) => Some(&r.session),
             Command::GetEstimate(r) => Some(&r.session),
             Command::ProducerStatus(r) => Some(&r.session),
+            Command::ListProducers(r) => Some(&r.session),
             Command::GetStats(r) => Some(&r.session),
             Command::Cancel(r) => Some(&r.session),
             Command::Fusion(r) => Some(&r.session),

@@ -5,7 +5,7 @@
 
 use serde::Serialize;
 
-use crate::api::wire::{AutoOptimize, BatchAck, SessionInfo, SessionStats};
+use crate::api::wire::{AutoOptimize, BatchAck, ProducerStatus, SessionInfo, SessionStats};
 
 /// `health`: the service's load.
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
@@ -66,4 +66,11 @@ pub struct AutoOptimizeSet {
 pub struct Cancelled {
     pub session: String,
     pub cancelled: bool,
+}
+
+/// `list_producers`: every producer that sent the session a numbered batch, by id.
+#[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
+pub struct ProducerList {
+    pub session: String,
+    pub producers: Vec<ProducerStatus>,
 }

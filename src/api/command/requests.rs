@@ -105,6 +105,13 @@ pub struct ProducerQuery {
     pub producer: String,
 }
 
+/// Every producer that sent the session a numbered batch, and where its batches stand.
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ListProducers {
+    pub session: String,
+}
+
 /// The session's statistics.
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]

@@ -16,7 +16,7 @@ use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 use crate::api::ErrorKind;
 use crate::api::{
     AfterFields, ApplyBatch, Cancel, DefineFactorTypes, DeleteSession, Fusion, GetGraph,
-    GetHistory, GetMarginals, GetStats, Optimize, ProducerQuery, SetAutoOptimize,
+    GetHistory, GetMarginals, GetStats, ListProducers, Optimize, ProducerQuery, SetAutoOptimize,
 };
 use crate::service::jobs::{JobAnswer, JobParams};
 use crate::service::ServiceError;
@@ -423,6 +423,19 @@ pub(super) async fn producer_status(
         )
         .await?,
     )
+}
+
+/// Every producer that sent the session a numbered batch, by id, with where its batches stand.
+#[utoipa::path(get, path = "/v1/sessions/{session}/producers", tag = "reads", params(SessionPath),
+    responses((status = 200, description = "The producers.", body = crate::api::ProducerList),
+        (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn list_producers(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    let command = Command::ListProducers(ListProducers { session });
+    json(StatusCode::OK, run(&service, &caller, command).await?)
 }
 
 /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
