@@ -14,7 +14,7 @@
 //! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
 //! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
 //! `outputs`, and the `map → odom` correction on `/tf`, see `tf`. Messages go through the one
-//! command API ([`Service::execute_as`]) like any client's; nothing here touches a session's
+//! command API ([`Service::execute`]) like any client's; nothing here touches a session's
 //! state.
 //!
 //! The binding uses the zenoh adapter's session: robots reach factord through the same router
