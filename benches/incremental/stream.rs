@@ -22,7 +22,8 @@ use std::time::Instant;
 use common::server::g2o_batches;
 
 use factord::api::wire::{Batch, CreateSession, SessionEvent};
-use factord::service::{Command, Limits, Reply, Service};
+use factord::api::{ApplyBatch, DeleteSession, GetStats, Optimize, Optimizing};
+use factord::service::{Caller, Command, Limits, Recording, Reply, Service};
 use factord::solver::{optimize, SolverOptions};
 
 /// Updates per progress line on stderr (that window's p50, p99 and worst).
@@ -56,14 +57,18 @@ fn main() {
     let report = runtime.block_on(async {
         let service = Service::new(Limits::default());
         service
-            .execute(Command::CreateSession(CreateSession {
-                session: Some("bench".into()),
-                kind: kind.into(),
-                options: None,
-                auto_optimize: Default::default(),
-                factor_types: vec![],
-                ros2: None,
-            }))
+            .execute(
+                &Caller::Trusted,
+                Command::CreateSession(CreateSession {
+                    session: Some("bench".into()),
+                    kind: kind.into(),
+                    options: None,
+                    auto_optimize: Default::default(),
+                    factor_types: vec![],
+                    ros2: None,
+                }),
+                Recording::History,
+            )
             .await
             .expect("session");
         // Where solve time goes: every Summary the session streams.
@@ -108,11 +113,15 @@ fn main() {
         for batch in batches {
             let t = Instant::now();
             let reply = service
-                .execute(Command::ApplyBatch {
-                    session: "bench".into(),
-                    batch,
-                    wait: true,
-                })
+                .execute(
+                    &Caller::Trusted,
+                    Command::ApplyBatch(ApplyBatch {
+                        session: "bench".into(),
+                        batch,
+                        wait: true,
+                    }),
+                    Recording::History,
+                )
                 .await
                 .expect("batch accepted");
             latencies.push(t.elapsed().as_secs_f64() * 1e3);
@@ -134,9 +143,13 @@ fn main() {
         }
         let total = start.elapsed().as_secs_f64();
         let Reply::Stats(stats) = service
-            .execute(Command::GetStats {
-                session: "bench".into(),
-            })
+            .execute(
+                &Caller::Trusted,
+                Command::GetStats(GetStats {
+                    session: "bench".into(),
+                }),
+                Recording::History,
+            )
             .await
             .unwrap()
         else {
@@ -144,16 +157,18 @@ fn main() {
         };
         // The true chi2 of the streamed estimate (the initial chi2 of a full solve from it), and
         // where a final full solve takes it.
-        let Reply::Optimizing {
+        let Reply::Optimizing(Optimizing {
             stats: Some(after), ..
-        } = service
-            .execute(Command::Optimize {
-                session: "bench".into(),
-                wait: true,
-                after_producer: None,
-                after_seq: None,
-                after_timeout_ms: None,
-            })
+        }) = service
+            .execute(
+                &Caller::Trusted,
+                Command::Optimize(Optimize {
+                    session: "bench".into(),
+                    wait: true,
+                    after: Default::default(),
+                }),
+                Recording::History,
+            )
             .await
             .unwrap()
         else {
@@ -162,9 +177,13 @@ fn main() {
         let check = after.last_summary.expect("a full solve ran");
         let check = (check.initial_chi2, check.final_chi2);
         service
-            .execute(Command::DeleteSession {
-                session: "bench".into(),
-            })
+            .execute(
+                &Caller::Trusted,
+                Command::DeleteSession(DeleteSession {
+                    session: "bench".into(),
+                }),
+                Recording::History,
+            )
             .await
             .expect("deleted");
         drop(service);

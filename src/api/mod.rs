@@ -20,7 +20,7 @@ pub mod ros2;
 pub mod wire;
 pub mod wire_list;
 
-pub use command::{parse_command, Accepted, Command, Health, Reply};
+pub use command::{parse_command, replies::*, requests::*, Command, Reply};
 pub use decode::{parse_json, parse_json_within, parse_query};
 pub use error::{ErrorBody, ErrorKind, ServiceError};
 pub use limits::Limits;

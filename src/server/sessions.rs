@@ -17,7 +17,7 @@
 
 use crate::api::wire::CreateSession;
 use crate::api::ErrorKind;
-use crate::service::{Command, Reply, Service};
+use crate::service::{Caller, Command, Recording, Reply, Service};
 
 /// Creates the missing ones; `Err` with the message for a request that is wrong.
 pub(super) async fn ensure(service: &Service, requests: &[CreateSession]) -> Result<(), String> {
@@ -30,7 +30,11 @@ pub(super) async fn ensure(service: &Service, requests: &[CreateSession]) -> Res
             ));
         };
         match service
-            .execute(Command::CreateSession(request.clone()))
+            .execute(
+                &Caller::Trusted,
+                Command::CreateSession(request.clone()),
+                Recording::History,
+            )
             .await
         {
             Ok(Reply::Created(info)) => {

@@ -1,7 +1,7 @@
 //! Who sends a command, and so which sessions exist for it.
 //!
 //! Authorisation happens here, on the session *name the service resolves*, in the one place
-//! every command passes through ([`super::Service::execute_as`]): never on the text of a URL or
+//! every command passes through ([`super::Service::execute`]): never on the text of a URL or
 //! a key expression, whose spellings (percent-encoding, trailing slashes, `%2573`) the adapters
 //! decode differently. A session owned by another principal does not exist for the caller: it
 //! gets exactly the 404 of a session that was never created, and the session is not listed.

@@ -4,11 +4,11 @@
 //! session's state and may run on any thread) and then delivered ([`Service::deliver_decoded`],
 //! in the order the messages came). Transports that receive at full rate decode the next
 //! message while the previous one is applied: decoding a 1000-factor batch costs about as much
-//! as applying it. Refusals of rpcs' batches ([`Service::execute_recorded`]) are kept in the
-//! session's history too, where operators look for rejected inputs.
+//! as applying it. A decoded message runs as any command does ([`Service::execute`]), its
+//! refusal recorded on the session's stream ([`Recording::Stream`]).
 
-use super::{Caller, Service};
-use crate::api::{Command, Reply, ServiceError};
+use super::{Caller, Recording, Service};
+use crate::api::{Command, ServiceError};
 use crate::session::Origin;
 
 /// A message for a session's topic, decoded into its command, or refused.
@@ -84,9 +84,9 @@ impl Service {
         }
     }
 
-    /// Executes a decoded message like any other command. A rejection goes to the session's
-    /// event stream, where its sender listens; it is returned only when there is no such
-    /// session (and so no stream to put it on).
+    /// Executes a decoded message like any other command ([`Service::execute`], recorded on
+    /// the stream). A rejection goes to the session's event stream, where its sender listens;
+    /// it is returned only when there is no such session (and so no stream to put it on).
     pub async fn deliver_decoded(
         &self,
         caller: &Caller,
@@ -94,45 +94,14 @@ impl Service {
     ) -> Result<(), ServiceError> {
         // Checked again: the session may have gone (or moved) while the message was decoded.
         let target = self.session_as(caller, &delivery.session)?;
-        let mut origin = delivery.undecoded_origin;
-        let outcome = match delivery.decoded {
+        match delivery.decoded {
             Ok(command) => {
-                if let Command::ApplyBatch { batch, .. } = &command {
-                    origin = Origin::of(batch).ok().flatten();
-                }
-                self.execute_as(caller, command).await.map(|_| ())
+                // Refused or not, the outcome is on the stream already.
+                let _ = self.execute(caller, command, Recording::Stream).await;
             }
-            Err(e) => Err(e),
-        };
-        if let Err(error) = outcome {
-            target.report_rejection(error, origin);
+            Err(error) => target.report_rejection(error, delivery.undecoded_origin),
         }
         Ok(())
-    }
-
-    /// Runs `command` as `caller` (an rpc: HTTP, zenoh `rpc`): a batch or fusion message it
-    /// refuses is kept in its session's history, where the web view lists rejected inputs, as
-    /// the refusals of streamed messages are (those also go on the stream: the rpc's caller has
-    /// its answer).
-    pub async fn execute_recorded(
-        &self,
-        caller: &Caller,
-        command: Command,
-    ) -> Result<Reply, ServiceError> {
-        let target = match &command {
-            Command::ApplyBatch { session, batch, .. } => {
-                Some((session.clone(), Origin::of(batch).ok().flatten()))
-            }
-            Command::Fusion { session, .. } => Some((session.clone(), None)),
-            _ => None,
-        };
-        let outcome = self.execute_as(caller, command).await;
-        if let (Err(error), Some((name, origin))) = (&outcome, target) {
-            if let Ok(session) = self.session_as(caller, &name) {
-                session.note_rejection(error, origin);
-            }
-        }
-        outcome
     }
 
     /// [`Service::decode_delivery`] then [`Service::deliver_decoded`].

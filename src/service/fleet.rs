@@ -534,7 +534,7 @@ mod tests {
     use super::*;
     use crate::api::wire::CreateSession;
     use crate::journal::JournalConfig;
-    use crate::service::{Command, Limits};
+    use crate::service::{Command, Limits, Recording};
 
     fn instance(dir: &std::path::Path, id: &str) -> (Arc<Service>, Arc<Fleet>) {
         let journal = Some((dir.to_path_buf(), JournalConfig::default()));
@@ -599,16 +599,24 @@ mod tests {
             ros2: None,
             factor_types: vec![],
         };
-        a.execute(Command::CreateSession(request.clone()))
-            .await
-            .unwrap();
+        a.execute(
+            &Caller::Trusted,
+            Command::CreateSession(request.clone()),
+            Recording::History,
+        )
+        .await
+        .unwrap();
         let session_dir = SessionDir::sessions_root(&dir).join(name);
         assert!(matches!(
             SessionLock::try_acquire(&session_dir),
             Err(LockError::Held)
         ));
         let refused = b
-            .execute(Command::CreateSession(request))
+            .execute(
+                &Caller::Trusted,
+                Command::CreateSession(request),
+                Recording::History,
+            )
             .await
             .unwrap_err();
         assert_eq!(refused.body.code, "session_exists");

@@ -6,6 +6,7 @@
 //! Layer 9: imports `session` and everything below; never `transport` or `server`.
 
 pub mod caller;
+pub mod commands;
 mod delivery;
 mod durability;
 pub mod fleet;
@@ -15,7 +16,6 @@ mod fleet_lock;
 mod fleet_moves;
 mod gauges;
 pub mod jobs;
-mod marginals;
 pub mod placement;
 mod recovery;
 
@@ -27,11 +27,11 @@ use std::time::{Duration, Instant};
 pub use crate::api::Limits;
 pub use crate::api::{parse_command, Accepted, Command, Health, Reply};
 pub use crate::api::{parse_json, parse_json_within, parse_query, ErrorBody, ServiceError};
-use crate::runtime::{metrics, pool::WorkerPool};
+use crate::runtime::pool::WorkerPool;
 pub use caller::Caller;
+pub use commands::Recording;
 pub use delivery::Delivery;
 
-use crate::api::export::EstimateFormat;
 use crate::api::{catalogue, wire::*};
 use crate::session::factor_types::{FactorTypes, TypeCompiler};
 use crate::session::Session;
@@ -230,211 +230,9 @@ impl Service {
         Duration::from_millis(self.limits.wait_timeout_ms)
     }
 
-    /// Runs `command` with every session in reach (in-process callers).
-    pub async fn execute(&self, command: Command) -> Result<Reply, ServiceError> {
-        self.execute_as(&Caller::Trusted, command).await
-    }
-
-    /// Runs `command` for `caller`: the sessions it names are resolved, and authorised, in
-    /// [`Self::session_as`] and nowhere else.
-    pub async fn execute_as(
-        &self,
-        caller: &Caller,
-        command: Command,
-    ) -> Result<Reply, ServiceError> {
-        if !matches!(command, Command::Health) {
-            self.refuse_when_stopping()?;
-        }
-        match command {
-            Command::Health => Ok(Reply::Health(self.health(caller))),
-            Command::ListSessions => Ok(Reply::Sessions {
-                sessions: self
-                    .sessions()
-                    .iter()
-                    .filter(|s| caller.may_see(s))
-                    .map(|s| s.info())
-                    .collect(),
-            }),
-            Command::CreateSession(request) => {
-                // The configuration's types first, then the request's, compiled (their
-                // Jacobians checked numerically, tens of milliseconds for the largest) off the
-                // async threads.
-                let factor_types = match catalogue::session_kind(&request.kind) {
-                    Some(kind) => {
-                        let server_wide =
-                            self.server_factor_types.get().cloned().unwrap_or_default();
-                        let definitions = request.factor_types.clone();
-                        let compiler = self.type_compiler.clone();
-                        let compiled = off_async("factor types", move || {
-                            FactorTypes::for_new_session(compiler, kind, &server_wide, &definitions)
-                        })
-                        .await?;
-                        Some(compiled)
-                    }
-                    None => None,
-                };
-                self.create_session(request, factor_types, caller.owner_of_new())
-                    .map(Reply::Created)
-            }
-            Command::DeleteSession { session } => {
-                self.delete_session(caller, &session)?;
-                Ok(Reply::Deleted { deleted: session })
-            }
-            Command::Fusion { session, messages } => {
-                let session = self.writable_as(caller, &session)?;
-                let batch = crate::api::fusion::FusionBatch { messages };
-                // A keyframe's optimisation takes about a millisecond: off the async threads.
-                let ack = off_async("fusion update", move || session.apply_fusion(batch)).await?;
-                Ok(Reply::Fusion(ack))
-            }
-            Command::ApplyBatch {
-                session,
-                batch,
-                wait,
-            } => {
-                let session = self.writable_as(caller, &session)?;
-                let (ack, will_solve) = if session.waits_for_fsync() {
-                    durability::apply_waiting_for_fsync(&session, batch).await?
-                } else {
-                    session.apply_batch(batch)?
-                };
-                metrics::count_accepted_batch();
-                let solved = if wait && will_solve {
-                    let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;
-                    Some(done && session.last_error().is_none())
-                } else if wait {
-                    Some(session.solved_sequence() >= ack.sequence)
-                } else {
-                    None
-                };
-                Ok(Reply::Accepted(Accepted { ack, solved }))
-            }
-            Command::Optimize {
-                session,
-                wait,
-                after_producer,
-                after_seq,
-                after_timeout_ms,
-            } => {
-                let session = self.writable_as(caller, &session)?;
-                let after = After::from_fields(after_producer, after_seq, after_timeout_ms)?;
-                wait_after(&session, after).await?;
-                let (sequence, solve) = session.optimize_now()?;
-                let stats = if wait {
-                    session.wait_solve(solve, self.wait_timeout()).await;
-                    Some(Box::new(session.stats()))
-                } else {
-                    None
-                };
-                Ok(Reply::Optimizing {
-                    session: session.name.clone(),
-                    sequence,
-                    stats,
-                })
-            }
-            Command::SetAutoOptimize {
-                session,
-                auto_optimize,
-            } => {
-                let session = self.writable_as(caller, &session)?;
-                session.set_auto_optimize(auto_optimize)?;
-                Ok(Reply::AutoOptimize {
-                    session: session.name.clone(),
-                    auto_optimize,
-                })
-            }
-            Command::DefineFactorTypes {
-                session,
-                factor_types,
-            } => {
-                let session = self.writable_as(caller, &session)?;
-                // Compiling checks each definition's Jacobian numerically: off the async threads.
-                let info = off_async("factor types", move || {
-                    session.define_factor_types(factor_types)
-                })
-                .await?;
-                Ok(Reply::Created(info))
-            }
-            Command::GetEstimate {
-                session,
-                since,
-                from,
-                to,
-                after_producer,
-                after_seq,
-                after_timeout_ms,
-                format,
-            } => {
-                let session = self.session_as(caller, &session)?;
-                let after = After::from_fields(after_producer, after_seq, after_timeout_ms)?;
-                wait_after(&session, after).await?;
-                let query = EstimateQuery {
-                    since,
-                    from,
-                    to,
-                    ..EstimateQuery::default()
-                };
-                match format.unwrap_or_default() {
-                    EstimateFormat::Json => Ok(Reply::Estimate(session.estimate(&query))),
-                    file => Ok(Reply::Export(session.export(file, &query)?)),
-                }
-            }
-            Command::ProducerStatus { session, producer } => {
-                let session = self.session_as(caller, &session)?;
-                crate::session::check_producer_id(&producer, "producer")?;
-                Ok(Reply::Producer(session.producer_status(&producer)))
-            }
-            Command::GetStats { session } => Ok(Reply::Stats(Box::new(
-                self.session_as(caller, &session)?.stats(),
-            ))),
-            Command::GetGraph { session } => Ok(Reply::Graph(Box::new(
-                self.session_as(caller, &session)?.graph(),
-            ))),
-            Command::GetHistory { session } => Ok(Reply::History(Box::new(
-                self.session_as(caller, &session)?.history(),
-            ))),
-            Command::GetMarginals {
-                session,
-                keys,
-                joint,
-            } => {
-                let session = self.writable_as(caller, &session)?;
-                let query = crate::api::wire::MarginalsQuery { keys, joint };
-                self.marginals(session, query)
-                    .await
-                    .map(|m| Reply::Marginals(Box::new(m)))
-            }
-            Command::Cancel { session } => {
-                let session = self.session_as(caller, &session)?;
-                Ok(Reply::Cancelled {
-                    cancelled: session.cancel(),
-                    session: session.name.clone(),
-                })
-            }
-        }
-    }
-
-    /// The service's health; `sessions` counts the sessions `caller` may see.
-    pub fn health(&self, caller: &Caller) -> Health {
-        let pool = self.pool.handle();
-        Health {
-            status: if pool.is_stopping() { "stopping" } else { "ok" },
-            version: env!("CARGO_PKG_VERSION"),
-            workers: self.pool.workers,
-            busy_workers: pool.busy(),
-            queued: pool.waiting(),
-            sessions: {
-                let sessions = self.sessions.read().unwrap_or_else(|p| p.into_inner());
-                sessions.values().filter(|s| caller.may_see(s)).count()
-            },
-            session_kinds: catalogue::SESSION_KINDS.iter().map(|k| k.name).collect(),
-            uptime_seconds: self.started.elapsed().as_secs_f64(),
-        }
-    }
-
-    /// Creates a session owned by the token labelled `owner` (see `transport::http::auth`);
+    /// Registers a new session owned by the token labelled `owner` (see `transport::http::auth`);
     /// `factor_types`: the request's already compiled, else they are compiled here.
-    pub fn create_session(
+    pub fn register_session(
         &self,
         request: CreateSession,
         factor_types: Option<FactorTypes>,
@@ -570,20 +368,5 @@ impl Service {
         {
             observe(session);
         }
-    }
-}
-
-/// Waits for the batches a request says it comes after (`after_producer`, `after_seq`).
-async fn wait_after(session: &Session, after: Option<After>) -> Result<(), ServiceError> {
-    match after {
-        Some(After {
-            producer,
-            seq,
-            timeout,
-        }) => {
-            crate::session::check_producer_id(&producer, "after_producer")?;
-            session.wait_after(&producer, seq, timeout).await
-        }
-        None => Ok(()),
     }
 }

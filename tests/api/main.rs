@@ -22,6 +22,7 @@ mod limits;
 mod login_hardening;
 mod openapi;
 mod oversize_memory;
+mod python_types;
 mod session_budget;
 mod tenant_isolation;
 mod unauthenticated_limits;

@@ -23,7 +23,7 @@ fn proto(file: &str) -> PathBuf {
         .join(file)
 }
 
-fn generated() -> Value {
+pub(crate) fn generated() -> Value {
     serde_json::from_str(&openapi::document()).expect("the document is JSON")
 }
 
@@ -191,6 +191,7 @@ const SCHEMA_FILES: &[(&str, &str, &str)] = &[
         "/$defs/auto_optimize_set",
     ),
     ("Cancelled", "reply.schema.json", "/$defs/cancelled"),
+    ("ProducerList", "reply.schema.json", "/$defs/producer_list"),
     ("FusionAck", "fusion.schema.json", "/$defs/ack"),
     ("StateReport", "fusion.schema.json", "/$defs/state"),
     ("ErrorBody", "common.schema.json", "/$defs/error_body"),
@@ -215,7 +216,7 @@ const CLI_ONLY: &[(&str, &str)] = &[
 
 /// Property names and required names of an object schema, following `$ref`s inside `root`
 /// and merging `allOf` parts.
-fn shape(schema: &Value, root: &Value) -> (BTreeSet<String>, BTreeSet<String>) {
+pub(crate) fn shape(schema: &Value, root: &Value) -> (BTreeSet<String>, BTreeSet<String>) {
     let schema = match schema.get("$ref").and_then(Value::as_str) {
         Some(r) if r.starts_with('#') => {
             let pointer = r.trim_start_matches('#');

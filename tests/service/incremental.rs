@@ -7,7 +7,8 @@ use crate::common;
 use common::server::g2o_batches;
 use common::synthetic_manhattan;
 use factord::api::wire::{Batch, CreateSession, SessionEvent};
-use factord::service::{Command, Limits, Reply, Service};
+use factord::api::{ApplyBatch, GetStats};
+use factord::service::{Caller, Command, Limits, Recording, Reply, Service};
 use factord::solver::incremental::UpdateReport;
 use factord::solver::{optimize, SolverOptions};
 
@@ -23,14 +24,18 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
 
     let service = Service::new(Limits::default());
     service
-        .execute(Command::CreateSession(CreateSession {
-            session: Some("walk".into()),
-            kind: "pose_graph_2d".into(),
-            options: None,
-            auto_optimize: Default::default(),
-            factor_types: vec![],
-            ros2: None,
-        }))
+        .execute(
+            &Caller::Trusted,
+            Command::CreateSession(CreateSession {
+                session: Some("walk".into()),
+                kind: "pose_graph_2d".into(),
+                options: None,
+                auto_optimize: Default::default(),
+                factor_types: vec![],
+                ros2: None,
+            }),
+            Recording::History,
+        )
         .await
         .unwrap();
     // Count what the session streams, concurrently (the channel is bounded).
@@ -38,11 +43,15 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
     for b in g2o_batches(&text) {
         let batch: Batch = serde_json::from_value(b).unwrap();
         let reply = service
-            .execute(Command::ApplyBatch {
-                session: "walk".into(),
-                batch,
-                wait: true,
-            })
+            .execute(
+                &Caller::Trusted,
+                Command::ApplyBatch(ApplyBatch {
+                    session: "walk".into(),
+                    batch,
+                    wait: true,
+                }),
+                Recording::History,
+            )
             .await
             .unwrap();
         let Reply::Accepted(a) = reply else {
@@ -73,9 +82,13 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
 
     // Idle, the session polishes its estimate to convergence (the collector above waited 2 s).
     let Reply::Stats(stats) = service
-        .execute(Command::GetStats {
-            session: "walk".into(),
-        })
+        .execute(
+            &Caller::Trusted,
+            Command::GetStats(GetStats {
+                session: "walk".into(),
+            }),
+            Recording::History,
+        )
         .await
         .unwrap()
     else {
@@ -85,7 +98,11 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
     // The estimate it publishes is the batch optimum: its true chi2, evaluated on the batch
     // problem, and the chi2 the session reports.
     let Reply::Estimate(estimate) = service
-        .execute(Command::get_estimate("walk".into(), Default::default()))
+        .execute(
+            &Caller::Trusted,
+            Command::get_estimate("walk".into(), Default::default()),
+            Recording::History,
+        )
         .await
         .unwrap()
     else {
@@ -190,7 +207,10 @@ async fn create_edits_session(service: &Service) {
 
 /// Runs a command that must succeed.
 async fn run(service: &Service, command: Command) -> Reply {
-    service.execute(command).await.unwrap()
+    service
+        .execute(&Caller::Trusted, command, Recording::History)
+        .await
+        .unwrap()
 }
 
 /// Applies `batch` to the session `edits` and waits for it to be reflected.
@@ -198,11 +218,11 @@ async fn apply(service: &Service, batch: Batch) -> Reply {
     let session = "edits".into();
     run(
         service,
-        Command::ApplyBatch {
+        Command::ApplyBatch(ApplyBatch {
             session,
             batch,
             wait: true,
-        },
+        }),
     )
     .await
 }
@@ -213,9 +233,9 @@ async fn idle_chi2(service: &Service, reference: &factord::problem::Problem) -> 
     for _ in 0..500 {
         let Reply::Stats(stats) = run(
             service,
-            Command::GetStats {
+            Command::GetStats(GetStats {
                 session: "edits".into(),
-            },
+            }),
         )
         .await
         else {
@@ -358,9 +378,9 @@ async fn removals_guesses_and_fixes_keep_the_batch_optimum() {
     apply(&service, next).await;
     let Reply::Stats(stats) = run(
         &service,
-        Command::GetStats {
+        Command::GetStats(GetStats {
             session: "edits".into(),
-        },
+        }),
     )
     .await
     else {

@@ -16,6 +16,7 @@ mod incremental;
 mod landmarks_2d;
 mod landmarks_3d_ranges;
 mod marginals;
+mod producer_list;
 mod service;
 mod stream_lag;
 mod user_factors;

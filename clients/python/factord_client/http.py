@@ -334,6 +334,11 @@ class HttpClient:
         producer the session has not seen)."""
         return self._request("GET", self._session_path(session, f"/producers/{_quote(producer)}"))
 
+    def list_producers(self, session: str) -> wire.ProducerList:
+        """``GET /v1/sessions/{session}/producers``: every producer the session has seen, by id,
+        each as :meth:`producer_status` answers for it."""
+        return self._request("GET", self._session_path(session, "/producers"))
+
     def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
                  after_seq: Optional[int] = None,
                  after_timeout_ms: Optional[int] = None) -> wire.OptimizeAnswer:

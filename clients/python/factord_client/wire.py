@@ -220,6 +220,14 @@ class ProducerStatus(TypedDict):
     reflected_sequence: int
 
 
+class ProducerList(TypedDict):
+    """``list_producers`` (``GET /v1/sessions/{session}/producers``): every producer that sent
+    the session a numbered batch, by id."""
+
+    session: str
+    producers: List[ProducerStatus]
+
+
 class _MarginalKeys(TypedDict):
     key: int
     kind: str
@@ -256,9 +264,7 @@ class DrawnVariable(TypedDict):
     initial: List[float]
 
 
-class Graph(TypedDict):
-    """``graph.schema.json``: what the web view draws."""
-
+class _GraphKeys(TypedDict):
     session: str
     kind: str
     sequence: int
@@ -266,6 +272,13 @@ class Graph(TypedDict):
     poses: List[DrawnVariable]
     points: List[DrawnVariable]
     edges: List[List[int]]
+
+
+class Graph(_GraphKeys, total=False):
+    """``graph.schema.json``: what the web view draws; ``edge_chi2`` (each edge's χ², ``None``
+    while a solve holds the problem) absent for sliding windows."""
+
+    edge_chi2: List[Optional[float]]
 
 
 class JobResult(TypedDict):
@@ -289,7 +302,7 @@ class OptimizeAnswer(_OptimizeAnswerKeys, total=False):
 __all__ = [
     "AutoOptimize", "Batch", "BatchAck", "DrawnVariable", "ErrorBody", "Estimate", "Export",
     "ExportFormat", "FactorSpec", "FusionBatch", "Graph", "GuessSpec", "Health", "JobResult",
-    "JsonDict", "Marginal", "Marginals", "OptimizeAnswer", "ProducerStatus", "RobustKernel",
-    "SessionInfo", "SessionKind", "SessionList", "SessionStats", "SolverOptions", "Summary",
-    "VariableKind", "VariableSpec", "VariableValue",
+    "JsonDict", "Marginal", "Marginals", "OptimizeAnswer", "ProducerList", "ProducerStatus",
+    "RobustKernel", "SessionInfo", "SessionKind", "SessionList", "SessionStats", "SolverOptions",
+    "Summary", "VariableKind", "VariableSpec", "VariableValue",
 ]

@@ -330,6 +330,11 @@ class ZenohClient:
         return self.rpc({"op": "producer_status", "session": session, "producer": producer},
                         timeout=timeout)
 
+    def list_producers(self, session: str,
+                       timeout: Optional[float] = None) -> wire.ProducerList:
+        """rpc ``list_producers``: every producer the session has seen, by id."""
+        return self.rpc({"op": "list_producers", "session": session}, timeout=timeout)
+
     def producer(self, session: str, producer: Optional[str] = None, **options: Any) -> Any:
         """A :class:`~factord_client.stream_producer.StreamProducer` of ``session``: numbered,
         acknowledged, resent batches (``options``: ``window``, ``resend_after``, ``resume``,

@@ -240,7 +240,8 @@ def every_route_has_a_method() -> str:
     zenoh_missing = [op for op in ("health", "list_sessions", "create_session", "stats",
                                    "delete_session", "apply_batch", "fusion", "optimize",
                                    "set_auto_optimize", "define_factor_types", "estimate",
-                                   "producer_status", "cancel", "graph", "marginals")
+                                   "producer_status", "list_producers", "cancel", "graph",
+                                   "marginals")
                      if not hasattr(ZenohClient, op)]
     expect(not zenoh_missing, f"ZenohClient lacks {zenoh_missing}")
     for extra in ("estimate_array", "estimate_poses", "covariances", "export"):

@@ -27,7 +27,7 @@ use hyper_util::rt::TokioExecutor;
 use super::auth::Tokens;
 use super::{fleet_caller, HttpError};
 use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
-use crate::service::{Caller, Command, Reply, Service, ServiceError};
+use crate::service::{Caller, Command, Recording, Reply, Service, ServiceError};
 
 /// Names the instance a request was forwarded by: its receiver answers, never forwards.
 pub const FORWARDED_BY: HeaderName = HeaderName::from_static("factord-forwarded-by");
@@ -264,8 +264,13 @@ fn caller_of(request: &Request) -> Caller {
 
 async fn list(f: &Forwarder, request: Request) -> Response {
     let caller = caller_of(&request);
-    let own = match f.service.execute_as(&caller, Command::ListSessions).await {
-        Ok(Reply::Sessions { sessions }) => sessions
+    let own = match f
+        .service
+        .execute(&caller, Command::ListSessions, Recording::History)
+        .await
+    {
+        Ok(Reply::Sessions(list)) => list
+            .sessions
             .into_iter()
             .map(|s| serde_json::to_value(s).expect("session info serialises"))
             .collect(),

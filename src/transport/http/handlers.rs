@@ -14,23 +14,35 @@ use crate::api::export::Export;
 use crate::api::fusion::FusionBatch;
 use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 use crate::api::ErrorKind;
+use crate::api::{
+    AfterFields, ApplyBatch, Cancel, DefineFactorTypes, DeleteSession, Fusion, GetGraph,
+    GetHistory, GetMarginals, GetStats, ListProducers, Optimize, ProducerQuery, SetAutoOptimize,
+};
 use crate::service::jobs::{JobAnswer, JobParams};
-use crate::service::{parse_json, parse_json_within, Command, Reply, Service, ServiceError};
+use crate::service::ServiceError;
+use crate::service::{parse_json, parse_json_within, Command, Recording, Reply, Service};
 
 pub(super) type Shared = State<Arc<Service>>;
-use super::errors::{body_error, query, HttpResult};
+use super::errors::{body_error, query, HttpError, HttpResult};
 use super::openapi::*;
 
 /// The request's caller, left by the auth layer (see `router`).
 pub(super) type Caller = axum::Extension<crate::service::Caller>;
 
+/// Every route's one way into the service: `command` run as the request's caller, a refused
+/// input kept in its session's history ([`Recording::History`]).
 pub(super) async fn run(
     service: &Service,
     caller: &Caller,
     command: Command,
-    status: StatusCode,
-) -> HttpResult {
-    let reply = service.execute_recorded(&caller.0, command).await?;
+) -> Result<Reply, HttpError> {
+    Ok(service
+        .execute(&caller.0, command, Recording::History)
+        .await?)
+}
+
+/// A reply as JSON with `status`.
+fn json(status: StatusCode, reply: Reply) -> HttpResult {
     Ok((status, Json(reply)).into_response())
 }
 
@@ -58,16 +70,22 @@ pub(super) async fn metrics(State(service): Shared) -> Response {
             description = "Health and load.",
             body = crate::api::Health), (status = 421, response = Misdirected)))]
 pub(super) async fn health(State(service): Shared, caller: Caller) -> HttpResult {
-    run(&service, &caller, Command::Health, StatusCode::OK).await
+    json(
+        StatusCode::OK,
+        run(&service, &caller, Command::Health).await?,
+    )
 }
 
 /// List sessions (sorted by name; with tokens, those of the caller's token).
 #[utoipa::path(get, path = "/v1/sessions", tag = "sessions",
     responses((status = 200,
             description = "The sessions.",
-            body = super::openapi::SessionList), (status = 401, response = Unauthorized), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+            body = crate::api::SessionList), (status = 401, response = Unauthorized), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn list_sessions(State(service): Shared, caller: Caller) -> HttpResult {
-    run(&service, &caller, Command::ListSessions, StatusCode::OK).await
+    json(
+        StatusCode::OK,
+        run(&service, &caller, Command::ListSessions).await?,
+    )
 }
 
 /// Create a session.
@@ -83,7 +101,7 @@ pub(super) async fn create_session(
 ) -> HttpResult {
     let request: CreateSession = parse_json(&body.map_err(body_error)?)?;
     let command = Command::CreateSession(request);
-    run(&service, &caller, command, StatusCode::CREATED).await
+    json(StatusCode::CREATED, run(&service, &caller, command).await?)
 }
 
 /// A session's state and statistics.
@@ -96,32 +114,31 @@ pub(super) async fn stats(
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::GetStats { session },
+    json(
         StatusCode::OK,
+        run(&service, &caller, Command::GetStats(GetStats { session })).await?,
     )
-    .await
 }
 
 /// Delete a session (its files too).
 #[utoipa::path(delete, path = "/v1/sessions/{session}", tag = "sessions", params(SessionPath),
     responses((status = 200,
             description = "Deleted.",
-            body = super::openapi::Deleted), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+            body = crate::api::Deleted), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn delete_session(
     State(service): Shared,
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::DeleteSession { session },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::DeleteSession(DeleteSession { session }),
+        )
+        .await?,
     )
-    .await
 }
 
 #[derive(Deserialize, Default, utoipa::IntoParams)]
@@ -168,17 +185,19 @@ pub(super) async fn apply_batch(
     let WaitParam { wait } = query(raw)?;
     let max_items = service.limits().max_batch_items;
     let batch: Batch = parse_json_within(&body.map_err(body_error)?, max_items)?;
-    run(
-        &service,
-        &caller,
-        Command::ApplyBatch {
-            session,
-            batch,
-            wait,
-        },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::ApplyBatch(ApplyBatch {
+                session,
+                batch,
+                wait,
+            }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// Fusion messages for a `sliding_window` session (IMU samples, keyframes, relative poses,
@@ -197,21 +216,23 @@ pub(super) async fn fusion(
     let max_items = service.limits().max_batch_items;
     let batch: FusionBatch = parse_json_within(&body.map_err(body_error)?, max_items)?;
     let messages = batch.messages;
-    run(
-        &service,
-        &caller,
-        Command::Fusion { session, messages },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::Fusion(Fusion { session, messages }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// Solve now, whatever the policy: 202 at once, or with `wait` 200 when the solve is over
 /// (with the session's `stats`).
 #[utoipa::path(post, path = "/v1/sessions/{session}/optimize", tag = "updates", params(SessionPath, OptimizeParams),
     responses(
-        (status = 200, description = "With `wait`: the solve finished.", body = super::openapi::Optimizing),
-        (status = 202, description = "The solve was started or scheduled.", body = super::openapi::Optimizing),
+        (status = 200, description = "With `wait`: the solve finished.", body = crate::api::Optimizing),
+        (status = 202, description = "The solve was started or scheduled.", body = crate::api::Optimizing),
         (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 421, response = Misdirected), (status = 422, response = Unprocessable), (status = 503, response = Unavailable)))]
 pub(super) async fn optimize(
     State(service): Shared,
@@ -230,19 +251,23 @@ pub(super) async fn optimize(
     } else {
         StatusCode::ACCEPTED
     };
-    run(
-        &service,
-        &caller,
-        Command::Optimize {
-            session,
-            wait,
-            after_producer,
-            after_seq,
-            after_timeout_ms,
-        },
+    json(
         status,
+        run(
+            &service,
+            &caller,
+            Command::Optimize(Optimize {
+                session,
+                wait,
+                after: AfterFields {
+                    after_producer,
+                    after_seq,
+                    after_timeout_ms,
+                },
+            }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// Change when the session re-optimises by itself.
@@ -250,7 +275,7 @@ pub(super) async fn optimize(
     request_body = AutoOptimize,
     responses((status = 200,
             description = "The new policy.",
-            body = super::openapi::AutoOptimizeSet), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+            body = crate::api::AutoOptimizeSet), (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 409, response = Conflict), (status = 413, response = PayloadTooLarge), (status = 415, response = UnsupportedMediaType), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn set_auto_optimize(
     State(service): Shared,
     caller: Caller,
@@ -258,16 +283,18 @@ pub(super) async fn set_auto_optimize(
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let auto_optimize: AutoOptimize = parse_json(&body.map_err(body_error)?)?;
-    run(
-        &service,
-        &caller,
-        Command::SetAutoOptimize {
-            session,
-            auto_optimize,
-        },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::SetAutoOptimize(SetAutoOptimize {
+                session,
+                auto_optimize,
+            }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// Declare more user-defined factor types in a running graph session (all or none).
@@ -283,16 +310,18 @@ pub(super) async fn define_factor_types(
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult {
     let body: super::openapi::FactorTypesBody = parse_json(&body.map_err(body_error)?)?;
-    run(
-        &service,
-        &caller,
-        Command::DefineFactorTypes {
-            session,
-            factor_types: body.factor_types,
-        },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::DefineFactorTypes(DefineFactorTypes {
+                session,
+                factor_types: body.factor_types,
+            }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// Read the estimate: every variable, those changed after `since`, or a key range; with
@@ -308,10 +337,7 @@ pub(super) async fn estimate(
     raw: RawQuery,
 ) -> HttpResult {
     let estimate: EstimateQuery = query(raw)?;
-    match service
-        .execute_as(&caller.0, Command::get_estimate(session, estimate))
-        .await?
-    {
+    match run(&service, &caller, Command::get_estimate(session, estimate)).await? {
         Reply::Export(file) => Ok((
             [
                 (header::CONTENT_TYPE, Export::MEDIA_TYPE.to_string()),
@@ -323,7 +349,7 @@ pub(super) async fn estimate(
             file.body,
         )
             .into_response()),
-        reply => Ok((StatusCode::OK, Json(reply)).into_response()),
+        reply => json(StatusCode::OK, reply),
     }
 }
 
@@ -337,13 +363,10 @@ pub(super) async fn graph(
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::GetGraph { session },
+    json(
         StatusCode::OK,
+        run(&service, &caller, Command::GetGraph(GetGraph { session })).await?,
     )
-    .await
 }
 
 /// The session's history: a timeline of its solves (χ², solve time, update latency), its last
@@ -358,13 +381,15 @@ pub(super) async fn history(
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::GetHistory { session },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::GetHistory(GetHistory { session }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// `?keys=3,17&joint=true`: keys as one comma-separated list.
@@ -390,13 +415,28 @@ pub(super) async fn producer_status(
     caller: Caller,
     Path((session, producer)): Path<(String, String)>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::ProducerStatus { session, producer },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::ProducerStatus(ProducerQuery { session, producer }),
+        )
+        .await?,
     )
-    .await
+}
+
+/// Every producer that sent the session a numbered batch, by id, with where its batches stand.
+#[utoipa::path(get, path = "/v1/sessions/{session}/producers", tag = "reads", params(SessionPath),
+    responses((status = 200, description = "The producers.", body = crate::api::ProducerList),
+        (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn list_producers(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    let command = Command::ListProducers(ListProducers { session });
+    json(StatusCode::OK, run(&service, &caller, command).await?)
 }
 
 /// Marginal covariances of `keys` at the current estimate (and their joint covariance).
@@ -424,17 +464,19 @@ pub(super) async fn marginals(
             })
         })
         .collect::<Result<Vec<_>, _>>()?;
-    run(
-        &service,
-        &caller,
-        Command::GetMarginals {
-            session,
-            keys,
-            joint,
-        },
+    json(
         StatusCode::OK,
+        run(
+            &service,
+            &caller,
+            Command::GetMarginals(GetMarginals {
+                session,
+                keys,
+                joint,
+            }),
+        )
+        .await?,
     )
-    .await
 }
 
 /// The summary of the session's last solve (404 `no_summary` before the first).
@@ -447,8 +489,8 @@ pub(super) async fn summary(
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    let command = Command::GetStats { session };
-    let Reply::Stats(stats) = service.execute_as(&caller.0, command).await? else {
+    let command = Command::GetStats(GetStats { session });
+    let Reply::Stats(stats) = run(&service, &caller, command).await? else {
         unreachable!("GetStats answers with Stats");
     };
     match stats.last_summary {
@@ -466,19 +508,16 @@ pub(super) async fn summary(
 #[utoipa::path(post, path = "/v1/sessions/{session}/cancel", tag = "updates", params(SessionPath),
     responses((status = 200,
             description = "Whether a solve was running.",
-            body = super::openapi::Cancelled), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+            body = crate::api::Cancelled), (status = 401, response = Unauthorized), (status = 403, response = Forbidden), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
 pub(super) async fn cancel(
     State(service): Shared,
     caller: Caller,
     Path(session): Path<String>,
 ) -> HttpResult {
-    run(
-        &service,
-        &caller,
-        Command::Cancel { session },
+    json(
         StatusCode::OK,
+        run(&service, &caller, Command::Cancel(Cancel { session })).await?,
     )
-    .await
 }
 
 /// Optimise a whole graph file (g2o, TORO, BAL text in the body) in one shot.

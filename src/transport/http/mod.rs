@@ -65,6 +65,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(set_auto_optimize))
         .routes(routes!(define_factor_types))
         .routes(routes!(estimate))
+        .routes(routes!(list_producers))
         .routes(routes!(producer_status))
         .routes(routes!(summary))
         .routes(routes!(cancel))

@@ -2,14 +2,13 @@
 //! annotations and the wire types' `ToSchema` derives; served at `GET /v1/openapi.json` and
 //! committed as `proto/v1/openapi.json` (`tests/api/openapi.rs` keeps the two equal).
 //!
-//! Here too: the shapes that exist only on the HTTP side (the error envelope, the replies that
-//! are inline variants of [`crate::api::Reply`], the path and job parameters) and the error
-//! responses the handlers name.
+//! Here too: the shapes that exist only on the HTTP side (the error envelope, the path and job
+//! parameters) and the error responses the handlers name; every command's reply is its own
+//! named type in `api::command::replies`.
 
 use utoipa::openapi::{ContentBuilder, Ref, RefOr, Response, ResponseBuilder};
 use utoipa::{IntoParams, OpenApi, ToResponse, ToSchema};
 
-use crate::api::wire::{AutoOptimize, SessionInfo};
 use crate::api::ErrorBody;
 
 /// Every error: `{"error": {...}}`, with the HTTP status in `status`.
@@ -20,52 +19,11 @@ pub struct ErrorResponse {
     error: ErrorBody,
 }
 
-/// `GET /v1/sessions`, sorted by name.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct SessionList {
-    sessions: Vec<SessionInfo>,
-}
-
-/// `DELETE /v1/sessions/{session}`.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct Deleted {
-    deleted: String,
-}
-
-/// `POST /v1/sessions/{session}/optimize`.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct Optimizing {
-    session: String,
-    sequence: u64,
-    /// With `wait`: the session's statistics after the solve.
-    #[schema(value_type = Option<crate::api::wire::SessionStats>)]
-    stats: Option<()>,
-}
-
-/// `PUT /v1/sessions/{session}/auto_optimize`.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct AutoOptimizeSet {
-    session: String,
-    auto_optimize: AutoOptimize,
-}
-
 /// The body of `POST /v1/sessions/{session}/factor_types`.
 #[derive(ToSchema, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FactorTypesBody {
     pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
-}
-
-/// `POST /v1/sessions/{session}/cancel`: whether a solve was running.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct Cancelled {
-    session: String,
-    cancelled: bool,
 }
 
 /// `POST /v1/jobs` as JSON: the solve's summary and the optimised values.

@@ -26,6 +26,7 @@ use super::messages::{
 use super::tf::TfBroadcaster;
 use super::window_feed::{Feed, WindowFeed};
 use crate::api::wire::Batch;
+use crate::api::{ApplyBatch, Fusion};
 use crate::service::{Caller, Command, Delivery, Service, ServiceError};
 
 pub(super) type Samples = Subscriber<FifoChannelHandler<Sample>>;
@@ -194,10 +195,12 @@ impl Inputs {
         let session = &self.session;
         let graph = |batch: Option<Batch>| {
             batch
-                .map(|batch| Command::ApplyBatch {
-                    session: session.clone(),
-                    batch,
-                    wait: false,
+                .map(|batch| {
+                    Command::ApplyBatch(ApplyBatch {
+                        session: session.clone(),
+                        batch,
+                        wait: false,
+                    })
                 })
                 .into_iter()
                 .collect()
@@ -205,9 +208,11 @@ impl Inputs {
         let fusion = |feed: Feed| -> Vec<Command> {
             feed.batches
                 .into_iter()
-                .map(|messages| Command::Fusion {
-                    session: session.clone(),
-                    messages,
+                .map(|messages| {
+                    Command::Fusion(Fusion {
+                        session: session.clone(),
+                        messages,
+                    })
                 })
                 .collect()
         };

@@ -14,7 +14,7 @@
 //! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
 //! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
 //! `outputs`, and the `map → odom` correction on `/tf`, see `tf`. Messages go through the one
-//! command API ([`Service::execute_as`]) like any client's; nothing here touches a session's
+//! command API ([`Service::execute`]) like any client's; nothing here touches a session's
 //! state.
 //!
 //! The binding uses the zenoh adapter's session: robots reach factord through the same router
@@ -235,7 +235,10 @@ async fn existing_keyframes(
 ) -> Option<(u64, Option<f64>)> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
-    match service.execute_as(caller, command).await {
+    match service
+        .execute(caller, command, crate::service::Recording::History)
+        .await
+    {
         Ok(crate::service::Reply::Estimate(estimate)) => {
             let variables = &estimate.variables;
             let newest = variables.iter().filter_map(|v| v.stamp).reduce(f64::max);

@@ -30,7 +30,8 @@ use super::messages::{
 use super::names::Qos;
 use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
-use crate::service::{Caller, Command, Reply, Service};
+use crate::api::GetMarginals;
+use crate::service::{Caller, Command, Recording, Reply, Service};
 use crate::session::EventStream;
 
 /// One ROS publisher, declared as rmw_zenoh declares a reliable one: a zenoh-ext advanced
@@ -126,7 +127,10 @@ impl Outputs {
     async fn publish(&mut self) {
         let name = self.session.clone();
         let estimate = Command::get_estimate(name.clone(), EstimateQuery::default());
-        let Ok(Reply::Estimate(estimate)) = self.service.execute_as(&self.caller, estimate).await
+        let Ok(Reply::Estimate(estimate)) = self
+            .service
+            .execute(&self.caller, estimate, Recording::History)
+            .await
         else {
             return;
         };
@@ -197,13 +201,13 @@ pub(super) fn se3_estimate(v: &VariableValue) -> Option<Isometry3<f64>> {
 
 /// The 6×6 marginal covariance of `key`, row-major; zeros (unknown) when it cannot be had.
 async fn marginal(service: &Service, caller: &Caller, session: &str, key: u64) -> Covariance {
-    let command = Command::GetMarginals {
+    let command = Command::GetMarginals(GetMarginals {
         session: session.into(),
         keys: vec![key],
         joint: false,
-    };
+    });
     let mut covariance = Covariance::default();
-    match service.execute_as(caller, command).await {
+    match service.execute(caller, command, Recording::History).await {
         Ok(Reply::Marginals(marginals)) => {
             let Some(m) = marginals.variables.first() else {
                 return covariance;

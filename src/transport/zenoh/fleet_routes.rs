@@ -22,7 +22,7 @@ use super::config::zenoh_error;
 use super::fleet_proof;
 use super::{answer_estimate, oversized, payload, Answer, Context};
 use crate::service::fleet::{merge_session_lists, moving, Fleet, Route};
-use crate::service::ServiceError;
+use crate::service::{Recording, ServiceError};
 
 /// Whether a command for a session another instance owns is forwarded there (queries from
 /// clients) or refused as moving (queries another instance forwarded: never twice).
@@ -75,7 +75,11 @@ pub(super) async fn route_rpc(c: &Context, query: &Query, forward: Forward) -> A
 async fn run_here(c: &Context, bytes: &[u8]) -> Answer {
     let max_items = c.service.limits().max_batch_items;
     let result = match crate::service::parse_command(bytes, max_items) {
-        Ok(command) => c.service.execute_as(&c.caller, command).await,
+        Ok(command) => {
+            c.service
+                .execute(&c.caller, command, Recording::History)
+                .await
+        }
         Err(e) => Err(e),
     };
     Answer::of(result.map(|r| serde_json::to_vec(&r)))

@@ -28,7 +28,7 @@ use zenoh::query::Query;
 use crate::api::wire::EstimateQuery;
 use crate::api::ErrorKind;
 use crate::api::Reply;
-use crate::service::{parse_query, Caller, Command, Service, ServiceError};
+use crate::service::{parse_query, Caller, Command, Recording, Service, ServiceError};
 
 mod config;
 mod fleet;
@@ -193,7 +193,11 @@ pub(super) async fn rpc_answer(c: &Context, query: &Query) -> Answer {
     let result = match oversized(query.payload(), c.max_payload) {
         Some(refusal) => Err(refusal),
         None => match crate::service::parse_command(&payload(query), max_items) {
-            Ok(command) => c.service.execute_recorded(&c.caller, command).await,
+            Ok(command) => {
+                c.service
+                    .execute(&c.caller, command, Recording::History)
+                    .await
+            }
             Err(e) => Err(e),
         },
     };
@@ -203,7 +207,11 @@ pub(super) async fn rpc_answer(c: &Context, query: &Query) -> Answer {
 /// `<p>/<session>/estimate`.
 pub(super) async fn answer_estimate(c: &Context, query: &Query) {
     let result = match estimate_command(query) {
-        Ok(command) => c.service.execute_as(&c.caller, command).await,
+        Ok(command) => {
+            c.service
+                .execute(&c.caller, command, Recording::History)
+                .await
+        }
         Err(e) => Err(e),
     };
     // A file format is served as its text, as over HTTP; the JSON estimate as JSON.
