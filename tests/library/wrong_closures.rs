@@ -3,13 +3,11 @@
 //! with every wrong closure rejected, and a clean file ends exactly where plain least squares
 //! does (graduated non-convexity does not start).
 
-use std::collections::BTreeSet;
 use std::path::Path;
 use std::process::Command;
 
-use factord::factors::testing::Rng;
-
 use crate::common;
+use common::wrong_closures::{add_random_wrong_closures, label_lines};
 
 /// Runs `factord solve <input> <args>`, asserting success; its stdout.
 fn solve(input: &Path, args: &[&str]) -> String {
@@ -54,45 +52,7 @@ fn twenty_percent_random_wrong_closures_end_at_the_clean_optimum() {
     };
     let dir = common::temp_dir("wrong-closures");
     let clean_text = std::fs::read_to_string(&file).unwrap();
-    let poses = positions(&clean_text).len() as u64;
-    let closure_lines: Vec<&str> = clean_text
-        .lines()
-        .filter(|l| {
-            let f: Vec<&str> = l.split_whitespace().collect();
-            f.first() == Some(&"EDGE_SE2")
-                && f[1].parse::<u64>().unwrap().abs_diff(f[2].parse().unwrap()) != 1
-        })
-        .collect();
-    // 20 % of the loop closures, uniform pose pairs and measurements, each with the
-    // information of a genuine closure.
-    let mut rng = Rng::new(54);
-    let mut corrupted = clean_text.clone();
-    if !corrupted.ends_with('\n') {
-        corrupted.push('\n');
-    }
-    let mut line = corrupted.lines().count();
-    let mut wrong_lines = BTreeSet::new();
-    for _ in 0..closure_lines.len() / 5 {
-        let (i, j) = loop {
-            let (i, j) = (rng.below(poses as usize), rng.below(poses as usize));
-            if i.abs_diff(j) >= 2 {
-                break (i.min(j), i.max(j));
-            }
-        };
-        let info: Vec<&str> = closure_lines[rng.below(closure_lines.len())]
-            .split_whitespace()
-            .skip(6)
-            .collect();
-        corrupted += &format!(
-            "EDGE_SE2 {i} {j} {} {} {} {}\n",
-            10.0 * rng.symmetric(),
-            10.0 * rng.symmetric(),
-            rng.angle(),
-            info.join(" ")
-        );
-        line += 1;
-        wrong_lines.insert(line);
-    }
+    let (corrupted, closures, wrong_lines) = add_random_wrong_closures(&clean_text, 0.2, 54);
     let corrupted_path = dir.join("m3500-20pct.g2o");
     std::fs::write(&corrupted_path, &corrupted).unwrap();
 
@@ -123,7 +83,7 @@ fn twenty_percent_random_wrong_closures_end_at_the_clean_optimum() {
         stdout.contains(&format!(
             "outliers: {} of {} loop closures rejected",
             wrong_lines.len(),
-            closure_lines.len() + wrong_lines.len()
+            closures + wrong_lines.len()
         )),
         "{stdout}"
     );
@@ -148,20 +108,7 @@ fn twenty_percent_random_wrong_closures_end_at_the_clean_optimum() {
     );
 
     let report = summary(&robust_json);
-    let rejected: BTreeSet<usize> = report["outliers"]["rejected_labels"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|l| {
-            let l = l.as_str().unwrap();
-            l.rsplit(':')
-                .next()
-                .unwrap()
-                .trim_end_matches(')')
-                .parse()
-                .unwrap()
-        })
-        .collect();
+    let rejected = label_lines(&report["outliers"]["rejected_labels"]);
     assert_eq!(
         rejected, wrong_lines,
         "rejected lines vs the wrong closures' lines"
