@@ -4,14 +4,22 @@ use std::time::Instant;
 
 use factord::factors::RobustKernel;
 use factord::io::{self, Dimension};
-use factord::solver::{self, Initialization, Method, SolverOptions};
+use factord::solver::gnc::{loop_closures, GncKernel, GncOptions, GncReport};
+use factord::solver::{self, Initialization, Method, SolverOptions, Unlimited};
 
 use super::plot::{self, PlotFormat};
 use super::progress::Progress;
 use super::solve_output::{chi2_line, write_summary_json};
 use super::stdio::{one_stdin, Console, InputArg, OutputArg};
-use super::value_parsers::{parse_init, parse_method, parse_robust};
+use super::value_parsers::{parse_gnc_kernel, parse_init, parse_method, parse_robust};
 use super::CliError;
+
+/// What `factord solve` does about possibly wrong loop closures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Outliers {
+    Auto,
+    Off,
+}
 
 #[derive(clap::Args)]
 pub struct SolveArgs {
@@ -29,9 +37,22 @@ pub struct SolveArgs {
     /// none | chordal | auto (chordal when it lowers the initial chi2)
     #[arg(long, default_value = "auto", value_parser = parse_init)]
     init: Initialization,
-    /// Robust kernel on every factor, e.g. huber:1.0 or cauchy:0.5
+    /// Robust kernel on every factor, e.g. huber:1.0 or cauchy:0.5 (turns --outliers off)
     #[arg(long, value_parser = parse_robust)]
     robust: Option<RobustKernel>,
+    /// Wrong loop closures. auto: every loop closure (a factor between poses whose ids are not
+    /// consecutive) may be wrong; those that do not fit the least-squares optimum are rejected
+    /// by graduated non-convexity, thresholds from the χ² distribution (no scale to choose).
+    /// off: plain least squares.
+    #[arg(long, value_enum, default_value_t = Outliers::Auto)]
+    outliers: Outliers,
+    /// The graduated non-convexity surrogate: tls (truncated least squares) | gm (Geman-McClure)
+    #[arg(long, default_value = "tls", value_parser = parse_gnc_kernel)]
+    gnc_kernel: GncKernel,
+    /// Write --out without the factors rejected as wrong (default: written as comments,
+    /// `# rejected: EDGE_…`).
+    #[arg(long, requires = "out")]
+    drop_rejected: bool,
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
     /// Write the optimised graph (g2o format); `-` for standard output.
@@ -109,19 +130,45 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         load_seconds
     ));
     let initial = graph.problem.values.clone();
+    // Graduated non-convexity when the user chose no kernel and the file has loop closures.
+    let candidates = if args.robust.is_none() && args.outliers == Outliers::Auto {
+        Some(loop_closures(&graph.problem)).filter(|c| c.iter().any(|&c| c))
+    } else {
+        None
+    };
+    let gnc = GncOptions {
+        kernel: args.gnc_kernel,
+        ..GncOptions::default()
+    };
+    let mut gnc_report: Option<GncReport> = None;
     let mut runs = Vec::with_capacity(args.repeat as usize);
     let mut summary = None;
     for run in 0..args.repeat {
         graph.problem.values.clone_from(&initial);
         let last = run + 1 == args.repeat;
         let progress = Progress::solving(options.max_iterations, args.quiet || !last);
-        let s = solver::optimize(&mut graph.problem, &options, &mut |r| {
+        let mut on_iteration = |r: &solver::IterationReport| {
             progress.iteration(r);
             if last {
                 progress.suspend(|| console.print(&chi2_line(r)));
             }
             std::ops::ControlFlow::Continue(())
-        });
+        };
+        let s = match &candidates {
+            Some(candidates) => solver::optimize_gnc(
+                &mut graph.problem,
+                &options,
+                &gnc,
+                candidates,
+                &mut on_iteration,
+                &Unlimited,
+            )
+            .map(|(summary, report)| {
+                gnc_report = Some(report);
+                summary
+            }),
+            None => solver::optimize(&mut graph.problem, &options, &mut on_iteration),
+        };
         progress.finish();
         let s = s?;
         runs.push(s.solve_seconds);
@@ -131,6 +178,9 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
     runs.sort_by(f64::total_cmp);
     summary.solve_seconds = runs[runs.len() / 2];
     console.print(&summary.report());
+    if let Some(report) = &gnc_report {
+        console.print(&rejection_report(report));
+    }
     if let Some(target) = &args.summary_json {
         let mut extra = vec![
             ("input", name.display().to_string().into()),
@@ -141,10 +191,21 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
             let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
             extra.push(("final_chi2_g2o", g2o.into()));
         }
+        if let Some(report) = &gnc_report {
+            extra.push(("outliers", serde_json::to_value(report)?));
+        }
         write_summary_json(target, &summary, extra)?;
     }
     if let Some(target) = &args.out {
-        target.write("--out", io::g2o::to_string(&graph).as_bytes())?;
+        let rejected = gnc_report.as_ref().map_or(&[][..], |r| &r.rejected[..]);
+        let text = if args.drop_rejected {
+            let rejected: std::collections::HashSet<usize> = rejected.iter().copied().collect();
+            graph.problem.retain_factors(|i| !rejected.contains(&i));
+            io::g2o::to_string(&graph)
+        } else {
+            io::g2o::to_string_marking(&graph, rejected)
+        };
+        target.write("--out", text.as_bytes())?;
     }
     if let Some(target) = &args.tum {
         let text = match (&stamps, &args.stamps) {
@@ -172,6 +233,34 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         plot::write(target, args.plot_format, &svg)?;
     }
     Ok(())
+}
+
+/// The lines saying which loop closures graduated non-convexity rejected.
+fn rejection_report(report: &GncReport) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    if !report.graduated {
+        let _ = writeln!(
+            s,
+            "outliers: all {} loop closures fit the least-squares optimum (χ² {} quantile); none rejected",
+            report.candidates, report.confidence
+        );
+        return s;
+    }
+    let _ = writeln!(
+        s,
+        "outliers: {} of {} loop closures rejected by graduated non-convexity ({:?}, χ² {} quantile, {} outer steps, {:.3}s)",
+        report.rejected.len(),
+        report.candidates,
+        report.kernel,
+        report.confidence,
+        report.outer_iterations,
+        report.seconds
+    );
+    for label in &report.rejected_labels {
+        let _ = writeln!(s, "  rejected {label}");
+    }
+    s
 }
 
 fn load(args: &SolveArgs) -> Result<io::PoseGraph, CliError> {

@@ -8,6 +8,11 @@ pub fn parse_method(s: &str) -> Result<Method, String> {
     Method::parse(s).ok_or_else(|| format!("unknown method `{s}` (gn, lm, dogleg)"))
 }
 
+pub fn parse_gnc_kernel(s: &str) -> Result<factord::solver::GncKernel, String> {
+    factord::solver::GncKernel::parse(s)
+        .ok_or_else(|| format!("unknown graduated non-convexity kernel `{s}` (tls, gm)"))
+}
+
 pub fn parse_init(s: &str) -> Result<Initialization, String> {
     match s {
         "none" => Ok(Initialization::None),

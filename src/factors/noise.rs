@@ -93,6 +93,17 @@ impl SqrtInformation {
         self.dim
     }
 
+    /// `√w · R`: the square root of the information `w Ω` (a factor weighted by `w ≥ 0`, as
+    /// graduated non-convexity weights a possibly wrong measurement).
+    pub fn scaled(&self, weight: f64) -> Self {
+        let root = weight.sqrt();
+        Self {
+            dim: self.dim,
+            r: self.r.iter().map(|v| v * root).collect(),
+            diagonal: self.diagonal,
+        }
+    }
+
     /// `Ω = Rᵀ R`.
     pub fn information(&self) -> DMatrix<f64> {
         let r = DMatrix::from_row_slice(self.dim, self.dim, &self.r);

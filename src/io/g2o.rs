@@ -185,6 +185,13 @@ fn information_upper(m: &DMatrix<f64>) -> String {
 
 /// The graph as g2o text, vertices with their current values.
 pub fn to_string(graph: &PoseGraph) -> String {
+    to_string_marking(graph, &[])
+}
+
+/// [`to_string`] with the factors at the (ascending) indices `rejected` written as comments,
+/// `# rejected: EDGE_…`: they stay visible, and reading the file back gives the graph that was
+/// solved once they were rejected.
+pub fn to_string_marking(graph: &PoseGraph, rejected: &[usize]) -> String {
     let values = &graph.problem.values;
     let mut out = String::new();
     for &key in &graph.vertex_order {
@@ -201,14 +208,19 @@ pub fn to_string(graph: &PoseGraph) -> String {
             );
         }
     }
-    for f in graph.problem.factors() {
+    for (index, f) in graph.problem.factors().iter().enumerate() {
+        let mark = if rejected.binary_search(&index).is_ok() {
+            "# rejected: "
+        } else {
+            ""
+        };
         let keys = f.factor.keys();
         let info = f.sqrt_information.information();
         if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe2>() {
             let z = b.measurement;
             let _ = writeln!(
                 out,
-                "EDGE_SE2 {} {} {} {} {}{}",
+                "{mark}EDGE_SE2 {} {} {} {} {}{}",
                 keys[0],
                 keys[1],
                 z.x,
@@ -221,7 +233,7 @@ pub fn to_string(graph: &PoseGraph) -> String {
             let d = rotation_scaling(false);
             let _ = writeln!(
                 out,
-                "EDGE_SE3:QUAT {} {} {} {} {} {} {} {} {}{}",
+                "{mark}EDGE_SE3:QUAT {} {} {} {} {} {} {} {} {}{}",
                 keys[0],
                 keys[1],
                 t.x,

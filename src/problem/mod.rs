@@ -235,6 +235,11 @@ impl Problem {
         &self.factors
     }
 
+    /// The factors, to reweight in place (their variables and sizes stay as they are).
+    pub(crate) fn factors_mut(&mut self) -> &mut [FactorEntry] {
+        &mut self.factors
+    }
+
     /// Keeps the factors for which `keep(index)` is true, in order.
     pub fn retain_factors(&mut self, mut keep: impl FnMut(usize) -> bool) {
         let mut index = 0;

@@ -17,6 +17,7 @@ use crate::api::ErrorKind;
 use crate::factors::RobustKernel;
 use crate::io::{self, Format};
 use crate::runtime::pool::{PoolHandle, Turn};
+use crate::solver::gnc::{loop_closures, GncOptions, GncReport};
 use crate::solver::{
     self, Budget as _, Initialization, LinearSolverChoice, Method, SolverOptions, Summary,
 };
@@ -34,6 +35,9 @@ pub struct JobParams {
     pub init: Option<String>,
     /// e.g. huber:1.0
     pub robust: Option<String>,
+    /// auto (default) | off: with auto and no `robust`, loop closures that do not fit are
+    /// rejected by graduated non-convexity (pose graphs).
+    pub outliers: Option<String>,
     pub function_tolerance: Option<f64>,
     pub gradient_tolerance: Option<f64>,
     pub parameter_tolerance: Option<f64>,
@@ -88,6 +92,8 @@ pub struct Job {
     bal: bool,
     options: SolverOptions,
     robust: Option<RobustKernel>,
+    /// Reject wrong loop closures by graduated non-convexity (`outliers=auto`, no `robust`).
+    reject_outliers: bool,
     pub output: JobOutput,
     /// The solve stops after this long (its turns added up) and answers with the best
     /// estimate it reached; the Summary's termination is then `interrupted`.
@@ -104,6 +110,10 @@ pub struct JobEstimate {
 #[derive(Debug, Serialize)]
 pub struct JobResult {
     pub summary: Summary,
+    /// The loop closures graduated non-convexity rejected (`outliers=auto` on a pose graph with
+    /// loop closures).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub outliers: Option<GncReport>,
     pub estimate: JobEstimate,
 }
 
@@ -185,6 +195,16 @@ impl Job {
             .map(RobustKernel::parse)
             .transpose()
             .map_err(|e| bad("robust", e.to_string()))?;
+        let reject_outliers = match params.outliers.as_deref() {
+            None | Some("auto") => robust.is_none() && !bal,
+            Some("off") => false,
+            Some(o) => {
+                return Err(bad(
+                    "outliers",
+                    format!("unknown outliers mode `{o}` (auto, off)"),
+                ))
+            }
+        };
         let output = match params.output.as_deref() {
             None | Some("json") => JobOutput::Json,
             Some("g2o") => JobOutput::G2o,
@@ -210,6 +230,7 @@ impl Job {
             bal,
             options,
             robust,
+            reject_outliers,
             output,
             max_solve,
             max_memory_bytes,
@@ -261,18 +282,34 @@ impl Job {
             max_solve: self.max_solve,
             max_memory_bytes: self.max_memory_bytes,
         };
-        let result = solver::optimize_within(
-            graph.problem_mut(),
-            &self.options,
-            &mut |_| budget.checkpoint(),
-            &budget,
-        );
+        let candidates = Some(self.reject_outliers)
+            .filter(|&on| on)
+            .map(|_| loop_closures(graph.problem_mut()))
+            .filter(|c| c.iter().any(|&c| c));
+        let result = match &candidates {
+            Some(candidates) => solver::optimize_gnc(
+                graph.problem_mut(),
+                &self.options,
+                &GncOptions::default(),
+                candidates,
+                &mut |_| budget.checkpoint(),
+                &budget,
+            )
+            .map(|(summary, report)| (summary, Some(report))),
+            None => solver::optimize_within(
+                graph.problem_mut(),
+                &self.options,
+                &mut |_| budget.checkpoint(),
+                &budget,
+            )
+            .map(|summary| (summary, None)),
+        };
         let answer = match result {
-            Ok(summary) => Ok(Finished {
+            Ok((summary, outliers)) => Ok(Finished {
                 graph,
                 output: self.output,
             }
-            .answer(summary)),
+            .answer(summary, outliers)),
             Err(solver::SolverError::MemoryLimit {
                 estimated, limit, ..
             }) => Err(ServiceError::new(
@@ -363,7 +400,7 @@ struct Finished {
 }
 
 impl Finished {
-    fn answer(self, summary: Summary) -> JobAnswer {
+    fn answer(self, summary: Summary, outliers: Option<GncReport>) -> JobAnswer {
         match (&self.graph, self.output) {
             (Parsed::PoseGraph(g), JobOutput::G2o) => JobAnswer::Text(io::g2o::to_string(g)),
             (Parsed::PoseGraph(g), JobOutput::Tum) => JobAnswer::Text(io::tum::to_string(g)),
@@ -392,6 +429,7 @@ impl Finished {
                     .collect();
                 JobAnswer::Json(Box::new(JobResult {
                     summary,
+                    outliers,
                     estimate: JobEstimate { variables },
                 }))
             }

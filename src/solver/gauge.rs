@@ -7,13 +7,16 @@ use crate::problem::FactorEntry;
 use crate::problem::{Key, Values};
 
 /// Returns the per-variable fixed flags to solve with, and the keys fixed automatically.
-pub fn anchor_components(factors: &[FactorEntry], values: &Values) -> (Vec<bool>, Vec<Key>) {
+pub fn anchor_components<E: std::borrow::Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+) -> (Vec<bool>, Vec<Key>) {
     let n = values.len();
     let mut parent: Vec<usize> = (0..n).collect();
     // A fixed variable or a unary factor (a prior) anchors its component.
     let mut anchored: Vec<bool> = (0..n).map(|v| values.is_fixed(v)).collect();
     for f in factors {
-        let idx = f.variables();
+        let idx = f.borrow().variables();
         if let [only] = idx {
             anchored[*only] = true;
         }

@@ -20,6 +20,7 @@
 
 mod planar;
 
+use std::borrow::Borrow;
 use std::cell::Cell;
 
 use faer::sparse::linalg::SupernodalThreshold;
@@ -125,20 +126,54 @@ impl Stoppable<'_> {
 /// `ordering` is the free variables' graph ([`super::linearize::free_adjacency`]) with its
 /// elimination order; `shared`, the solve's supernodes over it in blocks when it has them, also
 /// serve the 2D steps' scalar Laplacians (no second analysis).
-pub fn chordal(
-    factors: &[FactorEntry],
+pub fn chordal<E: Borrow<FactorEntry>>(
+    factors: &[E],
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
     shared: Option<&BlockSupernodes>,
     budget: &Stoppable,
 ) -> Option<Values> {
+    chordal_unwrapping(factors, values, fixed, ordering, shared, budget, false)
+}
+
+/// [`chordal`] with the 2D orientations' 2π ambiguities resolved at `values` (each edge's
+/// wrap taken where the current estimate puts it) instead of along a spanning tree of the
+/// measurements: for a re-estimate during graduated non-convexity, where a tree could run
+/// through a wrong closure. 3D has no such ambiguity (rotation matrices), so it is [`chordal`].
+pub fn chordal_unwrapped_at_values<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+    budget: &Stoppable,
+) -> Option<Values> {
+    chordal_unwrapping(factors, values, fixed, ordering, None, budget, true)
+}
+
+fn chordal_unwrapping<E: Borrow<FactorEntry>>(
+    factors: &[E],
+    values: &Values,
+    fixed: &[bool],
+    ordering: &BlockOrdering,
+    shared: Option<&BlockSupernodes>,
+    budget: &Stoppable,
+    unwrap_at_values: bool,
+) -> Option<Values> {
     if values.is_empty() {
         return None;
     }
     let all = |kind: &str| (0..values.len()).all(|v| values.variable(v).kind() == kind);
     if all("se2") {
-        planar::chordal_2d(factors, values, fixed, ordering, shared, budget)
+        planar::chordal_2d(
+            factors,
+            values,
+            fixed,
+            ordering,
+            shared,
+            budget,
+            unwrap_at_values,
+        )
     } else if all("se3") {
         chordal_3d(factors, values, fixed, ordering, budget)
     } else {
@@ -154,13 +189,14 @@ struct Edge<'a, M> {
     sqrt_information: &'a SqrtInformation,
 }
 
-fn collect_edges<M: Copy>(
-    factors: &[FactorEntry],
+fn collect_edges<E: Borrow<FactorEntry>, M: Copy>(
+    factors: &[E],
     between: impl Fn(&FactorEntry) -> Option<M>,
     prior: impl Fn(&FactorEntry) -> Option<M>,
 ) -> Option<Vec<Edge<'_, M>>> {
     let mut edges = Vec::with_capacity(factors.len());
     for f in factors {
+        let f = f.borrow();
         let vars = f.variables();
         let sqrt_information = &f.sqrt_information;
         if let Some(m) = between(f) {
@@ -348,8 +384,8 @@ impl<'a, const D: usize, const R: usize> LinearLeastSquares<'a, D, R> {
     }
 }
 
-fn chordal_3d(
-    factors: &[FactorEntry],
+fn chordal_3d<E: Borrow<FactorEntry>>(
+    factors: &[E],
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,

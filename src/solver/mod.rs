@@ -5,11 +5,13 @@
 //! type); never `io` or anything above.
 
 pub mod budget;
+pub mod chi_square;
 pub mod cholesky;
 mod damping;
 mod dogleg;
 pub mod gauge;
 mod gauss_newton;
+pub mod gnc;
 pub mod incremental;
 pub mod initialize;
 mod iterations;
@@ -32,6 +34,7 @@ pub mod vector;
 mod warm;
 
 pub use budget::{Budget, Unlimited};
+pub use gnc::{optimize_gnc, GncKernel, GncOptions, GncReport};
 pub use optimizer::{optimize, optimize_warm, optimize_warm_within, optimize_within};
 pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};

@@ -13,6 +13,7 @@ pub mod fleet;
 pub mod fusion;
 pub mod producer;
 pub mod server;
+pub mod wrong_closures;
 
 #[allow(unused_imports)]
 pub use environments::{gtsam_python, python_venv};

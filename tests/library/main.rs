@@ -16,3 +16,4 @@ mod fusion;
 mod incremental_engine;
 mod incremental_engine_3d;
 mod preintegration_gtsam;
+mod wrong_closures;

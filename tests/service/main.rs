@@ -22,3 +22,4 @@ mod stream_lag;
 mod user_factors;
 mod web_operators;
 mod web_view;
+mod wrong_closures_job;

@@ -78,13 +78,14 @@ impl<'a, const R: usize> Laplacian<'a, R> {
     }
 }
 
-pub(super) fn chordal_2d(
-    factors: &[FactorEntry],
+pub(super) fn chordal_2d<E: std::borrow::Borrow<FactorEntry>>(
+    factors: &[E],
     values: &Values,
     fixed: &[bool],
     ordering: &BlockOrdering,
     shared: Option<&BlockSupernodes>,
     budget: &Stoppable,
+    unwrap_at_values: bool,
 ) -> Option<Values> {
     let edges = collect_edges(
         factors,
@@ -109,7 +110,11 @@ pub(super) fn chordal_2d(
             .downcast_ref::<Se2>()
             .expect("checked kind")
     };
-    let tree = tree_orientations(&edges, n, fixed, &pose)?;
+    let tree = if unwrap_at_values {
+        (0..n).map(|v| pose(v).theta).collect()
+    } else {
+        tree_orientations(&edges, n, fixed, &pose)?
+    };
     // Rotation: marginal information of θ. Translation: isotropic, the mean eigenvalue of the
     // marginal translation information, so both steps are scalar Laplacians over one graph.
     let weights: Vec<(f64, f64)> = edges

@@ -31,6 +31,8 @@ pub struct FactorTypesBody {
 #[allow(dead_code)]
 pub struct JobResult {
     summary: crate::solver::Summary,
+    /// The loop closures rejected as wrong (`outliers=auto`, a pose graph with loop closures).
+    outliers: Option<crate::solver::GncReport>,
     /// The optimised variables (`job-result.schema.json`).
     #[schema(value_type = Object)]
     estimate: (),
@@ -68,6 +70,8 @@ pub struct JobQuery {
     init: Option<String>,
     /// e.g. huber:1.0
     robust: Option<String>,
+    /// auto (default) | off: reject wrong loop closures by graduated non-convexity
+    outliers: Option<String>,
     function_tolerance: Option<f64>,
     gradient_tolerance: Option<f64>,
     parameter_tolerance: Option<f64>,

@@ -1,0 +1,165 @@
+//! Wrong loop closures rejected without tuning (issue 54, item 3): `factord solve` with default
+//! settings on input_M3500_g2o with 20 % random wrong closures added ends at the clean optimum
+//! with every wrong closure rejected, and a clean file ends exactly where plain least squares
+//! does (graduated non-convexity does not start).
+
+use std::path::Path;
+use std::process::Command;
+
+use crate::common;
+use common::wrong_closures::{add_random_wrong_closures, label_lines};
+
+/// Runs `factord solve <input> <args>`, asserting success; its stdout.
+fn solve(input: &Path, args: &[&str]) -> String {
+    let output = Command::new(env!("CARGO_BIN_EXE_factord"))
+        .arg("solve")
+        .arg(input)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "factord solve failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// id → (x, y) of every VERTEX_SE2 line.
+fn positions(g2o: &str) -> Vec<(u64, f64, f64)> {
+    g2o.lines()
+        .filter_map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            (f.first() == Some(&"VERTEX_SE2")).then(|| {
+                (
+                    f[1].parse().unwrap(),
+                    f[2].parse().unwrap(),
+                    f[3].parse().unwrap(),
+                )
+            })
+        })
+        .collect()
+}
+
+fn summary(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn twenty_percent_random_wrong_closures_end_at_the_clean_optimum() {
+    let Some(file) = common::data_file("2d/carlone/input_M3500_g2o.g2o") else {
+        return;
+    };
+    let dir = common::temp_dir("wrong-closures");
+    let clean_text = std::fs::read_to_string(&file).unwrap();
+    let (corrupted, closures, wrong_lines) = add_random_wrong_closures(&clean_text, 0.2, 54);
+    let corrupted_path = dir.join("m3500-20pct.g2o");
+    std::fs::write(&corrupted_path, &corrupted).unwrap();
+
+    let (clean_out, clean_json) = (dir.join("clean.g2o"), dir.join("clean.json"));
+    solve(
+        &file,
+        &[
+            "--outliers",
+            "off",
+            "--quiet",
+            "--out",
+            clean_out.to_str().unwrap(),
+            "--summary-json",
+            clean_json.to_str().unwrap(),
+        ],
+    );
+    let (robust_out, robust_json) = (dir.join("robust.g2o"), dir.join("robust.json"));
+    let stdout = solve(
+        &corrupted_path,
+        &[
+            "--out",
+            robust_out.to_str().unwrap(),
+            "--summary-json",
+            robust_json.to_str().unwrap(),
+        ],
+    );
+    assert!(
+        stdout.contains(&format!(
+            "outliers: {} of {} loop closures rejected",
+            wrong_lines.len(),
+            closures + wrong_lines.len()
+        )),
+        "{stdout}"
+    );
+
+    // Both solves hold pose 0 fixed (the gauge): positions compare without alignment.
+    let clean = positions(&std::fs::read_to_string(&clean_out).unwrap());
+    let robust_text = std::fs::read_to_string(&robust_out).unwrap();
+    let robust = positions(&robust_text);
+    assert_eq!(clean.len(), robust.len());
+    let squared: f64 = clean
+        .iter()
+        .zip(&robust)
+        .map(|(a, b)| {
+            assert_eq!(a.0, b.0);
+            (a.1 - b.1).powi(2) + (a.2 - b.2).powi(2)
+        })
+        .sum();
+    let rmse = (squared / clean.len() as f64).sqrt();
+    assert!(
+        rmse <= 1e-3,
+        "position RMSE {rmse} m against the clean optimum"
+    );
+
+    let report = summary(&robust_json);
+    let rejected = label_lines(&report["outliers"]["rejected_labels"]);
+    assert_eq!(
+        rejected, wrong_lines,
+        "rejected lines vs the wrong closures' lines"
+    );
+    // --out keeps them visible as comments, so reading it back gives the graph solved.
+    assert_eq!(
+        robust_text.matches("# rejected: EDGE_SE2").count(),
+        wrong_lines.len()
+    );
+    let clean_chi2 = summary(&clean_json)["final_chi2"].as_f64().unwrap();
+    let robust_chi2 = report["final_chi2"].as_f64().unwrap();
+    assert!(
+        (robust_chi2 - clean_chi2).abs() <= 1e-5 * clean_chi2,
+        "{robust_chi2} vs {clean_chi2}"
+    );
+    eprintln!(
+        "M3500 + {} wrong closures: RMSE {rmse:.3e} m, solve {:.3}s (clean {:.3}s)",
+        wrong_lines.len(),
+        report["solve_seconds"],
+        summary(&clean_json)["solve_seconds"]
+    );
+}
+
+#[test]
+fn a_clean_file_ends_where_plain_least_squares_does() {
+    let Some(file) = common::data_file("2d/carlone/input_M3500_g2o.g2o") else {
+        return;
+    };
+    let dir = common::temp_dir("wrong-closures-clean");
+    let (plain, auto) = (dir.join("plain.json"), dir.join("auto.json"));
+    solve(
+        &file,
+        &[
+            "--outliers",
+            "off",
+            "--quiet",
+            "--summary-json",
+            plain.to_str().unwrap(),
+        ],
+    );
+    solve(
+        &file,
+        &["--quiet", "--summary-json", auto.to_str().unwrap()],
+    );
+    let (plain, auto) = (summary(&plain), summary(&auto));
+    assert_eq!(auto["outliers"]["graduated"], false);
+    assert_eq!(auto["outliers"]["rejected"].as_array().unwrap().len(), 0);
+    let (a, b) = (
+        plain["final_chi2"].as_f64().unwrap(),
+        auto["final_chi2"].as_f64().unwrap(),
+    );
+    assert!((a - b).abs() <= 1e-5 * a, "{b} vs plain {a}");
+    assert_eq!(plain["iterations"], auto["iterations"]);
+}
