@@ -43,8 +43,9 @@ pub struct SolveArgs {
     /// Wrong loop closures. auto: every loop closure (a factor between poses whose ids are not
     /// consecutive) may be wrong; those that do not fit the least-squares optimum are rejected
     /// by graduated non-convexity, thresholds from the χ² distribution (no scale to choose).
-    /// off: plain least squares.
-    #[arg(long, value_enum, default_value_t = Outliers::Auto)]
+    /// off: plain least squares (the default: on clean files whose noise is larger than their
+    /// information says, e.g. M3500b/c, sphere_bignoise, auto rejects genuine closures).
+    #[arg(long, value_enum, default_value_t = Outliers::Off)]
     outliers: Outliers,
     /// The graduated non-convexity surrogate: tls (truncated least squares) | gm (Geman-McClure)
     #[arg(long, default_value = "tls", value_parser = parse_gnc_kernel)]

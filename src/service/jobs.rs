@@ -196,8 +196,8 @@ impl Job {
             .transpose()
             .map_err(|e| bad("robust", e.to_string()))?;
         let reject_outliers = match params.outliers.as_deref() {
-            None | Some("auto") => robust.is_none() && !bal,
-            Some("off") => false,
+            Some("auto") => robust.is_none() && !bal,
+            None | Some("off") => false,
             Some(o) => {
                 return Err(bad(
                     "outliers",

@@ -1,6 +1,6 @@
-//! A batch job over HTTP with wrong loop closures (issue 54, item 3): default parameters reject
-//! exactly the wrong closures and end at the clean file's optimum; `outliers=off` is plain
-//! least squares; an unknown mode is refused naming the parameter (catalogue J84).
+//! A batch job over HTTP with wrong loop closures (issue 54, item 3): `outliers=auto` rejects
+//! exactly the wrong closures and ends at the clean file's optimum; the default is plain least
+//! squares; an unknown mode is refused naming the parameter (catalogue J84).
 
 use crate::common;
 use common::server::{client, post_raw, TestServer};
@@ -16,7 +16,8 @@ async fn a_job_rejects_wrong_closures_and_refuses_an_unknown_mode() {
     let clean = std::fs::read_to_string(&file).unwrap();
     let (corrupted, _, wrong) = add_random_wrong_closures(&clean, 0.2, 7);
 
-    let (status, plain) = post_raw(&c, &s.url("/v1/jobs"), clean.clone()).await;
+    let auto = s.url("/v1/jobs?outliers=auto");
+    let (status, plain) = post_raw(&c, &auto, clean.clone()).await;
     assert_eq!(status, 200, "{plain}");
     assert_eq!(
         plain["outliers"]["graduated"], false,
@@ -25,7 +26,7 @@ async fn a_job_rejects_wrong_closures_and_refuses_an_unknown_mode() {
     );
     let clean_chi2 = plain["summary"]["final_chi2"].as_f64().unwrap();
 
-    let (status, robust) = post_raw(&c, &s.url("/v1/jobs"), corrupted.clone()).await;
+    let (status, robust) = post_raw(&c, &auto, corrupted.clone()).await;
     assert_eq!(status, 200, "{robust}");
     assert_eq!(label_lines(&robust["outliers"]["rejected_labels"]), wrong);
     let chi2 = robust["summary"]["final_chi2"].as_f64().unwrap();
@@ -50,10 +51,12 @@ async fn a_job_rejects_wrong_closures_and_refuses_an_unknown_mode() {
     let rmse = (squared / a.len() as f64).sqrt();
     assert!(rmse <= 1e-3, "position RMSE {rmse} m");
 
-    let (status, off) = post_raw(&c, &s.url("/v1/jobs?outliers=off"), corrupted).await;
-    assert_eq!(status, 200, "{off}");
-    assert!(off.get("outliers").is_none());
-    assert!(off["summary"]["final_chi2"].as_f64().unwrap() > 100.0 * clean_chi2);
+    for off in ["/v1/jobs?outliers=off", "/v1/jobs"] {
+        let (status, off) = post_raw(&c, &s.url(off), corrupted.clone()).await;
+        assert_eq!(status, 200, "{off}");
+        assert!(off.get("outliers").is_none());
+        assert!(off["summary"]["final_chi2"].as_f64().unwrap() > 100.0 * clean_chi2);
+    }
 
     let (status, refused) = post_raw(&c, &s.url("/v1/jobs?outliers=sometimes"), clean).await;
     assert_eq!(status, 400, "{refused}");

@@ -281,11 +281,31 @@ class Graph(_GraphKeys, total=False):
     edge_chi2: List[Optional[float]]
 
 
-class JobResult(TypedDict):
-    """``job-result.schema.json``: a batch job's Summary and optimised estimate."""
+class OutliersReport(TypedDict):
+    """A job's ``outliers`` (``outliers=auto``): the loop closures graduated non-convexity
+    rejected."""
 
+    kernel: str
+    confidence: float
+    candidates: int
+    graduated: bool
+    outer_iterations: int
+    rejected: List[int]
+    rejected_labels: List[str]
+    least_squares_chi2: float
+    seconds: float
+
+
+class _JobResultKeys(TypedDict):
     summary: Summary
     estimate: JsonDict
+
+
+class JobResult(_JobResultKeys, total=False):
+    """``job-result.schema.json``: a batch job's Summary and optimised estimate; with
+    ``outliers=auto`` on a pose graph with loop closures, the ``outliers`` report."""
+
+    outliers: OutliersReport
 
 
 class _OptimizeAnswerKeys(TypedDict):
@@ -302,7 +322,7 @@ class OptimizeAnswer(_OptimizeAnswerKeys, total=False):
 __all__ = [
     "AutoOptimize", "Batch", "BatchAck", "DrawnVariable", "ErrorBody", "Estimate", "Export",
     "ExportFormat", "FactorSpec", "FusionBatch", "Graph", "GuessSpec", "Health", "JobResult",
-    "JsonDict", "Marginal", "Marginals", "OptimizeAnswer", "ProducerList", "ProducerStatus",
+    "JsonDict", "Marginal", "OutliersReport", "Marginals", "OptimizeAnswer", "ProducerList", "ProducerStatus",
     "RobustKernel", "SessionInfo", "SessionKind", "SessionList", "SessionStats", "SolverOptions",
     "Summary", "VariableKind", "VariableSpec", "VariableValue",
 ]

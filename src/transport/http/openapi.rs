@@ -70,7 +70,7 @@ pub struct JobQuery {
     init: Option<String>,
     /// e.g. huber:1.0
     robust: Option<String>,
-    /// auto (default) | off: reject wrong loop closures by graduated non-convexity
+    /// off (default) | auto: reject wrong loop closures by graduated non-convexity
     outliers: Option<String>,
     function_tolerance: Option<f64>,
     gradient_tolerance: Option<f64>,
