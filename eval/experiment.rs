@@ -281,14 +281,7 @@ pub fn run_smoothed(inputs: &FusionInputs) -> Result<(Vec<Estimate>, Vec<Estimat
         accel_bias: Vector3::from(i.accel_bias),
         gyro_bias: Vector3::from(i.gyro_bias),
     };
-    let s = &i.sigmas;
-    let information = diagonal_information(&[
-        (s.position, 3),
-        (s.rotation, 3),
-        (s.velocity, 3),
-        (s.accel_bias, 3),
-        (s.gyro_bias, 3),
-    ])?;
+    let information = i.sigmas.information()?;
     let mut options = WindowOptions {
         size: inputs.window,
         gravity: inputs.gravity,

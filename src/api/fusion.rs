@@ -20,6 +20,22 @@ pub struct InitialSigmas {
     pub gyro_bias: f64,
 }
 
+impl InitialSigmas {
+    /// The first state's prior information: diagonal, 1/σ² over the fifteen tangent
+    /// dimensions (position, rotation, velocity, accelerometer and gyroscope biases).
+    pub fn information(
+        &self,
+    ) -> Result<nalgebra::DMatrix<f64>, crate::fusion::window::FusionError> {
+        crate::fusion::window::diagonal_information(&[
+            (self.position, 3),
+            (self.rotation, 3),
+            (self.velocity, 3),
+            (self.accel_bias, 3),
+            (self.gyro_bias, 3),
+        ])
+    }
+}
+
 /// A batch of fusion messages (`POST /v1/sessions/{s}/fusion`, zenoh `…/in/fusion`).
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]

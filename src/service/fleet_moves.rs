@@ -66,7 +66,41 @@ impl Service {
     /// One pass: releases what others own, adopts what this instance owns. Returns whether a
     /// session this instance owns could not be locked yet (try again soon).
     fn rebalance(self: &Arc<Self>, fleet: &Arc<Fleet>) -> bool {
+        self.release_foreign(fleet);
+        let Some((state_dir, config)) = self.journal.clone() else {
+            return false;
+        };
+        let found = match SessionDir::list(&state_dir) {
+            Ok(found) => found,
+            Err(e) => {
+                tracing::warn!("fleet: cannot list the session directories: {e}");
+                return true;
+            }
+        };
         let mut again = false;
+        for (name, dir) in found {
+            let broken = || {
+                fleet
+                    .broken
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .contains(&name)
+            };
+            if fleet.owner_of(&name) != fleet.instance()
+                || self.session(&name).is_ok()
+                || fleet.is_moving(&name)
+                || broken()
+            {
+                continue;
+            }
+            again |= !self.adopt(fleet, name, dir, &config);
+        }
+        again
+    }
+
+    /// Steps down from the sessions this instance no longer owns (another took them over) and
+    /// releases those placed elsewhere; locks the ones taken over without their lock once free.
+    fn release_foreign(self: &Arc<Self>, fleet: &Arc<Fleet>) {
         for session in self.sessions() {
             if fleet.is_moving(&session.name) {
                 continue;
@@ -80,82 +114,66 @@ impl Service {
                 fleet.lock_loaded(&session.name);
             }
         }
-        let Some((state_dir, config)) = self.journal.clone() else {
-            return false;
-        };
-        let found = match SessionDir::list(&state_dir) {
-            Ok(found) => found,
-            Err(e) => {
-                tracing::warn!("fleet: cannot list the session directories: {e}");
-                return true;
-            }
-        };
-        for (name, dir) in found {
-            if fleet.owner_of(&name) != fleet.instance()
-                || self.session(&name).is_ok()
-                || fleet.is_moving(&name)
-                || fleet
-                    .broken
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .contains(&name)
-            {
-                continue;
-            }
-            let lock = match SessionLock::try_acquire(dir.path()) {
-                Ok(lock) => Some(lock),
-                Err(LockError::Held) => match dir.latest_claim() {
-                    Ok(Some((n, holder, _)))
-                        if fleet.may_take_over(Some((n, holder.clone())), dir.path()) =>
-                    {
-                        tracing::warn!(
-                            session = %name,
-                            "fleet: taking over from `{holder}` (stopped, or released it)"
-                        );
-                        None
-                    }
-                    _ => {
-                        again = true;
-                        continue;
-                    }
-                },
-                Err(LockError::Gone) => continue,
-                Err(LockError::Io(e)) => {
-                    tracing::warn!(session = %name, "fleet: cannot lock its directory: {e}");
-                    again = true;
-                    continue;
+    }
+
+    /// Adopts session `name`, which this instance owns and does not hold: its lock (or a take-
+    /// over from a stopped holder), a new ownership epoch, then its recovery. `false`: not yet
+    /// possible (try again soon). A session that does not recover is marked broken.
+    fn adopt(
+        self: &Arc<Self>,
+        fleet: &Arc<Fleet>,
+        name: String,
+        dir: SessionDir,
+        config: &crate::journal::JournalConfig,
+    ) -> bool {
+        let lock = match SessionLock::try_acquire(dir.path()) {
+            Ok(lock) => Some(lock),
+            Err(LockError::Held) => match dir.latest_claim() {
+                Ok(Some((n, holder, _)))
+                    if fleet.may_take_over(Some((n, holder.clone())), dir.path()) =>
+                {
+                    tracing::warn!(
+                        session = %name,
+                        "fleet: taking over from `{holder}` (stopped, or released it)"
+                    );
+                    None
                 }
-            };
-            // Deleted between the listing and the lock: nothing to adopt.
-            if !dir.path().join("session.json").exists() {
-                continue;
+                _ => return false,
+            },
+            Err(LockError::Gone) => return true,
+            Err(LockError::Io(e)) => {
+                tracing::warn!(session = %name, "fleet: cannot lock its directory: {e}");
+                return false;
             }
-            let dir = match dir.take_over(fleet.instance()) {
-                Ok(dir) => dir,
-                Err(e) => {
-                    tracing::warn!(session = %name, "fleet: cannot take it over yet: {e}");
-                    again = true;
-                    continue;
-                }
-            };
-            if let Some(lock) = lock {
-                fleet
-                    .locks
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .insert(name.clone(), lock);
-            }
-            tracing::info!(session = %name, epoch = dir.epoch(), "fleet: adopting");
-            if !self.recover_one(name.clone(), dir, &config) {
-                fleet.unlock(&name);
-                fleet
-                    .broken
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .insert(name);
-            }
+        };
+        // Deleted between the listing and the lock: nothing to adopt.
+        if !dir.path().join("session.json").exists() {
+            return true;
         }
-        again
+        let dir = match dir.take_over(fleet.instance()) {
+            Ok(dir) => dir,
+            Err(e) => {
+                tracing::warn!(session = %name, "fleet: cannot take it over yet: {e}");
+                return false;
+            }
+        };
+        if let Some(lock) = lock {
+            fleet
+                .locks
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(name.clone(), lock);
+        }
+        tracing::info!(session = %name, epoch = dir.epoch(), "fleet: adopting");
+        if !self.recover_one(name.clone(), dir, config) {
+            fleet.unlock(&name);
+            fleet
+                .broken
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(name);
+        }
+        true
     }
 
     /// Hands session `name` over to its new owner (see the module's documentation). Blocking.

@@ -122,6 +122,86 @@ pub enum JobAnswer {
     Text(String),
 }
 
+fn bad_parameter(field: &str, message: String) -> ServiceError {
+    ServiceError::bad_request("invalid_parameter", field, message)
+}
+
+/// The solver's options from the job's parameters (bundle adjustment leaves the gauge free, so
+/// it starts from LM's damping).
+fn solver_options(params: &JobParams, bal: bool) -> Result<SolverOptions, ServiceError> {
+    let bad = bad_parameter;
+    let mut options = if bal {
+        SolverOptions::bundle_adjustment()
+    } else {
+        SolverOptions::default()
+    };
+    if let Some(m) = &params.method {
+        options.method = Method::parse(m)
+            .ok_or_else(|| bad("method", format!("unknown method `{m}` (gn, lm, dogleg)")))?;
+    }
+    if let Some(n) = params.max_iterations {
+        options.max_iterations = n;
+    }
+    if let Some(init) = &params.init {
+        options.initialization = match init.as_str() {
+            "none" => Initialization::None,
+            "chordal" => Initialization::Chordal,
+            "auto" => Initialization::Auto,
+            _ => {
+                return Err(bad(
+                    "init",
+                    format!("unknown initialisation `{init}` (none, chordal, auto)"),
+                ))
+            }
+        };
+    }
+    if let Some(t) = params.function_tolerance {
+        options.function_tolerance = t;
+    }
+    if let Some(t) = params.gradient_tolerance {
+        options.gradient_tolerance = t;
+    }
+    if let Some(t) = params.parameter_tolerance {
+        options.parameter_tolerance = t;
+    }
+    if let Some(l) = &params.linear_solver {
+        options.linear_solver = LinearSolverChoice::parse(l).ok_or_else(|| {
+            bad(
+                "linear_solver",
+                format!(
+                    "unknown linear solver `{l}` (auto, sparse_cholesky, dense_schur, sparse_schur)"
+                ),
+            )
+        })?;
+    }
+    options.validate().map_err(|(field, m)| bad(field, m))?;
+    Ok(options)
+}
+
+/// The answer's form: g2o and TUM are for pose graphs, BAL for BAL input.
+fn output(output: Option<&str>, bal: bool) -> Result<JobOutput, ServiceError> {
+    let output = match output {
+        None | Some("json") => JobOutput::Json,
+        Some("g2o") => JobOutput::G2o,
+        Some("tum") => JobOutput::Tum,
+        Some("bal") => JobOutput::Bal,
+        Some(o) => {
+            return Err(bad_parameter(
+                "output",
+                format!("unknown output `{o}` (json, g2o, tum, bal)"),
+            ))
+        }
+    };
+    let pose_output = matches!(output, JobOutput::G2o | JobOutput::Tum);
+    if (bal && pose_output) || (!bal && output == JobOutput::Bal) {
+        return Err(bad_parameter(
+            "output",
+            "g2o and tum output is for pose graphs, bal output for bal input".into(),
+        ));
+    }
+    Ok(output)
+}
+
 impl Job {
     /// `max_solve`: when the solve stops (see [`Job::max_solve`]); `max_memory_bytes`: the
     /// largest solve accepted (see [`Job::max_memory_bytes`]).
@@ -131,7 +211,7 @@ impl Job {
         max_solve: Duration,
         max_memory_bytes: u64,
     ) -> Result<Self, ServiceError> {
-        let bad = |field: &str, m: String| ServiceError::bad_request("invalid_parameter", field, m);
+        let bad = bad_parameter;
         let format = match params.format.as_deref() {
             None => None,
             Some("bal") => None,
@@ -143,52 +223,7 @@ impl Job {
             })?),
         };
         let bal = params.format.as_deref() == Some("bal");
-        // Bundle adjustment leaves the gauge free: it needs LM's damping by default.
-        let mut options = if bal {
-            SolverOptions::bundle_adjustment()
-        } else {
-            SolverOptions::default()
-        };
-        if let Some(m) = &params.method {
-            options.method = Method::parse(m)
-                .ok_or_else(|| bad("method", format!("unknown method `{m}` (gn, lm, dogleg)")))?;
-        }
-        if let Some(n) = params.max_iterations {
-            options.max_iterations = n;
-        }
-        if let Some(init) = &params.init {
-            options.initialization = match init.as_str() {
-                "none" => Initialization::None,
-                "chordal" => Initialization::Chordal,
-                "auto" => Initialization::Auto,
-                _ => {
-                    return Err(bad(
-                        "init",
-                        format!("unknown initialisation `{init}` (none, chordal, auto)"),
-                    ))
-                }
-            };
-        }
-        if let Some(t) = params.function_tolerance {
-            options.function_tolerance = t;
-        }
-        if let Some(t) = params.gradient_tolerance {
-            options.gradient_tolerance = t;
-        }
-        if let Some(t) = params.parameter_tolerance {
-            options.parameter_tolerance = t;
-        }
-        if let Some(l) = &params.linear_solver {
-            options.linear_solver = LinearSolverChoice::parse(l).ok_or_else(|| {
-                bad(
-                    "linear_solver",
-                    format!(
-                        "unknown linear solver `{l}` (auto, sparse_cholesky, dense_schur, sparse_schur)"
-                    ),
-                )
-            })?;
-        }
-        options.validate().map_err(|(field, m)| bad(field, m))?;
+        let options = solver_options(&params, bal)?;
         let robust = params
             .robust
             .as_deref()
@@ -205,25 +240,7 @@ impl Job {
                 ))
             }
         };
-        let output = match params.output.as_deref() {
-            None | Some("json") => JobOutput::Json,
-            Some("g2o") => JobOutput::G2o,
-            Some("tum") => JobOutput::Tum,
-            Some("bal") => JobOutput::Bal,
-            Some(o) => {
-                return Err(bad(
-                    "output",
-                    format!("unknown output `{o}` (json, g2o, tum, bal)"),
-                ))
-            }
-        };
-        let pose_output = matches!(output, JobOutput::G2o | JobOutput::Tum);
-        if (bal && pose_output) || (!bal && output == JobOutput::Bal) {
-            return Err(bad(
-                "output",
-                "g2o and tum output is for pose graphs, bal output for bal input".into(),
-            ));
-        }
+        let output = output(params.output.as_deref(), bal)?;
         Ok(Self {
             text,
             format,

@@ -6,7 +6,7 @@
 //! acknowledgement ([`Session::replay_batch`]).
 
 use std::collections::HashSet;
-use std::sync::Arc;
+use std::sync::{Arc, MutexGuard};
 
 use super::batch::{self, AdmissionDeadline, PreparedBatch, SessionView};
 use super::durable::Durable;
@@ -24,14 +24,7 @@ impl Session {
     /// it; returns the acknowledgement and whether a solve reflecting it is scheduled (so a
     /// caller may wait for it).
     pub fn apply_batch(self: &Arc<Self>, batch: Batch) -> Result<(BatchAck, bool), ServiceError> {
-        let Engine::Graph(_) = &self.engine else {
-            return Err(engine::batches_refused(&self.name));
-        };
-        let origin = Origin::of(&batch)?;
-        let mut st = self.lock();
-        if st.schedule.phase.is_deleted() {
-            return Err(self.gone());
-        }
+        let (origin, mut st) = self.lock_for_batch(&batch)?;
         if let Some(origin) = &origin {
             if let Admission::Repeat(kept) =
                 st.producers
@@ -104,14 +97,7 @@ impl Session {
         batch: Batch,
         ids: Option<Vec<FactorId>>,
     ) -> Result<(), ServiceError> {
-        let Engine::Graph(_) = &self.engine else {
-            return Err(engine::batches_refused(&self.name));
-        };
-        let origin = Origin::of(&batch)?;
-        let mut st = self.lock();
-        if st.schedule.phase.is_deleted() {
-            return Err(self.gone());
-        }
+        let (origin, mut st) = self.lock_for_batch(&batch)?;
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         // Kept for the next snapshot's base, as a journalled batch is.
         let wire_copy = durable.is_some().then(|| batch.clone());
@@ -431,6 +417,25 @@ fn add_to_problem(
         adds_variables,
         structural,
         new_chi2,
+    }
+}
+
+impl Session {
+    /// The batch's producer fields and the session's state, locked: refused for a session
+    /// that takes no batches (a sliding window) or that is deleted.
+    fn lock_for_batch(
+        &self,
+        batch: &Batch,
+    ) -> Result<(Option<Origin>, MutexGuard<'_, State>), ServiceError> {
+        let Engine::Graph(_) = &self.engine else {
+            return Err(engine::batches_refused(&self.name));
+        };
+        let origin = Origin::of(batch)?;
+        let st = self.lock();
+        if st.schedule.phase.is_deleted() {
+            return Err(self.gone());
+        }
+        Ok((origin, st))
     }
 }
 

@@ -21,7 +21,9 @@ use crate::api::catalogue;
 use crate::api::fusion::FusionBatch;
 use crate::api::wire::{AutoOptimize, Batch, FactorId, FactorSpec};
 use crate::api::ServiceError;
-use crate::journal::{Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir};
+use crate::journal::{
+    Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir, Snapshot,
+};
 use snapshot::{Base, Capture, Change, Files};
 
 /// What makes a session durable: its directory, its open journal and the policy.
@@ -305,65 +307,11 @@ impl Session {
         let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
         let corruption = recovered.corruption;
         if let Some(snapshot) = recovered.snapshot {
-            auto = snapshot.auto_optimize;
-            self.restore_factor_types(snapshot.factor_types)
-                .map_err(|e| format!("snapshot: {e}"))?;
-            let (ids, factors): (Vec<FactorId>, Vec<FactorSpec>) =
-                snapshot.factors.into_iter().unzip();
-            let batch = Batch {
-                variables: snapshot.variables,
-                factors,
-                ..Batch::default()
-            };
-            self.replay_batch(batch, Some(ids))
-                .map_err(|e| format!("snapshot: {}", e.body.message))?;
-            let mut st = self.lock();
-            st.producers = super::producers::Producers::from_records(snapshot.producers);
-            st.mirror.sequence = snapshot.sequence;
-            st.mirror.next_factor_id = st.mirror.next_factor_id.max(snapshot.next_factor_id);
+            auto = self.restore_snapshot(snapshot)?;
         }
         let entries = recovered.entries.len();
         for (i, entry) in recovered.entries.into_iter().enumerate() {
-            match entry {
-                Entry::Batch { sequence, batch } => {
-                    let current = self.lock().mirror.sequence;
-                    if sequence <= current {
-                        continue; // already in the snapshot
-                    }
-                    if sequence != current + 1 {
-                        return Err(format!(
-                            "journal entry {i} has sequence {sequence}, expected {}",
-                            current + 1
-                        ));
-                    }
-                    self.replay_batch(batch, None)
-                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
-                }
-                Entry::AutoOptimize { auto_optimize } => auto = auto_optimize,
-                Entry::FactorTypes { factor_types } => self
-                    .restore_factor_types(factor_types)
-                    .map_err(|e| format!("journal entry {i}: {e}"))?,
-                Entry::Fusion { messages } => {
-                    let mut applied = 0;
-                    let mut window = self
-                        .locked_window()
-                        .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
-                    let batch = FusionBatch { messages };
-                    match self.apply_fusion_counted(&mut window, batch, &mut applied) {
-                        Ok(_) => {}
-                        // The window's solve failed here when the messages first came too; they
-                        // were journalled because they stayed applied, and replay keeps them.
-                        Err(e) if e.body.code == "solve_failed" => {
-                            tracing::warn!(
-                                session = self.name,
-                                "journal entry {i}: {}",
-                                e.body.message
-                            );
-                        }
-                        Err(e) => return Err(format!("journal entry {i}: {}", e.body.message)),
-                    }
-                }
-            }
+            self.replay_entry(i, entry, &mut auto)?;
         }
         let dir = self
             .durable
@@ -401,6 +349,80 @@ impl Session {
             seconds: start.elapsed().as_secs_f64(),
             corruption,
         })
+    }
+
+    /// Restores a snapshot: its factor types, variables and factors (with their ids), its
+    /// producers and sequence; returns the policy it holds.
+    fn restore_snapshot(self: &Arc<Self>, snapshot: Snapshot) -> Result<AutoOptimize, String> {
+        self.restore_factor_types(snapshot.factor_types)
+            .map_err(|e| format!("snapshot: {e}"))?;
+        let (ids, factors): (Vec<FactorId>, Vec<FactorSpec>) = snapshot.factors.into_iter().unzip();
+        let batch = Batch {
+            variables: snapshot.variables,
+            factors,
+            ..Batch::default()
+        };
+        self.replay_batch(batch, Some(ids))
+            .map_err(|e| format!("snapshot: {}", e.body.message))?;
+        let mut st = self.lock();
+        st.producers = super::producers::Producers::from_records(snapshot.producers);
+        st.mirror.sequence = snapshot.sequence;
+        st.mirror.next_factor_id = st.mirror.next_factor_id.max(snapshot.next_factor_id);
+        Ok(snapshot.auto_optimize)
+    }
+
+    /// Replays journal entry `i` (a batch already in the snapshot is skipped); a policy change
+    /// goes to `auto`.
+    fn replay_entry(
+        self: &Arc<Self>,
+        i: usize,
+        entry: Entry,
+        auto: &mut AutoOptimize,
+    ) -> Result<(), String> {
+        match entry {
+            Entry::Batch { sequence, batch } => {
+                let current = self.lock().mirror.sequence;
+                if sequence <= current {
+                    return Ok(()); // already in the snapshot
+                }
+                if sequence != current + 1 {
+                    return Err(format!(
+                        "journal entry {i} has sequence {sequence}, expected {}",
+                        current + 1
+                    ));
+                }
+                self.replay_batch(batch, None)
+                    .map_err(|e| format!("journal entry {i}: {}", e.body.message))
+            }
+            Entry::AutoOptimize { auto_optimize } => {
+                *auto = auto_optimize;
+                Ok(())
+            }
+            Entry::FactorTypes { factor_types } => self
+                .restore_factor_types(factor_types)
+                .map_err(|e| format!("journal entry {i}: {e}")),
+            Entry::Fusion { messages } => {
+                let mut applied = 0;
+                let mut window = self
+                    .locked_window()
+                    .map_err(|e| format!("journal entry {i}: {}", e.body.message))?;
+                let batch = FusionBatch { messages };
+                match self.apply_fusion_counted(&mut window, batch, &mut applied) {
+                    Ok(_) => Ok(()),
+                    // The window's solve failed here when the messages first came too; they
+                    // were journalled because they stayed applied, and replay keeps them.
+                    Err(e) if e.body.code == "solve_failed" => {
+                        tracing::warn!(
+                            session = self.name,
+                            "journal entry {i}: {}",
+                            e.body.message
+                        );
+                        Ok(())
+                    }
+                    Err(e) => Err(format!("journal entry {i}: {}", e.body.message)),
+                }
+            }
+        }
     }
 
     /// Journals a policy change (durable sessions).

@@ -148,14 +148,7 @@ fn start_window(start: StartMessage) -> Result<SlidingWindow, FusionError> {
         accel_bias: Vector3::from(accel_bias),
         gyro_bias: Vector3::from(gyro_bias),
     };
-    let s = &sigmas;
-    let info = diagonal_information(&[
-        (s.position, 3),
-        (s.rotation, 3),
-        (s.velocity, 3),
-        (s.accel_bias, 3),
-        (s.gyro_bias, 3),
-    ])?;
+    let info = sigmas.information()?;
     let options = WindowOptions {
         size,
         gravity,

@@ -26,9 +26,11 @@
 
 mod candidates;
 mod kernel;
+mod quantiles;
 
 pub use candidates::{has_loop_closures, loop_closures};
 pub use kernel::GncKernel;
+use quantiles::Quantiles;
 
 use std::cell::Cell;
 use std::ops::ControlFlow;
@@ -38,7 +40,6 @@ use faer::sparse::linalg::SupernodalThreshold;
 use serde::{Deserialize, Serialize};
 
 use super::budget::Budget;
-use super::chi_square::chi_square_quantile;
 use super::cholesky::SparseCholesky;
 use super::gauge::anchor_components;
 use super::initialize::{chordal, chordal_unwrapped_at_values, Stoppable};
@@ -48,7 +49,7 @@ use super::linearize::{free_adjacency, SystemLayout};
 use super::optimizer::{optimize_within, Context};
 use super::options::{Initialization, Method, SolverOptions};
 use super::structure::BlockOrdering;
-use super::summary::{IterationReport, Summary, TerminationReason, Timings};
+use super::summary::{IterationReport, Summary, Termination, TerminationReason, Timings};
 use super::SolverError;
 use crate::factors::SqrtInformation;
 use crate::problem::{FactorEntry, Problem, Values};
@@ -166,22 +167,7 @@ pub fn optimize_gnc(
             .map(|f| quantiles.of(f.factor.residual_dim()))
             .sum()
     };
-    let mut gave_up = false;
-    let plain = optimize_within(
-        problem,
-        options,
-        &mut |report| {
-            on_iteration(report)?;
-            if report.iteration >= PLAIN_ITERATIONS_BEFORE_GIVING_UP
-                && report.chi2.min(report.trial_chi2) > hopeless
-            {
-                gave_up = true;
-                return ControlFlow::Break(());
-            }
-            ControlFlow::Continue(())
-        },
-        budget,
-    )?;
+    let (plain, gave_up) = plain_solve(problem, options, hopeless, on_iteration, budget)?;
     let mut report = GncReport {
         kernel: gnc.kernel,
         confidence: gnc.confidence,
@@ -246,6 +232,34 @@ pub fn optimize_gnc(
     Ok((summary, report))
 }
 
+/// The plain least-squares solve, given up after a few iterations while chi2 stays above
+/// `hopeless` (returns whether it was).
+fn plain_solve(
+    problem: &mut Problem,
+    options: &SolverOptions,
+    hopeless: f64,
+    on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    budget: &dyn Budget,
+) -> Result<(Summary, bool), SolverError> {
+    let mut gave_up = false;
+    let plain = optimize_within(
+        problem,
+        options,
+        &mut |report| {
+            on_iteration(report)?;
+            if report.iteration >= PLAIN_ITERATIONS_BEFORE_GIVING_UP
+                && report.chi2.min(report.trial_chi2) > hopeless
+            {
+                gave_up = true;
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
+        },
+        budget,
+    )?;
+    Ok((plain, gave_up))
+}
+
 /// The graduation's fixed inputs.
 struct Graduation<'a> {
     options: &'a SolverOptions,
@@ -283,87 +297,23 @@ impl Graduation<'_> {
             false,
             self.budget,
         );
-        let inner = SolverOptions {
-            method: Method::LevenbergMarquardt,
-            damp_first_step: true,
-            max_iterations: self.gnc.inner_iterations,
-            initialization: Initialization::None,
-            ..self.options.clone()
-        };
-        let fallback = SolverOptions {
-            max_iterations: self.gnc.inner_iterations.max(FALLBACK_INNER_ITERATIONS),
-            ..inner.clone()
-        };
-        let kernel = self.gnc.kernel;
         let mut ratios = self.ratios(problem, &values)?;
-        let max_ratio = ratios.iter().copied().fold(1.0, f64::max);
-        let mut mu = kernel.initial_mu(max_ratio);
-        let mut weights = vec![1.0; self.candidates.len()];
-        let mut outer = 0;
-        let mut interrupted = false;
-        while outer < self.gnc.max_outer_iterations {
-            outer += 1;
-            for (w, &r) in weights.iter_mut().zip(&ratios) {
-                *w = kernel.weight(mu, r);
-            }
-            self.apply(problem, &weights, |w| w);
-            // The weighted chordal estimate is each step's global re-estimate; where it does
-            // not apply (not a pose graph), warm-started iterations take its place.
-            let inner = match self.weighted_estimate(problem, &values, &weights) {
-                Some(estimate) => {
-                    values = estimate;
-                    &inner
-                }
-                None => &fallback,
-            };
-            let termination = if inner.max_iterations == 0 {
-                super::stopping::stopped(0)
-            } else {
-                solver
-                    .run(problem.factors(), &mut values, inner, on_iteration)?
-                    .1
-            };
-            ratios = self.ratios(problem, &values)?;
-            if termination.reason == TerminationReason::Interrupted && inner.max_iterations > 0 {
-                interrupted = true;
-                break;
-            }
-            if kernel.converged(mu, &weights, 1e-6) {
-                break;
-            }
-            mu = kernel.next_mu(mu);
-        }
-        let mut kept: Vec<bool> = ratios
+        let graduation =
+            self.graduate(problem, &mut solver, &mut values, &mut ratios, on_iteration)?;
+        let kept: Vec<bool> = ratios
             .iter()
-            .zip(&weights)
-            .map(|(&r, &w)| kernel.keeps(r, w))
+            .zip(&graduation.weights)
+            .map(|(&r, &w)| self.gnc.kernel.keeps(r, w))
             .collect();
-        // Polish: the least-squares optimum of the measurements kept, from their chordal
-        // estimate (the warm-started path can end in a local minimum of the rotations), then
-        // the decisions again at that optimum, until they stop changing.
-        let mut chi2 = 0.0;
-        let mut termination = super::stopping::stopped(0);
-        for _ in 0..MAX_POLISH_ROUNDS {
-            self.apply(problem, &kept, |keep| if keep { 1.0 } else { 0.0 });
-            if interrupted {
-                chi2 = super::evaluate_chi2(problem.factors(), &values)?;
-                break;
-            }
-            if let Some(estimate) = self.kept_estimate(problem, &values, &kept) {
-                values = estimate;
-            }
-            (chi2, termination) =
-                solver.run(problem.factors(), &mut values, self.options, on_iteration)?;
-            if termination.reason == TerminationReason::Interrupted {
-                break;
-            }
-            ratios = self.ratios(problem, &values)?;
-            let decided: Vec<bool> = ratios.iter().map(|&r| r <= 1.0).collect();
-            if decided == kept {
-                break;
-            }
-            kept = decided;
-        }
+        let (chi2, termination, kept) = self.polish(
+            problem,
+            &mut solver,
+            &mut values,
+            kept,
+            graduation.interrupted,
+            on_iteration,
+        )?;
+        let outer = graduation.outer;
         let run = solver.finish(chi2, termination);
         let summary = run.summary(
             self.options,
@@ -381,6 +331,112 @@ impl Graduation<'_> {
         );
         problem.values = values;
         Ok((summary, outer, kept))
+    }
+
+    /// The graduation: μ from convex to the kernel, each step the candidates' weights at the
+    /// current residual ratios (`ratios`, updated), then the weighted chordal re-estimate (or,
+    /// where it does not apply, warm-started iterations) of `values`.
+    fn graduate(
+        &self,
+        problem: &mut Problem,
+        solver: &mut Iterations,
+        values: &mut Values,
+        ratios: &mut Vec<f64>,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ) -> Result<GraduationEnd, SolverError> {
+        let inner = SolverOptions {
+            method: Method::LevenbergMarquardt,
+            damp_first_step: true,
+            max_iterations: self.gnc.inner_iterations,
+            initialization: Initialization::None,
+            ..self.options.clone()
+        };
+        let fallback = SolverOptions {
+            max_iterations: self.gnc.inner_iterations.max(FALLBACK_INNER_ITERATIONS),
+            ..inner.clone()
+        };
+        let kernel = self.gnc.kernel;
+        let max_ratio = ratios.iter().copied().fold(1.0, f64::max);
+        let mut mu = kernel.initial_mu(max_ratio);
+        let mut weights = vec![1.0; self.candidates.len()];
+        let mut outer = 0;
+        while outer < self.gnc.max_outer_iterations {
+            outer += 1;
+            for (w, &r) in weights.iter_mut().zip(ratios.iter()) {
+                *w = kernel.weight(mu, r);
+            }
+            self.apply(problem, &weights, |w| w);
+            let inner = match self.weighted_estimate(problem, values, &weights) {
+                Some(estimate) => {
+                    *values = estimate;
+                    &inner
+                }
+                None => &fallback,
+            };
+            let termination = if inner.max_iterations == 0 {
+                super::stopping::stopped(0)
+            } else {
+                solver
+                    .run(problem.factors(), values, inner, on_iteration)?
+                    .1
+            };
+            *ratios = self.ratios(problem, values)?;
+            if termination.reason == TerminationReason::Interrupted && inner.max_iterations > 0 {
+                return Ok(GraduationEnd {
+                    outer,
+                    interrupted: true,
+                    weights,
+                });
+            }
+            if kernel.converged(mu, &weights, 1e-6) {
+                break;
+            }
+            mu = kernel.next_mu(mu);
+        }
+        Ok(GraduationEnd {
+            outer,
+            interrupted: false,
+            weights,
+        })
+    }
+
+    /// The least-squares optimum of the measurements `kept`, from their chordal estimate (the
+    /// warm-started path can end in a local minimum of the rotations), then the decisions again
+    /// at that optimum, until they stop changing. Returns chi2, how the last solve ended, and
+    /// the final decisions.
+    fn polish(
+        &self,
+        problem: &mut Problem,
+        solver: &mut Iterations,
+        values: &mut Values,
+        mut kept: Vec<bool>,
+        interrupted: bool,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ) -> Result<(f64, Termination, Vec<bool>), SolverError> {
+        let mut chi2 = 0.0;
+        let mut termination = super::stopping::stopped(0);
+        for _ in 0..MAX_POLISH_ROUNDS {
+            self.apply(problem, &kept, |keep| if keep { 1.0 } else { 0.0 });
+            if interrupted {
+                chi2 = super::evaluate_chi2(problem.factors(), values)?;
+                break;
+            }
+            if let Some(estimate) = self.kept_estimate(problem, values, &kept) {
+                *values = estimate;
+            }
+            (chi2, termination) =
+                solver.run(problem.factors(), values, self.options, on_iteration)?;
+            if termination.reason == TerminationReason::Interrupted {
+                break;
+            }
+            let ratios = self.ratios(problem, values)?;
+            let decided: Vec<bool> = ratios.iter().map(|&r| r <= 1.0).collect();
+            if decided == kept {
+                break;
+            }
+            kept = decided;
+        }
+        Ok((chi2, termination, kept))
     }
 
     /// The estimate of the trusted factors alone (chordal over odometry and priors), which wrong
@@ -495,28 +551,11 @@ impl Graduation<'_> {
     }
 }
 
-/// χ² quantiles at one confidence, computed once per residual dimension (a bisection each: a
-/// few hundred microseconds, which per factor cost a 1500-pose job 0.1 s before its solve).
-struct Quantiles {
-    confidence: f64,
-    by_dof: std::cell::RefCell<Vec<Option<f64>>>,
-}
-
-impl Quantiles {
-    fn new(confidence: f64) -> Self {
-        Self {
-            confidence,
-            by_dof: std::cell::RefCell::new(Vec::new()),
-        }
-    }
-
-    fn of(&self, dof: usize) -> f64 {
-        let mut cache = self.by_dof.borrow_mut();
-        if cache.len() <= dof {
-            cache.resize(dof + 1, None);
-        }
-        *cache[dof].get_or_insert_with(|| chi_square_quantile(dof, self.confidence))
-    }
+/// Where the graduation ended: its outer steps, whether the budget stopped it, the weights.
+struct GraduationEnd {
+    outer: usize,
+    interrupted: bool,
+    weights: Vec<f64>,
 }
 
 /// The squared whitened errors ‖R e‖² of the factors `indices` at `values`, each whitened by its

@@ -115,19 +115,7 @@ pub(super) fn chordal_2d<E: std::borrow::Borrow<FactorEntry>>(
     } else {
         tree_orientations(&edges, n, fixed, &pose)?
     };
-    // Rotation: marginal information of θ. Translation: isotropic, the mean eigenvalue of the
-    // marginal translation information, so both steps are scalar Laplacians over one graph.
-    let weights: Vec<(f64, f64)> = edges
-        .iter()
-        .map(|e| {
-            let wt = marginal_information::<3, 2>(e.sqrt_information, 0)?.trace() / 2.0;
-            Some((
-                marginal_information::<3, 1>(e.sqrt_information, 2)?[(0, 0)],
-                wt,
-            ))
-        })
-        .collect::<Option<_>>()?;
-
+    let weights = edge_weights(&edges)?;
     let (block, nb) = free_blocks(fixed.iter().copied());
     let pattern = BlockPattern::with_ordering(&vec![1; nb], ordering);
     // The solve's supernodes fit these scalar Laplacians too: no second analysis. Without
@@ -138,20 +126,7 @@ pub(super) fn chordal_2d<E: std::borrow::Borrow<FactorEntry>>(
         None => SparseCholesky::analyze(&pattern, SupernodalThreshold::AUTO).ok()?,
     };
     let position = |v: usize| block[v].map(|b| pattern.position[b]);
-    let slots: Vec<Slot> = edges
-        .iter()
-        .map(|e| {
-            let (from, to) = (e.from.and_then(position), position(e.to));
-            let off = match (from, to) {
-                (Some(a), Some(b)) => {
-                    let pair = pattern.pair(a.max(b), a.min(b))?;
-                    pattern.value_index(pair, false, 0, 0)
-                }
-                _ => 0,
-            };
-            Some(Slot { from, to, off })
-        })
-        .collect::<Option<_>>()?;
+    let slots = edge_slots(&edges, &pattern, &position)?;
     // A fixed end's value, or 0 for a free end and for the world frame of a prior.
     let fixed_value = |v: Option<usize>, value: &dyn Fn(usize) -> f64| match v {
         Some(v) if fixed[v] => value(v),
@@ -175,28 +150,14 @@ pub(super) fn chordal_2d<E: std::borrow::Borrow<FactorEntry>>(
         })
         .collect();
 
-    let mut trans = Laplacian::<2>::new(&pattern);
-    for ((e, slot), &(_, w)) in edges.iter().zip(&slots).zip(&weights) {
-        let z = Vector2::new(e.measurement.x, e.measurement.y);
-        // ‖R_iᵀ(t_j − t_i) − t_ij‖² = ‖t_j − t_i − R_i t_ij‖² under an isotropic weight.
-        let c = match e.from {
-            Some(i) => rotation_matrix_2d(theta[i]) * z,
-            None => z,
-        };
-        let r0: [f64; 2] = std::array::from_fn(|axis| {
-            let coordinate = |v: usize| {
-                let p = pose(v);
-                if axis == 0 {
-                    p.x
-                } else {
-                    p.y
-                }
-            };
-            fixed_value(Some(e.to), &coordinate) - fixed_value(e.from, &coordinate) - c[axis]
-        });
-        trans.add(slot, w, r0);
-    }
-    let [x, y] = trans.solve(&mut chol, budget)?;
+    let system = Translations {
+        edges: &edges,
+        slots: &slots,
+        weights: &weights,
+        fixed,
+        pattern: &pattern,
+    };
+    let [x, y] = system.solve(&theta, &pose, &mut chol, budget)?;
     let mut out = values.clone();
     for (v, &heading) in theta.iter().enumerate().take(n) {
         if let Some(p) = position(v) {
@@ -204,6 +165,93 @@ pub(super) fn chordal_2d<E: std::borrow::Borrow<FactorEntry>>(
         }
     }
     Some(out)
+}
+
+/// The positions' Laplacian, with the orientations held.
+struct Translations<'a, 'e> {
+    edges: &'a [Edge<'e, Se2>],
+    slots: &'a [Slot],
+    weights: &'a [(f64, f64)],
+    fixed: &'a [bool],
+    pattern: &'a BlockPattern,
+}
+
+impl Translations<'_, '_> {
+    /// x and y of every free pose (by elimination position), the orientations `theta` held;
+    /// `pose(v)` gives a fixed pose's position.
+    fn solve(
+        &self,
+        theta: &[f64],
+        pose: &dyn Fn(usize) -> Se2,
+        chol: &mut SparseCholesky,
+        budget: &Stoppable,
+    ) -> Option<[Vec<f64>; 2]> {
+        let fixed_value = |v: Option<usize>, value: &dyn Fn(usize) -> f64| match v {
+            Some(v) if self.fixed[v] => value(v),
+            _ => 0.0,
+        };
+        let mut trans = Laplacian::<2>::new(self.pattern);
+        for ((e, slot), &(_, w)) in self.edges.iter().zip(self.slots).zip(self.weights) {
+            let z = Vector2::new(e.measurement.x, e.measurement.y);
+            // ‖R_iᵀ(t_j − t_i) − t_ij‖² = ‖t_j − t_i − R_i t_ij‖² under an isotropic weight.
+            let c = match e.from {
+                Some(i) => rotation_matrix_2d(theta[i]) * z,
+                None => z,
+            };
+            let r0: [f64; 2] = std::array::from_fn(|axis| {
+                let coordinate = |v: usize| {
+                    let p = pose(v);
+                    if axis == 0 {
+                        p.x
+                    } else {
+                        p.y
+                    }
+                };
+                fixed_value(Some(e.to), &coordinate) - fixed_value(e.from, &coordinate) - c[axis]
+            });
+            trans.add(slot, w, r0);
+        }
+        trans.solve(chol, budget)
+    }
+}
+
+/// Each edge's weights: for the rotation, the marginal information of θ; for the translation,
+/// isotropic, the mean eigenvalue of the marginal translation information, so both steps are
+/// scalar Laplacians over one graph.
+fn edge_weights(edges: &[Edge<'_, Se2>]) -> Option<Vec<(f64, f64)>> {
+    edges
+        .iter()
+        .map(|e| {
+            let wt = marginal_information::<3, 2>(e.sqrt_information, 0)?.trace() / 2.0;
+            Some((
+                marginal_information::<3, 1>(e.sqrt_information, 2)?[(0, 0)],
+                wt,
+            ))
+        })
+        .collect()
+}
+
+/// Where each edge lands in the Laplacians: its ends' positions (free ends only) and the
+/// off-diagonal entry they share.
+fn edge_slots(
+    edges: &[Edge<'_, Se2>],
+    pattern: &BlockPattern,
+    position: &dyn Fn(usize) -> Option<usize>,
+) -> Option<Vec<Slot>> {
+    edges
+        .iter()
+        .map(|e| {
+            let (from, to) = (e.from.and_then(position), position(e.to));
+            let off = match (from, to) {
+                (Some(a), Some(b)) => {
+                    let pair = pattern.pair(a.max(b), a.min(b))?;
+                    pattern.value_index(pair, false, 0, 0)
+                }
+                _ => 0,
+            };
+            Some(Slot { from, to, off })
+        })
+        .collect()
 }
 
 /// Unwrapped orientations along a breadth-first spanning tree from the anchors (fixed
