@@ -131,53 +131,7 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         load_seconds
     ));
     let initial = graph.problem.values.clone();
-    // Graduated non-convexity when the user chose no kernel and the file has loop closures.
-    let candidates = if args.robust.is_none() && args.outliers == Outliers::Auto {
-        Some(loop_closures(&graph.problem)).filter(|c| c.iter().any(|&c| c))
-    } else {
-        None
-    };
-    let gnc = GncOptions {
-        kernel: args.gnc_kernel,
-        ..GncOptions::default()
-    };
-    let mut gnc_report: Option<GncReport> = None;
-    let mut runs = Vec::with_capacity(args.repeat as usize);
-    let mut summary = None;
-    for run in 0..args.repeat {
-        graph.problem.values.clone_from(&initial);
-        let last = run + 1 == args.repeat;
-        let progress = Progress::solving(options.max_iterations, args.quiet || !last);
-        let mut on_iteration = |r: &solver::IterationReport| {
-            progress.iteration(r);
-            if last {
-                progress.suspend(|| console.print(&chi2_line(r)));
-            }
-            std::ops::ControlFlow::Continue(())
-        };
-        let s = match &candidates {
-            Some(candidates) => solver::optimize_gnc(
-                &mut graph.problem,
-                &options,
-                &gnc,
-                candidates,
-                &mut on_iteration,
-                &Unlimited,
-            )
-            .map(|(summary, report)| {
-                gnc_report = Some(report);
-                summary
-            }),
-            None => solver::optimize(&mut graph.problem, &options, &mut on_iteration),
-        };
-        progress.finish();
-        let s = s?;
-        runs.push(s.solve_seconds);
-        summary = Some(s);
-    }
-    let mut summary = summary.expect("--repeat is at least 1, so there was a run");
-    runs.sort_by(f64::total_cmp);
-    summary.solve_seconds = runs[runs.len() / 2];
+    let (summary, runs, gnc_report) = solve_runs(&args, &mut graph, &initial, &options, &console)?;
     console.print(&summary.report());
     if let Some(report) = &gnc_report {
         console.print(&rejection_report(report));
@@ -198,15 +152,7 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         write_summary_json(target, &summary, extra)?;
     }
     if let Some(target) = &args.out {
-        let rejected = gnc_report.as_ref().map_or(&[][..], |r| &r.rejected[..]);
-        let text = if args.drop_rejected {
-            let rejected: std::collections::HashSet<usize> = rejected.iter().copied().collect();
-            graph.problem.retain_factors(|i| !rejected.contains(&i));
-            io::g2o::to_string(&graph)
-        } else {
-            io::g2o::to_string_marking(&graph, rejected)
-        };
-        target.write("--out", text.as_bytes())?;
+        write_graph(target, &mut graph, gnc_report.as_ref(), args.drop_rejected)?;
     }
     if let Some(target) = &args.tum {
         let text = match (&stamps, &args.stamps) {
@@ -234,6 +180,84 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         plot::write(target, args.plot_format, &svg)?;
     }
     Ok(())
+}
+
+/// Solves `--repeat` times from `initial` (the last run prints its iterations): the last
+/// run's Summary with the median solve time, every run's time, and what graduated
+/// non-convexity rejected (`--outliers auto`, no kernel chosen, a file with loop closures).
+fn solve_runs(
+    args: &SolveArgs,
+    graph: &mut io::PoseGraph,
+    initial: &factord::problem::Values,
+    options: &SolverOptions,
+    console: &Console,
+) -> Result<(solver::Summary, Vec<f64>, Option<GncReport>), CliError> {
+    let candidates = if args.robust.is_none() && args.outliers == Outliers::Auto {
+        Some(loop_closures(&graph.problem)).filter(|c| c.iter().any(|&c| c))
+    } else {
+        None
+    };
+    let gnc = GncOptions {
+        kernel: args.gnc_kernel,
+        ..GncOptions::default()
+    };
+    let mut gnc_report: Option<GncReport> = None;
+    let mut runs = Vec::with_capacity(args.repeat as usize);
+    let mut summary = None;
+    for run in 0..args.repeat {
+        graph.problem.values.clone_from(initial);
+        let last = run + 1 == args.repeat;
+        let progress = Progress::solving(options.max_iterations, args.quiet || !last);
+        let mut on_iteration = |r: &solver::IterationReport| {
+            progress.iteration(r);
+            if last {
+                progress.suspend(|| console.print(&chi2_line(r)));
+            }
+            std::ops::ControlFlow::Continue(())
+        };
+        let s = match &candidates {
+            Some(candidates) => solver::optimize_gnc(
+                &mut graph.problem,
+                options,
+                &gnc,
+                candidates,
+                &mut on_iteration,
+                &Unlimited,
+            )
+            .map(|(summary, report)| {
+                gnc_report = Some(report);
+                summary
+            }),
+            None => solver::optimize(&mut graph.problem, options, &mut on_iteration),
+        };
+        progress.finish();
+        let s = s?;
+        runs.push(s.solve_seconds);
+        summary = Some(s);
+    }
+    let mut summary = summary.expect("--repeat is at least 1, so there was a run");
+    let mut sorted = runs.clone();
+    sorted.sort_by(f64::total_cmp);
+    summary.solve_seconds = sorted[sorted.len() / 2];
+    Ok((summary, sorted, gnc_report))
+}
+
+/// `--out`: the optimised graph, its rejected loop closures as comments (or dropped).
+fn write_graph(
+    target: &OutputArg,
+    graph: &mut io::PoseGraph,
+    report: Option<&GncReport>,
+    drop_rejected: bool,
+) -> Result<(), CliError> {
+    let rejected = report.map_or(&[][..], |r| &r.rejected[..]);
+    let text = if drop_rejected {
+        let rejected: std::collections::HashSet<usize> = rejected.iter().copied().collect();
+        graph.problem.retain_factors(|i| !rejected.contains(&i));
+        io::g2o::to_string(graph)
+    } else {
+        io::g2o::to_string_marking(graph, rejected)
+    };
+    target.write("--out", text.as_bytes())
 }
 
 /// The lines saying which loop closures graduated non-convexity rejected.
