@@ -54,6 +54,7 @@ impl LevenbergMarquardt {
             Ok(ControlFlow::Break(())) => ControlFlow::Break(()),
             Ok(ControlFlow::Continue(())) => ControlFlow::Continue(Proposal::Step {
                 predicted: dot(&it.delta, &it.b) + it.damping_term(self.lambda),
+                undamped: self.lambda == 0.0,
             }),
             Err(_) => {
                 // Not positive definite at this damping: damp more.

@@ -50,8 +50,10 @@ impl Dogleg {
             }
             self.have_gn_step = true;
         }
+        let (predicted, undamped) = it.dogleg_step(self.radius);
         Ok(ControlFlow::Continue(Proposal::Step {
-            predicted: it.dogleg_step(self.radius),
+            predicted,
+            undamped,
         }))
     }
 
@@ -102,11 +104,13 @@ impl Iterations<'_> {
     }
 
     /// Powell's dogleg inside `radius` from the GN step (in `work`) and the Cauchy point; writes
-    /// the step to `delta` and returns the model decrease 2Δᵀb − ΔᵀHΔ.
-    fn dogleg_step(&mut self, radius: f64) -> f64 {
+    /// the step to `delta` and returns the model decrease 2Δᵀb − ΔᵀHΔ and whether the step is
+    /// the whole Gauss-Newton step.
+    fn dogleg_step(&mut self, radius: f64) -> (f64, bool) {
         let pattern = &self.layout.pattern;
         let gn_norm = dot(&self.work, &self.work).sqrt();
-        if gn_norm <= radius {
+        let inside = gn_norm <= radius;
+        if inside {
             self.delta.copy_from_slice(&self.work);
         } else {
             symmetric_multiply(pattern, &self.h, &self.b, &mut self.product);
@@ -133,7 +137,9 @@ impl Iterations<'_> {
             }
         }
         symmetric_multiply(pattern, &self.h, &self.delta, &mut self.product);
-        2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &self.product)
+        let predicted = 2.0 * dot(&self.delta, &self.b) - dot(&self.delta, &self.product);
+        // Inside the radius the step is the Gauss-Newton step (damped only when H is singular).
+        (predicted, inside)
     }
 }
 

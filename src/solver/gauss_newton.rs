@@ -51,6 +51,8 @@ impl GaussNewton {
         }
         Ok(ControlFlow::Continue(Proposal::Step {
             predicted: dot(&it.delta, &it.b),
+            // A chord step solves with the previous point's H: not this point's model minimum.
+            undamped: !self.chord,
         }))
     }
 

@@ -358,21 +358,25 @@ impl<'a> Iterations<'a> {
             ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
         };
         let two_norm = dot(&self.delta, &self.delta).sqrt();
-        let (trial_chi2, predicted, accepted) = match proposal {
-            Proposal::Step { predicted } => {
+        let (trial_chi2, predicted, accepted, undamped) = match proposal {
+            Proposal::Step {
+                predicted,
+                undamped,
+            } => {
                 let trial = match self.evaluate_trial(factors, values)? {
                     ControlFlow::Continue(trial) => trial,
                     ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
                 };
                 let accepted = strategy.judge(chi2, trial, predicted, two_norm, iteration)?;
-                (trial, predicted, accepted)
+                (trial, predicted, accepted, undamped)
             }
-            Proposal::Skip => (f64::INFINITY, f64::NAN, false),
+            Proposal::Skip => (f64::INFINITY, f64::NAN, false, false),
         };
         Ok(ControlFlow::Continue(Step {
             accepted,
             trial_chi2,
             predicted,
+            undamped,
             norm: max_abs(&self.delta),
             two_norm,
         }))
@@ -403,7 +407,8 @@ impl<'a> Iterations<'a> {
         std::mem::swap(values, &mut self.trial);
         let stop = accepted_step_stop(
             options,
-            self.warm,
+            // The model-match stop presumes the step reached the model's minimum.
+            self.warm && step.undamped,
             relative_decrease,
             chi2,
             step.trial_chi2,
@@ -431,6 +436,8 @@ struct Step {
     trial_chi2: f64,
     /// The model decrease L(0) − L(Δ) (NaN: no step was computed).
     predicted: f64,
+    /// The step is the model's minimum, not shortened by damping or a trust region.
+    undamped: bool,
     /// max |Δᵢ| and ‖Δ‖₂.
     norm: f64,
     two_norm: f64,

@@ -54,9 +54,11 @@ pub fn optimize_within(
 }
 
 /// [`optimize`] for values already near the optimum (a session re-solving after a small update).
-/// It may also stop after a step whose actual decrease matched the quadratic model's prediction
-/// to within `function_tolerance × chi2`: the model was then accurate over the step, so the
-/// step landed at the model's minimum and a further one cannot gain more than that tolerance.
+/// It may also stop after an undamped step (the quadratic model's minimum) whose actual decrease
+/// matched the model's prediction to within `function_tolerance × chi2`: the model was then
+/// accurate over the step, so the step landed at the model's minimum and a further one cannot
+/// gain more than that tolerance. (A damped step stops short of the model's minimum, so the
+/// match says nothing there.)
 /// This saves the confirming iteration a cold solve needs; the initialisation option is ignored.
 /// `ordering` carries the elimination order between the re-solves of a growing problem.
 pub fn optimize_warm(

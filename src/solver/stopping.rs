@@ -6,11 +6,13 @@ use super::options::SolverOptions;
 use super::summary::{Termination, TerminationReason};
 
 /// The convergence test after an accepted step from chi2 `previous` to `trial_chi2`, whose model
-/// predicted a decrease of `predicted`; `warm` enables the model-match stop of
-/// [`super::optimize_warm`]. `None`: keep iterating.
+/// predicted a decrease of `predicted`; `model_match` enables the model-match stop of
+/// [`super::optimize_warm`] (a warm solve whose step was the model's minimum, undamped: a damped
+/// step the model predicted well can still stop well short of the optimum). `None`: keep
+/// iterating.
 pub(super) fn accepted_step_stop(
     options: &SolverOptions,
-    warm: bool,
+    model_match: bool,
     relative_decrease: f64,
     previous: f64,
     trial_chi2: f64,
@@ -27,7 +29,7 @@ pub(super) fn accepted_step_stop(
                 options.function_tolerance
             ),
         ))
-    } else if warm
+    } else if model_match
         && options.function_tolerance > 0.0
         && ((previous - trial_chi2) - predicted).abs() <= options.function_tolerance * trial_chi2
     {

@@ -31,8 +31,10 @@ pub(super) enum Strategy {
 
 /// What a strategy's step computation came to.
 pub(super) enum Proposal {
-    /// A step is in `delta`, with the model decrease it predicts.
-    Step { predicted: f64 },
+    /// A step is in `delta`, with the model decrease it predicts; `undamped`: it is the
+    /// quadratic model's minimum (a Gauss-Newton step, LM at λ = 0, a Dogleg step inside the
+    /// trust radius), not a step shortened by damping or a trust region.
+    Step { predicted: f64, undamped: bool },
     /// No step this iteration (LM's damped system was not positive definite: λ was raised and
     /// `delta` zeroed); the iteration counts as rejected without evaluating a trial.
     Skip,

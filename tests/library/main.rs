@@ -16,4 +16,5 @@ mod fusion;
 mod incremental_engine;
 mod incremental_engine_3d;
 mod preintegration_gtsam;
+mod warm_start;
 mod wrong_closures;
