@@ -16,6 +16,7 @@ pub mod fusion;
 pub mod history;
 mod limits;
 pub mod poses_binary;
+pub mod robots;
 pub mod ros2;
 pub mod wire;
 pub mod wire_list;

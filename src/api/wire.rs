@@ -61,6 +61,10 @@ pub struct CreateSession {
     /// none, and a command holds its request.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ros2: Option<Box<super::ros2::Ros2Binding>>,
+    /// The session holds several robots, each in its own odometry frame until closures between
+    /// them agree (`{}` for the defaults); pose graph kinds. See docs/guide/many-robots.md.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robots: Option<super::robots::RobotsOptions>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -478,6 +482,12 @@ pub enum SessionEvent {
         /// Every producer's `accepted_through`.
         producers: std::collections::BTreeMap<String, u64>,
     },
+    /// Two components of a session's robots merged (see `GET /v1/sessions/{s}/robots`).
+    Merge {
+        session: String,
+        #[serde(flatten)]
+        merge: super::robots::MergeReport,
+    },
 }
 
 impl SessionEvent {
@@ -492,6 +502,7 @@ impl SessionEvent {
             Self::Window { .. } => "window",
             Self::Error { .. } => "errors",
             Self::Lagged { .. } => "lagged",
+            Self::Merge { .. } => "merges",
         }
     }
 }

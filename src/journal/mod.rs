@@ -86,6 +86,11 @@ pub enum Entry {
     AutoOptimize {
         auto_optimize: AutoOptimize,
     },
+    /// A merge of robots' components the batch `sequence` (the entry before) completed.
+    Merge {
+        sequence: u64,
+        merge: crate::api::robots::MergeRecord,
+    },
     /// Fusion messages a sliding window accepted, in order.
     Fusion {
         messages: Vec<FusionMessage>,

@@ -598,6 +598,7 @@ mod tests {
             auto_optimize: Default::default(),
             ros2: None,
             factor_types: vec![],
+            robots: None,
         };
         a.execute(
             &Caller::Trusted,

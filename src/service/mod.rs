@@ -288,6 +288,7 @@ impl Service {
                 auto_optimize: info.auto_optimize,
                 factor_types: session.factor_types().definitions(),
                 ros2: session.ros2_binding().cloned().map(Box::new),
+                robots: session.robots_options(),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
@@ -349,6 +350,9 @@ impl Service {
             binding.validate()?;
             binding.check_kind(kind.name)?;
             session.set_ros2_binding(*binding);
+        }
+        if let Some(robots) = request.robots {
+            session.set_robots(robots)?;
         }
         session
             .set_auto_optimize(request.auto_optimize)

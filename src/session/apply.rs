@@ -12,6 +12,7 @@ use super::batch::{self, AdmissionDeadline, PreparedBatch, SessionView};
 use super::durable::Durable;
 use super::engine::{self, Engine};
 use super::producers::{self, Admission, Origin};
+use super::robots;
 use super::{Session, State};
 use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent, VariableValue};
 use crate::api::ErrorKind;
@@ -49,15 +50,17 @@ impl Session {
             (Some(d), Some(copy)) => Some(d.write_batch(&self.name, sequence, copy, &prepared)?),
             _ => None,
         };
-        let (factor_ids, new_values) = self.mirror_batch(
+        let mut prepared = prepared;
+        let mirrored = self.mirror_batch(
             &mut st,
             durable.as_mut(),
             wire_copy,
             sequence,
-            &prepared,
+            &mut prepared,
+            None,
             None,
         );
-        let ack = self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
+        let ack = self.schedule_batch(&mut st, sequence, prepared, &mirrored, origin.as_ref());
         let will_solve = st.results.solved_sequence < sequence && st.schedule.phase.solve_coming();
         if let Some(d) = durable.as_mut() {
             d.maybe_snapshot(self, &st);
@@ -69,6 +72,12 @@ impl Session {
         drop(st);
         let pending = durable.as_ref().map(|d| d.pending());
         drop(durable);
+        if let Some(e) = mirrored.journal_error {
+            // The batch is journalled but a merge it completed is not: the session's state is
+            // ahead of its files, so it stops here (see `journal_sync_failed`).
+            drop(acknowledging);
+            return Err(self.sync_refused(e));
+        }
         if let Err(e) = pending.map_or(Ok(()), |p| p.wait(&self.name)) {
             // Nothing is acknowledged; the step-down below takes the session's locks.
             drop(acknowledging);
@@ -76,12 +85,18 @@ impl Session {
         }
         self.publish_accepted(sequence);
         self.emit(SessionEvent::Ack(ack.clone()));
-        if !new_values.is_empty() {
+        if !mirrored.new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),
                 sequence,
-                variables: new_values,
+                variables: mirrored.new_values,
             }));
+        }
+        for merge in mirrored.merges {
+            self.emit(SessionEvent::Merge {
+                session: self.name.clone(),
+                merge,
+            });
         }
         Ok((ack, will_solve))
     }
@@ -92,26 +107,34 @@ impl Session {
     /// would tell subscribers something new was applied, with a producer's `accepted_through`
     /// going backwards. The recovery's solve publishes the estimate.
     /// `ids`: the factor ids to give the batch's factors (a snapshot's), else the next ones.
+    /// `placed`: its robots' values are in the map frame already (a snapshot's estimate), not
+    /// in their odometry frames (a journalled batch, as the robots sent it).
     pub(super) fn replay_batch(
         self: &Arc<Self>,
         batch: Batch,
         ids: Option<Vec<FactorId>>,
+        placed: bool,
     ) -> Result<(), ServiceError> {
         let (origin, mut st) = self.lock_for_batch(&batch)?;
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         // Kept for the next snapshot's base, as a journalled batch is.
         let wire_copy = durable.is_some().then(|| batch.clone());
-        let prepared = self.validate(&st, batch, None)?;
+        let mut prepared = self.validate(&st, batch, None)?;
         let sequence = self.next_sequence(&st)?;
-        let (factor_ids, _) = self.mirror_batch(
+        let mirrored = self.mirror_batch(
             &mut st,
             durable.as_mut(),
             wire_copy,
             sequence,
-            &prepared,
+            &mut prepared,
             ids,
+            Some(if placed {
+                Placed::InMap
+            } else {
+                Placed::InOdometry
+            }),
         );
-        self.schedule_batch(&mut st, sequence, prepared, factor_ids, origin.as_ref());
+        self.schedule_batch(&mut st, sequence, prepared, &mirrored, origin.as_ref());
         drop(st);
         drop(durable);
         self.publish_accepted(sequence);
@@ -166,23 +189,59 @@ impl Session {
     /// Step 3, mirror: gives the validated (and journalled) batch its sequence and factor ids
     /// and updates the mirror, first: later batches validate against it even while this one
     /// waits for the problem. `wire_copy`: the batch as the journal holds it, kept for the
-    /// next snapshot of a durable session. Returns the ids and the values it set.
+    /// next snapshot of a durable session. A session's robots route the batch here (see
+    /// `session::robots`): its robots' values move into their frames (unless `placed`, or a
+    /// replay), held closures leave `prepared`, and the merges it completes are decided and
+    /// journalled (not in a replay: the journal's merge records follow its batch).
+    #[allow(clippy::too_many_arguments)]
     fn mirror_batch(
         &self,
         st: &mut State,
-        durable: Option<&mut Durable>,
+        mut durable: Option<&mut Durable>,
         wire_copy: Option<Batch>,
         sequence: u64,
-        prepared: &PreparedBatch,
+        prepared: &mut PreparedBatch,
         ids: Option<Vec<FactorId>>,
-    ) -> (Vec<FactorId>, Vec<VariableValue>) {
+        replay: Option<Placed>,
+    ) -> Mirrored {
+        let placed = replay == Some(Placed::InMap);
         st.mirror.sequence = sequence;
         let factor_ids = st.mirror.assign_factor_ids(ids, prepared.factors.len());
-        if let (Some(d), Some(copy)) = (durable, wire_copy) {
+        if let Some(robots) = st.robots.as_ref().filter(|_| !placed) {
+            robots.place_new_values(prepared);
+        }
+        if let (Some(d), Some(copy)) = (durable.as_deref_mut(), wire_copy) {
             d.track(copy.factors, &factor_ids, prepared);
         }
         let new_values = st.mirror.accept(prepared, &factor_ids, sequence);
-        (factor_ids, new_values)
+        let mut mirrored = Mirrored {
+            active_ids: factor_ids.clone(),
+            factor_ids,
+            new_values,
+            merges: Vec::new(),
+            journal_error: None,
+        };
+        if let Some(robots) = st.robots.as_mut() {
+            robots.remove_factors(&prepared.remove);
+            let plan = robots.route(
+                prepared,
+                &mirrored.factor_ids,
+                &mut st.mirror.entries,
+                sequence,
+                replay.is_some(),
+            );
+            mirrored.active_ids = plan.active_ids;
+            prepared.merges = plan.merges;
+            for (record, report) in plan.records {
+                if let Some(d) = durable.as_deref_mut() {
+                    if let Err(e) = d.write_merge(&self.name, sequence, record) {
+                        mirrored.journal_error.get_or_insert(e);
+                    }
+                }
+                mirrored.merges.push(report);
+            }
+        }
+        mirrored
     }
 
     /// Step 4, schedule: applies the batch to the problem (or queues it behind the running
@@ -193,20 +252,21 @@ impl Session {
         st: &mut State,
         sequence: u64,
         prepared: PreparedBatch,
-        factor_ids: Vec<FactorId>,
+        mirrored: &Mirrored,
         origin: Option<&Origin>,
     ) -> BatchAck {
         let predicted = prepared.predicted.clone();
+        // Only the factors that enter the problem (a session's robots hold some back).
+        let active = mirrored.active_ids.clone();
         if st.model.problem.is_some() {
-            self.apply_prepared(st, sequence, prepared, factor_ids.clone());
+            self.apply_prepared(st, sequence, prepared, active);
         } else {
-            st.schedule
-                .queue_batch(sequence, prepared, factor_ids.clone());
+            st.schedule.queue_batch(sequence, prepared, active);
         }
         let mut ack = BatchAck {
             session: self.name.clone(),
             sequence,
-            factor_ids,
+            factor_ids: mirrored.factor_ids.clone(),
             predicted,
             reflected: st.results.solved_sequence >= sequence,
             producer: None,
@@ -346,6 +406,27 @@ impl Session {
     }
 }
 
+/// Where a replayed batch's robot values are: a journalled batch's as the robots sent them, a
+/// snapshot's in the map frame already.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Placed {
+    InOdometry,
+    InMap,
+}
+
+/// What the mirror step did with an accepted batch.
+struct Mirrored {
+    /// Ids of all its factors, in order, and of those that enter the problem now.
+    factor_ids: Vec<FactorId>,
+    active_ids: Vec<FactorId>,
+    /// The values it set (for the `estimate` event).
+    new_values: Vec<VariableValue>,
+    /// The merges it completed (for `merge` events).
+    merges: Vec<crate::api::robots::MergeReport>,
+    /// A merge record the journal could not take.
+    journal_error: Option<ServiceError>,
+}
+
 /// What applying a batch to the problem changed.
 struct ProblemChange {
     added_factors: usize,
@@ -373,7 +454,8 @@ fn add_to_problem(
     let problem = problem.as_mut().expect("caller checked");
     let index = index.as_mut().expect("kept with the problem");
     let first_new_factor = problem.factors().len();
-    let mut structural = !prepared.remove.is_empty() || !prepared.fix.is_empty();
+    let mut structural =
+        !prepared.remove.is_empty() || !prepared.fix.is_empty() || !prepared.merges.is_empty();
     let adds_variables = !prepared.variables.is_empty();
     for v in prepared.variables {
         problem.add_variable(v.key, v.value).expect("validated");
@@ -390,6 +472,7 @@ fn add_to_problem(
             .expect("validated");
         ids.push(id);
     }
+    let moved = robots::apply_to_problem(problem, ids, prepared.merges);
     // chi2 the new factors add at the current estimate, before removals shift indices.
     let new_chi2 = solver::evaluate_chi2(&problem.factors()[first_new_factor..], &problem.values)
         .unwrap_or(f64::INFINITY);
@@ -412,6 +495,7 @@ fn add_to_problem(
         problem.values.set(idx, v.as_ref());
         structural = true;
     }
+    robots::resync_mirror(problem, &mut st.mirror.entries, &moved);
     ProblemChange {
         added_factors,
         adds_variables,

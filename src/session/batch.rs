@@ -43,6 +43,9 @@ pub(crate) struct PreparedBatch {
     pub guesses: Vec<(Key, Box<dyn Variable>)>,
     /// Keys whose value was predicted rather than given.
     pub predicted: Vec<Key>,
+    /// Merges of robots' components the batch completed, applied after its own factors (see
+    /// `session::robots`; set when the batch is accepted).
+    pub merges: Vec<super::robots::Merge>,
 }
 
 impl PreparedBatch {
@@ -252,6 +255,7 @@ pub(crate) fn prepare(batch: Batch, view: &SessionView) -> Result<PreparedBatch,
         fix,
         guesses,
         predicted,
+        merges: Vec::new(),
     })
 }
 

@@ -129,6 +129,17 @@ impl Durable {
         Ok(batch)
     }
 
+    /// Writes the record of a merge batch `sequence` completed, right after the batch (not yet
+    /// durable: the batch's fsync covers both).
+    pub(super) fn write_merge(
+        &mut self,
+        name: &str,
+        sequence: u64,
+        merge: crate::api::robots::MergeRecord,
+    ) -> Result<(), ServiceError> {
+        self.write(name, &Entry::Merge { sequence, merge })
+    }
+
     /// Records what a snapshot must hold of an accepted batch: its variables (kind, fixed), its
     /// fixes, its factors under their ids and its removals, in the order they are applied.
     pub(super) fn track(
@@ -311,7 +322,7 @@ impl Session {
         }
         let entries = recovered.entries.len();
         for (i, entry) in recovered.entries.into_iter().enumerate() {
-            self.replay_entry(i, entry, &mut auto)?;
+            self.replay_entry(i, entry, snapshot_sequence.unwrap_or(0), &mut auto)?;
         }
         let dir = self
             .durable
@@ -362,7 +373,7 @@ impl Session {
             factors,
             ..Batch::default()
         };
-        self.replay_batch(batch, Some(ids))
+        self.replay_batch(batch, Some(ids), true)
             .map_err(|e| format!("snapshot: {}", e.body.message))?;
         let mut st = self.lock();
         st.producers = super::producers::Producers::from_records(snapshot.producers);
@@ -371,12 +382,13 @@ impl Session {
         Ok(snapshot.auto_optimize)
     }
 
-    /// Replays journal entry `i` (a batch already in the snapshot is skipped); a policy change
-    /// goes to `auto`.
+    /// Replays journal entry `i` (a batch already in the snapshot of `snapshot_sequence` is
+    /// skipped, with its merges); a policy change goes to `auto`.
     fn replay_entry(
         self: &Arc<Self>,
         i: usize,
         entry: Entry,
+        snapshot_sequence: u64,
         auto: &mut AutoOptimize,
     ) -> Result<(), String> {
         match entry {
@@ -391,8 +403,15 @@ impl Session {
                         current + 1
                     ));
                 }
-                self.replay_batch(batch, None)
+                self.replay_batch(batch, None, false)
                     .map_err(|e| format!("journal entry {i}: {}", e.body.message))
+            }
+            Entry::Merge { sequence, merge } => {
+                if sequence <= snapshot_sequence {
+                    return Ok(()); // its batch is in the snapshot, and so is the merge
+                }
+                self.replay_merge(sequence, merge)
+                    .map_err(|e| format!("journal entry {i}: {e}"))
             }
             Entry::AutoOptimize { auto_optimize } => {
                 *auto = auto_optimize;

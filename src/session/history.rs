@@ -224,6 +224,8 @@ impl History {
                 iterations: *iterations,
                 converged: true,
             }),
+            // A merge is rare and worth keeping in the log the web view shows.
+            SessionEvent::Merge { .. } => self.log(logged()),
             SessionEvent::Error { .. } => {
                 self.log(logged());
                 push_logged(

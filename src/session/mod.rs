@@ -52,6 +52,7 @@ mod inspect;
 mod mirror;
 mod producer_order;
 mod producers;
+mod robots;
 mod schedule;
 mod schedule_state;
 mod solve;

@@ -27,6 +27,8 @@ pub(super) struct State {
     pub(super) results: SolveResults,
     /// Exactly-once ingest: every producer's progress.
     pub(super) producers: Producers,
+    /// Several robots in the session (`robots` at creation), else `None`.
+    pub(super) robots: Option<super::robots::Robots>,
 }
 
 /// The problem and its incremental engine: here between solves, on a worker during one.
@@ -138,6 +140,7 @@ impl State {
                 last_summary: None,
             },
             producers: Producers::default(),
+            robots: None,
         }
     }
 }

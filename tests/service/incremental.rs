@@ -33,6 +33,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
                 auto_optimize: Default::default(),
                 factor_types: vec![],
                 ros2: None,
+                robots: None,
             }),
             Recording::History,
         )
@@ -200,6 +201,7 @@ async fn create_edits_session(service: &Service) {
             auto_optimize: Default::default(),
             factor_types: vec![],
             ros2: None,
+            robots: None,
         }),
     )
     .await;

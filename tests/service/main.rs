@@ -17,6 +17,7 @@ mod landmarks_2d;
 mod landmarks_3d_ranges;
 mod marginals;
 mod producer_list;
+mod robots;
 mod service;
 mod stream_lag;
 mod user_factors;

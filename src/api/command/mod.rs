@@ -31,6 +31,7 @@ pub enum Command {
     GetEstimate(GetEstimate),
     ProducerStatus(ProducerQuery),
     ListProducers(ListProducers),
+    ListRobots(ListRobots),
     GetStats(GetStats),
     Cancel(Cancel),
     Fusion(Fusion),
@@ -60,6 +61,7 @@ pub enum Reply {
     Graph(Box<crate::api::wire::Graph>),
     Producer(ProducerStatus),
     Producers(ProducerList),
+    Robots(Box<crate::api::robots::RobotsReport>),
     Marginals(Box<crate::api::wire::Marginals>),
     History(Box<crate::api::history::SessionHistory>),
 }
@@ -77,6 +79,7 @@ impl Command {
             Command::GetEstimate(r) => Some(&r.session),
             Command::ProducerStatus(r) => Some(&r.session),
             Command::ListProducers(r) => Some(&r.session),
+            Command::ListRobots(r) => Some(&r.session),
             Command::GetStats(r) => Some(&r.session),
             Command::Cancel(r) => Some(&r.session),
             Command::Fusion(r) => Some(&r.session),

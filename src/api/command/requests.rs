@@ -112,6 +112,13 @@ pub struct ListProducers {
     pub session: String,
 }
 
+/// The session's robots, their components and frames, held and rejected closures, merges.
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ListRobots {
+    pub session: String,
+}
+
 /// The session's statistics.
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]

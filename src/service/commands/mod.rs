@@ -20,6 +20,7 @@ mod get_marginals;
 mod get_stats;
 mod health;
 mod list_producers;
+mod list_robots;
 mod list_sessions;
 mod optimize;
 mod producer_status;
@@ -92,6 +93,9 @@ impl Service {
             Command::GetEstimate(r) => self.get_estimate(caller, r).await,
             Command::ProducerStatus(r) => self.producer_status(caller, r).map(Reply::Producer),
             Command::ListProducers(r) => self.list_producers(caller, r).map(Reply::Producers),
+            Command::ListRobots(r) => self
+                .list_robots(caller, r)
+                .map(|r| Reply::Robots(Box::new(r))),
             Command::GetStats(r) => self.get_stats(caller, r).map(Reply::Stats),
             Command::Cancel(r) => self.cancel(caller, r).map(Reply::Cancelled),
             Command::Fusion(r) => self.fusion(caller, r).await.map(Reply::Fusion),

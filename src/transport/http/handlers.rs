@@ -16,7 +16,8 @@ use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 use crate::api::ErrorKind;
 use crate::api::{
     AfterFields, ApplyBatch, Cancel, DefineFactorTypes, DeleteSession, Fusion, GetGraph,
-    GetHistory, GetMarginals, GetStats, ListProducers, Optimize, ProducerQuery, SetAutoOptimize,
+    GetHistory, GetMarginals, GetStats, ListProducers, ListRobots, Optimize, ProducerQuery,
+    SetAutoOptimize,
 };
 use crate::service::jobs::{JobAnswer, JobParams};
 use crate::service::ServiceError;
@@ -436,6 +437,20 @@ pub(super) async fn list_producers(
     Path(session): Path<String>,
 ) -> HttpResult {
     let command = Command::ListProducers(ListProducers { session });
+    json(StatusCode::OK, run(&service, &caller, command).await?)
+}
+
+/// A session's robots (created with `robots`): their frames, components, held and rejected
+/// closures, and merges.
+#[utoipa::path(get, path = "/v1/sessions/{session}/robots", tag = "reads", params(SessionPath),
+    responses((status = 200, description = "The robots.", body = crate::api::robots::RobotsReport),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn list_robots(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    let command = Command::ListRobots(ListRobots { session });
     json(StatusCode::OK, run(&service, &caller, command).await?)
 }
 

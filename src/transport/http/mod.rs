@@ -66,6 +66,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(define_factor_types))
         .routes(routes!(estimate))
         .routes(routes!(list_producers))
+        .routes(routes!(list_robots))
         .routes(routes!(producer_status))
         .routes(routes!(summary))
         .routes(routes!(cancel))

@@ -1,0 +1,215 @@
+//! Several robots in one session, each in its own odometry frame until closures merge them.
+//!
+//! A robot is named by its pose keys (`(c << 56) | i`, GTSAM's `Symbol`, see
+//! [`crate::api::robots`]); its values arrive in its own odometry frame and nothing says where
+//! that frame sits in the map. So each robot's poses found a *component* of their own, solved
+//! on its own (the solver's gauge anchors every component at its lowest key, the robot's first
+//! pose, where the robot put it), and the map is the component of the robot seen first.
+//!
+//! A factor that joins two components that both hold robots (an inter-robot closure, or a
+//! landmark one robot placed seen by another) is *held*: accepted, acknowledged and journalled,
+//! but kept out of the problem, because its error in two unrelated frames is meaningless and one
+//! wrong closure would fold one robot's map onto another's. When `min_closures` held closures
+//! between the same two components agree with each other (`consensus`), the newer component
+//! *merges* into the older: every value of it moves by the transform the consensus implies
+//! (`frame`), the agreeing closures enter the problem, the others stay out as rejected, and the
+//! moved robots' frames record where their odometry now sits, so their later values (still in
+//! their odometry frames) are moved on arrival too.
+//!
+//! Decisions are made once, when a batch is accepted, from the estimate then; the journal
+//! records each merge with its batch, and a replay applies the record instead of deciding again.
+//! Holding and routing depend only on the keys and the merges so far, so they replay the same.
+
+mod apply;
+mod consensus;
+mod frame;
+mod plan;
+mod session;
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+pub(crate) use apply::{apply_to_problem, resync_mirror};
+pub(crate) use frame::Frame;
+pub(crate) use plan::{Merge, RobotsPlan};
+
+use super::batch::PreparedFactor;
+use crate::api::robots::{ClosureReport, MergeReport, RobotReport, RobotsOptions};
+use crate::api::wire::FactorId;
+use crate::problem::Key;
+
+/// The session's robots, components and held closures.
+pub(crate) struct Robots {
+    pub(crate) options: RobotsOptions,
+    /// Union-find over keys; a key absent here is its own root.
+    parent: HashMap<Key, Key>,
+    /// Every component that holds a robot, by root. A root absent here holds none yet
+    /// (landmarks, keys of no robot): it joins the first component a factor connects it to.
+    components: HashMap<Key, Component>,
+    robots: BTreeMap<u8, Robot>,
+    /// Closures between components that hold robots and are not merged, by id: their keys.
+    pending: BTreeMap<FactorId, Vec<Key>>,
+    /// The held closures themselves, out of the problem until a merge takes them in.
+    held: HashMap<FactorId, PreparedFactor>,
+    /// Closures a merge found inconsistent: their keys and why.
+    rejected: BTreeMap<FactorId, (Vec<Key>, String)>,
+    merges: Vec<MergeReport>,
+    next_founding: u64,
+}
+
+#[derive(Clone, Debug)]
+pub(crate) struct Component {
+    robots: BTreeSet<u8>,
+    /// Order of foundation: the older component keeps its frame in a merge.
+    founded: u64,
+}
+
+#[derive(Clone, Debug)]
+pub(crate) struct Robot {
+    first: Key,
+    poses: u64,
+    /// Where its odometry frame sits in its component's frame (`component ← odom`).
+    frame: Frame,
+}
+
+impl Robots {
+    pub(crate) fn new(options: RobotsOptions) -> Self {
+        Self {
+            options,
+            parent: HashMap::new(),
+            components: HashMap::new(),
+            robots: BTreeMap::new(),
+            pending: BTreeMap::new(),
+            held: HashMap::new(),
+            rejected: BTreeMap::new(),
+            merges: Vec::new(),
+            next_founding: 0,
+        }
+    }
+
+    fn find(&self, mut key: Key) -> Key {
+        while let Some(&p) = self.parent.get(&key) {
+            if p == key {
+                break;
+            }
+            key = p;
+        }
+        key
+    }
+
+    /// Joins the components of `a` and `b`; the older (or the one holding robots) stays root.
+    fn union(&mut self, a: Key, b: Key) {
+        let (ra, rb) = (self.find(a), self.find(b));
+        if ra == rb {
+            return;
+        }
+        let (root, child) = match (self.components.get(&ra), self.components.get(&rb)) {
+            (Some(x), Some(y)) if y.founded < x.founded => (rb, ra),
+            (None, Some(_)) => (rb, ra),
+            _ => (ra, rb),
+        };
+        self.parent.insert(child, root);
+        if let Some(c) = self.components.remove(&child) {
+            let r = self.components.entry(root).or_insert(Component {
+                robots: BTreeSet::new(),
+                founded: c.founded,
+            });
+            r.robots.extend(c.robots);
+            r.founded = r.founded.min(c.founded);
+        }
+    }
+
+    /// Every key whose root is `root` (a merge moves them all).
+    fn members(&self, root: Key, keys: impl Iterator<Item = Key>) -> Vec<Key> {
+        keys.filter(|&k| self.find(k) == root).collect()
+    }
+
+    /// Forgets factors the client removed.
+    pub(crate) fn remove_factors(&mut self, ids: &[FactorId]) {
+        for id in ids {
+            self.pending.remove(id);
+            self.held.remove(id);
+            self.rejected.remove(id);
+        }
+    }
+
+    /// What `GET /v1/sessions/{s}/robots` shows.
+    pub(crate) fn report(
+        &self,
+    ) -> (
+        Vec<RobotReport>,
+        Vec<ClosureReport>,
+        Vec<ClosureReport>,
+        Vec<MergeReport>,
+    ) {
+        let map_root = self
+            .components
+            .iter()
+            .min_by_key(|(_, c)| c.founded)
+            .map(|(root, _)| *root);
+        let robots = self
+            .robots
+            .iter()
+            .map(|(&r, robot)| {
+                let root = self.find(robot.first);
+                let component = self
+                    .components
+                    .get(&root)
+                    .map(|c| c.robots.iter().map(|&c| (c as char).to_string()).collect())
+                    .unwrap_or_default();
+                RobotReport {
+                    robot: (r as char).to_string(),
+                    first_key: robot.first,
+                    poses: robot.poses,
+                    component,
+                    in_map: Some(root) == map_root,
+                    map_from_odom: robot.frame.to_wire(),
+                }
+            })
+            .collect();
+        let pending = self
+            .pending
+            .iter()
+            .map(|(&id, keys)| ClosureReport {
+                factor_id: id,
+                keys: keys.clone(),
+                reason: self.pending_reason(keys),
+            })
+            .collect();
+        let rejected = self
+            .rejected
+            .iter()
+            .map(|(&id, (keys, reason))| ClosureReport {
+                factor_id: id,
+                keys: keys.clone(),
+                reason: reason.clone(),
+            })
+            .collect();
+        (robots, pending, rejected, self.merges.clone())
+    }
+
+    fn pending_reason(&self, keys: &[Key]) -> String {
+        let sides: BTreeSet<String> = keys
+            .iter()
+            .filter_map(|&k| self.components.get(&self.find(k)))
+            .map(|c| c.robots.iter().map(|&r| r as char).collect())
+            .collect();
+        let waiting = self
+            .pending
+            .values()
+            .filter(|other| {
+                let mut roots: Vec<Key> = other.iter().map(|&k| self.find(k)).collect();
+                let mut mine: Vec<Key> = keys.iter().map(|&k| self.find(k)).collect();
+                roots.sort_unstable();
+                roots.dedup();
+                mine.sort_unstable();
+                mine.dedup();
+                roots == mine
+            })
+            .count();
+        format!(
+            "joins the components of robots {} not merged yet: {waiting} closure(s) between them, a merge needs {} that agree",
+            sides.into_iter().collect::<Vec<_>>().join(" and "),
+            self.options.min_closures
+        )
+    }
+}

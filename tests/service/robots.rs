@@ -1,0 +1,292 @@
+//! Several robots in one session (issue 54): two robots start in unknown frames, each sends
+//! its values in its own odometry frame; one closure between them is held, a wrong one is
+//! rejected, three that agree merge robot b into a's map; a's and b's later values land in the
+//! map, and a kill -9 and restart replays the same merge from the journal.
+
+use crate::common;
+
+use std::time::Instant;
+
+use common::server::{client, create, get, post, TestServer};
+use factord::api::robots::robot_key;
+use factord::geometry::Se2;
+use serde_json::{json, Value};
+
+const INFO: [f64; 6] = [400.0, 0.0, 0.0, 400.0, 0.0, 2500.0];
+
+/// Robot `r`'s true poses in the world: a walk around a 10 m square, `offset` poses into it.
+fn truth(offset: usize, poses: usize) -> Vec<Se2> {
+    (0..poses)
+        .map(|i| {
+            let s = ((i + offset) % 40) as f64; // 40 poses around the square, 1 m apart
+            let (side, along) = ((s / 10.0).floor(), s % 10.0);
+            match side as i64 {
+                0 => Se2::new(along, 0.0, 0.0),
+                1 => Se2::new(10.0, along, std::f64::consts::FRAC_PI_2),
+                2 => Se2::new(10.0 - along, 10.0, std::f64::consts::PI),
+                _ => Se2::new(0.0, 10.0 - along, -std::f64::consts::FRAC_PI_2),
+            }
+        })
+        .collect()
+}
+
+fn between(a: &Se2, b: &Se2) -> Vec<f64> {
+    a.between(b).to_array().to_vec()
+}
+
+/// Robot `r`'s poses `range` with values in its own odometry frame (its first pose at the
+/// origin) and its odometry between them.
+fn robot_batch(r: char, world: &[Se2], range: std::ops::Range<usize>) -> Value {
+    let origin = world[0].inverse();
+    let variables: Vec<Value> = range
+        .clone()
+        .map(|i| {
+            let odom = origin.compose(&world[i]);
+            json!({"key": robot_key(r, i as u64), "kind": "se2", "value": odom.to_array()})
+        })
+        .collect();
+    let factors: Vec<Value> = range
+        .filter(|&i| i > 0)
+        .map(|i| {
+            json!({"type": "between_se2", "keys": [robot_key(r, i as u64 - 1), robot_key(r, i as u64)],
+                   "measurement": between(&world[i - 1], &world[i]), "information": INFO})
+        })
+        .collect();
+    json!({"variables": variables, "factors": factors})
+}
+
+fn closure(a: &[Se2], i: usize, b: &[Se2], j: usize, error: [f64; 3]) -> Value {
+    let mut z = between(&a[i], &b[j]);
+    (0..3).for_each(|k| z[k] += error[k]);
+    json!({"type": "between_se2", "keys": [robot_key('a', i as u64), robot_key('b', j as u64)],
+           "measurement": z, "information": INFO})
+}
+
+async fn batch(c: &reqwest::Client, s: &TestServer, body: Value) -> Value {
+    let (status, ack) = post(c, &s.url("/v1/sessions/fleet/batches"), &body).await;
+    assert_eq!(status, 200, "{ack}");
+    ack
+}
+
+async fn optimized(c: &reqwest::Client, s: &TestServer) -> Value {
+    let (status, v) = post(
+        c,
+        &s.url("/v1/sessions/fleet/optimize?wait=true"),
+        &json!({}),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    let (_, estimate) = get(c, &s.url("/v1/sessions/fleet/estimate")).await;
+    estimate
+}
+
+/// The estimate's value of `key` as a pose.
+fn pose(estimate: &Value, key: u64) -> Se2 {
+    let v = estimate["variables"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|v| v["key"] == key)
+        .unwrap_or_else(|| panic!("{key} in the estimate"));
+    let x: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
+    Se2::new(x[0], x[1], x[2])
+}
+
+fn assert_near(got: &Se2, want: &Se2, tol: f64, what: &str) {
+    let d = want.between(got);
+    assert!(
+        d.x.hypot(d.y) < tol && d.theta.abs() < tol,
+        "{what}: {got:?} vs {want:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn two_robots_in_unknown_frames_merge_on_closures_that_agree() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "fleet", "kind": "pose_graph_2d", "robots": {}}),
+    )
+    .await;
+    // Robot b starts 13 poses along a's square (x = 3, y = 0), in its own frame.
+    let (a, b) = (truth(0, 40), truth(13, 30));
+    batch(&c, &s, robot_batch('a', &a, 0..30)).await;
+    batch(&c, &s, robot_batch('b', &b, 0..20)).await;
+    let (_, report) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    let robots = report["robots"].as_array().unwrap();
+    assert_eq!(robots.len(), 2, "{report}");
+    assert_eq!(robots[1]["robot"], "b");
+    assert_eq!(robots[1]["in_map"], false, "{report}");
+    assert_eq!(robots[1]["map_from_odom"], json!([0.0, 0.0, 0.0]));
+
+    // One closure (b5 is a18): held, the map unchanged.
+    let held = batch(
+        &c,
+        &s,
+        json!({"factors": [closure(&a, 18, &b, 5, [0.0; 3])]}),
+    )
+    .await;
+    let estimate = optimized(&c, &s).await;
+    assert_near(
+        &pose(&estimate, robot_key('b', 0)),
+        &Se2::identity(),
+        1e-9,
+        "b0 before a merge",
+    );
+    let (_, report) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    assert_eq!(
+        report["pending"][0]["factor_id"], held["factor_ids"][0],
+        "{report}"
+    );
+    assert!(report["merges"].as_array().unwrap().is_empty());
+
+    // A wrong closure (5 m off) and two right ones: three agree, the wrong one is rejected.
+    let wrong = batch(
+        &c,
+        &s,
+        json!({"factors": [closure(&a, 25, &b, 2, [5.0, -1.0, 0.3])]}),
+    )
+    .await;
+    let right = batch(
+        &c,
+        &s,
+        json!({"factors": [closure(&a, 22, &b, 9, [0.0; 3]), closure(&a, 26, &b, 13, [0.0; 3])]}),
+    )
+    .await;
+    let (_, report) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    let merge = &report["merges"][0];
+    assert_eq!(merge["kept"], json!(["a"]), "{report}");
+    assert_eq!(merge["moved"], json!(["b"]));
+    let mut merged: Vec<u64> = serde_json::from_value(merge["closures"].clone()).unwrap();
+    merged.sort_unstable();
+    let mut want = vec![held["factor_ids"][0].as_u64().unwrap()];
+    want.extend(
+        right["factor_ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap()),
+    );
+    assert_eq!(merged, want, "{report}");
+    assert_eq!(merge["rejected"], json!([wrong["factor_ids"][0]]));
+    assert_eq!(report["rejected"][0]["factor_id"], wrong["factor_ids"][0]);
+    assert!(report["pending"].as_array().unwrap().is_empty(), "{report}");
+    let b_robot = &report["robots"][1];
+    assert_eq!(b_robot["in_map"], true);
+    assert_eq!(b_robot["component"], json!(["a", "b"]));
+    let frame: Vec<f64> = serde_json::from_value(b_robot["map_from_odom"].clone()).unwrap();
+    assert_near(
+        &Se2::new(frame[0], frame[1], frame[2]),
+        &b[0],
+        1e-6,
+        "map ← odom_b",
+    );
+
+    // b's later poses, still in its odometry frame, land in the map; so does the estimate.
+    batch(&c, &s, robot_batch('b', &b, 20..30)).await;
+    let estimate = optimized(&c, &s).await;
+    for (i, want) in b.iter().enumerate() {
+        assert_near(
+            &pose(&estimate, robot_key('b', i as u64)),
+            want,
+            1e-6,
+            &format!("b{i}"),
+        );
+    }
+    assert_near(&pose(&estimate, robot_key('a', 29)), &a[29], 1e-6, "a29");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_merge_replays_from_the_journal_after_kill_9() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "fleet", "kind": "pose_graph_2d", "robots": {"min_closures": 2}}),
+    )
+    .await;
+    let (a, b) = (truth(0, 40), truth(13, 30));
+    batch(&c, &s, robot_batch('a', &a, 0..30)).await;
+    batch(&c, &s, robot_batch('b', &b, 0..20)).await;
+    batch(
+        &c,
+        &s,
+        json!({"factors": [closure(&a, 25, &b, 2, [5.0, -1.0, 0.3])]}),
+    )
+    .await;
+    batch(
+        &c,
+        &s,
+        json!({"factors": [closure(&a, 18, &b, 5, [0.0; 3]), closure(&a, 22, &b, 9, [0.0; 3])]}),
+    )
+    .await;
+    // After the merge, b's next poses arrive in its odometry frame.
+    batch(&c, &s, robot_batch('b', &b, 20..30)).await;
+    let before = optimized(&c, &s).await;
+    let (_, report_before) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    assert_eq!(
+        report_before["merges"].as_array().unwrap().len(),
+        1,
+        "{report_before}"
+    );
+
+    let dir = s.state_dir.clone();
+    s.kill();
+    let s = TestServer::start_at(&dir, &[], &[]);
+    let since = Instant::now();
+    common::server::recovered(&c, &s, "fleet", since).await;
+    let after = optimized(&c, &s).await;
+    let (_, report_after) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    for field in ["robots", "pending", "rejected"] {
+        assert_eq!(report_after[field], report_before[field], "{field}");
+    }
+    let (m0, m1) = (&report_before["merges"][0], &report_after["merges"][0]);
+    for field in [
+        "kept",
+        "moved",
+        "transform",
+        "closures",
+        "rejected",
+        "sequence",
+    ] {
+        assert_eq!(m0[field], m1[field], "{field}");
+    }
+    for i in 0..30 {
+        let key = robot_key('b', i);
+        assert_near(
+            &pose(&after, key),
+            &pose(&before, key),
+            1e-6,
+            &format!("b{i} after restart"),
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn robots_options_are_checked() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    for (body, field) in [
+        (
+            json!({"kind": "pose_graph_2d", "robots": {"min_closures": 1}}),
+            "robots.min_closures",
+        ),
+        (json!({"kind": "bundle_adjustment", "robots": {}}), "robots"),
+        (
+            json!({"kind": "pose_graph_2d", "robots": {"min": 2}}),
+            "robots",
+        ),
+    ] {
+        let (status, e) = post(&c, &s.url("/v1/sessions"), &body).await;
+        assert_eq!(status, 400, "{body}: {e}");
+        let named = e["error"]["field"].as_str().unwrap_or("");
+        assert!(named.starts_with(field), "{body}: {e}");
+    }
+    create(&c, &s, &json!({"session": "one", "kind": "pose_graph_2d"})).await;
+    let (status, e) = get(&c, &s.url("/v1/sessions/one/robots")).await;
+    assert_eq!(status, 400, "{e}");
+    assert_eq!(e["error"]["code"], "no_robots");
+}
