@@ -200,7 +200,18 @@ async fn two_robots_in_unknown_frames_merge_on_closures_that_agree() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_merge_replays_from_the_journal_after_kill_9() {
-    let s = TestServer::start(&[]);
+    // A snapshot every 2 entries would compact the merge away: sessions with robots keep their
+    // journal whole (see `maybe_snapshot`).
+    let dir = common::temp_dir("robots-journal");
+    let config = dir.with_extension("json");
+    std::fs::write(
+        &config,
+        json!({"journal": {"snapshot_every": 2}}).to_string(),
+    )
+    .unwrap();
+    let config = config.display().to_string();
+    let extra = ["--config", config.as_str(), "--log", "info"];
+    let s = TestServer::start_at(&dir, &extra, &[]);
     let c = client();
     create(
         &c,
@@ -233,9 +244,11 @@ async fn a_merge_replays_from_the_journal_after_kill_9() {
         "{report_before}"
     );
 
-    let dir = s.state_dir.clone();
+    // Time for a snapshot to be written, were one started.
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    assert!(!s.stderr().contains("snapshot written"), "{}", s.stderr());
     s.kill();
-    let s = TestServer::start_at(&dir, &[], &[]);
+    let s = TestServer::start_at(&dir, &extra, &[]);
     let since = Instant::now();
     common::server::recovered(&c, &s, "fleet", since).await;
     let after = optimized(&c, &s).await;
