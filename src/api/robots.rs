@@ -34,6 +34,17 @@ impl Default for RobotsOptions {
     }
 }
 
+/// Which frame a robot's estimate is read in (`estimate?robot=b&frame=odom`).
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum RobotFrame {
+    /// The map: where the session's estimate is (the first robot's odometry frame).
+    #[default]
+    Map,
+    /// The robot's own odometry frame, as it sent its values (`map_from_odom⁻¹ ∘ pose`).
+    Odom,
+}
+
 /// The robot a key names: its top byte when that is a printable ASCII character.
 pub fn robot_of_key(key: Key) -> Option<char> {
     let c = (key >> 56) as u8;

@@ -211,6 +211,12 @@ pub struct EstimateQuery {
     /// `api::export`) of the variables `from`/`to` (and in graph sessions `since`) select.
     #[serde(default)]
     pub format: Option<super::export::EstimateFormat>,
+    /// Only this robot's poses (a session with `robots`: its keys' character, e.g. `b`).
+    #[serde(default)]
+    pub robot: Option<String>,
+    /// The frame `robot`'s poses are read in: `map` (default) or its own `odom`.
+    #[serde(default)]
+    pub frame: Option<super::robots::RobotFrame>,
 }
 
 /// "After my batches": a request (`optimize`, an estimate read) that first waits until the

@@ -65,7 +65,7 @@ impl Session {
             Engine::Graph(_) => {
                 let st = self.lock();
                 let since = query.since.unwrap_or(0);
-                let variables = if range.start() > range.end() {
+                let mut variables = if range.start() > range.end() {
                     Vec::new()
                 } else {
                     st.mirror
@@ -75,6 +75,7 @@ impl Session {
                         .map(|(&k, e)| value_of(k, e))
                         .collect()
                 };
+                super::robots::in_robot_frame(&st, query, &mut variables);
                 (st.mirror.sequence, variables)
             }
         };

@@ -7,7 +7,7 @@ use crate::common;
 
 use std::time::Instant;
 
-use common::server::{client, create, get, post, TestServer};
+use common::server::{client, create, get, post, zenoh_get, TestServer};
 use factord::api::robots::robot_key;
 use factord::geometry::Se2;
 use serde_json::{json, Value};
@@ -196,6 +196,109 @@ async fn two_robots_in_unknown_frames_merge_on_closures_that_agree() {
         );
     }
     assert_near(&pose(&estimate, robot_key('a', 29)), &a[29], 1e-6, "a29");
+
+    // Each robot reads its trajectory back in the map and in its own odometry frame.
+    let (_, in_odom) = get(&c, &s.url("/v1/sessions/fleet/estimate?robot=b&frame=odom")).await;
+    let (_, in_map) = get(&c, &s.url("/v1/sessions/fleet/estimate?robot=b")).await;
+    assert_eq!(
+        in_odom["variables"].as_array().unwrap().len(),
+        30,
+        "{in_odom}"
+    );
+    for (i, world) in b.iter().enumerate() {
+        let key = robot_key('b', i as u64);
+        let odom = b[0].inverse().compose(world);
+        assert_near(
+            &pose(&in_odom, key),
+            &odom,
+            1e-6,
+            &format!("b{i} in odom_b"),
+        );
+        assert_near(
+            &pose(&in_map, key),
+            world,
+            1e-6,
+            &format!("b{i} in the map"),
+        );
+    }
+    for (query, status, field) in [
+        ("robot=c", 404, "robot"),
+        ("robot=bb", 400, "robot"),
+        ("frame=odom", 400, "frame"),
+        ("robot=b&from=3", 400, "robot"),
+    ] {
+        let (got, e) = get(&c, &s.url(&format!("/v1/sessions/fleet/estimate?{query}"))).await;
+        assert_eq!(got, status, "{query}: {e}");
+        assert_eq!(e["error"]["field"], field, "{query}: {e}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn two_robots_merge_over_zenoh_and_the_merge_is_an_event() {
+    let s = TestServer::start(&[]);
+    let z = common::server::zenoh_peer(&s.zenoh).await;
+    let rpc = |command: Value| {
+        let z = z.clone();
+        async move { zenoh_get(&z, "factord/rpc", Some(&command)).await }
+    };
+    rpc(
+        json!({"op": "create_session", "session": "zr", "kind": "pose_graph_2d",
+               "robots": {"min_closures": 2}}),
+    )
+    .await
+    .unwrap();
+    let (merges_tx, merges) = std::sync::mpsc::channel::<Value>();
+    let merges_tx = std::sync::Mutex::new(merges_tx);
+    let _sub = z
+        .declare_subscriber("factord/zr/out/merges")
+        .callback(move |sample| {
+            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            let _ = merges_tx.lock().unwrap().send(v);
+        })
+        .await
+        .unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    let (a, b) = (truth(0, 40), truth(13, 30));
+    let closures =
+        json!({"factors": [closure(&a, 18, &b, 5, [0.0; 3]), closure(&a, 22, &b, 9, [0.0; 3])]});
+    for batch in [
+        robot_batch('a', &a, 0..30),
+        robot_batch('b', &b, 0..30),
+        closures,
+    ] {
+        rpc(json!({"op": "apply_batch", "session": "zr", "batch": batch}))
+            .await
+            .unwrap();
+    }
+    let event = merges
+        .recv_timeout(std::time::Duration::from_secs(10))
+        .expect("a merge event on out/merges");
+    assert_eq!(event["type"], "merge", "{event}");
+    assert_eq!(event["moved"], json!(["b"]), "{event}");
+    rpc(json!({"op": "optimize", "session": "zr", "wait": true}))
+        .await
+        .unwrap();
+    let in_odom =
+        rpc(json!({"op": "get_estimate", "session": "zr", "robot": "b", "frame": "odom"}))
+            .await
+            .unwrap();
+    for (i, world) in b.iter().enumerate() {
+        let odom = b[0].inverse().compose(world);
+        assert_near(
+            &pose(&in_odom, robot_key('b', i as u64)),
+            &odom,
+            1e-6,
+            &format!("b{i}"),
+        );
+    }
+    let report = rpc(json!({"op": "list_robots", "session": "zr"}))
+        .await
+        .unwrap();
+    assert_eq!(
+        report["robots"][1]["component"],
+        json!(["a", "b"]),
+        "{report}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -99,6 +99,8 @@ impl Command {
             after_seq,
             after_timeout_ms,
             format,
+            robot,
+            frame,
         } = query;
         Command::GetEstimate(GetEstimate {
             session,
@@ -111,6 +113,8 @@ impl Command {
                 after_timeout_ms,
             },
             format,
+            robot,
+            frame,
         })
     }
 }

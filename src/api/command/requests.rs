@@ -95,6 +95,11 @@ pub struct GetEstimate {
     /// `json` (default), or a file: `tum`, `kitti`, `g2o`, `ply` (see `api::export`).
     #[serde(default)]
     pub format: Option<crate::api::export::EstimateFormat>,
+    /// Only this robot's poses, in the map or its own odometry frame (sessions with `robots`).
+    #[serde(default)]
+    pub robot: Option<String>,
+    #[serde(default)]
+    pub frame: Option<crate::api::robots::RobotFrame>,
 }
 
 /// Where a producer's batches stand in a session (exactly-once ingest).

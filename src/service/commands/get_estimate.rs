@@ -14,12 +14,15 @@ impl Service {
     ) -> Result<Reply, ServiceError> {
         let session = self.session_as(caller, &request.session)?;
         super::wait_after(&session, request.after.resolve()?).await?;
-        let query = EstimateQuery {
+        let mut query = EstimateQuery {
             since: request.since,
             from: request.from,
             to: request.to,
+            robot: request.robot,
+            frame: request.frame,
             ..EstimateQuery::default()
         };
+        session.resolve_robot_query(&mut query)?;
         match request.format.unwrap_or_default() {
             EstimateFormat::Json => Ok(Reply::Estimate(session.estimate(&query))),
             file => Ok(Reply::Export(session.export(file, &query)?)),

@@ -42,7 +42,6 @@ impl Frame {
         }
     }
 
-    #[cfg(test)]
     pub(crate) fn inverse(&self) -> Frame {
         match self {
             Frame::Planar(a) => Frame::Planar(a.inverse()),

@@ -31,6 +31,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 pub(crate) use apply::{apply_to_problem, resync_mirror};
 pub(crate) use frame::Frame;
 pub(crate) use plan::{Merge, RobotsPlan};
+pub(crate) use session::in_robot_frame;
 
 use super::batch::PreparedFactor;
 use crate::api::robots::{ClosureReport, MergeReport, RobotReport, RobotsOptions};
@@ -121,6 +122,11 @@ impl Robots {
     /// Every key whose root is `root` (a merge moves them all).
     fn members(&self, root: Key, keys: impl Iterator<Item = Key>) -> Vec<Key> {
         keys.filter(|&k| self.find(k) == root).collect()
+    }
+
+    /// Where robot `robot`'s odometry frame sits in its component (`None`: no such robot).
+    pub(crate) fn frame_of(&self, robot: u8) -> Option<Frame> {
+        self.robots.get(&robot).map(|r| r.frame)
     }
 
     /// Forgets factors the client removed.

@@ -4,9 +4,12 @@
 use std::sync::Arc;
 
 use super::{Robots, RobotsPlan};
-use crate::api::robots::{MergeRecord, RobotsOptions, RobotsReport};
+use crate::api::catalogue;
+use crate::api::robots::{robot_key, MergeRecord, RobotFrame, RobotsOptions, RobotsReport};
+use crate::api::wire::{EstimateQuery, VariableValue, WireValue};
 use crate::api::ServiceError;
 use crate::session::Session;
+use crate::session::State;
 
 impl Session {
     /// Makes a new (empty) session hold several robots; pose graph kinds only.
@@ -43,14 +46,7 @@ impl Session {
     pub fn robots_report(&self) -> Result<RobotsReport, ServiceError> {
         let st = self.lock();
         let Some(robots) = &st.robots else {
-            return Err(ServiceError::bad_request(
-                "no_robots",
-                "session",
-                format!(
-                    "session `{}` was not created with `robots`: it holds one robot's map",
-                    self.name
-                ),
-            ));
+            return Err(self.no_robots());
         };
         let (robots, pending, rejected, merges) = robots.report();
         Ok(RobotsReport {
@@ -60,6 +56,64 @@ impl Session {
             rejected,
             merges,
         })
+    }
+
+    /// Checks an estimate read's `robot` and `frame`, and turns `robot` into its key range.
+    pub fn resolve_robot_query(&self, query: &mut EstimateQuery) -> Result<(), ServiceError> {
+        let Some(name) = query.robot.as_deref() else {
+            if query.frame == Some(RobotFrame::Odom) {
+                return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    "frame",
+                    "frame=odom reads one robot's poses in its own frame: name the robot (robot=b)",
+                ));
+            }
+            return Ok(());
+        };
+        let robot =
+            match name.as_bytes() {
+                [c] if c.is_ascii_graphic() => *c,
+                _ => return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    "robot",
+                    format!(
+                        "robot `{name}` is not one printable ASCII character (its keys' top byte)"
+                    ),
+                )),
+            };
+        if query.from.is_some() || query.to.is_some() {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "robot",
+                "robot selects its own keys: give it without from/to",
+            ));
+        }
+        let st = self.lock();
+        let Some(robots) = &st.robots else {
+            return Err(self.no_robots());
+        };
+        if robots.frame_of(robot).is_none() {
+            let mut e = ServiceError::not_found("robot", name);
+            e.body.message = format!(
+                "session `{}` has no robot `{name}` (none of its poses arrived)",
+                self.name
+            );
+            return Err(e.at("robot"));
+        }
+        query.from = Some(robot_key(robot as char, 0));
+        query.to = Some(robot_key(robot as char, (1 << 56) - 1));
+        Ok(())
+    }
+
+    fn no_robots(&self) -> ServiceError {
+        ServiceError::bad_request(
+            "no_robots",
+            "session",
+            format!(
+                "session `{}` was not created with `robots`: it holds one robot's map",
+                self.name
+            ),
+        )
     }
 
     /// Applies a merge the journal recorded after batch `sequence` (recovery, adoption).
@@ -89,5 +143,32 @@ impl Session {
         st.schedule.phase.mark_dirty();
         st.results.converged = false;
         Ok(())
+    }
+}
+
+/// `variables` (one robot's poses, `query.robot`) moved into the robot's own odometry frame
+/// when `query.frame` asks for it.
+pub(crate) fn in_robot_frame(st: &State, query: &EstimateQuery, variables: &mut [VariableValue]) {
+    let (Some(RobotFrame::Odom), Some(&[robot])) =
+        (query.frame, query.robot.as_deref().map(str::as_bytes))
+    else {
+        return;
+    };
+    let Some(to_odom) = st
+        .robots
+        .as_ref()
+        .and_then(|r| r.frame_of(robot))
+        .map(|f| f.inverse())
+    else {
+        return;
+    };
+    for v in variables {
+        let Some(Ok(mut value)) = catalogue::variable_codec(&v.kind).map(|c| (c.decode)(&v.value))
+        else {
+            continue;
+        };
+        if to_odom.apply(value.as_mut()) {
+            v.value = WireValue::from_vec(catalogue::encode_variable(value.as_ref()));
+        }
     }
 }
