@@ -80,6 +80,9 @@ pub struct RobotsReport {
     pub rejected: Vec<ClosureReport>,
     /// Every merge so far, oldest first.
     pub merges: Vec<MergeReport>,
+    /// Closures held at a merge (they disagreed with the closures that decided it) that later
+    /// fit the merged map and entered it.
+    pub admitted: u64,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]

@@ -238,7 +238,7 @@ impl Session {
                         mirrored.journal_error.get_or_insert(e);
                     }
                 }
-                mirrored.merges.push(report);
+                mirrored.merges.extend(report);
             }
         }
         mirrored

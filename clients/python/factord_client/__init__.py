@@ -13,6 +13,7 @@ from .geometry import Noise, Pose2, Pose3, pose_from_wire
 from .http import EventStream, HttpClient
 from .poses_binary import PosesBinaryError, decode_poses
 from .producer import HttpProducer
+from .robots import Robot, robot_key, robot_of_key
 
 __all__ = [
     "Batch",
@@ -28,12 +29,15 @@ __all__ = [
     "Pose2",
     "Pose3",
     "PosesBinaryError",
+    "Robot",
     "StreamProducer",
     "ZenohClient",
     "decode_poses",
     "dumps",
     "jsonable",
     "pose_from_wire",
+    "robot_key",
+    "robot_of_key",
 ]
 __version__ = "0.2.0"
 

@@ -271,12 +271,15 @@ class HttpClient:
         options: Optional[JsonDict] = None,
         auto_optimize: Union[None, str, JsonDict] = None,
         factor_types: Optional[list] = None,
+        robots: Optional[JsonDict] = None,
     ) -> wire.SessionInfo:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
         solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
         ``auto_optimize``: a policy dict such as ``{"policy": "every_n_factors", "factors": 50}``
         or just the policy name (``"every_batch"``, ``"manual"``); ``factor_types``: user-defined
-        factor types (proto/v1/factor-type.schema.json), used by name in batches."""
+        factor types (proto/v1/factor-type.schema.json), used by name in batches; ``robots``:
+        the session holds several robots (``{}`` or ``{"min_closures": 3}``, see
+        docs/guide/many-robots.md)."""
         body: JsonDict = {"kind": kind}
         if session is not None:
             body["session"] = session
@@ -286,6 +289,8 @@ class HttpClient:
             body["auto_optimize"] = auto_optimize_policy(auto_optimize)
         if factor_types:
             body["factor_types"] = factor_types
+        if robots is not None:
+            body["robots"] = robots
         return self._request("POST", "/v1/sessions", body=body)
 
     def list_sessions(self) -> wire.SessionList:
@@ -339,6 +344,12 @@ class HttpClient:
         each as :meth:`producer_status` answers for it."""
         return self._request("GET", self._session_path(session, "/producers"))
 
+    def robots(self, session: str) -> JsonDict:
+        """``GET /v1/sessions/{session}/robots`` (a session created with ``robots``): every
+        robot with its frame (``map_from_odom``) and component, the held (``pending``) and
+        ``rejected`` closures, and the merges."""
+        return self._request("GET", self._session_path(session, "/robots"))
+
     def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
                  after_seq: Optional[int] = None,
                  after_timeout_ms: Optional[int] = None) -> wire.OptimizeAnswer:
@@ -368,13 +379,17 @@ class HttpClient:
         after_producer: Optional[str] = None,
         after_seq: Optional[int] = None,
         after_timeout_ms: Optional[int] = None,
+        robot: Optional[str] = None,
+        frame: Optional[str] = None,
     ) -> wire.Estimate:
         """``GET /v1/sessions/{session}/estimate``: ``{"session", "sequence", "variables":
         [{"key", "kind", "value", "changed"}, ...]}``; ``since`` keeps the variables changed
         after that sequence, ``from_key``/``to_key`` an inclusive key range;
         ``after_producer`` + ``after_seq``: first wait until that producer's batches through
-        ``after_seq`` are applied."""
-        query: Dict[str, Any] = {"since": since, "from": from_key, "to": to_key}
+        ``after_seq`` are applied; ``robot`` (a session with robots): only that robot's poses,
+        in the map or, with ``frame="odom"``, in its own odometry frame."""
+        query: Dict[str, Any] = {"since": since, "from": from_key, "to": to_key,
+                                 "robot": robot, "frame": frame}
         query.update(_after(after_producer, after_seq, after_timeout_ms))
         return self._request("GET", self._session_path(session, "/estimate"), query=query)
 

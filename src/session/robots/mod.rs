@@ -34,7 +34,7 @@ pub(crate) use plan::{Merge, RobotsPlan};
 pub(crate) use session::in_robot_frame;
 
 use super::batch::PreparedFactor;
-use crate::api::robots::{ClosureReport, MergeReport, RobotReport, RobotsOptions};
+use crate::api::robots::{ClosureReport, MergeReport, RobotReport, RobotsOptions, RobotsReport};
 use crate::api::wire::FactorId;
 use crate::problem::Key;
 
@@ -51,8 +51,9 @@ pub(crate) struct Robots {
     pending: BTreeMap<FactorId, Vec<Key>>,
     /// The held closures themselves, out of the problem until a merge takes them in.
     held: HashMap<FactorId, PreparedFactor>,
-    /// Closures a merge found inconsistent: their keys and why.
-    rejected: BTreeMap<FactorId, (Vec<Key>, String)>,
+    /// Held closures admitted within one component after a merge, so far.
+    admitted: u64,
+    batches_since_check: u64,
     merges: Vec<MergeReport>,
     next_founding: u64,
 }
@@ -81,7 +82,8 @@ impl Robots {
             robots: BTreeMap::new(),
             pending: BTreeMap::new(),
             held: HashMap::new(),
-            rejected: BTreeMap::new(),
+            admitted: 0,
+            batches_since_check: 0,
             merges: Vec::new(),
             next_founding: 0,
         }
@@ -134,19 +136,11 @@ impl Robots {
         for id in ids {
             self.pending.remove(id);
             self.held.remove(id);
-            self.rejected.remove(id);
         }
     }
 
     /// What `GET /v1/sessions/{s}/robots` shows.
-    pub(crate) fn report(
-        &self,
-    ) -> (
-        Vec<RobotReport>,
-        Vec<ClosureReport>,
-        Vec<ClosureReport>,
-        Vec<MergeReport>,
-    ) {
+    pub(crate) fn report(&self) -> RobotsReport {
         let map_root = self
             .components
             .iter()
@@ -172,25 +166,29 @@ impl Robots {
                 }
             })
             .collect();
-        let pending = self
+        let (rejected, pending): (Vec<_>, Vec<_>) = self
             .pending
             .iter()
-            .map(|(&id, keys)| ClosureReport {
-                factor_id: id,
-                keys: keys.clone(),
-                reason: self.pending_reason(keys),
+            .map(|(&id, keys)| {
+                let within = self.placed_roots(keys).len() == 1;
+                let reason = if within {
+                    "within one component since a merge, but inconsistent with its map: held out, checked again as the map moves".to_string()
+                } else {
+                    self.pending_reason(keys)
+                };
+                (within, ClosureReport { factor_id: id, keys: keys.clone(), reason })
             })
-            .collect();
-        let rejected = self
-            .rejected
-            .iter()
-            .map(|(&id, (keys, reason))| ClosureReport {
-                factor_id: id,
-                keys: keys.clone(),
-                reason: reason.clone(),
-            })
-            .collect();
-        (robots, pending, rejected, self.merges.clone())
+            .partition(|(within, _)| *within);
+        let strip = |v: Vec<(bool, ClosureReport)>| v.into_iter().map(|(_, c)| c).collect();
+        let (pending, rejected) = (strip(pending), strip(rejected));
+        RobotsReport {
+            session: String::new(),
+            robots,
+            pending,
+            rejected,
+            merges: self.merges.clone(),
+            admitted: self.admitted,
+        }
     }
 
     fn pending_reason(&self, keys: &[Key]) -> String {

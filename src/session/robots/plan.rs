@@ -13,6 +13,7 @@ use crate::api::wire::{FactorId, WireValue};
 use crate::problem::{Key, Variable};
 use crate::session::batch::{PreparedBatch, PreparedFactor};
 use crate::session::MirrorEntry;
+use crate::solver::chi_square::chi_square_quantile;
 
 /// A merge as the problem applies it (after the batch's own variables and factors).
 pub(crate) struct Merge {
@@ -29,8 +30,9 @@ pub(crate) struct RobotsPlan {
     /// The ids of the batch's factors that enter the problem now (in batch order).
     pub active_ids: Vec<FactorId>,
     pub merges: Vec<Merge>,
-    /// The journal's record of each merge, and what the `merge` event says.
-    pub records: Vec<(MergeRecord, MergeReport)>,
+    /// The journal's record of each decision, and what its `merge` event says (none for
+    /// closures admitted within one component).
+    pub records: Vec<(MergeRecord, Option<MergeReport>)>,
 }
 
 /// The robot a variable belongs to: a pose (se2, se3) whose key names a robot.
@@ -123,13 +125,29 @@ impl Robots {
         }
         if !replay {
             let start = Instant::now();
+            let mut merged = false;
             for keys in touched {
                 let roots = self.placed_roots(&keys);
                 if roots.len() == 2 {
                     if let Some(record) = self.decide(roots[0], roots[1], mirror) {
                         let seconds = start.elapsed().as_secs_f64();
-                        self.merge(record, sequence, seconds, mirror, &mut plan);
+                        merged |= self
+                            .apply_record(record, sequence, seconds, mirror, &mut plan)
+                            .is_some();
                     }
+                }
+            }
+            self.batches_since_check += 1;
+            if merged || self.batches_since_check >= RECHECK_EVERY {
+                self.batches_since_check = 0;
+                let closures = self.fitting(mirror);
+                if !closures.is_empty() {
+                    let record = MergeRecord {
+                        closures,
+                        rejected: Vec::new(),
+                        transform: Vec::new(),
+                    };
+                    self.apply_record(record, sequence, 0.0, mirror, &mut plan);
                 }
             }
         }
@@ -137,7 +155,7 @@ impl Robots {
     }
 
     /// The distinct roots of `keys` whose components hold robots, in key order.
-    fn placed_roots(&self, keys: &[Key]) -> Vec<Key> {
+    pub(super) fn placed_roots(&self, keys: &[Key]) -> Vec<Key> {
         let mut roots: Vec<Key> = Vec::new();
         for &k in keys {
             let r = self.find(k);
@@ -205,10 +223,43 @@ impl Robots {
         })
     }
 
+    /// Carries out a journalled decision: a merge, or (an empty transform) the admission of
+    /// held closures within one component. `None` when the record does not fit the state (a
+    /// corrupt journal).
+    pub(crate) fn apply_record(
+        &mut self,
+        record: MergeRecord,
+        sequence: u64,
+        seconds: f64,
+        mirror: &mut BTreeMap<Key, MirrorEntry>,
+        plan: &mut RobotsPlan,
+    ) -> Option<()> {
+        if !record.transform.is_empty() {
+            return self.merge(record, sequence, seconds, mirror, plan);
+        }
+        let mut closures = Vec::new();
+        for id in &record.closures {
+            let keys = self.pending.get(id)?;
+            if self.placed_roots(keys).len() != 1 {
+                return None;
+            }
+            self.pending.remove(id);
+            closures.push((*id, self.held.remove(id)?));
+        }
+        self.admitted += closures.len() as u64;
+        plan.merges.push(Merge {
+            moved_keys: Vec::new(),
+            frame: Frame::Planar(crate::geometry::Se2::identity()),
+            closures,
+        });
+        plan.records.push((record, None));
+        Some(())
+    }
+
     /// Carries out a merge: the moved component's values (mirror) and robots' frames move by
-    /// the record's transform, its closures leave the held ones for the problem, the others
-    /// are rejected. `None` when the record does not fit the state (a corrupt journal).
-    pub(crate) fn merge(
+    /// the record's transform, its closures leave the held ones for the problem; the others
+    /// between the two stay held, now within one component, re-checked against the map.
+    fn merge(
         &mut self,
         record: MergeRecord,
         sequence: u64,
@@ -254,18 +305,6 @@ impl Robots {
                 closures.push((*id, f));
             }
         }
-        for id in &record.rejected {
-            if let Some(keys) = self.pending.remove(id) {
-                self.held.remove(id);
-                let reason = format!(
-                    "inconsistent with the {} closures that merged robots {} into {}",
-                    record.closures.len(),
-                    moved_names.join(""),
-                    kept_names.join("")
-                );
-                self.rejected.insert(*id, (keys, reason));
-            }
-        }
         let report = MergeReport {
             sequence,
             kept: kept_names,
@@ -281,9 +320,48 @@ impl Robots {
             frame,
             closures,
         });
-        plan.records.push((record, report));
+        plan.records.push((record, Some(report)));
         Some(())
     }
+
+    /// The held closures within one component (left over from a merge) that now fit the map:
+    /// their error at the estimate is within [`ADMIT_GATE`] times the χ² quantile of their
+    /// dimension at 99.9 %. A wrong closure's error stays thousands.
+    fn fitting(&self, mirror: &BTreeMap<Key, MirrorEntry>) -> Vec<FactorId> {
+        self.pending
+            .iter()
+            .filter(|(_, keys)| self.placed_roots(keys).len() == 1)
+            .filter(|(id, keys)| {
+                let f = &self.held[id];
+                let gate = ADMIT_GATE * chi_square_quantile(f.factor.residual_dim(), 0.999);
+                chi2_at(f, keys, mirror).is_some_and(|c| c <= gate)
+            })
+            .map(|(&id, _)| id)
+            .collect()
+    }
+}
+
+/// How far past the χ² quantile a held closure's error at the estimate may be to enter the map
+/// after its components merged: the estimate it is measured at is the optimum without it, where
+/// a right closure's error also carries the map's own uncertainty.
+const ADMIT_GATE: f64 = 10.0;
+
+/// Held closures are checked against the map every this many batches (and after a merge).
+const RECHECK_EVERY: u64 = 16;
+
+/// `f`'s whitened squared error at the mirror's values of `keys`.
+fn chi2_at(f: &PreparedFactor, keys: &[Key], mirror: &BTreeMap<Key, MirrorEntry>) -> Option<f64> {
+    let values: Vec<Box<dyn Variable>> = keys
+        .iter()
+        .map(|k| mirror.get(k).map(MirrorEntry::decode))
+        .collect::<Option<_>>()?;
+    let refs: Vec<&dyn Variable> = values.iter().map(|v| v.as_ref()).collect();
+    let d = f.factor.residual_dim();
+    let (mut e, mut w) = (vec![0.0; d], vec![0.0; d]);
+    f.factor.evaluate(&refs, &mut e, None).ok()?;
+    f.sqrt_information.whiten_vector(&e, &mut w);
+    let s: f64 = w.iter().map(|x| x * x).sum();
+    s.is_finite().then_some(s)
 }
 
 /// A held closure between the kept and the moved component, as the consensus evaluates it.

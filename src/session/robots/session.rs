@@ -48,13 +48,9 @@ impl Session {
         let Some(robots) = &st.robots else {
             return Err(self.no_robots());
         };
-        let (robots, pending, rejected, merges) = robots.report();
         Ok(RobotsReport {
             session: self.name.clone(),
-            robots,
-            pending,
-            rejected,
-            merges,
+            ..robots.report()
         })
     }
 
@@ -70,17 +66,18 @@ impl Session {
             }
             return Ok(());
         };
-        let robot =
-            match name.as_bytes() {
-                [c] if c.is_ascii_graphic() => *c,
-                _ => return Err(ServiceError::bad_request(
+        let robot = match name.as_bytes() {
+            [c] if c.is_ascii_graphic() => *c,
+            _ => {
+                return Err(ServiceError::bad_request(
                     "invalid_value",
                     "robot",
                     format!(
                         "robot `{name}` is not one printable ASCII character (its keys' top byte)"
                     ),
-                )),
-            };
+                ))
+            }
+        };
         if query.from.is_some() || query.to.is_some() {
             return Err(ServiceError::bad_request(
                 "invalid_value",
@@ -129,7 +126,7 @@ impl Session {
         };
         let mut plan = RobotsPlan::default();
         robots
-            .merge(record, sequence, 0.0, &mut st.mirror.entries, &mut plan)
+            .apply_record(record, sequence, 0.0, &mut st.mirror.entries, &mut plan)
             .ok_or("a merge record that does not fit the session's held closures")?;
         let (Some(problem), Some(index)) = (st.model.problem.as_mut(), st.model.index.as_mut())
         else {

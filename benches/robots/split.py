@@ -1,0 +1,171 @@
+#!/usr/bin/env python3
+"""Many robots, one map (issue 54): a dataset's pose sequence cut into R contiguous robots, each
+in its own start frame, streamed interleaved into one session created with ``robots``.
+
+    python3 split.py --factord target/release/factord --data-dir ../shared/data \
+        [--dataset 2d/carlone/input_M3500_g2o.g2o] [--robots 2 4 8] [--transport http|zenoh]
+
+Robot r gets poses [r·n/R, (r+1)·n/R) of the file, renamed ``robot_key(chr(ord('a')+r), i)``;
+its values are the file's initial guess expressed in its first pose's frame (what its odometry
+would say), edges within a robot are its odometry and own closures, edges across robots are
+inter-robot closures. Round t sends every robot's pose t with the edges whose later endpoint
+(by arrival) it is; closures to a robot's pose that has not arrived wait until it has.
+
+Reported (one JSON line per split): whether every robot ended in the map, closures held /
+rejected, merges and the time deciding them, update p50/p99/worst (batch round trip), total
+time, the final chi2 against the clean single-robot optimum (relative), and the position RMSE
+after alignment against that optimum. The clean optimum is ``factord solve`` on the file.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "outliers"))
+sys.path.insert(0, str(HERE.parent.parent / "clients" / "python"))
+sys.path.insert(0, str(HERE.parent.parent / "clients" / "python" / "tests"))
+
+from evaluate import aligned_rmse  # noqa: E402
+from factord_client import HttpClient, ZenohClient, g2o, robot_key  # noqa: E402
+from factord_client.geometry import pose_from_wire  # noqa: E402
+import test_recovery as harness  # noqa: E402  (Server: factord serve on free ports)
+
+
+def percentile(values, p):
+    s = sorted(values)
+    return s[min(len(s) - 1, int(p / 100 * len(s)))] if s else float("nan")
+
+
+def clean_optimum(factord, path):
+    out = tempfile.mktemp(suffix=".g2o")
+    run = subprocess.run([factord, "solve", str(path), "--out", out, "--summary-json", "-",
+                          "--quiet"], capture_output=True, text=True, check=True)
+    chi2 = json.loads(run.stdout)["final_chi2"]
+    positions = {}
+    for line in open(out):
+        f = line.split()
+        if f and f[0] in ("VERTEX_SE2", "VERTEX_SE3:QUAT"):
+            p = [float(x) for x in f[2:5]]
+            positions[int(f[1])] = (p[0], p[1], p[2] if f[0] != "VERTEX_SE2" else 0.0)
+    os.unlink(out)
+    return chi2, positions
+
+
+def split_batches(graph, robots):
+    """Per round, one batch per robot: (robot, batch). Keys map file id -> (robot, index)."""
+    ids = sorted(graph.vertices)
+    n = len(ids)
+    owner = {}
+    for pos, vid in enumerate(ids):
+        r = min(robots - 1, pos * robots // n)
+        owner[vid] = r
+    starts = {}
+    for vid in ids:
+        starts.setdefault(owner[vid], vid)
+    local = {vid: vid - starts[owner[vid]] for vid in ids}
+    key = {vid: robot_key(chr(ord("a") + owner[vid]), local[vid]) for vid in ids}
+    kind = graph.variable_kind
+    origin = {r: pose_from_wire(kind, graph.vertices[v]).inverse() for r, v in starts.items()}
+    # Arrival round of a vertex: its index within its robot.
+    arrival = local
+    by_round = {}
+    for e in graph.edges:
+        t = max(arrival[e.i], arrival[e.j])
+        # An edge is sent by the robot whose pose arrives last (ties: the later id's robot).
+        sender = owner[e.i] if (arrival[e.i], e.i) > (arrival[e.j], e.j) else owner[e.j]
+        by_round.setdefault((t, sender), []).append(e)
+    rounds = []
+    for t in range(max(local.values()) + 1):
+        row = []
+        for r in range(robots):
+            vid = starts[r] + t
+            if vid not in graph.vertices or owner.get(vid) != r:
+                if (t, r) not in by_round:
+                    continue
+                variables = []
+            else:
+                value = origin[r].compose(pose_from_wire(kind, graph.vertices[vid])).to_wire()
+                variables = [{"key": key[vid], "kind": kind, "value": list(value)}]
+            factors = [{"type": graph.factor_type, "keys": [key[e.i], key[e.j]],
+                        "measurement": list(e.measurement), "information": list(e.information)}
+                       for e in by_round.get((t, r), [])]
+            row.append((r, {"variables": variables, "factors": factors}))
+        rounds.append(row)
+    return rounds, key
+
+
+def run_split(args, graph, robots, clean_chi2, clean_positions):
+    rounds, key = split_batches(graph, robots)
+    root = Path(tempfile.mkdtemp(prefix="robots-bench-"))
+    server = harness.Server(args.factord, root, "main").start()
+    try:
+        http = HttpClient(server.http, timeout=120)
+        session = f"split{robots}"
+        http.create_session(graph.session_kind, session=session,
+                            robots={"min_closures": args.min_closures})
+        zenoh = ZenohClient(server.zenoh, timeout=60) if args.transport == "zenoh" else None
+        latencies = []
+        t0 = time.monotonic()
+        for row in rounds:
+            for r, batch in row:
+                b0 = time.monotonic()
+                if zenoh is not None:
+                    zenoh.apply_batch(session, batch)
+                else:
+                    http.apply_batch(session, batch)
+                latencies.append(time.monotonic() - b0)
+        stats = http.optimize(session, wait=True)["stats"]
+        total = time.monotonic() - t0
+        report = http.robots(session)
+        estimate = http.estimate(session)
+        by_key = {v["key"]: v["value"] for v in estimate["variables"]}
+        positions = {}
+        for vid, k in key.items():
+            if k in by_key:
+                v = by_key[k]
+                positions[vid] = (v[0], v[1], v[2] if graph.dimension == 3 else 0.0)
+        rmse = aligned_rmse(clean_positions, positions)
+        merges = report["merges"]
+        return {
+            "dataset": args.dataset, "robots": robots, "transport": args.transport,
+            "min_closures": args.min_closures,
+            "all_in_map": all(r["in_map"] for r in report["robots"]),
+            "pending": len(report["pending"]), "rejected": len(report["rejected"]),
+            "merges": len(merges),
+            "merge_decide_ms_max": round(max((m["seconds"] for m in merges), default=0) * 1e3, 3),
+            "updates": len(latencies),
+            "update_p50_ms": round(percentile(latencies, 50) * 1e3, 3),
+            "update_p99_ms": round(percentile(latencies, 99) * 1e3, 3),
+            "update_worst_ms": round(max(latencies) * 1e3, 3),
+            "total_s": round(total, 3),
+            "chi2": stats["chi2"], "clean_chi2": clean_chi2,
+            "chi2_rel": abs(stats["chi2"] - clean_chi2) / clean_chi2,
+            "rmse_m": rmse,
+        }
+    finally:
+        server.kill()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--factord", required=True)
+    parser.add_argument("--data-dir", type=Path, required=True)
+    parser.add_argument("--dataset", default="2d/carlone/input_M3500_g2o.g2o")
+    parser.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8])
+    parser.add_argument("--transport", choices=["http", "zenoh"], default="http")
+    parser.add_argument("--min-closures", type=int, default=3)
+    args = parser.parse_args()
+    path = args.data_dir / args.dataset
+    graph = g2o.load(path)
+    clean_chi2, clean_positions = clean_optimum(args.factord, path)
+    for robots in args.robots:
+        print(json.dumps(run_split(args, graph, robots, clean_chi2, clean_positions)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
