@@ -3,7 +3,8 @@
 in its own start frame, streamed interleaved into one session created with ``robots``.
 
     python3 split.py --factord target/release/factord --data-dir ../shared/data \
-        [--dataset 2d/carlone/input_M3500_g2o.g2o] [--robots 2 4 8] [--transport http|zenoh]
+        [--dataset 2d/carlone/input_M3500_g2o.g2o] [--robots 2 4 8] [--transport http|zenoh] \
+        [--wrong 0.2 --wrong-kind random|aliasing] [--seed 1]
 
 Robot r gets poses [r·n/R, (r+1)·n/R) of the file, renamed ``robot_key(chr(ord('a')+r), i)``;
 its values are the file's initial guess expressed in its first pose's frame (what its odometry
@@ -11,11 +12,21 @@ would say), edges within a robot are its odometry and own closures, edges across
 inter-robot closures. Round t sends every robot's pose t with the edges whose later endpoint
 (by arrival) it is; closures to a robot's pose that has not arrived wait until it has.
 
+``--wrong F`` adds F times as many wrong inter-robot closures as there are right ones:
+``random`` between uniform pose pairs of two robots with a uniform measurement (±20 m, any
+angle); ``aliasing`` in groups of 5-20 consecutive closures that agree with each other (all
+measured as if the other robot's poses were moved by one rigid transform, 5-20 m and up to a
+radian) but not with the map.
+
 Reported (one JSON line per split): whether every robot ended in the map, closures held /
 rejected, merges and the time deciding them, update p50/p99/worst (batch round trip), total
 time, the final chi2 against the clean single-robot optimum (relative), and the position RMSE
-after alignment against that optimum. The clean optimum is ``factord solve`` on the file.
+after alignment against that optimum, and with wrong closures the precision and recall of the
+closures kept out of the map (held or rejected at the end). The clean optimum is ``factord
+solve`` on the file.
 """
+import math
+import random
 import argparse
 import json
 import os
@@ -32,7 +43,7 @@ sys.path.insert(0, str(HERE.parent.parent / "clients" / "python" / "tests"))
 
 from evaluate import aligned_rmse  # noqa: E402
 from factord_client import HttpClient, ZenohClient, g2o, robot_key  # noqa: E402
-from factord_client.geometry import pose_from_wire  # noqa: E402
+from factord_client.geometry import Pose2, pose_from_wire  # noqa: E402
 import test_recovery as harness  # noqa: E402  (Server: factord serve on free ports)
 
 
@@ -46,17 +57,74 @@ def clean_optimum(factord, path):
     run = subprocess.run([factord, "solve", str(path), "--out", out, "--summary-json", "-",
                           "--quiet"], capture_output=True, text=True, check=True)
     chi2 = json.loads(run.stdout)["final_chi2"]
-    positions = {}
+    positions, optimum = {}, {}
     for line in open(out):
         f = line.split()
         if f and f[0] in ("VERTEX_SE2", "VERTEX_SE3:QUAT"):
-            p = [float(x) for x in f[2:5]]
+            p = [float(x) for x in f[2:]]
             positions[int(f[1])] = (p[0], p[1], p[2] if f[0] != "VERTEX_SE2" else 0.0)
+            optimum[int(f[1])] = p
     os.unlink(out)
-    return chi2, positions
+    return chi2, positions, optimum
 
 
-def split_batches(graph, robots):
+def owners(graph, robots):
+    ids = sorted(graph.vertices)
+    return {vid: min(robots - 1, pos * robots // len(ids)) for pos, vid in enumerate(ids)}
+
+
+def wrong_closures(graph, robots, optimum, fraction, kind, rng):
+    """Wrong inter-robot closures (g2o.Edge, ``line`` = -1), ``fraction`` × the right ones."""
+    owner = owners(graph, robots)
+    right = [e for e in graph.edges if owner[e.i] != owner[e.j]]
+    info = right[0].information if right else graph.edges[0].information
+    by_robot = {}
+    for vid in sorted(graph.vertices):
+        by_robot.setdefault(owner[vid], []).append(vid)
+    target = int(round(fraction * len(right)))
+    kind_name = graph.variable_kind
+    pose = lambda vid: pose_from_wire(kind_name, optimum[vid])  # noqa: E731
+    out = []
+    while len(out) < target:
+        r, s = rng.sample(range(robots), 2)
+        if kind == "random":
+            i, j = rng.choice(by_robot[r]), rng.choice(by_robot[s])
+            z = [rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)]
+            if graph.dimension == 3:
+                z = random_pose3(rng, 20.0, math.pi).to_wire()
+            out.append(g2o.Edge(i, j, list(z), list(info), [], line=-1))
+            continue
+        size = rng.randint(5, 20)
+        a, b = by_robot[r], by_robot[s]
+        if len(a) <= size or len(b) <= size:
+            continue
+        i0, j0 = rng.randrange(len(a) - size), rng.randrange(len(b) - size)
+        shift = random_shift(graph.dimension, rng)
+        for m in range(min(size, target - len(out))):
+            i, j = a[i0 + m], b[j0 + m]
+            z = pose(i).inverse().compose(shift.compose(pose(j))).to_wire()
+            out.append(g2o.Edge(i, j, list(z), list(info), [], line=-1))
+    return out
+
+
+def random_shift(dimension, rng):
+    """A rigid transform 5-20 m away, turned by up to a radian."""
+    d, a = rng.uniform(5, 20), rng.uniform(0, 2 * math.pi)
+    if dimension == 2:
+        return Pose2(d * math.cos(a), d * math.sin(a), rng.uniform(-1, 1))
+    return random_pose3(rng, d, 1.0)
+
+
+def random_pose3(rng, distance, angle):
+    axis = [rng.gauss(0, 1) for _ in range(3)]
+    n = math.sqrt(sum(c * c for c in axis))
+    half = rng.uniform(-angle, angle) / 2
+    q = [math.sin(half) * c / n for c in axis] + [math.cos(half)]
+    t = [rng.uniform(-distance, distance) for _ in range(3)]
+    return pose_from_wire("se3", t + q)
+
+
+def split_batches(graph, robots, extra=()):
     """Per round, one batch per robot: (robot, batch). Keys map file id -> (robot, index)."""
     ids = sorted(graph.vertices)
     n = len(ids)
@@ -74,7 +142,7 @@ def split_batches(graph, robots):
     # Arrival round of a vertex: its index within its robot.
     arrival = local
     by_round = {}
-    for e in graph.edges:
+    for e in list(graph.edges) + list(extra):
         t = max(arrival[e.i], arrival[e.j])
         # An edge is sent by the robot whose pose arrives last (ties: the later id's robot).
         sender = owner[e.i] if (arrival[e.i], e.i) > (arrival[e.j], e.j) else owner[e.j]
@@ -91,16 +159,22 @@ def split_batches(graph, robots):
             else:
                 value = origin[r].compose(pose_from_wire(kind, graph.vertices[vid])).to_wire()
                 variables = [{"key": key[vid], "kind": kind, "value": list(value)}]
+            edges = by_round.get((t, r), [])
             factors = [{"type": graph.factor_type, "keys": [key[e.i], key[e.j]],
                         "measurement": list(e.measurement), "information": list(e.information)}
-                       for e in by_round.get((t, r), [])]
-            row.append((r, {"variables": variables, "factors": factors}))
+                       for e in edges]
+            wrong = [e.line == -1 for e in edges]
+            row.append((r, {"variables": variables, "factors": factors}, wrong))
         rounds.append(row)
     return rounds, key
 
 
-def run_split(args, graph, robots, clean_chi2, clean_positions):
-    rounds, key = split_batches(graph, robots)
+def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
+    rng = random.Random(args.seed * 1000 + robots)
+    extra = (wrong_closures(graph, robots, optimum, args.wrong, args.wrong_kind, rng)
+             if args.wrong > 0 else [])
+    rounds, key = split_batches(graph, robots, extra)
+    wrong_ids = set()
     root = Path(tempfile.mkdtemp(prefix="robots-bench-"))
     server = harness.Server(args.factord, root, "main").start()
     try:
@@ -112,13 +186,14 @@ def run_split(args, graph, robots, clean_chi2, clean_positions):
         latencies = []
         t0 = time.monotonic()
         for row in rounds:
-            for r, batch in row:
+            for r, batch, wrong in row:
                 b0 = time.monotonic()
                 if zenoh is not None:
-                    zenoh.apply_batch(session, batch)
+                    ack = zenoh.apply_batch(session, batch)
                 else:
-                    http.apply_batch(session, batch)
+                    ack = http.apply_batch(session, batch)
                 latencies.append(time.monotonic() - b0)
+                wrong_ids.update(i for i, w in zip(ack["factor_ids"], wrong) if w)
         stats = http.optimize(session, wait=True)["stats"]
         total = time.monotonic() - t0
         report = http.robots(session)
@@ -131,6 +206,8 @@ def run_split(args, graph, robots, clean_chi2, clean_positions):
                 positions[vid] = (v[0], v[1], v[2] if graph.dimension == 3 else 0.0)
         rmse = aligned_rmse(clean_positions, positions)
         merges = report["merges"]
+        outside = {c["factor_id"] for c in report["pending"] + report["rejected"]}
+        caught = len(outside & wrong_ids)
         return {
             "dataset": args.dataset, "robots": robots, "transport": args.transport,
             "min_closures": args.min_closures,
@@ -146,6 +223,10 @@ def run_split(args, graph, robots, clean_chi2, clean_positions):
             "chi2": stats["chi2"], "clean_chi2": clean_chi2,
             "chi2_rel": abs(stats["chi2"] - clean_chi2) / clean_chi2,
             "rmse_m": rmse,
+            "wrong": len(wrong_ids), "wrong_kind": args.wrong_kind if wrong_ids else None,
+            "admitted": report["admitted"], "kept_out": len(outside),
+            "precision": caught / len(outside) if outside else 1.0,
+            "recall": caught / len(wrong_ids) if wrong_ids else 1.0,
         }
     finally:
         server.kill()
@@ -159,12 +240,16 @@ def main():
     parser.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument("--transport", choices=["http", "zenoh"], default="http")
     parser.add_argument("--min-closures", type=int, default=3)
+    parser.add_argument("--wrong", type=float, default=0.0)
+    parser.add_argument("--wrong-kind", choices=["random", "aliasing"], default="random")
+    parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     path = args.data_dir / args.dataset
     graph = g2o.load(path)
-    clean_chi2, clean_positions = clean_optimum(args.factord, path)
+    clean_chi2, clean_positions, optimum = clean_optimum(args.factord, path)
     for robots in args.robots:
-        print(json.dumps(run_split(args, graph, robots, clean_chi2, clean_positions)), flush=True)
+        print(json.dumps(run_split(args, graph, robots, clean_chi2, clean_positions, optimum)),
+              flush=True)
 
 
 if __name__ == "__main__":
