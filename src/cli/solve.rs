@@ -56,7 +56,9 @@ pub struct SolveArgs {
     drop_rejected: bool,
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// Write the optimised graph (g2o format); `-` for standard output.
+    /// Write the optimised graph as g2o whatever the extension (the format that carries values
+    /// and every factor we read; landmarks as VERTEX_XY and EDGE_BEARING_RANGE_SE2_XY, so a
+    /// solved GTSAM landmark file reads back as the same problem); `-` for standard output.
     #[arg(long)]
     out: Option<OutputArg>,
     /// Write the optimised trajectory in TUM format; `-` for standard output. The first column
