@@ -15,6 +15,7 @@ impl Session {
             options: st.options.clone(),
             auto_optimize: st.auto,
             factor_types: self.factor_types().names().to_vec(),
+            instance: None,
         }
     }
 
@@ -41,6 +42,7 @@ impl Session {
             corrupt: self.corruption().is_some(),
             factor_types: self.factor_types().names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
+            instance: None,
         };
         drop(st);
         if let Engine::Window(window) = &self.engine {

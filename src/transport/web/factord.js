@@ -487,6 +487,7 @@
           item('iterations', fmtInt(iterationCount(sum))), item('solves', fmtInt(s.solves)),
           item('sequence', `${fmtInt(s.solved_sequence)} / ${fmtInt(s.sequence)}`),
           ...(s.pending_batches ? [item('pending batches', fmtInt(s.pending_batches))] : []),
+          ...(s.instance ? [item('instance', s.instance)] : []), // in a fleet: the owner
           ...incrementalItems(sum && sum.used && sum.used.incremental, item));
         setStatus(status, `updated ${clock()}`);
       } catch (e) {
