@@ -29,9 +29,10 @@ pub struct SolveArgs {
     /// Edges file, when vertices and edges are in two files (course `-v.dat` / `-e.dat`).
     #[arg(long)]
     edges: Option<InputArg>,
-    /// gn | lm | dogleg
+    /// Solver: gn (Gauss-Newton) | lm (Levenberg-Marquardt) | dogleg (Powell's dogleg)
     #[arg(long, default_value = "gn", value_parser = parse_method)]
     method: Method,
+    /// Stop after this many iterations (the solve then reports it did not converge)
     #[arg(long, default_value_t = 100)]
     max_iterations: usize,
     /// none | chordal | auto (chordal when it lowers the initial chi2)
@@ -54,6 +55,7 @@ pub struct SolveArgs {
     /// `# rejected: EDGE_…`).
     #[arg(long, requires = "out")]
     drop_rejected: bool,
+    /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
     /// Write the optimised graph as g2o whatever the extension (the format that carries values
