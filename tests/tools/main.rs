@@ -16,3 +16,4 @@ mod fresh_environments;
 mod help_texts;
 mod logging;
 mod python;
+mod secrets_ignored;
