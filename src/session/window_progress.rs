@@ -7,7 +7,7 @@
 use crate::api::wire::SessionStats;
 use crate::fusion::gauss_newton::WindowUpdate;
 use crate::fusion::window::SlidingWindow;
-use crate::solver::summary::{Timings, UsedOptions};
+use crate::solver::summary::{non_negative_chi2, Timings, UsedOptions};
 use crate::solver::{Summary, Termination, TerminationReason};
 
 /// A window session's counters. Locked after the window (never the other way round) and
@@ -47,7 +47,7 @@ impl WindowProgress {
     ) {
         self.solves += 1;
         self.solved_sequence = self.sequence + 1;
-        self.chi2 = Some(non_negative(update.chi2));
+        self.chi2 = Some(non_negative_chi2(update.chi2));
         self.converged = update.converged;
         self.last_summary = Some(summary(window, update, seconds));
     }
@@ -62,15 +62,6 @@ impl WindowProgress {
         stats.chi2 = self.chi2;
         stats.converged = self.converged || self.solves == 0;
         stats.last_summary = self.last_summary.clone();
-    }
-}
-
-/// A χ², with round-off below zero as 0 (NaN kept: it reports a failure).
-fn non_negative(chi2: f64) -> f64 {
-    if chi2 < 0.0 {
-        0.0
-    } else {
-        chi2
     }
 }
 
@@ -122,9 +113,9 @@ fn summary(window: &SlidingWindow, update: &WindowUpdate, seconds: f64) -> Summa
         jacobian_nnz_blocks: factors.iter().map(|f| f.factor.keys().len()).sum(),
         hessian_nnz: 0,
         factor_nnz: 0,
-        initial_chi2: non_negative(update.initial_chi2),
+        initial_chi2: non_negative_chi2(update.initial_chi2),
         initialized_chi2: None,
-        final_chi2: non_negative(update.chi2),
+        final_chi2: non_negative_chi2(update.chi2),
         iterations: update.iterations,
         successful_steps: update.iterations,
         unsuccessful_steps: 0,
