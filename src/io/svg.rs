@@ -5,8 +5,9 @@
 //! Positions come from [`Variable::position`](crate::variables::Variable::position); 3D graphs (any z ≠ 0) are drawn from above (x-y)
 //! and from the side (x-z), each panel with its axes' tick labels in metres. Poses are the
 //! trajectory line; landmarks (kinds drawn as [`Shape::Landmark`], Victoria Park's trees) are dots
-//! of their own, never part of the line. Loop closures are factors between two poses whose keys
-//! are not consecutive (a landmark sighting is none).
+//! of their own, never part of the line. Loop closures are factors between two poses that are
+//! not neighbours in key order (ids may skip: Victoria Park's poses skip the ids its landmarks
+//! had; a landmark sighting is none), as the web view counts them.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -38,6 +39,7 @@ pub fn before_after(
     let landmark: Vec<bool> = (0..optimum.len())
         .map(|v| is_landmark(optimum.variable(v)))
         .collect();
+    let rank = pose_ranks(optimum, &landmark);
     let has_height = before.iter().chain(&after).flatten().any(|p| p[2] != 0.0);
     let views: &[View] = if has_height {
         &[View::TOP, View::SIDE]
@@ -66,6 +68,7 @@ pub fn before_after(
             optimum,
             factors,
             landmark: &landmark,
+            rank: &rank,
         };
         trajectory(&mut svg, &drawn, *view, left, MARGIN);
         left += PANEL + MARGIN;
@@ -99,6 +102,18 @@ fn is_landmark(variable: &dyn Variable) -> bool {
     [point2::WIRE, point3::WIRE]
         .iter()
         .any(|wire| wire.kind == variable.kind() && wire.shape == Shape::Landmark)
+}
+
+/// Each variable's place among the poses sorted by key (landmarks get `usize::MAX`): two poses
+/// one place apart are odometry neighbours, whatever ids lie between them.
+fn pose_ranks(values: &Values, landmark: &[bool]) -> Vec<usize> {
+    let mut poses: Vec<usize> = (0..values.len()).filter(|&v| !landmark[v]).collect();
+    poses.sort_by_key(|&v| values.key(v));
+    let mut rank = vec![usize::MAX; values.len()];
+    for (place, v) in poses.into_iter().enumerate() {
+        rank[v] = place;
+    }
+    rank
 }
 
 /// `positions` split by `landmark` (one flag per variable): the trajectory's points in variable
@@ -150,6 +165,8 @@ struct Drawn<'a> {
     factors: &'a [FactorEntry],
     /// Per variable: drawn as a landmark dot.
     landmark: &'a [bool],
+    /// Per variable: its place among the poses in key order (see [`pose_ranks`]).
+    rank: &'a [usize],
 }
 
 /// Maps world x-y into a square panel at (`left`, `top`) with equal scales, y up.
@@ -231,10 +248,7 @@ fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) 
     let mut path = String::new();
     for f in drawn.factors {
         let &[a, b] = f.variables() else { continue };
-        if drawn.landmark[a]
-            || drawn.landmark[b]
-            || drawn.optimum.key(a).abs_diff(drawn.optimum.key(b)) == 1
-        {
+        if drawn.landmark[a] || drawn.landmark[b] || drawn.rank[a].abs_diff(drawn.rank[b]) == 1 {
             continue;
         }
         if let (Some(pa), Some(pb)) = (drawn.after[a], drawn.after[b]) {
@@ -487,8 +501,8 @@ mod tests {
     use crate::geometry::{Point2, Se2};
     use crate::problem::Problem;
 
-    /// Two poses and a landmark 10 m to the side, which lies between the poses in key order
-    /// (as Victoria Park's landmark keys do not, but file orders can).
+    /// Two poses and a landmark 10 m to the side whose id lies between theirs: pose ids skip
+    /// (as Victoria Park's skip the ids its landmarks had), and 0 → 7 is still odometry.
     fn poses_and_a_landmark() -> Problem {
         let mut problem = Problem::new();
         problem
@@ -498,9 +512,9 @@ mod tests {
             .add_variable(5, Box::new(Point2(Vector2::new(0.5, 10.0))))
             .unwrap();
         problem
-            .add_variable(1, Box::new(Se2::new(1.0, 0.0, 0.0)))
+            .add_variable(7, Box::new(Se2::new(1.0, 0.0, 0.0)))
             .unwrap();
-        let odometry = Box::new(BetweenSe2::new(0, 1, Se2::new(1.0, 0.0, 0.0)));
+        let odometry = Box::new(BetweenSe2::new(0, 7, Se2::new(1.0, 0.0, 0.0)));
         problem
             .add_factor(odometry, &DMatrix::identity(3, 3), None, "odometry")
             .unwrap();
@@ -524,12 +538,15 @@ mod tests {
         assert_eq!(dots, [[0.5, 10.0, 0.0]]);
 
         let all = positions(values);
+        let rank = pose_ranks(values, &landmark);
+        assert_eq!(rank, [0, usize::MAX, 1]);
         let drawn = Drawn {
             before: &all,
             after: &all,
             optimum: values,
             factors: problem.factors(),
             landmark: &landmark,
+            rank: &rank,
         };
         let mut svg = String::new();
         trajectory(&mut svg, &drawn, View::TOP, 0.0, 0.0);
@@ -551,7 +568,7 @@ mod tests {
         assert!(svg.contains("landmarks (1)"), "{svg}");
         assert!(
             svg.contains("loop closures (0)"),
-            "a sighting is no loop closure: {svg}"
+            "a sighting is no loop closure, nor odometry over a skipped id: {svg}"
         );
     }
 }

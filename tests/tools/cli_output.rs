@@ -276,4 +276,10 @@ fn a_landmark_graph_round_trips_through_out_and_plots_landmarks_as_dots() {
         .find(|l| l.contains(r#"class="landmarks""#))
         .expect("landmarks drawn as dots");
     assert_eq!(dots.matches('M').count(), 151);
+    // Its odometry is a chain over pose ids that skip the landmarks' old ids: no loop closure.
+    assert!(
+        svg.contains("loop closures (0)"),
+        "{}",
+        &svg[svg.len() - 600..]
+    );
 }
