@@ -408,6 +408,9 @@ pub struct SessionStats {
     /// Names of the factor types declared at creation, when any.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub factor_types: Vec<String>,
+    /// In a fleet: the id of the instance that owns the session (and answered).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instance: Option<String>,
 }
 
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
@@ -419,6 +422,9 @@ pub struct SessionInfo {
     /// Names of the factor types declared at creation, when any.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub factor_types: Vec<String>,
+    /// In a fleet: the id of the instance that owns the session.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instance: Option<String>,
 }
 
 /// What a session streams out (SSE events, zenoh publications).

@@ -1,5 +1,5 @@
-//! `factord ba`: bundle adjustment of a BAL problem, optionally normalised and perturbed as in the
-//! course, with the cost in BAL's ½Σ‖r‖² convention.
+//! `factord ba`: bundle adjustment of a BAL problem, optionally normalised and perturbed as
+//! Ceres' `BALProblem` does, with the cost in BAL's ½Σ‖r‖² convention.
 
 use std::time::Instant;
 
@@ -19,11 +19,13 @@ pub struct BaArgs {
     /// BAL problem file; `-` reads standard input. A relative path not found here is looked up
     /// under $FACTORD_DATA.
     problem: InputArg,
-    /// gn | lm | dogleg
+    /// Solver: gn (Gauss-Newton) | lm (Levenberg-Marquardt) | dogleg (Powell's dogleg)
     #[arg(long, default_value = "lm", value_parser = parse_method)]
     method: Method,
+    /// Stop after this many iterations (the solve then reports it did not converge)
     #[arg(long, default_value_t = 100)]
     max_iterations: usize,
+    /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
     /// auto | sparse_cholesky | dense_schur | sparse_schur (auto: Schur complement of the
@@ -50,11 +52,13 @@ pub struct BaArgs {
     /// output.
     #[arg(long)]
     ply_initial: Option<OutputArg>,
+    /// The point cloud after the solve, as --ply-initial; `-` for standard output.
     #[arg(long)]
     ply_final: Option<OutputArg>,
     /// Write the optimised problem in BAL format; `-` for standard output.
     #[arg(long)]
     out: Option<OutputArg>,
+    /// Print only errors (no Ceres-style iteration rows or report)
     #[arg(long)]
     quiet: bool,
 }

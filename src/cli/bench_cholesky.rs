@@ -11,8 +11,10 @@ pub struct BenchCholeskyArgs {
     /// Graph file; `-` reads standard input. A relative path not found here is looked up under
     /// $FACTORD_DATA.
     graph: InputArg,
+    /// Edges file, when vertices and edges are in two files (TORO `-v.dat` / `-e.dat` pairs)
     #[arg(long)]
     edges: Option<InputArg>,
+    /// Factorise (and solve) this many times at the optimum; the table gives the median times
     #[arg(long, default_value_t = 50)]
     repeat: usize,
     /// Matrix Market output of H (lower triangle, symmetric); `-` for standard output.

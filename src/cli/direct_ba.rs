@@ -21,14 +21,17 @@ pub struct DirectBaArgs {
     /// Directory with poses.txt, points.txt and 0.png, 1.png, … (a relative path not found here
     /// is looked up under $FACTORD_DATA)
     dir: PathBuf,
-    /// Pinhole intrinsics fx,fy,cx,cy [default: the course's 277.34,291.402,312.234,239.777]
+    /// Pinhole intrinsics fx,fy,cx,cy [default: those of the Shenlan visual SLAM course's PA7
+    /// framework, 277.34,291.402,312.234,239.777]
     #[arg(long, value_parser = parse_intrinsics)]
     intrinsics: Option<Pinhole>,
     /// Robust kernel on every patch residual (16 gray levels), e.g. huber:40 or none
     #[arg(long, default_value = "huber:40", value_parser = parse_optional_robust)]
     robust: OptionalRobust,
+    /// Stop after this many iterations (the solve then reports it did not converge)
     #[arg(long, default_value_t = 100)]
     max_iterations: usize,
+    /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
     /// Write the Summary plus the per-image patch agreement before and after as JSON; `-` for
@@ -38,8 +41,10 @@ pub struct DirectBaArgs {
     /// Points and camera trajectory before and after, as PLY; `-` for standard output.
     #[arg(long)]
     ply_initial: Option<OutputArg>,
+    /// Points and camera trajectory after the solve, as PLY; `-` for standard output.
     #[arg(long)]
     ply_final: Option<OutputArg>,
+    /// Print only errors
     #[arg(long)]
     quiet: bool,
 }

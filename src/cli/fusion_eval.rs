@@ -33,6 +33,7 @@ pub struct FusionEvalArgs {
     /// Seconds of the sequence to use
     #[arg(long, default_value_t = 140.0)]
     seconds: f64,
+    /// Seed of the simulated measurement noise (relative poses and priors)
     #[arg(long, default_value_t = 2024)]
     seed: u64,
     /// Leave out the IMU (keyframes linked by relative poses and priors only)

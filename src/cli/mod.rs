@@ -42,13 +42,16 @@ pub struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Optimise a pose graph file (g2o, TORO, or a course vertices/edges pair).
+    /// Optimise a pose graph file (g2o, TORO, GTSAM's landmark text, or a TORO vertices/edges pair
+    /// such as the ls_slam homework's `-v.dat`/`-e.dat`).
     Solve(solve::SolveArgs),
     /// Run the service: HTTP API, zenoh peer, worker pool (see docs/guide/operations.md).
     Serve(serve::ServeArgs),
-    /// Bundle adjustment of a BAL problem (optionally normalised and perturbed, as the course).
+    /// Bundle adjustment of a BAL problem (optionally normalised and perturbed as Ceres'
+    /// BALProblem does).
     Ba(ba::BaArgs),
-    /// Direct (photometric) bundle adjustment of the course's images, poses and point patches.
+    /// Direct (photometric) bundle adjustment of images, poses and point patches (the Shenlan
+    /// visual SLAM course's PA7 homework data, $FACTORD_DATA/direct_ba).
     DirectBa(direct_ba::DirectBaArgs),
     /// The sliding-window fusion experiment on EuRoC: make the inputs, run the window, report APE.
     FusionEval(fusion_eval::FusionEvalArgs),

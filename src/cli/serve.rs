@@ -93,7 +93,7 @@ pub struct ServeArgs {
     #[arg(long, env = "FACTORD_FLEET_LEASE_MS", value_parser = clap::value_parser!(u64).range(500..=60_000))]
     fleet_lease_ms: Option<u64>,
     /// Log filter: a level (error | warn | info | debug | trace | off) or RUST_LOG-style
-    /// directives, e.g. factord=debug,zenoh=warn [default: info]
+    /// directives, e.g. factord=debug,zenoh=warn
     #[arg(long, env = "FACTORD_LOG", default_value = "info", value_parser = parse_log_filter)]
     log: LogFilter,
     /// Log lines as text (coloured only on a terminal) or as one JSON object per line

@@ -29,9 +29,10 @@ pub struct SolveArgs {
     /// Edges file, when vertices and edges are in two files (course `-v.dat` / `-e.dat`).
     #[arg(long)]
     edges: Option<InputArg>,
-    /// gn | lm | dogleg
+    /// Solver: gn (Gauss-Newton) | lm (Levenberg-Marquardt) | dogleg (Powell's dogleg)
     #[arg(long, default_value = "gn", value_parser = parse_method)]
     method: Method,
+    /// Stop after this many iterations (the solve then reports it did not converge)
     #[arg(long, default_value_t = 100)]
     max_iterations: usize,
     /// none | chordal | auto (chordal when it lowers the initial chi2)
@@ -54,9 +55,12 @@ pub struct SolveArgs {
     /// `# rejected: EDGE_…`).
     #[arg(long, requires = "out")]
     drop_rejected: bool,
+    /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// Write the optimised graph (g2o format); `-` for standard output.
+    /// Write the optimised graph as g2o whatever the extension (the format that carries values
+    /// and every factor we read; landmarks as VERTEX_XY and EDGE_BEARING_RANGE_SE2_XY, so a
+    /// solved GTSAM landmark file reads back as the same problem); `-` for standard output.
     #[arg(long)]
     out: Option<OutputArg>,
     /// Write the optimised trajectory in TUM format; `-` for standard output. The first column

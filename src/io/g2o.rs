@@ -1,4 +1,11 @@
-//! g2o files: `VERTEX_SE2`, `EDGE_SE2`, `VERTEX_SE3:QUAT`, `EDGE_SE3:QUAT`, `FIX`.
+//! g2o files: `VERTEX_SE2`, `EDGE_SE2`, `VERTEX_SE3:QUAT`, `EDGE_SE3:QUAT`, `FIX`, and planar
+//! landmarks: `VERTEX_XY key x y` (g2o's tag) with
+//! `EDGE_BEARING_RANGE_SE2_XY pose landmark bearing range Ω_bb Ω_br Ω_rr` (bearing in radians, range
+//! in metres, information upper triangle as every edge), our own record for the bearing-range
+//! sightings of GTSAM's landmark text (g2o has a bearing-only `EDGE_BEARING_SE2_XY`, no
+//! bearing-range edge), so a solved `victoria_park.txt` written with `--out` reads back as the
+//! same problem. Keys in these two records are read as exact 64-bit integers (GTSAM's landmark
+//! keys `('l' << 56) | l` are beyond f64's integers).
 //!
 //! Information matrices are the upper triangle, row-major. For 3D the file's Ω (order t, R) is
 //! defined on g2o's error `[t; vec(q)]`, where `vec(q) ≈ Log(R)/2`; our SE(3) factor's rotation
@@ -13,10 +20,11 @@ use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
 
 use super::edges::{add_edges, Edge};
 use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
-use crate::factors::{BetweenSe2, BetweenSe3};
+use crate::factors::{BearingRangeSe2, BetweenSe2, BetweenSe3};
 use crate::geometry::{Point2, Se2, Se3};
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Problem, Values, Variable};
+use nalgebra::Vector2;
 
 /// Symmetric n×n from its upper triangle, row-major.
 fn upper_triangle(n: usize, f: &[f64]) -> DMatrix<f64> {
@@ -53,11 +61,24 @@ fn quaternion(path: &Path, number: usize, f: &[f64]) -> Result<UnitQuaternion<f6
     Ok(UnitQuaternion::from_quaternion(q))
 }
 
+/// The key in field `field` (1-based) of `line`, as an exact 64-bit integer.
+fn exact_key(path: &Path, line: &super::Line, field: usize) -> Result<Key, IoError> {
+    let token = line.tokens[field];
+    token.parse::<Key>().map_err(|_| {
+        parse_error(
+            path,
+            line.number,
+            format!("field {field} (`{token}`) is not a valid id"),
+        )
+    })
+}
+
 pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
     let mut problem = Problem::new();
     let mut order = Vec::new();
     let mut edges = Vec::new();
     let mut fixes = Vec::new();
+    let mut sightings = Vec::new();
     let mut dimension = None;
     for &(path, text) in files {
         for line in lines(text) {
@@ -69,6 +90,21 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
                         .add_variable(key, Box::new(Se2::new(f[1], f[2], f[3])))
                         .map_err(|e| problem_error(path, line.number, e))?;
                     order.push(key);
+                    Some(Dimension::Two)
+                }
+                "VERTEX_XY" => {
+                    let f = numbers(path, &line, 3)?;
+                    let key = exact_key(path, &line, 1)?;
+                    problem
+                        .add_variable(key, Box::new(Point2(Vector2::new(f[1], f[2]))))
+                        .map_err(|e| problem_error(path, line.number, e))?;
+                    order.push(key);
+                    Some(Dimension::Two)
+                }
+                "EDGE_BEARING_RANGE_SE2_XY" => {
+                    let f = numbers(path, &line, 7)?;
+                    let (pose, landmark) = (exact_key(path, &line, 1)?, exact_key(path, &line, 2)?);
+                    sightings.push((path, line.number, pose, landmark, f));
                     Some(Dimension::Two)
                 }
                 "VERTEX_SE3:QUAT" => {
@@ -156,6 +192,21 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             }
         });
     }
+    for (path, number, pose, landmark, f) in sightings {
+        if f[3] < 0.0 {
+            return Err(parse_error(path, number, "a range cannot be negative"));
+        }
+        built.push(Edge {
+            factor: Box::new(BearingRangeSe2::new(pose, landmark, f[2], f[3])),
+            information: upper_triangle(2, &f[4..7]),
+            label: format!(
+                "EDGE_BEARING_RANGE_SE2_XY {pose} {landmark} ({}:{number})",
+                path.display()
+            ),
+            path,
+            line: number,
+        });
+    }
     let origin: Box<dyn Variable> = match dimension {
         Dimension::Two => Box::new(Se2::identity()),
         Dimension::Three => Box::new(Se3::identity()),
@@ -228,6 +279,16 @@ pub fn to_string_marking(graph: &PoseGraph, rejected: &[usize]) -> String {
                 z.theta,
                 information_upper(&info)
             );
+        } else if let Some(b) = f.factor.as_any().downcast_ref::<BearingRangeSe2>() {
+            let _ = writeln!(
+                out,
+                "{mark}EDGE_BEARING_RANGE_SE2_XY {} {} {} {}{}",
+                keys[0],
+                keys[1],
+                b.bearing,
+                b.range,
+                information_upper(&info)
+            );
         } else if let Some(b) = f.factor.as_any().downcast_ref::<BetweenSe3>() {
             let (t, q) = (b.measurement.translation, b.measurement.rotation);
             let d = rotation_scaling(false);
@@ -245,6 +306,9 @@ pub fn to_string_marking(graph: &PoseGraph, rejected: &[usize]) -> String {
                 q.w,
                 information_upper(&(&d * info * &d))
             );
+        } else {
+            // Visible rather than silently missing: the file then reads back without it.
+            let _ = writeln!(out, "# not written (no g2o record for it): {}", f.label);
         }
     }
     let fixed: Vec<Key> = (0..values.len())

@@ -3,8 +3,11 @@
 //! plot (χ² per iteration on a log scale).
 //!
 //! Positions come from [`Variable::position`](crate::variables::Variable::position); 3D graphs (any z ≠ 0) are drawn from above (x-y)
-//! and from the side (x-z), each panel with its axes' tick labels in metres. Loop closures are
-//! factors between two drawn variables whose keys are not consecutive.
+//! and from the side (x-z), each panel with its axes' tick labels in metres. Poses are the
+//! trajectory line; landmarks (kinds drawn as [`Shape::Landmark`], Victoria Park's trees) are dots
+//! of their own, never part of the line. Loop closures are factors between two poses that are
+//! not neighbours in key order (ids may skip: Victoria Park's poses skip the ids its landmarks
+//! had; a landmark sighting is none), as the web view counts them.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -13,6 +16,7 @@ use super::IoError;
 use crate::problem::FactorEntry;
 use crate::problem::Values;
 use crate::solver::Summary;
+use crate::variables::{point2, point3, Shape, Variable};
 
 const PANEL: f64 = 560.0;
 const MARGIN: f64 = 64.0;
@@ -21,6 +25,7 @@ const AXIS_ROOM: f64 = 40.0;
 const INITIAL: &str = "#e8a33d";
 const OPTIMUM: &str = "#1f4e9c";
 const LOOP: &str = "#c0392b";
+const LANDMARK: &str = "#2e8b57";
 
 /// The picture of `initial` → `optimum` with `summary`'s iterations.
 pub fn before_after(
@@ -31,6 +36,10 @@ pub fn before_after(
     title: &str,
 ) -> String {
     let (before, after) = (positions(initial), positions(optimum));
+    let landmark: Vec<bool> = (0..optimum.len())
+        .map(|v| is_landmark(optimum.variable(v)))
+        .collect();
+    let rank = pose_ranks(optimum, &landmark);
     let has_height = before.iter().chain(&after).flatten().any(|p| p[2] != 0.0);
     let views: &[View] = if has_height {
         &[View::TOP, View::SIDE]
@@ -58,6 +67,8 @@ pub fn before_after(
             after: &after,
             optimum,
             factors,
+            landmark: &landmark,
+            rank: &rank,
         };
         trajectory(&mut svg, &drawn, *view, left, MARGIN);
         left += PANEL + MARGIN;
@@ -84,6 +95,41 @@ fn positions(values: &Values) -> Vec<Option<[f64; 3]>> {
     (0..values.len())
         .map(|v| values.variable(v).position())
         .collect()
+}
+
+/// Whether `variable` is drawn as a landmark dot rather than a point of the trajectory.
+fn is_landmark(variable: &dyn Variable) -> bool {
+    [point2::WIRE, point3::WIRE]
+        .iter()
+        .any(|wire| wire.kind == variable.kind() && wire.shape == Shape::Landmark)
+}
+
+/// Each variable's place among the poses sorted by key (landmarks get `usize::MAX`): two poses
+/// one place apart are odometry neighbours, whatever ids lie between them.
+fn pose_ranks(values: &Values, landmark: &[bool]) -> Vec<usize> {
+    let mut poses: Vec<usize> = (0..values.len()).filter(|&v| !landmark[v]).collect();
+    poses.sort_by_key(|&v| values.key(v));
+    let mut rank = vec![usize::MAX; values.len()];
+    for (place, v) in poses.into_iter().enumerate() {
+        rank[v] = place;
+    }
+    rank
+}
+
+/// `positions` split by `landmark` (one flag per variable): the trajectory's points in variable
+/// order, and the landmarks' points.
+fn split(positions: &[Option<[f64; 3]>], landmark: &[bool]) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let (mut path, mut dots) = (Vec::new(), Vec::new());
+    for (p, &is_landmark) in positions.iter().zip(landmark) {
+        if let Some(p) = p {
+            if is_landmark {
+                dots.push(*p);
+            } else {
+                path.push(*p);
+            }
+        }
+    }
+    (path, dots)
 }
 
 /// A projection of the world: which two axes the panel shows, and their names.
@@ -117,6 +163,10 @@ struct Drawn<'a> {
     after: &'a [Option<[f64; 3]>],
     optimum: &'a Values,
     factors: &'a [FactorEntry],
+    /// Per variable: drawn as a landmark dot.
+    landmark: &'a [bool],
+    /// Per variable: its place among the poses in key order (see [`pose_ranks`]).
+    rank: &'a [usize],
 }
 
 /// Maps world x-y into a square panel at (`left`, `top`) with equal scales, y up.
@@ -172,11 +222,17 @@ fn polyline(svg: &mut String, frame: &Frame, points: &[[f64; 2]], style: &str) {
 }
 
 fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) {
-    let project = |points: &[Option<[f64; 3]>]| -> Vec<[f64; 2]> {
-        points.iter().flatten().map(|p| view.project(p)).collect()
+    let project = |points: &[Option<[f64; 3]>]| -> (Vec<[f64; 2]>, Vec<[f64; 2]>) {
+        let (path, dots) = split(points, drawn.landmark);
+        let flat = |p: Vec<[f64; 3]>| p.iter().map(|p| view.project(p)).collect();
+        (flat(path), flat(dots))
     };
-    let (before, after) = (project(drawn.before), project(drawn.after));
-    let frame = Frame::fit(before.iter().chain(&after).copied(), left, top);
+    let ((before, _), (after, landmarks)) = (project(drawn.before), project(drawn.after));
+    let frame = Frame::fit(
+        before.iter().chain(&after).chain(&landmarks).copied(),
+        left,
+        top,
+    );
     let _ = writeln!(
         svg,
         r##"<rect x="{left}" y="{top}" width="{PANEL}" height="{PANEL}" fill="none" stroke="#ccc"/>"##
@@ -192,7 +248,7 @@ fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) 
     let mut path = String::new();
     for f in drawn.factors {
         let &[a, b] = f.variables() else { continue };
-        if drawn.optimum.key(a).abs_diff(drawn.optimum.key(b)) == 1 {
+        if drawn.landmark[a] || drawn.landmark[b] || drawn.rank[a].abs_diff(drawn.rank[b]) == 1 {
             continue;
         }
         if let (Some(pa), Some(pb)) = (drawn.after[a], drawn.after[b]) {
@@ -214,6 +270,17 @@ fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) 
         &after,
         &format!(r#"stroke="{OPTIMUM}" stroke-width="1.2""#),
     );
+    let mut dots = String::new();
+    for p in &landmarks {
+        let (x, y) = frame.map(*p);
+        let _ = write!(dots, "M{x:.1},{y:.1}h0");
+    }
+    if !landmarks.is_empty() {
+        let _ = writeln!(
+            svg,
+            r#"<path class="landmarks" d="{dots}" stroke="{LANDMARK}" stroke-width="3" stroke-linecap="round" fill="none"/>"#
+        );
+    }
     // View name, legend and scale bar.
     let _ = writeln!(
         svg,
@@ -225,7 +292,15 @@ fn trajectory(svg: &mut String, drawn: &Drawn, view: View, left: f64, top: f64) 
     let y = top + PANEL + 20.0 + AXIS_ROOM;
     let _ = writeln!(
         svg,
-        r#"<text x="{left}" y="{y}"><tspan fill="{INITIAL}">━ initial guess</tspan>  <tspan fill="{OPTIMUM}">━ optimum</tspan>  <tspan fill="{LOOP}">━ loop closures ({loops})</tspan></text>"#
+        r#"<text x="{left}" y="{y}"><tspan fill="{INITIAL}">━ initial guess</tspan>  <tspan fill="{OPTIMUM}">━ optimum</tspan>  <tspan fill="{LOOP}">━ loop closures ({loops})</tspan>{}</text>"#,
+        if landmarks.is_empty() {
+            String::new()
+        } else {
+            format!(
+                r#"  <tspan fill="{LANDMARK}">● landmarks ({})</tspan>"#,
+                landmarks.len()
+            )
+        }
     );
     let metres = nice_length(PANEL / frame.scale / 5.0);
     let bar = metres * frame.scale;
@@ -415,4 +490,85 @@ fn convergence(svg: &mut String, summary: &Summary, left: f64, top: f64) {
         summary.final_chi2,
         summary.iterations
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{DMatrix, Vector2};
+
+    use super::*;
+    use crate::factors::{BearingRangeSe2, BetweenSe2};
+    use crate::geometry::{Point2, Se2};
+    use crate::problem::Problem;
+
+    /// Two poses and a landmark 10 m to the side whose id lies between theirs: pose ids skip
+    /// (as Victoria Park's skip the ids its landmarks had), and 0 → 7 is still odometry.
+    fn poses_and_a_landmark() -> Problem {
+        let mut problem = Problem::new();
+        problem
+            .add_variable(0, Box::new(Se2::new(0.0, 0.0, 0.0)))
+            .unwrap();
+        problem
+            .add_variable(5, Box::new(Point2(Vector2::new(0.5, 10.0))))
+            .unwrap();
+        problem
+            .add_variable(7, Box::new(Se2::new(1.0, 0.0, 0.0)))
+            .unwrap();
+        let odometry = Box::new(BetweenSe2::new(0, 7, Se2::new(1.0, 0.0, 0.0)));
+        problem
+            .add_factor(odometry, &DMatrix::identity(3, 3), None, "odometry")
+            .unwrap();
+        let sighting = Box::new(BearingRangeSe2::from_body_position(0, 5, 0.5, 10.0));
+        problem
+            .add_factor(sighting, &DMatrix::identity(2, 2), None, "sighting")
+            .unwrap();
+        problem
+    }
+
+    #[test]
+    fn landmarks_are_dots_and_not_points_of_the_trajectory_line() {
+        let problem = poses_and_a_landmark();
+        let values = &problem.values;
+        let landmark: Vec<bool> = (0..values.len())
+            .map(|v| is_landmark(values.variable(v)))
+            .collect();
+        assert_eq!(landmark, [false, true, false]);
+        let (path, dots) = split(&positions(values), &landmark);
+        assert_eq!(path, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]);
+        assert_eq!(dots, [[0.5, 10.0, 0.0]]);
+
+        let all = positions(values);
+        let rank = pose_ranks(values, &landmark);
+        assert_eq!(rank, [0, usize::MAX, 1]);
+        let drawn = Drawn {
+            before: &all,
+            after: &all,
+            optimum: values,
+            factors: problem.factors(),
+            landmark: &landmark,
+            rank: &rank,
+        };
+        let mut svg = String::new();
+        trajectory(&mut svg, &drawn, View::TOP, 0.0, 0.0);
+        let lines: Vec<&str> = svg.lines().filter(|l| l.contains("<polyline")).collect();
+        assert_eq!(lines.len(), 2, "initial guess and optimum: {svg}");
+        for line in lines {
+            let points = line.split("points=\"").nth(1).unwrap();
+            assert_eq!(
+                points.split(' ').count(),
+                2,
+                "two poses, no landmark: {line}"
+            );
+        }
+        let dots = svg
+            .lines()
+            .find(|l| l.contains(r#"class="landmarks""#))
+            .expect("the landmark is drawn");
+        assert_eq!(dots.matches('M').count(), 1, "{dots}");
+        assert!(svg.contains("landmarks (1)"), "{svg}");
+        assert!(
+            svg.contains("loop closures (0)"),
+            "a sighting is no loop closure, nor odometry over a skipped id: {svg}"
+        );
+    }
 }

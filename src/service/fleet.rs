@@ -443,6 +443,12 @@ impl Service {
         self.fleet.get()
     }
 
+    /// In a fleet, this instance's id: the owner of every session loaded here (what stats and
+    /// the session list name, so a client sees where a session lives).
+    pub fn owning_instance(&self) -> Option<String> {
+        self.fleet().map(|f| f.instance().to_string())
+    }
+
     /// Where the commands of session `name` go (always here outside a fleet).
     pub fn route(&self, name: &str) -> Route {
         let Some(fleet) = self.fleet() else {

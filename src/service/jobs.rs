@@ -420,7 +420,9 @@ impl Finished {
     fn answer(self, summary: Summary, outliers: Option<GncReport>) -> JobAnswer {
         match (&self.graph, self.output) {
             (Parsed::PoseGraph(g), JobOutput::G2o) => JobAnswer::Text(io::g2o::to_string(g)),
-            (Parsed::PoseGraph(g), JobOutput::Tum) => JobAnswer::Text(io::tum::to_string(g)),
+            (Parsed::PoseGraph(g), JobOutput::Tum) => {
+                JobAnswer::Text(io::tum::to_string_with_ids(g))
+            }
             (Parsed::Bal(b), JobOutput::Bal) => JobAnswer::Text(io::bal::to_string(b)),
             _ => {
                 let values = self.graph.values();

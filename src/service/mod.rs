@@ -296,7 +296,9 @@ impl Service {
         }
         self.notify_observers(&session);
         sessions.insert(name, Arc::clone(&session));
-        Ok(session.info())
+        let mut info = session.info();
+        info.instance = self.owning_instance();
+        Ok(info)
     }
 
     /// A name for an unnamed creation: the next `s<n>` that no session holds, listed or on disk

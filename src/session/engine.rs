@@ -45,6 +45,8 @@ pub(super) struct Window {
     /// Every keyframe that left the window, as it left (lag-smoothed), oldest first: with the
     /// window's own keyframes, the trajectory a `tum` export serves. Locked after `window`.
     pub(super) smoothed: Mutex<Vec<SmoothedKeyframe>>,
+    /// Its batch and solve counters and last summary, for stats. Locked after `window`.
+    pub(super) progress: Mutex<super::window_progress::WindowProgress>,
 }
 
 /// A keyframe's pose as it left the window (the velocity and biases are not kept: 64 bytes).
@@ -69,6 +71,7 @@ impl Engine {
             catalogue::SLIDING_WINDOW => Engine::Window(Window {
                 window: Mutex::new(None),
                 smoothed: Mutex::new(Vec::new()),
+                progress: Mutex::default(),
             }),
             "pose_graph_2d" => graph(2),
             _ => graph(3),

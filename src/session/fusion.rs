@@ -245,6 +245,23 @@ impl Session {
         batch: FusionBatch,
         applied: &mut usize,
     ) -> Result<FusionAck, ServiceError> {
+        let result = self.apply_fusion_messages(guard, batch, applied);
+        if *applied > 0 {
+            if let Engine::Window(engine) = &self.engine {
+                let mut progress = engine.progress.lock().unwrap_or_else(|p| p.into_inner());
+                progress.record_batch(guard.as_ref());
+            }
+        }
+        result
+    }
+
+    /// [`Self::apply_fusion_counted`] without the batch counter.
+    fn apply_fusion_messages(
+        &self,
+        guard: &mut Option<SlidingWindow>,
+        batch: FusionBatch,
+        applied: &mut usize,
+    ) -> Result<FusionAck, ServiceError> {
         let mut keyframes = Vec::new();
         *applied = 0;
         let mut pending = false;
@@ -338,6 +355,11 @@ impl Session {
                 .collect(),
         });
         if let Engine::Window(engine) = &self.engine {
+            engine
+                .progress
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .record_solve(w, &summary, started.elapsed().as_secs_f64());
             let mut smoothed = engine.smoothed.lock().unwrap_or_else(|p| p.into_inner());
             smoothed.extend(
                 w.departed()

@@ -29,6 +29,7 @@ use std::time::Instant;
 
 use crate::problem::{Gauge, Key, Problem};
 use crate::solver::incremental::{IncrementalEngine, UpdateContext, UpdateParams};
+use crate::solver::summary::non_negative_chi2;
 use crate::solver::{self, IterationReport, SolverError, SolverOptions, Summary};
 
 /// Problems smaller than this are always re-solved whole: a region would not pay off.
@@ -295,7 +296,7 @@ pub(crate) fn resolve(
                 Err(SolverError::IndeterminateSystem { .. }) => break,
                 Err(e) => return Err(e),
             };
-            total -= summary.initial_chi2 - summary.final_chi2;
+            total = non_negative_chi2(total - (summary.initial_chi2 - summary.final_chi2));
             if summary.termination.reason == solver::TerminationReason::Interrupted {
                 return Ok(Resolved {
                     converged: false,

@@ -61,6 +61,7 @@ mod state;
 mod stats;
 mod stream;
 mod window_marginals;
+mod window_progress;
 
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex, MutexGuard};

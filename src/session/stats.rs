@@ -15,12 +15,13 @@ impl Session {
             options: st.options.clone(),
             auto_optimize: st.auto,
             factor_types: self.factor_types().names().to_vec(),
+            instance: None,
         }
     }
 
     pub fn stats(&self) -> SessionStats {
         let st = self.lock();
-        SessionStats {
+        let mut stats = SessionStats {
             session: self.name.clone(),
             kind: self.kind.name.into(),
             sequence: st.mirror.sequence,
@@ -41,7 +42,14 @@ impl Session {
             corrupt: self.corruption().is_some(),
             factor_types: self.factor_types().names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
+            instance: None,
+        };
+        drop(st);
+        if let Engine::Window(window) = &self.engine {
+            let progress = window.progress.lock().unwrap_or_else(|p| p.into_inner());
+            progress.fill(&mut stats);
         }
+        stats
     }
 
     /// Why the last solve failed, or why the session is damaged (see `last_error_locked`):

@@ -295,3 +295,27 @@ impl Run {
         }
     }
 }
+
+/// A χ² obtained by subtraction (a model's `rᵀr − yᵀy`, a total less a decrease), which is never
+/// negative in exact arithmetic: round-off below zero at an exact optimum (a published
+/// `-7.006e-46`) is 0. NaN stays NaN: it reports a real failure.
+pub fn non_negative_chi2(chi2: f64) -> f64 {
+    if chi2 < 0.0 {
+        0.0
+    } else {
+        chi2
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::non_negative_chi2;
+
+    #[test]
+    fn round_off_below_zero_is_zero_and_nan_stays() {
+        assert_eq!(non_negative_chi2(1e-30 - (1e-30 + 1e-45)), 0.0);
+        assert_eq!(non_negative_chi2(-7.006e-46), 0.0);
+        assert_eq!(non_negative_chi2(2.0), 2.0);
+        assert!(non_negative_chi2(f64::NAN).is_nan());
+    }
+}

@@ -15,6 +15,7 @@ use axum::response::{IntoResponse, Response};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use crate::service::fleet::Route;
 use crate::service::{Caller, Service};
 
 const INDEX: &str = include_str!("web/index.html");
@@ -47,13 +48,17 @@ fn page(body: &'static str, content_type: &'static str) -> impl IntoResponse {
 /// would only find out from its first request). With tokens the page is open to anyone and the
 /// browser sends no token for it, so it is served whatever the name: the API calls it makes
 /// answer 404 for a session the token may not see, and the page says so; answering 404 here
-/// would tell strangers which sessions exist.
+/// would tell strangers which sessions exist. In a fleet a session another instance owns is
+/// not here to look up (the list links every session on the instance it came from): its page
+/// is served, and its API calls reach the owner.
 pub(crate) async fn session_page(
     State(service): State<Arc<Service>>,
     axum::Extension(caller): axum::Extension<Caller>,
     Path(session): Path<String>,
 ) -> Response {
-    let exists = !caller.sees_everything() || service.session_as(&caller, &session).is_ok();
+    let elsewhere = service.route(&session) != Route::Local;
+    let exists =
+        !caller.sees_everything() || elsewhere || service.session_as(&caller, &session).is_ok();
     match exists {
         true => page(SESSION, "text/html; charset=utf-8").into_response(),
         false => (

@@ -9,6 +9,7 @@ mod common;
 
 mod fleet;
 mod fleet_login;
+mod fleet_owner;
 mod fleet_robots;
 mod fleet_rpc_once;
 mod fleet_stopped_host;

@@ -358,3 +358,88 @@ async fn preintegrated_keyframes_over_http() {
         "{e}"
     );
 }
+
+/// A window session reports its own numbers (issue 56: stats said sequence 0, no variables, no
+/// factors, no solves, and `/summary` was 404 while the page drew every pose): one sequence per
+/// fusion batch, one solve per keyframe, the window's variables and factors, the last solve's
+/// χ² and its Summary; the same after a kill -9 and the journal's replay.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_window_session_reports_its_sequence_solves_and_summary() {
+    let Some(inputs) = inputs(3.0, 10) else {
+        return;
+    };
+    let s = TestServer::start(&[]);
+    let c = client();
+    let (status, created) = post(
+        &c,
+        &s.url("/v1/sessions"),
+        &json!({"session": "robot", "kind": "sliding_window"}),
+    )
+    .await;
+    assert_eq!(status, 201, "{created}");
+    let (status, e) = get(&c, &s.url("/v1/sessions/robot/summary")).await;
+    assert_eq!(status, 404, "nothing solved yet: {e}");
+    let url = s.url("/v1/sessions/robot/fusion");
+    let (status, reply) = post(&c, &url, &json!({"messages": [start_message(&inputs)]})).await;
+    assert_eq!(status, 200, "{reply}");
+    let batches = keyframe_batches(&inputs);
+    for batch in &batches {
+        let (status, reply) = post(&c, &url, &json!({"messages": batch})).await;
+        assert_eq!(status, 200, "{reply}");
+    }
+    let keyframes = batches.len() as u64;
+    assert!(keyframes >= 20, "{keyframes} keyframes");
+
+    let check = |stats: &Value, summary: &Value| {
+        assert_eq!(
+            stats["sequence"],
+            keyframes + 1,
+            "start + one per batch: {stats}"
+        );
+        assert_eq!(stats["solved_sequence"], keyframes + 1, "{stats}");
+        assert_eq!(
+            stats["solves"], keyframes,
+            "one solve per keyframe: {stats}"
+        );
+        let variables = stats["num_variables"].as_u64().unwrap();
+        let factors = stats["num_factors"].as_u64().unwrap();
+        // The window solves its 10 newest keyframes; the variables held fixed beside them are
+        // few, and nothing grows with the keyframes that left.
+        assert!((10..=40).contains(&variables), "{stats}");
+        assert_eq!(summary["num_free_variables"], 10, "{summary}");
+        assert!(factors >= 10, "{stats}");
+        let chi2 = stats["chi2"].as_f64().unwrap();
+        assert!(chi2.is_finite() && chi2 >= 0.0, "{stats}");
+        assert_eq!(summary["final_chi2"].as_f64().unwrap(), chi2, "{summary}");
+        assert_eq!(
+            summary["num_variables"], stats["num_variables"],
+            "{summary}"
+        );
+        assert_eq!(summary["num_factors"], stats["num_factors"], "{summary}");
+        assert!(summary["iterations"].as_u64().unwrap() >= 1, "{summary}");
+        (variables, factors, chi2)
+    };
+    let (status, stats) = get(&c, &s.url("/v1/sessions/robot")).await;
+    assert_eq!(status, 200, "{stats}");
+    let (status, summary) = get(&c, &s.url("/v1/sessions/robot/summary")).await;
+    assert_eq!(status, 200, "{summary}");
+    let before = check(&stats, &summary);
+    eprintln!("window session: {stats}");
+
+    let state_dir = s.state_dir.clone();
+    s.kill();
+    let s = TestServer::start_at(&state_dir, &[], &[]);
+    let (stats, seconds) =
+        common::server::recovered(&c, &s, "robot", std::time::Instant::now()).await;
+    let (status, summary) = get(&c, &s.url("/v1/sessions/robot/summary")).await;
+    assert_eq!(status, 200, "{summary}");
+    let after = check(&stats, &summary);
+    assert_eq!((after.0, after.1), (before.0, before.1));
+    assert!(
+        (after.2 - before.2).abs() <= 1e-6 * before.2.max(1e-9),
+        "χ² {} after replay ({seconds:.2}s) vs {}",
+        after.2,
+        before.2
+    );
+    s.assert_no_panic();
+}

@@ -93,7 +93,18 @@ async fn curl_style_batch_job() {
         .send()
         .await
         .unwrap();
-    assert_eq!(tum.text().await.unwrap().lines().count(), 300);
+    let tum = tum.text().await.unwrap();
+    // As `solve --tum` and session exports: a header says the first column is the vertex id.
+    assert_eq!(
+        tum.lines().next(),
+        Some(factord::io::tum::VERTEX_ID_HEADER.trim_end()),
+        "{tum}"
+    );
+    assert_eq!(
+        tum.lines().filter(|l| !l.starts_with('#')).count(),
+        300,
+        "{tum}"
+    );
 
     if let Some(intel) = common::data_file("2d/converted/intel_lsslam.g2o") {
         let body = std::fs::read(intel).unwrap();

@@ -310,6 +310,63 @@ async fn the_documented_examples_compile() {
     assert_eq!(info["factor_types"], json!(["barometric_altitude"]));
 }
 
+/// The JSON block after `<!-- example: {marker} -->` in the factor types guide.
+fn guide_example(marker: &str) -> Value {
+    let path = format!("{}/docs/guide/factor-types.md", env!("CARGO_MANIFEST_DIR"));
+    let guide = std::fs::read_to_string(path).unwrap();
+    let after = guide
+        .split(&format!("<!-- example: {marker} -->"))
+        .nth(1)
+        .unwrap_or_else(|| panic!("the guide has no example {marker}"));
+    let block = after
+        .split("```json")
+        .nth(1)
+        .and_then(|b| b.split("```").next())
+        .unwrap_or_else(|| panic!("no JSON block after {marker}"));
+    serde_json::from_str(block).unwrap_or_else(|e| panic!("{marker}: {e}\n{block}"))
+}
+
+/// The guide's session with a declared type and its batch, posted exactly as documented: the
+/// measurement is the parameters in declared order (beacon x, y, then the range), so pose 1
+/// lands where both ranges and the odometry agree (issue 56: the layout had to be guessed).
+#[tokio::test(flavor = "multi_thread")]
+async fn the_guides_batch_with_a_declared_type_solves_as_it_says() {
+    let s = TestServer::start(&["--no-journal"]);
+    let c = client();
+    let session = guide_example("user-factor-session");
+    let name = session["session"].as_str().unwrap().to_string();
+    let info = create(&c, &s, &session).await;
+    assert_eq!(info["factor_types"], json!(["beacon_range"]));
+    let (status, ack) = post(
+        &c,
+        &s.url(&format!("/v1/sessions/{name}/batches?wait=true")),
+        &guide_example("user-factor-batch"),
+    )
+    .await;
+    assert_eq!(status, 200, "{ack}");
+    let (status, stats) = get(&c, &s.url(&format!("/v1/sessions/{name}"))).await;
+    assert_eq!(status, 200, "{stats}");
+    let chi2 = stats["chi2"].as_f64().unwrap();
+    assert!(chi2 < 1e-9, "the documented measurements agree: χ² {chi2}");
+    let (status, estimate) = get(&c, &s.url(&format!("/v1/sessions/{name}/estimate"))).await;
+    assert_eq!(status, 200, "{estimate}");
+    let pose = estimate["variables"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|v| v["key"] == 1)
+        .expect("pose 1")["value"]
+        .clone();
+    let pose: Vec<f64> = serde_json::from_value(pose).unwrap();
+    for (got, want) in pose.iter().zip([1.0, 0.0, 0.0]) {
+        assert!(
+            (got - want).abs() < 1e-6,
+            "pose 1 at {pose:?}, the guide says (1, 0)"
+        );
+    }
+    s.assert_no_panic();
+}
+
 /// A type declared in a running session (`POST …/factor_types`) is journalled in order with the
 /// batches, listed in snapshots, and back after kill -9; a bad declaration changes nothing.
 #[tokio::test(flavor = "multi_thread")]

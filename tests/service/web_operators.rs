@@ -144,6 +144,24 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
             "the login form",
         )
         .await;
+    // Until the login the form is all there is: no red 401 line, no "loading…" table, no
+    // health panel, no "log out" (issue 56), also after the index's retry (every 2 s).
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    let before_login = browser
+        .script("const shown = (css) => [...document.querySelectorAll(css)].some((e) => e.offsetParent !== null); \
+                 return {status: document.getElementById('status').innerText, table: shown('table.sessions'), \
+                 health: shown('#health'), login: shown('#login-form'), logout: shown('#logout'), \
+                 text: document.body.innerText};")
+        .await;
+    assert_eq!(before_login["login"], true, "{before_login}");
+    for hidden in ["table", "health", "logout"] {
+        assert_eq!(before_login[hidden], false, "{hidden}: {before_login}");
+    }
+    let text = before_login["text"].as_str().unwrap();
+    assert!(
+        !text.contains("401") && !text.contains("loading") && !text.contains("retrying"),
+        "{text}"
+    );
     browser.type_into("#login-token", TOKEN).await;
     browser.click("#login-submit").await;
     tokio::time::sleep(Duration::from_millis(800)).await;
@@ -154,6 +172,10 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
         )
         .await;
     println!("index after login: {hooks}");
+    let logout = browser
+        .script("return document.getElementById('logout').hidden;")
+        .await;
+    assert_eq!(logout, json!(false), "log out is offered once logged in");
     // The cookie is HttpOnly: the page's scripts never see the token.
     let cookies = browser.script("return document.cookie;").await;
     assert!(
@@ -189,9 +211,32 @@ async fn operators_log_in_and_read_history_ellipses_and_outliers() {
         .script("return document.getElementById('log').innerText;")
         .await;
     assert!(
-        log.as_str().unwrap().contains("accepted") && log.as_str().unwrap().contains("solve"),
+        log.as_str().unwrap().contains("accepted")
+            && log.as_str().unwrap().contains("incremental update"),
         "{log}"
     );
+    // Colour by meaning: green only for a converged solve; an incremental update is neutral
+    // and never reads as a solve that failed to converge.
+    let entries = browser
+        .script("return [...document.querySelectorAll('#log li')].map((li) => [li.className, li.innerText]);")
+        .await;
+    let entries = entries.as_array().unwrap();
+    assert!(entries.iter().any(|e| e[0] == "update"), "{entries:?}");
+    for entry in entries {
+        let (class, text) = (entry[0].as_str().unwrap(), entry[1].as_str().unwrap());
+        if class == "summary" {
+            assert!(
+                !text.contains("not converged"),
+                "green but not converged: {text}"
+            );
+        }
+        if class == "update" {
+            assert!(
+                text.contains("incremental update") && !text.contains("iterations"),
+                "{text}"
+            );
+        }
+    }
 
     // Export links point at the estimate in each format.
     let hrefs = browser

@@ -206,6 +206,38 @@ async fn web_view_draws_sessions_being_fed() {
         "{listed}"
     );
     browser.screenshot(&shots.join("index.png")).await;
+    // No tokens on this server: nothing to log out of (issue 56).
+    let logout = browser
+        .script("return document.getElementById('logout').hidden;")
+        .await;
+    assert_eq!(
+        logout,
+        json!(true),
+        "log out shown on a server without tokens"
+    );
+
+    // The API page renders the descriptions' Markdown code spans, not their backticks.
+    browser.open(&s.url("/v1/docs")).await;
+    let docs = browser
+        .wait_for(
+            "document.querySelectorAll('#schemas .schema').length > 10",
+            "the API page",
+        )
+        .await;
+    println!("docs: {docs}");
+    let rendered = browser
+        .script("return [document.querySelector('main').innerText, document.querySelectorAll('#operations p code, #operations td code, #schemas p code, #schemas td span code').length];")
+        .await;
+    let text = rendered[0].as_str().unwrap();
+    assert!(
+        !text.contains('`'),
+        "raw backticks on /v1/docs: {}",
+        text.lines().find(|l| l.contains('`')).unwrap_or("")
+    );
+    assert!(
+        rendered[1].as_u64().unwrap() >= 20,
+        "code spans: {rendered}"
+    );
 
     // An unknown session is a 404 page, not an empty view.
     let missing = c.get(s.url("/sessions/nobody")).send().await.unwrap();

@@ -180,3 +180,106 @@ fn bench_cholesky_prints_a_table_json_on_request_and_the_matrix_to_stdout() {
     );
     assert!(table.contains("supernodal"), "{table}");
 }
+
+/// Victoria Park (GTSAM's landmark text) through `solve --out`: the g2o written reads back as the
+/// same problem (every pose, landmark, odometry and bearing-range sighting) at the optimum's χ²;
+/// the plot draws the poses as the line and the landmarks as dots apart from it.
+#[test]
+fn a_landmark_graph_round_trips_through_out_and_plots_landmarks_as_dots() {
+    let Some(input) = common::data_file("2d/gtsam/victoria_park.txt") else {
+        return;
+    };
+    let dir = common::temp_dir("cli-landmark-out");
+    let (out, summary, plot) = (
+        dir.join("vp.g2o"),
+        dir.join("summary.json"),
+        dir.join("vp.svg"),
+    );
+    factord()
+        .arg("solve")
+        .arg(&input)
+        .args(["--quiet", "--max-iterations", "8", "--out"])
+        .arg(&out)
+        .arg("--summary-json")
+        .arg(&summary)
+        .arg("--plot")
+        .arg(&plot)
+        .succeeds();
+    let original = factord::io::load(&input, None).unwrap();
+    let written = factord::io::load(&out, None).unwrap();
+    let count = |graph: &factord::io::PoseGraph, kind: &str| {
+        let values = &graph.problem.values;
+        (0..values.len())
+            .filter(|&v| values.variable(v).kind() == kind)
+            .count()
+    };
+    for kind in ["se2", "point2"] {
+        assert_eq!(count(&written, kind), count(&original, kind), "{kind}");
+    }
+    assert_eq!(count(&original, "point2"), 151);
+    assert_eq!(
+        written.problem.factors().len(),
+        original.problem.factors().len()
+    );
+    let sightings = |graph: &factord::io::PoseGraph| {
+        graph
+            .problem
+            .factors()
+            .iter()
+            .filter(|f| f.factor.keys().len() == 2 && f.factor.residual_dim() == 2)
+            .count()
+    };
+    assert_eq!(sightings(&written), sightings(&original));
+    assert!(sightings(&original) >= 3640, "{}", sightings(&original));
+
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+    let optimum = summary["final_chi2"].as_f64().unwrap();
+    let read_back = written.problem.chi2();
+    assert!(
+        (read_back - optimum).abs() <= 1e-9 * optimum,
+        "χ² read back {read_back} vs the optimum's {optimum}"
+    );
+    // The original problem at the written values scores the same: the factors are the same.
+    let mut at_written = original;
+    for v in 0..written.problem.values.len() {
+        let key = written.problem.values.key(v);
+        let value = written.problem.values.variable(v).clone_box();
+        let index = at_written.problem.values.index_of(key).expect("same keys");
+        assert!(at_written
+            .problem
+            .values
+            .variable_mut(index)
+            .assign_from(value.as_ref()));
+    }
+    let original_chi2 = at_written.problem.chi2();
+    assert!(
+        (original_chi2 - optimum).abs() <= 1e-9 * optimum,
+        "the original problem at the written values: {original_chi2} vs {optimum}"
+    );
+    eprintln!("victoria_park round trip: χ² {optimum} (read back {read_back})");
+
+    let svg = std::fs::read_to_string(&plot).unwrap();
+    let optimum_line = svg
+        .lines()
+        .filter(|l| l.starts_with("<polyline"))
+        .nth(1)
+        .expect("the optimum's line");
+    let points = optimum_line.split("points=\"").nth(1).unwrap();
+    assert_eq!(
+        points.split(' ').count(),
+        count(&written, "se2"),
+        "the line is the poses only"
+    );
+    let dots = svg
+        .lines()
+        .find(|l| l.contains(r#"class="landmarks""#))
+        .expect("landmarks drawn as dots");
+    assert_eq!(dots.matches('M').count(), 151);
+    // Its odometry is a chain over pose ids that skip the landmarks' old ids: no loop closure.
+    assert!(
+        svg.contains("loop closures (0)"),
+        "{}",
+        &svg[svg.len() - 600..]
+    );
+}

@@ -13,5 +13,7 @@ mod doc_links;
 mod docker;
 mod docker_run;
 mod fresh_environments;
+mod help_texts;
 mod logging;
 mod python;
+mod secrets_ignored;

@@ -178,6 +178,7 @@ class SessionInfo(_SessionInfoKeys, total=False):
     """``session-info.schema.json``: what ``create_session`` and ``list_sessions`` answer."""
 
     factor_types: List[str]
+    instance: str  # in a fleet: the owning instance's id
 
 
 class SessionList(TypedDict):
@@ -210,6 +211,7 @@ class SessionStats(_SessionStatsKeys, total=False):
     """``session-stats.schema.json`` (``GET /v1/sessions/{session}``)."""
 
     factor_types: List[str]
+    instance: str  # in a fleet: the owning instance's id
 
 
 class ProducerStatus(TypedDict):

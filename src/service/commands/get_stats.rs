@@ -10,6 +10,8 @@ impl Service {
         caller: &Caller,
         request: GetStats,
     ) -> Result<Box<SessionStats>, ServiceError> {
-        Ok(Box::new(self.session_as(caller, &request.session)?.stats()))
+        let mut stats = self.session_as(caller, &request.session)?.stats();
+        stats.instance = self.owning_instance();
+        Ok(Box::new(stats))
     }
 }

@@ -10,7 +10,11 @@ impl Service {
                 .sessions()
                 .iter()
                 .filter(|s| caller.may_see(s))
-                .map(|s| s.info())
+                .map(|s| {
+                    let mut info = s.info();
+                    info.instance = self.owning_instance();
+                    info
+                })
                 .collect(),
         }
     }

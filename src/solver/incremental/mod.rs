@@ -42,6 +42,7 @@ use linearized::{linearize_factor, Linearized};
 pub use report::UpdateReport;
 pub use summary::UpdateContext;
 
+use super::summary::non_negative_chi2;
 use super::SolverError;
 use crate::problem::Problem;
 use crate::variables::Variable;
@@ -316,7 +317,7 @@ impl IncrementalEngine {
         self.changed = changed;
         report.factor_nnz = self.factor.nnz();
         report.columns = self.columns;
-        report.model_chi2 = self.residual_chi2 - self.yty;
+        report.model_chi2 = non_negative_chi2(self.residual_chi2 - self.yty);
         report.max_delta = self.step.iter().fold(0.0f64, |m, &s| m.max(s));
     }
 

@@ -12,24 +12,34 @@ use serde::{Deserializer, Serialize};
 /// (`base_link`, `robot1/odom`), and a longer one is not a name.
 pub const MAX_NAME_BYTES: usize = 256;
 
-/// A payload that is not the CDR of the expected message.
+/// A payload that is not the CDR of the expected message: what arrived (its size) and why it
+/// does not parse as that type.
 #[derive(Debug, thiserror::Error)]
-#[error("not a CDR-encoded {type_name}: {}", explain(source))]
+#[error(
+    "a {bytes}-byte payload is not a CDR-encoded {type_name}: {}",
+    explain(source)
+)]
 pub struct CdrError {
     pub type_name: &'static str,
+    /// The payload's size, header included.
+    pub bytes: usize,
     #[source]
     pub source: cdr::Error,
 }
 
-/// The cdr crate's reasons, in the terms of a message that is too short.
+/// The cdr crate's reasons in a publisher's terms: its "size limit" is our payload's end, which
+/// a shorter message or one of another type reaches first.
 fn explain(source: &cdr::Error) -> String {
     let ended = |kind: std::io::ErrorKind| kind == std::io::ErrorKind::UnexpectedEof;
     match source {
-        cdr::Error::SizeLimit => "the payload ends before the message does".into(),
-        cdr::Error::Io(e) if ended(e.kind()) => "the payload ends before the message does".into(),
+        cdr::Error::SizeLimit => TOO_SHORT.into(),
+        cdr::Error::Io(e) if ended(e.kind()) => TOO_SHORT.into(),
         other => other.to_string(),
     }
 }
+
+const TOO_SHORT: &str =
+    "the payload ends before the message does (a message cut short, or one of another type)";
 
 /// `message` as CDR little endian with its encapsulation header.
 pub fn encode<T: Serialize>(message: &T) -> Vec<u8> {
@@ -51,8 +61,11 @@ pub fn decode_from<T: DeserializeOwned>(
     len: usize,
     type_name: &'static str,
 ) -> Result<T, CdrError> {
-    cdr::deserialize_from(payload, cdr::Bounded(len as u64))
-        .map_err(|source| CdrError { type_name, source })
+    cdr::deserialize_from(payload, cdr::Bounded(len as u64)).map_err(|source| CdrError {
+        type_name,
+        bytes: len,
+        source,
+    })
 }
 
 /// A CDR string (a u32 length counting the terminating NUL, then the bytes) of at most
@@ -100,7 +113,7 @@ pub fn name_string<'de, D: Deserializer<'de>>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::transport::ros2::messages::{Header, PoseWithCovarianceStamped, Time};
+    use crate::transport::ros2::messages::{Header, Odometry, PoseWithCovarianceStamped, Time};
 
     #[test]
     fn a_message_round_trips_with_the_little_endian_header() {
@@ -148,6 +161,30 @@ mod tests {
             let error = decode::<PoseWithCovarianceStamped>(&bytes, "x").unwrap_err();
             assert!(error.to_string().contains(expected), "{error}");
         }
+    }
+
+    /// A message of another type says what arrived: its size, and that it does not parse as the
+    /// expected type (issue 56: "the size limit has been reached" said neither).
+    #[test]
+    fn a_wrong_type_says_what_arrived() {
+        let pose = encode(&PoseWithCovarianceStamped::default());
+        let error = decode::<Odometry>(&pose, "nav_msgs/msg/Odometry").unwrap_err();
+        let text = error.to_string();
+        assert!(
+            text.starts_with(&format!(
+                "a {}-byte payload is not a CDR-encoded nav_msgs/msg/Odometry",
+                pose.len()
+            )),
+            "{text}"
+        );
+        assert!(
+            text.contains("ends before") && text.contains("another type"),
+            "{text}"
+        );
+        assert!(!text.contains("size limit"), "{text}");
+        // Garbage that is not CDR at all: the size again, and the decoder's reason.
+        let error = decode::<Odometry>(&[9, 9, 9, 9, 1], "nav_msgs/msg/Odometry").unwrap_err();
+        assert!(error.to_string().starts_with("a 5-byte payload"), "{error}");
     }
 
     #[test]

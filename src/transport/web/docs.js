@@ -12,6 +12,16 @@ function el(tag, attrs, ...children) {
   return node;
 }
 
+// Descriptions are Markdown: `code` spans become <code>, the rest stays text (no HTML is
+// interpreted, so a description cannot inject any).
+function prose(text) {
+  const span = el("span", {});
+  String(text || "").split("`").forEach((part, i) => {
+    if (part) span.append(i % 2 ? el("code", {}, part) : document.createTextNode(part));
+  });
+  return span;
+}
+
 function refName(ref) {
   return ref.split("/").pop();
 }
@@ -46,26 +56,26 @@ function resolve(api, item) {
 function operation(api, path, method, op) {
   const box = el("div", { class: "op", id: op.operationId || `${method}-${path}` });
   box.append(el("h3", {}, el("span", { class: "method" }, method), path));
-  if (op.summary) box.append(el("p", {}, op.summary));
-  if (op.description) box.append(el("p", { class: "muted" }, op.description));
+  if (op.summary) box.append(el("p", {}, prose(op.summary)));
+  if (op.description) box.append(el("p", { class: "muted" }, prose(op.description)));
   const params = op.parameters || [];
   if (params.length) {
     const rows = params.map((p) => el("tr", {}, el("td", {}, el("code", {}, p.name)), el("td", {}, p.in),
-      el("td", {}, p.required ? "required" : ""), el("td", {}, linkedType(p.schema)), el("td", {}, p.description || "")));
+      el("td", {}, p.required ? "required" : ""), el("td", {}, linkedType(p.schema)), el("td", {}, prose(p.description))));
     box.append(el("table", {}, el("tr", {}, ...["parameter", "in", "", "type", ""].map((h) => el("th", {}, h))), ...rows));
   }
   if (op.requestBody) {
     const body = op.requestBody;
     const contents = Object.entries(body.content || {});
     box.append(el("p", {}, "Body: ", ...contents.flatMap(([type, c]) => [el("code", {}, type), " ", linkedType(c.schema), " "]),
-      body.description ? `— ${body.description}` : ""));
+      body.description ? "— " : "", body.description ? prose(body.description) : null));
   }
   const rows = Object.entries(op.responses || {}).map(([status, response]) => {
     const r = resolve(api, response);
     const contents = Object.entries(r.content || {});
     return el("tr", {}, el("td", {}, el("code", {}, status)),
       el("td", {}, ...contents.flatMap(([type, c]) => [el("code", {}, type), " ", linkedType(c.schema), " "])),
-      el("td", {}, r.description || ""));
+      el("td", {}, prose(r.description)));
   });
   box.append(el("table", {}, el("tr", {}, ...["status", "body", ""].map((h) => el("th", {}, h))), ...rows));
   return box;
@@ -73,13 +83,13 @@ function operation(api, path, method, op) {
 
 function schemaBox(name, schema) {
   const box = el("div", { class: "schema", id: `schema-${name}` }, el("h3", {}, name));
-  if (schema.description) box.append(el("p", { class: "muted" }, schema.description));
+  if (schema.description) box.append(el("p", { class: "muted" }, prose(schema.description)));
   const required = new Set(schema.required || []);
   const props = Object.entries(schema.properties || {});
   if (props.length) {
     box.append(el("table", {}, el("tr", {}, ...["field", "", "type", ""].map((h) => el("th", {}, h))),
       ...props.map(([field, s]) => el("tr", {}, el("td", {}, el("code", {}, field)), el("td", {}, required.has(field) ? "required" : ""),
-        el("td", {}, linkedType(s)), el("td", {}, s.description || "")))));
+        el("td", {}, linkedType(s)), el("td", {}, prose(s.description))))));
   }
   for (const key of ["oneOf", "anyOf", "allOf"]) {
     if (!schema[key]) continue;
@@ -88,7 +98,7 @@ function schemaBox(name, schema) {
     for (const variant of schema[key]) {
       const fields = Object.keys(variant.properties || {});
       list.append(el("li", {}, linkedType(variant), fields.length ? ` {${fields.join(", ")}}` : "",
-        variant.description ? ` — ${variant.description}` : ""));
+        variant.description ? " — " : "", variant.description ? prose(variant.description) : null));
     }
     box.append(list);
   }
@@ -110,7 +120,7 @@ async function main() {
   }
   status.textContent = `OpenAPI ${api.openapi}, version ${api.info.version}`;
   document.getElementById("title").textContent = api.info.title;
-  document.getElementById("description").textContent = api.info.description || "";
+  document.getElementById("description").replaceChildren(prose(api.info.description));
   const operations = document.getElementById("operations");
   const toc = document.getElementById("toc");
   const byTag = new Map();

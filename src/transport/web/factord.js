@@ -113,9 +113,22 @@
   }
   const SUP = { '-': '⁻', 0: '⁰', 1: '¹', 2: '²', 3: '³', 4: '⁴', 5: '⁵', 6: '⁶', 7: '⁷', 8: '⁸', 9: '⁹' };
   const decade = (k) => (k === 0 ? '1' : k === 1 ? '10' : '10' + String(k).replace(/./g, (c) => SUP[c]));
+  // A summary event as the log shows it: [class, text]. An incremental update (one pass of
+  // relinearising what moved, `used.incremental`) is no solve that failed to converge: it says
+  // so, in the neutral colour; green is a converged solve, amber one that stopped short.
+  function describeSummary(solve, s) {
+    const chi2 = `χ² ${fmtCost(s.initial_chi2)} → ${fmtCost(s.final_chi2)}`;
+    if (s.used && s.used.incremental) {
+      const passes = iterationCount(s);
+      return ['update', `incremental update ${fmtInt(solve)}: ${chi2}, ${fmtInt(passes)} pass${passes === 1 ? '' : 'es'}, ${fmtMs(solveSeconds(s))}`];
+    }
+    const reason = s.termination && s.termination.reason ? `, ${s.termination.reason}` : '';
+    return [s.converged ? 'summary' : 'not-converged', `solve ${fmtInt(solve)}: ${chi2}, ` +
+      `${fmtInt(iterationCount(s))} iterations, ${fmtMs(solveSeconds(s))}, ${s.converged ? 'converged' : 'not converged'}${reason}`];
+  }
   // Shared with plots.js and operator.js (loaded after this file, before the page starts).
   const F = window.factord = { $, api, num, clock, el, getJSON, fmtCost, fmtInt, fmtMs, solveSeconds, iterationLog,
-    iterationCount, fitCanvas, perFrame, niceStep, decade, setStatus };
+    iterationCount, fitCanvas, perFrame, niceStep, decade, setStatus, describeSummary };
 
   // ---------------------------------------------------------------- index page
   function startIndex() {
@@ -147,8 +160,8 @@
         if (failed.length) setStatus(status, `stats failed for ${failed.length} session(s): ${failed[0].reason.message}`, true);
         else setStatus(status, `updated ${clock()}`);
       } catch (e) {
-        setStatus(status, `cannot list sessions: ${e.message} (retrying)`, true);
-        if (e.status === 401) F.showLogin();
+        // A 401 is no failure to report: the login form is all the page shows until then.
+        if (e.status === 401) { setStatus(status, ''); F.showLogin(); } else setStatus(status, `cannot list sessions: ${e.message} (retrying)`, true);
       }
     }
     // Chained rather than setInterval so a slow server never gets overlapping refreshes.
@@ -474,11 +487,11 @@
           item('iterations', fmtInt(iterationCount(sum))), item('solves', fmtInt(s.solves)),
           item('sequence', `${fmtInt(s.solved_sequence)} / ${fmtInt(s.sequence)}`),
           ...(s.pending_batches ? [item('pending batches', fmtInt(s.pending_batches))] : []),
+          ...(s.instance ? [item('instance', s.instance)] : []), // in a fleet: the owner
           ...incrementalItems(sum && sum.used && sum.used.incremental, item));
         setStatus(status, `updated ${clock()}`);
       } catch (e) {
-        setStatus(status, `cannot load session stats: ${e.message} (retrying)`, true);
-        if (e.status === 401) F.showLogin();
+        if (e.status === 401) { setStatus(status, ''); F.showLogin(); } else setStatus(status, `cannot load session stats: ${e.message} (retrying)`, true);
       } finally {
         statsBusy = false;
       }
@@ -536,9 +549,8 @@
     on('summary', (d, at) => {
       const s = d.summary || {};
       plot.addSummary(d.solve, s);
-      const reason = s.termination && s.termination.reason ? `, ${s.termination.reason}` : '';
-      log('summary', `solve ${fmtInt(d.solve)}: χ² ${fmtCost(s.initial_chi2)} → ${fmtCost(s.final_chi2)}, ` +
-        `${fmtInt(iterationCount(s))} iterations, ${fmtMs(solveSeconds(s))}, ${s.converged ? 'converged' : 'not converged'}${reason}`, at);
+      const [cls, text] = F.describeSummary(d.solve, s);
+      log(cls, text, at);
       refreshStats();
       history.refresh();
     });

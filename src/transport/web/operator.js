@@ -8,7 +8,15 @@
 
   // ---------------------------------------------------------------- login
   // Shown when the API answers 401: with tokens in force a page has no other way to send one.
+  // Whether this browser logged in (the cookie itself is HttpOnly): `log out` is shown only
+  // then, never before a login nor on a server without tokens.
+  const LOGGED_IN = 'factord.loggedIn';
+  const remember = (yes) => { try { if (yes) localStorage.setItem(LOGGED_IN, '1'); else localStorage.removeItem(LOGGED_IN); } catch (_) { /* storage off */ } };
+  const remembered = () => { try { return localStorage.getItem(LOGGED_IN) === '1'; } catch (_) { return false; } };
   F.showLogin = () => {
+    remember(false);
+    const logoutButton = $('logout');
+    if (logoutButton) logoutButton.hidden = true;
     const box = $('login');
     if (!box.hidden) return;
     box.hidden = false;
@@ -26,6 +34,7 @@
         });
         const body = await res.json().catch(() => null);
         if (!res.ok) throw new Error((body && body.error && body.error.message) || res.statusText);
+        remember(!body || body.auth !== false);
         location.reload();
       } catch (err) {
         setStatus(status, `login failed: ${err.message}`, true);
@@ -33,7 +42,10 @@
     });
   };
   const logout = $('logout');
-  if (logout) logout.addEventListener('click', async () => { await fetch('/v1/logout', { method: 'POST' }); location.reload(); });
+  if (logout) {
+    logout.hidden = !remembered();
+    logout.addEventListener('click', async () => { await fetch('/v1/logout', { method: 'POST' }); remember(false); location.reload(); });
+  }
 
   // ---------------------------------------------------------------- health (index page)
   F.startHealth = () => {
