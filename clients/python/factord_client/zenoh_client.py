@@ -335,6 +335,11 @@ class ZenohClient:
         """rpc ``list_producers``: every producer the session has seen, by id."""
         return self.rpc({"op": "list_producers", "session": session}, timeout=timeout)
 
+    def robots(self, session: str, timeout: Optional[float] = None) -> JsonDict:
+        """rpc ``list_robots`` (a session created with ``robots``): its robots, held and rejected
+        closures and merges (see :meth:`HttpClient.robots`)."""
+        return self.rpc({"op": "list_robots", "session": session}, timeout)
+
     def producer(self, session: str, producer: Optional[str] = None, **options: Any) -> Any:
         """A :class:`~factord_client.stream_producer.StreamProducer` of ``session``: numbered,
         acknowledged, resent batches (``options``: ``window``, ``resend_after``, ``resume``,
@@ -363,12 +368,17 @@ class ZenohClient:
         after_producer: Optional[str] = None,
         after_seq: Optional[int] = None,
         after_timeout_ms: Optional[int] = None,
+        robot: Optional[str] = None,
+        frame: Optional[str] = None,
     ) -> wire.Estimate:
         """Reads the estimate from the ``<prefix>/<session>/estimate`` queryable (selector
         parameters ``since``, ``from``, ``to``, and ``after_producer``/``after_seq``: first wait
-        until that producer's batches through ``after_seq`` are applied)."""
+        until that producer's batches through ``after_seq`` are applied; ``robot``/``frame`` as
+        :meth:`HttpClient.estimate`)."""
         params = [f"{name}={int(value)}" for name, value in
                   (("since", since), ("from", from_key), ("to", to_key)) if value is not None]
+        params += [f"{name}={value}" for name, value in (("robot", robot), ("frame", frame))
+                   if value is not None]
         params += [f"{k}={v}" for k, v in
                    _after(after_producer, after_seq, after_timeout_ms).items()]
         selector = f"{self.prefix}/{session}/estimate"

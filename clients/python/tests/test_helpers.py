@@ -21,7 +21,8 @@ import numpy as np
 
 from harness import REPO_ROOT, Checks, expect, expect_raises
 
-from factord_client import Batch, HttpClient, Noise, Pose2, Pose3, ZenohClient, dumps, wire
+from factord_client import (Batch, HttpClient, Noise, Pose2, Pose3, ZenohClient, dumps, robot_key,
+                            robot_of_key, wire)
 from factord_client.batch import estimate_to_array, marginals_to_arrays
 from factord_client.poses_binary import PosesBinaryError, decode_event, decode_poses
 
@@ -31,7 +32,7 @@ from factord_client.poses_binary import PosesBinaryError, decode_event, decode_p
 NOT_CLIENT_CALLS = {"index_page", "session_page", "script", "style", "docs_page", "docs_script",
                     "websocket", "plots_script", "operator_script", "login", "logout"}
 # operationId -> method name where they differ.
-METHOD_OF = {"job": "run_job", "openapi_json": "openapi"}
+METHOD_OF = {"job": "run_job", "openapi_json": "openapi", "list_robots": "robots"}
 
 
 def close(a, b, tol=1e-12) -> bool:
@@ -241,13 +242,21 @@ def every_route_has_a_method() -> str:
                                    "delete_session", "apply_batch", "fusion", "optimize",
                                    "set_auto_optimize", "define_factor_types", "estimate",
                                    "producer_status", "list_producers", "cancel", "graph",
-                                   "marginals")
+                                   "marginals", "robots")
                      if not hasattr(ZenohClient, op)]
     expect(not zenoh_missing, f"ZenohClient lacks {zenoh_missing}")
     for extra in ("estimate_array", "estimate_poses", "covariances", "export"):
         expect(hasattr(HttpClient, extra) and hasattr(ZenohClient, extra), f"both have {extra}")
     covered = len(operations) - len([o for o in operations if o[2] in NOT_CLIENT_CALLS])
     return f"{covered} operations covered (pages, assets and the WebSocket are not calls)"
+
+
+def robot_keys() -> str:
+    expect(robot_key("b", 42) == (ord("b") << 56) | 42, "GTSAM Symbol('b', 42)")
+    expect(robot_of_key(robot_key("a", 7)) == "a" and robot_of_key(42) is None, "robot of a key")
+    expect_raises(ValueError, lambda: robot_key("ab", 1), "two characters")
+    expect_raises(ValueError, lambda: robot_key("a", 1 << 56), "index past 2^56")
+    return "robot_key / robot_of_key are GTSAM's Symbol encoding"
 
 
 def main() -> int:
@@ -261,6 +270,7 @@ def main() -> int:
     checks.run("binary estimates (bin/poses) as numpy arrays", binary_estimates)
     checks.run("typed: py.typed and TypedDicts", typing_files)
     checks.run("a method for every HTTP route of openapi.json", every_route_has_a_method)
+    checks.run("robot keys", robot_keys)
     return checks.exit_code()
 
 

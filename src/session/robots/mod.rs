@@ -12,12 +12,14 @@
 //! wrong closure would fold one robot's map onto another's. When `min_closures` held closures
 //! between the same two components agree with each other (`consensus`), the newer component
 //! *merges* into the older: every value of it moves by the transform the consensus implies
-//! (`frame`), the agreeing closures enter the problem, the others stay out as rejected, and the
-//! moved robots' frames record where their odometry now sits, so their later values (still in
-//! their odometry frames) are moved on arrival too.
+//! (`frame`), the agreeing closures enter the problem, and the moved robots' frames record where
+//! their odometry now sits, so their later values (still in their odometry frames) are moved on
+//! arrival too. The closures that disagreed stay held, within one component now (`rejected` in
+//! the report), and enter once they fit the map (checked every few batches).
 //!
 //! Decisions are made once, when a batch is accepted, from the estimate then; the journal
-//! records each merge with its batch, and a replay applies the record instead of deciding again.
+//! records each merge (or admission) after its batch, and a replay applies the record instead
+//! of deciding again.
 //! Holding and routing depend only on the keys and the merges so far, so they replay the same.
 
 mod apply;

@@ -356,9 +356,14 @@ fn chi2_at(f: &PreparedFactor, keys: &[Key], mirror: &BTreeMap<Key, MirrorEntry>
         .map(|k| mirror.get(k).map(MirrorEntry::decode))
         .collect::<Option<_>>()?;
     let refs: Vec<&dyn Variable> = values.iter().map(|v| v.as_ref()).collect();
+    chi2_of(f, &refs)
+}
+
+/// `f`'s whitened squared error at `values` (no kernel: what the closure itself says).
+fn chi2_of(f: &PreparedFactor, values: &[&dyn Variable]) -> Option<f64> {
     let d = f.factor.residual_dim();
     let (mut e, mut w) = (vec![0.0; d], vec![0.0; d]);
-    f.factor.evaluate(&refs, &mut e, None).ok()?;
+    f.factor.evaluate(values, &mut e, None).ok()?;
     f.sqrt_information.whiten_vector(&e, &mut w);
     let s: f64 = w.iter().map(|x| x * x).sum();
     s.is_finite().then_some(s)
@@ -425,11 +430,6 @@ impl Closure {
             })
             .collect::<Option<_>>()?;
         let refs: Vec<&dyn Variable> = placed.iter().map(|v| v.as_ref()).collect();
-        let d = f.factor.residual_dim();
-        let (mut e, mut w) = (vec![0.0; d], vec![0.0; d]);
-        f.factor.evaluate(&refs, &mut e, None).ok()?;
-        f.sqrt_information.whiten_vector(&e, &mut w);
-        let s: f64 = w.iter().map(|x| x * x).sum();
-        s.is_finite().then_some(s)
+        chi2_of(f, &refs)
     }
 }
