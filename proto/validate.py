@@ -1045,7 +1045,7 @@ class Live:
         toro = b"VERTEX2 0 0 0 0\nVERTEX2 1 1.2 0.1 0\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n"
         self.call("toro", "POST", "/v1/jobs?format=toro", 200, "job-result.schema.json", raw=toro, headers=text)
         for label, query, accept, first in (("Accept text/plain", "", "text/plain", b"VERTEX_SE2"),
-                                            ("output=tum", "?output=tum", None, b"0 ")):
+                                            ("output=tum", "?output=tum", None, b"# vertex_id ")):
             hdrs = dict(text, **({"Accept": accept} if accept else {}))
             resp = self.request("POST", "/v1/jobs" + query, raw=g2o, headers=hdrs)
             name = f"POST /v1/jobs{query} {label}"

@@ -65,7 +65,6 @@ pub fn before_after(
         let drawn = Drawn {
             before: &before,
             after: &after,
-            optimum,
             factors,
             landmark: &landmark,
             rank: &rank,
@@ -161,7 +160,6 @@ impl View {
 struct Drawn<'a> {
     before: &'a [Option<[f64; 3]>],
     after: &'a [Option<[f64; 3]>],
-    optimum: &'a Values,
     factors: &'a [FactorEntry],
     /// Per variable: drawn as a landmark dot.
     landmark: &'a [bool],
@@ -543,7 +541,6 @@ mod tests {
         let drawn = Drawn {
             before: &all,
             after: &all,
-            optimum: values,
             factors: problem.factors(),
             landmark: &landmark,
             rank: &rank,
