@@ -43,8 +43,7 @@ pub(crate) struct PreparedBatch {
     pub guesses: Vec<(Key, Box<dyn Variable>)>,
     /// Keys whose value was predicted rather than given.
     pub predicted: Vec<Key>,
-    /// Merges of robots' components the batch completed, applied after its own factors (see
-    /// `session::robots`; set when the batch is accepted).
+    /// Merges the batch completed (`session::robots`), applied after its factors.
     pub merges: Vec<super::robots::Merge>,
 }
 
@@ -66,10 +65,9 @@ pub(crate) struct SessionView<'a> {
     pub deadline: Option<AdmissionDeadline>,
 }
 
-/// Admission runs under the session's lock, and a user-defined factor type can cost
-/// milliseconds per factor to build and check: without a bound a large batch held the session
-/// for longer than any solve may run. So it has a bound of its own, `limits.max_admission_ms`,
-/// checked every [`FACTORS_PER_CHECK`] factors.
+/// Admission runs under the session's lock, and a user-defined factor can cost milliseconds to
+/// build and check, so it has a bound of its own, `limits.max_admission_ms`, checked every
+/// [`FACTORS_PER_CHECK`] factors (unbounded, a large batch held the session past any solve's).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct AdmissionDeadline {
     pub at: Instant,
@@ -104,9 +102,8 @@ fn in_time(view: &SessionView, done: usize, total: usize, step: &str) -> Result<
     .at("factors"))
 }
 
-/// The name of a field in a request, formatted only when an error names it: a valid batch of a
-/// thousand factors would otherwise format thousands of names it never shows (about 5% of
-/// ingest, measured).
+/// The name of a field in a request, formatted only when an error names it (formatting the
+/// names of a valid batch's thousand factors cost about 5% of ingest, measured).
 type FieldName<'a> = &'a dyn Fn() -> String;
 
 fn finite(values: &[f64], field: FieldName) -> Result<(), ServiceError> {
@@ -479,8 +476,8 @@ fn guesses(batch: &Batch, kind_of: &KindOf) -> Result<Vec<(Key, Box<dyn Variable
     Ok(guesses)
 }
 
-/// Every new factor must have a finite residual at the values it will start from (a camera
-/// looking at a point in its own centre, poses at 1e308): the solver could do nothing with it.
+/// Every new factor must have a finite residual at its start values (a camera looking at a
+/// point in its own centre, poses at 1e308): the solver could do nothing with it.
 fn check_residuals(
     factors: &[PreparedFactor],
     variables: &[NewVariable],
@@ -530,9 +527,8 @@ fn check_residuals(
     Ok(())
 }
 
-/// Fills in values the client left out, by walking factors of the batch from known variables
-/// (existing ones, or new ones with a value) outwards: odometry chains are predicted in one pass
-/// each.
+/// Fills in values the client left out, walking the batch's factors outwards from known
+/// variables (existing, or new with a value): an odometry chain is predicted in one pass.
 fn predict_missing(
     batch: &Batch,
     values: &mut [Option<Box<dyn Variable>>],

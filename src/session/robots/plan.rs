@@ -154,6 +154,16 @@ impl Robots {
         plan
     }
 
+    /// Of two components (roots) about to merge, the one that keeps its frame (the older) and
+    /// the one that moves.
+    fn kept_and_moved(&self, x: Key, y: Key) -> (Key, Key) {
+        if self.components[&x].founded <= self.components[&y].founded {
+            (x, y)
+        } else {
+            (y, x)
+        }
+    }
+
     /// The distinct roots of `keys` whose components hold robots, in key order.
     pub(super) fn placed_roots(&self, keys: &[Key]) -> Vec<Key> {
         let mut roots: Vec<Key> = Vec::new();
@@ -169,11 +179,7 @@ impl Robots {
     /// Whether the held closures between components `x` and `y` now agree enough to merge
     /// them: the record of the merge, found from the estimate in `mirror`.
     fn decide(&self, x: Key, y: Key, mirror: &BTreeMap<Key, MirrorEntry>) -> Option<MergeRecord> {
-        let (kept, moved) = if self.components[&x].founded <= self.components[&y].founded {
-            (x, y)
-        } else {
-            (y, x)
-        };
+        let (kept, moved) = self.kept_and_moved(x, y);
         let between: Vec<FactorId> = self
             .pending
             .iter()
@@ -271,11 +277,7 @@ impl Robots {
         let keys = self.pending.get(record.closures.first()?)?.clone();
         let roots = self.placed_roots(&keys);
         let [x, y] = roots[..] else { return None };
-        let (kept, moved) = if self.components[&x].founded <= self.components[&y].founded {
-            (x, y)
-        } else {
-            (y, x)
-        };
+        let (kept, moved) = self.kept_and_moved(x, y);
         let names = |root: Key| -> Vec<String> {
             self.components[&root]
                 .robots
