@@ -47,7 +47,9 @@ impl Session {
         let sequence = self.next_sequence(&st)?;
         // Step 2, journal (not yet durable: the fsync below runs with the session unlocked).
         let wire_copy = match (durable.as_mut(), wire_copy) {
-            (Some(d), Some(copy)) => Some(d.write_batch(&self.name, sequence, copy, &prepared)?),
+            (Some(d), Some(copy)) => {
+                Some(d.write_batch(&self.name, sequence, copy, &prepared, st.robots.as_ref())?)
+            }
             _ => None,
         };
         let mut prepared = prepared;

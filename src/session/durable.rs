@@ -112,13 +112,20 @@ impl Durable {
         sequence: u64,
         batch: Batch,
         prepared: &PreparedBatch,
+        robots: Option<&super::robots::Robots>,
     ) -> Result<Batch, ServiceError> {
         let mut batch = batch;
         // `prepare` keeps the batch's variables in order, each with its value.
         for (spec, new) in batch.variables.iter_mut().zip(&prepared.variables) {
             debug_assert_eq!(spec.key, new.key);
             if spec.value.is_none() {
-                spec.value = Some(catalogue::encode_variable(new.value.as_ref()));
+                // A predicted robot pose is in the map; the journal keeps a robot's values in
+                // its odometry frame, as it sends them (a replay moves them into the map).
+                let value = match robots {
+                    Some(r) => r.in_odometry_frame(new.key, new.value.as_ref()),
+                    None => new.value.clone_box(),
+                };
+                spec.value = Some(catalogue::encode_variable(value.as_ref()));
             }
         }
         let entry = Entry::Batch { sequence, batch };

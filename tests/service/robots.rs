@@ -337,8 +337,13 @@ async fn a_merge_replays_from_the_journal_after_kill_9() {
         json!({"factors": [closure(&a, 18, &b, 5, [0.0; 3]), closure(&a, 22, &b, 9, [0.0; 3])]}),
     )
     .await;
-    // After the merge, b's next poses arrive in its odometry frame.
-    batch(&c, &s, robot_batch('b', &b, 20..30)).await;
+    // After the merge, b's next poses arrive without values: the server predicts them (in the
+    // map) from b's odometry.
+    let mut predicted = robot_batch('b', &b, 20..30);
+    for v in predicted["variables"].as_array_mut().unwrap() {
+        v.as_object_mut().unwrap().remove("value");
+    }
+    batch(&c, &s, predicted).await;
     let before = optimized(&c, &s).await;
     let (_, report_before) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
     assert_eq!(
@@ -351,6 +356,29 @@ async fn a_merge_replays_from_the_journal_after_kill_9() {
     tokio::time::sleep(std::time::Duration::from_millis(500)).await;
     assert!(!s.stderr().contains("snapshot written"), "{}", s.stderr());
     s.kill();
+    // The journal keeps those predictions in b's odometry frame, as b would have sent them: a
+    // replay moves a robot's values into the map.
+    let journal = std::fs::read(dir.join("sessions/fleet/journal.log")).unwrap();
+    let journal = String::from_utf8_lossy(&journal);
+    for i in 20..30 {
+        let head = format!(r#"{{"key":{},"kind":"se2","value":["#, robot_key('b', i));
+        let at = journal
+            .find(&head)
+            .unwrap_or_else(|| panic!("b{i} journalled"))
+            + head.len();
+        let end = at + journal[at..].find(']').unwrap();
+        let value: Vec<f64> = journal[at..end]
+            .split(',')
+            .map(|x| x.parse().unwrap())
+            .collect();
+        let odom = b[0].inverse().compose(&b[i as usize]);
+        assert_near(
+            &Se2::new(value[0], value[1], value[2]),
+            &odom,
+            1e-6,
+            &format!("journalled b{i}"),
+        );
+    }
     let s = TestServer::start_at(&dir, &extra, &[]);
     let since = Instant::now();
     common::server::recovered(&c, &s, "fleet", since).await;

@@ -38,7 +38,7 @@ pub(crate) use session::in_robot_frame;
 use super::batch::PreparedFactor;
 use crate::api::robots::{ClosureReport, MergeReport, RobotReport, RobotsOptions, RobotsReport};
 use crate::api::wire::FactorId;
-use crate::problem::Key;
+use crate::problem::{Key, Variable};
 
 /// The session's robots, components and held closures.
 pub(crate) struct Robots {
@@ -131,6 +131,16 @@ impl Robots {
     /// Where robot `robot`'s odometry frame sits in its component (`None`: no such robot).
     pub(crate) fn frame_of(&self, robot: u8) -> Option<Frame> {
         self.robots.get(&robot).map(|r| r.frame)
+    }
+
+    /// `value` of `key` (in the map) in its robot's odometry frame, as the robot would have
+    /// sent it; a copy of it for a key of no robot.
+    pub(crate) fn in_odometry_frame(&self, key: Key, value: &dyn Variable) -> Box<dyn Variable> {
+        let mut v = value.clone_box();
+        if let Some(robot) = plan::robot_of(key, value).and_then(|r| self.robots.get(&r)) {
+            robot.frame.inverse().apply(v.as_mut());
+        }
+        v
     }
 
     /// Forgets factors the client removed.

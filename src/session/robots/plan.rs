@@ -36,7 +36,7 @@ pub(crate) struct RobotsPlan {
 }
 
 /// The robot a variable belongs to: a pose (se2, se3) whose key names a robot.
-fn robot_of(key: Key, v: &dyn Variable) -> Option<u8> {
+pub(super) fn robot_of(key: Key, v: &dyn Variable) -> Option<u8> {
     matches!(v.kind(), "se2" | "se3")
         .then(|| robot_of_key(key))
         .flatten()
