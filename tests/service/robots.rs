@@ -434,3 +434,115 @@ async fn robots_options_are_checked() {
     assert_eq!(status, 400, "{e}");
     assert_eq!(e["error"]["code"], "no_robots");
 }
+
+/// A pose on a rising helix (radius 8 m, 0.3 m up per step, 12 steps a turn), facing along it
+/// and rolled a little, as a drone's would be.
+fn helix(i: usize) -> factord::geometry::Se3 {
+    use nalgebra::{UnitQuaternion, Vector3};
+    let a = i as f64 * std::f64::consts::TAU / 12.0;
+    let rotation =
+        UnitQuaternion::from_euler_angles(0.1 * a.sin(), 0.05, a + std::f64::consts::FRAC_PI_2);
+    factord::geometry::Se3::new(
+        rotation,
+        Vector3::new(8.0 * a.cos(), 8.0 * a.sin(), 0.3 * i as f64),
+    )
+}
+
+fn se3_wire(p: &factord::geometry::Se3) -> Vec<f64> {
+    let (t, q) = (p.translation, p.rotation.quaternion());
+    vec![t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn two_robots_in_3d_merge_and_read_back_their_own_frames() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "fleet", "kind": "pose_graph_3d", "robots": {"min_closures": 2}}),
+    )
+    .await;
+    // Robot a flies the helix from pose 0, robot b from pose 5 (its own origin there).
+    let a: Vec<_> = (0..24).map(helix).collect();
+    let b: Vec<_> = (5..29).map(helix).collect();
+    let mut info = vec![0.0; 21];
+    let diagonal = [0usize, 6, 11, 15, 18, 20];
+    for (k, &at) in diagonal.iter().enumerate() {
+        info[at] = if k < 3 { 100.0 } else { 400.0 };
+    }
+    let robot = |r: char, poses: &[factord::geometry::Se3]| {
+        let origin = poses[0].inverse();
+        let variables: Vec<Value> = (0..poses.len())
+            .map(|i| {
+                json!({"key": robot_key(r, i as u64), "kind": "se3",
+                           "value": se3_wire(&origin.compose(&poses[i]))})
+            })
+            .collect();
+        let factors: Vec<Value> = (1..poses.len())
+            .map(|i| json!({"type": "between_se3", "keys": [robot_key(r, i as u64 - 1), robot_key(r, i as u64)],
+                           "measurement": se3_wire(&poses[i - 1].between(&poses[i])), "information": info}))
+            .collect();
+        json!({"variables": variables, "factors": factors})
+    };
+    batch(&c, &s, robot('a', &a)).await;
+    batch(&c, &s, robot('b', &b)).await;
+    // b's pose j is a's pose j + 5: two closures that agree merge b into a's map.
+    let closures: Vec<Value> = [(8usize, 3usize), (15, 10)]
+        .iter()
+        .map(|&(i, j)| json!({"type": "between_se3", "keys": [robot_key('a', i as u64), robot_key('b', j as u64)],
+                              "measurement": se3_wire(&a[i].between(&b[j])), "information": info}))
+        .collect();
+    batch(&c, &s, json!({"factors": closures})).await;
+    let (_, report) = get(&c, &s.url("/v1/sessions/fleet/robots")).await;
+    assert_eq!(report["merges"].as_array().unwrap().len(), 1, "{report}");
+    assert_eq!(report["robots"][1]["component"], json!(["a", "b"]));
+    let frame: Vec<f64> =
+        serde_json::from_value(report["robots"][1]["map_from_odom"].clone()).unwrap();
+    // The map is a's odometry frame: a's first pose at the origin.
+    let map = a[0].inverse();
+    let start = se3_wire(&map.compose(&b[0]));
+    let sign = if frame[6] * start[6] < 0.0 { -1.0 } else { 1.0 }; // q and -q are one rotation
+    for k in 0..7 {
+        let want = if k < 3 { start[k] } else { sign * start[k] };
+        assert!(
+            (frame[k] - want).abs() < 1e-6,
+            "map_from_odom {frame:?} vs b's start {start:?}"
+        );
+    }
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions/fleet/optimize?wait=true"),
+        &json!({}),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    for (frame, origin) in [("map", map), ("odom", b[0].inverse())] {
+        let (_, estimate) = get(
+            &c,
+            &s.url(&format!(
+                "/v1/sessions/fleet/estimate?robot=b&frame={frame}"
+            )),
+        )
+        .await;
+        for (j, truth) in b.iter().enumerate() {
+            let v = estimate["variables"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|v| v["key"] == robot_key('b', j as u64))
+                .expect("b's pose");
+            let got: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
+            let want = se3_wire(&origin.compose(truth));
+            let d = (0..3)
+                .map(|k| (got[k] - want[k]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let dot: f64 = (3..7).map(|k| got[k] * want[k]).sum();
+            assert!(
+                d < 1e-6 && dot.abs() > 1.0 - 1e-9,
+                "b{j} in {frame}: {got:?} vs {want:?}"
+            );
+        }
+    }
+}
