@@ -73,85 +73,24 @@ fn exact_key(path: &Path, line: &super::Line, field: usize) -> Result<Key, IoErr
     })
 }
 
+/// What the records of a g2o text add up to before the edges are built.
+#[derive(Default)]
+struct Records<'a> {
+    problem: Problem,
+    order: Vec<Key>,
+    /// (file, line, numbers, dimension) of each EDGE_SE2 / EDGE_SE3:QUAT.
+    edges: Vec<(&'a Path, usize, Vec<f64>, Dimension)>,
+    /// (file, line, pose, landmark, numbers) of each EDGE_BEARING_RANGE_SE2_XY.
+    sightings: Vec<(&'a Path, usize, Key, Key, Vec<f64>)>,
+    fixes: Vec<(&'a Path, usize, Key)>,
+}
+
 pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
-    let mut problem = Problem::new();
-    let mut order = Vec::new();
-    let mut edges = Vec::new();
-    let mut fixes = Vec::new();
-    let mut sightings = Vec::new();
+    let mut records = Records::default();
     let mut dimension = None;
     for &(path, text) in files {
         for line in lines(text) {
-            let dim_here = match line.tokens[0] {
-                "VERTEX_SE2" => {
-                    let f = numbers(path, &line, 4)?;
-                    let key = id(path, line.number, f[0], 1)?;
-                    problem
-                        .add_variable(key, Box::new(Se2::new(f[1], f[2], f[3])))
-                        .map_err(|e| problem_error(path, line.number, e))?;
-                    order.push(key);
-                    Some(Dimension::Two)
-                }
-                "VERTEX_XY" => {
-                    let f = numbers(path, &line, 3)?;
-                    let key = exact_key(path, &line, 1)?;
-                    problem
-                        .add_variable(key, Box::new(Point2(Vector2::new(f[1], f[2]))))
-                        .map_err(|e| problem_error(path, line.number, e))?;
-                    order.push(key);
-                    Some(Dimension::Two)
-                }
-                "EDGE_BEARING_RANGE_SE2_XY" => {
-                    let f = numbers(path, &line, 7)?;
-                    let (pose, landmark) = (exact_key(path, &line, 1)?, exact_key(path, &line, 2)?);
-                    sightings.push((path, line.number, pose, landmark, f));
-                    Some(Dimension::Two)
-                }
-                "VERTEX_SE3:QUAT" => {
-                    let f = numbers(path, &line, 8)?;
-                    let key = id(path, line.number, f[0], 1)?;
-                    let q = quaternion(path, line.number, &f[4..8])?;
-                    problem
-                        .add_variable(key, Box::new(Se3::new(q, Vector3::new(f[1], f[2], f[3]))))
-                        .map_err(|e| problem_error(path, line.number, e))?;
-                    order.push(key);
-                    Some(Dimension::Three)
-                }
-                "EDGE_SE2" => {
-                    edges.push((path, line.number, numbers(path, &line, 11)?, Dimension::Two));
-                    Some(Dimension::Two)
-                }
-                "EDGE_SE3:QUAT" => {
-                    edges.push((
-                        path,
-                        line.number,
-                        numbers(path, &line, 30)?,
-                        Dimension::Three,
-                    ));
-                    Some(Dimension::Three)
-                }
-                "FIX" => {
-                    for (k, t) in line.tokens[1..].iter().enumerate() {
-                        let v: f64 = t.parse().map_err(|_| {
-                            parse_error(
-                                path,
-                                line.number,
-                                format!("FIX field {} (`{t}`) is not an id", k + 1),
-                            )
-                        })?;
-                        fixes.push((path, line.number, id(path, line.number, v, k + 1)?));
-                    }
-                    None
-                }
-                other => {
-                    return Err(parse_error(
-                        path,
-                        line.number,
-                        format!("unsupported record `{other}`"),
-                    ));
-                }
-            };
-            if let Some(d) = dim_here {
+            if let Some(d) = records.read(path, &line)? {
                 if dimension.is_some_and(|seen| seen != d) {
                     return Err(parse_error(path, line.number, "mixes 2D and 3D records"));
                 }
@@ -165,6 +104,121 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             reason: "no vertices or edges".into(),
         });
     };
+    let Records {
+        mut problem,
+        mut order,
+        edges,
+        sightings,
+        fixes,
+    } = records;
+    let mut built = between_edges(edges)?;
+    built.extend(sighting_edges(sightings)?);
+    let origin: Box<dyn Variable> = match dimension {
+        Dimension::Two => Box::new(Se2::identity()),
+        Dimension::Three => Box::new(Se3::identity()),
+    };
+    order.extend(add_edges(&mut problem, built, origin, files[0].0)?);
+    for (path, number, key) in fixes {
+        problem
+            .set_fixed(key, true)
+            .map_err(|e| problem_error(path, number, e))?;
+    }
+    Ok(PoseGraph {
+        problem,
+        dimension,
+        vertex_order: order,
+    })
+}
+
+impl<'a> Records<'a> {
+    /// Reads one record: vertices go into the problem, edges and fixes are kept for later.
+    /// Returns the dimension the record belongs to (none for FIX).
+    fn read(&mut self, path: &'a Path, line: &super::Line) -> Result<Option<Dimension>, IoError> {
+        let number = line.number;
+        Ok(match line.tokens[0] {
+            "VERTEX_SE2" => {
+                let f = numbers(path, line, 4)?;
+                let key = id(path, number, f[0], 1)?;
+                self.vertex(path, number, key, Box::new(Se2::new(f[1], f[2], f[3])))?;
+                Some(Dimension::Two)
+            }
+            "VERTEX_XY" => {
+                let f = numbers(path, line, 3)?;
+                let key = exact_key(path, line, 1)?;
+                self.vertex(
+                    path,
+                    number,
+                    key,
+                    Box::new(Point2(Vector2::new(f[1], f[2]))),
+                )?;
+                Some(Dimension::Two)
+            }
+            "EDGE_BEARING_RANGE_SE2_XY" => {
+                let f = numbers(path, line, 7)?;
+                let (pose, landmark) = (exact_key(path, line, 1)?, exact_key(path, line, 2)?);
+                self.sightings.push((path, number, pose, landmark, f));
+                Some(Dimension::Two)
+            }
+            "VERTEX_SE3:QUAT" => {
+                let f = numbers(path, line, 8)?;
+                let key = id(path, number, f[0], 1)?;
+                let q = quaternion(path, number, &f[4..8])?;
+                let pose = Se3::new(q, Vector3::new(f[1], f[2], f[3]));
+                self.vertex(path, number, key, Box::new(pose))?;
+                Some(Dimension::Three)
+            }
+            "EDGE_SE2" => {
+                self.edges
+                    .push((path, number, numbers(path, line, 11)?, Dimension::Two));
+                Some(Dimension::Two)
+            }
+            "EDGE_SE3:QUAT" => {
+                self.edges
+                    .push((path, number, numbers(path, line, 30)?, Dimension::Three));
+                Some(Dimension::Three)
+            }
+            "FIX" => {
+                for (k, t) in line.tokens[1..].iter().enumerate() {
+                    let v: f64 = t.parse().map_err(|_| {
+                        parse_error(
+                            path,
+                            number,
+                            format!("FIX field {} (`{t}`) is not an id", k + 1),
+                        )
+                    })?;
+                    self.fixes.push((path, number, id(path, number, v, k + 1)?));
+                }
+                None
+            }
+            other => {
+                return Err(parse_error(
+                    path,
+                    number,
+                    format!("unsupported record `{other}`"),
+                ));
+            }
+        })
+    }
+
+    fn vertex(
+        &mut self,
+        path: &Path,
+        number: usize,
+        key: Key,
+        value: Box<dyn Variable>,
+    ) -> Result<(), IoError> {
+        self.problem
+            .add_variable(key, value)
+            .map_err(|e| problem_error(path, number, e))?;
+        self.order.push(key);
+        Ok(())
+    }
+}
+
+/// The EDGE_SE2 / EDGE_SE3:QUAT records as between factors.
+fn between_edges(
+    edges: Vec<(&Path, usize, Vec<f64>, Dimension)>,
+) -> Result<Vec<Edge<'_>>, IoError> {
     let mut built = Vec::with_capacity(edges.len());
     for (path, number, f, dim) in edges {
         let (i, j) = (id(path, number, f[0], 1)?, id(path, number, f[1], 2)?);
@@ -192,6 +246,14 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             }
         });
     }
+    Ok(built)
+}
+
+/// The EDGE_BEARING_RANGE_SE2_XY records as bearing-range factors.
+fn sighting_edges(
+    sightings: Vec<(&Path, usize, Key, Key, Vec<f64>)>,
+) -> Result<Vec<Edge<'_>>, IoError> {
+    let mut built = Vec::with_capacity(sightings.len());
     for (path, number, pose, landmark, f) in sightings {
         if f[3] < 0.0 {
             return Err(parse_error(path, number, "a range cannot be negative"));
@@ -207,21 +269,7 @@ pub fn parse(files: &[(&Path, &str)]) -> Result<PoseGraph, IoError> {
             line: number,
         });
     }
-    let origin: Box<dyn Variable> = match dimension {
-        Dimension::Two => Box::new(Se2::identity()),
-        Dimension::Three => Box::new(Se3::identity()),
-    };
-    order.extend(add_edges(&mut problem, built, origin, files[0].0)?);
-    for (path, number, key) in fixes {
-        problem
-            .set_fixed(key, true)
-            .map_err(|e| problem_error(path, number, e))?;
-    }
-    Ok(PoseGraph {
-        problem,
-        dimension,
-        vertex_order: order,
-    })
+    Ok(built)
 }
 
 fn information_upper(m: &DMatrix<f64>) -> String {
