@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use crate::eval::experiment::{self, Generation};
+use crate::eval::experiment::{self, Estimate, FusionInputs, Generation};
 use crate::eval::fusion_client::{self, AfterRun};
 use factord::io;
 
@@ -90,62 +90,12 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
             reason: "the lag-smoothed trajectory is only known in process, not with --zenoh".into(),
         });
     }
-    let inputs = match &args.inputs {
-        Some(input) => {
-            let text = input.read_to_string("--inputs")?;
-            serde_json::from_str(&text).map_err(|source| CliError::FileContents {
-                path: input.name(),
-                source,
-            })?
-        }
-        None => {
-            let dir = match &args.data {
-                Some(dir) => data_dir::existing_dir("--data", dir)?,
-                None => data_dir::existing_dir("--data", &data_dir::root().join(DEFAULT_SEQUENCE))?,
-            };
-            let data = io::euroc::load(&dir, &args.truth)?;
-            let generation = Generation {
-                seconds: args.seconds,
-                prior_every: if args.no_priors { 0 } else { 10 },
-                use_relative: !args.no_relative,
-                use_imu: !args.no_imu,
-                window: args.window,
-                seed: args.seed,
-                ..Generation::default()
-            };
-            experiment::generate(&data, &generation).map_err(CliError::Reported)?
-        }
-    };
+    let inputs = load_inputs(&args)?;
     if let Some(target) = &args.inputs_out {
         let text = serde_json::to_string(&inputs)?;
         target.write("--inputs-out", text.as_bytes())?;
     }
-    // In process, also the lag-smoothed trajectory (each keyframe as it left the window).
-    let (estimates, smoothed) = match &args.zenoh {
-        Some(endpoint) => (
-            tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()
-                .map_err(CliError::Runtime)?
-                .block_on(fusion_client::stream_over_zenoh(
-                    endpoint,
-                    &args.session,
-                    &inputs,
-                    if args.keep_session {
-                        AfterRun::Keep
-                    } else {
-                        AfterRun::Delete
-                    },
-                ))
-                .map_err(CliError::Reported)?,
-            None,
-        ),
-        None => {
-            let (real_time, smoothed) = experiment::run_smoothed(&inputs)?;
-            (real_time, Some(smoothed))
-        }
-    };
+    let (estimates, smoothed) = estimate(&args, &inputs)?;
     let smoothed_ape = smoothed.as_ref().map(|s| experiment::ape(&inputs, s));
     let (full, trans) = experiment::ape(&inputs, &estimates);
     let update = experiment::Percentiles::of(
@@ -192,6 +142,69 @@ pub fn run(args: FusionEvalArgs) -> Result<(), CliError> {
         print!("{}", text_report(&result));
     }
     Ok(())
+}
+
+/// The fusion inputs: `--inputs` as written, or generated from the EuRoC sequence.
+fn load_inputs(args: &FusionEvalArgs) -> Result<FusionInputs, CliError> {
+    Ok(match &args.inputs {
+        Some(input) => {
+            let text = input.read_to_string("--inputs")?;
+            serde_json::from_str(&text).map_err(|source| CliError::FileContents {
+                path: input.name(),
+                source,
+            })?
+        }
+        None => {
+            let dir = match &args.data {
+                Some(dir) => data_dir::existing_dir("--data", dir)?,
+                None => data_dir::existing_dir("--data", &data_dir::root().join(DEFAULT_SEQUENCE))?,
+            };
+            let data = io::euroc::load(&dir, &args.truth)?;
+            let generation = Generation {
+                seconds: args.seconds,
+                prior_every: if args.no_priors { 0 } else { 10 },
+                use_relative: !args.no_relative,
+                use_imu: !args.no_imu,
+                window: args.window,
+                seed: args.seed,
+                ..Generation::default()
+            };
+            experiment::generate(&data, &generation).map_err(CliError::Reported)?
+        }
+    })
+}
+
+/// The real-time estimates, streamed over zenoh or run in process (in process, also the
+/// lag-smoothed trajectory: each keyframe as it left the window).
+fn estimate(
+    args: &FusionEvalArgs,
+    inputs: &FusionInputs,
+) -> Result<(Vec<Estimate>, Option<Vec<Estimate>>), CliError> {
+    Ok(match &args.zenoh {
+        Some(endpoint) => (
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()
+                .map_err(CliError::Runtime)?
+                .block_on(fusion_client::stream_over_zenoh(
+                    endpoint,
+                    &args.session,
+                    inputs,
+                    if args.keep_session {
+                        AfterRun::Keep
+                    } else {
+                        AfterRun::Delete
+                    },
+                ))
+                .map_err(CliError::Reported)?,
+            None,
+        ),
+        None => {
+            let (real_time, smoothed) = experiment::run_smoothed(inputs)?;
+            (real_time, Some(smoothed))
+        }
+    })
 }
 
 /// The result for a person: one line per figure, APE as evo prints its statistics.
