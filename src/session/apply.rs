@@ -42,7 +42,7 @@ impl Session {
         let wire_copy = durable.is_some().then(|| batch.clone());
         // Step 1, validate.
         let deadline = AdmissionDeadline::after(self.limits.max_admission_ms);
-        let prepared = self.validate(&st, batch, Some(deadline))?;
+        let mut prepared = self.validate(&st, batch, Some(deadline))?;
         self.check_session_size(&st, &prepared)?;
         let sequence = self.next_sequence(&st)?;
         // Step 2, journal (not yet durable: the fsync below runs with the session unlocked).
@@ -52,7 +52,6 @@ impl Session {
             }
             _ => None,
         };
-        let mut prepared = prepared;
         let mirrored = self.mirror_batch(
             &mut st,
             durable.as_mut(),

@@ -12,6 +12,13 @@ use common::fusion::{inputs, keyframe_batches, position_error, start_message};
 use common::server::{client, get, post, zenoh_get, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 
+/// Creates the `sliding_window` session `robot`.
+async fn create_window(c: &reqwest::Client, s: &TestServer) {
+    let body = json!({"session": "robot", "kind": "sliding_window"});
+    let (status, created) = post(c, &s.url("/v1/sessions"), &body).await;
+    assert_eq!(status, 201, "{created}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sliding_window_over_http_tracks_and_refuses_bad_input() {
     let Some(inputs) = inputs(10.0, 10) else {
@@ -19,13 +26,7 @@ async fn sliding_window_over_http_tracks_and_refuses_bad_input() {
     };
     let s = TestServer::start(&[]);
     let c = client();
-    let (status, created) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"session": "robot", "kind": "sliding_window"}),
-    )
-    .await;
-    assert_eq!(status, 201, "{created}");
+    create_window(&c, &s).await;
     let url = s.url("/v1/sessions/robot/fusion");
     let (status, reply) = post(&c, &url, &json!({"messages": [start_message(&inputs)]})).await;
     assert_eq!(status, 200, "{reply}");
@@ -370,13 +371,7 @@ async fn a_window_session_reports_its_sequence_solves_and_summary() {
     };
     let s = TestServer::start(&[]);
     let c = client();
-    let (status, created) = post(
-        &c,
-        &s.url("/v1/sessions"),
-        &json!({"session": "robot", "kind": "sliding_window"}),
-    )
-    .await;
-    assert_eq!(status, 201, "{created}");
+    create_window(&c, &s).await;
     let (status, e) = get(&c, &s.url("/v1/sessions/robot/summary")).await;
     assert_eq!(status, 404, "nothing solved yet: {e}");
     let url = s.url("/v1/sessions/robot/fusion");
