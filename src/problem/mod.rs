@@ -186,16 +186,55 @@ impl Problem {
                 return Err(ProblemError::NonFiniteMeasurement { factor: label });
             }
         }
-        let entry = FactorEntry {
+        Ok(self.push_entry(FactorEntry {
             factor,
             sqrt_information,
             robust,
             label,
             variables,
-        };
+        }))
+    }
+
+    /// The entry [`Problem::add_checked_factor_sqrt`] would add, without adding it: for a
+    /// factor weighed against the problem before it may enter (a possibly wrong loop closure).
+    pub fn detached_entry(
+        &self,
+        factor: Box<dyn Factor>,
+        sqrt_information: SqrtInformation,
+        robust: Option<RobustKernel>,
+        label: String,
+    ) -> Result<FactorEntry, ProblemError> {
+        let variables = self.resolve(factor.as_ref(), &label)?;
+        Ok(FactorEntry {
+            factor,
+            sqrt_information,
+            robust,
+            label,
+            variables,
+        })
+    }
+
+    /// Adds an entry made by [`Problem::detached_entry`] of this problem; its index.
+    pub fn push_entry(&mut self, entry: FactorEntry) -> usize {
         self.factor_bytes += entry.estimated_bytes();
         self.factors.push(entry);
-        Ok(self.factors.len() - 1)
+        self.factors.len() - 1
+    }
+
+    /// Takes the factors for which `take(index)` is true out of the problem, in order; the
+    /// others keep their order.
+    pub fn take_factors(&mut self, mut take: impl FnMut(usize) -> bool) -> Vec<FactorEntry> {
+        let all = std::mem::take(&mut self.factors);
+        let mut taken = Vec::new();
+        for (i, entry) in all.into_iter().enumerate() {
+            if take(i) {
+                self.factor_bytes -= entry.estimated_bytes();
+                taken.push(entry);
+            } else {
+                self.factors.push(entry);
+            }
+        }
+        taken
     }
 
     /// Checks the variables `factor` touches (exist, distinct, right kinds); their indices.

@@ -17,7 +17,7 @@ use nalgebra::DMatrix;
 /// Poses on a grid walk (unit steps, random turns), edges: odometry and, whenever the robot is
 /// back on a cell it visited, a loop closure to the earliest visit. Measurements are the true
 /// relative poses with noise.
-fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
+pub(crate) fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
     let mut rng = Rng::new(seed);
     let mut truth = vec![Se2::new(0.0, 0.0, 0.0)];
     let mut visited = std::collections::HashMap::new();
@@ -64,11 +64,11 @@ fn manhattan(poses: usize, seed: u64) -> (Vec<Se2>, Vec<(usize, usize, Se2)>) {
     (truth, edges)
 }
 
-fn information() -> DMatrix<f64> {
+pub(crate) fn information() -> DMatrix<f64> {
     DMatrix::from_diagonal(&nalgebra::DVector::from_vec(vec![2500.0, 2500.0, 10000.0]))
 }
 
-fn add_edge(problem: &mut Problem, (i, j, z): &(usize, usize, Se2)) {
+pub(crate) fn add_edge(problem: &mut Problem, (i, j, z): &(usize, usize, Se2)) {
     problem
         .add_factor(
             Box::new(BetweenSe2::new(*i as u64, *j as u64, *z)),

@@ -15,6 +15,7 @@ mod edges_only;
 mod fusion;
 mod incremental_engine;
 mod incremental_engine_3d;
+mod innovation_gate;
 mod preintegration_gtsam;
 mod warm_start;
 mod wrong_closures;

@@ -27,6 +27,7 @@ mod beside;
 mod block_factor;
 mod dense;
 mod elimination_cost;
+mod innovation;
 mod linearized;
 mod ordering;
 mod refactor_pass;
