@@ -76,7 +76,9 @@ def owners(graph, robots):
 def wrong_closures(graph, robots, optimum, fraction, kind, rng):
     """Wrong inter-robot closures (g2o.Edge, ``line`` = -1), ``fraction`` × the right ones."""
     owner = owners(graph, robots)
-    right = [e for e in graph.edges if owner[e.i] != owner[e.j]]
+    # Among inter-robot closures; with one robot, among its loop closures.
+    right = [e for e in graph.edges
+             if owner[e.i] != owner[e.j] or (robots == 1 and abs(e.i - e.j) != 1)]
     info = right[0].information if right else graph.edges[0].information
     by_robot = {}
     for vid in sorted(graph.vertices):
@@ -86,9 +88,11 @@ def wrong_closures(graph, robots, optimum, fraction, kind, rng):
     pose = lambda vid: pose_from_wire(kind_name, optimum[vid])  # noqa: E731
     out = []
     while len(out) < target:
-        r, s = rng.sample(range(robots), 2)
+        r, s = rng.sample(range(robots), 2) if robots > 1 else (0, 0)
         if kind == "random":
             i, j = rng.choice(by_robot[r]), rng.choice(by_robot[s])
+            if abs(i - j) <= 1:
+                continue  # a loop closure joins poses that are not consecutive
             z = [rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)]
             if graph.dimension == 3:
                 z = random_pose3(rng, 20.0, math.pi).to_wire()
@@ -180,8 +184,10 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
     try:
         http = HttpClient(server.http, timeout=120)
         session = f"split{robots}"
-        http.create_session(graph.session_kind, session=session,
-                            robots={"min_closures": args.min_closures})
+        options = {"robots": {"min_closures": args.min_closures}} if robots > 1 else {}
+        if args.outliers:
+            options["outliers"] = args.outliers
+        http.create_session(graph.session_kind, session=session, **options)
         zenoh = ZenohClient(server.zenoh, timeout=60) if args.transport == "zenoh" else None
         latencies = []
         t0 = time.monotonic()
@@ -196,7 +202,22 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
                 wrong_ids.update(i for i, w in zip(ack["factor_ids"], wrong) if w)
         stats = http.optimize(session, wait=True)["stats"]
         total = time.monotonic() - t0
-        report = http.robots(session)
+        streamed_rmse = rmse_of(http.estimate(session), key, graph, clean_positions)
+        consolidate_s = None
+        if args.outliers:
+            # The gate's decisions are consolidated once the session rests (0.5 s idle).
+            c0 = time.monotonic()
+            before = http.outliers(session)["consolidations"]
+            while time.monotonic() - c0 < 120:
+                time.sleep(0.05)
+                if http.outliers(session)["consolidations"] > before:
+                    consolidate_s = time.monotonic() - c0
+                    break
+            stats = http.optimize(session, wait=True)["stats"]
+        report = http.robots(session) if robots > 1 else {
+            "robots": [{"in_map": True}], "merges": [], "pending": [], "rejected": [],
+            "admitted": 0}
+        outliers = http.outliers(session) if args.outliers else {"pending": [], "rejected": []}
         estimate = http.estimate(session)
         by_key = {v["key"]: v["value"] for v in estimate["variables"]}
         positions = {}
@@ -206,7 +227,8 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
                 positions[vid] = (v[0], v[1], v[2] if graph.dimension == 3 else 0.0)
         rmse = aligned_rmse(clean_positions, positions)
         merges = report["merges"]
-        outside = {c["factor_id"] for c in report["pending"] + report["rejected"]}
+        outside = {c["factor_id"] for c in report["pending"] + report["rejected"]
+                   + outliers["pending"] + outliers["rejected"]}
         caught = len(outside & wrong_ids)
         return {
             "dataset": args.dataset, "robots": robots, "transport": args.transport,
@@ -222,7 +244,9 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
             "total_s": round(total, 3),
             "chi2": stats["chi2"], "clean_chi2": clean_chi2,
             "chi2_rel": abs(stats["chi2"] - clean_chi2) / clean_chi2,
-            "rmse_m": rmse,
+            "rmse_m": rmse, "streamed_rmse_m": streamed_rmse,
+            "outliers": args.outliers, "consolidated_after_s": consolidate_s,
+            "consolidations": outliers.get("consolidations"),
             "wrong": len(wrong_ids), "wrong_kind": args.wrong_kind if wrong_ids else None,
             "admitted": report["admitted"], "kept_out": len(outside),
             "precision": caught / len(outside) if outside else 1.0,
@@ -230,6 +254,16 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
         }
     finally:
         server.kill()
+
+
+def rmse_of(estimate, key, graph, clean_positions):
+    by_key = {v["key"]: v["value"] for v in estimate["variables"]}
+    positions = {}
+    for vid, k in key.items():
+        if k in by_key:
+            v = by_key[k]
+            positions[vid] = (v[0], v[1], v[2] if graph.dimension == 3 else 0.0)
+    return aligned_rmse(clean_positions, positions)
 
 
 def main():
@@ -243,6 +277,8 @@ def main():
     parser.add_argument("--wrong", type=float, default=0.0)
     parser.add_argument("--wrong-kind", choices=["random", "aliasing"], default="random")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--outliers", choices=["auto"], default=None,
+                        help="create the session with outliers=auto (streamed rejection)")
     args = parser.parse_args()
     path = args.data_dir / args.dataset
     graph = g2o.load(path)

@@ -15,6 +15,7 @@ pub mod factor_schema;
 pub mod fusion;
 pub mod history;
 mod limits;
+pub mod outliers;
 pub mod poses_binary;
 pub mod robots;
 pub mod ros2;

@@ -2,6 +2,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::outliers::OutlierPolicy;
+
 use super::wire_list;
 use crate::factors::RobustKernel;
 use crate::problem::Key;
@@ -65,6 +67,10 @@ pub struct CreateSession {
     /// them agree (`{}` for the defaults); pose graph kinds. See docs/guide/many-robots.md.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub robots: Option<super::robots::RobotsOptions>,
+    /// `auto`: every loop closure may be wrong (as if marked `"outlier": "auto"`), and wrong
+    /// ones are held out of the estimate; `off` (default): only marked factors. Graph kinds.
+    #[serde(default, skip_serializing_if = "OutlierPolicy::is_off")]
+    pub outliers: OutlierPolicy,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -102,6 +108,11 @@ pub struct FactorSpec {
     pub sigmas: Option<Vec<f64>>,
     #[serde(default)]
     pub robust: Option<RobustKernel>,
+    /// `auto`: the factor may be wrong (a loop closure from place recognition); the service
+    /// decides whether it enters the estimate (`GET /v1/sessions/{s}/outliers`). `trusted`:
+    /// never held out, whatever the session's `outliers` policy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outlier: Option<super::outliers::OutlierMark>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -500,6 +511,13 @@ pub enum SessionEvent {
         #[serde(flatten)]
         merge: super::robots::MergeReport,
     },
+    /// A solve decided possibly wrong loop closures: which entered the estimate and which are
+    /// held out (see `GET /v1/sessions/{s}/outliers`).
+    Outliers {
+        session: String,
+        #[serde(flatten)]
+        decisions: super::outliers::OutlierDecisions,
+    },
 }
 
 impl SessionEvent {
@@ -515,6 +533,7 @@ impl SessionEvent {
             Self::Error { .. } => "errors",
             Self::Lagged { .. } => "lagged",
             Self::Merge { .. } => "merges",
+            Self::Outliers { .. } => "outliers",
         }
     }
 }

@@ -605,6 +605,7 @@ mod tests {
             ros2: None,
             factor_types: vec![],
             robots: None,
+            outliers: Default::default(),
         };
         a.execute(
             &Caller::Trusted,

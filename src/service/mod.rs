@@ -289,6 +289,7 @@ impl Service {
                 factor_types: session.factor_types().definitions(),
                 ros2: session.ros2_binding().cloned().map(Box::new),
                 robots: session.robots_options(),
+                outliers: session.outlier_policy(),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
@@ -356,6 +357,7 @@ impl Service {
         if let Some(robots) = request.robots {
             session.set_robots(robots)?;
         }
+        session.set_outlier_policy(request.outliers)?;
         session
             .set_auto_optimize(request.auto_optimize)
             .map_err(|mut e| {

@@ -159,6 +159,7 @@ impl Session {
                 mirror: &st.mirror.entries,
                 live_factors: &st.mirror.live_factors,
                 factor_types: &factor_types,
+                outliers: st.outliers.policy,
                 deadline,
             },
         )?;
@@ -242,6 +243,8 @@ impl Session {
                 mirrored.merges.extend(report);
             }
         }
+        st.outliers.remove_factors(&prepared.remove);
+        st.outliers.route(prepared, &mut mirrored.active_ids);
         mirrored
     }
 

@@ -11,47 +11,15 @@ use std::time::{Duration, Instant};
 use nalgebra::DMatrix;
 
 use super::factor_types::FactorTypes;
+pub(crate) use super::prepared::{NewVariable, PreparedBatch, PreparedFactor};
 use super::MirrorEntry;
 use crate::api::catalogue::{self, SessionKind};
+use crate::api::outliers::{is_candidate, OutlierPolicy};
 use crate::api::wire::{Batch, FactorId, FactorSpec};
 use crate::api::ServiceError;
-use crate::factors::{robust, Factor, RobustKernel, SqrtInformation};
+use crate::factors::{robust, SqrtInformation};
 use crate::problem::{Key, Variable};
 use crate::solver::budget::FACTORS_PER_CHECK;
-
-pub(crate) struct PreparedFactor {
-    pub factor: Box<dyn Factor>,
-    pub sqrt_information: SqrtInformation,
-    pub robust: Option<RobustKernel>,
-}
-
-/// A variable a batch creates, with its (given or predicted) value.
-pub(crate) struct NewVariable {
-    pub key: Key,
-    pub value: Box<dyn Variable>,
-    pub fixed: bool,
-    /// When the pose was taken (seconds), if the client said.
-    pub stamp: Option<f64>,
-}
-
-pub(crate) struct PreparedBatch {
-    pub variables: Vec<NewVariable>,
-    pub factors: Vec<PreparedFactor>,
-    pub remove: Vec<FactorId>,
-    /// (key, fixed) changes.
-    pub fix: Vec<(Key, bool)>,
-    pub guesses: Vec<(Key, Box<dyn Variable>)>,
-    /// Keys whose value was predicted rather than given.
-    pub predicted: Vec<Key>,
-    /// Merges the batch completed (`session::robots`), applied after its factors.
-    pub merges: Vec<super::robots::Merge>,
-}
-
-impl PreparedBatch {
-    pub fn factor_count(&self) -> usize {
-        self.factors.len()
-    }
-}
 
 /// What `prepare` needs to know about the session.
 pub(crate) struct SessionView<'a> {
@@ -60,6 +28,8 @@ pub(crate) struct SessionView<'a> {
     pub live_factors: &'a HashSet<FactorId>,
     /// Factor types the session's client declared.
     pub factor_types: &'a FactorTypes,
+    /// Which factors are possibly wrong loop closures without a mark of their own.
+    pub outliers: OutlierPolicy,
     /// When admitting the batch must be over; `None` for a journal replay, which restores what
     /// was accepted once.
     pub deadline: Option<AdmissionDeadline>,
@@ -358,10 +328,12 @@ fn prepare_factor(
             ));
         }
     }
+    let candidate = is_candidate(view.outliers, spec.outlier, codec.name(), &spec.keys);
     Ok(PreparedFactor {
         factor,
         sqrt_information,
         robust: spec.robust,
+        candidate,
     })
 }
 

@@ -224,8 +224,9 @@ impl History {
                 iterations: *iterations,
                 converged: true,
             }),
-            // A merge is rare and worth keeping in the log the web view shows.
-            SessionEvent::Merge { .. } => self.log(logged()),
+            // Merges and outlier decisions are rare and worth keeping in the log the web view
+            // shows.
+            SessionEvent::Merge { .. } | SessionEvent::Outliers { .. } => self.log(logged()),
             SessionEvent::Error { .. } => {
                 self.log(logged());
                 push_logged(

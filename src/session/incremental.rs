@@ -159,6 +159,21 @@ impl IncrementalSolver {
         }
     }
 
+    /// The innovation distance of a factor not in the problem's engine yet (see
+    /// `IncrementalEngine::innovation`); `None` without an engine, for a factor on a variable the
+    /// engine has not taken in, or one it cannot evaluate.
+    pub fn innovation(
+        &self,
+        problem: &Problem,
+        entry: &crate::problem::FactorEntry,
+    ) -> Option<f64> {
+        self.engine
+            .as_ref()?
+            .innovation(problem, entry)
+            .ok()
+            .flatten()
+    }
+
     /// One engine update of an additions-only change (`tight`: polish, or a solve the client
     /// asked for). `None` when there is no engine; an `Err` drops it (the caller solves in
     /// batch, which builds it again).

@@ -50,6 +50,8 @@ mod history;
 mod incremental;
 mod inspect;
 mod mirror;
+mod outliers;
+mod prepared;
 mod producer_order;
 mod producers;
 mod robots;

@@ -9,10 +9,11 @@ use std::time::Instant;
 
 use super::incremental::{self, IncrementalSolver};
 use super::mirror;
+use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
 use super::solve_budget::SolveBudget;
 use super::{Session, State};
 use crate::api::wire::AutoOptimize;
-use crate::api::wire::{Estimate, SessionEvent};
+use crate::api::wire::{Estimate, FactorId, SessionEvent};
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::problem::{Key, Problem};
@@ -36,6 +37,13 @@ struct SolveWork {
     gauge: Vec<Key>,
     /// A solve the client asked for, or a polish: an engine update runs to convergence.
     tight: bool,
+    /// Possibly wrong closures this solve decides (`session::outliers`): what it took, what it
+    /// decided, the gate's entries (appended to the problem, ids in order) and, when it
+    /// consolidates, the factors' ids (candidates enter and leave the problem).
+    outliers: Option<OutlierWork>,
+    outcome: OutlierOutcome,
+    entered: Vec<FactorId>,
+    factor_ids: Option<Vec<FactorId>>,
 }
 
 impl Session {
@@ -52,6 +60,15 @@ impl Session {
         st.schedule.factors_since_solve = 0;
         st.results.solves += 1;
         self.cancel.store(false, Ordering::SeqCst);
+        // A full solve decides every candidate again (so does the first after the session
+        // rested from gate decisions); a streamed one gates the pending ones.
+        let full = st.schedule.structural || st.results.solves == 1 || st.results.chi2.is_none();
+        let consolidate = full || std::mem::take(&mut st.outliers.requested);
+        let outliers = (!st.outliers.is_empty()).then(|| st.outliers.take_for_solve(consolidate));
+        let factor_ids = outliers
+            .as_ref()
+            .filter(|o| o.consolidate)
+            .map(|_| std::mem::take(&mut st.model.factor_ids));
         let (problem, index) = st.model.take();
         Some(SolveWork {
             problem,
@@ -66,6 +83,10 @@ impl Session {
             debt: st.schedule.region_debt,
             gauge: st.model.gauge.clone(),
             tight,
+            outliers,
+            outcome: OutlierOutcome::default(),
+            entered: Vec::new(),
+            factor_ids,
         })
     }
 
@@ -120,6 +141,30 @@ impl Session {
         };
         st.results.solved_sequence = st.results.solved_sequence.max(run.sequence);
         st.schedule.region_debt = work.debt;
+        if let Some(ids) = work.factor_ids.take() {
+            st.model.factor_ids = ids;
+        }
+        st.model.factor_ids.append(&mut work.entered);
+        let consolidated = work.outliers.is_none()
+            && work
+                .outcome
+                .decisions
+                .first()
+                .is_some_and(|d| d.by == DecidedBy::GraduatedNonConvexity);
+        let outcome = std::mem::take(&mut work.outcome);
+        if let Some(untouched) = work.outliers.take() {
+            // Not decided (the solve failed before it got there): held as they were.
+            st.outliers.give_back(untouched);
+        }
+        if let Some(decisions) = st.outliers.finish(outcome, consolidated, run.sequence) {
+            self.emit(SessionEvent::Outliers {
+                session: self.name.clone(),
+                decisions,
+            });
+        }
+        if st.outliers.consolidation_due() {
+            self.consolidate_when_idle(st.mirror.sequence);
+        }
         self.hand_back(&mut st, work.problem, work.index);
         if polish {
             self.polish_when_idle(st.mirror.sequence);
@@ -174,23 +219,21 @@ impl Session {
         on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
         budget: &SolveBudget,
     ) -> Result<incremental::Resolved, solver::SolverError> {
-        let SolveWork {
-            problem,
-            index,
-            options,
-            solve_number,
-            seeds,
-            structural,
-            chi2,
-            debt,
-            gauge,
-            tight,
-            ..
-        } = work;
-        let additions_only = !*structural && *solve_number > 1;
-        if let Some(total) = chi2.filter(|_| additions_only) {
+        if work.outliers.as_ref().is_some_and(|o| o.consolidate) {
+            return self.consolidate(work, on_iteration, budget);
+        }
+        let additions_only = !work.structural && work.solve_number > 1;
+        if let Some(total) = work.chi2.filter(|_| additions_only) {
+            let SolveWork {
+                problem,
+                index,
+                options,
+                gauge,
+                tight,
+                ..
+            } = work;
             match index.update_engine(problem, total, *tight, options, gauge, on_iteration) {
-                Some(Ok(resolved)) => return Ok(resolved),
+                Some(Ok(resolved)) => return self.gate(work, resolved, on_iteration, budget),
                 // The engine failed (an indeterminate update): solve in batch below.
                 Some(Err(e)) => {
                     tracing::debug!("incremental update failed, solving in batch: {e}")
@@ -200,9 +243,9 @@ impl Session {
                     return self.resolve_regions(
                         problem,
                         index,
-                        seeds,
+                        &work.seeds,
                         total,
-                        debt,
+                        &mut work.debt,
                         options,
                         gauge,
                         on_iteration,
@@ -211,6 +254,14 @@ impl Session {
                 }
             }
         }
+        let SolveWork {
+            problem,
+            index,
+            options,
+            solve_number,
+            debt,
+            ..
+        } = work;
         // Later solves warm-start from the current estimate; initialisation is for the first.
         *debt = 0.0;
         let solved = if *solve_number > 1 {
@@ -304,6 +355,145 @@ impl Session {
         });
     }
 }
+
+impl Session {
+    /// After a streamed engine update: the pending candidates through the gate, and a second
+    /// update that takes in those it let through (a batch solve if that update fails).
+    fn gate(
+        &self,
+        work: &mut SolveWork,
+        resolved: incremental::Resolved,
+        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+        budget: &SolveBudget,
+    ) -> Result<incremental::Resolved, solver::SolverError> {
+        let Some(candidates) = work.outliers.take() else {
+            return Ok(resolved);
+        };
+        let first = work.problem.factors().len();
+        let summary = &resolved.summary;
+        let scale = outliers::noise_scale(
+            resolved.total_chi2,
+            summary.num_residuals,
+            summary.num_parameters,
+        );
+        let gated = outliers::gate(&mut work.problem, &work.index, candidates.held, scale);
+        work.outcome = gated.outcome;
+        work.entered = gated.entered;
+        if work.entered.is_empty() {
+            return Ok(resolved);
+        }
+        let problem = &mut work.problem;
+        work.index.extend(problem, first);
+        let entered_chi2 = solver::evaluate_chi2(&problem.factors()[first..], &problem.values)
+            .unwrap_or(f64::INFINITY);
+        let total = resolved.total_chi2 + entered_chi2;
+        let again = work.index.update_engine(
+            problem,
+            total,
+            work.tight,
+            &work.options,
+            &work.gauge,
+            on_iteration,
+        );
+        match again {
+            Some(Ok(again)) => {
+                let moved = match (resolved.moved, again.moved) {
+                    (Some(mut a), Some(b)) => {
+                        a.extend(b);
+                        a.sort_unstable();
+                        a.dedup();
+                        Some(a)
+                    }
+                    _ => None,
+                };
+                Ok(incremental::Resolved { moved, ..again })
+            }
+            _ => {
+                let summary =
+                    work.index
+                        .solve_whole(problem, &work.options, on_iteration, budget)?;
+                if summary.converged {
+                    work.index
+                        .rebuild_engine(problem, &summary.used.gauge_fixed);
+                }
+                Ok(incremental::Resolved {
+                    total_chi2: summary.final_chi2,
+                    converged: summary.converged,
+                    moved: None,
+                    summary,
+                })
+            }
+        }
+    }
+
+    /// Every candidate decided again together (`outliers::consolidate`), then the engine
+    /// built again at the answer. An interrupted consolidation decides nothing and leaves the
+    /// problem as it found it, values included, so the engine still fits it.
+    fn consolidate(
+        &self,
+        work: &mut SolveWork,
+        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+        budget: &SolveBudget,
+    ) -> Result<incremental::Resolved, solver::SolverError> {
+        let candidates = work
+            .outliers
+            .take()
+            .expect("consolidate is asked with candidates");
+        let mut ids = work.factor_ids.take().expect("taken with the candidates");
+        let before = work.problem.values.clone();
+        let (solved, outcome) = outliers::consolidate(
+            &mut work.problem,
+            &mut ids,
+            candidates,
+            &work.options,
+            on_iteration,
+            budget,
+        );
+        work.factor_ids = Some(ids);
+        let decided = !outcome.decisions.is_empty();
+        work.outcome = outcome;
+        if !decided {
+            work.problem.values = before;
+        } else {
+            work.index.rebuild(&work.problem);
+        }
+        work.debt = 0.0;
+        let summary = solved?;
+        if decided && summary.converged {
+            work.index
+                .rebuild_engine(&mut work.problem, &summary.used.gauge_fixed);
+        }
+        Ok(incremental::Resolved {
+            total_chi2: summary.final_chi2,
+            converged: summary.converged && decided,
+            moved: None,
+            summary,
+        })
+    }
+
+    /// Asks for a consolidation if no batch arrives within [`CONSOLIDATE_AFTER_IDLE`]: the
+    /// gate's decisions since the last one are then checked together, off the stream's path.
+    fn consolidate_when_idle(self: &Arc<Self>, sequence: u64) {
+        let session = Arc::clone(self);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(CONSOLIDATE_AFTER_IDLE).await;
+            let mut st = session.lock();
+            if st.mirror.sequence == sequence
+                && st.schedule.phase.is_at_rest()
+                && st.outliers.consolidation_due()
+            {
+                st.outliers.requested = true;
+                st.schedule.phase.force();
+                session.schedule(&mut st);
+            }
+        });
+    }
+}
+
+/// How long a session must be idle before the gate's decisions are consolidated (a batch solve
+/// with graduated non-convexity: tens of milliseconds to seconds, so not between a stream's
+/// batches).
+const CONSOLIDATE_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// How a solve ran, for what it publishes.
 struct Run {

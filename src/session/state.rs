@@ -29,6 +29,8 @@ pub(super) struct State {
     pub(super) producers: Producers,
     /// Several robots in the session (`robots` at creation), else `None`.
     pub(super) robots: Option<super::robots::Robots>,
+    /// Possibly wrong loop closures, held out of the problem until decided.
+    pub(super) outliers: super::outliers::Outliers,
 }
 
 /// The problem and its incremental engine: here between solves, on a worker during one.
@@ -141,6 +143,7 @@ impl State {
             },
             producers: Producers::default(),
             robots: None,
+            outliers: Default::default(),
         }
     }
 }

@@ -88,11 +88,12 @@ impl Session {
     /// emits): where a publisher per topic puts a `lagged` marker.
     pub fn topics(&self) -> &'static [&'static str] {
         match self.engine {
-            // Only a session with robots merges.
-            Engine::Graph(_) if self.lock().robots.is_some() => {
-                &["acks", "poses", "stats", "summary", "errors", "merges"]
-            }
-            Engine::Graph(_) => &["acks", "poses", "stats", "summary", "errors"],
+            // Only a session with robots merges; any graph session may hold possibly wrong
+            // closures.
+            Engine::Graph(_) if self.lock().robots.is_some() => &[
+                "acks", "poses", "stats", "summary", "errors", "outliers", "merges",
+            ],
+            Engine::Graph(_) => &["acks", "poses", "stats", "summary", "errors", "outliers"],
             Engine::Window(_) => &["state", "window", "errors"],
         }
     }

@@ -34,6 +34,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
                 factor_types: vec![],
                 ros2: None,
                 robots: None,
+                outliers: Default::default(),
             }),
             Recording::History,
         )
@@ -202,6 +203,7 @@ async fn create_edits_session(service: &Service) {
             factor_types: vec![],
             ros2: None,
             robots: None,
+            outliers: Default::default(),
         }),
     )
     .await;

@@ -16,6 +16,7 @@ mod incremental;
 mod landmarks_2d;
 mod landmarks_3d_ranges;
 mod marginals;
+mod outliers;
 mod producer_list;
 mod robots;
 mod service;

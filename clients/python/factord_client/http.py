@@ -272,6 +272,7 @@ class HttpClient:
         auto_optimize: Union[None, str, JsonDict] = None,
         factor_types: Optional[list] = None,
         robots: Optional[JsonDict] = None,
+        outliers: Optional[str] = None,
     ) -> wire.SessionInfo:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
         solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
@@ -279,7 +280,8 @@ class HttpClient:
         or just the policy name (``"every_batch"``, ``"manual"``); ``factor_types``: user-defined
         factor types (proto/v1/factor-type.schema.json), used by name in batches; ``robots``:
         the session holds several robots (``{}`` or ``{"min_closures": 3}``, see
-        docs/guide/many-robots.md)."""
+        docs/guide/many-robots.md); ``outliers``: ``"auto"`` holds every loop closure out of the
+        estimate until it is found consistent (see :meth:`outliers`)."""
         body: JsonDict = {"kind": kind}
         if session is not None:
             body["session"] = session
@@ -291,6 +293,8 @@ class HttpClient:
             body["factor_types"] = factor_types
         if robots is not None:
             body["robots"] = robots
+        if outliers is not None:
+            body["outliers"] = outliers
         return self._request("POST", "/v1/sessions", body=body)
 
     def list_sessions(self) -> wire.SessionList:
@@ -349,6 +353,13 @@ class HttpClient:
         robot with its frame (``map_from_odom``) and component, the held (``pending``) and
         ``rejected`` closures, and the merges."""
         return self._request("GET", self._session_path(session, "/robots"))
+
+    def outliers(self, session: str) -> JsonDict:
+        """``GET /v1/sessions/{session}/outliers``: the possibly wrong loop closures (factors
+        sent with ``"outlier": "auto"``, or every loop closure of a session created with
+        ``outliers="auto"``): how many were ``accepted``, the ``pending`` and ``rejected`` ones
+        with their gate ``distance``, and the ``consolidations`` so far."""
+        return self._request("GET", self._session_path(session, "/outliers"))
 
     def optimize(self, session: str, wait: bool = False, after_producer: Optional[str] = None,
                  after_seq: Optional[int] = None,

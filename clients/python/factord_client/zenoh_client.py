@@ -340,6 +340,11 @@ class ZenohClient:
         closures and merges (see :meth:`HttpClient.robots`)."""
         return self.rpc({"op": "list_robots", "session": session}, timeout)
 
+    def outliers(self, session: str, timeout: Optional[float] = None) -> JsonDict:
+        """rpc ``list_outliers``: the session's possibly wrong loop closures and the decisions
+        (see :meth:`HttpClient.outliers`)."""
+        return self.rpc({"op": "list_outliers", "session": session}, timeout)
+
     def producer(self, session: str, producer: Optional[str] = None, **options: Any) -> Any:
         """A :class:`~factord_client.stream_producer.StreamProducer` of ``session``: numbered,
         acknowledged, resent batches (``options``: ``window``, ``resend_after``, ``resume``,

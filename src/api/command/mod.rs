@@ -32,6 +32,7 @@ pub enum Command {
     ProducerStatus(ProducerQuery),
     ListProducers(ListProducers),
     ListRobots(ListRobots),
+    ListOutliers(ListOutliers),
     GetStats(GetStats),
     Cancel(Cancel),
     Fusion(Fusion),
@@ -62,6 +63,7 @@ pub enum Reply {
     Producer(ProducerStatus),
     Producers(ProducerList),
     Robots(Box<crate::api::robots::RobotsReport>),
+    Outliers(Box<crate::api::outliers::OutliersReport>),
     Marginals(Box<crate::api::wire::Marginals>),
     History(Box<crate::api::history::SessionHistory>),
 }
@@ -80,6 +82,7 @@ impl Command {
             Command::ProducerStatus(r) => Some(&r.session),
             Command::ListProducers(r) => Some(&r.session),
             Command::ListRobots(r) => Some(&r.session),
+            Command::ListOutliers(r) => Some(&r.session),
             Command::GetStats(r) => Some(&r.session),
             Command::Cancel(r) => Some(&r.session),
             Command::Fusion(r) => Some(&r.session),

@@ -124,6 +124,13 @@ pub struct ListRobots {
     pub session: String,
 }
 
+/// The session's possibly wrong loop closures: accepted, pending and rejected.
+#[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ListOutliers {
+    pub session: String,
+}
+
 /// The session's statistics.
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]

@@ -19,6 +19,7 @@ mod get_history;
 mod get_marginals;
 mod get_stats;
 mod health;
+mod list_outliers;
 mod list_producers;
 mod list_robots;
 mod list_sessions;
@@ -96,6 +97,9 @@ impl Service {
             Command::ListRobots(r) => self
                 .list_robots(caller, r)
                 .map(|r| Reply::Robots(Box::new(r))),
+            Command::ListOutliers(r) => self
+                .list_outliers(caller, r)
+                .map(|r| Reply::Outliers(Box::new(r))),
             Command::GetStats(r) => self.get_stats(caller, r).map(Reply::Stats),
             Command::Cancel(r) => self.cancel(caller, r).map(Reply::Cancelled),
             Command::Fusion(r) => self.fusion(caller, r).await.map(Reply::Fusion),

@@ -16,8 +16,8 @@ use crate::api::wire::{AutoOptimize, Batch, CreateSession, EstimateQuery};
 use crate::api::ErrorKind;
 use crate::api::{
     AfterFields, ApplyBatch, Cancel, DefineFactorTypes, DeleteSession, Fusion, GetGraph,
-    GetHistory, GetMarginals, GetStats, ListProducers, ListRobots, Optimize, ProducerQuery,
-    SetAutoOptimize,
+    GetHistory, GetMarginals, GetStats, ListOutliers, ListProducers, ListRobots, Optimize,
+    ProducerQuery, SetAutoOptimize,
 };
 use crate::service::jobs::{JobAnswer, JobParams};
 use crate::service::ServiceError;
@@ -451,6 +451,20 @@ pub(super) async fn list_robots(
     Path(session): Path<String>,
 ) -> HttpResult {
     let command = Command::ListRobots(ListRobots { session });
+    json(StatusCode::OK, run(&service, &caller, command).await?)
+}
+
+/// A session's possibly wrong loop closures (marked `"outlier": "auto"`, or every loop closure
+/// of a session created with `"outliers": "auto"`): accepted, pending and rejected.
+#[utoipa::path(get, path = "/v1/sessions/{session}/outliers", tag = "reads", params(SessionPath),
+    responses((status = 200, description = "The candidates and the decisions.", body = crate::api::outliers::OutliersReport),
+        (status = 400, response = BadRequest), (status = 401, response = Unauthorized), (status = 404, response = NotFound), (status = 421, response = Misdirected), (status = 503, response = Unavailable)))]
+pub(super) async fn list_outliers(
+    State(service): Shared,
+    caller: Caller,
+    Path(session): Path<String>,
+) -> HttpResult {
+    let command = Command::ListOutliers(ListOutliers { session });
     json(StatusCode::OK, run(&service, &caller, command).await?)
 }
 

@@ -67,6 +67,7 @@ pub fn routes() -> OpenApiRouter<Arc<Service>> {
         .routes(routes!(estimate))
         .routes(routes!(list_producers))
         .routes(routes!(list_robots))
+        .routes(routes!(list_outliers))
         .routes(routes!(producer_status))
         .routes(routes!(summary))
         .routes(routes!(cancel))

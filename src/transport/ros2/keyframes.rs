@@ -216,6 +216,7 @@ fn factor(kind: &str, keys: Vec<Key>, pose: &Isometry3<f64>, noise: Noise) -> Fa
         information,
         sigmas,
         robust: None,
+        outlier: None,
     }
 }
 
