@@ -48,7 +48,8 @@ pub fn factor_schema() -> Value {
             "measurement": measurement(None),
             "information": information(None),
             "sigmas": sigmas(None),
-            "robust": robust()
+            "robust": robust(),
+            "outlier": outlier()
         },
         "oneOf": [{"required": ["information"]}, {"required": ["sigmas"]}],
         "allOf": dispatch,
@@ -89,7 +90,8 @@ fn factor_type(f: &FactorWire) -> Value {
             "measurement": measurement(Some(f)),
             "information": information(Some(f)),
             "sigmas": sigmas(Some(f)),
-            "robust": robust()
+            "robust": robust(),
+            "outlier": outlier()
         },
         "oneOf": [{"required": ["information"]}, {"required": ["sigmas"]}]
     })
@@ -152,6 +154,13 @@ fn sigmas(f: Option<&FactorWire>) -> Value {
     };
     exactly(&mut array, Some(f.residual_dim));
     json!({"description": format!("{} numbers.", f.residual_dim), "anyOf": [array, {"type": "null"}]})
+}
+
+fn outlier() -> Value {
+    json!({
+        "description": "`auto`: the factor may be wrong (a loop closure from place recognition); it enters the estimate once the session finds it consistent (GET /v1/sessions/{s}/outliers). `trusted`: never held out, whatever the session's `outliers` policy. `null` is the same as leaving the field out.",
+        "anyOf": [{"enum": ["auto", "trusted"]}, {"type": "null"}]
+    })
 }
 
 fn robust() -> Value {
