@@ -57,6 +57,14 @@ pub const PATH: RosType = RosType {
     hash: "RIHS01_1957a5bb3cee5da65c4e52e52b65a93df227efce4c20f8458b36e73066ca334b",
 };
 
+/// The graph as rviz and Foxglove draw it. Its hash as `rosbags` computes it from the Jazzy
+/// definitions, and recomputed from them by `type_hash`.
+pub const MARKER_ARRAY: RosType = RosType {
+    name: "visualization_msgs/msg/MarkerArray",
+    dds_name: "visualization_msgs::msg::dds_::MarkerArray_",
+    hash: "RIHS01_86cb8800b6fb05b5eff1abd7a56f62a5641d3ae9a1c29e78e67e704f1d067dcf",
+};
+
 /// `builtin_interfaces/Time`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Time {

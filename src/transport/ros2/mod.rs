@@ -31,6 +31,7 @@ mod messages;
 mod names;
 mod outputs;
 mod tf;
+mod type_hash;
 mod window_feed;
 
 use std::sync::atomic::{AtomicU64, Ordering};
