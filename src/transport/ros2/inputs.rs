@@ -1,11 +1,12 @@
-//! The binding's subscriptions: odometry, absolute poses and IMU samples, in the order they
-//! arrive, decoded from CDR, checked (`bounds`), turned into batches by the [`Keyframer`] (pose
-//! graphs) or fusion messages by the [`WindowFeed`] (sliding windows), and executed as any
-//! client's commands.
+//! The binding's subscriptions: odometry, absolute poses, IMU samples, loop closures and
+//! landmark sightings, in the order they arrive, decoded from CDR, checked (`bounds`), turned
+//! into batches by the [`Keyframer`] (pose graphs; closures and sightings in `closures`) or
+//! fusion messages by the [`WindowFeed`] (sliding windows), and executed as any client's
+//! commands.
 //!
 //! A message that cannot be used (larger than `max_body_bytes`, not CDR of the expected type, a
 //! value out of bounds, a stamp not after its topic's previous one, a bad covariance, a prior
-//! before any keyframe) is counted and reported on the session's error stream (SSE, zenoh
+//! before any keyframe, a closure or sighting with no keyframe near its stamp) is counted and reported on the session's error stream (SSE, zenoh
 //! `out/errors`) with code `ros2_bad_message`; nothing of it reaches the session.
 
 use std::io::Read;
@@ -21,7 +22,8 @@ use super::bounds::{self, BadValue, Stamps, Stream};
 use super::cdr_codec;
 use super::keyframes::{Keyframer, MessageError};
 use super::messages::{
-    Imu, Odometry, PoseWithCovarianceStamped, IMU, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
+    Imu, LandmarkSighting, LoopClosure, Odometry, PoseWithCovarianceStamped, IMU,
+    LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
 };
 use super::tf::TfBroadcaster;
 use super::window_feed::{Feed, WindowFeed};
@@ -61,6 +63,8 @@ enum Topic {
     Odometry,
     Prior,
     Imu,
+    LoopClosure,
+    Landmark,
 }
 
 /// A decoded message (its values still to check: [`Message::checked_stamp`]).
@@ -68,6 +72,8 @@ enum Message {
     Odometry(Odometry),
     Prior(PoseWithCovarianceStamped),
     Imu(Imu),
+    LoopClosure(LoopClosure),
+    Landmark(LandmarkSighting),
 }
 
 impl Topic {
@@ -76,14 +82,19 @@ impl Topic {
             Topic::Odometry => "ros2.odometry_topic",
             Topic::Prior => "ros2.prior_topic",
             Topic::Imu => "ros2.imu_topic",
+            Topic::LoopClosure => "ros2.loop_closure_topic",
+            Topic::Landmark => "ros2.landmark_topic",
         }
     }
 
-    fn stream(self) -> Stream {
+    /// The stream whose stamps must increase; none for closures and sightings, which attach
+    /// to keyframes already made (several sightings share their keyframe's stamp).
+    fn stream(self) -> Option<Stream> {
         match self {
-            Topic::Odometry => Stream::Odometry,
-            Topic::Prior => Stream::Prior,
-            Topic::Imu => Stream::Imu,
+            Topic::Odometry => Some(Stream::Odometry),
+            Topic::Prior => Some(Stream::Prior),
+            Topic::Imu => Some(Stream::Imu),
+            Topic::LoopClosure | Topic::Landmark => None,
         }
     }
 
@@ -97,6 +108,12 @@ impl Topic {
                 Message::Prior(decode_from(payload, len, name)?)
             }
             Topic::Imu => Message::Imu(decode_from(payload, len, IMU.name)?),
+            Topic::LoopClosure => {
+                Message::LoopClosure(decode_from(payload, len, LOOP_CLOSURE.name)?)
+            }
+            Topic::Landmark => {
+                Message::Landmark(decode_from(payload, len, LANDMARK_SIGHTING.name)?)
+            }
         })
     }
 }
@@ -108,6 +125,8 @@ impl Message {
             Message::Odometry(m) => bounds::odometry(m),
             Message::Prior(m) => bounds::prior(m),
             Message::Imu(m) => bounds::imu(m),
+            Message::LoopClosure(m) => bounds::loop_closure(m),
+            Message::Landmark(m) => bounds::landmark(m),
         }
     }
 }
@@ -120,6 +139,8 @@ pub(super) struct Inputs {
     pub odometry: Samples,
     pub priors: Option<Samples>,
     pub imu: Option<Samples>,
+    pub loop_closures: Option<Samples>,
+    pub landmarks: Option<Samples>,
     /// Told of every odometry message used and every keyframe made (`map → odom` on `/tf`).
     pub tf: Option<Arc<TfBroadcaster>>,
     /// Messages refused so far (reported with each refusal).
@@ -156,6 +177,8 @@ impl Inputs {
                 s = self.odometry.recv_async() => (s, Topic::Odometry),
                 s = next(&self.priors) => (s, Topic::Prior),
                 s = next(&self.imu) => (s, Topic::Imu),
+                s = next(&self.loop_closures) => (s, Topic::LoopClosure),
+                s = next(&self.landmarks) => (s, Topic::Landmark),
             };
             let Ok(sample) = sample else { return };
             match self.use_sample(topic, &sample).await {
@@ -184,9 +207,13 @@ impl Inputs {
         check_attachment(sample)?;
         let message = topic.decode(payload.reader(), len)?;
         let t = message.checked_stamp()?;
-        self.stamps.check(topic.stream(), t)?;
+        if let Some(stream) = topic.stream() {
+            self.stamps.check(stream, t)?;
+        }
         let commands = self.take(message).await?;
-        self.stamps.record(topic.stream(), t);
+        if let Some(stream) = topic.stream() {
+            self.stamps.record(stream, t);
+        }
         Ok(commands)
     }
 
@@ -248,8 +275,16 @@ impl Inputs {
                 }
                 fusion(feed)
             }
-            // A pose graph's binding subscribes to no IMU (`Ros2Binding::check_kind`).
-            (Message::Imu(_), Feeder::Graph(_)) => Vec::new(),
+            (Message::LoopClosure(closure), Feeder::Graph(keyframer)) => {
+                graph(Some(keyframer.on_loop_closure(&closure)?))
+            }
+            (Message::Landmark(sighting), Feeder::Graph(keyframer)) => {
+                graph(Some(keyframer.on_landmark(&sighting)?))
+            }
+            // A pose graph's binding subscribes to no IMU, a window's to no closures or
+            // landmarks (`Ros2Binding::check_kind`).
+            (Message::Imu(_), Feeder::Graph(_))
+            | (Message::LoopClosure(_) | Message::Landmark(_), Feeder::Window(_)) => Vec::new(),
         })
     }
 

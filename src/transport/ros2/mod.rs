@@ -25,6 +25,7 @@
 mod attachment;
 mod bounds;
 mod cdr_codec;
+mod closures;
 mod inputs;
 mod keyframes;
 mod messages;
@@ -45,7 +46,10 @@ use crate::session::{EventStream, Session};
 use bounds::Stamps;
 use inputs::Feeder;
 use keyframes::Keyframer;
-use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
+use messages::{
+    RosType, IMU, LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED,
+    TF_MESSAGE,
+};
 use names::{EndpointKind, NodeName, Qos};
 use outputs::RosPublisher;
 use tf::TfBroadcaster;
@@ -120,11 +124,13 @@ async fn run(
         (token, key)
     };
 
-    // Odometry always; priors and IMU when the binding names their topics.
+    // Odometry always; the others when the binding names their topics.
     let wanted = [
         (Some(&binding.odometry_topic), &ODOMETRY),
         (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
         (binding.imu_topic.as_ref(), &IMU),
+        (binding.loop_closure_topic.as_ref(), &*LOOP_CLOSURE),
+        (binding.landmark_topic.as_ref(), &*LANDMARK_SIGHTING),
     ];
     let mut subscriptions = Vec::with_capacity(wanted.len());
     for (topic, ros_type) in wanted {
@@ -136,8 +142,10 @@ async fn run(
         subscriptions.push(Some(zenoh.declare_subscriber(&key).await.map_err(failed)?));
         tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
-    let Ok([Some(odometry), priors, imu]) = <[_; 3]>::try_from(subscriptions) else {
-        unreachable!("odometry is always subscribed, and three were wanted")
+    let Ok([Some(odometry), priors, imu, loop_closures, landmarks]) =
+        <[_; 5]>::try_from(subscriptions)
+    else {
+        unreachable!("odometry is always subscribed, and five were wanted")
     };
     // The path is latched (transient local): a late subscriber, e.g. an operator's RViz
     // started after the robot, gets the last trajectory at once.
@@ -187,10 +195,14 @@ async fn run(
         None => Feeder::Graph(Keyframer::new(&binding)),
     };
     let mut stamps = Stamps::default();
-    if let Some((max_key, newest)) = existing_keyframes(&service, &caller, &session).await {
+    if let Some(existing) = existing_keyframes(&service, &caller, &session).await {
+        let newest = existing.keyframes.iter().map(|&(_, t)| t).reduce(f64::max);
         match &mut feeder {
-            Feeder::Window(feed) => feed.resume_after(max_key),
-            Feeder::Graph(keyframer) => keyframer.resume_after(max_key),
+            Feeder::Window(feed) => feed.resume_after(existing.max_key),
+            Feeder::Graph(keyframer) => {
+                keyframer.resume_after(existing.max_key, existing.keyframes);
+                keyframer.resume_landmarks(existing.landmarks);
+            }
         }
         if let Some(t) = newest {
             stamps.resume_after(t);
@@ -204,6 +216,8 @@ async fn run(
         odometry,
         priors,
         imu,
+        loop_closures,
+        landmarks,
         tf: tf.clone(),
         refused: Arc::default(),
         max_payload,
@@ -227,13 +241,16 @@ async fn run(
     Ok(())
 }
 
-/// The highest key of a session that already has variables (recovered after a restart), and
-/// the newest stamp among them.
-async fn existing_keyframes(
-    service: &Service,
-    caller: &Caller,
-    session: &str,
-) -> Option<(u64, Option<f64>)> {
+/// What a session that already has variables (recovered after a restart) holds.
+struct Existing {
+    /// The highest keyframe key (landmark keys, `('l' << 56) | id`, apart).
+    max_key: u64,
+    /// The keyframes with a stamp.
+    keyframes: Vec<(u64, f64)>,
+    landmarks: Vec<u64>,
+}
+
+async fn existing_keyframes(service: &Service, caller: &Caller, session: &str) -> Option<Existing> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
     match service
@@ -241,9 +258,18 @@ async fn existing_keyframes(
         .await
     {
         Ok(crate::service::Reply::Estimate(estimate)) => {
-            let variables = &estimate.variables;
-            let newest = variables.iter().filter_map(|v| v.stamp).reduce(f64::max);
-            Some((variables.iter().map(|v| v.key).max()?, newest))
+            let (landmarks, keyframes): (Vec<_>, Vec<_>) = estimate
+                .variables
+                .iter()
+                .partition(|v| closures::is_landmark(v.key));
+            Some(Existing {
+                max_key: keyframes.iter().map(|v| v.key).max()?,
+                keyframes: keyframes
+                    .iter()
+                    .filter_map(|v| Some((v.key, v.stamp?)))
+                    .collect(),
+                landmarks: landmarks.iter().map(|v| v.key).collect(),
+            })
         }
         _ => None,
     }
