@@ -1,0 +1,251 @@
+"""A SLAM robot over rmw_zenoh: odometry, loop closures and landmark sightings
+(`factord_msgs`, built from `clients/ros2/factord_msgs/msg/*.msg` by rosbags as a robot's
+workspace builds them with rosidl) into a factord session, the optimised path read back.
+
+The robot drives a 8 m square whose odometry over-counts turns by 5 %, so that odometry ends
+metres from where the robot started. Checks, in order:
+
+1. factord's subscriptions for the two factord_msgs topics are in the ROS graph, their type
+   hashes those rosbags computes from our .msg files (rmw_zenoh keys carry them: a wrong hash is
+   a robot that never reaches factord);
+2. odometry alone: the path is odometry, its last keyframe metres from the truth;
+3. landmark sightings (body-frame positions, several per keyframe at its stamp, taken from the
+   keyframes' stamps in the published path as a front-end would) make point3 landmarks at
+   ('l' << 56) | id, found within centimetres of where they are;
+4. a loop closure between the first and the last keyframe pulls the last keyframe to within
+   centimetres of the truth;
+5. bad closures and sightings are refused on the error stream naming the field: a stamp with no
+   keyframe within the tolerance, a covariance that is not positive definite, a landmark id
+   beyond 2^56 - 1.
+
+Prints the key expressions, the type hashes and the errors.
+"""
+
+import argparse
+import json
+import math
+import threading
+import time
+
+import numpy as np
+from rosbags.typesys import get_types_from_msg
+
+import robot_odometry as ro
+from robot_odometry import STORE, http, wait_for, zenoh_session
+
+ODOM, PATH = ro.ODOM, ro.PATH
+LOOP = "factord_msgs/msg/LoopClosure"
+LANDMARK = "factord_msgs/msg/LandmarkSighting"
+SESSION = "slam_robot"
+LANDMARKS = {1: (4.0, -2.0, 0.5), 2: (10.0, 4.0, 1.0), 3: (4.0, 10.0, 0.5), 4: (-2.0, 4.0, 1.0)}
+TURN_SCALE = 1.05
+
+
+def register_factord_msgs():
+    for name in ("LoopClosure", "LandmarkSighting"):
+        with open(f"clients/ros2/factord_msgs/msg/{name}.msg") as f:
+            STORE.register(get_types_from_msg(f.read(), f"factord_msgs/msg/{name}"))
+
+
+def square():
+    """20 Hz around an 8 m square (arcs at the corners): truth and odometry (stamp, x, y, yaw);
+    odometry over-counts every turn by TURN_SCALE."""
+    truth, odometry = [], []
+    x = y = yaw = 0.0
+    ox = oy = oyaw = 0.0
+    stamp = 1_700_000_100.0
+    for side in range(4):
+        for i in range(110):
+            turn = (math.pi / 2) / 30 if i >= 80 else 0.0
+            yaw += turn
+            oyaw += turn * TURN_SCALE
+            x += 0.1 * math.cos(yaw)
+            y += 0.1 * math.sin(yaw)
+            ox += 0.1 * math.cos(oyaw)
+            oy += 0.1 * math.sin(oyaw)
+            stamp += 0.05
+            truth.append((stamp, x, y, yaw))
+            odometry.append((stamp, ox, oy, oyaw))
+    return truth, odometry
+
+
+def sighting(stamp, landmark_id, true_pose):
+    """The landmark's position in the body frame of `true_pose` (planar robot)."""
+    _, x, y, yaw = true_pose
+    lx, ly, lz = LANDMARKS[landmark_id]
+    dx, dy = lx - x, ly - y
+    body = (math.cos(yaw) * dx + math.sin(yaw) * dy, -math.sin(yaw) * dx + math.cos(yaw) * dy, lz)
+    t = STORE.types
+    return t[LANDMARK](header=ro.header(stamp, "base_link"), landmark_id=landmark_id,
+                       position=t["geometry_msgs/msg/Point"](x=body[0], y=body[1], z=body[2]),
+                       covariance=np.diag([0.05 ** 2] * 3).reshape(9))
+
+
+def loop_closure(from_stamp, to_stamp, from_pose, to_pose, sigmas=(0.01, 0.01, 0.01, 0.002, 0.002,
+                                                                    0.002), may_be_wrong=False):
+    """`to_pose` in `from_pose`'s frame (planar), as a scan matcher would find it."""
+    _, fx, fy, fyaw = from_pose
+    _, tx, ty, tyaw = to_pose
+    dx, dy = tx - fx, ty - fy
+    rel = (math.cos(fyaw) * dx + math.sin(fyaw) * dy, -math.sin(fyaw) * dx + math.cos(fyaw) * dy,
+           tyaw - fyaw)
+    t = STORE.types
+    return t[LOOP](header=ro.header(to_stamp + 0.5, "base_link"),
+                   from_stamp=ro.header(from_stamp, "").stamp,
+                   to_stamp=ro.header(to_stamp, "").stamp,
+                   relative_pose=ro.pose_msg(rel[0], rel[1], 0.0, rel[2]),
+                   covariance=ro.covariance(list(sigmas)), may_be_wrong=may_be_wrong)
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--http", required=True)
+    parser.add_argument("--zenoh", required=True)
+    args = parser.parse_args()
+    register_factord_msgs()
+    binding = {
+        "domain_id": ro.DOMAIN, "odometry_topic": "/robot1/odom",
+        "loop_closure_topic": "/robot1/loop_closures", "landmark_topic": "/robot1/landmarks",
+        "path_topic": "/robot1/factord/path", "keyframe_distance": 1.0, "keyframe_angle": 0.5,
+    }
+    created = http(args.http, "POST", "/v1/sessions",
+                   {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding})
+    print("created:", created)
+    with zenoh_session(args.zenoh) as session:
+        run(session, args)
+
+
+def run(session, args):
+    # 1. factord's subscriptions to our types, with rosbags' hashes of our .msg files.
+    for msgtype in (LOOP, LANDMARK):
+        print(f"{msgtype}: {STORE.hash_rihs01(msgtype)}")
+
+    def graph():
+        ours = [t for t in ro.ros_graph(session) if f"/factord_{SESSION}" in t]
+        return ours if len(ours) == 5 else None
+    tokens = wait_for("factord's liveliness tokens", graph)
+    for topic, msgtype in (("%robot1%loop_closures", LOOP), ("%robot1%landmarks", LANDMARK)):
+        tail = f"{topic}/{ro.dds_name(msgtype)}/{STORE.hash_rihs01(msgtype)}/::,10:,:,:,,"
+        matching = [t for t in tokens if t.endswith(tail) and "/MS/" in t]
+        assert matching, f"no subscription token ending {tail} in {tokens}"
+        print("liveliness:", matching[0])
+
+    received = {"path": [], "errors": []}
+    lock = threading.Lock()
+
+    def on_path(sample):
+        message = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), PATH)
+        with lock:
+            received["path"].append(message)
+
+    def on_error(sample):
+        with lock:
+            received["errors"].append(json.loads(bytes(sample.payload.to_bytes())))
+    path_key = ro.topic_key("/robot1/factord/path", PATH)
+    subscribers = [session.declare_subscriber(path_key, on_path),
+                   session.declare_subscriber(f"factord/{SESSION}/out/errors", on_error)]
+    robot = ro.Robot(session, topics=(("/robot1/odom", ODOM), ("/robot1/loop_closures", LOOP),
+                                      ("/robot1/landmarks", LANDMARK)))
+    for topic in ("/robot1/loop_closures", "/robot1/landmarks"):
+        print(f"{topic} key:", robot.publishers[topic][0])
+    time.sleep(0.5)
+
+    # 2. Odometry: the path is odometry, drifted.
+    truth, odometry = square()
+    for s in odometry:
+        robot.publish("/robot1/odom", ro.odometry(*s))
+        time.sleep(0.002)
+    kept = ro.keyframes(odometry, 1.0, 0.5)
+    def truth_at(stamp):
+        return min(truth, key=lambda s: abs(s[0] - stamp))
+
+    def path_where(what, predicate):
+        def check():
+            with lock:
+                if received["path"] and predicate(received["path"][-1]):
+                    return received["path"][-1]
+            return None
+        return wait_for(what, check)
+    path = path_where(f"a path of {len(kept)} keyframes", lambda p: len(p.poses) == len(kept))
+    stamps = [ro.stamp_of(p.header) for p in path.poses]
+
+    def last_error(path):
+        last = path.poses[-1].pose.position
+        _, x, y, _ = truth_at(stamps[-1])
+        return math.hypot(last.x - x, last.y - y)
+    drift = last_error(path)
+    assert drift > 1.0, f"odometry should have drifted: {drift}"
+    print(f"odometry only: {len(path.poses)} keyframes, the last {drift:.3f} m from the truth")
+
+    # 3. Landmarks seen from every fifth keyframe (those within 7 m), at the keyframe's stamp.
+    sent = 0
+    for stamp in stamps[::5]:
+        pose = truth_at(stamp)
+        for landmark_id, (lx, ly, _) in LANDMARKS.items():
+            if math.hypot(lx - pose[1], ly - pose[2]) < 7.0:
+                robot.publish("/robot1/landmarks",
+                              bytes(STORE.serialize_cdr(sighting(stamp, landmark_id, pose),
+                                                        LANDMARK)))
+                sent += 1
+                time.sleep(0.002)
+
+    # 4. The loop closure: the last keyframe seen from the first, as it truly is.
+    first, last = truth_at(stamps[0]), truth_at(stamps[-1])
+    closure = loop_closure(stamps[0], stamps[-1], first, last)
+    robot.publish("/robot1/loop_closures", bytes(STORE.serialize_cdr(closure, LOOP)))
+    try:
+        path = path_where("the last keyframe pulled to within 0.1 m of the truth",
+                          lambda p: len(p.poses) == len(kept) and last_error(p) < 0.1)
+    except AssertionError:
+        with lock:
+            print("errors:", received["errors"])
+            print("last errors:", [last_error(p) for p in received["path"][-5:]])
+        raise
+    print(f"after {sent} sightings and the loop closure: the last keyframe "
+          f"{last_error(path):.4f} m from the truth (was {drift:.3f} m)")
+    worst = 0.0
+    for pose, stamp in zip(path.poses, stamps):
+        _, x, y, _ = truth_at(stamp)
+        worst = max(worst, math.hypot(pose.pose.position.x - x, pose.pose.position.y - y))
+    assert worst < 0.25, f"a keyframe is {worst} m from the truth after the closure"
+    print(f"every keyframe within {worst:.4f} m of the truth")
+
+    estimate = http(args.http, "GET", f"/v1/sessions/{SESSION}/estimate")
+    landmarks = {v["key"]: v["value"] for v in estimate["variables"] if v["kind"] == "point3"}
+    for landmark_id, where in LANDMARKS.items():
+        key = (ord("l") << 56) | landmark_id
+        assert key in landmarks, f"landmark {landmark_id} (key {key}) missing: {sorted(landmarks)}"
+        off = np.linalg.norm(np.array(landmarks[key]) - np.array(where))
+        assert off < 0.15, f"landmark {landmark_id} at {landmarks[key]}, truly {where}"
+        print(f"landmark {landmark_id} (key {key}): {off:.4f} m from where it is")
+
+    # 5. Refusals, each naming its field; none changes the session.
+    before = len(estimate["variables"])
+    far = loop_closure(stamps[0], stamps[-1] + 30.0, first, last)
+    flat = loop_closure(stamps[0], stamps[-1], first, last, sigmas=(0.0,) * 6)
+    robot.publish("/robot1/loop_closures", bytes(STORE.serialize_cdr(far, LOOP)))
+    robot.publish("/robot1/loop_closures", bytes(STORE.serialize_cdr(flat, LOOP)))
+    bad_id = sighting(stamps[0], 1, first)
+    bad_id.landmark_id = 1 << 56
+    robot.publish("/robot1/landmarks", bytes(STORE.serialize_cdr(bad_id, LANDMARK)))
+    wanted = [("ros2.loop_closure_topic", "to_stamp"),
+              ("ros2.loop_closure_topic", "not symmetric positive definite"),
+              ("ros2.landmark_topic", "landmark_id")]
+
+    def refused():
+        with lock:
+            errors = [e["error"] for e in received["errors"]]
+        found = [any(e["code"] == "ros2_bad_message" and e["field"] == field
+                     and says in e["message"] for e in errors) for field, says in wanted]
+        return errors if all(found) else None
+    for error in wait_for("three refusals", refused):
+        print("error event:", error["field"], error["message"])
+    after = http(args.http, "GET", f"/v1/sessions/{SESSION}/estimate")
+    assert len(after["variables"]) == before, (len(after["variables"]), before)
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    print("ros2 slam robot: ok")
+
+
+if __name__ == "__main__":
+    main()
