@@ -55,6 +55,10 @@ pub struct Ros2Binding {
     /// marginal covariance after each solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_topic: Option<String>,
+    /// `visualization_msgs/msg/MarkerArray`: the graph after each solve (keyframes, odometry
+    /// edges, loop closures coloured by χ², landmarks), latched, for rviz and Foxglove.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub markers_topic: Option<String>,
     /// `tf2_msgs/msg/TFMessage`: the `map → odom` correction (from `map_frame` to odometry's
     /// `header.frame_id`), as a localisation node publishes it; usually `/tf`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -132,6 +136,7 @@ impl Ros2Binding {
             ("path_topic", self.path_topic.as_ref()),
             ("pose_topic", self.pose_topic.as_ref()),
             ("tf_topic", self.tf_topic.as_ref()),
+            ("markers_topic", self.markers_topic.as_ref()),
         ];
         for (field, topic) in topics {
             if let Some(topic) = topic {

@@ -13,7 +13,10 @@
 //! `geometry_msgs/PoseWithCovarianceStamped` (`prior_se3`), see `keyframes`; for a
 //! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
 //! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
-//! `outputs`, and the `map → odom` correction on `/tf`, see `tf`. Messages go through the one
+//! `outputs`, the `map → odom` correction on `/tf`, see `tf`, and the graph as a
+//! `visualization_msgs/MarkerArray`, see `markers`. A pose graph also takes loop closures and
+//! landmark sightings (`factord_msgs`, `clients/ros2/factord_msgs`), see `closures`; their type
+//! hashes are computed from the `.msg` files as rosidl does, see `type_hash`. Messages go through the one
 //! command API ([`Service::execute`]) like any client's; nothing here touches a session's
 //! state.
 //!
@@ -28,6 +31,7 @@ mod cdr_codec;
 mod closures;
 mod inputs;
 mod keyframes;
+mod markers;
 mod messages;
 mod names;
 mod outputs;
@@ -47,8 +51,8 @@ use bounds::Stamps;
 use inputs::Feeder;
 use keyframes::Keyframer;
 use messages::{
-    RosType, IMU, LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED,
-    TF_MESSAGE,
+    RosType, IMU, LANDMARK_SIGHTING, LOOP_CLOSURE, MARKER_ARRAY, ODOMETRY, PATH,
+    POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE,
 };
 use names::{EndpointKind, NodeName, Qos};
 use outputs::RosPublisher;
@@ -157,6 +161,8 @@ async fn run(
             Qos::Default,
         ),
         (binding.tf_topic.as_ref(), &TF_MESSAGE, Qos::Default),
+        // Latched as the path: an operator's rviz opened later draws the graph at once.
+        (binding.markers_topic.as_ref(), &MARKER_ARRAY, Qos::Latched),
     ];
     let mut publishers = Vec::with_capacity(wanted.len());
     for (topic, ros_type, qos) in wanted {
@@ -172,8 +178,8 @@ async fn run(
         publishers.push(Some(publisher));
         tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
-    let Ok([path, pose, tf]) = <[_; 3]>::try_from(publishers) else {
-        unreachable!("three publishers were wanted")
+    let Ok([path, pose, tf, markers]) = <[_; 4]>::try_from(publishers) else {
+        unreachable!("four publishers were wanted")
     };
     let tf = tf.map(|publisher| {
         Arc::new(TfBroadcaster::new(
@@ -233,6 +239,7 @@ async fn run(
         path,
         pose,
         tf,
+        markers,
     };
     outputs.run().await;
     // The session is gone from here: leave the ROS graph.
