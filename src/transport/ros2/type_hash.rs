@@ -19,7 +19,7 @@
 use std::collections::BTreeMap;
 
 /// One interface definition: its full name (`nav_msgs/msg/Odometry`) and `.msg` text.
-pub type Definition = (&'static str, &'static str);
+pub type Definition<'a> = (&'a str, &'a str);
 
 macro_rules! std_def {
     ($package:literal, $name:literal) => {
@@ -32,7 +32,7 @@ macro_rules! std_def {
 /// The standard messages the binding speaks, as in ROS Jazzy (fields only: constants and
 /// comments do not enter the hash). Written from the Jazzy definitions as `rosbags` 0.11.9's
 /// type store holds them.
-pub const STANDARD: &[Definition] = &[
+pub const STANDARD: &[Definition<'static>] = &[
     std_def!("builtin_interfaces", "Duration"),
     std_def!("builtin_interfaces", "Time"),
     std_def!("geometry_msgs", "Point"),
@@ -46,6 +46,7 @@ pub const STANDARD: &[Definition] = &[
     std_def!("geometry_msgs", "Twist"),
     std_def!("geometry_msgs", "TwistWithCovariance"),
     std_def!("geometry_msgs", "Vector3"),
+    std_def!("service_msgs", "ServiceEventInfo"),
     std_def!("nav_msgs", "Odometry"),
     std_def!("nav_msgs", "Path"),
     std_def!("sensor_msgs", "CompressedImage"),
@@ -60,7 +61,7 @@ pub const STANDARD: &[Definition] = &[
 ];
 
 /// Our own interface package, as robots build it in their workspace.
-pub const FACTORD_MSGS: &[Definition] = &[
+pub const FACTORD_MSGS: &[Definition<'static>] = &[
     (
         "factord_msgs/msg/LoopClosure",
         include_str!("../../../clients/ros2/factord_msgs/msg/LoopClosure.msg"),
@@ -100,6 +101,50 @@ pub fn rihs01(type_name: &str, definitions: &[Definition]) -> Result<String, Typ
     let digest = ring::digest::digest(&ring::digest::SHA256, json.as_bytes());
     let hex: String = digest.as_ref().iter().map(|b| format!("{b:02x}")).collect();
     Ok(format!("RIHS01_{hex}"))
+}
+
+/// `std_srvs/srv/Trigger` (Jazzy).
+pub const TRIGGER: Definition<'static> = (
+    "std_srvs/srv/Trigger",
+    include_str!("idl/std_srvs/srv/Trigger.srv"),
+);
+
+/// The RIHS01 hash of a service (`std_srvs/srv/Trigger` and its `.srv` text): as rosidl
+/// describes a service, a type of three fields `request_message`, `response_message` and
+/// `event_message`, the last `<Service>_Event { service_msgs/ServiceEventInfo info;
+/// <Service>_Request[<=1] request; <Service>_Response[<=1] response }`.
+pub fn service_rihs01(
+    (service, text): Definition,
+    definitions: &[Definition],
+) -> Result<String, TypeHashError> {
+    let lines: Vec<&str> = text.lines().collect();
+    let split = lines
+        .iter()
+        .position(|line| line.trim() == "---")
+        .ok_or_else(|| TypeHashError::Syntax {
+            type_name: service.into(),
+            line: lines.len(),
+            reason: "a service has a request and a response separated by `---`".into(),
+        })?;
+    let (request, response) = (lines[..split].join("\n"), lines[split + 1..].join("\n"));
+    let names = ["Request", "Response", "Event"].map(|part| format!("{service}_{part}"));
+    let [request_name, response_name, event_name] = &names;
+    let event = format!(
+        "service_msgs/ServiceEventInfo info\n{request_name}[<=1] request\n\
+         {response_name}[<=1] response\n"
+    );
+    let own = format!(
+        "{request_name} request_message\n{response_name} response_message\n\
+         {event_name} event_message\n"
+    );
+    let mut all: Vec<Definition> = definitions.to_vec();
+    all.extend([
+        (service, own.as_str()),
+        (request_name.as_str(), request.as_str()),
+        (response_name.as_str(), response.as_str()),
+        (event_name.as_str(), event.as_str()),
+    ]);
+    rihs01(service, &all)
 }
 
 /// Puts the JSON description of `type_name` and of every type it refers to into `described`.
@@ -307,6 +352,10 @@ fn nested_name(base: &str, package: &str) -> Result<String, String> {
     };
     match base.split('/').collect::<Vec<_>>()[..] {
         ["Header"] => Ok("std_msgs/msg/Header".into()),
+        // Already full, as the parts of a service are (`std_srvs/srv/Trigger_Request`).
+        [pkg, kind, name] if valid(pkg) && valid(kind) && valid(name) => {
+            Ok(format!("{pkg}/{kind}/{name}"))
+        }
         [name] if valid(name) => Ok(format!("{package}/msg/{name}")),
         [pkg, name] if valid(pkg) && valid(name) => Ok(format!("{pkg}/msg/{name}")),
         _ => Err(format!("`{base}` is not a type name")),
@@ -337,6 +386,17 @@ mod tests {
                 known.name
             );
         }
+    }
+
+    /// The hash ROS Jazzy's `std_srvs` gives Trigger (as rmw_zenoh keys of real Trigger
+    /// services carry it, and as independent RIHS01 implementations' tests hold it): the
+    /// service form and `char` → `uint8` (in `ServiceEventInfo.client_gid`) are rosidl's.
+    #[test]
+    fn the_trigger_service_hash_is_jazzys() {
+        assert_eq!(
+            service_rihs01(TRIGGER, STANDARD).unwrap(),
+            "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
+        );
     }
 
     #[test]
