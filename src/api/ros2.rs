@@ -55,6 +55,10 @@ pub struct Ros2Binding {
     /// marginal covariance after each solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_topic: Option<String>,
+    /// `std_srvs/srv/Trigger` services `<namespace>/optimize`, `<namespace>/export` (the
+    /// trajectory as TUM text) and `<namespace>/reset` (the session emptied, bound again).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub service_namespace: Option<String>,
     /// `visualization_msgs/msg/MarkerArray`: the graph after each solve (keyframes, odometry
     /// edges, loop closures coloured by χ², landmarks), latched, for rviz and Foxglove.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -137,6 +141,7 @@ impl Ros2Binding {
             ("pose_topic", self.pose_topic.as_ref()),
             ("tf_topic", self.tf_topic.as_ref()),
             ("markers_topic", self.markers_topic.as_ref()),
+            ("service_namespace", self.service_namespace.as_ref()),
         ];
         for (field, topic) in topics {
             if let Some(topic) = topic {

@@ -20,7 +20,11 @@ metres from where the robot started. Checks, in order:
    landmarks; written into a rosbag2 (MCAP) that `ros2 bag play` feeds to rviz, and read back;
 7. bad closures and sightings are refused on the error stream naming the field: a stamp with no
    keyframe within the tolerance, a covariance that is not positive definite, a landmark id
-   beyond 2^56 - 1.
+   beyond 2^56 - 1;
+8. services (std_srvs/srv/Trigger, called as rmw_zenoh's client calls them: a query with the
+   request's CDR and attachment; the reply carries our sequence number and GID back):
+   `optimize`, `export` (the TUM trajectory, its last pose the path's) and `reset` (the session
+   empty, bound again: odometry makes a new path).
 
 Prints the key expressions, the type hashes, a captured marker message (size, first bytes),
 the bag's path and the errors.
@@ -46,6 +50,10 @@ ODOM, PATH = ro.ODOM, ro.PATH
 LOOP = "factord_msgs/msg/LoopClosure"
 LANDMARK = "factord_msgs/msg/LandmarkSighting"
 MARKERS = "visualization_msgs/msg/MarkerArray"
+# rosbags keeps messages only: the service's parts registered as messages (CDR is the same).
+TRIGGER_REQUEST, TRIGGER_RESPONSE = "std_srvs/msg/Trigger_Request", "std_srvs/msg/Trigger_Response"
+# std_srvs/srv/Trigger's hash in ROS Jazzy (rosbags does not hash services).
+TRIGGER_HASH = "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
 SESSION = "slam_robot"
 LANDMARKS = {1: (4.0, -2.0, 0.5), 2: (10.0, 4.0, 1.0), 3: (4.0, 10.0, 0.5), 4: (-2.0, 4.0, 1.0)}
 TURN_SCALE = 1.05
@@ -55,6 +63,9 @@ def register_factord_msgs():
     for name in ("LoopClosure", "LandmarkSighting"):
         with open(f"clients/ros2/factord_msgs/msg/{name}.msg") as f:
             STORE.register(get_types_from_msg(f.read(), f"factord_msgs/msg/{name}"))
+    STORE.register(get_types_from_msg("uint8 structure_needs_at_least_one_member",
+                                      TRIGGER_REQUEST))
+    STORE.register(get_types_from_msg("bool success\nstring message", TRIGGER_RESPONSE))
 
 
 def square():
@@ -117,6 +128,7 @@ def main():
         "domain_id": ro.DOMAIN, "odometry_topic": "/robot1/odom",
         "loop_closure_topic": "/robot1/loop_closures", "landmark_topic": "/robot1/landmarks",
         "path_topic": "/robot1/factord/path", "markers_topic": "/robot1/factord/markers",
+        "service_namespace": "/robot1/factord",
         "keyframe_distance": 1.0, "keyframe_angle": 0.5,
     }
     created = http(args.http, "POST", "/v1/sessions",
@@ -133,7 +145,7 @@ def run(session, args):
 
     def graph():
         ours = [t for t in ro.ros_graph(session) if f"/factord_{SESSION}" in t]
-        return ours if len(ours) == 6 else None
+        return ours if len(ours) == 9 else None
     tokens = wait_for("factord's liveliness tokens", graph)
     for topic, msgtype in (("%robot1%loop_closures", LOOP), ("%robot1%landmarks", LANDMARK)):
         tail = f"{topic}/{ro.dds_name(msgtype)}/{STORE.hash_rihs01(msgtype)}/::,10:,:,:,,"
@@ -294,9 +306,77 @@ def run(session, args):
         print("error event:", error["field"], error["message"])
     after = http(args.http, "GET", f"/v1/sessions/{SESSION}/estimate")
     assert len(after["variables"]) == before, (len(after["variables"]), before)
+    check_services(session, args, robot, tokens, received, lock, odometry)
     for subscriber in subscribers:
         subscriber.undeclare()
     print("ros2 slam robot: ok")
+
+
+def call(session, name, sequence, gid):
+    """A Trigger call as rmw_zenoh's client makes it; the response and the reply's attachment."""
+    key = f"{ro.DOMAIN}/robot1/factord/{name}/std_srvs::srv::dds_::Trigger_/{TRIGGER_HASH}"
+    request = bytes(STORE.serialize_cdr(STORE.types[TRIGGER_REQUEST](
+        structure_needs_at_least_one_member=0), TRIGGER_REQUEST))
+    attachment = ro.zext.z_serialize((ro.zext.Int64(sequence), ro.zext.Int64(time.time_ns()), gid))
+    replies = list(session.get(key, payload=request, attachment=attachment, timeout=30.0))
+    assert len(replies) == 1 and replies[0].ok is not None, [r.err for r in replies]
+    sample = replies[0].ok
+    seq, _, back = ro.zext.z_deserialize(tuple[ro.zext.Int64, ro.zext.Int64, bytes],
+                                         sample.attachment)
+    assert (int(seq), back) == (sequence, gid), (int(seq), back.hex())
+    return STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), TRIGGER_RESPONSE)
+
+
+def check_services(session, args, robot, tokens, received, lock, odometry):
+    """8. optimize, export, reset."""
+    for name in ("optimize", "export", "reset"):
+        tail = f"%robot1%factord%{name}/std_srvs::srv::dds_::Trigger_/{TRIGGER_HASH}/::,10:,:,:,,"
+        token = [t for t in tokens if t.endswith(tail) and "/SS/" in t]
+        assert token, f"no service token ending {tail}"
+        print("liveliness:", token[0])
+    gid = bytes(range(16))
+    response = call(session, "optimize", 41, gid)
+    assert response.success, response.message
+    print("optimize:", response.message)
+    response = call(session, "export", 42, gid)
+    assert response.success, response.message
+    lines = [line for line in response.message.splitlines() if line and not line.startswith("#")]
+    with lock:
+        path = received["path"][-1]
+    assert len(lines) == len(path.poses), (len(lines), len(path.poses))
+    last = [float(v) for v in lines[-1].split()]
+    position = path.poses[-1].pose.position
+    assert abs(last[0] - ro.stamp_of(path.poses[-1].header)) < 1e-6, (last, path.poses[-1].header)
+    # The path is of the solve before `optimize`'s (one more iteration: ~1e-9 m).
+    assert max(abs(last[1] - position.x), abs(last[2] - position.y)) < 1e-6, (last, position)
+    print(f"export: {len(lines)} TUM lines, the last {lines[-1]}")
+
+    response = call(session, "reset", 43, gid)
+    assert response.success, response.message
+    print("reset:", response.message)
+    estimate = http(args.http, "GET", f"/v1/sessions/{SESSION}/estimate")
+    assert estimate["variables"] == [], len(estimate["variables"])
+
+    def rebound():
+        ours = [t for t in ro.ros_graph(session) if f"/factord_{SESSION}" in t]
+        return ours if len(ours) == 9 and not set(ours) & set(tokens) else None
+    wait_for("the new binding's tokens (and the old one's gone)", rebound)
+    time.sleep(0.5)  # the new subscriptions' routes
+    again = odometry[:60]
+    for s in again:
+        robot.publish("/robot1/odom", ro.odometry(*s))
+        time.sleep(0.002)
+    count = len(ro.keyframes(again, 1.0, 0.5))
+    try:
+        wait_for(f"a new path of {count} keyframes after the reset", lambda: (
+            received["path"] and len(received["path"][-1].poses) == count))
+    except AssertionError:
+        with lock:
+            print("errors:", received["errors"][-3:])
+            print("paths:", [len(p.poses) for p in received["path"][-5:]])
+        print("session:", http(args.http, "GET", f"/v1/sessions/{SESSION}"))
+        raise
+    print(f"after the reset: a new path of {count} keyframes")
 
 
 def check_markers(received, lock, keyframes):

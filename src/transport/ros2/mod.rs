@@ -35,6 +35,7 @@ mod markers;
 mod messages;
 mod names;
 mod outputs;
+mod services;
 mod tf;
 mod type_hash;
 mod window_feed;
@@ -188,6 +189,37 @@ async fn run(
             binding.transform_tolerance,
         ))
     });
+    // Services: a queryable each, answered in a task each.
+    let mut servers = Vec::new();
+    if let Some(namespace) = &binding.service_namespace {
+        let server = services::Server {
+            service: Arc::clone(&service),
+            caller: Arc::clone(&caller),
+            session: session.clone(),
+            binding: binding.clone(),
+        };
+        for action in services::Action::ALL {
+            let name = format!("{}/{}", namespace.trim_end_matches('/'), action.name());
+            let (token, key) = endpoint(
+                EndpointKind::Service,
+                &name,
+                &services::TRIGGER,
+                Qos::Default,
+            );
+            let queryable = zenoh
+                .declare_queryable(&key)
+                .complete(true)
+                .await
+                .map_err(failed)?;
+            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+            let server = server.clone();
+            servers.push(tokio::spawn(async move {
+                while let Ok(query) = queryable.recv_async().await {
+                    server.answer(action, query).await;
+                }
+            }));
+        }
+    }
     tracing::info!(
         session,
         "ROS 2 binding: node {} on domain {}",
@@ -244,6 +276,9 @@ async fn run(
     outputs.run().await;
     // The session is gone from here: leave the ROS graph.
     inputs.abort();
+    for server in servers {
+        server.abort();
+    }
     drop(tokens);
     Ok(())
 }

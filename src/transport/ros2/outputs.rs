@@ -207,12 +207,16 @@ impl Outputs {
     }
 }
 
-/// A pose graph's solve, or a window's optimisation at a keyframe.
+/// A pose graph's solve, a window's optimisation at a keyframe, or a batch the estimate
+/// already reflects: one that adds a pose predicted from consistent odometry changes χ² by
+/// nothing, and the session skips its solve (no summary follows), yet the path has a new
+/// keyframe.
 fn is_solve(event: &SessionEvent) -> bool {
-    matches!(
-        event,
-        SessionEvent::Summary { .. } | SessionEvent::Window { .. }
-    )
+    match event {
+        SessionEvent::Summary { .. } | SessionEvent::Window { .. } => true,
+        SessionEvent::Ack(ack) => ack.reflected,
+        _ => false,
+    }
 }
 
 /// An `se3` estimate as an isometry (other kinds, and values of the wrong length: `None`).
