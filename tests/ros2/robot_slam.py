@@ -5,6 +5,7 @@ workspace builds them with rosidl) into a factord session, the optimised path re
 The robot drives a 8 m square whose odometry over-counts turns by 5 %, so that odometry ends
 metres from where the robot started. Checks, in order:
 
+0. the create answer and GET /v1/sessions/<s> show the binding, defaults filled in;
 1. factord's subscriptions for the two factord_msgs topics are in the ROS graph, their type
    hashes those rosbags computes from our .msg files (rmw_zenoh keys carry them: a wrong hash is
    a robot that never reaches factord);
@@ -133,7 +134,12 @@ def main():
     }
     created = http(args.http, "POST", "/v1/sessions",
                    {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding})
-    print("created:", created)
+    # The binding is shown, defaults filled in, in the creation's answer and the session's.
+    shown = http(args.http, "GET", f"/v1/sessions/{SESSION}")["ros2"]
+    assert created["ros2"] == shown, (created["ros2"], shown)
+    assert {k: shown[k] for k in binding} == binding, shown
+    assert shown["keyframe_tolerance"] == 0.05 and shown["map_frame"] == "map", shown
+    print("binding shown:", json.dumps(shown, sort_keys=True))
     with zenoh_session(args.zenoh) as session:
         run(session, args)
 

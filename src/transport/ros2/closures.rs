@@ -16,11 +16,11 @@
 //!   keyframe nearest its stamp and the `point3` landmark `('l' << 56) | landmark_id`, created
 //!   with its first sighting (its value predicted from it: `t + R z`).
 
-use std::collections::BTreeMap;
-
 use nalgebra::Matrix3;
 
-use super::keyframes::{factor, information, isometry, stamp_ns, Keyframer, MessageError, Noise};
+use super::keyframes::{
+    factor, information, isometry, nearest, stamp_ns, Keyframer, MessageError, Noise,
+};
 use super::messages::{LandmarkSighting, LoopClosure, Time};
 use crate::api::wire::{Batch, FactorSpec, VariableSpec};
 use crate::factors::RobustKernel;
@@ -121,17 +121,6 @@ impl Keyframer {
     pub fn resume_landmarks(&mut self, keys: impl IntoIterator<Item = Key>) {
         self.landmarks.extend(keys);
     }
-}
-
-/// The key and stamp (ns) nearest `at`.
-fn nearest(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<(Key, i64)> {
-    let before = by_stamp.range(..=at).next_back();
-    let after = by_stamp.range(at..).next();
-    let nearest = match (before, after) {
-        (Some(b), Some(a)) => Some(if at - b.0 <= a.0 - at { b } else { a }),
-        (b, a) => b.or(a),
-    };
-    nearest.map(|(&stamp, &key)| (key, stamp))
 }
 
 /// The inverse of a sighting's 3×3 covariance (row-major), which must be symmetric positive

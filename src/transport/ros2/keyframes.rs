@@ -198,13 +198,18 @@ pub(super) fn has_moved(
 
 /// The key whose stamp (ns) is nearest `at`; `None` when there are none.
 pub(super) fn nearest_key(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<Key> {
+    nearest(by_stamp, at).map(|(key, _)| key)
+}
+
+/// The key whose stamp (ns) is nearest `at`, and that stamp.
+pub(super) fn nearest(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<(Key, i64)> {
     let before = by_stamp.range(..=at).next_back();
     let after = by_stamp.range(at..).next();
     let nearest = match (before, after) {
         (Some(b), Some(a)) => Some(if at - b.0 <= a.0 - at { b } else { a }),
         (b, a) => b.or(a),
     };
-    nearest.map(|(_, &key)| key)
+    nearest.map(|(&stamp, &key)| (key, stamp))
 }
 
 fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
