@@ -341,6 +341,11 @@ def check_services(session, args, robot, tokens, received, lock, odometry):
         assert token, f"no service token ending {tail}"
         print("liveliness:", token[0])
     gid = bytes(range(16))
+    # Without rmw_zenoh's attachment there is no request to answer: an error reply, no solve.
+    key = f"{ro.DOMAIN}/robot1/factord/optimize/std_srvs::srv::dds_::Trigger_/{TRIGGER_HASH}"
+    replies = list(session.get(key, payload=b"\x00\x01\x00\x00\x00", timeout=10.0))
+    assert len(replies) == 1 and replies[0].err is not None, replies
+    print("a request without attachment:", bytes(replies[0].err.payload.to_bytes()).decode())
     response = call(session, "optimize", 41, gid)
     assert response.success, response.message
     print("optimize:", response.message)

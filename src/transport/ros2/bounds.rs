@@ -345,6 +345,64 @@ mod tests {
     }
 
     #[test]
+    fn closures_and_sightings_name_their_own_fields() {
+        let mut c = LoopClosure::default();
+        c.header.stamp = Time { sec: 3, nanosec: 0 };
+        assert_eq!(loop_closure(&c), Ok(3.0));
+        c.to_stamp.nanosec = 1_000_000_000;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::Nanoseconds {
+                field: "to_stamp",
+                ..
+            })
+        ));
+        c.to_stamp.nanosec = 0;
+        c.from_stamp.sec = -1;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NegativeStamp {
+                field: "from_stamp",
+                ..
+            })
+        ));
+        c.from_stamp.sec = 0;
+        c.relative_pose.position.z = f64::NAN;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NonFinite {
+                field: "relative_pose.position.z",
+                ..
+            })
+        ));
+        c.relative_pose.position.z = 0.0;
+        c.relative_pose.orientation.w = 0.5;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NotUnit {
+                field: "relative_pose.orientation",
+                ..
+            })
+        ));
+        let mut l = LandmarkSighting {
+            landmark_id: MAX_LANDMARK_ID,
+            ..Default::default()
+        };
+        assert_eq!(landmark(&l), Ok(0.0));
+        l.landmark_id += 1;
+        assert_eq!(landmark(&l), Err(BadValue::LandmarkId { id: 1 << 56 }));
+        l.landmark_id = 7;
+        l.position.x = -2e9;
+        assert!(matches!(
+            landmark(&l),
+            Err(BadValue::OutOfRange {
+                field: "position.x",
+                ..
+            })
+        ));
+    }
+
+    #[test]
     fn values_are_finite_and_bounded_and_orientations_unit() {
         let mut o = odometry_at(1);
         o.pose.pose.position.x = 1e300;
