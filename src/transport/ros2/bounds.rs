@@ -306,6 +306,11 @@ impl Stamps {
     pub fn record(&mut self, stream: Stream, t: f64) {
         self.newest[stream as usize] = Some(t);
     }
+
+    /// The newest stamp used on `stream`.
+    pub fn newest(&self, stream: Stream) -> Option<f64> {
+        self.newest[stream as usize]
+    }
 }
 
 #[cfg(test)]

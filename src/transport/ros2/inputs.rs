@@ -6,7 +6,8 @@
 //!
 //! A message that cannot be used (larger than `max_body_bytes`, not CDR of the expected type, a
 //! value out of bounds, a stamp not after its topic's previous one, a bad covariance, a prior
-//! before any keyframe, a closure or sighting with no keyframe near its stamp) is counted and reported on the session's error stream (SSE, zenoh
+//! before any keyframe, a closure or sighting with no keyframe near its stamp — unless it is
+//! ahead of odometry: then it waits for its keyframe) is counted and reported on the session's error stream (SSE, zenoh
 //! `out/errors`) with code `ros2_bad_message`; nothing of it reaches the session.
 
 use std::io::Read;
@@ -59,7 +60,7 @@ pub(super) enum Feeder {
 
 /// The binding's input topics.
 #[derive(Clone, Copy)]
-enum Topic {
+pub(super) enum Topic {
     Odometry,
     Prior,
     Imu,
@@ -68,7 +69,8 @@ enum Topic {
 }
 
 /// A decoded message (its values still to check: [`Message::checked_stamp`]).
-enum Message {
+#[derive(Clone)]
+pub(super) enum Message {
     Odometry(Odometry),
     Prior(PoseWithCovarianceStamped),
     Imu(Imu),
@@ -118,7 +120,19 @@ impl Topic {
     }
 }
 
+/// Loop closures and sightings held until odometry makes their keyframes, at most.
+const MAX_AHEAD: usize = 1000;
+
 impl Message {
+    /// For a closure or a sighting, the newest stamp it needs a keyframe at.
+    fn keyframe_stamp(&self) -> Option<f64> {
+        match self {
+            Message::LoopClosure(m) => Some(m.from_stamp.seconds().max(m.to_stamp.seconds())),
+            Message::Landmark(m) => Some(m.header.stamp.seconds()),
+            _ => None,
+        }
+    }
+
     /// Its stamp in seconds, once its values are within bounds (not yet the stamp's order).
     fn checked_stamp(&self) -> Result<f64, BadValue> {
         match self {
@@ -149,6 +163,9 @@ pub(super) struct Inputs {
     pub max_payload: usize,
     /// The newest stamp used on each topic.
     pub stamps: Stamps,
+    /// Closures and sightings ahead of odometry, waiting for their keyframes (see
+    /// [`Inputs::hold_if_ahead`]).
+    pub ahead: Vec<(Topic, Message)>,
 }
 
 /// rmw_zenoh always attaches one; a sample without (a plain zenoh put) is taken, one with
@@ -182,6 +199,57 @@ impl Inputs {
             };
             let Ok(sample) = sample else { return };
             match self.use_sample(topic, &sample).await {
+                Ok(commands) => {
+                    let keyframed = matches!(topic, Topic::Odometry) && !commands.is_empty();
+                    for command in commands {
+                        self.deliver(Ok(command)).await;
+                    }
+                    if keyframed && !self.ahead.is_empty() {
+                        self.retry_ahead().await;
+                    }
+                }
+                Err(unusable) => self.refuse(unusable, topic).await,
+            }
+        }
+    }
+
+    /// A closure or sighting whose keyframe is not there yet, stamped after the newest
+    /// odometry used: its topic is not odometry's, and it may well arrive first (a front-end
+    /// publishes a sighting as the odometry of its pose goes out). Held, not refused, until
+    /// odometry makes a keyframe; `Ok(false)` when it is not ahead.
+    fn hold_if_ahead(
+        &mut self,
+        topic: Topic,
+        message: &Message,
+        error: &MessageError,
+    ) -> Result<bool, MessageError> {
+        let waiting = matches!(
+            error,
+            MessageError::NoKeyframeNear { .. } | MessageError::NoKeyframeYet
+        );
+        let newest = self.stamps.newest(Stream::Odometry);
+        let ahead = match (message.keyframe_stamp(), newest) {
+            (Some(t), Some(newest)) => t > newest,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if !(waiting && ahead) {
+            return Ok(false);
+        }
+        if self.ahead.len() >= MAX_AHEAD {
+            return Err(MessageError::TooManyAhead {
+                held: self.ahead.len(),
+            });
+        }
+        self.ahead.push((topic, message.clone()));
+        Ok(true)
+    }
+
+    /// After a keyframe: the held closures and sightings again, in their order (each is held
+    /// again while still ahead of odometry).
+    async fn retry_ahead(&mut self) {
+        for (topic, message) in std::mem::take(&mut self.ahead) {
+            match self.take(message).await {
                 Ok(commands) => {
                     for command in commands {
                         self.deliver(Ok(command)).await;
@@ -276,16 +344,37 @@ impl Inputs {
                 fusion(feed)
             }
             (Message::LoopClosure(closure), Feeder::Graph(keyframer)) => {
-                graph(Some(keyframer.on_loop_closure(&closure)?))
+                match keyframer.on_loop_closure(&closure) {
+                    Ok(batch) => graph(Some(batch)),
+                    Err(e) => {
+                        return self.held_or(Topic::LoopClosure, Message::LoopClosure(closure), e)
+                    }
+                }
             }
             (Message::Landmark(sighting), Feeder::Graph(keyframer)) => {
-                graph(Some(keyframer.on_landmark(&sighting)?))
+                match keyframer.on_landmark(&sighting) {
+                    Ok(batch) => graph(Some(batch)),
+                    Err(e) => return self.held_or(Topic::Landmark, Message::Landmark(sighting), e),
+                }
             }
             // A pose graph's binding subscribes to no IMU, a window's to no closures or
             // landmarks (`Ros2Binding::check_kind`).
             (Message::Imu(_), Feeder::Graph(_))
             | (Message::LoopClosure(_) | Message::Landmark(_), Feeder::Window(_)) => Vec::new(),
         })
+    }
+
+    /// No commands when `message` is held for its keyframe, else its error.
+    fn held_or(
+        &mut self,
+        topic: Topic,
+        message: Message,
+        error: MessageError,
+    ) -> Result<Vec<Command>, Unusable> {
+        match self.hold_if_ahead(topic, &message, &error)? {
+            true => Ok(Vec::new()),
+            false => Err(error.into()),
+        }
     }
 
     async fn refuse(&self, unusable: Unusable, topic: Topic) {

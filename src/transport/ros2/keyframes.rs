@@ -44,6 +44,8 @@ pub enum MessageError {
         nearest: f64,
         tolerance: f64,
     },
+    #[error("{held} loop closures and landmark sightings are held waiting for the odometry of their keyframes: no more")]
+    TooManyAhead { held: usize },
     #[error("both stamps are nearest keyframe {key}: a loop closure joins two keyframes")]
     SameKeyframe { key: Key },
     #[error("{held} IMU samples are held waiting for odometry to make a keyframe: no more")]

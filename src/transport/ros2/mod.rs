@@ -260,6 +260,7 @@ async fn run(
         refused: Arc::default(),
         max_payload,
         stamps,
+        ahead: Vec::new(),
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {
