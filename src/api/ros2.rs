@@ -36,6 +36,18 @@ pub struct Ros2Binding {
     /// the keyframe nearest in time.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prior_topic: Option<String>,
+    /// `factord_msgs/msg/LoopClosure` (`clients/ros2/factord_msgs`): relative poses between
+    /// the keyframes nearest two stamps (`pose_graph_3d` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loop_closure_topic: Option<String>,
+    /// `factord_msgs/msg/LandmarkSighting`: landmark positions in the body frame of the
+    /// keyframe nearest their stamp (`pose_graph_3d` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub landmark_topic: Option<String>,
+    /// Seconds a loop closure's or a landmark sighting's stamp may be from the keyframe it
+    /// attaches to (0 to 10); farther, the message is refused.
+    #[serde(default = "default_keyframe_tolerance")]
+    pub keyframe_tolerance: f64,
     /// `nav_msgs/msg/Path`: the optimised keyframe trajectory after each solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub path_topic: Option<String>,
@@ -43,6 +55,14 @@ pub struct Ros2Binding {
     /// marginal covariance after each solve.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_topic: Option<String>,
+    /// `std_srvs/srv/Trigger` services `<namespace>/optimize`, `<namespace>/export` (the
+    /// trajectory as TUM text) and `<namespace>/reset` (the session emptied, bound again).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub service_namespace: Option<String>,
+    /// `visualization_msgs/msg/MarkerArray`: the graph after each solve (keyframes, odometry
+    /// edges, loop closures coloured by χ², landmarks), latched, for rviz and Foxglove.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub markers_topic: Option<String>,
     /// `tf2_msgs/msg/TFMessage`: the `map → odom` correction (from `map_frame` to odometry's
     /// `header.frame_id`), as a localisation node publishes it; usually `/tf`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -79,6 +99,12 @@ fn default_transform_tolerance() -> f64 {
     0.2
 }
 
+fn default_keyframe_tolerance() -> f64 {
+    // Half a 10 Hz odometry period: a stamp of the keyframe's own odometry message matches,
+    // one of its neighbours does not.
+    0.05
+}
+
 fn default_keyframe_distance() -> f64 {
     0.5
 }
@@ -109,9 +135,13 @@ impl Ros2Binding {
             ("odometry_topic", Some(&self.odometry_topic)),
             ("imu_topic", self.imu_topic.as_ref()),
             ("prior_topic", self.prior_topic.as_ref()),
+            ("loop_closure_topic", self.loop_closure_topic.as_ref()),
+            ("landmark_topic", self.landmark_topic.as_ref()),
             ("path_topic", self.path_topic.as_ref()),
             ("pose_topic", self.pose_topic.as_ref()),
             ("tf_topic", self.tf_topic.as_ref()),
+            ("markers_topic", self.markers_topic.as_ref()),
+            ("service_namespace", self.service_namespace.as_ref()),
         ];
         for (field, topic) in topics {
             if let Some(topic) = topic {
@@ -170,6 +200,12 @@ impl Ros2Binding {
                 format!("{} is not in 0 to 10 seconds", self.transform_tolerance),
             ));
         }
+        if !(0.0..=10.0).contains(&self.keyframe_tolerance) {
+            return Err(invalid(
+                "keyframe_tolerance",
+                format!("{} is not in 0 to 10 seconds", self.keyframe_tolerance),
+            ));
+        }
         Ok(())
     }
 
@@ -180,6 +216,20 @@ impl Ros2Binding {
         let imu = |message: &str| {
             ServiceError::bad_request("invalid_value", "ros2.imu_topic", message.to_string())
         };
+        // The window builds its own factors from fusion messages: no closures, no landmarks.
+        let graph_only = [
+            ("loop_closure_topic", &self.loop_closure_topic),
+            ("landmark_topic", &self.landmark_topic),
+        ];
+        for (field, topic) in graph_only {
+            if kind != "pose_graph_3d" && topic.is_some() {
+                return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    format!("ros2.{field}"),
+                    format!("loop closures and landmarks feed pose_graph_3d sessions, not {kind}"),
+                ));
+            }
+        }
         match (kind, &self.imu_topic) {
             ("pose_graph_3d", None) | ("sliding_window", Some(_)) => Ok(()),
             ("pose_graph_3d", Some(_)) => Err(imu(
@@ -246,6 +296,37 @@ mod tests {
             );
         }
         assert!(valid_ros_name("robot1/odom"));
+    }
+
+    #[test]
+    fn loop_closures_and_landmarks_are_for_pose_graphs_within_a_tolerance() {
+        let b = binding(
+            r#"{"odometry_topic": "/odom", "loop_closure_topic": "/loops",
+                "landmark_topic": "/landmarks", "keyframe_tolerance": 0.1}"#,
+        );
+        assert!(b.validate().is_ok() && b.check_kind("pose_graph_3d").is_ok());
+        let window = Ros2Binding {
+            imu_topic: Some("/imu".into()),
+            ..b.clone()
+        };
+        let e = window
+            .check_kind("sliding_window")
+            .expect_err("no closures");
+        assert_eq!(e.body.field.as_deref(), Some("ros2.loop_closure_topic"));
+        for tolerance in [-1.0, 10.5, f64::INFINITY] {
+            let bad = Ros2Binding {
+                keyframe_tolerance: tolerance,
+                ..b.clone()
+            };
+            let e = bad.validate().expect_err("a bad tolerance");
+            assert_eq!(e.body.field.as_deref(), Some("ros2.keyframe_tolerance"));
+        }
+        let bad = Ros2Binding {
+            landmark_topic: Some("a//b".into()),
+            ..b
+        };
+        let e = bad.validate().expect_err("a bad topic");
+        assert_eq!(e.body.field.as_deref(), Some("ros2.landmark_topic"));
     }
 
     #[test]

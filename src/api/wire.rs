@@ -422,6 +422,10 @@ pub struct SessionStats {
     /// In a fleet: the id of the instance that owns the session (and answered).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub instance: Option<String>,
+    /// The session's ROS 2 binding (its creation request's, defaults filled in), when it has
+    /// one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ros2: Option<Box<super::ros2::Ros2Binding>>,
 }
 
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
@@ -436,6 +440,10 @@ pub struct SessionInfo {
     /// In a fleet: the id of the instance that owns the session.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub instance: Option<String>,
+    /// The session's ROS 2 binding (its creation request's, defaults filled in), when it has
+    /// one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ros2: Option<Box<super::ros2::Ros2Binding>>,
 }
 
 /// What a session streams out (SSE events, zenoh publications).

@@ -16,6 +16,7 @@ impl Session {
             auto_optimize: st.auto,
             factor_types: self.factor_types().names().to_vec(),
             instance: None,
+            ros2: self.ros2_binding().cloned().map(Box::new),
         }
     }
 
@@ -43,6 +44,7 @@ impl Session {
             factor_types: self.factor_types().names().to_vec(),
             memory_bytes: self.memory_bytes_locked(&st),
             instance: None,
+            ros2: self.ros2_binding().cloned().map(Box::new),
         };
         drop(st);
         if let Engine::Window(window) = &self.engine {

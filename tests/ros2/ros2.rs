@@ -61,6 +61,15 @@ fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
     run_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
 }
 
+/// Issue 56: a SLAM front-end's loop closures and landmark sightings (`factord_msgs`) over
+/// rmw_zenoh close a drifted square and map its landmarks (`tests/ros2/robot_slam.py`).
+#[test]
+fn a_slam_robot_over_rmw_zenoh_closes_a_loop_and_maps_landmarks() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    run_script(&python, &server, "tests/ros2/robot_slam.py", &[]);
+}
+
 #[test]
 fn a_ros2_robot_with_an_imu_feeds_a_sliding_window() {
     let Some(python) = python() else { return };

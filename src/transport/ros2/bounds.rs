@@ -19,7 +19,9 @@
 //! Strings (`frame_id`) are bounded as they are decoded (`messages::name_string`); covariances
 //! are checked where they are inverted (`keyframes::information`, `window_feed::sigmas`).
 
-use super::messages::{Imu, Odometry, Point, Pose, PoseWithCovarianceStamped, Time};
+use super::messages::{
+    Imu, LandmarkSighting, LoopClosure, Odometry, Point, Pose, PoseWithCovarianceStamped, Time,
+};
 
 /// The largest |coordinate| of a position, in metres.
 pub const MAX_POSITION: f64 = 1e9;
@@ -49,6 +51,8 @@ pub enum BadValue {
     NotUnit { field: &'static str, norm: f64 },
     #[error("{field}.nanosec is {nanosec}: at most 999999999")]
     Nanoseconds { field: &'static str, nanosec: u32 },
+    #[error("landmark_id is {id}: at most {MAX_LANDMARK_ID} (2^56 - 1)")]
+    LandmarkId { id: u64 },
     #[error("{field} is {t:?} s: ROS stamps are not negative")]
     NegativeStamp { field: &'static str, t: f64 },
     #[error("{field} {t:?} s is before the previous {topic} message's ({previous:?} s): out of order, dropped")]
@@ -123,43 +127,102 @@ pub fn imu(message: &Imu) -> Result<f64, BadValue> {
     Ok(t)
 }
 
-/// `pose.pose` of an odometry message or an absolute pose: position and orientation.
-pub fn pose(pose: &Pose) -> Result<(), BadValue> {
-    let position = [
+/// The field names of a pose, as its message's definition spells them.
+struct PoseFields {
+    position: [&'static str; 3],
+    orientation: [&'static str; 4],
+    quaternion: &'static str,
+}
+
+const POSE_POSE: PoseFields = PoseFields {
+    position: [
         "pose.pose.position.x",
         "pose.pose.position.y",
         "pose.pose.position.z",
-    ];
-    vector(&pose.position, position, MAX_POSITION, "m")?;
+    ],
+    orientation: [
+        "pose.pose.orientation.x",
+        "pose.pose.orientation.y",
+        "pose.pose.orientation.z",
+        "pose.pose.orientation.w",
+    ],
+    quaternion: "pose.pose.orientation",
+};
+
+const RELATIVE_POSE: PoseFields = PoseFields {
+    position: [
+        "relative_pose.position.x",
+        "relative_pose.position.y",
+        "relative_pose.position.z",
+    ],
+    orientation: [
+        "relative_pose.orientation.x",
+        "relative_pose.orientation.y",
+        "relative_pose.orientation.z",
+        "relative_pose.orientation.w",
+    ],
+    quaternion: "relative_pose.orientation",
+};
+
+/// `pose.pose` of an odometry message or an absolute pose: position and orientation.
+pub fn pose(pose: &Pose) -> Result<(), BadValue> {
+    pose_named(pose, &POSE_POSE)
+}
+
+fn pose_named(pose: &Pose, names: &PoseFields) -> Result<(), BadValue> {
+    vector(&pose.position, names.position, MAX_POSITION, "m")?;
     let o = pose.orientation;
-    let fields = [
-        ("pose.pose.orientation.x", o.x),
-        ("pose.pose.orientation.y", o.y),
-        ("pose.pose.orientation.z", o.z),
-        ("pose.pose.orientation.w", o.w),
-    ];
-    for (field, value) in fields {
+    for (field, value) in names.orientation.into_iter().zip([o.x, o.y, o.z, o.w]) {
         finite(field, value)?;
     }
     let q = nalgebra::Quaternion::new(o.w, o.x, o.y, o.z);
     crate::geometry::so3::unit_within_tolerance(q).map_err(|norm| BadValue::NotUnit {
-        field: "pose.pose.orientation",
+        field: names.quaternion,
         norm,
     })?;
     Ok(())
 }
 
+/// A loop closure's values: its three stamps and its relative pose; its header stamp.
+pub fn loop_closure(message: &LoopClosure) -> Result<f64, BadValue> {
+    let t = stamp(message.header.stamp)?;
+    stamp_named(message.from_stamp, "from_stamp")?;
+    stamp_named(message.to_stamp, "to_stamp")?;
+    pose_named(&message.relative_pose, &RELATIVE_POSE)?;
+    Ok(t)
+}
+
+/// Landmark ids become keys `('l' << 56) | id`: ids must leave the tag's byte alone.
+pub const MAX_LANDMARK_ID: u64 = (1 << 56) - 1;
+
+/// A landmark sighting's values: stamp, id and position; its stamp.
+pub fn landmark(message: &LandmarkSighting) -> Result<f64, BadValue> {
+    let t = stamp(message.header.stamp)?;
+    if message.landmark_id > MAX_LANDMARK_ID {
+        return Err(BadValue::LandmarkId {
+            id: message.landmark_id,
+        });
+    }
+    let position = ["position.x", "position.y", "position.z"];
+    vector(&message.position, position, MAX_POSITION, "m")?;
+    Ok(t)
+}
+
 /// A header stamp in seconds: well-formed and not negative.
 pub fn stamp(time: Time) -> Result<f64, BadValue> {
+    stamp_named(time, STAMP)
+}
+
+fn stamp_named(time: Time, field: &'static str) -> Result<f64, BadValue> {
     if time.nanosec >= 1_000_000_000 {
         return Err(BadValue::Nanoseconds {
-            field: STAMP,
+            field,
             nanosec: time.nanosec,
         });
     }
     let t = time.seconds();
     if time.sec < 0 {
-        return Err(BadValue::NegativeStamp { field: STAMP, t });
+        return Err(BadValue::NegativeStamp { field, t });
     }
     Ok(t)
 }
@@ -243,6 +306,11 @@ impl Stamps {
     pub fn record(&mut self, stream: Stream, t: f64) {
         self.newest[stream as usize] = Some(t);
     }
+
+    /// The newest stamp used on `stream`.
+    pub fn newest(&self, stream: Stream) -> Option<f64> {
+        self.newest[stream as usize]
+    }
 }
 
 #[cfg(test)]
@@ -279,6 +347,64 @@ mod tests {
         ));
         // Each topic has its own order.
         assert_eq!(stamps.check(Stream::Imu, 1.0), Ok(()));
+    }
+
+    #[test]
+    fn closures_and_sightings_name_their_own_fields() {
+        let mut c = LoopClosure::default();
+        c.header.stamp = Time { sec: 3, nanosec: 0 };
+        assert_eq!(loop_closure(&c), Ok(3.0));
+        c.to_stamp.nanosec = 1_000_000_000;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::Nanoseconds {
+                field: "to_stamp",
+                ..
+            })
+        ));
+        c.to_stamp.nanosec = 0;
+        c.from_stamp.sec = -1;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NegativeStamp {
+                field: "from_stamp",
+                ..
+            })
+        ));
+        c.from_stamp.sec = 0;
+        c.relative_pose.position.z = f64::NAN;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NonFinite {
+                field: "relative_pose.position.z",
+                ..
+            })
+        ));
+        c.relative_pose.position.z = 0.0;
+        c.relative_pose.orientation.w = 0.5;
+        assert!(matches!(
+            loop_closure(&c),
+            Err(BadValue::NotUnit {
+                field: "relative_pose.orientation",
+                ..
+            })
+        ));
+        let mut l = LandmarkSighting {
+            landmark_id: MAX_LANDMARK_ID,
+            ..Default::default()
+        };
+        assert_eq!(landmark(&l), Ok(0.0));
+        l.landmark_id += 1;
+        assert_eq!(landmark(&l), Err(BadValue::LandmarkId { id: 1 << 56 }));
+        l.landmark_id = 7;
+        l.position.x = -2e9;
+        assert!(matches!(
+            landmark(&l),
+            Err(BadValue::OutOfRange {
+                field: "position.x",
+                ..
+            })
+        ));
     }
 
     #[test]

@@ -1,11 +1,13 @@
-//! The binding's subscriptions: odometry, absolute poses and IMU samples, in the order they
-//! arrive, decoded from CDR, checked (`bounds`), turned into batches by the [`Keyframer`] (pose
-//! graphs) or fusion messages by the [`WindowFeed`] (sliding windows), and executed as any
-//! client's commands.
+//! The binding's subscriptions: odometry, absolute poses, IMU samples, loop closures and
+//! landmark sightings, in the order they arrive, decoded from CDR, checked (`bounds`), turned
+//! into batches by the [`Keyframer`] (pose graphs; closures and sightings in `closures`) or
+//! fusion messages by the [`WindowFeed`] (sliding windows), and executed as any client's
+//! commands.
 //!
 //! A message that cannot be used (larger than `max_body_bytes`, not CDR of the expected type, a
 //! value out of bounds, a stamp not after its topic's previous one, a bad covariance, a prior
-//! before any keyframe) is counted and reported on the session's error stream (SSE, zenoh
+//! before any keyframe, a closure or sighting with no keyframe near its stamp — unless it is
+//! ahead of odometry: then it waits for its keyframe) is counted and reported on the session's error stream (SSE, zenoh
 //! `out/errors`) with code `ros2_bad_message`; nothing of it reaches the session.
 
 use std::io::Read;
@@ -21,7 +23,8 @@ use super::bounds::{self, BadValue, Stamps, Stream};
 use super::cdr_codec;
 use super::keyframes::{Keyframer, MessageError};
 use super::messages::{
-    Imu, Odometry, PoseWithCovarianceStamped, IMU, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
+    Imu, LandmarkSighting, LoopClosure, Odometry, PoseWithCovarianceStamped, IMU,
+    LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
 };
 use super::tf::TfBroadcaster;
 use super::window_feed::{Feed, WindowFeed};
@@ -57,17 +60,22 @@ pub(super) enum Feeder {
 
 /// The binding's input topics.
 #[derive(Clone, Copy)]
-enum Topic {
+pub(super) enum Topic {
     Odometry,
     Prior,
     Imu,
+    LoopClosure,
+    Landmark,
 }
 
 /// A decoded message (its values still to check: [`Message::checked_stamp`]).
-enum Message {
+#[derive(Clone)]
+pub(super) enum Message {
     Odometry(Odometry),
     Prior(PoseWithCovarianceStamped),
     Imu(Imu),
+    LoopClosure(LoopClosure),
+    Landmark(LandmarkSighting),
 }
 
 impl Topic {
@@ -76,14 +84,19 @@ impl Topic {
             Topic::Odometry => "ros2.odometry_topic",
             Topic::Prior => "ros2.prior_topic",
             Topic::Imu => "ros2.imu_topic",
+            Topic::LoopClosure => "ros2.loop_closure_topic",
+            Topic::Landmark => "ros2.landmark_topic",
         }
     }
 
-    fn stream(self) -> Stream {
+    /// The stream whose stamps must increase; none for closures and sightings, which attach
+    /// to keyframes already made (several sightings share their keyframe's stamp).
+    fn stream(self) -> Option<Stream> {
         match self {
-            Topic::Odometry => Stream::Odometry,
-            Topic::Prior => Stream::Prior,
-            Topic::Imu => Stream::Imu,
+            Topic::Odometry => Some(Stream::Odometry),
+            Topic::Prior => Some(Stream::Prior),
+            Topic::Imu => Some(Stream::Imu),
+            Topic::LoopClosure | Topic::Landmark => None,
         }
     }
 
@@ -97,17 +110,37 @@ impl Topic {
                 Message::Prior(decode_from(payload, len, name)?)
             }
             Topic::Imu => Message::Imu(decode_from(payload, len, IMU.name)?),
+            Topic::LoopClosure => {
+                Message::LoopClosure(decode_from(payload, len, LOOP_CLOSURE.name)?)
+            }
+            Topic::Landmark => {
+                Message::Landmark(decode_from(payload, len, LANDMARK_SIGHTING.name)?)
+            }
         })
     }
 }
 
+/// Loop closures and sightings held until odometry makes their keyframes, at most.
+const MAX_AHEAD: usize = 1000;
+
 impl Message {
+    /// For a closure or a sighting, the newest stamp it needs a keyframe at.
+    fn keyframe_stamp(&self) -> Option<f64> {
+        match self {
+            Message::LoopClosure(m) => Some(m.from_stamp.seconds().max(m.to_stamp.seconds())),
+            Message::Landmark(m) => Some(m.header.stamp.seconds()),
+            _ => None,
+        }
+    }
+
     /// Its stamp in seconds, once its values are within bounds (not yet the stamp's order).
     fn checked_stamp(&self) -> Result<f64, BadValue> {
         match self {
             Message::Odometry(m) => bounds::odometry(m),
             Message::Prior(m) => bounds::prior(m),
             Message::Imu(m) => bounds::imu(m),
+            Message::LoopClosure(m) => bounds::loop_closure(m),
+            Message::Landmark(m) => bounds::landmark(m),
         }
     }
 }
@@ -120,6 +153,8 @@ pub(super) struct Inputs {
     pub odometry: Samples,
     pub priors: Option<Samples>,
     pub imu: Option<Samples>,
+    pub loop_closures: Option<Samples>,
+    pub landmarks: Option<Samples>,
     /// Told of every odometry message used and every keyframe made (`map → odom` on `/tf`).
     pub tf: Option<Arc<TfBroadcaster>>,
     /// Messages refused so far (reported with each refusal).
@@ -128,6 +163,9 @@ pub(super) struct Inputs {
     pub max_payload: usize,
     /// The newest stamp used on each topic.
     pub stamps: Stamps,
+    /// Closures and sightings ahead of odometry, waiting for their keyframes (see
+    /// [`Inputs::hold_if_ahead`]).
+    pub ahead: Vec<(Topic, Message)>,
 }
 
 /// rmw_zenoh always attaches one; a sample without (a plain zenoh put) is taken, one with
@@ -156,9 +194,62 @@ impl Inputs {
                 s = self.odometry.recv_async() => (s, Topic::Odometry),
                 s = next(&self.priors) => (s, Topic::Prior),
                 s = next(&self.imu) => (s, Topic::Imu),
+                s = next(&self.loop_closures) => (s, Topic::LoopClosure),
+                s = next(&self.landmarks) => (s, Topic::Landmark),
             };
             let Ok(sample) = sample else { return };
             match self.use_sample(topic, &sample).await {
+                Ok(commands) => {
+                    let keyframed = matches!(topic, Topic::Odometry) && !commands.is_empty();
+                    for command in commands {
+                        self.deliver(Ok(command)).await;
+                    }
+                    if keyframed && !self.ahead.is_empty() {
+                        self.retry_ahead().await;
+                    }
+                }
+                Err(unusable) => self.refuse(unusable, topic).await,
+            }
+        }
+    }
+
+    /// A closure or sighting whose keyframe is not there yet, stamped after the newest
+    /// odometry used: its topic is not odometry's, and it may well arrive first (a front-end
+    /// publishes a sighting as the odometry of its pose goes out). Held, not refused, until
+    /// odometry makes a keyframe; `Ok(false)` when it is not ahead.
+    fn hold_if_ahead(
+        &mut self,
+        topic: Topic,
+        message: &Message,
+        error: &MessageError,
+    ) -> Result<bool, MessageError> {
+        let waiting = matches!(
+            error,
+            MessageError::NoKeyframeNear { .. } | MessageError::NoKeyframeYet
+        );
+        let newest = self.stamps.newest(Stream::Odometry);
+        let ahead = match (message.keyframe_stamp(), newest) {
+            (Some(t), Some(newest)) => t > newest,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if !(waiting && ahead) {
+            return Ok(false);
+        }
+        if self.ahead.len() >= MAX_AHEAD {
+            return Err(MessageError::TooManyAhead {
+                held: self.ahead.len(),
+            });
+        }
+        self.ahead.push((topic, message.clone()));
+        Ok(true)
+    }
+
+    /// After a keyframe: the held closures and sightings again, in their order (each is held
+    /// again while still ahead of odometry).
+    async fn retry_ahead(&mut self) {
+        for (topic, message) in std::mem::take(&mut self.ahead) {
+            match self.take(message).await {
                 Ok(commands) => {
                     for command in commands {
                         self.deliver(Ok(command)).await;
@@ -184,9 +275,13 @@ impl Inputs {
         check_attachment(sample)?;
         let message = topic.decode(payload.reader(), len)?;
         let t = message.checked_stamp()?;
-        self.stamps.check(topic.stream(), t)?;
+        if let Some(stream) = topic.stream() {
+            self.stamps.check(stream, t)?;
+        }
         let commands = self.take(message).await?;
-        self.stamps.record(topic.stream(), t);
+        if let Some(stream) = topic.stream() {
+            self.stamps.record(stream, t);
+        }
         Ok(commands)
     }
 
@@ -248,9 +343,38 @@ impl Inputs {
                 }
                 fusion(feed)
             }
-            // A pose graph's binding subscribes to no IMU (`Ros2Binding::check_kind`).
-            (Message::Imu(_), Feeder::Graph(_)) => Vec::new(),
+            (Message::LoopClosure(closure), Feeder::Graph(keyframer)) => {
+                match keyframer.on_loop_closure(&closure) {
+                    Ok(batch) => graph(Some(batch)),
+                    Err(e) => {
+                        return self.held_or(Topic::LoopClosure, Message::LoopClosure(closure), e)
+                    }
+                }
+            }
+            (Message::Landmark(sighting), Feeder::Graph(keyframer)) => {
+                match keyframer.on_landmark(&sighting) {
+                    Ok(batch) => graph(Some(batch)),
+                    Err(e) => return self.held_or(Topic::Landmark, Message::Landmark(sighting), e),
+                }
+            }
+            // A pose graph's binding subscribes to no IMU, a window's to no closures or
+            // landmarks (`Ros2Binding::check_kind`).
+            (Message::Imu(_), Feeder::Graph(_))
+            | (Message::LoopClosure(_) | Message::Landmark(_), Feeder::Window(_)) => Vec::new(),
         })
+    }
+
+    /// No commands when `message` is held for its keyframe, else its error.
+    fn held_or(
+        &mut self,
+        topic: Topic,
+        message: Message,
+        error: MessageError,
+    ) -> Result<Vec<Command>, Unusable> {
+        match self.hold_if_ahead(topic, &message, &error)? {
+            true => Ok(Vec::new()),
+            false => Err(error.into()),
+        }
     }
 
     async fn refuse(&self, unusable: Unusable, topic: Topic) {

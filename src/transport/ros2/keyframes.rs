@@ -12,7 +12,7 @@
 //! publish) gets [`DEFAULT_ODOMETRY_SIGMAS`]; any other that is not positive definite refuses
 //! the message.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 
 use nalgebra::{Isometry3, Matrix6, Quaternion as NaQuaternion, Translation3, UnitQuaternion};
 
@@ -37,6 +37,17 @@ pub enum MessageError {
     Value(#[from] BadValue),
     #[error("an absolute pose arrived before any keyframe: there is nothing to attach it to")]
     NoKeyframeYet,
+    #[error("{field} {t:?} s has no keyframe within {tolerance} s (keyframe_tolerance); the nearest is at {nearest:?} s")]
+    NoKeyframeNear {
+        field: &'static str,
+        t: f64,
+        nearest: f64,
+        tolerance: f64,
+    },
+    #[error("{held} loop closures and landmark sightings are held waiting for the odometry of their keyframes: no more")]
+    TooManyAhead { held: usize },
+    #[error("both stamps are nearest keyframe {key}: a loop closure joins two keyframes")]
+    SameKeyframe { key: Key },
     #[error("{held} IMU samples are held waiting for odometry to make a keyframe: no more")]
     TooManyHeld { held: usize },
 }
@@ -55,8 +66,13 @@ pub struct Keyframer {
     expects_priors: bool,
     last: Option<Keyframe>,
     next_key: Key,
-    /// Keyframe keys by stamp (nanoseconds), for the nearest-in-time lookup of priors.
-    by_stamp: BTreeMap<i64, Key>,
+    /// Keyframe keys by stamp (nanoseconds), for the nearest-in-time lookup of priors, loop
+    /// closures and landmark sightings.
+    pub(super) by_stamp: BTreeMap<i64, Key>,
+    /// How far (seconds) a closure's or a sighting's stamp may be from its keyframe's.
+    pub(super) tolerance: f64,
+    /// The landmarks created so far (`closures`).
+    pub(super) landmarks: HashSet<Key>,
 }
 
 impl Keyframer {
@@ -68,6 +84,8 @@ impl Keyframer {
             last: None,
             next_key: 0,
             by_stamp: BTreeMap::new(),
+            tolerance: binding.keyframe_tolerance,
+            landmarks: HashSet::new(),
         }
     }
 
@@ -75,9 +93,14 @@ impl Keyframer {
     /// service): new keyframes take the keys after it. What odometry said of the old keyframes
     /// is gone, so the first new one starts a segment of its own, weakly anchored at its
     /// odometry pose (never fixed: the old segment keeps the gauge).
-    pub fn resume_after(&mut self, max_key: Key) {
+    /// The stamps of the old keyframes are remembered (`keyframes`, from their variables):
+    /// priors, closures and sightings still find them.
+    pub fn resume_after(&mut self, max_key: Key, keyframes: impl IntoIterator<Item = (Key, f64)>) {
         self.next_key = max_key + 1;
         self.expects_priors = true;
+        for (key, stamp) in keyframes {
+            self.by_stamp.insert(stamp_ns(stamp), key);
+        }
     }
 
     /// The batch a new keyframe makes, or `None` while the robot has not moved enough. The
@@ -177,13 +200,18 @@ pub(super) fn has_moved(
 
 /// The key whose stamp (ns) is nearest `at`; `None` when there are none.
 pub(super) fn nearest_key(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<Key> {
+    nearest(by_stamp, at).map(|(key, _)| key)
+}
+
+/// The key whose stamp (ns) is nearest `at`, and that stamp.
+pub(super) fn nearest(by_stamp: &BTreeMap<i64, Key>, at: i64) -> Option<(Key, i64)> {
     let before = by_stamp.range(..=at).next_back();
     let after = by_stamp.range(at..).next();
     let nearest = match (before, after) {
         (Some(b), Some(a)) => Some(if at - b.0 <= a.0 - at { b } else { a }),
         (b, a) => b.or(a),
     };
-    nearest.map(|(_, &key)| key)
+    nearest.map(|(&stamp, &key)| (key, stamp))
 }
 
 fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
@@ -198,13 +226,18 @@ fn variable(key: Key, value: Option<Vec<f64>>, stamp: f64) -> VariableSpec {
 
 /// A factor's noise as the wire takes it: an information matrix, or sigmas (the server then
 /// builds the diagonal information).
-enum Noise {
+pub(super) enum Noise {
     /// Row-major, as `FactorSpec::information`.
     Information(Vec<f64>),
     Sigmas([f64; 6]),
 }
 
-fn factor(kind: &str, keys: Vec<Key>, pose: &Isometry3<f64>, noise: Noise) -> FactorSpec {
+pub(super) fn factor(
+    kind: &str,
+    keys: Vec<Key>,
+    pose: &Isometry3<f64>,
+    noise: Noise,
+) -> FactorSpec {
     let (information, sigmas) = match noise {
         Noise::Information(m) => (Some(m), None),
         Noise::Sigmas(s) => (None, Some(s.to_vec())),
@@ -251,7 +284,7 @@ pub fn isometry(pose: &Pose) -> Result<Isometry3<f64>, MessageError> {
 
 /// The inverse of a ROS covariance (row-major; its order is our residual order); `None` when
 /// it is all zeros (unknown).
-fn information(
+pub(super) fn information(
     covariance: &Covariance,
     what: &'static str,
 ) -> Result<Option<Matrix6<f64>>, MessageError> {
@@ -348,7 +381,7 @@ mod tests {
     #[test]
     fn a_resumed_binding_starts_after_the_existing_keys_unfixed() {
         let mut k = Keyframer::new(&binding(false));
-        k.resume_after(41);
+        k.resume_after(41, []);
         let first = k.on_odometry(&odometry(0.0, 0.0, 1)).unwrap().unwrap();
         assert_eq!(first.variables[0].key, 42);
         assert!(!first.variables[0].fixed && first.factors[0].factor_type == "prior_se3");

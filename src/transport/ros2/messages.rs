@@ -14,7 +14,10 @@ use serde::de::{Error as _, SeqAccess, Visitor};
 use serde::ser::SerializeTuple;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
+use std::sync::LazyLock;
+
 use super::cdr_codec::name_string;
+use super::type_hash;
 
 /// A ROS 2 message type as rmw_zenoh names it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -56,6 +59,46 @@ pub const PATH: RosType = RosType {
     dds_name: "nav_msgs::msg::dds_::Path_",
     hash: "RIHS01_1957a5bb3cee5da65c4e52e52b65a93df227efce4c20f8458b36e73066ca334b",
 };
+
+/// The graph as rviz and Foxglove draw it. Its hash as `rosbags` computes it from the Jazzy
+/// definitions, and recomputed from them by `type_hash`.
+pub const MARKER_ARRAY: RosType = RosType {
+    name: "visualization_msgs/msg/MarkerArray",
+    dds_name: "visualization_msgs::msg::dds_::MarkerArray_",
+    hash: "RIHS01_86cb8800b6fb05b5eff1abd7a56f62a5641d3ae9a1c29e78e67e704f1d067dcf",
+};
+
+/// `factord_msgs/msg/LoopClosure` (`clients/ros2/factord_msgs`).
+pub static LOOP_CLOSURE: LazyLock<RosType> = LazyLock::new(|| {
+    ours(
+        "factord_msgs/msg/LoopClosure",
+        "factord_msgs::msg::dds_::LoopClosure_",
+    )
+});
+
+/// `factord_msgs/msg/LandmarkSighting` (`clients/ros2/factord_msgs`).
+pub static LANDMARK_SIGHTING: LazyLock<RosType> = LazyLock::new(|| {
+    ours(
+        "factord_msgs/msg/LandmarkSighting",
+        "factord_msgs::msg::dds_::LandmarkSighting_",
+    )
+});
+
+/// One of our own types, its hash computed from its `.msg` file (once, kept for the process).
+fn ours(name: &'static str, dds_name: &'static str) -> RosType {
+    let definitions: Vec<_> = type_hash::STANDARD
+        .iter()
+        .chain(type_hash::FACTORD_MSGS)
+        .copied()
+        .collect();
+    let hash = type_hash::rihs01(name, &definitions)
+        .expect("factord_msgs refer only to known types (type_hash's tests)");
+    RosType {
+        name,
+        dds_name,
+        hash: hash.leak(),
+    }
+}
 
 /// `builtin_interfaces/Time`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -314,6 +357,28 @@ pub struct TransformStamped {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct TfMessage {
     pub transforms: Vec<TransformStamped>,
+}
+
+/// `factord_msgs/LoopClosure`: `relative_pose` is the pose at `to_stamp` in the body frame of
+/// the pose at `from_stamp`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LoopClosure {
+    pub header: Header,
+    pub from_stamp: Time,
+    pub to_stamp: Time,
+    pub relative_pose: Pose,
+    pub covariance: Covariance,
+    pub may_be_wrong: bool,
+}
+
+/// `factord_msgs/LandmarkSighting`: a landmark's position in the body frame at `header.stamp`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LandmarkSighting {
+    pub header: Header,
+    pub landmark_id: u64,
+    pub position: Point,
+    /// 3×3 row-major over `[x y z]`, m².
+    pub covariance: [f64; 9],
 }
 
 #[cfg(test)]

@@ -13,7 +13,10 @@
 //! `geometry_msgs/PoseWithCovarianceStamped` (`prior_se3`), see `keyframes`; for a
 //! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
 //! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
-//! `outputs`, and the `map → odom` correction on `/tf`, see `tf`. Messages go through the one
+//! `outputs`, the `map → odom` correction on `/tf`, see `tf`, and the graph as a
+//! `visualization_msgs/MarkerArray`, see `markers`. A pose graph also takes loop closures and
+//! landmark sightings (`factord_msgs`, `clients/ros2/factord_msgs`), see `closures`; their type
+//! hashes are computed from the `.msg` files as rosidl does, see `type_hash`. Messages go through the one
 //! command API ([`Service::execute`]) like any client's; nothing here touches a session's
 //! state.
 //!
@@ -25,12 +28,16 @@
 mod attachment;
 mod bounds;
 mod cdr_codec;
+mod closures;
 mod inputs;
 mod keyframes;
+mod markers;
 mod messages;
 mod names;
 mod outputs;
+mod services;
 mod tf;
+mod type_hash;
 mod window_feed;
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -44,7 +51,10 @@ use crate::session::{EventStream, Session};
 use bounds::Stamps;
 use inputs::Feeder;
 use keyframes::Keyframer;
-use messages::{RosType, IMU, ODOMETRY, PATH, POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE};
+use messages::{
+    RosType, IMU, LANDMARK_SIGHTING, LOOP_CLOSURE, MARKER_ARRAY, ODOMETRY, PATH,
+    POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE,
+};
 use names::{EndpointKind, NodeName, Qos};
 use outputs::RosPublisher;
 use tf::TfBroadcaster;
@@ -119,11 +129,13 @@ async fn run(
         (token, key)
     };
 
-    // Odometry always; priors and IMU when the binding names their topics.
+    // Odometry always; the others when the binding names their topics.
     let wanted = [
         (Some(&binding.odometry_topic), &ODOMETRY),
         (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
         (binding.imu_topic.as_ref(), &IMU),
+        (binding.loop_closure_topic.as_ref(), &*LOOP_CLOSURE),
+        (binding.landmark_topic.as_ref(), &*LANDMARK_SIGHTING),
     ];
     let mut subscriptions = Vec::with_capacity(wanted.len());
     for (topic, ros_type) in wanted {
@@ -135,8 +147,10 @@ async fn run(
         subscriptions.push(Some(zenoh.declare_subscriber(&key).await.map_err(failed)?));
         tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
-    let Ok([Some(odometry), priors, imu]) = <[_; 3]>::try_from(subscriptions) else {
-        unreachable!("odometry is always subscribed, and three were wanted")
+    let Ok([Some(odometry), priors, imu, loop_closures, landmarks]) =
+        <[_; 5]>::try_from(subscriptions)
+    else {
+        unreachable!("odometry is always subscribed, and five were wanted")
     };
     // The path is latched (transient local): a late subscriber, e.g. an operator's RViz
     // started after the robot, gets the last trajectory at once.
@@ -148,6 +162,8 @@ async fn run(
             Qos::Default,
         ),
         (binding.tf_topic.as_ref(), &TF_MESSAGE, Qos::Default),
+        // Latched as the path: an operator's rviz opened later draws the graph at once.
+        (binding.markers_topic.as_ref(), &MARKER_ARRAY, Qos::Latched),
     ];
     let mut publishers = Vec::with_capacity(wanted.len());
     for (topic, ros_type, qos) in wanted {
@@ -163,8 +179,8 @@ async fn run(
         publishers.push(Some(publisher));
         tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
     }
-    let Ok([path, pose, tf]) = <[_; 3]>::try_from(publishers) else {
-        unreachable!("three publishers were wanted")
+    let Ok([path, pose, tf, markers]) = <[_; 4]>::try_from(publishers) else {
+        unreachable!("four publishers were wanted")
     };
     let tf = tf.map(|publisher| {
         Arc::new(TfBroadcaster::new(
@@ -173,6 +189,37 @@ async fn run(
             binding.transform_tolerance,
         ))
     });
+    // Services: a queryable each, answered in a task each.
+    let mut servers = Vec::new();
+    if let Some(namespace) = &binding.service_namespace {
+        let server = services::Server {
+            service: Arc::clone(&service),
+            caller: Arc::clone(&caller),
+            session: session.clone(),
+            binding: binding.clone(),
+        };
+        for action in services::Action::ALL {
+            let name = format!("{}/{}", namespace.trim_end_matches('/'), action.name());
+            let (token, key) = endpoint(
+                EndpointKind::Service,
+                &name,
+                &services::TRIGGER,
+                Qos::Default,
+            );
+            let queryable = zenoh
+                .declare_queryable(&key)
+                .complete(true)
+                .await
+                .map_err(failed)?;
+            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
+            let server = server.clone();
+            servers.push(tokio::spawn(async move {
+                while let Ok(query) = queryable.recv_async().await {
+                    server.answer(action, query).await;
+                }
+            }));
+        }
+    }
     tracing::info!(
         session,
         "ROS 2 binding: node {} on domain {}",
@@ -186,10 +233,14 @@ async fn run(
         None => Feeder::Graph(Keyframer::new(&binding)),
     };
     let mut stamps = Stamps::default();
-    if let Some((max_key, newest)) = existing_keyframes(&service, &caller, &session).await {
+    if let Some(existing) = existing_keyframes(&service, &caller, &session).await {
+        let newest = existing.keyframes.iter().map(|&(_, t)| t).reduce(f64::max);
         match &mut feeder {
-            Feeder::Window(feed) => feed.resume_after(max_key),
-            Feeder::Graph(keyframer) => keyframer.resume_after(max_key),
+            Feeder::Window(feed) => feed.resume_after(existing.max_key),
+            Feeder::Graph(keyframer) => {
+                keyframer.resume_after(existing.max_key, existing.keyframes);
+                keyframer.resume_landmarks(existing.landmarks);
+            }
         }
         if let Some(t) = newest {
             stamps.resume_after(t);
@@ -203,10 +254,13 @@ async fn run(
         odometry,
         priors,
         imu,
+        loop_closures,
+        landmarks,
         tf: tf.clone(),
         refused: Arc::default(),
         max_payload,
         stamps,
+        ahead: Vec::new(),
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {
@@ -218,21 +272,28 @@ async fn run(
         path,
         pose,
         tf,
+        markers,
     };
     outputs.run().await;
     // The session is gone from here: leave the ROS graph.
     inputs.abort();
+    for server in servers {
+        server.abort();
+    }
     drop(tokens);
     Ok(())
 }
 
-/// The highest key of a session that already has variables (recovered after a restart), and
-/// the newest stamp among them.
-async fn existing_keyframes(
-    service: &Service,
-    caller: &Caller,
-    session: &str,
-) -> Option<(u64, Option<f64>)> {
+/// What a session that already has variables (recovered after a restart) holds.
+struct Existing {
+    /// The highest keyframe key (landmark keys, `('l' << 56) | id`, apart).
+    max_key: u64,
+    /// The keyframes with a stamp.
+    keyframes: Vec<(u64, f64)>,
+    landmarks: Vec<u64>,
+}
+
+async fn existing_keyframes(service: &Service, caller: &Caller, session: &str) -> Option<Existing> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
     match service
@@ -240,9 +301,18 @@ async fn existing_keyframes(
         .await
     {
         Ok(crate::service::Reply::Estimate(estimate)) => {
-            let variables = &estimate.variables;
-            let newest = variables.iter().filter_map(|v| v.stamp).reduce(f64::max);
-            Some((variables.iter().map(|v| v.key).max()?, newest))
+            let (landmarks, keyframes): (Vec<_>, Vec<_>) = estimate
+                .variables
+                .iter()
+                .partition(|v| closures::is_landmark(v.key));
+            Some(Existing {
+                max_key: keyframes.iter().map(|v| v.key).max()?,
+                keyframes: keyframes
+                    .iter()
+                    .filter_map(|v| Some((v.key, v.stamp?)))
+                    .collect(),
+                landmarks: landmarks.iter().map(|v| v.key).collect(),
+            })
         }
         _ => None,
     }

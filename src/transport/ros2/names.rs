@@ -49,6 +49,8 @@ impl Qos {
 pub enum EndpointKind {
     Publisher,
     Subscription,
+    /// A service server.
+    Service,
 }
 
 impl EndpointKind {
@@ -56,6 +58,7 @@ impl EndpointKind {
         match self {
             Self::Publisher => "MP",
             Self::Subscription => "MS",
+            Self::Service => "SS",
         }
     }
 }

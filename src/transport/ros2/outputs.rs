@@ -9,7 +9,7 @@
 //! keyframe is fixed, or the Hessian is singular) the covariance is all zeros (ROS: unknown).
 //!
 //! When the binding has a `tf_topic`, each solve also updates the `map → odom` correction
-//! (`tf`).
+//! (`tf`); with a `markers_topic`, it publishes the graph as markers (`markers`).
 //!
 //! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
@@ -23,6 +23,7 @@ use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, Mis
 use super::attachment::Attachment;
 use super::cdr_codec;
 use super::keyframes::from_wire_pose;
+use super::markers;
 use super::messages::{
     Covariance, Header, Path, Pose, PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped,
     Time,
@@ -30,7 +31,7 @@ use super::messages::{
 use super::names::Qos;
 use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
-use crate::api::GetMarginals;
+use crate::api::{GetGraph, GetMarginals};
 use crate::service::{Caller, Command, Recording, Reply, Service};
 use crate::session::EventStream;
 
@@ -107,6 +108,7 @@ pub(super) struct Outputs {
     pub path: Option<RosPublisher>,
     pub pose: Option<RosPublisher>,
     pub tf: Option<Arc<TfBroadcaster>>,
+    pub markers: Option<RosPublisher>,
 }
 
 impl Outputs {
@@ -146,6 +148,8 @@ impl Outputs {
             tf.on_solve(&estimate.variables).await;
         }
         let newest = poses.last().cloned();
+        let stamp = newest.as_ref().map(|p| p.header.stamp).unwrap_or_default();
+        self.publish_markers(stamp).await;
         if let Some(path) = &mut self.path {
             let message = Path {
                 header: Header {
@@ -170,6 +174,25 @@ impl Outputs {
         pose.put(cdr_codec::encode(&message)).await;
     }
 
+    /// The graph as markers, stamped `stamp` (the newest keyframe's).
+    async fn publish_markers(&mut self, stamp: Time) {
+        let Some(publisher) = &mut self.markers else {
+            return;
+        };
+        let command = Command::GetGraph(GetGraph {
+            session: self.session.clone(),
+        });
+        let Ok(Reply::Graph(graph)) = self
+            .service
+            .execute(&self.caller, command, Recording::History)
+            .await
+        else {
+            return;
+        };
+        let message = markers::graph_markers(&graph, &self.map_frame, stamp);
+        publisher.put(cdr_codec::encode(&message)).await;
+    }
+
     /// An `se3` estimate as a stamped pose (others, and values of the wrong length, skipped).
     fn pose_stamped(&self, v: &VariableValue) -> Option<PoseStamped> {
         Some(PoseStamped {
@@ -184,12 +207,16 @@ impl Outputs {
     }
 }
 
-/// A pose graph's solve, or a window's optimisation at a keyframe.
+/// A pose graph's solve, a window's optimisation at a keyframe, or a batch the estimate
+/// already reflects: one that adds a pose predicted from consistent odometry changes χ² by
+/// nothing, and the session skips its solve (no summary follows), yet the path has a new
+/// keyframe.
 fn is_solve(event: &SessionEvent) -> bool {
-    matches!(
-        event,
-        SessionEvent::Summary { .. } | SessionEvent::Window { .. }
-    )
+    match event {
+        SessionEvent::Summary { .. } | SessionEvent::Window { .. } => true,
+        SessionEvent::Ack(ack) => ack.reflected,
+        _ => false,
+    }
 }
 
 /// An `se3` estimate as an isometry (other kinds, and values of the wrong length: `None`).
