@@ -218,14 +218,7 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
             "robots": [{"in_map": True}], "merges": [], "pending": [], "rejected": [],
             "admitted": 0}
         outliers = http.outliers(session) if args.outliers else {"pending": [], "rejected": []}
-        estimate = http.estimate(session)
-        by_key = {v["key"]: v["value"] for v in estimate["variables"]}
-        positions = {}
-        for vid, k in key.items():
-            if k in by_key:
-                v = by_key[k]
-                positions[vid] = (v[0], v[1], v[2] if graph.dimension == 3 else 0.0)
-        rmse = aligned_rmse(clean_positions, positions)
+        rmse = rmse_of(http.estimate(session), key, graph, clean_positions)
         merges = report["merges"]
         outside = {c["factor_id"] for c in report["pending"] + report["rejected"]
                    + outliers["pending"] + outliers["rejected"]}

@@ -58,6 +58,8 @@ fn edge_chi2(st: &State) -> Vec<Option<f64>> {
             by_id.insert(*id, chi2);
         }
     }
+    // Closures held out as possibly wrong: what they would add (a rejected one's is large).
+    by_id.extend(st.outliers.held_chi2(&problem.values));
     st.mirror
         .edges
         .keys()

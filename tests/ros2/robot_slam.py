@@ -15,7 +15,7 @@ metres from where the robot started. Checks, in order:
    ('l' << 56) | id, found within centimetres of where they are;
 4. a loop closure between the first and the last keyframe pulls the last keyframe to within
    centimetres of the truth;
-5. a wrong closure flagged `may_be_wrong` (3 m off) barely moves the map;
+5. a wrong closure flagged `may_be_wrong` (3 m off) is held out of the map (drawn red);
 6. the graph as visualization_msgs/MarkerArray (latched), decoded with rosbags' Jazzy type
    store: keyframes, odometry edges, the right closure green and the wrong one red, the
    landmarks; written into a rosbag2 (MCAP) that `ros2 bag play` feeds to rviz, and read back;

@@ -257,6 +257,23 @@ impl Outliers {
         (!event.accepted.is_empty() || !event.rejected.is_empty()).then_some(event)
     }
 
+    /// Each held candidate's χ² contribution `‖R e‖²` at `values` (what it would add were it
+    /// in), for drawing it: the web view and ROS 2 markers colour a rejected closure by it.
+    pub(crate) fn held_chi2(&self, values: &crate::problem::Values) -> Vec<(FactorId, f64)> {
+        self.held
+            .iter()
+            .filter_map(|(&id, f)| {
+                let vars: Option<Vec<&dyn crate::problem::Variable>> =
+                    f.factor.keys().iter().map(|&k| values.get(k)).collect();
+                let mut error = vec![0.0; f.factor.residual_dim()];
+                f.factor.evaluate(&vars?, &mut error, None).ok()?;
+                let mut whitened = vec![0.0; error.len()];
+                f.sqrt_information.whiten_vector(&error, &mut whitened);
+                Some((id, whitened.iter().map(|v| v * v).sum()))
+            })
+            .collect()
+    }
+
     /// What `GET /v1/sessions/{s}/outliers` shows.
     pub(crate) fn report(&self, session: &str) -> OutliersReport {
         let listed = |status: Status| -> Vec<CandidateReport> {

@@ -31,6 +31,18 @@ pub struct AttachmentError {
 }
 
 impl Attachment {
+    /// Sample `sequence_number` of `source_gid`, stamped now (wall clock, ns since the epoch).
+    pub fn stamped_now(sequence_number: i64, source_gid: [u8; GID_SIZE]) -> Self {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i64);
+        Self {
+            sequence_number,
+            source_timestamp_ns: now,
+            source_gid,
+        }
+    }
+
     pub fn encode(&self) -> [u8; ENCODED_SIZE] {
         let mut bytes = [0u8; ENCODED_SIZE];
         bytes[..8].copy_from_slice(&self.sequence_number.to_le_bytes());

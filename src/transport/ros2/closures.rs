@@ -6,11 +6,8 @@
 //!   information is the inverse of its covariance (6×6 over `[x y z rot_x rot_y rot_z]`, the
 //!   factor's residual order), which must be positive definite (unlike odometry, no default:
 //!   a closure's weight is what decides whether it bends the map).
-//! - `may_be_wrong`: the wire has no per-factor "possibly wrong" marker yet, so such a closure
-//!   gets a Cauchy kernel whose scale is χ²₆'s 99 % quantile: a right closure keeps most of
-//!   its weight, a wrong one (χ² in the hundreds) little.
-//!   TODO(issue 56): once factors carry `"outlier": "auto"` (the session's streaming rejection),
-//!   send that instead of the kernel.
+//! - `may_be_wrong`: the factor is sent with `"outlier": "auto"`: the session holds it out of
+//!   the estimate until it finds it consistent with the map (docs/guide/wrong-closures.md).
 //! - A landmark sighting becomes a `position_se3_point3` factor (the landmark's position in the
 //!   body frame: what stereo, RGB-D, lidar features and tag detectors give) between the
 //!   keyframe nearest its stamp and the `point3` landmark `('l' << 56) | landmark_id`, created
@@ -22,8 +19,8 @@ use super::keyframes::{
     factor, information, isometry, nearest, stamp_ns, Keyframer, MessageError, Noise,
 };
 use super::messages::{LandmarkSighting, LoopClosure, Time};
+use crate::api::outliers::OutlierMark;
 use crate::api::wire::{Batch, FactorSpec, VariableSpec};
-use crate::factors::RobustKernel;
 use crate::variables::Key;
 
 /// The key of landmark `id` (GTSAM's `Symbol('l', id)`, as `io::gtsam_text` writes them).
@@ -35,9 +32,6 @@ pub fn landmark_key(id: u64) -> Key {
 pub fn is_landmark(key: Key) -> bool {
     key >> 56 == u64::from(b'l')
 }
-
-/// √(χ²₆ at 99 %): the Cauchy scale of a closure that may be wrong.
-const MAYBE_WRONG_SCALE: f64 = 4.1;
 
 impl Keyframer {
     /// A `between_se3` factor from the keyframe nearest `from_stamp` to the one nearest
@@ -59,7 +53,7 @@ impl Keyframer {
             Noise::Information(information.iter().copied().collect()),
         );
         if closure.may_be_wrong {
-            factor.robust = Some(RobustKernel::Cauchy(MAYBE_WRONG_SCALE));
+            factor.outlier = Some(OutlierMark::Auto);
         }
         Ok(Batch {
             factors: vec![factor],
@@ -94,6 +88,7 @@ impl Keyframer {
                 information: Some(information.iter().copied().collect()),
                 sigmas: None,
                 robust: None,
+                outlier: None,
             }],
             ..Batch::default()
         })
@@ -202,7 +197,8 @@ mod tests {
         let mut unsure = closure(at(10, 0), at(30, 0));
         unsure.may_be_wrong = true;
         let b = k.on_loop_closure(&unsure).unwrap();
-        assert!(matches!(b.factors[0].robust, Some(RobustKernel::Cauchy(_))));
+        assert_eq!(b.factors[0].outlier, Some(OutlierMark::Auto));
+        assert!(b.factors[0].robust.is_none());
         assert!(matches!(
             k.on_loop_closure(&closure(at(10, 0), at(29, 900_000_000))),
             Err(MessageError::NoKeyframeNear {

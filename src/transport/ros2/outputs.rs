@@ -14,7 +14,7 @@
 //! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
 use std::sync::Arc;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use nalgebra::Isometry3;
 use zenoh::qos::Reliability;
@@ -78,14 +78,7 @@ impl RosPublisher {
 
     pub async fn put(&mut self, payload: Vec<u8>) {
         self.sequence += 1;
-        let now = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as i64);
-        let attachment = Attachment {
-            sequence_number: self.sequence,
-            source_timestamp_ns: now,
-            source_gid: self.gid,
-        };
+        let attachment = Attachment::stamped_now(self.sequence, self.gid);
         let put = self
             .publisher
             .put(payload)

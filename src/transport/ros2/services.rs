@@ -15,7 +15,6 @@
 //! error's message when a command is refused.
 
 use std::sync::{Arc, LazyLock};
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 use zenoh::query::Query;
@@ -174,6 +173,7 @@ impl Server {
             factor_types: Vec::new(),
             ros2: Some(Box::new(self.binding.clone())),
             robots: None,
+            outliers: Default::default(),
         });
         match self.execute(create).await {
             Ok(_) => done(format!("session {session} reset: empty, bound again")),
@@ -201,14 +201,7 @@ fn failed(message: String) -> TriggerResponse {
 
 /// The response, on the query's key, with the request's sequence number and client GID.
 async fn reply(query: Query, request: Attachment, response: &TriggerResponse) {
-    let now = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as i64);
-    let attachment = Attachment {
-        sequence_number: request.sequence_number,
-        source_timestamp_ns: now,
-        source_gid: request.source_gid,
-    };
+    let attachment = Attachment::stamped_now(request.sequence_number, request.source_gid);
     let key = query.key_expr().clone();
     let sent = query
         .reply(key, cdr_codec::encode(response))
