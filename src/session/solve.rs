@@ -10,7 +10,7 @@ use std::time::Instant;
 use super::incremental::{self, IncrementalSolver};
 use super::mirror;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
-use super::solve_budget::SolveBudget;
+use super::solve_budget::{SolveBudget, YieldToBatches};
 use super::{Session, State};
 use crate::api::wire::AutoOptimize;
 use crate::api::wire::{Estimate, FactorId, SessionEvent};
@@ -37,6 +37,9 @@ struct SolveWork {
     gauge: Vec<Key>,
     /// A solve the client asked for, or a polish: an engine update runs to convergence.
     tight: bool,
+    /// A consolidation asked for once the session rested (not a full solve): it yields to
+    /// batches that arrive meanwhile.
+    yields: bool,
     /// Possibly wrong closures this solve decides (`session::outliers`): what it took, what it
     /// decided, the gate's entries (appended to the problem, ids in order) and, when it
     /// consolidates, the factors' ids (candidates enter and leave the problem).
@@ -63,7 +66,8 @@ impl Session {
         // A full solve decides every candidate again (so does the first after the session
         // rested from gate decisions); a streamed one gates the pending ones.
         let full = st.schedule.structural || st.results.solves == 1 || st.results.chi2.is_none();
-        let consolidate = full || std::mem::take(&mut st.outliers.requested);
+        let requested = std::mem::take(&mut st.outliers.requested);
+        let consolidate = full || requested;
         let outliers = (!st.outliers.is_empty()).then(|| st.outliers.take_for_solve(consolidate));
         let factor_ids = outliers
             .as_ref()
@@ -83,6 +87,7 @@ impl Session {
             debt: st.schedule.region_debt,
             gauge: st.model.gauge.clone(),
             tight,
+            yields: requested && !full,
             outliers,
             outcome: OutlierOutcome::default(),
             entered: Vec::new(),
@@ -441,6 +446,11 @@ impl Session {
             .expect("consolidate is asked with candidates");
         let mut ids = work.factor_ids.take().expect("taken with the candidates");
         let before = work.problem.values.clone();
+        let yielding = YieldToBatches {
+            budget,
+            sequence: work.sequence,
+        };
+        let budget: &dyn solver::Budget = if work.yields { &yielding } else { budget };
         let (solved, outcome) = outliers::consolidate(
             &mut work.problem,
             &mut ids,

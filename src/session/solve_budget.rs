@@ -44,6 +44,27 @@ impl<'a> SolveBudget<'a> {
     }
 }
 
+/// A consolidation the session asked for once it rested: it yields to the stream, stopping at
+/// its next checkpoint once a batch after `sequence` is accepted (it then decides nothing, see
+/// `outliers::consolidate`, and runs again at the next rest).
+pub(super) struct YieldToBatches<'a> {
+    pub(super) budget: &'a SolveBudget<'a>,
+    pub(super) sequence: u64,
+}
+
+impl solver::Budget for YieldToBatches<'_> {
+    fn checkpoint(&self) -> ControlFlow<()> {
+        if *self.budget.session.accepted.borrow() > self.sequence {
+            return ControlFlow::Break(());
+        }
+        self.budget.checkpoint()
+    }
+
+    fn remaining(&self) -> Option<Duration> {
+        self.budget.remaining()
+    }
+}
+
 impl solver::Budget for SolveBudget<'_> {
     fn checkpoint(&self) -> ControlFlow<()> {
         if self.session.cancel.load(Ordering::SeqCst) || self.session.pool.is_stopping() {
