@@ -560,7 +560,9 @@ async fn a_slow_zenoh_subscriber_gets_the_lagged_marker_on_every_topic() {
     );
     assert!(!seen.markers.is_empty(), "the publisher never fell behind");
     // One marker per lag, on each of the session's topics (the binary poses too), identical.
-    let topics = ["acks", "poses", "poses", "stats", "summary", "errors"];
+    let topics = [
+        "acks", "poses", "poses", "stats", "summary", "errors", "outliers",
+    ];
     assert_eq!(seen.markers.len() % topics.len(), 0);
     for lag in seen.markers.chunks(topics.len()) {
         let keys: Vec<&str> = lag

@@ -179,6 +179,7 @@ class SessionInfo(_SessionInfoKeys, total=False):
 
     factor_types: List[str]
     instance: str  # in a fleet: the owning instance's id
+    ros2: Dict[str, Any]  # the ROS 2 binding, defaults filled in (ros2-binding.schema.json)
 
 
 class SessionList(TypedDict):
@@ -212,6 +213,7 @@ class SessionStats(_SessionStatsKeys, total=False):
 
     factor_types: List[str]
     instance: str  # in a fleet: the owning instance's id
+    ros2: Dict[str, Any]  # the ROS 2 binding, defaults filled in (ros2-binding.schema.json)
 
 
 class ProducerStatus(TypedDict):

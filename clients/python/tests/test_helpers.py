@@ -32,7 +32,8 @@ from factord_client.poses_binary import PosesBinaryError, decode_event, decode_p
 NOT_CLIENT_CALLS = {"index_page", "session_page", "script", "style", "docs_page", "docs_script",
                     "websocket", "plots_script", "operator_script", "login", "logout"}
 # operationId -> method name where they differ.
-METHOD_OF = {"job": "run_job", "openapi_json": "openapi", "list_robots": "robots"}
+METHOD_OF = {"job": "run_job", "openapi_json": "openapi", "list_robots": "robots",
+             "list_outliers": "outliers"}
 
 
 def close(a, b, tol=1e-12) -> bool:
@@ -242,7 +243,7 @@ def every_route_has_a_method() -> str:
                                    "delete_session", "apply_batch", "fusion", "optimize",
                                    "set_auto_optimize", "define_factor_types", "estimate",
                                    "producer_status", "list_producers", "cancel", "graph",
-                                   "marginals", "robots")
+                                   "marginals", "robots", "outliers")
                      if not hasattr(ZenohClient, op)]
     expect(not zenoh_missing, f"ZenohClient lacks {zenoh_missing}")
     for extra in ("estimate_array", "estimate_poses", "covariances", "export"):
