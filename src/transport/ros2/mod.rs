@@ -120,68 +120,18 @@ async fn run(
         node_id: next_id(),
         name: binding.node_name(&session),
     };
-    let mut tokens = vec![declare_token(&zenoh, node.node_token())
-        .await
-        .map_err(failed)?];
-    let endpoint = |kind, topic: &str, ros_type: &RosType, qos| {
-        let token = node.endpoint_token(next_id(), kind, topic, ros_type, qos);
-        let key = names::topic_key(binding.domain_id, topic, ros_type);
-        (token, key)
-    };
-
-    // Odometry always; the others when the binding names their topics.
-    let wanted = [
-        (Some(&binding.odometry_topic), &ODOMETRY),
-        (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
-        (binding.imu_topic.as_ref(), &IMU),
-        (binding.loop_closure_topic.as_ref(), &*LOOP_CLOSURE),
-        (binding.landmark_topic.as_ref(), &*LANDMARK_SIGHTING),
-    ];
-    let mut subscriptions = Vec::with_capacity(wanted.len());
-    for (topic, ros_type) in wanted {
-        let Some(topic) = topic else {
-            subscriptions.push(None);
-            continue;
-        };
-        let (token, key) = endpoint(EndpointKind::Subscription, topic, ros_type, Qos::Default);
-        subscriptions.push(Some(zenoh.declare_subscriber(&key).await.map_err(failed)?));
-        tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-    }
-    let Ok([Some(odometry), priors, imu, loop_closures, landmarks]) =
-        <[_; 5]>::try_from(subscriptions)
-    else {
-        unreachable!("odometry is always subscribed, and five were wanted")
-    };
-    // The path is latched (transient local): a late subscriber, e.g. an operator's RViz
-    // started after the robot, gets the last trajectory at once.
-    let wanted = [
-        (binding.path_topic.as_ref(), &PATH, Qos::Latched),
-        (
-            binding.pose_topic.as_ref(),
-            &POSE_WITH_COVARIANCE_STAMPED,
-            Qos::Default,
-        ),
-        (binding.tf_topic.as_ref(), &TF_MESSAGE, Qos::Default),
-        // Latched as the path: an operator's rviz opened later draws the graph at once.
-        (binding.markers_topic.as_ref(), &MARKER_ARRAY, Qos::Latched),
-    ];
-    let mut publishers = Vec::with_capacity(wanted.len());
-    for (topic, ros_type, qos) in wanted {
-        let Some(topic) = topic else {
-            publishers.push(None);
-            continue;
-        };
-        let (token, key) = endpoint(EndpointKind::Publisher, topic, ros_type, qos);
-        let gid = names::gid_of(&token);
-        let publisher = RosPublisher::declare(&zenoh, key, gid, qos)
+    let mut graph = RosGraph {
+        zenoh: &zenoh,
+        node: &node,
+        domain_id: binding.domain_id,
+        tokens: vec![declare_token(&zenoh, node.node_token())
             .await
-            .map_err(failed)?;
-        publishers.push(Some(publisher));
-        tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-    }
-    let Ok([path, pose, tf, markers]) = <[_; 4]>::try_from(publishers) else {
-        unreachable!("four publishers were wanted")
+            .map_err(failed)?],
     };
+    let [odometry, priors, imu, loop_closures, landmarks] =
+        graph.subscriptions(&binding).await.map_err(failed)?;
+    let odometry = odometry.expect("odometry is always subscribed");
+    let [path, pose, tf, markers] = graph.publishers(&binding).await.map_err(failed)?;
     let tf = tf.map(|publisher| {
         Arc::new(TfBroadcaster::new(
             publisher,
@@ -189,63 +139,20 @@ async fn run(
             binding.transform_tolerance,
         ))
     });
-    // Services: a queryable each, answered in a task each.
-    let mut servers = Vec::new();
-    if let Some(namespace) = &binding.service_namespace {
-        let server = services::Server {
-            service: Arc::clone(&service),
-            caller: Arc::clone(&caller),
-            session: session.clone(),
-            binding: binding.clone(),
-        };
-        for action in services::Action::ALL {
-            let name = format!("{}/{}", namespace.trim_end_matches('/'), action.name());
-            let (token, key) = endpoint(
-                EndpointKind::Service,
-                &name,
-                &services::TRIGGER,
-                Qos::Default,
-            );
-            let queryable = zenoh
-                .declare_queryable(&key)
-                .complete(true)
-                .await
-                .map_err(failed)?;
-            tokens.push(declare_token(&zenoh, token).await.map_err(failed)?);
-            let server = server.clone();
-            servers.push(tokio::spawn(async move {
-                while let Ok(query) = queryable.recv_async().await {
-                    server.answer(action, query).await;
-                }
-            }));
-        }
-    }
+    let server = services::Server {
+        service: Arc::clone(&service),
+        caller: Arc::clone(&caller),
+        session: session.clone(),
+        binding: binding.clone(),
+    };
+    let servers = graph.services(&binding, server).await.map_err(failed)?;
     tracing::info!(
         session,
         "ROS 2 binding: node {} on domain {}",
         node.name,
         binding.domain_id
     );
-
-    // An IMU topic means a sliding window (`Ros2Binding::check_kind`).
-    let mut feeder = match binding.imu_topic {
-        Some(_) => Feeder::Window(Box::new(WindowFeed::new(&binding))),
-        None => Feeder::Graph(Keyframer::new(&binding)),
-    };
-    let mut stamps = Stamps::default();
-    if let Some(existing) = existing_keyframes(&service, &caller, &session).await {
-        let newest = existing.keyframes.iter().map(|&(_, t)| t).reduce(f64::max);
-        match &mut feeder {
-            Feeder::Window(feed) => feed.resume_after(existing.max_key),
-            Feeder::Graph(keyframer) => {
-                keyframer.resume_after(existing.max_key, existing.keyframes);
-                keyframer.resume_landmarks(existing.landmarks);
-            }
-        }
-        if let Some(t) = newest {
-            stamps.resume_after(t);
-        }
-    }
+    let (feeder, stamps) = resumed_feeder(&service, &caller, &session, &binding).await;
     let inputs = inputs::Inputs {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
@@ -280,8 +187,152 @@ async fn run(
     for server in servers {
         server.abort();
     }
-    drop(tokens);
+    drop(graph.tokens);
     Ok(())
+}
+
+/// The binding's node in the robots' ROS graph while it declares its endpoints: each endpoint
+/// is a zenoh key and a liveliness token, held (`tokens`) as long as the binding lives.
+struct RosGraph<'a> {
+    zenoh: &'a zenoh::Session,
+    node: &'a NodeName,
+    domain_id: u32,
+    tokens: Vec<LivelinessToken>,
+}
+
+type Subscription =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+impl RosGraph<'_> {
+    /// An endpoint's liveliness token (to hold) and its key.
+    fn endpoint(
+        &self,
+        kind: EndpointKind,
+        topic: &str,
+        ros_type: &RosType,
+        qos: Qos,
+    ) -> (String, String) {
+        let token = self
+            .node
+            .endpoint_token(next_id(), kind, topic, ros_type, qos);
+        (token, names::topic_key(self.domain_id, topic, ros_type))
+    }
+
+    async fn hold(&mut self, token: String) -> zenoh::Result<()> {
+        self.tokens.push(declare_token(self.zenoh, token).await?);
+        Ok(())
+    }
+
+    /// Odometry, priors, IMU, loop closures and landmark sightings: odometry always, the others
+    /// when the binding names their topics.
+    async fn subscriptions(
+        &mut self,
+        binding: &Ros2Binding,
+    ) -> zenoh::Result<[Option<Subscription>; 5]> {
+        let wanted = [
+            (Some(&binding.odometry_topic), &ODOMETRY),
+            (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
+            (binding.imu_topic.as_ref(), &IMU),
+            (binding.loop_closure_topic.as_ref(), &*LOOP_CLOSURE),
+            (binding.landmark_topic.as_ref(), &*LANDMARK_SIGHTING),
+        ];
+        let mut subscriptions: [Option<Subscription>; 5] = Default::default();
+        for (slot, (topic, ros_type)) in subscriptions.iter_mut().zip(wanted) {
+            let Some(topic) = topic else { continue };
+            let (token, key) =
+                self.endpoint(EndpointKind::Subscription, topic, ros_type, Qos::Default);
+            *slot = Some(self.zenoh.declare_subscriber(&key).await?);
+            self.hold(token).await?;
+        }
+        Ok(subscriptions)
+    }
+
+    /// Path, pose, `/tf` and markers, when the binding names their topics. The path and the
+    /// markers are latched (transient local): an operator's rviz started after the robot gets
+    /// the last trajectory and graph at once.
+    async fn publishers(
+        &mut self,
+        binding: &Ros2Binding,
+    ) -> zenoh::Result<[Option<RosPublisher>; 4]> {
+        let wanted = [
+            (binding.path_topic.as_ref(), &PATH, Qos::Latched),
+            (
+                binding.pose_topic.as_ref(),
+                &POSE_WITH_COVARIANCE_STAMPED,
+                Qos::Default,
+            ),
+            (binding.tf_topic.as_ref(), &TF_MESSAGE, Qos::Default),
+            (binding.markers_topic.as_ref(), &MARKER_ARRAY, Qos::Latched),
+        ];
+        let mut publishers: [Option<RosPublisher>; 4] = Default::default();
+        for (slot, (topic, ros_type, qos)) in publishers.iter_mut().zip(wanted) {
+            let Some(topic) = topic else { continue };
+            let (token, key) = self.endpoint(EndpointKind::Publisher, topic, ros_type, qos);
+            let gid = names::gid_of(&token);
+            *slot = Some(RosPublisher::declare(self.zenoh, key, gid, qos).await?);
+            self.hold(token).await?;
+        }
+        Ok(publishers)
+    }
+
+    /// The `service_namespace`'s Trigger services: a queryable each, answered in a task each.
+    async fn services(
+        &mut self,
+        binding: &Ros2Binding,
+        server: services::Server,
+    ) -> zenoh::Result<Vec<tokio::task::JoinHandle<()>>> {
+        let mut servers = Vec::new();
+        let Some(namespace) = &binding.service_namespace else {
+            return Ok(servers);
+        };
+        for action in services::Action::ALL {
+            let name = format!("{}/{}", namespace.trim_end_matches('/'), action.name());
+            let (token, key) = self.endpoint(
+                EndpointKind::Service,
+                &name,
+                &services::TRIGGER,
+                Qos::Default,
+            );
+            let queryable = self.zenoh.declare_queryable(&key).complete(true).await?;
+            self.hold(token).await?;
+            let server = server.clone();
+            servers.push(tokio::spawn(async move {
+                while let Ok(query) = queryable.recv_async().await {
+                    server.answer(action, query).await;
+                }
+            }));
+        }
+        Ok(servers)
+    }
+}
+
+/// The binding's feeder (a window's for an IMU topic, see `Ros2Binding::check_kind`, else a
+/// keyframer) and its stamps, resumed after what the session already holds (a restart).
+async fn resumed_feeder(
+    service: &Arc<Service>,
+    caller: &Arc<Caller>,
+    session: &str,
+    binding: &Ros2Binding,
+) -> (Feeder, Stamps) {
+    let mut feeder = match binding.imu_topic {
+        Some(_) => Feeder::Window(Box::new(WindowFeed::new(binding))),
+        None => Feeder::Graph(Keyframer::new(binding)),
+    };
+    let mut stamps = Stamps::default();
+    if let Some(existing) = existing_keyframes(service, caller, session).await {
+        let newest = existing.keyframes.iter().map(|&(_, t)| t).reduce(f64::max);
+        match &mut feeder {
+            Feeder::Window(feed) => feed.resume_after(existing.max_key),
+            Feeder::Graph(keyframer) => {
+                keyframer.resume_after(existing.max_key, existing.keyframes);
+                keyframer.resume_landmarks(existing.landmarks);
+            }
+        }
+        if let Some(t) = newest {
+            stamps.resume_after(t);
+        }
+    }
+    (feeder, stamps)
 }
 
 /// What a session that already has variables (recovered after a restart) holds.
