@@ -174,6 +174,15 @@ impl IncrementalSolver {
             .flatten()
     }
 
+    /// After a solve of the whole problem: the engine built again at its answer when it
+    /// converged.
+    pub fn adopt_whole(&mut self, problem: &mut Problem, summary: Summary) -> Resolved {
+        if summary.converged {
+            self.rebuild_engine(problem, &summary.used.gauge_fixed);
+        }
+        Resolved::whole(summary)
+    }
+
     /// One engine update of an additions-only change (`tight`: polish, or a solve the client
     /// asked for). `None` when there is no engine; an `Err` drops it (the caller solves in
     /// batch, which builds it again).
@@ -272,6 +281,18 @@ pub(crate) struct Resolved {
     pub moved: Option<Vec<usize>>,
 }
 
+impl Resolved {
+    /// A solve of the whole problem: every variable may have moved.
+    pub fn whole(summary: Summary) -> Self {
+        Resolved {
+            total_chi2: summary.final_chi2,
+            converged: summary.converged,
+            moved: None,
+            summary,
+        }
+    }
+}
+
 /// Re-solves `problem` after an additions-only update touching variables `seeds`.
 /// `anchors[v]` says whether variable `v` is held fixed in any solve (fixed by the client, or the
 /// gauge anchor of its component); `total_chi2` is the whole problem's chi2 now. `debt` carries
@@ -339,12 +360,7 @@ pub(crate) fn resolve(
     }
     let summary = index.solve_whole(problem, options, on_iteration, budget)?;
     *debt = 0.0;
-    Ok(Resolved {
-        total_chi2: summary.final_chi2,
-        converged: summary.converged,
-        moved: None,
-        summary,
-    })
+    Ok(Resolved::whole(summary))
 }
 
 /// What a region solve holds fixed (the anchors and everything outside `region`), and which

@@ -274,16 +274,7 @@ impl Session {
         } else {
             solver::optimize_within(problem, options, on_iteration, budget)
         };
-        let summary = solved?;
-        if summary.converged {
-            index.rebuild_engine(problem, &summary.used.gauge_fixed);
-        }
-        Ok(incremental::Resolved {
-            total_chi2: summary.final_chi2,
-            converged: summary.converged,
-            moved: None,
-            summary,
-        })
+        Ok(index.adopt_whole(problem, solved?))
     }
 
     /// Records a finished solve, refreshes the mirror from `problem` and publishes the
@@ -417,16 +408,7 @@ impl Session {
                 let summary =
                     work.index
                         .solve_whole(problem, &work.options, on_iteration, budget)?;
-                if summary.converged {
-                    work.index
-                        .rebuild_engine(problem, &summary.used.gauge_fixed);
-                }
-                Ok(incremental::Resolved {
-                    total_chi2: summary.final_chi2,
-                    converged: summary.converged,
-                    moved: None,
-                    summary,
-                })
+                Ok(work.index.adopt_whole(problem, summary))
             }
         }
     }
@@ -469,15 +451,14 @@ impl Session {
         }
         work.debt = 0.0;
         let summary = solved?;
-        if decided && summary.converged {
-            work.index
-                .rebuild_engine(&mut work.problem, &summary.used.gauge_fixed);
-        }
-        Ok(incremental::Resolved {
-            total_chi2: summary.final_chi2,
-            converged: summary.converged && decided,
-            moved: None,
-            summary,
+        Ok(if decided {
+            work.index.adopt_whole(&mut work.problem, summary)
+        } else {
+            // Undecided: the problem is as before, not at the optimum of anything new.
+            incremental::Resolved {
+                converged: false,
+                ..incremental::Resolved::whole(summary)
+            }
         })
     }
 

@@ -3,6 +3,27 @@
 //! beyond which a measurement is more likely wrong than unlucky. Graduated non-convexity takes
 //! its truncation threshold from here, which is what frees the user from choosing a scale.
 
+/// [`chi_square_quantile`], computed once per (dof, confidence) for the process: a bisection
+/// costs a few hundred microseconds, and the deciders ask for the same few thresholds for every
+/// factor they weigh (a streamed closure's gate, every pair of a merge's consensus, every
+/// candidate of graduated non-convexity).
+pub fn cached_quantile(dof: usize, confidence: f64) -> f64 {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    static CACHE: OnceLock<Mutex<HashMap<(usize, u64), f64>>> = OnceLock::new();
+    let cache = CACHE.get_or_init(Mutex::default);
+    let key = (dof, confidence.to_bits());
+    if let Some(&q) = cache.lock().unwrap_or_else(|p| p.into_inner()).get(&key) {
+        return q;
+    }
+    let q = chi_square_quantile(dof, confidence);
+    cache
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .insert(key, q);
+    q
+}
+
 /// The `confidence` quantile of χ² with `dof` degrees of freedom (`0 < confidence < 1`).
 pub fn chi_square_quantile(dof: usize, confidence: f64) -> f64 {
     let a = dof.max(1) as f64 / 2.0;

@@ -9,7 +9,7 @@ use crate::api::wire::FactorId;
 use crate::problem::{FactorEntry, Problem};
 use crate::session::incremental::IncrementalSolver;
 use crate::session::prepared::PreparedFactor;
-use crate::solver::chi_square::chi_square_quantile;
+use crate::solver::chi_square::cached_quantile;
 use crate::solver::{self, GncOptions, IterationReport, SolverError, SolverOptions, Summary};
 
 /// A candidate passes the gate while its distance is within the χ² quantile of its residual's
@@ -66,8 +66,7 @@ pub(crate) fn gate(
             gated.outcome.held.push((id, prepared(entry)));
             continue;
         };
-        let accepted =
-            distance <= chi_square_quantile(entry.factor.residual_dim(), GATE_CONFIDENCE);
+        let accepted = distance <= cached_quantile(entry.factor.residual_dim(), GATE_CONFIDENCE);
         gated.outcome.decisions.push(Decision {
             id,
             accepted,

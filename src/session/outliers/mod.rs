@@ -194,14 +194,16 @@ impl Outliers {
 
     /// Takes back the candidates of a solve that decided nothing (it failed first).
     pub(crate) fn give_back(&mut self, work: OutlierWork) {
-        self.finish(
-            OutlierOutcome {
-                decisions: Vec::new(),
-                held: work.held,
-            },
-            false,
-            0,
-        );
+        self.hold_again(work.held);
+    }
+
+    /// Holds `held` again, but for candidates the client removed while a solve had them.
+    fn hold_again(&mut self, held: Vec<(FactorId, PreparedFactor)>) {
+        for (id, f) in held {
+            if self.candidates.contains_key(&id) {
+                self.held.insert(id, f);
+            }
+        }
     }
 
     /// Takes back what a solve decided; the event to publish when it decided anything that
@@ -212,12 +214,7 @@ impl Outliers {
         consolidated: bool,
         sequence: u64,
     ) -> Option<OutlierDecisions> {
-        for (id, f) in outcome.held {
-            // Removed by the client while the solve ran: gone.
-            if self.candidates.contains_key(&id) {
-                self.held.insert(id, f);
-            }
-        }
+        self.hold_again(outcome.held);
         if consolidated {
             self.consolidations += 1;
             self.gate_decisions = 0;

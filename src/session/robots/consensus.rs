@@ -11,7 +11,7 @@
 //! largest mutually consistent set is the consensus, and a merge needs enough of them.
 
 use super::frame::Frame;
-use crate::solver::chi_square::chi_square_quantile;
+use crate::solver::chi_square::cached_quantile;
 
 /// At most this many closures per pair of components take part (the newest): the exact
 /// maximum-clique search is exponential in the worst case, and a merge needs only a few.
@@ -53,7 +53,7 @@ pub(crate) fn agree(
     let widen = 1.0 + steps_between(a, b) as f64;
     let fits =
         |k: usize, dof: usize, t: &Frame, chi2: &mut dyn FnMut(usize, &Frame) -> Option<f64>| {
-            chi2(k, t).is_some_and(|c| c <= chi_square_quantile(dof, 0.999) * widen)
+            chi2(k, t).is_some_and(|c| c <= cached_quantile(dof, 0.999) * widen)
         };
     fits(i, a.dof, &b.implied, chi2) && fits(j, b.dof, &a.implied, chi2)
 }

@@ -13,7 +13,7 @@ use crate::api::wire::{FactorId, WireValue};
 use crate::problem::{Key, Variable};
 use crate::session::batch::{PreparedBatch, PreparedFactor};
 use crate::session::MirrorEntry;
-use crate::solver::chi_square::chi_square_quantile;
+use crate::solver::chi_square::cached_quantile;
 
 /// A merge as the problem applies it (after the batch's own variables and factors).
 pub(crate) struct Merge {
@@ -335,7 +335,7 @@ impl Robots {
             .filter(|(_, keys)| self.placed_roots(keys).len() == 1)
             .filter(|(id, keys)| {
                 let f = &self.held[id];
-                let gate = ADMIT_GATE * chi_square_quantile(f.factor.residual_dim(), 0.999);
+                let gate = ADMIT_GATE * cached_quantile(f.factor.residual_dim(), 0.999);
                 chi2_at(f, keys, mirror).is_some_and(|c| c <= gate)
             })
             .map(|(&id, _)| id)

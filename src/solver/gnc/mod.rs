@@ -26,11 +26,9 @@
 
 mod candidates;
 mod kernel;
-mod quantiles;
 
 pub use candidates::{has_loop_closures, loop_closures};
 pub use kernel::GncKernel;
-use quantiles::Quantiles;
 
 use std::cell::Cell;
 use std::ops::ControlFlow;
@@ -40,6 +38,7 @@ use faer::sparse::linalg::SupernodalThreshold;
 use serde::{Deserialize, Serialize};
 
 use super::budget::Budget;
+use super::chi_square::cached_quantile;
 use super::cholesky::SparseCholesky;
 use super::gauge::anchor_components;
 use super::initialize::{chordal, chordal_unwrapped_at_values, Stoppable};
@@ -149,8 +148,8 @@ pub fn optimize_gnc(
 ) -> Result<(Summary, GncReport), SolverError> {
     let start = Instant::now();
     let given = problem.values.clone();
-    let quantiles = Quantiles::new(gnc.confidence);
-    let start_quantiles = Quantiles::new(gnc.confidence.max(START_CONFIDENCE));
+    let quantile = |dof| cached_quantile(dof, gnc.confidence);
+    let start_quantile = |dof| cached_quantile(dof, gnc.confidence.max(START_CONFIDENCE));
     let candidates: Vec<usize> = (0..problem.factors().len())
         .filter(|&i| possibly_wrong.get(i).copied().unwrap_or(false))
         .collect();
@@ -164,7 +163,7 @@ pub fn optimize_gnc(
         problem
             .factors()
             .iter()
-            .map(|f| quantiles.of(f.factor.residual_dim()))
+            .map(|f| quantile(f.factor.residual_dim()))
             .sum()
     };
     let (plain, gave_up) = plain_solve(problem, options, hopeless, on_iteration, budget)?;
@@ -185,7 +184,7 @@ pub fn optimize_gnc(
         .collect();
     let thresholds: Vec<f64> = candidates
         .iter()
-        .map(|&i| quantiles.of(problem.factors()[i].factor.residual_dim()))
+        .map(|&i| quantile(problem.factors()[i].factor.residual_dim()))
         .collect();
     // Graduation starts only on an error no correct measurement makes in practice: with the
     // rejection threshold itself, about 1 % of the correct closures of a file whose noise is as
@@ -194,7 +193,7 @@ pub fn optimize_gnc(
         let errors = squared_errors(problem, &problem.values, &candidates, &originals)?;
         Ok(errors.iter().zip(&candidates).all(|(&s, &i)| {
             let dof = problem.factors()[i].factor.residual_dim();
-            s <= start_quantiles.of(dof)
+            s <= start_quantile(dof)
         }))
     };
     if candidates.is_empty()
