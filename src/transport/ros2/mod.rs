@@ -124,9 +124,7 @@ async fn run(
         zenoh: &zenoh,
         node: &node,
         domain_id: binding.domain_id,
-        tokens: vec![declare_token(&zenoh, node.node_token())
-            .await
-            .map_err(failed)?],
+        tokens: Vec::new(),
     };
     let [odometry, priors, imu, loop_closures, landmarks] =
         graph.subscriptions(&binding).await.map_err(failed)?;
@@ -146,6 +144,10 @@ async fn run(
         binding: binding.clone(),
     };
     let servers = graph.services(&binding, server).await.map_err(failed)?;
+    // The node joins the ROS graph last: zenoh delivers a session's declarations in order, so a
+    // robot that sees the node also knows its subscriptions, and its first message is heard
+    // (declared first, a put right after the node appeared could reach no subscriber yet).
+    graph.hold(node.node_token()).await.map_err(failed)?;
     tracing::info!(
         session,
         "ROS 2 binding: node {} on domain {}",
