@@ -57,9 +57,10 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 GTSAM_PYTHON = os.path.expanduser("~/.cache/factord/venvs/gtsam/bin/python")
 DATA = os.path.expanduser("~/.cache/factord/data")
-SYSTEMS = ("isam2", "http", "zenoh", "zenoh-binary")
+SYSTEMS = ("isam2", "http", "zenoh", "zenoh-binary", "http-budget", "zenoh-budget")
 LABEL = {"isam2": "iSAM2", "http": "factord HTTP", "zenoh": "factord zenoh",
-         "zenoh-binary": "factord zenoh, binary poses"}
+         "zenoh-binary": "factord zenoh, binary poses",
+         "http-budget": "factord HTTP, budget", "zenoh-budget": "factord zenoh, budget"}
 
 
 def percentile(sorted_values, p):
@@ -104,10 +105,13 @@ def run(system: str, path: str, args, binary: str, workdir: str):
                "--relinearize-threshold", str(args.relinearize_threshold),
                "--relinearize-skip", str(args.relinearize_skip)] + limit
     else:
-        transport, poses = {"http": ("http", []), "zenoh": ("zenoh", ["--poses", "json"]),
-                            "zenoh-binary": ("zenoh", ["--poses", "binary"])}[system]
+        budget = ["--max-update-ms", str(args.max_update_ms)]
+        transport, extra = {"http": ("http", []), "zenoh": ("zenoh", ["--poses", "json"]),
+                            "zenoh-binary": ("zenoh", ["--poses", "binary"]),
+                            "http-budget": ("http", budget),
+                            "zenoh-budget": ("zenoh", ["--poses", "none"] + budget)}[system]
         cmd = [binary, path, "--transport", transport, "--fsync", args.fsync,
-               "--dump-latencies", dump] + poses + limit
+               "--dump-latencies", dump] + extra + limit
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
@@ -128,6 +132,15 @@ def stats(report, windows, every):
            # factord after it was idle and polished (iSAM2 has no idle work: same as above)
            "idle_chi2_gap": report.get("idle_chi2_gap", gap),
            "peak_rss_mb": (report.get("peak_rss_kb") or float("nan")) / 1024, "steps": len(lat)}
+    corrections = (report.get("latency") or {}).get("corrections")
+    if corrections:
+        # Issue 55: how far the answered estimate was from the exact one when it landed (m).
+        out["correction rmse p50"] = corrections["rmse_p50"]
+        out["correction rmse p99"] = corrections["rmse_p99"]
+        out["correction rmse max"] = corrections["rmse_max"]
+        out["correction max p99"] = corrections["max_p99"]
+        out["correction max max"] = corrections["max_max"]
+        out["provisional answers"] = report["latency"]["provisional_answers"]
     for a, b in windows:
         part = sorted(lat[a:b])
         out[f"p99 {a}-{b}"] = percentile(part, 0.99) if part else float("nan")
@@ -168,6 +181,13 @@ def table(name, rounds, systems):
             cells.append({"total_s": "≤ 0.5", "p99_ms": "≤ 0.5", "worst_ms": "≤ 1",
                           "idle_chi2_gap": "≤ 1e-5 (ours)"}.get(key, ""))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    # Issue 55's rows, for the systems with a latency budget.
+    budget_keys = [k for k in med[systems[-1]] if k.startswith(("correction", "provisional"))]
+    for key in budget_keys:
+        cells = [("{:.0f}" if key.startswith("provisional") else "{:.4f}").format(med[sy][key])
+                 if key in med[sy] else "" for sy in systems]
+        label = key + ("" if key.startswith("provisional") else " (m)")
+        lines.append(f"| {label} | " + " | ".join(cells) + ("" if not has_isam2 else " |" * (len(ours) + 1)) + " |")
     return "\n".join(lines)
 
 
@@ -180,6 +200,8 @@ def main():
     p.add_argument("--fsync", default="always")
     p.add_argument("--relinearize-threshold", type=float, default=0.1)
     p.add_argument("--relinearize-skip", type=int, default=1)
+    p.add_argument("--max-update-ms", type=int, default=20,
+                   help="the latency budget of the *-budget systems (issue 55)")
     p.add_argument("--windows", default="", help="A:B,C:D: p99 over updates [A, B)")
     p.add_argument("--every", type=int, help="p99 of every consecutive W updates")
     p.add_argument("--json", help="write every run's report (with latencies) and the tables here")

@@ -71,6 +71,12 @@ pub struct CreateSession {
     /// ones are held out of the estimate; `off` (default): only marked factors. Graph kinds.
     #[serde(default, skip_serializing_if = "OutlierPolicy::is_off")]
     pub outliers: OutlierPolicy,
+    /// A latency budget for updates, in milliseconds (1–60000; graph kinds): an update the
+    /// exact solve has not reflected within a quarter of it is answered provisionally, and the
+    /// exact answer follows as a correction (docs/guide/latency.md). Absent: every answer is
+    /// exact.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_update_ms: Option<u64>,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, utoipa::ToSchema)]
@@ -311,50 +317,7 @@ pub struct DrawnVariable {
     pub initial: [f64; 3],
 }
 
-/// Which variables' marginal covariance to compute.
-#[derive(Clone, Debug, Default, Deserialize, Serialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct MarginalsQuery {
-    pub keys: Vec<Key>,
-    /// Also return the joint covariance of all of them (cross-covariances included).
-    #[serde(default)]
-    pub joint: bool,
-}
-
-/// Marginal covariances at the estimate of `sequence`, in each variable's tangent space.
-#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct Marginals {
-    pub session: String,
-    /// The sequence and solve count of the estimate the factorisation was taken at.
-    pub sequence: u64,
-    pub solves: u64,
-    pub variables: Vec<MarginalCovariance>,
-    /// Row-major joint covariance, in the order of `variables`, when asked for.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub joint: Option<Vec<Vec<f64>>>,
-    /// Variables held fixed (by the client or as gauge anchors): zero covariance, and the
-    /// others are conditioned on them.
-    pub gauge_fixed: Vec<Key>,
-    /// Whether H was factorised for this request or an earlier factorisation at the same
-    /// estimate was reused; the factorisation's time, and the whole request's.
-    pub reused_factorization: bool,
-    pub factorize_seconds: f64,
-    pub seconds: f64,
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct MarginalCovariance {
-    pub key: Key,
-    pub kind: String,
-    pub fixed: bool,
-    /// Over the kind's tangent, in its order and frame (an `se3`'s `[v; ω]` is the body's).
-    pub covariance: Vec<Vec<f64>>,
-    /// The covariance of its position in the world, 3×3 (z is 0 for planar kinds), whatever
-    /// the tangent's frame: what covariance ellipses are drawn from. Absent for kinds without a
-    /// position.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub position_covariance: Option<Vec<Vec<f64>>>,
-}
+pub use super::marginals_wire::{MarginalCovariance, Marginals, MarginalsQuery};
 
 /// A variable's wire value, inline up to an SE(3) pose's 7 numbers. A loop closure in a large
 /// map publishes an estimate of most of it; with a heap allocation per value, making and
@@ -426,6 +389,9 @@ pub struct SessionStats {
     /// one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ros2: Option<Box<super::ros2::Ros2Binding>>,
+    /// With a latency budget (`max_update_ms`): provisional answers and their corrections.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latency: Option<Box<super::latency::LatencyReport>>,
 }
 
 #[derive(Clone, Debug, Serialize, utoipa::ToSchema)]
@@ -444,6 +410,8 @@ pub struct SessionInfo {
     /// one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ros2: Option<Box<super::ros2::Ros2Binding>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_update_ms: Option<u64>,
 }
 
 /// What a session streams out (SSE events, zenoh publications).

@@ -606,6 +606,7 @@ mod tests {
             factor_types: vec![],
             robots: None,
             outliers: Default::default(),
+            max_update_ms: None,
         };
         a.execute(
             &Caller::Trusted,

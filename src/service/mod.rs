@@ -290,6 +290,7 @@ impl Service {
                 ros2: session.ros2_binding().cloned().map(Box::new),
                 robots: session.robots_options(),
                 outliers: session.outlier_policy(),
+                max_update_ms: session.max_update_ms(),
             };
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
@@ -358,6 +359,9 @@ impl Service {
             session.set_robots(robots)?;
         }
         session.set_outlier_policy(request.outliers)?;
+        if let Some(max_update_ms) = request.max_update_ms {
+            session.set_latency_budget(max_update_ms)?;
+        }
         session
             .set_auto_optimize(request.auto_optimize)
             .map_err(|mut e| {

@@ -85,6 +85,7 @@ impl Session {
             return Err(self.sync_refused(e));
         }
         self.publish_accepted(sequence);
+        self.arm_provisional_answer(sequence);
         self.emit(SessionEvent::Ack(ack.clone()));
         if !mirrored.new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
@@ -255,10 +256,13 @@ impl Session {
         self: &Arc<Self>,
         st: &mut State,
         sequence: u64,
-        prepared: PreparedBatch,
+        mut prepared: PreparedBatch,
         mirrored: &Mirrored,
         origin: Option<&Origin>,
     ) -> BatchAck {
+        if let Some(latency) = st.latency.as_mut() {
+            latency.take_in(sequence, &mut prepared);
+        }
         let predicted = prepared.predicted.clone();
         // Only the factors that enter the problem (a session's robots hold some back).
         let active = mirrored.active_ids.clone();

@@ -139,12 +139,25 @@ pub(super) fn refresh(
     moved: Option<&[usize]>,
     sequence: u64,
 ) -> Vec<VariableValue> {
+    refresh_observed(mirror, problem, moved, sequence, &mut |_, _| {})
+}
+
+/// [`refresh`], telling `observe` each entry it is about to change (with its old value) and the
+/// new value.
+pub(super) fn refresh_observed(
+    mirror: &mut BTreeMap<Key, MirrorEntry>,
+    problem: &Problem,
+    moved: Option<&[usize]>,
+    sequence: u64,
+    observe: &mut dyn FnMut(&MirrorEntry, &[f64]),
+) -> Vec<VariableValue> {
     let mut changed = Vec::new();
     let mut value = Vec::new();
     let mut refresh_entry = |idx: usize, key: Key, entry: &mut MirrorEntry| {
         catalogue::encode_variable_into(problem.values.variable(idx), &mut value);
         // A batch accepted during the solve set a newer guess; it is applied next.
         if entry.changed <= sequence && entry.value[..] != value[..] {
+            observe(entry, &value);
             entry.value.clear();
             entry.value.extend_from_slice(&value);
             entry.changed = sequence;

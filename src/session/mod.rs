@@ -54,6 +54,7 @@ mod outliers;
 mod prepared;
 mod producer_order;
 mod producers;
+mod provisional;
 mod robots;
 mod schedule;
 mod schedule_state;
@@ -94,6 +95,9 @@ pub struct Session {
     history: Mutex<history::History>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
     solved: watch::Sender<u64>,
+    /// Highest sequence a provisional answer reflects (sessions with a latency budget, see
+    /// `provisional`); waiters for an answer watch it beside `solved`.
+    answered: watch::Sender<u64>,
     /// Highest sequence accepted: requests waiting for a producer's batches (`after`) watch it.
     accepted: watch::Sender<u64>,
     /// Number of finished solves (successful, failed or interrupted).
@@ -121,6 +125,9 @@ pub struct Session {
     /// The ROS 2 topics it is bound to (set once, at creation or recovery); the transport
     /// layer runs the binding.
     ros2: std::sync::OnceLock<crate::api::ros2::Ros2Binding>,
+    /// The latency budget (`max_update_ms`, set once at creation or recovery), read without
+    /// the lock by every accepted batch; its state is `State::latency`.
+    max_update_ms: std::sync::OnceLock<u64>,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     limits: crate::api::Limits,
@@ -145,6 +152,7 @@ impl Session {
             events: broadcast::channel(limits.max_subscriber_lag.max(1)).0,
             history: Mutex::default(),
             solved: watch::channel(0).0,
+            answered: watch::channel(0).0,
             accepted: watch::channel(0).0,
             completed: watch::channel(0).0,
             cancel: AtomicBool::new(false),
@@ -156,6 +164,7 @@ impl Session {
             corruption: std::sync::OnceLock::new(),
             owner: std::sync::OnceLock::new(),
             ros2: std::sync::OnceLock::new(),
+            max_update_ms: std::sync::OnceLock::new(),
             runtime,
             pool,
             limits,

@@ -89,6 +89,7 @@ impl Session {
     /// Wakes every waiter (the session is going away or the service is stopping).
     pub(crate) fn release_waiters(&self) {
         self.solved.send_replace(u64::MAX);
+        self.answered.send_replace(u64::MAX);
         self.completed.send_replace(u64::MAX);
     }
 

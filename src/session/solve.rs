@@ -8,8 +8,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::incremental::{self, IncrementalSolver};
-use super::mirror;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
+use super::provisional;
 use super::solve_budget::{SolveBudget, YieldToBatches};
 use super::{Session, State};
 use crate::api::wire::AutoOptimize;
@@ -171,6 +171,7 @@ impl Session {
             self.consolidate_when_idle(st.mirror.sequence);
         }
         self.hand_back(&mut st, work.problem, work.index);
+        self.answer_after_landing(&st);
         if polish {
             self.polish_when_idle(st.mirror.sequence);
         }
@@ -306,12 +307,8 @@ impl Session {
         } else {
             st.schedule.carried = std::time::Duration::ZERO;
         }
-        let changed = mirror::refresh(
-            &mut st.mirror.entries,
-            problem,
-            resolved.moved.as_deref(),
-            run.sequence,
-        );
+        let changed =
+            provisional::refresh_landing(st, problem, resolved.moved.as_deref(), run.sequence);
         if !changed.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),

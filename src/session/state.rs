@@ -31,6 +31,8 @@ pub(super) struct State {
     pub(super) robots: Option<super::robots::Robots>,
     /// Possibly wrong loop closures, held out of the problem until decided.
     pub(super) outliers: super::outliers::Outliers,
+    /// The latency budget and its provisional answers (`max_update_ms`), when set.
+    pub(super) latency: Option<super::provisional::Latency>,
 }
 
 /// The problem and its incremental engine: here between solves, on a worker during one.
@@ -144,6 +146,7 @@ impl State {
             producers: Producers::default(),
             robots: None,
             outliers: Default::default(),
+            latency: None,
         }
     }
 }

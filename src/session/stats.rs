@@ -17,6 +17,7 @@ impl Session {
             factor_types: self.factor_types().names().to_vec(),
             instance: None,
             ros2: self.ros2_binding().cloned().map(Box::new),
+            max_update_ms: st.latency.as_ref().map(|l| l.max_update_ms),
         }
     }
 
@@ -45,6 +46,10 @@ impl Session {
             memory_bytes: self.memory_bytes_locked(&st),
             instance: None,
             ros2: self.ros2_binding().cloned().map(Box::new),
+            latency: st
+                .latency
+                .as_ref()
+                .map(|l| Box::new(l.report(st.results.solved_sequence))),
         };
         drop(st);
         if let Engine::Window(window) = &self.engine {

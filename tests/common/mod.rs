@@ -11,6 +11,7 @@ pub mod eval;
 pub mod fleet;
 #[allow(dead_code)]
 pub mod fusion;
+pub mod m3500;
 pub mod producer;
 pub mod server;
 pub mod wrong_closures;

@@ -35,6 +35,7 @@ async fn streamed_pose_graph_is_updated_incrementally_and_reaches_the_batch_opti
                 ros2: None,
                 robots: None,
                 outliers: Default::default(),
+                max_update_ms: None,
             }),
             Recording::History,
         )
@@ -204,6 +205,7 @@ async fn create_edits_session(service: &Service) {
             ros2: None,
             robots: None,
             outliers: Default::default(),
+            max_update_ms: None,
         }),
     )
     .await;

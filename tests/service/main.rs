@@ -15,6 +15,7 @@ mod gnss_factor;
 mod incremental;
 mod landmarks_2d;
 mod landmarks_3d_ranges;
+mod latency;
 mod marginals;
 mod outliers;
 mod producer_list;

@@ -10,42 +10,10 @@ use crate::common;
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
+use common::m3500::{clean_optimum, m3500, worst_error};
 use common::server::{client, create, g2o_batches, get, post, zenoh_get, TestServer};
 use common::wrong_closures::add_random_wrong_closures;
-use factord::geometry::Se2;
 use serde_json::{json, Value};
-
-/// M3500's first `poses` poses and the edges among them, as g2o text.
-fn m3500(poses: u64) -> Option<String> {
-    let path = common::data_file("2d/carlone/input_M3500_g2o.g2o")?;
-    let text = std::fs::read_to_string(path).unwrap();
-    let kept = |l: &&str| {
-        let f: Vec<&str> = l.split_whitespace().collect();
-        match f.first() {
-            Some(&"VERTEX_SE2") => f[1].parse::<u64>().unwrap() < poses,
-            Some(&"EDGE_SE2") => f[1..3].iter().all(|k| k.parse::<u64>().unwrap() < poses),
-            _ => false,
-        }
-    };
-    Some(text.lines().filter(kept).collect::<Vec<_>>().join("\n") + "\n")
-}
-
-/// The least-squares optimum of the clean file, in process: every pose by key.
-fn clean_optimum(text: &str) -> (f64, Vec<Se2>) {
-    let mut graph = factord::io::g2o::parse(&[(std::path::Path::new("clean.g2o"), text)]).unwrap();
-    let options = factord::solver::SolverOptions {
-        function_tolerance: 1e-12,
-        ..Default::default()
-    };
-    factord::solver::optimize(&mut graph.problem, &options, &mut |_| {
-        std::ops::ControlFlow::Continue(())
-    })
-    .unwrap();
-    let poses = (0..graph.vertex_order.len() as u64)
-        .map(|k| *graph.problem.values.get_as::<Se2>(k).unwrap())
-        .collect();
-    (graph.problem.chi2(), poses)
-}
 
 /// The wrong closures `add_random_wrong_closures` appended at `lines`: (from, to, bits of the
 /// measured x), which no right closure shares.
@@ -82,20 +50,6 @@ fn ids_of(list: &Value) -> BTreeSet<u64> {
         .iter()
         .map(|c| c["factor_id"].as_u64().unwrap())
         .collect()
-}
-
-/// The largest position error of the estimate against `optimum`, in metres.
-fn worst_error(estimate: &Value, optimum: &[Se2]) -> f64 {
-    estimate["variables"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| {
-            let k = v["key"].as_u64().unwrap() as usize;
-            let x: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
-            (x[0] - optimum[k].x).hypot(x[1] - optimum[k].y)
-        })
-        .fold(0.0, f64::max)
 }
 
 /// Waits until the session has consolidated `at_least` times (its gate decisions, once idle).

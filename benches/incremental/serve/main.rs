@@ -4,7 +4,10 @@
 //!
 //! `cargo bench --bench incremental_serve -- <file.g2o> --transport http|zenoh [--limit N]
 //! [--json out.json] [--dump-latencies out.txt] [--dump-server out.jsonl]
-//! [--fsync always|interval|never] [--poses json|binary|none]`
+//! [--fsync always|interval|never] [--poses json|binary|none] [--max-update-ms N]`
+//!
+//! `--max-update-ms N` gives the session a latency budget (provisional answers count as the
+//! answer: over zenoh, an `estimate` event of the batch on `out/poses`).
 //!
 //! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
 //! `isam2_landmarks.py`.
@@ -129,6 +132,10 @@ fn main() {
             Some(other) => panic!("--poses json|binary|none, not {other}"),
         },
     };
+    let max_update_ms: Option<u64> = args.value("--max-update-ms").map(|v| {
+        v.parse()
+            .unwrap_or_else(|_| panic!("--max-update-ms N, not {v}"))
+    });
     let text = std::fs::read_to_string(&path).expect("readable graph");
 
     let mut batches = if landmarks::is_gtsam_text(&text) {
@@ -159,7 +166,11 @@ fn main() {
             let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
             let c = common::server::client();
             let session = "stream";
-            create(&c, &s, &json!({"session": session, "kind": kind})).await;
+            let mut request = json!({"session": session, "kind": kind});
+            if let Some(budget) = max_update_ms {
+                request["max_update_ms"] = json!(budget);
+            }
+            create(&c, &s, &request).await;
             let view = match &dump_server {
                 Some(out) => Some((
                     server_view::ServerView::listen(&s.zenoh, session).await,
@@ -174,7 +185,8 @@ fn main() {
                 _ => {
                     let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
                     let base = info["sequence"].as_u64().expect("sequence");
-                    zenoh_stream::stream(&s, session, base, &bodies, poses).await
+                    let budget = max_update_ms.is_some();
+                    zenoh_stream::stream(&s, session, base, &bodies, poses, budget).await
                 }
             };
             let cpu = CpuUse::now(s.pid()).since(cpu_start);
@@ -260,6 +272,9 @@ fn main() {
         "solves": stats["solves"],
         "skipped_solves": stats["skipped_solves"],
         "tracked_chi2": stats["chi2"],
+        "max_update_ms": max_update_ms,
+        // With a budget: provisional answers and the corrections that followed them.
+        "latency": stats["latency"],
     });
     if !histograms.is_null() {
         report["server_histograms"] = histograms;

@@ -79,17 +79,32 @@ fn available(seen: &Seen, from: &mut usize, sequence: u64, ack: bool) -> Option<
 /// first batch). Latency: from `put` to the arrival of the event that makes the estimate
 /// available. When no such event arrives within 5 s (an event stream that lagged), the
 /// session's `solved_sequence` is asked over the rpc and its answer time is used (`fallbacks`).
+/// `budget`: the session has a latency budget, so an `estimate` event on `out/poses` of the
+/// batch or a later one (a provisional answer) makes it available too.
 pub async fn stream(
     s: &TestServer,
     session: &str,
     base: u64,
     bodies: &[String],
     poses: Poses,
+    budget: bool,
 ) -> Streamed {
     let z = zenoh_peer(&s.zenoh).await;
     let acks: Arc<Seen> = Default::default();
     let summaries: Arc<Seen> = Default::default();
+    let estimates: Arc<Seen> = Default::default();
     let _a = subscribe(&z, &format!("factord/{session}/out/acks"), acks.clone()).await;
+    let _e = match budget {
+        true => Some(
+            subscribe(
+                &z,
+                &format!("factord/{session}/out/poses"),
+                estimates.clone(),
+            )
+            .await,
+        ),
+        false => None,
+    };
     let poses_key = match poses {
         Poses::Json => Some(format!("factord/{session}/out/poses")),
         Poses::Binary => Some(format!("factord/{session}/bin/poses")),
@@ -131,7 +146,7 @@ pub async fn stream(
         .congestion_control(zenoh::qos::CongestionControl::Block)
         .await
         .expect("publisher");
-    let (mut ack_from, mut summary_from) = (0, 0);
+    let (mut ack_from, mut summary_from, mut estimate_from) = (0, 0, 0);
     let mut latencies_ms = Vec::with_capacity(bodies.len());
     let mut fallbacks = 0;
     let start = Instant::now();
@@ -142,10 +157,14 @@ pub async fn stream(
         let deadline = Instant::now() + Duration::from_secs(5);
         let at = loop {
             // Register for wake-ups before looking, so no arrival is missed in between.
-            let (ack_arrived, summary_arrived) =
-                (acks.arrived.notified(), summaries.arrived.notified());
+            let (ack_arrived, summary_arrived, estimate_arrived) = (
+                acks.arrived.notified(),
+                summaries.arrived.notified(),
+                estimates.arrived.notified(),
+            );
             let got = available(&acks, &mut ack_from, sequence, true)
-                .or_else(|| available(&summaries, &mut summary_from, sequence, false));
+                .or_else(|| available(&summaries, &mut summary_from, sequence, false))
+                .or_else(|| available(&estimates, &mut estimate_from, sequence, false));
             if let Some(at) = got {
                 break at;
             }
@@ -170,6 +189,7 @@ pub async fn stream(
                 tokio::select! {
                     _ = ack_arrived => {},
                     _ = summary_arrived => {},
+                    _ = estimate_arrived => {},
                 }
             })
             .await;

@@ -273,6 +273,7 @@ class HttpClient:
         factor_types: Optional[list] = None,
         robots: Optional[JsonDict] = None,
         outliers: Optional[str] = None,
+        max_update_ms: Optional[int] = None,
     ) -> wire.SessionInfo:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
         solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
@@ -281,7 +282,9 @@ class HttpClient:
         factor types (proto/v1/factor-type.schema.json), used by name in batches; ``robots``:
         the session holds several robots (``{}`` or ``{"min_closures": 3}``, see
         docs/guide/many-robots.md); ``outliers``: ``"auto"`` holds every loop closure out of the
-        estimate until it is found consistent (see :meth:`outliers`)."""
+        estimate until it is found consistent (see :meth:`outliers`); ``max_update_ms``: a latency
+        budget, updates the exact solve has not reflected in time answered provisionally (see
+        docs/guide/latency.md)."""
         body: JsonDict = {"kind": kind}
         if session is not None:
             body["session"] = session
@@ -295,6 +298,8 @@ class HttpClient:
             body["robots"] = robots
         if outliers is not None:
             body["outliers"] = outliers
+        if max_update_ms is not None:
+            body["max_update_ms"] = max_update_ms
         return self._request("POST", "/v1/sessions", body=body)
 
     def list_sessions(self) -> wire.SessionList:

@@ -105,10 +105,13 @@ class _BatchAckKeys(TypedDict):
 
 
 class BatchAck(_BatchAckKeys, total=False):
-    """``batch-ack.schema.json``; ``solved`` with ``wait``; the producer fields for stamped
-    batches (``duplicate``: a repeat that applied nothing)."""
+    """``batch-ack.schema.json``; ``solved`` with ``wait`` (and, in a session with a latency
+    budget, ``exact``: false for a provisional answer, ``exact_sequence``); the producer fields
+    for stamped batches (``duplicate``: a repeat that applied nothing)."""
 
     solved: bool
+    exact: bool
+    exact_sequence: int
     producer: str
     producer_seq: int
     accepted_through: int
@@ -180,6 +183,7 @@ class SessionInfo(_SessionInfoKeys, total=False):
     factor_types: List[str]
     instance: str  # in a fleet: the owning instance's id
     ros2: Dict[str, Any]  # the ROS 2 binding, defaults filled in (ros2-binding.schema.json)
+    max_update_ms: int  # the latency budget (docs/guide/latency.md)
 
 
 class SessionList(TypedDict):
@@ -214,6 +218,7 @@ class SessionStats(_SessionStatsKeys, total=False):
     factor_types: List[str]
     instance: str  # in a fleet: the owning instance's id
     ros2: Dict[str, Any]  # the ROS 2 binding, defaults filled in (ros2-binding.schema.json)
+    latency: Dict[str, Any]  # with a latency budget: provisional answers and corrections
 
 
 class ProducerStatus(TypedDict):

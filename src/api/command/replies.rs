@@ -42,6 +42,13 @@ pub struct Accepted {
     /// timed out).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solved: Option<bool>,
+    /// With `wait`, in a session with a latency budget: whether the estimate reflects this batch
+    /// exactly (`false`: provisionally, the exact answer follows as a correction).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exact: Option<bool>,
+    /// With `exact`: the highest sequence the exact estimate reflects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exact_sequence: Option<u64>,
 }
 
 /// `optimize`.

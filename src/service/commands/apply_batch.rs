@@ -24,13 +24,24 @@ impl Service {
         };
         metrics::count_accepted_batch();
         let solved = if wait && will_solve {
-            let done = session.wait_solved(ack.sequence, self.wait_timeout()).await;
+            // With a latency budget, a provisional answer ends the wait too.
+            let done = session
+                .wait_answered(ack.sequence, self.wait_timeout())
+                .await;
             Some(done && session.last_error().is_none())
         } else if wait {
             Some(session.solved_sequence() >= ack.sequence)
         } else {
             None
         };
-        Ok(Accepted { ack, solved })
+        let exact_sequence = solved
+            .and(session.max_update_ms())
+            .map(|_| session.solved_sequence());
+        Ok(Accepted {
+            exact: exact_sequence.map(|exact| exact >= ack.sequence),
+            exact_sequence,
+            ack,
+            solved,
+        })
     }
 }

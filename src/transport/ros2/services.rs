@@ -174,6 +174,7 @@ impl Server {
             ros2: Some(Box::new(self.binding.clone())),
             robots: None,
             outliers: Default::default(),
+            max_update_ms: None,
         });
         match self.execute(create).await {
             Ok(_) => done(format!("session {session} reset: empty, bound again")),

@@ -1,0 +1,154 @@
+//! Bounded update latency (`max_update_ms`): provisional answers on the request path, the exact
+//! solve off it.
+//!
+//! The exact incremental solve of an update is fast near the robot and slow when a loop
+//! closure into an old part of a large map makes it refactor the top of the elimination tree
+//! (hundreds of milliseconds at 100 000 poses); no exact solve avoids that (the map's tail
+//! latency grows with it). A session with a budget therefore splits the answer, like GTSAM's
+//! concurrent filter and smoother (Williams et al. 2013):
+//! - the exact solve runs as before, on a pool worker, and takes in what arrived meanwhile
+//!   when it is done;
+//! - an update it has not reflected within a quarter of the budget is answered provisionally
+//!   (`answer`): the recent variables ([`window`]) are re-solved against the rest of the map as
+//!   clients last saw it, held fixed, and published at once;
+//! - when the exact solve lands, everything it changed of what clients were given is published
+//!   (the correction), its size measured and reported (`landing`), and the newer variables are
+//!   answered again against it.
+//!
+//! Idle, the exact solve and its polish end at the batch optimum as without a budget.
+
+mod answer;
+mod landing;
+mod window;
+
+use std::collections::{HashMap, VecDeque};
+use std::time::Duration;
+
+use super::Session;
+use crate::api::ServiceError;
+
+use crate::api::latency::{Correction, CorrectionStats, LatencyReport, CORRECTIONS_KEPT};
+use crate::problem::Key;
+use crate::session::prepared::PreparedBatch;
+pub(super) use landing::refresh_landing;
+pub(crate) use window::RecentWindow;
+
+/// A session's budget and what its provisional answers left for the exact solve to correct.
+#[derive(Debug)]
+pub(crate) struct Latency {
+    pub max_update_ms: u64,
+    pub window: RecentWindow,
+    /// The highest sequence a provisional answer covers.
+    pub answered: u64,
+    /// Variables holding a provisional value, with the sequence of the answer that gave it:
+    /// the exact solve that covers them publishes its own value for each, moved or not.
+    provisional: HashMap<Key, u64>,
+    answers: u64,
+    /// A batch with removals, fixes or guesses (the newest such sequence): the window does
+    /// not know what it changed, so no provisional answer until the exact estimate covers it.
+    structural: u64,
+    last_correction: Option<Correction>,
+    corrections: VecDeque<Correction>,
+    correction_count: u64,
+}
+
+impl Latency {
+    pub fn new(max_update_ms: u64) -> Self {
+        Self {
+            max_update_ms,
+            window: RecentWindow::default(),
+            answered: 0,
+            provisional: HashMap::new(),
+            answers: 0,
+            structural: 0,
+            last_correction: None,
+            corrections: VecDeque::new(),
+            correction_count: 0,
+        }
+    }
+
+    /// Takes in an accepted batch: its new variables and factors join the window (its factors
+    /// then reach the problem shared with it); one that changes more than it adds stops
+    /// provisional answers until the exact estimate covers it.
+    pub fn take_in(&mut self, sequence: u64, prepared: &mut PreparedBatch) {
+        if !prepared.remove.is_empty()
+            || !prepared.fix.is_empty()
+            || !prepared.guesses.is_empty()
+            || !prepared.merges.is_empty()
+        {
+            self.structural = self.structural.max(sequence);
+        }
+        let keys = prepared.variables.iter().map(|v| v.key);
+        self.window.record(sequence, keys, &mut prepared.factors);
+    }
+
+    pub fn report(&self, exact: u64) -> LatencyReport {
+        let kept: Vec<Correction> = self.corrections.iter().copied().collect();
+        LatencyReport {
+            max_update_ms: self.max_update_ms,
+            answered_sequence: self.answered.max(exact),
+            exact_sequence: exact,
+            provisional_answers: self.answers,
+            last_correction: self.last_correction,
+            corrections: CorrectionStats::of(&kept, self.correction_count),
+        }
+    }
+
+    fn record_correction(&mut self, correction: Correction) {
+        if self.corrections.len() == CORRECTIONS_KEPT {
+            self.corrections.pop_front();
+        }
+        self.corrections.push_back(correction);
+        self.correction_count += 1;
+        self.last_correction = Some(correction);
+    }
+}
+
+/// How long an update waits for the exact solve before it is answered provisionally: a quarter
+/// of the budget, leaving the rest for the provisional solve, the journal and the transport.
+fn provisional_after(max_update_ms: u64) -> Duration {
+    Duration::from_micros(max_update_ms * 250)
+}
+
+impl Session {
+    /// Gives a new session a latency budget (`max_update_ms`); graph kinds with the
+    /// incremental engine only.
+    pub fn set_latency_budget(&self, max_update_ms: u64) -> Result<(), ServiceError> {
+        crate::api::latency::check_budget(max_update_ms)
+            .map_err(|m| ServiceError::bad_request("invalid_value", "max_update_ms", m))?;
+        if !self.kind.eliminate.is_empty()
+            || self.kind.name == crate::api::catalogue::SLIDING_WINDOW
+        {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "max_update_ms",
+                format!(
+                    "a latency budget is for pose graph sessions (their incremental engine); `{}` sessions solve otherwise",
+                    self.kind.name
+                ),
+            ));
+        }
+        if self.max_update_ms.set(max_update_ms).is_ok() {
+            self.lock().latency = Some(Latency::new(max_update_ms));
+        }
+        Ok(())
+    }
+
+    pub fn max_update_ms(&self) -> Option<u64> {
+        self.max_update_ms.get().copied()
+    }
+
+    /// Waits until the estimate reflects `sequence`, exactly or (with a budget) provisionally,
+    /// at most `timeout`.
+    pub async fn wait_answered(&self, sequence: u64, timeout: Duration) -> bool {
+        let mut solved = self.solved.subscribe();
+        let mut answered = self.answered.subscribe();
+        let either = async {
+            tokio::select! {
+                r = solved.wait_for(|s| *s >= sequence) => r.is_ok(),
+                r = answered.wait_for(|s| *s >= sequence) => r.is_ok(),
+            }
+        };
+        tokio::time::timeout(timeout, either).await.unwrap_or(false)
+    }
+}
