@@ -66,6 +66,8 @@ impl Session {
         if let Some(d) = durable.as_mut() {
             d.maybe_snapshot(self, &st);
         }
+        // A batch queued behind a running solve is answered provisionally at once (budget).
+        let behind = st.model.problem.is_none();
         // The fsync runs with the session and its journal unlocked, so the solve just scheduled
         // (and reads) run meanwhile, and the session's next batches are written and share it
         // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
@@ -85,7 +87,7 @@ impl Session {
             return Err(self.sync_refused(e));
         }
         self.publish_accepted(sequence);
-        self.arm_provisional_answer(sequence);
+        self.arm_provisional_answer(sequence, behind);
         self.emit(SessionEvent::Ack(ack.clone()));
         if !mirrored.new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {

@@ -7,7 +7,7 @@
 //! [--fsync always|interval|never] [--poses json|binary|none] [--max-update-ms N]`
 //!
 //! `--max-update-ms N` gives the session a latency budget (provisional answers count as the
-//! answer: over zenoh, an `estimate` event of the batch on `out/poses`).
+//! answer: over zenoh, an estimate of the batch on `bin/poses`).
 //!
 //! GTSAM's landmark text (`victoria_park.txt`) streams as `landmarks.rs` says, against
 //! `isam2_landmarks.py`.

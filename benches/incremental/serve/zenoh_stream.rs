@@ -47,13 +47,23 @@ async fn subscribe(
     z.declare_subscriber(key)
         .callback(move |sample| {
             let at = Instant::now();
-            let v: Value =
-                serde_json::from_slice(&sample.payload().to_bytes()).expect("events are JSON");
-            let sequence = v["sequence"].as_u64().unwrap_or(0);
+            let bytes = sample.payload().to_bytes();
+            // A binary estimate's sequence is in its header (proto/v1/poses-binary.md): read
+            // as a robot would, without decoding the poses.
+            let (sequence, reflected) = match bytes.get(..16) {
+                Some(header) if header.starts_with(b"FDPB") => {
+                    let sequence: [u8; 8] = header[8..16].try_into().expect("8 bytes");
+                    (u64::from_le_bytes(sequence), false)
+                }
+                _ => {
+                    let v: Value = serde_json::from_slice(&bytes).expect("events are JSON");
+                    (v["sequence"].as_u64().unwrap_or(0), v["reflected"] == true)
+                }
+            };
             seen.list
                 .lock()
                 .expect("not poisoned")
-                .push((at, sequence, v["reflected"] == true));
+                .push((at, sequence, reflected));
             seen.arrived.notify_waiters();
         })
         .await
@@ -79,8 +89,8 @@ fn available(seen: &Seen, from: &mut usize, sequence: u64, ack: bool) -> Option<
 /// first batch). Latency: from `put` to the arrival of the event that makes the estimate
 /// available. When no such event arrives within 5 s (an event stream that lagged), the
 /// session's `solved_sequence` is asked over the rpc and its answer time is used (`fallbacks`).
-/// `budget`: the session has a latency budget, so an `estimate` event on `out/poses` of the
-/// batch or a later one (a provisional answer) makes it available too.
+/// `budget`: the session has a latency budget, so an estimate of the batch or a later one (a
+/// provisional answer) on `bin/poses` makes it available too.
 pub async fn stream(
     s: &TestServer,
     session: &str,
@@ -98,7 +108,7 @@ pub async fn stream(
         true => Some(
             subscribe(
                 &z,
-                &format!("factord/{session}/out/poses"),
+                &format!("factord/{session}/bin/poses"),
                 estimates.clone(),
             )
             .await,

@@ -8,9 +8,10 @@
 //! concurrent filter and smoother (Williams et al. 2013):
 //! - the exact solve runs as before, on a pool worker, and takes in what arrived meanwhile
 //!   when it is done;
-//! - an update it has not reflected within a quarter of the budget is answered provisionally
-//!   (`answer`): the recent variables ([`window`]) are re-solved against the rest of the map as
-//!   clients last saw it, held fixed, and published at once;
+//! - an update it has not reflected within a quarter of the budget (at once when the update
+//!   arrived behind a running solve) is answered provisionally (`answer`): the recent
+//!   variables ([`window`]) are re-solved against the rest of the map as clients last saw it,
+//!   held fixed, and published at once;
 //! - when the exact solve lands, everything it changed of what clients were given is published
 //!   (the correction), its size measured and reported (`landing`), and the newer variables are
 //!   answered again against it.
