@@ -2,9 +2,9 @@
 //! docs/guide/latency.md): what statistics say about provisional answers and the corrections
 //! that replace them.
 //!
-//! With a budget, an update the exact solve has not reflected within a quarter of the budget is
-//! answered *provisionally*: the recent part of the map is solved against the rest as clients
-//! last saw it, and published. The exact solve keeps running off the request path; when it
+//! With a budget, an update the exact solve has not reflected in time (at most a quarter of the
+//! budget) is answered *provisionally*: the recent part of the map is solved against the rest
+//! as clients last saw it, and published. The exact solve keeps running off the request path; when it
 //! lands, what it changed is published as a *correction*, whose size is reported here.
 
 use serde::{Deserialize, Serialize};

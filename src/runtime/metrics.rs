@@ -15,6 +15,12 @@ use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 
 const SOLVE_SECONDS: &str = "factord_solve_duration_seconds";
 const FSYNC_SECONDS: &str = "factord_journal_fsync_seconds";
+/// Sessions with a latency budget (`session::provisional`): how long a provisional answer
+/// took (from its batch's arrival or a landing to its publication), and how long an exact
+/// solve's landing held the session (publishing its correction, taking in the batches that
+/// waited), which delays provisional answers and batches meanwhile.
+const PROVISIONAL_SECONDS: &str = "factord_provisional_answer_seconds";
+const LANDING_SECONDS: &str = "factord_solve_landing_seconds";
 const SLOW_FSYNCS: &str = "factord_journal_slow_fsyncs_total";
 const SOLVES: &str = "factord_solves_total";
 const ITERATIONS: &str = "factord_solver_iterations_total";
@@ -92,6 +98,12 @@ fn install() -> Exporter {
     let recorder = PrometheusBuilder::new()
         .set_buckets_for_metric(Matcher::Full(SOLVE_SECONDS.into()), SOLVE_BUCKETS)
         .and_then(|b| b.set_buckets_for_metric(Matcher::Full(FSYNC_SECONDS.into()), FSYNC_BUCKETS))
+        .and_then(|b| {
+            b.set_buckets_for_metric(Matcher::Full(PROVISIONAL_SECONDS.into()), FSYNC_BUCKETS)
+        })
+        .and_then(|b| {
+            b.set_buckets_for_metric(Matcher::Full(LANDING_SECONDS.into()), FSYNC_BUCKETS)
+        })
         .expect("bucket lists are not empty")
         .build_recorder();
     let handle = recorder.handle();
@@ -159,6 +171,14 @@ fn describe() {
     describe_histogram!(FSYNC_SECONDS, "Journal fsync latency");
     let _ = histogram!(SOLVE_SECONDS);
     let _ = histogram!(FSYNC_SECONDS);
+    describe_histogram!(
+        PROVISIONAL_SECONDS,
+        "Provisional answers of sessions with a latency budget: from the batch's arrival (or the exact solve's landing) to publication"
+    );
+    describe_histogram!(
+        LANDING_SECONDS,
+        "How long an exact solve's landing holds its session (its correction published, waiting batches taken in)"
+    );
     describe_gauge!(BUILD_INFO, "The running build: its version, always 1");
     gauge!(BUILD_INFO, "version" => env!("CARGO_PKG_VERSION")).set(1.0);
 }
@@ -200,6 +220,16 @@ pub fn observe_solve(d: Duration, iterations: usize) {
     histogram!(SOLVE_SECONDS).record(d);
     counter!(SOLVES).increment(1);
     counter!(ITERATIONS).increment(iterations as u64);
+}
+
+pub fn observe_provisional_answer(d: Duration) {
+    exporter();
+    histogram!(PROVISIONAL_SECONDS).record(d);
+}
+
+pub fn observe_landing(d: Duration) {
+    exporter();
+    histogram!(LANDING_SECONDS).record(d);
 }
 
 pub fn count_accepted_batch() {

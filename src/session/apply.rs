@@ -66,8 +66,11 @@ impl Session {
         if let Some(d) = durable.as_mut() {
             d.maybe_snapshot(self, &st);
         }
-        // A batch queued behind a running solve is answered provisionally at once (budget).
-        let behind = st.model.problem.is_none();
+        // With a latency budget: when to answer provisionally (see `Latency::wait`).
+        let provisional_after = st
+            .latency
+            .as_ref()
+            .map(|l| l.wait(st.model.problem.is_none()));
         // The fsync runs with the session and its journal unlocked, so the solve just scheduled
         // (and reads) run meanwhile, and the session's next batches are written and share it
         // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
@@ -87,7 +90,9 @@ impl Session {
             return Err(self.sync_refused(e));
         }
         self.publish_accepted(sequence);
-        self.arm_provisional_answer(sequence, behind);
+        if let Some(after) = provisional_after {
+            self.spawn_provisional_answer(sequence, after, false);
+        }
         self.emit(SessionEvent::Ack(ack.clone()));
         if !mirrored.new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {

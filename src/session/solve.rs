@@ -129,6 +129,7 @@ impl Session {
         }
         self.journal_barrier();
         let mut st = self.lock();
+        let landing = Instant::now();
         self.cancel.store(false, Ordering::SeqCst);
         let polish = match result {
             Ok(resolved) => {
@@ -145,6 +146,9 @@ impl Session {
             }
         };
         st.results.solved_sequence = st.results.solved_sequence.max(run.sequence);
+        if let Some(latency) = st.latency.as_mut() {
+            latency.solved_in(start.elapsed());
+        }
         st.schedule.region_debt = work.debt;
         if let Some(ids) = work.factor_ids.take() {
             st.model.factor_ids = ids;
@@ -180,6 +184,8 @@ impl Session {
         self.completed
             .send_modify(|n| *n = (*n).max(run.solve_number));
         self.maybe_schedule(&mut st);
+        drop(st);
+        crate::runtime::metrics::observe_landing(landing.elapsed());
     }
 
     /// Runs the solver on `work` within `budget`, publishing each iteration; returns its

@@ -30,7 +30,8 @@
 //! included) spent during the stream (`/proc/<pid>/stat`), steadier than wall time on a shared
 //! machine. Prints one JSON object; `--dump-latencies` writes one latency (ms)
 //! per line, in stream order; `--dump-server` the server's view of every solve
-//! (`server_view.rs`), and the JSON then carries its fsync and solve histograms.
+//! (`server_view.rs`). The JSON carries the server's latency histograms (fsync, solve, landing,
+//! provisional answers) from its `/metrics`.
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
@@ -210,14 +211,11 @@ fn main() {
                 get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
             assert_eq!(status, 200, "{idle_estimate}");
             // The server's view, the idle polish included.
-            let histograms = match &view {
-                Some((view, out)) => {
-                    std::fs::write(out, view.lines(started)).expect("writable --dump-server");
-                    let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
-                    server_view::histograms(&metrics.text().await.expect("metrics text"))
-                }
-                None => Value::Null,
-            };
+            if let Some((view, out)) = &view {
+                std::fs::write(out, view.lines(started)).expect("writable --dump-server");
+            }
+            let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
+            let histograms = server_view::histograms(&metrics.text().await.expect("metrics text"));
             s.assert_no_panic();
             let state_dir = s.state_dir.clone();
             let _ = s.terminate(Duration::from_secs(10));
@@ -276,9 +274,7 @@ fn main() {
         // With a budget: provisional answers and the corrections that followed them.
         "latency": stats["latency"],
     });
-    if !histograms.is_null() {
-        report["server_histograms"] = histograms;
-    }
+    report["server_histograms"] = histograms;
     for (k, v) in chi2.as_object().expect("an object") {
         report[k] = v.clone();
     }

@@ -71,6 +71,8 @@ pub fn histograms(metrics: &str) -> Value {
     for name in [
         "factord_journal_fsync_seconds",
         "factord_solve_duration_seconds",
+        "factord_provisional_answer_seconds",
+        "factord_solve_landing_seconds",
     ] {
         let prefix = format!("{name}_bucket{{le=\"");
         let buckets: serde_json::Map<String, Value> = metrics

@@ -12,7 +12,7 @@
 use std::collections::{BTreeMap, HashSet};
 use std::ops::ControlFlow;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use super::window::WindowFactor;
 use crate::api::catalogue;
@@ -46,53 +46,42 @@ impl Session {
         again: bool,
     ) {
         let session = Arc::clone(self);
+        let armed = Instant::now();
         self.runtime.spawn(async move {
             if !after.is_zero() {
                 tokio::time::sleep(after).await;
             }
             // It waits for the journal and solves: off the async threads.
-            let _ =
-                tokio::task::spawn_blocking(move || session.answer_provisionally(sequence, again))
-                    .await;
+            let _ = tokio::task::spawn_blocking(move || {
+                if session.answer_provisionally(sequence, again) {
+                    crate::runtime::metrics::observe_provisional_answer(armed.elapsed());
+                }
+            })
+            .await;
         });
     }
 
-    /// Arms the provisional answer of an accepted client batch (sessions with a budget): at
-    /// once when it is `behind` a running solve (which has to finish before the exact solve of
-    /// this batch starts), else after a quarter of the budget.
-    pub(in crate::session) fn arm_provisional_answer(
-        self: &Arc<Self>,
-        sequence: u64,
-        behind: bool,
-    ) {
-        if let Some(&budget) = self.max_update_ms.get() {
-            let after = match behind {
-                true => Duration::ZERO,
-                false => super::provisional_after(budget),
-            };
-            self.spawn_provisional_answer(sequence, after, false);
-        }
-    }
-
-    fn answer_provisionally(self: &Arc<Self>, sequence: u64, again: bool) {
+    /// Whether it published an answer.
+    fn answer_provisionally(self: &Arc<Self>, sequence: u64, again: bool) -> bool {
         // An exact solve that lands while this one solves moves the values it held fixed: once
         // more against the new ones.
         for _ in 0..2 {
             let Some(work) = gather(&self.lock(), sequence, again) else {
-                return;
+                return false;
             };
             let (through, exact) = (work.through, work.exact);
             let Some(values) = work.solve() else {
-                return;
+                return false;
             };
             // Nothing of a batch is published before it is durable.
             self.journal_barrier();
             let mut st = self.lock();
             if st.results.solved_sequence == exact {
                 self.publish_provisional(&mut st, through, values);
-                return;
+                return true;
             }
         }
+        false
     }
 
     fn publish_provisional(

@@ -8,8 +8,9 @@
 //! concurrent filter and smoother (Williams et al. 2013):
 //! - the exact solve runs as before, on a pool worker, and takes in what arrived meanwhile
 //!   when it is done;
-//! - an update it has not reflected within a quarter of the budget (at once when the update
-//!   arrived behind a running solve) is answered provisionally (`answer`): the recent
+//! - an update it has not reflected as soon as exact solves usually do (at most a quarter of
+//!   the budget, and at once when the update arrived behind a running solve, see
+//!   [`Latency::wait`]) is answered provisionally (`answer`): the recent
 //!   variables ([`window`]) are re-solved against the rest of the map as clients last saw it,
 //!   held fixed, and published at once;
 //! - when the exact solve lands, everything it changed of what clients were given is published
@@ -51,7 +52,15 @@ pub(crate) struct Latency {
     last_correction: Option<Correction>,
     corrections: VecDeque<Correction>,
     correction_count: u64,
+    /// How long the last exact solves took (see [`Latency::wait`]).
+    solves: VecDeque<Duration>,
 }
+
+/// Exact solves [`Latency::wait`] looks back on.
+const SOLVES_KEPT: usize = 64;
+/// The shortest wait for an exact solve (below it, answering provisionally costs about as much
+/// as waiting).
+const MIN_WAIT: Duration = Duration::from_micros(500);
 
 impl Latency {
     pub fn new(max_update_ms: u64) -> Self {
@@ -65,7 +74,35 @@ impl Latency {
             last_correction: None,
             corrections: VecDeque::new(),
             correction_count: 0,
+            solves: VecDeque::with_capacity(SOLVES_KEPT),
         }
+    }
+
+    /// How long an accepted batch waits for the exact solve before it is answered
+    /// provisionally: as long as exact solves usually take (twice the median of the last
+    /// [`SOLVES_KEPT`]), at most a quarter of the budget (the rest is for the provisional solve,
+    /// the journal and the transport); not at all when it arrived `behind` a running solve,
+    /// which has to finish before its exact turn comes.
+    pub fn wait(&self, behind: bool) -> Duration {
+        let quarter = Duration::from_micros(self.max_update_ms * 250);
+        if behind {
+            return Duration::ZERO;
+        }
+        let mut recent: Vec<Duration> = self.solves.iter().copied().collect();
+        if recent.len() < SOLVES_KEPT / 2 {
+            return quarter;
+        }
+        let mid = recent.len() / 2;
+        let (_, median, _) = recent.select_nth_unstable(mid);
+        (*median * 2).clamp(MIN_WAIT, quarter)
+    }
+
+    /// An exact solve took `took`.
+    pub fn solved_in(&mut self, took: Duration) {
+        if self.solves.len() == SOLVES_KEPT {
+            self.solves.pop_front();
+        }
+        self.solves.push_back(took);
     }
 
     /// Takes in an accepted batch: its new variables and factors join the window (its factors
@@ -103,12 +140,6 @@ impl Latency {
         self.correction_count += 1;
         self.last_correction = Some(correction);
     }
-}
-
-/// How long an update waits for the exact solve before it is answered provisionally: a quarter
-/// of the budget, leaving the rest for the provisional solve, the journal and the transport.
-fn provisional_after(max_update_ms: u64) -> Duration {
-    Duration::from_micros(max_update_ms * 250)
 }
 
 impl Session {
@@ -151,5 +182,41 @@ impl Session {
             }
         };
         tokio::time::timeout(timeout, either).await.unwrap_or(false)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_batch_waits_as_long_as_exact_solves_usually_take_within_a_quarter_of_the_budget() {
+        let mut latency = Latency::new(20);
+        let ms = Duration::from_millis;
+        // Too few solves seen: a quarter of the budget.
+        assert_eq!(latency.wait(false), ms(5));
+        assert_eq!(latency.wait(true), Duration::ZERO);
+        for i in 0..SOLVES_KEPT {
+            // Mostly 0.6 ms, now and then a long one: the median ignores them.
+            let took = if i % 10 == 0 {
+                ms(400)
+            } else {
+                Duration::from_micros(600)
+            };
+            latency.solved_in(took);
+        }
+        assert_eq!(latency.wait(false), Duration::from_micros(1200));
+        for _ in 0..SOLVES_KEPT {
+            latency.solved_in(ms(30));
+        }
+        assert_eq!(
+            latency.wait(false),
+            ms(5),
+            "never beyond a quarter of the budget"
+        );
+        for _ in 0..SOLVES_KEPT {
+            latency.solved_in(Duration::from_micros(50));
+        }
+        assert_eq!(latency.wait(false), MIN_WAIT);
     }
 }
