@@ -117,19 +117,7 @@ noiseModel = _Namespace(
 )
 
 
-def _shorthand(chr_):
-    def make(index):
-        return symbol(chr_, index)
-
-    make.__name__ = chr_.upper()
-    make.__doc__ = f"symbol('{chr_}', index)"
-    return make
-
-
-# gtsam.symbol_shorthand: X(1) == symbol('x', 1), for every letter.
-symbol_shorthand = _Namespace(
-    **{c.upper(): _shorthand(c) for c in "abcdefghijklmnopqrstuvwxyz"}
-)
+from . import symbol_shorthand  # noqa: E402  (gtsam.symbol_shorthand)
 
 
 def _extract_pose2(values):
