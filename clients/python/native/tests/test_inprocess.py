@@ -229,3 +229,19 @@ def test_read_and_write_g2o_round_trip(tmp_path):
     assert summary["converged"], summary["termination"]
     assert 2 * graph.error(estimate) == pytest.approx(summary["final_chi2"], rel=1e-9)
     print(f"intel in process: final chi2 {summary['final_chi2']:.6f}, {summary['solve_seconds'] * 1e3:.1f} ms")
+
+
+def test_the_readme_example_runs(tmp_path):
+    import subprocess
+    import sys
+
+    example = os.path.join(os.path.dirname(__file__), "../examples/pose_graph.py")
+    out = tmp_path / "m3500.g2o"
+    run = subprocess.run([sys.executable, example, os.path.join(DATA, "2d/carlone/input_M3500_g2o.g2o"), str(out)],
+                         capture_output=True, text=True, check=True)
+    print(run.stdout)
+    assert "error 20.109 -> " in run.stdout  # Pose2SLAMExample
+    assert "-> 68.9564" in run.stdout  # M3500's optimum (chi2 137.91295, as `factord solve`)
+    assert "ISAM2 stream: 3500 updates" in run.stdout
+    graph, values = gtsam.readG2o(str(out), False)
+    assert values.size() == 3500 and graph.size() == 5453  # the prior is written as a comment
