@@ -44,10 +44,12 @@ pub fn build_problem<'a>(
     Ok(problem)
 }
 
-/// Adds one graph factor to a problem (its variables checked there).
+/// Adds one graph factor to a problem (its variables checked there). Its residual is not
+/// evaluated here: the solver evaluates the initial cost first and refuses a non-finite one,
+/// and evaluating every factor twice was a quarter of an in-process solve of intel.
 pub fn add_factor(problem: &mut Problem, data: &Arc<FactorData>) -> PyResult<usize> {
     problem
-        .add_factor_sqrt(
+        .add_checked_factor_sqrt(
             Box::new(SharedFactor(data.factor.clone())),
             data.sqrt_information.clone(),
             data.robust,
