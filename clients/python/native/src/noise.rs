@@ -68,10 +68,14 @@ fn positive_finite(values: &[f64], what: &str) -> PyResult<()> {
     }
 }
 
+/// The largest noise model dimension: far above any factor's residual, and small enough that its
+/// matrix (dimension² doubles) is always allocated (10¹² would abort the process).
+const MAX_DIM: usize = 1000;
+
 fn positive_dim(dim: usize, what: &str) -> PyResult<()> {
-    if dim == 0 {
+    if dim == 0 || dim > MAX_DIM {
         return Err(DimensionMismatch::new_err(format!(
-            "{what}: dimension must be at least 1"
+            "{what}: dimension must be from 1 to {MAX_DIM}, got {dim}"
         )));
     }
     Ok(())

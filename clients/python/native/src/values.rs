@@ -274,7 +274,15 @@ impl Values {
         py: Python<'py>,
         d: usize,
     ) -> PyResult<(Vec<Key>, Bound<'py, PyAny>)> {
-        let kind = if d == 2 { "point2" } else { "point3" };
+        let kind = match d {
+            2 => "point2",
+            3 => "point3",
+            _ => {
+                return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                    "points have 2 or 3 coordinates, not {d}"
+                )))
+            }
+        };
         let (keys, rows) = self.rows(kind, d, |v| {
             if let Some(p) = v.as_any().downcast_ref::<Point2>() {
                 p.0.as_slice().to_vec()

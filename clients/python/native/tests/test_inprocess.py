@@ -245,3 +245,26 @@ def test_the_readme_example_runs(tmp_path):
     assert "ISAM2 stream: 3500 updates" in run.stdout
     graph, values = gtsam.readG2o(str(out), False)
     assert values.size() == 3500 and graph.size() == 5453  # the prior is written as a comment
+
+
+def test_bad_input_raises_and_never_brings_the_process_down():
+    # Each of these once could, or would in a careless binding: an allocation of dimension²
+    # doubles, a NaN through the solver, a missing file, a points query of another width.
+    with pytest.raises(gtsam.DimensionMismatch, match="from 1 to 1000"):
+        gtsam.noiseModel.Isotropic.Sigma(10**12, 1.0)
+    with pytest.raises(gtsam.DimensionMismatch):
+        gtsam.noiseModel.Diagonal.Sigmas(np.ones(10**4))
+    values, graph = gtsam.Values(), gtsam.NonlinearFactorGraph()
+    values.insert(X(1), gtsam.Pose2())
+    graph.add(gtsam.PriorFactorPose2(X(1), gtsam.Pose2(float("nan"), 0, 0), gtsam.noiseModel.Unit.Create(3)))
+    with pytest.raises(gtsam.FactordError, match="non-finite"):
+        gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    with pytest.raises(gtsam.FactordError, match="cannot read"):
+        gtsam.readG2o("/nonexistent/graph.g2o")
+    with pytest.raises(ValueError):
+        values._point_rows(5)
+    with pytest.raises(gtsam.FactordError, match="twice"):
+        graph2 = gtsam.NonlinearFactorGraph()
+        graph2.add(gtsam.BetweenFactorPose2(X(1), X(1), gtsam.Pose2(), gtsam.noiseModel.Unit.Create(3)))
+        gtsam.GaussNewtonOptimizer(graph2, values)
+    assert gtsam.ISAM2().update() is not None  # an empty first update
