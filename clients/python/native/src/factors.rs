@@ -101,7 +101,6 @@ pub fn swap_pose3_information(information: &DMatrix<f64>) -> DMatrix<f64> {
 impl FactorData {
     /// Checks the noise model's dimension against the factor's and weighs it.
     pub fn new(
-        py: Python<'_>,
         factor: Box<dyn Factor>,
         noise: &NoiseModel,
         class: FactorClass,
@@ -123,7 +122,6 @@ impl FactorData {
         };
         let sqrt_information = SqrtInformation::from_information(&information)
             .map_err(|e| InvalidNoiseModel::new_err(format!("{label}: {e}")))?;
-        let _ = py;
         Ok(Self {
             factor: Arc::from(factor),
             sqrt_information,
@@ -205,7 +203,7 @@ fn base(
     class: FactorClass,
 ) -> PyResult<NonlinearFactor> {
     let (factor, measured) = made;
-    let data = FactorData::new(py, factor, noise, class, measured.map(|m| m.into_bound(py)))?;
+    let data = FactorData::new(factor, noise, class, measured.map(|m| m.into_bound(py)))?;
     Ok(NonlinearFactor {
         data: Arc::new(data),
     })

@@ -98,7 +98,6 @@ impl NonlinearFactorGraph {
         noise: &NoiseModel,
     ) -> PyResult<()> {
         let data = FactorData::new(
-            py,
             Box::new(factord::factors::PriorSe2::new(key, prior.inner)),
             noise,
             crate::factors::FactorClass::PriorFactorPose2,
@@ -116,7 +115,6 @@ impl NonlinearFactorGraph {
         noise: &NoiseModel,
     ) -> PyResult<()> {
         let data = FactorData::new(
-            py,
             Box::new(factord::factors::PriorSe3::new(key, prior.inner)),
             noise,
             crate::factors::FactorClass::PriorFactorPose3,
