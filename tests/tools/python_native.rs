@@ -217,3 +217,54 @@ fn inprocess_python_matches_gtsam() {
         Err(failure) => panic!("{failure}"),
     }
 }
+
+/// `factord.solve` in process gives what `factord solve` prints: the same reader, the same
+/// defaults, the same optimum, to the last digits.
+#[test]
+fn inprocess_solve_matches_the_cli() {
+    let Some(installed) = installed() else { return };
+    let Some(data) = data_dir() else { return };
+    for (file, method) in [
+        ("2d/carlone/input_INTEL_g2o.g2o", "gn"),
+        ("2d/carlone/input_M3500_g2o.g2o", "lm"),
+    ] {
+        let path = data.join(file);
+        let cli = run(Command::new(env!("CARGO_BIN_EXE_factord"))
+            .args([
+                "solve",
+                "--quiet",
+                "--method",
+                method,
+                "--summary-json",
+                "-",
+            ])
+            .arg(&path))
+        .unwrap_or_else(|failure| panic!("{failure}"));
+        let summary: serde_json::Value =
+            serde_json::from_str(&cli[cli.find('{').expect("a JSON summary")..])
+                .expect("the summary is JSON");
+        let script = format!(
+            "import factord, json\n\
+             g, v = factord.readG2o({path:?}, False)\n\
+             _, s = factord.solve(g, v, method={method:?}, initialization='auto')\n\
+             print(json.dumps([s['final_chi2'], s['iterations']]))"
+        );
+        let out = run(python_in(installed, &data).args(["-c", &script]))
+            .unwrap_or_else(|failure| panic!("{failure}"));
+        let (chi2, iterations): (f64, usize) =
+            serde_json::from_str(out.trim()).expect("two numbers");
+        let expected = summary["final_chi2"].as_f64().expect("final_chi2");
+        println!(
+            "{file} ({method}): CLI chi2 {expected}, in process {chi2}, {iterations} iterations"
+        );
+        assert!(
+            (chi2 - expected).abs() <= 1e-12 * expected,
+            "{file}: in process {chi2}, factord solve {expected}"
+        );
+        assert_eq!(
+            Some(iterations as u64),
+            summary["iterations"].as_u64(),
+            "{file}"
+        );
+    }
+}

@@ -259,7 +259,7 @@ pub fn solve(
 ) -> PyResult<(Values, Py<PyAny>)> {
     let method = Method::parse(method).ok_or_else(|| {
         FactordError::new_err(format!(
-            "method {method:?}: expected gauss_newton, levenberg_marquardt or dogleg"
+            "method {method:?}: expected gauss_newton (gn), levenberg_marquardt (lm) or dogleg"
         ))
     })?;
     let initialization = match initialization {
