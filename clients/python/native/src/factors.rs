@@ -16,9 +16,10 @@ use factord::problem::Key;
 use factord::variables::Variable;
 
 use crate::errors::{DimensionMismatch, InvalidNoiseModel};
-use crate::geometry::{Pose2, Pose3, Rot2};
 use crate::keys::key_name;
 use crate::noise::NoiseModel;
+use crate::planar::{Pose2, Rot2};
+use crate::spatial::Pose3;
 
 /// A library factor shared by reference: the problem owns boxes, a graph keeps one instance.
 #[derive(Debug)]

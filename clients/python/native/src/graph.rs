@@ -9,8 +9,9 @@ use factord::problem::{Gauge, Key, Problem};
 
 use crate::errors::{problem_error, FactordError};
 use crate::factors::{factor_object, FactorData, NonlinearFactor, SharedFactor};
-use crate::geometry::{Pose2, Pose3};
 use crate::noise::NoiseModel;
+use crate::planar::Pose2;
+use crate::spatial::Pose3;
 use crate::values::Values;
 
 #[pyclass(module = "factord", name = "NonlinearFactorGraph")]

@@ -195,16 +195,16 @@ impl ISAM2 {
         values_of(&self.problem)
     }
     #[pyo3(name = "calculateEstimatePose2")]
-    fn calculate_estimate_pose2(&self, key: Key) -> PyResult<crate::geometry::Pose2> {
+    fn calculate_estimate_pose2(&self, key: Key) -> PyResult<crate::planar::Pose2> {
         let v = values_of(&self.problem);
-        Ok(crate::geometry::Pose2::from_se2(
+        Ok(crate::planar::Pose2::from_se2(
             *v.get_as::<factord::geometry::Se2>(key, "Pose2")?,
         ))
     }
     #[pyo3(name = "calculateEstimatePose3")]
-    fn calculate_estimate_pose3(&self, key: Key) -> PyResult<crate::geometry::Pose3> {
+    fn calculate_estimate_pose3(&self, key: Key) -> PyResult<crate::spatial::Pose3> {
         let v = values_of(&self.problem);
-        Ok(crate::geometry::Pose3::from_se3(
+        Ok(crate::spatial::Pose3::from_se3(
             *v.get_as::<factord::geometry::Se3>(key, "Pose3")?,
         ))
     }

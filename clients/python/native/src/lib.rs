@@ -11,22 +11,23 @@ mod arrays;
 mod dataset;
 mod errors;
 mod factors;
-mod geometry;
 mod graph;
 mod isam2;
 mod keys;
 mod marginals;
 mod noise;
 mod optimizers;
+mod planar;
+mod spatial;
 mod values;
 
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
-    m.add_class::<geometry::Rot2>()?;
-    m.add_class::<geometry::Pose2>()?;
-    m.add_class::<geometry::Rot3>()?;
-    m.add_class::<geometry::Pose3>()?;
+    m.add_class::<planar::Rot2>()?;
+    m.add_class::<planar::Pose2>()?;
+    m.add_class::<spatial::Rot3>()?;
+    m.add_class::<spatial::Pose3>()?;
     m.add_class::<noise::NoiseModel>()?;
     m.add_class::<noise::MEstimator>()?;
     m.add_class::<values::Values>()?;

@@ -15,8 +15,9 @@ use crate::arrays::{matrix_out, vector_in, vector_out};
 use crate::errors::{
     type_name, ValuesIncorrectType, ValuesKeyAlreadyExists, ValuesKeyDoesNotExist,
 };
-use crate::geometry::{Pose2, Pose3};
 use crate::keys::key_name;
+use crate::planar::Pose2;
+use crate::spatial::Pose3;
 
 #[pyclass(module = "factord", name = "Values")]
 #[derive(Debug, Default)]
