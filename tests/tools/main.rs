@@ -16,4 +16,5 @@ mod fresh_environments;
 mod help_texts;
 mod logging;
 mod python;
+mod python_native;
 mod secrets_ignored;
