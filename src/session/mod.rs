@@ -128,6 +128,7 @@ pub struct Session {
     /// The latency budget (`max_update_ms`, set once at creation or recovery), read without
     /// the lock by every accepted batch; its state is `State::latency`.
     max_update_ms: std::sync::OnceLock<u64>,
+    provisional_flight: provisional::Flight,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
     limits: crate::api::Limits,
@@ -165,6 +166,7 @@ impl Session {
             owner: std::sync::OnceLock::new(),
             ros2: std::sync::OnceLock::new(),
             max_update_ms: std::sync::OnceLock::new(),
+            provisional_flight: Default::default(),
             runtime,
             pool,
             limits,

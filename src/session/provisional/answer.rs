@@ -11,6 +11,7 @@
 
 use std::collections::{BTreeMap, HashSet};
 use std::ops::ControlFlow;
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -53,12 +54,44 @@ impl Session {
             }
             // It waits for the journal and solves: off the async threads.
             let _ = tokio::task::spawn_blocking(move || {
-                if session.answer_provisionally(sequence, again) {
+                if session.answer_in_flight(sequence, again) {
                     crate::runtime::metrics::observe_provisional_answer(armed.elapsed());
                 }
             })
             .await;
         });
+    }
+
+    /// Answers provisionally, one answer of the session at a time: a batch whose answer is due
+    /// while another is being computed leaves its sequence to that one, which answers again
+    /// when done (each answer covers every batch accepted before it). Producers that do not
+    /// wait for answers so cost one provisional solve at a time, not one per batch in
+    /// parallel. Whether an answer was published.
+    fn answer_in_flight(self: &Arc<Self>, sequence: u64, again: bool) -> bool {
+        let flight = &self.provisional_flight;
+        flight.wanted.fetch_max(sequence, Ordering::SeqCst);
+        if again {
+            flight.again.store(true, Ordering::SeqCst);
+        }
+        let mut published = false;
+        loop {
+            // The one answering sees what this call asked for (checked after it lets go).
+            let Ok(answering) = flight.answering.try_lock() else {
+                return published;
+            };
+            loop {
+                let wanted = flight.wanted.swap(0, Ordering::SeqCst);
+                if wanted == 0 {
+                    break;
+                }
+                let again = flight.again.swap(false, Ordering::SeqCst);
+                published |= self.answer_provisionally(wanted, again);
+            }
+            drop(answering);
+            if flight.wanted.load(Ordering::SeqCst) == 0 {
+                return published;
+            }
+        }
     }
 
     /// Whether it published an answer.

@@ -56,6 +56,15 @@ pub(crate) struct Latency {
     solves: VecDeque<Duration>,
 }
 
+/// One provisional answer of a session at a time (see `Session::answer_in_flight`): the
+/// newest sequence asked for meanwhile, and whether an exact solve landed under it.
+#[derive(Debug, Default)]
+pub(crate) struct Flight {
+    answering: std::sync::Mutex<()>,
+    wanted: std::sync::atomic::AtomicU64,
+    again: std::sync::atomic::AtomicBool,
+}
+
 /// Exact solves [`Latency::wait`] looks back on.
 const SOLVES_KEPT: usize = 64;
 /// The shortest wait for an exact solve (below it, answering provisionally costs about as much
@@ -94,7 +103,8 @@ impl Latency {
         }
         let mid = recent.len() / 2;
         let (_, median, _) = recent.select_nth_unstable(mid);
-        (*median * 2).clamp(MIN_WAIT, quarter)
+        // Never beyond the quarter, even when it is below the shortest wait (a 1 ms budget).
+        (*median * 2).max(MIN_WAIT).min(quarter)
     }
 
     /// An exact solve took `took`.
@@ -218,5 +228,11 @@ mod tests {
             latency.solved_in(Duration::from_micros(50));
         }
         assert_eq!(latency.wait(false), MIN_WAIT);
+        // A budget of 1 ms: a quarter of it, below the shortest wait otherwise taken.
+        let mut tight = Latency::new(1);
+        for _ in 0..SOLVES_KEPT {
+            tight.solved_in(Duration::from_micros(50));
+        }
+        assert_eq!(tight.wait(false), Duration::from_micros(250));
     }
 }
