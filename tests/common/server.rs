@@ -386,6 +386,28 @@ pub fn http_when_started(info: &Path, what: &str, stderr_path: &Path) -> String 
     }
 }
 
+/// Every JSON sample published on `key` from now on, in arrival order, for as long as the
+/// returned subscriber lives.
+pub async fn json_samples(
+    z: &zenoh::Session,
+    key: &str,
+) -> (
+    zenoh::pubsub::Subscriber<()>,
+    std::sync::mpsc::Receiver<Value>,
+) {
+    let (tx, rx) = std::sync::mpsc::channel::<Value>();
+    let tx = std::sync::Mutex::new(tx);
+    let subscriber = z
+        .declare_subscriber(key.to_string())
+        .callback(move |sample| {
+            let v = serde_json::from_slice(&sample.payload().to_bytes()).expect("JSON samples");
+            let _ = tx.lock().expect("not poisoned").send(v);
+        })
+        .await
+        .expect("subscriber declared");
+    (subscriber, rx)
+}
+
 /// A zenoh peer on loopback connected to `endpoint`, scouting off.
 pub async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
     zenoh_session("peer", "connect", endpoint).await

@@ -168,16 +168,7 @@ async fn sliding_window_over_zenoh_publishes_states_and_windows() {
     let s = TestServer::start(&[]);
     // Window events, next to the states the robot side (`fusion::stream`) waits for.
     let z = zenoh_peer(&s.zenoh).await;
-    let (window_tx, windows) = std::sync::mpsc::channel::<Value>();
-    let window_tx = std::sync::Mutex::new(window_tx);
-    let _window_sub = z
-        .declare_subscriber("factord/rover/out/window")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = window_tx.lock().unwrap().send(v);
-        })
-        .await
-        .unwrap();
+    let (_window_sub, windows) = common::server::json_samples(&z, "factord/rover/out/window").await;
     zenoh_get(&z, "factord/rpc", Some(&json!({"op": "health"})))
         .await
         .unwrap();

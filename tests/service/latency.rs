@@ -106,16 +106,7 @@ async fn provisional_answers_reach_zenoh_subscribers_and_the_idle_estimate_is_ex
     )
     .await;
     // The estimate events carry provisional answers (their sequence is the newest batch's).
-    let (events_tx, events) = std::sync::mpsc::channel::<Value>();
-    let events_tx = std::sync::Mutex::new(events_tx);
-    let _sub = z
-        .declare_subscriber("factord/zb/out/poses")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = events_tx.lock().unwrap().send(v);
-        })
-        .await
-        .unwrap();
+    let (_sub, events) = common::server::json_samples(&z, "factord/zb/out/poses").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     let mut answered_provisionally = 0;
     for batch in g2o_batches(&text) {

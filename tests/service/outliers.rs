@@ -156,16 +156,7 @@ async fn marked_closures_over_zenoh_are_decided_and_the_decisions_are_events() {
     };
     // No session policy: only the factors marked as possibly wrong are candidates.
     rpc(json!({"op": "create_session", "session": "zo", "kind": "pose_graph_2d"})).await;
-    let (events_tx, events) = std::sync::mpsc::channel::<Value>();
-    let events_tx = std::sync::Mutex::new(events_tx);
-    let _sub = z
-        .declare_subscriber("factord/zo/out/outliers")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = events_tx.lock().unwrap().send(v);
-        })
-        .await
-        .unwrap();
+    let (_sub, events) = common::server::json_samples(&z, "factord/zo/out/outliers").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
     let mut sent = BTreeSet::new();
     for mut batch in g2o_batches(&text) {

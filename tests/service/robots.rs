@@ -247,16 +247,7 @@ async fn two_robots_merge_over_zenoh_and_the_merge_is_an_event() {
     )
     .await
     .unwrap();
-    let (merges_tx, merges) = std::sync::mpsc::channel::<Value>();
-    let merges_tx = std::sync::Mutex::new(merges_tx);
-    let _sub = z
-        .declare_subscriber("factord/zr/out/merges")
-        .callback(move |sample| {
-            let v = serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
-            let _ = merges_tx.lock().unwrap().send(v);
-        })
-        .await
-        .unwrap();
+    let (_sub, merges) = common::server::json_samples(&z, "factord/zr/out/merges").await;
     tokio::time::sleep(std::time::Duration::from_millis(300)).await;
     let (a, b) = (truth(0, 40), truth(13, 30));
     let closures =

@@ -68,6 +68,11 @@ impl Session {
     /// wait for answers so cost one provisional solve at a time, not one per batch in
     /// parallel. Whether an answer was published.
     fn answer_in_flight(self: &Arc<Self>, sequence: u64, again: bool) -> bool {
+        let answered = *self.answered.borrow();
+        // Answered already, or the session is going away (its waiters were released).
+        if answered == u64::MAX || (answered >= sequence && !again) {
+            return false;
+        }
         let flight = &self.provisional_flight;
         flight.wanted.fetch_max(sequence, Ordering::SeqCst);
         if again {

@@ -2,58 +2,23 @@
 //! (shared, so a graph, its copies and every problem built from them use one instance), its
 //! weight and kernel, and what GTSAM's `measured()` returns.
 
-use std::any::Any;
 use std::sync::Arc;
 
 use nalgebra::DMatrix;
 use pyo3::prelude::*;
 
+pub use factord::factors::shared::SharedFactor;
 use factord::factors::{
-    BearingRangeSe2, BetweenSe2, BetweenSe3, EvaluationError, Factor, PriorSe2, PriorSe3, RangeSe2,
-    RangeSe2Point2, RangeSe3, RangeSe3Point3, RobustKernel, SqrtInformation,
+    BearingRangeSe2, BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2,
+    RangeSe3, RangeSe3Point3, RobustKernel, SqrtInformation,
 };
 use factord::problem::Key;
-use factord::variables::Variable;
 
 use crate::errors::{DimensionMismatch, InvalidNoiseModel};
 use crate::keys::key_name;
 use crate::noise::NoiseModel;
 use crate::planar::{Pose2, Rot2};
 use crate::spatial::Pose3;
-
-/// A library factor shared by reference: the problem owns boxes, a graph keeps one instance.
-#[derive(Debug)]
-pub struct SharedFactor(pub Arc<dyn Factor>);
-
-impl Factor for SharedFactor {
-    fn name(&self) -> &str {
-        self.0.name()
-    }
-    fn keys(&self) -> &[Key] {
-        self.0.keys()
-    }
-    fn residual_dim(&self) -> usize {
-        self.0.residual_dim()
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        self.0.variable_kinds()
-    }
-    fn evaluate(
-        &self,
-        variables: &[&dyn Variable],
-        error: &mut [f64],
-        jacobian: Option<&mut [f64]>,
-    ) -> Result<(), EvaluationError> {
-        self.0.evaluate(variables, error, jacobian)
-    }
-    // The wrapped factor answers: writers and initialisers downcast it to its own type.
-    fn as_any(&self) -> &dyn Any {
-        self.0.as_any()
-    }
-    fn predict(&self, known: &[Option<&dyn Variable>], target: usize) -> Option<Box<dyn Variable>> {
-        self.0.predict(known, target)
-    }
-}
 
 /// Which Python class a factor is, to give it back as that class (`graph.at(i)`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
