@@ -76,6 +76,11 @@ impl Session {
         // (group commit, `journal::group_commit`); the acknowledgement below, and everything a
         // solve publishes (it passes `journal_barrier` first), wait for the batch to be durable.
         drop(st);
+        // Counted from here, the wait overlaps the fsync (as the exact solve does); the answer
+        // is published only once the batch is durable (`journal_barrier`).
+        if let Some(after) = provisional_after {
+            self.spawn_provisional_answer(sequence, after, false);
+        }
         let pending = durable.as_ref().map(|d| d.pending());
         drop(durable);
         if let Some(e) = mirrored.journal_error {
@@ -90,9 +95,6 @@ impl Session {
             return Err(self.sync_refused(e));
         }
         self.publish_accepted(sequence);
-        if let Some(after) = provisional_after {
-            self.spawn_provisional_answer(sequence, after, false);
-        }
         self.emit(SessionEvent::Ack(ack.clone()));
         if !mirrored.new_values.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {

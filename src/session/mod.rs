@@ -126,8 +126,9 @@ pub struct Session {
     /// layer runs the binding.
     ros2: std::sync::OnceLock<crate::api::ros2::Ros2Binding>,
     /// The latency budget (`max_update_ms`, set once at creation or recovery), read without
-    /// the lock by every accepted batch; its state is `State::latency`.
+    /// the lock when an answer says whether it is exact; its state is `State::latency`.
     max_update_ms: std::sync::OnceLock<u64>,
+    /// The provisional answer being computed, and what was asked of it meanwhile.
     provisional_flight: provisional::Flight,
     runtime: tokio::runtime::Handle,
     pool: PoolHandle,
