@@ -25,7 +25,7 @@ metres from where the robot started. Checks, in order:
 8. services (std_srvs/srv/Trigger, called as rmw_zenoh's client calls them: a query with the
    request's CDR and attachment; the reply carries our sequence number and GID back):
    `optimize`, `export` (the TUM trajectory, its last pose the path's) and `reset` (the session
-   empty, bound again: odometry makes a new path).
+   empty and bound again, its latency budget kept: odometry makes a new path).
 
 Prints the key expressions, the type hashes, a captured marker message (size, first bytes),
 the bag's path and the errors.
@@ -132,8 +132,10 @@ def main():
         "service_namespace": "/robot1/factord",
         "keyframe_distance": 1.0, "keyframe_angle": 0.5,
     }
+    # A latency budget (docs/guide/latency.md), which `reset` keeps.
     created = http(args.http, "POST", "/v1/sessions",
-                   {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding})
+                   {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding,
+                    "max_update_ms": 50})
     # The binding is shown, defaults filled in, in the creation's answer and the session's.
     shown = http(args.http, "GET", f"/v1/sessions/{SESSION}")["ros2"]
     assert created["ros2"] == shown, (created["ros2"], shown)
@@ -368,6 +370,8 @@ def check_services(session, args, robot, tokens, received, lock, odometry):
     print("reset:", response.message)
     estimate = http(args.http, "GET", f"/v1/sessions/{SESSION}/estimate")
     assert estimate["variables"] == [], len(estimate["variables"])
+    kept = http(args.http, "GET", f"/v1/sessions/{SESSION}")
+    assert kept["latency"]["max_update_ms"] == 50, kept
 
     def rebound():
         ours = [t for t in ro.ros_graph(session) if f"/factord_{SESSION}" in t]

@@ -25,7 +25,7 @@ use super::messages::RosType;
 use super::type_hash;
 use crate::api::export::EstimateFormat;
 use crate::api::wire::{CreateSession, EstimateQuery};
-use crate::api::{DeleteSession, GetStats, Optimize};
+use crate::api::{DeleteSession, GetStats, ListOutliers, Optimize};
 use crate::service::{Caller, Command, Recording, Reply, Service, ServiceError};
 
 /// `std_srvs/srv/Trigger`, its hash computed from its `.srv` as rosidl does.
@@ -159,6 +159,16 @@ impl Server {
             Ok(_) => return failed("the session's statistics were something else".into()),
             Err(e) => return failed(e.body.message),
         };
+        // Its policy for possibly wrong closures, kept across the reset as its budget is.
+        let outliers = match self
+            .execute(Command::ListOutliers(ListOutliers {
+                session: session.clone(),
+            }))
+            .await
+        {
+            Ok(Reply::Outliers(report)) => report.policy,
+            _ => Default::default(),
+        };
         let delete = Command::DeleteSession(DeleteSession {
             session: session.clone(),
         });
@@ -173,8 +183,8 @@ impl Server {
             factor_types: Vec::new(),
             ros2: Some(Box::new(self.binding.clone())),
             robots: None,
-            outliers: Default::default(),
-            max_update_ms: None,
+            outliers,
+            max_update_ms: stats.latency.as_ref().map(|l| l.max_update_ms),
         });
         match self.execute(create).await {
             Ok(_) => done(format!("session {session} reset: empty, bound again")),
