@@ -97,9 +97,29 @@ impl Fleet {
             // Appended to across restarts; one left by an earlier run with this process id is
             // not this fleet's.
             let _ = std::fs::remove_file(fleet.stderr_path(i));
-            fleet.start_instance(i);
+            fleet.start_first_time(i);
         }
         fleet
+    }
+
+    /// Starts instance `i` for the first time. Its zenoh port was picked free before any
+    /// instance started, and a test running beside may have taken it since: then (unless the
+    /// test named the endpoints) it gets a fresh one, which no running instance knows yet
+    /// (each connects only to those started before it, or to the hub, started first).
+    fn start_first_time(&mut self, i: usize) {
+        for _ in 0..3 {
+            match self.try_start_instance(i) {
+                Ok(()) => return,
+                Err(log)
+                    if log.contains("Address already in use")
+                        && !matches!(self.wiring, Wiring::Explicit(_)) =>
+                {
+                    self.zenoh[i] = format!("tcp/127.0.0.1:{}", free_port());
+                }
+                Err(log) => panic!("instance {} did not start: {log}", self.ids[i]),
+            }
+        }
+        panic!("instance {}: no free zenoh port in 3 tries", self.ids[i]);
     }
 
     /// The fleet's shared secret (beside the state directory), written on first use.
@@ -132,6 +152,13 @@ impl Fleet {
 
     /// Starts (or restarts) instance `i`, connected as the fleet's [`Wiring`] says.
     pub fn start_instance(&mut self, i: usize) {
+        if let Err(log) = self.try_start_instance(i) {
+            panic!("instance {} did not start: {log}", self.ids[i]);
+        }
+    }
+
+    /// Starts instance `i`; its log when it exits (or does not serve within 20 s) instead.
+    fn try_start_instance(&mut self, i: usize) -> Result<(), String> {
         let id = self.ids[i].clone();
         let info = self.state_dir.join(format!("server-{id}.json"));
         let _ = std::fs::remove_file(&info);
@@ -157,8 +184,25 @@ impl Fleet {
         if !connect.is_empty() {
             cmd.args(["--zenoh-connect", &connect.join(",")]);
         }
-        let child = cmd.spawn().expect("factord starts");
-        let http = super::server::http_when_started(&info, &format!("instance {id}"), &stderr_path);
+        // This start's own lines of the log (it is appended to across restarts).
+        let logged_before = std::fs::metadata(&stderr_path).map_or(0, |m| m.len() as usize);
+        let mut child = cmd.spawn().expect("factord starts");
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let http = loop {
+            if let Ok(text) = std::fs::read_to_string(&info) {
+                if let Ok(v) = serde_json::from_str::<Value>(&text) {
+                    break format!("http://{}", v["http"].as_str().expect("http address"));
+                }
+            }
+            // Exited before it served: its log says why.
+            if child.try_wait().ok().flatten().is_some() || Instant::now() > deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                let log = read(&stderr_path);
+                return Err(log.get(logged_before..).unwrap_or(&log).to_string());
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
         self.instances[i] = Some(Instance {
             id,
             http,
@@ -167,6 +211,7 @@ impl Fleet {
             stderr_path,
             child,
         });
+        Ok(())
     }
 
     pub fn instance(&self, i: usize) -> &Instance {

@@ -367,25 +367,6 @@ fn started(info: &Path, child: &mut Child) -> Option<String> {
     None
 }
 
-/// The HTTP URL a starting server writes to `info` (its `server.json`), waited for up to 20 s;
-/// `what` and its stderr in the failure.
-pub fn http_when_started(info: &Path, what: &str, stderr_path: &Path) -> String {
-    let deadline = Instant::now() + Duration::from_secs(20);
-    loop {
-        if let Ok(text) = std::fs::read_to_string(info) {
-            if let Ok(v) = serde_json::from_str::<Value>(&text) {
-                return format!("http://{}", v["http"].as_str().expect("http address"));
-            }
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{what} did not start: {}",
-            read(stderr_path)
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 /// Every JSON sample published on `key` from now on, in arrival order, for as long as the
 /// returned subscriber lives.
 pub async fn json_samples(
