@@ -471,8 +471,7 @@ fn add_to_problem(
     let problem = problem.as_mut().expect("caller checked");
     let index = index.as_mut().expect("kept with the problem");
     let first_new_factor = problem.factors().len();
-    let mut structural =
-        !prepared.remove.is_empty() || !prepared.fix.is_empty() || !prepared.merges.is_empty();
+    let structural = prepared.changes_more_than_it_adds();
     let adds_variables = !prepared.variables.is_empty();
     for v in prepared.variables {
         problem.add_variable(v.key, v.value).expect("validated");
@@ -510,7 +509,6 @@ fn add_to_problem(
     for (key, v) in &prepared.guesses {
         let idx = problem.values.index_of(*key).expect("validated");
         problem.values.set(idx, v.as_ref());
-        structural = true;
     }
     robots::resync_mirror(problem, &mut st.mirror.entries, &moved);
     ProblemChange {

@@ -39,4 +39,13 @@ impl PreparedBatch {
     pub fn factor_count(&self) -> usize {
         self.factors.len()
     }
+
+    /// Whether it changes more than it adds (removals, fixes, guesses, merges): the next solve
+    /// is of the whole problem, and no provisional answer knows what it changed.
+    pub fn changes_more_than_it_adds(&self) -> bool {
+        !self.remove.is_empty()
+            || !self.fix.is_empty()
+            || !self.guesses.is_empty()
+            || !self.merges.is_empty()
+    }
 }

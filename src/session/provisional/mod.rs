@@ -49,11 +49,21 @@ pub(crate) struct Latency {
     /// A batch with removals, fixes or guesses (the newest such sequence): the window does
     /// not know what it changed, so no provisional answer until the exact estimate covers it.
     structural: u64,
-    last_correction: Option<Correction>,
+    /// The most recent corrections (the last is the last one), and how many there were.
     corrections: VecDeque<Correction>,
     correction_count: u64,
-    /// How long the last exact solves took (see [`Latency::wait`]).
+    /// How long the last exact solves took, and twice their median (see [`Latency::wait`]),
+    /// computed as each solve lands rather than for every batch.
     solves: VecDeque<Duration>,
+    usual_wait: Option<Duration>,
+}
+
+/// Appends `item`, dropping the oldest beyond `keep`.
+fn push_bounded<T>(queue: &mut VecDeque<T>, keep: usize, item: T) {
+    if queue.len() == keep {
+        queue.pop_front();
+    }
+    queue.push_back(item);
 }
 
 /// One provisional answer of a session at a time (see `Session::answer_in_flight`): the
@@ -80,10 +90,10 @@ impl Latency {
             provisional: HashMap::new(),
             answers: 0,
             structural: 0,
-            last_correction: None,
             corrections: VecDeque::new(),
             correction_count: 0,
             solves: VecDeque::with_capacity(SOLVES_KEPT),
+            usual_wait: None,
         }
     }
 
@@ -97,33 +107,27 @@ impl Latency {
         if behind {
             return Duration::ZERO;
         }
-        let mut recent: Vec<Duration> = self.solves.iter().copied().collect();
-        if recent.len() < SOLVES_KEPT / 2 {
-            return quarter;
-        }
-        let mid = recent.len() / 2;
-        let (_, median, _) = recent.select_nth_unstable(mid);
         // Never beyond the quarter, even when it is below the shortest wait (a 1 ms budget).
-        (*median * 2).max(MIN_WAIT).min(quarter)
+        self.usual_wait
+            .map_or(quarter, |usual| usual.max(MIN_WAIT).min(quarter))
     }
 
     /// An exact solve took `took`.
     pub fn solved_in(&mut self, took: Duration) {
-        if self.solves.len() == SOLVES_KEPT {
-            self.solves.pop_front();
+        push_bounded(&mut self.solves, SOLVES_KEPT, took);
+        if self.solves.len() >= SOLVES_KEPT / 2 {
+            let mut recent: Vec<Duration> = self.solves.iter().copied().collect();
+            let mid = recent.len() / 2;
+            let (_, median, _) = recent.select_nth_unstable(mid);
+            self.usual_wait = Some(*median * 2);
         }
-        self.solves.push_back(took);
     }
 
     /// Takes in an accepted batch: its new variables and factors join the window (its factors
     /// then reach the problem shared with it); one that changes more than it adds stops
     /// provisional answers until the exact estimate covers it.
     pub fn take_in(&mut self, sequence: u64, prepared: &mut PreparedBatch) {
-        if !prepared.remove.is_empty()
-            || !prepared.fix.is_empty()
-            || !prepared.guesses.is_empty()
-            || !prepared.merges.is_empty()
-        {
+        if prepared.changes_more_than_it_adds() {
             self.structural = self.structural.max(sequence);
         }
         let keys = prepared.variables.iter().map(|v| v.key);
@@ -137,18 +141,14 @@ impl Latency {
             answered_sequence: self.answered.max(exact),
             exact_sequence: exact,
             provisional_answers: self.answers,
-            last_correction: self.last_correction,
+            last_correction: self.corrections.back().copied(),
             corrections: CorrectionStats::of(&kept, self.correction_count),
         }
     }
 
     fn record_correction(&mut self, correction: Correction) {
-        if self.corrections.len() == CORRECTIONS_KEPT {
-            self.corrections.pop_front();
-        }
-        self.corrections.push_back(correction);
+        push_bounded(&mut self.corrections, CORRECTIONS_KEPT, correction);
         self.correction_count += 1;
-        self.last_correction = Some(correction);
     }
 }
 
