@@ -35,6 +35,7 @@ mod relinearize_budget;
 mod report;
 mod subtree_updates;
 mod summary;
+mod whole_order;
 
 use std::time::Instant;
 
@@ -142,6 +143,10 @@ pub struct IncrementalEngine {
     local: Vec<u32>,
     /// Which sizes of refactored parts were worth a nested-dissection trial last time.
     trials: ordering::TrialHistory,
+    /// Scalar nonzeros of the factor right after it was last ordered whole, and the size below
+    /// which its order is left alone (`None`: the default; see `whole_order`).
+    whole_order_nnz: usize,
+    whole_order_from: Option<usize>,
 }
 
 impl IncrementalEngine {
@@ -206,6 +211,10 @@ impl IncrementalEngine {
             self.last[v] = true;
         }
         report.linearize_seconds = start.elapsed().as_secs_f64();
+        if known > 0 && self.fill_outgrew_its_order() {
+            self.touch_every_column(&mut touched);
+            report.whole_reorder = true;
+        }
         let mut changed = Vec::new();
         for pass in 0..params.max_passes.max(1) {
             if pass > 0 || known > 0 {
@@ -215,7 +224,10 @@ impl IncrementalEngine {
                 break;
             }
             report.passes += 1;
-            let only_adds = pass == 0 && known > 0 && report.relinearized_variables == 0;
+            let only_adds = pass == 0
+                && known > 0
+                && report.relinearized_variables == 0
+                && !report.whole_reorder;
             if !(only_adds
                 && self.add_factors(
                     problem,
@@ -233,6 +245,9 @@ impl IncrementalEngine {
             for &v in &constrained {
                 self.last[v] = false;
             }
+        }
+        if known == 0 || report.whole_reorder {
+            self.whole_order_nnz = self.factor.nnz();
         }
         debug_assert!(
             self.pending.is_empty(),

@@ -26,6 +26,9 @@ pub struct UpdateReport {
     /// Of the refactored columns, those factored in dense fronts (runs that form a clique, the root clique
     /// among them: see `block_factor::front`).
     pub dense_columns: usize,
+    /// The whole factor was ordered and eliminated again: its fill had outgrown what a fresh
+    /// order gave it (see `whole_order`).
+    pub whole_reorder: bool,
     /// Untouched subtrees hanging off the refactored part (their columns were reused).
     pub reused_subtrees: usize,
     /// Columns back-substitution visited, and those whose value changed by more than the
