@@ -20,6 +20,12 @@ pub struct Limits {
     /// Variables and live factors one session may hold (422 `session_full` beyond).
     pub max_variables_per_session: usize,
     pub max_factors_per_session: usize,
+    /// Estimated bytes one session may hold (`memory_bytes` in its statistics): a batch that
+    /// adds variables or factors to a session already past it gets 422 `session_full` (a batch
+    /// that only removes, fixes or re-guesses still passes). One session streaming without end
+    /// must not take the memory every other session lives in. Default: a quarter of the
+    /// machine's physical memory (4 GiB where it cannot be read).
+    pub max_session_memory_bytes: u64,
     /// A session's solve or a batch job stops after this long (its preempted turns added up),
     /// keeping the best estimate it reached; `last_error` (sessions) or the Summary's
     /// `interrupted` termination (jobs) says so.
@@ -63,6 +69,7 @@ impl Default for Limits {
             max_batch_items: 1_000_000,
             max_variables_per_session: 10_000_000,
             max_factors_per_session: 50_000_000,
+            max_session_memory_bytes: physical_memory_bytes().map_or(4 << 30, |total| total / 4),
             max_solve_ms: 600_000,
             // Ten seconds of one session's lock: the costliest user-defined factors admit
             // ~20 000 in that time; ordinary ones millions.
@@ -79,4 +86,12 @@ impl Default for Limits {
             max_producers_per_session: 1024,
         }
     }
+}
+
+/// The machine's physical memory (`MemTotal` of `/proc/meminfo`), where it can be read.
+fn physical_memory_bytes() -> Option<u64> {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = meminfo.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
 }

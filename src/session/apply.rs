@@ -35,6 +35,7 @@ impl Session {
             }
         }
         self.check_batch_size(&batch)?;
+        self.check_session_memory(&st, &batch)?;
         let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
         // Taken with the journal held, before the batch is written or a solve of it scheduled:
         // a solve's `journal_barrier` then waits for this batch's acknowledgement.
@@ -344,6 +345,28 @@ impl Session {
                 ),
             )
             .at("batch"));
+        }
+        Ok(())
+    }
+
+    /// A batch that adds variables or factors to a session past
+    /// `limits.max_session_memory_bytes` is refused (read before the journal's lock: the
+    /// estimate counts the journal's own memory).
+    fn check_session_memory(&self, st: &State, batch: &Batch) -> Result<(), ServiceError> {
+        let adds = !(batch.variables.is_empty() && batch.factors.is_empty());
+        let held = self.memory_bytes_locked(st) as u64;
+        if adds && held > self.limits.max_session_memory_bytes {
+            const MIB: u64 = 1 << 20;
+            return Err(ServiceError::invalid(
+                "session_full",
+                "batch",
+                format!(
+                    "session `{}` holds about {} MiB, more than limits.max_session_memory_bytes ({} MiB): it takes no more variables or factors (removals still pass); start a new session or raise the limit",
+                    self.name,
+                    held / MIB,
+                    self.limits.max_session_memory_bytes / MIB
+                ),
+            ));
         }
         Ok(())
     }

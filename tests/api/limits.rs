@@ -152,3 +152,55 @@ async fn a_batch_job_stops_at_the_time_limit_with_its_best_estimate() {
     assert_eq!(v["estimate"]["variables"].as_array().unwrap().len(), 3000);
     s.assert_no_panic();
 }
+
+/// B37: a session past `limits.max_session_memory_bytes` takes no more variables or factors,
+/// names the limit, keeps what it had, and still lets a client remove factors; other
+/// sessions go on.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_session_past_its_memory_limit_takes_nothing_more_but_removals() {
+    let limit: u64 = 256 << 10;
+    let s = server_with_limits(json!({ "max_session_memory_bytes": limit }));
+    let c = client();
+    for name in ["big", "small"] {
+        let create = json!({"session": name, "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}});
+        assert_eq!(post(&c, &s.url("/v1/sessions"), &create).await.0, 201);
+    }
+    let url = s.url("/v1/sessions/big/batches");
+    let between = |a: u64| json!({"type": "between_se2", "keys": [a, a + 1], "measurement": [1, 0, 0], "sigmas": [1, 1, 1]});
+    let mut next = 0u64;
+    let refused = loop {
+        let factors: Vec<Value> = (next..next + 50).map(between).collect();
+        let mut batch = variables(next..next + 51);
+        batch["factors"] = json!(factors);
+        if next > 0 {
+            // Key `next` is already there.
+            batch["variables"] = json!(batch["variables"].as_array().unwrap()[1..]);
+        }
+        let (status, v) = post(&c, &url, &batch).await;
+        if status != 200 {
+            break (status, v);
+        }
+        next += 50;
+        assert!(next < 100_000, "the limit never refused a batch");
+    };
+    let (status, v) = refused;
+    assert_eq!(status, 422, "{v}");
+    assert_eq!(
+        (v["error"]["code"].as_str(), v["error"]["field"].as_str()),
+        (Some("session_full"), Some("batch"))
+    );
+    let message = v["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("limits.max_session_memory_bytes"),
+        "{message}"
+    );
+    let (_, stats) = get(&c, &s.url("/v1/sessions/big")).await;
+    assert!(stats["memory_bytes"].as_u64().unwrap() > limit, "{stats}");
+    assert_eq!(stats["num_variables"].as_u64(), Some(next + 1));
+    // Removing is how a client makes room: it passes.
+    let (status, v) = post(&c, &url, &json!({"remove_factors": [0, 1]})).await;
+    assert_eq!(status, 200, "{v}");
+    // Another session is not affected.
+    let small = s.url("/v1/sessions/small/batches");
+    assert_eq!(post(&c, &small, &variables(0..10)).await.0, 200);
+}
