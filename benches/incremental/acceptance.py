@@ -110,8 +110,14 @@ def run(system: str, path: str, args, binary: str, workdir: str):
                             "zenoh-binary": ("zenoh", ["--poses", "binary"]),
                             "http-budget": ("http", budget),
                             "zenoh-budget": ("zenoh", ["--poses", "none"] + budget)}[system]
+        # Issue 55 item 4: memory along the stream and the restart after a kill -9 (HTTP).
+        scale = []
+        if transport == "http" and args.memory_every:
+            scale += ["--memory-every", str(args.memory_every)]
+        if transport == "http" and args.restart:
+            scale += ["--restart"]
         cmd = [binary, path, "--transport", transport, "--fsync", args.fsync,
-               "--dump-latencies", dump] + extra + limit
+               "--dump-latencies", dump] + extra + limit + scale
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
@@ -141,6 +147,16 @@ def stats(report, windows, every):
         out["correction max p99"] = corrections["max_p99"]
         out["correction max max"] = corrections["max_max"]
         out["provisional answers"] = report["latency"]["provisional_answers"]
+    for m in report.get("memory_at") or []:
+        # Peak resident memory so far per pose, and the session's own estimate (KB per pose).
+        n = m["updates"]
+        out[f"peak KB/pose at {n}"] = (m["peak_rss_kb"] or float("nan")) / n
+        out[f"session KB/pose at {n}"] = (m["session_memory_bytes"] or float("nan")) / 1024 / n
+    restart = report.get("restart")
+    if restart:
+        out["restart after kill -9 (s)"] = restart["restart_seconds"]
+        out["restart peak RSS (MB)"] = (restart["peak_rss_kb"] or float("nan")) / 1024
+        out["state dir (MB)"] = restart["state_dir_bytes"] / 2**20
     for a, b in windows:
         part = sorted(lat[a:b])
         out[f"p99 {a}-{b}"] = percentile(part, 0.99) if part else float("nan")
@@ -182,11 +198,13 @@ def table(name, rounds, systems):
                           "idle_chi2_gap": "≤ 1e-5 (ours)"}.get(key, ""))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     # Issue 55's rows, for the systems with a latency budget.
-    budget_keys = [k for k in med[systems[-1]] if k.startswith(("correction", "provisional"))]
+    budget_keys = [k for k in med[systems[-1]]
+                   if k.startswith(("correction", "provisional", "peak KB", "session KB", "restart",
+                                    "state dir"))]
     for key in budget_keys:
-        cells = [("{:.0f}" if key.startswith("provisional") else "{:.4f}").format(med[sy][key])
-                 if key in med[sy] else "" for sy in systems]
-        label = key + ("" if key.startswith("provisional") else " (m)")
+        fmt = "{:.4f}" if key.startswith("correction") else "{:.2f}" if key.startswith("restart") else "{:.1f}"
+        cells = [fmt.format(med[sy][key]) if key in med[sy] else "" for sy in systems]
+        label = key + (" (m)" if key.startswith("correction") else "")
         lines.append(f"| {label} | " + " | ".join(cells) + ("" if not has_isam2 else " |" * (len(ours) + 1)) + " |")
     return "\n".join(lines)
 
@@ -202,6 +220,10 @@ def main():
     p.add_argument("--relinearize-skip", type=int, default=1)
     p.add_argument("--max-update-ms", type=int, default=20,
                    help="the latency budget of the *-budget systems (issue 55)")
+    p.add_argument("--memory-every", type=int,
+                   help="HTTP systems: the server's peak memory and the session's estimate every N updates")
+    p.add_argument("--restart", action="store_true",
+                   help="HTTP systems: kill -9 the idle server, start it again, time the recovery")
     p.add_argument("--windows", default="", help="A:B,C:D: p99 over updates [A, B)")
     p.add_argument("--every", type=int, help="p99 of every consecutive W updates")
     p.add_argument("--json", help="write every run's report (with latencies) and the tables here")

@@ -59,14 +59,14 @@ fn main() {
         service
             .execute(
                 &Caller::Trusted,
-                Command::CreateSession(CreateSession {
-                    session: Some("bench".into()),
-                    kind: kind.into(),
-                    options: None,
-                    auto_optimize: Default::default(),
-                    factor_types: vec![],
-                    ros2: None,
-                }),
+                // From JSON, as a client sends it: the fields it leaves out take their defaults.
+                Command::CreateSession(
+                    serde_json::from_value::<CreateSession>(serde_json::json!({
+                        "session": "bench",
+                        "kind": kind,
+                    }))
+                    .expect("a valid create request"),
+                ),
                 Recording::History,
             )
             .await

@@ -6,14 +6,20 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use crate::common::server::TestServer;
-use crate::Streamed;
+use crate::{MemoryAt, Streamed};
 
 /// Streams `bodies` (serialised batches, prepared before the clock starts) into `session`.
 /// Latency of an update: from sending the request to having read and parsed the whole answer;
 /// when the answer does not say `solved: true` (a wait that timed out), the time until the
 /// session's `solved_sequence` reaches the batch is added (polled every millisecond, counted in
-/// `fallbacks`).
-pub async fn stream(s: &TestServer, session: &str, bodies: &[String]) -> Streamed {
+/// `fallbacks`). Every `memory_every` updates (outside the clock), the server's peak resident
+/// memory so far and the session's own estimate are recorded in `Streamed::memory`.
+pub async fn stream(
+    s: &TestServer,
+    session: &str,
+    bodies: &[String],
+    memory_every: Option<usize>,
+) -> Streamed {
     let client = reqwest::Client::builder()
         .timeout(Duration::from_secs(300))
         .pool_max_idle_per_host(1)
@@ -24,6 +30,7 @@ pub async fn stream(s: &TestServer, session: &str, bodies: &[String]) -> Streame
     let mut latencies_ms = Vec::with_capacity(bodies.len());
     let mut fallbacks = 0;
     let (mut slow_exact, mut slow_provisional) = (0usize, 0usize);
+    let mut memory = Vec::new();
     let start = Instant::now();
     for (i, body) in bodies.iter().enumerate() {
         let t = Instant::now();
@@ -68,6 +75,21 @@ pub async fn stream(s: &TestServer, session: &str, bodies: &[String]) -> Streame
             }
         }
         latencies_ms.push(ms);
+        if memory_every.is_some_and(|every| (i + 1) % every == 0) {
+            let stats: Value = client
+                .get(&stats_url)
+                .send()
+                .await
+                .expect("stats")
+                .json()
+                .await
+                .expect("stats JSON");
+            memory.push(MemoryAt {
+                updates: i + 1,
+                peak_rss_kb: crate::proc_status_kb(s.pid(), "VmHWM"),
+                session_memory_bytes: stats["memory_bytes"].as_u64(),
+            });
+        }
     }
     if slow_exact + slow_provisional > 0 {
         eprintln!(
@@ -79,5 +101,6 @@ pub async fn stream(s: &TestServer, session: &str, bodies: &[String]) -> Streame
         wall_seconds: start.elapsed().as_secs_f64(),
         fallbacks,
         poses_received: None,
+        memory,
     }
 }

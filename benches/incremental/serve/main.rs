@@ -32,6 +32,11 @@
 //! per line, in stream order; `--dump-server` the server's view of every solve
 //! (`server_view.rs`). The JSON carries the server's latency histograms (fsync, solve, landing,
 //! provisional answers) from its `/metrics`.
+//!
+//! `--memory-every N` (HTTP) records the server's peak resident memory so far and the session's
+//! `memory_bytes` every N updates (`memory_at`); `--restart` then kills the server with SIGKILL
+//! once it is idle and starts it again on its state directory, and reports how long until the
+//! session answers with every variable (`restart_seconds`) and the new server's peak memory.
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
@@ -63,6 +68,17 @@ pub struct Streamed {
     pub fallbacks: usize,
     /// Bytes and samples the poses subscriber received (zenoh with `--poses json|binary`).
     pub poses_received: Option<(u64, u64)>,
+    /// `--memory-every N` (HTTP): the server's memory every N updates.
+    pub memory: Vec<MemoryAt>,
+}
+
+/// The server's memory after `updates` updates: its peak resident set so far and the
+/// session's own estimate (`memory_bytes`).
+#[derive(serde::Serialize)]
+pub struct MemoryAt {
+    pub updates: usize,
+    pub peak_rss_kb: Option<u64>,
+    pub session_memory_bytes: Option<u64>,
 }
 
 /// A field of `/proc/<pid>/status` in kB (`VmHWM`: peak resident set).
@@ -113,7 +129,8 @@ fn main() {
     let args = args::Args::from_env();
     let usage = "usage: incremental_serve <file.g2o> --transport http|zenoh [--limit N] \
                  [--json out] [--dump-latencies out] [--dump-server out] \
-                 [--fsync always|interval|never] [--poses json|binary|none]";
+                 [--fsync always|interval|never] [--poses json|binary|none] \
+                 [--max-update-ms N] [--memory-every N] [--restart]";
     let path = args.first(usage);
     let transport = args
         .value("--transport")
@@ -137,6 +154,11 @@ fn main() {
         v.parse()
             .unwrap_or_else(|_| panic!("--max-update-ms N, not {v}"))
     });
+    let memory_every: Option<usize> = args.value("--memory-every").map(|v| {
+        v.parse()
+            .unwrap_or_else(|_| panic!("--memory-every N, not {v}"))
+    });
+    let restart = args.has("--restart");
     let text = std::fs::read_to_string(&path).expect("readable graph");
 
     let mut batches = if landmarks::is_gtsam_text(&text) {
@@ -162,77 +184,95 @@ fn main() {
         .build()
         .expect("tokio runtime");
     let dump_server = args.value("--dump-server");
-    let (streamed, cpu, estimate, idle_estimate, idle_seconds, stats, peak_kb, rss_kb, histograms) =
-        runtime.block_on(async {
-            let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
-            let c = common::server::client();
-            let session = "stream";
-            let mut request = json!({"session": session, "kind": kind});
-            if let Some(budget) = max_update_ms {
-                request["max_update_ms"] = json!(budget);
+    let (
+        streamed,
+        cpu,
+        estimate,
+        idle_estimate,
+        idle_seconds,
+        stats,
+        peak_kb,
+        rss_kb,
+        histograms,
+        restarted,
+    ) = runtime.block_on(async {
+        let s = TestServer::start(&["--log", "warn", "--fsync", fsync.as_str()]);
+        let c = common::server::client();
+        let session = "stream";
+        let mut request = json!({"session": session, "kind": kind});
+        if let Some(budget) = max_update_ms {
+            request["max_update_ms"] = json!(budget);
+        }
+        create(&c, &s, &request).await;
+        let view = match &dump_server {
+            Some(out) => Some((
+                server_view::ServerView::listen(&s.zenoh, session).await,
+                out,
+            )),
+            None => None,
+        };
+        let started = std::time::Instant::now();
+        let cpu_start = CpuUse::now(s.pid());
+        let streamed = match transport.as_str() {
+            "http" => http::stream(&s, session, &bodies, memory_every).await,
+            _ => {
+                let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
+                let base = info["sequence"].as_u64().expect("sequence");
+                let budget = max_update_ms.is_some();
+                zenoh_stream::stream(&s, session, base, &bodies, poses, budget).await
             }
-            create(&c, &s, &request).await;
-            let view = match &dump_server {
-                Some(out) => Some((
-                    server_view::ServerView::listen(&s.zenoh, session).await,
-                    out,
-                )),
-                None => None,
-            };
-            let started = std::time::Instant::now();
-            let cpu_start = CpuUse::now(s.pid());
-            let streamed = match transport.as_str() {
-                "http" => http::stream(&s, session, &bodies).await,
-                _ => {
-                    let (_, info) = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await;
-                    let base = info["sequence"].as_u64().expect("sequence");
-                    let budget = max_update_ms.is_some();
-                    zenoh_stream::stream(&s, session, base, &bodies, poses, budget).await
-                }
-            };
-            let cpu = CpuUse::now(s.pid()).since(cpu_start);
-            let peak_kb = proc_status_kb(s.pid(), "VmHWM");
-            let rss_kb = proc_status_kb(s.pid(), "VmRSS");
-            let (status, estimate) =
-                get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
-            assert_eq!(status, 200, "{estimate}");
-            // Then idle: the session polishes its estimate; wait until it says it converged.
-            let idle = std::time::Instant::now();
-            let mut stats = serde_json::Value::Null;
-            while idle.elapsed() < Duration::from_secs(60) {
-                stats = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await.1;
-                if stats["converged"] == true {
-                    break;
-                }
-                tokio::time::sleep(Duration::from_millis(10)).await;
+        };
+        let cpu = CpuUse::now(s.pid()).since(cpu_start);
+        let peak_kb = proc_status_kb(s.pid(), "VmHWM");
+        let rss_kb = proc_status_kb(s.pid(), "VmRSS");
+        let (status, estimate) = get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
+        assert_eq!(status, 200, "{estimate}");
+        // Then idle: the session polishes its estimate; wait until it says it converged.
+        let idle = std::time::Instant::now();
+        let mut stats = serde_json::Value::Null;
+        while idle.elapsed() < Duration::from_secs(60) {
+            stats = get(&c, &s.url(&format!("/v1/sessions/{session}"))).await.1;
+            if stats["converged"] == true {
+                break;
             }
-            let idle_seconds = idle.elapsed().as_secs_f64();
-            let (status, idle_estimate) =
-                get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
-            assert_eq!(status, 200, "{idle_estimate}");
-            // The server's view, the idle polish included.
-            if let Some((view, out)) = &view {
-                std::fs::write(out, view.lines(started)).expect("writable --dump-server");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let idle_seconds = idle.elapsed().as_secs_f64();
+        let (status, idle_estimate) =
+            get(&c, &s.url(&format!("/v1/sessions/{session}/estimate"))).await;
+        assert_eq!(status, 200, "{idle_estimate}");
+        // The server's view, the idle polish included.
+        if let Some((view, out)) = &view {
+            std::fs::write(out, view.lines(started)).expect("writable --dump-server");
+        }
+        let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
+        let histograms = server_view::histograms(&metrics.text().await.expect("metrics text"));
+        s.assert_no_panic();
+        let state_dir = s.state_dir.clone();
+        let restarted = match restart {
+            true => {
+                Some(restart_after_kill(s, session, &fsync, stats["num_variables"].clone()).await)
             }
-            let metrics = c.get(s.url("/metrics")).send().await.expect("metrics");
-            let histograms = server_view::histograms(&metrics.text().await.expect("metrics text"));
-            s.assert_no_panic();
-            let state_dir = s.state_dir.clone();
-            let _ = s.terminate(Duration::from_secs(10));
-            let _ = std::fs::remove_dir_all(&state_dir);
-            let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
-            (
-                streamed,
-                cpu,
-                estimate,
-                idle_estimate,
-                idle_seconds,
-                stats,
-                peak_kb,
-                rss_kb,
-                histograms,
-            )
-        });
+            false => {
+                let _ = s.terminate(Duration::from_secs(10));
+                None
+            }
+        };
+        let _ = std::fs::remove_dir_all(&state_dir);
+        let _ = std::fs::remove_file(state_dir.with_extension("stderr"));
+        (
+            streamed,
+            cpu,
+            estimate,
+            idle_estimate,
+            idle_seconds,
+            stats,
+            peak_kb,
+            rss_kb,
+            histograms,
+            restarted,
+        )
+    });
 
     let truncated = optimum::restrict(&text, &kept);
     let chi2 = optimum::compare(&truncated, &path, &estimate);
@@ -275,6 +315,10 @@ fn main() {
         "latency": stats["latency"],
     });
     report["server_histograms"] = histograms;
+    report["memory_at"] = json!(streamed.memory);
+    if let Some(restarted) = restarted {
+        report["restart"] = restarted;
+    }
     for (k, v) in chi2.as_object().expect("an object") {
         report[k] = v.clone();
     }
@@ -294,4 +338,49 @@ fn main() {
         let lines: String = latencies.iter().map(|v| format!("{v:.6}\n")).collect();
         std::fs::write(out, lines).expect("writable --dump-latencies");
     }
+}
+
+/// Kills the server with SIGKILL and starts it again on its state directory: how long until
+/// `session` answers with all `variables`, and the new server's peak memory then.
+async fn restart_after_kill(s: TestServer, session: &str, fsync: &str, variables: Value) -> Value {
+    let state_dir = s.state_dir.clone();
+    let _ = s.kill();
+    let started = std::time::Instant::now();
+    let s = TestServer::start_at(&state_dir, &["--log", "warn", "--fsync", fsync], &[]);
+    let c = common::server::client();
+    let url = s.url(&format!("/v1/sessions/{session}"));
+    loop {
+        let (status, info) = get(&c, &url).await;
+        if status == 200 && info["num_variables"] == variables {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(1800),
+            "the session did not come back: {status} {info}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    let report = json!({
+        "restart_seconds": seconds,
+        "peak_rss_kb": proc_status_kb(s.pid(), "VmHWM"),
+        "state_dir_bytes": directory_bytes(&state_dir),
+    });
+    s.assert_no_panic();
+    let _ = s.terminate(Duration::from_secs(10));
+    report
+}
+
+/// Bytes of the files under `dir` (the journal and snapshots).
+fn directory_bytes(dir: &std::path::Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .map(|e| match e.file_type() {
+            Ok(t) if t.is_dir() => directory_bytes(&e.path()),
+            _ => e.metadata().map_or(0, |m| m.len()),
+        })
+        .sum()
 }

@@ -218,5 +218,6 @@ pub async fn stream(
                 received.1.load(Ordering::Relaxed),
             )
         }),
+        memory: Vec::new(),
     }
 }
