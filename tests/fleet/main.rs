@@ -8,6 +8,7 @@
 mod common;
 
 mod fleet;
+mod fleet_budget;
 mod fleet_login;
 mod fleet_owner;
 mod fleet_robots;
