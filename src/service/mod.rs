@@ -280,18 +280,7 @@ impl Service {
         }
         if self.journal.is_some() {
             // What recovery needs to build it again: the resolved name, options and policy.
-            let info = session.info();
-            let record = CreateSession {
-                session: Some(name.clone()),
-                kind: info.kind,
-                options: Some(info.options),
-                auto_optimize: info.auto_optimize,
-                factor_types: session.factor_types().definitions(),
-                ros2: session.ros2_binding().cloned().map(Box::new),
-                robots: session.robots_options(),
-                outliers: session.outlier_policy(),
-                max_update_ms: session.max_update_ms(),
-            };
+            let record = session.creation_record();
             if let Some(durability) = self.create_files(&name, &record, owner.as_deref())? {
                 session.attach(durability);
             }

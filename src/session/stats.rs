@@ -3,7 +3,7 @@
 
 use super::engine::Engine;
 use super::{Session, State};
-use crate::api::wire::{FactorId, SessionInfo, SessionStats};
+use crate::api::wire::{CreateSession, FactorId, SessionInfo, SessionStats};
 use crate::problem::Key;
 
 impl Session {
@@ -18,6 +18,25 @@ impl Session {
             instance: None,
             ros2: self.ros2_binding().cloned().map(Box::new),
             max_update_ms: st.latency.as_ref().map(|l| l.max_update_ms),
+        }
+    }
+
+    /// The creation request that builds this session again, empty, as it is configured now:
+    /// its options and policy, every factor type it holds (also those declared after its
+    /// creation), its ROS 2 binding, robots, outlier policy and latency budget. Journalled as
+    /// its creation record, and what a ROS 2 `reset` creates again.
+    pub fn creation_record(&self) -> CreateSession {
+        let info = self.info();
+        CreateSession {
+            session: Some(self.name.clone()),
+            kind: info.kind,
+            options: Some(info.options),
+            auto_optimize: info.auto_optimize,
+            factor_types: self.factor_types().definitions(),
+            ros2: info.ros2,
+            robots: self.robots_options(),
+            outliers: self.outlier_policy(),
+            max_update_ms: info.max_update_ms,
         }
     }
 

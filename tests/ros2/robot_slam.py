@@ -136,6 +136,11 @@ def main():
     created = http(args.http, "POST", "/v1/sessions",
                    {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding,
                     "max_update_ms": 50})
+    # A factor type declared after the creation, which `reset` keeps too.
+    http(args.http, "POST", f"/v1/sessions/{SESSION}/factor_types", {"factor_types": [
+        {"name": "beacon_range", "variables": [{"name": "x", "kind": "se3"}],
+         "parameters": [{"name": "beacon", "kind": "point3"}, {"name": "range", "kind": "scalar"}],
+         "residual": {"sub": [{"norm": [{"sub": ["beacon", {"translation": ["x"]}]}]}, "range"]}}]})
     # The binding is shown, defaults filled in, in the creation's answer and the session's.
     shown = http(args.http, "GET", f"/v1/sessions/{SESSION}")["ros2"]
     assert created["ros2"] == shown, (created["ros2"], shown)
@@ -372,6 +377,7 @@ def check_services(session, args, robot, tokens, received, lock, odometry):
     assert estimate["variables"] == [], len(estimate["variables"])
     kept = http(args.http, "GET", f"/v1/sessions/{SESSION}")
     assert kept["latency"]["max_update_ms"] == 50, kept
+    assert kept["factor_types"] == ["beacon_range"], kept
 
     def rebound():
         ours = [t for t in ro.ros_graph(session) if f"/factord_{SESSION}" in t]

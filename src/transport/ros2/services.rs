@@ -24,8 +24,8 @@ use super::cdr_codec;
 use super::messages::RosType;
 use super::type_hash;
 use crate::api::export::EstimateFormat;
-use crate::api::wire::{CreateSession, EstimateQuery};
-use crate::api::{DeleteSession, GetStats, ListOutliers, Optimize};
+use crate::api::wire::EstimateQuery;
+use crate::api::{DeleteSession, Optimize};
 use crate::service::{Caller, Command, Recording, Reply, Service, ServiceError};
 
 /// `std_srvs/srv/Trigger`, its hash computed from its `.srv` as rosidl does.
@@ -149,44 +149,22 @@ impl Server {
 
     async fn reset(&self) -> TriggerResponse {
         let session = self.session.clone();
-        let stats = match self
-            .execute(Command::GetStats(GetStats {
-                session: session.clone(),
-            }))
-            .await
-        {
-            Ok(Reply::Stats(stats)) => stats,
-            Ok(_) => return failed("the session's statistics were something else".into()),
+        // Created again as it is configured now: options, policies, budget, robots, and the
+        // factor types it holds (a robot's later batches may use them), bound again.
+        let live = match self.service.session(&session) {
+            Ok(live) => live,
             Err(e) => return failed(e.body.message),
         };
-        // Its policy for possibly wrong closures, kept across the reset as its budget is.
-        let outliers = match self
-            .execute(Command::ListOutliers(ListOutliers {
-                session: session.clone(),
-            }))
-            .await
-        {
-            Ok(Reply::Outliers(report)) => report.policy,
-            _ => Default::default(),
-        };
+        let mut create = live.creation_record();
+        drop(live);
+        create.ros2 = Some(Box::new(self.binding.clone()));
         let delete = Command::DeleteSession(DeleteSession {
             session: session.clone(),
         });
         if let Err(e) = self.execute(delete).await {
             return failed(e.body.message);
         }
-        let create = Command::CreateSession(CreateSession {
-            session: Some(session.clone()),
-            kind: stats.kind.clone(),
-            options: Some(stats.options.clone()),
-            auto_optimize: stats.auto_optimize.clone(),
-            factor_types: Vec::new(),
-            ros2: Some(Box::new(self.binding.clone())),
-            robots: None,
-            outliers,
-            max_update_ms: stats.latency.as_ref().map(|l| l.max_update_ms),
-        });
-        match self.execute(create).await {
+        match self.execute(Command::CreateSession(create)).await {
             Ok(_) => done(format!("session {session} reset: empty, bound again")),
             Err(e) => failed(format!(
                 "session {session} was deleted but not created again: {}",
