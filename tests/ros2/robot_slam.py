@@ -166,7 +166,7 @@ def run(session, args):
         assert matching, f"no subscription token ending {tail} in {tokens}"
         print("liveliness:", matching[0])
 
-    received = {"path": [], "markers": [], "errors": []}
+    received = {"path": [], "markers": [], "marker_times": [], "errors": []}
     lock = threading.Lock()
 
     def on_path(sample):
@@ -178,6 +178,7 @@ def run(session, args):
         payload = bytes(sample.payload.to_bytes())
         with lock:
             received["markers"].append(payload)
+            received["marker_times"].append(time.monotonic())
 
     def on_error(sample):
         with lock:
@@ -430,6 +431,13 @@ def check_markers(received, lock, keyframes):
         return (payload, message) if len(closures.points) == 4 else None
     payload, message = wait_for("markers with both closures", both_closures)
     print(f"captured marker message: {len(payload)} bytes, {payload[:32].hex()}...")
+    # Markers carry the whole graph: at most one every 0.5 s (the server's MARKERS_PERIOD; a
+    # little less between arrivals, which delivery may bunch), however many solves ran.
+    with lock:
+        times, paths = list(received["marker_times"]), len(received["path"])
+    gaps = [b - a for a, b in zip(times, times[1:])]
+    assert len(times) < paths and (not gaps or min(gaps) > 0.3), (len(times), paths, gaps)
+    print(f"{len(times)} marker messages for {paths} paths, at least {min(gaps, default=0):.2f} s apart")
     by_ns = {m.ns: m for m in message.markers}
     assert sorted(by_ns) == ["landmarks", "loop_closures", "odometry", "poses"], sorted(by_ns)
     assert all(m.header.frame_id == "map" and m.action == 0 for m in message.markers)

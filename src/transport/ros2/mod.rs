@@ -182,6 +182,8 @@ async fn run(
         pose,
         tf,
         markers,
+        markers_sent: None,
+        markers_due: None,
     };
     outputs.run().await;
     // The session is gone from here: leave the ROS graph.

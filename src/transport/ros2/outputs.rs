@@ -9,12 +9,17 @@
 //! keyframe is fixed, or the Hessian is singular) the covariance is all zeros (ROS: unknown).
 //!
 //! When the binding has a `tf_topic`, each solve also updates the `map → odom` correction
-//! (`tf`); with a `markers_topic`, it publishes the graph as markers (`markers`).
+//! (`tf`); with a `markers_topic`, it publishes the graph as markers (`markers`), at most every
+//! [`MARKERS_PERIOD`]: they carry the whole graph (megabytes at 100 000 poses), and a robot
+//! streaming at 100 Hz would otherwise send one per solve to a display that redraws at a few
+//! hertz. A solve inside the period is drawn when it ends, so the last state is always shown.
 //!
 //! Samples carry rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
 use std::sync::Arc;
 use std::time::Duration;
+
+use tokio::time::Instant;
 
 use nalgebra::Isometry3;
 use zenoh::qos::Reliability;
@@ -92,6 +97,9 @@ impl RosPublisher {
     }
 }
 
+/// The shortest time between two marker publications.
+pub(super) const MARKERS_PERIOD: Duration = Duration::from_millis(500);
+
 pub(super) struct Outputs {
     pub service: Arc<Service>,
     pub caller: Arc<Caller>,
@@ -102,12 +110,26 @@ pub(super) struct Outputs {
     pub pose: Option<RosPublisher>,
     pub tf: Option<Arc<TfBroadcaster>>,
     pub markers: Option<RosPublisher>,
+    /// When markers were last published, and the stamp of a solve not drawn yet.
+    pub markers_sent: Option<Instant>,
+    pub markers_due: Option<Time>,
 }
 
 impl Outputs {
     /// Publishes after every solve until the session's event stream ends.
     pub async fn run(mut self) {
-        while let Some(event) = self.events.next().await {
+        loop {
+            let event = match self.markers_due_at() {
+                Some(at) => tokio::select! {
+                    event = self.events.next() => event,
+                    () = tokio::time::sleep_until(at) => {
+                        self.publish_due_markers().await;
+                        continue;
+                    }
+                },
+                None => self.events.next().await,
+            };
+            let Some(event) = event else { break };
             let mut solved = is_solve(&event);
             // Solves that finished while we published: one publication covers them all.
             while let Some(event) = self.events.try_next() {
@@ -117,6 +139,15 @@ impl Outputs {
                 self.publish().await;
             }
         }
+    }
+
+    /// When the markers of a solve not drawn yet are due.
+    fn markers_due_at(&self) -> Option<Instant> {
+        self.markers_due?;
+        Some(
+            self.markers_sent
+                .map_or_else(Instant::now, |sent| sent + MARKERS_PERIOD),
+        )
     }
 
     async fn publish(&mut self) {
@@ -167,11 +198,26 @@ impl Outputs {
         pose.put(cdr_codec::encode(&message)).await;
     }
 
-    /// The graph as markers, stamped `stamp` (the newest keyframe's).
+    /// The graph as markers, stamped `stamp` (the newest keyframe's), now or, within
+    /// [`MARKERS_PERIOD`] of the last ones, when it ends.
     async fn publish_markers(&mut self, stamp: Time) {
-        let Some(publisher) = &mut self.markers else {
+        if self.markers.is_none() {
+            return;
+        }
+        self.markers_due = Some(stamp);
+        if self
+            .markers_sent
+            .is_none_or(|sent| sent.elapsed() >= MARKERS_PERIOD)
+        {
+            self.publish_due_markers().await;
+        }
+    }
+
+    async fn publish_due_markers(&mut self) {
+        let (Some(publisher), Some(stamp)) = (&mut self.markers, self.markers_due.take()) else {
             return;
         };
+        self.markers_sent = Some(Instant::now());
         let command = Command::GetGraph(GetGraph {
             session: self.session.clone(),
         });
