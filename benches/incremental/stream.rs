@@ -72,7 +72,7 @@ fn main() {
             .await
             .expect("session");
         // Where solve time goes: every Summary the session streams.
-        let mut events = service.session("bench").expect("created").subscribe();
+        let mut events = service.session("bench").expect("created").stream();
         let phases = tokio::spawn(async move {
             let mut totals = serde_json::Map::new();
             let mut add = |k: &str, v: f64| {
@@ -80,7 +80,7 @@ fn main() {
                 *e = (e.as_f64().unwrap() + v).into();
             };
             let mut reports = Vec::new();
-            while let Ok(event) = events.recv().await {
+            while let Some(event) = events.next().await {
                 if let SessionEvent::Summary { summary, .. } = &*event {
                     if let Some(report) = &summary.used.incremental {
                         reports.push(serde_json::to_string(report).expect("serialisable"));

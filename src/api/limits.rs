@@ -52,6 +52,10 @@ pub struct Limits {
     /// one it has not taken) before it gets a `lagged` marker and the latest values instead of
     /// the events it missed. The session holds that many events for its slowest subscriber.
     pub max_subscriber_lag: usize,
+    /// The most bytes of published events a session keeps for subscribers that have not taken
+    /// them yet (the newest is kept whatever its size): a subscriber further behind gets the
+    /// `lagged` marker as above. Events of a large map's corrections are megabytes each.
+    pub max_subscriber_lag_bytes: usize,
     /// Distinct producer ids (exactly-once ingest) one session keeps before a batch naming a
     /// new one gets 422 `too_many_producers`: each is kept, with its acknowledgements, for good.
     pub max_producers_per_session: usize,
@@ -83,6 +87,7 @@ impl Default for Limits {
             max_factor_type_bytes: 2 << 30,
             max_subscribers: 64,
             max_subscriber_lag: 4096,
+            max_subscriber_lag_bytes: 64 << 20,
             max_producers_per_session: 1024,
         }
     }

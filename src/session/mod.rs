@@ -67,7 +67,7 @@ mod window_marginals;
 mod window_progress;
 
 use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 
 use tokio::sync::{broadcast, watch};
 
@@ -90,7 +90,9 @@ pub struct Session {
     /// Factor types its client declared (at creation or since).
     factor_types: std::sync::RwLock<factor_types::FactorTypes>,
     state: Mutex<State>,
-    events: broadcast::Sender<Arc<SessionEvent>>,
+    /// Subscribers receive events as weak references; `retained` holds them (see `events`).
+    events: broadcast::Sender<Weak<SessionEvent>>,
+    retained: Mutex<events::RetainedEvents>,
     /// The timeline and recent events, fed by every published event.
     history: Mutex<history::History>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
@@ -152,6 +154,10 @@ impl Session {
             state: Mutex::new(State::new(kind, options, auto)),
             // At least one slot: a zero capacity is no channel.
             events: broadcast::channel(limits.max_subscriber_lag.max(1)).0,
+            retained: Mutex::new(events::RetainedEvents::new(
+                limits.max_subscriber_lag.max(1),
+                limits.max_subscriber_lag_bytes,
+            )),
             history: Mutex::default(),
             solved: watch::channel(0).0,
             answered: watch::channel(0).0,

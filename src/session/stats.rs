@@ -134,6 +134,7 @@ impl Session {
             .bytes();
         mirror
             + factors
+            + self.retained_event_bytes()
             + problem
             + marginals
             + producers

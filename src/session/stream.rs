@@ -42,7 +42,7 @@ use crate::api::ServiceError;
 pub struct EventStream {
     /// Weak: a subscriber must not keep a deleted session alive (its channel closes with it).
     session: Weak<Session>,
-    receiver: broadcast::Receiver<Arc<SessionEvent>>,
+    receiver: broadcast::Receiver<Weak<SessionEvent>>,
     /// The highest acknowledged sequence seen (at subscription: the session's sequence).
     acked: u64,
     /// The sequence of the last solve seen finish (at subscription: the reflected sequence).
@@ -141,7 +141,7 @@ impl EventStream {
             return Some(event);
         }
         match self.receiver.recv().await {
-            Ok(event) => Some(self.seen(event)),
+            Ok(event) => self.received(&event),
             Err(RecvError::Lagged(skipped)) => self.lagged(skipped),
             Err(RecvError::Closed) => None,
         }
@@ -154,9 +154,18 @@ impl EventStream {
             return Some(event);
         }
         match self.receiver.try_recv() {
-            Ok(event) => Some(self.seen(event)),
+            Ok(event) => self.received(&event),
             Err(TryRecvError::Lagged(skipped)) => self.lagged(skipped),
             Err(TryRecvError::Empty | TryRecvError::Closed) => None,
+        }
+    }
+
+    /// An event from the channel; one the session no longer retains (this subscriber fell
+    /// further behind than the session keeps events for) is a lag of one.
+    fn received(&mut self, event: &Weak<SessionEvent>) -> Option<Arc<SessionEvent>> {
+        match event.upgrade() {
+            Some(event) => Some(self.seen(event)),
+            None => self.lagged(1),
         }
     }
 
