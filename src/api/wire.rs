@@ -72,7 +72,7 @@ pub struct CreateSession {
     #[serde(default, skip_serializing_if = "OutlierPolicy::is_off")]
     pub outliers: OutlierPolicy,
     /// A latency budget for updates, in milliseconds (1–60000; graph kinds): an update the
-    /// exact solve has not reflected in time (at most a quarter of it) is answered
+    /// exact solve has not reflected in time (at most a tenth of it) is answered
     /// provisionally, and the exact answer follows as a correction (docs/guide/latency.md).
     /// Absent: every answer is exact.
     #[serde(default, skip_serializing_if = "Option::is_none")]
