@@ -2,7 +2,8 @@
 //! straight into `H = JᵀJ` (lower triangle, in the fixed [`BlockPattern`]) and `b = −Jᵀr`.
 
 use std::borrow::Borrow;
-use std::ops::ControlFlow;
+use std::ops::{ControlFlow, Range};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::factors::EvaluationError;
 use crate::problem::FactorEntry;
@@ -13,6 +14,9 @@ use super::simd::has_wide_vectors;
 use super::structure::{BlockOrdering, BlockPattern};
 
 mod fixed;
+mod split;
+
+use split::Split;
 
 /// The block number of each variable when free variables are numbered in index order and fixed
 /// ones are skipped — the numbering of [`free_adjacency`]'s graph, which every system sharing its
@@ -78,6 +82,8 @@ pub struct SystemLayout {
     visit_order: Vec<usize>,
     max_residual: usize,
     max_cols: usize,
+    /// How linearisation shares the factors between threads (`None`: on the calling thread).
+    split: Option<Split>,
 }
 
 impl SystemLayout {
@@ -128,11 +134,25 @@ impl SystemLayout {
             visit_order,
             max_residual,
             max_cols,
+            split: None,
         }
+    }
+
+    /// Linearises on up to `threads` threads from now on, where the structure lets the factors
+    /// be cut into chunks that write apart ([`split`]); returns how many chunks it uses (1: the
+    /// calling thread alone). [`Scratch`]es made before this do not use the split.
+    pub fn use_threads<E: Borrow<FactorEntry>>(&mut self, factors: &[E], threads: usize) -> usize {
+        self.split = split::split(factors, self, threads);
+        self.split.as_ref().map_or(1, |s| s.chunks.len())
     }
 
     pub fn n(&self) -> usize {
         self.pattern.n
+    }
+
+    /// Threads linearisation runs on ([`SystemLayout::use_threads`]).
+    pub fn threads(&self) -> usize {
+        self.split.as_ref().map_or(1, |s| s.chunks.len())
     }
 
     pub fn key_at_row(&self, values: &Values, row: usize) -> Key {
@@ -150,9 +170,17 @@ impl SystemLayout {
     }
 }
 
-/// Reusable per-evaluation scratch buffers.
+/// Reusable per-evaluation scratch buffers: the calling thread's, and with a [`Split`] those of
+/// each other thread with its private copy of the shared tail of H and b.
 #[derive(Debug, Default)]
 pub struct Scratch {
+    own: Buffers,
+    helpers: Vec<Helper>,
+}
+
+/// One thread's per-factor buffers.
+#[derive(Debug, Default)]
+struct Buffers {
     error: Vec<f64>,
     residual: Vec<f64>,
     jacobian: Vec<f64>,
@@ -162,8 +190,16 @@ pub struct Scratch {
     gradient: Vec<f64>,
 }
 
-impl Scratch {
-    pub fn new(layout: &SystemLayout) -> Self {
+/// A thread other than the caller's: its buffers and its copies of H's and b's shared tails.
+#[derive(Debug, Default)]
+struct Helper {
+    buffers: Buffers,
+    h: Vec<f64>,
+    b: Vec<f64>,
+}
+
+impl Buffers {
+    fn new(layout: &SystemLayout) -> Self {
         let (d, c) = (layout.max_residual, layout.max_cols);
         Self {
             error: vec![0.0; d],
@@ -176,8 +212,27 @@ impl Scratch {
     }
 }
 
+impl Scratch {
+    pub fn new(layout: &SystemLayout) -> Self {
+        let helpers = match &layout.split {
+            Some(split) => (1..split.chunks.len())
+                .map(|_| Helper {
+                    buffers: Buffers::new(layout),
+                    h: vec![0.0; split.shared_values(layout.pattern.nnz())],
+                    b: vec![0.0; split.shared_rows(layout.n())],
+                })
+                .collect(),
+            None => Vec::new(),
+        };
+        Self {
+            own: Buffers::new(layout),
+            helpers,
+        }
+    }
+}
+
 /// Linearises every factor at `values`; fills `h` (pattern values) and `b = −Jᵀr`, returns chi2.
-pub fn linearize<E: Borrow<FactorEntry>>(
+pub fn linearize<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -193,7 +248,7 @@ pub fn linearize<E: Borrow<FactorEntry>>(
 
 /// [`linearize`] that checks `budget` every [`FACTORS_PER_CHECK`] factors; `Break` leaves `h`
 /// and `b` partly filled.
-pub fn linearize_within<E: Borrow<FactorEntry>>(
+pub fn linearize_within<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -202,17 +257,12 @@ pub fn linearize_within<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    if has_wide_vectors() {
-        // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide::<E, true>(factors, values, layout, scratch, h, b, budget) }
-    } else {
-        linearize_with::<E, true>(factors, values, layout, scratch, h, b, budget)
-    }
+    run::<E, true>(factors, values, layout, scratch, h, b, budget)
 }
 
 /// [`linearize_within`] for `b = −Jᵀr` and chi2 only, leaving H alone: what a step with an
 /// earlier factorisation needs (the factor's `JᵀJ` and its scatter are most of the work).
-pub fn gradient_within<E: Borrow<FactorEntry>>(
+pub fn gradient_within<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -220,51 +270,208 @@ pub fn gradient_within<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
+    run::<E, false>(factors, values, layout, scratch, &mut [], b, budget)
+}
+
+/// Where one chunk writes: H's values and b's rows of its own positions, and the shared tail
+/// (from position `shared` on); each slice starts at the value index or row given beside it.
+struct Target<'a> {
+    h_own: (&'a mut [f64], usize),
+    h_shared: (&'a mut [f64], usize),
+    b_own: (&'a mut [f64], usize),
+    b_shared: (&'a mut [f64], usize),
+    shared: usize,
+}
+
+/// One chunk's inputs that every thread reads.
+struct Shared<'a, E> {
+    factors: &'a [E],
+    values: &'a Values,
+    layout: &'a SystemLayout,
+    /// Set by the calling thread when its budget stops the linearisation.
+    stop: AtomicBool,
+}
+
+/// The whole linearisation: on the calling thread, or split as [`Split`] says.
+fn run<E: Borrow<FactorEntry> + Sync, const HESSIAN: bool>(
+    factors: &[E],
+    values: &Values,
+    layout: &SystemLayout,
+    scratch: &mut Scratch,
+    h: &mut [f64],
+    b: &mut [f64],
+    budget: &dyn Budget,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
+    let common = Shared {
+        factors,
+        values,
+        layout,
+        stop: AtomicBool::new(false),
+    };
+    let split = match &layout.split {
+        Some(split) if scratch.helpers.len() + 1 == split.chunks.len() => split,
+        _ => {
+            let target = Target {
+                h_own: (h, 0),
+                h_shared: (&mut [], 0),
+                b_own: (b, 0),
+                b_shared: (&mut [], 0),
+                shared: usize::MAX,
+            };
+            let visits = 0..layout.visit_order.len();
+            return chunk::<E, HESSIAN>(&common, &mut scratch.own, visits, target, Some(budget));
+        }
+    };
+    // H and b cut into the chunks' own parts (consecutive) and the shared tail.
+    let (mut h_rest, h_tail) = h.split_at_mut(if HESSIAN { split.shared_value_start } else { 0 });
+    let (mut b_rest, b_tail) = b.split_at_mut(split.shared_row_start);
+    let mut owns = Vec::with_capacity(split.chunks.len());
+    for c in &split.chunks {
+        let h_len = if HESSIAN { c.values.len() } else { 0 };
+        let (h_own, h_next) = std::mem::take(&mut h_rest).split_at_mut(h_len);
+        let (b_own, b_next) = std::mem::take(&mut b_rest).split_at_mut(c.rows.len());
+        (h_rest, b_rest) = (h_next, b_next);
+        owns.push((h_own, b_own));
+    }
+    let mut owns = owns.into_iter().zip(&split.chunks);
+    let (first_own, first_chunk) = owns.next().expect("a split has chunks");
+    let results = std::thread::scope(|s| {
+        let others: Vec<_> = owns
+            .zip(scratch.helpers.iter_mut())
+            .map(|(((h_own, b_own), c), helper)| {
+                let common = &common;
+                s.spawn(move || {
+                    let target = Target {
+                        h_own: (h_own, c.values.start),
+                        h_shared: (
+                            if HESSIAN { &mut helper.h[..] } else { &mut [] },
+                            split.shared_value_start,
+                        ),
+                        b_own: (b_own, c.rows.start),
+                        b_shared: (&mut helper.b[..], split.shared_row_start),
+                        shared: split.shared,
+                    };
+                    chunk::<E, HESSIAN>(common, &mut helper.buffers, c.visits.clone(), target, None)
+                })
+            })
+            .collect();
+        let target = Target {
+            h_own: (first_own.0, first_chunk.values.start),
+            h_shared: (h_tail, split.shared_value_start),
+            b_own: (first_own.1, first_chunk.rows.start),
+            b_shared: (b_tail, split.shared_row_start),
+            shared: split.shared,
+        };
+        let visits = first_chunk.visits.clone();
+        let mine = chunk::<E, HESSIAN>(&common, &mut scratch.own, visits, target, Some(budget));
+        let mut results = vec![mine];
+        for other in others {
+            results.push(
+                other
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+            );
+        }
+        results
+    });
+    let mut total = 0.0;
+    for result in results {
+        match result? {
+            ControlFlow::Continue(chi2) => total += chi2,
+            ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
+        }
+    }
+    // The other threads' parts of the shared tail, in chunk order.
+    for helper in &scratch.helpers {
+        if HESSIAN {
+            for (to, from) in h[split.shared_value_start..].iter_mut().zip(&helper.h) {
+                *to += from;
+            }
+        }
+        for (to, from) in b[split.shared_row_start..].iter_mut().zip(&helper.b) {
+            *to += from;
+        }
+    }
+    Ok(ControlFlow::Continue(total))
+}
+
+/// One chunk's factors into `target` (zeroed first); the calling thread's chunk checks `budget`
+/// and tells the others through `common.stop`, which they read as often.
+fn chunk<E: Borrow<FactorEntry>, const HESSIAN: bool>(
+    common: &Shared<'_, E>,
+    buffers: &mut Buffers,
+    visits: Range<usize>,
+    target: Target<'_>,
+    budget: Option<&dyn Budget>,
+) -> Result<ControlFlow<(), f64>, EvaluationError> {
     if has_wide_vectors() {
-        // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide::<E, false>(factors, values, layout, scratch, &mut [], b, budget) }
+        // SAFETY: the CPU has the features `chunk_wide` is compiled for.
+        unsafe { chunk_wide::<E, HESSIAN>(common, buffers, visits, target, budget) }
     } else {
-        linearize_with::<E, false>(factors, values, layout, scratch, &mut [], b, budget)
+        chunk_with::<E, HESSIAN>(common, buffers, visits, target, budget)
     }
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn linearize_wide<E: Borrow<FactorEntry>, const HESSIAN: bool>(
-    factors: &[E],
-    values: &Values,
-    layout: &SystemLayout,
-    scratch: &mut Scratch,
-    h: &mut [f64],
-    b: &mut [f64],
-    budget: &dyn Budget,
+fn chunk_wide<E: Borrow<FactorEntry>, const HESSIAN: bool>(
+    common: &Shared<'_, E>,
+    buffers: &mut Buffers,
+    visits: Range<usize>,
+    target: Target<'_>,
+    budget: Option<&dyn Budget>,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    linearize_with::<E, HESSIAN>(factors, values, layout, scratch, h, b, budget)
+    chunk_with::<E, HESSIAN>(common, buffers, visits, target, budget)
 }
 
-/// The linearisation loop; without `HESSIAN` it fills only `b` (and `h` may be empty).
+/// The linearisation loop over one chunk; without `HESSIAN` it fills only b (H's slices may be
+/// empty).
+// Kept whole (~90 lines): the per-factor loop linearisation time is spent in; the scatter's
+// shape dispatch reads the same locals as the gradient's.
 #[inline(always)]
-fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
-    factors: &[E],
-    values: &Values,
-    layout: &SystemLayout,
-    scratch: &mut Scratch,
-    h: &mut [f64],
-    b: &mut [f64],
-    budget: &dyn Budget,
+fn chunk_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
+    common: &Shared<'_, E>,
+    buffers: &mut Buffers,
+    visits: Range<usize>,
+    target: Target<'_>,
+    budget: Option<&dyn Budget>,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    if HESSIAN {
-        h.fill(0.0);
+    let Target {
+        h_own,
+        h_shared,
+        b_own,
+        b_shared,
+        shared,
+    } = target;
+    for part in [
+        &mut *h_own.0,
+        &mut *h_shared.0,
+        &mut *b_own.0,
+        &mut *b_shared.0,
+    ] {
+        part.fill(0.0);
     }
-    b.fill(0.0);
+    let (layout, values) = (common.layout, common.values);
     let pattern = &layout.pattern;
     let mut total = 0.0;
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     let mut col_offsets = [0usize; 16];
-    for (k, &f) in layout.visit_order.iter().enumerate() {
-        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 && budget.checkpoint().is_break() {
-            return Ok(ControlFlow::Break(()));
+    for (k, &f) in layout.visit_order[visits].iter().enumerate() {
+        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 {
+            let stop = match budget {
+                Some(budget) => {
+                    let stop = budget.checkpoint().is_break();
+                    if stop {
+                        common.stop.store(true, Ordering::Relaxed);
+                    }
+                    stop
+                }
+                None => common.stop.load(Ordering::Relaxed),
+            };
+            if stop {
+                return Ok(ControlFlow::Break(()));
+            }
         }
-        let entry = factors[f].borrow();
+        let entry = common.factors[f].borrow();
         let vars = entry.variables();
         refs.clear();
         refs.extend(vars.iter().map(|&v| values.variable(v)));
@@ -274,12 +481,18 @@ fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
             col_offsets[k] = cols;
             cols += r.tangent_dim();
         }
-        total += factor_gram::<HESSIAN>(entry, &refs, d, cols, scratch)?;
-        let (gram, gradient) = (&scratch.gram[..cols * cols], &scratch.gradient[..cols]);
+        total += factor_gram::<HESSIAN>(entry, &refs, d, cols, buffers)?;
+        let (gram, gradient) = (&buffers.gram[..cols * cols], &buffers.gradient[..cols]);
         for (li, &v) in vars.iter().enumerate() {
             if let Some(p) = layout.position_of_var[v] {
                 let (o, c0, dim) = (pattern.offset[p], col_offsets[li], pattern.dim[p]);
-                fixed::add_scaled_exact(&mut b[o..o + dim], &gradient[c0..c0 + dim], -1.0);
+                let (to, first) = if p >= shared {
+                    (&mut *b_shared.0, b_shared.1)
+                } else {
+                    (&mut *b_own.0, b_own.1)
+                };
+                let rows = &mut to[o - first..o - first + dim];
+                fixed::add_scaled_exact(rows, &gradient[c0..c0 + dim], -1.0);
             }
         }
         if !HESSIAN {
@@ -294,26 +507,50 @@ fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
             let diagonal = a == bpos;
             let (ci, cj) = (col_offsets[li as usize], col_offsets[lj as usize]);
             let (da, db) = (pattern.dim[a], pattern.dim[bpos]);
-            if da == 3 && db == 3 {
-                fixed::scatter_block::<3>(pattern, h, pair, diagonal, gram, cols, ci, cj);
-                continue;
-            }
-            if da == 6 && db == 6 {
-                fixed::scatter_block::<6>(pattern, h, pair, diagonal, gram, cols, ci, cj);
-                continue;
-            }
-            for q in 0..db {
-                let rows = if diagonal { q } else { 0 };
-                let base = pattern.value_index(pair, diagonal, rows, q);
-                // Column cj + q of the symmetric gram is its row: contiguous over rr.
-                let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + da];
-                for (hv, g) in h[base..base + da - rows].iter_mut().zip(source) {
-                    *hv += g;
+            let (h, first) = if bpos >= shared {
+                (&mut *h_shared.0, h_shared.1)
+            } else {
+                (&mut *h_own.0, h_own.1)
+            };
+            let args = (pattern, pair, diagonal, gram, cols, ci, cj);
+            match (da, db) {
+                (3, 3) => scatter::<3, 3>(h, first, args),
+                (6, 6) => scatter::<6, 6>(h, first, args),
+                (9, 9) => scatter::<9, 9>(h, first, args),
+                (9, 3) => scatter::<9, 3>(h, first, args),
+                _ => {
+                    for q in 0..db {
+                        let rows = if diagonal { q } else { 0 };
+                        let base = pattern.value_index(pair, diagonal, rows, q) - first;
+                        // Column cj + q of the symmetric gram is its row: contiguous over rr.
+                        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + da];
+                        for (hv, g) in h[base..base + da - rows].iter_mut().zip(source) {
+                            *hv += g;
+                        }
+                    }
                 }
             }
         }
     }
     Ok(ControlFlow::Continue(total))
+}
+
+/// [`fixed::scatter_block`] with the arguments the loop passes through unchanged.
+#[inline(always)]
+fn scatter<const R: usize, const C: usize>(
+    h: &mut [f64],
+    first: usize,
+    (pattern, pair, diagonal, gram, cols, ci, cj): (
+        &BlockPattern,
+        usize,
+        bool,
+        &[f64],
+        usize,
+        usize,
+        usize,
+    ),
+) {
+    fixed::scatter_block::<R, C>(pattern, h, first, pair, diagonal, gram, cols, ci, cj);
 }
 
 /// One factor's whitened, robustified normal equations at `refs` (its variables in key order,
@@ -326,16 +563,16 @@ fn factor_gram<const HESSIAN: bool>(
     refs: &[&dyn Variable],
     d: usize,
     cols: usize,
-    scratch: &mut Scratch,
+    buffers: &mut Buffers,
 ) -> Result<f64, EvaluationError> {
-    let Scratch {
+    let Buffers {
         error,
         residual,
         jacobian,
         whitened,
         gram,
         gradient,
-    } = scratch;
+    } = buffers;
     let (e, r, jac, wj) = (
         &mut error[..d],
         &mut residual[..d],
@@ -390,6 +627,7 @@ pub fn factor_normal_equations<'s>(
 ) -> Result<(f64, &'s [f64], &'s [f64]), EvaluationError> {
     let d = entry.factor.residual_dim();
     let cols: usize = refs.iter().map(|r| r.tangent_dim()).sum();
+    let scratch = &mut scratch.own;
     for (buffer, len) in [
         (&mut scratch.error, d),
         (&mut scratch.residual, d),

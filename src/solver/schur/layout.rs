@@ -108,6 +108,8 @@ impl SchurSolver {
             s_values: vec![0.0; s_len],
             w_local: vec![0.0; w_max],
             rhs: vec![0.0; n],
+            parts: vec![0..ne],
+            helpers: Vec::new(),
             reduced,
             backend,
             reduced_cost,

@@ -27,7 +27,8 @@
 //!   S −= Y Wᵀ, with the small fixed-size kernels it uses;
 //! - `reduced`: the reduced system S itself, dense or sparse: its factorisation, its solve and
 //!   their predicted cost;
-//! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr.
+//! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr;
+//! - `threads`: the elimination and back-substitution cut into parts for more than one thread.
 //!
 //! This file holds the solver's state, shared by all of them.
 
@@ -38,6 +39,7 @@ mod plan;
 mod reduced;
 #[cfg(test)]
 mod tests;
+mod threads;
 
 use super::budget::FactorCost;
 use super::cholesky::SparseCholesky;
@@ -97,6 +99,10 @@ pub struct SchurSolver {
     /// W of the current eliminated block's neighbours, column-major like Y.
     w_local: Vec<f64>,
     rhs: Vec<f64>,
+    /// The eliminated blocks of each thread's part (one part: the calling thread alone) and
+    /// the buffers of the threads beside the caller's; see `threads`.
+    parts: Vec<std::ops::Range<usize>>,
+    helpers: Vec<threads::Helper>,
 }
 
 impl std::fmt::Debug for SchurSolver {
