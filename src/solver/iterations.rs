@@ -252,7 +252,8 @@ impl<'a> Iterations<'a> {
     pub(super) fn solve_with_factor(&mut self, times: &mut StepTimes) {
         let t = Instant::now();
         self.delta.copy_from_slice(&self.b);
-        self.chol.solve_in_place(&mut self.delta);
+        let (pattern, h) = (&self.layout.pattern, &self.h);
+        self.chol.solve_in_place(pattern, h, &mut self.delta);
         let s = t.elapsed().as_secs_f64();
         self.timings.linear_solve_seconds += s;
         times.solve += s;

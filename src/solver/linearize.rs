@@ -650,6 +650,10 @@ pub fn factor_normal_equations<'s>(
 
 /// `y = H x` for the symmetric matrix stored as its lower triangle.
 pub fn symmetric_multiply(pattern: &BlockPattern, h: &[f64], x: &[f64], y: &mut [f64]) {
+    assert!(
+        pattern.has_scalar_rows(),
+        "the pattern's scalar rows were forgotten"
+    );
     y.fill(0.0);
     for c in 0..pattern.n {
         let column = pattern.col_ptr[c]..pattern.col_ptr[c + 1];

@@ -16,7 +16,7 @@ use super::initialize::{chordal_estimate, take_estimate};
 use super::iterations::{Iterations, StepTimes};
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
-use super::options::{Initialization, SolverOptions};
+use super::options::{Initialization, Method, SolverOptions};
 use super::schur::{self, SchurSolver};
 use super::stopping::stopped;
 use super::structure::BlockOrdering;
@@ -216,6 +216,10 @@ fn analyze(
         Some(plan) => {
             let mut schur = SchurSolver::new(&layout.pattern, plan)?;
             schur.use_threads(threads);
+            // Dogleg's model product is the one reader of H's scalar rows in a Schur solve.
+            if options.method != Method::Dogleg {
+                layout.pattern.forget_scalar_rows();
+            }
             LinearSolver::Schur(schur)
         }
         // Supernodal on every pattern we measured: the block ordering makes variables supernodes

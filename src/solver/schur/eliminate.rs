@@ -125,8 +125,7 @@ impl View<'_> {
                     *to = *from;
                 }
             }
-            let y_at = nb.y_offset - part.y_first;
-            let y = &mut part.y_values[y_at..y_at + dk * d];
+            let y = &mut part.y_local[local..local + dk * d];
             y.fill(0.0);
             for t in 0..d {
                 let yt = &mut y[t * dk..(t + 1) * dk];
@@ -145,8 +144,7 @@ impl View<'_> {
         let mut local_k = 0;
         for (k, nk) in around.iter().enumerate() {
             let dk = if K > 0 { K } else { reduced.dim[nk.block] };
-            let y_at = nk.y_offset - part.y_first;
-            let y = &part.y_values[y_at..y_at + dk * d];
+            let y = &part.y_local[local_k..local_k + dk * d];
             let mut local_l = 0;
             for (l, nl) in around[..=k].iter().enumerate() {
                 let dl = if K > 0 { K } else { reduced.dim[nl.block] };

@@ -104,7 +104,7 @@ fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, 
     let mut schur = SchurSolver::new(pattern, &plan).unwrap();
     schur.factorize(pattern, &h, Some(&shift)).unwrap();
     let mut x = b.clone();
-    schur.solve_in_place(&mut x);
+    schur.solve_in_place(pattern, &h, &mut x);
 
     let mut damped = h.clone();
     for (c, s) in shift.iter().enumerate() {
@@ -292,10 +292,10 @@ fn the_budget_is_checked_during_the_elimination_and_before_the_reduced_factorisa
     assert!(flow.is_continue());
     assert_eq!(endless.checkpoints.get(), points / ELIMINATED_PER_CHECK + 1);
     let mut x = b.clone();
-    schur.solve_in_place(&mut x);
+    schur.solve_in_place(pattern, &h, &mut x);
     schur.factorize(pattern, &h, Some(&shift)).unwrap();
     let mut unbudgeted = b;
-    schur.solve_in_place(&mut unbudgeted);
+    schur.solve_in_place(pattern, &h, &mut unbudgeted);
     assert_eq!(x, unbudgeted, "the same arithmetic, bit for bit");
 }
 
@@ -330,7 +330,7 @@ fn two_threads_give_one_threads_system_and_step() {
                 schur.factorize(pattern, &h1, Some(&shift)).unwrap();
             }
             let mut x = b1.clone();
-            schur.solve_in_place(&mut x);
+            schur.solve_in_place(pattern, &h1, &mut x);
             steps.push(x);
         }
         assert_close(&steps[1], &steps[0]);

@@ -1,6 +1,6 @@
 //! The elimination and the back-substitution on more than one thread. The eliminated blocks are
-//! cut into contiguous parts of about equal neighbour counts; each part's V⁻¹ and Y are its own
-//! slices of the solver's arrays, so only S (and the reduced right-hand side) is written by
+//! cut into contiguous parts of about equal neighbour counts; each part's V⁻¹ is its own slice
+//! of the solver's array, so only S (and the reduced right-hand side) is written by
 //! every part: the first part into S itself, each other into a private copy that is added to S
 //! afterwards, in part order. A part's arithmetic is the one-thread code's; only the order in
 //! which the parts' contributions to S are summed differs, so results agree to rounding.
@@ -30,22 +30,31 @@ pub(super) struct View<'a> {
     pub(super) dense_n: Option<usize>,
 }
 
-/// What one part writes: its blocks' V⁻¹ and Y (slices that start at `v_first` and `y_first`
-/// of the solver's arrays), W's scratch, and S (or the part's copy of it).
+/// What one part writes: its blocks' V⁻¹ (a slice that starts at `v_first` of the solver's
+/// array), the W and Y scratch of one block, and S (or the part's copy of it).
 pub(super) struct Part<'a> {
     pub(super) v_inverse: &'a mut [f64],
     pub(super) v_first: usize,
-    pub(super) y_values: &'a mut [f64],
-    pub(super) y_first: usize,
     pub(super) w_local: &'a mut [f64],
+    pub(super) y_local: &'a mut [f64],
     pub(super) s_values: &'a mut [f64],
 }
 
-/// A thread other than the caller's: its W scratch and its copies of S and the reduced
+/// The full system's pattern and values, H, whose W blocks the solve reads.
+pub(super) type H<'a> = (&'a BlockPattern, &'a [f64]);
+
+/// Subtracts eliminated blocks' `Y b_e` from a reduced right-hand side.
+pub(super) type Reduce = fn(&SchurSolver, H<'_>, Range<usize>, &[f64], &mut [f64]);
+
+/// Back-substitutes eliminated blocks into their rows (a slice that starts at the given row).
+pub(super) type BackSubstitute = fn(&SchurSolver, H<'_>, Range<usize>, (&mut [f64], usize), &[f64]);
+
+/// A thread other than the caller's: its W and Y scratch and its copies of S and the reduced
 /// right-hand side.
 #[derive(Debug, Default)]
 pub(super) struct Helper {
     w_local: Vec<f64>,
+    y_local: Vec<f64>,
     s_values: Vec<f64>,
     rhs: Vec<f64>,
 }
@@ -70,18 +79,12 @@ impl SchurSolver {
         self.helpers = (1..self.parts.len())
             .map(|_| Helper {
                 w_local: vec![0.0; self.w_local.len()],
+                y_local: vec![0.0; self.y_local.len()],
                 s_values: vec![0.0; self.s_values.len()],
                 rhs: vec![0.0; self.rhs.len()],
             })
             .collect();
         self.parts.len()
-    }
-
-    /// Where Y of eliminated block `e` starts (the end of Y for `e` = the block count).
-    fn y_first(&self, e: usize) -> usize {
-        self.neighbours
-            .get(self.neighbour_start[e])
-            .map_or(self.y_values.len(), |nb| nb.y_offset)
     }
 
     /// Every eliminated block into S (which holds U and the shift already), part by part.
@@ -92,9 +95,7 @@ impl SchurSolver {
         shift: Option<&[f64]>,
         budget: &dyn Budget,
     ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-        let bounds: Vec<(usize, usize)> = (self.parts.iter())
-            .map(|p| (self.v_start[p.start], self.y_first(p.start)))
-            .collect();
+        let bounds: Vec<usize> = self.parts.iter().map(|p| self.v_start[p.start]).collect();
         let view = View {
             dim: &self.dim,
             offset: &self.offset,
@@ -112,24 +113,21 @@ impl SchurSolver {
         };
         let stop = AtomicBool::new(false);
         let inputs = (full, values, shift);
-        let (v_len, y_len) = (self.v_inverse.len(), self.y_values.len());
+        let v_len = self.v_inverse.len();
         let mut v_rest = &mut self.v_inverse[..];
-        let mut y_rest = &mut self.y_values[..];
         let mut parts = Vec::with_capacity(self.parts.len());
         for k in 0..self.parts.len() {
-            let v_end = bounds.get(k + 1).map_or(v_len, |b| b.0);
-            let y_end = bounds.get(k + 1).map_or(y_len, |b| b.1);
-            let (v, v_next) = std::mem::take(&mut v_rest).split_at_mut(v_end - bounds[k].0);
-            let (y, y_next) = std::mem::take(&mut y_rest).split_at_mut(y_end - bounds[k].1);
-            (v_rest, y_rest) = (v_next, y_next);
-            parts.push((v, y));
+            let v_end = bounds.get(k + 1).copied().unwrap_or(v_len);
+            let (v, v_next) = std::mem::take(&mut v_rest).split_at_mut(v_end - bounds[k]);
+            v_rest = v_next;
+            parts.push(v);
         }
         let mut parts = parts.into_iter().zip(&self.parts).zip(&bounds);
-        let ((first_v, first_y), first_blocks) = parts.next().map(|(p, _)| p).expect("one part");
+        let ((first_v, first_blocks), _) = parts.next().expect("one part");
         let results = std::thread::scope(|s| {
             let others: Vec<_> = parts
                 .zip(self.helpers.iter_mut())
-                .map(|((((v, y), blocks), &(v_first, y_first)), helper)| {
+                .map(|(((v, blocks), &v_first), helper)| {
                     let view = &view;
                     let stop = &stop;
                     s.spawn(move || {
@@ -137,9 +135,8 @@ impl SchurSolver {
                         let mut part = Part {
                             v_inverse: v,
                             v_first,
-                            y_values: y,
-                            y_first,
                             w_local: &mut helper.w_local,
+                            y_local: &mut helper.y_local,
                             s_values: &mut helper.s_values,
                         };
                         eliminate_blocks(view, &mut part, blocks.clone(), inputs, None, stop)
@@ -149,9 +146,8 @@ impl SchurSolver {
             let mut part = Part {
                 v_inverse: first_v,
                 v_first: 0,
-                y_values: first_y,
-                y_first: 0,
                 w_local: &mut self.w_local,
+                y_local: &mut self.y_local,
                 s_values: &mut self.s_values,
             };
             let blocks = first_blocks.clone();
@@ -181,11 +177,7 @@ impl SchurSolver {
 
     /// The reduced right-hand side `self.rhs −= Σ_e Y_e b_e` over every part (the others into
     /// their copies, added in part order).
-    pub(super) fn reduce_parts(
-        &mut self,
-        rhs: &[f64],
-        reduce: fn(&SchurSolver, Range<usize>, &[f64], &mut [f64]),
-    ) {
+    pub(super) fn reduce_parts(&mut self, h: H<'_>, rhs: &[f64], reduce: Reduce) {
         let mut own_rhs = std::mem::take(&mut self.rhs);
         let mut helpers = std::mem::take(&mut self.helpers);
         let this = &*self;
@@ -193,10 +185,10 @@ impl SchurSolver {
             for (blocks, helper) in this.parts[1..].iter().zip(helpers.iter_mut()) {
                 s.spawn(move || {
                     helper.rhs.fill(0.0);
-                    reduce(this, blocks.clone(), rhs, &mut helper.rhs);
+                    reduce(this, h, blocks.clone(), rhs, &mut helper.rhs);
                 });
             }
-            reduce(this, this.parts[0].clone(), rhs, &mut own_rhs);
+            reduce(this, h, this.parts[0].clone(), rhs, &mut own_rhs);
         });
         for helper in &helpers {
             for (to, from) in own_rhs.iter_mut().zip(&helper.rhs) {
@@ -210,9 +202,10 @@ impl SchurSolver {
     /// Back-substitution over every part: each writes only its own blocks' rows of `head`.
     pub(super) fn back_substitute_parts(
         &self,
+        h: H<'_>,
         head: &mut [f64],
         tail: &[f64],
-        back: fn(&SchurSolver, Range<usize>, &mut [f64], usize, &[f64]),
+        back: BackSubstitute,
     ) {
         let mut rest = head;
         let mut pieces = Vec::with_capacity(self.parts.len());
@@ -235,9 +228,9 @@ impl SchurSolver {
         let (blocks, piece, first) = pieces.next().expect("one part");
         std::thread::scope(|s| {
             for (blocks, piece, first) in pieces {
-                s.spawn(move || back(self, blocks, piece, first, tail));
+                s.spawn(move || back(self, h, blocks, (piece, first), tail));
             }
-            back(self, blocks, piece, first, tail);
+            back(self, h, blocks, (piece, first), tail);
         });
     }
 }
