@@ -84,7 +84,7 @@ impl View<'_> {
     // Kept whole (99 lines): the const-generic kernel BA time is spent in, monomorphised per
     // block size and inlined into its caller; its three products share the same stack blocks.
     #[inline(always)]
-    fn eliminate<const D: usize, const K: usize>(
+    fn eliminate<const D: usize, const K: usize, const FUSED: bool>(
         &self,
         part: &mut Part<'_>,
         e: usize,
@@ -155,8 +155,15 @@ impl View<'_> {
                 match dense_n {
                     // Dense S: a diagonal block may be written whole (the upper half is unread).
                     Some(n) if D > 0 && K == CAMERA => {
-                        subtract_product::<D, CAMERA>(&mut part.s_values[block..], n, y, w)
+                        subtract_product::<D, CAMERA, FUSED>(&mut part.s_values[block..], n, y, w)
                     }
+                    None if D > 0 && K == CAMERA => subtract_product_sparse::<D, CAMERA, FUSED>(
+                        part.s_values,
+                        reduced,
+                        (block, k == l),
+                        y,
+                        w,
+                    ),
                     _ => {
                         let diagonal = k == l;
                         for q in 0..dl {
@@ -188,7 +195,7 @@ impl View<'_> {
 /// `Break`: the budget (checked by the calling thread, which tells the others through `stop`)
 /// stopped it part way (S is then incomplete).
 #[inline(always)]
-fn eliminate_all(
+fn eliminate_all<const FUSED: bool>(
     view: &View<'_>,
     part: &mut Part<'_>,
     blocks: Range<usize>,
@@ -201,9 +208,9 @@ fn eliminate_all(
             return Ok(ControlFlow::Break(()));
         }
         let result = match (view.dim[e], view.camera_neighbours[e]) {
-            (3, true) => view.eliminate::<3, CAMERA>(part, e, full, values, shift),
-            (3, false) => view.eliminate::<3, 0>(part, e, full, values, shift),
-            _ => view.eliminate::<0, 0>(part, e, full, values, shift),
+            (3, true) => view.eliminate::<3, CAMERA, FUSED>(part, e, full, values, shift),
+            (3, false) => view.eliminate::<3, 0, FUSED>(part, e, full, values, shift),
+            _ => view.eliminate::<0, 0, FUSED>(part, e, full, values, shift),
         };
         result.map_err(|i| NotPositiveDefinite {
             row: view.offset[e] + i,
@@ -235,7 +242,7 @@ fn eliminate_all_wide(
     budget: Option<&dyn Budget>,
     stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_all(view, part, blocks, inputs, budget, stop)
+    eliminate_all::<true>(view, part, blocks, inputs, budget, stop)
 }
 
 /// [`eliminate_all`] with the widest kernels the CPU has.
@@ -251,14 +258,20 @@ pub(super) fn eliminate_blocks(
         // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
         unsafe { eliminate_all_wide(view, part, blocks, inputs, budget, stop) }
     } else {
-        eliminate_all(view, part, blocks, inputs, budget, stop)
+        eliminate_all::<false>(view, part, blocks, inputs, budget, stop)
     }
 }
 
 /// `S[.., ..] −= Y Wᵀ` for column-major `y`, `w` (K × D) into the K×K block of a column-major
-/// matrix with leading dimension `n` that starts at `s[0]`.
+/// matrix with leading dimension `n` that starts at `s[0]`. `FUSED`: the products as fused
+/// multiply-adds, for callers compiled with FMA (without it `mul_add` is a library call).
 #[inline(always)]
-fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: &[f64], w: &[f64]) {
+fn subtract_product<const D: usize, const K: usize, const FUSED: bool>(
+    s: &mut [f64],
+    n: usize,
+    y: &[f64],
+    w: &[f64],
+) {
     let (y, w) = (&y[..K * D], &w[..K * D]);
     for q in 0..K {
         let column = &mut s[q * n..q * n + K];
@@ -266,11 +279,46 @@ fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: 
         for t in 0..D {
             let factor = w[t * K + q];
             for r in 0..K {
-                acc[r] += y[t * K + r] * factor;
+                acc[r] = if FUSED {
+                    y[t * K + r].mul_add(factor, acc[r])
+                } else {
+                    acc[r] + y[t * K + r] * factor
+                };
             }
         }
         for r in 0..K {
             column[r] -= acc[r];
+        }
+    }
+}
+
+/// [`subtract_product`] into block `pair` of the sparse S (`diagonal`: only its lower triangle
+/// is stored, so only that is written).
+#[inline(always)]
+fn subtract_product_sparse<const D: usize, const K: usize, const FUSED: bool>(
+    s: &mut [f64],
+    reduced: &BlockPattern,
+    (pair, diagonal): (usize, bool),
+    y: &[f64],
+    w: &[f64],
+) {
+    let (y, w) = (&y[..K * D], &w[..K * D]);
+    for q in 0..K {
+        let mut acc = [0.0; K];
+        for t in 0..D {
+            let factor = w[t * K + q];
+            for r in 0..K {
+                acc[r] = if FUSED {
+                    y[t * K + r].mul_add(factor, acc[r])
+                } else {
+                    acc[r] + y[t * K + r] * factor
+                };
+            }
+        }
+        let first = if diagonal { q } else { 0 };
+        let start = reduced.value_index(pair, diagonal, first, q);
+        for (to, a) in s[start..start + K - first].iter_mut().zip(&acc[first..]) {
+            *to -= a;
         }
     }
 }
