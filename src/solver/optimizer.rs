@@ -208,6 +208,11 @@ fn analyze(
     };
     let mut layout =
         SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering);
+    // Dogleg's model product is the one reader of H's scalar rows in a Schur solve; freed
+    // before the reduced system's analysis, they are not part of the solve's peak memory.
+    if schur_plan.is_some() && options.method != Method::Dogleg {
+        layout.pattern.forget_scalar_rows();
+    }
     let threads = options.thread_count();
     if threads > 1 {
         layout.use_threads(problem.factors(), threads);
@@ -216,10 +221,6 @@ fn analyze(
         Some(plan) => {
             let mut schur = SchurSolver::new(&layout.pattern, plan)?;
             schur.use_threads(threads);
-            // Dogleg's model product is the one reader of H's scalar rows in a Schur solve.
-            if options.method != Method::Dogleg {
-                layout.pattern.forget_scalar_rows();
-            }
             LinearSolver::Schur(schur)
         }
         // Supernodal on every pattern we measured: the block ordering makes variables supernodes
