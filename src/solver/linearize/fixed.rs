@@ -1,8 +1,8 @@
 //! The per-factor part of linearisation in fixed-size arithmetic for the common shapes (a pose
-//! graph's 3×6 and 6×12 between factors, their 3×3 and 6×6 priors): whitening `R e`, `R J`,
-//! chi2, and the factor's own `JᵀJ` (both triangles) and `Jᵀr`. With the sizes known at compile
-//! time the loops unroll into registers; the generic loops in [`super::linearize_with`] cost
-//! several times more per factor on small shapes. Same operations in the same order, so the
+//! graph's 3×6 and 6×12 between factors, their 3×3 and 6×6 priors, a BAL reprojection's 2×12):
+//! whitening `R e`, `R J`, chi2, and the factor's own `JᵀJ` (both triangles) and `Jᵀr`. With the
+//! sizes known at compile time the loops unroll into registers; the generic loops of
+//! [`super::chunk`] cost several times more per factor on small shapes. Same operations in the same order, so the
 //! results are those of the generic path.
 
 use crate::factors::SqrtInformation;
