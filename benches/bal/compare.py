@@ -1,11 +1,15 @@
 #!/usr/bin/env python3
-"""factord ba against Ceres (DENSE_SCHUR, SPARSE_SCHUR; one thread) on BAL problems, interleaved.
+"""factord ba against Ceres (DENSE_SCHUR, SPARSE_SCHUR) on BAL problems, interleaved.
 
-    compare.py [--rounds 3] [--huber SCALE] [--data DIR] [problem ...]
+    compare.py [--rounds 3] [--huber SCALE] [--threads 1[,2]] [--solvers dense_schur,sparse_schur]
+               [--data DIR] [problem ...]
 
 Builds nothing: run `cargo build --release` and `benches/reference/ceres/build.sh` first.
-Defaults to the two acceptance problems. Prints a markdown table of median solve times (the
-Solve call / the optimisation, file parsing excluded) and final costs (½Σ‖r‖²).
+Defaults to the two acceptance problems, one thread. Every system runs once per thread count
+given (factord `--threads N`, Ceres `num_threads`). Prints a markdown table of median solve times
+(the Solve call / the optimisation, file parsing excluded), final costs (½Σ‖r‖²), peak RSS of the
+process (GNU time's %M, the whole process: parsing included) and each time over the fastest
+single-thread Ceres of the same problem in the same run.
 """
 import argparse
 import json
@@ -19,11 +23,21 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
 
 
+def timed(cmd):
+    """Runs `cmd` under GNU time; returns its standard output and peak RSS in KB."""
+    with tempfile.NamedTemporaryFile(suffix=".txt") as t:
+        out = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", t.name] + cmd, check=True,
+                             capture_output=True, text=True).stdout
+        return out, int(open(t.name).read().split()[-1])
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("problems", nargs="*")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--huber", type=float, default=0.0)
+    p.add_argument("--threads", default="1", help="comma-separated thread counts, e.g. 1,2")
+    p.add_argument("--solvers", default="dense_schur,sparse_schur", help="Ceres linear solvers")
     p.add_argument("--data", default=os.path.join(REPO, "..", "shared", "data"))
     args = p.parse_args()
     problems = args.problems or [os.path.join(args.data, "bal", f)
@@ -34,33 +48,40 @@ def main():
     for exe in (factord, ceres):
         if not os.access(exe, os.X_OK):
             sys.exit(f"missing {exe}")
+    threads = [int(t) for t in args.threads.split(",")]
+    solvers = args.solvers.split(",")
     rows = []
     for problem in problems:
-        runs = {"factord": [], "ceres dense_schur": [], "ceres sparse_schur": []}
+        runs = {}
         for _ in range(args.rounds):
-            with tempfile.NamedTemporaryFile(suffix=".json") as f:
-                cmd = [factord, "ba", problem, "--quiet", "--summary-json", f.name]
-                if args.huber:
-                    cmd += ["--robust", f"huber:{args.huber}"]
-                subprocess.run(cmd, check=True)
-                s = json.load(open(f.name))
-                runs["factord"].append((s["solve_seconds"], s["final_cost"], s["iterations"], s["converged"]))
-            for solver in ("dense_schur", "sparse_schur"):
-                cmd = [ceres, problem, "--linear-solver", solver]
-                if args.huber:
-                    cmd += ["--huber", str(args.huber)]
-                out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-                c = json.loads(out)
-                runs[f"ceres {solver}"].append((c["solve_seconds"], c["final_cost"], c["iterations"], c["converged"]))
-        best = min(statistics.median(r[0] for r in v) for k, v in runs.items() if k != "factord")
-        for system, v in runs.items():
-            t = statistics.median(r[0] for r in v)
-            rows.append(f"| {os.path.basename(problem)} | {system} | {t:.3f} | {v[-1][1]:.4f} | "
-                        f"{v[-1][2]} | {v[-1][3]} | {t / best:.2f} |")
+            for t in threads:
+                with tempfile.NamedTemporaryFile(suffix=".json") as f:
+                    cmd = [factord, "ba", problem, "--quiet", "--threads", str(t), "--summary-json", f.name]
+                    if args.huber:
+                        cmd += ["--robust", f"huber:{args.huber}"]
+                    rss = timed(cmd)[1]
+                    s = json.load(open(f.name))
+                    runs.setdefault(("factord", t), []).append(
+                        (s["solve_seconds"], s["final_cost"], s["iterations"], s["converged"], rss))
+                for solver in solvers:
+                    cmd = [ceres, problem, "--linear-solver", solver, "--threads", str(t)]
+                    if args.huber:
+                        cmd += ["--huber", str(args.huber)]
+                    out, rss = timed(cmd)
+                    c = json.loads(out)
+                    runs.setdefault((f"ceres {solver}", t), []).append(
+                        (c["solve_seconds"], c["final_cost"], c["iterations"], c["converged"], rss))
+        best = min(statistics.median(r[0] for r in v) for (k, t), v in runs.items()
+                   if k != "factord" and t == 1)
+        for (system, t), v in runs.items():
+            time = statistics.median(r[0] for r in v)
+            rss = max(r[4] for r in v)
+            rows.append(f"| {os.path.basename(problem)} | {system} | {t} | {time:.3f} | {v[-1][1]:.4f} | "
+                        f"{v[-1][2]} | {v[-1][3]} | {rss / 1024:.0f} | {time / best:.2f} |")
     print(f"{args.rounds} interleaved rounds, median solve seconds" + (f", Huber({args.huber})" if args.huber else ""))
     print()
-    print("| problem | system | solve s | final cost | iterations | converged | / fastest Ceres |")
-    print("|---|---|---:|---:|---:|---|---:|")
+    print("| problem | system | threads | solve s | final cost | iterations | converged | peak RSS MB | / fastest 1-thread Ceres |")
+    print("|---|---|---:|---:|---:|---:|---|---:|---:|")
     print("\n".join(rows))
 
 

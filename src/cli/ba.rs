@@ -11,7 +11,7 @@ use super::ceres_style;
 use super::progress::Progress;
 use super::solve_output::{optimize_verbose, write_summary_json, IterationLines};
 use super::stdio::{Console, InputArg, OutputArg};
-use super::value_parsers::{parse_linear_solver, parse_method, parse_robust};
+use super::value_parsers::{parse_linear_solver, parse_method, parse_robust, parse_threads};
 use super::CliError;
 
 #[derive(clap::Args)]
@@ -61,6 +61,10 @@ pub struct BaArgs {
     /// Print only errors (no Ceres-style iteration rows or report)
     #[arg(long)]
     quiet: bool,
+    /// Threads for linearisation and the Schur complement (1: one thread, as Ceres'
+    /// benchmarks here; 0: one per core)
+    #[arg(long, default_value_t = 1, value_parser = parse_threads)]
+    threads: usize,
 }
 
 fn parse_perturb(s: &str) -> Result<[f64; 3], String> {
@@ -119,6 +123,7 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
         max_iterations: args.max_iterations,
         function_tolerance: args.function_tolerance,
         linear_solver: args.linear_solver,
+        threads: args.threads,
         ..SolverOptions::bundle_adjustment()
     };
     let lines = IterationLines::Ceres {

@@ -88,6 +88,11 @@ pub struct SolveArgs {
     /// Print only errors.
     #[arg(long)]
     quiet: bool,
+    /// Threads for linearisation and a Schur complement (1: one thread; 0: one per core). A
+    /// pose graph's factors do not split between threads, so it solves on one whatever this
+    /// says.
+    #[arg(long, default_value_t = 1, value_parser = super::value_parsers::parse_threads)]
+    threads: usize,
 }
 
 pub fn run(args: SolveArgs) -> Result<(), CliError> {
@@ -125,6 +130,7 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         max_iterations: args.max_iterations,
         initialization: args.init,
         function_tolerance: args.function_tolerance,
+        threads: args.threads,
         ..SolverOptions::default()
     };
     console.print(&format!(

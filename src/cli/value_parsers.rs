@@ -33,3 +33,12 @@ pub fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
         format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
     })
 }
+
+/// `--threads`: 0 (one per core) up to [`factord::solver::MAX_THREADS`].
+pub fn parse_threads(s: &str) -> Result<usize, String> {
+    let max = factord::solver::MAX_THREADS;
+    match s.parse::<usize>() {
+        Ok(n) if n <= max => Ok(n),
+        _ => Err(format!("`{s}`: expected 0 (one per core) to {max}")),
+    }
+}

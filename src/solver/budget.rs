@@ -106,7 +106,11 @@ pub fn estimate_memory(
     let variables = problem.values.len() as u64;
     let graph = variables * 2 * VARIABLE_BYTES + problem.factors().len() as u64 * FACTOR_BYTES;
     let nnz = layout.pattern.nnz() as u64;
-    let system = 8 * (3 * nnz + 8 * layout.n() as u64);
+    // H's values, its scalar row indices unless forgotten (a Schur solve), and the damped copy
+    // a sparse Cholesky factorises (the Schur complement shifts in place).
+    let copies =
+        1 + u64::from(layout.pattern.has_scalar_rows()) + u64::from(!chol.shifts_in_place());
+    let system = 8 * (copies * nnz + 8 * layout.n() as u64);
     let factor = chol.numeric_bytes();
     let initialization = if options.initialization == Initialization::None {
         0

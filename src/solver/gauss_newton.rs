@@ -28,7 +28,7 @@ pub(super) struct GaussNewton {
 }
 
 impl GaussNewton {
-    pub(super) fn compute_step<E: Borrow<FactorEntry>>(
+    pub(super) fn compute_step<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         it: &mut Iterations<'_>,
         factors: &[E],

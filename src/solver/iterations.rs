@@ -22,7 +22,7 @@ use super::stopping::{
 use super::strategy::{Proposal, Strategy};
 use super::summary::{IterationReport, Run, Termination, TerminationReason, Timings};
 use super::vector::{dot, max_abs};
-use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
+use super::{evaluate_chi2, evaluate_chi2_threads, SolverError};
 use crate::problem::FactorEntry;
 use crate::problem::Values;
 
@@ -137,7 +137,7 @@ impl<'a> Iterations<'a> {
     }
 
     /// Linearises at `values` into H and b; returns chi2 there (`Break`: the budget stopped it).
-    pub(super) fn linearize_at<E: Borrow<FactorEntry>>(
+    pub(super) fn linearize_at<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         factors: &[E],
         values: &Values,
@@ -161,7 +161,7 @@ impl<'a> Iterations<'a> {
     }
 
     /// [`Iterations::linearize_at`] for `b` and chi2 only; H stays that of the last point.
-    fn gradient_at<E: Borrow<FactorEntry>>(
+    fn gradient_at<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         factors: &[E],
         values: &Values,
@@ -184,7 +184,7 @@ impl<'a> Iterations<'a> {
     }
 
     /// chi2 at `values ⊕ delta`, leaving that point in `self.trial`.
-    fn evaluate_trial<E: Borrow<FactorEntry>>(
+    fn evaluate_trial<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         factors: &[E],
         values: &Values,
@@ -192,7 +192,8 @@ impl<'a> Iterations<'a> {
         let t = Instant::now();
         self.trial.assign_from(values);
         self.layout.retract(&mut self.trial, &self.delta);
-        let chi2 = evaluate_chi2_within(factors, &self.trial, self.budget)?;
+        let threads = self.layout.threads();
+        let chi2 = evaluate_chi2_threads(factors, &self.trial, self.budget, threads)?;
         self.timings.evaluate_seconds += t.elapsed().as_secs_f64();
         Ok(chi2.map_continue(|chi2| {
             if chi2.is_finite() {
@@ -251,13 +252,14 @@ impl<'a> Iterations<'a> {
     pub(super) fn solve_with_factor(&mut self, times: &mut StepTimes) {
         let t = Instant::now();
         self.delta.copy_from_slice(&self.b);
-        self.chol.solve_in_place(&mut self.delta);
+        let (pattern, h) = (&self.layout.pattern, &self.h);
+        self.chol.solve_in_place(pattern, h, &mut self.delta);
         let s = t.elapsed().as_secs_f64();
         self.timings.linear_solve_seconds += s;
         times.solve += s;
     }
 
-    pub(super) fn run<E: Borrow<FactorEntry>>(
+    pub(super) fn run<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         factors: &[E],
         values: &mut Values,
@@ -271,7 +273,7 @@ impl<'a> Iterations<'a> {
 
     /// [`Iterations::run`] after the caller linearised at `values` itself (`first`, with the
     /// time it took in `times`).
-    pub(super) fn run_linearized<E: Borrow<FactorEntry>>(
+    pub(super) fn run_linearized<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         factors: &[E],
         values: &mut Values,
@@ -343,7 +345,7 @@ impl<'a> Iterations<'a> {
     /// One step of `strategy` from `values` (chi2 `chi2`): computed, its trial point evaluated
     /// (left in `self.trial`) and judged. `Break`: the budget stopped it.
     #[allow(clippy::too_many_arguments)]
-    fn take_step<E: Borrow<FactorEntry>>(
+    fn take_step<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         strategy: &mut Strategy,
         factors: &[E],
@@ -387,7 +389,7 @@ impl<'a> Iterations<'a> {
     /// of the point the loop is at and, when the solve ends here, why: a convergence test, or a
     /// budget that stopped the relinearisation (the solve ends at the accepted point).
     #[allow(clippy::too_many_arguments)]
-    fn advance<E: Borrow<FactorEntry>>(
+    fn advance<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         strategy: &mut Strategy,
         factors: &[E],

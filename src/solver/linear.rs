@@ -66,10 +66,12 @@ impl LinearSolver {
         }
     }
 
-    pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
+    /// Solves with the last factorisation of `values` (the unshifted H the Schur complement
+    /// eliminated; a sparse Cholesky reads only its factor).
+    pub fn solve_in_place(&mut self, pattern: &BlockPattern, values: &[f64], rhs: &mut [f64]) {
         match self {
             Self::Sparse(chol) => chol.solve_in_place(rhs),
-            Self::Schur(schur) => schur.solve_in_place(rhs),
+            Self::Schur(schur) => schur.solve_in_place(pattern, values, rhs),
         }
     }
 

@@ -8,11 +8,14 @@ use crate::factors::EvaluationError;
 use crate::problem::FactorEntry;
 use crate::problem::{Key, Values, Variable};
 
-use super::budget::{Budget, Unlimited, FACTORS_PER_CHECK};
-use super::simd::has_wide_vectors;
+use super::budget::{Budget, Unlimited};
 use super::structure::{BlockOrdering, BlockPattern};
 
+mod chunk;
 mod fixed;
+mod split;
+
+use split::Split;
 
 /// The block number of each variable when free variables are numbered in index order and fixed
 /// ones are skipped — the numbering of [`free_adjacency`]'s graph, which every system sharing its
@@ -78,6 +81,8 @@ pub struct SystemLayout {
     visit_order: Vec<usize>,
     max_residual: usize,
     max_cols: usize,
+    /// How linearisation shares the factors between threads (`None`: on the calling thread).
+    split: Option<Split>,
 }
 
 impl SystemLayout {
@@ -128,11 +133,25 @@ impl SystemLayout {
             visit_order,
             max_residual,
             max_cols,
+            split: None,
         }
+    }
+
+    /// Linearises on up to `threads` threads from now on, where the structure lets the factors
+    /// be cut into chunks that write apart (`linearize/split.rs`); returns how many chunks it uses (1: the
+    /// calling thread alone). [`Scratch`]es made before this do not use the split.
+    pub fn use_threads<E: Borrow<FactorEntry>>(&mut self, factors: &[E], threads: usize) -> usize {
+        self.split = split::split(factors, self, threads);
+        self.split.as_ref().map_or(1, |s| s.chunks.len())
     }
 
     pub fn n(&self) -> usize {
         self.pattern.n
+    }
+
+    /// Threads linearisation runs on ([`SystemLayout::use_threads`]).
+    pub fn threads(&self) -> usize {
+        self.split.as_ref().map_or(1, |s| s.chunks.len())
     }
 
     pub fn key_at_row(&self, values: &Values, row: usize) -> Key {
@@ -150,9 +169,17 @@ impl SystemLayout {
     }
 }
 
-/// Reusable per-evaluation scratch buffers.
+/// Reusable per-evaluation scratch buffers: the calling thread's, and with a split those of
+/// each other thread with its private copy of the shared tail of H and b.
 #[derive(Debug, Default)]
 pub struct Scratch {
+    own: Buffers,
+    helpers: Vec<Helper>,
+}
+
+/// One thread's per-factor buffers.
+#[derive(Debug, Default)]
+struct Buffers {
     error: Vec<f64>,
     residual: Vec<f64>,
     jacobian: Vec<f64>,
@@ -162,8 +189,16 @@ pub struct Scratch {
     gradient: Vec<f64>,
 }
 
-impl Scratch {
-    pub fn new(layout: &SystemLayout) -> Self {
+/// A thread other than the caller's: its buffers and its copies of H's and b's shared tails.
+#[derive(Debug, Default)]
+struct Helper {
+    buffers: Buffers,
+    h: Vec<f64>,
+    b: Vec<f64>,
+}
+
+impl Buffers {
+    fn new(layout: &SystemLayout) -> Self {
         let (d, c) = (layout.max_residual, layout.max_cols);
         Self {
             error: vec![0.0; d],
@@ -176,8 +211,27 @@ impl Scratch {
     }
 }
 
+impl Scratch {
+    pub fn new(layout: &SystemLayout) -> Self {
+        let helpers = match &layout.split {
+            Some(split) => (1..split.chunks.len())
+                .map(|_| Helper {
+                    buffers: Buffers::new(layout),
+                    h: vec![0.0; split.shared_values(layout.pattern.nnz())],
+                    b: vec![0.0; split.shared_rows(layout.n())],
+                })
+                .collect(),
+            None => Vec::new(),
+        };
+        Self {
+            own: Buffers::new(layout),
+            helpers,
+        }
+    }
+}
+
 /// Linearises every factor at `values`; fills `h` (pattern values) and `b = −Jᵀr`, returns chi2.
-pub fn linearize<E: Borrow<FactorEntry>>(
+pub fn linearize<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -191,9 +245,9 @@ pub fn linearize<E: Borrow<FactorEntry>>(
     }
 }
 
-/// [`linearize`] that checks `budget` every [`FACTORS_PER_CHECK`] factors; `Break` leaves `h`
-/// and `b` partly filled.
-pub fn linearize_within<E: Borrow<FactorEntry>>(
+/// [`linearize`] that checks `budget` every [`super::budget::FACTORS_PER_CHECK`] factors;
+/// `Break` leaves `h` and `b` partly filled.
+pub fn linearize_within<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -202,17 +256,12 @@ pub fn linearize_within<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    if has_wide_vectors() {
-        // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide::<E, true>(factors, values, layout, scratch, h, b, budget) }
-    } else {
-        linearize_with::<E, true>(factors, values, layout, scratch, h, b, budget)
-    }
+    chunk::run::<E, true>(factors, values, layout, scratch, h, b, budget)
 }
 
 /// [`linearize_within`] for `b = −Jᵀr` and chi2 only, leaving H alone: what a step with an
 /// earlier factorisation needs (the factor's `JᵀJ` and its scatter are most of the work).
-pub fn gradient_within<E: Borrow<FactorEntry>>(
+pub fn gradient_within<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     layout: &SystemLayout,
@@ -220,100 +269,7 @@ pub fn gradient_within<E: Borrow<FactorEntry>>(
     b: &mut [f64],
     budget: &dyn Budget,
 ) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    if has_wide_vectors() {
-        // SAFETY: the CPU has the features `linearize_wide` is compiled for.
-        unsafe { linearize_wide::<E, false>(factors, values, layout, scratch, &mut [], b, budget) }
-    } else {
-        linearize_with::<E, false>(factors, values, layout, scratch, &mut [], b, budget)
-    }
-}
-
-#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn linearize_wide<E: Borrow<FactorEntry>, const HESSIAN: bool>(
-    factors: &[E],
-    values: &Values,
-    layout: &SystemLayout,
-    scratch: &mut Scratch,
-    h: &mut [f64],
-    b: &mut [f64],
-    budget: &dyn Budget,
-) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    linearize_with::<E, HESSIAN>(factors, values, layout, scratch, h, b, budget)
-}
-
-/// The linearisation loop; without `HESSIAN` it fills only `b` (and `h` may be empty).
-#[inline(always)]
-fn linearize_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
-    factors: &[E],
-    values: &Values,
-    layout: &SystemLayout,
-    scratch: &mut Scratch,
-    h: &mut [f64],
-    b: &mut [f64],
-    budget: &dyn Budget,
-) -> Result<ControlFlow<(), f64>, EvaluationError> {
-    if HESSIAN {
-        h.fill(0.0);
-    }
-    b.fill(0.0);
-    let pattern = &layout.pattern;
-    let mut total = 0.0;
-    let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
-    let mut col_offsets = [0usize; 16];
-    for (k, &f) in layout.visit_order.iter().enumerate() {
-        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 && budget.checkpoint().is_break() {
-            return Ok(ControlFlow::Break(()));
-        }
-        let entry = factors[f].borrow();
-        let vars = entry.variables();
-        refs.clear();
-        refs.extend(vars.iter().map(|&v| values.variable(v)));
-        let d = entry.factor.residual_dim();
-        let mut cols = 0;
-        for (k, r) in refs.iter().enumerate() {
-            col_offsets[k] = cols;
-            cols += r.tangent_dim();
-        }
-        total += factor_gram::<HESSIAN>(entry, &refs, d, cols, scratch)?;
-        let (gram, gradient) = (&scratch.gram[..cols * cols], &scratch.gradient[..cols]);
-        for (li, &v) in vars.iter().enumerate() {
-            if let Some(p) = layout.position_of_var[v] {
-                let (o, c0, dim) = (pattern.offset[p], col_offsets[li], pattern.dim[p]);
-                fixed::add_scaled_exact(&mut b[o..o + dim], &gradient[c0..c0 + dim], -1.0);
-            }
-        }
-        if !HESSIAN {
-            continue;
-        }
-        for &(li, lj, pair) in &layout.slots[layout.slot_start[f]..layout.slot_start[f + 1]] {
-            let (vi, vj) = (vars[li as usize], vars[lj as usize]);
-            let (a, bpos) = (
-                layout.position_of_var[vi].unwrap_or(0),
-                layout.position_of_var[vj].unwrap_or(0),
-            );
-            let diagonal = a == bpos;
-            let (ci, cj) = (col_offsets[li as usize], col_offsets[lj as usize]);
-            let (da, db) = (pattern.dim[a], pattern.dim[bpos]);
-            if da == 3 && db == 3 {
-                fixed::scatter_block::<3>(pattern, h, pair, diagonal, gram, cols, ci, cj);
-                continue;
-            }
-            if da == 6 && db == 6 {
-                fixed::scatter_block::<6>(pattern, h, pair, diagonal, gram, cols, ci, cj);
-                continue;
-            }
-            for q in 0..db {
-                let rows = if diagonal { q } else { 0 };
-                let base = pattern.value_index(pair, diagonal, rows, q);
-                // Column cj + q of the symmetric gram is its row: contiguous over rr.
-                let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + da];
-                for (hv, g) in h[base..base + da - rows].iter_mut().zip(source) {
-                    *hv += g;
-                }
-            }
-        }
-    }
-    Ok(ControlFlow::Continue(total))
+    chunk::run::<E, false>(factors, values, layout, scratch, &mut [], b, budget)
 }
 
 /// One factor's whitened, robustified normal equations at `refs` (its variables in key order,
@@ -326,16 +282,16 @@ fn factor_gram<const HESSIAN: bool>(
     refs: &[&dyn Variable],
     d: usize,
     cols: usize,
-    scratch: &mut Scratch,
+    buffers: &mut Buffers,
 ) -> Result<f64, EvaluationError> {
-    let Scratch {
+    let Buffers {
         error,
         residual,
         jacobian,
         whitened,
         gram,
         gradient,
-    } = scratch;
+    } = buffers;
     let (e, r, jac, wj) = (
         &mut error[..d],
         &mut residual[..d],
@@ -390,6 +346,7 @@ pub fn factor_normal_equations<'s>(
 ) -> Result<(f64, &'s [f64], &'s [f64]), EvaluationError> {
     let d = entry.factor.residual_dim();
     let cols: usize = refs.iter().map(|r| r.tangent_dim()).sum();
+    let scratch = &mut scratch.own;
     for (buffer, len) in [
         (&mut scratch.error, d),
         (&mut scratch.residual, d),
@@ -412,6 +369,10 @@ pub fn factor_normal_equations<'s>(
 
 /// `y = H x` for the symmetric matrix stored as its lower triangle.
 pub fn symmetric_multiply(pattern: &BlockPattern, h: &[f64], x: &[f64], y: &mut [f64]) {
+    assert!(
+        pattern.has_scalar_rows(),
+        "the pattern's scalar rows were forgotten"
+    );
     y.fill(0.0);
     for c in 0..pattern.n {
         let column = pattern.col_ptr[c]..pattern.col_ptr[c + 1];

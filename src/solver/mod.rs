@@ -36,7 +36,7 @@ mod warm;
 pub use budget::{Budget, Unlimited};
 pub use gnc::{optimize_gnc, GncKernel, GncOptions, GncReport};
 pub use optimizer::{optimize, optimize_warm, optimize_warm_within, optimize_within};
-pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions};
+pub use options::{Initialization, LinearSolverChoice, Method, SolverOptions, MAX_THREADS};
 pub use summary::{IterationReport, Summary, Termination, TerminationReason};
 pub use warm::{newton_decrement, optimize_region, optimize_region_within, OrderingCache};
 
@@ -76,7 +76,7 @@ pub enum SolverError {
 }
 
 /// [`evaluate_chi2`] that checks `budget` every [`budget::FACTORS_PER_CHECK`] factors.
-pub fn evaluate_chi2_within<E: Borrow<FactorEntry>>(
+pub fn evaluate_chi2_within<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     budget: &dyn Budget,
@@ -88,4 +88,64 @@ pub fn evaluate_chi2_within<E: Borrow<FactorEntry>>(
             std::ops::ControlFlow::Continue(())
         }
     })
+}
+
+/// [`evaluate_chi2_within`] on up to `threads` threads: the factors cut into that many equal
+/// runs, each summed on its own thread, the sums added in run order (so a result differs from
+/// one thread's only by rounding). The calling thread checks `budget`; the others stop with it.
+pub(crate) fn evaluate_chi2_threads<E: Borrow<FactorEntry> + Sync>(
+    factors: &[E],
+    values: &Values,
+    budget: &dyn Budget,
+    threads: usize,
+) -> Result<std::ops::ControlFlow<(), f64>, EvaluationError> {
+    use std::ops::ControlFlow;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    if threads < 2 || factors.len() < 2 * threads {
+        return evaluate_chi2_within(factors, values, budget);
+    }
+    let stop = AtomicBool::new(false);
+    let due = |k: usize| k % budget::FACTORS_PER_CHECK == budget::FACTORS_PER_CHECK - 1;
+    let mut runs = factors.chunks(factors.len().div_ceil(threads));
+    let first = runs.next().expect("at least two factors");
+    let results = std::thread::scope(|s| {
+        let others: Vec<_> = runs
+            .map(|run| {
+                let stop = &stop;
+                s.spawn(move || {
+                    evaluate_chi2_checked(run, values, |k| {
+                        if due(k) && stop.load(Ordering::Relaxed) {
+                            ControlFlow::Break(())
+                        } else {
+                            ControlFlow::Continue(())
+                        }
+                    })
+                })
+            })
+            .collect();
+        let mine = evaluate_chi2_checked(first, values, |k| {
+            if due(k) && budget.checkpoint().is_break() {
+                stop.store(true, Ordering::Relaxed);
+                return ControlFlow::Break(());
+            }
+            ControlFlow::Continue(())
+        });
+        let mut results = vec![mine];
+        for other in others {
+            results.push(
+                other
+                    .join()
+                    .unwrap_or_else(|p| std::panic::resume_unwind(p)),
+            );
+        }
+        results
+    });
+    let mut total = 0.0;
+    for result in results {
+        match result? {
+            ControlFlow::Continue(chi2) => total += chi2,
+            ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
+        }
+    }
+    Ok(ControlFlow::Continue(total))
 }

@@ -16,7 +16,7 @@ use super::initialize::{chordal_estimate, take_estimate};
 use super::iterations::{Iterations, StepTimes};
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
-use super::options::{Initialization, SolverOptions};
+use super::options::{Initialization, Method, SolverOptions};
 use super::schur::{self, SchurSolver};
 use super::stopping::stopped;
 use super::structure::BlockOrdering;
@@ -206,9 +206,23 @@ fn analyze(
         (None, Some(cache)) => cache.ordering(problem.factors(), fixed),
         (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), fixed)),
     };
-    let layout = SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering);
+    let mut layout =
+        SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering);
+    // Dogleg's model product is the one reader of H's scalar rows in a Schur solve; freed
+    // before the reduced system's analysis, they are not part of the solve's peak memory.
+    if schur_plan.is_some() && options.method != Method::Dogleg {
+        layout.pattern.forget_scalar_rows();
+    }
+    let threads = options.thread_count();
+    if threads > 1 {
+        layout.use_threads(problem.factors(), threads);
+    }
     let chol = match &schur_plan {
-        Some(plan) => LinearSolver::Schur(SchurSolver::new(&layout.pattern, plan)?),
+        Some(plan) => {
+            let mut schur = SchurSolver::new(&layout.pattern, plan)?;
+            schur.use_threads(threads);
+            LinearSolver::Schur(schur)
+        }
         // Supernodal on every pattern we measured: the block ordering makes variables supernodes
         // (M3500: 2.8 ms vs 5.1 ms simplicial; intel 0.58 vs 1.44).
         None => LinearSolver::Sparse(SparseCholesky::analyze(
@@ -238,7 +252,7 @@ fn analyze(
 /// of a small solve), else the given values (a rejected estimate costs a second
 /// linearisation). `values` ends as the start, `solver.trial` as the other one. Returns the
 /// initialisation's label, the chi2 it reached, and the first linearisation's outcome.
-fn start_point<E: Borrow<FactorEntry>>(
+fn start_point<E: Borrow<FactorEntry> + Sync>(
     solver: &mut Iterations,
     factors: &[E],
     values: &mut Values,
@@ -281,7 +295,7 @@ fn start_point<E: Borrow<FactorEntry>>(
 }
 
 #[allow(clippy::too_many_arguments)]
-pub(super) fn iterate<E: Borrow<FactorEntry>>(
+pub(super) fn iterate<E: Borrow<FactorEntry> + Sync>(
     values: &mut Values,
     factors: &[E],
     layout: &SystemLayout,
@@ -301,7 +315,7 @@ pub(super) fn iterate<E: Borrow<FactorEntry>>(
 /// evaluation takes seconds. A budget that stops it because it was cancelled (time left) fails
 /// the solve with nothing changed; one out of time lets it finish, so that the solve answers
 /// with an interrupted Summary at the given values, as it would a moment later.
-pub(super) fn initial_chi2<E: Borrow<FactorEntry>>(
+pub(super) fn initial_chi2<E: Borrow<FactorEntry> + Sync>(
     factors: &[E],
     values: &Values,
     budget: &dyn Budget,

@@ -91,6 +91,13 @@ pub struct SolverOptions {
     pub initial_trust_radius: f64,
     pub initialization: Initialization,
     pub linear_solver: LinearSolverChoice,
+    /// Threads one solve may use for linearisation, the trial cost and the Schur complement's
+    /// elimination and back-substitution (1: the calling thread only; 0: one per core). Where
+    /// the problem's structure does not split (pose graphs), the solve runs on one thread
+    /// whatever this says. Results differ from one thread's by rounding only. A session takes
+    /// only 1: its solve is one task of the server's worker pool.
+    #[serde(deserialize_with = "crate::wire_number::usize")]
+    pub threads: usize,
 }
 
 impl Default for SolverOptions {
@@ -106,11 +113,23 @@ impl Default for SolverOptions {
             initial_trust_radius: 1e4,
             initialization: Initialization::Auto,
             linear_solver: LinearSolverChoice::Auto,
+            threads: 1,
         }
     }
 }
 
+/// The most threads a solve may ask for.
+pub const MAX_THREADS: usize = 256;
+
 impl SolverOptions {
+    /// [`SolverOptions::threads`] resolved: 0 is one per core (as the OS reports them).
+    pub fn thread_count(&self) -> usize {
+        match self.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        }
+    }
+
     /// Defaults for bundle adjustment: LM damped from the first step (the gauge is free, so
     /// Gauss-Newton's system is singular), no pose-graph initialisation.
     pub fn bundle_adjustment() -> Self {
@@ -135,6 +154,15 @@ impl SolverOptions {
             if !(value.is_finite() && value >= 0.0) {
                 return Err((name, format!("must be a finite number >= 0, got {value}")));
             }
+        }
+        if self.threads > MAX_THREADS {
+            return Err((
+                "threads",
+                format!(
+                    "must be between 0 (one per core) and {MAX_THREADS}, got {}",
+                    self.threads
+                ),
+            ));
         }
         for (name, value) in [
             ("initial_lambda", self.initial_lambda),

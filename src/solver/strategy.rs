@@ -53,7 +53,7 @@ impl Strategy {
 
     /// Computes this iteration's step at `values` (chi2 `chi2`) into `it.delta`. `Break`: the
     /// budget stopped it.
-    pub(super) fn compute_step<E: Borrow<FactorEntry>>(
+    pub(super) fn compute_step<E: Borrow<FactorEntry> + Sync>(
         &mut self,
         it: &mut Iterations<'_>,
         factors: &[E],

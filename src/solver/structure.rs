@@ -132,7 +132,21 @@ impl BlockPattern {
     }
 
     pub fn nnz(&self) -> usize {
-        self.row_idx.len()
+        self.col_ptr[self.col_ptr.len() - 1]
+    }
+
+    /// Frees the scalar row index of every value (as many `usize` as H has values) for a solve
+    /// that never reads them: the Schur complement addresses H by blocks (`pair`,
+    /// `value_index`); only a sparse Cholesky of the whole pattern ([`Self::symbolic`]) and the
+    /// scalar product of Dogleg need them. A bundle adjustment's W blocks make them about a
+    /// sixth of its peak memory.
+    pub fn forget_scalar_rows(&mut self) {
+        self.row_idx = Vec::new();
+    }
+
+    /// Whether the scalar row indices are still held (see [`Self::forget_scalar_rows`]).
+    pub fn has_scalar_rows(&self) -> bool {
+        self.row_idx.len() == self.nnz()
     }
 
     /// The lower blocks of column block `b` (elimination positions): `(a, pair)` for every `a ≥ b`
@@ -164,6 +178,10 @@ impl BlockPattern {
     }
 
     pub fn symbolic(&self) -> SymbolicSparseColMatRef<'_, usize> {
+        assert!(
+            self.has_scalar_rows(),
+            "the pattern's scalar rows were forgotten"
+        );
         // SAFETY: `with_ordering` builds `col_ptr` non-decreasing from 0 to `row_idx.len()`, and
         // each column's rows strictly increasing and < n (diagonal block rows, then whole blocks
         // in sorted block order); `pattern_covers_every_pair_once` checks this, and debug builds

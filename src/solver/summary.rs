@@ -245,7 +245,7 @@ pub(super) struct Context {
 }
 
 impl Run {
-    pub(super) fn summary<E: Borrow<FactorEntry>>(
+    pub(super) fn summary<E: Borrow<FactorEntry> + Sync>(
         self,
         options: &SolverOptions,
         layout: &SystemLayout,
@@ -263,7 +263,7 @@ impl Run {
                 linear_solver: self.linear_solver,
                 factorization: self.factorization.into(),
                 ordering: self.ordering.into(),
-                threads: 1,
+                threads: layout.threads(),
                 initialization: context.initialization,
                 gauge_fixed: context.gauge_fixed,
                 schur: self.schur,

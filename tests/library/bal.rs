@@ -145,3 +145,32 @@ fn levenberg_marquardt_reaches_the_ceres_optimum() {
         }
     }
 }
+
+/// Two threads (linearisation, the trial cost, the Schur complement's elimination and
+/// back-substitution) reach one thread's optimum to rounding, in as many iterations, and the
+/// Summary says two were used.
+#[test]
+fn two_threads_reach_one_threads_optimum() {
+    use factord::solver::{optimize, SolverOptions};
+    let Some(path) = common::data_file("bal/problem-16-22106-pre.txt") else {
+        return;
+    };
+    let mut solved = Vec::new();
+    for threads in [1, 2] {
+        let mut b = bal::load(&path).unwrap();
+        let options = SolverOptions {
+            threads,
+            ..SolverOptions::bundle_adjustment()
+        };
+        let summary = optimize(&mut b.problem, &options, &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap();
+        assert_eq!(summary.used.threads, threads);
+        solved.push((b.cost(), summary.iterations));
+    }
+    let ((one, one_iterations), (two, two_iterations)) = (solved[0], solved[1]);
+    assert_relative(two, one, 1e-9, "two threads against one");
+    assert_eq!(two_iterations, one_iterations);
+    assert_relative(one, 18033.90, 1e-3, "Ceres' optimum");
+}

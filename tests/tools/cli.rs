@@ -490,3 +490,51 @@ fn evo_ape_reads_solve_tum_with_stamps() {
         .unwrap();
     assert!(rmse < 1e-3, "{stdout}");
 }
+
+/// `ba --threads 2` solves a BAL problem on two threads to one thread's cost (the Summary says
+/// two were used); a count beyond 256 or not a number is refused naming the flag.
+#[test]
+fn ba_threads_solve_alike_and_a_bad_count_is_refused() {
+    let Some(input) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let dir = common::temp_dir("ba-threads");
+    let mut costs = Vec::new();
+    for threads in ["1", "2"] {
+        let summary = dir.join(format!("s{threads}.json"));
+        factord()
+            .arg("ba")
+            .arg(&input)
+            .args(["--quiet", "--threads", threads, "--summary-json"])
+            .arg(&summary)
+            .succeeds();
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+        assert_eq!(
+            s["used"]["threads"].as_u64(),
+            Some(threads.parse().unwrap())
+        );
+        assert_eq!(
+            s["given_options"]["threads"].as_u64(),
+            Some(threads.parse().unwrap())
+        );
+        costs.push(s["final_cost"].as_f64().unwrap());
+    }
+    assert!(
+        (costs[0] - costs[1]).abs() <= 1e-9 * costs[0],
+        "one thread {} against two {}",
+        costs[0],
+        costs[1]
+    );
+    for bad in ["257", "-1", "two"] {
+        let err = factord()
+            .arg("ba")
+            .arg(&input)
+            .arg(format!("--threads={bad}"))
+            .refused();
+        assert!(
+            err.contains("--threads") && err.contains("256"),
+            "{bad}: {err}"
+        );
+    }
+}

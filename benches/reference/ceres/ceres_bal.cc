@@ -1,12 +1,13 @@
 // Ceres reference driver for BAL bundle adjustment, timed like `factord ba`.
 //
 //   ceres_bal <problem.txt> [--linear-solver dense_schur|sparse_schur] [--max-iterations N]
-//             [--huber SCALE] [--function-tolerance T]
+//             [--huber SCALE] [--function-tolerance T] [--threads N]
 //
 // Prints one JSON object: initial/final cost (½Σ‖r‖², Ceres' convention), iterations (successful
 // and unsuccessful), solve seconds (Ceres' total time minus nothing: the Solve call), termination.
 // Model: Snavely camera (angle-axis, t, f, k1, k2), p = −P/P.z, as in the BAL documentation;
-// automatic differentiation, one thread, LM (Ceres' default trust region), points eliminated first.
+// automatic differentiation, one thread unless --threads (Ceres' num_threads: evaluation and the
+// Schur eliminator), LM (Ceres' default trust region), points eliminated first.
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
 
@@ -71,17 +72,19 @@ struct Reprojection {
 int main(int argc, char** argv) {
   if (argc < 2) {
     std::fprintf(stderr, "usage: %s <problem.txt> [--linear-solver dense_schur|sparse_schur] "
-                         "[--max-iterations N] [--huber SCALE] [--function-tolerance T]\n", argv[0]);
+                         "[--max-iterations N] [--huber SCALE] [--function-tolerance T] [--threads N]\n",
+                 argv[0]);
     return 2;
   }
   std::string solver = "dense_schur";
-  int max_iterations = 100;
+  int max_iterations = 100, threads = 1;
   double huber = 0.0, function_tolerance = 1e-6;
   for (int i = 2; i + 1 < argc; i += 2) {
     if (!std::strcmp(argv[i], "--linear-solver")) solver = argv[i + 1];
     else if (!std::strcmp(argv[i], "--max-iterations")) max_iterations = std::atoi(argv[i + 1]);
     else if (!std::strcmp(argv[i], "--huber")) huber = std::atof(argv[i + 1]);
     else if (!std::strcmp(argv[i], "--function-tolerance")) function_tolerance = std::atof(argv[i + 1]);
+    else if (!std::strcmp(argv[i], "--threads")) threads = std::atoi(argv[i + 1]);
     else { std::fprintf(stderr, "unknown option %s\n", argv[i]); return 2; }
   }
   Bal bal;
@@ -96,7 +99,7 @@ int main(int argc, char** argv) {
   }
   ceres::Solver::Options options;
   options.linear_solver_type = solver == "sparse_schur" ? ceres::SPARSE_SCHUR : ceres::DENSE_SCHUR;
-  options.num_threads = 1;
+  options.num_threads = threads;
   options.max_num_iterations = max_iterations;
   options.function_tolerance = function_tolerance;
   options.minimizer_progress_to_stdout = false;
@@ -112,11 +115,11 @@ int main(int argc, char** argv) {
   ceres::Solve(options, &problem, &summary);
   double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   std::printf(
-      "{\"linear_solver\": \"%s\", \"initial_cost\": %.10g, \"final_cost\": %.10g, "
+      "{\"linear_solver\": \"%s\", \"threads\": %d, \"initial_cost\": %.10g, \"final_cost\": %.10g, "
       "\"iterations\": %d, \"successful_steps\": %d, \"unsuccessful_steps\": %d, "
       "\"solve_seconds\": %.6f, \"ceres_total_seconds\": %.6f, \"termination\": \"%s\", "
       "\"converged\": %s}\n",
-      solver.c_str(), summary.initial_cost, summary.final_cost,
+      solver.c_str(), threads, summary.initial_cost, summary.final_cost,
       summary.num_successful_steps + summary.num_unsuccessful_steps, summary.num_successful_steps,
       summary.num_unsuccessful_steps, wall, summary.total_time_in_seconds,
       ceres::TerminationTypeToString(summary.termination_type),

@@ -210,8 +210,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_batch_waits_as_long_as_exact_solves_usually_take_where_that_fits_a_tenth_of_the_budget()
-    {
+    fn a_batch_waits_as_long_as_exact_solves_usually_take_where_that_fits_a_tenth_of_the_budget() {
         let mut latency = Latency::new(20);
         let ms = Duration::from_millis;
         // Too few solves seen: a tenth of the budget.
@@ -230,7 +229,11 @@ mod tests {
         for _ in 0..SOLVES_KEPT {
             latency.solved_in(Duration::from_micros(900));
         }
-        assert_eq!(latency.wait(false), Duration::from_micros(1800), "within the tenth");
+        assert_eq!(
+            latency.wait(false),
+            Duration::from_micros(1800),
+            "within the tenth"
+        );
         for _ in 0..SOLVES_KEPT {
             latency.solved_in(ms(30));
         }

@@ -1,8 +1,8 @@
 //! The per-factor part of linearisation in fixed-size arithmetic for the common shapes (a pose
-//! graph's 3×6 and 6×12 between factors, their 3×3 and 6×6 priors): whitening `R e`, `R J`,
-//! chi2, and the factor's own `JᵀJ` (both triangles) and `Jᵀr`. With the sizes known at compile
-//! time the loops unroll into registers; the generic loops in [`super::linearize_with`] cost
-//! several times more per factor on small shapes. Same operations in the same order, so the
+//! graph's 3×6 and 6×12 between factors, their 3×3 and 6×6 priors, a BAL reprojection's 2×12):
+//! whitening `R e`, `R J`, chi2, and the factor's own `JᵀJ` (both triangles) and `Jᵀr`. With the
+//! sizes known at compile time the loops unroll into registers; the generic loops of
+//! [`super::chunk`] cost several times more per factor on small shapes. Same operations in the same order, so the
 //! results are those of the generic path.
 
 use crate::factors::SqrtInformation;
@@ -91,17 +91,21 @@ pub(super) fn whitened_gram_fixed<const HESSIAN: bool>(
         (3, 3) => whitened_gram::<3, 3, HESSIAN>(sqrt, e, jac, gram, gradient),
         (6, 12) => whitened_gram::<6, 12, HESSIAN>(sqrt, e, jac, gram, gradient),
         (6, 6) => whitened_gram::<6, 6, HESSIAN>(sqrt, e, jac, gram, gradient),
+        // A reprojection: a 2-pixel residual on a BAL camera (9) and a point (3).
+        (2, 12) => whitened_gram::<2, 12, HESSIAN>(sqrt, e, jac, gram, gradient),
         _ => return None,
     })
 }
 
-/// Adds the factor's `JᵀJ` block of local columns `ci..ci+N` × `cj..cj+N` (`gram` has `cols`
-/// columns) into H's block `pair` of N×N variables; a diagonal block only its lower triangle.
+/// Adds the factor's `JᵀJ` block of local columns `ci..ci+R` × `cj..cj+C` (`gram` has `cols`
+/// columns) into H's block `pair` of R×C variables; a diagonal block (R = C) only its lower
+/// triangle. `h` holds H's values from value index `first` on.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(super) fn scatter_block<const N: usize>(
+pub(super) fn scatter_block<const R: usize, const C: usize>(
     pattern: &BlockPattern,
     h: &mut [f64],
+    first: usize,
     pair: usize,
     diagonal: bool,
     gram: &[f64],
@@ -109,12 +113,20 @@ pub(super) fn scatter_block<const N: usize>(
     ci: usize,
     cj: usize,
 ) {
-    for q in 0..N {
+    for q in 0..C {
         let rows = if diagonal { q } else { 0 };
-        let base = pattern.value_index(pair, diagonal, rows, q);
+        let base = pattern.value_index(pair, diagonal, rows, q) - first;
         // Column cj + q of the symmetric gram is its row: contiguous over the rows.
-        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + N];
-        add_exact(&mut h[base..base + N - rows], source);
+        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + R];
+        if diagonal {
+            add_exact(&mut h[base..base + R - rows], source);
+        } else if let (Some(t), Some(s)) =
+            (h[base..].first_chunk_mut::<R>(), source.first_chunk::<R>())
+        {
+            for i in 0..R {
+                t[i] += s[i];
+            }
+        }
     }
 }
 

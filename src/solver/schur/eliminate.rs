@@ -5,12 +5,15 @@
 use std::ops::ControlFlow;
 use std::time::Instant;
 
+use std::ops::Range;
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use super::super::budget::{Budget, Unlimited};
 use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
-use super::reduced::Backend;
-use super::{kernel_of, SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
+use super::threads::{Part, View};
+use super::{SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
 
 impl SchurSolver {
     /// Eliminates with the full matrix `values` (lower triangle in `full`'s layout) plus
@@ -58,12 +61,7 @@ impl SchurSolver {
                 self.s_values[at] += add;
             }
         }
-        let eliminated = if has_wide_vectors() {
-            // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
-            unsafe { eliminate_all_wide(self, full, values, shift, budget) }
-        } else {
-            eliminate_all(self, full, values, shift, budget)
-        }?;
+        let eliminated = self.eliminate_parts(full, values, shift, budget)?;
         if eliminated.is_break()
             || budget.checkpoint().is_break()
             || !self.reduced_cost.fits(budget)
@@ -77,27 +75,28 @@ impl SchurSolver {
         self.reduced_cost.measure(started.elapsed());
         factorized.map(ControlFlow::Continue)
     }
+}
 
+impl View<'_> {
     /// Eliminates block `e` (of dimension `D`, or any when `D` is 0; its neighbours all of
     /// dimension `K`, or any when `K` is 0): V⁻¹, Y = W V⁻¹ and
     /// S −= Y Wᵀ over every pair of its neighbours. Errs with the failing pivot of V.
     // Kept whole (99 lines): the const-generic kernel BA time is spent in, monomorphised per
     // block size and inlined into its caller; its three products share the same stack blocks.
     #[inline(always)]
-    fn eliminate<const D: usize, const K: usize>(
-        &mut self,
+    fn eliminate<const D: usize, const K: usize, const FUSED: bool>(
+        &self,
+        part: &mut Part<'_>,
         e: usize,
         full: &BlockPattern,
         values: &[f64],
         shift: Option<&[f64]>,
     ) -> Result<(), usize> {
         let d = if D > 0 { D } else { self.dim[e] };
-        let reduced = &self.reduced;
-        let dense_n = match self.backend {
-            Backend::Dense { .. } => Some(reduced.n),
-            Backend::Sparse(_) => None,
-        };
-        let v = &mut self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let reduced = self.reduced;
+        let dense_n = self.dense_n;
+        let v =
+            &mut part.v_inverse[self.v_start[e] - part.v_first..self.v_start[e + 1] - part.v_first];
         let diagonal_pair = full.column_blocks(e)[0].1;
         for q in 0..d {
             for r in q..d {
@@ -116,7 +115,7 @@ impl SchurSolver {
         let mut local = 0;
         for nb in around {
             let dk = if K > 0 { K } else { reduced.dim[nb.block] };
-            let w = &mut self.w_local[local..local + dk * d];
+            let w = &mut part.w_local[local..local + dk * d];
             for t in 0..d {
                 let start = full.value_index(nb.w_pair, false, 0, t);
                 for (to, from) in w[t * dk..(t + 1) * dk]
@@ -126,7 +125,7 @@ impl SchurSolver {
                     *to = *from;
                 }
             }
-            let y = &mut self.y_values[nb.y_offset..nb.y_offset + dk * d];
+            let y = &mut part.y_local[local..local + dk * d];
             y.fill(0.0);
             for t in 0..d {
                 let yt = &mut y[t * dk..(t + 1) * dk];
@@ -145,19 +144,26 @@ impl SchurSolver {
         let mut local_k = 0;
         for (k, nk) in around.iter().enumerate() {
             let dk = if K > 0 { K } else { reduced.dim[nk.block] };
-            let y = &self.y_values[nk.y_offset..nk.y_offset + dk * d];
+            let y = &part.y_local[local_k..local_k + dk * d];
             let mut local_l = 0;
             for (l, nl) in around[..=k].iter().enumerate() {
                 let dl = if K > 0 { K } else { reduced.dim[nl.block] };
                 let block = blocks[next];
                 next += 1;
-                let w = &self.w_local[local_l..local_l + dl * d];
+                let w = &part.w_local[local_l..local_l + dl * d];
                 local_l += dl * d;
                 match dense_n {
                     // Dense S: a diagonal block may be written whole (the upper half is unread).
                     Some(n) if D > 0 && K == CAMERA => {
-                        subtract_product::<D, CAMERA>(&mut self.s_values[block..], n, y, w)
+                        subtract_product::<D, CAMERA, FUSED>(&mut part.s_values[block..], n, y, w)
                     }
+                    None if D > 0 && K == CAMERA => subtract_product_sparse::<D, CAMERA, FUSED>(
+                        part.s_values,
+                        reduced,
+                        (block, k == l),
+                        y,
+                        w,
+                    ),
                     _ => {
                         let diagonal = k == l;
                         for q in 0..dl {
@@ -166,7 +172,7 @@ impl SchurSolver {
                                 Some(n) => block + q * n + first,
                                 None => reduced.value_index(block, diagonal, first, q),
                             };
-                            let column = &mut self.s_values[start..start + dk - first];
+                            let column = &mut part.s_values[start..start + dk - first];
                             for t in 0..d {
                                 let factor = w[t * dl + q];
                                 let yt = &y[t * dk + first..(t + 1) * dk];
@@ -185,47 +191,87 @@ impl SchurSolver {
     }
 }
 
-/// Eliminates every block of `solver` into S; errs at the first V that is not positive definite.
-/// `Break`: `budget` stopped it part way (S is then incomplete).
+/// Eliminates blocks `blocks` into `part`; errs at the first V that is not positive definite.
+/// `Break`: the budget (checked by the calling thread, which tells the others through `stop`)
+/// stopped it part way (S is then incomplete).
 #[inline(always)]
-fn eliminate_all(
-    solver: &mut SchurSolver,
-    full: &BlockPattern,
-    values: &[f64],
-    shift: Option<&[f64]>,
-    budget: &dyn Budget,
+fn eliminate_all<const FUSED: bool>(
+    view: &View<'_>,
+    part: &mut Part<'_>,
+    blocks: Range<usize>,
+    (full, values, shift): (&BlockPattern, &[f64], Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    for e in 0..solver.eliminated {
-        if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && budget.checkpoint().is_break() {
+    for (k, e) in blocks.enumerate() {
+        if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
         }
-        let result = match kernel_of(solver, e) {
-            (3, true) => solver.eliminate::<3, CAMERA>(e, full, values, shift),
-            (3, false) => solver.eliminate::<3, 0>(e, full, values, shift),
-            _ => solver.eliminate::<0, 0>(e, full, values, shift),
+        let result = match (view.dim[e], view.camera_neighbours[e]) {
+            (3, true) => view.eliminate::<3, CAMERA, FUSED>(part, e, full, values, shift),
+            (3, false) => view.eliminate::<3, 0, FUSED>(part, e, full, values, shift),
+            _ => view.eliminate::<0, 0, FUSED>(part, e, full, values, shift),
         };
         result.map_err(|i| NotPositiveDefinite {
-            row: solver.offset[e] + i,
+            row: view.offset[e] + i,
         })?;
     }
     Ok(ControlFlow::Continue(()))
 }
 
+/// Whether to stop: the calling thread asks `budget` (and tells the others), they read `stop`.
+fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
+    match budget {
+        Some(budget) => {
+            let stopped = budget.checkpoint().is_break();
+            if stopped {
+                stop.store(true, Ordering::Relaxed);
+            }
+            stopped
+        }
+        None => stop.load(Ordering::Relaxed),
+    }
+}
+
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
 fn eliminate_all_wide(
-    solver: &mut SchurSolver,
-    full: &BlockPattern,
-    values: &[f64],
-    shift: Option<&[f64]>,
-    budget: &dyn Budget,
+    view: &View<'_>,
+    part: &mut Part<'_>,
+    blocks: Range<usize>,
+    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_all(solver, full, values, shift, budget)
+    eliminate_all::<true>(view, part, blocks, inputs, budget, stop)
+}
+
+/// [`eliminate_all`] with the widest kernels the CPU has.
+pub(super) fn eliminate_blocks(
+    view: &View<'_>,
+    part: &mut Part<'_>,
+    blocks: Range<usize>,
+    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    if has_wide_vectors() {
+        // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
+        unsafe { eliminate_all_wide(view, part, blocks, inputs, budget, stop) }
+    } else {
+        eliminate_all::<false>(view, part, blocks, inputs, budget, stop)
+    }
 }
 
 /// `S[.., ..] −= Y Wᵀ` for column-major `y`, `w` (K × D) into the K×K block of a column-major
-/// matrix with leading dimension `n` that starts at `s[0]`.
+/// matrix with leading dimension `n` that starts at `s[0]`. `FUSED`: the products as fused
+/// multiply-adds, for callers compiled with FMA (without it `mul_add` is a library call).
 #[inline(always)]
-fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: &[f64], w: &[f64]) {
+fn subtract_product<const D: usize, const K: usize, const FUSED: bool>(
+    s: &mut [f64],
+    n: usize,
+    y: &[f64],
+    w: &[f64],
+) {
     let (y, w) = (&y[..K * D], &w[..K * D]);
     for q in 0..K {
         let column = &mut s[q * n..q * n + K];
@@ -233,11 +279,46 @@ fn subtract_product<const D: usize, const K: usize>(s: &mut [f64], n: usize, y: 
         for t in 0..D {
             let factor = w[t * K + q];
             for r in 0..K {
-                acc[r] += y[t * K + r] * factor;
+                acc[r] = if FUSED {
+                    y[t * K + r].mul_add(factor, acc[r])
+                } else {
+                    acc[r] + y[t * K + r] * factor
+                };
             }
         }
         for r in 0..K {
             column[r] -= acc[r];
+        }
+    }
+}
+
+/// [`subtract_product`] into block `pair` of the sparse S (`diagonal`: only its lower triangle
+/// is stored, so only that is written).
+#[inline(always)]
+fn subtract_product_sparse<const D: usize, const K: usize, const FUSED: bool>(
+    s: &mut [f64],
+    reduced: &BlockPattern,
+    (pair, diagonal): (usize, bool),
+    y: &[f64],
+    w: &[f64],
+) {
+    let (y, w) = (&y[..K * D], &w[..K * D]);
+    for q in 0..K {
+        let mut acc = [0.0; K];
+        for t in 0..D {
+            let factor = w[t * K + q];
+            for r in 0..K {
+                acc[r] = if FUSED {
+                    y[t * K + r].mul_add(factor, acc[r])
+                } else {
+                    acc[r] + y[t * K + r] * factor
+                };
+            }
+        }
+        let first = if diagonal { q } else { 0 };
+        let start = reduced.value_index(pair, diagonal, first, q);
+        for (to, a) in s[start..start + K - first].iter_mut().zip(&acc[first..]) {
+            *to -= a;
         }
     }
 }

@@ -1,5 +1,5 @@
 //! Where every piece of the elimination lives, decided once per structure: per eliminated block
-//! its V⁻¹, its neighbours' Y = W V⁻¹ and the S block of every neighbour pair; the U entries
+//! its V⁻¹ and the S block of every neighbour pair; the U entries
 //! copied into S; and the reduced system's backend (dense buffer or sparse symbolic analysis).
 
 use super::super::budget::FactorCost;
@@ -32,7 +32,7 @@ impl SchurSolver {
         let mut neighbours = Vec::new();
         let mut s_block_start = Vec::with_capacity(ne + 1);
         let mut s_blocks = Vec::new();
-        let (mut v_len, mut y_len, mut w_max) = (0, 0, 0);
+        let (mut v_len, mut w_max) = (0, 0);
         for e in 0..ne {
             let d = full.dim[e];
             dim.push(d);
@@ -54,9 +54,7 @@ impl SchurSolver {
                 neighbours.push(Neighbour {
                     block: a - ne,
                     w_pair,
-                    y_offset: y_len,
                 });
-                y_len += full.dim[a] * d;
                 w_len += full.dim[a] * d;
             }
             w_max = w_max.max(w_len);
@@ -103,11 +101,13 @@ impl SchurSolver {
             camera_neighbours,
             s_block_start,
             s_blocks,
-            y_values: vec![0.0; y_len],
             u_map,
             s_values: vec![0.0; s_len],
             w_local: vec![0.0; w_max],
+            y_local: vec![0.0; w_max],
             rhs: vec![0.0; n],
+            parts: vec![0..ne],
+            helpers: Vec::new(),
             reduced,
             backend,
             reduced_cost,

@@ -21,13 +21,14 @@
 //!
 //! The files, one concept each:
 //! - `plan`: which blocks are eliminated and the reduced system's graph and order ([`SchurPlan`]);
-//! - `layout`: where every piece lives — V⁻¹, Y = W V⁻¹, the S block of every neighbour pair,
-//!   the U entries copied into S ([`SchurSolver::new`]);
+//! - `layout`: where every piece lives — V⁻¹, the S block of every neighbour pair, the U
+//!   entries copied into S ([`SchurSolver::new`]);
 //! - `eliminate`: one factorisation: U into S, then every eliminated block's V⁻¹ and
 //!   S −= Y Wᵀ, with the small fixed-size kernels it uses;
 //! - `reduced`: the reduced system S itself, dense or sparse: its factorisation, its solve and
 //!   their predicted cost;
-//! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr.
+//! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr;
+//! - `threads`: the elimination and back-substitution cut into parts for more than one thread.
 //!
 //! This file holds the solver's state, shared by all of them.
 
@@ -38,6 +39,7 @@ mod plan;
 mod reduced;
 #[cfg(test)]
 mod tests;
+mod threads;
 
 use super::budget::FactorCost;
 use super::cholesky::SparseCholesky;
@@ -47,14 +49,12 @@ pub(in crate::solver) use eliminate::small_cholesky;
 pub use plan::{plan, SchurPlan};
 use reduced::Backend;
 
-/// One neighbour (reduced block) of an eliminated block: its W block in the full pattern, and
-/// where Y = W V⁻¹ of that pair is kept.
+/// One neighbour (reduced block) of an eliminated block: its W block in the full pattern.
 #[derive(Debug, Clone, Copy)]
 struct Neighbour {
     /// Reduced block number (full position − eliminated).
     block: usize,
     w_pair: usize,
-    y_offset: usize,
 }
 
 /// The block size the fixed-size kernels are compiled for: a BAL camera.
@@ -84,8 +84,6 @@ pub struct SchurSolver {
     /// of the reduced pattern (sparse) or the index of the block's (0, 0) entry (dense).
     s_block_start: Vec<usize>,
     s_blocks: Vec<usize>,
-    /// Y = W V⁻¹ per (eliminated block, neighbour), column-major (dk × d).
-    y_values: Vec<f64>,
     /// (full pattern value index, S value index) of every U entry.
     u_map: Vec<(usize, usize)>,
     reduced: BlockPattern,
@@ -94,9 +92,16 @@ pub struct SchurSolver {
     /// What factorising S costs (predicted from its size or symbolic analysis, timed after each
     /// one), so that a factorisation the budget has no time left for is not started.
     reduced_cost: FactorCost,
-    /// W of the current eliminated block's neighbours, column-major like Y.
+    /// W of the current eliminated block's neighbours, and Y = W V⁻¹, each column-major
+    /// (dk × d per neighbour, one after the other). Y is not kept past its block: the solve
+    /// reads W from H again (Y b = W (V⁻¹ b)), so memory holds W once, in H.
     w_local: Vec<f64>,
+    y_local: Vec<f64>,
     rhs: Vec<f64>,
+    /// The eliminated blocks of each thread's part (one part: the calling thread alone) and
+    /// the buffers of the threads beside the caller's; see `threads`.
+    parts: Vec<std::ops::Range<usize>>,
+    helpers: Vec<threads::Helper>,
 }
 
 impl std::fmt::Debug for SchurSolver {

@@ -104,7 +104,7 @@ fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, 
     let mut schur = SchurSolver::new(pattern, &plan).unwrap();
     schur.factorize(pattern, &h, Some(&shift)).unwrap();
     let mut x = b.clone();
-    schur.solve_in_place(&mut x);
+    schur.solve_in_place(pattern, &h, &mut x);
 
     let mut damped = h.clone();
     for (c, s) in shift.iter().enumerate() {
@@ -292,9 +292,48 @@ fn the_budget_is_checked_during_the_elimination_and_before_the_reduced_factorisa
     assert!(flow.is_continue());
     assert_eq!(endless.checkpoints.get(), points / ELIMINATED_PER_CHECK + 1);
     let mut x = b.clone();
-    schur.solve_in_place(&mut x);
+    schur.solve_in_place(pattern, &h, &mut x);
     schur.factorize(pattern, &h, Some(&shift)).unwrap();
     let mut unbudgeted = b;
-    schur.solve_in_place(&mut unbudgeted);
+    schur.solve_in_place(pattern, &h, &mut unbudgeted);
     assert_eq!(x, unbudgeted, "the same arithmetic, bit for bit");
+}
+
+/// Two threads linearise and eliminate what one does: H and b to rounding, the damped step to
+/// rounding, for the dense and the sparse reduced system; and the work really is split.
+#[test]
+fn two_threads_give_one_threads_system_and_step() {
+    let problem = synthetic_bundle_adjustment(12, 2000, 31);
+    for choice in [
+        LinearSolverChoice::DenseSchur,
+        LinearSolverChoice::SparseSchur,
+    ] {
+        let (plan, mut layout, h1, b1) = linearized(&problem, choice);
+        assert_eq!(layout.use_threads(problem.factors(), 2), 2, "{choice:?}");
+        let mut scratch = Scratch::new(&layout);
+        let (mut h2, mut b2) = (vec![f64::NAN; h1.len()], vec![f64::NAN; b1.len()]);
+        let (factors, values) = (problem.factors(), &problem.values);
+        linearize(factors, values, &layout, &mut scratch, &mut h2, &mut b2).unwrap();
+        assert_close(&h2, &h1);
+        assert_close(&b2, &b1);
+
+        let pattern = &layout.pattern;
+        let shift: Vec<f64> = (0..pattern.n)
+            .map(|c| 1e-3 * h1[pattern.diagonal_index(c)].max(1e-6))
+            .collect();
+        let mut steps = Vec::new();
+        for threads in [1, 2] {
+            let mut schur = SchurSolver::new(pattern, &plan).unwrap();
+            assert_eq!(schur.use_threads(threads), threads);
+            // Twice: the second factorisation must not see the first one's partial sums.
+            for _ in 0..2 {
+                schur.factorize(pattern, &h1, Some(&shift)).unwrap();
+            }
+            let mut x = b1.clone();
+            schur.solve_in_place(pattern, &h1, &mut x);
+            steps.push(x);
+        }
+        assert_close(&steps[1], &steps[0]);
+        assert!(steps[0].iter().any(|v| *v != 0.0));
+    }
 }

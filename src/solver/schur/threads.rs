@@ -1,0 +1,236 @@
+//! The elimination and the back-substitution on more than one thread. The eliminated blocks are
+//! cut into contiguous parts of about equal neighbour counts; each part's V⁻¹ is its own slice
+//! of the solver's array, so only S (and the reduced right-hand side) is written by
+//! every part: the first part into S itself, each other into a private copy that is added to S
+//! afterwards, in part order. A part's arithmetic is the one-thread code's; only the order in
+//! which the parts' contributions to S are summed differs, so results agree to rounding.
+
+use std::ops::{ControlFlow, Range};
+use std::sync::atomic::AtomicBool;
+
+use super::super::budget::Budget;
+use super::super::cholesky::NotPositiveDefinite;
+use super::super::structure::BlockPattern;
+use super::eliminate::eliminate_blocks;
+use super::reduced::Backend;
+use super::{Neighbour, SchurSolver};
+
+/// What every part reads: the layout of the elimination (see [`SchurSolver`]'s fields).
+pub(super) struct View<'a> {
+    pub(super) dim: &'a [usize],
+    pub(super) offset: &'a [usize],
+    pub(super) v_start: &'a [usize],
+    pub(super) neighbour_start: &'a [usize],
+    pub(super) neighbours: &'a [Neighbour],
+    pub(super) camera_neighbours: &'a [bool],
+    pub(super) s_block_start: &'a [usize],
+    pub(super) s_blocks: &'a [usize],
+    pub(super) reduced: &'a BlockPattern,
+    /// S's dimension when it is dense (its blocks are then addressed by row and column).
+    pub(super) dense_n: Option<usize>,
+}
+
+/// What one part writes: its blocks' V⁻¹ (a slice that starts at `v_first` of the solver's
+/// array), the W and Y scratch of one block, and S (or the part's copy of it).
+pub(super) struct Part<'a> {
+    pub(super) v_inverse: &'a mut [f64],
+    pub(super) v_first: usize,
+    pub(super) w_local: &'a mut [f64],
+    pub(super) y_local: &'a mut [f64],
+    pub(super) s_values: &'a mut [f64],
+}
+
+/// The full system's pattern and values, H, whose W blocks the solve reads.
+pub(super) type H<'a> = (&'a BlockPattern, &'a [f64]);
+
+/// Subtracts eliminated blocks' `Y b_e` from a reduced right-hand side.
+pub(super) type Reduce = fn(&SchurSolver, H<'_>, Range<usize>, &[f64], &mut [f64]);
+
+/// Back-substitutes eliminated blocks into their rows (a slice that starts at the given row).
+pub(super) type BackSubstitute = fn(&SchurSolver, H<'_>, Range<usize>, (&mut [f64], usize), &[f64]);
+
+/// A thread other than the caller's: its W and Y scratch and its copies of S and the reduced
+/// right-hand side.
+#[derive(Debug, Default)]
+pub(super) struct Helper {
+    w_local: Vec<f64>,
+    y_local: Vec<f64>,
+    s_values: Vec<f64>,
+    rhs: Vec<f64>,
+}
+
+impl SchurSolver {
+    /// Eliminates and back-substitutes on up to `threads` threads (1: the calling thread);
+    /// returns how many it uses: fewer when there are few eliminated blocks.
+    pub fn use_threads(&mut self, threads: usize) -> usize {
+        let total = self.neighbours.len();
+        let mut starts = vec![0];
+        if threads > 1 && self.eliminated >= 64 * threads {
+            for k in 1..threads {
+                let goal = k * total / threads;
+                let at = self.neighbour_start.partition_point(|&s| s < goal);
+                if at > starts[starts.len() - 1] && at < self.eliminated {
+                    starts.push(at);
+                }
+            }
+        }
+        starts.push(self.eliminated);
+        self.parts = starts.windows(2).map(|w| w[0]..w[1]).collect();
+        self.helpers = (1..self.parts.len())
+            .map(|_| Helper {
+                w_local: vec![0.0; self.w_local.len()],
+                y_local: vec![0.0; self.y_local.len()],
+                s_values: vec![0.0; self.s_values.len()],
+                rhs: vec![0.0; self.rhs.len()],
+            })
+            .collect();
+        self.parts.len()
+    }
+
+    /// Every eliminated block into S (which holds U and the shift already), part by part.
+    pub(super) fn eliminate_parts(
+        &mut self,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+        budget: &dyn Budget,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        let bounds: Vec<usize> = self.parts.iter().map(|p| self.v_start[p.start]).collect();
+        let view = View {
+            dim: &self.dim,
+            offset: &self.offset,
+            v_start: &self.v_start,
+            neighbour_start: &self.neighbour_start,
+            neighbours: &self.neighbours,
+            camera_neighbours: &self.camera_neighbours,
+            s_block_start: &self.s_block_start,
+            s_blocks: &self.s_blocks,
+            reduced: &self.reduced,
+            dense_n: match self.backend {
+                Backend::Dense { .. } => Some(self.reduced.n),
+                Backend::Sparse(_) => None,
+            },
+        };
+        let stop = AtomicBool::new(false);
+        let inputs = (full, values, shift);
+        let v_len = self.v_inverse.len();
+        let mut v_rest = &mut self.v_inverse[..];
+        let mut parts = Vec::with_capacity(self.parts.len());
+        for k in 0..self.parts.len() {
+            let v_end = bounds.get(k + 1).copied().unwrap_or(v_len);
+            let (v, v_next) = std::mem::take(&mut v_rest).split_at_mut(v_end - bounds[k]);
+            v_rest = v_next;
+            parts.push(v);
+        }
+        let mut parts = parts.into_iter().zip(&self.parts).zip(&bounds);
+        let ((first_v, first_blocks), _) = parts.next().expect("one part");
+        let results = std::thread::scope(|s| {
+            let others: Vec<_> = parts
+                .zip(self.helpers.iter_mut())
+                .map(|(((v, blocks), &v_first), helper)| {
+                    let view = &view;
+                    let stop = &stop;
+                    s.spawn(move || {
+                        helper.s_values.fill(0.0);
+                        let mut part = Part {
+                            v_inverse: v,
+                            v_first,
+                            w_local: &mut helper.w_local,
+                            y_local: &mut helper.y_local,
+                            s_values: &mut helper.s_values,
+                        };
+                        eliminate_blocks(view, &mut part, blocks.clone(), inputs, None, stop)
+                    })
+                })
+                .collect();
+            let mut part = Part {
+                v_inverse: first_v,
+                v_first: 0,
+                w_local: &mut self.w_local,
+                y_local: &mut self.y_local,
+                s_values: &mut self.s_values,
+            };
+            let blocks = first_blocks.clone();
+            let mine = eliminate_blocks(&view, &mut part, blocks, inputs, Some(budget), &stop);
+            let mut results = vec![mine];
+            for other in others {
+                results.push(
+                    other
+                        .join()
+                        .unwrap_or_else(|p| std::panic::resume_unwind(p)),
+                );
+            }
+            results
+        });
+        for result in results {
+            if result?.is_break() {
+                return Ok(ControlFlow::Break(()));
+            }
+        }
+        for helper in &self.helpers {
+            for (to, from) in self.s_values.iter_mut().zip(&helper.s_values) {
+                *to += from;
+            }
+        }
+        Ok(ControlFlow::Continue(()))
+    }
+
+    /// The reduced right-hand side `self.rhs −= Σ_e Y_e b_e` over every part (the others into
+    /// their copies, added in part order).
+    pub(super) fn reduce_parts(&mut self, h: H<'_>, rhs: &[f64], reduce: Reduce) {
+        let mut own_rhs = std::mem::take(&mut self.rhs);
+        let mut helpers = std::mem::take(&mut self.helpers);
+        let this = &*self;
+        std::thread::scope(|s| {
+            for (blocks, helper) in this.parts[1..].iter().zip(helpers.iter_mut()) {
+                s.spawn(move || {
+                    helper.rhs.fill(0.0);
+                    reduce(this, h, blocks.clone(), rhs, &mut helper.rhs);
+                });
+            }
+            reduce(this, h, this.parts[0].clone(), rhs, &mut own_rhs);
+        });
+        for helper in &helpers {
+            for (to, from) in own_rhs.iter_mut().zip(&helper.rhs) {
+                *to += from;
+            }
+        }
+        self.rhs = own_rhs;
+        self.helpers = helpers;
+    }
+
+    /// Back-substitution over every part: each writes only its own blocks' rows of `head`.
+    pub(super) fn back_substitute_parts(
+        &self,
+        h: H<'_>,
+        head: &mut [f64],
+        tail: &[f64],
+        back: BackSubstitute,
+    ) {
+        let mut rest = head;
+        let mut pieces = Vec::with_capacity(self.parts.len());
+        for blocks in &self.parts {
+            let first = self
+                .offset
+                .get(blocks.start)
+                .copied()
+                .unwrap_or(self.eliminated_rows);
+            let end = self
+                .offset
+                .get(blocks.end)
+                .copied()
+                .unwrap_or(self.eliminated_rows);
+            let (piece, next) = std::mem::take(&mut rest).split_at_mut(end - first);
+            rest = next;
+            pieces.push((blocks.clone(), piece, first));
+        }
+        let mut pieces = pieces.into_iter();
+        let (blocks, piece, first) = pieces.next().expect("one part");
+        std::thread::scope(|s| {
+            for (blocks, piece, first) in pieces {
+                s.spawn(move || back(self, h, blocks, (piece, first), tail));
+            }
+            back(self, h, blocks, (piece, first), tail);
+        });
+    }
+}
