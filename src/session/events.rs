@@ -1,16 +1,16 @@
 //! The session's event channel: publishing, and raw subscriptions (lossy when they fall behind:
 //! streams read through [`super::EventStream`], which re-synchronises instead).
 //!
-//! The channel carries weak references: what keeps a published event alive is
-//! [`RetainedEvents`], the newest ones up to `limits.max_subscriber_lag` of them and
-//! `limits.max_subscriber_lag_bytes` together. A subscriber that falls further behind finds the event
-//! gone and re-synchronises, as when it falls more events behind than the channel holds. The
-//! channel alone kept its last 4096 events, whatever their size: a session with a latency
-//! budget at 250 000 poses publishes corrections of most of its map, megabytes each, and the
-//! 300 000-pose stream was killed for memory at 23 GB with a 1.7 GB session.
+//! The channel carries [`EventSlot`]s. A slot holds its event until every subscriber has taken
+//! it (the channel then drops it) or until the session takes it back: the events some subscriber
+//! has not taken yet may hold at most `limits.max_subscriber_lag_bytes` together
+//! ([`UnreadEvents`]; the newest is kept whatever its size). A subscriber that finds an event
+//! taken back re-synchronises, as one that fell more events behind than the channel holds. The
+//! channel alone bounded only their count (4 096): one slow subscriber of a large map, whose
+//! corrections are megabytes each, could make the session hold gigabytes.
 
 use std::collections::VecDeque;
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, Weak};
 
 use tokio::sync::broadcast;
 
@@ -20,9 +20,9 @@ use crate::api::ServiceError;
 
 impl Session {
     /// A raw receiver: falling more than the channel's capacity behind skips events silently
-    /// (`RecvError::Lagged`), and an event no longer retained upgrades to `None`. Clients'
+    /// (`RecvError::Lagged`), and a slot whose event the session took back is empty. Clients'
     /// streams use [`Self::stream`].
-    pub fn subscribe(&self) -> broadcast::Receiver<Weak<SessionEvent>> {
+    pub fn subscribe(&self) -> broadcast::Receiver<Arc<EventSlot>> {
         self.events.subscribe()
     }
 
@@ -56,21 +56,19 @@ impl Session {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .record(&event);
-        let weak = Arc::downgrade(&event);
-        self.retained
+        let size = approximate_bytes(&event);
+        let slot = Arc::new(EventSlot(Mutex::new(Some(event))));
+        // No subscribers is fine: the slot is dropped at once.
+        let _ = self.events.send(Arc::clone(&slot));
+        self.unread
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .keep(event);
-        // No subscribers is fine.
-        let _ = self.events.send(weak);
+            .track(&slot, size);
     }
 
-    /// What the retained events hold (for `memory_bytes`).
-    pub(super) fn retained_event_bytes(&self) -> usize {
-        self.retained
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .bytes
+    /// What the events not yet taken by every subscriber hold (for `memory_bytes`).
+    pub(super) fn unread_event_bytes(&self) -> usize {
+        self.unread.lock().unwrap_or_else(|p| p.into_inner()).bytes
     }
 
     /// Event-stream subscribers now (the zenoh publisher included).
@@ -79,33 +77,59 @@ impl Session {
     }
 }
 
-/// The newest published events, at most `capacity` of them and `max_bytes` (the newest is
-/// kept whatever its size).
-pub(super) struct RetainedEvents {
-    events: VecDeque<(Arc<SessionEvent>, usize)>,
-    capacity: usize,
+/// A published event as the channel carries it (see the module documentation).
+#[derive(Debug)]
+pub struct EventSlot(Mutex<Option<Arc<SessionEvent>>>);
+
+impl EventSlot {
+    /// The event, unless the session took it back.
+    pub fn event(&self) -> Option<Arc<SessionEvent>> {
+        self.0.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    fn take_back(&self) {
+        self.0.lock().unwrap_or_else(|p| p.into_inner()).take();
+    }
+}
+
+/// The published events some subscriber has not taken yet, oldest first, with their sizes: at
+/// most `max_bytes` together (the newest is kept whatever its size).
+pub(super) struct UnreadEvents {
+    slots: VecDeque<(Weak<EventSlot>, usize)>,
     max_bytes: usize,
     bytes: usize,
 }
 
-impl RetainedEvents {
-    pub fn new(capacity: usize, max_bytes: usize) -> Self {
+impl UnreadEvents {
+    pub fn new(max_bytes: usize) -> Self {
         Self {
-            events: VecDeque::new(),
-            capacity,
+            slots: VecDeque::new(),
             max_bytes,
             bytes: 0,
         }
     }
 
-    fn keep(&mut self, event: Arc<SessionEvent>) {
-        let size = approximate_bytes(&event);
-        self.events.push_back((event, size));
+    fn track(&mut self, slot: &Arc<EventSlot>, size: usize) {
+        self.slots.push_back((Arc::downgrade(slot), size));
         self.bytes += size;
-        while self.events.len() > 1
-            && (self.events.len() > self.capacity || self.bytes > self.max_bytes)
-        {
-            if let Some((_, size)) = self.events.pop_front() {
+        // Slots every subscriber has taken are gone (the channel dropped them).
+        while let Some((oldest, size)) = self.slots.front() {
+            if oldest.strong_count() > 0 {
+                break;
+            }
+            self.bytes -= size;
+            self.slots.pop_front();
+        }
+        if self.bytes <= self.max_bytes {
+            return;
+        }
+        self.slots.retain(|(slot, _)| slot.strong_count() > 0);
+        self.bytes = self.slots.iter().map(|(_, size)| size).sum();
+        while self.bytes > self.max_bytes && self.slots.len() > 1 {
+            if let Some((oldest, size)) = self.slots.pop_front() {
+                if let Some(slot) = oldest.upgrade() {
+                    slot.take_back();
+                }
                 self.bytes -= size;
             }
         }
@@ -158,28 +182,36 @@ mod tests {
     }
 
     #[test]
-    fn events_are_retained_up_to_their_count_and_bytes_and_the_newest_always() {
+    fn unread_events_are_bounded_by_bytes_and_taken_ones_cost_nothing() {
         const MAX_BYTES: usize = 1 << 20;
-        let mut retained = RetainedEvents::new(4, MAX_BYTES);
-        let small: Vec<_> = (0..6).map(|_| estimate(1)).collect();
-        for event in &small {
-            retained.keep(Arc::clone(event));
+        let mut unread = UnreadEvents::new(MAX_BYTES);
+        let slot = |variables| Arc::new(EventSlot(Mutex::new(Some(estimate(variables)))));
+        // Slots no subscriber holds any more (taken by all) are forgotten.
+        for _ in 0..10 {
+            let taken = slot(1);
+            unread.track(&taken, approximate_bytes(&taken.event().unwrap()));
         }
-        let weak: Vec<_> = small.iter().map(Arc::downgrade).collect();
-        drop(small);
-        let alive = weak.iter().filter(|w| w.upgrade().is_some()).count();
-        assert_eq!(alive, 4, "the newest four");
-        // One event larger than the byte bound: kept alone, everything older dropped.
-        let big = estimate(MAX_BYTES / 40);
-        assert!(approximate_bytes(&big) > MAX_BYTES);
-        let big_weak = Arc::downgrade(&big);
-        retained.keep(big);
-        assert!(big_weak.upgrade().is_some());
-        assert!(weak.iter().all(|w| w.upgrade().is_none()));
-        assert_eq!(retained.events.len(), 1);
-        // Freed as soon as a newer one pushes it past the bound.
-        retained.keep(estimate(1));
-        assert!(big_weak.upgrade().is_none());
-        assert!(retained.bytes < 1024, "{}", retained.bytes);
+        assert_eq!(unread.slots.len(), 1, "only the newest is still counted");
+        // Slots still held (not taken by some subscriber) count, up to the bound.
+        let held: Vec<_> = (0..4).map(|_| slot(1)).collect();
+        for s in &held {
+            unread.track(s, approximate_bytes(&s.event().unwrap()));
+        }
+        assert!(held.iter().all(|s| s.event().is_some()));
+        // One larger than the bound: kept alone, the older unread ones taken back.
+        let big = slot(MAX_BYTES / 40);
+        let size = approximate_bytes(&big.event().unwrap());
+        assert!(size > MAX_BYTES);
+        unread.track(&big, size);
+        assert!(big.event().is_some(), "the newest is kept");
+        assert!(
+            held.iter().all(|s| s.event().is_none()),
+            "the older ones taken back"
+        );
+        // Taken back as soon as a newer one pushes it past the bound.
+        let next = slot(1);
+        unread.track(&next, approximate_bytes(&next.event().unwrap()));
+        assert!(big.event().is_none());
+        assert!(unread.bytes < 1024, "{}", unread.bytes);
     }
 }

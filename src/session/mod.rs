@@ -67,12 +67,13 @@ mod window_marginals;
 mod window_progress;
 
 use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use tokio::sync::{broadcast, watch};
 
 pub use durable::{Durability, Recovery};
 use engine::Engine;
+pub use events::EventSlot;
 pub use mirror::MirrorEntry;
 pub use producer_order::Progress;
 pub use producers::{check_producer_id, Origin};
@@ -80,7 +81,7 @@ use state::State;
 pub use stream::EventStream;
 
 use crate::api::catalogue::SessionKind;
-use crate::api::wire::{AutoOptimize, SessionEvent};
+use crate::api::wire::AutoOptimize;
 use crate::runtime::pool::PoolHandle;
 use crate::solver::SolverOptions;
 
@@ -90,9 +91,10 @@ pub struct Session {
     /// Factor types its client declared (at creation or since).
     factor_types: std::sync::RwLock<factor_types::FactorTypes>,
     state: Mutex<State>,
-    /// Subscribers receive events as weak references; `retained` holds them (see `events`).
-    events: broadcast::Sender<Weak<SessionEvent>>,
-    retained: Mutex<events::RetainedEvents>,
+    /// Published events in slots the session can take back; `unread` bounds what the events
+    /// not yet taken by every subscriber hold (see `events`).
+    events: broadcast::Sender<Arc<events::EventSlot>>,
+    unread: Mutex<events::UnreadEvents>,
     /// The timeline and recent events, fed by every published event.
     history: Mutex<history::History>,
     /// Highest sequence a finished solve (or a skipped one) reflects; waiters watch it.
@@ -154,10 +156,7 @@ impl Session {
             state: Mutex::new(State::new(kind, options, auto)),
             // At least one slot: a zero capacity is no channel.
             events: broadcast::channel(limits.max_subscriber_lag.max(1)).0,
-            retained: Mutex::new(events::RetainedEvents::new(
-                limits.max_subscriber_lag.max(1),
-                limits.max_subscriber_lag_bytes,
-            )),
+            unread: Mutex::new(events::UnreadEvents::new(limits.max_subscriber_lag_bytes)),
             history: Mutex::default(),
             solved: watch::channel(0).0,
             answered: watch::channel(0).0,

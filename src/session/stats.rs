@@ -134,7 +134,7 @@ impl Session {
             .bytes();
         mirror
             + factors
-            + self.retained_event_bytes()
+            + self.unread_event_bytes()
             + problem
             + marginals
             + producers

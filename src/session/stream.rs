@@ -42,7 +42,7 @@ use crate::api::ServiceError;
 pub struct EventStream {
     /// Weak: a subscriber must not keep a deleted session alive (its channel closes with it).
     session: Weak<Session>,
-    receiver: broadcast::Receiver<Weak<SessionEvent>>,
+    receiver: broadcast::Receiver<Arc<super::events::EventSlot>>,
     /// The highest acknowledged sequence seen (at subscription: the session's sequence).
     acked: u64,
     /// The sequence of the last solve seen finish (at subscription: the reflected sequence).
@@ -160,10 +160,10 @@ impl EventStream {
         }
     }
 
-    /// An event from the channel; one the session no longer retains (this subscriber fell
-    /// further behind than the session keeps events for) is a lag of one.
-    fn received(&mut self, event: &Weak<SessionEvent>) -> Option<Arc<SessionEvent>> {
-        match event.upgrade() {
+    /// An event from the channel; one the session took back (this subscriber fell further
+    /// behind than the session keeps events for) is a lag of one.
+    fn received(&mut self, slot: &super::events::EventSlot) -> Option<Arc<SessionEvent>> {
+        match slot.event() {
             Some(event) => Some(self.seen(event)),
             None => self.lagged(1),
         }

@@ -173,7 +173,7 @@ async fn corrections_of_the_whole_map_are_deferred_and_the_idle_estimate_is_the_
 /// Collects, concurrently (the channel is bounded), what every solve summary of `events` says
 /// of its incremental update (`None`: a full solve), until the session is quiet for 2 s.
 fn summaries_until_quiet(
-    mut events: tokio::sync::broadcast::Receiver<std::sync::Weak<SessionEvent>>,
+    mut events: tokio::sync::broadcast::Receiver<std::sync::Arc<factord::session::EventSlot>>,
 ) -> tokio::task::JoinHandle<Vec<Option<UpdateReport>>> {
     tokio::spawn(async move {
         let mut updates = Vec::new();
@@ -184,8 +184,8 @@ fn summaries_until_quiet(
                 Ok(Err(tokio::sync::broadcast::error::RecvError::Lagged(_))) => continue,
                 _ => break,
             };
-            // An event the session no longer retains was missed, as a lagged one is.
-            let Some(event) = event.upgrade() else {
+            // An event the session took back was missed, as a lagged one is.
+            let Some(event) = event.event() else {
                 continue;
             };
             if let SessionEvent::Summary { summary, .. } = &*event {
