@@ -50,14 +50,7 @@ pub async fn stream(
             let sequence = reply["sequence"].as_u64().expect("ack has a sequence");
             let deadline = Instant::now() + Duration::from_secs(300);
             loop {
-                let stats: Value = client
-                    .get(&stats_url)
-                    .send()
-                    .await
-                    .expect("stats")
-                    .json()
-                    .await
-                    .expect("stats JSON");
+                let stats = session_stats(&client, &stats_url).await;
                 if stats["solved_sequence"].as_u64().unwrap_or(0) >= sequence {
                     break;
                 }
@@ -76,14 +69,7 @@ pub async fn stream(
         }
         latencies_ms.push(ms);
         if memory_every.is_some_and(|every| (i + 1) % every == 0) {
-            let stats: Value = client
-                .get(&stats_url)
-                .send()
-                .await
-                .expect("stats")
-                .json()
-                .await
-                .expect("stats JSON");
+            let stats = session_stats(&client, &stats_url).await;
             memory.push(MemoryAt {
                 updates: i + 1,
                 peak_rss_kb: crate::proc_status_kb(s.pid(), "VmHWM"),
@@ -103,4 +89,16 @@ pub async fn stream(
         poses_received: None,
         memory,
     }
+}
+
+/// The session's statistics (`GET /v1/sessions/<s>`).
+async fn session_stats(client: &reqwest::Client, url: &str) -> Value {
+    client
+        .get(url)
+        .send()
+        .await
+        .expect("stats")
+        .json()
+        .await
+        .expect("stats JSON")
 }
