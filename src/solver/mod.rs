@@ -20,6 +20,7 @@ pub mod linearize;
 pub mod marginals;
 mod optimizer;
 pub mod options;
+mod parts;
 pub mod schur;
 pub(crate) mod simd;
 mod stopping;
@@ -130,22 +131,7 @@ pub(crate) fn evaluate_chi2_threads<E: Borrow<FactorEntry> + Sync>(
             }
             ControlFlow::Continue(())
         });
-        let mut results = vec![mine];
-        for other in others {
-            results.push(
-                other
-                    .join()
-                    .unwrap_or_else(|p| std::panic::resume_unwind(p)),
-            );
-        }
-        results
+        parts::mine_then_joined(mine, others)
     });
-    let mut total = 0.0;
-    for result in results {
-        match result? {
-            ControlFlow::Continue(chi2) => total += chi2,
-            ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
-        }
-    }
-    Ok(ControlFlow::Continue(total))
+    parts::sum_of_parts(results)
 }

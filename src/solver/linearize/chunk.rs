@@ -105,23 +105,12 @@ pub(super) fn run<E: Borrow<FactorEntry> + Sync, const HESSIAN: bool>(
         };
         let visits = first_chunk.visits.clone();
         let mine = chunk::<E, HESSIAN>(&common, &mut scratch.own, visits, target, Some(budget));
-        let mut results = vec![mine];
-        for other in others {
-            results.push(
-                other
-                    .join()
-                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
-            );
-        }
-        results
+        crate::solver::parts::mine_then_joined(mine, others)
     });
-    let mut total = 0.0;
-    for result in results {
-        match result? {
-            ControlFlow::Continue(chi2) => total += chi2,
-            ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
-        }
-    }
+    let total = match crate::solver::parts::sum_of_parts(results)? {
+        ControlFlow::Continue(total) => total,
+        ControlFlow::Break(()) => return Ok(ControlFlow::Break(())),
+    };
     // The other threads' parts of the shared tail, in chunk order.
     for helper in &scratch.helpers {
         if HESSIAN {

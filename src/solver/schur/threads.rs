@@ -152,15 +152,7 @@ impl SchurSolver {
             };
             let blocks = first_blocks.clone();
             let mine = eliminate_blocks(&view, &mut part, blocks, inputs, Some(budget), &stop);
-            let mut results = vec![mine];
-            for other in others {
-                results.push(
-                    other
-                        .join()
-                        .unwrap_or_else(|p| std::panic::resume_unwind(p)),
-                );
-            }
-            results
+            crate::solver::parts::mine_then_joined(mine, others)
         });
         for result in results {
             if result?.is_break() {
