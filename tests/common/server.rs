@@ -78,7 +78,7 @@ impl TestServer {
                 .open(&stderr_path)
                 .expect("stderr file");
             let logged_before = stderr.metadata().map_or(0, |m| m.len() as usize);
-            let mut cmd = Command::new(env!("CARGO_BIN_EXE_factord"));
+            let mut cmd = server_command();
             cmd.arg("serve");
             if !extra.contains(&"--listen") {
                 cmd.args(["--listen", "127.0.0.1:0"]);
@@ -575,4 +575,21 @@ pub async fn post_job_within(
     let status = answer.status().as_u16();
     let v: Value = answer.json().await.expect("a JSON answer");
     (status, v, start.elapsed())
+}
+
+/// The server's command: the binary, or under `FACTORD_SERVER_WRAPPER` (whitespace-separated,
+/// e.g. `heaptrack -o /tmp/serve`) the binary run by that profiler, for benchmarks that look
+/// into the server's memory.
+fn server_command() -> Command {
+    let binary = env!("CARGO_BIN_EXE_factord");
+    let wrapper = std::env::var("FACTORD_SERVER_WRAPPER").unwrap_or_default();
+    let mut words = wrapper.split_whitespace();
+    match words.next() {
+        None => Command::new(binary),
+        Some(program) => {
+            let mut cmd = Command::new(program);
+            cmd.args(words).arg(binary);
+            cmd
+        }
+    }
 }

@@ -389,3 +389,89 @@ fn a_factor_whose_fill_doubled_is_ordered_whole_again() {
     let optimum = batch_optimum(poses, &edges, &truth);
     assert!((chi2 - optimum) / optimum < 1e-3, "{chi2} vs {optimum}");
 }
+
+/// An update that brings many poses at once (a session whose exact solve fell behind takes in
+/// everything that arrived meanwhile) orders most of its variables with the rest of the part
+/// it refactors, and only the newest last: moved last all together, the poses and the old ends
+/// of their loop closures filled in as one dense root clique on the 300 000-pose city (see
+/// `MAX_LAST` in the engine), and the newest pose sat a path of 24 columns below the root here.
+/// The fill stays that of a fresh order, and odometry from the newest pose refactors a few
+/// columns.
+#[test]
+fn an_update_of_many_poses_keeps_only_the_newest_last() {
+    let (streamed, at_once) = (2000, 1000);
+    let poses = streamed + at_once;
+    let (truth, edges) = manhattan(poses, 5);
+    let by_later_end = edges_by_later_end(poses, &edges);
+    let params = UpdateParams::default();
+    let mut problem = Problem::new();
+    problem.add_variable(0, Box::new(truth[0])).unwrap();
+    problem.set_fixed(0, true).unwrap();
+    let (mut engine, _) = IncrementalEngine::new(&mut problem, &[true]).unwrap();
+    for k in 1..streamed {
+        stream_pose(&mut problem, &mut engine, &by_later_end[k], k, &params);
+    }
+    // The next thousand poses in one update, each predicted by odometry.
+    for k in streamed..poses {
+        let previous = *problem.values.get_as::<Se2>((k - 1) as u64).unwrap();
+        let odometry = by_later_end[k].iter().find(|e| e.0 == k - 1).unwrap();
+        problem
+            .add_variable(k as u64, Box::new(previous.compose(&odometry.2)))
+            .unwrap();
+    }
+    let closures = (streamed..poses)
+        .flat_map(|k| &by_later_end[k])
+        .filter(|e| e.1 != e.0 + 1)
+        .count();
+    assert!(closures > 50, "the update closes loops ({closures})");
+    for e in (streamed..poses).flat_map(|k| &by_later_end[k]) {
+        add_edge(&mut problem, e);
+    }
+    // One pass: a relinearisation pass after it would order the part again freely.
+    let one_pass = UpdateParams {
+        max_passes: 1,
+        ..params.clone()
+    };
+    // Ordered whole, as an update is once the factor's fill has doubled.
+    engine.order_whole_from(1);
+    let report = engine.update(&mut problem, &one_pass).unwrap();
+    assert!(report.whole_reorder);
+
+    // A fresh engine over the same factors: one batch order of the whole graph.
+    let mut fresh_problem = Problem::new();
+    for k in 0..poses {
+        let value = *problem.values.get_as::<Se2>(k as u64).unwrap();
+        fresh_problem
+            .add_variable(k as u64, Box::new(value))
+            .unwrap();
+    }
+    fresh_problem.set_fixed(0, true).unwrap();
+    for e in &edges {
+        add_edge(&mut fresh_problem, e);
+    }
+    let mut fixed = vec![false; poses];
+    fixed[0] = true;
+    let (_, fresh) = IncrementalEngine::new(&mut fresh_problem, &fixed).unwrap();
+    assert!(
+        report.factor_nnz <= 2 * fresh.factor_nnz,
+        "the update's fill {} against a fresh order's {}",
+        report.factor_nnz,
+        fresh.factor_nnz
+    );
+    // The newest pose stays at the root: odometry from it (nothing relinearised: the one pass
+    // left large steps) refactors a column or two.
+    let structure_only = UpdateParams {
+        relinearize_threshold: f64::INFINITY,
+        ..params.clone()
+    };
+    let step = (
+        poses - 1,
+        poses,
+        truth[poses - 2].between(&truth[poses - 1]),
+    );
+    let next = stream_pose(&mut problem, &mut engine, &[&step], poses, &structure_only);
+    assert!(
+        next.refactored_columns + next.updated_columns <= 9,
+        "odometry after the update: {next:?}"
+    );
+}
