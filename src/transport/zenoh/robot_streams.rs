@@ -23,6 +23,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::{Arc, Weak};
+use std::time::Instant;
 
 use zenoh::bytes::Encoding;
 use zenoh::qos::CongestionControl;
@@ -134,11 +135,14 @@ impl RobotStreams {
 
     /// Puts what of `run` (coalesced) goes on the robots' keys.
     pub(super) fn publish(&mut self, zenoh: &zenoh::Session, run: &[Arc<SessionEvent>]) {
+        let started = Instant::now();
+        let (mut puts, mut poses) = (0, 0);
         let mut frames_may_have_moved = false;
         for event in run {
             match &**event {
                 SessionEvent::Estimate(estimate) => {
-                    self.publish_estimate(zenoh, event, estimate);
+                    let (p, v) = self.publish_estimate(zenoh, event, estimate);
+                    (puts, poses) = (puts + p, poses + v);
                     frames_may_have_moved = true;
                 }
                 SessionEvent::Lagged { .. } => {
@@ -162,16 +166,28 @@ impl RobotStreams {
         if frames_may_have_moved {
             self.announce_frames(zenoh);
         }
+        if puts > 0 {
+            // What benches/history/issue-54-robots.md measures: the cost per solve.
+            tracing::debug!(
+                session = self.name,
+                puts,
+                poses,
+                micros = started.elapsed().as_micros() as u64,
+                "robot streams published"
+            );
+        }
     }
 
     /// `estimate` split by robot, put on each robot's pose keys that some subscriber hears;
-    /// a robot with a subscriber not served yet gets its whole trajectory instead.
+    /// a robot with a subscriber not served yet gets its whole trajectory instead. Returns
+    /// how many puts carried how many poses in all.
     fn publish_estimate(
         &mut self,
         zenoh: &zenoh::Session,
         event: &SessionEvent,
         estimate: &Estimate,
-    ) {
+    ) -> (usize, usize) {
+        let (mut puts, mut poses) = (0, 0);
         let session = self.session.upgrade();
         let mut by_robot: BTreeMap<u8, Estimate> = BTreeMap::new();
         for v in &estimate.variables {
@@ -232,11 +248,16 @@ impl RobotStreams {
                 };
                 let put = put_event(zenoh, &stream.key, body, encoding, event);
                 self.report(put.wait(), &stream.key);
+                puts += 1;
+                if let SessionEvent::Estimate(e) = carried {
+                    poses += e.variables.len();
+                }
             }
         }
         for stream in self.robots.values_mut().flat_map(|r| &mut r.poses) {
             stream.served = stream.heard.now();
         }
+        (puts, poses)
     }
 
     /// Puts each robot's place in the map on its `map_from_odom` key when it differs from
