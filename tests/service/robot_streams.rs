@@ -543,3 +543,41 @@ async fn measure_the_robot_streams_cost_per_solve() {
         );
     }
 }
+
+/// The Python client's helpers for a robot's own keys (`subscribe_robot_poses`,
+/// `subscribe_robot_frame`, `robot_estimate`, `robot_frame`) against this build
+/// (`clients/python/tests/test_robot_streams.py`); skips without Python, as the client's tests.
+#[test]
+fn the_python_client_follows_a_robots_own_keys() {
+    let repo = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let python = match common::python_venv(
+        "client",
+        &[
+            vec!["jsonschema>=4.18".into(), "referencing".into()],
+            vec![repo.join("clients/python").into()],
+        ],
+    ) {
+        Ok(p) => p,
+        Err(reason) => {
+            let _: Option<()> =
+                common::skip_or_fail(&format!("no Python environment for the client: {reason}"));
+            return;
+        }
+    };
+    let s = TestServer::start(&[]);
+    let out = std::process::Command::new(python)
+        .arg("clients/python/tests/test_robot_streams.py")
+        .args(["--http", &s.http, "--zenoh", &s.zenoh])
+        .current_dir(&repo)
+        .output()
+        .expect("python runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(
+        out.status.success(),
+        "test_robot_streams.py failed:\n{stdout}\n{}\n--- factord:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        s.stderr()
+    );
+    s.assert_no_panic();
+}
