@@ -581,3 +581,63 @@ fn the_python_client_follows_a_robots_own_keys() {
     );
     s.assert_no_panic();
 }
+
+/// A merge's moved values change at the merge's sequence and ride its batch's `estimate`
+/// event: a `since` read right after the merge (no solve: manual policy) has robot b's poses
+/// in the map. Before, the mirror moved them without marking them changed, so streams and
+/// `since` reads kept b's pre-merge values until a solve changed them again.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_merge_marks_the_moved_poses_changed_without_a_solve() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
+    create(
+        &c,
+        &s,
+        &json!({"session": SESSION, "kind": "pose_graph_2d", "robots": {"min_closures": 3},
+                "auto_optimize": {"policy": "manual"}}),
+    )
+    .await;
+    let z = zenoh_peer(&s.zenoh).await;
+    let (_sub, poses) = samples(&z, &format!("factord/{SESSION}/out/poses")).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (a, b) = (truth(0, 40), truth(13, 30));
+    let mut sequence = 0;
+    for body in [robot_batch('a', &a, 0..30), robot_batch('b', &b, 0..20)] {
+        let (status, v) = post(&c, &url("/batches"), &body).await;
+        assert_eq!(status, 200, "{v}");
+        sequence = v["sequence"].as_u64().unwrap();
+    }
+    let closures = json!({"factors": [closure(&a, 18, &b, 5), closure(&a, 22, &b, 9), closure(&a, 26, &b, 13)]});
+    let (status, v) = post(&c, &url("/batches"), &closures).await;
+    assert_eq!(status, 200, "{v}");
+    let merged_at = v["sequence"].as_u64().unwrap();
+    let (_, report) = get(&c, &url("/robots")).await;
+    assert_eq!(report["merges"][0]["sequence"], merged_at, "{report}");
+    let (_, changed) = get(&c, &url(&format!("/estimate?since={sequence}"))).await;
+    let changed = values(&changed);
+    assert_eq!(changed.len(), 20, "b's 20 poses moved: {changed:?}");
+    for (i, world) in b.iter().enumerate().take(20) {
+        let got = pose(&changed[&robot_key('b', i as u64)]);
+        assert!(
+            near(&got, world, 1e-6),
+            "b{i} in the map: {got:?} vs {world:?}"
+        );
+    }
+    // The merge batch's estimate event carries them too.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let carried = poses.try_iter().any(|(_, payload, _)| {
+            let event: Value = serde_json::from_slice(&payload).unwrap();
+            event["sequence"] == merged_at && values(&event).len() == 20
+        });
+        if carried {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no estimate event of the merge's batch with b's 20 moved poses"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
