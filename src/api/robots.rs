@@ -56,6 +56,37 @@ pub fn robot_key(robot: char, index: u64) -> Key {
     ((robot as u64) << 56) | (index & ((1 << 56) - 1))
 }
 
+/// How robot `robot` is named where a name must be a key expression chunk or a ROS name
+/// (`<p>/<s>/robot/<id>/…` on zenoh, `robot_<id>/odom` on `/tf`): its character when that is
+/// an ASCII letter or digit, else `x` and the character's two hex digits (robot `*` is `x2a`;
+/// one character and three never collide).
+pub fn robot_id(robot: u8) -> String {
+    match robot.is_ascii_alphanumeric() {
+        true => (robot as char).to_string(),
+        false => format!("x{robot:02x}"),
+    }
+}
+
+/// The robot a [`robot_id`] names, or `None` when it is no such name.
+pub fn parse_robot_id(id: &str) -> Option<u8> {
+    match id.as_bytes() {
+        [c] if c.is_ascii_alphanumeric() => Some(*c),
+        [b'x', hex @ ..] if hex.len() == 2 => u8::from_str_radix(id.get(1..)?, 16)
+            .ok()
+            .filter(|c| c.is_ascii_graphic() && !c.is_ascii_alphanumeric()),
+        _ => None,
+    }
+}
+
+/// One robot's place in the map, as `<p>/<s>/robot/<id>/map_from_odom` carries it on zenoh
+/// (published when it changes, and answered to a query): its row of the robots report.
+#[derive(Clone, Debug, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct RobotFrameReport {
+    pub session: String,
+    #[serde(flatten)]
+    pub robot: RobotReport,
+}
+
 /// A merge as the journal records it (with the batch that completed it), so a replay applies
 /// the decision instead of taking it again on a different estimate.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -138,5 +169,18 @@ mod tests {
         assert_eq!(robot_of_key(k), Some('b'));
         assert_eq!(robot_of_key(42), None);
         assert_eq!(k & 0xff_ffff_ffff_ffff, 42);
+    }
+
+    #[test]
+    fn robot_ids_are_key_chunks_and_name_one_robot_each() {
+        for robot in 0x21u8..0x7f {
+            let id = robot_id(robot);
+            assert!(id.bytes().all(|b| b.is_ascii_alphanumeric()), "{id}");
+            assert_eq!(parse_robot_id(&id), Some(robot), "{id}");
+        }
+        assert_eq!(robot_id(b'*'), "x2a");
+        for bad in ["", "ab", "x41", "x2", "x2g", "*", "x7f", "é"] {
+            assert_eq!(parse_robot_id(bad), None, "{bad}");
+        }
     }
 }

@@ -74,6 +74,11 @@ pub struct Ros2Binding {
     /// `header.frame_id` of what is published (the frame the trajectory is optimised in).
     #[serde(default = "default_map_frame")]
     pub map_frame: String,
+    /// A session with `robots`: the odometry frame of each robot merged into the map, the
+    /// child of its `map_frame → …` transform on `tf_topic`; `{robot}` stands for the robot's
+    /// id (its key character, `a`, or `x` and its hex code for one that is no letter or digit).
+    #[serde(default = "default_robot_odom_frame")]
+    pub robot_odom_frame: String,
     /// A new keyframe when the robot has moved this far (metres) since the last one…
     #[serde(default = "default_keyframe_distance")]
     pub keyframe_distance: f64,
@@ -84,6 +89,10 @@ pub struct Ros2Binding {
 
 fn default_map_frame() -> String {
     "map".into()
+}
+
+fn default_robot_odom_frame() -> String {
+    "robot_{robot}/odom".into()
 }
 
 fn default_window() -> usize {
@@ -114,7 +123,16 @@ fn default_keyframe_angle() -> f64 {
     0.2618
 }
 
+/// What stands for the robot's id in [`Ros2Binding::robot_odom_frame`].
+const ROBOT: &str = "{robot}";
+
 impl Ros2Binding {
+    /// Robot `robot`'s odometry frame id on `/tf` ([`Self::robot_odom_frame`]).
+    pub fn robot_odom_frame_of(&self, robot: u8) -> String {
+        self.robot_odom_frame
+            .replace(ROBOT, &super::robots::robot_id(robot))
+    }
+
     /// The node name, defaulted from the session's.
     pub fn node_name(&self, session: &str) -> String {
         self.node_name
@@ -163,6 +181,17 @@ impl Ros2Binding {
         }
         if self.map_frame.is_empty() {
             return Err(invalid("map_frame", "a frame id is required".into()));
+        }
+        let robot_frame = self.robot_odom_frame.replace(ROBOT, "a");
+        if !self.robot_odom_frame.contains(ROBOT) || !valid_ros_name(&robot_frame) {
+            return Err(invalid(
+                "robot_odom_frame",
+                format!(
+                    "`{}` is not a frame id with `{ROBOT}` in it (one per robot, of \
+                     [A-Za-z0-9_/] once `{ROBOT}` is replaced): e.g. `robot_{ROBOT}/odom`",
+                    self.robot_odom_frame
+                ),
+            ));
         }
         for (field, value) in [
             ("keyframe_distance", self.keyframe_distance),
@@ -279,6 +308,28 @@ mod tests {
         assert_eq!(b.map_frame, "map");
         assert_eq!(b.node_name("robot-1"), "factord_robot_1");
         assert!(b.validate().is_ok());
+    }
+
+    #[test]
+    fn robot_odometry_frames_follow_the_template() {
+        let b = binding(r#"{"odometry_topic": "/odom"}"#);
+        assert_eq!(b.robot_odom_frame_of(b'b'), "robot_b/odom");
+        assert_eq!(b.robot_odom_frame_of(b'*'), "robot_x2a/odom");
+        let b = binding(r#"{"odometry_topic": "/odom", "robot_odom_frame": "fleet/{robot}_odom"}"#);
+        assert!(b.validate().is_ok());
+        assert_eq!(b.robot_odom_frame_of(b'c'), "fleet/c_odom");
+        for bad in ["odom", "", "robot_{robot}//odom", "{robot} odom"] {
+            let b = Ros2Binding {
+                robot_odom_frame: bad.into(),
+                ..binding(r#"{"odometry_topic": "/odom"}"#)
+            };
+            let e = b.validate().expect_err(bad);
+            assert_eq!(
+                e.body.field.as_deref(),
+                Some("ros2.robot_odom_frame"),
+                "{bad}"
+            );
+        }
     }
 
     #[test]

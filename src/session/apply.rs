@@ -18,6 +18,7 @@ use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent, Variab
 use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::journal::KeptAck;
+use crate::problem::Key;
 use crate::solver;
 
 impl Session {
@@ -245,6 +246,12 @@ impl Session {
             );
             mirrored.active_ids = plan.active_ids;
             prepared.merges = plan.merges;
+            if !plan.moved_values.is_empty() {
+                // The batch's own values a merge moved are carried once, where they ended.
+                let moved: HashSet<Key> = plan.moved_values.iter().map(|v| v.key).collect();
+                mirrored.new_values.retain(|v| !moved.contains(&v.key));
+                mirrored.new_values.extend(plan.moved_values);
+            }
             for (record, report) in plan.records {
                 if let Some(d) = durable.as_deref_mut() {
                     if let Err(e) = d.write_merge(&self.name, sequence, record) {

@@ -11,6 +11,7 @@ mod fleet;
 mod fleet_budget;
 mod fleet_login;
 mod fleet_owner;
+mod fleet_robot_streams;
 mod fleet_robots;
 mod fleet_rpc_once;
 mod fleet_stopped_host;

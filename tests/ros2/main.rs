@@ -8,5 +8,6 @@
 mod common;
 
 mod fleet_ros2;
+mod robot_tf;
 mod ros2;
 mod ros2_bounds;

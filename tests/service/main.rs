@@ -19,6 +19,7 @@ mod latency;
 mod marginals;
 mod outliers;
 mod producer_list;
+mod robot_streams;
 mod robots;
 mod service;
 mod stream_lag;

@@ -13,7 +13,7 @@ from .geometry import Noise, Pose2, Pose3, pose_from_wire
 from .http import EventStream, HttpClient
 from .poses_binary import PosesBinaryError, decode_poses
 from .producer import HttpProducer
-from .robots import Robot, robot_key, robot_of_key
+from .robots import Robot, robot_id, robot_key, robot_of_key
 
 __all__ = [
     "Batch",
@@ -30,6 +30,7 @@ __all__ = [
     "Pose3",
     "PosesBinaryError",
     "Robot",
+    "robot_id",
     "StreamProducer",
     "ZenohClient",
     "decode_poses",

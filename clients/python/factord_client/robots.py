@@ -25,6 +25,14 @@ def robot_of_key(key: int) -> Optional[str]:
     return chr(c) if 0x21 <= c <= 0x7E else None
 
 
+def robot_id(robot: str) -> str:
+    """How ``robot`` is named in key expressions (``<prefix>/<session>/robot/<id>/…``) and on
+    ROS 2 ``/tf`` (``robot_<id>/odom``): its character when that is an ASCII letter or digit,
+    else ``x`` and its two hex digits (``*`` is ``x2a``)."""
+    robot_key(robot, 0)  # checks the name
+    return robot if robot.isascii() and robot.isalnum() else f"x{ord(robot):02x}"
+
+
 class Robot:
     """One robot of a session with robots, over an :class:`HttpClient` (or anything with its
     ``estimate`` and ``robots`` methods)."""

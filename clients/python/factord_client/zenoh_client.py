@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple, Union
 import numpy as np
 
 from . import poses_binary, wire
+from .robots import robot_id
 from .batch import Batch, EstimateArray, as_batch, dumps, estimate_to_array, marginals_to_arrays
 from .errors import FactordConnectionError, FactordError
 from .geometry import AnyPose
@@ -474,6 +475,44 @@ class ZenohClient:
         as on the JSON topics."""
         return self._subscribe(f"{self.prefix}/{session}/bin/poses", callback, max_pending,
                                lambda payload: poses_binary.decode_event(payload, session))
+
+    def subscribe_robot_poses(self, session: str, robot: str,
+                              callback: Callable[[JsonDict], None], frame: str = "map",
+                              binary: bool = False, max_pending: int = MAX_PENDING) -> Any:
+        """Like :meth:`subscribe` to ``poses`` for one robot of a session with robots: its
+        changed poses only, from ``<prefix>/<session>/robot/<id>/poses`` (``frame="odom"``:
+        ``odom_poses``, in the robot's own odometry frame; ``binary``: under ``bin/``, decoded
+        as :meth:`subscribe_binary_poses`). The first event is the robot's whole trajectory."""
+        if frame not in ("map", "odom"):
+            raise ValueError(f"frame is `map` or `odom`, not {frame!r}")
+        name = "odom_poses" if frame == "odom" else "poses"
+        key = f"{self.prefix}/{session}/robot/{robot_id(robot)}/{'bin/' if binary else ''}{name}"
+        decode = (lambda payload: poses_binary.decode_event(payload, session)) if binary else None
+        return self._subscribe(key, callback, max_pending, decode)
+
+    def subscribe_robot_frame(self, session: str, robot: str,
+                              callback: Callable[[JsonDict], None],
+                              max_pending: int = MAX_PENDING) -> Any:
+        """``callback(report)`` each time robot ``robot``'s place in the map changes (its first
+        pose, a merge): ``{"session", "robot", "component", "in_map", "map_from_odom", …}``
+        from ``<prefix>/<session>/robot/<id>/map_from_odom``."""
+        key = f"{self.prefix}/{session}/robot/{robot_id(robot)}/map_from_odom"
+        return self._subscribe(key, callback, max_pending)
+
+    def robot_estimate(self, session: str, robot: str, frame: str = "map",
+                       since: Optional[int] = None,
+                       timeout: Optional[float] = None) -> wire.Estimate:
+        """Robot ``robot``'s estimate from its own queryable
+        (``<prefix>/<session>/robot/<id>/estimate``), in the map or its odometry frame."""
+        params = [f"frame={frame}"] + ([] if since is None else [f"since={int(since)}"])
+        selector = f"{self.prefix}/{session}/robot/{robot_id(robot)}/estimate?" + ";".join(params)
+        return self._query(selector, None, timeout)
+
+    def robot_frame(self, session: str, robot: str, timeout: Optional[float] = None) -> JsonDict:
+        """Where robot ``robot``'s odometry frame sits in the map now (the
+        ``robot/<id>/map_from_odom`` queryable)."""
+        selector = f"{self.prefix}/{session}/robot/{robot_id(robot)}/map_from_odom"
+        return self._query(selector, None, timeout)
 
     def _subscribe(self, key: str, callback: Callable[[JsonDict], None], max_pending: int,
                    decode: Optional[Callable[[bytes], JsonDict]] = None) -> Any:

@@ -151,15 +151,34 @@ impl Robots {
         }
     }
 
-    /// What `GET /v1/sessions/{s}/robots` shows.
-    pub(crate) fn report(&self) -> RobotsReport {
+    /// Where each robot's odometry frame sat in its component once batch `sequence` was in:
+    /// the merges up to it composed, the later ones not yet. Robots no merge moved by then
+    /// (identity) are left out.
+    pub(crate) fn frames_at(&self, sequence: u64) -> BTreeMap<u8, Frame> {
+        let mut frames: BTreeMap<u8, Frame> = BTreeMap::new();
+        for merge in self.merges.iter().filter(|m| m.sequence <= sequence) {
+            let Some(moved_by) = Frame::from_wire(&merge.transform) else {
+                continue;
+            };
+            for robot in merge.moved.iter().filter_map(|r| r.bytes().next()) {
+                let frame = match frames.get(&robot) {
+                    Some(earlier) => moved_by.compose(earlier).unwrap_or(moved_by),
+                    None => moved_by,
+                };
+                frames.insert(robot, frame);
+            }
+        }
+        frames
+    }
+
+    /// The robots' rows of the report: where each sits, without the held closures.
+    pub(crate) fn robot_reports(&self) -> Vec<RobotReport> {
         let map_root = self
             .components
             .iter()
             .min_by_key(|(_, c)| c.founded)
             .map(|(root, _)| *root);
-        let robots = self
-            .robots
+        self.robots
             .iter()
             .map(|(&r, robot)| {
                 let root = self.find(robot.first);
@@ -177,7 +196,12 @@ impl Robots {
                     map_from_odom: robot.frame.to_wire(),
                 }
             })
-            .collect();
+            .collect()
+    }
+
+    /// What `GET /v1/sessions/{s}/robots` shows.
+    pub(crate) fn report(&self) -> RobotsReport {
+        let robots = self.robot_reports();
         let (rejected, pending): (Vec<_>, Vec<_>) = self
             .pending
             .iter()

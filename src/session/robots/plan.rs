@@ -9,9 +9,10 @@ use super::consensus::{self, Candidate};
 use super::{Component, Frame, Robot, Robots};
 use crate::api::catalogue;
 use crate::api::robots::{robot_of_key, MergeRecord, MergeReport};
-use crate::api::wire::{FactorId, WireValue};
+use crate::api::wire::{FactorId, VariableValue, WireValue};
 use crate::problem::{Key, Variable};
 use crate::session::batch::{PreparedBatch, PreparedFactor};
+use crate::session::mirror::value_of;
 use crate::session::MirrorEntry;
 use crate::solver::chi_square::cached_quantile;
 
@@ -33,6 +34,10 @@ pub(crate) struct RobotsPlan {
     /// The journal's record of each decision, and what its `merge` event says (none for
     /// closures admitted within one component).
     pub records: Vec<(MergeRecord, Option<MergeReport>)>,
+    /// The values a merge moved, as the mirror now holds them (changed at the merge's
+    /// sequence): the batch's `estimate` event carries them, so streams and `since` reads see
+    /// the moved robots in the map without waiting for a solve to change them again.
+    pub moved_values: Vec<VariableValue>,
 }
 
 /// The robot a variable belongs to: a pose (se2, se3) whose key names a robot.
@@ -292,6 +297,8 @@ impl Robots {
                 let mut v = entry.decode();
                 if frame.apply(v.as_mut()) {
                     entry.value = WireValue::from_vec(catalogue::encode_variable(v.as_ref()));
+                    entry.changed = sequence;
+                    plan.moved_values.push(value_of(*k, entry));
                 }
             }
         }

@@ -3,9 +3,13 @@
 
 use std::sync::Arc;
 
-use super::{Robots, RobotsPlan};
+use std::collections::BTreeMap;
+
+use super::{Frame, Robots, RobotsPlan};
 use crate::api::catalogue;
-use crate::api::robots::{robot_key, MergeRecord, RobotFrame, RobotsOptions, RobotsReport};
+use crate::api::robots::{
+    robot_key, MergeRecord, RobotFrame, RobotReport, RobotsOptions, RobotsReport,
+};
 use crate::api::wire::{EstimateQuery, VariableValue, WireValue};
 use crate::api::ServiceError;
 use crate::session::Session;
@@ -52,6 +56,25 @@ impl Session {
             session: self.name.clone(),
             ..robots.report()
         })
+    }
+
+    /// Each robot's row of the robots report (where its frame sits, whether it is in the map),
+    /// without the held closures the whole report lists; `None` for a session without robots.
+    pub fn robot_reports(&self) -> Option<Vec<RobotReport>> {
+        self.lock().robots.as_ref().map(Robots::robot_reports)
+    }
+
+    /// Each robot's `map ← odom` as it was once batch `sequence` was in, so that an estimate
+    /// of that sequence is moved into the robots' odometry frames with the frames it was
+    /// computed in, whatever merged since.
+    pub fn odometry_frames_at(&self, sequence: u64) -> OdometryFrames {
+        OdometryFrames(
+            self.lock()
+                .robots
+                .as_ref()
+                .map(|r| r.frames_at(sequence))
+                .unwrap_or_default(),
+        )
     }
 
     /// Checks an estimate read's `robot` and `frame`, and turns `robot` into its key range.
@@ -143,6 +166,19 @@ impl Session {
     }
 }
 
+/// Where the robots' odometry frames sat in the map at some sequence (robots no merge had
+/// moved by then are where they started: identity).
+pub struct OdometryFrames(BTreeMap<u8, Frame>);
+
+impl OdometryFrames {
+    /// `variables` (robot `robot`'s, in the map) moved into its odometry frame.
+    pub fn move_into(&self, robot: u8, variables: &mut [VariableValue]) {
+        if let Some(map_from_odom) = self.0.get(&robot) {
+            into_odometry_frame(map_from_odom, variables);
+        }
+    }
+}
+
 /// `variables` (one robot's poses, `query.robot`) moved into the robot's own odometry frame
 /// when `query.frame` asks for it.
 pub(crate) fn in_robot_frame(st: &State, query: &EstimateQuery, variables: &mut [VariableValue]) {
@@ -151,14 +187,16 @@ pub(crate) fn in_robot_frame(st: &State, query: &EstimateQuery, variables: &mut 
     else {
         return;
     };
-    let Some(to_odom) = st
-        .robots
-        .as_ref()
-        .and_then(|r| r.frame_of(robot))
-        .map(|f| f.inverse())
-    else {
+    let Some(map_from_odom) = st.robots.as_ref().and_then(|r| r.frame_of(robot)) else {
         return;
     };
+    into_odometry_frame(&map_from_odom, variables);
+}
+
+/// `variables` (one robot's, in the map) moved into that robot's odometry frame, which sits at
+/// `map_from_odom` in the map; kinds a frame does not move are left as they are.
+fn into_odometry_frame(map_from_odom: &Frame, variables: &mut [VariableValue]) {
+    let to_odom = map_from_odom.inverse();
     for v in variables {
         let Some(Ok(mut value)) = catalogue::variable_codec(&v.kind).map(|c| (c.decode)(&v.value))
         else {

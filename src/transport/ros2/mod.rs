@@ -13,7 +13,8 @@
 //! `geometry_msgs/PoseWithCovarianceStamped` (`prior_se3`), see `keyframes`; for a
 //! `sliding_window`: the same and `sensor_msgs/Imu`, as fusion messages, see `window_feed`.
 //! Out after each solve: `nav_msgs/Path` and `geometry_msgs/PoseWithCovarianceStamped`, see
-//! `outputs`, the `map → odom` correction on `/tf`, see `tf`, and the graph as a
+//! `outputs`, the `map → odom` correction on `/tf`, see `tf` (in a session with robots also
+//! each merged robot's `map → <robot>/odom`, see `robot_tf`), and the graph as a
 //! `visualization_msgs/MarkerArray`, see `markers`. A pose graph also takes loop closures and
 //! landmark sightings (`factord_msgs`, `clients/ros2/factord_msgs`), see `closures`; their type
 //! hashes are computed from the `.msg` files as rosidl does, see `type_hash`. Messages go through the one
@@ -35,6 +36,7 @@ mod markers;
 mod messages;
 mod names;
 mod outputs;
+mod robot_tf;
 mod services;
 mod tf;
 mod type_hash;
@@ -172,7 +174,13 @@ async fn run(
         ahead: Vec::new(),
     };
     let inputs = tokio::spawn(inputs.run());
+    // A session's robots are set at its creation: they are there now or never.
+    let has_robots = service
+        .session(&session)
+        .is_ok_and(|s| s.robots_options().is_some());
+    let robot_frames = (tf.is_some() && has_robots).then(|| robot_tf::RobotFrames::new(&binding));
     let outputs = outputs::Outputs {
+        robot_frames,
         service,
         caller,
         session,

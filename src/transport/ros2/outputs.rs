@@ -9,7 +9,8 @@
 //! keyframe is fixed, or the Hessian is singular) the covariance is all zeros (ROS: unknown).
 //!
 //! When the binding has a `tf_topic`, each solve also updates the `map → odom` correction
-//! (`tf`); with a `markers_topic`, it publishes the graph as markers (`markers`), at most every
+//! (`tf`), and in a session with robots each merged robot's `map → <robot>/odom` (`robot_tf`,
+//! also after a merge); with a `markers_topic`, it publishes the graph as markers (`markers`), at most every
 //! [`MARKERS_PERIOD`]: they carry the whole graph (megabytes at 100 000 poses), and a robot
 //! streaming at 100 Hz would otherwise send one per solve to a display that redraws at a few
 //! hertz. A solve inside the period is drawn when it ends, so the last state is always shown.
@@ -34,6 +35,7 @@ use super::messages::{
     Time,
 };
 use super::names::Qos;
+use super::robot_tf::RobotFrames;
 use super::tf::TfBroadcaster;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
 use crate::api::{GetGraph, GetMarginals};
@@ -109,6 +111,8 @@ pub(super) struct Outputs {
     pub path: Option<RosPublisher>,
     pub pose: Option<RosPublisher>,
     pub tf: Option<Arc<TfBroadcaster>>,
+    /// A session with robots and a `tf_topic`: each merged robot's `map → odom`.
+    pub robot_frames: Option<RobotFrames>,
     pub markers: Option<RosPublisher>,
     /// When markers were last published, and the stamp of a solve not drawn yet.
     pub markers_sent: Option<Instant>,
@@ -130,15 +134,20 @@ impl Outputs {
                 None => self.events.next().await,
             };
             let Some(event) = event else { break };
-            let mut solved = is_solve(&event);
+            let mut solved = is_solve(&event) || self.moves_robots(&event);
             // Solves that finished while we published: one publication covers them all.
             while let Some(event) = self.events.try_next() {
-                solved |= is_solve(&event);
+                solved |= is_solve(&event) || self.moves_robots(&event);
             }
             if solved {
                 self.publish().await;
             }
         }
+    }
+
+    /// A merge moves robots' frames: their `/tf` is published again.
+    fn moves_robots(&self, event: &SessionEvent) -> bool {
+        self.robot_frames.is_some() && matches!(event, SessionEvent::Merge { .. })
     }
 
     /// When the markers of a solve not drawn yet are due.
@@ -170,6 +179,10 @@ impl Outputs {
         }
         if let Some(tf) = &self.tf {
             tf.on_solve(&estimate.variables).await;
+            if let Some(robots) = &mut self.robot_frames {
+                let context = (&*self.service, &*self.caller, name.as_str());
+                robots.publish(tf, context, &estimate.variables).await;
+            }
         }
         let newest = poses.last().cloned();
         let stamp = newest.as_ref().map(|p| p.header.stamp).unwrap_or_default();

@@ -138,6 +138,16 @@ impl TfBroadcaster {
     }
 }
 
+impl TfBroadcaster {
+    /// Puts `transforms` as one message on the same topic (a session's robots' frames, see
+    /// `robot_tf`, stamped there).
+    pub async fn put_transforms(&self, transforms: Vec<TransformStamped>) {
+        let message = TfMessage { transforms };
+        let mut state = self.state.lock().await;
+        state.publisher.put(cdr_codec::encode(&message)).await;
+    }
+}
+
 impl State {
     fn remember(&mut self, keyframes: &[(Key, Isometry3<f64>)]) {
         self.keyframes.extend(keyframes.iter().copied());

@@ -7,8 +7,8 @@
 //!   this instance owns it, and is otherwise forwarded to `<p>/@fleet/<owner>/rpc`, whose answer
 //!   (or error) is relayed as is. A session moving between instances answers 503
 //!   `session_moving` with Retry-After 1: the client retries.
-//! - The owner declares `<p>/<s>/in/*`, `<p>/<s>/estimate` and `<p>/<s>/rpc` when it loads
-//!   session `s` and withdraws them when it releases or deletes it, so zenoh routes a robot's
+//! - The owner declares `<p>/<s>/in/*`, `<p>/<s>/estimate`, `<p>/<s>/rpc` and the robots'
+//!   queryables `<p>/<s>/robot/*/{estimate,map_from_odom}` when it loads session `s` and withdraws them when it releases or deletes it, so zenoh routes a robot's
 //!   puts and queries to the owner alone.
 
 use std::collections::hash_map::Entry;
@@ -199,7 +199,7 @@ impl SessionKeys {
             .complete(true)
             .await
             .map_err(zenoh_error)?;
-        let mut tasks = Vec::new();
+        let mut tasks = super::declare_robot_queries(c, &format!("{p}/{name}")).await?;
         // A session's puts are taken in the order they came.
         tasks.extend(super::inputs::take_inputs(c, inputs));
         let ctx = c.clone();

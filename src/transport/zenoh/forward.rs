@@ -35,6 +35,7 @@ use zenoh::pubsub::{PublicationBuilder, PublicationBuilderPut, PublisherBuilder}
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use super::robot_streams::RobotStreams;
 use crate::api::poses_binary;
 use crate::api::wire::{Estimate, SessionEvent};
 
@@ -50,6 +51,7 @@ pub(super) fn forward(
     let mut events = session.stream();
     let topics = session.topics();
     let name = session.name.clone();
+    let mut robots = RobotStreams::of(session, &prefix);
     tokio::spawn(async move {
         let listened = Arc::new(Listened::declare(&zenoh, &prefix, &name, topics).await);
         let mut run = Vec::with_capacity(MAX_RUN);
@@ -61,19 +63,35 @@ pub(super) fn forward(
                     None => break,
                 }
             }
-            if !run.iter().any(|event| listened.hears(event)) {
+            if let Some(robots) = robots.as_mut() {
+                robots.discover(&zenoh, &run).await;
+            }
+            let robots_hear =
+                |event: &SessionEvent| robots.as_ref().is_some_and(|r| r.hears(event));
+            if !run
+                .iter()
+                .any(|event| listened.hears(event) || robots_hear(event))
+            {
                 run.clear();
                 continue;
             }
             // A put is synchronous, and a blocking one waits while the network is congested:
-            // on a blocking thread, so no runtime worker waits with it.
+            // on a blocking thread, so no runtime worker waits with it. The robots' streams go
+            // there and come back.
             let (zenoh, name, listened) = (zenoh.clone(), name.clone(), Arc::clone(&listened));
             let events = std::mem::take(&mut run);
+            let mut lent = robots.take();
             let published = tokio::task::spawn_blocking(move || {
-                publish(&zenoh, &name, &listened, events);
+                let events = coalesce(events);
+                publish(&zenoh, &name, &listened, &events);
+                if let Some(robots) = lent.as_mut() {
+                    robots.publish(&zenoh, &events);
+                }
+                lent
             });
-            if published.await.is_err() {
-                return; // the runtime is shutting down
+            match published.await {
+                Ok(back) => robots = back,
+                Err(_) => return, // the runtime is shutting down
             }
         }
     });
@@ -90,12 +108,53 @@ struct Topic {
     carries: &'static str,
     form: Form,
     key: String,
-    /// Whether some subscriber would receive a put on `key` now: set by `_listener` as zenoh's
-    /// matching status changes; stays true when zenoh refused the publisher or the listener
-    /// (an unneeded put costs less than a lost one).
-    heard: Arc<AtomicBool>,
+    heard: Heard,
+}
+
+/// Whether some subscriber would receive a put on a key now: a publisher declared on it so
+/// that zenoh keeps its matching status up to date, and a listener that keeps that status in
+/// a flag.
+pub(super) struct Heard {
+    /// Set by `_listener` as zenoh's matching status changes; stays true when zenoh refused
+    /// the publisher or the listener (an unneeded put costs less than a lost one).
+    flag: Arc<AtomicBool>,
     _publisher: Option<zenoh::pubsub::Publisher<'static>>,
     _listener: Option<zenoh::matching::MatchingListener<()>>,
+}
+
+impl Heard {
+    pub(super) async fn declare(zenoh: &zenoh::Session, key: String) -> Self {
+        let flag = Arc::new(AtomicBool::new(true));
+        let (publisher, listener) = match zenoh.declare_publisher(key.clone()).await {
+            Ok(publisher) => {
+                let listener = listen(&publisher, &flag).await;
+                if listener.is_none() {
+                    tracing::warn!(
+                        "zenoh matching listener for {key} not declared: its events are \
+                         put whether or not anyone subscribes"
+                    );
+                }
+                (Some(publisher), listener)
+            }
+            Err(e) => {
+                tracing::warn!(
+                    "zenoh publisher for {key} not declared ({e}): its events are put \
+                     whether or not anyone subscribes"
+                );
+                (None, None)
+            }
+        };
+        Self {
+            flag,
+            _publisher: publisher,
+            _listener: listener,
+        }
+    }
+
+    /// Whether some subscriber would receive a put on the key now.
+    pub(super) fn now(&self) -> bool {
+        self.flag.load(Ordering::SeqCst)
+    }
 }
 
 /// How a topic's events are put.
@@ -130,33 +189,11 @@ impl Listened {
         }
         let mut listened = Vec::with_capacity(declared.len());
         for (carries, form, key) in declared {
-            let heard = Arc::new(AtomicBool::new(true));
-            let (publisher, listener) = match zenoh.declare_publisher(key.clone()).await {
-                Ok(publisher) => {
-                    let listener = listen(&publisher, &heard).await;
-                    if listener.is_none() {
-                        tracing::warn!(
-                            "zenoh matching listener for {key} not declared: its events are \
-                             put whether or not anyone subscribes"
-                        );
-                    }
-                    (Some(publisher), listener)
-                }
-                Err(e) => {
-                    tracing::warn!(
-                        "zenoh publisher for {key} not declared ({e}): its events are put \
-                         whether or not anyone subscribes"
-                    );
-                    (None, None)
-                }
-            };
             listened.push(Topic {
                 carries,
                 form,
-                key,
-                heard,
-                _publisher: publisher,
-                _listener: listener,
+                key: key.clone(),
+                heard: Heard::declare(zenoh, key).await,
             });
         }
         Self { topics: listened }
@@ -166,9 +203,9 @@ impl Listened {
     /// receive a put on.
     fn hearing<'a>(&'a self, event: &'a SessionEvent) -> impl Iterator<Item = &'a Topic> + 'a {
         let lagged = matches!(event, SessionEvent::Lagged { .. });
-        self.topics.iter().filter(move |t| {
-            (lagged || t.carries == event.topic()) && t.heard.load(Ordering::SeqCst)
-        })
+        self.topics
+            .iter()
+            .filter(move |t| (lagged || t.carries == event.topic()) && t.heard.now())
     }
 
     /// Whether some subscriber would receive `event`.
@@ -203,9 +240,9 @@ fn binary_poses_key(prefix: &str, session: &str) -> String {
 
 /// Puts a drained run of events, estimates coalesced, `lagged` markers on every topic; an
 /// event no subscriber would receive is not serialised.
-fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc<SessionEvent>>) {
-    for event in coalesce(run) {
-        if let SessionEvent::Lagged { skipped, .. } = *event {
+fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: &[Arc<SessionEvent>]) {
+    for event in run {
+        if let SessionEvent::Lagged { skipped, .. } = **event {
             tracing::warn!(
                 "zenoh publisher of session {name} fell {skipped} events behind: published a \
                  lagged marker and the estimate's changes"
@@ -213,20 +250,20 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
         }
         let mut json = None;
         for topic in listened.hearing(&event) {
-            let (body, encoding) = match (topic.form, &*event) {
+            let (body, encoding) = match (topic.form, &**event) {
                 (Form::PosesBinary, SessionEvent::Estimate(estimate)) => (
                     poses_binary::encode(estimate),
                     Encoding::APPLICATION_OCTET_STREAM,
                 ),
                 _ => (
                     json.get_or_insert_with(|| {
-                        serde_json::to_vec(&*event).expect("events serialise")
+                        serde_json::to_vec(&**event).expect("events serialise")
                     })
                     .clone(),
                     Encoding::APPLICATION_JSON,
                 ),
             };
-            if let Err(e) = put_event(zenoh, &topic.key, body, encoding, &event).wait() {
+            if let Err(e) = put_event(zenoh, &topic.key, body, encoding, event).wait() {
                 tracing::warn!("zenoh publication for session {name} failed: {e}");
             }
         }
@@ -244,7 +281,7 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: Vec<Arc
 /// poses subscribed, 6 interleaved pairs: total median 4.59 → 3.94 s, p90 2.92 → 2.18 ms sent
 /// at once; see benches/history/issue-16-incremental-engine.md). Iteration statistics may be
 /// dropped (the next one supersedes them) and batched.
-fn put_event<'a>(
+pub(super) fn put_event<'a>(
     zenoh: &'a zenoh::Session,
     key: &'a str,
     body: Vec<u8>,

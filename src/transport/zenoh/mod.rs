@@ -13,6 +13,10 @@
 //! - `<p>/<session>/out/{acks,stats,poses,summary,errors}` — publications of the session events.
 //! - `<p>/<session>/bin/poses` — the estimates of `out/poses` in binary (`proto/v1/poses-binary.md`,
 //!   `crate::api::poses_binary`); a `lagged` marker there is JSON.
+//! - `<p>/<session>/robot/<id>/{poses,odom_poses,bin/poses,bin/odom_poses,map_from_odom}` —
+//!   a session with robots: each robot's own estimates (map and odometry frame) and frame, see
+//!   `robot_streams`; queryables `<p>/<session>/robot/<id>/{estimate,map_from_odom}`, see
+//!   `robot_queries`.
 //!
 //! In a fleet (`--fleet`, see `fleet.rs`) the same keys are served by the fleet as one: one
 //! instance at a time declares `<p>/rpc` (the gateway, `gateway.rs`: a query must never reach
@@ -37,6 +41,8 @@ mod fleet_routes;
 mod forward;
 mod gateway;
 mod inputs;
+mod robot_queries;
+mod robot_streams;
 
 use config::{caller, config, zenoh_error};
 pub use config::{ZenohConfig, ZenohError};
@@ -145,6 +151,7 @@ pub async fn start(
                     answer_estimate(&c, &query).await;
                 }
             }));
+            tasks.extend(declare_robot_queries(&ctx, &format!("{prefix}/*")).await?);
             let inputs = session
                 .declare_subscriber(format!("{prefix}/*/in/*"))
                 .await
@@ -180,6 +187,37 @@ pub async fn start(
     }));
     tracing::info!("zenoh peer {} serving `{prefix}/**`", session.zid());
     Ok(ZenohAdapter { session, tasks })
+}
+
+/// The queryables of robots' keys under `sessions` (`<p>/*`, or one session's `<p>/<s>`),
+/// see `robot_queries`.
+pub(super) async fn declare_robot_queries(
+    c: &Context,
+    sessions: &str,
+) -> Result<Vec<tokio::task::JoinHandle<()>>, ZenohError> {
+    let estimates = c
+        .zenoh
+        .declare_queryable(format!("{sessions}/robot/*/estimate"))
+        .await
+        .map_err(zenoh_error)?;
+    let frames = c
+        .zenoh
+        .declare_queryable(format!("{sessions}/robot/*/map_from_odom"))
+        .await
+        .map_err(zenoh_error)?;
+    let (ctx, ctx2) = (c.clone(), c.clone());
+    Ok(vec![
+        tokio::spawn(async move {
+            while let Ok(query) = estimates.recv_async().await {
+                robot_queries::answer_robot_estimate(&ctx, &query).await;
+            }
+        }),
+        tokio::spawn(async move {
+            while let Ok(query) = frames.recv_async().await {
+                robot_queries::answer_robot_frame(&ctx2, &query).await;
+            }
+        }),
+    ])
 }
 
 /// `<p>/rpc` outside a fleet: any command, run here.
