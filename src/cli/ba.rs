@@ -28,8 +28,10 @@ pub struct BaArgs {
     /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// auto | sparse_cholesky | dense_schur | sparse_schur (auto: Schur complement of the
-    /// points, dense reduced camera system up to 1000 unknowns)
+    /// auto | sparse_cholesky | dense_schur | sparse_schur | iterative_schur (auto: Schur
+    /// complement of the points, dense reduced camera system up to 1000 unknowns, sparse beyond,
+    /// implicit (iterative_schur: conjugate gradients, S never formed) when an explicit one would
+    /// take more than half the available memory)
     #[arg(long, default_value = "auto", value_parser = parse_linear_solver)]
     linear_solver: LinearSolverChoice,
     /// Robust kernel on every observation, e.g. huber:1.0 (pixels)

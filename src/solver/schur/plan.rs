@@ -6,6 +6,7 @@ use std::borrow::Borrow;
 use super::super::linearize::{free_adjacency, free_blocks};
 use super::super::options::LinearSolverChoice;
 use super::super::structure::BlockOrdering;
+use super::choice;
 use crate::problem::FactorEntry;
 use crate::problem::Values;
 
@@ -24,17 +25,23 @@ pub struct SchurPlan {
     /// The reduced system's graph and order; block `k` is full position `eliminated + k`.
     pub(super) reduced: BlockOrdering,
     pub dense: bool,
+    /// S is never formed: conjugate gradients on its products ([`super::ImplicitSchur`]).
+    pub implicit: bool,
+    /// Why the implicit solver was chosen (empty for an explicit S).
+    pub reason: String,
 }
 
 /// Plans the Schur complement for the free variables (`fixed[v]` false) whose kind is in
 /// `kinds`; `None` when it does not apply (no such variable, nothing left to reduce to, or the
-/// choice is plain sparse Cholesky).
+/// choice is plain sparse Cholesky). `explicit_limit`: the bytes an explicit S (with its
+/// factor) may take before `Auto` solves it implicitly instead (see `choice`).
 pub fn plan<E: Borrow<FactorEntry>>(
     factors: &[E],
     values: &Values,
     fixed: &[bool],
     kinds: &[&str],
     choice: LinearSolverChoice,
+    explicit_limit: impl FnOnce() -> Option<u64>,
 ) -> Option<SchurPlan> {
     if kinds.is_empty() || choice == LinearSolverChoice::SparseCholesky {
         return None;
@@ -60,10 +67,35 @@ pub fn plan<E: Borrow<FactorEntry>>(
     let reduced_dim: usize = (0..count).filter(|&b| !eliminate[b]).map(|b| dims[b]).sum();
     let dense = match choice {
         LinearSolverChoice::DenseSchur => true,
-        LinearSolverChoice::SparseSchur => false,
+        LinearSolverChoice::SparseSchur | LinearSolverChoice::IterativeSchur => false,
         _ => reduced_dim <= DENSE_AUTO_MAX,
     };
-    let reduced = if dense {
+    let reason = match choice {
+        LinearSolverChoice::IterativeSchur => {
+            Some("requested (linear_solver iterative_schur)".into())
+        }
+        LinearSolverChoice::Auto => {
+            let neighbours = (0..count)
+                .filter(|&b| eliminate[b])
+                .map(|b| adjacency[b].len());
+            let kept_dims: Vec<usize> = (0..count)
+                .filter(|&b| !eliminate[b])
+                .map(|b| dims[b])
+                .collect();
+            let bytes = choice::explicit_bytes(&reduced_adjacency, &kept_dims, neighbours, dense);
+            choice::too_big(bytes, explicit_limit())
+        }
+        _ => None,
+    };
+    let implicit = reason.is_some() && (0..count).all(|b| dims[b] <= 16);
+    let reduced = if implicit {
+        // Never factorised: no fill-reducing order, no pairs kept.
+        BlockOrdering {
+            adjacency: vec![Vec::new(); reduced_count],
+            position: (0..reduced_count).collect(),
+            block_at: (0..reduced_count).collect(),
+        }
+    } else if dense {
         // Every pair present, in the given order: the pattern is the dense lower triangle.
         let all = (0..reduced_count)
             .map(|x| (0..reduced_count).filter(|&y| y != x).collect())
@@ -85,7 +117,13 @@ pub fn plan<E: Borrow<FactorEntry>>(
         },
         eliminated,
         reduced,
-        dense,
+        dense: dense && !implicit,
+        implicit,
+        reason: if implicit {
+            reason.unwrap_or_default()
+        } else {
+            String::new()
+        },
     })
 }
 
