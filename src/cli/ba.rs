@@ -134,6 +134,16 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
     let summary = optimize_verbose(&mut bal.problem, &options, console, lines)?;
     let final_cost = bal.cost();
     console.print(&ceres_style::summary_report(&summary));
+    // Which linear solver ran, and for the implicit Schur complement why (auto chose it) and
+    // how many conjugate-gradient iterations it took.
+    let cg = summary.used.schur.as_ref().and_then(|s| s.cg_iterations);
+    console.print(&match cg {
+        Some(cg) => format!(
+            "Linear solver: {} ({cg} CG iterations)\n",
+            summary.used.linear_solver
+        ),
+        None => format!("Linear solver: {}\n", summary.used.linear_solver),
+    });
     if let Some(target) = &args.summary_json {
         write_summary_json(
             target,

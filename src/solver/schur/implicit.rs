@@ -5,10 +5,11 @@
 //! cameras seen together: S alone would take ~8 GB, its factor as much again). Preconditioned by
 //! Schur-Jacobi (`schur_jacobi`), as Ceres' ITERATIVE_SCHUR with SCHUR_JACOBI.
 //!
-//! Inexact Newton: CG stops once the reduced residual fell by a forcing term
-//! η = min(η_max, ‖b_r‖ / ‖b_r at the first solve‖), loose far from the optimum (where an
-//! exact step is wasted), tightening as the gradient vanishes (so the last steps are as good as
-//! a direct solve's and the final cost is the same); LM's step acceptance judges every step.
+//! Inexact Newton: CG stops when its quadratic model stops improving by more than a forcing term
+//! η = min(η_max, ‖b_r‖ / ‖b_r at the first solve‖) (see `pcg`): loose far from the optimum
+//! (where an exact step is wasted; Ceres keeps η = 0.1 throughout), tightening as the gradient
+//! vanishes, so the last steps are as good as a direct solve's and the final cost is the same;
+//! LM's step acceptance judges every step.
 
 use std::ops::ControlFlow;
 
@@ -17,13 +18,14 @@ use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
 use super::eliminate::{small_cholesky, small_cholesky_inverse};
-use super::pcg::{self, CgWork};
+use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
 use super::{Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
 
 /// The loosest relative residual a step is solved to (Ceres' default η for LM).
 const FORCING_MAX: f64 = 0.1;
-/// The tightest: below this a reduced residual is rounding.
+/// The tightest; also the relative residual below which CG stops whatever its model says
+/// (rounding).
 const FORCING_MIN: f64 = 1e-10;
 /// CG iterations per step at most (Ceres' `max_linear_solver_iterations` default).
 const MAX_CG_ITERATIONS: usize = 500;
@@ -61,7 +63,7 @@ pub struct ImplicitSchur {
     solution: Vec<f64>,
     work: CgWork,
     first_rhs_norm: Option<f64>,
-    /// The loosest forcing term ([`FORCING_MAX`]; tests solve exactly with a tiny one).
+    /// The loosest forcing term ([`FORCING_MAX`]; tests set 0: the residual tolerance alone).
     forcing_max: f64,
     stats: CgStats,
     /// Why the implicit solver was chosen, for the Summary.
@@ -162,7 +164,7 @@ impl ImplicitSchur {
         self.shift.len()
     }
 
-    /// Solves every step to relative residual `forcing_max` at least (tests).
+    /// Caps the forcing term (tests: 0 solves every step to the residual tolerance alone).
     #[cfg(test)]
     pub(super) fn set_forcing_max(&mut self, forcing_max: f64) {
         self.forcing_max = forcing_max;
@@ -198,23 +200,21 @@ impl ImplicitSchur {
         }
         self.jacobi
             .reset(full, values, self.eliminated, &self.shift);
-        for e in 0..self.eliminated {
-            if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1
-                && budget.checkpoint().is_break()
-            {
-                return Ok(ControlFlow::Break(()));
-            }
-            self.invert_v(e, full, values, shift)?;
-            match (self.dim[e], self.camera_neighbours[e]) {
-                (3, true) => self.precondition_one::<3, CAMERA>(e, full, values),
-                _ => self.precondition_one::<0, 0>(e, full, values),
-            }
+        let eliminated = if has_wide_vectors() {
+            // SAFETY: the CPU has the features `eliminate_wide` is compiled for.
+            unsafe { eliminate_wide(self, (full, values), shift, budget) }
+        } else {
+            eliminate_with(self, (full, values), shift, budget)
+        };
+        if eliminated?.is_break() {
+            return Ok(ControlFlow::Break(()));
         }
         self.jacobi.factorize(self.eliminated_rows)?;
         Ok(ControlFlow::Continue(()))
     }
 
     /// V⁻¹ of eliminated block `e` (with its shift); errs at V's failing pivot.
+    #[inline(always)]
     fn invert_v(
         &mut self,
         e: usize,
@@ -248,11 +248,16 @@ impl ImplicitSchur {
         full: &BlockPattern,
         values: &[f64],
     ) {
+        let d = if D > 0 { D } else { self.dim[e] };
         let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
         for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
-            let w = |s: usize| full.value_index(nb.w_pair, false, 0, s);
-            self.jacobi
-                .subtract::<D, K>(nb.block, w, values, v, self.dim[e]);
+            let dk = if K > 0 { K } else { self.reduced_dim[nb.block] };
+            let mut w = [0.0; 16 * 16];
+            for s in 0..d {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                w[s * dk..(s + 1) * dk].copy_from_slice(&values[start..start + dk]);
+            }
+            self.jacobi.subtract::<D, K>(nb.block, &w, v, d);
         }
     }
 
@@ -274,7 +279,7 @@ impl ImplicitSchur {
         let norm = reduced.iter().map(|x| x * x).sum::<f64>().sqrt();
         let first = *self.first_rhs_norm.get_or_insert(norm);
         let forcing = if first > 0.0 {
-            (norm / first).clamp(FORCING_MIN, self.forcing_max.max(FORCING_MIN))
+            (norm / first).clamp(FORCING_MIN.min(self.forcing_max), self.forcing_max)
         } else {
             self.forcing_max
         };
@@ -287,7 +292,11 @@ impl ImplicitSchur {
             |r, z| self.jacobi.apply(r, z),
             &reduced,
             &mut solution,
-            (forcing, MAX_CG_ITERATIONS.min(reduced.len().max(1))),
+            CgStop {
+                residual: FORCING_MIN,
+                model: forcing,
+                max_iterations: MAX_CG_ITERATIONS.min(reduced.len().max(1)),
+            },
             &mut work,
         );
         self.stats.solves += 1;
@@ -440,6 +449,37 @@ impl ImplicitSchur {
             }
         }
     }
+}
+
+/// Every eliminated block's V⁻¹ and its part of the preconditioner; `Break`: `budget` stopped it.
+#[inline(always)]
+fn eliminate_with(
+    solver: &mut ImplicitSchur,
+    (full, values): (&BlockPattern, &[f64]),
+    shift: Option<&[f64]>,
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    for e in 0..solver.eliminated {
+        if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && budget.checkpoint().is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
+        solver.invert_v(e, full, values, shift)?;
+        match (solver.dim[e], solver.camera_neighbours[e]) {
+            (3, true) => solver.precondition_one::<3, CAMERA>(e, full, values),
+            _ => solver.precondition_one::<0, 0>(e, full, values),
+        }
+    }
+    Ok(ControlFlow::Continue(()))
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn eliminate_wide(
+    solver: &mut ImplicitSchur,
+    h: (&BlockPattern, &[f64]),
+    shift: Option<&[f64]>,
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    eliminate_with(solver, h, shift, budget)
 }
 
 #[inline(always)]

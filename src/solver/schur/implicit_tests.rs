@@ -74,7 +74,7 @@ fn the_implicit_step_solved_tightly_is_the_direct_step() {
     let pattern = &layout.pattern;
     let shift = shift_of(pattern, &h);
     let mut implicit = ImplicitSchur::new(pattern, &plan);
-    implicit.set_forcing_max(1e-12);
+    implicit.set_forcing_max(0.0);
     let factorized = implicit
         .factorize_within(pattern, &h, Some(&shift), &crate::solver::budget::Unlimited)
         .unwrap();

@@ -1,7 +1,9 @@
 //! Preconditioned conjugate gradients on a symmetric positive definite system given only by its
-//! product: the implicit Schur complement's inner solver. Inexact on purpose: it stops once the
-//! residual fell by the caller's relative tolerance (a Newton step need not be exact far from
-//! the optimum; LM's step acceptance judges the step it gets).
+//! product: the implicit Schur complement's inner solver. Inexact on purpose (a Newton step need
+//! not be exact far from the optimum; LM's step acceptance judges the step it gets): it stops
+//! when the quadratic model Q(x) = ½ xᵀAx − bᵀx stops improving, i·(Q_i − Q_{i−1}) / Q_i < η
+//! (Nash and Sofer's truncated-Newton rule, Ceres' choice: the residual's norm says little
+//! about the step's quality), or when the residual fell below a relative tolerance.
 
 /// How one solve ended.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -34,15 +36,24 @@ impl CgWork {
     }
 }
 
+/// When a solve stops: the first of these met.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(in crate::solver) struct CgStop {
+    /// ‖r‖ ≤ `residual` ‖b‖.
+    pub residual: f64,
+    /// i·(Q_i − Q_{i−1}) / Q_i < `model` (0: never).
+    pub model: f64,
+    pub max_iterations: usize,
+}
+
 /// Solves A x = b from x = 0, with `product(v, out)` writing A v and `precondition(r, out)`
-/// writing M⁻¹ r (M symmetric positive definite, close to A). Stops when ‖r‖ ≤ `tolerance` ‖b‖
-/// or after `max_iterations`.
+/// writing M⁻¹ r (M symmetric positive definite, close to A), until `stop`.
 pub(in crate::solver) fn solve(
     mut product: impl FnMut(&[f64], &mut [f64]),
     mut precondition: impl FnMut(&[f64], &mut [f64]),
     b: &[f64],
     x: &mut [f64],
-    (tolerance, max_iterations): (f64, usize),
+    stop: CgStop,
     work: &mut CgWork,
 ) -> CgOutcome {
     let CgWork {
@@ -66,7 +77,9 @@ pub(in crate::solver) fn solve(
     p.copy_from_slice(z);
     let mut rz = dot(r, z);
     outcome.relative_residual = 1.0;
-    while outcome.iterations < max_iterations && outcome.relative_residual > tolerance {
+    // Q(x) = −½ (bᵀx + rᵀx), since Ax = b − r; 0 at x = 0.
+    let mut model = 0.0;
+    while outcome.iterations < stop.max_iterations && outcome.relative_residual > stop.residual {
         product(p, q);
         let curvature = dot(p, q);
         if !(curvature > 0.0 && curvature.is_finite()) || !(rz > 0.0) {
@@ -80,6 +93,12 @@ pub(in crate::solver) fn solve(
         }
         outcome.iterations += 1;
         outcome.relative_residual = norm(r) / b_norm;
+        let next_model = -0.5 * (dot(b, x) + dot(r, x));
+        let improvement = outcome.iterations as f64 * (next_model - model) / next_model;
+        model = next_model;
+        if stop.model > 0.0 && improvement < stop.model {
+            break;
+        }
         precondition(r, z);
         let rz_next = dot(r, z);
         let beta = rz_next / rz;
@@ -102,6 +121,14 @@ fn norm(a: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn residual(residual: f64, max_iterations: usize) -> CgStop {
+        CgStop {
+            residual,
+            model: 0.0,
+            max_iterations,
+        }
+    }
 
     /// A random-ish SPD matrix (diagonally dominant), row-major.
     fn spd(n: usize) -> Vec<f64> {
@@ -170,7 +197,7 @@ mod tests {
             jacobi,
             &b,
             &mut x,
-            (1e-13, 200),
+            residual(1e-13, 200),
             &mut work,
         );
         assert!(!outcome.breakdown);
@@ -187,7 +214,7 @@ mod tests {
             jacobi,
             &b,
             &mut x,
-            (1e-2, 200),
+            residual(1e-2, 200),
             &mut work,
         );
         assert!(
@@ -205,6 +232,33 @@ mod tests {
             .sqrt();
         let b_norm = b.iter().map(|v| v * v).sum::<f64>().sqrt();
         assert!((r / b_norm - loose.relative_residual).abs() < 1e-9);
+        // The model rule stops earlier still, at a step whose model value is within the rule's
+        // tolerance of the optimum's −½ bᵀx*.
+        let model_stop = CgStop {
+            residual: 1e-13,
+            model: 1e-2,
+            max_iterations: 200,
+        };
+        let truncated = solve(
+            |v, out| multiply(&a, n, v, out),
+            jacobi,
+            &b,
+            &mut x,
+            model_stop,
+            &mut work,
+        );
+        assert!(truncated.iterations < outcome.iterations, "{truncated:?}");
+        let q = |x: &[f64]| {
+            let mut ax = vec![0.0; n];
+            multiply(&a, n, x, &mut ax);
+            0.5 * x.iter().zip(&ax).map(|(p, q)| p * q).sum::<f64>()
+                - x.iter().zip(&b).map(|(p, q)| p * q).sum::<f64>()
+        };
+        let (reached, best) = (q(&x), q(&exact));
+        assert!(
+            reached < 0.0 && (reached - best) / best.abs() < 1e-2,
+            "{reached} vs {best}"
+        );
     }
 
     #[test]
@@ -212,7 +266,14 @@ mod tests {
         let mut x = vec![1.0; 3];
         let mut work = CgWork::new(3);
         let identity = |v: &[f64], out: &mut [f64]| out.copy_from_slice(v);
-        let zero = solve(identity, identity, &[0.0; 3], &mut x, (1e-6, 10), &mut work);
+        let zero = solve(
+            identity,
+            identity,
+            &[0.0; 3],
+            &mut x,
+            residual(1e-6, 10),
+            &mut work,
+        );
         assert_eq!((zero.iterations, x.clone()), (0, vec![0.0; 3]));
         let negative = |v: &[f64], out: &mut [f64]| {
             for (o, x) in out.iter_mut().zip(v) {
@@ -224,7 +285,7 @@ mod tests {
             identity,
             &[1.0, 2.0, 3.0],
             &mut x,
-            (1e-6, 10),
+            residual(1e-6, 10),
             &mut work,
         );
         assert!(bad.breakdown && bad.iterations == 0);

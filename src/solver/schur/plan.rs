@@ -62,8 +62,8 @@ pub fn plan<E: Borrow<FactorEntry>>(
     if eliminated == 0 || eliminated == count {
         return None;
     }
-    let (reduced_index, reduced_adjacency) = reduced_graph(&adjacency, &eliminate);
-    let reduced_count = reduced_adjacency.len();
+    let reduced_index = reduced_index(&eliminate);
+    let reduced_count = eliminate.len() - eliminated;
     let reduced_dim: usize = (0..count).filter(|&b| !eliminate[b]).map(|b| dims[b]).sum();
     let dense = match choice {
         LinearSolverChoice::DenseSchur => true,
@@ -75,21 +75,14 @@ pub fn plan<E: Borrow<FactorEntry>>(
             Some("requested (linear_solver iterative_schur)".into())
         }
         LinearSolverChoice::Auto => {
-            let neighbours = (0..count)
-                .filter(|&b| eliminate[b])
-                .map(|b| adjacency[b].len());
-            let kept_dims: Vec<usize> = (0..count)
-                .filter(|&b| !eliminate[b])
-                .map(|b| dims[b])
-                .collect();
-            let bytes = choice::explicit_bytes(&reduced_adjacency, &kept_dims, neighbours, dense);
+            let bytes = choice::explicit_bytes(&adjacency, &eliminate, &dims, dense);
             choice::too_big(bytes, explicit_limit())
         }
         _ => None,
     };
     let implicit = reason.is_some() && (0..count).all(|b| dims[b] <= 16);
     let reduced = if implicit {
-        // Never factorised: no fill-reducing order, no pairs kept.
+        // Never factorised: no reduced graph, no fill-reducing order.
         BlockOrdering {
             adjacency: vec![Vec::new(); reduced_count],
             position: (0..reduced_count).collect(),
@@ -106,7 +99,7 @@ pub fn plan<E: Borrow<FactorEntry>>(
             block_at: (0..reduced_count).collect(),
         }
     } else {
-        BlockOrdering::amd(reduced_adjacency)
+        BlockOrdering::amd(reduced_graph(&adjacency, &eliminate, &reduced_index))
     };
     let (position, block_at) = full_order(&eliminate, &reduced_index, &reduced);
     Some(SchurPlan {
@@ -127,19 +120,31 @@ pub fn plan<E: Borrow<FactorEntry>>(
     })
 }
 
-/// The reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one;
-/// with each kept block's index in it (`usize::MAX` for the eliminated).
-fn reduced_graph(adjacency: &[Vec<usize>], eliminate: &[bool]) -> (Vec<usize>, Vec<Vec<usize>>) {
-    let count = eliminate.len();
-    let mut reduced_index = vec![usize::MAX; count];
+/// Each kept block's index in the reduced graph (`usize::MAX` for the eliminated).
+fn reduced_index(eliminate: &[bool]) -> Vec<usize> {
     let mut next = 0;
-    for b in 0..count {
-        if !eliminate[b] {
-            reduced_index[b] = next;
-            next += 1;
-        }
-    }
-    let mut reduced_adjacency = vec![Vec::new(); next];
+    eliminate
+        .iter()
+        .map(|&e| {
+            if e {
+                usize::MAX
+            } else {
+                next += 1;
+                next - 1
+            }
+        })
+        .collect()
+}
+
+/// The reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one.
+fn reduced_graph(
+    adjacency: &[Vec<usize>],
+    eliminate: &[bool],
+    reduced_index: &[usize],
+) -> Vec<Vec<usize>> {
+    let count = eliminate.len();
+    let kept = reduced_index.iter().filter(|&&i| i != usize::MAX).count();
+    let mut reduced_adjacency = vec![Vec::new(); kept];
     for b in 0..count {
         if eliminate[b] {
             let around: Vec<usize> = adjacency[b].iter().map(|&n| reduced_index[n]).collect();
@@ -159,7 +164,7 @@ fn reduced_graph(adjacency: &[Vec<usize>], eliminate: &[bool]) -> (Vec<usize>, V
         list.sort_unstable();
         list.dedup();
     }
-    (reduced_index, reduced_adjacency)
+    reduced_adjacency
 }
 
 /// The whole problem's order: the eliminated blocks first (in block order), then the kept ones

@@ -60,13 +60,12 @@ impl SchurJacobi {
         }
     }
 
-    /// Block k −= W_k V⁻¹ W_kᵀ for W_k (dk × d, column-major, as stored in H) and V⁻¹ (d × d).
+    /// Block k −= W_k V⁻¹ W_kᵀ for W_k (dk × d, column-major, `w`) and V⁻¹ (d × d).
     #[inline(always)]
     pub(super) fn subtract<const D: usize, const K: usize>(
         &mut self,
         k: usize,
-        w: impl Fn(usize) -> usize,
-        values: &[f64],
+        w: &[f64],
         v_inverse: &[f64],
         d: usize,
     ) {
@@ -78,18 +77,18 @@ impl SchurJacobi {
         for t in 0..d {
             for s in 0..d {
                 let factor = v_inverse[s * d + t];
-                let ws = w(s);
                 for r in 0..dk {
-                    y[t * dk + r] += values[ws + r] * factor;
+                    y[t * dk + r] += w[s * dk + r] * factor;
                 }
             }
         }
-        for q in 0..dk {
-            for t in 0..d {
-                let wq = values[w(t) + q];
-                for r in q..dk {
-                    block[r * dk + q] -= y[t * dk + r] * wq;
+        for r in 0..dk {
+            for q in 0..=r {
+                let mut acc = 0.0;
+                for t in 0..d {
+                    acc += y[t * dk + r] * w[t * dk + q];
                 }
+                block[r * dk + q] -= acc;
             }
         }
     }
