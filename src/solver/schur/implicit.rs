@@ -6,10 +6,11 @@
 //! Schur-Jacobi (`schur_jacobi`), as Ceres' ITERATIVE_SCHUR with SCHUR_JACOBI.
 //!
 //! Inexact Newton: CG stops when its quadratic model stops improving by more than a forcing term
-//! η = min(η_max, ‖b_r‖ / ‖b_r at the first solve‖) (see `pcg`): loose far from the optimum
+//! η = min(η_max, √(‖b_r‖ / ‖b_r at the first solve‖)) (see `pcg`): loose far from the optimum
 //! (where an exact step is wasted; Ceres keeps η = 0.1 throughout), tightening as the gradient
 //! vanishes, so the last steps are as good as a direct solve's and the final cost is the same;
-//! LM's step acceptance judges every step.
+//! LM's step acceptance judges every step. Without the square root (η ∝ ‖b_r‖) the third LM
+//! step of the 5 000-camera problem took 49 CG iterations of its 68.
 
 use std::ops::ControlFlow;
 
@@ -279,7 +280,9 @@ impl ImplicitSchur {
         let norm = reduced.iter().map(|x| x * x).sum::<f64>().sqrt();
         let first = *self.first_rhs_norm.get_or_insert(norm);
         let forcing = if first > 0.0 {
-            (norm / first).clamp(FORCING_MIN.min(self.forcing_max), self.forcing_max)
+            (norm / first)
+                .sqrt()
+                .clamp(FORCING_MIN.min(self.forcing_max), self.forcing_max)
         } else {
             self.forcing_max
         };
