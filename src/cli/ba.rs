@@ -28,8 +28,10 @@ pub struct BaArgs {
     /// Stop when an accepted step lowers χ² by less than this fraction of it (0: never)
     #[arg(long, default_value_t = 1e-6)]
     function_tolerance: f64,
-    /// auto | sparse_cholesky | dense_schur | sparse_schur (auto: Schur complement of the
-    /// points, dense reduced camera system up to 1000 unknowns)
+    /// auto | sparse_cholesky | dense_schur | sparse_schur | iterative_schur (auto: Schur
+    /// complement of the points, dense reduced camera system up to 1000 unknowns, sparse beyond,
+    /// implicit (iterative_schur: conjugate gradients, S never formed) when an explicit one would
+    /// take more than half the available memory)
     #[arg(long, default_value = "auto", value_parser = parse_linear_solver)]
     linear_solver: LinearSolverChoice,
     /// Robust kernel on every observation, e.g. huber:1.0 (pixels)
@@ -132,6 +134,16 @@ pub fn run(args: BaArgs) -> Result<(), CliError> {
     let summary = optimize_verbose(&mut bal.problem, &options, console, lines)?;
     let final_cost = bal.cost();
     console.print(&ceres_style::summary_report(&summary));
+    // Which linear solver ran, and for the implicit Schur complement why (auto chose it) and
+    // how many conjugate-gradient iterations it took.
+    let cg = summary.used.schur.as_ref().and_then(|s| s.cg_iterations);
+    console.print(&match cg {
+        Some(cg) => format!(
+            "Linear solver: {} ({cg} CG iterations)\n",
+            summary.used.linear_solver
+        ),
+        None => format!("Linear solver: {}\n", summary.used.linear_solver),
+    });
     if let Some(target) = &args.summary_json {
         write_summary_json(
             target,

@@ -30,7 +30,7 @@ pub fn parse_robust(s: &str) -> Result<RobustKernel, String> {
 
 pub fn parse_linear_solver(s: &str) -> Result<LinearSolverChoice, String> {
     LinearSolverChoice::parse(s).ok_or_else(|| {
-        format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur)")
+        format!("unknown linear solver `{s}` (auto, sparse_cholesky, dense_schur, sparse_schur, iterative_schur)")
     })
 }
 

@@ -41,7 +41,7 @@ pub struct JobParams {
     pub function_tolerance: Option<f64>,
     pub gradient_tolerance: Option<f64>,
     pub parameter_tolerance: Option<f64>,
-    /// auto | sparse_cholesky | dense_schur | sparse_schur
+    /// auto | sparse_cholesky | dense_schur | sparse_schur | iterative_schur
     pub linear_solver: Option<String>,
     /// json (default) | g2o | tum
     pub output: Option<String>,
@@ -169,7 +169,7 @@ fn solver_options(params: &JobParams, bal: bool) -> Result<SolverOptions, Servic
             bad(
                 "linear_solver",
                 format!(
-                    "unknown linear solver `{l}` (auto, sparse_cholesky, dense_schur, sparse_schur)"
+                    "unknown linear solver `{l}` (auto, sparse_cholesky, dense_schur, sparse_schur, iterative_schur)"
                 ),
             )
         })?;

@@ -7,7 +7,7 @@ use serde::Serialize;
 
 use super::budget::Budget;
 use super::cholesky::{NotPositiveDefinite, SparseCholesky};
-use super::schur::SchurSolver;
+use super::schur::{ImplicitSchur, SchurSolver};
 use super::structure::BlockPattern;
 use super::supernodes::BlockSupernodes;
 
@@ -17,6 +17,7 @@ use super::supernodes::BlockSupernodes;
 pub enum LinearSolver {
     Sparse(SparseCholesky),
     Schur(SchurSolver),
+    ImplicitSchur(ImplicitSchur),
 }
 
 /// What the Schur complement did, for the Summary.
@@ -26,8 +27,16 @@ pub struct SchurReport {
     pub reduced_variables: usize,
     /// Scalar unknowns of the reduced system S.
     pub reduced_dimension: usize,
-    /// `"dense"` or `"sparse"`: how S was factorised.
+    /// `"dense"` or `"sparse"`: how S was factorised; `"implicit"`: S was never formed.
     pub reduced_factorization: &'static str,
+    /// Why S was not formed (implicit only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub implicit_reason: Option<String>,
+    /// Conjugate-gradient iterations over the solve, and the most one step took (implicit only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cg_iterations: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cg_max_iterations_per_step: Option<usize>,
 }
 
 impl LinearSolver {
@@ -43,12 +52,13 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.factorize(pattern, values).map(ControlFlow::Continue),
             Self::Schur(schur) => schur.factorize_within(pattern, values, None, budget),
+            Self::ImplicitSchur(schur) => schur.factorize_within(pattern, values, None, budget),
         }
     }
 
     /// Whether [`LinearSolver::factorize_shifted`] works without a damped copy of the matrix.
     pub fn shifts_in_place(&self) -> bool {
-        matches!(self, Self::Schur(_))
+        matches!(self, Self::Schur(_) | Self::ImplicitSchur(_))
     }
 
     /// Factorises `values + diag(shift)` for a solver that [`LinearSolver::shifts_in_place`];
@@ -63,6 +73,9 @@ impl LinearSolver {
         match self {
             Self::Sparse(_) => unreachable!("sparse Cholesky factorises a damped copy"),
             Self::Schur(schur) => schur.factorize_within(pattern, values, Some(shift), budget),
+            Self::ImplicitSchur(schur) => {
+                schur.factorize_within(pattern, values, Some(shift), budget)
+            }
         }
     }
 
@@ -72,6 +85,7 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.solve_in_place(rhs),
             Self::Schur(schur) => schur.solve_in_place(pattern, values, rhs),
+            Self::ImplicitSchur(schur) => schur.solve_in_place(pattern, values, rhs),
         }
     }
 
@@ -86,6 +100,10 @@ impl LinearSolver {
                 ),
                 None => "Schur complement, dense Cholesky (faer) of the reduced system".into(),
             },
+            Self::ImplicitSchur(s) => format!(
+                "implicit Schur complement, conjugate gradients preconditioned by Schur-Jacobi ({})",
+                s.reason()
+            ),
         }
     }
 
@@ -94,6 +112,7 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.kind(),
             Self::Schur(s) => s.sparse_factor().map_or("dense", SparseCholesky::kind),
+            Self::ImplicitSchur(_) => "none (conjugate gradients)",
         }
     }
 
@@ -102,7 +121,7 @@ impl LinearSolver {
     pub fn factor_flops(&self) -> Option<f64> {
         match self {
             Self::Sparse(chol) => Some(chol.factor_flops()),
-            Self::Schur(_) => None,
+            Self::Schur(_) | Self::ImplicitSchur(_) => None,
         }
     }
 
@@ -112,6 +131,7 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.numeric_bytes(),
             Self::Schur(s) => 8 * s.factor_nnz() as u64,
+            Self::ImplicitSchur(s) => 8 * s.numeric_len() as u64,
         }
     }
 
@@ -120,7 +140,7 @@ impl LinearSolver {
     pub fn block_supernodes(&self) -> Option<&BlockSupernodes> {
         match self {
             Self::Sparse(chol) => chol.block_supernodes(),
-            Self::Schur(_) => None,
+            Self::Schur(_) | Self::ImplicitSchur(_) => None,
         }
     }
 
@@ -128,6 +148,7 @@ impl LinearSolver {
         match self {
             Self::Sparse(chol) => chol.factor_nnz(),
             Self::Schur(s) => s.factor_nnz(),
+            Self::ImplicitSchur(_) => 0,
         }
     }
 
@@ -136,6 +157,7 @@ impl LinearSolver {
             Self::Sparse(_) => "AMD on the variable graph",
             Self::Schur(s) if s.is_dense() => "eliminated variables first, then the rest as given",
             Self::Schur(_) => "eliminated variables first, then AMD on the reduced graph",
+            Self::ImplicitSchur(_) => "eliminated variables first, then the rest as given",
         }
     }
 
@@ -147,6 +169,18 @@ impl LinearSolver {
                 reduced_variables: s.reduced_blocks(),
                 reduced_dimension: s.reduced_dim(),
                 reduced_factorization: if s.is_dense() { "dense" } else { "sparse" },
+                implicit_reason: None,
+                cg_iterations: None,
+                cg_max_iterations_per_step: None,
+            }),
+            Self::ImplicitSchur(s) => Some(SchurReport {
+                eliminated_variables: s.eliminated_blocks(),
+                reduced_variables: s.reduced_blocks(),
+                reduced_dimension: s.reduced_dim(),
+                reduced_factorization: "implicit",
+                implicit_reason: Some(s.reason().to_string()),
+                cg_iterations: Some(s.stats().iterations),
+                cg_max_iterations_per_step: Some(s.stats().max_iterations),
             }),
         }
     }

@@ -17,7 +17,7 @@ use super::iterations::{Iterations, StepTimes};
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
 use super::options::{Initialization, Method, SolverOptions};
-use super::schur::{self, SchurSolver};
+use super::schur::{self, ImplicitSchur, SchurSolver};
 use super::stopping::stopped;
 use super::structure::BlockOrdering;
 use super::summary::{IterationReport, Run, Summary, Timings};
@@ -200,6 +200,7 @@ fn analyze(
         fixed,
         &problem.eliminate,
         options.linear_solver,
+        || schur::explicit_limit(budget.max_memory_bytes()),
     );
     let ordering = match (&schur_plan, cache) {
         (Some(plan), _) => plan.ordering.clone(),
@@ -218,6 +219,9 @@ fn analyze(
         layout.use_threads(problem.factors(), threads);
     }
     let chol = match &schur_plan {
+        Some(plan) if plan.implicit => {
+            LinearSolver::ImplicitSchur(ImplicitSchur::new(&layout.pattern, plan))
+        }
         Some(plan) => {
             let mut schur = SchurSolver::new(&layout.pattern, plan)?;
             schur.use_threads(threads);

@@ -46,12 +46,17 @@ pub enum Initialization {
 #[serde(rename_all = "snake_case")]
 pub enum LinearSolverChoice {
     /// Schur complement when the problem names variables to eliminate (dense reduced system up
-    /// to 1000 unknowns, sparse beyond), sparse Cholesky of the whole system otherwise.
+    /// to 1000 unknowns, sparse beyond, implicit when an explicit one would not fit in memory),
+    /// sparse Cholesky of the whole system otherwise.
     #[default]
     Auto,
     SparseCholesky,
     DenseSchur,
     SparseSchur,
+    /// Schur complement never formed: conjugate gradients on its products, preconditioned by
+    /// its block diagonal (Ceres' ITERATIVE_SCHUR with SCHUR_JACOBI). Auto takes it when the
+    /// explicit reduced system would not fit in memory.
+    IterativeSchur,
 }
 
 impl LinearSolverChoice {
@@ -61,6 +66,7 @@ impl LinearSolverChoice {
             "sparse_cholesky" | "sparse_normal_cholesky" => Some(Self::SparseCholesky),
             "dense_schur" => Some(Self::DenseSchur),
             "sparse_schur" => Some(Self::SparseSchur),
+            "iterative_schur" | "implicit_schur" => Some(Self::IterativeSchur),
             _ => None,
         }
     }

@@ -174,3 +174,42 @@ fn two_threads_reach_one_threads_optimum() {
     assert_eq!(two_iterations, one_iterations);
     assert_relative(one, 18033.90, 1e-3, "Ceres' optimum");
 }
+
+/// The implicit Schur complement (conjugate gradients on S's products, S never formed) reaches
+/// the explicit one's optimum on problem-16, and the Summary says which solved and why.
+#[test]
+fn implicit_schur_reaches_the_explicit_optimum() {
+    use factord::solver::{optimize, LinearSolverChoice, SolverOptions};
+    let Some(path) = common::data_file("bal/problem-16-22106-pre.txt") else {
+        return;
+    };
+    let mut costs = Vec::new();
+    for choice in [LinearSolverChoice::Auto, LinearSolverChoice::IterativeSchur] {
+        let mut b = bal::load(&path).unwrap();
+        let options = SolverOptions {
+            linear_solver: choice,
+            ..SolverOptions::bundle_adjustment()
+        };
+        let summary = optimize(&mut b.problem, &options, &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap();
+        assert!(summary.converged, "{choice:?}: {:?}", summary.termination);
+        let schur = summary.used.schur.expect("points eliminated");
+        if choice == LinearSolverChoice::IterativeSchur {
+            assert_eq!(schur.reduced_factorization, "implicit");
+            assert!(summary.used.linear_solver.contains("conjugate gradients"));
+            assert!(schur
+                .implicit_reason
+                .is_some_and(|r| r.contains("requested")));
+            assert!(schur.cg_iterations.is_some_and(|n| n >= summary.iterations));
+        } else {
+            // Problem-16's S (144 unknowns) fits: auto keeps it explicit.
+            assert_eq!(schur.reduced_factorization, "dense");
+            assert!(schur.cg_iterations.is_none());
+        }
+        costs.push(b.cost());
+    }
+    assert_relative(costs[1], costs[0], 1e-6, "implicit against explicit");
+    assert_relative(costs[0], 18033.90, 1e-3, "Ceres' optimum");
+}

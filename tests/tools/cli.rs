@@ -538,3 +538,52 @@ fn ba_threads_solve_alike_and_a_bad_count_is_refused() {
         );
     }
 }
+
+/// `ba --linear-solver iterative_schur` solves with the implicit Schur complement (conjugate
+/// gradients, S never formed), says so in its report and Summary, and reaches the explicit
+/// solve's optimum; an unknown solver is refused with the list that includes it.
+#[test]
+fn ba_iterative_schur_reaches_the_explicit_optimum_and_says_so() {
+    let Some(input) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let dir = common::temp_dir("ba-implicit");
+    let mut costs = Vec::new();
+    for solver in ["auto", "iterative_schur"] {
+        let summary = dir.join(format!("{solver}.json"));
+        let report = factord()
+            .arg("ba")
+            .arg(&input)
+            .args(["--linear-solver", solver, "--summary-json"])
+            .arg(&summary)
+            .succeeds();
+        let s: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
+        let schur = &s["used"]["schur"];
+        if solver == "iterative_schur" {
+            assert_eq!(schur["reduced_factorization"], "implicit", "{s}");
+            assert!(schur["cg_iterations"].as_u64().unwrap() > 0, "{s}");
+            let report = String::from_utf8_lossy(&report.stdout);
+            assert!(
+                report.contains("Linear solver: implicit Schur complement, conjugate gradients"),
+                "the report names the solver: {report}"
+            );
+        } else {
+            assert_eq!(schur["reduced_factorization"], "dense", "{s}");
+            assert!(schur.get("cg_iterations").is_none(), "{s}");
+        }
+        costs.push(s["final_cost"].as_f64().unwrap());
+    }
+    assert!(
+        (costs[0] - costs[1]).abs() <= 1e-6 * costs[0],
+        "explicit {} against implicit {}",
+        costs[0],
+        costs[1]
+    );
+    let err = factord()
+        .arg("ba")
+        .arg(&input)
+        .args(["--linear-solver", "pcg"])
+        .refused();
+    assert!(err.contains("iterative_schur"), "{err}");
+}

@@ -71,7 +71,7 @@ struct Reprojection {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::fprintf(stderr, "usage: %s <problem.txt> [--linear-solver dense_schur|sparse_schur] "
+    std::fprintf(stderr, "usage: %s <problem.txt> [--linear-solver dense_schur|sparse_schur|iterative_schur] "
                          "[--max-iterations N] [--huber SCALE] [--function-tolerance T] [--threads N]\n",
                  argv[0]);
     return 2;
@@ -98,7 +98,19 @@ int main(int argc, char** argv) {
     problem.AddResidualBlock(cost, loss, bal.camera(bal.camera_index[k]), bal.point(bal.point_index[k]));
   }
   ceres::Solver::Options options;
-  options.linear_solver_type = solver == "sparse_schur" ? ceres::SPARSE_SCHUR : ceres::DENSE_SCHUR;
+  if (solver == "iterative_schur") {
+    // Implicit Schur complement and conjugate gradients, preconditioned by the block diagonal
+    // of S (one block per camera): the solver for problems whose S does not fit in memory.
+    options.linear_solver_type = ceres::ITERATIVE_SCHUR;
+    options.preconditioner_type = ceres::SCHUR_JACOBI;
+  } else if (solver == "sparse_schur") {
+    options.linear_solver_type = ceres::SPARSE_SCHUR;
+  } else if (solver == "dense_schur") {
+    options.linear_solver_type = ceres::DENSE_SCHUR;
+  } else {
+    std::fprintf(stderr, "unknown linear solver %s\n", solver.c_str());
+    return 2;
+  }
   options.num_threads = threads;
   options.max_num_iterations = max_iterations;
   options.function_tolerance = function_tolerance;

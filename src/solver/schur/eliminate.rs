@@ -354,7 +354,7 @@ pub(in crate::solver) fn small_cholesky(a: &mut [f64], d: usize) -> Result<(), u
 /// Replaces the factor L of [`small_cholesky`] (lower triangle of `a`) by (L Lᵀ)⁻¹, both
 /// triangles.
 #[inline(always)]
-fn small_cholesky_inverse(a: &mut [f64], d: usize) {
+pub(super) fn small_cholesky_inverse(a: &mut [f64], d: usize) {
     let mut inverse = [0.0; 256];
     assert!(d <= 16, "eliminated variables have at most 16 dimensions");
     for c in 0..d {

@@ -28,15 +28,24 @@
 //! - `reduced`: the reduced system S itself, dense or sparse: its factorisation, its solve and
 //!   their predicted cost;
 //! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr;
-//! - `threads`: the elimination and back-substitution cut into parts for more than one thread.
+//! - `threads`: the elimination and back-substitution cut into parts for more than one thread;
+//! - `choice`: whether S may be formed (explicit) or is too big and only multiplied (implicit);
+//! - `implicit`: the implicit Schur complement, S's products and the step by conjugate gradients
+//!   ([`ImplicitSchur`]), with `schur_jacobi` (its preconditioner) and `pcg` (the iteration).
 //!
 //! This file holds the solver's state, shared by all of them.
 
 mod back_substitute;
+mod choice;
 mod eliminate;
+mod implicit;
+#[cfg(test)]
+mod implicit_tests;
 mod layout;
+mod pcg;
 mod plan;
 mod reduced;
+mod schur_jacobi;
 #[cfg(test)]
 mod tests;
 mod threads;
@@ -45,7 +54,9 @@ use super::budget::FactorCost;
 use super::cholesky::SparseCholesky;
 use super::structure::BlockPattern;
 
+pub use choice::explicit_limit;
 pub(in crate::solver) use eliminate::small_cholesky;
+pub use implicit::{CgStats, ImplicitSchur};
 pub use plan::{plan, SchurPlan};
 use reduced::Backend;
 

@@ -6,6 +6,7 @@ use std::borrow::Borrow;
 use super::super::linearize::{free_adjacency, free_blocks};
 use super::super::options::LinearSolverChoice;
 use super::super::structure::BlockOrdering;
+use super::choice;
 use crate::problem::FactorEntry;
 use crate::problem::Values;
 
@@ -24,17 +25,23 @@ pub struct SchurPlan {
     /// The reduced system's graph and order; block `k` is full position `eliminated + k`.
     pub(super) reduced: BlockOrdering,
     pub dense: bool,
+    /// S is never formed: conjugate gradients on its products ([`super::ImplicitSchur`]).
+    pub implicit: bool,
+    /// Why the implicit solver was chosen (empty for an explicit S).
+    pub reason: String,
 }
 
 /// Plans the Schur complement for the free variables (`fixed[v]` false) whose kind is in
 /// `kinds`; `None` when it does not apply (no such variable, nothing left to reduce to, or the
-/// choice is plain sparse Cholesky).
+/// choice is plain sparse Cholesky). `explicit_limit`: the bytes an explicit S (with its
+/// factor) may take before `Auto` solves it implicitly instead (see `choice`).
 pub fn plan<E: Borrow<FactorEntry>>(
     factors: &[E],
     values: &Values,
     fixed: &[bool],
     kinds: &[&str],
     choice: LinearSolverChoice,
+    explicit_limit: impl FnOnce() -> Option<u64>,
 ) -> Option<SchurPlan> {
     if kinds.is_empty() || choice == LinearSolverChoice::SparseCholesky {
         return None;
@@ -55,15 +62,33 @@ pub fn plan<E: Borrow<FactorEntry>>(
     if eliminated == 0 || eliminated == count {
         return None;
     }
-    let (reduced_index, reduced_adjacency) = reduced_graph(&adjacency, &eliminate);
-    let reduced_count = reduced_adjacency.len();
+    let reduced_index = reduced_index(&eliminate);
+    let reduced_count = eliminate.len() - eliminated;
     let reduced_dim: usize = (0..count).filter(|&b| !eliminate[b]).map(|b| dims[b]).sum();
     let dense = match choice {
         LinearSolverChoice::DenseSchur => true,
-        LinearSolverChoice::SparseSchur => false,
+        LinearSolverChoice::SparseSchur | LinearSolverChoice::IterativeSchur => false,
         _ => reduced_dim <= DENSE_AUTO_MAX,
     };
-    let reduced = if dense {
+    let reason = match choice {
+        LinearSolverChoice::IterativeSchur => {
+            Some("requested (linear_solver iterative_schur)".into())
+        }
+        LinearSolverChoice::Auto => {
+            let bytes = choice::explicit_bytes(&adjacency, &eliminate, &dims, dense);
+            choice::too_big(bytes, explicit_limit())
+        }
+        _ => None,
+    };
+    let implicit = reason.is_some() && (0..count).all(|b| dims[b] <= 16);
+    let reduced = if implicit {
+        // Never factorised: no reduced graph, no fill-reducing order.
+        BlockOrdering {
+            adjacency: vec![Vec::new(); reduced_count],
+            position: (0..reduced_count).collect(),
+            block_at: (0..reduced_count).collect(),
+        }
+    } else if dense {
         // Every pair present, in the given order: the pattern is the dense lower triangle.
         let all = (0..reduced_count)
             .map(|x| (0..reduced_count).filter(|&y| y != x).collect())
@@ -74,7 +99,7 @@ pub fn plan<E: Borrow<FactorEntry>>(
             block_at: (0..reduced_count).collect(),
         }
     } else {
-        BlockOrdering::amd(reduced_adjacency)
+        BlockOrdering::amd(reduced_graph(&adjacency, &eliminate, &reduced_index))
     };
     let (position, block_at) = full_order(&eliminate, &reduced_index, &reduced);
     Some(SchurPlan {
@@ -85,23 +110,41 @@ pub fn plan<E: Borrow<FactorEntry>>(
         },
         eliminated,
         reduced,
-        dense,
+        dense: dense && !implicit,
+        implicit,
+        reason: if implicit {
+            reason.unwrap_or_default()
+        } else {
+            String::new()
+        },
     })
 }
 
-/// The reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one;
-/// with each kept block's index in it (`usize::MAX` for the eliminated).
-fn reduced_graph(adjacency: &[Vec<usize>], eliminate: &[bool]) -> (Vec<usize>, Vec<Vec<usize>>) {
-    let count = eliminate.len();
-    let mut reduced_index = vec![usize::MAX; count];
+/// Each kept block's index in the reduced graph (`usize::MAX` for the eliminated).
+fn reduced_index(eliminate: &[bool]) -> Vec<usize> {
     let mut next = 0;
-    for b in 0..count {
-        if !eliminate[b] {
-            reduced_index[b] = next;
-            next += 1;
-        }
-    }
-    let mut reduced_adjacency = vec![Vec::new(); next];
+    eliminate
+        .iter()
+        .map(|&e| {
+            if e {
+                usize::MAX
+            } else {
+                next += 1;
+                next - 1
+            }
+        })
+        .collect()
+}
+
+/// The reduced graph: direct neighbours, plus every pair of blocks sharing an eliminated one.
+fn reduced_graph(
+    adjacency: &[Vec<usize>],
+    eliminate: &[bool],
+    reduced_index: &[usize],
+) -> Vec<Vec<usize>> {
+    let count = eliminate.len();
+    let kept = reduced_index.iter().filter(|&&i| i != usize::MAX).count();
+    let mut reduced_adjacency = vec![Vec::new(); kept];
     for b in 0..count {
         if eliminate[b] {
             let around: Vec<usize> = adjacency[b].iter().map(|&n| reduced_index[n]).collect();
@@ -121,7 +164,7 @@ fn reduced_graph(adjacency: &[Vec<usize>], eliminate: &[bool]) -> (Vec<usize>, V
         list.sort_unstable();
         list.dedup();
     }
-    (reduced_index, reduced_adjacency)
+    reduced_adjacency
 }
 
 /// The whole problem's order: the eliminated blocks first (in block order), then the kept ones

@@ -16,7 +16,7 @@ use crate::solver::options::LinearSolverChoice;
 
 /// A small BA: cameras looking at a cloud of points, observations with pixel noise, every
 /// point seen by 2–4 cameras; cameras and points then perturbed.
-fn synthetic_bundle_adjustment(cameras: usize, points: usize, seed: u64) -> Problem {
+pub(super) fn synthetic_bundle_adjustment(cameras: usize, points: usize, seed: u64) -> Problem {
     let mut rng = Rng::new(seed);
     let mut problem = Problem::with_gauge(Gauge::Free).eliminating(&["point3"]);
     let mut truth = Vec::new();
@@ -63,7 +63,7 @@ fn synthetic_bundle_adjustment(cameras: usize, points: usize, seed: u64) -> Prob
 }
 
 /// `problem`'s plan for `choice`, its layout in the plan's ordering, and `H`, `b` linearised there.
-fn linearized(
+pub(super) fn linearized(
     problem: &Problem,
     choice: LinearSolverChoice,
 ) -> (SchurPlan, SystemLayout, Vec<f64>, Vec<f64>) {
@@ -74,6 +74,7 @@ fn linearized(
         &fixed,
         &problem.eliminate,
         choice,
+        || None,
     )
     .expect("something to eliminate");
     let layout =
@@ -176,6 +177,7 @@ fn eliminates_any_kind_keeping_v_block_diagonal() {
         &fixed,
         &problem.eliminate,
         LinearSolverChoice::SparseSchur,
+        || None,
     )
     .unwrap();
     assert!(planned.eliminated >= 10 && planned.eliminated <= 15);
@@ -191,6 +193,7 @@ fn every_linear_solver_reaches_the_same_optimum() {
         LinearSolverChoice::SparseCholesky,
         LinearSolverChoice::DenseSchur,
         LinearSolverChoice::SparseSchur,
+        LinearSolverChoice::IterativeSchur,
     ] {
         let mut problem = synthetic_bundle_adjustment(6, 60, 11);
         let options = SolverOptions {

@@ -1,0 +1,517 @@
+//! The implicit Schur complement: the reduced camera system S Δr = b_r − W V⁻¹ b_e solved by
+//! preconditioned conjugate gradients without forming S. Each product
+//! `S x = (U + D) x − W V⁻¹ (Wᵀ x)` is one pass over the eliminated blocks that reads their W
+//! blocks from H, so memory grows with the observations, not with the camera pairs (5 000 BAL
+//! cameras seen together: S alone would take ~8 GB, its factor as much again). Preconditioned by
+//! Schur-Jacobi (`schur_jacobi`), as Ceres' ITERATIVE_SCHUR with SCHUR_JACOBI.
+//!
+//! Inexact Newton: CG stops when its quadratic model stops improving by more than a forcing term
+//! η = min(η_max, √(‖b_r‖ / ‖b_r at the first solve‖)) (see `pcg`): loose far from the optimum
+//! (where an exact step is wasted; Ceres keeps η = 0.1 throughout), tightening as the gradient
+//! vanishes, so the last steps are as good as a direct solve's and the final cost is the same;
+//! LM's step acceptance judges every step. Without the square root (η ∝ ‖b_r‖) the third LM
+//! step of the 5 000-camera problem took 49 CG iterations of its 68.
+
+use std::ops::ControlFlow;
+
+use super::super::budget::Budget;
+use super::super::cholesky::NotPositiveDefinite;
+use super::super::simd::has_wide_vectors;
+use super::super::structure::BlockPattern;
+use super::eliminate::{small_cholesky, small_cholesky_inverse};
+use super::pcg::{self, CgStop, CgWork};
+use super::schur_jacobi::SchurJacobi;
+use super::{Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
+
+/// The loosest relative residual a step is solved to (Ceres' default η for LM).
+const FORCING_MAX: f64 = 0.1;
+/// The tightest; also the relative residual below which CG stops whatever its model says
+/// (rounding).
+const FORCING_MIN: f64 = 1e-10;
+/// CG iterations per step at most (Ceres' `max_linear_solver_iterations` default).
+const MAX_CG_ITERATIONS: usize = 500;
+
+/// What the conjugate gradients did over a solve, for the Summary.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct CgStats {
+    pub solves: usize,
+    pub iterations: usize,
+    pub max_iterations: usize,
+}
+
+/// Factorises (V⁻¹ and the preconditioner) and solves the reduced system iteratively; see the
+/// module documentation.
+pub struct ImplicitSchur {
+    eliminated: usize,
+    eliminated_rows: usize,
+    /// Per eliminated block: dimension, first row, where its V⁻¹ starts, its neighbours.
+    dim: Vec<usize>,
+    offset: Vec<usize>,
+    v_start: Vec<usize>,
+    v_inverse: Vec<f64>,
+    neighbour_start: Vec<usize>,
+    neighbours: Vec<Neighbour>,
+    camera_neighbours: Vec<bool>,
+    /// Per reduced block (full position `eliminated + k`): dimension and first reduced row.
+    reduced_dim: Vec<usize>,
+    reduced_offset: Vec<usize>,
+    /// U's off-diagonal blocks between reduced blocks: (row block, column block, pair in H).
+    u_pairs: Vec<(usize, usize, usize)>,
+    /// The LM shift of the reduced rows (zeros without damping).
+    shift: Vec<f64>,
+    jacobi: SchurJacobi,
+    rhs: Vec<f64>,
+    solution: Vec<f64>,
+    work: CgWork,
+    first_rhs_norm: Option<f64>,
+    /// The loosest forcing term ([`FORCING_MAX`]; tests set 0: the residual tolerance alone).
+    forcing_max: f64,
+    stats: CgStats,
+    /// Why the implicit solver was chosen, for the Summary.
+    reason: String,
+}
+
+impl std::fmt::Debug for ImplicitSchur {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ImplicitSchur")
+            .field("eliminated", &self.eliminated)
+            .field("reduced_dim", &self.shift.len())
+            .field("stats", &self.stats)
+            .finish()
+    }
+}
+
+impl ImplicitSchur {
+    /// `full` is the pattern laid out with `plan.ordering`.
+    pub fn new(full: &BlockPattern, plan: &SchurPlan) -> Self {
+        let ne = plan.eliminated;
+        let eliminated_rows = if ne < full.dim.len() {
+            full.offset[ne]
+        } else {
+            full.n
+        };
+        let (mut dim, mut offset, mut v_start) = (Vec::new(), Vec::new(), vec![0]);
+        let (mut neighbour_start, mut neighbours) = (vec![0], Vec::new());
+        for e in 0..ne {
+            let d = full.dim[e];
+            assert!(d <= 16, "eliminated variables have at most 16 dimensions");
+            dim.push(d);
+            offset.push(full.offset[e]);
+            v_start.push(v_start[e] + d * d);
+            for &(a, w_pair) in full.column_blocks(e) {
+                if a != e {
+                    assert!(a >= ne, "eliminated blocks {a} and {e} share a factor");
+                    neighbours.push(Neighbour {
+                        block: a - ne,
+                        w_pair,
+                    });
+                }
+            }
+            neighbour_start.push(neighbours.len());
+        }
+        let reduced_dim: Vec<usize> = full.dim[ne..].to_vec();
+        let reduced_offset: Vec<usize> = full.offset[ne..]
+            .iter()
+            .map(|o| o - eliminated_rows)
+            .collect();
+        let camera_neighbours = (0..ne)
+            .map(|e| {
+                neighbours[neighbour_start[e]..neighbour_start[e + 1]]
+                    .iter()
+                    .all(|n| reduced_dim[n.block] == CAMERA)
+            })
+            .collect();
+        let mut u_pairs = Vec::new();
+        for b in ne..full.dim.len() {
+            for &(a, pair) in &full.column_blocks(b)[1..] {
+                u_pairs.push((a - ne, b - ne, pair));
+            }
+        }
+        let n = full.n - eliminated_rows;
+        Self {
+            eliminated: ne,
+            eliminated_rows,
+            v_inverse: vec![0.0; v_start[ne]],
+            dim,
+            offset,
+            v_start,
+            neighbour_start,
+            neighbours,
+            camera_neighbours,
+            jacobi: SchurJacobi::new(reduced_dim.clone(), reduced_offset.clone()),
+            reduced_dim,
+            reduced_offset,
+            u_pairs,
+            shift: vec![0.0; n],
+            rhs: vec![0.0; n],
+            solution: vec![0.0; n],
+            work: CgWork::new(n),
+            first_rhs_norm: None,
+            forcing_max: FORCING_MAX,
+            stats: CgStats::default(),
+            reason: plan.reason.clone(),
+        }
+    }
+
+    pub fn eliminated_blocks(&self) -> usize {
+        self.eliminated
+    }
+
+    pub fn reduced_blocks(&self) -> usize {
+        self.reduced_dim.len()
+    }
+
+    pub fn reduced_dim(&self) -> usize {
+        self.shift.len()
+    }
+
+    /// Caps the forcing term (tests: 0 solves every step to the residual tolerance alone).
+    #[cfg(test)]
+    pub(super) fn set_forcing_max(&mut self, forcing_max: f64) {
+        self.forcing_max = forcing_max;
+    }
+
+    pub fn stats(&self) -> CgStats {
+        self.stats
+    }
+
+    pub fn reason(&self) -> &str {
+        &self.reason
+    }
+
+    /// Numbers it holds beside H: V⁻¹, the preconditioner and the CG vectors.
+    pub fn numeric_len(&self) -> usize {
+        self.v_inverse.len()
+            + self.reduced_dim.iter().map(|d| d * d).sum::<usize>()
+            + 8 * self.shift.len()
+    }
+
+    /// "Factorises" H + diag(`shift`): every eliminated block's V⁻¹ and the preconditioner's
+    /// blocks, checking `budget` every [`ELIMINATED_PER_CHECK`] blocks (`Break`: stopped).
+    pub fn factorize_within(
+        &mut self,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+        budget: &dyn Budget,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        match shift {
+            Some(shift) => self.shift.copy_from_slice(&shift[self.eliminated_rows..]),
+            None => self.shift.fill(0.0),
+        }
+        self.jacobi
+            .reset(full, values, self.eliminated, &self.shift);
+        let eliminated = if has_wide_vectors() {
+            // SAFETY: the CPU has the features `eliminate_wide` is compiled for.
+            unsafe { eliminate_wide(self, (full, values), shift, budget) }
+        } else {
+            eliminate_with(self, (full, values), shift, budget)
+        };
+        if eliminated?.is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
+        self.jacobi.factorize(self.eliminated_rows)?;
+        Ok(ControlFlow::Continue(()))
+    }
+
+    /// V⁻¹ of eliminated block `e` (with its shift); errs at V's failing pivot.
+    #[inline(always)]
+    fn invert_v(
+        &mut self,
+        e: usize,
+        full: &BlockPattern,
+        values: &[f64],
+        shift: Option<&[f64]>,
+    ) -> Result<(), NotPositiveDefinite> {
+        let d = self.dim[e];
+        let v = &mut self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let diagonal_pair = full.column_blocks(e)[0].1;
+        for q in 0..d {
+            for r in q..d {
+                v[r * d + q] = values[full.value_index(diagonal_pair, true, r, q)];
+            }
+            if let Some(shift) = shift {
+                v[q * d + q] += shift[self.offset[e] + q];
+            }
+        }
+        small_cholesky(v, d).map_err(|i| NotPositiveDefinite {
+            row: self.offset[e] + i,
+        })?;
+        small_cholesky_inverse(v, d);
+        Ok(())
+    }
+
+    /// The preconditioner's blocks −= W_k V⁻¹ W_kᵀ for every neighbour k of `e`.
+    #[inline(always)]
+    fn precondition_one<const D: usize, const K: usize>(
+        &mut self,
+        e: usize,
+        full: &BlockPattern,
+        values: &[f64],
+    ) {
+        let d = if D > 0 { D } else { self.dim[e] };
+        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+            let dk = if K > 0 { K } else { self.reduced_dim[nb.block] };
+            let mut w = [0.0; 16 * 16];
+            for s in 0..d {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                w[s * dk..(s + 1) * dk].copy_from_slice(&values[start..start + dk]);
+            }
+            self.jacobi.subtract::<D, K>(nb.block, &w, v, d);
+        }
+    }
+
+    /// Solves with the last factorisation; `rhs` in the full layout, as
+    /// [`super::SchurSolver::solve_in_place`].
+    pub fn solve_in_place(&mut self, full: &BlockPattern, values: &[f64], rhs: &mut [f64]) {
+        let base = self.eliminated_rows;
+        let mut reduced = std::mem::take(&mut self.rhs);
+        reduced.copy_from_slice(&rhs[base..]);
+        for e in 0..self.eliminated {
+            let mut t = [0.0; 16];
+            self.v_inverse_times(
+                e,
+                &rhs[self.offset[e]..self.offset[e] + self.dim[e]],
+                &mut t,
+            );
+            self.subtract_w(e, full, values, &t, &mut reduced);
+        }
+        let norm = reduced.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let first = *self.first_rhs_norm.get_or_insert(norm);
+        let forcing = if first > 0.0 {
+            (norm / first)
+                .sqrt()
+                .clamp(FORCING_MIN.min(self.forcing_max), self.forcing_max)
+        } else {
+            self.forcing_max
+        };
+        let (mut solution, mut work) = (
+            std::mem::take(&mut self.solution),
+            std::mem::take(&mut self.work),
+        );
+        let outcome = pcg::solve(
+            |x, y| self.product(full, values, x, y),
+            |r, z| self.jacobi.apply(r, z),
+            &reduced,
+            &mut solution,
+            CgStop {
+                residual: FORCING_MIN,
+                model: forcing,
+                max_iterations: MAX_CG_ITERATIONS.min(reduced.len().max(1)),
+            },
+            &mut work,
+        );
+        self.stats.solves += 1;
+        self.stats.iterations += outcome.iterations;
+        self.stats.max_iterations = self.stats.max_iterations.max(outcome.iterations);
+        rhs[base..].copy_from_slice(&solution);
+        for e in 0..self.eliminated {
+            let o = self.offset[e];
+            let mut be = [0.0; 16];
+            be[..self.dim[e]].copy_from_slice(&rhs[o..o + self.dim[e]]);
+            self.subtract_wt(e, full, values, &solution, &mut be);
+            let mut xe = [0.0; 16];
+            self.v_inverse_times(e, &be[..self.dim[e]], &mut xe);
+            rhs[o..o + self.dim[e]].copy_from_slice(&xe[..self.dim[e]]);
+        }
+        (self.rhs, self.solution, self.work) = (reduced, solution, work);
+    }
+
+    /// out = V_e⁻¹ x.
+    fn v_inverse_times(&self, e: usize, x: &[f64], out: &mut [f64; 16]) {
+        let d = self.dim[e];
+        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        for i in 0..d {
+            out[i] = (0..d).map(|j| v[i * d + j] * x[j]).sum();
+        }
+    }
+
+    /// y_k −= W_k t for every neighbour k of `e`.
+    fn subtract_w(&self, e: usize, full: &BlockPattern, values: &[f64], t: &[f64], y: &mut [f64]) {
+        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+            let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
+            for (s, ts) in t[..self.dim[e]].iter().enumerate() {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                for (yr, w) in y[ok..ok + dk].iter_mut().zip(&values[start..start + dk]) {
+                    *yr -= w * ts;
+                }
+            }
+        }
+    }
+
+    /// be −= Σ_k W_kᵀ x_k over the neighbours k of `e`.
+    fn subtract_wt(
+        &self,
+        e: usize,
+        full: &BlockPattern,
+        values: &[f64],
+        x: &[f64],
+        be: &mut [f64],
+    ) {
+        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+            let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
+            for (s, b) in be[..self.dim[e]].iter_mut().enumerate() {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                *b -= values[start..start + dk]
+                    .iter()
+                    .zip(&x[ok..ok + dk])
+                    .map(|(w, x)| w * x)
+                    .sum::<f64>();
+            }
+        }
+    }
+
+    /// y = S x = (U + D) x − W V⁻¹ Wᵀ x, with the last factorisation's V⁻¹ and shift D.
+    pub(super) fn product(&self, full: &BlockPattern, values: &[f64], x: &[f64], y: &mut [f64]) {
+        if has_wide_vectors() {
+            // SAFETY: the CPU has the features `product_wide` is compiled for.
+            unsafe { product_wide(self, full, values, x, y) }
+        } else {
+            product_with(self, full, values, x, y)
+        }
+    }
+
+    /// y_k −= W_k V⁻¹ Σ_l W_lᵀ x_l over the neighbours k, l of eliminated block `e`.
+    #[inline(always)]
+    fn eliminated_product<const D: usize, const K: usize>(
+        &self,
+        e: usize,
+        (full, values): (&BlockPattern, &[f64]),
+        x: &[f64],
+        y: &mut [f64],
+    ) {
+        let d = if D > 0 { D } else { self.dim[e] };
+        let around = &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]];
+        let mut t = [0.0; 16];
+        for nb in around {
+            let (dk, ok) = (
+                if K > 0 { K } else { self.reduced_dim[nb.block] },
+                self.reduced_offset[nb.block],
+            );
+            let xk = &x[ok..ok + dk];
+            for (s, ts) in t[..d].iter_mut().enumerate() {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                let w = &values[start..start + dk];
+                let mut acc = 0.0;
+                for r in 0..dk {
+                    acc += w[r] * xk[r];
+                }
+                *ts += acc;
+            }
+        }
+        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let mut u = [0.0; 16];
+        for i in 0..d {
+            for j in 0..d {
+                u[i] += v[i * d + j] * t[j];
+            }
+        }
+        for nb in around {
+            let (dk, ok) = (
+                if K > 0 { K } else { self.reduced_dim[nb.block] },
+                self.reduced_offset[nb.block],
+            );
+            let yk = &mut y[ok..ok + dk];
+            for (s, us) in u[..d].iter().enumerate() {
+                let start = full.value_index(nb.w_pair, false, 0, s);
+                let w = &values[start..start + dk];
+                for r in 0..dk {
+                    yk[r] -= w[r] * us;
+                }
+            }
+        }
+    }
+
+    /// y += U x for U's blocks in H (the diagonal ones' lower triangle mirrored).
+    fn u_product(&self, full: &BlockPattern, values: &[f64], x: &[f64], y: &mut [f64]) {
+        for k in 0..self.reduced_dim.len() {
+            let (d, o) = (self.reduced_dim[k], self.reduced_offset[k]);
+            let pair = full.column_blocks(self.eliminated + k)[0].1;
+            for q in 0..d {
+                y[o + q] += values[full.value_index(pair, true, q, q)] * x[o + q];
+                for r in q + 1..d {
+                    let h = values[full.value_index(pair, true, r, q)];
+                    y[o + r] += h * x[o + q];
+                    y[o + q] += h * x[o + r];
+                }
+            }
+        }
+        for &(a, b, pair) in &self.u_pairs {
+            let (da, oa) = (self.reduced_dim[a], self.reduced_offset[a]);
+            let (db, ob) = (self.reduced_dim[b], self.reduced_offset[b]);
+            for q in 0..db {
+                let start = full.value_index(pair, false, 0, q);
+                let column = &values[start..start + da];
+                let mut acc = 0.0;
+                for r in 0..da {
+                    y[oa + r] += column[r] * x[ob + q];
+                    acc += column[r] * x[oa + r];
+                }
+                y[ob + q] += acc;
+            }
+        }
+    }
+}
+
+/// Every eliminated block's V⁻¹ and its part of the preconditioner; `Break`: `budget` stopped it.
+#[inline(always)]
+fn eliminate_with(
+    solver: &mut ImplicitSchur,
+    (full, values): (&BlockPattern, &[f64]),
+    shift: Option<&[f64]>,
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    for e in 0..solver.eliminated {
+        if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && budget.checkpoint().is_break() {
+            return Ok(ControlFlow::Break(()));
+        }
+        solver.invert_v(e, full, values, shift)?;
+        match (solver.dim[e], solver.camera_neighbours[e]) {
+            (3, true) => solver.precondition_one::<3, CAMERA>(e, full, values),
+            _ => solver.precondition_one::<0, 0>(e, full, values),
+        }
+    }
+    Ok(ControlFlow::Continue(()))
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn eliminate_wide(
+    solver: &mut ImplicitSchur,
+    h: (&BlockPattern, &[f64]),
+    shift: Option<&[f64]>,
+    budget: &dyn Budget,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    eliminate_with(solver, h, shift, budget)
+}
+
+#[inline(always)]
+fn product_with(
+    solver: &ImplicitSchur,
+    full: &BlockPattern,
+    values: &[f64],
+    x: &[f64],
+    y: &mut [f64],
+) {
+    for ((yi, xi), di) in y.iter_mut().zip(x).zip(&solver.shift) {
+        *yi = di * xi;
+    }
+    solver.u_product(full, values, x, y);
+    for e in 0..solver.eliminated {
+        match (solver.dim[e], solver.camera_neighbours[e]) {
+            (3, true) => solver.eliminated_product::<3, CAMERA>(e, (full, values), x, y),
+            _ => solver.eliminated_product::<0, 0>(e, (full, values), x, y),
+        }
+    }
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn product_wide(
+    solver: &ImplicitSchur,
+    full: &BlockPattern,
+    values: &[f64],
+    x: &[f64],
+    y: &mut [f64],
+) {
+    product_with(solver, full, values, x, y)
+}
