@@ -14,6 +14,7 @@ pub mod fusion;
 pub mod m3500;
 pub mod producer;
 pub mod server;
+pub mod square_walk;
 pub mod wrong_closures;
 
 #[allow(unused_imports)]

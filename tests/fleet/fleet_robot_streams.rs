@@ -11,51 +11,12 @@ use std::time::{Duration, Instant};
 
 use common::fleet::Fleet;
 use common::server::{json_samples, zenoh_get};
+use common::square_walk::{closure, robot_batch, sent, truth};
 use factord::api::robots::{robot_key, robot_of_key};
 use factord::geometry::Se2;
 use serde_json::{json, Value};
 
-const INFO: [f64; 6] = [400.0, 0.0, 0.0, 400.0, 0.0, 2500.0];
 const SESSION: &str = "robots-follow";
-
-fn truth(offset: usize, poses: usize) -> Vec<Se2> {
-    (0..poses)
-        .map(|i| {
-            let s = ((i + offset) % 40) as f64;
-            let (side, along) = ((s / 10.0).floor(), s % 10.0);
-            match side as i64 {
-                0 => Se2::new(along, 0.0, 0.0),
-                1 => Se2::new(10.0, along, std::f64::consts::FRAC_PI_2),
-                2 => Se2::new(10.0 - along, 10.0, std::f64::consts::PI),
-                _ => Se2::new(0.0, 10.0 - along, -std::f64::consts::FRAC_PI_2),
-            }
-        })
-        .collect()
-}
-
-fn sent(world: &[Se2], i: usize) -> Se2 {
-    world[0].inverse().compose(&world[i])
-}
-
-fn robot_batch(r: char, world: &[Se2], range: std::ops::Range<usize>) -> Value {
-    let variables: Vec<Value> = range
-        .clone()
-        .map(|i| json!({"key": robot_key(r, i as u64), "kind": "se2", "value": sent(world, i).to_array()}))
-        .collect();
-    let factors: Vec<Value> = range
-        .filter(|&i| i > 0)
-        .map(|i| {
-            json!({"type": "between_se2", "keys": [robot_key(r, i as u64 - 1), robot_key(r, i as u64)],
-                   "measurement": world[i - 1].between(&world[i]).to_array(), "information": INFO})
-        })
-        .collect();
-    json!({"variables": variables, "factors": factors})
-}
-
-fn closure(a: &[Se2], i: usize, b: &[Se2], j: usize) -> Value {
-    json!({"type": "between_se2", "keys": [robot_key('a', i as u64), robot_key('b', j as u64)],
-           "measurement": a[i].between(&b[j]).to_array(), "information": INFO})
-}
 
 /// A zenoh peer connected to every instance, as a robot on the fleet's network.
 async fn robot_peer(endpoints: &[String]) -> zenoh::Session {

@@ -244,7 +244,17 @@ pub(super) async fn rpc_answer(c: &Context, query: &Query) -> Answer {
 
 /// `<p>/<session>/estimate`.
 pub(super) async fn answer_estimate(c: &Context, query: &Query) {
-    let result = match estimate_command(query) {
+    answer_estimate_command(c, query, estimate_command(query)).await;
+}
+
+/// Runs an estimate read (the session's or a robot's) and replies with it: a file format as its
+/// text, as over HTTP; the JSON estimate as JSON.
+pub(super) async fn answer_estimate_command(
+    c: &Context,
+    query: &Query,
+    command: Result<Command, ServiceError>,
+) {
+    let result = match command {
         Ok(command) => {
             c.service
                 .execute(&c.caller, command, Recording::History)
@@ -252,7 +262,6 @@ pub(super) async fn answer_estimate(c: &Context, query: &Query) {
         }
         Err(e) => Err(e),
     };
-    // A file format is served as its text, as over HTTP; the JSON estimate as JSON.
     reply(
         query,
         result.map(|r| match r {

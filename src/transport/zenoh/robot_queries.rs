@@ -44,22 +44,7 @@ fn session_and_robot(query: &Query) -> Result<(String, u8), ServiceError> {
 
 /// `<p>/<s>/robot/<id>/estimate`.
 pub(super) async fn answer_robot_estimate(c: &Context, query: &Query) {
-    let result = match robot_estimate_command(query) {
-        Ok(command) => {
-            c.service
-                .execute(&c.caller, command, Recording::History)
-                .await
-        }
-        Err(e) => Err(e),
-    };
-    reply(
-        query,
-        result.map(|r| match r {
-            Reply::Export(file) => Ok(file.body.into_bytes()),
-            r => serde_json::to_vec(&r),
-        }),
-    )
-    .await;
+    super::answer_estimate_command(c, query, robot_estimate_command(query)).await;
 }
 
 fn robot_estimate_command(query: &Query) -> Result<Command, ServiceError> {
