@@ -275,3 +275,30 @@ pub fn skip_or_fail<T>(reason: &str) -> Option<T> {
     eprintln!("skipping: {reason}");
     None
 }
+
+/// Runs `script` (a path in the repository) with `python` against `server` (`--http`,
+/// `--zenoh`, then `extra`) from the repository root, printing its output; fails with that
+/// output and the server's log when the script fails, and when the server panicked.
+pub fn run_python_script(
+    python: &std::path::Path,
+    server: &server::TestServer,
+    script: &str,
+    extra: &[&str],
+) {
+    let out = std::process::Command::new(python)
+        .arg(script)
+        .args(["--http", &server.http, "--zenoh", &server.zenoh])
+        .args(extra)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("python runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}");
+    assert!(
+        out.status.success(),
+        "{script} failed:\n{stdout}\n{}\n--- factord:\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        server.stderr()
+    );
+    server.assert_no_panic();
+}

@@ -8,7 +8,6 @@
 use crate::common;
 
 use std::io::{BufRead, BufReader, Write};
-use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -19,22 +18,7 @@ use factord::geometry::Se3;
 use nalgebra::{UnitQuaternion, Vector3};
 use serde_json::{json, Value};
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn python() -> Option<PathBuf> {
-    let installs = [vec![
-        "rosbags==0.11.9".into(),
-        "eclipse-zenoh==1.10.2".into(),
-        "numpy".into(),
-        "xxhash".into(),
-    ]];
-    match common::python_venv("ros2", &installs) {
-        Ok(python) => Some(python),
-        Err(reason) => common::skip_or_fail(&format!("no Python environment for ROS 2: {reason}")),
-    }
-}
+use crate::ros2::{python, repo};
 
 fn helix(i: usize) -> Se3 {
     let a = i as f64 * std::f64::consts::TAU / 12.0;

@@ -10,7 +10,6 @@
 use crate::common;
 
 use std::path::PathBuf;
-use std::process::Command;
 use std::time::Duration;
 
 use common::server::{
@@ -18,11 +17,12 @@ use common::server::{
 };
 use serde_json::json;
 
-fn repo() -> PathBuf {
+pub(crate) fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-fn python() -> Option<PathBuf> {
+/// The ROS 2 tests' Python (rosbags, zenoh), or `None` after saying why it is missing.
+pub(crate) fn python() -> Option<PathBuf> {
     let installs = [vec![
         "rosbags==0.11.9".into(),
         "eclipse-zenoh==1.10.2".into(),
@@ -35,30 +35,11 @@ fn python() -> Option<PathBuf> {
     }
 }
 
-fn run_script(python: &std::path::Path, server: &TestServer, script: &str, extra: &[&str]) {
-    let out = Command::new(python)
-        .arg(script)
-        .args(["--http", &server.http, "--zenoh", &server.zenoh])
-        .args(extra)
-        .current_dir(repo())
-        .output()
-        .expect("python runs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(
-        out.status.success(),
-        "{script} failed:\n{stdout}\n{}\n--- factord:\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        server.stderr()
-    );
-    server.assert_no_panic();
-}
-
 #[test]
 fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
     let Some(python) = python() else { return };
     let server = TestServer::start(&[]);
-    run_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
+    common::run_python_script(&python, &server, "tests/ros2/robot_odometry.py", &[]);
 }
 
 /// Issue 56: a SLAM front-end's loop closures and landmark sightings (`factord_msgs`) over
@@ -67,14 +48,14 @@ fn a_ros2_robot_over_rmw_zenoh_feeds_a_session_and_reads_its_path() {
 fn a_slam_robot_over_rmw_zenoh_closes_a_loop_and_maps_landmarks() {
     let Some(python) = python() else { return };
     let server = TestServer::start(&[]);
-    run_script(&python, &server, "tests/ros2/robot_slam.py", &[]);
+    common::run_python_script(&python, &server, "tests/ros2/robot_slam.py", &[]);
 }
 
 #[test]
 fn a_ros2_robot_with_an_imu_feeds_a_sliding_window() {
     let Some(python) = python() else { return };
     let server = TestServer::start(&[]);
-    run_script(&python, &server, "tests/ros2/robot_imu.py", &[]);
+    common::run_python_script(&python, &server, "tests/ros2/robot_imu.py", &[]);
 }
 
 /// A ROS 2 bag (MCAP, written by rosbags from sphere2500's first 300 poses) replayed into a
@@ -92,7 +73,7 @@ fn a_ros2_bag_replayed_over_rmw_zenoh_becomes_the_sessions_path() {
     }
     let server = TestServer::start(&[]);
     let g2o = g2o.to_str().expect("a utf-8 path");
-    run_script(
+    common::run_python_script(
         &python,
         &server,
         "tests/ros2/bag_replay.py",

@@ -524,21 +524,12 @@ fn the_python_client_follows_a_robots_own_keys() {
         }
     };
     let s = TestServer::start(&[]);
-    let out = std::process::Command::new(python)
-        .arg("clients/python/tests/test_robot_streams.py")
-        .args(["--http", &s.http, "--zenoh", &s.zenoh])
-        .current_dir(&repo)
-        .output()
-        .expect("python runs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    println!("{stdout}");
-    assert!(
-        out.status.success(),
-        "test_robot_streams.py failed:\n{stdout}\n{}\n--- factord:\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        s.stderr()
+    common::run_python_script(
+        &python,
+        &s,
+        "clients/python/tests/test_robot_streams.py",
+        &[],
     );
-    s.assert_no_panic();
 }
 
 /// A merge's moved values change at the merge's sequence and ride its batch's `estimate`
