@@ -8,51 +8,13 @@ use crate::common;
 use std::time::Instant;
 
 use common::server::{client, create, get, post, zenoh_get, TestServer};
+use common::square_walk::{robot_batch, truth, INFO};
 use factord::api::robots::robot_key;
 use factord::geometry::Se2;
 use serde_json::{json, Value};
 
-const INFO: [f64; 6] = [400.0, 0.0, 0.0, 400.0, 0.0, 2500.0];
-
-/// Robot `r`'s true poses in the world: a walk around a 10 m square, `offset` poses into it.
-fn truth(offset: usize, poses: usize) -> Vec<Se2> {
-    (0..poses)
-        .map(|i| {
-            let s = ((i + offset) % 40) as f64; // 40 poses around the square, 1 m apart
-            let (side, along) = ((s / 10.0).floor(), s % 10.0);
-            match side as i64 {
-                0 => Se2::new(along, 0.0, 0.0),
-                1 => Se2::new(10.0, along, std::f64::consts::FRAC_PI_2),
-                2 => Se2::new(10.0 - along, 10.0, std::f64::consts::PI),
-                _ => Se2::new(0.0, 10.0 - along, -std::f64::consts::FRAC_PI_2),
-            }
-        })
-        .collect()
-}
-
 fn between(a: &Se2, b: &Se2) -> Vec<f64> {
     a.between(b).to_array().to_vec()
-}
-
-/// Robot `r`'s poses `range` with values in its own odometry frame (its first pose at the
-/// origin) and its odometry between them.
-fn robot_batch(r: char, world: &[Se2], range: std::ops::Range<usize>) -> Value {
-    let origin = world[0].inverse();
-    let variables: Vec<Value> = range
-        .clone()
-        .map(|i| {
-            let odom = origin.compose(&world[i]);
-            json!({"key": robot_key(r, i as u64), "kind": "se2", "value": odom.to_array()})
-        })
-        .collect();
-    let factors: Vec<Value> = range
-        .filter(|&i| i > 0)
-        .map(|i| {
-            json!({"type": "between_se2", "keys": [robot_key(r, i as u64 - 1), robot_key(r, i as u64)],
-                   "measurement": between(&world[i - 1], &world[i]), "information": INFO})
-        })
-        .collect();
-    json!({"variables": variables, "factors": factors})
 }
 
 fn closure(a: &[Se2], i: usize, b: &[Se2], j: usize, error: [f64; 3]) -> Value {
