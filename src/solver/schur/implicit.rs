@@ -13,6 +13,7 @@
 //! step of the 5 000-camera problem took 49 CG iterations of its 68.
 
 use std::ops::ControlFlow;
+use std::time::Instant;
 
 use super::super::budget::Budget;
 use super::super::cholesky::NotPositiveDefinite;
@@ -64,6 +65,9 @@ pub struct ImplicitSchur {
     solution: Vec<f64>,
     work: CgWork,
     first_rhs_norm: Option<f64>,
+    /// When the solve's budget runs out, as the last factorisation saw it: CG starts no
+    /// iteration past it (see `pcg::CgStop::deadline`).
+    deadline: Option<Instant>,
     /// The loosest forcing term ([`FORCING_MAX`]; tests set 0: the residual tolerance alone).
     forcing_max: f64,
     stats: CgStats,
@@ -147,6 +151,7 @@ impl ImplicitSchur {
             solution: vec![0.0; n],
             work: CgWork::new(n),
             first_rhs_norm: None,
+            deadline: None,
             forcing_max: FORCING_MAX,
             stats: CgStats::default(),
             reason: plan.reason.clone(),
@@ -195,6 +200,9 @@ impl ImplicitSchur {
         shift: Option<&[f64]>,
         budget: &dyn Budget,
     ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        self.deadline = budget
+            .remaining()
+            .and_then(|left| Instant::now().checked_add(left));
         match shift {
             Some(shift) => self.shift.copy_from_slice(&shift[self.eliminated_rows..]),
             None => self.shift.fill(0.0),
@@ -299,6 +307,7 @@ impl ImplicitSchur {
                 residual: FORCING_MIN,
                 model: forcing,
                 max_iterations: MAX_CG_ITERATIONS.min(reduced.len().max(1)),
+                deadline: self.deadline,
             },
             &mut work,
         );

@@ -5,6 +5,8 @@
 //! (Nash and Sofer's truncated-Newton rule, Ceres' choice: the residual's norm says little
 //! about the step's quality), or when the residual fell below a relative tolerance.
 
+use std::time::Instant;
+
 /// How one solve ended.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(in crate::solver) struct CgOutcome {
@@ -44,6 +46,10 @@ pub(in crate::solver) struct CgStop {
     /// i·(Q_i − Q_{i−1}) / Q_i < `model` (0: never).
     pub model: f64,
     pub max_iterations: usize,
+    /// The solve's time limit: no iteration starts past it once one has run (a solve stopped
+    /// by `limits.max_solve_ms` must not spend hundreds of products first; at 5 000 cameras one
+    /// product is most of a second). `None`: no limit.
+    pub deadline: Option<Instant>,
 }
 
 /// Solves A x = b from x = 0, with `product(v, out)` writing A v and `precondition(r, out)`
@@ -80,6 +86,9 @@ pub(in crate::solver) fn solve(
     // Q(x) = −½ (bᵀx + rᵀx), since Ax = b − r; 0 at x = 0.
     let mut model = 0.0;
     while outcome.iterations < stop.max_iterations && outcome.relative_residual > stop.residual {
+        if outcome.iterations > 0 && stop.deadline.is_some_and(|d| Instant::now() >= d) {
+            break;
+        }
         product(p, q);
         let curvature = dot(p, q);
         if !(curvature > 0.0 && curvature.is_finite()) || !(rz > 0.0) {
@@ -127,6 +136,7 @@ mod tests {
             residual,
             model: 0.0,
             max_iterations,
+            deadline: None,
         }
     }
 
@@ -238,6 +248,7 @@ mod tests {
             residual: 1e-13,
             model: 1e-2,
             max_iterations: 200,
+            deadline: None,
         };
         let truncated = solve(
             |v, out| multiply(&a, n, v, out),
@@ -289,5 +300,40 @@ mod tests {
             &mut work,
         );
         assert!(bad.breakdown && bad.iterations == 0);
+    }
+
+    /// Past the solve's deadline CG stops after the iteration it is in (at least one, so the
+    /// step is not nil), with the iterate it reached.
+    #[test]
+    fn a_passed_deadline_stops_after_one_iteration() {
+        let n = 40;
+        let a = spd(n);
+        let b: Vec<f64> = (0..n).map(|i| (i as f64 * 0.7).cos()).collect();
+        let mut x = vec![0.0; n];
+        let mut work = CgWork::new(n);
+        let identity = |r: &[f64], z: &mut [f64]| z.copy_from_slice(r);
+        let passed = CgStop {
+            deadline: Some(Instant::now()),
+            ..residual(1e-13, 200)
+        };
+        let stopped = solve(
+            |v, out| multiply(&a, n, v, out),
+            identity,
+            &b,
+            &mut x,
+            passed,
+            &mut work,
+        );
+        assert_eq!(stopped.iterations, 1, "{stopped:?}");
+        assert!(x.iter().any(|v| *v != 0.0) && stopped.relative_residual < 1.0);
+        let free = solve(
+            |v, out| multiply(&a, n, v, out),
+            identity,
+            &b,
+            &mut x,
+            residual(1e-13, 200),
+            &mut work,
+        );
+        assert!(free.iterations > 1, "{free:?}");
     }
 }
