@@ -174,13 +174,8 @@ async fn run(
         ahead: Vec::new(),
     };
     let inputs = tokio::spawn(inputs.run());
-    // A session's robots are set at its creation: they are there now or never.
-    let has_robots = service
-        .session(&session)
-        .is_ok_and(|s| s.robots_options().is_some());
-    let robot_frames = (tf.is_some() && has_robots).then(|| robot_tf::RobotFrames::new(&binding));
     let outputs = outputs::Outputs {
-        robot_frames,
+        robot_frames: robot_frames(&service, &session, &binding, tf.is_some()),
         service,
         caller,
         session,
@@ -201,6 +196,20 @@ async fn run(
     }
     drop(graph.tokens);
     Ok(())
+}
+
+/// Each merged robot's `map → odom` on `/tf`, for a session with robots whose binding has a
+/// `tf_topic`. A session's robots are set at its creation: they are there now or never.
+fn robot_frames(
+    service: &Service,
+    session: &str,
+    binding: &Ros2Binding,
+    has_tf: bool,
+) -> Option<robot_tf::RobotFrames> {
+    let has_robots = service
+        .session(session)
+        .is_ok_and(|s| s.robots_options().is_some());
+    (has_tf && has_robots).then(|| robot_tf::RobotFrames::new(binding))
 }
 
 /// The binding's node in the robots' ROS graph while it declares its endpoints: each endpoint
