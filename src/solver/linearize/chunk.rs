@@ -155,8 +155,7 @@ fn chunk_wide<E: Borrow<FactorEntry>, const HESSIAN: bool>(
 
 /// The linearisation loop over one chunk; without `HESSIAN` it fills only b (H's slices may be
 /// empty).
-// Kept whole (~90 lines): the per-factor loop linearisation time is spent in; the scatter's
-// shape dispatch reads the same locals as the gradient's.
+// The per-factor loop linearisation time is spent in; its parts are inlined into it.
 #[inline(always)]
 fn chunk_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
     common: &Shared<'_, E>,
@@ -186,20 +185,8 @@ fn chunk_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
     let mut refs: Vec<&dyn Variable> = Vec::with_capacity(8);
     let mut col_offsets = [0usize; 16];
     for (k, &f) in layout.visit_order[visits].iter().enumerate() {
-        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 {
-            let stop = match budget {
-                Some(budget) => {
-                    let stop = budget.checkpoint().is_break();
-                    if stop {
-                        common.stop.store(true, Ordering::Relaxed);
-                    }
-                    stop
-                }
-                None => common.stop.load(Ordering::Relaxed),
-            };
-            if stop {
-                return Ok(ControlFlow::Break(()));
-            }
+        if k % FACTORS_PER_CHECK == FACTORS_PER_CHECK - 1 && stopped(common, budget) {
+            return Ok(ControlFlow::Break(()));
         }
         let entry = common.factors[f].borrow();
         let vars = entry.variables();
@@ -248,21 +235,59 @@ fn chunk_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
                 (6, 6) => scatter::<6, 6>(h, first, args),
                 (9, 9) => scatter::<9, 9>(h, first, args),
                 (9, 3) => scatter::<9, 3>(h, first, args),
-                _ => {
-                    for q in 0..db {
-                        let rows = if diagonal { q } else { 0 };
-                        let base = pattern.value_index(pair, diagonal, rows, q) - first;
-                        // Column cj + q of the symmetric gram is its row: contiguous over rr.
-                        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + da];
-                        for (hv, g) in h[base..base + da - rows].iter_mut().zip(source) {
-                            *hv += g;
-                        }
-                    }
-                }
+                _ => scatter_any(h, first, args, (da, db)),
             }
         }
     }
     Ok(ControlFlow::Continue(total))
+}
+
+/// What a scatter of one gram block into H reads: H's pattern, the block's pair and whether it
+/// is diagonal, the factor's gram and its column count, and the block's columns in the gram.
+type ScatterArgs<'a> = (
+    &'a BlockPattern,
+    usize,
+    bool,
+    &'a [f64],
+    usize,
+    usize,
+    usize,
+);
+
+/// Whether the chunks stop here: the calling thread's chunk asks `budget` and tells the others
+/// through `common.stop`; the others read it.
+#[inline(always)]
+fn stopped<E: Borrow<FactorEntry>>(common: &Shared<'_, E>, budget: Option<&dyn Budget>) -> bool {
+    match budget {
+        Some(budget) => {
+            let stop = budget.checkpoint().is_break();
+            if stop {
+                common.stop.store(true, Ordering::Relaxed);
+            }
+            stop
+        }
+        None => common.stop.load(Ordering::Relaxed),
+    }
+}
+
+/// The `da × db` block of the gram at columns (`ci`, `cj`) added into H, for block sizes the
+/// fixed kernels do not cover.
+#[inline(always)]
+fn scatter_any(
+    h: &mut [f64],
+    first: usize,
+    (pattern, pair, diagonal, gram, cols, ci, cj): ScatterArgs<'_>,
+    (da, db): (usize, usize),
+) {
+    for q in 0..db {
+        let rows = if diagonal { q } else { 0 };
+        let base = pattern.value_index(pair, diagonal, rows, q) - first;
+        // Column cj + q of the symmetric gram is its row: contiguous over rr.
+        let source = &gram[(cj + q) * cols + ci + rows..(cj + q) * cols + ci + da];
+        for (hv, g) in h[base..base + da - rows].iter_mut().zip(source) {
+            *hv += g;
+        }
+    }
 }
 
 /// [`fixed::scatter_block`] with the arguments the loop passes through unchanged.
@@ -270,15 +295,7 @@ fn chunk_with<E: Borrow<FactorEntry>, const HESSIAN: bool>(
 fn scatter<const R: usize, const C: usize>(
     h: &mut [f64],
     first: usize,
-    (pattern, pair, diagonal, gram, cols, ci, cj): (
-        &BlockPattern,
-        usize,
-        bool,
-        &[f64],
-        usize,
-        usize,
-        usize,
-    ),
+    (pattern, pair, diagonal, gram, cols, ci, cj): ScatterArgs<'_>,
 ) {
     fixed::scatter_block::<R, C>(pattern, h, first, pair, diagonal, gram, cols, ci, cj);
 }

@@ -13,7 +13,7 @@ use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
 use super::threads::{Part, View};
-use super::{SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
+use super::{Neighbour, SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
 
 impl SchurSolver {
     /// Eliminates with the full matrix `values` (lower triangle in `full`'s layout) plus
@@ -81,8 +81,8 @@ impl View<'_> {
     /// Eliminates block `e` (of dimension `D`, or any when `D` is 0; its neighbours all of
     /// dimension `K`, or any when `K` is 0): V⁻¹, Y = W V⁻¹ and
     /// S −= Y Wᵀ over every pair of its neighbours. Errs with the failing pivot of V.
-    // Kept whole (99 lines): the const-generic kernel BA time is spent in, monomorphised per
-    // block size and inlined into its caller; its three products share the same stack blocks.
+    // The const-generic kernel BA time is spent in, monomorphised per block size and inlined
+    // into its caller, as are its parts.
     #[inline(always)]
     fn eliminate<const D: usize, const K: usize, const FUSED: bool>(
         &self,
@@ -111,33 +111,7 @@ impl View<'_> {
         small_cholesky(v, d)?;
         small_cholesky_inverse(v, d);
         let around = &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]];
-        // W column by column (each contiguous in the full pattern), then Y = W V⁻¹.
-        let mut local = 0;
-        for nb in around {
-            let dk = if K > 0 { K } else { reduced.dim[nb.block] };
-            let w = &mut part.w_local[local..local + dk * d];
-            for t in 0..d {
-                let start = full.value_index(nb.w_pair, false, 0, t);
-                for (to, from) in w[t * dk..(t + 1) * dk]
-                    .iter_mut()
-                    .zip(&values[start..start + dk])
-                {
-                    *to = *from;
-                }
-            }
-            let y = &mut part.y_local[local..local + dk * d];
-            y.fill(0.0);
-            for t in 0..d {
-                let yt = &mut y[t * dk..(t + 1) * dk];
-                for s in 0..d {
-                    let factor = v[s * d + t];
-                    for (yr, wr) in yt.iter_mut().zip(&w[s * dk..(s + 1) * dk]) {
-                        *yr += wr * factor;
-                    }
-                }
-            }
-            local += dk * d;
-        }
+        let local = self.gather_w_and_y::<D, K>(part, around, d, e, full, values);
         // S_kl −= Y_k W_lᵀ for l ≤ k: column q of the block is the axpy Σ_t Y_k[:, t] W_l[q, t].
         let blocks = &self.s_blocks[self.s_block_start[e]..self.s_block_start[e + 1]];
         let mut next = 0;
@@ -165,22 +139,7 @@ impl View<'_> {
                         w,
                     ),
                     _ => {
-                        let diagonal = k == l;
-                        for q in 0..dl {
-                            let first = if diagonal { q } else { 0 };
-                            let start = match dense_n {
-                                Some(n) => block + q * n + first,
-                                None => reduced.value_index(block, diagonal, first, q),
-                            };
-                            let column = &mut part.s_values[start..start + dk - first];
-                            for t in 0..d {
-                                let factor = w[t * dl + q];
-                                let yt = &y[t * dk + first..(t + 1) * dk];
-                                for (s, yr) in column.iter_mut().zip(yt) {
-                                    *s -= yr * factor;
-                                }
-                            }
-                        }
+                        self.subtract_product_any(part.s_values, (block, k == l), (dk, dl, d), y, w)
                     }
                 }
             }
@@ -188,6 +147,77 @@ impl View<'_> {
         }
         debug_assert_eq!(local_k, local);
         Ok(())
+    }
+
+    /// W of every neighbour of block `e` (column by column, each contiguous in the full
+    /// pattern) into `part.w_local`, and Y = W V⁻¹ into `part.y_local`; returns the scalars each
+    /// holds.
+    #[inline(always)]
+    fn gather_w_and_y<const D: usize, const K: usize>(
+        &self,
+        part: &mut Part<'_>,
+        around: &[Neighbour],
+        d: usize,
+        e: usize,
+        full: &BlockPattern,
+        values: &[f64],
+    ) -> usize {
+        let v = &part.v_inverse[self.v_start[e] - part.v_first..self.v_start[e + 1] - part.v_first];
+        let mut local = 0;
+        for nb in around {
+            let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
+            let w = &mut part.w_local[local..local + dk * d];
+            for t in 0..d {
+                let start = full.value_index(nb.w_pair, false, 0, t);
+                for (to, from) in w[t * dk..(t + 1) * dk]
+                    .iter_mut()
+                    .zip(&values[start..start + dk])
+                {
+                    *to = *from;
+                }
+            }
+            let y = &mut part.y_local[local..local + dk * d];
+            y.fill(0.0);
+            for t in 0..d {
+                let yt = &mut y[t * dk..(t + 1) * dk];
+                for s in 0..d {
+                    let factor = v[s * d + t];
+                    for (yr, wr) in yt.iter_mut().zip(&w[s * dk..(s + 1) * dk]) {
+                        *yr += wr * factor;
+                    }
+                }
+            }
+            local += dk * d;
+        }
+        local
+    }
+
+    /// S_kl −= Y_k W_lᵀ for blocks of any size (`block`: where S's block starts, or its pair in
+    /// the sparse S; `diagonal`: only its lower triangle is written).
+    #[inline(always)]
+    fn subtract_product_any(
+        &self,
+        s_values: &mut [f64],
+        (block, diagonal): (usize, bool),
+        (dk, dl, d): (usize, usize, usize),
+        y: &[f64],
+        w: &[f64],
+    ) {
+        for q in 0..dl {
+            let first = if diagonal { q } else { 0 };
+            let start = match self.dense_n {
+                Some(n) => block + q * n + first,
+                None => self.reduced.value_index(block, diagonal, first, q),
+            };
+            let column = &mut s_values[start..start + dk - first];
+            for t in 0..d {
+                let factor = w[t * dl + q];
+                let yt = &y[t * dk + first..(t + 1) * dk];
+                for (s, yr) in column.iter_mut().zip(yt) {
+                    *s -= yr * factor;
+                }
+            }
+        }
     }
 }
 

@@ -22,7 +22,7 @@ use super::super::structure::BlockPattern;
 use super::eliminate::{small_cholesky, small_cholesky_inverse};
 use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
-use super::{Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
+use super::{camera_neighbours, Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
 
 /// The loosest relative residual a step is solved to (Ceres' default η for LM).
 const FORCING_MAX: f64 = 0.1;
@@ -118,13 +118,7 @@ impl ImplicitSchur {
             .iter()
             .map(|o| o - eliminated_rows)
             .collect();
-        let camera_neighbours = (0..ne)
-            .map(|e| {
-                neighbours[neighbour_start[e]..neighbour_start[e + 1]]
-                    .iter()
-                    .all(|n| reduced_dim[n.block] == CAMERA)
-            })
-            .collect();
+        let camera_neighbours = camera_neighbours(&neighbours, &neighbour_start, &reduced_dim);
         let mut u_pairs = Vec::new();
         for b in ne..full.dim.len() {
             for &(a, pair) in &full.column_blocks(b)[1..] {

@@ -6,12 +6,10 @@ use super::super::budget::FactorCost;
 use super::super::cholesky::SymbolicError;
 use super::super::structure::BlockPattern;
 use super::reduced::Backend;
-use super::{Neighbour, SchurPlan, SchurSolver, CAMERA};
+use super::{camera_neighbours, Neighbour, SchurPlan, SchurSolver};
 
 impl SchurSolver {
     /// `full` is the pattern laid out with `plan.ordering`.
-    // Kept whole (~100 lines): one pass over the eliminated blocks fills seven arrays that
-    // index each other (V, Y and S offsets, neighbours); split, the parts would pass them all.
     pub fn new(full: &BlockPattern, plan: &SchurPlan) -> Result<Self, SymbolicError> {
         let ne = plan.eliminated;
         // The reduced graph numbers its blocks in free-block order; full position ne + k holds
@@ -58,30 +56,12 @@ impl SchurSolver {
                 w_len += full.dim[a] * d;
             }
             w_max = w_max.max(w_len);
-            // Neighbours are sorted by position, so (k, l ≤ k) is a lower block of S.
-            for k in first..neighbours.len() {
-                for l in first..=k {
-                    let (a, b) = (neighbours[k].block, neighbours[l].block);
-                    s_blocks.push(if plan.dense {
-                        dense_index(&reduced, a, b, 0, 0)
-                    } else {
-                        reduced.pair(a, b).expect(
-                            "the reduced pattern holds every pair sharing an eliminated block",
-                        )
-                    });
-                }
-            }
+            push_s_blocks(&reduced, plan.dense, &neighbours[first..], &mut s_blocks);
         }
         v_start.push(v_len);
         neighbour_start.push(neighbours.len());
         s_block_start.push(s_blocks.len());
-        let camera_neighbours = (0..ne)
-            .map(|e| {
-                neighbours[neighbour_start[e]..neighbour_start[e + 1]]
-                    .iter()
-                    .all(|n| reduced.dim[n.block] == CAMERA)
-            })
-            .collect();
+        let camera_neighbours = camera_neighbours(&neighbours, &neighbour_start, &reduced.dim);
         let u_map = u_map(full, &reduced, ne, plan.dense);
         let backend = Backend::new(&reduced, plan.dense)?;
         let s_len = backend.values_len(&reduced);
@@ -112,6 +92,29 @@ impl SchurSolver {
             backend,
             reduced_cost,
         })
+    }
+}
+
+/// The S block of every pair (k, l ≤ k) of one eliminated block's `neighbours`: where it starts
+/// in the dense buffer, or its pair in the sparse pattern. Neighbours are sorted by position,
+/// so (k, l ≤ k) is a lower block of S.
+fn push_s_blocks(
+    reduced: &BlockPattern,
+    dense: bool,
+    neighbours: &[Neighbour],
+    s_blocks: &mut Vec<usize>,
+) {
+    for (k, nk) in neighbours.iter().enumerate() {
+        for nl in &neighbours[..=k] {
+            let (a, b) = (nk.block, nl.block);
+            s_blocks.push(if dense {
+                dense_index(reduced, a, b, 0, 0)
+            } else {
+                reduced
+                    .pair(a, b)
+                    .expect("the reduced pattern holds every pair sharing an eliminated block")
+            });
+        }
     }
 }
 

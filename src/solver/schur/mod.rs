@@ -76,6 +76,23 @@ const CAMERA: usize = 9;
 /// linearisation's [`super::budget::FACTORS_PER_CHECK`].
 const ELIMINATED_PER_CHECK: usize = 1024;
 
+/// Per eliminated block (its neighbours `neighbours[neighbour_start[e]..neighbour_start[e + 1]]`):
+/// whether every neighbour is [`CAMERA`]-sized, so the fixed-size kernels apply.
+fn camera_neighbours(
+    neighbours: &[Neighbour],
+    neighbour_start: &[usize],
+    reduced_dim: &[usize],
+) -> Vec<bool> {
+    neighbour_start
+        .windows(2)
+        .map(|range| {
+            neighbours[range[0]..range[1]]
+                .iter()
+                .all(|n| reduced_dim[n.block] == CAMERA)
+        })
+        .collect()
+}
+
 /// Factorises the normal equations by eliminating a block-diagonal part first; see the module
 /// documentation.
 pub struct SchurSolver {
