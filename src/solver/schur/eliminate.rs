@@ -305,21 +305,32 @@ fn subtract_product<const D: usize, const K: usize, const FUSED: bool>(
     let (y, w) = (&y[..K * D], &w[..K * D]);
     for q in 0..K {
         let column = &mut s[q * n..q * n + K];
-        let mut acc = [0.0; K];
-        for t in 0..D {
-            let factor = w[t * K + q];
-            for r in 0..K {
-                acc[r] = if FUSED {
-                    y[t * K + r].mul_add(factor, acc[r])
-                } else {
-                    acc[r] + y[t * K + r] * factor
-                };
-            }
-        }
+        let acc = product_column::<D, K, FUSED>(y, w, q);
         for r in 0..K {
             column[r] -= acc[r];
         }
     }
+}
+
+/// Column `q` of Y Wᵀ (Y and W both `D` columns of `K` scalars).
+#[inline(always)]
+fn product_column<const D: usize, const K: usize, const FUSED: bool>(
+    y: &[f64],
+    w: &[f64],
+    q: usize,
+) -> [f64; K] {
+    let mut acc = [0.0; K];
+    for t in 0..D {
+        let factor = w[t * K + q];
+        for r in 0..K {
+            acc[r] = if FUSED {
+                y[t * K + r].mul_add(factor, acc[r])
+            } else {
+                acc[r] + y[t * K + r] * factor
+            };
+        }
+    }
+    acc
 }
 
 /// [`subtract_product`] into block `pair` of the sparse S (`diagonal`: only its lower triangle
@@ -334,17 +345,7 @@ fn subtract_product_sparse<const D: usize, const K: usize, const FUSED: bool>(
 ) {
     let (y, w) = (&y[..K * D], &w[..K * D]);
     for q in 0..K {
-        let mut acc = [0.0; K];
-        for t in 0..D {
-            let factor = w[t * K + q];
-            for r in 0..K {
-                acc[r] = if FUSED {
-                    y[t * K + r].mul_add(factor, acc[r])
-                } else {
-                    acc[r] + y[t * K + r] * factor
-                };
-            }
-        }
+        let acc = product_column::<D, K, FUSED>(y, w, q);
         let first = if diagonal { q } else { 0 };
         let start = reduced.value_index(pair, diagonal, first, q);
         for (to, a) in s[start..start + K - first].iter_mut().zip(&acc[first..]) {
