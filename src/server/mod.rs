@@ -41,7 +41,7 @@ pub async fn run(
     // Every connection is a file: use all the process may have, and cap connections below it.
     let file_limit = http_listener::raise_file_limit();
     let connection_cap = http_listener::connection_cap(&config.http, file_limit);
-    let listener = tokio::net::TcpListener::bind(&config.listen)
+    let listener = http_listener::bind(&config.listen)
         .await
         .map_err(|source| ServeError::Listen {
             addr: config.listen.clone(),

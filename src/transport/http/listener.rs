@@ -109,6 +109,39 @@ pub fn raise_file_limit() -> Option<u64> {
     Some(limit.rlim_cur as u64)
 }
 
+/// Pending connections the kernel may queue before the server accepts them. A burst beyond
+/// the queue has its handshakes dropped, and each dropped client retries only after a second
+/// (the initial SYN timeout): a health probe caught behind a burst of half-open connections
+/// would take a second. The kernel caps this at `net.core.somaxconn`.
+const ACCEPT_QUEUE: u32 = 4096;
+
+/// Binds the HTTP listener on `address` (`host:port`; the first resolved address that binds)
+/// with an accept queue of [`ACCEPT_QUEUE`] instead of the usual 1024.
+pub async fn bind(address: &str) -> std::io::Result<TcpListener> {
+    let mut last_error = None;
+    for candidate in tokio::net::lookup_host(address).await? {
+        let socket = match candidate {
+            SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4()?,
+            SocketAddr::V6(_) => tokio::net::TcpSocket::new_v6()?,
+        };
+        // As std's and tokio's own bind: a restarted server may reuse a port in TIME_WAIT.
+        socket.set_reuseaddr(true)?;
+        match socket
+            .bind(candidate)
+            .and_then(|()| socket.listen(ACCEPT_QUEUE))
+        {
+            Ok(listener) => return Ok(listener),
+            Err(e) => last_error = Some(e),
+        }
+    }
+    Err(last_error.unwrap_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("{address} resolves to no address"),
+        )
+    }))
+}
+
 /// The connection cap: configured, or a quarter of the file limit (solves, the journal, zenoh
 /// and the reserve need files too) and at most 4096.
 pub fn connection_cap(config: &HttpConfig, file_limit: Option<u64>) -> usize {
