@@ -8,3 +8,4 @@
 
 pub mod metrics;
 pub mod pool;
+pub mod priority;

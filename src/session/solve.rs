@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::incremental::{self, IncrementalSolver};
+use super::mirror::MovedValues;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
 use super::provisional;
 use super::solve_budget::{SolveBudget, YieldToBatches};
@@ -127,13 +128,19 @@ impl Session {
             }
             Err(e) => tracing::warn!("solve failed: {e}"),
         }
+        // Encoded before the lock is taken: batches arriving meanwhile need it.
+        let moved = result
+            .as_ref()
+            .ok()
+            .map(|r| MovedValues::encode(&work.problem, r.moved.as_deref()));
         self.journal_barrier();
         let mut st = self.lock();
         let landing = Instant::now();
         self.cancel.store(false, Ordering::SeqCst);
         let polish = match result {
             Ok(resolved) => {
-                self.publish_solved(&mut st, &run, resolved, &work.problem);
+                let moved = moved.unwrap_or_default();
+                self.publish_solved(&mut st, &run, resolved, &work.problem, &moved);
                 // An engine update that left steps above the threshold polishes once the
                 // session is idle, unless the client decides when solves run: counted from
                 // when this solve is published and handed back (below), so the time a large
@@ -292,6 +299,7 @@ impl Session {
         run: &Run,
         resolved: incremental::Resolved,
         problem: &Problem,
+        moved: &MovedValues,
     ) {
         let summary = resolved.summary;
         if summary.used.region_variables.is_none() {
@@ -313,8 +321,7 @@ impl Session {
         } else {
             st.schedule.carried = std::time::Duration::ZERO;
         }
-        let changed =
-            provisional::refresh_landing(st, problem, resolved.moved.as_deref(), run.sequence);
+        let changed = provisional::refresh_landing(st, problem, moved, run.sequence);
         if !changed.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),

@@ -8,21 +8,21 @@ use super::Latency;
 use crate::api::latency::Correction;
 use crate::api::wire::VariableValue;
 use crate::problem::Problem;
-use crate::session::mirror::{self, MirrorEntry};
+use crate::session::mirror::{self, MirrorEntry, MovedValues};
 use crate::session::{Session, State};
 
-/// Refreshes the mirror from the exact solve of `sequence` (`moved`: the dense indices it
-/// changed, `None` for all), as `mirror::refresh` does; in a session with a latency budget it
-/// also rewrites every provisional value the problem now holds an exact one for, and records
-/// the correction.
+/// Refreshes the mirror from the exact solve of `sequence` (`moved`: the values it may have
+/// changed, encoded before the lock was taken), as `mirror::refresh_observed` does; in a
+/// session with a latency budget it also rewrites every provisional value the problem now
+/// holds an exact one for, and records the correction.
 pub(in crate::session) fn refresh_landing(
     st: &mut State,
     problem: &Problem,
-    moved: Option<&[usize]>,
+    moved: &MovedValues,
     sequence: u64,
 ) -> Vec<VariableValue> {
     let Some(latency) = st.latency.as_mut() else {
-        return mirror::refresh(&mut st.mirror.entries, problem, moved, sequence);
+        return mirror::refresh_observed(&mut st.mirror.entries, moved, sequence, &mut |_, _| {});
     };
     let entries = &mut st.mirror.entries;
     // Provisional values the exact solve covers: refreshed whether it moved them or not.
@@ -32,7 +32,7 @@ pub(in crate::session) fn refresh_landing(
             return true;
         };
         if let Some(entry) = entries.get_mut(&key) {
-            // Unless a client's guess came after the answer (applied next, as in `refresh`).
+            // Unless a client's guess came after the answer (applied next, as in `mirror::refresh_observed`).
             if entry.changed == answered {
                 entry.changed = entry.changed.min(sequence);
                 covered.push((idx, key));
@@ -41,24 +41,27 @@ pub(in crate::session) fn refresh_landing(
         false
     });
     let measuring = !covered.is_empty();
-    let widened: Option<Vec<usize>> = match moved {
-        Some(moved) if measuring => Some(
-            moved
-                .iter()
-                .copied()
-                .chain(covered.iter().map(|&(idx, _)| idx))
-                .collect(),
-        ),
-        _ => None,
-    };
-    let moved = widened.as_deref().or(moved);
+    // The few covered values the solve did not move: encoded here, under the lock.
+    let unmoved: Vec<usize> = covered
+        .iter()
+        .filter(|&&(_, key)| !moved.contains(key))
+        .map(|&(idx, _)| idx)
+        .collect();
+    let unmoved = MovedValues::encode(problem, Some(&unmoved));
     let (mut squares, mut max, mut count) = (0.0, 0.0f64, 0usize);
-    let changed = mirror::refresh_observed(entries, problem, moved, sequence, &mut |old, new| {
+    let mut observe = |old: &MirrorEntry, new: &[f64]| {
         let d2 = position_change_squared(old, new);
         squares += d2;
         max = max.max(d2.sqrt());
         count += usize::from(d2 > 0.0);
-    });
+    };
+    let mut changed = mirror::refresh_observed(entries, moved, sequence, &mut observe);
+    changed.extend(mirror::refresh_observed(
+        entries,
+        &unmoved,
+        sequence,
+        &mut observe,
+    ));
     // A covered value that changed carries the newest sequence, so that a reader asking for
     // what changed since its provisional answer sees the correction.
     let newest = st.mirror.sequence;
