@@ -8,4 +8,3 @@
 
 pub mod metrics;
 pub mod pool;
-pub mod priority;

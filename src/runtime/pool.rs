@@ -5,7 +5,6 @@
 //! that has run for a time slice while others wait yields and requeues at the back. So a huge
 //! problem delays a small session by at most one slice per worker, never indefinitely.
 //! The queue is bounded by construction (one entry per session plus at most `max_jobs` jobs).
-//! Against the request path, workers do use a priority: a lower one (see `priority`).
 //!
 //! Batch jobs run on threads of their own but compute only during a *turn* a worker lends them
 //! ([`PoolHandle::lend_turn`]): the lending worker blocks, so the pool's concurrency is unchanged,
@@ -222,7 +221,6 @@ impl WorkerPool {
 }
 
 fn worker(shared: &Shared) {
-    super::priority::lower_this_thread();
     loop {
         let entry = {
             let mut queue = shared.queue.lock().unwrap_or_else(|p| p.into_inner());

@@ -268,7 +268,6 @@ impl Job {
     }
 
     fn run(self, pool: PoolHandle, reply: Reply) {
-        crate::runtime::priority::lower_this_thread();
         // At shutdown the job is dropped unparsed, and with it `reply`: the caller hears so.
         let Some(turn) = pool.lend_turn() else { return };
         // Parsing cannot stop part way; the body size limit bounds it.

@@ -216,27 +216,10 @@ impl Durable {
             "snapshot captured under the lock"
         );
         let session = Arc::clone(session);
-        // Throughput work (serialising the whole map, writing it): on a thread of its own at a
-        // lower priority, so that the request path preempts it (see `runtime::priority`).
-        let writer = Arc::clone(&session);
-        let capture = Arc::new(Mutex::new(Some(capture)));
-        let handed = Arc::clone(&capture);
-        let spawned = std::thread::Builder::new()
-            .name("factord-snapshot".into())
-            .spawn(move || {
-                crate::runtime::priority::lower_this_thread();
-                if let Some(capture) = take(&handed) {
-                    writer.write_snapshot(capture);
-                }
-            });
-        if spawned.is_err() {
-            // At the process's thread limit: on tokio's blocking pool, at the usual priority.
-            session.runtime.clone().spawn_blocking(move || {
-                if let Some(capture) = take(&capture) {
-                    session.write_snapshot(capture);
-                }
-            });
-        }
+        session
+            .runtime
+            .clone()
+            .spawn_blocking(move || session.write_snapshot(capture));
     }
 
     /// The base back from a snapshot (written or not): the next one may start.
@@ -588,9 +571,4 @@ impl Session {
             .as_ref()
             .map_or(0, Durable::memory_bytes)
     }
-}
-
-/// The capture a snapshot thread was handed, unless it was taken already.
-fn take(capture: &Mutex<Option<Capture>>) -> Option<Capture> {
-    capture.lock().unwrap_or_else(|p| p.into_inner()).take()
 }
