@@ -10,7 +10,8 @@
 //! instance has the same tokens). A forwarded request carries `Factord-Forwarded-By`; one that
 //! reaches an instance that does not own the session (ownership moved meanwhile) is answered
 //! 503 `session_moving` with Retry-After 1 instead of being forwarded again, as is a request
-//! for a session in the middle of a move or whose owner cannot be reached.
+//! for a session in the middle of a move or whose owner cannot be reached, or one for a
+//! session that was released here between routing and its handler.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -97,7 +98,21 @@ pub async fn forward(State(f): State<Arc<Forwarder>>, request: Request, next: Ne
         return next.run(request).await;
     };
     match f.service.route(&name) {
-        Route::Local => next.run(request).await,
+        Route::Local => {
+            // Loaded here when routed, gone when the handler looked (released to a new owner
+            // meanwhile, as when a stopped instance resumes to find itself superseded): its
+            // 404 would say the session does not exist, while it only moved. Nothing was
+            // applied, so the client may retry where it is now.
+            let was_here = f.service.session(&name).is_ok();
+            let response = next.run(request).await;
+            if was_here
+                && response.status() == StatusCode::NOT_FOUND
+                && f.service.session(&name).is_err()
+            {
+                return refuse(&name);
+            }
+            response
+        }
         Route::Remote {
             http: Some(url), ..
         } if !forwarded => {
