@@ -32,7 +32,8 @@ pub(in crate::session) fn refresh_landing(
             return true;
         };
         if let Some(entry) = entries.get_mut(&key) {
-            // Unless a client's guess came after the answer (applied next, as in `mirror::refresh_observed`).
+            // Unless a client's guess came after the answer (applied next, as in
+            // `mirror::refresh_observed`).
             if entry.changed == answered {
                 entry.changed = entry.changed.min(sequence);
                 covered.push((idx, key));
