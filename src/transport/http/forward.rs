@@ -102,12 +102,13 @@ pub async fn forward(State(f): State<Arc<Forwarder>>, request: Request, next: Ne
             // Loaded here when routed, gone when the handler looked (released to a new owner
             // meanwhile, as when a stopped instance resumes to find itself superseded): its
             // 404 would say the session does not exist, while it only moved. Nothing was
-            // applied, so the client may retry where it is now.
+            // applied, so the client may retry where it is now. A session deleted meanwhile
+            // routes here again (its directory is gone) and keeps its 404.
             let was_here = f.service.session(&name).is_ok();
             let response = next.run(request).await;
             if was_here
                 && response.status() == StatusCode::NOT_FOUND
-                && f.service.session(&name).is_err()
+                && !matches!(f.service.route(&name), Route::Local)
             {
                 return refuse(&name);
             }
