@@ -22,7 +22,7 @@ use super::super::structure::BlockPattern;
 use super::eliminate::{small_cholesky, small_cholesky_inverse};
 use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
-use super::{camera_neighbours, Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
+use super::{EliminatedBlocks, Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
 
 /// The loosest relative residual a step is solved to (Ceres' default η for LM).
 const FORCING_MAX: f64 = 0.1;
@@ -89,36 +89,17 @@ impl ImplicitSchur {
     /// `full` is the pattern laid out with `plan.ordering`.
     pub fn new(full: &BlockPattern, plan: &SchurPlan) -> Self {
         let ne = plan.eliminated;
-        let eliminated_rows = if ne < full.dim.len() {
-            full.offset[ne]
-        } else {
-            full.n
-        };
-        let (mut dim, mut offset, mut v_start) = (Vec::new(), Vec::new(), vec![0]);
-        let (mut neighbour_start, mut neighbours) = (vec![0], Vec::new());
-        for e in 0..ne {
-            let d = full.dim[e];
-            assert!(d <= 16, "eliminated variables have at most 16 dimensions");
-            dim.push(d);
-            offset.push(full.offset[e]);
-            v_start.push(v_start[e] + d * d);
-            for &(a, w_pair) in full.column_blocks(e) {
-                if a != e {
-                    assert!(a >= ne, "eliminated blocks {a} and {e} share a factor");
-                    neighbours.push(Neighbour {
-                        block: a - ne,
-                        w_pair,
-                    });
-                }
-            }
-            neighbour_start.push(neighbours.len());
-        }
+        let blocks = EliminatedBlocks::of(full, ne);
+        assert!(
+            blocks.dim.iter().all(|&d| d <= 16),
+            "eliminated variables have at most 16 dimensions"
+        );
+        let eliminated_rows = blocks.rows;
         let reduced_dim: Vec<usize> = full.dim[ne..].to_vec();
         let reduced_offset: Vec<usize> = full.offset[ne..]
             .iter()
             .map(|o| o - eliminated_rows)
             .collect();
-        let camera_neighbours = camera_neighbours(&neighbours, &neighbour_start, &reduced_dim);
         let mut u_pairs = Vec::new();
         for b in ne..full.dim.len() {
             for &(a, pair) in &full.column_blocks(b)[1..] {
@@ -129,13 +110,13 @@ impl ImplicitSchur {
         Self {
             eliminated: ne,
             eliminated_rows,
-            v_inverse: vec![0.0; v_start[ne]],
-            dim,
-            offset,
-            v_start,
-            neighbour_start,
-            neighbours,
-            camera_neighbours,
+            v_inverse: vec![0.0; blocks.v_start[ne]],
+            dim: blocks.dim,
+            offset: blocks.offset,
+            v_start: blocks.v_start,
+            neighbour_start: blocks.neighbour_start,
+            neighbours: blocks.neighbours,
+            camera_neighbours: blocks.camera_neighbours,
             jacobi: SchurJacobi::new(reduced_dim.clone(), reduced_offset.clone()),
             reduced_dim,
             reduced_offset,

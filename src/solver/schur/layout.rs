@@ -6,7 +6,7 @@ use super::super::budget::FactorCost;
 use super::super::cholesky::SymbolicError;
 use super::super::structure::BlockPattern;
 use super::reduced::Backend;
-use super::{camera_neighbours, Neighbour, SchurPlan, SchurSolver};
+use super::{EliminatedBlocks, Neighbour, SchurPlan, SchurSolver};
 
 impl SchurSolver {
     /// `full` is the pattern laid out with `plan.ordering`.
@@ -22,46 +22,18 @@ impl SchurSolver {
             .collect();
         let reduced = BlockPattern::with_ordering(&dims_by_block, &plan.reduced);
         let n = reduced.n;
-        let eliminated_rows = full.n - n;
-        let mut dim = Vec::with_capacity(ne);
-        let mut offset = Vec::with_capacity(ne);
-        let mut v_start = Vec::with_capacity(ne + 1);
-        let mut neighbour_start = Vec::with_capacity(ne + 1);
-        let mut neighbours = Vec::new();
+        let blocks = EliminatedBlocks::of(full, ne);
         let mut s_block_start = Vec::with_capacity(ne + 1);
         let mut s_blocks = Vec::new();
-        let (mut v_len, mut w_max) = (0, 0);
+        let mut w_max = 0;
         for e in 0..ne {
-            let d = full.dim[e];
-            dim.push(d);
-            offset.push(full.offset[e]);
-            v_start.push(v_len);
-            v_len += d * d;
-            neighbour_start.push(neighbours.len());
+            let near = blocks.neighbours_of(e);
             s_block_start.push(s_blocks.len());
-            let first = neighbours.len();
-            let mut w_len = 0;
-            for &(a, w_pair) in full.column_blocks(e) {
-                if a == e {
-                    continue;
-                }
-                assert!(
-                    a >= ne,
-                    "eliminated blocks {a} and {e} share a factor: a planning bug"
-                );
-                neighbours.push(Neighbour {
-                    block: a - ne,
-                    w_pair,
-                });
-                w_len += full.dim[a] * d;
-            }
-            w_max = w_max.max(w_len);
-            push_s_blocks(&reduced, plan.dense, &neighbours[first..], &mut s_blocks);
+            let w_len: usize = near.iter().map(|nb| full.dim[ne + nb.block]).sum();
+            w_max = w_max.max(w_len * blocks.dim[e]);
+            push_s_blocks(&reduced, plan.dense, near, &mut s_blocks);
         }
-        v_start.push(v_len);
-        neighbour_start.push(neighbours.len());
         s_block_start.push(s_blocks.len());
-        let camera_neighbours = camera_neighbours(&neighbours, &neighbour_start, &reduced.dim);
         let u_map = u_map(full, &reduced, ne, plan.dense);
         let backend = Backend::new(&reduced, plan.dense)?;
         let s_len = backend.values_len(&reduced);
@@ -71,14 +43,14 @@ impl SchurSolver {
         };
         Ok(Self {
             eliminated: ne,
-            eliminated_rows,
-            dim,
-            offset,
-            v_start,
-            v_inverse: vec![0.0; v_len],
-            neighbour_start,
-            neighbours,
-            camera_neighbours,
+            eliminated_rows: blocks.rows,
+            v_inverse: vec![0.0; blocks.v_start[ne]],
+            dim: blocks.dim,
+            offset: blocks.offset,
+            v_start: blocks.v_start,
+            neighbour_start: blocks.neighbour_start,
+            neighbours: blocks.neighbours,
+            camera_neighbours: blocks.camera_neighbours,
             s_block_start,
             s_blocks,
             u_map,

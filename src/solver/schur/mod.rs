@@ -76,21 +76,72 @@ const CAMERA: usize = 9;
 /// linearisation's [`super::budget::FACTORS_PER_CHECK`].
 const ELIMINATED_PER_CHECK: usize = 1024;
 
-/// Per eliminated block (its neighbours `neighbours[neighbour_start[e]..neighbour_start[e + 1]]`):
-/// whether every neighbour is [`CAMERA`]-sized, so the fixed-size kernels apply.
-fn camera_neighbours(
-    neighbours: &[Neighbour],
-    neighbour_start: &[usize],
-    reduced_dim: &[usize],
-) -> Vec<bool> {
-    neighbour_start
-        .windows(2)
-        .map(|range| {
-            neighbours[range[0]..range[1]]
-                .iter()
-                .all(|n| reduced_dim[n.block] == CAMERA)
-        })
-        .collect()
+/// The eliminated blocks as both Schur solvers (explicit and implicit) lay them out: per block
+/// its dimension, first row, where its V⁻¹ starts, and its neighbours
+/// (`neighbours[neighbour_start[e]..neighbour_start[e + 1]]`, sorted by position).
+struct EliminatedBlocks {
+    /// Scalar rows of the eliminated part.
+    rows: usize,
+    dim: Vec<usize>,
+    offset: Vec<usize>,
+    /// `ne + 1` entries: the last is V⁻¹'s whole length.
+    v_start: Vec<usize>,
+    neighbour_start: Vec<usize>,
+    neighbours: Vec<Neighbour>,
+    /// Per block: whether every neighbour is [`CAMERA`]-sized, so the fixed-size kernels apply.
+    camera_neighbours: Vec<bool>,
+}
+
+impl EliminatedBlocks {
+    /// The first `ne` blocks of `full` (laid out with the plan's ordering).
+    fn of(full: &BlockPattern, ne: usize) -> Self {
+        let rows = full.offset.get(ne).copied().unwrap_or(full.n);
+        let (mut dim, mut offset) = (Vec::with_capacity(ne), Vec::with_capacity(ne));
+        let (mut v_start, mut neighbour_start) = (vec![0], vec![0]);
+        let mut neighbours = Vec::new();
+        for e in 0..ne {
+            let d = full.dim[e];
+            dim.push(d);
+            offset.push(full.offset[e]);
+            v_start.push(v_start[e] + d * d);
+            for &(a, w_pair) in full.column_blocks(e) {
+                if a == e {
+                    continue;
+                }
+                assert!(
+                    a >= ne,
+                    "eliminated blocks {a} and {e} share a factor: a planning bug"
+                );
+                neighbours.push(Neighbour {
+                    block: a - ne,
+                    w_pair,
+                });
+            }
+            neighbour_start.push(neighbours.len());
+        }
+        let camera_neighbours = neighbour_start
+            .windows(2)
+            .map(|range| {
+                neighbours[range[0]..range[1]]
+                    .iter()
+                    .all(|n| full.dim[ne + n.block] == CAMERA)
+            })
+            .collect();
+        Self {
+            rows,
+            dim,
+            offset,
+            v_start,
+            neighbour_start,
+            neighbours,
+            camera_neighbours,
+        }
+    }
+
+    /// The neighbours of eliminated block `e`.
+    fn neighbours_of(&self, e: usize) -> &[Neighbour] {
+        &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]]
+    }
 }
 
 /// Factorises the normal equations by eliminating a block-diagonal part first; see the module
