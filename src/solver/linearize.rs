@@ -9,7 +9,7 @@ use crate::problem::FactorEntry;
 use crate::problem::{Key, Values, Variable};
 
 use super::budget::{Budget, Unlimited};
-use super::structure::{BlockOrdering, BlockPattern};
+use super::structure::{BlockOrdering, BlockPattern, ScalarRows};
 
 mod chunk;
 mod fixed;
@@ -89,15 +89,17 @@ impl SystemLayout {
     /// `fixed[v]` says whether variable `v` is held constant in this solve.
     pub fn new<E: Borrow<FactorEntry>>(factors: &[E], values: &Values, fixed: &[bool]) -> Self {
         let ordering = BlockOrdering::amd(free_adjacency(factors, fixed));
-        Self::with_ordering(factors, values, fixed, &ordering)
+        Self::with_ordering(factors, values, fixed, &ordering, ScalarRows::Listed)
     }
 
-    /// As [`SystemLayout::new`] with an ordering of [`free_adjacency`]'s graph computed earlier.
+    /// As [`SystemLayout::new`] with an ordering of [`free_adjacency`]'s graph computed earlier;
+    /// its pattern lists the scalar rows as `rows` says.
     pub fn with_ordering<E: Borrow<FactorEntry>>(
         factors: &[E],
         values: &Values,
         fixed: &[bool],
         ordering: &BlockOrdering,
+        rows: ScalarRows,
     ) -> Self {
         let (block_of_var, _) = free_blocks(fixed.iter().copied());
         let free: Vec<usize> = (0..values.len()).filter(|&v| !fixed[v]).collect();
@@ -116,7 +118,7 @@ impl SystemLayout {
             .iter()
             .map(|&v| values.variable(v).tangent_dim())
             .collect();
-        let pattern = BlockPattern::with_ordering(&dims, ordering);
+        let pattern = BlockPattern::with_ordering_rows(&dims, ordering, rows);
         let position_of_var: Vec<Option<usize>> = block_of_var
             .iter()
             .map(|b| b.map(|b| pattern.position[b]))

@@ -19,7 +19,7 @@ use super::linearize::{free_adjacency, SystemLayout};
 use super::options::{Initialization, Method, SolverOptions};
 use super::schur::{self, ImplicitSchur, SchurSolver};
 use super::stopping::stopped;
-use super::structure::BlockOrdering;
+use super::structure::{BlockOrdering, ScalarRows};
 use super::summary::{IterationReport, Run, Summary, Timings};
 use super::warm::OrderingCache;
 use super::{evaluate_chi2, evaluate_chi2_within, SolverError};
@@ -207,20 +207,23 @@ fn analyze(
         (None, Some(cache)) => cache.ordering(problem.factors(), fixed),
         (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), fixed)),
     };
+    // Dogleg's model product is the one reader of H's scalar rows in a Schur solve.
+    let rows = if schur_plan.is_some() && options.method != Method::Dogleg {
+        ScalarRows::Omitted
+    } else {
+        ScalarRows::Listed
+    };
     let mut layout =
-        SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering);
-    // Dogleg's model product is the one reader of H's scalar rows in a Schur solve; freed
-    // before the reduced system's analysis, they are not part of the solve's peak memory.
-    if schur_plan.is_some() && options.method != Method::Dogleg {
-        layout.pattern.forget_scalar_rows();
-    }
+        SystemLayout::with_ordering(problem.factors(), &problem.values, fixed, &ordering, rows);
     let threads = options.thread_count();
     if threads > 1 {
         layout.use_threads(problem.factors(), threads);
     }
     let chol = match &schur_plan {
         Some(plan) if plan.implicit => {
-            LinearSolver::ImplicitSchur(ImplicitSchur::new(&layout.pattern, plan))
+            let mut schur = ImplicitSchur::new(&layout.pattern, plan);
+            schur.use_threads(threads);
+            LinearSolver::ImplicitSchur(schur)
         }
         Some(plan) => {
             let mut schur = SchurSolver::new(&layout.pattern, plan)?;

@@ -46,8 +46,9 @@ pub enum Initialization {
 #[serde(rename_all = "snake_case")]
 pub enum LinearSolverChoice {
     /// Schur complement when the problem names variables to eliminate (dense reduced system up
-    /// to 1000 unknowns, sparse beyond, implicit when an explicit one would not fit in memory),
-    /// sparse Cholesky of the whole system otherwise.
+    /// to 1000 unknowns, sparse beyond, implicit when an explicit one would not fit in memory
+    /// or would fill in to a dense factor predicted slower than conjugate gradients), sparse
+    /// Cholesky of the whole system otherwise.
     #[default]
     Auto,
     SparseCholesky,
@@ -55,7 +56,7 @@ pub enum LinearSolverChoice {
     SparseSchur,
     /// Schur complement never formed: conjugate gradients on its products, preconditioned by
     /// its block diagonal (Ceres' ITERATIVE_SCHUR with SCHUR_JACOBI). Auto takes it when the
-    /// explicit reduced system would not fit in memory.
+    /// explicit reduced system would not fit in memory, or would be slower (see `Auto`).
     IterativeSchur,
 }
 

@@ -10,6 +10,17 @@ use dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::amd;
 use faer::sparse::SymbolicSparseColMatRef;
 
+/// Whether a [`BlockPattern`] lists the scalar row of every value (as many `usize` as H has
+/// values): a sparse Cholesky of the whole pattern ([`BlockPattern::symbolic`]) and Dogleg's
+/// scalar product read them; the Schur complement addresses H by blocks and does without (a
+/// bundle adjustment's W blocks make them about a sixth of its peak memory, and listing them
+/// costs as much as a linearisation's page faults).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScalarRows {
+    Listed,
+    Omitted,
+}
+
 /// A lower-triangular block-sparse symmetric pattern in elimination order.
 #[derive(Debug, Clone)]
 pub struct BlockPattern {
@@ -42,6 +53,12 @@ impl BlockPattern {
 
     /// As [`BlockPattern::new`] for a graph ordered earlier (the ordering carries its graph).
     pub fn with_ordering(dims: &[usize], ordering: &BlockOrdering) -> Self {
+        Self::with_ordering_rows(dims, ordering, ScalarRows::Listed)
+    }
+
+    /// [`Self::with_ordering`], listing the scalar row of every value only when `rows` asks
+    /// (see [`ScalarRows`]).
+    pub fn with_ordering_rows(dims: &[usize], ordering: &BlockOrdering, rows: ScalarRows) -> Self {
         let nb = dims.len();
         assert_eq!(
             ordering.position.len(),
@@ -80,7 +97,10 @@ impl BlockPattern {
             blocks_total += below_len[b] + 1;
         }
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::with_capacity(entries);
+        let listed = rows == ScalarRows::Listed;
+        let mut row_idx = Vec::with_capacity(if listed { entries } else { 0 });
+        // Values laid out so far: the length `row_idx` has, or would have when not listed.
+        let mut values = 0;
         let mut pair_cols = Vec::with_capacity(pairs);
         let mut col_blocks = Vec::with_capacity(blocks_total);
         let mut col_block_ptr = Vec::with_capacity(nb + 1);
@@ -98,23 +118,29 @@ impl BlockPattern {
             }
             // The block's first column: the diagonal block's rows, then every off-diagonal block
             // whole. Its column q is that column less its first q rows, copied.
-            let first = row_idx.len();
+            let first = values;
             for (k, a) in lower(b).enumerate() {
-                pair_cols[first_pair + k * dim[b]] = row_idx.len();
-                row_idx.extend(offset[a]..offset[a] + dim[a]);
+                pair_cols[first_pair + k * dim[b]] = values;
+                if listed {
+                    row_idx.extend(offset[a]..offset[a] + dim[a]);
+                }
+                values += dim[a];
             }
-            let end = row_idx.len();
+            let end = values;
             col_ptr.push(end);
             let blocks_here = col_block_ptr[b + 1] - col_block_ptr[b];
             for q in 1..dim[b] {
-                let start = row_idx.len();
-                row_idx.extend_from_within(first + q..end);
+                let start = values;
+                if listed {
+                    row_idx.extend_from_within(first + q..end);
+                }
+                values += end - (first + q);
                 pair_cols[first_pair + q] = start;
                 for k in 1..blocks_here {
                     let in_first = pair_cols[first_pair + k * dim[b]] - first;
                     pair_cols[first_pair + k * dim[b] + q] = start + in_first - q;
                 }
-                col_ptr.push(row_idx.len());
+                col_ptr.push(values);
             }
         }
         Self {
@@ -135,16 +161,7 @@ impl BlockPattern {
         self.col_ptr[self.col_ptr.len() - 1]
     }
 
-    /// Frees the scalar row index of every value (as many `usize` as H has values) for a solve
-    /// that never reads them: the Schur complement addresses H by blocks (`pair`,
-    /// `value_index`); only a sparse Cholesky of the whole pattern ([`Self::symbolic`]) and the
-    /// scalar product of Dogleg need them. A bundle adjustment's W blocks make them about a
-    /// sixth of its peak memory.
-    pub fn forget_scalar_rows(&mut self) {
-        self.row_idx = Vec::new();
-    }
-
-    /// Whether the scalar row indices are still held (see [`Self::forget_scalar_rows`]).
+    /// Whether the scalar row indices are listed (see [`ScalarRows`]).
     pub fn has_scalar_rows(&self) -> bool {
         self.row_idx.len() == self.nnz()
     }
@@ -399,5 +416,27 @@ mod tests {
         for c in 0..p.n {
             assert_eq!(p.row_idx[p.diagonal_index(c)], c);
         }
+    }
+
+    /// Without its scalar rows a pattern addresses every value where the listed one does.
+    #[test]
+    fn omitted_scalar_rows_change_no_address() {
+        let dims = [3, 2, 3, 1, 9];
+        let adjacency = vec![
+            vec![1, 3, 4],
+            vec![0, 2],
+            vec![1, 3, 4],
+            vec![2, 0],
+            vec![0, 2],
+        ];
+        let ordering = BlockOrdering::amd(adjacency.clone());
+        let listed = BlockPattern::with_ordering_rows(&dims, &ordering, ScalarRows::Listed);
+        let omitted = BlockPattern::with_ordering_rows(&dims, &ordering, ScalarRows::Omitted);
+        assert!(listed.has_scalar_rows() && !omitted.has_scalar_rows());
+        assert!(omitted.row_idx.is_empty());
+        assert_eq!(
+            (&omitted.col_ptr, &omitted.pair_cols, &omitted.col_blocks),
+            (&listed.col_ptr, &listed.pair_cols, &listed.col_blocks)
+        );
     }
 }

@@ -47,7 +47,7 @@ use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
 use super::optimizer::{optimize_within, Context};
 use super::options::{Initialization, Method, SolverOptions};
-use super::structure::BlockOrdering;
+use super::structure::{BlockOrdering, ScalarRows};
 use super::summary::{IterationReport, Summary, Termination, TerminationReason, Timings};
 use super::SolverError;
 use crate::factors::SqrtInformation;
@@ -282,7 +282,13 @@ impl Graduation<'_> {
     ) -> Result<(Summary, usize, Vec<bool>), SolverError> {
         let (fixed, gauge_fixed) = anchor_components(problem.factors(), &given);
         let ordering = BlockOrdering::amd(free_adjacency(problem.factors(), &fixed));
-        let layout = SystemLayout::with_ordering(problem.factors(), &given, &fixed, &ordering);
+        let layout = SystemLayout::with_ordering(
+            problem.factors(),
+            &given,
+            &fixed,
+            &ordering,
+            ScalarRows::Listed,
+        );
         let chol = LinearSolver::Sparse(SparseCholesky::analyze(
             &layout.pattern,
             SupernodalThreshold::FORCE_SUPERNODAL,

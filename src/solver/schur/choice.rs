@@ -1,26 +1,54 @@
 //! Explicit or implicit: whether the reduced system S may be formed. Decided from the reduced
 //! graph before anything is allocated: the bytes S and its factor would take (from the camera
 //! pairs that share a point) against a limit, by default half the memory the machine has
-//! available (the rest holds the problem, H and everything else of the solve).
+//! available (the rest holds the problem, H and everything else of the solve); and, when S
+//! would fit but fill in to a dense factor, its predicted factorisation time against an
+//! implicit step's products (1 000 cameras sharing 300 000 points: 40 s explicit against 8 s
+//! implicit for three LM steps).
 
-/// Bytes an explicit S would take: its values (dense n², or the sparse pattern's lower
-/// triangle), its factor (dense: in place; sparse: at least the pattern again, fill-in not
-/// counted) and the elimination's index of S blocks (one per neighbour pair of each eliminated
-/// block). Counted on the free-variable graph `adjacency` without building the reduced one: a
-/// kept block's reduced neighbours are its kept neighbours and those of its eliminated ones,
-/// marked once each (5 000 cameras sharing 2 M points: a pass over the 12 M observations'
-/// pairs, where the reduced graph would list 60 M entries before deduplication).
-pub(super) fn explicit_bytes(
-    adjacency: &[Vec<usize>],
-    eliminate: &[bool],
-    dims: &[usize],
-    dense: bool,
-) -> u64 {
-    let kept = |b: &usize| !eliminate[*b];
-    let n: u64 = (0..dims.len()).filter(kept).map(|b| dims[b] as u64).sum();
-    let values = if dense {
-        n * n
-    } else {
+/// What an explicit S would hold and what forming and factorising it would cost, against an
+/// implicit solve's products; counted on the free-variable graph `adjacency` without building
+/// the reduced one (see [`ExplicitSize::of`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct ExplicitSize {
+    /// Scalar unknowns of S.
+    n: u64,
+    /// Scalars of S's pattern, lower triangle (diagonal blocks' lower halves included).
+    lower: u64,
+    /// Pairs of neighbours (either order once, with themselves) over the eliminated blocks:
+    /// the elimination's index of S blocks holds one entry per pair.
+    pairs: u64,
+    /// Multiply-adds of the elimination: Σ over pairs (k, l) of an eliminated block e of
+    /// d_k d_e d_l.
+    elimination: u64,
+    /// Scalars of the W blocks (eliminated × kept): an implicit product reads each twice.
+    w_scalars: u64,
+}
+
+/// Multiply-adds per second a dense-ish factorisation of S runs at (faer, one core of the
+/// 2-core Xeon of `benches/history/issue-57-ba.md`: 1 000 cameras, n = 9 000, in 11 s).
+const FACTOR_RATE: f64 = 1e10;
+/// Multiply-adds per second of the elimination's small blocks (problem-16: 54 M in 14 ms).
+const ELIMINATION_RATE: f64 = 4e9;
+/// Multiply-adds per second of an implicit product: memory-bound, every W block read twice
+/// (1 000 cameras: 97 M in 0.11 s; 5 000 cameras: 650 M in 0.76 s).
+const PRODUCT_RATE: f64 = 8e8;
+/// CG iterations an implicit step is assumed to take (measured 9-12 per LM step on the BAL and
+/// synthetic problems), with room for the extra LM steps an inexact solve may need.
+const CG_PER_STEP: f64 = 20.0;
+/// S's pattern at least this full (of the lower triangle) fills in to a dense factor: its
+/// factorisation costs n³/6 multiply-adds. Below it the fill is not predicted, and the
+/// time-driven choice is not made.
+const DENSE_FILL: f64 = 0.5;
+
+impl ExplicitSize {
+    /// Counts S for the kept blocks (`eliminate[b]` false) of `adjacency`: a kept block's
+    /// reduced neighbours are its kept neighbours and those of its eliminated ones, marked once
+    /// each (5 000 cameras sharing 2 M points: a pass over the 12 M observations' pairs, where
+    /// the reduced graph would list 60 M entries before deduplication).
+    pub(super) fn of(adjacency: &[Vec<usize>], eliminate: &[bool], dims: &[usize]) -> Self {
+        let kept = |b: &usize| !eliminate[*b];
+        let n: u64 = (0..dims.len()).filter(kept).map(|b| dims[b] as u64).sum();
         let mut marked = vec![usize::MAX; dims.len()];
         let mut lower = 0u64;
         for x in (0..dims.len()).filter(kept) {
@@ -40,16 +68,62 @@ pub(super) fn explicit_bytes(
                 }
             }
         }
-        2 * lower
-    };
-    let pairs: u64 = (0..dims.len())
-        .filter(|&b| eliminate[b])
-        .map(|b| {
+        let (mut pairs, mut elimination, mut w_scalars) = (0u64, 0u64, 0u64);
+        for b in (0..dims.len()).filter(|&b| eliminate[b]) {
             let m = adjacency[b].len() as u64;
-            m * (m + 1) / 2
+            pairs += m * (m + 1) / 2;
+            let de = dims[b] as u64;
+            let sum: u64 = adjacency[b].iter().map(|&k| dims[k] as u64).sum();
+            let squares: u64 = adjacency[b]
+                .iter()
+                .map(|&k| (dims[k] * dims[k]) as u64)
+                .sum();
+            elimination += de * (sum * sum + squares) / 2;
+            w_scalars += de * sum;
+        }
+        Self {
+            n,
+            lower,
+            pairs,
+            elimination,
+            w_scalars,
+        }
+    }
+
+    /// Bytes an explicit S would take: its values (dense n², or the sparse pattern's lower
+    /// triangle), its factor (dense: in place; sparse: at least the pattern again, fill-in not
+    /// counted) and the elimination's index of S blocks (one per pair).
+    pub(super) fn bytes(&self, dense: bool) -> u64 {
+        let values = if dense {
+            self.n * self.n
+        } else {
+            2 * self.lower
+        };
+        8 * (values + self.pairs)
+    }
+
+    /// `Some(why)` when forming and factorising S is predicted to take more than twice an
+    /// implicit step's [`CG_PER_STEP`] products: only for a pattern that fills in to a dense
+    /// factor (see [`DENSE_FILL`]), whose cost is then known (1 000 BAL cameras sharing 300 000
+    /// points: 12 s explicit against 0.11 s per product).
+    pub(super) fn slower_than_implicit(&self) -> Option<String> {
+        let n = self.n as f64;
+        let full = n * (n + 1.0) / 2.0;
+        if n == 0.0 || (self.lower as f64) < DENSE_FILL * full {
+            return None;
+        }
+        let explicit = n * n * n / 6.0 / FACTOR_RATE + self.elimination as f64 / ELIMINATION_RATE;
+        let implicit = CG_PER_STEP * 2.0 * self.w_scalars as f64 / PRODUCT_RATE;
+        (explicit > 2.0 * implicit).then(|| {
+            format!(
+                "auto: forming and factorising the reduced system ({} unknowns, {:.0} % full) is predicted at {:.2} s per step, conjugate gradients at {:.2} s",
+                self.n,
+                100.0 * self.lower as f64 / full,
+                explicit,
+                implicit
+            )
         })
-        .sum();
-    8 * (values + pairs)
+    }
 }
 
 /// `Some(why)` when `bytes` exceed `limit` (`None`: the limit is unknown and S is formed, as
@@ -95,14 +169,63 @@ mod tests {
         adjacency.extend([vec![0, 1, 5], vec![4], vec![]]);
         let eliminate = [false, false, true, true, true, false, false];
         let dims = [9, 9, 3, 3, 3, 9, 9];
-        let sparse = explicit_bytes(&adjacency, &eliminate, &dims, false);
+        let size = ExplicitSize::of(&adjacency, &eliminate, &dims);
+        let sparse = size.bytes(false);
         assert_eq!(sparse, 8 * (2 * (4 * 45 + 3 * 81) + 3 + 3 + 6));
-        let dense = explicit_bytes(&adjacency, &eliminate, &dims, true);
-        assert_eq!(dense, 8 * (36 * 36 + 12));
+        assert_eq!(size.bytes(true), 8 * (36 * 36 + 12));
+        // Points 2 and 3: pairs (0,0) (0,1) (1,1), 3·9·9 each; point 4 adds three cameras.
+        assert_eq!(size.elimination, 2 * 3 * 3 * 81 + 6 * 3 * 81);
+        assert_eq!(size.w_scalars, 3 * (18 + 18 + 27));
         assert!(too_big(sparse, Some(sparse)).is_none());
         let why = too_big(sparse, Some(100)).expect("above the limit");
         assert!(why.contains("above"), "{why}");
         assert!(too_big(u64::MAX, None).is_none());
         assert_eq!(explicit_limit(Some(10)), Some(10));
+    }
+
+    /// BAL-like graphs: `cameras` of 9 dimensions, then one 3-dimensional point per pair of
+    /// cameras `seen(i, j)` says share one.
+    fn cameras_and_points(
+        cameras: usize,
+        seen: impl Fn(usize, usize) -> bool,
+    ) -> (Vec<Vec<usize>>, Vec<bool>, Vec<usize>) {
+        let mut adjacency = vec![Vec::new(); cameras];
+        for i in 0..cameras {
+            for j in i + 1..cameras {
+                if seen(i, j) {
+                    let point = adjacency.len();
+                    adjacency.push(vec![i, j]);
+                    adjacency[i].push(point);
+                    adjacency[j].push(point);
+                }
+            }
+        }
+        let eliminate = (0..adjacency.len()).map(|b| b >= cameras).collect();
+        let dims = (0..adjacency.len())
+            .map(|b| if b < cameras { 9 } else { 3 })
+            .collect();
+        (adjacency, eliminate, dims)
+    }
+
+    #[test]
+    fn only_a_big_dense_reduced_system_is_left_to_conjugate_gradients() {
+        // 300 cameras, every pair sharing a point: S (2 700 unknowns) is full, and its
+        // factorisation costs more than 40 products over 44 850 points.
+        let (adjacency, eliminate, dims) = cameras_and_points(300, |_, _| true);
+        let size = ExplicitSize::of(&adjacency, &eliminate, &dims);
+        let why = size.slower_than_implicit().expect("implicit");
+        assert!(why.contains("2700 unknowns, 100 % full"), "{why}");
+        // 60 cameras: S (540 unknowns) factorises in less time than the products would take.
+        let (adjacency, eliminate, dims) = cameras_and_points(60, |_, _| true);
+        assert_eq!(
+            ExplicitSize::of(&adjacency, &eliminate, &dims).slower_than_implicit(),
+            None
+        );
+        // 300 cameras in a chain: S is banded, its fill is not predicted, it stays explicit.
+        let (adjacency, eliminate, dims) = cameras_and_points(300, |i, j| j == i + 1);
+        assert_eq!(
+            ExplicitSize::of(&adjacency, &eliminate, &dims).slower_than_implicit(),
+            None
+        );
     }
 }

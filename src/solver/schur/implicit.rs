@@ -12,7 +12,8 @@
 //! LM's step acceptance judges every step. Without the square root (η ∝ ‖b_r‖) the third LM
 //! step of the 5 000-camera problem took 49 CG iterations of its 68.
 
-use std::ops::ControlFlow;
+use std::ops::{ControlFlow, Range};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::super::budget::Budget;
@@ -20,8 +21,10 @@ use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
 use super::eliminate::{small_cholesky, small_cholesky_inverse};
+use super::implicit_threads::Helper;
 use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
+use super::threads::H;
 use super::{EliminatedBlocks, Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
 
 /// The loosest relative residual a step is solved to (Ceres' default η for LM).
@@ -43,14 +46,14 @@ pub struct CgStats {
 /// Factorises (V⁻¹ and the preconditioner) and solves the reduced system iteratively; see the
 /// module documentation.
 pub struct ImplicitSchur {
-    eliminated: usize,
-    eliminated_rows: usize,
+    pub(super) eliminated: usize,
+    pub(super) eliminated_rows: usize,
     /// Per eliminated block: dimension, first row, where its V⁻¹ starts, its neighbours.
     dim: Vec<usize>,
-    offset: Vec<usize>,
-    v_start: Vec<usize>,
-    v_inverse: Vec<f64>,
-    neighbour_start: Vec<usize>,
+    pub(super) offset: Vec<usize>,
+    pub(super) v_start: Vec<usize>,
+    pub(super) v_inverse: Vec<f64>,
+    pub(super) neighbour_start: Vec<usize>,
     neighbours: Vec<Neighbour>,
     camera_neighbours: Vec<bool>,
     /// Per reduced block (full position `eliminated + k`): dimension and first reduced row.
@@ -59,8 +62,8 @@ pub struct ImplicitSchur {
     /// U's off-diagonal blocks between reduced blocks: (row block, column block, pair in H).
     u_pairs: Vec<(usize, usize, usize)>,
     /// The LM shift of the reduced rows (zeros without damping).
-    shift: Vec<f64>,
-    jacobi: SchurJacobi,
+    pub(super) shift: Vec<f64>,
+    pub(super) jacobi: SchurJacobi,
     rhs: Vec<f64>,
     solution: Vec<f64>,
     work: CgWork,
@@ -73,6 +76,10 @@ pub struct ImplicitSchur {
     stats: CgStats,
     /// Why the implicit solver was chosen, for the Summary.
     reason: String,
+    /// The eliminated blocks cut into parts, one per thread (see `implicit_threads`).
+    pub(super) parts: Vec<Range<usize>>,
+    /// The threads beside the caller's: their copies of the preconditioner and of a product.
+    pub(super) helpers: Vec<Helper>,
 }
 
 impl std::fmt::Debug for ImplicitSchur {
@@ -130,6 +137,8 @@ impl ImplicitSchur {
             forcing_max: FORCING_MAX,
             stats: CgStats::default(),
             reason: plan.reason.clone(),
+            parts: vec![0..ne],
+            helpers: Vec::new(),
         }
     }
 
@@ -159,15 +168,20 @@ impl ImplicitSchur {
         &self.reason
     }
 
-    /// Numbers it holds beside H: V⁻¹, the preconditioner and the CG vectors.
+    /// Numbers it holds beside H: V⁻¹, the preconditioner, the CG vectors and the threads'
+    /// copies.
     pub fn numeric_len(&self) -> usize {
+        let jacobi = self.jacobi.len();
+        // Each thread beside the caller's: a copy of the preconditioner and a reduced vector.
         self.v_inverse.len()
-            + self.reduced_dim.iter().map(|d| d * d).sum::<usize>()
+            + jacobi
             + 8 * self.shift.len()
+            + self.helpers.len() * (jacobi + self.shift.len())
     }
 
     /// "Factorises" H + diag(`shift`): every eliminated block's V⁻¹ and the preconditioner's
-    /// blocks, checking `budget` every [`ELIMINATED_PER_CHECK`] blocks (`Break`: stopped).
+    /// blocks, part by part (see `implicit_threads`), the calling thread checking `budget` every
+    /// [`ELIMINATED_PER_CHECK`] blocks (`Break`: stopped).
     pub fn factorize_within(
         &mut self,
         full: &BlockPattern,
@@ -184,30 +198,47 @@ impl ImplicitSchur {
         }
         self.jacobi
             .reset(full, values, self.eliminated, &self.shift);
-        let eliminated = if has_wide_vectors() {
-            // SAFETY: the CPU has the features `eliminate_wide` is compiled for.
-            unsafe { eliminate_wide(self, (full, values), shift, budget) }
-        } else {
-            eliminate_with(self, (full, values), shift, budget)
-        };
-        if eliminated?.is_break() {
+        if self
+            .eliminate_parts((full, values), shift, budget)?
+            .is_break()
+        {
             return Ok(ControlFlow::Break(()));
         }
         self.jacobi.factorize(self.eliminated_rows)?;
         Ok(ControlFlow::Continue(()))
     }
 
-    /// V⁻¹ of eliminated block `e` (with its shift); errs at V's failing pivot.
+    /// The eliminated blocks `blocks`: each one's V⁻¹ into `v` (the slice of V⁻¹ that starts
+    /// at the first one's) and its part of the preconditioner subtracted from `jacobi` (blocks
+    /// laid out as the preconditioner's). The thread given `budget` checks it every
+    /// [`ELIMINATED_PER_CHECK`] blocks and tells the others through `stop`, which they read as
+    /// often.
+    pub(super) fn eliminate_range(
+        &self,
+        blocks: Range<usize>,
+        (v, jacobi): (&mut [f64], &mut [f64]),
+        (h, shift): (H<'_>, Option<&[f64]>),
+        budget: Option<&dyn Budget>,
+        stop: &AtomicBool,
+    ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+        if has_wide_vectors() {
+            // SAFETY: the CPU has the features `eliminate_wide` is compiled for.
+            unsafe { eliminate_wide(self, blocks, (v, jacobi), (h, shift), budget, stop) }
+        } else {
+            eliminate_with(self, blocks, (v, jacobi), (h, shift), budget, stop)
+        }
+    }
+
+    /// V⁻¹ of eliminated block `e` (with its shift) into `v`; errs at V's failing pivot.
     #[inline(always)]
     fn invert_v(
-        &mut self,
+        &self,
         e: usize,
-        full: &BlockPattern,
-        values: &[f64],
+        v: &mut [f64],
+        (full, values): H<'_>,
         shift: Option<&[f64]>,
     ) -> Result<(), NotPositiveDefinite> {
         let d = self.dim[e];
-        let v = &mut self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
         let diagonal_pair = full.column_blocks(e)[0].1;
         for q in 0..d {
             for r in q..d {
@@ -224,16 +255,17 @@ impl ImplicitSchur {
         Ok(())
     }
 
-    /// The preconditioner's blocks −= W_k V⁻¹ W_kᵀ for every neighbour k of `e`.
+    /// The preconditioner's blocks in `jacobi` −= W_k V⁻¹ W_kᵀ for every neighbour k of `e`
+    /// (`v`: its V⁻¹).
     #[inline(always)]
     fn precondition_one<const D: usize, const K: usize>(
-        &mut self,
+        &self,
         e: usize,
-        full: &BlockPattern,
-        values: &[f64],
+        v: &[f64],
+        (full, values): H<'_>,
+        jacobi: &mut [f64],
     ) {
         let d = if D > 0 { D } else { self.dim[e] };
-        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
         for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
             let dk = if K > 0 { K } else { self.reduced_dim[nb.block] };
             let mut w = [0.0; 16 * 16];
@@ -241,25 +273,20 @@ impl ImplicitSchur {
                 let start = full.value_index(nb.w_pair, false, 0, s);
                 w[s * dk..(s + 1) * dk].copy_from_slice(&values[start..start + dk]);
             }
-            self.jacobi.subtract::<D, K>(nb.block, &w, v, d);
+            self.jacobi.subtract::<D, K>(jacobi, nb.block, &w, v, d);
         }
     }
 
     /// Solves with the last factorisation; `rhs` in the full layout, as
-    /// [`super::SchurSolver::solve_in_place`].
+    /// [`super::SchurSolver::solve_in_place`]. The reduction, every product and the
+    /// back-substitution run part by part.
     pub fn solve_in_place(&mut self, full: &BlockPattern, values: &[f64], rhs: &mut [f64]) {
+        let h = (full, values);
         let base = self.eliminated_rows;
         let mut reduced = std::mem::take(&mut self.rhs);
         reduced.copy_from_slice(&rhs[base..]);
-        for e in 0..self.eliminated {
-            let mut t = [0.0; 16];
-            self.v_inverse_times(
-                e,
-                &rhs[self.offset[e]..self.offset[e] + self.dim[e]],
-                &mut t,
-            );
-            self.subtract_w(e, full, values, &t, &mut reduced);
-        }
+        let mut helpers = std::mem::take(&mut self.helpers);
+        self.reduce_parts(h, &rhs[..base], &mut reduced, &mut helpers);
         let norm = reduced.iter().map(|x| x * x).sum::<f64>().sqrt();
         let first = *self.first_rhs_norm.get_or_insert(norm);
         let forcing = if first > 0.0 {
@@ -274,7 +301,7 @@ impl ImplicitSchur {
             std::mem::take(&mut self.work),
         );
         let outcome = pcg::solve(
-            |x, y| self.product(full, values, x, y),
+            |x, y| self.product_parts(h, x, y, &mut helpers),
             |r, z| self.jacobi.apply(r, z),
             &reduced,
             &mut solution,
@@ -290,16 +317,44 @@ impl ImplicitSchur {
         self.stats.iterations += outcome.iterations;
         self.stats.max_iterations = self.stats.max_iterations.max(outcome.iterations);
         rhs[base..].copy_from_slice(&solution);
-        for e in 0..self.eliminated {
-            let o = self.offset[e];
-            let mut be = [0.0; 16];
-            be[..self.dim[e]].copy_from_slice(&rhs[o..o + self.dim[e]]);
-            self.subtract_wt(e, full, values, &solution, &mut be);
-            let mut xe = [0.0; 16];
-            self.v_inverse_times(e, &be[..self.dim[e]], &mut xe);
-            rhs[o..o + self.dim[e]].copy_from_slice(&xe[..self.dim[e]]);
+        let (head, _) = rhs.split_at_mut(base);
+        self.back_substitute_parts(h, head, &solution);
+        (self.rhs, self.solution, self.work, self.helpers) = (reduced, solution, work, helpers);
+    }
+
+    /// `reduced −= W_e V_e⁻¹ b_e` for the eliminated blocks `blocks` (`b`: the eliminated rows).
+    pub(super) fn reduce_range(
+        &self,
+        blocks: Range<usize>,
+        h: H<'_>,
+        b: &[f64],
+        reduced: &mut [f64],
+    ) {
+        for e in blocks {
+            let mut t = [0.0; 16];
+            self.v_inverse_times(e, &b[self.offset[e]..self.offset[e] + self.dim[e]], &mut t);
+            self.subtract_w(e, h, &t, reduced);
         }
-        (self.rhs, self.solution, self.work) = (reduced, solution, work);
+    }
+
+    /// x_e = V_e⁻¹ (b_e − Σ_k W_kᵀ x_k) for the eliminated blocks `blocks`, in place in
+    /// `rows` (their rows; it starts at row `first`), from the reduced `solution`.
+    pub(super) fn back_substitute_range(
+        &self,
+        blocks: Range<usize>,
+        h: H<'_>,
+        (rows, first): (&mut [f64], usize),
+        solution: &[f64],
+    ) {
+        for e in blocks {
+            let (o, d) = (self.offset[e] - first, self.dim[e]);
+            let mut be = [0.0; 16];
+            be[..d].copy_from_slice(&rows[o..o + d]);
+            self.subtract_wt(e, h, solution, &mut be);
+            let mut xe = [0.0; 16];
+            self.v_inverse_times(e, &be[..d], &mut xe);
+            rows[o..o + d].copy_from_slice(&xe[..d]);
+        }
     }
 
     /// out = V_e⁻¹ x.
@@ -312,7 +367,7 @@ impl ImplicitSchur {
     }
 
     /// y_k −= W_k t for every neighbour k of `e`.
-    fn subtract_w(&self, e: usize, full: &BlockPattern, values: &[f64], t: &[f64], y: &mut [f64]) {
+    fn subtract_w(&self, e: usize, (full, values): H<'_>, t: &[f64], y: &mut [f64]) {
         for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
             for (s, ts) in t[..self.dim[e]].iter().enumerate() {
@@ -325,14 +380,7 @@ impl ImplicitSchur {
     }
 
     /// be −= Σ_k W_kᵀ x_k over the neighbours k of `e`.
-    fn subtract_wt(
-        &self,
-        e: usize,
-        full: &BlockPattern,
-        values: &[f64],
-        x: &[f64],
-        be: &mut [f64],
-    ) {
+    fn subtract_wt(&self, e: usize, (full, values): H<'_>, x: &[f64], be: &mut [f64]) {
         for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
             for (s, b) in be[..self.dim[e]].iter_mut().enumerate() {
@@ -346,13 +394,34 @@ impl ImplicitSchur {
         }
     }
 
-    /// y = S x = (U + D) x − W V⁻¹ Wᵀ x, with the last factorisation's V⁻¹ and shift D.
+    /// y = S x = (U + D) x − W V⁻¹ Wᵀ x, with the last factorisation's V⁻¹ and shift D, on the
+    /// calling thread.
+    #[cfg(test)]
     pub(super) fn product(&self, full: &BlockPattern, values: &[f64], x: &[f64], y: &mut [f64]) {
+        self.product_parts((full, values), x, y, &mut []);
+    }
+
+    /// y = (U + D) x, the reduced blocks' own part of a product.
+    pub(super) fn reduced_product(&self, h: H<'_>, x: &[f64], y: &mut [f64]) {
+        for ((yi, xi), di) in y.iter_mut().zip(x).zip(&self.shift) {
+            *yi = di * xi;
+        }
+        self.u_product(h, x, y);
+    }
+
+    /// y −= W V⁻¹ Wᵀ x over the eliminated blocks `blocks`.
+    pub(super) fn eliminated_products(
+        &self,
+        blocks: Range<usize>,
+        h: H<'_>,
+        x: &[f64],
+        y: &mut [f64],
+    ) {
         if has_wide_vectors() {
-            // SAFETY: the CPU has the features `product_wide` is compiled for.
-            unsafe { product_wide(self, full, values, x, y) }
+            // SAFETY: the CPU has the features `products_wide` is compiled for.
+            unsafe { products_wide(self, blocks, h, x, y) }
         } else {
-            product_with(self, full, values, x, y)
+            products_with(self, blocks, h, x, y)
         }
     }
 
@@ -408,7 +477,7 @@ impl ImplicitSchur {
     }
 
     /// y += U x for U's blocks in H (the diagonal ones' lower triangle mirrored).
-    fn u_product(&self, full: &BlockPattern, values: &[f64], x: &[f64], y: &mut [f64]) {
+    fn u_product(&self, (full, values): H<'_>, x: &[f64], y: &mut [f64]) {
         for k in 0..self.reduced_dim.len() {
             let (d, o) = (self.reduced_dim[k], self.reduced_offset[k]);
             let pair = full.column_blocks(self.eliminated + k)[0].1;
@@ -438,64 +507,71 @@ impl ImplicitSchur {
     }
 }
 
-/// Every eliminated block's V⁻¹ and its part of the preconditioner; `Break`: `budget` stopped it.
+/// [`ImplicitSchur::eliminate_range`]'s loop.
 #[inline(always)]
 fn eliminate_with(
-    solver: &mut ImplicitSchur,
-    (full, values): (&BlockPattern, &[f64]),
-    shift: Option<&[f64]>,
-    budget: &dyn Budget,
+    solver: &ImplicitSchur,
+    blocks: Range<usize>,
+    (v, jacobi): (&mut [f64], &mut [f64]),
+    (h, shift): (H<'_>, Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    for e in 0..solver.eliminated {
-        if e % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && budget.checkpoint().is_break() {
+    let v_first = solver.v_start[blocks.start];
+    for (k, e) in blocks.enumerate() {
+        if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
         }
-        solver.invert_v(e, full, values, shift)?;
+        let v = &mut v[solver.v_start[e] - v_first..solver.v_start[e + 1] - v_first];
+        solver.invert_v(e, v, h, shift)?;
         match (solver.dim[e], solver.camera_neighbours[e]) {
-            (3, true) => solver.precondition_one::<3, CAMERA>(e, full, values),
-            _ => solver.precondition_one::<0, 0>(e, full, values),
+            (3, true) => solver.precondition_one::<3, CAMERA>(e, v, h, jacobi),
+            _ => solver.precondition_one::<0, 0>(e, v, h, jacobi),
         }
     }
     Ok(ControlFlow::Continue(()))
 }
 
-#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn eliminate_wide(
-    solver: &mut ImplicitSchur,
-    h: (&BlockPattern, &[f64]),
-    shift: Option<&[f64]>,
-    budget: &dyn Budget,
-) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_with(solver, h, shift, budget)
+/// Whether a part stops here: the part given the budget asks it and tells the others through
+/// `stop`; the others read it.
+#[inline(always)]
+fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
+    match budget {
+        Some(budget) => {
+            let stopped = budget.checkpoint().is_break();
+            if stopped {
+                stop.store(true, Ordering::Relaxed);
+            }
+            stopped
+        }
+        None => stop.load(Ordering::Relaxed),
+    }
 }
 
-#[inline(always)]
-fn product_with(
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+fn eliminate_wide(
     solver: &ImplicitSchur,
-    full: &BlockPattern,
-    values: &[f64],
-    x: &[f64],
-    y: &mut [f64],
-) {
-    for ((yi, xi), di) in y.iter_mut().zip(x).zip(&solver.shift) {
-        *yi = di * xi;
-    }
-    solver.u_product(full, values, x, y);
-    for e in 0..solver.eliminated {
+    blocks: Range<usize>,
+    numeric: (&mut [f64], &mut [f64]),
+    inputs: (H<'_>, Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    eliminate_with(solver, blocks, numeric, inputs, budget, stop)
+}
+
+/// [`ImplicitSchur::eliminated_products`]' loop.
+#[inline(always)]
+fn products_with(solver: &ImplicitSchur, blocks: Range<usize>, h: H<'_>, x: &[f64], y: &mut [f64]) {
+    for e in blocks {
         match (solver.dim[e], solver.camera_neighbours[e]) {
-            (3, true) => solver.eliminated_product::<3, CAMERA>(e, (full, values), x, y),
-            _ => solver.eliminated_product::<0, 0>(e, (full, values), x, y),
+            (3, true) => solver.eliminated_product::<3, CAMERA>(e, h, x, y),
+            _ => solver.eliminated_product::<0, 0>(e, h, x, y),
         }
     }
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
-fn product_wide(
-    solver: &ImplicitSchur,
-    full: &BlockPattern,
-    values: &[f64],
-    x: &[f64],
-    y: &mut [f64],
-) {
-    product_with(solver, full, values, x, y)
+fn products_wide(solver: &ImplicitSchur, blocks: Range<usize>, h: H<'_>, x: &[f64], y: &mut [f64]) {
+    products_with(solver, blocks, h, x, y)
 }

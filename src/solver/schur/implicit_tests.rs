@@ -4,7 +4,7 @@
 use faer::sparse::linalg::SupernodalThreshold;
 use nalgebra::{DMatrix, DVector};
 
-use super::tests::{linearized, synthetic_bundle_adjustment};
+use super::tests::{assert_close, linearized, synthetic_bundle_adjustment};
 use super::ImplicitSchur;
 use crate::solver::cholesky::SparseCholesky;
 use crate::solver::options::LinearSolverChoice;
@@ -97,4 +97,45 @@ fn the_implicit_step_solved_tightly_is_the_direct_step() {
     for (p, q) in x.iter().zip(&reference) {
         assert!((p - q).abs() <= 1e-6 * scale, "{p} vs {q} (scale {scale})");
     }
+}
+
+/// Two threads factorise, multiply and solve what one does, to rounding (the parts' sums are
+/// added in another order), and the work really is split; a second factorisation does not see
+/// the first one's partial sums.
+#[test]
+fn two_threads_give_one_threads_product_and_step() {
+    let problem = synthetic_bundle_adjustment(12, 2000, 31);
+    let (plan, layout, h, b) = linearized(&problem, LinearSolverChoice::IterativeSchur);
+    let pattern = &layout.pattern;
+    let shift = shift_of(pattern, &h);
+    let mut results = Vec::new();
+    for threads in [1, 2] {
+        let mut implicit = ImplicitSchur::new(pattern, &plan);
+        assert_eq!(implicit.use_threads(threads), threads);
+        implicit.set_forcing_max(0.0);
+        for _ in 0..2 {
+            let factorized = implicit
+                .factorize_within(pattern, &h, Some(&shift), &crate::solver::budget::Unlimited)
+                .unwrap();
+            assert!(factorized.is_continue());
+        }
+        let n = implicit.reduced_dim();
+        let x: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).sin()).collect();
+        let mut y = vec![0.0; n];
+        let mut helpers = std::mem::take(&mut implicit.helpers);
+        implicit.product_parts((pattern, &h), &x, &mut y, &mut helpers);
+        implicit.helpers = helpers;
+        let mut step = b.clone();
+        implicit.solve_in_place(pattern, &h, &mut step);
+        results.push((y, step, implicit.stats().iterations));
+    }
+    let (one, two) = (&results[0], &results[1]);
+    assert_close(&two.0, &one.0);
+    assert_close(&two.1, &one.1);
+    assert!(one.1.iter().any(|v| *v != 0.0));
+    let (a, b) = (one.2 as i64, two.2 as i64);
+    assert!(
+        (a - b).abs() <= 1,
+        "CG iterations {a} (one thread) and {b} (two)"
+    );
 }

@@ -31,7 +31,8 @@
 //! - `threads`: the elimination and back-substitution cut into parts for more than one thread;
 //! - `choice`: whether S may be formed (explicit) or is too big and only multiplied (implicit);
 //! - `implicit`: the implicit Schur complement, S's products and the step by conjugate gradients
-//!   ([`ImplicitSchur`]), with `schur_jacobi` (its preconditioner) and `pcg` (the iteration).
+//!   ([`ImplicitSchur`]), with `schur_jacobi` (its preconditioner), `pcg` (the iteration) and
+//!   `implicit_threads` (its passes cut into parts for more than one thread).
 //!
 //! This file holds the solver's state, shared by all of them.
 
@@ -41,6 +42,7 @@ mod eliminate;
 mod implicit;
 #[cfg(test)]
 mod implicit_tests;
+mod implicit_threads;
 mod layout;
 mod pcg;
 mod plan;

@@ -75,8 +75,9 @@ pub fn plan<E: Borrow<FactorEntry>>(
             Some("requested (linear_solver iterative_schur)".into())
         }
         LinearSolverChoice::Auto => {
-            let bytes = choice::explicit_bytes(&adjacency, &eliminate, &dims, dense);
-            choice::too_big(bytes, explicit_limit())
+            let size = choice::ExplicitSize::of(&adjacency, &eliminate, &dims);
+            choice::too_big(size.bytes(dense), explicit_limit())
+                .or_else(|| size.slower_than_implicit())
         }
         _ => None,
     };

@@ -60,10 +60,27 @@ impl SchurJacobi {
         }
     }
 
-    /// Block k −= W_k V⁻¹ W_kᵀ for W_k (dk × d, column-major, `w`) and V⁻¹ (d × d).
+    /// The blocks while a factorisation subtracts from them (see [`Self::subtract`]); given
+    /// back by [`Self::restore`].
+    pub(super) fn take_blocks(&mut self) -> Vec<f64> {
+        std::mem::take(&mut self.blocks)
+    }
+
+    pub(super) fn restore(&mut self, blocks: Vec<f64>) {
+        self.blocks = blocks;
+    }
+
+    /// How many numbers the blocks take.
+    pub(super) fn len(&self) -> usize {
+        self.start[self.dim.len()]
+    }
+
+    /// Block k of `blocks` (laid out as this preconditioner's: its own taken out, or a thread's
+    /// copy) −= W_k V⁻¹ W_kᵀ for W_k (dk × d, column-major, `w`) and V⁻¹ (d × d).
     #[inline(always)]
     pub(super) fn subtract<const D: usize, const K: usize>(
-        &mut self,
+        &self,
+        blocks: &mut [f64],
         k: usize,
         w: &[f64],
         v_inverse: &[f64],
@@ -71,7 +88,7 @@ impl SchurJacobi {
     ) {
         let dk = if K > 0 { K } else { self.dim[k] };
         let d = if D > 0 { D } else { d };
-        let block = &mut self.blocks[self.start[k]..self.start[k + 1]];
+        let block = &mut blocks[self.start[k]..self.start[k + 1]];
         // Y = W V⁻¹ (dk × d, column-major), then block −= Y Wᵀ (lower triangle).
         let mut y = [0.0; 16 * 16];
         for t in 0..d {

@@ -13,6 +13,7 @@ use crate::problem::{Gauge, Key, Problem};
 use crate::solver::cholesky::SparseCholesky;
 use crate::solver::linearize::{linearize, Scratch, SystemLayout};
 use crate::solver::options::LinearSolverChoice;
+use crate::solver::structure::ScalarRows;
 
 /// A small BA: cameras looking at a cloud of points, observations with pixel noise, every
 /// point seen by 2–4 cameras; cameras and points then perturbed.
@@ -77,8 +78,13 @@ pub(super) fn linearized(
         || None,
     )
     .expect("something to eliminate");
-    let layout =
-        SystemLayout::with_ordering(problem.factors(), &problem.values, &fixed, &plan.ordering);
+    let layout = SystemLayout::with_ordering(
+        problem.factors(),
+        &problem.values,
+        &fixed,
+        &plan.ordering,
+        ScalarRows::Listed,
+    );
     let mut scratch = Scratch::new(&layout);
     let mut h = vec![0.0; layout.pattern.nnz()];
     let mut b = vec![0.0; layout.n()];
@@ -118,7 +124,7 @@ fn steps(problem: &Problem, choice: LinearSolverChoice) -> (Vec<f64>, Vec<f64>, 
     (x, reference, schur.is_dense())
 }
 
-fn assert_close(x: &[f64], reference: &[f64]) {
+pub(super) fn assert_close(x: &[f64], reference: &[f64]) {
     let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     for (a, b) in x.iter().zip(reference) {
         assert!((a - b).abs() <= 1e-8 * scale, "{a} vs {b} (scale {scale})");

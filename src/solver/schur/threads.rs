@@ -49,6 +49,49 @@ pub(super) type Reduce = fn(&SchurSolver, H<'_>, Range<usize>, &[f64], &mut [f64
 /// Back-substitutes eliminated blocks into their rows (a slice that starts at the given row).
 pub(super) type BackSubstitute = fn(&SchurSolver, H<'_>, Range<usize>, (&mut [f64], usize), &[f64]);
 
+/// The eliminated blocks `0..eliminated` cut into up to `threads` contiguous parts of about
+/// equal neighbour counts (`neighbour_start[e]`: the neighbours before block `e`); one part
+/// when there are fewer than 64 blocks per thread.
+pub(super) fn parts_by_neighbours(
+    neighbour_start: &[usize],
+    eliminated: usize,
+    threads: usize,
+) -> Vec<Range<usize>> {
+    let total = neighbour_start[eliminated];
+    let mut starts = vec![0];
+    if threads > 1 && eliminated >= 64 * threads {
+        for k in 1..threads {
+            let goal = k * total / threads;
+            let at = neighbour_start.partition_point(|&s| s < goal);
+            if at > starts[starts.len() - 1] && at < eliminated {
+                starts.push(at);
+            }
+        }
+    }
+    starts.push(eliminated);
+    starts.windows(2).map(|w| w[0]..w[1]).collect()
+}
+
+/// `head` (the eliminated rows) cut into each part's rows: (its blocks, its rows, its first
+/// row), `offset[e]` being block `e`'s first row.
+pub(super) fn row_pieces<'a>(
+    parts: &[Range<usize>],
+    offset: &[usize],
+    eliminated_rows: usize,
+    head: &'a mut [f64],
+) -> Vec<(Range<usize>, &'a mut [f64], usize)> {
+    let row = |e: usize| offset.get(e).copied().unwrap_or(eliminated_rows);
+    let mut rest = head;
+    let mut pieces = Vec::with_capacity(parts.len());
+    for blocks in parts {
+        let (first, end) = (row(blocks.start), row(blocks.end));
+        let (piece, next) = std::mem::take(&mut rest).split_at_mut(end - first);
+        rest = next;
+        pieces.push((blocks.clone(), piece, first));
+    }
+    pieces
+}
+
 /// A thread other than the caller's: its W and Y scratch and its copies of S and the reduced
 /// right-hand side.
 #[derive(Debug, Default)]
@@ -63,19 +106,7 @@ impl SchurSolver {
     /// Eliminates and back-substitutes on up to `threads` threads (1: the calling thread);
     /// returns how many it uses: fewer when there are few eliminated blocks.
     pub fn use_threads(&mut self, threads: usize) -> usize {
-        let total = self.neighbours.len();
-        let mut starts = vec![0];
-        if threads > 1 && self.eliminated >= 64 * threads {
-            for k in 1..threads {
-                let goal = k * total / threads;
-                let at = self.neighbour_start.partition_point(|&s| s < goal);
-                if at > starts[starts.len() - 1] && at < self.eliminated {
-                    starts.push(at);
-                }
-            }
-        }
-        starts.push(self.eliminated);
-        self.parts = starts.windows(2).map(|w| w[0]..w[1]).collect();
+        self.parts = parts_by_neighbours(&self.neighbour_start, self.eliminated, threads);
         self.helpers = (1..self.parts.len())
             .map(|_| Helper {
                 w_local: vec![0.0; self.w_local.len()],
@@ -199,23 +230,7 @@ impl SchurSolver {
         tail: &[f64],
         back: BackSubstitute,
     ) {
-        let mut rest = head;
-        let mut pieces = Vec::with_capacity(self.parts.len());
-        for blocks in &self.parts {
-            let first = self
-                .offset
-                .get(blocks.start)
-                .copied()
-                .unwrap_or(self.eliminated_rows);
-            let end = self
-                .offset
-                .get(blocks.end)
-                .copied()
-                .unwrap_or(self.eliminated_rows);
-            let (piece, next) = std::mem::take(&mut rest).split_at_mut(end - first);
-            rest = next;
-            pieces.push((blocks.clone(), piece, first));
-        }
+        let pieces = row_pieces(&self.parts, &self.offset, self.eliminated_rows, head);
         let mut pieces = pieces.into_iter();
         let (blocks, piece, first) = pieces.next().expect("one part");
         std::thread::scope(|s| {
