@@ -98,7 +98,7 @@ impl<'a> Iterations<'a> {
         Self {
             layout,
             scratch: Scratch::new(layout),
-            h: vec![0.0; layout.pattern.nnz()],
+            h: super::huge_pages::zeroed(layout.pattern.nnz()),
             damped: vec![0.0; damped],
             b: vec![0.0; n],
             delta: vec![0.0; n],

@@ -12,6 +12,7 @@ mod dogleg;
 pub mod gauge;
 mod gauss_newton;
 pub mod gnc;
+mod huge_pages;
 pub mod incremental;
 pub mod initialize;
 mod iterations;
