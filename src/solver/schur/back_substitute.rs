@@ -34,14 +34,16 @@ impl SchurSolver {
         rhs: &[f64],
         out: &mut [f64],
     ) {
-        let d = if D > 0 { D } else { self.dim[e] };
-        let o = self.offset[e];
-        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let d = if D > 0 { D } else { self.blocks.dim[e] };
+        let o = self.blocks.offset[e];
+        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
         let mut t = [0.0; 16];
         for (i, ti) in t[..d].iter_mut().enumerate() {
             *ti = (0..d).map(|j| v[i * d + j] * rhs[o + j]).sum();
         }
-        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+        for nb in &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
+        {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
             let ok = self.reduced.offset[nb.block];
             let out = &mut out[ok..ok + dk];
@@ -65,13 +67,15 @@ impl SchurSolver {
         (head, first): (&mut [f64], usize),
         tail: &[f64],
     ) {
-        let d = if D > 0 { D } else { self.dim[e] };
-        let o = self.offset[e] - first;
-        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let d = if D > 0 { D } else { self.blocks.dim[e] };
+        let o = self.blocks.offset[e] - first;
+        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
         let xe = &mut head[o..o + d];
         let mut be = [0.0; 16];
         be[..d].copy_from_slice(xe);
-        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+        for nb in &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
+        {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
             let ok = self.reduced.offset[nb.block];
             let xr = &tail[ok..ok + dk];

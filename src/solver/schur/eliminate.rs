@@ -92,11 +92,11 @@ impl View<'_> {
         values: &[f64],
         shift: Option<&[f64]>,
     ) -> Result<(), usize> {
-        let d = if D > 0 { D } else { self.dim[e] };
+        let d = if D > 0 { D } else { self.blocks.dim[e] };
         let reduced = self.reduced;
         let dense_n = self.dense_n;
-        let v =
-            &mut part.v_inverse[self.v_start[e] - part.v_first..self.v_start[e + 1] - part.v_first];
+        let v = &mut part.v_inverse
+            [self.blocks.v_start[e] - part.v_first..self.blocks.v_start[e + 1] - part.v_first];
         let diagonal_pair = full.column_blocks(e)[0].1;
         for q in 0..d {
             for r in q..d {
@@ -105,12 +105,13 @@ impl View<'_> {
         }
         if let Some(shift) = shift {
             for q in 0..d {
-                v[q * d + q] += shift[self.offset[e] + q];
+                v[q * d + q] += shift[self.blocks.offset[e] + q];
             }
         }
         small_cholesky(v, d)?;
         small_cholesky_inverse(v, d);
-        let around = &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]];
+        let around = &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]];
         let local = self.gather_w_and_y::<D, K>(part, around, d, e, full, values);
         // S_kl −= Y_k W_lᵀ for l ≤ k: column q of the block is the axpy Σ_t Y_k[:, t] W_l[q, t].
         let blocks = &self.s_blocks[self.s_block_start[e]..self.s_block_start[e + 1]];
@@ -162,7 +163,8 @@ impl View<'_> {
         full: &BlockPattern,
         values: &[f64],
     ) -> usize {
-        let v = &part.v_inverse[self.v_start[e] - part.v_first..self.v_start[e + 1] - part.v_first];
+        let v = &part.v_inverse
+            [self.blocks.v_start[e] - part.v_first..self.blocks.v_start[e + 1] - part.v_first];
         let mut local = 0;
         for nb in around {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
@@ -237,13 +239,13 @@ fn eliminate_all<const FUSED: bool>(
         if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
         }
-        let result = match (view.dim[e], view.camera_neighbours[e]) {
+        let result = match (view.blocks.dim[e], view.blocks.camera_neighbours[e]) {
             (3, true) => view.eliminate::<3, CAMERA, FUSED>(part, e, full, values, shift),
             (3, false) => view.eliminate::<3, 0, FUSED>(part, e, full, values, shift),
             _ => view.eliminate::<0, 0, FUSED>(part, e, full, values, shift),
         };
         result.map_err(|i| NotPositiveDefinite {
-            row: view.offset[e] + i,
+            row: view.blocks.offset[e] + i,
         })?;
     }
     Ok(ControlFlow::Continue(()))

@@ -25,7 +25,7 @@ use super::implicit_threads::Helper;
 use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
 use super::threads::H;
-use super::{EliminatedBlocks, Neighbour, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
+use super::{EliminatedBlocks, SchurPlan, CAMERA, ELIMINATED_PER_CHECK};
 
 /// The loosest relative residual a step is solved to (Ceres' default η for LM).
 const FORCING_MAX: f64 = 0.1;
@@ -49,13 +49,8 @@ pub struct ImplicitSchur {
     pub(super) eliminated: usize,
     pub(super) eliminated_rows: usize,
     /// Per eliminated block: dimension, first row, where its V⁻¹ starts, its neighbours.
-    dim: Vec<usize>,
-    pub(super) offset: Vec<usize>,
-    pub(super) v_start: Vec<usize>,
+    pub(super) blocks: EliminatedBlocks,
     pub(super) v_inverse: Vec<f64>,
-    pub(super) neighbour_start: Vec<usize>,
-    neighbours: Vec<Neighbour>,
-    camera_neighbours: Vec<bool>,
     /// Per reduced block (full position `eliminated + k`): dimension and first reduced row.
     reduced_dim: Vec<usize>,
     reduced_offset: Vec<usize>,
@@ -118,12 +113,7 @@ impl ImplicitSchur {
             eliminated: ne,
             eliminated_rows,
             v_inverse: vec![0.0; blocks.v_start[ne]],
-            dim: blocks.dim,
-            offset: blocks.offset,
-            v_start: blocks.v_start,
-            neighbour_start: blocks.neighbour_start,
-            neighbours: blocks.neighbours,
-            camera_neighbours: blocks.camera_neighbours,
+            blocks,
             jacobi: SchurJacobi::new(reduced_dim.clone(), reduced_offset.clone()),
             reduced_dim,
             reduced_offset,
@@ -238,18 +228,18 @@ impl ImplicitSchur {
         (full, values): H<'_>,
         shift: Option<&[f64]>,
     ) -> Result<(), NotPositiveDefinite> {
-        let d = self.dim[e];
+        let d = self.blocks.dim[e];
         let diagonal_pair = full.column_blocks(e)[0].1;
         for q in 0..d {
             for r in q..d {
                 v[r * d + q] = values[full.value_index(diagonal_pair, true, r, q)];
             }
             if let Some(shift) = shift {
-                v[q * d + q] += shift[self.offset[e] + q];
+                v[q * d + q] += shift[self.blocks.offset[e] + q];
             }
         }
         small_cholesky(v, d).map_err(|i| NotPositiveDefinite {
-            row: self.offset[e] + i,
+            row: self.blocks.offset[e] + i,
         })?;
         small_cholesky_inverse(v, d);
         Ok(())
@@ -265,8 +255,10 @@ impl ImplicitSchur {
         (full, values): H<'_>,
         jacobi: &mut [f64],
     ) {
-        let d = if D > 0 { D } else { self.dim[e] };
-        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+        let d = if D > 0 { D } else { self.blocks.dim[e] };
+        for nb in &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
+        {
             let dk = if K > 0 { K } else { self.reduced_dim[nb.block] };
             let mut w = [0.0; 16 * 16];
             for s in 0..d {
@@ -332,7 +324,11 @@ impl ImplicitSchur {
     ) {
         for e in blocks {
             let mut t = [0.0; 16];
-            self.v_inverse_times(e, &b[self.offset[e]..self.offset[e] + self.dim[e]], &mut t);
+            self.v_inverse_times(
+                e,
+                &b[self.blocks.offset[e]..self.blocks.offset[e] + self.blocks.dim[e]],
+                &mut t,
+            );
             self.subtract_w(e, h, &t, reduced);
         }
     }
@@ -347,7 +343,7 @@ impl ImplicitSchur {
         solution: &[f64],
     ) {
         for e in blocks {
-            let (o, d) = (self.offset[e] - first, self.dim[e]);
+            let (o, d) = (self.blocks.offset[e] - first, self.blocks.dim[e]);
             let mut be = [0.0; 16];
             be[..d].copy_from_slice(&rows[o..o + d]);
             self.subtract_wt(e, h, solution, &mut be);
@@ -359,8 +355,8 @@ impl ImplicitSchur {
 
     /// out = V_e⁻¹ x.
     fn v_inverse_times(&self, e: usize, x: &[f64], out: &mut [f64; 16]) {
-        let d = self.dim[e];
-        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let d = self.blocks.dim[e];
+        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
         for i in 0..d {
             out[i] = (0..d).map(|j| v[i * d + j] * x[j]).sum();
         }
@@ -368,9 +364,11 @@ impl ImplicitSchur {
 
     /// y_k −= W_k t for every neighbour k of `e`.
     fn subtract_w(&self, e: usize, (full, values): H<'_>, t: &[f64], y: &mut [f64]) {
-        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+        for nb in &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
+        {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
-            for (s, ts) in t[..self.dim[e]].iter().enumerate() {
+            for (s, ts) in t[..self.blocks.dim[e]].iter().enumerate() {
                 let start = full.value_index(nb.w_pair, false, 0, s);
                 for (yr, w) in y[ok..ok + dk].iter_mut().zip(&values[start..start + dk]) {
                     *yr -= w * ts;
@@ -381,9 +379,11 @@ impl ImplicitSchur {
 
     /// be −= Σ_k W_kᵀ x_k over the neighbours k of `e`.
     fn subtract_wt(&self, e: usize, (full, values): H<'_>, x: &[f64], be: &mut [f64]) {
-        for nb in &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]] {
+        for nb in &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
+        {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
-            for (s, b) in be[..self.dim[e]].iter_mut().enumerate() {
+            for (s, b) in be[..self.blocks.dim[e]].iter_mut().enumerate() {
                 let start = full.value_index(nb.w_pair, false, 0, s);
                 *b -= values[start..start + dk]
                     .iter()
@@ -434,8 +434,9 @@ impl ImplicitSchur {
         x: &[f64],
         y: &mut [f64],
     ) {
-        let d = if D > 0 { D } else { self.dim[e] };
-        let around = &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]];
+        let d = if D > 0 { D } else { self.blocks.dim[e] };
+        let around = &self.blocks.neighbours
+            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]];
         let mut t = [0.0; 16];
         for nb in around {
             let (dk, ok) = (
@@ -453,7 +454,7 @@ impl ImplicitSchur {
                 *ts += acc;
             }
         }
-        let v = &self.v_inverse[self.v_start[e]..self.v_start[e + 1]];
+        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
         let mut u = [0.0; 16];
         for i in 0..d {
             for j in 0..d {
@@ -517,14 +518,14 @@ fn eliminate_with(
     budget: Option<&dyn Budget>,
     stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    let v_first = solver.v_start[blocks.start];
+    let v_first = solver.blocks.v_start[blocks.start];
     for (k, e) in blocks.enumerate() {
         if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
         }
-        let v = &mut v[solver.v_start[e] - v_first..solver.v_start[e + 1] - v_first];
+        let v = &mut v[solver.blocks.v_start[e] - v_first..solver.blocks.v_start[e + 1] - v_first];
         solver.invert_v(e, v, h, shift)?;
-        match (solver.dim[e], solver.camera_neighbours[e]) {
+        match (solver.blocks.dim[e], solver.blocks.camera_neighbours[e]) {
             (3, true) => solver.precondition_one::<3, CAMERA>(e, v, h, jacobi),
             _ => solver.precondition_one::<0, 0>(e, v, h, jacobi),
         }
@@ -564,7 +565,7 @@ fn eliminate_wide(
 #[inline(always)]
 fn products_with(solver: &ImplicitSchur, blocks: Range<usize>, h: H<'_>, x: &[f64], y: &mut [f64]) {
     for e in blocks {
-        match (solver.dim[e], solver.camera_neighbours[e]) {
+        match (solver.blocks.dim[e], solver.blocks.camera_neighbours[e]) {
             (3, true) => solver.eliminated_product::<3, CAMERA>(e, h, x, y),
             _ => solver.eliminated_product::<0, 0>(e, h, x, y),
         }

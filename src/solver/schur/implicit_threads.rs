@@ -33,7 +33,7 @@ impl ImplicitSchur {
     /// Factorises and solves on up to `threads` threads (1: the calling thread); returns how
     /// many it uses: fewer when there are few eliminated blocks.
     pub fn use_threads(&mut self, threads: usize) -> usize {
-        self.parts = parts_by_neighbours(&self.neighbour_start, self.eliminated, threads);
+        self.parts = parts_by_neighbours(&self.blocks.neighbour_start, self.eliminated, threads);
         self.helpers = (1..self.parts.len())
             .map(|_| Helper {
                 jacobi: vec![0.0; self.jacobi.len()],
@@ -60,7 +60,7 @@ impl ImplicitSchur {
         let mut v_rest = &mut v_inverse[..];
         let mut v_pieces = Vec::with_capacity(this.parts.len());
         for blocks in &this.parts {
-            let len = this.v_start[blocks.end] - this.v_start[blocks.start];
+            let len = this.blocks.v_start[blocks.end] - this.blocks.v_start[blocks.start];
             let (piece, next) = std::mem::take(&mut v_rest).split_at_mut(len);
             v_rest = next;
             v_pieces.push(piece);
@@ -157,7 +157,7 @@ impl ImplicitSchur {
     /// The eliminated rows `head` back-substituted from the reduced `solution`, part by part
     /// (each part writes only its own rows).
     pub(super) fn back_substitute_parts(&self, h: H<'_>, head: &mut [f64], solution: &[f64]) {
-        let pieces = row_pieces(&self.parts, &self.offset, self.eliminated_rows, head);
+        let pieces = row_pieces(&self.parts, &self.blocks.offset, self.eliminated_rows, head);
         std::thread::scope(|s| {
             let mut pieces = pieces.into_iter();
             let (blocks, rows, first) = pieces.next().expect("one part");

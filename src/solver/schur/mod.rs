@@ -81,6 +81,7 @@ const ELIMINATED_PER_CHECK: usize = 1024;
 /// The eliminated blocks as both Schur solvers (explicit and implicit) lay them out: per block
 /// its dimension, first row, where its V⁻¹ starts, and its neighbours
 /// (`neighbours[neighbour_start[e]..neighbour_start[e + 1]]`, sorted by position).
+#[derive(Debug)]
 struct EliminatedBlocks {
     /// Scalar rows of the eliminated part.
     rows: usize,
@@ -152,15 +153,9 @@ pub struct SchurSolver {
     eliminated: usize,
     /// Scalar rows of the eliminated part; reduced scalar row `i` is full row `eliminated_rows + i`.
     eliminated_rows: usize,
-    /// Scalar dimension and first row of every eliminated block, and where its V⁻¹ starts.
-    dim: Vec<usize>,
-    offset: Vec<usize>,
-    v_start: Vec<usize>,
+    /// The eliminated blocks' layout: dimensions, rows, where each V⁻¹ starts, neighbours.
+    blocks: EliminatedBlocks,
     v_inverse: Vec<f64>,
-    neighbour_start: Vec<usize>,
-    neighbours: Vec<Neighbour>,
-    /// Per eliminated block: whether all its neighbours are [`CAMERA`]-sized (fixed-size kernels).
-    camera_neighbours: Vec<bool>,
     /// Per eliminated block, the S block of every neighbour pair (k, l ≤ k), row by row: a pair
     /// of the reduced pattern (sparse) or the index of the block's (0, 0) entry (dense).
     s_block_start: Vec<usize>,
@@ -232,5 +227,5 @@ impl SchurSolver {
 /// Which compiled kernel serves eliminated block `e`: (point, all cameras) or the general one.
 #[inline(always)]
 fn kernel_of(solver: &SchurSolver, e: usize) -> (usize, bool) {
-    (solver.dim[e], solver.camera_neighbours[e])
+    (solver.blocks.dim[e], solver.blocks.camera_neighbours[e])
 }

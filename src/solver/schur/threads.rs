@@ -13,16 +13,11 @@ use super::super::cholesky::NotPositiveDefinite;
 use super::super::structure::BlockPattern;
 use super::eliminate::eliminate_blocks;
 use super::reduced::Backend;
-use super::{Neighbour, SchurSolver};
+use super::{EliminatedBlocks, SchurSolver};
 
 /// What every part reads: the layout of the elimination (see [`SchurSolver`]'s fields).
 pub(super) struct View<'a> {
-    pub(super) dim: &'a [usize],
-    pub(super) offset: &'a [usize],
-    pub(super) v_start: &'a [usize],
-    pub(super) neighbour_start: &'a [usize],
-    pub(super) neighbours: &'a [Neighbour],
-    pub(super) camera_neighbours: &'a [bool],
+    pub(super) blocks: &'a EliminatedBlocks,
     pub(super) s_block_start: &'a [usize],
     pub(super) s_blocks: &'a [usize],
     pub(super) reduced: &'a BlockPattern,
@@ -106,7 +101,7 @@ impl SchurSolver {
     /// Eliminates and back-substitutes on up to `threads` threads (1: the calling thread);
     /// returns how many it uses: fewer when there are few eliminated blocks.
     pub fn use_threads(&mut self, threads: usize) -> usize {
-        self.parts = parts_by_neighbours(&self.neighbour_start, self.eliminated, threads);
+        self.parts = parts_by_neighbours(&self.blocks.neighbour_start, self.eliminated, threads);
         self.helpers = (1..self.parts.len())
             .map(|_| Helper {
                 w_local: vec![0.0; self.w_local.len()],
@@ -126,14 +121,13 @@ impl SchurSolver {
         shift: Option<&[f64]>,
         budget: &dyn Budget,
     ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-        let bounds: Vec<usize> = self.parts.iter().map(|p| self.v_start[p.start]).collect();
+        let bounds: Vec<usize> = self
+            .parts
+            .iter()
+            .map(|p| self.blocks.v_start[p.start])
+            .collect();
         let view = View {
-            dim: &self.dim,
-            offset: &self.offset,
-            v_start: &self.v_start,
-            neighbour_start: &self.neighbour_start,
-            neighbours: &self.neighbours,
-            camera_neighbours: &self.camera_neighbours,
+            blocks: &self.blocks,
             s_block_start: &self.s_block_start,
             s_blocks: &self.s_blocks,
             reduced: &self.reduced,
@@ -230,7 +224,7 @@ impl SchurSolver {
         tail: &[f64],
         back: BackSubstitute,
     ) {
-        let pieces = row_pieces(&self.parts, &self.offset, self.eliminated_rows, head);
+        let pieces = row_pieces(&self.parts, &self.blocks.offset, self.eliminated_rows, head);
         let mut pieces = pieces.into_iter();
         let (blocks, piece, first) = pieces.next().expect("one part");
         std::thread::scope(|s| {
