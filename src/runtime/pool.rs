@@ -13,6 +13,10 @@
 //! jobs are lent at most `workers - 1` turns at once: one worker always serves sessions, so a
 //! session's small solve never waits behind giant jobs, even behind a factorisation that cannot
 //! be interrupted.
+//!
+//! A solve may also borrow idle workers' cores for threads of its own
+//! ([`PoolHandle::borrow_idle`]): only while nothing waits, and a borrowed worker takes no task
+//! until the cores are given back, so the pool's concurrency is unchanged there too.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -41,6 +45,10 @@ struct Shared {
     /// Turns lent to jobs now, and how many may be at once (changed under the queue's lock).
     lent: AtomicUsize,
     max_lent: usize,
+    /// Idle workers whose cores a solve borrowed (changed under the queue's lock): they take no
+    /// task until given back.
+    borrowed: AtomicUsize,
+    workers: usize,
 }
 
 /// A cheap handle tasks use to submit work and to ask whether they should yield.
@@ -115,6 +123,58 @@ impl PoolHandle {
     pub fn is_stopping(&self) -> bool {
         self.shared.stopping.load(Ordering::SeqCst)
     }
+
+    /// The pool's size.
+    pub fn workers(&self) -> usize {
+        self.shared.workers
+    }
+
+    /// Borrows up to `wanted` idle workers' cores for threads of the calling task's own (a
+    /// solve on more than one thread): none while a task waits for a worker, never more than
+    /// the workers that are idle. The borrowed workers take no task until the [`Borrowed`] is
+    /// dropped.
+    pub fn borrow_idle(&self, wanted: usize) -> Borrowed {
+        let shared = &self.shared;
+        let queue = shared.queue.lock().unwrap_or_else(|p| p.into_inner());
+        let occupied = shared.busy.load(Ordering::SeqCst) + shared.borrowed.load(Ordering::SeqCst);
+        let count = if queue.is_empty() {
+            wanted.min(shared.workers.saturating_sub(occupied))
+        } else {
+            0
+        };
+        shared.borrowed.fetch_add(count, Ordering::SeqCst);
+        Borrowed {
+            pool: self.clone(),
+            count,
+        }
+    }
+}
+
+/// Idle workers' cores borrowed by a task ([`PoolHandle::borrow_idle`]); dropping it gives them
+/// back.
+pub struct Borrowed {
+    pool: PoolHandle,
+    count: usize,
+}
+
+impl Borrowed {
+    /// How many cores were borrowed (0: the task runs on its own worker alone).
+    pub fn count(&self) -> usize {
+        self.count
+    }
+}
+
+impl Drop for Borrowed {
+    fn drop(&mut self) {
+        if self.count == 0 {
+            return;
+        }
+        let shared = &self.pool.shared;
+        let _queue = shared.queue.lock().unwrap_or_else(|p| p.into_inner());
+        shared.borrowed.fetch_sub(self.count, Ordering::SeqCst);
+        // Tasks queued meanwhile may run now.
+        shared.ready.notify_all();
+    }
 }
 
 /// A worker's turn lent to a job's thread (see [`PoolHandle::lend_turn`]); dropping it gives
@@ -163,6 +223,8 @@ impl WorkerPool {
             lent: AtomicUsize::new(0),
             // One worker stays for sessions when there is more than one.
             max_lent: workers.saturating_sub(1).max(1),
+            borrowed: AtomicUsize::new(0),
+            workers,
         });
         let threads = (0..workers)
             .map(|i| {
@@ -228,9 +290,14 @@ fn worker(shared: &Shared) {
                 if shared.stopping.load(Ordering::SeqCst) {
                     return;
                 }
-                // The first entry that may run: a lent turn waits while jobs hold `max_lent`.
+                // The first entry that may run: a lent turn waits while jobs hold `max_lent`;
+                // nothing runs on a worker whose core is borrowed.
                 let lend_allowed = shared.lent.load(Ordering::SeqCst) < shared.max_lent;
-                if let Some(at) = queue.iter().position(|q| !q.lent || lend_allowed) {
+                let free = shared.busy.load(Ordering::SeqCst)
+                    + shared.borrowed.load(Ordering::SeqCst)
+                    < shared.workers;
+                let first = queue.iter().position(|q| !q.lent || lend_allowed);
+                if let Some(at) = first.filter(|_| free) {
                     let entry = queue.remove(at).expect("position is in the queue");
                     shared.busy.fetch_add(1, Ordering::SeqCst);
                     if entry.lent {
@@ -254,5 +321,62 @@ fn worker(shared: &Shared) {
             shared.ready.notify_all();
         }
         shared.idle.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A task that reports on `done` when it runs.
+    fn reporting(done: &mpsc::Sender<()>) -> Task {
+        let done = done.clone();
+        Box::new(move || {
+            let _ = done.send(());
+        })
+    }
+
+    #[test]
+    fn borrowed_cores_are_idle_workers_and_run_nothing_until_given_back() {
+        let pool = WorkerPool::new(2);
+        let handle = pool.handle();
+        let (done, ran) = mpsc::channel();
+        // From a task on one worker: the other one is idle, and only it can be borrowed.
+        let (report, borrowed_count) = mpsc::channel();
+        let (release, released) = mpsc::channel::<()>();
+        let inner = handle.clone();
+        assert!(handle.submit(Box::new(move || {
+            let borrowed = inner.borrow_idle(8);
+            let _ = report.send(borrowed.count());
+            let _ = released.recv();
+            drop(borrowed);
+        })));
+        assert_eq!(borrowed_count.recv().unwrap(), 1);
+        // Both workers are taken (one running, one lent): a new task waits.
+        assert!(handle.submit(reporting(&done)));
+        assert!(ran.recv_timeout(Duration::from_millis(200)).is_err());
+        // While it waits, nothing more is lent.
+        assert_eq!(handle.borrow_idle(1).count(), 0);
+        release.send(()).unwrap();
+        ran.recv_timeout(Duration::from_secs(5))
+            .expect("the task runs once the cores are given back");
+        pool.shutdown(Duration::from_secs(5));
+    }
+
+    #[test]
+    fn an_idle_pool_lends_at_most_its_workers_and_a_task_runs_after_the_drop() {
+        let pool = WorkerPool::new(3);
+        let handle = pool.handle();
+        let borrowed = handle.borrow_idle(usize::MAX);
+        assert_eq!(borrowed.count(), 3);
+        assert_eq!(handle.borrow_idle(1).count(), 0);
+        let (done, ran) = mpsc::channel();
+        assert!(handle.submit(reporting(&done)));
+        assert!(ran.recv_timeout(Duration::from_millis(200)).is_err());
+        drop(borrowed);
+        ran.recv_timeout(Duration::from_secs(5))
+            .expect("runs after the drop");
+        assert_eq!(handle.borrow_idle(0).count(), 0);
+        pool.shutdown(Duration::from_secs(5));
     }
 }

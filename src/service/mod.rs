@@ -323,18 +323,6 @@ impl Service {
         options.validate().map_err(|(field, m)| {
             ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
         })?;
-        // A session's solve is one task of the worker pool, which decides how many run at
-        // once: threads of its own would run beside the pool's and take cores it lends others.
-        if options.threads != 1 {
-            return Err(ServiceError::bad_request(
-                "invalid_value",
-                "options.threads",
-                format!(
-                    "a session solves on one worker of the server's pool (limits.workers sets how many run at once), so threads must be 1 here, got {}; more threads are for `factord solve` and `factord ba`",
-                    options.threads
-                ),
-            ));
-        }
         let factor_types = match factor_types {
             Some(compiled) => compiled,
             None => {

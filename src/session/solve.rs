@@ -205,6 +205,17 @@ impl Session {
     ) -> (Result<incremental::Resolved, solver::SolverError>, bool) {
         let (solve_number, sequence) = (work.solve_number, work.sequence);
         let mut preempted = false;
+        // Threads beyond this worker's own come from idle workers of the pool, none while a
+        // task waits: a solve never takes more cores than the pool lends it, and gives them back
+        // (by yielding) at the first iteration that ends while another task waits.
+        let asked = work.options.threads;
+        let wanted = match asked {
+            0 => self.pool.workers(),
+            n => n,
+        };
+        let borrowed = self.pool.borrow_idle(wanted.saturating_sub(1));
+        work.options.threads = 1 + borrowed.count();
+        let lends = borrowed.count() > 0;
         let mut on_iteration = |report: &solver::IterationReport| {
             // Nothing is published of a batch before it is durable (see `journal_barrier`).
             self.journal_barrier();
@@ -217,7 +228,7 @@ impl Session {
             if budget.checkpoint().is_break() {
                 return ControlFlow::Break(());
             }
-            if self.pool.waiting() > 0 && start.elapsed() > TIME_SLICE {
+            if self.pool.waiting() > 0 && (lends || start.elapsed() > TIME_SLICE) {
                 preempted = true;
                 return ControlFlow::Break(());
             }
@@ -227,6 +238,8 @@ impl Session {
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
+        drop(borrowed);
+        work.options.threads = asked;
         (result, preempted)
     }
 

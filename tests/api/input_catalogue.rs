@@ -105,14 +105,6 @@ fn cases() -> Vec<Case> {
             Some("options.threads"),
         ),
         case(
-            "S148",
-            "create",
-            json!({"session": "k", "kind": "bundle_adjustment", "options": {"threads": 2}}),
-            400,
-            "invalid_value",
-            Some("options.threads"),
-        ),
-        case(
             "S13",
             "create",
             json!({"session": "k", "kind": "pose_graph_2d", "options": {"method": "newton"}}),

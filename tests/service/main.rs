@@ -22,6 +22,7 @@ mod producer_list;
 mod robot_streams;
 mod robots;
 mod service;
+mod session_threads;
 mod stream_lag;
 mod user_factors;
 mod web_operators;

@@ -1,0 +1,90 @@
+//! A bundle adjustment session on more than one thread: the threads beyond its own worker are
+//! borrowed from idle workers of the server's pool (`--workers`), never more.
+
+use crate::common;
+
+use common::server::{client, create, get, post, TestServer};
+use serde_json::{json, Value};
+
+/// problem-49's cameras, points and observations as a session's batches.
+fn problem_49_batches(text: &str) -> (Value, Vec<Value>) {
+    let bal = factord::io::bal::parse(std::path::Path::new("p49"), text).unwrap();
+    let values = &bal.problem.values;
+    let variables: Vec<Value> = values
+        .keys()
+        .iter()
+        .map(|&k| {
+            let v = values.get(k).unwrap();
+            json!({"key": k, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
+        })
+        .collect();
+    let factors: Vec<Value> = bal
+        .problem
+        .factors()
+        .iter()
+        .map(|f| {
+            let z = f
+                .factor
+                .as_any()
+                .downcast_ref::<factord::factors::ReprojectionSnavely>()
+                .unwrap()
+                .observed;
+            json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
+        })
+        .collect();
+    let batches = factors
+        .chunks(10_000)
+        .map(|chunk| json!({"factors": chunk}))
+        .collect();
+    (json!({ "variables": variables }), batches)
+}
+
+/// Solves problem-49 in a session asking for `threads` on a server of `workers`; returns the
+/// summary.
+async fn solve_with(text: &str, workers: &str, threads: u64) -> Value {
+    let s = TestServer::start(&["--no-zenoh", "--workers", workers]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"},
+                "options": {"method": "levenberg_marquardt", "threads": threads}}),
+    )
+    .await;
+    let (variables, factors) = problem_49_batches(text);
+    let url = s.url("/v1/sessions/ba/batches");
+    for b in std::iter::once(&variables).chain(&factors) {
+        let (status, v) = post(&c, &url, b).await;
+        assert_eq!(status, 200, "{v}");
+    }
+    let (status, done) = post(&c, &s.url("/v1/sessions/ba/optimize?wait=true"), &json!({})).await;
+    assert_eq!(status, 200, "{done}");
+    let (status, summary) = get(&c, &s.url("/v1/sessions/ba/summary")).await;
+    assert_eq!(status, 200, "{summary}");
+    s.assert_no_panic();
+    summary
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_session_solves_on_the_idle_workers_it_borrows_and_no_more() {
+    let Some(path) = common::data_file("bal/problem-49-7776-pre.txt") else {
+        return;
+    };
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut costs = Vec::new();
+    // (workers, threads asked, threads the solve may run on): 0 asks for the whole pool.
+    for (workers, asked, expected) in [("2", 2, 2), ("1", 2, 1), ("3", 0, 3), ("2", 1, 1)] {
+        let summary = solve_with(&text, workers, asked).await;
+        assert_eq!(
+            summary["used"]["threads"], expected,
+            "workers {workers}, threads {asked}: {summary}"
+        );
+        let cost = summary["final_chi2"].as_f64().unwrap() / 2.0;
+        assert!((cost - 13344.32).abs() < 1e-3 * 13344.32, "{cost}");
+        costs.push(cost);
+    }
+    // Threads change only the order of sums: the same optimum to rounding.
+    for cost in &costs {
+        assert!((cost - costs[0]).abs() <= 1e-9 * costs[0], "{costs:?}");
+    }
+}
