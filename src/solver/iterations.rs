@@ -299,6 +299,9 @@ impl<'a> Iterations<'a> {
             if let Some(end) = gradient_stop(options, gradient) {
                 return Ok((chi2, end));
             }
+            // A tenth of the decrease the function tolerance calls converged.
+            self.chol
+                .set_negligible_decrease(0.1 * options.function_tolerance * chi2);
             // Inside an iteration the budget is checked before each factorisation and every few
             // thousand factors; stopping there keeps the last accepted values.
             let step = match self.take_step(

@@ -56,6 +56,14 @@ impl LinearSolver {
         }
     }
 
+    /// A chi2 decrease too small to matter to the solve (only an iterative solver uses it: see
+    /// [`ImplicitSchur::set_negligible_decrease`]).
+    pub fn set_negligible_decrease(&mut self, chi2_decrease: f64) {
+        if let Self::ImplicitSchur(schur) = self {
+            schur.set_negligible_decrease(chi2_decrease);
+        }
+    }
+
     /// Whether [`LinearSolver::factorize_shifted`] works without a damped copy of the matrix.
     pub fn shifts_in_place(&self) -> bool {
         matches!(self, Self::Schur(_) | Self::ImplicitSchur(_))

@@ -3,7 +3,8 @@
 //! not be exact far from the optimum; LM's step acceptance judges the step it gets): it stops
 //! when the quadratic model Q(x) = ½ xᵀAx − bᵀx stops improving, i·(Q_i − Q_{i−1}) / Q_i < η
 //! (Nash and Sofer's truncated-Newton rule, Ceres' choice: the residual's norm says little
-//! about the step's quality), or when the residual fell below a relative tolerance.
+//! about the step's quality), when what more iterations could add to the model's decrease is
+//! too small to matter to the caller, or when the residual fell below a relative tolerance.
 
 use std::time::Instant;
 
@@ -45,6 +46,9 @@ pub(in crate::solver) struct CgStop {
     pub residual: f64,
     /// i·(Q_i − Q_{i−1}) / Q_i < `model` (0: never).
     pub model: f64,
+    /// i·(Q_{i−1} − Q_i) < `gain` (0: never): what more iterations could add to the model's
+    /// decrease no longer matters (the caller's tolerance on the step's gain, in Q's units).
+    pub gain: f64,
     pub max_iterations: usize,
     /// The solve's time limit: no iteration starts past it once one has run (a solve stopped
     /// by `limits.max_solve_ms` must not spend hundreds of products first; at 5 000 cameras one
@@ -103,9 +107,11 @@ pub(in crate::solver) fn solve(
         outcome.iterations += 1;
         outcome.relative_residual = norm(r) / b_norm;
         let next_model = -0.5 * (dot(b, x) + dot(r, x));
-        let improvement = outcome.iterations as f64 * (next_model - model) / next_model;
+        let gained = outcome.iterations as f64 * (model - next_model);
+        let improvement = -gained / next_model;
         model = next_model;
-        if stop.model > 0.0 && improvement < stop.model {
+        if (stop.model > 0.0 && improvement < stop.model) || (stop.gain > 0.0 && gained < stop.gain)
+        {
             break;
         }
         precondition(r, z);
@@ -135,6 +141,7 @@ mod tests {
         CgStop {
             residual,
             model: 0.0,
+            gain: 0.0,
             max_iterations,
             deadline: None,
         }
@@ -247,6 +254,7 @@ mod tests {
         let model_stop = CgStop {
             residual: 1e-13,
             model: 1e-2,
+            gain: 0.0,
             max_iterations: 200,
             deadline: None,
         };
@@ -270,6 +278,24 @@ mod tests {
             reached < 0.0 && (reached - best) / best.abs() < 1e-2,
             "{reached} vs {best}"
         );
+        // The gain rule: stopped once i·(Q_{i−1} − Q_i) fell below 1e-3 |Q*|, before the
+        // residual rule, within a few times that of the optimum.
+        let gain_stop = CgStop {
+            model: 0.0,
+            gain: 1e-3 * best.abs(),
+            ..model_stop
+        };
+        let gained = solve(
+            |v, out| multiply(&a, n, v, out),
+            jacobi,
+            &b,
+            &mut x,
+            gain_stop,
+            &mut work,
+        );
+        assert!(gained.iterations < outcome.iterations, "{gained:?}");
+        let reached = q(&x);
+        assert!((reached - best) / best.abs() < 1e-2, "{reached} vs {best}");
     }
 
     #[test]
