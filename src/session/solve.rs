@@ -207,9 +207,12 @@ impl Session {
         let mut preempted = false;
         // Threads beyond this worker's own come from idle workers of the pool, none while a
         // task waits: a solve never takes more cores than the pool lends it, and gives them back
-        // (by yielding) at the first iteration that ends while another task waits.
+        // (by yielding) at the first iteration that ends while another task waits. Only a
+        // problem with variables to eliminate (bundle adjustment) splits its work: a pose
+        // graph's solve runs on one thread and borrows nothing.
         let asked = work.options.threads;
         let wanted = match asked {
+            _ if work.problem.eliminate.is_empty() => 1,
             0 => self.pool.workers(),
             n => n,
         };

@@ -88,3 +88,39 @@ async fn a_session_solves_on_the_idle_workers_it_borrows_and_no_more() {
         assert!((cost - costs[0]).abs() <= 1e-9 * costs[0], "{costs:?}");
     }
 }
+
+/// A pose graph's solve does not split: asking for threads borrows no worker, and another
+/// session's batch is answered while the first solves.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_pose_graph_session_asking_for_threads_borrows_nothing() {
+    let s = TestServer::start(&["--no-zenoh", "--workers", "2"]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "pg", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"},
+                "options": {"threads": 2}}),
+    )
+    .await;
+    let variables: Vec<Value> = (0..50)
+        .map(|i| json!({"key": i, "kind": "se2", "value": [i as f64, 0.0, 0.0]}))
+        .collect();
+    let factors: Vec<Value> = (1..50)
+        .map(|i| json!({"type": "between_se2", "keys": [i - 1, i], "measurement": [1.0, 0.0, 0.01], "sigmas": [0.1, 0.1, 0.05]}))
+        .chain([json!({"type": "prior_se2", "keys": [0], "measurement": [0.0, 0.0, 0.0], "sigmas": [0.01, 0.01, 0.01]})])
+        .collect();
+    let (status, v) = post(
+        &c,
+        &s.url("/v1/sessions/pg/batches"),
+        &json!({"variables": variables, "factors": factors}),
+    )
+    .await;
+    assert_eq!(status, 200, "{v}");
+    let (status, done) = post(&c, &s.url("/v1/sessions/pg/optimize?wait=true"), &json!({})).await;
+    assert_eq!(status, 200, "{done}");
+    let (_, summary) = get(&c, &s.url("/v1/sessions/pg/summary")).await;
+    // The solve is given the threads it may run on: this one, and none borrowed.
+    assert_eq!(summary["used"]["threads"], 1, "{summary}");
+    assert_eq!(summary["given_options"]["threads"], 1, "{summary}");
+    s.assert_no_panic();
+}
