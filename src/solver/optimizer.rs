@@ -194,7 +194,7 @@ fn analyze(
     cache: Option<&mut OrderingCache>,
     budget: &dyn Budget,
 ) -> Result<System, SolverError> {
-    let schur_plan = schur::plan(
+    let mut schur_plan = schur::plan(
         problem.factors(),
         &problem.values,
         fixed,
@@ -202,8 +202,10 @@ fn analyze(
         options.linear_solver,
         || schur::explicit_limit(budget.max_memory_bytes()),
     );
-    let ordering = match (&schur_plan, cache) {
-        (Some(plan), _) => plan.ordering.clone(),
+    let ordering = match (&mut schur_plan, cache) {
+        // Moved out, not copied: the Schur solvers read only the plan's reduced order (a copy
+        // of the whole graph was 24 M entries in 2 M lists at 5 000 cameras).
+        (Some(plan), _) => std::mem::take(&mut plan.ordering),
         (None, Some(cache)) => cache.ordering(problem.factors(), fixed),
         (None, None) => BlockOrdering::amd(free_adjacency(problem.factors(), fixed)),
     };

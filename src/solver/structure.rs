@@ -235,7 +235,7 @@ impl BlockPattern {
 
 /// A block graph and an elimination order of it: `position[block]` and its inverse
 /// `block_at[position]`. Built once per solve and shared by every system over that graph.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct BlockOrdering {
     pub adjacency: Vec<Vec<usize>>,
     pub position: Vec<usize>,

@@ -18,7 +18,7 @@ const DENSE_AUTO_MAX: usize = 1000;
 #[derive(Debug, Clone)]
 pub struct SchurPlan {
     /// Order of the whole free-variable graph: eliminated blocks first, then the reduced ones in
-    /// the order of `reduced`.
+    /// the order of `reduced`. The solve takes it out (the solvers do not read it).
     pub ordering: BlockOrdering,
     /// Number of eliminated blocks (they hold positions `0..eliminated`).
     pub eliminated: usize,
