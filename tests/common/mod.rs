@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod ack_proxy;
+pub mod bal_session;
 pub mod browser;
 pub mod cli;
 pub mod docker;

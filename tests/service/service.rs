@@ -1060,30 +1060,12 @@ async fn bundle_adjustment_as_a_job_and_as_a_session() {
 
     // The same problem streamed into a bundle_adjustment session: cameras and points, then the
     // observations in a few batches; the session solves with LM and reaches the same optimum.
-    let bal = factord::io::bal::parse(std::path::Path::new("p49"), &text).unwrap();
-    let values = &bal.problem.values;
-    let variables: Vec<Value> = values
-        .keys()
-        .iter()
-        .map(|&k| {
-            let v = values.get(k).unwrap();
-            json!({"key": k, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
-        })
-        .collect();
-    let factors: Vec<Value> = bal
-        .problem
-        .factors()
-        .iter()
-        .map(|f| {
-            let z = f.factor.as_any().downcast_ref::<factord::factors::ReprojectionSnavely>().unwrap().observed;
-            json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
-        })
-        .collect();
+    let (variables, factor_batches) = common::bal_session::batches(&text, 10_000);
     create(&c, &s, &json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"}})).await;
-    let (status, v) = batch(&c, &s, "ba", &json!({"variables": variables}), false).await;
+    let (status, v) = batch(&c, &s, "ba", &variables, false).await;
     assert_eq!(status, 200, "{v}");
-    for chunk in factors.chunks(10_000) {
-        let (status, v) = batch(&c, &s, "ba", &json!({"factors": chunk}), false).await;
+    for factors in &factor_batches {
+        let (status, v) = batch(&c, &s, "ba", factors, false).await;
         assert_eq!(status, 200, "{v}");
     }
     let (status, done) = post(&c, &s.url("/v1/sessions/ba/optimize?wait=true"), &json!({})).await;

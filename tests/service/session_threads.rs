@@ -6,39 +6,6 @@ use crate::common;
 use common::server::{client, create, get, post, TestServer};
 use serde_json::{json, Value};
 
-/// problem-49's cameras, points and observations as a session's batches.
-fn problem_49_batches(text: &str) -> (Value, Vec<Value>) {
-    let bal = factord::io::bal::parse(std::path::Path::new("p49"), text).unwrap();
-    let values = &bal.problem.values;
-    let variables: Vec<Value> = values
-        .keys()
-        .iter()
-        .map(|&k| {
-            let v = values.get(k).unwrap();
-            json!({"key": k, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
-        })
-        .collect();
-    let factors: Vec<Value> = bal
-        .problem
-        .factors()
-        .iter()
-        .map(|f| {
-            let z = f
-                .factor
-                .as_any()
-                .downcast_ref::<factord::factors::ReprojectionSnavely>()
-                .unwrap()
-                .observed;
-            json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
-        })
-        .collect();
-    let batches = factors
-        .chunks(10_000)
-        .map(|chunk| json!({"factors": chunk}))
-        .collect();
-    (json!({ "variables": variables }), batches)
-}
-
 /// Solves problem-49 in a session asking for `threads` on a server of `workers`; returns the
 /// summary.
 async fn solve_with(text: &str, workers: &str, threads: u64) -> Value {
@@ -51,7 +18,7 @@ async fn solve_with(text: &str, workers: &str, threads: u64) -> Value {
                 "options": {"method": "levenberg_marquardt", "threads": threads}}),
     )
     .await;
-    let (variables, factors) = problem_49_batches(text);
+    let (variables, factors) = common::bal_session::batches(text, 10_000);
     let url = s.url("/v1/sessions/ba/batches");
     for b in std::iter::once(&variables).chain(&factors) {
         let (status, v) = post(&c, &url, b).await;

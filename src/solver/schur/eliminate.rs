@@ -252,7 +252,9 @@ fn eliminate_all<const FUSED: bool>(
 }
 
 /// Whether to stop: the calling thread asks `budget` (and tells the others), they read `stop`.
-fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
+/// Also the implicit solver's parts.
+#[inline(always)]
+pub(super) fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
     match budget {
         Some(budget) => {
             let stopped = budget.checkpoint().is_break();

@@ -13,14 +13,14 @@
 //! step of the 5 000-camera problem took 49 CG iterations of its 68.
 
 use std::ops::{ControlFlow, Range};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use super::super::budget::Budget;
 use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
-use super::eliminate::{small_cholesky, small_cholesky_inverse};
+use super::eliminate::{small_cholesky, small_cholesky_inverse, stopped};
 use super::implicit_threads::Helper;
 use super::pcg::{self, CgStop, CgWork};
 use super::schur_jacobi::SchurJacobi;
@@ -546,22 +546,6 @@ fn eliminate_with(
         }
     }
     Ok(ControlFlow::Continue(()))
-}
-
-/// Whether a part stops here: the part given the budget asks it and tells the others through
-/// `stop`; the others read it.
-#[inline(always)]
-fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
-    match budget {
-        Some(budget) => {
-            let stopped = budget.checkpoint().is_break();
-            if stopped {
-                stop.store(true, Ordering::Relaxed);
-            }
-            stopped
-        }
-        None => stop.load(Ordering::Relaxed),
-    }
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
