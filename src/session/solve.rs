@@ -210,8 +210,9 @@ impl Session {
         // (by yielding) at the first iteration that ends while another task waits. Only a
         // problem with variables to eliminate (bundle adjustment) splits its work: a pose
         // graph's solve runs on one thread and borrows nothing.
-        let asked = work.options.threads;
-        let wanted = match asked {
+        // The options are this solve's copy (taken with the work): the lent count replaces the
+        // asked one for it alone.
+        let wanted = match work.options.threads {
             _ if work.problem.eliminate.is_empty() => 1,
             0 => self.pool.workers(),
             n => n,
@@ -242,7 +243,6 @@ impl Session {
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
         drop(borrowed);
-        work.options.threads = asked;
         (result, preempted)
     }
 

@@ -99,11 +99,12 @@ pub struct SolverOptions {
     pub initialization: Initialization,
     pub linear_solver: LinearSolverChoice,
     /// Threads one solve may use for linearisation, the trial cost, the Schur complement's
-    /// elimination and back-substitution and the implicit Schur complement's products (1: the calling thread only; 0: one per core). Where
-    /// the problem's structure does not split (pose graphs), the solve runs on one thread
-    /// whatever this says. Results differ from one thread's by rounding only. In a session the
-    /// threads beyond the solve's own worker are borrowed from idle workers of the server's pool
-    /// (0: as many as the pool has), none while other work waits.
+    /// elimination and back-substitution and the implicit Schur complement's products (1: the
+    /// calling thread only; 0: one per core). Where the problem's structure does not split
+    /// (pose graphs), the solve runs on one thread whatever this says. Results differ from one
+    /// thread's by rounding only. In a session the threads beyond the solve's own worker are
+    /// borrowed from idle workers of the server's pool (0: as many as the pool has), none while
+    /// other work waits.
     #[serde(deserialize_with = "crate::wire_number::usize")]
     pub threads: usize,
 }

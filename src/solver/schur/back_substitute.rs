@@ -15,7 +15,7 @@ impl SchurSolver {
     /// again here; the shift only touched the diagonal).
     pub fn solve_in_place(&mut self, full: &BlockPattern, values: &[f64], rhs: &mut [f64]) {
         let n = self.reduced.n;
-        let base = self.eliminated_rows;
+        let base = self.blocks.rows;
         self.rhs.copy_from_slice(&rhs[base..base + n]);
         self.reduce_parts((full, values), rhs, reduce_rhs);
         self.backend.solve_in_place(&self.s_values, &mut self.rhs);
@@ -36,14 +36,12 @@ impl SchurSolver {
     ) {
         let d = if D > 0 { D } else { self.blocks.dim[e] };
         let o = self.blocks.offset[e];
-        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
+        let v = &self.v_inverse[self.blocks.v_range(e)];
         let mut t = [0.0; 16];
         for (i, ti) in t[..d].iter_mut().enumerate() {
             *ti = (0..d).map(|j| v[i * d + j] * rhs[o + j]).sum();
         }
-        for nb in &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
-        {
+        for nb in self.blocks.neighbours_of(e) {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
             let ok = self.reduced.offset[nb.block];
             let out = &mut out[ok..ok + dk];
@@ -69,13 +67,11 @@ impl SchurSolver {
     ) {
         let d = if D > 0 { D } else { self.blocks.dim[e] };
         let o = self.blocks.offset[e] - first;
-        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
+        let v = &self.v_inverse[self.blocks.v_range(e)];
         let xe = &mut head[o..o + d];
         let mut be = [0.0; 16];
         be[..d].copy_from_slice(xe);
-        for nb in &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
-        {
+        for nb in self.blocks.neighbours_of(e) {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };
             let ok = self.reduced.offset[nb.block];
             let xr = &tail[ok..ok + dk];

@@ -52,7 +52,7 @@ impl SchurSolver {
         if let Some(shift) = shift {
             let n = self.reduced.n;
             let dense = self.is_dense();
-            for (i, add) in shift[self.eliminated_rows..].iter().enumerate() {
+            for (i, add) in shift[self.blocks.rows..].iter().enumerate() {
                 let at = if dense {
                     i * n + i
                 } else {
@@ -71,7 +71,7 @@ impl SchurSolver {
         let started = Instant::now();
         let factorized =
             self.backend
-                .factorize(&self.reduced, &mut self.s_values, self.eliminated_rows);
+                .factorize(&self.reduced, &mut self.s_values, self.blocks.rows);
         self.reduced_cost.measure(started.elapsed());
         factorized.map(ControlFlow::Continue)
     }
@@ -95,8 +95,7 @@ impl View<'_> {
         let d = if D > 0 { D } else { self.blocks.dim[e] };
         let reduced = self.reduced;
         let dense_n = self.dense_n;
-        let v = &mut part.v_inverse
-            [self.blocks.v_start[e] - part.v_first..self.blocks.v_start[e + 1] - part.v_first];
+        let v = &mut part.v_inverse[self.blocks.v_range_in(e, part.v_first)];
         let diagonal_pair = full.column_blocks(e)[0].1;
         for q in 0..d {
             for r in q..d {
@@ -110,8 +109,7 @@ impl View<'_> {
         }
         small_cholesky(v, d)?;
         small_cholesky_inverse(v, d);
-        let around = &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]];
+        let around = self.blocks.neighbours_of(e);
         let local = self.gather_w_and_y::<D, K>(part, around, d, e, full, values);
         // S_kl −= Y_k W_lᵀ for l ≤ k: column q of the block is the axpy Σ_t Y_k[:, t] W_l[q, t].
         let blocks = &self.s_blocks[self.s_block_start[e]..self.s_block_start[e + 1]];
@@ -163,8 +161,7 @@ impl View<'_> {
         full: &BlockPattern,
         values: &[f64],
     ) -> usize {
-        let v = &part.v_inverse
-            [self.blocks.v_start[e] - part.v_first..self.blocks.v_start[e + 1] - part.v_first];
+        let v = &part.v_inverse[self.blocks.v_range_in(e, part.v_first)];
         let mut local = 0;
         for nb in around {
             let dk = if K > 0 { K } else { self.reduced.dim[nb.block] };

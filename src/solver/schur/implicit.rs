@@ -47,7 +47,6 @@ pub struct CgStats {
 /// module documentation.
 pub struct ImplicitSchur {
     pub(super) eliminated: usize,
-    pub(super) eliminated_rows: usize,
     /// Per eliminated block: dimension, first row, where its V⁻¹ starts, its neighbours.
     pub(super) blocks: EliminatedBlocks,
     pub(super) v_inverse: Vec<f64>,
@@ -115,7 +114,6 @@ impl ImplicitSchur {
         let n = full.n - eliminated_rows;
         Self {
             eliminated: ne,
-            eliminated_rows,
             v_inverse: vec![0.0; blocks.v_start[ne]],
             blocks,
             jacobi: SchurJacobi::new(reduced_dim.clone(), reduced_offset.clone()),
@@ -197,7 +195,7 @@ impl ImplicitSchur {
             .remaining()
             .and_then(|left| Instant::now().checked_add(left));
         match shift {
-            Some(shift) => self.shift.copy_from_slice(&shift[self.eliminated_rows..]),
+            Some(shift) => self.shift.copy_from_slice(&shift[self.blocks.rows..]),
             None => self.shift.fill(0.0),
         }
         self.jacobi
@@ -208,7 +206,7 @@ impl ImplicitSchur {
         {
             return Ok(ControlFlow::Break(()));
         }
-        self.jacobi.factorize(self.eliminated_rows)?;
+        self.jacobi.factorize(self.blocks.rows)?;
         Ok(ControlFlow::Continue(()))
     }
 
@@ -270,9 +268,7 @@ impl ImplicitSchur {
         jacobi: &mut [f64],
     ) {
         let d = if D > 0 { D } else { self.blocks.dim[e] };
-        for nb in &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
-        {
+        for nb in self.blocks.neighbours_of(e) {
             let dk = if K > 0 { K } else { self.reduced_dim[nb.block] };
             let mut w = [0.0; 16 * 16];
             for s in 0..d {
@@ -288,7 +284,7 @@ impl ImplicitSchur {
     /// back-substitution run part by part.
     pub fn solve_in_place(&mut self, full: &BlockPattern, values: &[f64], rhs: &mut [f64]) {
         let h = (full, values);
-        let base = self.eliminated_rows;
+        let base = self.blocks.rows;
         let mut reduced = std::mem::take(&mut self.rhs);
         reduced.copy_from_slice(&rhs[base..]);
         let mut helpers = std::mem::take(&mut self.helpers);
@@ -371,7 +367,7 @@ impl ImplicitSchur {
     /// out = V_e⁻¹ x.
     fn v_inverse_times(&self, e: usize, x: &[f64], out: &mut [f64; 16]) {
         let d = self.blocks.dim[e];
-        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
+        let v = &self.v_inverse[self.blocks.v_range(e)];
         for i in 0..d {
             out[i] = (0..d).map(|j| v[i * d + j] * x[j]).sum();
         }
@@ -379,9 +375,7 @@ impl ImplicitSchur {
 
     /// y_k −= W_k t for every neighbour k of `e`.
     fn subtract_w(&self, e: usize, (full, values): H<'_>, t: &[f64], y: &mut [f64]) {
-        for nb in &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
-        {
+        for nb in self.blocks.neighbours_of(e) {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
             for (s, ts) in t[..self.blocks.dim[e]].iter().enumerate() {
                 let start = full.value_index(nb.w_pair, false, 0, s);
@@ -394,9 +388,7 @@ impl ImplicitSchur {
 
     /// be −= Σ_k W_kᵀ x_k over the neighbours k of `e`.
     fn subtract_wt(&self, e: usize, (full, values): H<'_>, x: &[f64], be: &mut [f64]) {
-        for nb in &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]]
-        {
+        for nb in self.blocks.neighbours_of(e) {
             let (dk, ok) = (self.reduced_dim[nb.block], self.reduced_offset[nb.block]);
             for (s, b) in be[..self.blocks.dim[e]].iter_mut().enumerate() {
                 let start = full.value_index(nb.w_pair, false, 0, s);
@@ -450,8 +442,7 @@ impl ImplicitSchur {
         y: &mut [f64],
     ) {
         let d = if D > 0 { D } else { self.blocks.dim[e] };
-        let around = &self.blocks.neighbours
-            [self.blocks.neighbour_start[e]..self.blocks.neighbour_start[e + 1]];
+        let around = self.blocks.neighbours_of(e);
         let mut t = [0.0; 16];
         for nb in around {
             let (dk, ok) = (
@@ -469,7 +460,7 @@ impl ImplicitSchur {
                 *ts += acc;
             }
         }
-        let v = &self.v_inverse[self.blocks.v_start[e]..self.blocks.v_start[e + 1]];
+        let v = &self.v_inverse[self.blocks.v_range(e)];
         let mut u = [0.0; 16];
         for i in 0..d {
             for j in 0..d {
@@ -538,7 +529,7 @@ fn eliminate_with(
         if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
         }
-        let v = &mut v[solver.blocks.v_start[e] - v_first..solver.blocks.v_start[e + 1] - v_first];
+        let v = &mut v[solver.blocks.v_range_in(e, v_first)];
         solver.invert_v(e, v, h, shift)?;
         match (solver.blocks.dim[e], solver.blocks.camera_neighbours[e]) {
             (3, true) => solver.precondition_one::<3, CAMERA>(e, v, h, jacobi),

@@ -17,7 +17,7 @@ use std::sync::atomic::AtomicBool;
 
 use super::super::budget::Budget;
 use super::super::cholesky::NotPositiveDefinite;
-use super::threads::{parts_by_neighbours, row_pieces, H};
+use super::threads::{parts_by_neighbours, row_pieces, v_pieces, H};
 use super::ImplicitSchur;
 use crate::solver::parts::mine_then_joined;
 
@@ -57,22 +57,14 @@ impl ImplicitSchur {
         let mut helpers = std::mem::take(&mut self.helpers);
         let stop = AtomicBool::new(false);
         let this = &*self;
-        let mut v_rest = &mut v_inverse[..];
-        let mut v_pieces = Vec::with_capacity(this.parts.len());
-        for blocks in &this.parts {
-            let len = this.blocks.v_start[blocks.end] - this.blocks.v_start[blocks.start];
-            let (piece, next) = std::mem::take(&mut v_rest).split_at_mut(len);
-            v_rest = next;
-            v_pieces.push(piece);
-        }
-        let mut v_pieces = v_pieces.into_iter();
-        let first_v = v_pieces.next().expect("one part");
+        let mut v_pieces = v_pieces(&this.parts, &this.blocks, &mut v_inverse).into_iter();
+        let (first_v, _) = v_pieces.next().expect("one part");
         let results = std::thread::scope(|s| {
             let others: Vec<_> = this.parts[1..]
                 .iter()
                 .zip(v_pieces)
                 .zip(helpers.iter_mut())
-                .map(|((blocks, v), helper)| {
+                .map(|((blocks, (v, _)), helper)| {
                     let stop = &stop;
                     s.spawn(move || {
                         helper.jacobi.fill(0.0);
@@ -157,7 +149,7 @@ impl ImplicitSchur {
     /// The eliminated rows `head` back-substituted from the reduced `solution`, part by part
     /// (each part writes only its own rows).
     pub(super) fn back_substitute_parts(&self, h: H<'_>, head: &mut [f64], solution: &[f64]) {
-        let pieces = row_pieces(&self.parts, &self.blocks.offset, self.eliminated_rows, head);
+        let pieces = row_pieces(&self.parts, &self.blocks, head);
         std::thread::scope(|s| {
             let mut pieces = pieces.into_iter();
             let (blocks, rows, first) = pieces.next().expect("one part");

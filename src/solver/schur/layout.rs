@@ -43,7 +43,6 @@ impl SchurSolver {
         };
         Ok(Self {
             eliminated: ne,
-            eliminated_rows: blocks.rows,
             v_inverse: vec![0.0; blocks.v_start[ne]],
             blocks,
             s_block_start,

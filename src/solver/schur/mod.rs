@@ -83,7 +83,7 @@ const ELIMINATED_PER_CHECK: usize = 1024;
 /// (`neighbours[neighbour_start[e]..neighbour_start[e + 1]]`, sorted by position).
 #[derive(Debug)]
 struct EliminatedBlocks {
-    /// Scalar rows of the eliminated part.
+    /// Scalar rows of the eliminated part; reduced scalar row `i` is full row `rows + i`.
     rows: usize,
     dim: Vec<usize>,
     offset: Vec<usize>,
@@ -145,14 +145,22 @@ impl EliminatedBlocks {
     fn neighbours_of(&self, e: usize) -> &[Neighbour] {
         &self.neighbours[self.neighbour_start[e]..self.neighbour_start[e + 1]]
     }
+
+    /// Where eliminated block `e`'s V⁻¹ lies in the solver's V⁻¹ array.
+    fn v_range(&self, e: usize) -> std::ops::Range<usize> {
+        self.v_range_in(e, 0)
+    }
+
+    /// [`Self::v_range`] in a part's slice of V⁻¹ that starts at `first`.
+    fn v_range_in(&self, e: usize, first: usize) -> std::ops::Range<usize> {
+        self.v_start[e] - first..self.v_start[e + 1] - first
+    }
 }
 
 /// Factorises the normal equations by eliminating a block-diagonal part first; see the module
 /// documentation.
 pub struct SchurSolver {
     eliminated: usize,
-    /// Scalar rows of the eliminated part; reduced scalar row `i` is full row `eliminated_rows + i`.
-    eliminated_rows: usize,
     /// The eliminated blocks' layout: dimensions, rows, where each V⁻¹ starts, neighbours.
     blocks: EliminatedBlocks,
     v_inverse: Vec<f64>,

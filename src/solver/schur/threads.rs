@@ -67,15 +67,31 @@ pub(super) fn parts_by_neighbours(
     starts.windows(2).map(|w| w[0]..w[1]).collect()
 }
 
+/// `v_inverse` cut into each part's V⁻¹: (its slice, the index its slice starts at).
+pub(super) fn v_pieces<'a>(
+    parts: &[Range<usize>],
+    blocks: &EliminatedBlocks,
+    v_inverse: &'a mut [f64],
+) -> Vec<(&'a mut [f64], usize)> {
+    let mut rest = v_inverse;
+    let mut pieces = Vec::with_capacity(parts.len());
+    for part in parts {
+        let (first, end) = (blocks.v_start[part.start], blocks.v_start[part.end]);
+        let (piece, next) = std::mem::take(&mut rest).split_at_mut(end - first);
+        rest = next;
+        pieces.push((piece, first));
+    }
+    pieces
+}
+
 /// `head` (the eliminated rows) cut into each part's rows: (its blocks, its rows, its first
-/// row), `offset[e]` being block `e`'s first row.
+/// row).
 pub(super) fn row_pieces<'a>(
     parts: &[Range<usize>],
-    offset: &[usize],
-    eliminated_rows: usize,
+    blocks: &EliminatedBlocks,
     head: &'a mut [f64],
 ) -> Vec<(Range<usize>, &'a mut [f64], usize)> {
-    let row = |e: usize| offset.get(e).copied().unwrap_or(eliminated_rows);
+    let row = |e: usize| blocks.offset.get(e).copied().unwrap_or(blocks.rows);
     let mut rest = head;
     let mut pieces = Vec::with_capacity(parts.len());
     for blocks in parts {
@@ -121,11 +137,6 @@ impl SchurSolver {
         shift: Option<&[f64]>,
         budget: &dyn Budget,
     ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-        let bounds: Vec<usize> = self
-            .parts
-            .iter()
-            .map(|p| self.blocks.v_start[p.start])
-            .collect();
         let view = View {
             blocks: &self.blocks,
             s_block_start: &self.s_block_start,
@@ -138,21 +149,13 @@ impl SchurSolver {
         };
         let stop = AtomicBool::new(false);
         let inputs = (full, values, shift);
-        let v_len = self.v_inverse.len();
-        let mut v_rest = &mut self.v_inverse[..];
-        let mut parts = Vec::with_capacity(self.parts.len());
-        for k in 0..self.parts.len() {
-            let v_end = bounds.get(k + 1).copied().unwrap_or(v_len);
-            let (v, v_next) = std::mem::take(&mut v_rest).split_at_mut(v_end - bounds[k]);
-            v_rest = v_next;
-            parts.push(v);
-        }
-        let mut parts = parts.into_iter().zip(&self.parts).zip(&bounds);
-        let ((first_v, first_blocks), _) = parts.next().expect("one part");
+        let pieces = v_pieces(&self.parts, &self.blocks, &mut self.v_inverse);
+        let mut parts = pieces.into_iter().zip(&self.parts);
+        let ((first_v, _), first_blocks) = parts.next().expect("one part");
         let results = std::thread::scope(|s| {
             let others: Vec<_> = parts
                 .zip(self.helpers.iter_mut())
-                .map(|(((v, blocks), &v_first), helper)| {
+                .map(|(((v, v_first), blocks), helper)| {
                     let view = &view;
                     let stop = &stop;
                     s.spawn(move || {
@@ -224,7 +227,7 @@ impl SchurSolver {
         tail: &[f64],
         back: BackSubstitute,
     ) {
-        let pieces = row_pieces(&self.parts, &self.blocks.offset, self.eliminated_rows, head);
+        let pieces = row_pieces(&self.parts, &self.blocks, head);
         let mut pieces = pieces.into_iter();
         let (blocks, piece, first) = pieces.next().expect("one part");
         std::thread::scope(|s| {
