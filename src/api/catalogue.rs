@@ -11,8 +11,9 @@
 //! `proto/v1/factors.schema.json`. A new factor is its file plus one line here.
 
 use crate::factors::{
-    BearingRangeSe2, BetweenSe2, BetweenSe3, GnssLeverArmSe3, GnssPositionSe3, PositionSe3Point3,
-    PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3, ReprojectionSnavely,
+    BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, GnssLeverArmSe3, GnssPositionSe3,
+    PositionSe3Point3, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3,
+    ReprojectionSnavely,
 };
 use crate::problem::{Gauge, Variable};
 use crate::solver::SolverOptions;
@@ -50,12 +51,13 @@ fn sliding_window_options() -> SolverOptions {
 pub const SESSION_KINDS: &[SessionKind] = &[
     SessionKind {
         name: "pose_graph_2d",
-        description: "SE(2) poses and point2 landmarks with relative-pose, prior, bearing-range and range factors",
+        description: "SE(2) poses and point2 landmarks with relative-pose, prior, bearing-range, bearing-only and range factors",
         variable_kinds: &["se2", "point2"],
         factor_types: &[
             "between_se2",
             "prior_se2",
             "bearing_range_se2",
+            "bearing_se2",
             "range_se2_point2",
             "range_se2",
         ],
@@ -118,6 +120,7 @@ const FACTORS: &[&FactorWire] = &[
     &ReprojectionSnavely::WIRE,
     &GnssPositionSe3::WIRE,
     &BearingRangeSe2::WIRE,
+    &BearingSe2::WIRE,
     &RangeSe2Point2::WIRE,
     &RangeSe2::WIRE,
     &GnssLeverArmSe3::WIRE,

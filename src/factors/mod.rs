@@ -68,6 +68,7 @@ macro_rules! range_factor {
 
 pub mod autodiff;
 pub mod bearing_range_se2;
+pub mod bearing_se2;
 pub mod between_se2;
 pub mod between_se3;
 pub mod expression;
@@ -95,6 +96,7 @@ use std::any::Any;
 use std::fmt::Debug;
 
 pub use bearing_range_se2::BearingRangeSe2;
+pub use bearing_se2::BearingSe2;
 pub use between_se2::BetweenSe2;
 pub use between_se3::BetweenSe3;
 pub use gnss_lever_arm_se3::GnssLeverArmSe3;
@@ -164,6 +166,10 @@ pub enum EvaluationError {
         expected: &'static str,
         found: &'static str,
     },
+    /// The factor's own code failed: a residual written outside the library (a Python
+    /// callback in the in-process API) raised or answered something of the wrong shape.
+    #[error("{factor}: {message}")]
+    Failed { factor: String, message: String },
 }
 
 pub trait Factor: Debug + Send + Sync {

@@ -2,7 +2,7 @@
 //! odometry, `point2` landmarks added without a value (predicted from their first
 //! `bearing_range_se2` sighting), later sightings closing the loop; the estimate after a solve
 //! has every landmark where it is, and a sighting with a negative range or a point2 used as a
-//! pose is refused naming the field.
+//! pose is refused naming the field. Landmarks seen by bearing only (`bearing_se2`) likewise.
 
 use crate::common;
 
@@ -132,5 +132,81 @@ async fn landmarks_stream_into_a_pose_graph_session() {
     assert_eq!(status, 422, "{e}");
     assert_eq!(e["error"]["code"], "wrong_kind", "{e}");
     assert_eq!(e["error"]["field"], "factors[0].keys[0]", "{e}");
+    s.assert_no_panic();
+}
+
+/// Landmarks seen by bearing only (`bearing_se2`) from the circle of poses: each is sent with a
+/// value a metre off and ends where it is; a landmark without a value, which one bearing cannot
+/// place, is refused naming it.
+#[tokio::test(flavor = "multi_thread")]
+async fn bearing_only_sightings_place_landmarks_in_a_session() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        // A landmark seen from one place is free along its ray until a second sighting:
+        // Levenberg-Marquardt's damping holds it where it is meanwhile (Gauss-Newton would
+        // call the system indeterminate at it).
+        &json!({"session": "bearings", "kind": "pose_graph_2d",
+            "options": {"method": "levenberg_marquardt"}}),
+    )
+    .await;
+    let url = s.url("/v1/sessions/bearings/batches");
+    let mut seen = std::collections::BTreeSet::new();
+    for k in 0..70 {
+        let mut variables = vec![];
+        let mut factors = vec![];
+        if k == 0 {
+            variables.push(json!({"key": 0, "kind": "se2", "value": pose(0), "fixed": true}));
+        } else {
+            variables.push(json!({"key": k, "kind": "se2"}));
+            factors.push(json!({"type": "between_se2", "keys": [k - 1, k],
+                "measurement": odometry(k), "sigmas": [0.05, 0.05, 0.01]}));
+        }
+        for l in 0..8 {
+            let [b, r] = sighting(k, l);
+            if b.abs() > 1.2 || r > 12.0 {
+                continue;
+            }
+            let key = LANDMARK_BASE + l as u64;
+            if seen.insert(l) {
+                let [lx, ly] = landmark(l);
+                variables
+                    .push(json!({"key": key, "kind": "point2", "value": [lx + 0.8, ly - 0.6]}));
+            }
+            factors.push(json!({"type": "bearing_se2", "keys": [k, key],
+                "measurement": [b], "sigmas": [0.01]}));
+        }
+        let batch = json!({"variables": variables, "factors": factors});
+        let (status, ack) = post(&c, &url, &batch).await;
+        assert!(status < 300, "pose {k}: {ack}");
+    }
+    assert!(seen.len() >= 6, "landmarks seen: {seen:?}");
+    let optimize = s.url("/v1/sessions/bearings/optimize?wait=true");
+    let (status, solved) = post(&c, &optimize, &json!({})).await;
+    assert_eq!(status, 200, "{solved}");
+    let (_, estimate) = get(&c, &s.url("/v1/sessions/bearings/estimate")).await;
+    let mut checked = 0;
+    for v in estimate["variables"].as_array().unwrap() {
+        let key = v["key"].as_u64().unwrap();
+        if key >= LANDMARK_BASE {
+            let [lx, ly] = landmark((key - LANDMARK_BASE) as usize);
+            let value: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
+            assert!(
+                (value[0] - lx).abs() < 1e-6 && (value[1] - ly).abs() < 1e-6,
+                "{v}"
+            );
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, seen.len());
+
+    let unplaced = json!({"variables": [{"key": LANDMARK_BASE + 50, "kind": "point2"}],
+        "factors": [{"type": "bearing_se2", "keys": [3, LANDMARK_BASE + 50],
+        "measurement": [0.2], "sigmas": [0.01]}]});
+    let (status, e) = post(&c, &url, &unplaced).await;
+    assert!((400..500).contains(&status), "{status} {e}");
+    assert_eq!(e["error"]["field"], "variables[0].value", "{e}");
     s.assert_no_panic();
 }

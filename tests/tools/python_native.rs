@@ -9,6 +9,11 @@
 //! - `clients/python/native/tests/test_inprocess.py` (pytest): keys, geometry, the typed errors
 //!   naming keys as `X(1)`, noise weights, an ISAM2 stream against the batch optimum, g2o round
 //!   trips;
+//! - `clients/python/native/tests/test_user_factors.py` (pytest): `CustomFactor` (Python error
+//!   functions with GTSAM-convention Jacobians, also on an iSAM2 update's second thread) and
+//!   `FactorType` (Python functions recorded into the expression language);
+//! - `clients/python/native/tests/one_wheel.py`: the wheel's wire client (`factord_client`)
+//!   against a test server, the same factor type in process and on the server;
 //! - `clients/python/native/tests/gtsam_parity.py`: the same scripts with `import gtsam` (the
 //!   `gtsam` venv) and `import factord as gtsam`, compared (GTSAM's Pose2SLAMExample and
 //!   PlanarSLAMExample to 1e-9, M3500 through readG2o and a Pose3 loop by cross-scoring).
@@ -182,6 +187,7 @@ fn inprocess_python_api_passes_its_tests() {
         "-p",
         "no:cacheprovider",
         "clients/python/native/tests/test_inprocess.py",
+        "clients/python/native/tests/test_user_factors.py",
     ]));
     match out {
         Ok(stdout) => println!(
@@ -267,4 +273,22 @@ fn inprocess_solve_matches_the_cli() {
             "{file}"
         );
     }
+}
+
+/// The one wheel carries the wire client too: a factor type written in Python is solved in
+/// process and, as the same definition, by a running server reached with `factord_client` from
+/// the same wheel; the two optima agree (`clients/python/native/tests/one_wheel.py`).
+#[test]
+fn one_wheel_solves_in_process_and_on_a_server() {
+    let Some(installed) = installed() else { return };
+    let Some(data) = data_dir() else { return };
+    let server = common::server::TestServer::start(&[]);
+    let out = run(python_in(installed, &data)
+        .arg("clients/python/native/tests/one_wheel.py")
+        .arg(server.url("")));
+    match out {
+        Ok(stdout) => println!("{stdout}"),
+        Err(failure) => panic!("{failure}"),
+    }
+    server.assert_no_panic();
 }

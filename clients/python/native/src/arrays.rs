@@ -41,12 +41,16 @@ pub fn dmatrix_out<'py>(py: Python<'py>, m: &DMatrix<f64>) -> PyResult<Bound<'py
     matrix_out(py, m.nrows(), m.ncols(), &row_major)
 }
 
-/// `obj` as a float array: its shape and its values, row-major.
-fn as_array(obj: &Bound<'_, PyAny>) -> PyResult<(Vec<usize>, Vec<f64>)> {
+/// `obj` as a float array: its shape and its values, row-major. Not one (a string, a ragged
+/// list): a `TypeError` naming `what`.
+fn as_array(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<usize>, Vec<f64>)> {
     let py = obj.py();
     let array = numpy(py)?
         .getattr("asarray")?
-        .call1((obj, py.import("builtins")?.getattr("float")?))?;
+        .call1((obj, py.import("builtins")?.getattr("float")?))
+        .map_err(|e| {
+            pyo3::exceptions::PyTypeError::new_err(format!("{what}: not an array of numbers ({e})"))
+        })?;
     let shape: Vec<usize> = array.getattr("shape")?.extract()?;
     let flat: Vec<f64> = array
         .call_method0("ravel")?
@@ -57,7 +61,7 @@ fn as_array(obj: &Bound<'_, PyAny>) -> PyResult<(Vec<usize>, Vec<f64>)> {
 
 /// A vector of any length (1-D).
 pub fn vector_in(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Vec<f64>> {
-    let (shape, flat) = as_array(obj)?;
+    let (shape, flat) = as_array(obj, what)?;
     if shape.len() != 1 {
         return Err(DimensionMismatch::new_err(format!(
             "{what}: expected a vector, got an array of shape {shape:?}"
@@ -85,7 +89,7 @@ pub fn matrix_in(
     cols: Option<usize>,
     what: &str,
 ) -> PyResult<DMatrix<f64>> {
-    let (shape, flat) = as_array(obj)?;
+    let (shape, flat) = as_array(obj, what)?;
     let ok = shape.len() == 2
         && rows.is_none_or(|r| shape[0] == r)
         && cols.is_none_or(|c| shape[1] == c)

@@ -5,7 +5,8 @@
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 
-use factord::problem::ProblemError;
+use factord::factors::EvaluationError;
+use factord::problem::{evaluate_chi2, Problem, ProblemError};
 use factord::solver::SolverError;
 
 use crate::keys::key_name;
@@ -102,8 +103,20 @@ pub fn solver_error(e: SolverError) -> PyErr {
                 names.join(", ")
             ))
         }
+        SolverError::Evaluation(e) => evaluation_error(e),
         other => FactordError::new_err(other.to_string()),
     }
+}
+
+/// A factor that could not be evaluated: the exception its Python error function raised, when
+/// one did (`custom.rs`), else the library's message.
+pub fn evaluation_error(e: EvaluationError) -> PyErr {
+    crate::custom::take_raised().unwrap_or_else(|| FactordError::new_err(e.to_string()))
+}
+
+/// `Σ ρ(‖R e‖²)` of `problem` at its values, or why a factor could not be evaluated.
+pub fn chi2_of(problem: &Problem) -> PyResult<f64> {
+    evaluate_chi2(problem.factors(), &problem.values).map_err(evaluation_error)
 }
 
 /// GTSAM's type name of one of the library's variable kinds.

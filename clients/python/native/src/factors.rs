@@ -9,15 +9,18 @@ use pyo3::prelude::*;
 
 pub use factord::factors::shared::SharedFactor;
 use factord::factors::{
-    BearingRangeSe2, BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2,
-    RangeSe3, RangeSe3Point3, RobustKernel, SqrtInformation,
+    BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, RangeSe2,
+    RangeSe2Point2, RangeSe3, RangeSe3Point3, RobustKernel, SqrtInformation,
 };
 use factord::problem::Key;
 
+use crate::arrays::fixed_vector_in;
+use crate::custom::CustomFactor;
 use crate::errors::{DimensionMismatch, InvalidNoiseModel};
 use crate::keys::key_name;
 use crate::noise::NoiseModel;
 use crate::planar::{Pose2, Rot2};
+use crate::point_factors::{auto, BetweenPoint, PriorPoint};
 use crate::spatial::Pose3;
 
 /// Which Python class a factor is, to give it back as that class (`graph.at(i)`).
@@ -32,6 +35,13 @@ pub enum FactorClass {
     RangeFactorPose2,
     RangeFactor3D,
     RangeFactorPose3,
+    BearingFactor2D,
+    PriorFactorPoint2,
+    PriorFactorPoint3,
+    BetweenFactorPoint2,
+    BetweenFactorPoint3,
+    /// A Python error function's (`custom.rs`).
+    CustomFactor,
     /// Read from a file, of a type without a Python class of its own.
     Other,
 }
@@ -73,7 +83,10 @@ impl FactorData {
         measured: Option<Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let names: Vec<String> = factor.keys().iter().map(|&k| key_name(k)).collect();
-        let label = format!("{class:?}({})", names.join(", "));
+        let label = match class {
+            FactorClass::Other => format!("{}({})", factor.name(), names.join(", ")),
+            named => format!("{named:?}({})", names.join(", ")),
+        };
         let dim = factor.residual_dim();
         if noise.size() != dim {
             return Err(DimensionMismatch::new_err(format!(
@@ -156,7 +169,13 @@ pub fn factor_object(py: Python<'_>, data: &Arc<FactorData>) -> PyResult<Py<PyAn
         RangeFactor2D,
         RangeFactorPose2,
         RangeFactor3D,
-        RangeFactorPose3
+        RangeFactorPose3,
+        BearingFactor2D,
+        PriorFactorPoint2,
+        PriorFactorPoint3,
+        BetweenFactorPoint2,
+        BetweenFactorPoint3,
+        CustomFactor
     )
 }
 
@@ -231,6 +250,38 @@ factor_class!(RangeFactor3D, (pose_key: Key, point_key: Key, range: f64), |py| (
 factor_class!(RangeFactorPose3, (key1: Key, key2: Key, range: f64), |py| (
     Box::new(RangeSe3::new(key1, key2, range)),
     Some(range.into_pyobject(py)?.into_any().unbind())
+));
+
+factor_class!(
+    BearingFactor2D,
+    (pose_key: Key, point_key: Key, bearing: Rot2),
+    |py| (
+        Box::new(BearingSe2::new(pose_key, point_key, bearing.theta)),
+        Some(Py::new(py, bearing)?.into_any())
+    )
+);
+
+/// A point of `N` coordinates given to a point factor's constructor.
+fn point_in<const N: usize>(value: &Bound<'_, PyAny>, what: &str) -> PyResult<[f64; N]> {
+    let v = fixed_vector_in(value, N, what)?;
+    Ok(std::array::from_fn(|i| v[i]))
+}
+
+factor_class!(PriorFactorPoint2, (key: Key, prior: Bound<'_, PyAny>), |py| (
+    auto(vec![key], PriorPoint(point_in::<2>(&prior, "PriorFactorPoint2 prior")?))?,
+    Some(prior.unbind())
+));
+factor_class!(PriorFactorPoint3, (key: Key, prior: Bound<'_, PyAny>), |py| (
+    auto(vec![key], PriorPoint(point_in::<3>(&prior, "PriorFactorPoint3 prior")?))?,
+    Some(prior.unbind())
+));
+factor_class!(BetweenFactorPoint2, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| (
+    auto(vec![key1, key2], BetweenPoint(point_in::<2>(&measured, "BetweenFactorPoint2 measured")?))?,
+    Some(measured.unbind())
+));
+factor_class!(BetweenFactorPoint3, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| (
+    auto(vec![key1, key2], BetweenPoint(point_in::<3>(&measured, "BetweenFactorPoint3 measured")?))?,
+    Some(measured.unbind())
 ));
 
 /// The class a file's factor is given, and what its `measured()` returns.

@@ -7,7 +7,7 @@ use pyo3::prelude::*;
 
 use factord::problem::{Gauge, Key, Problem};
 
-use crate::errors::{problem_error, FactordError};
+use crate::errors::{chi2_of, problem_error, FactordError};
 use crate::factors::{factor_object, FactorData, NonlinearFactor, SharedFactor};
 use crate::noise::NoiseModel;
 use crate::planar::Pose2;
@@ -49,9 +49,13 @@ pub fn build_problem<'a>(
 /// evaluated here: the solver evaluates the initial cost first and refuses a non-finite one,
 /// and evaluating every factor twice was a quarter of an in-process solve of intel.
 pub fn add_factor(problem: &mut Problem, data: &Arc<FactorData>) -> PyResult<usize> {
+    let factor = match crate::custom::with_kinds(problem, data)? {
+        Some(factor) => factor,
+        None => Box::new(SharedFactor(data.factor.clone())),
+    };
     problem
         .add_checked_factor_sqrt(
-            Box::new(SharedFactor(data.factor.clone())),
+            factor,
             data.sqrt_information.clone(),
             data.robust,
             data.label.clone(),
@@ -66,7 +70,7 @@ pub fn factor_error(data: &Arc<FactorData>, values: &Values) -> PyResult<f64> {
         only.map.insert(k, values.get(k)?.clone_box());
     }
     let problem = build_problem(&only, [data])?;
-    Ok(0.5 * problem.chi2())
+    Ok(0.5 * chi2_of(&problem)?)
 }
 
 #[pymethods]
@@ -186,7 +190,7 @@ impl NonlinearFactorGraph {
             needed.map.insert(key, values.get(key)?.clone_box());
         }
         let problem = build_problem(&needed, self.present())?;
-        let chi2 = problem.chi2();
+        let chi2 = chi2_of(&problem)?;
         if !chi2.is_finite() {
             return Err(FactordError::new_err(
                 "the graph's error is not finite at these values",

@@ -114,6 +114,7 @@ impl ISAM2 {
     #[pyo3(signature = (new_factors = None, new_theta = None))]
     fn update(
         &mut self,
+        py: Python<'_>,
         new_factors: Option<&NonlinearFactorGraph>,
         new_theta: Option<&Values>,
     ) -> PyResult<ISAM2Result> {
@@ -159,16 +160,18 @@ impl ISAM2 {
                 self.graph.factors.push(Some(Arc::clone(f)));
             }
         }
-        let report = match self.engine.as_mut() {
-            Some(engine) => engine.update(&mut self.problem, &self.params),
+        // Without the GIL: a `CustomFactor` relinearised on the engine's second thread takes it.
+        let (engine, problem, params) = (&mut self.engine, &mut self.problem, &self.params);
+        let report = py.detach(|| match engine.as_mut() {
+            Some(engine) => engine.update(problem, params),
             None => {
-                let fixed = vec![false; self.problem.values.len()];
-                IncrementalEngine::new(&mut self.problem, &fixed).map(|(engine, report)| {
-                    self.engine = Some(engine);
+                let fixed = vec![false; problem.values.len()];
+                IncrementalEngine::new(problem, &fixed).map(|(new, report)| {
+                    *engine = Some(new);
                     report
                 })
             }
-        };
+        });
         let report = match report {
             Ok(r) => r,
             Err(e) => {
@@ -222,7 +225,7 @@ impl ISAM2 {
         m.marginal_covariance_of(py, key)
     }
     /// `½ Σ ρ` of every factor at the current estimate.
-    fn error(&self) -> f64 {
-        0.5 * self.problem.chi2()
+    fn error(&self) -> PyResult<f64> {
+        Ok(0.5 * crate::errors::chi2_of(&self.problem)?)
     }
 }

@@ -8,8 +8,10 @@
 use pyo3::prelude::*;
 
 mod arrays;
+mod custom;
 mod dataset;
 mod errors;
+mod expression;
 mod factors;
 mod graph;
 mod isam2;
@@ -18,6 +20,7 @@ mod marginals;
 mod noise;
 mod optimizers;
 mod planar;
+mod point_factors;
 mod spatial;
 mod values;
 
@@ -41,6 +44,13 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<factors::RangeFactorPose2>()?;
     m.add_class::<factors::RangeFactor3D>()?;
     m.add_class::<factors::RangeFactorPose3>()?;
+    m.add_class::<factors::BearingFactor2D>()?;
+    m.add_class::<factors::PriorFactorPoint2>()?;
+    m.add_class::<factors::PriorFactorPoint3>()?;
+    m.add_class::<factors::BetweenFactorPoint2>()?;
+    m.add_class::<factors::BetweenFactorPoint3>()?;
+    m.add_class::<custom::CustomFactor>()?;
+    m.add_class::<expression::FactorType>()?;
     m.add_class::<graph::NonlinearFactorGraph>()?;
     m.add_class::<optimizers::OptimizerParams>()?;
     m.add_class::<optimizers::LevenbergMarquardtParams>()?;

@@ -6,7 +6,6 @@
 use nalgebra::DMatrix;
 use pyo3::prelude::*;
 
-use factord::geometry::Se2;
 use factord::problem::{Key, Problem};
 use factord::solver::marginals::{Covariance, Marginals as LibraryMarginals, MarginalsError};
 
@@ -22,24 +21,14 @@ pub struct Marginals {
     inner: LibraryMarginals,
 }
 
-/// The matrix taking a variable's library tangent to GTSAM's (dimension × dimension).
+/// The matrix taking the library tangent of `key`'s variable to GTSAM's.
 fn to_gtsam_tangent(problem: &Problem, key: Key) -> DMatrix<f64> {
-    let v = problem
-        .values
-        .get(key)
-        .expect("asked keys are in the problem");
-    let n = v.tangent_dim();
-    if let Some(p) = v.as_any().downcast_ref::<Se2>() {
-        // δt_body = Rᵀ δt_world; θ unchanged.
-        let (s, c) = p.theta.sin_cos();
-        return DMatrix::from_row_slice(3, 3, &[c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0]);
-    }
-    if v.kind() == "se3" {
-        // (v, ω) → (ω, v).
-        let perm = [3, 4, 5, 0, 1, 2];
-        return DMatrix::from_fn(6, 6, |r, c| if perm[r] == c { 1.0 } else { 0.0 });
-    }
-    DMatrix::identity(n, n)
+    crate::values::to_gtsam_tangent(
+        problem
+            .values
+            .get(key)
+            .expect("asked keys are in the problem"),
+    )
 }
 
 pub fn marginals_error(e: MarginalsError) -> PyErr {

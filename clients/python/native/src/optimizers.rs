@@ -159,11 +159,8 @@ impl Optimizer {
         })
     }
 
-    fn optimize(&mut self) -> PyResult<Values> {
-        let summary = solver::optimize(&mut self.problem, &self.options, &mut |_| {
-            std::ops::ControlFlow::Continue(())
-        })
-        .map_err(solver_error)?;
+    fn optimize(&mut self, py: Python<'_>) -> PyResult<Values> {
+        let summary = solve_detached(py, &mut self.problem, &self.options)?;
         self.summary = Some(summary);
         Ok(self.values())
     }
@@ -171,6 +168,21 @@ impl Optimizer {
     fn values(&self) -> Values {
         values_of(&self.problem)
     }
+}
+
+/// Runs the library's solver without the GIL: other Python threads run meanwhile, and a
+/// `CustomFactor`'s error function can take it from whichever thread evaluates it.
+fn solve_detached(
+    py: Python<'_>,
+    problem: &mut Problem,
+    options: &SolverOptions,
+) -> PyResult<Summary> {
+    py.detach(|| {
+        solver::optimize(problem, options, &mut |_| {
+            std::ops::ControlFlow::Continue(())
+        })
+    })
+    .map_err(solver_error)
 }
 
 /// The problem's current values as a `Values`.
@@ -216,16 +228,16 @@ macro_rules! optimizer_class {
                 })
             }
             /// Runs to convergence (or the iteration limit) and returns the estimate.
-            fn optimize(&mut self) -> PyResult<Values> {
-                self.inner.optimize()
+            fn optimize(&mut self, py: Python<'_>) -> PyResult<Values> {
+                self.inner.optimize(py)
             }
             /// The current estimate.
             fn values(&self) -> Values {
                 self.inner.values()
             }
             /// `½ Σ ρ` at the current estimate.
-            fn error(&self) -> f64 {
-                0.5 * self.inner.problem.chi2()
+            fn error(&self) -> PyResult<f64> {
+                Ok(0.5 * crate::errors::chi2_of(&self.inner.problem)?)
             }
             fn iterations(&self) -> usize {
                 self.inner.summary.as_ref().map_or(0, |s| s.iterations)
@@ -286,9 +298,6 @@ pub fn solve(
     let mut problem = build_problem(initial, graph.present())?;
     // As `factord solve`: a component without a prior is anchored at its lowest key.
     problem.gauge = factord::problem::Gauge::AnchorComponents;
-    let summary = solver::optimize(&mut problem, &options, &mut |_| {
-        std::ops::ControlFlow::Continue(())
-    })
-    .map_err(solver_error)?;
+    let summary = solve_detached(py, &mut problem, &options)?;
     Ok((values_of(&problem), summary_dict(py, &summary)?))
 }

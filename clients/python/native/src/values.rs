@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{DMatrix, Vector2, Vector3};
 use pyo3::prelude::*;
 
 use factord::geometry::{Point2, Point3, Se2, Se3};
@@ -301,4 +301,20 @@ impl Values {
     fn __repr__(&self) -> String {
         format!("Values with {} variables", self.map.len())
     }
+}
+
+/// The matrix taking a variable's library tangent to GTSAM's: `ξ = T δ`.
+pub fn to_gtsam_tangent(variable: &dyn Variable) -> DMatrix<f64> {
+    let n = variable.tangent_dim();
+    if let Some(p) = variable.as_any().downcast_ref::<Se2>() {
+        // The library moves a Pose2 in the world frame, GTSAM in its body frame: ξ_t = Rᵀ δt.
+        let (s, c) = p.theta.sin_cos();
+        return DMatrix::from_row_slice(3, 3, &[c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0]);
+    }
+    if variable.kind() == "se3" {
+        // The library's (v, ω) is GTSAM's (ω, v) to first order.
+        let perm = [3, 4, 5, 0, 1, 2];
+        return DMatrix::from_fn(6, 6, |r, c| if perm[r] == c { 1.0 } else { 0.0 });
+    }
+    DMatrix::identity(n, n)
 }

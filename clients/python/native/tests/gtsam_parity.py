@@ -3,7 +3,9 @@ compared here. Run by the native Python environment (factord installed); GTSAM r
 environment through ``--gtsam-python`` (this file again, with ``--worker``).
 
 Scenarios: GTSAM's Pose2SLAMExample and PlanarSLAMExample as published, input_M3500_g2o through
-readG2o, and a small noisy Pose3 loop. For each: the optimum, the graph error, and the marginal
+readG2o, a small noisy Pose3 loop, position fixes written as GTSAM's ``CustomFactor`` (a Python error
+function with its Jacobian in GTSAM's tangent), and landmarks seen by bearing only with point
+priors and betweens. For each: the optimum, the graph error, and the marginal
 covariances where the example prints them; then each library scores the other's optimum with its
 own ``graph.error``.
 
@@ -130,11 +132,82 @@ def pose3_loop(gtsam):
     return graph, result, {"poses3": gtsam.utilities.extractPose3(result).tolist()}
 
 
+def custom_gps(gtsam):
+    """GTSAM's CustomFactor as its documentation writes it: position fixes on a Pose2 chain, the
+    error function giving its Jacobian in GTSAM's body-frame tangent."""
+    X = gtsam.symbol_shorthand.X
+    n = 20
+    rng = np.random.RandomState(57)
+    step = gtsam.Pose2(1.0, 0.0, 2 * math.pi / n)
+    odometry = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.1, 0.05]))
+    fix_noise = gtsam.noiseModel.Isotropic.Sigma(2, 0.5)
+
+    def gps(measured):
+        def error_func(this, values, H):
+            pose = values.atPose2(this.keys()[0])
+            if H is not None:
+                H[0] = np.hstack([pose.rotation().matrix(), np.zeros((2, 1))])
+            return pose.translation() - measured
+
+        return error_func
+
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    truth = gtsam.Pose2(0.0, 0.0, 0.0)
+    for i in range(n):
+        if i:
+            wiggle = gtsam.Pose2(rng.normal(0, 0.1), rng.normal(0, 0.1), rng.normal(0, 0.05))
+            graph.add(gtsam.BetweenFactorPose2(X(i - 1), X(i), step.compose(wiggle), odometry))
+            truth = truth.compose(step)
+        fix = np.array([truth.x(), truth.y()]) + rng.normal(0, 0.5, 2)
+        graph.add(gtsam.CustomFactor(fix_noise, [X(i)], gps(fix)))
+        initial.insert(X(i), gtsam.Pose2(truth.x() + 0.3, truth.y() - 0.2, truth.theta() + 0.1))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    return graph, result, {"poses2": gtsam.utilities.extractPose2(result).tolist()}
+
+
+def bearings(gtsam):
+    """Landmarks seen by bearing only from noisy poses, one landmark with a position prior and a
+    measured offset to the next: BearingFactor2D, PriorFactorPoint2, BetweenFactorPoint2."""
+    X, L = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
+    rng = np.random.RandomState(58)
+    marks = [np.array([4.0, 3.0]), np.array([-2.0, 5.0]), np.array([1.0, -4.0])]
+    pose_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, 0.01]))
+    bearing_noise = gtsam.noiseModel.Isotropic.Sigma(1, 0.02)
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for i in range(6):
+        a = 2 * math.pi * i / 6
+        pose = gtsam.Pose2(6 * math.cos(a), 6 * math.sin(a), a + math.pi / 2)
+        graph.add(gtsam.PriorFactorPose2(X(i), pose, pose_noise))
+        initial.insert(X(i), pose)
+        for j, m in enumerate(marks):
+            seen = math.atan2(m[1] - pose.y(), m[0] - pose.x()) - pose.theta() + rng.normal(0, 0.02)
+            graph.add(gtsam.BearingFactor2D(X(i), L(j), gtsam.Rot2(seen), bearing_noise))
+    graph.add(gtsam.PriorFactorPoint2(L(0), gtsam.Point2(4.1, 2.9), gtsam.noiseModel.Isotropic.Sigma(2, 0.2)))
+    graph.add(gtsam.BetweenFactorPoint2(L(0), L(1), gtsam.Point2(-6.1, 2.05), gtsam.noiseModel.Isotropic.Sigma(2, 0.1)))
+    for j, m in enumerate(marks):
+        initial.insert(L(j), gtsam.Point2(m[0] + 0.7, m[1] - 0.6))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    return graph, result, {
+        "poses2": gtsam.utilities.extractPose2(result).tolist(),
+        "points2": gtsam.utilities.extractPoint2(result).tolist(),
+    }
+
+
 SCENARIOS = {
     "pose2slam": lambda g, d: pose2slam(g),
     "planarslam": lambda g, d: planarslam(g),
     "m3500": m3500,
     "pose3_loop": lambda g, d: pose3_loop(g),
+    "custom_gps": lambda g, d: custom_gps(g),
+    "bearings": lambda g, d: bearings(g),
 }
 
 
@@ -244,7 +317,7 @@ def main():
             for a, b in zip(g["planarslam"]["covariances"], f["planarslam"]["covariances"]))
     check(c < 1e-6, f"planarslam: marginal covariances differ by {c:.2e} (< 1e-6)")
     # (PlanarSLAMExample's optimum has zero error: compared by its optimum above.)
-    for name in ("m3500", "pose3_loop"):
+    for name in ("m3500", "pose3_loop", "custom_gps", "bearings"):
         ge, fe = g[name]["error"], f[name]["error"]
         # Each library's error at the other's optimum equals its own optimum's.
         rg = relative(g[name]["error_at_other"], ge)
@@ -255,6 +328,10 @@ def main():
         check(r < 1e-4, f"{name}: final errors GTSAM {ge:.10f}, factord {fe:.10f}: {r:.1e} relative (< 1e-4: the between errors' definitions)")
     d = max_pose2_diff(g["m3500"]["poses2"], f["m3500"]["poses2"])
     check(d < 1e-3, f"m3500: poses differ by {d:.2e} (< 1e-3)")
+    d = max_pose2_diff(g["custom_gps"]["poses2"], f["custom_gps"]["poses2"])
+    check(d < 1e-3, f"custom_gps: poses differ by {d:.2e} (< 1e-3)")
+    d = np.abs(np.array(g["bearings"]["points2"]) - np.array(f["bearings"]["points2"])).max()
+    check(d < 1e-6, f"bearings: landmarks differ by {d:.2e} (< 1e-6)")
     p = np.abs(np.array(g["pose3_loop"]["poses3"]) - np.array(f["pose3_loop"]["poses3"])).max()
     check(p < 1e-3, f"pose3_loop: rotation and translation entries differ by {p:.2e} (< 1e-3)")
     if failures:

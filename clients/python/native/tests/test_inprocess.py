@@ -268,3 +268,72 @@ def test_bad_input_raises_and_never_brings_the_process_down():
         graph2.add(gtsam.BetweenFactorPose2(X(1), X(1), gtsam.Pose2(), gtsam.noiseModel.Unit.Create(3)))
         gtsam.GaussNewtonOptimizer(graph2, values)
     assert gtsam.ISAM2().update() is not None  # an empty first update
+
+
+def test_point_factors_solve_a_linear_problem_as_numpy_does():
+    # Landmarks tied by priors and differences only: a linear least-squares problem, whose
+    # solution numpy gives directly. Gauss-Newton reaches it only with exact Jacobians.
+    rng = np.random.default_rng(5)
+    n = 6
+    prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.5, 2.0]))
+    between = gtsam.noiseModel.Isotropic.Sigma(2, 0.1)
+    graph = gtsam.NonlinearFactorGraph()
+    rows, rhs = [], []
+    for i in (0, n - 1):
+        p = rng.normal(0, 3, 2)
+        graph.add(gtsam.PriorFactorPoint2(L(i), p, prior))
+        for d, s in enumerate((0.5, 2.0)):
+            row = np.zeros(2 * n)
+            row[2 * i + d] = 1 / s
+            rows.append(row)
+            rhs.append(p[d] / s)
+    differences = []
+    for i in range(n - 1):
+        d = rng.normal(0, 1, 2)
+        differences.append(d)
+        graph.add(gtsam.BetweenFactorPoint2(L(i), L(i + 1), d, between))
+        for k in range(2):
+            row = np.zeros(2 * n)
+            row[2 * (i + 1) + k], row[2 * i + k] = 10.0, -10.0
+            rows.append(row)
+            rhs.append(10.0 * d[k])
+    initial = gtsam.Values()
+    for i in range(n):
+        initial.insert(L(i), gtsam.Point2(*rng.normal(0, 5, 2)))
+    result = gtsam.GaussNewtonOptimizer(graph, initial).optimize()
+    expected = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0].reshape(n, 2)
+    np.testing.assert_allclose(gtsam.utilities.extractPoint2(result), expected, atol=1e-9)
+    assert isinstance(graph.at(0), gtsam.PriorFactorPoint2)
+    assert isinstance(graph.at(2), gtsam.BetweenFactorPoint2)
+    np.testing.assert_allclose(graph.at(2).measured(), differences[0])
+    # The 3D twins.
+    graph3 = gtsam.NonlinearFactorGraph()
+    graph3.add(gtsam.PriorFactorPoint3(L(0), gtsam.Point3(1, 2, 3), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    graph3.add(gtsam.BetweenFactorPoint3(L(0), L(1), gtsam.Point3(0.5, -1, 2), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    start = gtsam.Values()
+    start.insert(L(0), gtsam.Point3(0, 0, 0))
+    start.insert(L(1), gtsam.Point3(0, 0, 0))
+    r3 = gtsam.GaussNewtonOptimizer(graph3, start).optimize()
+    np.testing.assert_allclose(r3.atPoint3(L(1)), [1.5, 1.0, 5.0], atol=1e-12)
+    with pytest.raises(gtsam.DimensionMismatch):
+        gtsam.PriorFactorPoint2(L(0), gtsam.Point3(1, 2, 3), prior)
+
+
+def test_bearing_only_sightings_place_a_landmark():
+    # Three poses see one landmark at (4, 3) by bearing only; from a wrong start it ends there.
+    landmark = np.array([4.0, 3.0])
+    poses = [gtsam.Pose2(0, 0, 0.1), gtsam.Pose2(2, -1, 1.0), gtsam.Pose2(6, 0, 2.0)]
+    tight = gtsam.noiseModel.Isotropic.Sigma(3, 1e-4)
+    sigma = gtsam.noiseModel.Isotropic.Sigma(1, 0.01)
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for i, p in enumerate(poses):
+        graph.add(gtsam.PriorFactorPose2(X(i), p, tight))
+        seen = math.atan2(landmark[1] - p.y(), landmark[0] - p.x()) - p.theta()
+        graph.add(gtsam.BearingFactor2D(X(i), L(0), gtsam.Rot2(seen), sigma))
+        initial.insert(X(i), p)
+    initial.insert(L(0), gtsam.Point2(3.0, 5.0))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
+    np.testing.assert_allclose(result.atPoint2(L(0)), landmark, atol=1e-6)
+    assert isinstance(graph.at(1), gtsam.BearingFactor2D)
+    assert graph.at(1).measured().theta() == pytest.approx(math.atan2(3.0, 4.0) - 0.1)

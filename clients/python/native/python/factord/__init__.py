@@ -10,9 +10,13 @@ import numpy as _np
 
 from . import _native
 from ._native import (  # noqa: F401  (re-exported)
+    BearingFactor2D,
     BearingRangeFactor2D,
     BetweenFactorPose2,
+    BetweenFactorPoint2,
+    BetweenFactorPoint3,
     BetweenFactorPose3,
+    CustomFactor,
     DimensionMismatch,
     DoglegOptimizer,
     DoglegParams,
@@ -33,6 +37,8 @@ from ._native import (  # noqa: F401  (re-exported)
     NonlinearOptimizerParams,
     Pose2,
     Pose3,
+    PriorFactorPoint2,
+    PriorFactorPoint3,
     PriorFactorPose2,
     PriorFactorPose3,
     RangeFactor2D,
@@ -53,6 +59,9 @@ from ._native import (  # noqa: F401  (re-exported)
     symbolIndex,
     writeG2o,
 )
+
+from . import expressions  # noqa: E402
+from .expressions import FactorType  # noqa: E402,F401
 
 __all__ = [name for name in dir() if not name.startswith("_")] + [
     "Point2",

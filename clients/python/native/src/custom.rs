@@ -1,0 +1,300 @@
+//! `CustomFactor(noise, keys, error_func)`: a factor whose error (and Jacobians) a Python
+//! function computes, with GTSAM's call shape:
+//!
+//! ```python
+//! def error_func(this: CustomFactor, v: Values, H: Optional[List[np.ndarray]]) -> np.ndarray:
+//!     ...  # the unwhitened error; when H is a list, set H[i] to ∂error/∂ξ_i
+//! ```
+//!
+//! The Jacobians are given in GTSAM's tangent conventions (a `Pose2`'s body-frame (x, y, θ), a
+//! `Pose3`'s rotation first, points additive); the library's own tangent is converted here, so
+//! the solver sees the Jacobian of its own retraction: `J_library = J_gtsam · ∂ξ_gtsam/∂δ`.
+//!
+//! The function runs inside the library's solvers, on whichever thread evaluates the factor;
+//! every solve of this crate releases the GIL (`py.detach`), so a second thread of an iSAM2
+//! update can take it. An exception the function raises stops the solve and is raised again
+//! from the call that started it (`take_raised`), unchanged.
+
+use std::sync::{Arc, Mutex};
+
+use nalgebra::DMatrix;
+use pyo3::prelude::*;
+use pyo3::types::PyList;
+
+use factord::factors::{EvaluationError, Factor};
+use factord::problem::{Key, Problem};
+use factord::variables::Variable;
+
+use crate::arrays::{matrix_in, vector_in};
+use crate::errors::ValuesKeyDoesNotExist;
+use crate::factors::{FactorClass, FactorData, NonlinearFactor};
+use crate::keys::key_name;
+use crate::noise::NoiseModel;
+use crate::values::{to_gtsam_tangent, Values};
+
+/// The first exception a Python error function raised since it was last taken.
+static RAISED: Mutex<Option<PyErr>> = Mutex::new(None);
+
+/// The exception a Python error function raised during the last failed call, if one did.
+pub fn take_raised() -> Option<PyErr> {
+    RAISED.lock().unwrap_or_else(|p| p.into_inner()).take()
+}
+
+fn keep_raised(e: PyErr) {
+    let mut slot = RAISED.lock().unwrap_or_else(|p| p.into_inner());
+    if slot.is_none() {
+        *slot = Some(e);
+    }
+}
+
+/// The library factor: keys, the error's dimension, the Python function, and the noise model
+/// (to hand `this` to the function as a `CustomFactor` of its own).
+#[derive(Debug)]
+pub struct PythonFactor {
+    keys: Vec<Key>,
+    dim: usize,
+    function: Py<PyAny>,
+    noise: NoiseModel,
+    label: String,
+}
+
+impl PythonFactor {
+    fn failed(&self, message: impl Into<String>) -> EvaluationError {
+        EvaluationError::Failed {
+            factor: self.label.clone(),
+            message: message.into(),
+        }
+    }
+
+    /// Calls the function; the error and, when asked, the Jacobians (GTSAM's tangents).
+    fn call(
+        &self,
+        py: Python<'_>,
+        variables: &[&dyn Variable],
+        with_jacobians: bool,
+    ) -> PyResult<(Vec<f64>, Option<Vec<DMatrix<f64>>>)> {
+        let mut values = Values::default();
+        for (&k, v) in self.keys.iter().zip(variables) {
+            values.map.insert(k, v.clone_box());
+        }
+        let this = self.this(py)?;
+        let h = if with_jacobians {
+            Some(PyList::new(py, self.keys.iter().map(|_| py.None()))?)
+        } else {
+            None
+        };
+        let returned = self.function.bind(py).call1((this, values, h.clone()))?;
+        let error = vector_in(
+            &returned,
+            &format!("{}: the error function's result", self.label),
+        )?;
+        let Some(h) = h else {
+            return Ok((error, None));
+        };
+        let mut jacobians = Vec::with_capacity(self.keys.len());
+        for (i, v) in variables.iter().enumerate() {
+            let item = h.get_item(i)?;
+            if item.is_none() {
+                return Err(crate::errors::FactordError::new_err(format!(
+                    "{}: the error function was asked for Jacobians and left H[{i}] unset",
+                    self.label
+                )));
+            }
+            jacobians.push(matrix_in(
+                &item,
+                Some(self.dim),
+                Some(v.tangent_dim()),
+                &format!("{}: H[{i}]", self.label),
+            )?);
+        }
+        Ok((error, Some(jacobians)))
+    }
+
+    /// A `CustomFactor` object for this factor, the function's `this`. Made for each call: one
+    /// kept here would hold the object that holds this factor, a cycle Python cannot collect.
+    fn this(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
+        let copy = PythonFactor {
+            keys: self.keys.clone(),
+            dim: self.dim,
+            function: self.function.clone_ref(py),
+            noise: self.noise.clone(),
+            label: self.label.clone(),
+        };
+        let data = FactorData::new(Box::new(copy), &self.noise, FactorClass::CustomFactor, None)?;
+        let base = NonlinearFactor {
+            data: Arc::new(data),
+        };
+        Ok(Py::new(
+            py,
+            PyClassInitializer::from(base).add_subclass(CustomFactor),
+        )?
+        .into_any())
+    }
+}
+
+impl Factor for PythonFactor {
+    fn name(&self) -> &str {
+        "python"
+    }
+    fn keys(&self) -> &[Key] {
+        &self.keys
+    }
+    fn residual_dim(&self) -> usize {
+        self.dim
+    }
+    /// Unknown until the factor meets values: [`with_kinds`] gives each problem a factor that
+    /// names the kinds of the values it was added with.
+    fn variable_kinds(&self) -> &[&'static str] {
+        &[]
+    }
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
+        let with_jacobians = jacobian.is_some();
+        let called = Python::attach(|py| {
+            self.call(py, variables, with_jacobians).map_err(|e| {
+                let message = e.to_string();
+                keep_raised(e);
+                self.failed(message)
+            })
+        });
+        let (values, jacobians) = called?;
+        if values.len() != self.dim {
+            let message = format!(
+                "the error function returned {} numbers, the noise model has dimension {}",
+                values.len(),
+                self.dim
+            );
+            keep_raised(crate::errors::DimensionMismatch::new_err(format!(
+                "{}: {message}",
+                self.label
+            )));
+            return Err(self.failed(message));
+        }
+        error.copy_from_slice(&values);
+        if let (Some(out), Some(jacobians)) = (jacobian, jacobians) {
+            let cols: usize = variables.iter().map(|v| v.tangent_dim()).sum();
+            let mut at = 0;
+            for (v, j) in variables.iter().zip(&jacobians) {
+                let library = j * to_gtsam_tangent(*v);
+                for r in 0..self.dim {
+                    for c in 0..library.ncols() {
+                        out[r * cols + at + c] = library[(r, c)];
+                    }
+                }
+                at += library.ncols();
+            }
+        }
+        Ok(())
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// A factor as one problem holds it: `inner` with the kinds of that problem's values at its
+/// keys (a Python factor declares none of its own).
+#[derive(Debug)]
+struct WithKinds {
+    inner: Arc<dyn Factor>,
+    kinds: Vec<&'static str>,
+}
+
+impl Factor for WithKinds {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn keys(&self) -> &[Key] {
+        self.inner.keys()
+    }
+    fn residual_dim(&self) -> usize {
+        self.inner.residual_dim()
+    }
+    fn variable_kinds(&self) -> &[&'static str] {
+        &self.kinds
+    }
+    fn evaluate(
+        &self,
+        variables: &[&dyn Variable],
+        error: &mut [f64],
+        jacobian: Option<&mut [f64]>,
+    ) -> Result<(), EvaluationError> {
+        self.inner.evaluate(variables, error, jacobian)
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// The factor to add to `problem` for `data`: a Python factor with the kinds of the problem's
+/// values at its keys (every key must have one), any other factor as it is.
+pub fn with_kinds(problem: &Problem, data: &FactorData) -> PyResult<Option<Box<dyn Factor>>> {
+    if data
+        .factor
+        .as_any()
+        .downcast_ref::<PythonFactor>()
+        .is_none()
+    {
+        return Ok(None);
+    }
+    let kinds = data
+        .factor
+        .keys()
+        .iter()
+        .map(|&k| {
+            problem.values.get(k).map(|v| v.kind()).ok_or_else(|| {
+                ValuesKeyDoesNotExist::new_err(format!(
+                    "{}: no initial value for variable {}",
+                    data.label,
+                    key_name(k)
+                ))
+            })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    Ok(Some(Box::new(WithKinds {
+        inner: data.factor.clone(),
+        kinds,
+    })))
+}
+
+/// GTSAM's `CustomFactor(noiseModel, keys, errorFunction)`.
+#[pyclass(module = "factord", extends = NonlinearFactor)]
+pub struct CustomFactor;
+
+#[pymethods]
+impl CustomFactor {
+    #[new]
+    #[pyo3(signature = (noise, keys, error_func))]
+    fn new(
+        noise: &NoiseModel,
+        keys: Vec<Key>,
+        error_func: Bound<'_, PyAny>,
+    ) -> PyResult<PyClassInitializer<Self>> {
+        if !error_func.is_callable() {
+            return Err(pyo3::exceptions::PyTypeError::new_err(
+                "CustomFactor: error_func must be callable (this, values, H) -> error",
+            ));
+        }
+        if keys.is_empty() {
+            return Err(crate::errors::FactordError::new_err(
+                "CustomFactor: at least one key is needed",
+            ));
+        }
+        let names: Vec<String> = keys.iter().map(|&k| key_name(k)).collect();
+        let factor = PythonFactor {
+            keys,
+            dim: noise.size(),
+            function: error_func.unbind(),
+            noise: noise.clone(),
+            label: format!("CustomFactor({})", names.join(", ")),
+        };
+        let data = FactorData::new(Box::new(factor), noise, FactorClass::CustomFactor, None)?;
+        Ok(PyClassInitializer::from(NonlinearFactor {
+            data: Arc::new(data),
+        })
+        .add_subclass(CustomFactor))
+    }
+}
