@@ -95,6 +95,11 @@ async fn web_view_draws_sessions_being_fed() {
             >= 5,
         "{hooks}"
     );
+    // The convergence plot's x axis is solves (issue 56): one colour band and tick per solve,
+    // labelled with the solve's number.
+    let solves: u64 = hooks["plotSolves"].as_str().unwrap().parse().unwrap();
+    let labels: u64 = hooks["plotSolveLabels"].as_str().unwrap().parse().unwrap();
+    assert!(solves >= 2 && (1..=solves).contains(&labels), "{hooks}");
     assert!(browser.inked_pixels("trajectory").await > 2_000);
     assert!(browser.inked_pixels("convergence").await > 500);
     // Loop closures on demand add ink.

@@ -12,6 +12,9 @@
 //! - `clients/python/native/tests/test_user_factors.py` (pytest): `CustomFactor` (Python error
 //!   functions with GTSAM-convention Jacobians, also on an iSAM2 update's second thread) and
 //!   `FactorType` (Python functions recorded into the expression language);
+//! - `clients/python/native/tests/test_session.py` (pytest): `IncrementalSession`, a server
+//!   session in process through the service's command API (M3500 streamed to the batch
+//!   optimum, refusals with the server's error body, two sessions in two threads);
 //! - `clients/python/native/tests/one_wheel.py`: the wheel's wire client (`factord_client`)
 //!   against a test server, the same factor type in process and on the server;
 //! - `clients/python/native/tests/gtsam_parity.py`: the same scripts with `import gtsam` (the
@@ -188,6 +191,7 @@ fn inprocess_python_api_passes_its_tests() {
         "no:cacheprovider",
         "clients/python/native/tests/test_inprocess.py",
         "clients/python/native/tests/test_user_factors.py",
+        "clients/python/native/tests/test_session.py",
     ]));
     match out {
         Ok(stdout) => println!(

@@ -3,7 +3,7 @@
 // session's timeline (per solve: χ², solve time, update latency), on `window.factord`.
 (() => {
   const F = window.factord;
-  const { num, fitCanvas, perFrame, niceStep, decade, iterationLog } = F;
+  const { num, fitCanvas, perFrame, decade, iterationLog } = F;
 
   // ---------------------------------------------------------------- convergence plot
   function convergencePlot(canvas) {
@@ -15,7 +15,7 @@
 
     function add(report, solve) {
       if (solve !== lastSolve) { band++; lastSolve = solve; }
-      pts.push({ x: ++x, chi2: report.chi2, trial: report.trial_chi2, ok: report.accepted !== false, band });
+      pts.push({ x: ++x, chi2: report.chi2, trial: report.trial_chi2, ok: report.accepted !== false, band, solve });
       if (pts.length > MAX) pts = pts.slice(pts.length - MAX);
     }
 
@@ -23,11 +23,14 @@
       const { ctx, w, h } = fitCanvas(canvas);
       const L = 58, R = 12, T = 10, B = 34, pw = w - L - R, ph = h - T - B;
       ctx.fillStyle = '#444'; ctx.textAlign = 'center'; ctx.textBaseline = 'bottom';
-      ctx.fillText('iteration', L + pw / 2, h - 2);
+      // The x axis runs over solves, each one's iterations left to right in its own colour band:
+      // ticks mark where a solve starts, labelled with its number.
+      ctx.fillText('solve (its iterations left to right)', L + pw / 2, h - 2);
       ctx.save(); ctx.translate(12, T + ph / 2); ctx.rotate(-Math.PI / 2); ctx.textBaseline = 'middle';
       ctx.fillText('cost (χ²)', 0, 0); ctx.restore();
       ctx.strokeStyle = '#c4c9d0'; ctx.lineWidth = 1; ctx.strokeRect(L + 0.5, T + 0.5, pw, ph);
       document.body.dataset.plotIterations = String(pts.length);
+      document.body.dataset.plotSolves = String(new Set(pts.map((p) => p.band)).size);
       if (!pts.length) { ctx.fillStyle = '#66707c'; ctx.textBaseline = 'middle'; ctx.fillText('no iterations yet', L + pw / 2, T + ph / 2); return; }
 
       const vals = [];
@@ -54,12 +57,17 @@
         }
       }
       ctx.textAlign = 'center'; ctx.textBaseline = 'top'; ctx.fillStyle = '#444';
-      const step = Math.max(1, niceStep((x1 - x0) / Math.max(2, pw / 80)));
-      for (let t = Math.ceil(x0 / step) * step; t <= x1; t += step) {
-        const xx = Math.round(px(t)) + 0.5;
+      let labelled = -Infinity, ticks = 0;
+      for (let i = 0; i < pts.length; i++) {
+        if (i > 0 && pts[i].band === pts[i - 1].band) continue;
+        const xx = Math.round(px(pts[i].x)) + 0.5;
         ctx.strokeStyle = '#eceef1'; ctx.beginPath(); ctx.moveTo(xx, T); ctx.lineTo(xx, T + ph); ctx.stroke();
-        ctx.fillText(String(t), xx, T + ph + 4);
+        if (xx - labelled >= 48) { // as many labels as fit
+          ctx.fillText(String(pts[i].solve), xx, T + ph + 4);
+          labelled = xx; ticks++;
+        }
       }
+      document.body.dataset.plotSolveLabels = String(ticks);
 
       ctx.save();
       ctx.beginPath(); ctx.rect(L, T - 4, pw + 4, ph + 8); ctx.clip();

@@ -9,8 +9,9 @@ use pyo3::prelude::*;
 
 pub use factord::factors::shared::SharedFactor;
 use factord::factors::{
-    BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, Factor, PriorSe2, PriorSe3, RangeSe2,
-    RangeSe2Point2, RangeSe3, RangeSe3Point3, RobustKernel, SqrtInformation,
+    BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, Factor, GnssLeverArmSe3, GnssPositionSe3,
+    PositionSe3Point3, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3,
+    RobustKernel, SqrtInformation,
 };
 use factord::problem::Key;
 
@@ -40,6 +41,9 @@ pub enum FactorClass {
     PriorFactorPoint3,
     BetweenFactorPoint2,
     BetweenFactorPoint3,
+    GPSFactor,
+    GPSFactorArm,
+    PoseToPointFactor3D,
     /// A Python error function's (`custom.rs`).
     CustomFactor,
     /// Read from a file, of a type without a Python class of its own.
@@ -175,6 +179,9 @@ pub fn factor_object(py: Python<'_>, data: &Arc<FactorData>) -> PyResult<Py<PyAn
         PriorFactorPoint3,
         BetweenFactorPoint2,
         BetweenFactorPoint3,
+        GPSFactor,
+        GPSFactorArm,
+        PoseToPointFactor3D,
         CustomFactor
     )
 }
@@ -283,6 +290,37 @@ factor_class!(BetweenFactorPoint3, (key1: Key, key2: Key, measured: Bound<'_, Py
     auto(vec![key1, key2], BetweenPoint(point_in::<3>(&measured, "BetweenFactorPoint3 measured")?))?,
     Some(measured.unbind())
 ));
+
+factor_class!(GPSFactor, (key: Key, gps_in: Bound<'_, PyAny>), |py| (
+    Box::new(GnssPositionSe3::new(key, point_in::<3>(&gps_in, "GPSFactor gpsIn")?.into())),
+    Some(gps_in.unbind())
+));
+factor_class!(
+    GPSFactorArm,
+    (key: Key, gps_in: Bound<'_, PyAny>, lever_arm: Bound<'_, PyAny>),
+    |py| (
+        Box::new(GnssLeverArmSe3::new(
+            key,
+            point_in::<3>(&gps_in, "GPSFactorArm gpsIn")?.into(),
+            point_in::<3>(&lever_arm, "GPSFactorArm leverArm")?.into(),
+        )),
+        Some(gps_in.unbind())
+    )
+);
+
+// GTSAM's C++ `PoseToPointFactor<Pose3, Point3>`: the landmark in the pose's frame, measured.
+factor_class!(
+    PoseToPointFactor3D,
+    (pose_key: Key, point_key: Key, measured: Bound<'_, PyAny>),
+    |py| (
+        Box::new(PositionSe3Point3::new(
+            pose_key,
+            point_key,
+            point_in::<3>(&measured, "PoseToPointFactor3D measured")?.into(),
+        )),
+        Some(measured.unbind())
+    )
+);
 
 /// The class a file's factor is given, and what its `measured()` returns.
 pub fn classify(py: Python<'_>, factor: &dyn Factor) -> PyResult<(FactorClass, Option<Py<PyAny>>)> {

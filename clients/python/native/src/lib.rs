@@ -21,6 +21,7 @@ mod noise;
 mod optimizers;
 mod planar;
 mod point_factors;
+mod service;
 mod spatial;
 mod values;
 
@@ -49,6 +50,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<factors::PriorFactorPoint3>()?;
     m.add_class::<factors::BetweenFactorPoint2>()?;
     m.add_class::<factors::BetweenFactorPoint3>()?;
+    m.add_class::<factors::GPSFactor>()?;
+    m.add_class::<factors::GPSFactorArm>()?;
+    m.add_class::<factors::PoseToPointFactor3D>()?;
     m.add_class::<custom::CustomFactor>()?;
     m.add_class::<expression::FactorType>()?;
     m.add_class::<graph::NonlinearFactorGraph>()?;
@@ -64,6 +68,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<isam2::ISAM2Params>()?;
     m.add_class::<isam2::ISAM2Result>()?;
     m.add_class::<isam2::ISAM2>()?;
+    service::register(m)?;
     m.add_function(wrap_pyfunction!(keys::symbol, m)?)?;
     m.add_function(wrap_pyfunction!(keys::symbol_chr, m)?)?;
     m.add_function(wrap_pyfunction!(keys::symbol_index, m)?)?;

@@ -4,8 +4,8 @@ environment through ``--gtsam-python`` (this file again, with ``--worker``).
 
 Scenarios: GTSAM's Pose2SLAMExample and PlanarSLAMExample as published, input_M3500_g2o through
 readG2o, a small noisy Pose3 loop, position fixes written as GTSAM's ``CustomFactor`` (a Python error
-function with its Jacobian in GTSAM's tangent), and landmarks seen by bearing only with point
-priors and betweens. For each: the optimum, the graph error, and the marginal
+function with its Jacobian in GTSAM's tangent), landmarks seen by bearing only with point
+priors and betweens, and GPS fixes of a Pose3 chain (at its origin and on a lever arm). For each: the optimum, the graph error, and the marginal
 covariances where the example prints them; then each library scores the other's optimum with its
 own ``graph.error``.
 
@@ -201,6 +201,37 @@ def bearings(gtsam):
     }
 
 
+def gps3(gtsam):
+    """A Pose3 chain with noisy odometry, GPS fixes of its origin (GPSFactor) and of an antenna on
+    a lever arm (GPSFactorArm)."""
+    X = gtsam.symbol_shorthand.X
+    rng = np.random.RandomState(59)
+    step = gtsam.Pose3(gtsam.Rot3.Ypr(0.2, 0.02, -0.01), gtsam.Point3(1.0, 0.1, 0.05))
+    odometry = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05]))
+    fix = gtsam.noiseModel.Isotropic.Sigma(3, 0.3)
+    arm = gtsam.Point3(0.4, -0.2, 1.1)
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    truth = gtsam.Pose3()
+    for i in range(15):
+        if i:
+            wiggle = np.concatenate([rng.normal(0, 0.01, 3), rng.normal(0, 0.05, 3)])
+            graph.add(gtsam.BetweenFactorPose3(X(i - 1), X(i), step.compose(gtsam.Pose3.Expmap(wiggle)), odometry))
+            truth = truth.compose(step)
+        if i % 2:
+            antenna = truth.transformFrom(arm) + rng.normal(0, 0.3, 3)
+            graph.add(gtsam.GPSFactorArm(X(i), antenna, arm, fix))
+        else:
+            graph.add(gtsam.GPSFactor(X(i), truth.translation() + rng.normal(0, 0.3, 3), fix))
+        start = np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.3, 3)])
+        initial.insert(X(i), truth.compose(gtsam.Pose3.Expmap(start)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    return graph, result, {"poses3": gtsam.utilities.extractPose3(result).tolist()}
+
+
 SCENARIOS = {
     "pose2slam": lambda g, d: pose2slam(g),
     "planarslam": lambda g, d: planarslam(g),
@@ -208,6 +239,7 @@ SCENARIOS = {
     "pose3_loop": lambda g, d: pose3_loop(g),
     "custom_gps": lambda g, d: custom_gps(g),
     "bearings": lambda g, d: bearings(g),
+    "gps3": lambda g, d: gps3(g),
 }
 
 
@@ -317,7 +349,7 @@ def main():
             for a, b in zip(g["planarslam"]["covariances"], f["planarslam"]["covariances"]))
     check(c < 1e-6, f"planarslam: marginal covariances differ by {c:.2e} (< 1e-6)")
     # (PlanarSLAMExample's optimum has zero error: compared by its optimum above.)
-    for name in ("m3500", "pose3_loop", "custom_gps", "bearings"):
+    for name in ("m3500", "pose3_loop", "custom_gps", "bearings", "gps3"):
         ge, fe = g[name]["error"], f[name]["error"]
         # Each library's error at the other's optimum equals its own optimum's.
         rg = relative(g[name]["error_at_other"], ge)
@@ -332,6 +364,8 @@ def main():
     check(d < 1e-3, f"custom_gps: poses differ by {d:.2e} (< 1e-3)")
     d = np.abs(np.array(g["bearings"]["points2"]) - np.array(f["bearings"]["points2"])).max()
     check(d < 1e-6, f"bearings: landmarks differ by {d:.2e} (< 1e-6)")
+    p = np.abs(np.array(g["gps3"]["poses3"]) - np.array(f["gps3"]["poses3"])).max()
+    check(p < 1e-3, f"gps3: rotation and translation entries differ by {p:.2e} (< 1e-3)")
     p = np.abs(np.array(g["pose3_loop"]["poses3"]) - np.array(f["pose3_loop"]["poses3"])).max()
     check(p < 1e-3, f"pose3_loop: rotation and translation entries differ by {p:.2e} (< 1e-3)")
     if failures:

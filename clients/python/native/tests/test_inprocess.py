@@ -337,3 +337,34 @@ def test_bearing_only_sightings_place_a_landmark():
     np.testing.assert_allclose(result.atPoint2(L(0)), landmark, atol=1e-6)
     assert isinstance(graph.at(1), gtsam.BearingFactor2D)
     assert graph.at(1).measured().theta() == pytest.approx(math.atan2(3.0, 4.0) - 0.1)
+
+
+def test_gps_and_pose_to_point_factors_place_a_trajectory_and_a_landmark():
+    # GPS fixes (at the origin and on a lever arm) and a landmark seen as body-frame positions,
+    # all exact: the optimum is the truth, and each factor's error there is zero.
+    step = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, 0.0, 0.0), gtsam.Point3(1.0, 0.0, 0.0))
+    arm = gtsam.Point3(0.2, 0.1, 0.8)
+    mark = gtsam.Point3(2.0, 3.0, 1.0)
+    truth = [gtsam.Pose3()]
+    for _ in range(5):
+        truth.append(truth[-1].compose(step))
+    fix = gtsam.noiseModel.Isotropic.Sigma(3, 0.1)
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    for i, p in enumerate(truth):
+        if i % 2:
+            graph.add(gtsam.GPSFactorArm(X(i), p.transformFrom(arm), arm, fix))
+        else:
+            graph.add(gtsam.GPSFactor(X(i), p.translation(), fix))
+        if i:
+            graph.add(gtsam.BetweenFactorPose3(X(i - 1), X(i), step, gtsam.noiseModel.Isotropic.Sigma(6, 0.05)))
+        graph.add(gtsam.PoseToPointFactor3D(X(i), L(0), p.transformTo(mark), fix))
+        initial.insert(X(i), p.retract(np.array([0.05, -0.03, 0.02, 0.3, -0.2, 0.1])))
+    initial.insert(L(0), gtsam.Point3(1.0, 1.0, 0.0))
+    assert graph.at(1).error(initial) > 0
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
+    for i, p in enumerate(truth):
+        assert result.atPose3(X(i)).equals(p, 1e-6)
+    np.testing.assert_allclose(result.atPoint3(L(0)), mark, atol=1e-6)
+    assert graph.error(result) < 1e-12
+    assert isinstance(graph.at(0), gtsam.GPSFactor)

@@ -22,6 +22,8 @@ from ._native import (  # noqa: F401  (re-exported)
     DoglegParams,
     FactordError,
     GaussNewtonOptimizer,
+    GPSFactor,
+    GPSFactorArm,
     GaussNewtonParams,
     IndeterminantLinearSystemException,
     InvalidNoiseModel,
@@ -37,6 +39,7 @@ from ._native import (  # noqa: F401  (re-exported)
     NonlinearOptimizerParams,
     Pose2,
     Pose3,
+    PoseToPointFactor3D,
     PriorFactorPoint2,
     PriorFactorPoint3,
     PriorFactorPose2,
@@ -62,6 +65,7 @@ from ._native import (  # noqa: F401  (re-exported)
 
 from . import expressions  # noqa: E402
 from .expressions import FactorType  # noqa: E402,F401
+from .session import IncrementalSession, Service, ServiceError  # noqa: E402,F401
 
 __all__ = [name for name in dir() if not name.startswith("_")] + [
     "Point2",
