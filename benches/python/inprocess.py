@@ -13,6 +13,9 @@ rounds:
 - an ISAM2 stream of M3500: update k adds pose k (guessed from the previous estimate and the
   odometry) and every edge whose later end is k; relinearizeThreshold 0.1, relinearizeSkip 1 for
   GTSAM; per-update times, total, and the final error over the batch optimum;
+- bundle adjustment of problem-49-7776 (BAL): GTSAM's SFMExample_bal.py way against factord's
+  loadBal, LM from the file's start (each error in its own measure: GTSAM's includes its gauge
+  priors);
 - factord's own `solve()` (library defaults: GN, chordal start when it helps), warm, on intel and
   sphere2500 against `factord solve --summary-json` (the CLI's median solve_seconds): the cost of
   calling in process.
@@ -114,6 +117,39 @@ def isam2_stream(lib, path, gtsam_like):
     }
 
 
+def bundle_adjustment(lib, path, is_gtsam):
+    """LM on a BAL file, at most 50 iterations, relative error tolerance 1e-6. GTSAM as its
+    SFMExample_bal.py builds it (SfmData.FromBalFile, GeneralSFMFactorCal3Bundler with unit
+    noise, priors on the first camera and point for the gauge); factord through loadBal (the
+    points eliminated by the Schur complement, the gauge left to the damping)."""
+    if is_gtsam:
+        scene = lib.SfmData.FromBalFile(path)
+        C, P = lib.symbol_shorthand.C, lib.symbol_shorthand.P
+        graph, initial = lib.NonlinearFactorGraph(), lib.Values()
+        unit = lib.noiseModel.Isotropic.Sigma(2, 1.0)
+        for j in range(scene.numberTracks()):
+            track = scene.track(j)
+            for k in range(track.numberMeasurements()):
+                i, uv = track.measurement(k)
+                graph.add(lib.GeneralSFMFactorCal3Bundler(uv, unit, C(i), P(j)))
+        graph.push_back(lib.PriorFactorPinholeCameraCal3Bundler(C(0), scene.camera(0), lib.noiseModel.Isotropic.Sigma(9, 0.1)))
+        graph.push_back(lib.PriorFactorPoint3(P(0), scene.track(0).point3(), lib.noiseModel.Isotropic.Sigma(3, 0.1)))
+        for i in range(scene.numberCameras()):
+            initial.insert(C(i), scene.camera(i))
+        for j in range(scene.numberTracks()):
+            initial.insert(P(j), scene.track(j).point3())
+    else:
+        graph, initial = lib.loadBal(path)
+    params = lib.LevenbergMarquardtParams()
+    params.setMaxIterations(50)
+    params.setRelativeErrorTol(1e-6)
+    start = time.perf_counter()
+    optimizer = lib.LevenbergMarquardtOptimizer(graph, initial, params)
+    optimizer.optimize()
+    seconds = time.perf_counter() - start
+    return {"seconds": seconds, "error": optimizer.error(), "iterations": optimizer.iterations()}
+
+
 def cli_solve(factord_bin, path, repeat):
     out = subprocess.run([factord_bin, "solve", path, "--summary-json", "-", "--repeat", str(repeat), "--quiet"],
                          capture_output=True, text=True, check=True).stdout
@@ -137,6 +173,7 @@ def main():
     m3500 = os.path.join(args.data, "2d/carlone/input_M3500_g2o.g2o")
     sphere = os.path.join(args.data, "3d/sesync/sphere2500.g2o")
     intel = os.path.join(args.data, "2d/carlone/input_INTEL_g2o.g2o")
+    bal49 = os.path.join(args.data, "bal/problem-49-7776-pre.txt")
     results = {}
 
     def record(case, system, value):
@@ -146,6 +183,9 @@ def main():
         for name, path, is3d in (("M3500 batch LM", m3500, False), ("sphere2500 batch LM", sphere, True)):
             for system, lib in (("gtsam", gtsam), ("factord", factord)):
                 record(name, system, batch(lib, path, is3d))
+        if os.path.exists(bal49):
+            for system, lib in (("gtsam", gtsam), ("factord", factord)):
+                record("problem-49 BA LM", system, bundle_adjustment(lib, bal49, system == "gtsam"))
         if not args.skip_stream and r < 2:
             for system, lib in (("gtsam", gtsam), ("factord", factord)):
                 s = isam2_stream(lib, m3500, system == "gtsam")
@@ -154,7 +194,7 @@ def main():
     # calls in a row here after one untimed call (the first solve in a process pays for first
     # touches of memory: sphere2500's took 3x the others in a trial).
     factord_bin = args.factord_bin or os.path.join(args.target_dir, "release/factord")
-    repeat = max(args.rounds, 5)
+    repeat = max(args.rounds, 15)
     for name, path in (("intel solve()", intel), ("sphere2500 solve()", sphere)):
         if os.path.exists(factord_bin):
             s = cli_solve(factord_bin, path, repeat)

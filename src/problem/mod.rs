@@ -238,35 +238,39 @@ impl Problem {
     }
 
     /// Checks the variables `factor` touches (exist, distinct, right kinds); their indices.
+    /// One lookup per key: building a problem resolves every factor's keys.
     fn resolve(&self, factor: &dyn Factor, label: &str) -> Result<Vec<usize>, ProblemError> {
         let keys = factor.keys();
-        for (pos, (&key, &expected)) in keys.iter().zip(factor.variable_kinds()).enumerate() {
+        let kinds = factor.variable_kinds();
+        let mut variables = Vec::with_capacity(keys.len());
+        for (pos, &key) in keys.iter().enumerate() {
             if keys[..pos].contains(&key) {
                 return Err(ProblemError::FactorRepeatedVariable {
                     factor: label.to_string(),
                     key,
                 });
             }
-            let var = self
-                .values
-                .get(key)
-                .ok_or_else(|| ProblemError::FactorUnknownVariable {
-                    factor: label.to_string(),
-                    key,
-                })?;
-            if var.kind() != expected {
-                return Err(ProblemError::FactorWrongKind {
-                    factor: label.to_string(),
-                    key,
-                    expected,
-                    found: var.kind(),
-                });
+            let index =
+                self.values
+                    .index_of(key)
+                    .ok_or_else(|| ProblemError::FactorUnknownVariable {
+                        factor: label.to_string(),
+                        key,
+                    })?;
+            let found = self.values.variable(index).kind();
+            match kinds.get(pos) {
+                Some(&expected) if expected != found => {
+                    return Err(ProblemError::FactorWrongKind {
+                        factor: label.to_string(),
+                        key,
+                        expected,
+                        found,
+                    });
+                }
+                _ => {}
             }
+            variables.push(index);
         }
-        let variables: Vec<usize> = keys
-            .iter()
-            .map(|&k| self.values.index_of(k).expect("checked above"))
-            .collect();
         Ok(variables)
     }
 

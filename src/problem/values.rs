@@ -1,13 +1,20 @@
 //! The estimate: variables addressed by 64-bit keys, each fixed or free.
 
+use std::collections::hash_map::Entry;
 use std::collections::HashMap;
 
 use super::{Key, Variable};
 
+/// The key → index map's hasher: foldhash, seeded per process (keys arrive from clients, so not
+/// an unseeded hash an attacker could collide), several times faster than the standard SipHash
+/// on 64-bit keys. Building a problem looks every factor's keys up: on intel (1 228 poses,
+/// 1 483 factors) that was most of the 0.37 ms an in-process `solve` spent before solving.
+type KeyHasher = foldhash::fast::RandomState;
+
 #[derive(Debug, Default)]
 pub struct Values {
     keys: Vec<Key>,
-    index: HashMap<Key, usize>,
+    index: HashMap<Key, usize, KeyHasher>,
     variables: Vec<Box<dyn Variable>>,
     fixed: Vec<bool>,
 }
@@ -32,12 +39,12 @@ impl Values {
     }
     /// Inserts a new variable; returns its dense index, or `None` if the key already exists.
     pub fn insert(&mut self, key: Key, variable: Box<dyn Variable>) -> Option<usize> {
-        if self.index.contains_key(&key) {
-            return None;
-        }
         let idx = self.keys.len();
+        match self.index.entry(key) {
+            Entry::Occupied(_) => return None,
+            Entry::Vacant(slot) => slot.insert(idx),
+        };
         self.keys.push(key);
-        self.index.insert(key, idx);
         self.variables.push(variable);
         self.fixed.push(false);
         Some(idx)

@@ -1,4 +1,4 @@
-//! `readG2o` and `writeG2o` through the library's readers and writers: the same records, the
+//! `readG2o`, `writeG2o` and `loadBal` through the library's readers and writers: the same records, the
 //! same information handling and the same errors as `factord solve` (TORO and GTSAM's landmark
 //! text are read too, detected by content).
 
@@ -34,13 +34,32 @@ pub fn read_g2o(
             if file_is_3d { "3D" } else { "2D" }
         )));
     }
-    let entries = loaded.problem.take_factors(|_| true);
+    library_graph(py, &mut loaded.problem)
+}
+
+/// `(graph, initial)` of a BAL file (factord's own call: GTSAM's `readBal` answers an `SfmData`
+/// in another camera frame): camera `i` is key `i` (a `SnavelyCamera`), point `j` key
+/// `cameras + j`, each observation a `SnavelyReprojectionFactor` with unit noise (BAL's cost is
+/// `graph.error`, ½Σ‖e‖²). The same reader as `factord ba`.
+#[pyfunction]
+#[pyo3(name = "loadBal")]
+pub fn load_bal(py: Python<'_>, filename: PathBuf) -> PyResult<(NonlinearFactorGraph, Values)> {
+    let mut loaded = io::bal::load(&filename).map_err(|e| FactordError::new_err(e.to_string()))?;
+    library_graph(py, &mut loaded.problem)
+}
+
+/// The factors (taken) and values of a library problem as a graph and a `Values`.
+fn library_graph(
+    py: Python<'_>,
+    problem: &mut factord::problem::Problem,
+) -> PyResult<(NonlinearFactorGraph, Values)> {
+    let entries = problem.take_factors(|_| true);
     let mut graph = NonlinearFactorGraph::default();
     for e in entries {
         let data = from_library(py, e.factor, e.sqrt_information, e.robust, e.label)?;
         graph.factors.push(Some(Arc::new(data)));
     }
-    let v = &loaded.problem.values;
+    let v = &problem.values;
     let values = Values {
         map: (0..v.len())
             .map(|i| (v.key(i), v.variable(i).clone_box()))

@@ -126,6 +126,7 @@ pub fn type_name(kind: &str) -> &str {
         "se3" => "Pose3",
         "point2" => "Point2",
         "point3" => "Point3",
+        "snavely_camera" => "SnavelyCamera",
         other => other,
     }
 }

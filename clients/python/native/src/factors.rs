@@ -11,7 +11,7 @@ pub use factord::factors::shared::SharedFactor;
 use factord::factors::{
     BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, Factor, GnssLeverArmSe3, GnssPositionSe3,
     PositionSe3Point3, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3,
-    RobustKernel, SqrtInformation,
+    ReprojectionSnavely, RobustKernel, SqrtInformation,
 };
 use factord::problem::Key;
 
@@ -44,6 +44,7 @@ pub enum FactorClass {
     GPSFactor,
     GPSFactorArm,
     PoseToPointFactor3D,
+    SnavelyReprojectionFactor,
     /// A Python error function's (`custom.rs`).
     CustomFactor,
     /// Read from a file, of a type without a Python class of its own.
@@ -182,6 +183,7 @@ pub fn factor_object(py: Python<'_>, data: &Arc<FactorData>) -> PyResult<Py<PyAn
         GPSFactor,
         GPSFactorArm,
         PoseToPointFactor3D,
+        SnavelyReprojectionFactor,
         CustomFactor
     )
 }
@@ -322,6 +324,20 @@ factor_class!(
     )
 );
 
+// A BAL observation: the pixel at which a `SnavelyCamera` sees a point (`camera.rs`).
+factor_class!(
+    SnavelyReprojectionFactor,
+    (camera_key: Key, point_key: Key, measured: Bound<'_, PyAny>),
+    |py| (
+        Box::new(ReprojectionSnavely::new(
+            camera_key,
+            point_key,
+            point_in::<2>(&measured, "SnavelyReprojectionFactor measured")?.into(),
+        )),
+        Some(measured.unbind())
+    )
+);
+
 /// The class a file's factor is given, and what its `measured()` returns.
 pub fn classify(py: Python<'_>, factor: &dyn Factor) -> PyResult<(FactorClass, Option<Py<PyAny>>)> {
     let any = factor.as_any();
@@ -347,6 +363,12 @@ pub fn classify(py: Python<'_>, factor: &dyn Factor) -> PyResult<(FactorClass, O
         return Ok((
             FactorClass::PriorFactorPose3,
             Some(Py::new(py, Pose3::from_se3(f.measurement))?.into_any()),
+        ));
+    }
+    if let Some(f) = any.downcast_ref::<ReprojectionSnavely>() {
+        return Ok((
+            FactorClass::SnavelyReprojectionFactor,
+            Some(crate::arrays::vector_out(py, f.observed.as_slice())?.unbind()),
         ));
     }
     if let Some(f) = any.downcast_ref::<BearingRangeSe2>() {

@@ -34,6 +34,11 @@ pub fn build_problem<'a>(
     factors: impl IntoIterator<Item = &'a Arc<FactorData>>,
 ) -> PyResult<Problem> {
     let mut problem = Problem::with_gauge(Gauge::Free);
+    // Cameras and points (bundle adjustment): the points are eliminated first (the Schur
+    // complement), as `factord ba` and a BAL file's problem do.
+    if values.map.values().any(|v| v.kind() == "snavely_camera") {
+        problem.eliminate = vec!["point3"];
+    }
     for (&key, v) in &values.map {
         problem
             .add_variable(key, v.clone_box())

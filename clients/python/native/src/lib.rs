@@ -8,6 +8,7 @@
 use pyo3::prelude::*;
 
 mod arrays;
+mod camera;
 mod custom;
 mod dataset;
 mod errors;
@@ -53,6 +54,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<factors::GPSFactor>()?;
     m.add_class::<factors::GPSFactorArm>()?;
     m.add_class::<factors::PoseToPointFactor3D>()?;
+    m.add_class::<factors::SnavelyReprojectionFactor>()?;
+    m.add_class::<camera::SnavelyCamera>()?;
     m.add_class::<custom::CustomFactor>()?;
     m.add_class::<expression::FactorType>()?;
     m.add_class::<graph::NonlinearFactorGraph>()?;
@@ -75,6 +78,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(keys::key_name_py, m)?)?;
     m.add_function(wrap_pyfunction!(dataset::read_g2o, m)?)?;
     m.add_function(wrap_pyfunction!(dataset::write_g2o, m)?)?;
+    m.add_function(wrap_pyfunction!(dataset::load_bal, m)?)?;
     m.add_function(wrap_pyfunction!(optimizers::solve, m)?)?;
     Ok(())
 }

@@ -197,13 +197,13 @@ pub fn values_of(problem: &Problem) -> Values {
 
 /// The Summary as a Python dict (through its JSON form, the one the server sends).
 pub fn summary_dict(py: Python<'_>, summary: &Summary) -> PyResult<Py<PyAny>> {
+    static LOADS: pyo3::sync::PyOnceLock<Py<PyAny>> = pyo3::sync::PyOnceLock::new();
     let json = serde_json::to_string(summary)
         .map_err(|e| FactordError::new_err(format!("summary: {e}")))?;
-    Ok(py
-        .import("json")?
-        .getattr("loads")?
-        .call1((json,))?
-        .unbind())
+    let loads = LOADS.get_or_try_init(py, || {
+        py.import("json")?.getattr("loads").map(Bound::unbind)
+    })?;
+    Ok(loads.bind(py).call1((json,))?.unbind())
 }
 
 /// An optimizer class: constructor, `optimize`, `values`, `error`, `iterations`, `summary`.

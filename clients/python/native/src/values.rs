@@ -7,11 +7,12 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, Vector2, Vector3};
 use pyo3::prelude::*;
 
-use factord::geometry::{Point2, Point3, Se2, Se3};
+use factord::geometry::{Point2, Point3, Se2, Se3, SnavelyCamera as LibraryCamera};
 use factord::problem::Key;
 use factord::variables::Variable;
 
 use crate::arrays::{matrix_out, vector_in, vector_out};
+use crate::camera::SnavelyCamera;
 use crate::errors::{
     type_name, ValuesIncorrectType, ValuesKeyAlreadyExists, ValuesKeyDoesNotExist,
 };
@@ -41,9 +42,12 @@ pub fn variable_of(value: &Bound<'_, PyAny>, key: Key) -> PyResult<Box<dyn Varia
     if let Ok(p) = value.extract::<Pose3>() {
         return Ok(Box::new(p.inner));
     }
+    if let Ok(c) = value.extract::<SnavelyCamera>() {
+        return Ok(Box::new(c.inner));
+    }
     let v = vector_in(value, &format!("value of {}", key_name(key))).map_err(|_| {
         ValuesIncorrectType::new_err(format!(
-            "value of {}: a Pose2, Pose3 or a point (numpy 2- or 3-vector) is needed, got {}",
+            "value of {}: a Pose2, Pose3, SnavelyCamera or a point (numpy 2- or 3-vector) is needed, got {}",
             key_name(key),
             value
                 .get_type()
@@ -73,6 +77,9 @@ pub fn object_of(py: Python<'_>, variable: &dyn Variable) -> PyResult<Py<PyAny>>
     }
     if let Some(p) = any.downcast_ref::<Se3>() {
         return Ok(Py::new(py, Pose3::from_se3(*p))?.into_any());
+    }
+    if let Some(c) = any.downcast_ref::<LibraryCamera>() {
+        return Ok(Py::new(py, SnavelyCamera { inner: *c })?.into_any());
     }
     if let Some(p) = any.downcast_ref::<Point2>() {
         return Ok(vector_out(py, p.0.as_slice())?.unbind());
@@ -238,6 +245,12 @@ impl Values {
     #[pyo3(name = "atPose3")]
     fn at_pose3(&self, key: Key) -> PyResult<Pose3> {
         Ok(Pose3::from_se3(*self.get_as::<Se3>(key, "Pose3")?))
+    }
+    #[pyo3(name = "atSnavelyCamera")]
+    fn at_snavely_camera(&self, key: Key) -> PyResult<SnavelyCamera> {
+        Ok(SnavelyCamera {
+            inner: *self.get_as::<LibraryCamera>(key, "SnavelyCamera")?,
+        })
     }
     #[pyo3(name = "atPoint2")]
     fn at_point2<'py>(&self, py: Python<'py>, key: Key) -> PyResult<Bound<'py, PyAny>> {

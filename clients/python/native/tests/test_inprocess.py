@@ -368,3 +368,29 @@ def test_gps_and_pose_to_point_factors_place_a_trajectory_and_a_landmark():
     np.testing.assert_allclose(result.atPoint3(L(0)), mark, atol=1e-6)
     assert graph.error(result) < 1e-12
     assert isinstance(graph.at(0), gtsam.GPSFactor)
+
+
+def test_bundle_adjustment_in_process_reaches_the_ceres_optimum():
+    path = os.path.join(DATA, "bal/problem-49-7776-pre.txt")
+    if not os.path.exists(path):
+        pytest.skip(f"{path} missing")
+    graph, initial = gtsam.loadBal(path)
+    assert (graph.size(), initial.size()) == (31843, 49 + 7776)
+    # BAL's cost convention (½Σ‖e‖²) is graph.error: MANIFEST's initial cost.
+    assert graph.error(initial) == pytest.approx(850912.5, rel=1e-6)
+    first = graph.at(0)
+    assert isinstance(first, gtsam.SnavelyReprojectionFactor) and first.keys() == [0, 49]
+    camera = initial.atSnavelyCamera(0)
+    assert gtsam.SnavelyCamera.fromBal(camera.bal()).equals(camera, 1e-12)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(50)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    result = optimizer.optimize()
+    # Ceres' optimum (tests/library/bal.rs), through the Schur complement of the points.
+    assert optimizer.error() == pytest.approx(13344.32, rel=1e-3)
+    assert optimizer.summary()["used"]["schur"]["eliminated_variables"] == 7776
+    # The camera's projection is the factor's model: its error is ½‖projection − measured‖².
+    seen = result.atSnavelyCamera(0).project(result.atPoint3(49))
+    assert first.error(result) == pytest.approx(0.5 * float(np.sum((seen - first.measured()) ** 2)), rel=1e-12)
+    with pytest.raises(gtsam.DimensionMismatch):
+        gtsam.SnavelyCamera(gtsam.Rot3(), np.zeros(2), 500.0)
