@@ -18,7 +18,8 @@ rounds:
   priors);
 - factord's own `solve()` (library defaults: GN, chordal start when it helps), warm, on intel and
   sphere2500 against `factord solve --summary-json` (the CLI's median solve_seconds): the cost of
-  calling in process.
+  calling in process; each side in `--processes` processes (fresh Python processes for factord),
+  alternating, pooled medians.
 
 Each library reports its error in its own measure: the 2D between errors differ by definition
 (GTSAM: Logmap; factord: g2o's), and GTSAM's readG2o and factord weigh a 3D file's rotation
@@ -150,6 +151,30 @@ def bundle_adjustment(lib, path, is_gtsam):
     return {"seconds": seconds, "error": optimizer.error(), "iterations": optimizer.iterations()}
 
 
+INPROCESS_SOLVE = """
+import json, sys, time
+import factord
+path, repeat = sys.argv[1], int(sys.argv[2])
+graph, initial = factord.readG2o(path, "3d" in path)
+factord.solve(graph, initial, method="gauss_newton", initialization="auto")
+runs = []
+for _ in range(repeat):
+    start = time.perf_counter()
+    _, summary = factord.solve(graph, initial, method="gauss_newton", initialization="auto")
+    runs.append({"seconds": time.perf_counter() - start, "solve_seconds": summary["solve_seconds"],
+                 "chi2": summary["final_chi2"]})
+print(json.dumps(runs))
+"""
+
+
+def inprocess_solve(site, path, repeat):
+    """`repeat` warm calls of factord.solve() in a fresh Python process (factord from `site`)."""
+    env = dict(os.environ, PYTHONPATH=site + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", INPROCESS_SOLVE, path, str(repeat)], env=env,
+                         capture_output=True, text=True, check=True).stdout
+    return json.loads(out)
+
+
 def cli_solve(factord_bin, path, repeat):
     out = subprocess.run([factord_bin, "solve", path, "--summary-json", "-", "--repeat", str(repeat), "--quiet"],
                          capture_output=True, text=True, check=True).stdout
@@ -164,6 +189,8 @@ def main():
     ap.add_argument("--target-dir", default=os.environ.get("CARGO_TARGET_DIR", os.path.join(REPO, "target")))
     ap.add_argument("--factord-bin", help="factord binary for the CLI comparison (default: <target-dir>/release/factord)")
     ap.add_argument("--skip-stream", action="store_true")
+    ap.add_argument("--processes", type=int, default=3,
+                    help="processes per side of the in-process-against-CLI comparison")
     args = ap.parse_args()
     if args.build:
         sys.path.insert(0, build_factord(args.target_dir, tempfile.mkdtemp(prefix="factord-bench-")))
@@ -191,21 +218,20 @@ def main():
                 s = isam2_stream(lib, m3500, system == "gtsam")
                 record("M3500 ISAM2 stream", system, {k: v for k, v in s.items() if k not in ("graph", "estimate")})
     # solve() against the CLI, both warm: the CLI's --repeat N median in one process against N
-    # calls in a row here after one untimed call (the first solve in a process pays for first
-    # touches of memory: sphere2500's took 3x the others in a trial).
+    # calls in a row in a fresh Python process after one untimed call (the first solve in a
+    # process pays for first touches of memory: sphere2500's took 3x the others in a trial).
+    # A process's own speed moves by about 15 % here at a few milliseconds, so each side runs
+    # in `--processes` processes, alternating, and the ratio is of the pooled medians.
     factord_bin = args.factord_bin or os.path.join(args.target_dir, "release/factord")
     repeat = max(args.rounds, 15)
+    site = os.path.dirname(os.path.dirname(factord.__file__))
     for name, path in (("intel solve()", intel), ("sphere2500 solve()", sphere)):
-        if os.path.exists(factord_bin):
-            s = cli_solve(factord_bin, path, repeat)
-            record(name, "factord solve", {"seconds": s["solve_seconds"], "chi2": s["final_chi2"]})
-        graph, initial = factord.readG2o(path, "3d" in path)
-        factord.solve(graph, initial, method="gauss_newton", initialization="auto")
-        for _ in range(repeat):
-            start = time.perf_counter()
-            _, summary = factord.solve(graph, initial, method="gauss_newton", initialization="auto")
-            record(name, "in process", {"seconds": time.perf_counter() - start,
-                                        "solve_seconds": summary["solve_seconds"], "chi2": summary["final_chi2"]})
+        for _ in range(args.processes):
+            if os.path.exists(factord_bin):
+                s = cli_solve(factord_bin, path, repeat)
+                record(name, "factord solve", {"seconds": s["solve_seconds"], "chi2": s["final_chi2"]})
+            for run in inprocess_solve(site, path, repeat):
+                record(name, "in process", run)
 
     print(f"# {args.rounds} rounds, medians")
     for case, systems in results.items():
