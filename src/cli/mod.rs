@@ -17,6 +17,7 @@ mod health;
 mod logging;
 mod plot;
 mod progress;
+mod robots_report;
 mod serve;
 mod solve;
 mod solve_output;

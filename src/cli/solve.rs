@@ -9,6 +9,7 @@ use factord::solver::{self, Initialization, Method, SolverOptions, Unlimited};
 
 use super::plot::{self, PlotFormat};
 use super::progress::Progress;
+use super::robots_report::{self, robot_views};
 use super::solve_output::{chi2_line, write_summary_json};
 use super::stdio::{one_stdin, Console, InputArg, OutputArg};
 use super::value_parsers::{parse_gnc_kernel, parse_init, parse_method, parse_robust};
@@ -146,6 +147,8 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
     if let Some(report) = &gnc_report {
         console.print(&rejection_report(report));
     }
+    let robots = robot_views(&initial, &graph.problem.values);
+    console.print(&robots_report::report(&robots));
     if let Some(target) = &args.summary_json {
         let mut extra = vec![
             ("input", name.display().to_string().into()),
@@ -158,6 +161,9 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         }
         if let Some(report) = &gnc_report {
             extra.push(("outliers", serde_json::to_value(report)?));
+        }
+        if !robots.is_empty() {
+            extra.push(("robots", serde_json::to_value(&robots)?));
         }
         write_summary_json(target, &summary, extra)?;
     }

@@ -4,8 +4,9 @@
 //! in metres, information upper triangle as every edge), our own record for the bearing-range
 //! sightings of GTSAM's landmark text (g2o has a bearing-only `EDGE_BEARING_SE2_XY`, no
 //! bearing-range edge), so a solved `victoria_park.txt` written with `--out` reads back as the
-//! same problem. Keys in these two records are read as exact 64-bit integers (GTSAM's landmark
-//! keys `('l' << 56) | l` are beyond f64's integers).
+//! same problem. Every id is read as an exact 64-bit integer: GTSAM's symbol keys (a landmark's
+//! `('l' << 56) | l`, a robot's pose `('a' << 56) | i`) are beyond f64's integers, so a file of
+//! several robots (docs/guide/many-robots.md, "Files of several robots") reads as it was written.
 //!
 //! Information matrices are the upper triangle, row-major. For 3D the file's Ω (order t, R) is
 //! defined on g2o's error `[t; vec(q)]`, where `vec(q) ≈ Log(R)/2`; our SE(3) factor's rotation
@@ -19,7 +20,7 @@ use std::path::Path;
 use nalgebra::{DMatrix, Quaternion, UnitQuaternion, Vector3};
 
 use super::edges::{add_edges, Edge};
-use super::{id, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
+use super::{key_field, lines, numbers, parse_error, problem_error, Dimension, IoError, PoseGraph};
 use crate::factors::{BearingRangeSe2, BetweenSe2, BetweenSe3};
 use crate::geometry::{Point2, Se2, Se3};
 use crate::problem::FactorEntry;
@@ -61,25 +62,13 @@ fn quaternion(path: &Path, number: usize, f: &[f64]) -> Result<UnitQuaternion<f6
     Ok(UnitQuaternion::from_quaternion(q))
 }
 
-/// The key in field `field` (1-based) of `line`, as an exact 64-bit integer.
-fn exact_key(path: &Path, line: &super::Line, field: usize) -> Result<Key, IoError> {
-    let token = line.tokens[field];
-    token.parse::<Key>().map_err(|_| {
-        parse_error(
-            path,
-            line.number,
-            format!("field {field} (`{token}`) is not a valid id"),
-        )
-    })
-}
-
 /// What the records of a g2o text add up to before the edges are built.
 #[derive(Default)]
 struct Records<'a> {
     problem: Problem,
     order: Vec<Key>,
-    /// (file, line, numbers, dimension) of each EDGE_SE2 / EDGE_SE3:QUAT.
-    edges: Vec<(&'a Path, usize, Vec<f64>, Dimension)>,
+    /// (file, line, (i, j), numbers, dimension) of each EDGE_SE2 / EDGE_SE3:QUAT.
+    edges: Vec<(&'a Path, usize, (Key, Key), Vec<f64>, Dimension)>,
     /// (file, line, pose, landmark, numbers) of each EDGE_BEARING_RANGE_SE2_XY.
     sightings: Vec<(&'a Path, usize, Key, Key, Vec<f64>)>,
     fixes: Vec<(&'a Path, usize, Key)>,
@@ -138,13 +127,13 @@ impl<'a> Records<'a> {
         Ok(match line.tokens[0] {
             "VERTEX_SE2" => {
                 let f = numbers(path, line, 4)?;
-                let key = id(path, number, f[0], 1)?;
+                let key = key_field(path, line, 1)?;
                 self.vertex(path, number, key, Box::new(Se2::new(f[1], f[2], f[3])))?;
                 Some(Dimension::Two)
             }
             "VERTEX_XY" => {
                 let f = numbers(path, line, 3)?;
-                let key = exact_key(path, line, 1)?;
+                let key = key_field(path, line, 1)?;
                 self.vertex(
                     path,
                     number,
@@ -155,38 +144,38 @@ impl<'a> Records<'a> {
             }
             "EDGE_BEARING_RANGE_SE2_XY" => {
                 let f = numbers(path, line, 7)?;
-                let (pose, landmark) = (exact_key(path, line, 1)?, exact_key(path, line, 2)?);
+                let (pose, landmark) = (key_field(path, line, 1)?, key_field(path, line, 2)?);
                 self.sightings.push((path, number, pose, landmark, f));
                 Some(Dimension::Two)
             }
             "VERTEX_SE3:QUAT" => {
                 let f = numbers(path, line, 8)?;
-                let key = id(path, number, f[0], 1)?;
+                let key = key_field(path, line, 1)?;
                 let q = quaternion(path, number, &f[4..8])?;
                 let pose = Se3::new(q, Vector3::new(f[1], f[2], f[3]));
                 self.vertex(path, number, key, Box::new(pose))?;
                 Some(Dimension::Three)
             }
             "EDGE_SE2" => {
-                self.edges
-                    .push((path, number, numbers(path, line, 11)?, Dimension::Two));
+                let f = numbers(path, line, 11)?;
+                let ends = (key_field(path, line, 1)?, key_field(path, line, 2)?);
+                self.edges.push((path, number, ends, f, Dimension::Two));
                 Some(Dimension::Two)
             }
             "EDGE_SE3:QUAT" => {
-                self.edges
-                    .push((path, number, numbers(path, line, 30)?, Dimension::Three));
+                let f = numbers(path, line, 30)?;
+                let ends = (key_field(path, line, 1)?, key_field(path, line, 2)?);
+                self.edges.push((path, number, ends, f, Dimension::Three));
                 Some(Dimension::Three)
             }
             "FIX" => {
-                for (k, t) in line.tokens[1..].iter().enumerate() {
-                    let v: f64 = t.parse().map_err(|_| {
-                        parse_error(
-                            path,
-                            number,
-                            format!("FIX field {} (`{t}`) is not an id", k + 1),
-                        )
-                    })?;
-                    self.fixes.push((path, number, id(path, number, v, k + 1)?));
+                for (field, t) in line.tokens.iter().enumerate().skip(1) {
+                    if t.parse::<f64>().is_err() {
+                        let message = format!("FIX field {field} (`{t}`) is not an id");
+                        return Err(parse_error(path, number, message));
+                    }
+                    self.fixes
+                        .push((path, number, key_field(path, line, field)?));
                 }
                 None
             }
@@ -217,11 +206,10 @@ impl<'a> Records<'a> {
 
 /// The EDGE_SE2 / EDGE_SE3:QUAT records as between factors.
 fn between_edges(
-    edges: Vec<(&Path, usize, Vec<f64>, Dimension)>,
+    edges: Vec<(&Path, usize, (Key, Key), Vec<f64>, Dimension)>,
 ) -> Result<Vec<Edge<'_>>, IoError> {
     let mut built = Vec::with_capacity(edges.len());
-    for (path, number, f, dim) in edges {
-        let (i, j) = (id(path, number, f[0], 1)?, id(path, number, f[1], 2)?);
+    for (path, number, (i, j), f, dim) in edges {
         built.push(match dim {
             Dimension::Two => Edge {
                 factor: Box::new(BetweenSe2::new(i, j, Se2::new(f[2], f[3], f[4]))),

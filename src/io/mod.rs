@@ -120,6 +120,24 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
         .collect()
 }
 
+/// The id in field `field` (1-based) of `line`, read as an exact 64-bit integer: GTSAM's symbol
+/// keys (`('x' << 56) | i`, a robot's or a landmark's) are beyond f64's integers. A field written
+/// as a float (`3.0`) is read as [`id`] reads numbers.
+pub(crate) fn key_field(path: &Path, line: &Line, field: usize) -> Result<Key, IoError> {
+    let token = line.tokens[field];
+    if let Ok(key) = token.parse::<Key>() {
+        return Ok(key);
+    }
+    match token.parse::<f64>() {
+        Ok(value) => id(path, line.number, value, field),
+        Err(_) => Err(parse_error(
+            path,
+            line.number,
+            format!("field {field} (`{token}`) is not a valid id"),
+        )),
+    }
+}
+
 /// A vertex or edge id: a non-negative integer.
 /// `line` is the 1-based line number, for the error.
 pub(crate) fn id(path: &Path, line: usize, value: f64, field: usize) -> Result<Key, IoError> {

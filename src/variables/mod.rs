@@ -94,6 +94,7 @@ macro_rules! copy_variable_plumbing {
 }
 
 // After the macro: the kinds' files use it.
+pub mod frame;
 pub mod nav_state;
 pub mod point2;
 pub mod point3;

@@ -9,6 +9,7 @@ mod common;
 
 mod cli;
 mod cli_output;
+mod cli_robots;
 mod doc_links;
 mod docker;
 mod docker_run;

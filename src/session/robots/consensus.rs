@@ -10,8 +10,8 @@
 //! implies a transform metres or radians away from the true one, a χ² of thousands; the
 //! largest mutually consistent set is the consensus, and a merge needs enough of them.
 
-use super::frame::Frame;
 use crate::solver::chi_square::cached_quantile;
+use crate::variables::frame::Frame;
 
 /// At most this many closures per pair of components take part (the newest): the exact
 /// maximum-clique search is exponential in the worst case, and a merge needs only a few.

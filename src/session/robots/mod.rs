@@ -24,14 +24,13 @@
 
 mod apply;
 mod consensus;
-mod frame;
 mod plan;
 mod session;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
+pub(crate) use crate::variables::frame::Frame;
 pub(crate) use apply::{apply_to_problem, resync_mirror};
-pub(crate) use frame::Frame;
 pub(crate) use plan::{Merge, RobotsPlan};
 pub(crate) use session::in_robot_frame;
 

@@ -10,12 +10,12 @@
 
 use nalgebra::{UnitQuaternion, Vector3};
 
+use super::Variable;
 use crate::geometry::{Point2, Point3, Se2, Se3};
-use crate::variables::Variable;
 
 /// A rigid transform between two frames (`to ← from`).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) enum Frame {
+pub enum Frame {
     Planar(Se2),
     Spatial(Se3),
 }
@@ -23,7 +23,7 @@ pub(crate) enum Frame {
 impl Frame {
     /// The transform that takes `from` (a pose in the old frame) to `to` (the same pose in the
     /// new frame): `to ∘ from⁻¹`. `None` unless both are poses of one kind.
-    pub(crate) fn between_poses(to: &dyn Variable, from: &dyn Variable) -> Option<Frame> {
+    pub fn between_poses(to: &dyn Variable, from: &dyn Variable) -> Option<Frame> {
         if let (Some(to), Some(from)) = (downcast::<Se2>(to), downcast::<Se2>(from)) {
             return Some(Frame::Planar(to.compose(&from.inverse())));
         }
@@ -34,7 +34,7 @@ impl Frame {
     }
 
     /// `self ∘ other`; `None` when one is planar and the other spatial.
-    pub(crate) fn compose(&self, other: &Frame) -> Option<Frame> {
+    pub fn compose(&self, other: &Frame) -> Option<Frame> {
         match (self, other) {
             (Frame::Planar(a), Frame::Planar(b)) => Some(Frame::Planar(a.compose(b))),
             (Frame::Spatial(a), Frame::Spatial(b)) => Some(Frame::Spatial(a.compose(b))),
@@ -42,7 +42,7 @@ impl Frame {
         }
     }
 
-    pub(crate) fn inverse(&self) -> Frame {
+    pub fn inverse(&self) -> Frame {
         match self {
             Frame::Planar(a) => Frame::Planar(a.inverse()),
             Frame::Spatial(a) => Frame::Spatial(a.inverse()),
@@ -51,7 +51,7 @@ impl Frame {
 
     /// Moves `v` into the new frame: a pose is composed on the left, a point transformed;
     /// returns `false` for a kind a frame does not move (or of the other dimension).
-    pub(crate) fn apply(&self, v: &mut dyn Variable) -> bool {
+    pub fn apply(&self, v: &mut dyn Variable) -> bool {
         let any = v.as_any();
         let moved: Option<Box<dyn Variable>> = match self {
             Frame::Planar(t) => {
@@ -86,7 +86,7 @@ impl Frame {
 
     #[cfg(test)]
     /// How far apart two transforms are: (translation distance, rotation angle in radians).
-    pub(crate) fn distance(&self, other: &Frame) -> Option<(f64, f64)> {
+    pub fn distance(&self, other: &Frame) -> Option<(f64, f64)> {
         match (self, other) {
             (Frame::Planar(a), Frame::Planar(b)) => {
                 let d = a.between(b);
@@ -103,7 +103,7 @@ impl Frame {
     /// The mean of transforms that agree closely (a consensus set): each is expressed relative
     /// to the first, averaged in the tangent space, and composed back. `None` when empty or
     /// mixed.
-    pub(crate) fn mean(frames: &[Frame]) -> Option<Frame> {
+    pub fn mean(frames: &[Frame]) -> Option<Frame> {
         let first = *frames.first()?;
         let n = frames.len() as f64;
         match first {
@@ -128,7 +128,7 @@ impl Frame {
     }
 
     /// The transform as the wire shows it: `[x, y, θ]` or `[x, y, z, qx, qy, qz, qw]`.
-    pub(crate) fn to_wire(self) -> Vec<f64> {
+    pub fn to_wire(self) -> Vec<f64> {
         match self {
             Frame::Planar(t) => t.to_array().to_vec(),
             Frame::Spatial(t) => {
@@ -147,7 +147,7 @@ impl Frame {
     }
 
     /// Reads [`Frame::to_wire`]'s form back (a journal's merge record).
-    pub(crate) fn from_wire(v: &[f64]) -> Option<Frame> {
+    pub fn from_wire(v: &[f64]) -> Option<Frame> {
         match *v {
             [x, y, theta] => Some(Frame::Planar(Se2::new(x, y, theta))),
             [x, y, z, qx, qy, qz, qw] => {
