@@ -80,6 +80,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.p
 from posegraph_io import Edge, PoseGraph, chi2_g2o_convention, read_pose_graph  # noqa: E402
 
 PRIOR_SIGMA = 1e-6
+# The other robots' first poses (--robots): weak, so they hardly bias the optimum, yet not so weak
+# that iSAM2's Cholesky calls the system indeterminate beside the gauge prior (σ 1e3 did).
+OTHER_ROBOT_PRIOR_SIGMA = 10.0
 
 
 def parse_args() -> argparse.Namespace:
@@ -90,6 +93,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--limit", type=int, metavar="N", help="stream only the first N poses (lowest ids)")
     p.add_argument("--relinearize-threshold", type=float, default=0.1, help="ISAM2Params relinearizeThreshold (0.1)")
     p.add_argument("--relinearize-skip", type=int, default=10, help="ISAM2Params relinearizeSkip (10)")
+    p.add_argument("--robots", type=int, default=1,
+                   help="cut the poses into R contiguous robots streamed interleaved, as "
+                        "benches/robots/split.py sends them (1: the file's order)")
     args = p.parse_args()
     if args.limit is not None and args.limit < 1:
         p.error("--limit must be >= 1")
@@ -104,12 +110,28 @@ def restrict(graph: PoseGraph, limit: int | None) -> PoseGraph:
                      [e for e in graph.edges if e.i in keep and e.j in keep])
 
 
-def edges_by_step(graph: PoseGraph) -> Dict[int, List[Edge]]:
-    """Vertex id -> the edges whose larger endpoint is that id (file order kept)."""
+def edges_by_step(graph: PoseGraph, order: List[int]) -> Dict[int, List[Edge]]:
+    """Vertex id -> the edges whose later-arriving endpoint (in `order`) is that id (file order
+    kept)."""
+    arrival = {k: n for n, k in enumerate(order)}
     steps: Dict[int, List[Edge]] = {k: [] for k in graph.vertices}
     for e in graph.edges:
-        steps[max(e.i, e.j)].append(e)
+        steps[max(e.i, e.j, key=arrival.__getitem__)].append(e)
     return steps
+
+
+def interleaved(ids: List[int], robots: int) -> Tuple[List[int], Dict[int, int]]:
+    """The arrival order of `robots` contiguous robots streamed round by round (every robot's
+    pose t, then pose t + 1, ...), as benches/robots/split.py sends them, and each id's robot.
+    One robot: the ids in order."""
+    n = len(ids)
+    owner = {k: min(robots - 1, pos * robots // n) for pos, k in enumerate(ids)}
+    mine: Dict[int, List[int]] = {}
+    for k in ids:
+        mine.setdefault(owner[k], []).append(k)
+    order = [poses[t] for t in range(max(len(p) for p in mine.values()))
+             for r, poses in sorted(mine.items()) if t < len(poses)]
+    return order, owner
 
 
 HALF_ANGLE = np.outer([1.0, 1.0, 1.0, 0.5, 0.5, 0.5], [1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
@@ -222,6 +244,7 @@ def stream_report(args, graph: PoseGraph, ms: np.ndarray, peak_kb) -> dict:
         "file": os.path.abspath(args.file),
         "limit": args.limit,
         "steps": len(ms),
+        "robots": args.robots,
         "edges": len(graph.edges),
         "total_seconds": float(ms.sum() / 1e3),
         "mean_ms": float(ms.mean()) if some else None,
@@ -249,9 +272,17 @@ def main() -> int:
     full = read_pose_graph(args.file)
     graph = restrict(full, args.limit)
     dim = graph.dim
-    ids = sorted(graph.vertices)
-    steps = edges_by_step(graph)
+    ids, owner = interleaved(sorted(graph.vertices), args.robots)
+    steps = edges_by_step(graph, ids)
     first = ids[0]
+    # Each robot's first pose gets a prior: the first robot's fixes the gauge; the others' are
+    # weak (σ OTHER_ROBOT_PRIOR_SIGMA) and at the pose's place in the file's frame, which iSAM2 must be given
+    # (factord's session finds each robot's frame from the closures instead).
+    firsts = {}
+    for k in ids:
+        firsts.setdefault(owner[k], k)
+    robot_firsts = set(firsts.values())
+    previous_of_robot: Dict[int, int] = {}
 
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(args.relinearize_threshold)
@@ -271,8 +302,12 @@ def main() -> int:
         new_factors = gtsam.NonlinearFactorGraph()
         if k == first:
             new_factors.add(prior)
+        elif k in robot_firsts:
+            new_factors.add(prior_cls(k, to_pose(graph.vertices[k]),
+                                      gtsam.noiseModel.Isotropic.Sigma(3 if dim == 2 else 6, OTHER_ROBOT_PRIOR_SIGMA)))
         for e in steps[k]:
             new_factors.add(between_factor(e))
+        prev = previous_of_robot.get(owner[k])
         pose, how = initial_guess(k, prev, steps[k], estimate, graph.vertices[k], dim)
         new_values = gtsam.Values()
         new_values.insert(k, pose)
@@ -286,7 +321,7 @@ def main() -> int:
             break
         latencies.append(time.perf_counter() - t0)
         guess_sources[how] += 1
-        prev = k
+        previous_of_robot[owner[k]] = k
     else:
         failure = None
     peak_kb = peak_rss_kb()

@@ -25,6 +25,10 @@ after alignment against that optimum, and with wrong closures the precision and 
 closures kept out of the map (held or rejected at the end). The clean optimum is ``factord
 solve`` on the file.
 
+``--wait`` sends every batch with ``wait=true``: its latency is then until the estimate
+reflects it (acknowledgement and solve), the measure an iSAM2 update with its estimate is
+(``benches/incremental/isam2_stream.py --robots R`` streams the same interleaving into GTSAM).
+
 ``--outliers auto`` creates the session with ``outliers: auto`` (every loop closure held out
 until found consistent, docs/guide/wrong-closures.md); ``--robots 1`` streams the whole file as
 one robot, with wrong closures among its loop closures. Then also reported: ``streamed_rmse_m``
@@ -202,9 +206,9 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
             for r, batch, wrong in row:
                 b0 = time.monotonic()
                 if zenoh is not None:
-                    ack = zenoh.apply_batch(session, batch)
+                    ack = zenoh.apply_batch(session, batch, wait=args.wait)
                 else:
-                    ack = http.apply_batch(session, batch)
+                    ack = http.apply_batch(session, batch, wait=args.wait)
                 latencies.append(time.monotonic() - b0)
                 wrong_ids.update(i for i, w in zip(ack["factor_ids"], wrong) if w)
         total = time.monotonic() - t0
@@ -230,7 +234,7 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
                     if gated else set())
         gate_caught = len(gate_out & wrong_ids)
         return {
-            "dataset": args.dataset, "robots": robots, "transport": args.transport,
+            "dataset": args.dataset, "robots": robots, "transport": args.transport, "wait": args.wait,
             "min_closures": args.min_closures,
             "all_in_map": all(r["in_map"] for r in report["robots"]),
             "pending": len(report["pending"]), "rejected": len(report["rejected"]),
@@ -274,6 +278,10 @@ def main():
     parser.add_argument("--dataset", default="2d/carlone/input_M3500_g2o.g2o")
     parser.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument("--transport", choices=["http", "zenoh"], default="http")
+    parser.add_argument("--wait", action="store_true",
+                        help="each batch answered once the estimate reflects it (wait=true): the "
+                             "update latency is then acknowledgement and solve, as an iSAM2 "
+                             "update with its estimate")
     parser.add_argument("--min-closures", type=int, default=3)
     parser.add_argument("--wrong", type=float, default=0.0)
     parser.add_argument("--wrong-kind", choices=["random", "aliasing"], default="random")
