@@ -37,6 +37,7 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
+sys.path.insert(0, os.path.join(REPO, "benches", "bal"))
 
 
 def build_factord(target_dir, scratch):
@@ -120,25 +121,12 @@ def isam2_stream(lib, path, gtsam_like):
 
 def bundle_adjustment(lib, path, is_gtsam):
     """LM on a BAL file, at most 50 iterations, relative error tolerance 1e-6. GTSAM as its
-    SFMExample_bal.py builds it (SfmData.FromBalFile, GeneralSFMFactorCal3Bundler with unit
-    noise, priors on the first camera and point for the gauge); factord through loadBal (the
-    points eliminated by the Schur complement, the gauge left to the damping)."""
+    SFMExample_bal.py builds it (benches/bal/gtsam_sfm.py: GeneralSFMFactorCal3Bundler with unit
+    noise, priors σ 0.1 on the first camera and point for the gauge); factord through loadBal
+    (the points eliminated by the Schur complement, the gauge left to the damping)."""
     if is_gtsam:
-        scene = lib.SfmData.FromBalFile(path)
-        C, P = lib.symbol_shorthand.C, lib.symbol_shorthand.P
-        graph, initial = lib.NonlinearFactorGraph(), lib.Values()
-        unit = lib.noiseModel.Isotropic.Sigma(2, 1.0)
-        for j in range(scene.numberTracks()):
-            track = scene.track(j)
-            for k in range(track.numberMeasurements()):
-                i, uv = track.measurement(k)
-                graph.add(lib.GeneralSFMFactorCal3Bundler(uv, unit, C(i), P(j)))
-        graph.push_back(lib.PriorFactorPinholeCameraCal3Bundler(C(0), scene.camera(0), lib.noiseModel.Isotropic.Sigma(9, 0.1)))
-        graph.push_back(lib.PriorFactorPoint3(P(0), scene.track(0).point3(), lib.noiseModel.Isotropic.Sigma(3, 0.1)))
-        for i in range(scene.numberCameras()):
-            initial.insert(C(i), scene.camera(i))
-        for j in range(scene.numberTracks()):
-            initial.insert(P(j), scene.track(j).point3())
+        graph, priors, initial = gtsam_sfm.build(lib.SfmData.FromBalFile(path), 0.1)
+        graph.push_back(priors)
     else:
         graph, initial = lib.loadBal(path)
     params = lib.LevenbergMarquardtParams()
@@ -196,6 +184,8 @@ def main():
         sys.path.insert(0, build_factord(args.target_dir, tempfile.mkdtemp(prefix="factord-bench-")))
     import gtsam
     import factord
+    global gtsam_sfm
+    import gtsam_sfm  # benches/bal: GTSAM's BAL graph as SFMExample_bal.py builds it
 
     m3500 = os.path.join(args.data, "2d/carlone/input_M3500_g2o.g2o")
     sphere = os.path.join(args.data, "3d/sesync/sphere2500.g2o")

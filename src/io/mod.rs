@@ -125,17 +125,20 @@ pub(crate) fn numbers(path: &Path, line: &Line, count: usize) -> Result<Vec<f64>
 /// as a float (`3.0`) is read as [`id`] reads numbers.
 pub(crate) fn key_field(path: &Path, line: &Line, field: usize) -> Result<Key, IoError> {
     let token = line.tokens[field];
-    if let Ok(key) = token.parse::<Key>() {
-        return Ok(key);
-    }
-    match token.parse::<f64>() {
-        Ok(value) => id(path, line.number, value, field),
-        Err(_) => Err(parse_error(
-            path,
-            line.number,
-            format!("field {field} (`{token}`) is not a valid id"),
-        )),
-    }
+    token
+        .parse::<Key>()
+        .ok()
+        .or_else(|| {
+            let value = token.parse::<f64>().ok()?;
+            id(path, line.number, value, field).ok()
+        })
+        .ok_or_else(|| {
+            parse_error(
+                path,
+                line.number,
+                format!("field {field} (`{token}`) is not a valid id"),
+            )
+        })
 }
 
 /// A vertex or edge id: a non-negative integer.

@@ -385,15 +385,23 @@ fn cases() -> Vec<Case> {
             text(&[&tv(0, "0"), &tv(1, "1"), &te_info(0, 1, "1 0 1 nan 0 0")]),
             "request body:3: field 9 (`nan`) is not finite",
         ),
-        // J18: ids are integers in [0, 2^53]; FIX ids parse.
+        // J18: ids are 64-bit integers, read exactly (GTSAM's symbol keys, a robot's pose
+        // ('b' << 56) | i); an id written as a float is an integer up to 2^53; FIX ids parse.
         bad_graph("J18", "", "VERTEX_SE2 -1 0 0 0\n", "request body:1: field 1 (`-1`) is not a valid id"),
         bad_graph("J18", "", "VERTEX_SE2 1.5 0 0 0\n", "request body:1: field 1 (`1.5`) is not a valid id"),
         bad_graph(
             "J18",
             "",
-            "VERTEX_SE2 18014398509481984 0 0 0\n",
-            "request body:1: field 1 (`18014398509481984`) is not a valid id",
+            "VERTEX_SE2 18446744073709551616 0 0 0\n",
+            "request body:1: field 1 (`18446744073709551616`) is not a valid id",
         ),
+        bad_graph(
+            "J18",
+            "",
+            "VERTEX_SE2 1e17 0 0 0\n",
+            "request body:1: field 1 (`1e17`) is not a valid id",
+        ),
+        solved("J18", "", "VERTEX_SE2 7061644215716937728 0 0 0\n", "\"key\":7061644215716937728"),
         bad_graph(
             "J18",
             "",

@@ -27,7 +27,7 @@ fn landmark(l: usize) -> [f64; 2] {
 }
 
 /// Bearing and range of landmark `l` from pose `k` (exact).
-fn sighting(k: usize, l: usize) -> [f64; 2] {
+fn sighting_of(k: usize, l: usize) -> [f64; 2] {
     let [x, y, th] = pose(k);
     let [lx, ly] = landmark(l);
     let (dx, dy) = (lx - x, ly - y);
@@ -48,20 +48,17 @@ fn odometry(k: usize) -> [f64; 3] {
     ]
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn landmarks_stream_into_a_pose_graph_session() {
-    let s = TestServer::start(&[]);
-    let c = client();
-    create(
-        &c,
-        &s,
-        &json!({"session": "trees", "kind": "pose_graph_2d"}),
-    )
-    .await;
-    let url = s.url("/v1/sessions/trees/batches");
+/// The 70 batches of the circle walk: pose k (pose 0 fixed, the others from odometry), and
+/// each landmark in view (bearing within 1.2 rad, range within 12 m) as `sighting(k, l, key)`
+/// makes it; a landmark seen for the first time is also sent, as `first_seen(l, key)` makes it.
+/// The landmarks seen, by index.
+fn circle_batches(
+    first_seen: impl Fn(usize, u64) -> Value,
+    sighting: impl Fn(usize, usize, u64) -> Value,
+) -> (Vec<Value>, std::collections::BTreeSet<usize>) {
     let mut seen = std::collections::BTreeSet::new();
-    let poses = 70; // more than one turn: the landmarks are seen again
-    for k in 0..poses {
+    let mut batches = Vec::new();
+    for k in 0..70 {
         let mut variables = vec![];
         let mut factors = vec![];
         if k == 0 {
@@ -72,38 +69,25 @@ async fn landmarks_stream_into_a_pose_graph_session() {
                 "measurement": odometry(k), "sigmas": [0.05, 0.05, 0.01]}));
         }
         for l in 0..8 {
-            let [b, r] = sighting(k, l);
+            let [b, r] = sighting_of(k, l);
             if b.abs() > 1.2 || r > 12.0 {
                 continue; // out of the sensor's view
             }
             let key = LANDMARK_BASE + l as u64;
             if seen.insert(l) {
-                variables.push(json!({"key": key, "kind": "point2"}));
+                variables.push(first_seen(l, key));
             }
-            factors.push(json!({"type": "bearing_range_se2", "keys": [k, key],
-                "measurement": [b, r], "sigmas": [0.01, 0.05]}));
+            factors.push(sighting(k, l, key));
         }
-        let (status, ack) = post(
-            &c,
-            &url,
-            &json!({"variables": variables, "factors": factors}),
-        )
-        .await;
-        assert!(status < 300, "pose {k}: {ack}");
+        batches.push(json!({"variables": variables, "factors": factors}));
     }
-    assert!(seen.len() >= 6, "landmarks seen: {seen:?}");
-    let (status, solved) = post(
-        &c,
-        &s.url("/v1/sessions/trees/optimize?wait=true"),
-        &json!({}),
-    )
-    .await;
-    assert_eq!(status, 200, "{solved}");
-    let (status, estimate) = get(&c, &s.url("/v1/sessions/trees/estimate")).await;
-    assert_eq!(status, 200);
-    let variables = estimate["variables"].as_array().unwrap();
+    (batches, seen)
+}
+
+/// Every landmark of `estimate` where it is (1e-6); how many were checked.
+fn assert_landmarks_in_place(estimate: &Value) -> usize {
     let mut checked = 0;
-    for v in variables {
+    for v in estimate["variables"].as_array().unwrap() {
         let key = v["key"].as_u64().unwrap();
         if key >= LANDMARK_BASE {
             assert_eq!(v["kind"], "point2", "{v}");
@@ -116,6 +100,43 @@ async fn landmarks_stream_into_a_pose_graph_session() {
             checked += 1;
         }
     }
+    checked
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn landmarks_stream_into_a_pose_graph_session() {
+    let s = TestServer::start(&[]);
+    let c = client();
+    create(
+        &c,
+        &s,
+        &json!({"session": "trees", "kind": "pose_graph_2d"}),
+    )
+    .await;
+    let url = s.url("/v1/sessions/trees/batches");
+    // Landmarks start where their first sighting puts them.
+    let (batches, seen) = circle_batches(
+        |_, key| json!({"key": key, "kind": "point2"}),
+        |k, l, key| {
+            json!({"type": "bearing_range_se2", "keys": [k, key],
+                "measurement": sighting_of(k, l), "sigmas": [0.01, 0.05]})
+        },
+    );
+    for (k, batch) in batches.iter().enumerate() {
+        let (status, ack) = post(&c, &url, batch).await;
+        assert!(status < 300, "pose {k}: {ack}");
+    }
+    assert!(seen.len() >= 6, "landmarks seen: {seen:?}");
+    let (status, solved) = post(
+        &c,
+        &s.url("/v1/sessions/trees/optimize?wait=true"),
+        &json!({}),
+    )
+    .await;
+    assert_eq!(status, 200, "{solved}");
+    let (status, estimate) = get(&c, &s.url("/v1/sessions/trees/estimate")).await;
+    assert_eq!(status, 200);
+    let checked = assert_landmarks_in_place(&estimate);
     assert_eq!(checked, seen.len());
     let (_, info) = get(&c, &s.url("/v1/sessions/trees")).await;
     assert!(info["chi2"].as_f64().unwrap_or(f64::NAN) < 1e-9, "{info}");
@@ -153,33 +174,18 @@ async fn bearing_only_sightings_place_landmarks_in_a_session() {
     )
     .await;
     let url = s.url("/v1/sessions/bearings/batches");
-    let mut seen = std::collections::BTreeSet::new();
-    for k in 0..70 {
-        let mut variables = vec![];
-        let mut factors = vec![];
-        if k == 0 {
-            variables.push(json!({"key": 0, "kind": "se2", "value": pose(0), "fixed": true}));
-        } else {
-            variables.push(json!({"key": k, "kind": "se2"}));
-            factors.push(json!({"type": "between_se2", "keys": [k - 1, k],
-                "measurement": odometry(k), "sigmas": [0.05, 0.05, 0.01]}));
-        }
-        for l in 0..8 {
-            let [b, r] = sighting(k, l);
-            if b.abs() > 1.2 || r > 12.0 {
-                continue;
-            }
-            let key = LANDMARK_BASE + l as u64;
-            if seen.insert(l) {
-                let [lx, ly] = landmark(l);
-                variables
-                    .push(json!({"key": key, "kind": "point2", "value": [lx + 0.8, ly - 0.6]}));
-            }
-            factors.push(json!({"type": "bearing_se2", "keys": [k, key],
-                "measurement": [b], "sigmas": [0.01]}));
-        }
-        let batch = json!({"variables": variables, "factors": factors});
-        let (status, ack) = post(&c, &url, &batch).await;
+    let (batches, seen) = circle_batches(
+        |l, key| {
+            let [lx, ly] = landmark(l);
+            json!({"key": key, "kind": "point2", "value": [lx + 0.8, ly - 0.6]})
+        },
+        |k, l, key| {
+            json!({"type": "bearing_se2", "keys": [k, key],
+                "measurement": [sighting_of(k, l)[0]], "sigmas": [0.01]})
+        },
+    );
+    for (k, batch) in batches.iter().enumerate() {
+        let (status, ack) = post(&c, &url, batch).await;
         assert!(status < 300, "pose {k}: {ack}");
     }
     assert!(seen.len() >= 6, "landmarks seen: {seen:?}");
@@ -187,19 +193,7 @@ async fn bearing_only_sightings_place_landmarks_in_a_session() {
     let (status, solved) = post(&c, &optimize, &json!({})).await;
     assert_eq!(status, 200, "{solved}");
     let (_, estimate) = get(&c, &s.url("/v1/sessions/bearings/estimate")).await;
-    let mut checked = 0;
-    for v in estimate["variables"].as_array().unwrap() {
-        let key = v["key"].as_u64().unwrap();
-        if key >= LANDMARK_BASE {
-            let [lx, ly] = landmark((key - LANDMARK_BASE) as usize);
-            let value: Vec<f64> = serde_json::from_value(v["value"].clone()).unwrap();
-            assert!(
-                (value[0] - lx).abs() < 1e-6 && (value[1] - ly).abs() < 1e-6,
-                "{v}"
-            );
-            checked += 1;
-        }
-    }
+    let checked = assert_landmarks_in_place(&estimate);
     assert_eq!(checked, seen.len());
 
     let unplaced = json!({"variables": [{"key": LANDMARK_BASE + 50, "kind": "point2"}],

@@ -48,10 +48,13 @@ fn keep_raised(e: PyErr) {
 }
 
 /// The library factor: keys, the error's dimension, the Python function, and the noise model
-/// (to hand `this` to the function as a `CustomFactor` of its own).
+/// (to hand `this` to the function as a `CustomFactor` of its own). The kinds of its variables
+/// are unknown until it meets values: a graph's factor has none, and each problem gets a copy
+/// naming the kinds of the values it was added with ([`with_kinds`]).
 #[derive(Debug)]
 pub struct PythonFactor {
     keys: Vec<Key>,
+    kinds: Vec<&'static str>,
     dim: usize,
     function: Py<PyAny>,
     noise: NoiseModel,
@@ -110,16 +113,22 @@ impl PythonFactor {
         Ok((error, Some(jacobians)))
     }
 
-    /// A `CustomFactor` object for this factor, the function's `this`. Made for each call: one
-    /// kept here would hold the object that holds this factor, a cycle Python cannot collect.
-    fn this(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
-        let copy = PythonFactor {
+    /// The same factor, naming `kinds`.
+    fn with(&self, py: Python<'_>, kinds: Vec<&'static str>) -> PythonFactor {
+        PythonFactor {
             keys: self.keys.clone(),
+            kinds,
             dim: self.dim,
             function: self.function.clone_ref(py),
             noise: self.noise.clone(),
             label: self.label.clone(),
-        };
+        }
+    }
+
+    /// A `CustomFactor` object for this factor, the function's `this`. Made for each call: one
+    /// kept here would hold the object that holds this factor, a cycle Python cannot collect.
+    fn this(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
+        let copy = self.with(py, self.kinds.clone());
         let data = FactorData::new(Box::new(copy), &self.noise, FactorClass::CustomFactor, None)?;
         let base = NonlinearFactor {
             data: Arc::new(data),
@@ -142,10 +151,8 @@ impl Factor for PythonFactor {
     fn residual_dim(&self) -> usize {
         self.dim
     }
-    /// Unknown until the factor meets values: [`with_kinds`] gives each problem a factor that
-    /// names the kinds of the values it was added with.
     fn variable_kinds(&self) -> &[&'static str] {
-        &[]
+        &self.kinds
     }
     fn evaluate(
         &self,
@@ -195,54 +202,14 @@ impl Factor for PythonFactor {
     }
 }
 
-/// A factor as one problem holds it: `inner` with the kinds of that problem's values at its
-/// keys (a Python factor declares none of its own).
-#[derive(Debug)]
-struct WithKinds {
-    inner: Arc<dyn Factor>,
-    kinds: Vec<&'static str>,
-}
-
-impl Factor for WithKinds {
-    fn name(&self) -> &str {
-        self.inner.name()
-    }
-    fn keys(&self) -> &[Key] {
-        self.inner.keys()
-    }
-    fn residual_dim(&self) -> usize {
-        self.inner.residual_dim()
-    }
-    fn variable_kinds(&self) -> &[&'static str] {
-        &self.kinds
-    }
-    fn evaluate(
-        &self,
-        variables: &[&dyn Variable],
-        error: &mut [f64],
-        jacobian: Option<&mut [f64]>,
-    ) -> Result<(), EvaluationError> {
-        self.inner.evaluate(variables, error, jacobian)
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
-}
-
 /// The factor to add to `problem` for `data`: a Python factor with the kinds of the problem's
 /// values at its keys (every key must have one), any other factor as it is.
 pub fn with_kinds(problem: &Problem, data: &FactorData) -> PyResult<Option<Box<dyn Factor>>> {
-    if data
-        .factor
-        .as_any()
-        .downcast_ref::<PythonFactor>()
-        .is_none()
-    {
+    let Some(factor) = data.factor.as_any().downcast_ref::<PythonFactor>() else {
         return Ok(None);
-    }
-    let kinds = data
-        .factor
-        .keys()
+    };
+    let kinds = factor
+        .keys
         .iter()
         .map(|&k| {
             problem.values.get(k).map(|v| v.kind()).ok_or_else(|| {
@@ -254,10 +221,7 @@ pub fn with_kinds(problem: &Problem, data: &FactorData) -> PyResult<Option<Box<d
             })
         })
         .collect::<PyResult<Vec<_>>>()?;
-    Ok(Some(Box::new(WithKinds {
-        inner: data.factor.clone(),
-        kinds,
-    })))
+    Ok(Some(Box::new(Python::attach(|py| factor.with(py, kinds)))))
 }
 
 /// GTSAM's `CustomFactor(noiseModel, keys, errorFunction)`.
@@ -286,6 +250,7 @@ impl CustomFactor {
         let names: Vec<String> = keys.iter().map(|&k| key_name(k)).collect();
         let factor = PythonFactor {
             keys,
+            kinds: Vec::new(),
             dim: noise.size(),
             function: error_func.unbind(),
             noise: noise.clone(),

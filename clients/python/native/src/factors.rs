@@ -270,72 +270,66 @@ factor_class!(
     )
 );
 
-/// A point of `N` coordinates given to a point factor's constructor.
+/// A point of `N` coordinates given to a factor's constructor.
 fn point_in<const N: usize>(value: &Bound<'_, PyAny>, what: &str) -> PyResult<[f64; N]> {
     let v = fixed_vector_in(value, N, what)?;
     Ok(std::array::from_fn(|i| v[i]))
 }
 
-factor_class!(PriorFactorPoint2, (key: Key, prior: Bound<'_, PyAny>), |py| (
-    auto(vec![key], PriorPoint(point_in::<2>(&prior, "PriorFactorPoint2 prior")?))?,
-    Some(prior.unbind())
-));
-factor_class!(PriorFactorPoint3, (key: Key, prior: Bound<'_, PyAny>), |py| (
-    auto(vec![key], PriorPoint(point_in::<3>(&prior, "PriorFactorPoint3 prior")?))?,
-    Some(prior.unbind())
-));
-factor_class!(BetweenFactorPoint2, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| (
-    auto(vec![key1, key2], BetweenPoint(point_in::<2>(&measured, "BetweenFactorPoint2 measured")?))?,
-    Some(measured.unbind())
-));
-factor_class!(BetweenFactorPoint3, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| (
-    auto(vec![key1, key2], BetweenPoint(point_in::<3>(&measured, "BetweenFactorPoint3 measured")?))?,
-    Some(measured.unbind())
-));
+/// What `measured()` answers for a point: a copy (a caller's array may change afterwards).
+fn copy_of(py: Python<'_>, point: &[f64]) -> PyResult<Py<PyAny>> {
+    Ok(crate::arrays::vector_out(py, point)?.unbind())
+}
 
-factor_class!(GPSFactor, (key: Key, gps_in: Bound<'_, PyAny>), |py| (
-    Box::new(GnssPositionSe3::new(key, point_in::<3>(&gps_in, "GPSFactor gpsIn")?.into())),
-    Some(gps_in.unbind())
-));
+factor_class!(PriorFactorPoint2, (key: Key, prior: Bound<'_, PyAny>), |py| {
+    let p = point_in::<2>(&prior, "PriorFactorPoint2 prior")?;
+    (auto(vec![key], PriorPoint(p))?, Some(copy_of(py, &p)?))
+});
+factor_class!(PriorFactorPoint3, (key: Key, prior: Bound<'_, PyAny>), |py| {
+    let p = point_in::<3>(&prior, "PriorFactorPoint3 prior")?;
+    (auto(vec![key], PriorPoint(p))?, Some(copy_of(py, &p)?))
+});
+factor_class!(BetweenFactorPoint2, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| {
+    let d = point_in::<2>(&measured, "BetweenFactorPoint2 measured")?;
+    (auto(vec![key1, key2], BetweenPoint(d))?, Some(copy_of(py, &d)?))
+});
+factor_class!(BetweenFactorPoint3, (key1: Key, key2: Key, measured: Bound<'_, PyAny>), |py| {
+    let d = point_in::<3>(&measured, "BetweenFactorPoint3 measured")?;
+    (auto(vec![key1, key2], BetweenPoint(d))?, Some(copy_of(py, &d)?))
+});
+
+factor_class!(GPSFactor, (key: Key, gps_in: Bound<'_, PyAny>), |py| {
+    let p = point_in::<3>(&gps_in, "GPSFactor gpsIn")?;
+    (Box::new(GnssPositionSe3::new(key, p.into())), Some(copy_of(py, &p)?))
+});
 factor_class!(
     GPSFactorArm,
     (key: Key, gps_in: Bound<'_, PyAny>, lever_arm: Bound<'_, PyAny>),
-    |py| (
-        Box::new(GnssLeverArmSe3::new(
-            key,
-            point_in::<3>(&gps_in, "GPSFactorArm gpsIn")?.into(),
-            point_in::<3>(&lever_arm, "GPSFactorArm leverArm")?.into(),
-        )),
-        Some(gps_in.unbind())
-    )
+    |py| {
+        let p = point_in::<3>(&gps_in, "GPSFactorArm gpsIn")?;
+        let arm = point_in::<3>(&lever_arm, "GPSFactorArm leverArm")?;
+        (Box::new(GnssLeverArmSe3::new(key, p.into(), arm.into())), Some(copy_of(py, &p)?))
+    }
 );
 
 // GTSAM's C++ `PoseToPointFactor<Pose3, Point3>`: the landmark in the pose's frame, measured.
 factor_class!(
     PoseToPointFactor3D,
     (pose_key: Key, point_key: Key, measured: Bound<'_, PyAny>),
-    |py| (
-        Box::new(PositionSe3Point3::new(
-            pose_key,
-            point_key,
-            point_in::<3>(&measured, "PoseToPointFactor3D measured")?.into(),
-        )),
-        Some(measured.unbind())
-    )
+    |py| {
+        let z = point_in::<3>(&measured, "PoseToPointFactor3D measured")?;
+        (Box::new(PositionSe3Point3::new(pose_key, point_key, z.into())), Some(copy_of(py, &z)?))
+    }
 );
 
 // A BAL observation: the pixel at which a `SnavelyCamera` sees a point (`camera.rs`).
 factor_class!(
     SnavelyReprojectionFactor,
     (camera_key: Key, point_key: Key, measured: Bound<'_, PyAny>),
-    |py| (
-        Box::new(ReprojectionSnavely::new(
-            camera_key,
-            point_key,
-            point_in::<2>(&measured, "SnavelyReprojectionFactor measured")?.into(),
-        )),
-        Some(measured.unbind())
-    )
+    |py| {
+        let uv = point_in::<2>(&measured, "SnavelyReprojectionFactor measured")?;
+        (Box::new(ReprojectionSnavely::new(camera_key, point_key, uv.into())), Some(copy_of(py, &uv)?))
+    }
 );
 
 /// The class a file's factor is given, and what its `measured()` returns.
@@ -368,7 +362,7 @@ pub fn classify(py: Python<'_>, factor: &dyn Factor) -> PyResult<(FactorClass, O
     if let Some(f) = any.downcast_ref::<ReprojectionSnavely>() {
         return Ok((
             FactorClass::SnavelyReprojectionFactor,
-            Some(crate::arrays::vector_out(py, f.observed.as_slice())?.unbind()),
+            Some(copy_of(py, f.observed.as_slice())?),
         ));
     }
     if let Some(f) = any.downcast_ref::<BearingRangeSe2>() {

@@ -28,6 +28,16 @@ import numpy as np
 # ---------------------------------------------------------------- the scenarios (either library)
 
 
+def optimize_tightly(gtsam, graph, initial, max_iterations=None):
+    """Levenberg-Marquardt to tolerances 1e-12, so both libraries end at their optimum."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    if max_iterations is not None:
+        params.setMaxIterations(max_iterations)
+    return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
 def pose2slam(gtsam):
     X = gtsam.symbol_shorthand.X
     prior_noise = gtsam.noiseModel.Diagonal.Sigmas(gtsam.Point3(0.3, 0.3, 0.1))
@@ -76,10 +86,7 @@ def planarslam(gtsam):
     initial.insert(x3, gtsam.Pose2(4.10, 0.10, 0.10))
     initial.insert(l1, gtsam.Point2(1.80, 2.10))
     initial.insert(l2, gtsam.Point2(4.10, 1.80))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial)
     marginals = gtsam.Marginals(graph, result)
     return graph, result, {
         "poses2": gtsam.utilities.extractPose2(result).tolist(),
@@ -92,11 +99,7 @@ def m3500(gtsam, data_dir):
     path = os.path.join(data_dir, "2d/carlone/input_M3500_g2o.g2o")
     graph, initial = gtsam.readG2o(path, False)
     graph.add(gtsam.PriorFactorPose2(0, initial.atPose2(0), gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    params.setMaxIterations(200)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial, max_iterations=200)
     return graph, result, {"poses2": gtsam.utilities.extractPose2(result).tolist()}
 
 
@@ -125,10 +128,7 @@ def pose3_loop(gtsam):
     for i in range(n):
         start = np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.3, 3)])
         initial.insert(i, truth[i].compose(gtsam.Pose3.Expmap(start)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial)
     return graph, result, {"poses3": gtsam.utilities.extractPose3(result).tolist()}
 
 
@@ -162,10 +162,7 @@ def custom_gps(gtsam):
         fix = np.array([truth.x(), truth.y()]) + rng.normal(0, 0.5, 2)
         graph.add(gtsam.CustomFactor(fix_noise, [X(i)], gps(fix)))
         initial.insert(X(i), gtsam.Pose2(truth.x() + 0.3, truth.y() - 0.2, truth.theta() + 0.1))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial)
     return graph, result, {"poses2": gtsam.utilities.extractPose2(result).tolist()}
 
 
@@ -191,10 +188,7 @@ def bearings(gtsam):
     graph.add(gtsam.BetweenFactorPoint2(L(0), L(1), gtsam.Point2(-6.1, 2.05), gtsam.noiseModel.Isotropic.Sigma(2, 0.1)))
     for j, m in enumerate(marks):
         initial.insert(L(j), gtsam.Point2(m[0] + 0.7, m[1] - 0.6))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial)
     return graph, result, {
         "poses2": gtsam.utilities.extractPose2(result).tolist(),
         "points2": gtsam.utilities.extractPoint2(result).tolist(),
@@ -225,10 +219,7 @@ def gps3(gtsam):
             graph.add(gtsam.GPSFactor(X(i), truth.translation() + rng.normal(0, 0.3, 3), fix))
         start = np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.3, 3)])
         initial.insert(X(i), truth.compose(gtsam.Pose3.Expmap(start)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(1e-12)
-    params.setAbsoluteErrorTol(1e-12)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    result = optimize_tightly(gtsam, graph, initial)
     return graph, result, {"poses3": gtsam.utilities.extractPose3(result).tolist()}
 
 
