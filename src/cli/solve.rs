@@ -155,16 +155,7 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
             ("load_seconds", load_seconds.into()),
             ("solve_seconds_runs", runs.clone().into()),
         ];
-        if graph.dimension == Dimension::Three {
-            let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
-            extra.push(("final_chi2_g2o", g2o.into()));
-        }
-        if let Some(report) = &gnc_report {
-            extra.push(("outliers", serde_json::to_value(report)?));
-        }
-        if !robots.is_empty() {
-            extra.push(("robots", serde_json::to_value(&robots)?));
-        }
+        extra.extend(summary_extras(&graph, gnc_report.as_ref(), &robots)?);
         write_summary_json(target, &summary, extra)?;
     }
     if let Some(target) = &args.out {
@@ -196,6 +187,27 @@ pub fn run(args: SolveArgs) -> Result<(), CliError> {
         plot::write(target, args.plot_format, &svg)?;
     }
     Ok(())
+}
+
+/// What `--summary-json` adds about the solved graph: the g2o-convention χ² of a 3D graph, what
+/// graduated non-convexity rejected, each robot of a file of several.
+fn summary_extras(
+    graph: &io::PoseGraph,
+    gnc_report: Option<&GncReport>,
+    robots: &[robots_report::RobotView],
+) -> Result<Vec<(&'static str, serde_json::Value)>, CliError> {
+    let mut extra = Vec::new();
+    if graph.dimension == Dimension::Three {
+        let g2o = io::g2o::chi2_g2o_convention(graph.problem.factors(), &graph.problem.values);
+        extra.push(("final_chi2_g2o", g2o.into()));
+    }
+    if let Some(report) = gnc_report {
+        extra.push(("outliers", serde_json::to_value(report)?));
+    }
+    if !robots.is_empty() {
+        extra.push(("robots", serde_json::to_value(robots)?));
+    }
+    Ok(extra)
 }
 
 /// Solves `--repeat` times from `initial` (the last run prints its iterations): the last
