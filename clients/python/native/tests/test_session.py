@@ -128,6 +128,20 @@ def test_sessions_in_two_threads_run_side_by_side():
     assert set(results) == {"a", "b"} and results["a"] == pytest.approx(results["b"], rel=1e-9)
 
 
+def test_a_dropped_session_is_deleted_from_the_shared_service():
+    import gc
+    import json
+
+    s = factord.IncrementalSession("pose_graph_2d")
+    name = s.name
+    service = factord.session.shared_service()
+    listed = lambda: [x["session"] for x in json.loads(service.execute('{"op": "list_sessions"}'))["sessions"]]
+    assert name in listed()
+    del s
+    gc.collect()
+    assert name not in listed()
+
+
 def test_the_service_answers_raw_commands():
     service = factord.Service(workers=1)
     import json

@@ -119,10 +119,17 @@ class IncrementalSession:
         return self._call({"op": "get_graph", "session": self.name})
 
     def close(self):
-        """Deletes the session (its memory is freed)."""
-        if self.name is not None:
+        """Deletes the session (its memory is freed); also when the object is collected."""
+        if getattr(self, "name", None) is not None:
             self._call({"op": "delete_session", "session": self.name})
             self.name = None
+
+    def __del__(self):
+        # A session nobody holds any more is deleted, so the shared service does not keep it.
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 (interpreter shutdown, a service already gone)
+            pass
 
     def __enter__(self):
         return self
