@@ -80,9 +80,10 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.p
 from posegraph_io import Edge, PoseGraph, chi2_g2o_convention, read_pose_graph  # noqa: E402
 
 PRIOR_SIGMA = 1e-6
-# The other robots' first poses (--robots): weak, so they hardly bias the optimum, yet not so weak
-# that iSAM2's Cholesky calls the system indeterminate beside the gauge prior (σ 1e3 did).
-OTHER_ROBOT_PRIOR_SIGMA = 10.0
+# The other robots' first poses (--robots), by dimension: weak, so they hardly bias the optimum,
+# yet not so weak that iSAM2 calls the system indeterminate beside the gauge prior (σ 1e3 did in
+# 2D, σ 10 in 3D).
+OTHER_ROBOT_PRIOR_SIGMA = {2: 10.0, 3: 1.0}
 
 
 def parse_args() -> argparse.Namespace:
@@ -276,8 +277,8 @@ def main() -> int:
     steps = edges_by_step(graph, ids)
     first = ids[0]
     # Each robot's first pose gets a prior: the first robot's fixes the gauge; the others' are
-    # weak (σ OTHER_ROBOT_PRIOR_SIGMA) and at the pose's place in the file's frame, which iSAM2 must be given
-    # (factord's session finds each robot's frame from the closures instead).
+    # weak (OTHER_ROBOT_PRIOR_SIGMA) and at the pose's place in the file's frame, which iSAM2
+    # must be given (factord's session finds each robot's frame from the closures instead).
     firsts = {}
     for k in ids:
         firsts.setdefault(owner[k], k)
@@ -304,7 +305,7 @@ def main() -> int:
             new_factors.add(prior)
         elif k in robot_firsts:
             new_factors.add(prior_cls(k, to_pose(graph.vertices[k]),
-                                      gtsam.noiseModel.Isotropic.Sigma(3 if dim == 2 else 6, OTHER_ROBOT_PRIOR_SIGMA)))
+                                      gtsam.noiseModel.Isotropic.Sigma(3 if dim == 2 else 6, OTHER_ROBOT_PRIOR_SIGMA[dim])))
         for e in steps[k]:
             new_factors.add(between_factor(e))
         prev = previous_of_robot.get(owner[k])
