@@ -1,6 +1,7 @@
 #!/bin/bash
-# Issue 54's wrong-closure benchmark: every dataset x fraction x kind through `factord solve`
-# (default settings), scored against the clean optimum; with GTSAM=1 also GTSAM's GncLMOptimizer
+# Issue 54's wrong-closure benchmark: every dataset x fraction x kind through `factord solve
+# --outliers auto` (opt-in since the merge), scored against the clean optimum; with GTSAM=1 also
+# GTSAM's GncLMOptimizer
 # on the same files (slow: about 5 minutes per M3500 case on this machine).
 #
 #   benches/outliers/run.sh [WORKDIR]     (FACTORD=path/to/factord, DATA=/work/shared/data)
@@ -23,7 +24,7 @@ for entry in "M3500:2d/carlone/input_M3500_g2o.g2o" "manhattan:2d/misc/manhattan
       case=$work/$name.$kind.$pct
       python3 "$here/generate.py" --input "$file" --fraction "0.$(printf %02d "$pct")" --kind "$kind" --seed 54 \
         --out "$case.g2o" --truth "$case.truth" > /dev/null
-      "$factord" solve "$case.g2o" --quiet --out "$case.out" --summary-json "$case.json"
+      "$factord" solve "$case.g2o" --outliers auto --quiet --out "$case.out" --summary-json "$case.json"
       score=$(python3 "$here/evaluate.py" --clean "$work/$name.clean.g2o" --solved "$case.out" --truth "$case.truth" \
         --rejected-lines "$(rejected_lines "$case.json")")
       seconds=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['solve_seconds'])" "$case.json")
