@@ -15,7 +15,7 @@
 //! update can take it. An exception the function raises stops the solve and is raised again
 //! from the call that started it (`take_raised`), unchanged.
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use nalgebra::DMatrix;
 use pyo3::prelude::*;
@@ -59,6 +59,9 @@ pub struct PythonFactor {
     function: Py<PyAny>,
     noise: NoiseModel,
     label: String,
+    /// The function's `this`, made at the first call (a `CustomFactor` over a copy of this
+    /// factor, so it does not hold the object that holds this one: no cycle).
+    this: OnceLock<Py<PyAny>>,
 }
 
 impl PythonFactor {
@@ -122,22 +125,26 @@ impl PythonFactor {
             function: self.function.clone_ref(py),
             noise: self.noise.clone(),
             label: self.label.clone(),
+            this: OnceLock::new(),
         }
     }
 
-    /// A `CustomFactor` object for this factor, the function's `this`. Made for each call: one
-    /// kept here would hold the object that holds this factor, a cycle Python cannot collect.
+    /// The function's `this`: a `CustomFactor` object for this factor, made once.
     fn this(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
+        if let Some(this) = self.this.get() {
+            return Ok(this.clone_ref(py));
+        }
         let copy = self.with(py, self.kinds.clone());
         let data = FactorData::new(Box::new(copy), &self.noise, FactorClass::CustomFactor, None)?;
         let base = NonlinearFactor {
             data: Arc::new(data),
         };
-        Ok(Py::new(
+        let this = Py::new(
             py,
             PyClassInitializer::from(base).add_subclass(CustomFactor),
         )?
-        .into_any())
+        .into_any();
+        Ok(self.this.get_or_init(|| this).clone_ref(py))
     }
 }
 
@@ -255,6 +262,7 @@ impl CustomFactor {
             function: error_func.unbind(),
             noise: noise.clone(),
             label: format!("CustomFactor({})", names.join(", ")),
+            this: OnceLock::new(),
         };
         let data = FactorData::new(Box::new(factor), noise, FactorClass::CustomFactor, None)?;
         Ok(PyClassInitializer::from(NonlinearFactor {

@@ -23,12 +23,9 @@ import threading
 
 from . import _native
 
-try:  # the wheel carries the wire client: its batch helpers and estimate arrays
-    from factord_client.batch import as_batch as _as_batch
-    from factord_client.batch import estimate_to_array as _estimate_to_array
-except ImportError:  # pragma: no cover (a build without it)
-    _as_batch = None
-    _estimate_to_array = None
+# The wheel carries the wire client: its batch helpers and estimate arrays.
+from factord_client.batch import as_batch as _as_batch
+from factord_client.batch import estimate_to_array as _estimate_to_array
 
 Service = _native.Service
 ServiceError = _native.ServiceError
@@ -51,12 +48,6 @@ def _call(service, command):
     return json.loads(service.execute(json.dumps(command)))
 
 
-def _plain(batch):
-    if _as_batch is not None:
-        return _as_batch(batch)
-    return batch
-
-
 class IncrementalSession:
     """A session, as ``POST /v1/sessions`` creates one: ``kind`` (``pose_graph_2d``,
     ``pose_graph_3d``, ``sliding_window``, …) and the creation request's other fields
@@ -76,7 +67,7 @@ class IncrementalSession:
     def apply_batch(self, batch, wait=False):
         """Validates and applies a batch whole (or refuses it whole): the acknowledgement; with
         ``wait``, once the estimate reflects it (``solved``)."""
-        return self._call({"op": "apply_batch", "session": self.name, "batch": _plain(batch), "wait": wait})
+        return self._call({"op": "apply_batch", "session": self.name, "batch": _as_batch(batch), "wait": wait})
 
     def optimize(self, wait=True):
         """A full solve (``wait``: answered once it is done)."""
