@@ -1,10 +1,15 @@
-//! Random wrong loop closures added to a 2D g2o file (issue 54; the benchmark's generator is
-//! `benches/outliers/generate.py`): uniform pose pairs at least 2 apart, uniform measurements
-//! (±10 m, any heading), each with the information of a genuine closure of the file.
+//! Wrong loop closures added to a 2D g2o file (issue 54; the benchmarks' generators are
+//! `benches/outliers/generate.py` and `benches/robots/split.py`), each with the information of a
+//! genuine closure of the file:
+//! - random: uniform pose pairs at least 2 apart, uniform measurements (±10 m, any heading);
+//! - perceptual aliasing: groups of 5-20 closures between consecutive poses of two segments,
+//!   all measured as if the second segment were moved by one rigid transform (5-20 m, up to a
+//!   radian, about the map's origin): consistent with each other, not with the map.
 
 use std::collections::BTreeSet;
 
 use factord::factors::testing::Rng;
+use factord::geometry::Se2;
 
 /// The file with `fraction` × its loop closures added as wrong ones at its end, the loop
 /// closures it had, and the line numbers of the wrong ones.
@@ -14,14 +19,7 @@ pub fn add_random_wrong_closures(
     seed: u64,
 ) -> (String, usize, BTreeSet<usize>) {
     let poses = text.lines().filter(|l| l.starts_with("VERTEX_SE2")).count();
-    let closures: Vec<&str> = text
-        .lines()
-        .filter(|l| {
-            let f: Vec<&str> = l.split_whitespace().collect();
-            f.first() == Some(&"EDGE_SE2")
-                && f[1].parse::<u64>().unwrap().abs_diff(f[2].parse().unwrap()) != 1
-        })
-        .collect();
+    let closures = loop_closures(text);
     let mut rng = Rng::new(seed);
     let mut out = text.to_string();
     if !out.ends_with('\n') {
@@ -51,6 +49,77 @@ pub fn add_random_wrong_closures(
         wrong.insert(line);
     }
     (out, closures.len(), wrong)
+}
+
+/// The file with `fraction` × its loop closures added as wrong ones in groups of perceptual
+/// aliasing, measured against `optimum` (the clean file's solved g2o text), the loop closures it
+/// had, and the line numbers of the wrong ones.
+pub fn add_aliasing_wrong_closures(
+    text: &str,
+    optimum: &str,
+    fraction: f64,
+    seed: u64,
+) -> (String, usize, BTreeSet<usize>) {
+    let poses: Vec<Se2> = optimum
+        .lines()
+        .filter(|l| l.starts_with("VERTEX_SE2"))
+        .map(|l| {
+            let f: Vec<f64> = l
+                .split_whitespace()
+                .skip(2)
+                .map(|v| v.parse().unwrap())
+                .collect();
+            Se2::new(f[0], f[1], f[2])
+        })
+        .collect();
+    let closures = loop_closures(text);
+    let info: Vec<&str> = closures[0].split_whitespace().skip(6).collect();
+    let target = (fraction * closures.len() as f64).round() as usize;
+    let mut rng = Rng::new(seed);
+    let mut out = text.to_string();
+    if !out.ends_with('\n') {
+        out.push('\n');
+    }
+    let mut line = out.lines().count();
+    let mut wrong = BTreeSet::new();
+    while wrong.len() < target {
+        let size = (5 + rng.below(16)).min(target - wrong.len());
+        let (i0, j0) = (rng.below(poses.len() - size), rng.below(poses.len() - size));
+        if i0.abs_diff(j0) < size + 2 {
+            continue;
+        }
+        let (distance, direction) = (5.0 + 15.0 * rng.uniform(), rng.angle());
+        let shift = Se2::new(
+            distance * direction.cos(),
+            distance * direction.sin(),
+            rng.symmetric(),
+        );
+        for k in 0..size {
+            let (i, j) = (i0 + k, j0 + k);
+            let z = poses[i].inverse().compose(&shift.compose(&poses[j]));
+            out += &format!(
+                "EDGE_SE2 {i} {j} {} {} {} {}\n",
+                z.x,
+                z.y,
+                z.theta,
+                info.join(" ")
+            );
+            line += 1;
+            wrong.insert(line);
+        }
+    }
+    (out, closures.len(), wrong)
+}
+
+/// The file's loop-closure lines (edges between poses whose ids are not consecutive).
+fn loop_closures(text: &str) -> Vec<&str> {
+    text.lines()
+        .filter(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            f.first() == Some(&"EDGE_SE2")
+                && f[1].parse::<u64>().unwrap().abs_diff(f[2].parse().unwrap()) != 1
+        })
+        .collect()
 }
 
 /// The line numbers named by labels like `EDGE_SE2 3 7 (request body:12)`.

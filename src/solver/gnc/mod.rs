@@ -20,17 +20,24 @@
 //!    least-squares optimum; the decisions are taken again there (a candidate within its
 //!    threshold is kept) until they stop changing.
 //!
+//! 4. Where the kept measurements fit far better than their information matrices say (a
+//!    variance factor below 0.25), a second graduation in the measured scale proposes more
+//!    rejections and a leave-cluster-out test in that scale decides them
+//!    ([`noise_scale`](self::noise_scale)): groups of wrong closures that agree with each other
+//!    hide inside thresholds that are too loose.
+//!
 //! The truncation threshold of a factor with residual dimension d is the χ²(d) quantile at the
 //! given confidence, so a measurement is rejected when its error is less likely than
 //! `1 − confidence` for a correct one.
 
 mod candidates;
+mod estimates;
 mod kernel;
+mod noise_scale;
 
 pub use candidates::{has_loop_closures, loop_closures};
 pub use kernel::GncKernel;
 
-use std::cell::Cell;
 use std::ops::ControlFlow;
 use std::time::Instant;
 
@@ -41,7 +48,6 @@ use super::budget::Budget;
 use super::chi_square::cached_quantile;
 use super::cholesky::SparseCholesky;
 use super::gauge::anchor_components;
-use super::initialize::{chordal, chordal_unwrapped_at_values, Stoppable};
 use super::iterations::Iterations;
 use super::linear::LinearSolver;
 use super::linearize::{free_adjacency, SystemLayout};
@@ -51,7 +57,7 @@ use super::structure::{BlockOrdering, ScalarRows};
 use super::summary::{IterationReport, Summary, Termination, TerminationReason, Timings};
 use super::SolverError;
 use crate::factors::SqrtInformation;
-use crate::problem::{FactorEntry, Problem, Values};
+use crate::problem::{Problem, Values};
 use crate::variables::Variable;
 
 /// Re-decisions at the kept measurements' optimum at most (each a chordal estimate and a solve).
@@ -294,6 +300,7 @@ impl Graduation<'_> {
             SupernodalThreshold::FORCE_SUPERNODAL,
         )?);
         let (mut values, initialization) = self.trusted_estimate(problem, given);
+        let trusted = values.clone();
         let mut solver = Iterations::new(
             &layout,
             chol,
@@ -302,23 +309,25 @@ impl Graduation<'_> {
             false,
             self.budget,
         );
-        let mut ratios = self.ratios(problem, &values)?;
-        let graduation =
-            self.graduate(problem, &mut solver, &mut values, &mut ratios, on_iteration)?;
-        let kept: Vec<bool> = ratios
-            .iter()
-            .zip(&graduation.weights)
-            .map(|(&r, &w)| self.gnc.kernel.keeps(r, w))
-            .collect();
-        let (chi2, termination, kept) = self.polish(
-            problem,
-            &mut solver,
-            &mut values,
+        let mut round = self.decide(problem, &mut solver, &mut values, 1.0, on_iteration)?;
+        if !round.interrupted {
+            round = self.second_round(
+                problem,
+                &mut solver,
+                &mut values,
+                trusted,
+                layout.pattern.n,
+                round,
+                on_iteration,
+            )?;
+        }
+        let Decisions {
+            chi2,
+            termination,
             kept,
-            graduation.interrupted,
-            on_iteration,
-        )?;
-        let outer = graduation.outer;
+            outer,
+            ..
+        } = round;
         let run = solver.finish(chi2, termination);
         let summary = run.summary(
             self.options,
@@ -338,6 +347,48 @@ impl Graduation<'_> {
         Ok((summary, outer, kept))
     }
 
+    /// One graduation from `values` with the thresholds times `noise_scale`, then the polish
+    /// (decisions at the unscaled thresholds); the values end at the kept measurements' optimum.
+    fn decide(
+        &self,
+        problem: &mut Problem,
+        solver: &mut Iterations,
+        values: &mut Values,
+        noise_scale: f64,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+    ) -> Result<Decisions, SolverError> {
+        let mut ratios = self.scaled_ratios(problem, values, noise_scale)?;
+        let graduation = self.graduate(
+            problem,
+            solver,
+            values,
+            &mut ratios,
+            noise_scale,
+            on_iteration,
+        )?;
+        let kept: Vec<bool> = ratios
+            .iter()
+            .zip(&graduation.weights)
+            .map(|(&r, &w)| self.gnc.kernel.keeps(r, w))
+            .collect();
+        let (chi2, termination, kept) = self.polish(
+            problem,
+            solver,
+            values,
+            kept,
+            graduation.interrupted,
+            on_iteration,
+        )?;
+        Ok(Decisions {
+            chi2,
+            interrupted: graduation.interrupted
+                || termination.reason == TerminationReason::Interrupted,
+            termination,
+            kept,
+            outer: graduation.outer,
+        })
+    }
+
     /// The graduation: μ from convex to the kernel, each step the candidates' weights at the
     /// current residual ratios (`ratios`, updated), then the weighted chordal re-estimate (or,
     /// where it does not apply, warm-started iterations) of `values`.
@@ -347,6 +398,7 @@ impl Graduation<'_> {
         solver: &mut Iterations,
         values: &mut Values,
         ratios: &mut Vec<f64>,
+        noise_scale: f64,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ) -> Result<GraduationEnd, SolverError> {
         let inner = SolverOptions {
@@ -385,7 +437,7 @@ impl Graduation<'_> {
                     .run(problem.factors(), values, inner, on_iteration)?
                     .1
             };
-            *ratios = self.ratios(problem, values)?;
+            *ratios = self.scaled_ratios(problem, values, noise_scale)?;
             if termination.reason == TerminationReason::Interrupted && inner.max_iterations > 0 {
                 return Ok(GraduationEnd {
                     outer,
@@ -444,89 +496,6 @@ impl Graduation<'_> {
         Ok((chi2, termination, kept))
     }
 
-    /// The estimate of the trusted factors alone (chordal over odometry and priors), which wrong
-    /// closures cannot corrupt; the given values where that estimate does not apply.
-    fn trusted_estimate(&self, problem: &Problem, given: Values) -> (Values, String) {
-        let mut trusted: Vec<&FactorEntry> = Vec::with_capacity(problem.factors().len());
-        let mut next = self.candidates.iter().peekable();
-        for (i, f) in problem.factors().iter().enumerate() {
-            if next.peek() == Some(&&i) {
-                next.next();
-            } else {
-                trusted.push(f);
-            }
-        }
-        let (fixed, _) = anchor_components(&trusted, &given);
-        let ordering = BlockOrdering::amd(free_adjacency(&trusted, &fixed));
-        let stopped = Cell::new(false);
-        let stoppable = Stoppable {
-            budget: self.budget,
-            stopped: &stopped,
-        };
-        match chordal(&trusted, &given, &fixed, &ordering, None, &stoppable) {
-            Some(estimate) => (
-                estimate,
-                "chordal over the trusted factors (graduated non-convexity)".into(),
-            ),
-            None => (
-                given,
-                "given values (graduated non-convexity; no chordal estimate)".into(),
-            ),
-        }
-    }
-
-    /// The chordal estimate of the factors at their current weights (candidates of weight 0
-    /// left out), unwrapped at `values`; `None` where it does not apply.
-    fn weighted_estimate(
-        &self,
-        problem: &Problem,
-        values: &Values,
-        weights: &[f64],
-    ) -> Option<Values> {
-        let kept: Vec<bool> = weights.iter().map(|&w| w > 0.0).collect();
-        let used = self.used_factors(problem, &kept);
-        let (fixed, _) = anchor_components(&used, values);
-        let ordering = BlockOrdering::amd(free_adjacency(&used, &fixed));
-        let stopped = Cell::new(false);
-        let stoppable = Stoppable {
-            budget: self.budget,
-            stopped: &stopped,
-        };
-        chordal_unwrapped_at_values(&used, values, &fixed, &ordering, &stoppable)
-    }
-
-    /// The trusted factors and the candidates in `kept`, in the problem's order.
-    fn used_factors<'p>(&self, problem: &'p Problem, kept: &[bool]) -> Vec<&'p FactorEntry> {
-        let mut used: Vec<&FactorEntry> = Vec::with_capacity(problem.factors().len());
-        let mut next = self.candidates.iter().zip(kept).peekable();
-        for (i, f) in problem.factors().iter().enumerate() {
-            match next.peek() {
-                Some((&c, &keep)) if c == i => {
-                    next.next();
-                    if keep {
-                        used.push(f);
-                    }
-                }
-                _ => used.push(f),
-            }
-        }
-        used
-    }
-
-    /// The chordal estimate of the trusted factors and the candidates in `kept`, anchored as
-    /// `values` are; `None` where it does not apply.
-    fn kept_estimate(&self, problem: &Problem, values: &Values, kept: &[bool]) -> Option<Values> {
-        let used = self.used_factors(problem, kept);
-        let (fixed, _) = anchor_components(&used, values);
-        let ordering = BlockOrdering::amd(free_adjacency(&used, &fixed));
-        let stopped = Cell::new(false);
-        let stoppable = Stoppable {
-            budget: self.budget,
-            stopped: &stopped,
-        };
-        chordal(&used, values, &fixed, &ordering, None, &stoppable)
-    }
-
     /// Each candidate's squared whitened error over its threshold, at `values`.
     fn ratios(&self, problem: &Problem, values: &Values) -> Result<Vec<f64>, SolverError> {
         let errors = squared_errors(problem, values, self.candidates, self.originals)?;
@@ -535,6 +504,20 @@ impl Graduation<'_> {
             .zip(self.thresholds)
             .map(|(s, t)| s / t)
             .collect())
+    }
+
+    /// Each candidate's squared whitened error over its threshold times `noise_scale`.
+    fn scaled_ratios(
+        &self,
+        problem: &Problem,
+        values: &Values,
+        noise_scale: f64,
+    ) -> Result<Vec<f64>, SolverError> {
+        let mut ratios = self.ratios(problem, values)?;
+        for r in &mut ratios {
+            *r /= noise_scale;
+        }
+        Ok(ratios)
     }
 
     /// Weights the candidates (`weight` of each entry of `per_candidate`).
@@ -554,6 +537,18 @@ impl Graduation<'_> {
             factors[i].sqrt_information = sqrt.scaled(weight(w));
         }
     }
+}
+
+/// What one graduation and its polish decided.
+struct Decisions {
+    chi2: f64,
+    termination: Termination,
+    /// Per candidate, whether it is kept.
+    kept: Vec<bool>,
+    /// Outer steps taken (over every graduation).
+    outer: usize,
+    /// Whether the budget stopped it.
+    interrupted: bool,
 }
 
 /// Where the graduation ended: its outer steps, whether the budget stopped it, the weights.
