@@ -472,7 +472,7 @@ impl Graduation<'_> {
     ) -> Result<(f64, Termination, Vec<bool>), SolverError> {
         let mut chi2 = 0.0;
         let mut termination = super::stopping::stopped(0);
-        for _ in 0..MAX_POLISH_ROUNDS {
+        for round in 1..=MAX_POLISH_ROUNDS {
             self.apply(problem, &kept, |keep| if keep { 1.0 } else { 0.0 });
             if interrupted {
                 chi2 = super::evaluate_chi2(problem.factors(), values)?;
@@ -488,7 +488,9 @@ impl Graduation<'_> {
             }
             let ratios = self.ratios(problem, values)?;
             let decided: Vec<bool> = ratios.iter().map(|&r| r <= 1.0).collect();
-            if decided == kept {
+            // The last round's decisions stand as solved: decisions taken after it would not be
+            // the ones the values are the optimum of.
+            if decided == kept || round == MAX_POLISH_ROUNDS {
                 break;
             }
             kept = decided;
