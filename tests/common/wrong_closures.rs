@@ -21,12 +21,7 @@ pub fn add_random_wrong_closures(
     let poses = text.lines().filter(|l| l.starts_with("VERTEX_SE2")).count();
     let closures = loop_closures(text);
     let mut rng = Rng::new(seed);
-    let mut out = text.to_string();
-    if !out.ends_with('\n') {
-        out.push('\n');
-    }
-    let mut line = out.lines().count();
-    let mut wrong = BTreeSet::new();
+    let mut file = Appended::new(text);
     for _ in 0..(fraction * closures.len() as f64).round() as usize {
         let (i, j) = loop {
             let (i, j) = (rng.below(poses), rng.below(poses));
@@ -38,17 +33,15 @@ pub fn add_random_wrong_closures(
             .split_whitespace()
             .skip(6)
             .collect();
-        out += &format!(
+        file.push(format!(
             "EDGE_SE2 {i} {j} {} {} {} {}\n",
             10.0 * rng.symmetric(),
             10.0 * rng.symmetric(),
             rng.angle(),
             info.join(" ")
-        );
-        line += 1;
-        wrong.insert(line);
+        ));
     }
-    (out, closures.len(), wrong)
+    (file.text, closures.len(), file.added)
 }
 
 /// The file with `fraction` × its loop closures added as wrong ones in groups of perceptual
@@ -76,14 +69,9 @@ pub fn add_aliasing_wrong_closures(
     let info: Vec<&str> = closures[0].split_whitespace().skip(6).collect();
     let target = (fraction * closures.len() as f64).round() as usize;
     let mut rng = Rng::new(seed);
-    let mut out = text.to_string();
-    if !out.ends_with('\n') {
-        out.push('\n');
-    }
-    let mut line = out.lines().count();
-    let mut wrong = BTreeSet::new();
-    while wrong.len() < target {
-        let size = (5 + rng.below(16)).min(target - wrong.len());
+    let mut file = Appended::new(text);
+    while file.added.len() < target {
+        let size = (5 + rng.below(16)).min(target - file.added.len());
         let (i0, j0) = (rng.below(poses.len() - size), rng.below(poses.len() - size));
         if i0.abs_diff(j0) < size + 2 {
             continue;
@@ -97,18 +85,16 @@ pub fn add_aliasing_wrong_closures(
         for k in 0..size {
             let (i, j) = (i0 + k, j0 + k);
             let z = poses[i].inverse().compose(&shift.compose(&poses[j]));
-            out += &format!(
+            file.push(format!(
                 "EDGE_SE2 {i} {j} {} {} {} {}\n",
                 z.x,
                 z.y,
                 z.theta,
                 info.join(" ")
-            );
-            line += 1;
-            wrong.insert(line);
+            ));
         }
     }
-    (out, closures.len(), wrong)
+    (file.text, closures.len(), file.added)
 }
 
 /// The file's loop-closure lines (edges between poses whose ids are not consecutive).
@@ -120,6 +106,34 @@ fn loop_closures(text: &str) -> Vec<&str> {
                 && f[1].parse::<u64>().unwrap().abs_diff(f[2].parse().unwrap()) != 1
         })
         .collect()
+}
+
+/// A file's text with lines appended, and the numbers of the appended lines.
+struct Appended {
+    text: String,
+    lines: usize,
+    added: BTreeSet<usize>,
+}
+
+impl Appended {
+    fn new(text: &str) -> Self {
+        let mut text = text.to_string();
+        if !text.ends_with('\n') {
+            text.push('\n');
+        }
+        Self {
+            lines: text.lines().count(),
+            text,
+            added: BTreeSet::new(),
+        }
+    }
+
+    /// Appends `line` (ending in a newline) and records its number.
+    fn push(&mut self, line: String) {
+        self.text += &line;
+        self.lines += 1;
+        self.added.insert(self.lines);
+    }
 }
 
 /// The line numbers named by labels like `EDGE_SE2 3 7 (request body:12)`.

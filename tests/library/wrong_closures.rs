@@ -69,10 +69,10 @@ fn perceptual_aliasing_groups_end_at_the_clean_optimum() {
         return;
     };
     let text = std::fs::read_to_string(&file).unwrap();
+    let dir = common::temp_dir("aliasing-closures");
+    let clean = solve_clean(&dir, &file);
+    let optimum = std::fs::read_to_string(&clean.out).unwrap();
     for (fraction, seed) in [(0.05, 3), (0.2, 2)] {
-        let dir = common::temp_dir("aliasing-closures");
-        let clean = solve_clean(&dir, &file);
-        let optimum = std::fs::read_to_string(&clean.out).unwrap();
         let (corrupted, closures, wrong_lines) =
             add_aliasing_wrong_closures(&text, &optimum, fraction, seed);
         assert_robust_solve_rejects_exactly(&dir, &corrupted, closures, &wrong_lines, &clean);

@@ -10,27 +10,21 @@ use crate::solver::initialize::{chordal, chordal_unwrapped_at_values, Stoppable}
 use crate::solver::linearize::free_adjacency;
 use crate::solver::structure::BlockOrdering;
 
+/// How a chordal estimate unwraps 2D orientations.
+enum Unwrap {
+    /// Along a spanning tree of the factors used.
+    AlongTree,
+    /// At the given values (the graduation's current estimate: a tree could run through a
+    /// wrong closure).
+    AtValues,
+}
+
 impl Graduation<'_> {
     /// The estimate of the trusted factors alone (chordal over odometry and priors), which wrong
     /// closures cannot corrupt; the given values where that estimate does not apply.
     pub(super) fn trusted_estimate(&self, problem: &Problem, given: Values) -> (Values, String) {
-        let mut trusted: Vec<&FactorEntry> = Vec::with_capacity(problem.factors().len());
-        let mut next = self.candidates.iter().peekable();
-        for (i, f) in problem.factors().iter().enumerate() {
-            if next.peek() == Some(&&i) {
-                next.next();
-            } else {
-                trusted.push(f);
-            }
-        }
-        let (fixed, _) = anchor_components(&trusted, &given);
-        let ordering = BlockOrdering::amd(free_adjacency(&trusted, &fixed));
-        let stopped = Cell::new(false);
-        let stoppable = Stoppable {
-            budget: self.budget,
-            stopped: &stopped,
-        };
-        match chordal(&trusted, &given, &fixed, &ordering, None, &stoppable) {
+        let trusted = self.used_factors(problem, &vec![false; self.candidates.len()]);
+        match self.chordal_estimate(&trusted, &given, Unwrap::AlongTree) {
             Some(estimate) => (
                 estimate,
                 "chordal over the trusted factors (graduated non-convexity)".into(),
@@ -51,23 +45,22 @@ impl Graduation<'_> {
         weights: &[f64],
     ) -> Option<Values> {
         let kept: Vec<bool> = weights.iter().map(|&w| w > 0.0).collect();
-        let used = self.used_factors(problem, &kept);
-        let (fixed, _) = anchor_components(&used, values);
-        let ordering = BlockOrdering::amd(free_adjacency(&used, &fixed));
-        let stopped = Cell::new(false);
-        let stoppable = Stoppable {
-            budget: self.budget,
-            stopped: &stopped,
-        };
-        chordal_unwrapped_at_values(&used, values, &fixed, &ordering, &stoppable)
+        self.chordal_estimate(&self.used_factors(problem, &kept), values, Unwrap::AtValues)
+    }
+
+    /// The chordal estimate of the trusted factors and the candidates in `kept`, anchored as
+    /// `values` are; `None` where it does not apply.
+    pub(super) fn kept_estimate(
+        &self,
+        problem: &Problem,
+        values: &Values,
+        kept: &[bool],
+    ) -> Option<Values> {
+        self.chordal_estimate(&self.used_factors(problem, kept), values, Unwrap::AlongTree)
     }
 
     /// The trusted factors and the candidates in `kept`, in the problem's order.
-    pub(super) fn used_factors<'p>(
-        &self,
-        problem: &'p Problem,
-        kept: &[bool],
-    ) -> Vec<&'p FactorEntry> {
+    fn used_factors<'p>(&self, problem: &'p Problem, kept: &[bool]) -> Vec<&'p FactorEntry> {
         let mut used: Vec<&FactorEntry> = Vec::with_capacity(problem.factors().len());
         let mut next = self.candidates.iter().zip(kept).peekable();
         for (i, f) in problem.factors().iter().enumerate() {
@@ -84,22 +77,25 @@ impl Graduation<'_> {
         used
     }
 
-    /// The chordal estimate of the trusted factors and the candidates in `kept`, anchored as
-    /// `values` are; `None` where it does not apply.
-    pub(super) fn kept_estimate(
+    /// The chordal estimate over `used`, anchored as `values` are, stoppable by the budget.
+    fn chordal_estimate(
         &self,
-        problem: &Problem,
+        used: &[&FactorEntry],
         values: &Values,
-        kept: &[bool],
+        unwrap: Unwrap,
     ) -> Option<Values> {
-        let used = self.used_factors(problem, kept);
-        let (fixed, _) = anchor_components(&used, values);
-        let ordering = BlockOrdering::amd(free_adjacency(&used, &fixed));
+        let (fixed, _) = anchor_components(used, values);
+        let ordering = BlockOrdering::amd(free_adjacency(used, &fixed));
         let stopped = Cell::new(false);
         let stoppable = Stoppable {
             budget: self.budget,
             stopped: &stopped,
         };
-        chordal(&used, values, &fixed, &ordering, None, &stoppable)
+        match unwrap {
+            Unwrap::AlongTree => chordal(used, values, &fixed, &ordering, None, &stoppable),
+            Unwrap::AtValues => {
+                chordal_unwrapped_at_values(used, values, &fixed, &ordering, &stoppable)
+            }
+        }
     }
 }

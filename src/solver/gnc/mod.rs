@@ -21,10 +21,10 @@
 //!    threshold is kept) until they stop changing.
 //!
 //! 4. Where the kept measurements fit far better than their information matrices say (a
-//!    variance factor below 0.25), a second graduation in the measured scale proposes more
-//!    rejections and a leave-cluster-out test in that scale decides them
-//!    ([`noise_scale`](self::noise_scale)): groups of wrong closures that agree with each other
-//!    hide inside thresholds that are too loose.
+//!    variance factor below 0.25), a second round graduates in the measured scale, the
+//!    candidates only it rejects are tested cluster by cluster, and the round of lower cost in
+//!    that scale wins ([`noise_scale`](self::noise_scale)): groups of wrong closures that agree
+//!    with each other hide inside thresholds that are too loose.
 //!
 //! The truncation threshold of a factor with residual dimension d is the χ²(d) quantile at the
 //! given confidence, so a measurement is rejected when its error is less likely than
@@ -357,7 +357,7 @@ impl Graduation<'_> {
         noise_scale: f64,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
     ) -> Result<Decisions, SolverError> {
-        let mut ratios = self.scaled_ratios(problem, values, noise_scale)?;
+        let mut ratios = self.ratios(problem, values, noise_scale)?;
         let graduation = self.graduate(
             problem,
             solver,
@@ -437,7 +437,7 @@ impl Graduation<'_> {
                     .run(problem.factors(), values, inner, on_iteration)?
                     .1
             };
-            *ratios = self.scaled_ratios(problem, values, noise_scale)?;
+            *ratios = self.ratios(problem, values, noise_scale)?;
             if termination.reason == TerminationReason::Interrupted && inner.max_iterations > 0 {
                 return Ok(GraduationEnd {
                     outer,
@@ -473,7 +473,7 @@ impl Graduation<'_> {
         let mut chi2 = 0.0;
         let mut termination = super::stopping::stopped(0);
         for round in 1..=MAX_POLISH_ROUNDS {
-            self.apply(problem, &kept, |keep| if keep { 1.0 } else { 0.0 });
+            self.apply(problem, &kept, weight_of);
             if interrupted {
                 chi2 = super::evaluate_chi2(problem.factors(), values)?;
                 break;
@@ -486,7 +486,7 @@ impl Graduation<'_> {
             if termination.reason == TerminationReason::Interrupted {
                 break;
             }
-            let ratios = self.ratios(problem, values)?;
+            let ratios = self.ratios(problem, values, 1.0)?;
             let decided: Vec<bool> = ratios.iter().map(|&r| r <= 1.0).collect();
             // The last round's decisions stand as solved: decisions taken after it would not be
             // the ones the values are the optimum of.
@@ -498,28 +498,20 @@ impl Graduation<'_> {
         Ok((chi2, termination, kept))
     }
 
-    /// Each candidate's squared whitened error over its threshold, at `values`.
-    fn ratios(&self, problem: &Problem, values: &Values) -> Result<Vec<f64>, SolverError> {
-        let errors = squared_errors(problem, values, self.candidates, self.originals)?;
-        Ok(errors
-            .iter()
-            .zip(self.thresholds)
-            .map(|(s, t)| s / t)
-            .collect())
-    }
-
-    /// Each candidate's squared whitened error over its threshold times `noise_scale`.
-    fn scaled_ratios(
+    /// Each candidate's squared whitened error at `values` over its threshold times
+    /// `noise_scale` (1: the thresholds the information gives).
+    fn ratios(
         &self,
         problem: &Problem,
         values: &Values,
         noise_scale: f64,
     ) -> Result<Vec<f64>, SolverError> {
-        let mut ratios = self.ratios(problem, values)?;
-        for r in &mut ratios {
-            *r /= noise_scale;
-        }
-        Ok(ratios)
+        let errors = squared_errors(problem, values, self.candidates, self.originals)?;
+        Ok(errors
+            .iter()
+            .zip(self.thresholds)
+            .map(|(s, t)| s / (t * noise_scale))
+            .collect())
     }
 
     /// Weights the candidates (`weight` of each entry of `per_candidate`).
@@ -538,6 +530,15 @@ impl Graduation<'_> {
         {
             factors[i].sqrt_information = sqrt.scaled(weight(w));
         }
+    }
+}
+
+/// A kept candidate's weight 1, a rejected one's 0.
+fn weight_of(keep: bool) -> f64 {
+    if keep {
+        1.0
+    } else {
+        0.0
     }
 }
 

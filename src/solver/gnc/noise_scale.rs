@@ -13,18 +13,19 @@
 //! 1. the variance factor is measured, chi2 over the redundancy (residuals minus free
 //!    parameters) at the first round's optimum;
 //! 2. a second graduation from the trusted estimate, with every threshold in that scale,
-//!    proposes what to reject. Tight thresholds also reject right closures (the big loop of a
-//!    drifted trajectory, before the graduation has closed it), so its word is not final:
-//! 3. the candidates the first round kept and the second rejects are clustered (closures whose
-//!    ends are near each other's in the variable order, as consecutive frames of one place
-//!    recognition are), and each cluster is left out of the first round's solution in turn: one
-//!    whose removal lowers chi2 by more than the χ² quantile of its residual count in the
-//!    measured scale is rejected. Right closures held by the rest of the map barely lower it.
-//! 4. the polish then settles the decisions at the unscaled thresholds, as after one round.
+//!    decides again (its polish settles at the unscaled thresholds). Tight thresholds also
+//!    reject right closures (the big loop of a drifted trajectory, before the graduation has
+//!    closed it), so its rejections of what the first round kept are tested:
+//! 3. those candidates are clustered (closures whose ends are near each other's in the variable
+//!    order, as consecutive frames of one place recognition are), and each cluster is added to
+//!    the second round's optimum: one that raises chi2 by at most the χ² quantile of its
+//!    residual count in the measured scale comes back, and the polish settles again;
+//! 4. the round whose truncated least-squares cost in the measured scale is lower wins (the
+//!    second can end worse where its tight graduation kept a group the first also kept).
 
 use std::ops::ControlFlow;
 
-use super::{Decisions, Graduation};
+use super::{weight_of, Decisions, Graduation};
 use crate::problem::{Problem, Values};
 use crate::solver::chi_square::cached_quantile;
 use crate::solver::iterations::Iterations;
@@ -42,7 +43,8 @@ const MIN_REDUNDANCY: usize = 30;
 /// one cluster.
 const CLUSTER_GAP: usize = 3;
 
-/// Disputed clusters tested at most (each a solve); beyond, the first round's decisions stand.
+/// Disputed clusters tested at most (each a solve); the rest stay rejected as the second round
+/// decided.
 const MAX_DISPUTED_CLUSTERS: usize = 64;
 
 impl Graduation<'_> {
@@ -66,9 +68,12 @@ impl Graduation<'_> {
         let mut tight_values = trusted;
         let tight = self.decide(problem, solver, &mut tight_values, scale, on_iteration)?;
         let outer = first.outer + tight.outer;
-        if tight.interrupted {
+        let first_stands = |problem: &mut Problem, first: Decisions| {
             self.apply(problem, &first.kept, weight_of);
-            return Ok(Decisions { outer, ..first });
+            Ok(Decisions { outer, ..first })
+        };
+        if tight.interrupted {
+            return first_stands(problem, first);
         }
         let disputed: Vec<usize> = (0..first.kept.len())
             .filter(|&c| first.kept[c] && !tight.kept[c])
@@ -85,8 +90,7 @@ impl Graduation<'_> {
             let (chi2, termination) =
                 solver.run(problem.factors(), &mut trial, self.options, on_iteration)?;
             if termination.reason == TerminationReason::Interrupted {
-                self.apply(problem, &first.kept, weight_of);
-                return Ok(Decisions { outer, ..first });
+                return first_stands(problem, first);
             }
             let residuals: usize = cluster
                 .iter()
@@ -118,11 +122,9 @@ impl Graduation<'_> {
                 outer,
             }
         };
-        if second.interrupted
-            || self.robust_cost(problem, &second, scale) >= self.robust_cost(problem, &first, scale)
+        if second.interrupted || self.robust_cost(&second, scale) >= self.robust_cost(&first, scale)
         {
-            self.apply(problem, &first.kept, weight_of);
-            return Ok(Decisions { outer, ..first });
+            return first_stands(problem, first);
         }
         *values = tight_values;
         Ok(Decisions { outer, ..second })
@@ -130,18 +132,13 @@ impl Graduation<'_> {
 
     /// The truncated least-squares cost of `decisions` in the measured noise scale: the kept
     /// measurements' chi2 in that scale plus each rejected one's threshold.
-    fn robust_cost(&self, problem: &Problem, decisions: &Decisions, scale: f64) -> f64 {
+    fn robust_cost(&self, decisions: &Decisions, scale: f64) -> f64 {
         let rejected: f64 = decisions
             .kept
             .iter()
-            .zip(self.candidates)
+            .zip(self.thresholds)
             .filter(|(&keep, _)| !keep)
-            .map(|(_, &i)| {
-                cached_quantile(
-                    problem.factors()[i].factor.residual_dim(),
-                    self.gnc.confidence,
-                )
-            })
+            .map(|(_, &threshold)| threshold)
             .sum();
         decisions.chi2 / scale + rejected
     }
@@ -154,9 +151,11 @@ impl Graduation<'_> {
         first: &Decisions,
         free_scalars: usize,
     ) -> Option<f64> {
-        let mut rejected = first.kept.iter().zip(self.candidates).filter(|(&k, _)| !k);
-        let rejected_residuals: usize = rejected
-            .by_ref()
+        let rejected_residuals: usize = first
+            .kept
+            .iter()
+            .zip(self.candidates)
+            .filter(|(&keep, _)| !keep)
             .map(|(_, &i)| problem.factors()[i].factor.residual_dim())
             .sum();
         let residuals: usize = problem
@@ -207,14 +206,5 @@ impl Graduation<'_> {
             clusters[slot_of_root[root]].push(c);
         }
         clusters
-    }
-}
-
-/// A kept candidate's weight 1, a rejected one's 0.
-fn weight_of(keep: bool) -> f64 {
-    if keep {
-        1.0
-    } else {
-        0.0
     }
 }

@@ -24,9 +24,29 @@ use crate::planar::{Pose2, Rot2};
 use crate::point_factors::{auto, BetweenPoint, PriorPoint};
 use crate::spatial::Pose3;
 
-/// Which Python class a factor is, to give it back as that class (`graph.at(i)`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum FactorClass {
+/// Declares [`FactorClass`] and [`factor_object`] from one list of the Python factor classes.
+macro_rules! factor_classes {
+    ($($name:ident),* $(,)?) => {
+        /// Which Python class a factor is, to give it back as that class (`graph.at(i)`).
+        #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+        pub enum FactorClass {
+            $($name,)*
+            /// Read from a file, of a type without a Python class of its own.
+            Other,
+        }
+
+        /// The Python object for a factor a graph holds, of its own class.
+        pub fn factor_object(py: Python<'_>, data: &Arc<FactorData>) -> PyResult<Py<PyAny>> {
+            let base = NonlinearFactor { data: data.clone() };
+            match data.class {
+                $(FactorClass::$name => Ok(Py::new(py, PyClassInitializer::from(base).add_subclass($name))?.into_any()),)*
+                FactorClass::Other => Ok(Py::new(py, base)?.into_any()),
+            }
+        }
+    };
+}
+
+factor_classes!(
     PriorFactorPose2,
     BetweenFactorPose2,
     PriorFactorPose3,
@@ -45,11 +65,8 @@ pub enum FactorClass {
     GPSFactorArm,
     PoseToPointFactor3D,
     SnavelyReprojectionFactor,
-    /// A Python error function's (`custom.rs`).
     CustomFactor,
-    /// Read from a file, of a type without a Python class of its own.
-    Other,
-}
+);
 
 /// Everything a graph keeps of one factor.
 #[derive(Debug)]
@@ -152,40 +169,6 @@ impl NonlinearFactor {
     fn __repr__(&self) -> String {
         self.data.label.clone()
     }
-}
-
-/// The Python object for a factor a graph holds, of its own class.
-pub fn factor_object(py: Python<'_>, data: &Arc<FactorData>) -> PyResult<Py<PyAny>> {
-    let base = NonlinearFactor { data: data.clone() };
-    macro_rules! as_class {
-        ($($name:ident),*) => {
-            match data.class {
-                $(FactorClass::$name => Ok(Py::new(py, PyClassInitializer::from(base).add_subclass($name))?.into_any()),)*
-                FactorClass::Other => Ok(Py::new(py, base)?.into_any()),
-            }
-        };
-    }
-    as_class!(
-        PriorFactorPose2,
-        BetweenFactorPose2,
-        PriorFactorPose3,
-        BetweenFactorPose3,
-        BearingRangeFactor2D,
-        RangeFactor2D,
-        RangeFactorPose2,
-        RangeFactor3D,
-        RangeFactorPose3,
-        BearingFactor2D,
-        PriorFactorPoint2,
-        PriorFactorPoint3,
-        BetweenFactorPoint2,
-        BetweenFactorPoint3,
-        GPSFactor,
-        GPSFactorArm,
-        PoseToPointFactor3D,
-        SnavelyReprojectionFactor,
-        CustomFactor
-    )
 }
 
 type Made = (Box<dyn Factor>, Option<Py<PyAny>>);

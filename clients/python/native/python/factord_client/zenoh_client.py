@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple, Union
 import numpy as np
 
 from . import poses_binary, wire
+from .http import auto_optimize_policy
 from .robots import robot_id
 from .batch import Batch, EstimateArray, as_batch, dumps, estimate_to_array, marginals_to_arrays
 from .errors import FactordConnectionError, FactordError
@@ -361,8 +362,8 @@ class ZenohClient:
         return self.rpc({"op": "cancel", "session": session})
 
     def set_auto_optimize(self, session: str, policy: Union[str, JsonDict], **params: Any) -> JsonDict:
-        auto = {**policy, **params} if isinstance(policy, dict) else {"policy": policy, **params}
-        return self.rpc({"op": "set_auto_optimize", "session": session, "auto_optimize": auto})
+        return self.rpc({"op": "set_auto_optimize", "session": session,
+                         "auto_optimize": auto_optimize_policy(policy, **params)})
 
     def estimate(
         self,
