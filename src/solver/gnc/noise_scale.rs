@@ -21,7 +21,7 @@
 //!    the second round's optimum. Its rise in chi2 (measured scale) splits in two: its own
 //!    residuals at the joint optimum, and the bend, what the rest of the map pays to meet them.
 //!    Right closures spread the rise over both; a group that agrees with itself but not with
-//!    the map fits almost exactly and puts nearly all of it in the bend (M3500: own 0.3-0.9,
+//!    the map fits almost exactly and puts nearly all of it in the bend (M3500: own 0.3-8.5,
 //!    bend 61-171 for 10-17 closures; sphere2500's right closures between two rings: own 123,
 //!    bend 158 for 36). A cluster comes back when both halves are within the χ² quantile of its
 //!    residual count, and the polish settles again;
