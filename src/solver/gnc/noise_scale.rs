@@ -108,16 +108,7 @@ impl Graduation<'_> {
             if termination.reason == TerminationReason::Interrupted {
                 return first_stands(problem, first);
             }
-            let residuals: usize = cluster
-                .iter()
-                .map(|&c| problem.factors()[self.candidates[c]].factor.residual_dim())
-                .sum();
-            let threshold = cached_quantile(residuals, self.gnc.confidence);
-            let mut own = 0.0;
-            for &c in cluster {
-                let (factor, sqrt) = (&self.candidates[c..=c], &self.originals[c..=c]);
-                own += squared_errors(problem, &trial, factor, sqrt)?[0] / scale;
-            }
+            let (own, threshold) = self.own_cost(problem, &trial, cluster, scale)?;
             let bend = (chi2 - tight.chi2) / scale - own;
             if own <= threshold && bend <= threshold {
                 for &c in cluster {
@@ -156,6 +147,27 @@ impl Graduation<'_> {
         }
         *values = tight_values;
         Ok(Decisions { outer, ..second })
+    }
+
+    /// The chi2 of `cluster`'s members at `values` in the measured scale, and the χ² quantile
+    /// of their residual count.
+    fn own_cost(
+        &self,
+        problem: &Problem,
+        values: &Values,
+        cluster: &[usize],
+        scale: f64,
+    ) -> Result<(f64, f64), SolverError> {
+        let residuals: usize = cluster
+            .iter()
+            .map(|&c| problem.factors()[self.candidates[c]].factor.residual_dim())
+            .sum();
+        let mut own = 0.0;
+        for &c in cluster {
+            let (factor, sqrt) = (&self.candidates[c..=c], &self.originals[c..=c]);
+            own += squared_errors(problem, values, factor, sqrt)?[0] / scale;
+        }
+        Ok((own, cached_quantile(residuals, self.gnc.confidence)))
     }
 
     /// The truncated least-squares cost of `decisions` in the measured noise scale: the kept
