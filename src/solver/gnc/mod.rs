@@ -22,9 +22,10 @@
 //!
 //! 4. Where the kept measurements fit far better than their information matrices say (a
 //!    variance factor below 0.25), a second round graduates in the measured scale, the
-//!    candidates only it rejects are tested cluster by cluster, and the round of lower cost in
-//!    that scale wins ([`noise_scale`](self::noise_scale)): groups of wrong closures that agree
-//!    with each other hide inside thresholds that are too loose.
+//!    candidates only it rejects are tested cluster by cluster (a cluster that fits itself but
+//!    bends the map is one wrong hypothesis), and the round of lower cost in that scale wins
+//!    ([`noise_scale`](self::noise_scale)): groups of wrong closures that agree with each other
+//!    hide inside thresholds that are too loose.
 //!
 //! The truncation threshold of a factor with residual dimension d is the χ²(d) quantile at the
 //! given confidence, so a measurement is rejected when its error is less likely than
@@ -196,7 +197,11 @@ pub fn optimize_gnc(
     // rejection threshold itself, about 1 % of the correct closures of a file whose noise is as
     // its information says would start it and be rejected, moving a clean file's optimum.
     let fits = |problem: &Problem| -> Result<bool, SolverError> {
-        let errors = squared_errors(problem, &problem.values, &candidates, &originals)?;
+        let errors = squared_errors(
+            problem,
+            &problem.values,
+            candidates.iter().copied().zip(&originals),
+        )?;
         Ok(errors.iter().zip(&candidates).all(|(&s, &i)| {
             let dof = problem.factors()[i].factor.residual_dim();
             s <= start_quantile(dof)
@@ -506,7 +511,11 @@ impl Graduation<'_> {
         values: &Values,
         noise_scale: f64,
     ) -> Result<Vec<f64>, SolverError> {
-        let errors = squared_errors(problem, values, self.candidates, self.originals)?;
+        let errors = squared_errors(
+            problem,
+            values,
+            self.candidates.iter().copied().zip(self.originals),
+        )?;
         Ok(errors
             .iter()
             .zip(self.thresholds)
@@ -561,21 +570,19 @@ struct GraduationEnd {
     weights: Vec<f64>,
 }
 
-/// The squared whitened errors ‖R e‖² of the factors `indices` at `values`, each whitened by its
-/// unweighted square-root information in `sqrt_informations`.
-fn squared_errors(
+/// The squared whitened errors ‖R e‖² at `values` of the factors in `factors`, each given with
+/// the unweighted square-root information that whitens it.
+fn squared_errors<'s>(
     problem: &Problem,
     values: &Values,
-    indices: &[usize],
-    sqrt_informations: &[SqrtInformation],
+    factors: impl IntoIterator<Item = (usize, &'s SqrtInformation)>,
 ) -> Result<Vec<f64>, SolverError> {
     let mut error = Vec::new();
     let mut whitened = Vec::new();
     let mut variables: Vec<&dyn Variable> = Vec::new();
-    indices
-        .iter()
-        .zip(sqrt_informations)
-        .map(|(&i, sqrt)| {
+    factors
+        .into_iter()
+        .map(|(i, sqrt)| {
             let f = &problem.factors()[i];
             let d = f.factor.residual_dim();
             error.resize(d, 0.0);

@@ -162,12 +162,11 @@ impl Graduation<'_> {
             .iter()
             .map(|&c| problem.factors()[self.candidates[c]].factor.residual_dim())
             .sum();
-        let mut own = 0.0;
-        for &c in cluster {
-            let (factor, sqrt) = (&self.candidates[c..=c], &self.originals[c..=c]);
-            own += squared_errors(problem, values, factor, sqrt)?[0] / scale;
-        }
-        Ok((own, cached_quantile(residuals, self.gnc.confidence)))
+        let members = cluster
+            .iter()
+            .map(|&c| (self.candidates[c], &self.originals[c]));
+        let own: f64 = squared_errors(problem, values, members)?.iter().sum();
+        Ok((own / scale, cached_quantile(residuals, self.gnc.confidence)))
     }
 
     /// The truncated least-squares cost of `decisions` in the measured noise scale: the kept
