@@ -3,6 +3,8 @@
 //! trajectory goes. The transport layer (`transport::ros2`) runs it; this is only its wire form
 //! and validation.
 
+use std::collections::BTreeMap;
+
 use serde::{Deserialize, Serialize};
 
 use super::ServiceError;
@@ -79,6 +81,19 @@ pub struct Ros2Binding {
     /// id (its key character, `a`, or `x` and its hex code for one that is no letter or digit).
     #[serde(default = "default_robot_odom_frame")]
     pub robot_odom_frame: String,
+    /// A session with `robots`: one node per robot, `{"<robot id>": "<namespace>"}` (e.g.
+    /// `{"a": "/husky1", "b": "/husky2"}`). Each robot's node reads and writes the topics above
+    /// in its namespace when they are relative (`odom` is `/husky1/odom`; `/tf` stays `/tf`),
+    /// makes that robot's keyframes (keys `robot_key(id, i)`), publishes its path and pose (in
+    /// the map once merged, in its own odometry frame until then) and its `map → odom`.
+    /// `markers_topic` and `service_namespace` are the session's: the first robot's node
+    /// declares them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robots: Option<BTreeMap<String, String>>,
+    /// A session with `robots`: `factord_msgs/msg/RobotLoopClosure`, closures between two
+    /// robots (named by namespace or id), taken by the node of the robot they end at.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robot_loop_closure_topic: Option<String>,
     /// A new keyframe when the robot has moved this far (metres) since the last one…
     #[serde(default = "default_keyframe_distance")]
     pub keyframe_distance: f64,
@@ -123,6 +138,9 @@ fn default_keyframe_angle() -> f64 {
     0.2618
 }
 
+/// Robot nodes one binding may declare.
+pub const MAX_ROBOT_NODES: usize = 64;
+
 /// What stands for the robot's id in [`Ros2Binding::robot_odom_frame`].
 const ROBOT: &str = "{robot}";
 
@@ -160,6 +178,10 @@ impl Ros2Binding {
             ("tf_topic", self.tf_topic.as_ref()),
             ("markers_topic", self.markers_topic.as_ref()),
             ("service_namespace", self.service_namespace.as_ref()),
+            (
+                "robot_loop_closure_topic",
+                self.robot_loop_closure_topic.as_ref(),
+            ),
         ];
         for (field, topic) in topics {
             if let Some(topic) = topic {
@@ -179,6 +201,7 @@ impl Ros2Binding {
                 ));
             }
         }
+        self.validate_robots()?;
         if self.map_frame.is_empty() {
             return Err(invalid("map_frame", "a frame id is required".into()));
         }
@@ -238,6 +261,63 @@ impl Ros2Binding {
         Ok(())
     }
 
+    /// `robots`: ids a robot's keys can carry (not `l`, the landmarks'), absolute namespaces,
+    /// no two alike; `robot_loop_closure_topic` only with them.
+    fn validate_robots(&self) -> Result<(), ServiceError> {
+        let invalid = |field: String, message: String| {
+            ServiceError::bad_request("invalid_value", format!("ros2.{field}"), message)
+        };
+        let Some(robots) = &self.robots else {
+            return match self.robot_loop_closure_topic {
+                Some(_) => Err(invalid(
+                    "robot_loop_closure_topic".into(),
+                    "closures between robots need `robots` (one node per robot)".into(),
+                )),
+                None => Ok(()),
+            };
+        };
+        if robots.is_empty() || robots.len() > MAX_ROBOT_NODES {
+            return Err(invalid(
+                "robots".into(),
+                format!("1 to {MAX_ROBOT_NODES} robots, not {}", robots.len()),
+            ));
+        }
+        let mut namespaces = std::collections::HashSet::new();
+        for (id, namespace) in robots {
+            let field = format!("robots.{id}");
+            match super::robots::parse_robot_id(id) {
+                Some(b'l') => {
+                    return Err(invalid(
+                        field,
+                        "robot `l` would share its keys with the landmarks".into(),
+                    ))
+                }
+                Some(_) => {}
+                None => {
+                    return Err(invalid(
+                        field,
+                        format!(
+                            "`{id}` is not a robot id (one letter or digit: its keys' character)"
+                        ),
+                    ))
+                }
+            }
+            if !(namespace.starts_with('/') && valid_ros_name(namespace)) {
+                return Err(invalid(
+                    field,
+                    format!("`{namespace}` is not an absolute ROS namespace (e.g. `/husky1`)"),
+                ));
+            }
+            if !namespaces.insert(namespace.trim_end_matches('/')) {
+                return Err(invalid(
+                    field,
+                    format!("namespace `{namespace}` is another robot's too"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Whether a session of `kind` can take this binding: odometry makes `se3` keyframes in a
     /// `pose_graph_3d`, or IMU-and-odometry keyframes in a `sliding_window` (which needs the
     /// IMU). 400 `ros2_unsupported_kind` at `ros2`, or `invalid_value` at `ros2.imu_topic`.
@@ -258,6 +338,13 @@ impl Ros2Binding {
                     format!("loop closures and landmarks feed pose_graph_3d sessions, not {kind}"),
                 ));
             }
+        }
+        if self.robots.is_some() && kind != "pose_graph_3d" {
+            return Err(ServiceError::bad_request(
+                "invalid_value",
+                "ros2.robots",
+                format!("robots' nodes feed pose_graph_3d sessions, not {kind}"),
+            ));
         }
         match (kind, &self.imu_topic) {
             ("pose_graph_3d", None) | ("sliding_window", Some(_)) => Ok(()),
@@ -330,6 +417,33 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn robot_nodes_need_ids_and_absolute_namespaces_of_their_own() {
+        let with = |robots: &str| {
+            binding(&format!(
+                r#"{{"odometry_topic": "odom", "robots": {robots}}}"#
+            ))
+        };
+        let ok = with(r#"{"a": "/husky1", "b": "/fleet/husky2"}"#);
+        assert!(ok.validate().is_ok() && ok.check_kind("pose_graph_3d").is_ok());
+        let field = |b: Ros2Binding| b.validate().unwrap_err().body.field.unwrap();
+        assert_eq!(field(with(r#"{"l": "/husky1"}"#)), "ros2.robots.l");
+        assert_eq!(field(with(r#"{"ab": "/husky1"}"#)), "ros2.robots.ab");
+        assert_eq!(field(with(r#"{"a": "husky1"}"#)), "ros2.robots.a");
+        assert_eq!(
+            field(with(r#"{"a": "/husky1", "b": "/husky1/"}"#)),
+            "ros2.robots.b"
+        );
+        assert_eq!(field(with("{}")), "ros2.robots");
+        let closures = binding(r#"{"odometry_topic": "odom", "robot_loop_closure_topic": "/c"}"#);
+        assert_eq!(field(closures), "ros2.robot_loop_closure_topic");
+        let window = with(r#"{"a": "/husky1"}"#).check_kind("sliding_window");
+        assert_eq!(
+            window.unwrap_err().body.field.as_deref(),
+            Some("ros2.robots")
+        );
     }
 
     #[test]

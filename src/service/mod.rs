@@ -342,6 +342,13 @@ impl Service {
         if let Some(binding) = request.ros2 {
             binding.validate()?;
             binding.check_kind(kind.name)?;
+            if binding.robots.is_some() && request.robots.is_none() {
+                return Err(ServiceError::bad_request(
+                    "invalid_value",
+                    "ros2.robots",
+                    "a node per robot needs a session with `robots`",
+                ));
+            }
             session.set_ros2_binding(*binding);
         }
         if let Some(robots) = request.robots {

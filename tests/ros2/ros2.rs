@@ -51,6 +51,15 @@ fn a_slam_robot_over_rmw_zenoh_closes_a_loop_and_maps_landmarks() {
     common::run_python_script(&python, &server, "tests/ros2/robot_slam.py", &[]);
 }
 
+/// Two robots in their own namespaces and odometry frames, a node each, merged into one map by
+/// closures between them (`tests/ros2/robot_fleet.py`).
+#[test]
+fn two_robots_get_a_node_each_and_merge_into_one_map_over_rmw_zenoh() {
+    let Some(python) = python() else { return };
+    let server = TestServer::start(&[]);
+    common::run_python_script(&python, &server, "tests/ros2/robot_fleet.py", &[]);
+}
+
 #[test]
 fn a_ros2_robot_with_an_imu_feeds_a_sliding_window() {
     let Some(python) = python() else { return };

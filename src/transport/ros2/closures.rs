@@ -13,7 +13,7 @@
 //!   keyframe nearest its stamp and the `point3` landmark `('l' << 56) | landmark_id`, created
 //!   with its first sighting (its value predicted from it: `t + R z`).
 
-use nalgebra::Matrix3;
+use nalgebra::{Isometry3, Matrix3, Matrix6};
 
 use super::keyframes::{
     factor, information, isometry, nearest, stamp_ns, Keyframer, MessageError, Noise,
@@ -37,28 +37,29 @@ impl Keyframer {
     /// A `between_se3` factor from the keyframe nearest `from_stamp` to the one nearest
     /// `to_stamp`.
     pub fn on_loop_closure(&self, closure: &LoopClosure) -> Result<Batch, MessageError> {
-        let relative = isometry(&closure.relative_pose)?;
-        let what = "loop closure";
-        let information =
-            information(&closure.covariance, what)?.ok_or(MessageError::Covariance { what })?;
+        let measurement = Measurement::of(closure)?;
         let from = self.keyframe_near(closure.from_stamp, "from_stamp")?;
         let to = self.keyframe_near(closure.to_stamp, "to_stamp")?;
-        if from == to {
-            return Err(MessageError::SameKeyframe { key: from });
-        }
-        let mut factor = factor(
-            "between_se3",
-            vec![from, to],
-            &relative,
-            Noise::Information(information.iter().copied().collect()),
-        );
-        if closure.may_be_wrong {
-            factor.outlier = Some(OutlierMark::Auto);
-        }
-        Ok(Batch {
-            factors: vec![factor],
-            ..Batch::default()
-        })
+        measurement.between(from, to)
+    }
+
+    /// A closure between robots, taken by the node of the robot it ends at: a `between_se3`
+    /// factor from robot `from_robot`'s keyframe nearest `from_stamp` (in the stamps every
+    /// robot's node shares) to this robot's nearest `to_stamp`.
+    pub fn on_robot_loop_closure(
+        &self,
+        from_robot: u8,
+        closure: &LoopClosure,
+    ) -> Result<Batch, MessageError> {
+        let measurement = Measurement::of(closure)?;
+        let at = closure.from_stamp;
+        let found = match &self.robot {
+            Some((_, shared)) => shared.nearest(from_robot, stamp_ns(at.seconds())),
+            None => None,
+        };
+        let from = within(found, at, "from_stamp", self.tolerance)?;
+        let to = self.keyframe_near(closure.to_stamp, "to_stamp")?;
+        measurement.between(from, to)
     }
 
     /// A `position_se3_point3` factor on the keyframe nearest the sighting's stamp, and the
@@ -96,25 +97,75 @@ impl Keyframer {
 
     /// The keyframe whose stamp is nearest `at`, if within the tolerance.
     fn keyframe_near(&self, at: Time, field: &'static str) -> Result<Key, MessageError> {
-        let t = at.seconds();
-        let (key, stamp) =
-            nearest(&self.by_stamp, stamp_ns(t)).ok_or(MessageError::NoKeyframeYet)?;
-        let off = (stamp - stamp_ns(t)).abs() as f64 * 1e-9;
-        if off > self.tolerance {
-            return Err(MessageError::NoKeyframeNear {
-                field,
-                t,
-                nearest: stamp as f64 * 1e-9,
-                tolerance: self.tolerance,
-            });
-        }
-        Ok(key)
+        let found = nearest(&self.by_stamp, stamp_ns(at.seconds()));
+        within(found, at, field, self.tolerance)
     }
 
     /// Landmarks the session already has (after a restart): their next sightings add no
     /// variable.
     pub fn resume_landmarks(&mut self, keys: impl IntoIterator<Item = Key>) {
         self.landmarks.extend(keys);
+    }
+}
+
+/// `found`, the keyframe nearest `at` and its stamp, if within `tolerance` seconds of it.
+fn within(
+    found: Option<(Key, i64)>,
+    at: Time,
+    field: &'static str,
+    tolerance: f64,
+) -> Result<Key, MessageError> {
+    let t = at.seconds();
+    let (key, stamp) = found.ok_or(MessageError::NoKeyframeYet)?;
+    let off = (stamp - stamp_ns(t)).abs() as f64 * 1e-9;
+    if off > tolerance {
+        return Err(MessageError::NoKeyframeNear {
+            field,
+            t,
+            nearest: stamp as f64 * 1e-9,
+            tolerance,
+        });
+    }
+    Ok(key)
+}
+
+/// A closure's relative pose and information, checked before its keyframes are looked for.
+struct Measurement {
+    relative: Isometry3<f64>,
+    information: Matrix6<f64>,
+    may_be_wrong: bool,
+}
+
+impl Measurement {
+    fn of(closure: &LoopClosure) -> Result<Self, MessageError> {
+        let relative = isometry(&closure.relative_pose)?;
+        let what = "loop closure";
+        let information =
+            information(&closure.covariance, what)?.ok_or(MessageError::Covariance { what })?;
+        Ok(Self {
+            relative,
+            information,
+            may_be_wrong: closure.may_be_wrong,
+        })
+    }
+
+    fn between(&self, from: Key, to: Key) -> Result<Batch, MessageError> {
+        if from == to {
+            return Err(MessageError::SameKeyframe { key: from });
+        }
+        let mut factor = factor(
+            "between_se3",
+            vec![from, to],
+            &self.relative,
+            Noise::Information(self.information.iter().copied().collect()),
+        );
+        if self.may_be_wrong {
+            factor.outlier = Some(OutlierMark::Auto);
+        }
+        Ok(Batch {
+            factors: vec![factor],
+            ..Batch::default()
+        })
     }
 }
 
@@ -216,6 +267,54 @@ mod tests {
             k.on_loop_closure(&flat),
             Err(MessageError::Covariance { .. })
         ));
+    }
+
+    #[test]
+    fn a_closure_between_robots_finds_the_other_robots_keyframe_in_the_shared_stamps() {
+        use crate::api::robots::robot_key;
+        use crate::transport::ros2::robot_nodes::SharedKeyframes;
+        let b: Ros2Binding = serde_json::from_str(
+            r#"{"odometry_topic": "odom", "keyframe_distance": 1.0, "keyframe_tolerance": 0.05}"#,
+        )
+        .unwrap();
+        let shared = SharedKeyframes::default();
+        let mut robots = [b'a', b'b'].map(|r| Keyframer::for_robot(&b, r, shared.clone()));
+        for (i, x) in [0.0, 2.0, 4.0].into_iter().enumerate() {
+            for (r, k) in robots.iter_mut().enumerate() {
+                let mut o = Odometry {
+                    header: Header {
+                        stamp: at(10 * (i as i32 + 1) + r as i32, 0),
+                        frame_id: "odom".into(),
+                    },
+                    ..Default::default()
+                };
+                o.pose.pose.position.x = x;
+                let batch = k.on_odometry(&o).unwrap().unwrap();
+                // A robot's first keyframe is not fixed: the session anchors its component.
+                assert!(!batch.variables[0].fixed && batch.factors.len() == (i > 0) as usize);
+            }
+        }
+        // a's keyframe at 20 s to b's at 31 s, taken by b's node.
+        let batch = robots[1]
+            .on_robot_loop_closure(b'a', &closure(at(20, 0), at(31, 0)))
+            .unwrap();
+        assert_eq!(
+            batch.factors[0].keys,
+            [robot_key('a', 1), robot_key('b', 2)]
+        );
+        assert!(matches!(
+            robots[1].on_robot_loop_closure(b'a', &closure(at(25, 0), at(31, 0))),
+            Err(MessageError::NoKeyframeNear {
+                field: "from_stamp",
+                ..
+            })
+        ));
+        assert_eq!(
+            robots[1]
+                .on_robot_loop_closure(b'c', &closure(at(20, 0), at(31, 0)))
+                .err(),
+            Some(MessageError::NoKeyframeYet)
+        );
     }
 
     #[test]

@@ -23,9 +23,10 @@ use super::bounds::{self, BadValue, Stamps, Stream};
 use super::cdr_codec;
 use super::keyframes::{Keyframer, MessageError};
 use super::messages::{
-    Imu, LandmarkSighting, LoopClosure, Odometry, PoseWithCovarianceStamped, IMU,
-    LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED,
+    Imu, LandmarkSighting, LoopClosure, Odometry, PoseWithCovarianceStamped, RobotLoopClosure, IMU,
+    LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED, ROBOT_LOOP_CLOSURE,
 };
+use super::robot_nodes::RobotNode;
 use super::tf::TfBroadcaster;
 use super::window_feed::{Feed, WindowFeed};
 use crate::api::wire::Batch;
@@ -66,6 +67,7 @@ pub(super) enum Topic {
     Imu,
     LoopClosure,
     Landmark,
+    RobotLoopClosure,
 }
 
 /// A decoded message (its values still to check: [`Message::checked_stamp`]).
@@ -76,6 +78,7 @@ pub(super) enum Message {
     Imu(Imu),
     LoopClosure(LoopClosure),
     Landmark(LandmarkSighting),
+    RobotLoopClosure(RobotLoopClosure),
 }
 
 impl Topic {
@@ -86,6 +89,7 @@ impl Topic {
             Topic::Imu => "ros2.imu_topic",
             Topic::LoopClosure => "ros2.loop_closure_topic",
             Topic::Landmark => "ros2.landmark_topic",
+            Topic::RobotLoopClosure => "ros2.robot_loop_closure_topic",
         }
     }
 
@@ -96,7 +100,7 @@ impl Topic {
             Topic::Odometry => Some(Stream::Odometry),
             Topic::Prior => Some(Stream::Prior),
             Topic::Imu => Some(Stream::Imu),
-            Topic::LoopClosure | Topic::Landmark => None,
+            Topic::LoopClosure | Topic::Landmark | Topic::RobotLoopClosure => None,
         }
     }
 
@@ -116,6 +120,9 @@ impl Topic {
             Topic::Landmark => {
                 Message::Landmark(decode_from(payload, len, LANDMARK_SIGHTING.name)?)
             }
+            Topic::RobotLoopClosure => {
+                Message::RobotLoopClosure(decode_from(payload, len, ROBOT_LOOP_CLOSURE.name)?)
+            }
         })
     }
 }
@@ -129,6 +136,8 @@ impl Message {
         match self {
             Message::LoopClosure(m) => Some(m.from_stamp.seconds().max(m.to_stamp.seconds())),
             Message::Landmark(m) => Some(m.header.stamp.seconds()),
+            // The other robot's keyframe is older, or made by its own node.
+            Message::RobotLoopClosure(m) => Some(m.to_stamp.seconds()),
             _ => None,
         }
     }
@@ -141,6 +150,7 @@ impl Message {
             Message::Imu(m) => bounds::imu(m),
             Message::LoopClosure(m) => bounds::loop_closure(m),
             Message::Landmark(m) => bounds::landmark(m),
+            Message::RobotLoopClosure(m) => bounds::loop_closure(&m.closure()),
         }
     }
 }
@@ -155,6 +165,9 @@ pub(super) struct Inputs {
     pub imu: Option<Samples>,
     pub loop_closures: Option<Samples>,
     pub landmarks: Option<Samples>,
+    pub robot_loop_closures: Option<Samples>,
+    /// A robot's node: its robot, and how closures between robots find the other one.
+    pub robot: Option<RobotNode>,
     /// Told of every odometry message used and every keyframe made (`map → odom` on `/tf`).
     pub tf: Option<Arc<TfBroadcaster>>,
     /// Messages refused so far (reported with each refusal).
@@ -178,6 +191,33 @@ fn check_attachment(sample: &Sample) -> Result<(), AttachmentError> {
     }
 }
 
+/// The robot a closure between robots starts at, when `node` takes it (it ends at the node's
+/// robot); `None` when it is another node's. A closure that names no robot of the binding is
+/// refused by the node it ends at, or by the first node when it ends at no robot.
+fn robot_closure_from(
+    node: Option<&RobotNode>,
+    m: &RobotLoopClosure,
+) -> Result<Option<u8>, MessageError> {
+    let Some(node) = node else {
+        return Ok(None);
+    };
+    let unknown = |field, name: &str| MessageError::UnknownRobot {
+        field,
+        name: name.to_string(),
+    };
+    match (
+        node.robot_named(&m.from_robot),
+        node.robot_named(&m.to_robot),
+    ) {
+        (from, Some(to)) if to == node.robot => from
+            .map(Some)
+            .ok_or_else(|| unknown("from_robot", &m.from_robot)),
+        (_, Some(_)) => Ok(None),
+        (_, None) if node.first => Err(unknown("to_robot", &m.to_robot)),
+        (_, None) => Ok(None),
+    }
+}
+
 /// The next sample of an optional subscription (never, without one).
 async fn next(samples: &Option<Samples>) -> Result<Sample, zenoh::Error> {
     match samples {
@@ -196,6 +236,7 @@ impl Inputs {
                 s = next(&self.imu) => (s, Topic::Imu),
                 s = next(&self.loop_closures) => (s, Topic::LoopClosure),
                 s = next(&self.landmarks) => (s, Topic::Landmark),
+                s = next(&self.robot_loop_closures) => (s, Topic::RobotLoopClosure),
             };
             let Ok(sample) = sample else { return };
             match self.use_sample(topic, &sample).await {
@@ -357,10 +398,28 @@ impl Inputs {
                     Err(e) => return self.held_or(Topic::Landmark, Message::Landmark(sighting), e),
                 }
             }
+            (Message::RobotLoopClosure(m), Feeder::Graph(keyframer)) => {
+                let Some(from) = robot_closure_from(self.robot.as_ref(), &m)? else {
+                    return Ok(Vec::new());
+                };
+                match keyframer.on_robot_loop_closure(from, &m.closure()) {
+                    Ok(batch) => graph(Some(batch)),
+                    Err(e) => {
+                        return self.held_or(
+                            Topic::RobotLoopClosure,
+                            Message::RobotLoopClosure(m),
+                            e,
+                        )
+                    }
+                }
+            }
             // A pose graph's binding subscribes to no IMU, a window's to no closures or
-            // landmarks (`Ros2Binding::check_kind`).
+            // landmarks (`Ros2Binding::check_kind`), robots' nodes feed pose graphs only.
             (Message::Imu(_), Feeder::Graph(_))
-            | (Message::LoopClosure(_) | Message::Landmark(_), Feeder::Window(_)) => Vec::new(),
+            | (
+                Message::LoopClosure(_) | Message::Landmark(_) | Message::RobotLoopClosure(_),
+                Feeder::Window(_),
+            ) => Vec::new(),
         })
     }
 

@@ -18,6 +18,8 @@ use nalgebra::{Isometry3, Matrix6, Quaternion as NaQuaternion, Translation3, Uni
 
 use super::bounds::{self, BadValue};
 use super::messages::{Covariance, Odometry, Pose, PoseWithCovarianceStamped};
+use super::robot_nodes::SharedKeyframes;
+use crate::api::robots::robot_key;
 use crate::api::ros2::Ros2Binding;
 use crate::api::wire::{Batch, FactorSpec, VariableSpec};
 use crate::variables::Key;
@@ -48,6 +50,8 @@ pub enum MessageError {
     TooManyAhead { held: usize },
     #[error("both stamps are nearest keyframe {key}: a loop closure joins two keyframes")]
     SameKeyframe { key: Key },
+    #[error("{field} `{name}` is no robot of this binding (ros2.robots: a namespace or an id)")]
+    UnknownRobot { field: &'static str, name: String },
     #[error("{held} IMU samples are held waiting for odometry to make a keyframe: no more")]
     TooManyHeld { held: usize },
 }
@@ -73,6 +77,9 @@ pub struct Keyframer {
     pub(super) tolerance: f64,
     /// The landmarks created so far (`closures`).
     pub(super) landmarks: HashSet<Key>,
+    /// A robot's node: its robot (keys `robot_key(robot, i)`, the first keyframe free: the
+    /// session anchors each robot's component itself) and the stamps every node shares.
+    pub(super) robot: Option<(u8, SharedKeyframes)>,
 }
 
 impl Keyframer {
@@ -86,6 +93,24 @@ impl Keyframer {
             by_stamp: BTreeMap::new(),
             tolerance: binding.keyframe_tolerance,
             landmarks: HashSet::new(),
+            robot: None,
+        }
+    }
+
+    /// Robot `robot`'s keyframer in a node per robot: its keys from `robot_key(robot, 0)`, its
+    /// keyframes' stamps shared with the other nodes (`keyframes`).
+    pub fn for_robot(binding: &Ros2Binding, robot: u8, keyframes: SharedKeyframes) -> Self {
+        Self {
+            next_key: robot_key(robot as char, 0),
+            robot: Some((robot, keyframes)),
+            ..Self::new(binding)
+        }
+    }
+
+    fn remember(&mut self, stamp_ns: i64, key: Key) {
+        self.by_stamp.insert(stamp_ns, key);
+        if let Some((robot, shared)) = &self.robot {
+            shared.insert(*robot, stamp_ns, key);
         }
     }
 
@@ -99,7 +124,7 @@ impl Keyframer {
         self.next_key = max_key + 1;
         self.expects_priors = true;
         for (key, stamp) in keyframes {
-            self.by_stamp.insert(stamp_ns(stamp), key);
+            self.remember(stamp_ns(stamp), key);
         }
     }
 
@@ -135,7 +160,7 @@ impl Keyframer {
             odometry_pose: pose,
         });
         self.next_key += 1;
-        self.by_stamp.insert(stamp_ns(stamp), key);
+        self.remember(stamp_ns(stamp), key);
         Ok(Some(batch))
     }
 
@@ -147,15 +172,17 @@ impl Keyframer {
     fn first_keyframe(&self, key: Key, pose: &Isometry3<f64>, stamp: f64) -> Batch {
         let mut first = variable(key, Some(wire_pose(pose)), stamp);
         let mut factors = Vec::new();
-        match self.expects_priors {
-            true => factors.push(factor(
+        match (self.expects_priors, self.robot.is_some()) {
+            (true, _) => factors.push(factor(
                 "prior_se3",
                 vec![key],
                 pose,
                 Noise::Sigmas(ANCHOR_SIGMAS),
             )),
+            // A robot's component is anchored by the session (its gauge) and moved by merges.
+            (false, true) => {}
             // The gauge: with odometry alone the first pose is where odometry says.
-            false => first.fixed = true,
+            (false, false) => first.fixed = true,
         }
         Batch {
             variables: vec![first],

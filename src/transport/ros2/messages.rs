@@ -76,6 +76,14 @@ pub static LOOP_CLOSURE: LazyLock<RosType> = LazyLock::new(|| {
     )
 });
 
+/// `factord_msgs/msg/RobotLoopClosure` (`clients/ros2/factord_msgs`).
+pub static ROBOT_LOOP_CLOSURE: LazyLock<RosType> = LazyLock::new(|| {
+    ours(
+        "factord_msgs/msg/RobotLoopClosure",
+        "factord_msgs::msg::dds_::RobotLoopClosure_",
+    )
+});
+
 /// `factord_msgs/msg/LandmarkSighting` (`clients/ros2/factord_msgs`).
 pub static LANDMARK_SIGHTING: LazyLock<RosType> = LazyLock::new(|| {
     ours(
@@ -369,6 +377,34 @@ pub struct LoopClosure {
     pub relative_pose: Pose,
     pub covariance: Covariance,
     pub may_be_wrong: bool,
+}
+
+/// `factord_msgs/RobotLoopClosure`: an inter-robot closure, the robots named by their namespace
+/// or id; as a [`LoopClosure`] once they are known.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RobotLoopClosure {
+    pub header: Header,
+    pub from_robot: String,
+    pub from_stamp: Time,
+    pub to_robot: String,
+    pub to_stamp: Time,
+    pub relative_pose: Pose,
+    pub covariance: Covariance,
+    pub may_be_wrong: bool,
+}
+
+impl RobotLoopClosure {
+    /// The closure between the two robots' keyframes, without their names.
+    pub fn closure(&self) -> LoopClosure {
+        LoopClosure {
+            header: self.header.clone(),
+            from_stamp: self.from_stamp,
+            to_stamp: self.to_stamp,
+            relative_pose: self.relative_pose,
+            covariance: self.covariance,
+            may_be_wrong: self.may_be_wrong,
+        }
+    }
 }
 
 /// `factord_msgs/LandmarkSighting`: a landmark's position in the body frame at `header.stamp`.

@@ -36,6 +36,7 @@ mod markers;
 mod messages;
 mod names;
 mod outputs;
+mod robot_nodes;
 mod robot_tf;
 mod services;
 mod tf;
@@ -55,10 +56,11 @@ use inputs::Feeder;
 use keyframes::Keyframer;
 use messages::{
     RosType, IMU, LANDMARK_SIGHTING, LOOP_CLOSURE, MARKER_ARRAY, ODOMETRY, PATH,
-    POSE_WITH_COVARIANCE_STAMPED, TF_MESSAGE,
+    POSE_WITH_COVARIANCE_STAMPED, ROBOT_LOOP_CLOSURE, TF_MESSAGE,
 };
 use names::{EndpointKind, NodeName, Qos};
 use outputs::RosPublisher;
+use robot_nodes::RobotNode;
 use tf::TfBroadcaster;
 use window_feed::WindowFeed;
 
@@ -79,6 +81,7 @@ pub struct BindError {
 
 /// What a binding runs with: the zenoh adapter's session, the service and who its commands
 /// run as, and the largest payload taken (`max_body_bytes`, as for the adapter's own keys).
+#[derive(Clone)]
 pub struct Context {
     pub zenoh: zenoh::Session,
     pub service: Arc<Service>,
@@ -86,16 +89,36 @@ pub struct Context {
     pub max_payload: usize,
 }
 
-/// Starts `session`'s binding when it has one. It runs while the session lives here: it holds
-/// only the session's event stream, which ends when the session is deleted or moves to
-/// another fleet instance (whose adoption binds it there).
+/// Starts `session`'s binding when it has one: one node, or one per robot (`robot_nodes`). It
+/// runs while the session lives here: it holds only the session's event stream, which ends
+/// when the session is deleted or moves to another fleet instance (whose adoption binds it
+/// there).
 pub fn bind(context: Context, session: &Arc<Session>) {
     let Some(binding) = session.ros2_binding().cloned() else {
         return;
     };
+    let nodes = robot_nodes::nodes(&binding);
+    if nodes.is_empty() {
+        spawn_node(context, session, binding, None);
+        return;
+    }
+    for node in nodes {
+        let node_binding = robot_nodes::node_binding(&binding, &node);
+        let robot = Some((node_binding, node));
+        spawn_node(context.clone(), session, binding.clone(), robot);
+    }
+}
+
+/// `robot`: a robot's node, its binding (topics in its namespace) and its robot.
+fn spawn_node(
+    context: Context,
+    session: &Arc<Session>,
+    binding: Ros2Binding,
+    robot: Option<(Ros2Binding, RobotNode)>,
+) {
     let (name, events) = (session.name.clone(), session.stream());
     tokio::spawn(async move {
-        if let Err(e) = run(context, (name, events), binding).await {
+        if let Err(e) = run(context, (name, events), binding, robot).await {
             tracing::error!("{e}");
         }
     });
@@ -104,8 +127,13 @@ pub fn bind(context: Context, session: &Arc<Session>) {
 async fn run(
     context: Context,
     (session, events): (String, EventStream),
-    binding: Ros2Binding,
+    session_binding: Ros2Binding,
+    robot: Option<(Ros2Binding, RobotNode)>,
 ) -> Result<(), BindError> {
+    let (binding, robot) = match robot {
+        Some((binding, node)) => (binding, Some(node)),
+        None => (session_binding.clone(), None),
+    };
     let Context {
         zenoh,
         service,
@@ -120,6 +148,7 @@ async fn run(
         domain_id: binding.domain_id,
         zid: zenoh.zid().to_string(),
         node_id: next_id(),
+        namespace: robot.as_ref().map_or("/".into(), |r| r.namespace.clone()),
         name: binding.node_name(&session),
     };
     let mut graph = RosGraph {
@@ -128,22 +157,27 @@ async fn run(
         domain_id: binding.domain_id,
         tokens: Vec::new(),
     };
-    let [odometry, priors, imu, loop_closures, landmarks] =
+    let [odometry, priors, imu, loop_closures, landmarks, robot_loop_closures] =
         graph.subscriptions(&binding).await.map_err(failed)?;
     let odometry = odometry.expect("odometry is always subscribed");
     let [path, pose, tf, markers] = graph.publishers(&binding).await.map_err(failed)?;
     let tf = tf.map(|publisher| {
-        Arc::new(TfBroadcaster::new(
+        let tf = TfBroadcaster::new(
             publisher,
             binding.map_frame.clone(),
             binding.transform_tolerance,
-        ))
+        );
+        Arc::new(match &robot {
+            Some(node) => tf.with_odom_frame(binding.robot_odom_frame_of(node.robot)),
+            None => tf,
+        })
     });
     let server = services::Server {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
         session: session.clone(),
-        binding: binding.clone(),
+        // A reset creates the session again with its whole binding, every robot's node.
+        binding: session_binding,
     };
     let servers = graph.services(&binding, server).await.map_err(failed)?;
     // The node joins the ROS graph last: zenoh delivers a session's declarations in order, so a
@@ -156,7 +190,8 @@ async fn run(
         node.name,
         binding.domain_id
     );
-    let (feeder, stamps) = resumed_feeder(&service, &caller, &session, &binding).await;
+    let (feeder, stamps) =
+        resumed_feeder(&service, &caller, &session, &binding, robot.as_ref()).await;
     let inputs = inputs::Inputs {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
@@ -167,6 +202,8 @@ async fn run(
         imu,
         loop_closures,
         landmarks,
+        robot_loop_closures,
+        robot: robot.clone(),
         tf: tf.clone(),
         refused: Arc::default(),
         max_payload,
@@ -175,7 +212,12 @@ async fn run(
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {
-        robot_frames: robot_frames(&service, &session, &binding, tf.is_some()),
+        robot_frames: match robot {
+            // A robot's node publishes its own robot's `map → odom` (its `tf`).
+            Some(_) => None,
+            None => robot_frames(&service, &session, &binding, tf.is_some()),
+        },
+        robot: robot.map(|node| (node.robot, binding.robot_odom_frame_of(node.robot))),
         service,
         caller,
         session,
@@ -244,20 +286,24 @@ impl RosGraph<'_> {
         Ok(())
     }
 
-    /// Odometry, priors, IMU, loop closures and landmark sightings: odometry always, the others
-    /// when the binding names their topics.
+    /// Odometry, priors, IMU, loop closures, landmark sightings and closures between robots:
+    /// odometry always, the others when the binding names their topics.
     async fn subscriptions(
         &mut self,
         binding: &Ros2Binding,
-    ) -> zenoh::Result<[Option<Subscription>; 5]> {
+    ) -> zenoh::Result<[Option<Subscription>; 6]> {
         let wanted = [
             (Some(&binding.odometry_topic), &ODOMETRY),
             (binding.prior_topic.as_ref(), &POSE_WITH_COVARIANCE_STAMPED),
             (binding.imu_topic.as_ref(), &IMU),
             (binding.loop_closure_topic.as_ref(), &*LOOP_CLOSURE),
             (binding.landmark_topic.as_ref(), &*LANDMARK_SIGHTING),
+            (
+                binding.robot_loop_closure_topic.as_ref(),
+                &*ROBOT_LOOP_CLOSURE,
+            ),
         ];
-        let mut subscriptions: [Option<Subscription>; 5] = Default::default();
+        let mut subscriptions: [Option<Subscription>; 6] = Default::default();
         for (slot, (topic, ros_type)) in subscriptions.iter_mut().zip(wanted) {
             let Some(topic) = topic else { continue };
             let (token, key) =
@@ -334,13 +380,20 @@ async fn resumed_feeder(
     caller: &Arc<Caller>,
     session: &str,
     binding: &Ros2Binding,
+    robot: Option<&RobotNode>,
 ) -> (Feeder, Stamps) {
-    let mut feeder = match binding.imu_topic {
-        Some(_) => Feeder::Window(Box::new(WindowFeed::new(binding))),
-        None => Feeder::Graph(Keyframer::new(binding)),
+    let mut feeder = match (&binding.imu_topic, robot) {
+        (Some(_), _) => Feeder::Window(Box::new(WindowFeed::new(binding))),
+        (None, Some(node)) => Feeder::Graph(Keyframer::for_robot(
+            binding,
+            node.robot,
+            node.keyframes.clone(),
+        )),
+        (None, None) => Feeder::Graph(Keyframer::new(binding)),
     };
     let mut stamps = Stamps::default();
-    if let Some(existing) = existing_keyframes(service, caller, session).await {
+    let robot = robot.map(|node| node.robot);
+    if let Some(existing) = existing_keyframes(service, caller, session, robot).await {
         let newest = existing.keyframes.iter().map(|&(_, t)| t).reduce(f64::max);
         match &mut feeder {
             Feeder::Window(feed) => feed.resume_after(existing.max_key),
@@ -356,7 +409,8 @@ async fn resumed_feeder(
     (feeder, stamps)
 }
 
-/// What a session that already has variables (recovered after a restart) holds.
+/// What a session that already has variables (recovered after a restart) holds, of one robot's
+/// keyframes for a robot's node.
 struct Existing {
     /// The highest keyframe key (landmark keys, `('l' << 56) | id`, apart).
     max_key: u64,
@@ -365,7 +419,12 @@ struct Existing {
     landmarks: Vec<u64>,
 }
 
-async fn existing_keyframes(service: &Service, caller: &Caller, session: &str) -> Option<Existing> {
+async fn existing_keyframes(
+    service: &Service,
+    caller: &Caller,
+    session: &str,
+    robot: Option<u8>,
+) -> Option<Existing> {
     let query = crate::api::wire::EstimateQuery::default();
     let command = crate::service::Command::get_estimate(session.into(), query);
     match service
@@ -373,10 +432,13 @@ async fn existing_keyframes(service: &Service, caller: &Caller, session: &str) -
         .await
     {
         Ok(crate::service::Reply::Estimate(estimate)) => {
-            let (landmarks, keyframes): (Vec<_>, Vec<_>) = estimate
+            let (landmarks, mut keyframes): (Vec<_>, Vec<_>) = estimate
                 .variables
                 .iter()
                 .partition(|v| closures::is_landmark(v.key));
+            if let Some(robot) = robot {
+                keyframes.retain(|v| v.key >> 56 == u64::from(robot));
+            }
             Some(Existing {
                 max_key: keyframes.iter().map(|v| v.key).max()?,
                 keyframes: keyframes

@@ -63,13 +63,15 @@ impl EndpointKind {
     }
 }
 
-/// The node factord appears as: enclave and namespace `/`, its id within our zenoh session.
+/// The node factord appears as: enclave `/`, its namespace (`/`, or a robot's: `/husky1`), its
+/// id within our zenoh session.
 #[derive(Clone, Debug)]
 pub struct NodeName {
     pub domain_id: u32,
     /// Our zenoh session's id, as zenoh prints it (lowercase hex).
     pub zid: String,
     pub node_id: u64,
+    pub namespace: String,
     pub name: String,
 }
 
@@ -102,7 +104,7 @@ impl NodeName {
             self.zid,
             self.node_id,
             mangle("/"),
-            mangle("/"),
+            mangle(&self.namespace),
             mangle(&self.name)
         )
     }
@@ -151,6 +153,7 @@ mod tests {
             domain_id: 7,
             zid: "a1b2".into(),
             node_id: 3,
+            namespace: "/".into(),
             name: "factord_s1".into(),
         }
     }

@@ -37,8 +37,9 @@ use super::messages::{
 use super::names::Qos;
 use super::robot_tf::RobotFrames;
 use super::tf::TfBroadcaster;
+use crate::api::robots::RobotFrame;
 use crate::api::wire::{EstimateQuery, SessionEvent, VariableValue};
-use crate::api::{GetGraph, GetMarginals};
+use crate::api::{GetGraph, GetMarginals, ListRobots};
 use crate::service::{Caller, Command, Recording, Reply, Service};
 use crate::session::EventStream;
 
@@ -117,6 +118,9 @@ pub(super) struct Outputs {
     /// When markers were last published, and the stamp of a solve not drawn yet.
     pub markers_sent: Option<Instant>,
     pub markers_due: Option<Time>,
+    /// A robot's node (`robot_nodes`): the robot whose poses alone it publishes, and the frame
+    /// they are in until the robot is merged into the map.
+    pub robot: Option<(u8, String)>,
 }
 
 impl Outputs {
@@ -145,9 +149,11 @@ impl Outputs {
         }
     }
 
-    /// A merge moves robots' frames: their `/tf` is published again.
+    /// A merge moves robots' frames: their `/tf` (and a robot's node's path, now in the map)
+    /// is published again.
     fn moves_robots(&self, event: &SessionEvent) -> bool {
-        self.robot_frames.is_some() && matches!(event, SessionEvent::Merge { .. })
+        (self.robot_frames.is_some() || self.robot.is_some())
+            && matches!(event, SessionEvent::Merge { .. })
     }
 
     /// When the markers of a solve not drawn yet are due.
@@ -161,7 +167,8 @@ impl Outputs {
 
     async fn publish(&mut self) {
         let name = self.session.clone();
-        let estimate = Command::get_estimate(name.clone(), EstimateQuery::default());
+        let (query, frame_id, in_map) = self.view().await;
+        let estimate = Command::get_estimate(name.clone(), query);
         let Ok(Reply::Estimate(estimate)) = self
             .service
             .execute(&self.caller, estimate, Recording::History)
@@ -172,13 +179,16 @@ impl Outputs {
         let mut poses: Vec<PoseStamped> = Vec::with_capacity(estimate.variables.len());
         let mut newest_key = None;
         for v in &estimate.variables {
-            if let Some(pose) = self.pose_stamped(v) {
+            if let Some(pose) = pose_stamped(v, &frame_id) {
                 poses.push(pose);
                 newest_key = Some(v.key);
             }
         }
         if let Some(tf) = &self.tf {
-            tf.on_solve(&estimate.variables).await;
+            // A robot not merged yet has no place in the map: no `map → odom` for it.
+            if in_map {
+                tf.on_solve(&estimate.variables).await;
+            }
             if let Some(robots) = &mut self.robot_frames {
                 let context = (&*self.service, &*self.caller, name.as_str());
                 robots.publish(tf, context, &estimate.variables).await;
@@ -191,7 +201,7 @@ impl Outputs {
             let message = Path {
                 header: Header {
                     stamp: newest.as_ref().map(|p| p.header.stamp).unwrap_or_default(),
-                    frame_id: self.map_frame.clone(),
+                    frame_id,
                 },
                 poses,
             };
@@ -245,18 +255,52 @@ impl Outputs {
         publisher.put(cdr_codec::encode(&message)).await;
     }
 
-    /// An `se3` estimate as a stamped pose (others, and values of the wrong length, skipped).
-    fn pose_stamped(&self, v: &VariableValue) -> Option<PoseStamped> {
-        Some(PoseStamped {
-            header: Header {
-                stamp: v.stamp.map(Time::from_seconds).unwrap_or_default(),
-                frame_id: self.map_frame.clone(),
-            },
-            // Renormalised on the way (the wire's shortest round-trip numbers are unit to
-            // ~1e-16 already; this keeps ROS consumers that check norms strictly happy).
-            pose: Pose::from(&se3_estimate(v)?),
-        })
+    /// What a publication reads, the frame it is in, and whether that is the map: the
+    /// session's estimate; for a robot's node its robot's poses, in the map once the robot is
+    /// merged into it, in the robot's own odometry frame until then.
+    async fn view(&self) -> (EstimateQuery, String, bool) {
+        let Some((robot, odom_frame)) = &self.robot else {
+            return (EstimateQuery::default(), self.map_frame.clone(), true);
+        };
+        let command = Command::ListRobots(ListRobots {
+            session: self.session.clone(),
+        });
+        let in_map = match self
+            .service
+            .execute(&self.caller, command, Recording::History)
+            .await
+        {
+            Ok(Reply::Robots(report)) => report
+                .robots
+                .iter()
+                .any(|r| r.in_map && r.robot.as_bytes() == [*robot]),
+            _ => false,
+        };
+        let (frame, frame_id) = match in_map {
+            true => (RobotFrame::Map, self.map_frame.clone()),
+            false => (RobotFrame::Odom, odom_frame.clone()),
+        };
+        let query = EstimateQuery {
+            robot: Some((*robot as char).to_string()),
+            frame: Some(frame),
+            ..EstimateQuery::default()
+        };
+        (query, frame_id, in_map)
     }
+}
+
+/// An `se3` estimate as a stamped pose in `frame_id` (others, and values of the wrong length,
+/// skipped).
+fn pose_stamped(v: &VariableValue, frame_id: &str) -> Option<PoseStamped> {
+    Some(PoseStamped {
+        header: Header {
+            stamp: v.stamp.map(Time::from_seconds).unwrap_or_default(),
+            frame_id: frame_id.to_string(),
+        },
+        // Renormalised on the way (the wire's shortest round-trip numbers are unit to ~1e-16
+        // already; this keeps ROS consumers that check norms strictly happy).
+        pose: Pose::from(&se3_estimate(v)?),
+    })
 }
 
 /// A pose graph's solve, a window's optimisation at a keyframe, or a batch the estimate

@@ -37,6 +37,8 @@ const DEFAULT_ODOM_FRAME: &str = "odom";
 pub(super) struct TfBroadcaster {
     map_frame: String,
     tolerance_ns: i64,
+    /// A robot's node names its child frame (`robot_odom_frame`) whatever odometry says.
+    odom_frame_fixed: bool,
     state: Mutex<State>,
 }
 
@@ -57,6 +59,7 @@ impl TfBroadcaster {
         Self {
             map_frame,
             tolerance_ns: (tolerance_seconds * 1e9).round() as i64,
+            odom_frame_fixed: false,
             state: Mutex::new(State {
                 publisher,
                 keyframes: BTreeMap::new(),
@@ -69,6 +72,14 @@ impl TfBroadcaster {
         }
     }
 
+    /// The correction's child frame is `odom_frame`, not odometry's `header.frame_id` (a
+    /// robot's node: its `robot_odom_frame`).
+    pub fn with_odom_frame(mut self, odom_frame: String) -> Self {
+        self.odom_frame_fixed = true;
+        self.state.get_mut().odom_frame = odom_frame;
+        self
+    }
+
     /// An odometry message was used; `keyframes`: those it made, with their odometry poses.
     pub async fn on_odometry(
         &self,
@@ -78,7 +89,7 @@ impl TfBroadcaster {
     ) {
         let mut state = self.state.lock().await;
         let stamp_ns = stamp.nanoseconds();
-        if !frame_id.is_empty() && state.odom_frame != frame_id {
+        if !self.odom_frame_fixed && !frame_id.is_empty() && state.odom_frame != frame_id {
             state.odom_frame = frame_id.to_string();
         }
         state.newest_odometry_ns = Some(

@@ -70,6 +70,10 @@ pub const FACTORD_MSGS: &[Definition<'static>] = &[
         "factord_msgs/msg/LandmarkSighting",
         include_str!("../../../clients/ros2/factord_msgs/msg/LandmarkSighting.msg"),
     ),
+    (
+        "factord_msgs/msg/RobotLoopClosure",
+        include_str!("../../../clients/ros2/factord_msgs/msg/RobotLoopClosure.msg"),
+    ),
 ];
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -453,6 +457,10 @@ mod tests {
             (
                 "factord_msgs/msg/LandmarkSighting",
                 "RIHS01_08a475e9bf882af6b2778dde375da38024c33a3a814093c79a8196ed4bb46130",
+            ),
+            (
+                "factord_msgs/msg/RobotLoopClosure",
+                "RIHS01_27ec86e854e91f7c625cd34bc65021feca41e214b19f5e93ea67c87a31bb7562",
             ),
         ];
         for (name, hash) in rosbags {
