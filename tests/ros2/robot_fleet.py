@@ -1,4 +1,5 @@
-"""Two robots over rmw_zenoh in one map, a node per robot namespace (`ros2.robots`).
+"""Two robots over rmw_zenoh in one map, a node per robot namespace (`ros2.robots`), the robots
+peers of factord or (`--router`) clients of the zenoh router factord is connected to.
 
 Robots a (`/husky1`) and b (`/husky2`) each publish odometry in their own namespace and their
 own odometry frame (b's origin is unknown to factord); a place-recognition front-end publishes
@@ -22,6 +23,7 @@ import math
 import threading
 import urllib.error
 
+import zenoh
 from rosbags.typesys import get_types_from_msg
 
 import robot_odometry as ro
@@ -77,6 +79,7 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--http", required=True)
     parser.add_argument("--zenoh", required=True)
+    parser.add_argument("--router", help="connect to this zenoh router as a client instead")
     args = parser.parse_args()
     with open("clients/ros2/factord_msgs/msg/RobotLoopClosure.msg") as f:
         STORE.register(get_types_from_msg(f.read(), CLOSURE))
@@ -100,8 +103,20 @@ def main():
                    {"session": SESSION, "kind": "pose_graph_3d", "ros2": binding,
                     "robots": {"min_closures": 3}})
     assert created["ros2"]["robots"] == binding["robots"], created
-    with zenoh_session(args.zenoh) as session:
+    with robots_session(args) as session:
         run(session, args.http)
+
+
+def robots_session(args):
+    """A peer of factord, or a client of the router factord is connected to (rmw_zenoh's
+    deployment: every node a client of the robot's router)."""
+    if args.router is None:
+        return zenoh_session(args.zenoh)
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([args.router]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
 
 
 def run(session, base):

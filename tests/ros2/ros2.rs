@@ -52,12 +52,25 @@ fn a_slam_robot_over_rmw_zenoh_closes_a_loop_and_maps_landmarks() {
 }
 
 /// Two robots in their own namespaces and odometry frames, a node each, merged into one map by
-/// closures between them (`tests/ros2/robot_fleet.py`).
+/// closures between them (`tests/ros2/robot_fleet.py`): the robots a zenoh peer of factord.
 #[test]
 fn two_robots_get_a_node_each_and_merge_into_one_map_over_rmw_zenoh() {
     let Some(python) = python() else { return };
     let server = TestServer::start(&[]);
     common::run_python_script(&python, &server, "tests/ros2/robot_fleet.py", &[]);
+}
+
+/// The same through a zenoh router, as rmw_zenoh deploys it: factord and the robots (zenoh
+/// clients, as rmw_zenoh's nodes are) connect to the router only.
+#[test]
+fn two_robots_get_a_node_each_through_a_zenoh_router() {
+    let Some(python) = python() else { return };
+    let runtime = tokio::runtime::Runtime::new().expect("a runtime");
+    let endpoint = format!("tcp/127.0.0.1:{}", common::server::free_port());
+    let _router = runtime.block_on(common::server::zenoh_session("router", "listen", &endpoint));
+    let server = TestServer::start(&["--zenoh-connect", &endpoint]);
+    let args = ["--router", endpoint.as_str()];
+    common::run_python_script(&python, &server, "tests/ros2/robot_fleet.py", &args);
 }
 
 #[test]
