@@ -140,21 +140,12 @@ def run(session, base):
     received = {"a": [], "b": [], "tf": [], "errors": []}
     lock = threading.Lock()
 
-    def on(name, msgtype):
-        def callback(sample):
-            message = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), msgtype)
-            with lock:
-                received[name].append(message)
-        return callback
-
-    def on_error(sample):
-        with lock:
-            received["errors"].append(json.loads(bytes(sample.payload.to_bytes())))
+    on, errors = ro.collector(received, lock)
     subscribers = [
         session.declare_subscriber(ro.topic_key("/husky1/factord/path", PATH), on("a", PATH)),
         session.declare_subscriber(ro.topic_key("/husky2/factord/path", PATH), on("b", PATH)),
         session.declare_subscriber(ro.topic_key("/tf", TF), on("tf", TF)),
-        session.declare_subscriber(f"factord/{SESSION}/out/errors", on_error),
+        session.declare_subscriber(f"factord/{SESSION}/out/errors", errors()),
     ]
     robots = ro.Robot(session, topics=(("/husky1/odom", ODOM), ("/husky2/odom", ODOM),
                                        ("/robot_closures", CLOSURE)))

@@ -24,8 +24,8 @@ import urllib.error
 
 import numpy as np
 
-from robot_odometry import (DOMAIN, ODOM, PATH, PWCS, STORE, Robot, dds_name, header, http,
-                            odometry, ros_graph, topic_key, wait_for, zenoh_session)
+from robot_odometry import (DOMAIN, ODOM, PATH, PWCS, STORE, Robot, collector, dds_name, header,
+                            http, odometry, ros_graph, topic_key, wait_for, zenoh_session)
 
 IMU = "sensor_msgs/msg/Imu"
 RADIUS, SPEED, G = 5.0, 1.0, 9.81
@@ -100,20 +100,11 @@ def run(session, args):
     received = {"path": [], "pose": [], "errors": []}
     lock = threading.Lock()
 
-    def keep(kind, msgtype):
-        def callback(sample):
-            message = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), msgtype)
-            with lock:
-                received[kind].append(message)
-        return callback
-
-    def on_error(sample):
-        with lock:
-            received["errors"].append(json.loads(bytes(sample.payload.to_bytes())))
+    keep, errors = collector(received, lock)
     subscribers = [
         session.declare_subscriber(topic_key("/robot2/factord/path", PATH), keep("path", PATH)),
         session.declare_subscriber(topic_key("/robot2/factord/pose", PWCS), keep("pose", PWCS)),
-        session.declare_subscriber("factord/ros_imu/out/errors", on_error)]
+        session.declare_subscriber("factord/ros_imu/out/errors", errors())]
     robot = Robot(session, (("/robot2/odom", ODOM), ("/robot2/imu", IMU)))
     time.sleep(0.5)
 

@@ -71,6 +71,25 @@ def wait_for(what, predicate, timeout=30.0):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def collector(received, lock):
+    """Subscriber callbacks that append what they hear to `received[name]` under `lock`: ROS
+    messages decoded (`messages(name, msgtype)`), or the session's errors (`errors()`, into
+    `received["errors"]`)."""
+    def messages(name, msgtype):
+        def callback(sample):
+            message = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), msgtype)
+            with lock:
+                received[name].append(message)
+        return callback
+
+    def errors():
+        def callback(sample):
+            with lock:
+                received["errors"].append(json.loads(bytes(sample.payload.to_bytes())))
+        return callback
+    return messages, errors
+
+
 class Robot:
     """A node `robot` with publishers (by default odometry and GNSS), as rmw_zenoh_cpp declares
     them."""
