@@ -167,32 +167,7 @@ impl Ros2Binding {
         if self.domain_id > 232 {
             return Err(invalid("domain_id", "ROS domain ids are 0 to 232".into()));
         }
-        let topics = [
-            ("odometry_topic", Some(&self.odometry_topic)),
-            ("imu_topic", self.imu_topic.as_ref()),
-            ("prior_topic", self.prior_topic.as_ref()),
-            ("loop_closure_topic", self.loop_closure_topic.as_ref()),
-            ("landmark_topic", self.landmark_topic.as_ref()),
-            ("path_topic", self.path_topic.as_ref()),
-            ("pose_topic", self.pose_topic.as_ref()),
-            ("tf_topic", self.tf_topic.as_ref()),
-            ("markers_topic", self.markers_topic.as_ref()),
-            ("service_namespace", self.service_namespace.as_ref()),
-            (
-                "robot_loop_closure_topic",
-                self.robot_loop_closure_topic.as_ref(),
-            ),
-        ];
-        for (field, topic) in topics {
-            if let Some(topic) = topic {
-                if !valid_ros_name(topic) {
-                    return Err(invalid(
-                        field,
-                        format!("`{topic}` is not a ROS topic name ([A-Za-z0-9_/], no `//`)"),
-                    ));
-                }
-            }
-        }
+        self.validate_topics()?;
         if let Some(node) = &self.node_name {
             if node.is_empty() || !node.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
                 return Err(invalid(
@@ -257,6 +232,40 @@ impl Ros2Binding {
                 "keyframe_tolerance",
                 format!("{} is not in 0 to 10 seconds", self.keyframe_tolerance),
             ));
+        }
+        Ok(())
+    }
+
+    /// Every topic a ROS name rmw_zenoh can carry in a key expression.
+    fn validate_topics(&self) -> Result<(), ServiceError> {
+        let invalid = |field: &str, message: String| {
+            ServiceError::bad_request("invalid_value", format!("ros2.{field}"), message)
+        };
+        let topics = [
+            ("odometry_topic", Some(&self.odometry_topic)),
+            ("imu_topic", self.imu_topic.as_ref()),
+            ("prior_topic", self.prior_topic.as_ref()),
+            ("loop_closure_topic", self.loop_closure_topic.as_ref()),
+            ("landmark_topic", self.landmark_topic.as_ref()),
+            ("path_topic", self.path_topic.as_ref()),
+            ("pose_topic", self.pose_topic.as_ref()),
+            ("tf_topic", self.tf_topic.as_ref()),
+            ("markers_topic", self.markers_topic.as_ref()),
+            ("service_namespace", self.service_namespace.as_ref()),
+            (
+                "robot_loop_closure_topic",
+                self.robot_loop_closure_topic.as_ref(),
+            ),
+        ];
+        for (field, topic) in topics {
+            if let Some(topic) = topic {
+                if !valid_ros_name(topic) {
+                    return Err(invalid(
+                        field,
+                        format!("`{topic}` is not a ROS topic name ([A-Za-z0-9_/], no `//`)"),
+                    ));
+                }
+            }
         }
         Ok(())
     }

@@ -117,8 +117,13 @@ fn spawn_node(
     robot: Option<(Ros2Binding, RobotNode)>,
 ) {
     let (name, events) = (session.name.clone(), session.stream());
+    let (node_binding, robot) = match robot {
+        Some((node_binding, node)) => (node_binding, Some(node)),
+        None => (binding.clone(), None),
+    };
     tokio::spawn(async move {
-        if let Err(e) = run(context, (name, events), binding, robot).await {
+        let bindings = (binding, node_binding);
+        if let Err(e) = run(context, (name, events), bindings, robot).await {
             tracing::error!("{e}");
         }
     });
@@ -127,13 +132,10 @@ fn spawn_node(
 async fn run(
     context: Context,
     (session, events): (String, EventStream),
-    session_binding: Ros2Binding,
-    robot: Option<(Ros2Binding, RobotNode)>,
+    // The session's binding, and this node's (its topics in the robot's namespace).
+    (session_binding, binding): (Ros2Binding, Ros2Binding),
+    robot: Option<RobotNode>,
 ) -> Result<(), BindError> {
-    let (binding, robot) = match robot {
-        Some((binding, node)) => (binding, Some(node)),
-        None => (session_binding.clone(), None),
-    };
     let Context {
         zenoh,
         service,
@@ -161,17 +163,7 @@ async fn run(
         graph.subscriptions(&binding).await.map_err(failed)?;
     let odometry = odometry.expect("odometry is always subscribed");
     let [path, pose, tf, markers] = graph.publishers(&binding).await.map_err(failed)?;
-    let tf = tf.map(|publisher| {
-        let tf = TfBroadcaster::new(
-            publisher,
-            binding.map_frame.clone(),
-            binding.transform_tolerance,
-        );
-        Arc::new(match &robot {
-            Some(node) => tf.with_odom_frame(binding.robot_odom_frame_of(node.robot)),
-            None => tf,
-        })
-    });
+    let tf = tf.map(|publisher| tf_broadcaster(publisher, &binding, robot.as_ref()));
     let server = services::Server {
         service: Arc::clone(&service),
         caller: Arc::clone(&caller),
@@ -212,11 +204,7 @@ async fn run(
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {
-        robot_frames: match robot {
-            // A robot's node publishes its own robot's `map → odom` (its `tf`).
-            Some(_) => None,
-            None => robot_frames(&service, &session, &binding, tf.is_some()),
-        },
+        robot_frames: robot_frames(&service, &session, &binding, tf.is_some(), robot.as_ref()),
         robot: robot.map(|node| (node.robot, binding.robot_odom_frame_of(node.robot))),
         service,
         caller,
@@ -240,14 +228,37 @@ async fn run(
     Ok(())
 }
 
+/// `map → odom` on `/tf`: a robot's node names its child frame by the robot (its
+/// `robot_odom_frame`), the one node of a binding without robots by what odometry says.
+fn tf_broadcaster(
+    publisher: RosPublisher,
+    binding: &Ros2Binding,
+    robot: Option<&RobotNode>,
+) -> Arc<TfBroadcaster> {
+    let tf = TfBroadcaster::new(
+        publisher,
+        binding.map_frame.clone(),
+        binding.transform_tolerance,
+    );
+    Arc::new(match robot {
+        Some(node) => tf.with_odom_frame(binding.robot_odom_frame_of(node.robot)),
+        None => tf,
+    })
+}
+
 /// Each merged robot's `map → odom` on `/tf`, for a session with robots whose binding has a
-/// `tf_topic`. A session's robots are set at its creation: they are there now or never.
+/// `tf_topic`. A session's robots are set at its creation: they are there now or never. A
+/// robot's node publishes only its own robot's, as its `tf_broadcaster`'s correction.
 fn robot_frames(
     service: &Service,
     session: &str,
     binding: &Ros2Binding,
     has_tf: bool,
+    robot: Option<&RobotNode>,
 ) -> Option<robot_tf::RobotFrames> {
+    if robot.is_some() {
+        return None;
+    }
     let has_robots = service
         .session(session)
         .is_ok_and(|s| s.robots_options().is_some());
