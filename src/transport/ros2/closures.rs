@@ -53,10 +53,10 @@ impl Keyframer {
     ) -> Result<Batch, MessageError> {
         let measurement = Measurement::of(closure)?;
         let at = closure.from_stamp;
-        let found = match &self.robot {
-            Some((_, shared)) => shared.nearest(from_robot, stamp_ns(at.seconds())),
-            None => None,
-        };
+        let found = self
+            .robot
+            .as_ref()
+            .and_then(|(_, shared)| shared.nearest(from_robot, stamp_ns(at.seconds())));
         let from = within(found, at, "from_stamp", self.tolerance)?;
         let to = self.keyframe_near(closure.to_stamp, "to_stamp")?;
         measurement.between(from, to)

@@ -99,30 +99,26 @@ pub fn bind(context: Context, session: &Arc<Session>) {
     };
     let nodes = robot_nodes::nodes(&binding);
     if nodes.is_empty() {
-        spawn_node(context, session, binding, None);
+        spawn_node(context, session, (binding.clone(), binding), None);
         return;
     }
     for node in nodes {
         let node_binding = robot_nodes::node_binding(&binding, &node);
-        let robot = Some((node_binding, node));
-        spawn_node(context.clone(), session, binding.clone(), robot);
+        let bindings = (binding.clone(), node_binding);
+        spawn_node(context.clone(), session, bindings, Some(node));
     }
 }
 
-/// `robot`: a robot's node, its binding (topics in its namespace) and its robot.
+/// One node: `bindings` are the session's and the node's (for a robot's node, its topics in
+/// the robot's namespace; the same otherwise).
 fn spawn_node(
     context: Context,
     session: &Arc<Session>,
-    binding: Ros2Binding,
-    robot: Option<(Ros2Binding, RobotNode)>,
+    bindings: (Ros2Binding, Ros2Binding),
+    robot: Option<RobotNode>,
 ) {
     let (name, events) = (session.name.clone(), session.stream());
-    let (node_binding, robot) = match robot {
-        Some((node_binding, node)) => (node_binding, Some(node)),
-        None => (binding.clone(), None),
-    };
     tokio::spawn(async move {
-        let bindings = (binding, node_binding);
         if let Err(e) = run(context, (name, events), bindings, robot).await {
             tracing::error!("{e}");
         }

@@ -56,16 +56,13 @@ pub(super) struct RobotNode {
 }
 
 impl RobotNode {
-    /// The robot a closure names (`/husky1`, `husky1/`, or `a`).
+    /// The robot a closure names (`a`, `/husky1`, or `husky1/`): as given first, so that an id
+    /// is the robot's even where another robot's namespace spells the same (`/a`).
     pub fn robot_named(&self, name: &str) -> Option<u8> {
-        let trimmed = name.trim_end_matches('/');
-        let absolute = match trimmed.starts_with('/') {
-            true => trimmed.to_string(),
-            false => format!("/{trimmed}"),
-        };
+        let namespace = format!("/{}", name.trim_matches('/'));
         self.names
-            .get(&absolute)
-            .or_else(|| self.names.get(name))
+            .get(name)
+            .or_else(|| self.names.get(&namespace))
             .copied()
     }
 }
@@ -159,5 +156,12 @@ mod tests {
         assert_eq!(node.robot_named("husky1/"), Some(b'a'));
         assert_eq!(node.robot_named("b"), Some(b'b'));
         assert_eq!(node.robot_named("/c"), None);
+        // An id is its robot's, where another robot's namespace spells the same.
+        let tricky: Ros2Binding = serde_json::from_value(serde_json::json!({
+            "odometry_topic": "odom", "robots": {"a": "/b", "b": "/a"}}))
+        .unwrap();
+        let node = &super::nodes(&tricky)[0];
+        assert_eq!(node.robot_named("a"), Some(b'a'));
+        assert_eq!(node.robot_named("/a"), Some(b'b'));
     }
 }
