@@ -17,7 +17,15 @@ another thing: a first reconstruction of the whole problem (problem-49's costs 8
 camera streamed with it lands in a map the first cameras have already moved far from). So the
 values streamed are the batch optimum (`factord ba --out`) perturbed, with a fixed seed:
 rotations by N(0, σ) rad, camera centres and points by N(0, σ · the scene's median radius), σ =
-`--noise` (1e-3), the intrinsics as they are; `--values file` streams the file's own.
+`--noise` (1e-3), focal lengths by the factor 1 + N(0, `--focal-sigma`) (1 %), k1 and k2 as they
+are; `--values file` streams the file's own.
+
+Calibration: a robot's front-end knows its camera's focal length (to `--focal-sigma`, 1 %), and
+each camera arrives with a prior on it (σ = that fraction of the streamed focal length). Without
+it the first cameras' focal lengths and depths trade against each other: on problem-49 both
+systems' first sub-problems went to focal lengths 0.6-4.7 × the optimum's, a warped map no later
+camera fits (factord ended at 8 × 10⁴ × the optimum, iSAM2 threw). The priors are removed with
+the stream's last update, so the idle estimate is the batch problem's (`--focal-sigma 0`: none).
 
 factord: one `POST /v1/sessions/<s>/batches?wait=true` per camera (variables and reprojection
 factors, σ = 1 px); latency = request sent → answer read (the answer comes once the solve that
@@ -63,6 +71,12 @@ from gtsam_sfm import REFERENCE, bal_cost  # noqa: E402
 
 SESSION = "ba_stream"
 
+# A prior on a BAL camera's focal length: a front-end's calibration (declared as a user factor).
+FOCAL_PRIOR = {"name": "focal_length_prior",
+               "variables": [{"name": "c", "kind": "snavely_camera"}],
+               "parameters": [{"name": "f", "kind": "scalar"}],
+               "residual": {"sub": [{"at": [{"intrinsics": ["c"]}, 0]}, "f"]}}
+
 
 def parse_bal(path):
     """Cameras (n×9), points (m×3) and observations (camera, point, u, v), as the file has them."""
@@ -81,7 +95,7 @@ def parse_bal(path):
     return cameras, points, obs
 
 
-def schedule(cameras, points, obs, min_angle_deg):
+def schedule(cameras, points, obs, min_angle_deg, init_angle_deg):
     """The order an incremental SfM front-end registers cameras in, and when points enter.
 
     As COLMAP's mapper does (from the geometry of the values streamed): the first two cameras
@@ -89,7 +103,8 @@ def schedule(cameras, points, obs, min_angle_deg):
     camera is the one that sees the most entered points; a point enters, with every observation
     made of it so far, once two registered cameras see it at that angle or more; its later
     observations arrive with their cameras. What never reaches the angle (far points seen along
-    the same rays) enters in one last update, so the stream ends at the whole problem. Without
+    the same rays) enters in one last update (camera None, which also removes the focal-length
+    priors), so the stream ends at the whole problem. Without
     the angle a two-view point is a depth along nearly parallel rays: iSAM2 throws
     IndeterminantLinearSystem on it, and LM moves it anywhere along them."""
     ncams = len(cameras)
@@ -101,18 +116,21 @@ def schedule(cameras, points, obs, min_angle_deg):
         by_point.setdefault(j, []).append(c)
     cos_min = np.cos(np.radians(min_angle_deg))
 
-    def wide(j, a, b):
+    def cos_angle(j, a, b):
         ra, rb = centres[a] - points[j], centres[b] - points[j]
-        return ra @ rb <= cos_min * np.linalg.norm(ra) * np.linalg.norm(rb)
+        return ra @ rb / (np.linalg.norm(ra) * np.linalg.norm(rb))
 
-    shared = {}
+    def wide(j, a, b):
+        return cos_angle(j, a, b) <= cos_min
+
+    angles = {}
     for j, cams in by_point.items():
         for x in range(len(cams)):
             for y in range(x + 1, len(cams)):
                 a, b = min(cams[x], cams[y]), max(cams[x], cams[y])
-                if wide(j, a, b):
-                    shared[(a, b)] = shared.get((a, b), 0) + 1
-    first = max(shared, key=shared.get)
+                angles.setdefault((a, b), []).append(np.degrees(np.arccos(
+                    np.clip(cos_angle(j, a, b), -1.0, 1.0))))
+    first = pick_first_pair(angles, min_angle_deg, init_angle_deg)
     registered, entered, updates = [], set(), []
 
     def register(c):
@@ -136,10 +154,25 @@ def schedule(cameras, points, obs, min_angle_deg):
         rest = [c for c in range(ncams) if c not in registered]
         register(max(rest, key=lambda c: sum(j in entered for j, _, _ in by_camera[c])))
     late = set(by_point) - entered
-    if late:
-        updates.append({"camera": None, "points": sorted(late), "observations": [
-            (c, j, u, v) for c in range(ncams) for j, u, v in by_camera[c] if j in late]})
+    updates.append({"camera": None, "points": sorted(late), "observations": [
+        (c, j, u, v) for c in range(ncams) for j, u, v in by_camera[c] if j in late]})
     return updates
+
+
+def pick_first_pair(angles, min_angle_deg, init_angle_deg):
+    """The pair sharing the most points seen at `min_angle_deg` or more, among the pairs whose
+    median such angle is `init_angle_deg` or more (COLMAP's `init_min_tri_angle`, 16°). A
+    narrower first pair leaves depth and focal length traded against each other (the bas-relief
+    ambiguity): its two-view optimum is a warped map the next cameras cannot be placed in."""
+    def wide_count(pair):
+        return sum(a >= min_angle_deg for a in angles[pair])
+
+    for limit in (init_angle_deg, init_angle_deg / 2, init_angle_deg / 4, 0.0):
+        pairs = [p for p in angles if wide_count(p) >= 20
+                 and np.median([a for a in angles[p] if a >= min_angle_deg]) >= limit]
+        if pairs:
+            return max(pairs, key=wide_count)
+    return max(angles, key=wide_count)
 
 
 def percentile(values, p):
@@ -215,6 +248,7 @@ def streamed_values(path, args, workdir):
         moved = centre + rng.normal(0.0, args.noise * radius, 3)
         cameras[i, 3:6] = -rodrigues(cameras[i, :3]) @ moved
     points += rng.normal(0.0, args.noise * radius, points.shape)
+    cameras[:, 6] *= 1.0 + rng.normal(0.0, args.focal_sigma, len(cameras))
     perturbed = os.path.join(workdir, "streamed.bal")
     write_bal(perturbed, cameras, points, obs)
     return perturbed
@@ -248,9 +282,10 @@ def run_factord(bal, updates, args):
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.05)
-        request(conn, "POST", "/v1/sessions", {"session": SESSION, "kind": "bundle_adjustment"})
+        request(conn, "POST", "/v1/sessions", {"session": SESSION, "kind": "bundle_adjustment",
+                                               "factor_types": [FOCAL_PRIOR]})
         ncams = len(cameras)
-        ms, unsolved = [], 0
+        ms, unsolved, priors = [], 0, []
         for update in updates:
             c = update["camera"]
             variables = [] if c is None else [
@@ -260,7 +295,14 @@ def run_factord(bal, updates, args):
             factors = [{"type": "reprojection_snavely", "keys": [c, ncams + j],
                         "measurement": [u, v], "sigmas": [1.0, 1.0]}
                        for c, j, u, v in update["observations"]]
-            body = json.dumps({"variables": variables, "factors": factors})
+            batch = {"variables": variables, "factors": factors}
+            if c is None:
+                batch["remove_factors"] = priors
+            elif args.focal_sigma > 0:
+                f = float(cameras[c, 6])
+                factors.append({"type": FOCAL_PRIOR["name"], "keys": [c], "measurement": [f],
+                                "sigmas": [args.focal_sigma * f]})
+            body = json.dumps(batch)
             t = time.perf_counter()
             conn.request("POST", f"/v1/sessions/{SESSION}/batches?wait=true", body=body,
                          headers={"content-type": "application/json"})
@@ -269,7 +311,10 @@ def run_factord(bal, updates, args):
             ms.append((time.perf_counter() - t) * 1e3)
             if response.status != 200:
                 raise RuntimeError(f"batch {c}: {response.status} {answer[:300]!r}")
-            unsolved += not json.loads(answer).get("solved", False)
+            answer = json.loads(answer)
+            unsolved += not answer.get("solved", False)
+            if c is not None and args.focal_sigma > 0:
+                priors.append(answer["factor_ids"][-1])
         streamed = request(conn, "GET", f"/v1/sessions/{SESSION}")
         t = time.perf_counter()
         optimized = request(conn, "POST", f"/v1/sessions/{SESSION}/optimize?wait=true", {})
@@ -306,13 +351,21 @@ def run_isam2(updates, args):
     noise = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
     prior9 = gtsam.noiseModel.Isotropic.Sigma(9, args.prior_sigma)
     prior3 = gtsam.noiseModel.Isotropic.Sigma(3, args.prior_sigma)
-    ms, failure, point_prior = [], None, False
+    # The focal-length prior: a camera prior weighing only f (a pose or k σ of 1e4 weighs
+    # nothing against 1-pixel reprojections).
+    focal = lambda f: gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([1e4] * 6 + [args.focal_sigma * f, 1e4, 1e4]))
+    ms, failure, point_prior, priors = [], None, False, []
     estimate = None
     for update in updates:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         c = update["camera"]
+        removed = priors if c is None else []
         if c is not None:
             values.insert(C(c), data.camera(c))
+            if args.focal_sigma > 0:
+                graph.add(gtsam.PriorFactorPinholeCameraCal3Bundler(
+                    C(c), data.camera(c), focal(data.camera(c).calibration().fx())))
         if not ms and failure is None and c is not None and not update["points"]:
             # The first camera: the gauge prior (as gtsam_sfm.py, on the first one registered).
             graph.add(gtsam.PriorFactorPinholeCameraCal3Bundler(C(c), data.camera(c), prior9))
@@ -325,7 +378,9 @@ def run_isam2(updates, args):
             graph.add(gtsam.GeneralSFMFactorCal3Bundler(measured[(cc, j)], noise, C(cc), P(j)))
         t = time.perf_counter()
         try:
-            isam.update(graph, values)
+            result = isam.update(graph, values, removed)
+            if c is not None and args.focal_sigma > 0:
+                priors.append(result.getNewFactorsIndices()[0])
             estimate = isam.calculateEstimate()
         except RuntimeError as e:
             failure = {"camera": c, "error": f"{type(e).__name__}: {e}"[:300]}
@@ -355,9 +410,13 @@ def main():
     p.add_argument("--systems", default="factord,isam2")
     p.add_argument("--min-angle", type=float, default=2.0,
                    help="a point enters once two registered cameras see it at this angle (deg)")
+    p.add_argument("--init-angle", type=float, default=16.0,
+                   help="the first pair's median triangulation angle, at least (deg)")
     p.add_argument("--dogleg", action="store_true", help="iSAM2 with Powell's dogleg steps")
     p.add_argument("--values", choices=("optimum", "file"), default="optimum")
     p.add_argument("--noise", type=float, default=1e-3)
+    p.add_argument("--focal-sigma", type=float, default=0.01,
+                   help="focal lengths perturbed and each camera's prior, as a fraction of f")
     p.add_argument("--seed", type=int, default=57)
     p.add_argument("--json", help="every round's reports, latencies included")
     args = p.parse_args()
@@ -368,7 +427,7 @@ def main():
         args.values_path = streamed_values(args.path, args, values_dir)
         bal = parse_bal(args.values_path)
         # iSAM2 reads the values file itself (SfmData converts BAL's conventions).
-        updates = schedule(*bal, args.min_angle)
+        updates = schedule(*bal, args.min_angle, args.init_angle)
         rounds = {"factord": [], "isam2": []}
         for _ in range(args.rounds):
             for system in args.systems.split(","):

@@ -504,7 +504,8 @@ fn add_to_problem(
     let structural = prepared.changes_more_than_it_adds();
     let adds_variables = !prepared.variables.is_empty();
     for v in prepared.variables {
-        problem.add_variable(v.key, v.value).expect("validated");
+        let at = problem.add_variable(v.key, v.value).expect("validated");
+        index.given.record(problem, at);
         if v.fixed {
             problem.set_fixed(v.key, true).expect("validated");
         }
@@ -539,6 +540,7 @@ fn add_to_problem(
     for (key, v) in &prepared.guesses {
         let idx = problem.values.index_of(*key).expect("validated");
         problem.values.set(idx, v.as_ref());
+        index.given.record(problem, idx);
     }
     robots::resync_mirror(problem, &mut st.mirror.entries, &moved);
     ProblemChange {

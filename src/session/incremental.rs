@@ -108,6 +108,8 @@ pub(crate) struct IncrementalSolver {
     polish_steps: u32,
     /// Streamed updates in a row that deferred a correction (see [`DEFER_FROM_VARIABLES`]).
     deferred_updates: u32,
+    /// A bundle adjustment's values as its client gave them (see `bundle`).
+    pub given: super::bundle::GivenValues,
 }
 
 impl IncrementalSolver {
@@ -140,11 +142,12 @@ impl IncrementalSolver {
         self.engine = None;
     }
 
-    /// What the incremental engine holds (0 without one).
+    /// What the incremental engine and the given values hold (0 without them).
     pub fn engine_bytes(&self) -> usize {
         self.engine
             .as_ref()
             .map_or(0, IncrementalEngine::memory_bytes)
+            + self.given.bytes()
     }
 
     /// After a batch solve: the engine, built at its solution with the client's fixed

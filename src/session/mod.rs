@@ -41,6 +41,7 @@
 
 mod apply;
 pub mod batch;
+mod bundle;
 mod durable;
 mod engine;
 mod events;

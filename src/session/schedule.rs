@@ -59,6 +59,7 @@ impl Session {
             return Err(self.gone());
         }
         st.schedule.phase.force();
+        st.schedule.asked = true;
         st.results.converged = false;
         // Asked for explicitly: the whole problem, not only the region the last updates reach
         // (region solves stop within their tolerance of the optimum; this one goes all the way).
@@ -138,4 +139,45 @@ impl Session {
         drop(st);
         self.release_waiters();
     }
+
+    /// Schedules a polish step (an engine update towards convergence, bounded in what it
+    /// refactors) if no batch arrives within [`POLISH_AFTER_IDLE`]: a stream's next update
+    /// never waits behind a polish, and a batch that arrives later waits for one step at most.
+    pub(super) fn polish_when_idle(self: &Arc<Self>, sequence: u64) {
+        let session = Arc::clone(self);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(POLISH_AFTER_IDLE).await;
+            let mut st = session.lock();
+            if st.mirror.sequence == sequence && st.schedule.phase.is_at_rest() {
+                st.schedule.phase.force();
+                session.schedule(&mut st);
+            }
+        });
+    }
+
+    /// Asks for a consolidation if no batch arrives within [`CONSOLIDATE_AFTER_IDLE`]: the
+    /// gate's decisions since the last one are then checked together, off the stream's path.
+    pub(super) fn consolidate_when_idle(self: &Arc<Self>, sequence: u64) {
+        let session = Arc::clone(self);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(CONSOLIDATE_AFTER_IDLE).await;
+            let mut st = session.lock();
+            if st.mirror.sequence == sequence
+                && st.schedule.phase.is_at_rest()
+                && st.outliers.consolidation_due()
+            {
+                st.outliers.requested = true;
+                st.schedule.phase.force();
+                session.schedule(&mut st);
+            }
+        });
+    }
 }
+
+/// How long a session must be idle before it polishes its estimate.
+const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(20);
+
+/// How long a session must be idle before the gate's decisions are consolidated (a batch solve
+/// with graduated non-convexity: tens of milliseconds to seconds, so not between a stream's
+/// batches).
+const CONSOLIDATE_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);

@@ -21,9 +21,6 @@ use crate::problem::{Key, Problem};
 use crate::runtime::pool::TIME_SLICE;
 use crate::solver::{self, Budget as _, SolverOptions};
 
-/// How long a session must be idle before it polishes its estimate.
-const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(20);
-
 /// What a solve takes out of the session state (the problem moves to the worker).
 struct SolveWork {
     problem: Problem,
@@ -38,6 +35,9 @@ struct SolveWork {
     gauge: Vec<Key>,
     /// A solve the client asked for, or a polish: an engine update runs to convergence.
     tight: bool,
+    /// The client asked for this solve (`optimize`): a bundle adjustment also restarts from
+    /// its given values (`bundle`).
+    asked: bool,
     /// A consolidation asked for once the session rested (not a full solve): it yields to
     /// batches that arrive meanwhile.
     yields: bool,
@@ -88,6 +88,7 @@ impl Session {
             debt: st.schedule.region_debt,
             gauge: st.model.gauge.clone(),
             tight,
+            asked: std::mem::take(&mut st.schedule.asked),
             yields: requested && !full,
             outliers,
             outcome: OutlierOutcome::default(),
@@ -238,7 +239,10 @@ impl Session {
             }
             ControlFlow::Continue(())
         };
-        let solve = std::panic::AssertUnwindSafe(|| self.solve(work, &mut on_iteration, budget));
+        let solve = std::panic::AssertUnwindSafe(|| {
+            let resolved = self.solve(work, &mut on_iteration, budget)?;
+            self.after_bundle_solve(work, resolved, &mut on_iteration, budget)
+        });
         // A panic inside the solver is a bug; report it as a failed solve and keep the session.
         let result = std::panic::catch_unwind(solve)
             .unwrap_or_else(|_| Err(solver::SolverError::Internal("the solver panicked".into())));
@@ -305,6 +309,36 @@ impl Session {
             solver::optimize_within(problem, options, on_iteration, budget)
         };
         Ok(index.adopt_whole(problem, solved?))
+    }
+
+    /// A bundle adjustment's steps after its solve (`bundle`): lost points placed again, and a
+    /// restart from the given values when the client asked for the solve.
+    fn after_bundle_solve(
+        &self,
+        work: &mut SolveWork,
+        resolved: incremental::Resolved,
+        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
+        budget: &SolveBudget,
+    ) -> Result<incremental::Resolved, solver::SolverError> {
+        let SolveWork {
+            problem,
+            index,
+            options,
+            asked,
+            debt,
+            ..
+        } = work;
+        let placed =
+            self.place_lost_points(problem, index, resolved, options, on_iteration, budget)?;
+        let resolved = if *asked {
+            self.restart_from_given(problem, index, placed, options, on_iteration, budget)?
+        } else {
+            placed
+        };
+        if resolved.moved.is_none() {
+            *debt = 0.0;
+        }
+        Ok(resolved)
     }
 
     /// Records a finished solve, refreshes the mirror from `problem` and publishes the
@@ -487,30 +521,7 @@ impl Session {
             }
         })
     }
-
-    /// Asks for a consolidation if no batch arrives within [`CONSOLIDATE_AFTER_IDLE`]: the
-    /// gate's decisions since the last one are then checked together, off the stream's path.
-    fn consolidate_when_idle(self: &Arc<Self>, sequence: u64) {
-        let session = Arc::clone(self);
-        self.runtime.spawn(async move {
-            tokio::time::sleep(CONSOLIDATE_AFTER_IDLE).await;
-            let mut st = session.lock();
-            if st.mirror.sequence == sequence
-                && st.schedule.phase.is_at_rest()
-                && st.outliers.consolidation_due()
-            {
-                st.outliers.requested = true;
-                st.schedule.phase.force();
-                session.schedule(&mut st);
-            }
-        });
-    }
 }
-
-/// How long a session must be idle before the gate's decisions are consolidated (a batch solve
-/// with graduated non-convexity: tens of milliseconds to seconds, so not between a stream's
-/// batches).
-const CONSOLIDATE_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// How a solve ran, for what it publishes.
 struct Run {
@@ -524,21 +535,6 @@ struct Run {
 }
 
 impl Session {
-    /// Schedules a polish step (an engine update towards convergence, bounded in what it
-    /// refactors) if no batch arrives within [`POLISH_AFTER_IDLE`]: a stream's next update
-    /// never waits behind a polish, and a batch that arrives later waits for one step at most.
-    fn polish_when_idle(self: &Arc<Self>, sequence: u64) {
-        let session = Arc::clone(self);
-        self.runtime.spawn(async move {
-            tokio::time::sleep(POLISH_AFTER_IDLE).await;
-            let mut st = session.lock();
-            if st.mirror.sequence == sequence && st.schedule.phase.is_at_rest() {
-                st.schedule.phase.force();
-                session.schedule(&mut st);
-            }
-        });
-    }
-
     /// A region re-solve (sessions without an engine, see `incremental`), with the gauge
     /// anchors of the last full solve held fixed.
     #[allow(clippy::too_many_arguments)]

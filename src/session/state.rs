@@ -85,6 +85,8 @@ pub(super) struct Schedule {
     pending_factors: usize,
     /// Time the current solve spent in earlier (preempted) turns.
     pub(super) carried: Duration,
+    /// The client asked for a solve (`optimize`) since the last one started.
+    pub(super) asked: bool,
 }
 
 /// What the solves so far reached. Written by solves, and by batches a solve need not see.
@@ -133,6 +135,7 @@ impl State {
                 pending: VecDeque::new(),
                 pending_factors: 0,
                 carried: Duration::ZERO,
+                asked: false,
             },
             results: SolveResults {
                 solves: 0,

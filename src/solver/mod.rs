@@ -22,6 +22,7 @@ pub mod marginals;
 mod optimizer;
 pub mod options;
 mod parts;
+pub mod retriangulate;
 pub mod schur;
 pub(crate) mod simd;
 mod stopping;

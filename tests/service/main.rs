@@ -7,6 +7,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod ba_stream;
 mod config_sessions;
 mod export;
 mod factor_type_memory;

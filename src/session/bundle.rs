@@ -1,0 +1,145 @@
+//! What a bundle adjustment session's solve does beyond a pose graph's.
+//!
+//! A bundle adjustment streamed camera by camera ends where its stream led it: each update
+//! starts from the last estimate, and a map that few cameras constrain can carry points and
+//! cameras into a minimum a batch solve from the same values never meets. Two things bring it
+//! back:
+//!
+//! * **Lost points** (after every converged solve): a point behind every camera that sees it
+//!   went through infinity, and no later update brings it back; it is triangulated again from
+//!   its cameras (`solver::retriangulate`) and the whole problem solved once more.
+//! * **A restart when asked** (`optimize`): the session keeps the values its client gave (each
+//!   variable's value and later guesses, [`GivenValues`]), and a solve the client asks for also
+//!   solves the whole problem from them, as `factord ba` would, and keeps the lower of the two.
+//!   Once idle, the estimate is then at least as good as the batch solve of what was sent.
+//!   (Pose graphs need neither: their polish reaches the batch optimum from the estimate.)
+
+use std::ops::ControlFlow;
+
+use super::incremental::{self, IncrementalSolver};
+use super::Session;
+use crate::problem::{Problem, Values};
+use crate::solver::{self, IterationReport, SolverError, SolverOptions};
+use crate::variables::Variable;
+
+/// The values a bundle adjustment's client gave: the variables' values as they arrived, and
+/// guesses since. Indexed like the problem's values; `None` where a variable came from a
+/// snapshot (its value there stands for what was given).
+#[derive(Debug, Default)]
+pub(crate) struct GivenValues {
+    values: Vec<Option<Box<dyn Variable>>>,
+    /// Something was given since the last restart.
+    changed: bool,
+    /// Bytes the given values hold (see [`GivenValues::bytes`]).
+    held: usize,
+}
+
+impl GivenValues {
+    /// Records what the client gave for variable `index` of `problem` (its current value, just
+    /// set from the batch). Only bundle adjustments keep them.
+    pub fn record(&mut self, problem: &Problem, index: usize) {
+        if problem.eliminate.is_empty() {
+            return;
+        }
+        if self.values.len() < problem.values.len() {
+            self.values.resize_with(problem.values.len(), || None);
+        }
+        let value = problem.values.variable(index).clone_box();
+        self.held += value_bytes(value.as_ref());
+        if let Some(old) = self.values[index].replace(value) {
+            self.held -= value_bytes(old.as_ref());
+        }
+        self.changed = true;
+    }
+
+    /// Bytes held (an estimate from sizes, as the problem's own accounting).
+    pub fn bytes(&self) -> usize {
+        self.values.len() * std::mem::size_of::<Option<Box<dyn Variable>>>() + self.held
+    }
+
+    /// `values` with the given ones in place.
+    fn applied_to(&self, values: &Values) -> Values {
+        let mut start = values.clone();
+        for (index, given) in self.values.iter().enumerate() {
+            if let Some(given) = given {
+                start.set(index, given.as_ref());
+            }
+        }
+        start
+    }
+}
+
+/// A boxed value's heap bytes, estimated from its tangent (a camera: a quaternion, a
+/// translation and three intrinsics; a point: three numbers).
+fn value_bytes(value: &dyn Variable) -> usize {
+    16 + 8 * value.tangent_dim()
+}
+
+impl Session {
+    /// Bundle adjustment: points a converged solve left behind every camera that sees them are
+    /// triangulated again, and the whole problem is solved once more from there. Other
+    /// problems, and solves that stopped early, pass through.
+    pub(super) fn place_lost_points(
+        &self,
+        problem: &mut Problem,
+        index: &mut IncrementalSolver,
+        resolved: incremental::Resolved,
+        options: &SolverOptions,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+        budget: &dyn solver::Budget,
+    ) -> Result<incremental::Resolved, SolverError> {
+        if problem.eliminate.is_empty() || !resolved.converged {
+            return Ok(resolved);
+        }
+        let lost = solver::retriangulate::lost_points(problem);
+        let placed = solver::retriangulate::retriangulate(problem, &lost);
+        if placed.is_empty() {
+            return Ok(resolved);
+        }
+        tracing::info!(
+            session = %self.name,
+            points = placed.len(),
+            "points lost behind their cameras triangulated again"
+        );
+        let summary = index.solve_whole(problem, options, on_iteration, budget)?;
+        Ok(index.adopt_whole(problem, summary))
+    }
+
+    /// Bundle adjustment, on a solve the client asked for with something given since the last
+    /// restart: the whole problem solved again from the given values, kept if it ends lower
+    /// than `resolved` (which it replaces). Otherwise `resolved` as it is.
+    pub(super) fn restart_from_given(
+        &self,
+        problem: &mut Problem,
+        index: &mut IncrementalSolver,
+        resolved: incremental::Resolved,
+        options: &SolverOptions,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+        budget: &dyn solver::Budget,
+    ) -> Result<incremental::Resolved, SolverError> {
+        if problem.eliminate.is_empty() || !resolved.converged || !index.given.changed {
+            return Ok(resolved);
+        }
+        index.given.changed = false;
+        let start = index.given.applied_to(&problem.values);
+        let streamed = std::mem::replace(&mut problem.values, start);
+        let restarted = solver::optimize_within(problem, options, on_iteration, budget);
+        let better =
+            matches!(&restarted, Ok(s) if s.converged && s.final_chi2 < resolved.total_chi2);
+        // A restart cut short (another session's turn, a deadline) is tried at the next ask.
+        index.given.changed = !matches!(&restarted, Ok(s) if s.converged);
+        tracing::info!(
+            session = %self.name,
+            streamed = resolved.total_chi2,
+            restarted = restarted.as_ref().map_or(f64::NAN, |s| s.final_chi2),
+            kept = if better { "restarted" } else { "streamed" },
+            "bundle adjustment restarted from the given values"
+        );
+        if !better {
+            problem.values = streamed;
+            return Ok(resolved);
+        }
+        let summary = restarted?;
+        Ok(index.adopt_whole(problem, summary))
+    }
+}
