@@ -14,13 +14,16 @@ from our .msg file). Checks, in order:
 3. a closure naming no robot of the binding is refused on the error stream, naming the field;
 4. three closures between the robots (named by namespace and by id) merge b into the map: b's
    path comes again in `map`, each keyframe where b truly was (within 1e-4 m), `/tf` has
-   `map → robot_b/odom` at b's true odometry origin, and `GET …/robots` reports the merge.
+   `map → robot_b/odom` at b's true odometry origin, and `GET …/robots` reports the merge;
+5. a closure from a keyframe a has not made yet is held by b's node (no refusal, no factor),
+   and enters the session with a's keyframe once a's odometry reaches its stamp.
 """
 
 import argparse
 import json
 import math
 import threading
+import time
 import urllib.error
 
 import zenoh
@@ -228,6 +231,27 @@ def run(session, base):
     assert off < 1e-4, (t, q, B_ODOM_ORIGIN)
     print(f"after the merge: b's {len(path_b.poses)} keyframes in map within {worst:.2e} of the "
           f"truth; map → robot_b/odom within {off:.2e} of b's odometry origin")
+
+    # 5. A closure from a keyframe a has not made yet (a's odometry lags place recognition):
+    # b's node holds it, and takes it once a's odometry makes that keyframe.
+    last = truth_a[-1]
+    ahead = (last[0] + 2.0, *compose(last[1:], (3.0, 0.0, 0.1)))
+    b_seen = truth_at[round(kept_b[len(kept_b) // 2][0], 6)]
+
+    def factors():
+        return http(base, "GET", f"/v1/sessions/{SESSION}")["num_factors"]
+    before = factors()
+    with lock:
+        errors_before = len(received["errors"])
+    robots.publish("/robot_closures", closure("a", "b", ahead, b_seen, 10.0))
+    time.sleep(1.0)  # a refusal comes within milliseconds
+    with lock:
+        refusals = [e["error"] for e in received["errors"][errors_before:]]
+    assert not refusals, f"a closure ahead of a's odometry was refused: {refusals}"
+    assert factors() == before, "the closure entered before a's keyframe"
+    robots.publish("/husky1/odom", ro.odometry(*ahead))
+    wait_for("the held closure, with a's new keyframe", lambda: factors() == before + 2 or None)
+    print("a closure ahead of a's odometry was held, then taken with a's keyframe")
     for s in subscribers:
         s.undeclare()
 

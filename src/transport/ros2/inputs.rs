@@ -7,13 +7,15 @@
 //! A message that cannot be used (larger than `max_body_bytes`, not CDR of the expected type, a
 //! value out of bounds, a stamp not after its topic's previous one, a bad covariance, a prior
 //! before any keyframe, a closure or sighting with no keyframe near its stamp — unless it is
-//! ahead of odometry: then it waits for its keyframe) is counted and reported on the session's error stream (SSE, zenoh
+//! ahead of odometry, or a closure between robots ahead of the other robot's keyframes: then it
+//! waits for its keyframe) is counted and reported on the session's error stream (SSE, zenoh
 //! `out/errors`) with code `ros2_bad_message`; nothing of it reaches the session.
 
 use std::io::Read;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
+use tokio::sync::watch;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::Sample;
@@ -21,7 +23,7 @@ use zenoh::sample::Sample;
 use super::attachment::{self, Attachment, AttachmentError};
 use super::bounds::{self, BadValue, Stamps, Stream};
 use super::cdr_codec;
-use super::keyframes::{Keyframer, MessageError};
+use super::keyframes::{stamp_ns, Keyframer, MessageError};
 use super::messages::{
     Imu, LandmarkSighting, LoopClosure, Odometry, PoseWithCovarianceStamped, RobotLoopClosure, IMU,
     LANDMARK_SIGHTING, LOOP_CLOSURE, ODOMETRY, POSE_WITH_COVARIANCE_STAMPED, ROBOT_LOOP_CLOSURE,
@@ -179,6 +181,8 @@ pub(super) struct Inputs {
     /// Closures and sightings ahead of odometry, waiting for their keyframes (see
     /// [`Inputs::hold_if_ahead`]).
     pub ahead: Vec<(Topic, Message)>,
+    /// A robot's node: moves when any node's keyframe batch is taken by the session.
+    pub keyframes_taken: Option<watch::Receiver<u64>>,
 }
 
 /// rmw_zenoh always attaches one; a sample without (a plain zenoh put) is taken, one with
@@ -218,6 +222,17 @@ fn robot_closure_from(
     }
 }
 
+/// When the next keyframe of any robot's node is taken (never, outside a node per robot).
+async fn keyframe_taken(taken: &mut Option<watch::Receiver<u64>>) {
+    let Some(taken) = taken else {
+        return std::future::pending().await;
+    };
+    // Every node holds the sender (in its shared keyframes): it closes only with the binding.
+    if taken.changed().await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
 /// The next sample of an optional subscription (never, without one).
 async fn next(samples: &Option<Samples>) -> Result<Sample, zenoh::Error> {
     match samples {
@@ -237,6 +252,11 @@ impl Inputs {
                 s = next(&self.loop_closures) => (s, Topic::LoopClosure),
                 s = next(&self.landmarks) => (s, Topic::Landmark),
                 s = next(&self.robot_loop_closures) => (s, Topic::RobotLoopClosure),
+                // Another robot's keyframe was taken: closures held for it may enter.
+                _ = keyframe_taken(&mut self.keyframes_taken), if !self.ahead.is_empty() => {
+                    self.retry_ahead().await;
+                    continue;
+                }
             };
             let Ok(sample) = sample else { return };
             match self.use_sample(topic, &sample).await {
@@ -244,6 +264,9 @@ impl Inputs {
                     let keyframed = matches!(topic, Topic::Odometry) && !commands.is_empty();
                     for command in commands {
                         self.deliver(Ok(command)).await;
+                    }
+                    if keyframed {
+                        self.announce_keyframe();
                     }
                     if keyframed && !self.ahead.is_empty() {
                         self.retry_ahead().await;
@@ -273,7 +296,7 @@ impl Inputs {
             (Some(t), Some(newest)) => t > newest,
             (Some(_), None) => true,
             (None, _) => false,
-        };
+        } || self.ahead_of_other_robot(message);
         if !(waiting && ahead) {
             return Ok(false);
         }
@@ -284,6 +307,32 @@ impl Inputs {
         }
         self.ahead.push((topic, message.clone()));
         Ok(true)
+    }
+
+    /// A closure between robots stamped, at the robot it starts from, after that robot's
+    /// newest keyframe (or before its first): its odometry may lag this robot's, and the
+    /// closure waits for the keyframe (retried when any node's keyframe is taken).
+    fn ahead_of_other_robot(&self, message: &Message) -> bool {
+        let (Message::RobotLoopClosure(m), Some(node)) = (message, &self.robot) else {
+            return false;
+        };
+        let Some(from) = node.robot_named(&m.from_robot) else {
+            return false;
+        };
+        node.keyframes
+            .newest(from)
+            .is_none_or(|newest| stamp_ns(m.from_stamp.seconds()) > newest)
+    }
+
+    /// This node's keyframe batch was taken by the session: the other nodes may now take the
+    /// closures they hold for it. (This node retries its own right after.)
+    fn announce_keyframe(&mut self) {
+        if let Some(node) = &self.robot {
+            node.keyframes.announce_taken();
+        }
+        if let Some(taken) = &mut self.keyframes_taken {
+            taken.mark_unchanged();
+        }
     }
 
     /// After a keyframe: the held closures and sightings again, in their order (each is held

@@ -197,6 +197,7 @@ async fn run(
         max_payload,
         stamps,
         ahead: Vec::new(),
+        keyframes_taken: robot.as_ref().map(|node| node.keyframes.subscribe()),
     };
     let inputs = tokio::spawn(inputs.run());
     let outputs = outputs::Outputs {

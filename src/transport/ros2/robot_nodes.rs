@@ -16,13 +16,29 @@
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 
+use tokio::sync::watch;
+
 use crate::api::robots::parse_robot_id;
 use crate::api::ros2::Ros2Binding;
 use crate::variables::Key;
 
-/// Every robot node's keyframe keys by stamp (ns), for closures between robots.
-#[derive(Clone, Default)]
-pub(super) struct SharedKeyframes(Arc<Mutex<HashMap<u8, BTreeMap<i64, Key>>>>);
+/// Every robot node's keyframe keys by stamp (ns), for closures between robots, and a counter
+/// of the keyframes the session has taken: a node holding a closure to another robot's
+/// keyframe that is not there yet tries it again when that counter moves.
+#[derive(Clone)]
+pub(super) struct SharedKeyframes {
+    by_robot: Arc<Mutex<HashMap<u8, BTreeMap<i64, Key>>>>,
+    taken: Arc<watch::Sender<u64>>,
+}
+
+impl Default for SharedKeyframes {
+    fn default() -> Self {
+        Self {
+            by_robot: Arc::default(),
+            taken: Arc::new(watch::channel(0).0),
+        }
+    }
+}
 
 impl SharedKeyframes {
     pub fn insert(&self, robot: u8, stamp_ns: i64, key: Key) {
@@ -34,9 +50,24 @@ impl SharedKeyframes {
         super::keyframes::nearest(self.lock().get(&robot)?, at)
     }
 
+    /// The stamp (ns) of robot `robot`'s newest keyframe.
+    pub fn newest(&self, robot: u8) -> Option<i64> {
+        self.lock().get(&robot)?.keys().next_back().copied()
+    }
+
+    /// A node's keyframe batch was taken by the session: closures held for it can enter now.
+    pub fn announce_taken(&self) {
+        self.taken.send_modify(|n| *n = n.wrapping_add(1));
+    }
+
+    /// Told of every [`announce_taken`](Self::announce_taken) from now on.
+    pub fn subscribe(&self) -> watch::Receiver<u64> {
+        self.taken.subscribe()
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u8, BTreeMap<i64, Key>>> {
         // A panic while inserting leaves a map of stamps, still usable.
-        self.0
+        self.by_robot
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
@@ -163,5 +194,21 @@ mod tests {
         let node = &super::nodes(&tricky)[0];
         assert_eq!(node.robot_named("a"), Some(b'a'));
         assert_eq!(node.robot_named("/a"), Some(b'b'));
+    }
+
+    #[test]
+    fn every_node_hears_of_a_keyframe_taken_and_knows_each_robots_newest() {
+        let shared = SharedKeyframes::default();
+        let (mut a, mut b) = (shared.subscribe(), shared.clone().subscribe());
+        assert_eq!(shared.newest(b'a'), None);
+        shared.insert(b'a', 20, 7);
+        shared.insert(b'a', 10, 6);
+        assert_eq!((shared.newest(b'a'), shared.newest(b'b')), (Some(20), None));
+        assert!(!a.has_changed().unwrap());
+        shared.announce_taken();
+        assert!(a.has_changed().unwrap() && b.has_changed().unwrap());
+        a.mark_unchanged();
+        assert!(!a.has_changed().unwrap() && b.has_changed().unwrap());
+        b.mark_unchanged();
     }
 }
