@@ -8,11 +8,13 @@
 //! * **Lost points** (after every converged solve): a point behind every camera that sees it
 //!   went through infinity, and no later update brings it back; it is triangulated again from
 //!   its cameras (`solver::retriangulate`) and the whole problem solved once more.
-//! * **A restart when asked** (`optimize`): the session keeps the values its client gave (each
-//!   variable's value and later guesses, [`GivenValues`]), and a solve the client asks for also
-//!   solves the whole problem from them, as `factord ba` would, and keeps the lower of the two.
-//!   Once idle, the estimate is then at least as good as the batch solve of what was sent.
-//!   (Pose graphs need neither: their polish reaches the batch optimum from the estimate.)
+//! * **A restart from the given values**: the session keeps the values its client gave (each
+//!   variable's value and later guesses, [`GivenValues`]), and a solve the client asks for
+//!   (`optimize`), or the one a stream's rest of 0.5 s brings (not under the `manual` policy),
+//!   also solves the whole problem from them, as `factord ba` would, and keeps the lower of
+//!   the two. The rest's restart gives way to the next batch. Once idle, the estimate is then
+//!   at least as good as the batch solve of what was sent. (Pose graphs need neither: their
+//!   polish reaches the batch optimum from the estimate.)
 
 use std::ops::ControlFlow;
 
@@ -55,6 +57,16 @@ impl GivenValues {
     /// Bytes held (an estimate from sizes, as the problem's own accounting).
     pub fn bytes(&self) -> usize {
         self.values.len() * std::mem::size_of::<Option<Box<dyn Variable>>>() + self.held
+    }
+
+    /// Something was given since the last restart.
+    pub fn changed(&self) -> bool {
+        self.changed
+    }
+
+    /// No restart is due until something is given again.
+    pub fn settle(&mut self) {
+        self.changed = false;
     }
 
     /// `values` with the given ones in place.
@@ -105,9 +117,9 @@ impl Session {
         Ok(index.adopt_whole(problem, summary))
     }
 
-    /// Bundle adjustment, on a solve the client asked for with something given since the last
-    /// restart: the whole problem solved again from the given values, kept if it ends lower
-    /// than `resolved` (which it replaces). Otherwise `resolved` as it is.
+    /// Bundle adjustment, with something given since the last restart: the whole problem
+    /// solved again from the given values, kept if it ends lower than `resolved` (which it
+    /// replaces). Otherwise `resolved` as it is.
     pub(super) fn restart_from_given(
         &self,
         problem: &mut Problem,
@@ -126,8 +138,10 @@ impl Session {
         let restarted = solver::optimize_within(problem, options, on_iteration, budget);
         let better =
             matches!(&restarted, Ok(s) if s.converged && s.final_chi2 < resolved.total_chi2);
-        // A restart cut short (another session's turn, a deadline) is tried at the next ask.
-        index.given.changed = !matches!(&restarted, Ok(s) if s.converged);
+        // A restart cut short (a batch arrived, another session's turn) runs again at the next
+        // rest or ask; one that ran its course, converged or not, is not repeated.
+        index.given.changed = matches!(&restarted,
+            Ok(s) if s.termination.reason == solver::TerminationReason::Interrupted);
         tracing::info!(
             session = %self.name,
             streamed = resolved.total_chi2,

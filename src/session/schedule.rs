@@ -155,6 +155,28 @@ impl Session {
         });
     }
 
+    /// Asks for a bundle adjustment's restart from its given values (`bundle`) if one is due
+    /// and no batch arrives within [`RESTART_AFTER_IDLE`]: once a stream rests, its estimate
+    /// reaches the batch solve of what was sent without the client asking. The restart gives
+    /// way to the next batch (it stops at its next checkpoint, changes nothing, and runs at the
+    /// next rest).
+    pub(super) fn restart_when_idle(self: &Arc<Self>, st: &State) {
+        if !restart_due(st) {
+            return;
+        }
+        let (session, sequence) = (Arc::clone(self), st.mirror.sequence);
+        self.runtime.spawn(async move {
+            tokio::time::sleep(RESTART_AFTER_IDLE).await;
+            let mut st = session.lock();
+            if st.mirror.sequence == sequence && st.schedule.phase.is_at_rest() && restart_due(&st)
+            {
+                st.schedule.restart_when_idle = true;
+                st.schedule.phase.force();
+                session.schedule(&mut st);
+            }
+        });
+    }
+
     /// Asks for a consolidation if no batch arrives within [`CONSOLIDATE_AFTER_IDLE`]: the
     /// gate's decisions since the last one are then checked together, off the stream's path.
     pub(super) fn consolidate_when_idle(self: &Arc<Self>, sequence: u64) {
@@ -181,3 +203,14 @@ const POLISH_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(
 /// with graduated non-convexity: tens of milliseconds to seconds, so not between a stream's
 /// batches).
 const CONSOLIDATE_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// Values were given since the last restart of a bundle adjustment whose solves are not left to
+/// its client (the `manual` policy).
+fn restart_due(st: &State) -> bool {
+    let given = st.model.index.as_ref().is_some_and(|i| i.given.changed());
+    given && !matches!(st.auto, AutoOptimize::Manual {})
+}
+
+/// How long a bundle adjustment must be idle before it restarts from its given values (a batch
+/// solve: tenths of seconds to minutes, so not between a stream's batches).
+const RESTART_AFTER_IDLE: std::time::Duration = std::time::Duration::from_millis(500);

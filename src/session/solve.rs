@@ -38,6 +38,8 @@ struct SolveWork {
     /// The client asked for this solve (`optimize`): a bundle adjustment also restarts from
     /// its given values (`bundle`).
     asked: bool,
+    /// A bundle adjustment at rest restarts from its given values, yielding to batches.
+    restart_when_idle: bool,
     /// A consolidation asked for once the session rested (not a full solve): it yields to
     /// batches that arrive meanwhile.
     yields: bool,
@@ -89,6 +91,7 @@ impl Session {
             gauge: st.model.gauge.clone(),
             tight,
             asked: std::mem::take(&mut st.schedule.asked),
+            restart_when_idle: std::mem::take(&mut st.schedule.restart_when_idle),
             yields: requested && !full,
             outliers,
             outcome: OutlierOutcome::default(),
@@ -187,6 +190,7 @@ impl Session {
         if polish {
             self.polish_when_idle(st.mirror.sequence);
         }
+        self.restart_when_idle(&st);
         st.schedule.phase.finish();
         self.solved.send_replace(st.results.solved_sequence);
         self.completed
@@ -325,13 +329,33 @@ impl Session {
             index,
             options,
             asked,
+            restart_when_idle,
+            sequence,
             debt,
             ..
         } = work;
         let placed =
             self.place_lost_points(problem, index, resolved, options, on_iteration, budget)?;
-        let resolved = if *asked {
-            self.restart_from_given(problem, index, placed, options, on_iteration, budget)?
+        // Asked for, the client waits for the restart; at rest, it gives way to the stream.
+        let yielding = YieldToBatches {
+            budget,
+            sequence: *sequence,
+        };
+        let restart_budget: &dyn solver::Budget = if *asked { budget } else { &yielding };
+        let resolved = if *asked || *restart_when_idle {
+            let restarted = self.restart_from_given(
+                problem,
+                index,
+                placed,
+                options,
+                on_iteration,
+                restart_budget,
+            );
+            if budget.timed_out() {
+                // Past `max_solve_ms`: it would be again, at every rest.
+                index.given.settle();
+            }
+            restarted?
         } else {
             placed
         };

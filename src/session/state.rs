@@ -87,6 +87,9 @@ pub(super) struct Schedule {
     pub(super) carried: Duration,
     /// The client asked for a solve (`optimize`) since the last one started.
     pub(super) asked: bool,
+    /// A bundle adjustment rested with values given since its last restart: the next solve
+    /// restarts from them, yielding to any batch (see `bundle`).
+    pub(super) restart_when_idle: bool,
 }
 
 /// What the solves so far reached. Written by solves, and by batches a solve need not see.
@@ -136,6 +139,7 @@ impl State {
                 pending_factors: 0,
                 carried: Duration::ZERO,
                 asked: false,
+                restart_when_idle: false,
             },
             results: SolveResults {
                 solves: 0,
