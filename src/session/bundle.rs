@@ -18,10 +18,12 @@
 
 use std::ops::ControlFlow;
 
-use super::incremental::{self, IncrementalSolver};
+use super::incremental;
+use super::solve::SolveWork;
+use super::solve_budget::{SolveBudget, YieldToBatches};
 use super::Session;
 use crate::problem::{Problem, Values};
-use crate::solver::{self, IterationReport, SolverError, SolverOptions};
+use crate::solver::{self, IterationReport, SolverError};
 use crate::variables::Variable;
 
 /// The values a bundle adjustment's client gave: the variables' values as they arrived, and
@@ -88,23 +90,54 @@ fn value_bytes(value: &dyn Variable) -> usize {
 }
 
 impl Session {
-    /// Bundle adjustment: points a converged solve left behind every camera that sees them are
-    /// triangulated again, and the whole problem is solved once more from there. Other
+    /// A bundle adjustment's steps after its solve: lost points placed again, and a restart
+    /// from the given values when the client asked for the solve or the session rested. Other
     /// problems, and solves that stopped early, pass through.
-    pub(super) fn place_lost_points(
+    pub(super) fn after_bundle_solve(
         &self,
-        problem: &mut Problem,
-        index: &mut IncrementalSolver,
+        work: &mut SolveWork,
         resolved: incremental::Resolved,
-        options: &SolverOptions,
+        on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
+        budget: &SolveBudget,
+    ) -> Result<incremental::Resolved, SolverError> {
+        if work.problem.eliminate.is_empty() || !resolved.converged {
+            return Ok(resolved);
+        }
+        let resolved = self.place_lost_points(work, resolved, on_iteration, budget)?;
+        let asked_or_rested = work.asked || work.restart_when_idle;
+        let resolved = if asked_or_rested && resolved.converged && work.index.given.changed {
+            // Asked for, the client waits for the restart; at rest, it gives way to the stream.
+            let yielding = YieldToBatches {
+                budget,
+                sequence: work.sequence,
+            };
+            let restart_budget: &dyn solver::Budget = if work.asked { budget } else { &yielding };
+            let restarted = self.restart_from_given(work, resolved, on_iteration, restart_budget);
+            if budget.timed_out() {
+                // Past `max_solve_ms`: it would be again, at every rest.
+                work.index.given.settle();
+            }
+            restarted?
+        } else {
+            resolved
+        };
+        if resolved.moved.is_none() {
+            work.debt = 0.0;
+        }
+        Ok(resolved)
+    }
+
+    /// Points a converged solve left behind every camera that sees them, triangulated again,
+    /// and the whole problem solved once more from there.
+    fn place_lost_points(
+        &self,
+        work: &mut SolveWork,
+        resolved: incremental::Resolved,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
         budget: &dyn solver::Budget,
     ) -> Result<incremental::Resolved, SolverError> {
-        if problem.eliminate.is_empty() || !resolved.converged {
-            return Ok(resolved);
-        }
-        let lost = solver::retriangulate::lost_points(problem);
-        let placed = solver::retriangulate::retriangulate(problem, &lost);
+        let lost = solver::retriangulate::lost_points(&work.problem);
+        let placed = solver::retriangulate::retriangulate(&mut work.problem, &lost);
         if placed.is_empty() {
             return Ok(resolved);
         }
@@ -113,26 +146,26 @@ impl Session {
             points = placed.len(),
             "points lost behind their cameras triangulated again"
         );
-        let summary = index.solve_whole(problem, options, on_iteration, budget)?;
-        Ok(index.adopt_whole(problem, summary))
+        let index = &mut work.index;
+        let summary = index.solve_whole(&mut work.problem, &work.options, on_iteration, budget)?;
+        Ok(index.adopt_whole(&mut work.problem, summary))
     }
 
-    /// Bundle adjustment, with something given since the last restart: the whole problem
-    /// solved again from the given values, kept if it ends lower than `resolved` (which it
-    /// replaces). Otherwise `resolved` as it is.
-    pub(super) fn restart_from_given(
+    /// The whole problem solved again from the given values, kept if it ends lower than
+    /// `resolved` (which it replaces); otherwise `resolved` as it is.
+    fn restart_from_given(
         &self,
-        problem: &mut Problem,
-        index: &mut IncrementalSolver,
+        work: &mut SolveWork,
         resolved: incremental::Resolved,
-        options: &SolverOptions,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
         budget: &dyn solver::Budget,
     ) -> Result<incremental::Resolved, SolverError> {
-        if problem.eliminate.is_empty() || !resolved.converged || !index.given.changed {
-            return Ok(resolved);
-        }
-        index.given.changed = false;
+        let SolveWork {
+            problem,
+            index,
+            options,
+            ..
+        } = work;
         let start = index.given.applied_to(&problem.values);
         let streamed = std::mem::replace(&mut problem.values, start);
         let restarted = solver::optimize_within(problem, options, on_iteration, budget);

@@ -21,25 +21,26 @@ use crate::problem::{Key, Problem};
 use crate::runtime::pool::TIME_SLICE;
 use crate::solver::{self, Budget as _, SolverOptions};
 
-/// What a solve takes out of the session state (the problem moves to the worker).
-struct SolveWork {
-    problem: Problem,
-    index: IncrementalSolver,
-    options: SolverOptions,
-    sequence: u64,
+/// What a solve takes out of the session state (the problem moves to the worker). `bundle`
+/// reads the problem, its options and what the solve was asked for.
+pub(super) struct SolveWork {
+    pub(super) problem: Problem,
+    pub(super) index: IncrementalSolver,
+    pub(super) options: SolverOptions,
+    pub(super) sequence: u64,
     solve_number: u64,
     seeds: Vec<usize>,
     structural: bool,
     chi2: Option<f64>,
-    debt: f64,
+    pub(super) debt: f64,
     gauge: Vec<Key>,
     /// A solve the client asked for, or a polish: an engine update runs to convergence.
     tight: bool,
     /// The client asked for this solve (`optimize`): a bundle adjustment also restarts from
     /// its given values (`bundle`).
-    asked: bool,
+    pub(super) asked: bool,
     /// A bundle adjustment at rest restarts from its given values, yielding to batches.
-    restart_when_idle: bool,
+    pub(super) restart_when_idle: bool,
     /// A consolidation asked for once the session rested (not a full solve): it yields to
     /// batches that arrive meanwhile.
     yields: bool,
@@ -313,56 +314,6 @@ impl Session {
             solver::optimize_within(problem, options, on_iteration, budget)
         };
         Ok(index.adopt_whole(problem, solved?))
-    }
-
-    /// A bundle adjustment's steps after its solve (`bundle`): lost points placed again, and a
-    /// restart from the given values when the client asked for the solve.
-    fn after_bundle_solve(
-        &self,
-        work: &mut SolveWork,
-        resolved: incremental::Resolved,
-        on_iteration: &mut dyn FnMut(&solver::IterationReport) -> ControlFlow<()>,
-        budget: &SolveBudget,
-    ) -> Result<incremental::Resolved, solver::SolverError> {
-        let SolveWork {
-            problem,
-            index,
-            options,
-            asked,
-            restart_when_idle,
-            sequence,
-            debt,
-            ..
-        } = work;
-        let placed =
-            self.place_lost_points(problem, index, resolved, options, on_iteration, budget)?;
-        // Asked for, the client waits for the restart; at rest, it gives way to the stream.
-        let yielding = YieldToBatches {
-            budget,
-            sequence: *sequence,
-        };
-        let restart_budget: &dyn solver::Budget = if *asked { budget } else { &yielding };
-        let resolved = if *asked || *restart_when_idle {
-            let restarted = self.restart_from_given(
-                problem,
-                index,
-                placed,
-                options,
-                on_iteration,
-                restart_budget,
-            );
-            if budget.timed_out() {
-                // Past `max_solve_ms`: it would be again, at every rest.
-                index.given.settle();
-            }
-            restarted?
-        } else {
-            placed
-        };
-        if resolved.moved.is_none() {
-            *debt = 0.0;
-        }
-        Ok(resolved)
     }
 
     /// Records a finished solve, refreshes the mirror from `problem` and publishes the

@@ -273,6 +273,15 @@ mod tests {
     use crate::factors::SqrtInformation;
     use crate::geometry::{Point3, SnavelyCamera};
 
+    /// Camera `camera` sees point `point` at `pixel` (σ 1 pixel).
+    fn observe(problem: &mut Problem, camera: u64, point: u64, pixel: Vector2<f64>) {
+        let factor = ReprojectionSnavely::new(camera, point, pixel);
+        let unit = SqrtInformation::identity(2);
+        problem
+            .add_factor_sqrt(Box::new(factor), unit, None, String::new())
+            .unwrap();
+    }
+
     /// Three cameras on a line looking down −z at points 5 m ahead; point 0 sits 10⁶ behind
     /// them on its rays (lost), point 1 where it belongs.
     fn scene() -> (Problem, Vec<Vector3<f64>>) {
@@ -301,16 +310,7 @@ mod tests {
                 .add_variable(10 + j as u64, Box::new(Point3(at)))
                 .unwrap();
             for (i, camera) in cameras.iter().enumerate() {
-                let observed: Vector2<f64> = camera.project(x);
-                let factor = ReprojectionSnavely::new(i as u64, 10 + j as u64, observed);
-                problem
-                    .add_factor_sqrt(
-                        Box::new(factor),
-                        SqrtInformation::identity(2),
-                        None,
-                        String::new(),
-                    )
-                    .unwrap();
+                observe(&mut problem, i as u64, 10 + j as u64, camera.project(x));
             }
         }
         (problem, truth)
@@ -340,15 +340,7 @@ mod tests {
         problem.add_variable(20, Box::new(Point3(behind))).unwrap();
         for i in 0..3u64 {
             let camera = *problem.values.get_as::<SnavelyCamera>(i).unwrap();
-            let factor = ReprojectionSnavely::new(i, 20, camera.project(&behind));
-            problem
-                .add_factor_sqrt(
-                    Box::new(factor),
-                    SqrtInformation::identity(2),
-                    None,
-                    String::new(),
-                )
-                .unwrap();
+            observe(&mut problem, i, 20, camera.project(&behind));
         }
         assert_eq!(lost_points(&problem), vec![5]);
         assert!(retriangulate(&mut problem, &[5]).is_empty());

@@ -15,8 +15,17 @@ pub fn batches(text: &str, per_batch: usize) -> (Value, Vec<Value>) {
             json!({"key": k, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
         })
         .collect();
-    let factors: Vec<Value> = bal
-        .problem
+    let factors: Vec<Value> = observations(&bal.problem).iter().map(factor).collect();
+    let batches = factors
+        .chunks(per_batch)
+        .map(|chunk| json!({ "factors": chunk }))
+        .collect();
+    (json!({ "variables": variables }), batches)
+}
+
+/// A BAL problem's observations: (camera key, point key, pixel).
+pub fn observations(problem: &factord::problem::Problem) -> Vec<(u64, u64, [f64; 2])> {
+    problem
         .factors()
         .iter()
         .map(|f| {
@@ -26,12 +35,12 @@ pub fn batches(text: &str, per_batch: usize) -> (Value, Vec<Value>) {
                 .downcast_ref::<factord::factors::ReprojectionSnavely>()
                 .unwrap()
                 .observed;
-            json!({"type": "reprojection_snavely", "keys": f.factor.keys(), "measurement": [z.x, z.y], "sigmas": [1.0, 1.0]})
+            (f.factor.keys()[0], f.factor.keys()[1], [z.x, z.y])
         })
-        .collect();
-    let batches = factors
-        .chunks(per_batch)
-        .map(|chunk| json!({ "factors": chunk }))
-        .collect();
-    (json!({ "variables": variables }), batches)
+        .collect()
+}
+
+/// An observation as a session's reprojection factor (σ 1 pixel).
+pub fn factor(&(camera, point, z): &(u64, u64, [f64; 2])) -> Value {
+    json!({"type": "reprojection_snavely", "keys": [camera, point], "measurement": z, "sigmas": [1.0, 1.0]})
 }

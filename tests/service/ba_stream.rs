@@ -2,6 +2,8 @@
 //! the stream may wander into a far minimum, and the optimize the client asks for once it is
 //! done, or the stream's rest, ends at the batch solve of what was sent (`session::bundle`).
 
+use std::collections::{BTreeMap, BTreeSet, HashSet};
+
 use crate::common;
 
 use common::server::{client, create, get, post, post_raw, TestServer};
@@ -20,62 +22,42 @@ fn camera_batches(text: &str) -> Vec<Value> {
         let v = problem.values.get(key).unwrap();
         json!({"key": key, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
     };
-    let observations: Vec<(u64, u64, [f64; 2])> = problem
-        .factors()
-        .iter()
-        .map(|f| {
-            let z = f
-                .factor
-                .as_any()
-                .downcast_ref::<factord::factors::ReprojectionSnavely>()
-                .unwrap()
-                .observed;
-            (f.factor.keys()[0], f.factor.keys()[1], [z.x, z.y])
-        })
-        .collect();
+    let observations = common::bal_session::observations(problem);
     let cameras = problem
         .values
         .keys()
         .iter()
         .filter(|&&k| problem.values.get(k).unwrap().kind() == "snavely_camera")
         .count() as u64;
-    let factor = |&(camera, point, z): &(u64, u64, [f64; 2])| json!({"type": "reprojection_snavely", "keys": [camera, point], "measurement": z, "sigmas": [1.0, 1.0]});
-    let mut entered = std::collections::HashSet::new();
+    let mut entered = HashSet::new();
     let mut batches = Vec::new();
     for first in (0..cameras).step_by(CAMERAS_PER_BATCH) {
         let sent = first + CAMERAS_PER_BATCH as u64;
         let mut variables: Vec<Value> = (first..sent.min(cameras)).map(value).collect();
-        let mut seen_by: std::collections::BTreeMap<u64, Vec<u64>> = Default::default();
+        let mut seen_by: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
         for &(camera, point, _) in &observations {
             if camera < sent {
                 seen_by.entry(point).or_default().push(camera);
             }
         }
-        let entering: std::collections::HashSet<u64> = seen_by
+        let entering: BTreeSet<u64> = seen_by
             .iter()
             .filter(|(point, cams)| cams.len() >= 2 && !entered.contains(*point))
             .map(|(&point, _)| point)
             .collect();
-        variables.extend(
-            entering
-                .iter()
-                .copied()
-                .collect::<std::collections::BTreeSet<_>>()
-                .into_iter()
-                .map(value),
-        );
+        variables.extend(entering.iter().copied().map(value));
         let factors: Vec<Value> = observations
             .iter()
             .filter(|(camera, point, _)| {
                 *camera < sent
                     && (entering.contains(point) || (*camera >= first && entered.contains(point)))
             })
-            .map(factor)
+            .map(common::bal_session::factor)
             .collect();
         entered.extend(entering);
         batches.push(json!({"variables": variables, "factors": factors}));
     }
-    // Points never seen twice do not exist in BAL files; keep the stream whole regardless.
+    // Every BAL point is seen twice or more: the stream ends at the whole problem.
     assert_eq!(entered.len() as u64, problem.values.len() as u64 - cameras);
     batches
 }
