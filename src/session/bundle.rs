@@ -103,6 +103,10 @@ impl Session {
         if work.problem.eliminate.is_empty() || !resolved.converged {
             return Ok(resolved);
         }
+        if work.solve_number == 1 {
+            // The first solve started from the given values: a restart would repeat it.
+            work.index.given.settle();
+        }
         let resolved = self.place_lost_points(work, resolved, on_iteration, budget)?;
         let asked_or_rested = work.asked || work.restart_when_idle;
         let resolved = if asked_or_rested && resolved.converged && work.index.given.changed {

@@ -28,7 +28,7 @@ pub(super) struct SolveWork {
     pub(super) index: IncrementalSolver,
     pub(super) options: SolverOptions,
     pub(super) sequence: u64,
-    solve_number: u64,
+    pub(super) solve_number: u64,
     seeds: Vec<usize>,
     structural: bool,
     chi2: Option<f64>,
