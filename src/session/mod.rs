@@ -30,6 +30,8 @@
 //! - `solve.rs`: a solve on a pool worker and handing the problem back.
 //! - `solve_budget.rs`: what stops a running solve inside an iteration (cancel, delete, time).
 //! - `incremental.rs`: re-solving only the region new factors reach.
+//! - `bundle.rs`: a bundle adjustment's steps after its solve (lost points triangulated again,
+//!   a restart from the client's values when asked or at rest).
 //! - `events.rs`: the event channel (publishing, rejections, raw subscriptions).
 //! - `history.rs`: the bounded timeline and event log every published event feeds (web view).
 //! - `stream.rs`: [`EventStream`], the subscriber every stream reads through: a lag yields a
