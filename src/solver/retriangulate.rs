@@ -10,8 +10,9 @@
 //! them; with those two placed again, the same estimate solves to the optimum.
 //!
 //! COLMAP's incremental mapper re-triangulates points for the same reason. Here a point is
-//! *lost* ([`lost_points`]) when two or more cameras see it (built-in `reprojection_snavely`
-//! factors) and it is behind every one of them (`P.z ≥ 0` in each camera frame).
+//! *lost* ([`lost_points`]) when it is behind every camera that sees it (built-in
+//! `reprojection_snavely` factors; `P.z ≥ 0` in each camera frame), and it is placed again when
+//! two or more cameras see it.
 //! [`retriangulate`] triangulates points again from their observations with the cameras where
 //! they are:
 //!
@@ -41,41 +42,29 @@ const KEEP_BELOW: f64 = 0.5;
 /// the noise has nothing to gain.
 const MIN_GAIN: f64 = 1.0;
 
-/// The lost points of `problem` (see the module doc): seen by two or more cameras, behind
-/// each, and free to move. Indices of variables, in increasing order.
+/// The lost points of `problem` (see the module doc): behind every camera that sees them, and
+/// free to move; [`retriangulate`] places those seen by two or more. Indices of variables, in
+/// increasing order. One pass over the factors.
 pub fn lost_points(problem: &Problem) -> Vec<usize> {
     let n = problem.values.len();
-    let mut in_front = vec![false; n];
-    let mut seen = vec![false; n];
+    let (mut seen, mut in_front) = (vec![false; n], vec![false; n]);
     for entry in problem.factors() {
         let Some(view) = View::of(problem, entry) else {
             continue;
         };
         let point = entry.variables()[1];
         seen[point] = true;
-        if view.camera.to_camera(&point_value(problem, point)).z < 0.0 {
-            in_front[point] = true;
-        }
+        in_front[point] |= view.camera.to_camera(&point_value(problem, point)).z < 0.0;
     }
-    let observations = observations_of(
-        problem,
-        &(0..n)
-            .filter(|&v| seen[v] && !in_front[v])
-            .collect::<Vec<_>>(),
-    );
-    observations
-        .into_iter()
-        .filter(|(point, entries)| {
-            !problem.values.is_fixed(*point) && distinct_cameras(problem, entries) >= 2
-        })
-        .map(|(point, _)| point)
+    (0..n)
+        .filter(|&v| seen[v] && !in_front[v] && !problem.values.is_fixed(v))
         .collect()
 }
 
 /// Triangulates each of `points` again from its cameras where they are, and keeps the new
 /// place where it is in front of every camera that sees the point and costs at most half of
-/// the old one and 1 less in chi2 (points seen by fewer than two cameras, or held fixed, stay). Returns the
-/// indices of the variables moved, in increasing order.
+/// the old one and 1 less in chi2 (points seen by fewer than two cameras, or held fixed,
+/// stay). Returns the indices of the variables moved, in increasing order.
 pub fn retriangulate(problem: &mut Problem, points: &[usize]) -> Vec<usize> {
     let mut moved = Vec::new();
     for (point, entries) in observations_of(problem, points) {
@@ -103,6 +92,9 @@ pub fn retriangulate(problem: &mut Problem, points: &[usize]) -> Vec<usize> {
 
 /// The built-in reprojection factors of each of `points` that has any (in increasing order).
 fn observations_of(problem: &Problem, points: &[usize]) -> Vec<(usize, Vec<usize>)> {
+    if points.is_empty() {
+        return Vec::new();
+    }
     let mut wanted: Vec<Option<usize>> = vec![None; problem.values.len()];
     for (slot, &p) in points.iter().enumerate() {
         wanted[p] = Some(slot);
