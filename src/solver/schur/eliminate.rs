@@ -12,6 +12,7 @@ use super::super::budget::{Budget, Unlimited};
 use super::super::cholesky::NotPositiveDefinite;
 use super::super::simd::has_wide_vectors;
 use super::super::structure::BlockPattern;
+use super::avx512;
 use super::threads::{Part, View};
 use super::{Neighbour, SchurSolver, CAMERA, ELIMINATED_PER_CHECK};
 
@@ -84,7 +85,7 @@ impl View<'_> {
     // The const-generic kernel BA time is spent in, monomorphised per block size and inlined
     // into its caller, as are its parts.
     #[inline(always)]
-    fn eliminate<const D: usize, const K: usize, const FUSED: bool>(
+    fn eliminate<const D: usize, const K: usize, const FUSED: bool, const WIDEST: bool>(
         &self,
         part: &mut Part<'_>,
         e: usize,
@@ -127,6 +128,15 @@ impl View<'_> {
                 local_l += dl * d;
                 match dense_n {
                     // Dense S: a diagonal block may be written whole (the upper half is unread).
+                    Some(n) if WIDEST && D == 3 && K == CAMERA => {
+                        let (y, w) = (y.try_into(), w.try_into());
+                        let (y, w) = (y.expect("K×3"), w.expect("K×3"));
+                        // SAFETY: `WIDEST` is only compiled into the AVX-512 twin, chosen when
+                        // the CPU has it.
+                        unsafe {
+                            avx512::subtract_camera_product(&mut part.s_values[block..], n, y, w)
+                        }
+                    }
                     Some(n) if D > 0 && K == CAMERA => {
                         subtract_product::<D, CAMERA, FUSED>(&mut part.s_values[block..], n, y, w)
                     }
@@ -224,7 +234,7 @@ impl View<'_> {
 /// `Break`: the budget (checked by the calling thread, which tells the others through `stop`)
 /// stopped it part way (S is then incomplete).
 #[inline(always)]
-fn eliminate_all<const FUSED: bool>(
+fn eliminate_all<const FUSED: bool, const WIDEST: bool>(
     view: &View<'_>,
     part: &mut Part<'_>,
     blocks: Range<usize>,
@@ -237,9 +247,9 @@ fn eliminate_all<const FUSED: bool>(
             return Ok(ControlFlow::Break(()));
         }
         let result = match (view.blocks.dim[e], view.blocks.camera_neighbours[e]) {
-            (3, true) => view.eliminate::<3, CAMERA, FUSED>(part, e, full, values, shift),
-            (3, false) => view.eliminate::<3, 0, FUSED>(part, e, full, values, shift),
-            _ => view.eliminate::<0, 0, FUSED>(part, e, full, values, shift),
+            (3, true) => view.eliminate::<3, CAMERA, FUSED, WIDEST>(part, e, full, values, shift),
+            (3, false) => view.eliminate::<3, 0, FUSED, false>(part, e, full, values, shift),
+            _ => view.eliminate::<0, 0, FUSED, false>(part, e, full, values, shift),
         };
         result.map_err(|i| NotPositiveDefinite {
             row: view.blocks.offset[e] + i,
@@ -273,7 +283,19 @@ fn eliminate_all_wide(
     budget: Option<&dyn Budget>,
     stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_all::<true>(view, part, blocks, inputs, budget, stop)
+    eliminate_all::<true, false>(view, part, blocks, inputs, budget, stop)
+}
+
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx512f,avx2,fma"))]
+fn eliminate_all_widest(
+    view: &View<'_>,
+    part: &mut Part<'_>,
+    blocks: Range<usize>,
+    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
+    budget: Option<&dyn Budget>,
+    stop: &AtomicBool,
+) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    eliminate_all::<true, true>(view, part, blocks, inputs, budget, stop)
 }
 
 /// [`eliminate_all`] with the widest kernels the CPU has.
@@ -285,11 +307,14 @@ pub(super) fn eliminate_blocks(
     budget: Option<&dyn Budget>,
     stop: &AtomicBool,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    if has_wide_vectors() {
+    if avx512::available() {
+        // SAFETY: the CPU has the features `eliminate_all_widest` is compiled for.
+        unsafe { eliminate_all_widest(view, part, blocks, inputs, budget, stop) }
+    } else if has_wide_vectors() {
         // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
         unsafe { eliminate_all_wide(view, part, blocks, inputs, budget, stop) }
     } else {
-        eliminate_all::<false>(view, part, blocks, inputs, budget, stop)
+        eliminate_all::<false, false>(view, part, blocks, inputs, budget, stop)
     }
 }
 

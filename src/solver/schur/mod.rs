@@ -36,6 +36,7 @@
 //!
 //! This file holds the solver's state, shared by all of them.
 
+mod avx512;
 mod back_substitute;
 mod choice;
 mod eliminate;
