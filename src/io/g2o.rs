@@ -62,13 +62,16 @@ fn quaternion(path: &Path, number: usize, f: &[f64]) -> Result<UnitQuaternion<f6
     Ok(UnitQuaternion::from_quaternion(q))
 }
 
+/// An EDGE_SE2 / EDGE_SE3:QUAT record: file, line, (i, j), its numbers, its dimension.
+type EdgeRecord<'a> = (&'a Path, usize, (Key, Key), Vec<f64>, Dimension);
+
 /// What the records of a g2o text add up to before the edges are built.
 #[derive(Default)]
 struct Records<'a> {
     problem: Problem,
     order: Vec<Key>,
-    /// (file, line, (i, j), numbers, dimension) of each EDGE_SE2 / EDGE_SE3:QUAT.
-    edges: Vec<(&'a Path, usize, (Key, Key), Vec<f64>, Dimension)>,
+    /// Each EDGE_SE2 / EDGE_SE3:QUAT.
+    edges: Vec<EdgeRecord<'a>>,
     /// (file, line, pose, landmark, numbers) of each EDGE_BEARING_RANGE_SE2_XY.
     sightings: Vec<(&'a Path, usize, Key, Key, Vec<f64>)>,
     fixes: Vec<(&'a Path, usize, Key)>,
@@ -205,9 +208,7 @@ impl<'a> Records<'a> {
 }
 
 /// The EDGE_SE2 / EDGE_SE3:QUAT records as between factors.
-fn between_edges(
-    edges: Vec<(&Path, usize, (Key, Key), Vec<f64>, Dimension)>,
-) -> Result<Vec<Edge<'_>>, IoError> {
+fn between_edges(edges: Vec<EdgeRecord<'_>>) -> Result<Vec<Edge<'_>>, IoError> {
     let mut built = Vec::with_capacity(edges.len());
     for (path, number, (i, j), f, dim) in edges {
         built.push(match dim {

@@ -56,7 +56,10 @@ impl AdmissionDeadline {
 /// Checks the deadline every [`FACTORS_PER_CHECK`] factors: 413 `batch_too_costly` once it is
 /// past (the batch is refused whole; smaller batches of the same factors are admitted).
 fn in_time(view: &SessionView, done: usize, total: usize, step: &str) -> Result<(), ServiceError> {
-    let Some(deadline) = view.deadline.filter(|_| done % FACTORS_PER_CHECK == 0) else {
+    let Some(deadline) = view
+        .deadline
+        .filter(|_| done.is_multiple_of(FACTORS_PER_CHECK))
+    else {
         return Ok(());
     };
     if Instant::now() < deadline.at {

@@ -256,6 +256,9 @@ fn analyze(
     })
 }
 
+/// What [`start_point`] returns.
+type StartPoint = (String, Option<f64>, ControlFlow<(), f64>);
+
 /// Where the iterations start, linearised there: the chordal estimate when its chi2 is low
 /// enough (the first linearisation there gives that chi2; a separate evaluation costs a tenth
 /// of a small solve), else the given values (a rejected estimate costs a second
@@ -269,7 +272,7 @@ fn start_point<E: Borrow<FactorEntry> + Sync>(
     initialization: Initialization,
     initial_chi2: f64,
     times: &mut StepTimes,
-) -> Result<(String, Option<f64>, ControlFlow<(), f64>), SolverError> {
+) -> Result<StartPoint, SolverError> {
     let estimate = match estimate {
         Ok(estimate) => estimate,
         Err(label) => {

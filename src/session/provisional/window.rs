@@ -57,7 +57,7 @@ impl RecentWindow {
                     sequence,
                     factor: Arc::clone(&shared),
                     sqrt_information: f.sqrt_information.clone(),
-                    robust: f.robust.clone(),
+                    robust: f.robust,
                 });
             }
             PreparedFactor {

@@ -130,7 +130,7 @@ impl ImplicitSchur {
             negligible_gain: 0.0,
             stats: CgStats::default(),
             reason: plan.reason.clone(),
-            parts: vec![0..ne],
+            parts: std::iter::once(0..ne).collect(),
             helpers: Vec::new(),
         }
     }

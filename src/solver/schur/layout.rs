@@ -52,7 +52,7 @@ impl SchurSolver {
             w_local: vec![0.0; w_max],
             y_local: vec![0.0; w_max],
             rhs: vec![0.0; n],
-            parts: vec![0..ne],
+            parts: std::iter::once(0..ne).collect(),
             helpers: Vec::new(),
             reduced,
             backend,

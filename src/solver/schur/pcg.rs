@@ -95,7 +95,7 @@ pub(in crate::solver) fn solve(
         }
         product(p, q);
         let curvature = dot(p, q);
-        if !(curvature > 0.0 && curvature.is_finite()) || !(rz > 0.0) {
+        if !(curvature > 0.0 && curvature.is_finite() && rz > 0.0) {
             outcome.breakdown = true;
             break;
         }

@@ -249,7 +249,7 @@ fn publish(zenoh: &zenoh::Session, name: &str, listened: &Listened, run: &[Arc<S
             );
         }
         let mut json = None;
-        for topic in listened.hearing(&event) {
+        for topic in listened.hearing(event) {
             let (body, encoding) = match (topic.form, &**event) {
                 (Form::PosesBinary, SessionEvent::Estimate(estimate)) => (
                     poses_binary::encode(estimate),
