@@ -27,8 +27,9 @@ use crate::solver::{self, IterationReport, SolverError};
 use crate::variables::Variable;
 
 /// The values a bundle adjustment's client gave: the variables' values as they arrived, and
-/// guesses since. Indexed like the problem's values; `None` where a variable came from a
-/// snapshot (its value there stands for what was given).
+/// guesses since. Indexed like the problem's values; `None` where none was recorded. Snapshots
+/// do not keep them: a variable restored from one has the snapshot's value (the estimate when
+/// it was written) as its given value, and a restart after that starts from there.
 #[derive(Debug, Default)]
 pub(crate) struct GivenValues {
     values: Vec<Option<Box<dyn Variable>>>,
