@@ -11,8 +11,8 @@
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::x86_64::{
-    _mm512_fmadd_pd, _mm512_loadu_pd, _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd,
-    _mm512_sub_pd,
+    __mmask8, _mm512_fmadd_pd, _mm512_loadu_pd, _mm512_mask_storeu_pd, _mm512_maskz_loadu_pd,
+    _mm512_mul_pd, _mm512_set1_pd, _mm512_storeu_pd, _mm512_sub_pd,
 };
 
 /// Rows and columns of a camera block.
@@ -35,9 +35,26 @@ pub(super) fn available() -> bool {
     }
 }
 
-/// `S[0..9, 0..9] −= Y Wᵀ`: `s` holds the block column-major with leading dimension `n`
-/// (`s[q·n + r]` is row r of column q; the dense reduced system). The whole block is written,
-/// as the portable kernel writes it.
+/// Where a 9×9 block of S lies in `s`: each column's first stored entry, and whether only the
+/// lower triangle is stored (column q then starts at row q: a diagonal block of the sparse S).
+pub(super) struct BlockColumns {
+    pub starts: [usize; K],
+    pub lower_only: bool,
+}
+
+impl BlockColumns {
+    /// A block of a column-major matrix with leading dimension `n` that starts at `at` (the
+    /// dense S; a diagonal block is written whole, its upper half unread).
+    pub fn dense(at: usize, n: usize) -> Self {
+        Self {
+            starts: std::array::from_fn(|q| at + q * n),
+            lower_only: false,
+        }
+    }
+}
+
+/// `S_block −= Y Wᵀ` for the block `columns` locates in `s` (entries not stored are neither
+/// read nor written).
 ///
 /// # Safety
 /// The CPU must have AVX-512F ([`available`]).
@@ -46,25 +63,37 @@ pub(super) fn available() -> bool {
 #[inline]
 pub(super) unsafe fn subtract_camera_product(
     s: &mut [f64],
-    n: usize,
+    columns: &BlockColumns,
     y: &PointColumns,
     w: &PointColumns,
 ) {
-    assert!(n >= K && s.len() > (K - 1) * n + K - 1, "a 9×9 block of S");
+    let first_row = |q: usize| if columns.lower_only { q } else { 0 };
+    // Each column's stored rows: first_row(q)..K from its start on.
+    for (q, &start) in columns.starts.iter().enumerate() {
+        assert!(
+            start + (K - first_row(q)) <= s.len(),
+            "column {q} of S's block"
+        );
+    }
     let s = s.as_mut_ptr();
     let (y, w) = (y.as_ptr(), w.as_ptr());
-    // SAFETY (every pointer below): rows 0..=8 of columns 0..=8 lie within `s` (asserted), and
-    // the 8-lane loads of Y and W start at 0, 9 and 18 of 27 entries.
+    // SAFETY (every access below): a column's stored rows lie within `s` (asserted); a lane of
+    // rows 0–7 below a column's first stored row is masked off, so it is neither read nor
+    // written (its address, computed with wrapping arithmetic, is never dereferenced); the
+    // 8-lane loads of Y and W start at 0, 9 and 18 of 27 entries.
     unsafe {
         let y0 = _mm512_loadu_pd(y);
         let y1 = _mm512_loadu_pd(y.add(K));
         let y2 = _mm512_loadu_pd(y.add(2 * K));
-        for q in 0..K {
-            let column = s.add(q * n);
+        for (q, &start) in columns.starts.iter().enumerate() {
+            let row0 = s.add(start).wrapping_sub(first_row(q));
+            // Lanes first_row(q)..8 (none for column 8 of a lower triangle).
+            let stored = (0xffu16 << first_row(q)) as __mmask8;
             let mut acc = _mm512_mul_pd(y0, _mm512_set1_pd(*w.add(q)));
             acc = _mm512_fmadd_pd(y1, _mm512_set1_pd(*w.add(K + q)), acc);
             acc = _mm512_fmadd_pd(y2, _mm512_set1_pd(*w.add(2 * K + q)), acc);
-            _mm512_storeu_pd(column, _mm512_sub_pd(_mm512_loadu_pd(column), acc));
+            let column = _mm512_maskz_loadu_pd(stored, row0);
+            _mm512_mask_storeu_pd(row0, stored, _mm512_sub_pd(column, acc));
         }
         // Row 8 of columns 0..=7: Y[8, t] times W[0..8, t], summed over t in the same order.
         let mut row = _mm512_mul_pd(_mm512_set1_pd(*y.add(K - 1)), _mm512_loadu_pd(w));
@@ -81,12 +110,12 @@ pub(super) unsafe fn subtract_camera_product(
         let mut lanes = [0.0; 8];
         _mm512_storeu_pd(lanes.as_mut_ptr(), row);
         for (q, product) in lanes.iter().enumerate() {
-            *s.add(q * n + K - 1) -= product;
+            *s.add(columns.starts[q] + K - 1 - first_row(q)) -= product;
         }
         let mut corner = *y.add(K - 1) * *w.add(K - 1);
         corner = (*y.add(2 * K - 1)).mul_add(*w.add(2 * K - 1), corner);
         corner = (*y.add(3 * K - 1)).mul_add(*w.add(3 * K - 1), corner);
-        *s.add((K - 1) * n + K - 1) -= corner;
+        *s.add(columns.starts[K - 1] + K - 1 - first_row(K - 1)) -= corner;
     }
 }
 
@@ -94,7 +123,7 @@ pub(super) unsafe fn subtract_camera_product(
 #[cfg(not(target_arch = "x86_64"))]
 pub(super) unsafe fn subtract_camera_product(
     _: &mut [f64],
-    _: usize,
+    _: &BlockColumns,
     _: &PointColumns,
     _: &PointColumns,
 ) {
@@ -105,17 +134,31 @@ pub(super) unsafe fn subtract_camera_product(
 mod tests {
     use super::*;
 
-    /// The portable kernel's arithmetic, entry by entry.
-    fn reference(s: &mut [f64], n: usize, y: &PointColumns, w: &PointColumns) {
+    /// The portable kernel's arithmetic, entry by entry, on the stored entries `columns`
+    /// locates.
+    fn reference(s: &mut [f64], columns: &BlockColumns, y: &PointColumns, w: &PointColumns) {
         for q in 0..K {
-            for r in 0..K {
+            let first = if columns.lower_only { q } else { 0 };
+            for r in first..K {
                 let mut acc = 0.0;
                 for t in 0..3 {
                     acc = y[t * K + r].mul_add(w[t * K + q], acc);
                 }
-                s[q * n + r] -= acc;
+                s[columns.starts[q] + r - first] -= acc;
             }
         }
+    }
+
+    /// Whether both kernels leave `start` alike, bit for bit, and changed.
+    fn check(start: &[f64], columns: &BlockColumns, y: &PointColumns, w: &PointColumns) {
+        let (mut fast, mut slow) = (start.to_vec(), start.to_vec());
+        // SAFETY: the caller checked `available()`.
+        unsafe { subtract_camera_product(&mut fast, columns, y, w) };
+        reference(&mut slow, columns, y, w);
+        for (i, (a, b)) in fast.iter().zip(&slow).enumerate() {
+            assert_eq!(a.to_bits(), b.to_bits(), "entry {i}: {a} against {b}");
+        }
+        assert_ne!(fast, start, "the block was updated");
     }
 
     #[test]
@@ -124,7 +167,6 @@ mod tests {
             eprintln!("skipped: this CPU has no AVX-512F");
             return;
         }
-        let n = 13;
         let mut seed = 0x9e37_79b9_7f4a_7c15_u64;
         let mut next = move || {
             seed ^= seed << 13;
@@ -134,16 +176,29 @@ mod tests {
         };
         let y: PointColumns = std::array::from_fn(|_| next() * 1e3);
         let w: PointColumns = std::array::from_fn(|_| next() * 1e-2);
-        let start: Vec<f64> = (0..n * n).map(|_| next()).collect();
-        let (mut fast, mut slow) = (start.clone(), start.clone());
-        // The block at row 2, column 3 of a 13×13 column-major S.
-        let at = 3 * n + 2;
-        // SAFETY: `available()` said the CPU has the features.
-        unsafe { subtract_camera_product(&mut fast[at..], n, &y, &w) };
-        reference(&mut slow[at..], n, &y, &w);
-        for (i, (a, b)) in fast.iter().zip(&slow).enumerate() {
-            assert_eq!(a.to_bits(), b.to_bits(), "entry {i}: {a} against {b}");
-        }
-        assert_ne!(fast, start, "the block was updated");
+        // The dense S: the block at row 2, column 3 of a 13×13 column-major matrix.
+        let n = 13;
+        let dense: Vec<f64> = (0..n * n).map(|_| next()).collect();
+        check(&dense, &BlockColumns::dense(3 * n + 2, n), &y, &w);
+        // The sparse S's layouts: an off-diagonal block's columns apart, and a diagonal block's
+        // lower triangle packed column after column (column q holds rows q..9), between other
+        // values that must stay as they are.
+        let packed: Vec<f64> = (0..100).map(|_| next()).collect();
+        let apart = BlockColumns {
+            starts: std::array::from_fn(|q| 3 + 10 * q),
+            lower_only: false,
+        };
+        check(&packed, &apart, &y, &w);
+        let mut at = 5;
+        let lower = BlockColumns {
+            starts: std::array::from_fn(|q| {
+                let start = at;
+                at += K - q;
+                start
+            }),
+            lower_only: true,
+        };
+        // Entries outside the triangle are compared too: the reference leaves them alone.
+        check(&packed, &lower, &y, &w);
     }
 }

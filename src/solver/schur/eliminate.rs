@@ -127,15 +127,24 @@ impl View<'_> {
                 let w = &part.w_local[local_l..local_l + dl * d];
                 local_l += dl * d;
                 match dense_n {
-                    // Dense S: a diagonal block may be written whole (the upper half is unread).
-                    Some(n) if WIDEST && D == 3 && K == CAMERA => {
+                    // Dense S: a diagonal block may be written whole (the upper half is unread);
+                    // the sparse S keeps only its lower triangle.
+                    _ if WIDEST && D == 3 && K == CAMERA => {
+                        let columns = match dense_n {
+                            Some(n) => avx512::BlockColumns::dense(block, n),
+                            None => avx512::BlockColumns {
+                                starts: std::array::from_fn(|q| {
+                                    let first = if k == l { q } else { 0 };
+                                    reduced.value_index(block, k == l, first, q)
+                                }),
+                                lower_only: k == l,
+                            },
+                        };
                         let (y, w) = (y.try_into(), w.try_into());
                         let (y, w) = (y.expect("K×3"), w.expect("K×3"));
                         // SAFETY: `WIDEST` is only compiled into the AVX-512 twin, chosen when
                         // the CPU has it.
-                        unsafe {
-                            avx512::subtract_camera_product(&mut part.s_values[block..], n, y, w)
-                        }
+                        unsafe { avx512::subtract_camera_product(part.s_values, &columns, y, w) }
                     }
                     Some(n) if D > 0 && K == CAMERA => {
                         subtract_product::<D, CAMERA, FUSED>(&mut part.s_values[block..], n, y, w)

@@ -26,7 +26,7 @@
 //! - `eliminate`: one factorisation: U into S, then every eliminated block's V⁻¹ and
 //!   S −= Y Wᵀ, with the small fixed-size kernels it uses;
 //! - `avx512`: that update for a point and two BAL cameras on 512-bit vectors, where the CPU
-//!   has them;
+//!   has them (dense S, and the sparse S's blocks);
 //! - `reduced`: the reduced system S itself, dense or sparse: its factorisation, its solve and
 //!   their predicted cost;
 //! - `back_substitute`: one solve: the reduced right-hand side, S's solve, and Δe from Δr;
