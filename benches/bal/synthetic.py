@@ -1,14 +1,17 @@
 #!/usr/bin/env python3
 """A synthetic BAL problem of any size, written in BAL's text format (standard library only).
 
-    synthetic.py CAMERAS POINTS [--views 6] [--seed 7] [-o FILE]
+    synthetic.py CAMERAS POINTS [--views 6] [--band 0] [--seed 7] [-o FILE]
 
 The model of `tests/api/job_budget_ba.rs::synthetic_bal`: cameras about 20 units from a Gaussian
 cloud of points (σ 3), focal 500 ± 10, no distortion; each point seen by `views` distinct
 cameras drawn at random (so nearly every camera pair shares a point and the reduced camera
 system is nearly dense); one pixel of Gaussian noise on every observation; the cameras'
 rotation and translation (σ 0.01) and the points (σ 0.05) perturbed so the solve has work to
-do. The same arguments give the same bytes. Memory and time comparisons with Ceres use it
+do. `--band B` (B ≥ views) draws each point's cameras from B consecutive ones instead, as a
+camera moving along a path sees a point from neighbouring frames only: the reduced camera system
+is then banded and stays sparse (the sparse explicit Schur path). The same arguments give the
+same bytes. Memory and time comparisons with Ceres use it
 (`benches/history/issue-57-ba.md`): 1000 cameras / 300 000 points / 6 views is issue 57's
 "synthetic 1 000 cameras" problem.
 """
@@ -45,11 +48,15 @@ def main():
     ap.add_argument("cameras", type=int)
     ap.add_argument("points", type=int)
     ap.add_argument("--views", type=int, default=6)
+    ap.add_argument("--band", type=int, default=0,
+                    help="draw each point's cameras from this many consecutive ones (0: from all)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("-o", "--output", default="-")
     args = ap.parse_args()
     if args.views > args.cameras:
         sys.exit("--views cannot exceed the number of cameras")
+    if args.band and not args.views <= args.band <= args.cameras:
+        sys.exit("--band must lie between --views and the number of cameras")
     rng = random.Random(args.seed)
     g = rng.gauss
     truth = [[0.1 * g(0, 1), 0.1 * g(0, 1), 0.1 * g(0, 1), g(0, 1), g(0, 1), -20.0 + g(0, 1),
@@ -61,7 +68,11 @@ def main():
     for j in range(args.points):
         x = [3.0 * g(0, 1), 3.0 * g(0, 1), 3.0 * g(0, 1)]
         guesses.append([x[i] + 0.05 * g(0, 1) for i in range(3)])
-        seen = sorted(rng.sample(range(args.cameras), args.views))
+        if args.band:
+            first = rng.randrange(args.cameras - args.band + 1)
+            seen = sorted(rng.sample(range(first, first + args.band), args.views))
+        else:
+            seen = sorted(rng.sample(range(args.cameras), args.views))
         lines = []
         for i in seen:
             u, v = project(truth[i], x)
