@@ -239,18 +239,29 @@ impl View<'_> {
     }
 }
 
-/// Eliminates blocks `blocks` into `part`; errs at the first V that is not positive definite.
-/// `Break`: the budget (checked by the calling thread, which tells the others through `stop`)
-/// stopped it part way (S is then incomplete).
+/// One thread's share of an elimination: its eliminated blocks, H (pattern, values, the LM
+/// shift), and the budget (the calling thread's only, which tells the others through `stop`).
+pub(super) struct Pass<'a> {
+    pub(super) blocks: Range<usize>,
+    pub(super) inputs: (&'a BlockPattern, &'a [f64], Option<&'a [f64]>),
+    pub(super) budget: Option<&'a dyn Budget>,
+    pub(super) stop: &'a AtomicBool,
+}
+
+/// Eliminates `pass`'s blocks into `part`; errs at the first V that is not positive definite.
+/// `Break`: the budget stopped it part way (S is then incomplete).
 #[inline(always)]
 fn eliminate_all<const FUSED: bool, const WIDEST: bool>(
     view: &View<'_>,
     part: &mut Part<'_>,
-    blocks: Range<usize>,
-    (full, values, shift): (&BlockPattern, &[f64], Option<&[f64]>),
-    budget: Option<&dyn Budget>,
-    stop: &AtomicBool,
+    pass: Pass<'_>,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
+    let Pass {
+        blocks,
+        inputs: (full, values, shift),
+        budget,
+        stop,
+    } = pass;
     for (k, e) in blocks.enumerate() {
         if k % ELIMINATED_PER_CHECK == ELIMINATED_PER_CHECK - 1 && stopped(budget, stop) {
             return Ok(ControlFlow::Break(()));
@@ -287,43 +298,34 @@ pub(super) fn stopped(budget: Option<&dyn Budget>, stop: &AtomicBool) -> bool {
 fn eliminate_all_wide(
     view: &View<'_>,
     part: &mut Part<'_>,
-    blocks: Range<usize>,
-    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
-    budget: Option<&dyn Budget>,
-    stop: &AtomicBool,
+    pass: Pass<'_>,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_all::<true, false>(view, part, blocks, inputs, budget, stop)
+    eliminate_all::<true, false>(view, part, pass)
 }
 
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx512f,avx2,fma"))]
 fn eliminate_all_widest(
     view: &View<'_>,
     part: &mut Part<'_>,
-    blocks: Range<usize>,
-    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
-    budget: Option<&dyn Budget>,
-    stop: &AtomicBool,
+    pass: Pass<'_>,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
-    eliminate_all::<true, true>(view, part, blocks, inputs, budget, stop)
+    eliminate_all::<true, true>(view, part, pass)
 }
 
 /// [`eliminate_all`] with the widest kernels the CPU has.
 pub(super) fn eliminate_blocks(
     view: &View<'_>,
     part: &mut Part<'_>,
-    blocks: Range<usize>,
-    inputs: (&BlockPattern, &[f64], Option<&[f64]>),
-    budget: Option<&dyn Budget>,
-    stop: &AtomicBool,
+    pass: Pass<'_>,
 ) -> Result<ControlFlow<()>, NotPositiveDefinite> {
     if avx512::available() {
         // SAFETY: the CPU has the features `eliminate_all_widest` is compiled for.
-        unsafe { eliminate_all_widest(view, part, blocks, inputs, budget, stop) }
+        unsafe { eliminate_all_widest(view, part, pass) }
     } else if has_wide_vectors() {
         // SAFETY: the CPU has the features `eliminate_all_wide` is compiled for.
-        unsafe { eliminate_all_wide(view, part, blocks, inputs, budget, stop) }
+        unsafe { eliminate_all_wide(view, part, pass) }
     } else {
-        eliminate_all::<false, false>(view, part, blocks, inputs, budget, stop)
+        eliminate_all::<false, false>(view, part, pass)
     }
 }
 

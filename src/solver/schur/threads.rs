@@ -11,7 +11,7 @@ use std::sync::atomic::AtomicBool;
 use super::super::budget::Budget;
 use super::super::cholesky::NotPositiveDefinite;
 use super::super::structure::BlockPattern;
-use super::eliminate::eliminate_blocks;
+use super::eliminate::{eliminate_blocks, Pass};
 use super::reduced::Backend;
 use super::{EliminatedBlocks, SchurSolver};
 
@@ -167,7 +167,13 @@ impl SchurSolver {
                             y_local: &mut helper.y_local,
                             s_values: &mut helper.s_values,
                         };
-                        eliminate_blocks(view, &mut part, blocks.clone(), inputs, None, stop)
+                        let pass = Pass {
+                            blocks: blocks.clone(),
+                            inputs,
+                            budget: None,
+                            stop,
+                        };
+                        eliminate_blocks(view, &mut part, pass)
                     })
                 })
                 .collect();
@@ -179,7 +185,13 @@ impl SchurSolver {
                 s_values: &mut self.s_values,
             };
             let blocks = first_blocks.clone();
-            let mine = eliminate_blocks(&view, &mut part, blocks, inputs, Some(budget), &stop);
+            let pass = Pass {
+                blocks,
+                inputs,
+                budget: Some(budget),
+                stop: &stop,
+            };
+            let mine = eliminate_blocks(&view, &mut part, pass);
             crate::solver::parts::mine_then_joined(mine, others)
         });
         for result in results {
