@@ -21,6 +21,8 @@ mod marginals;
 mod outliers;
 mod producer_list;
 mod robot_streams;
+mod robot_streams_cost;
+mod robot_streams_late;
 mod robots;
 mod service;
 mod session_threads;

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use common::server::{
     client, create, free_port, get, post, zenoh_get, zenoh_peer, zenoh_session, TestServer,
 };
-use common::square_walk::{closure, robot_batch, sent, truth, INFO};
+use common::square_walk::{closure, robot_batch, sent, truth};
 use factord::api::poses_binary;
 use factord::api::robots::{robot_key, robot_of_key};
 use factord::geometry::Se2;
@@ -25,9 +25,12 @@ use serde_json::{json, Value};
 const SESSION: &str = "rs";
 
 /// Every sample under `key`, as (key, payload, encoding).
-type Samples = mpsc::Receiver<(String, Vec<u8>, String)>;
+pub(crate) type Samples = mpsc::Receiver<(String, Vec<u8>, String)>;
 
-async fn samples(z: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<()>, Samples) {
+pub(crate) async fn samples(
+    z: &zenoh::Session,
+    key: &str,
+) -> (zenoh::pubsub::Subscriber<()>, Samples) {
     let (tx, rx) = mpsc::channel();
     let tx = std::sync::Mutex::new(tx);
     let subscriber = z
@@ -47,16 +50,22 @@ async fn samples(z: &zenoh::Session, key: &str) -> (zenoh::pubsub::Subscriber<()
 /// What one robot read on its keys so far: the latest value of each key per stream, the
 /// `map_from_odom` samples, and every key any estimate carried.
 #[derive(Default)]
-struct View {
+pub(crate) struct View {
     /// stream (`poses`, `odom_poses`, `bin/poses`, `bin/odom_poses`) → key → value.
-    latest: BTreeMap<String, BTreeMap<u64, Vec<f64>>>,
-    frames: Vec<Value>,
+    pub(crate) latest: BTreeMap<String, BTreeMap<u64, Vec<f64>>>,
+    pub(crate) frames: Vec<Value>,
     keys_seen: Vec<u64>,
     samples: usize,
 }
 
 impl View {
-    fn take(&mut self, rx: &Samples, base: &str) {
+    /// How many poses each stream holds, and the last frame: what a failure shows.
+    pub(crate) fn summary(&self) -> String {
+        let poses: Vec<_> = self.latest.iter().map(|(k, v)| (k, v.len())).collect();
+        format!("{poses:?}, last frame {:?}", self.frames.last())
+    }
+
+    pub(crate) fn take(&mut self, rx: &Samples, base: &str) {
         for (key, payload, encoding) in rx.try_iter() {
             self.samples += 1;
             let stream = key
@@ -100,7 +109,7 @@ impl View {
 }
 
 /// `estimate` (JSON) as key → value.
-fn values(estimate: &Value) -> BTreeMap<u64, Vec<f64>> {
+pub(crate) fn values(estimate: &Value) -> BTreeMap<u64, Vec<f64>> {
     estimate["variables"]
         .as_array()
         .unwrap_or_else(|| panic!("an estimate: {estimate}"))
@@ -114,7 +123,11 @@ fn values(estimate: &Value) -> BTreeMap<u64, Vec<f64>> {
         .collect()
 }
 
-fn same(got: &BTreeMap<u64, Vec<f64>>, want: &BTreeMap<u64, Vec<f64>>, tol: f64) -> bool {
+pub(crate) fn same(
+    got: &BTreeMap<u64, Vec<f64>>,
+    want: &BTreeMap<u64, Vec<f64>>,
+    tol: f64,
+) -> bool {
     got.len() == want.len()
         && got.iter().zip(want).all(|((k, g), (l, w))| {
             k == l && g.len() == w.len() && g.iter().zip(w).all(|(a, b)| (a - b).abs() <= tol)
@@ -130,14 +143,17 @@ fn near(got: &Se2, want: &Se2, tol: f64) -> bool {
     d.x.hypot(d.y) < tol && d.theta.abs() < tol
 }
 
-enum Topology {
+pub(crate) enum Topology {
     Peer,
     Router,
 }
 
-async fn each_robot_reads_its_own_view(topology: Topology) {
-    // The router (kept alive for the test) and the server, and the robots' zenoh session.
-    let (_router, s, z) = match topology {
+/// The router (to keep alive for the test) if any, the server, and the robots' zenoh session:
+/// a peer of the server, or a client of a router the server is a peer of.
+pub(crate) async fn connect(
+    topology: Topology,
+) -> (Option<zenoh::Session>, TestServer, zenoh::Session) {
+    match topology {
         Topology::Peer => {
             let s = TestServer::start(&[]);
             let z = zenoh_peer(&s.zenoh).await;
@@ -150,7 +166,11 @@ async fn each_robot_reads_its_own_view(topology: Topology) {
             let z = zenoh_session("client", "connect", &endpoint).await;
             (Some(router), s, z)
         }
-    };
+    }
+}
+
+async fn each_robot_reads_its_own_view(topology: Topology) {
+    let (_router, s, z) = connect(topology).await;
     let c = client();
     let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
     create(
@@ -212,15 +232,27 @@ async fn each_robot_reads_its_own_view(topology: Topology) {
     };
     let streams = ["poses", "odom_poses", "bin/poses", "bin/odom_poses"];
 
-    // The streams settle on the estimate the HTTP reads give.
+    let robot_report = |r: &str| {
+        report["robots"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|x| x["robot"] == r)
+            .cloned()
+            .unwrap()
+    };
+
+    // The streams settle on the estimate the HTTP reads give, and the frames on the report.
     let (mut view_a, mut view_b) = (View::default(), View::default());
     let deadline = Instant::now() + Duration::from_secs(20);
     let settled = |view: &View, robot: char| {
-        streams.iter().all(|stream| {
-            view.latest
-                .get(*stream)
-                .is_some_and(|got| same(got, &want(robot, stream), 1e-9))
-        })
+        let frame = view.frames.last().map(|f| &f["map_from_odom"]);
+        frame == Some(&robot_report(&robot.to_string())["map_from_odom"])
+            && streams.iter().all(|stream| {
+                view.latest
+                    .get(*stream)
+                    .is_some_and(|got| same(got, &want(robot, stream), 1e-9))
+            })
     };
     loop {
         view_a.take(&rx_a, &base('a'));
@@ -230,17 +262,10 @@ async fn each_robot_reads_its_own_view(topology: Topology) {
         }
         assert!(
             Instant::now() < deadline,
-            "the robots' streams did not settle on the estimate in 20 s: a has {:?}, b has {:?}",
-            view_a
-                .latest
-                .iter()
-                .map(|(k, v)| (k, v.len()))
-                .collect::<Vec<_>>(),
-            view_b
-                .latest
-                .iter()
-                .map(|(k, v)| (k, v.len()))
-                .collect::<Vec<_>>()
+            "the robots' streams did not settle on the estimate and the report in 20 s: a has \
+             {}, b has {}",
+            view_a.summary(),
+            view_b.summary()
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
@@ -279,15 +304,6 @@ async fn each_robot_reads_its_own_view(topology: Topology) {
 
     // map_from_odom: b alone (identity, not in the map) until the merge, then where the merge
     // put it, as GET …/robots says; a in the map from the start.
-    let robot_report = |r: &str| {
-        report["robots"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .find(|x| x["robot"] == r)
-            .cloned()
-            .unwrap()
-    };
     // (Its first pose and the merge may fall in one run of events: then only the merged
     // frame is published, as the key carries the state when it is put.)
     for frame in view_b.frames.iter().filter(|f| f["in_map"] == false) {
@@ -358,149 +374,6 @@ async fn each_robot_reads_its_own_view_as_a_peer() {
 #[tokio::test(flavor = "multi_thread")]
 async fn each_robot_reads_its_own_view_through_a_router() {
     each_robot_reads_its_own_view(Topology::Router).await;
-}
-
-/// Deterministic noise in [-1, 1] (a 64-bit LCG), so the measurement is repeatable.
-struct Noise(u64);
-
-impl Noise {
-    fn next(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-    }
-}
-
-/// Robot `r`'s poses `range` (of a walk `offset` poses into the square), dead-reckoned from
-/// noisy odometry in its own frame, with its odometry and a loop closure to the pose 40
-/// before (the same place) every 10 poses.
-fn noisy_robot_batch(
-    r: char,
-    world: &[Se2],
-    range: std::ops::Range<usize>,
-    reckoned: &mut Vec<Se2>,
-    noise: &mut Noise,
-) -> Value {
-    let (mut variables, mut factors) = (Vec::new(), Vec::new());
-    for i in range {
-        let key = robot_key(r, i as u64);
-        if i == 0 {
-            reckoned.push(Se2::identity());
-        } else {
-            let z = world[i - 1].between(&world[i]);
-            let z = Se2::new(
-                z.x + 0.02 * noise.next(),
-                z.y + 0.02 * noise.next(),
-                z.theta + 0.01 * noise.next(),
-            );
-            reckoned.push(reckoned[i - 1].compose(&z));
-            factors.push(
-                json!({"type": "between_se2", "keys": [robot_key(r, i as u64 - 1), key],
-                                "measurement": z.to_array(), "information": INFO}),
-            );
-        }
-        if i >= 40 && i % 10 == 0 {
-            factors.push(
-                json!({"type": "between_se2", "keys": [robot_key(r, i as u64 - 40), key],
-                                "measurement": world[i - 40].between(&world[i]).to_array(),
-                                "information": INFO}),
-            );
-        }
-        variables.push(json!({"key": key, "kind": "se2", "value": reckoned[i].to_array()}));
-    }
-    json!({"variables": variables, "factors": factors})
-}
-
-/// The cost of the robots' streams per solve, for benches/history/issue-54-robots.md: two
-/// robots × 5000 poses streamed in batches of 100 (odometry with noise, a loop closure every
-/// 10 poses, so each solve moves much of the map), merged on three closures after 300 poses;
-/// read from the server's debug line per published run. `cargo test --release --test service
-/// robot_streams::measure -- --ignored --nocapture`.
-#[tokio::test(flavor = "multi_thread")]
-#[ignore = "a measurement (about a minute), not a check"]
-async fn measure_the_robot_streams_cost_per_solve() {
-    const POSES: usize = 5000;
-    const BATCH: usize = 100;
-    for subscribed in ["factord/rs/robot/*/**", "factord/rs/robot/a/bin/poses"] {
-        let s = TestServer::start(&[
-            "--log",
-            "info,factord::transport::zenoh::robot_streams=debug",
-        ]);
-        let z = zenoh_peer(&s.zenoh).await;
-        let c = client();
-        let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
-        create(
-            &c,
-            &s,
-            &json!({"session": SESSION, "kind": "pose_graph_2d", "robots": {"min_closures": 3}}),
-        )
-        .await;
-        let (_sub, rx) = samples(&z, subscribed).await;
-        tokio::time::sleep(Duration::from_millis(500)).await;
-        let (a, b) = (truth(0, POSES), truth(13, POSES));
-        let (mut reckoned_a, mut reckoned_b) = (Vec::new(), Vec::new());
-        let mut noise = Noise(54);
-        let started = Instant::now();
-        for round in 0..POSES / BATCH {
-            let range = round * BATCH..(round + 1) * BATCH;
-            for (r, world, reckoned) in [('a', &a, &mut reckoned_a), ('b', &b, &mut reckoned_b)] {
-                let body = noisy_robot_batch(r, world, range.clone(), reckoned, &mut noise);
-                let (status, v) = post(&c, &url("/batches"), &body).await;
-                assert_eq!(status, 200, "{v}");
-            }
-            if round == 3 {
-                // b's pose j is where a's pose j + 13 is: three closures merge them.
-                let closures: Vec<Value> = [(113usize, 100usize), (233, 220), (353, 340)]
-                    .iter()
-                    .map(|&(i, j)| closure(&a, i, &b, j))
-                    .collect();
-                let (status, v) = post(&c, &url("/batches"), &json!({"factors": closures})).await;
-                assert_eq!(status, 200, "{v}");
-            }
-        }
-        let (status, v) = post(&c, &url("/optimize?wait=true"), &json!({})).await;
-        assert_eq!(status, 200, "{v}");
-        let total = started.elapsed();
-        tokio::time::sleep(Duration::from_secs(1)).await;
-        let received = rx.try_iter().count();
-        let (_, report) = get(&c, &url("/robots")).await;
-        assert_eq!(report["merges"].as_array().unwrap().len(), 1, "{report}");
-        let mut runs: Vec<(u64, u64, u64)> = s
-            .stderr()
-            .lines()
-            .filter(|l| l.contains("robot streams published"))
-            .filter_map(|l| {
-                let field = |name: &str| -> Option<u64> {
-                    let at = l.find(&format!("{name}="))? + name.len() + 1;
-                    l[at..]
-                        .split(|c: char| !c.is_ascii_digit())
-                        .next()?
-                        .parse()
-                        .ok()
-                };
-                Some((field("micros")?, field("poses")?, field("puts")?))
-            })
-            .collect();
-        assert!(!runs.is_empty(), "no debug lines: {}", s.stderr());
-        runs.sort_unstable();
-        let pick = |q: f64| runs[((runs.len() - 1) as f64 * q).round() as usize];
-        let poses: u64 = runs.iter().map(|r| r.1).sum();
-        let micros: u64 = runs.iter().map(|r| r.0).sum();
-        println!(
-            "subscribed {subscribed}: {} runs, {received} samples received, {poses} poses put in \
-             {:.1} ms ({:.2} µs a pose); per run p50 {:?} p90 {:?} max {:?} (µs, poses, puts); \
-             stream of 2 × {POSES} poses in {:.2} s",
-            runs.len(),
-            micros as f64 / 1000.0,
-            micros as f64 / poses.max(1) as f64,
-            pick(0.5),
-            pick(0.9),
-            runs.last().unwrap(),
-            total.as_secs_f64()
-        );
-    }
 }
 
 /// The Python client's helpers for a robot's own keys (`subscribe_robot_poses`,

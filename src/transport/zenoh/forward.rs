@@ -27,7 +27,6 @@
 //! zenoh publisher a wake-up per run, not also a thread switch.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use zenoh::bytes::Encoding;
@@ -35,6 +34,7 @@ use zenoh::pubsub::{PublicationBuilder, PublicationBuilderPut, PublisherBuilder}
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
+use super::heard::Heard;
 use super::robot_streams::RobotStreams;
 use crate::api::poses_binary;
 use crate::api::wire::{Estimate, SessionEvent};
@@ -52,10 +52,28 @@ pub(super) fn forward(
     let topics = session.topics();
     let name = session.name.clone();
     let mut robots = RobotStreams::of(session, &prefix);
+    let audience = robots.as_ref().map(RobotStreams::audience);
     tokio::spawn(async move {
         let listened = Arc::new(Listened::declare(&zenoh, &prefix, &name, topics).await);
         let mut run = Vec::with_capacity(MAX_RUN);
-        while let Some(first) = events.next().await {
+        loop {
+            let first = match &audience {
+                // A robot's key that gets an audience between estimates is served at once.
+                Some(audience) => tokio::select! {
+                    event = events.next() => event,
+                    () = audience.notified() => {
+                        robots = match serve_new_audiences(&zenoh, robots.take()).await {
+                            Some(back) => back,
+                            None => return, // the runtime is shutting down
+                        };
+                        continue;
+                    }
+                },
+                None => events.next().await,
+            };
+            let Some(first) = first else {
+                return; // the session is gone
+            };
             run.push(first);
             while run.len() < MAX_RUN {
                 match events.try_next() {
@@ -97,6 +115,23 @@ pub(super) fn forward(
     });
 }
 
+/// [`RobotStreams::serve_new_audiences`] on a blocking thread (its puts may block); `None` when
+/// the runtime is shutting down.
+async fn serve_new_audiences(
+    zenoh: &zenoh::Session,
+    mut lent: Option<RobotStreams>,
+) -> Option<Option<RobotStreams>> {
+    let zenoh = zenoh.clone();
+    tokio::task::spawn_blocking(move || {
+        if let Some(robots) = lent.as_mut() {
+            robots.serve_new_audiences(&zenoh);
+        }
+        lent
+    })
+    .await
+    .ok()
+}
+
 /// A session's topic keys, each with a publisher declared on it so that zenoh keeps its
 /// matching status up to date, and a listener that keeps that status in a flag.
 struct Listened {
@@ -109,52 +144,6 @@ struct Topic {
     form: Form,
     key: String,
     heard: Heard,
-}
-
-/// Whether some subscriber would receive a put on a key now: a publisher declared on it so
-/// that zenoh keeps its matching status up to date, and a listener that keeps that status in
-/// a flag.
-pub(super) struct Heard {
-    /// Set by `_listener` as zenoh's matching status changes; stays true when zenoh refused
-    /// the publisher or the listener (an unneeded put costs less than a lost one).
-    flag: Arc<AtomicBool>,
-    _publisher: Option<zenoh::pubsub::Publisher<'static>>,
-    _listener: Option<zenoh::matching::MatchingListener<()>>,
-}
-
-impl Heard {
-    pub(super) async fn declare(zenoh: &zenoh::Session, key: String) -> Self {
-        let flag = Arc::new(AtomicBool::new(true));
-        let (publisher, listener) = match zenoh.declare_publisher(key.clone()).await {
-            Ok(publisher) => {
-                let listener = listen(&publisher, &flag).await;
-                if listener.is_none() {
-                    tracing::warn!(
-                        "zenoh matching listener for {key} not declared: its events are \
-                         put whether or not anyone subscribes"
-                    );
-                }
-                (Some(publisher), listener)
-            }
-            Err(e) => {
-                tracing::warn!(
-                    "zenoh publisher for {key} not declared ({e}): its events are put \
-                     whether or not anyone subscribes"
-                );
-                (None, None)
-            }
-        };
-        Self {
-            flag,
-            _publisher: publisher,
-            _listener: listener,
-        }
-    }
-
-    /// Whether some subscriber would receive a put on the key now.
-    pub(super) fn now(&self) -> bool {
-        self.flag.load(Ordering::SeqCst)
-    }
 }
 
 /// How a topic's events are put.
@@ -193,7 +182,7 @@ impl Listened {
                 carries,
                 form,
                 key: key.clone(),
-                heard: Heard::declare(zenoh, key).await,
+                heard: Heard::declare(zenoh, key, None).await,
             });
         }
         Self { topics: listened }
@@ -216,23 +205,6 @@ impl Listened {
 
 /// Keeps `heard` equal to whether `publisher` has matching subscribers; `None` when zenoh
 /// refused the listener (`heard` then stays true).
-async fn listen(
-    publisher: &zenoh::pubsub::Publisher<'static>,
-    heard: &Arc<AtomicBool>,
-) -> Option<zenoh::matching::MatchingListener<()>> {
-    let flag = Arc::clone(heard);
-    let listener = publisher
-        .matching_listener()
-        .callback(move |status| flag.store(status.matching(), Ordering::SeqCst))
-        .await
-        .ok()?;
-    // Read after the listener exists, so no change falls between the two.
-    if let Ok(status) = publisher.matching_status().await {
-        heard.store(status.matching(), Ordering::SeqCst);
-    }
-    Some(listener)
-}
-
 /// The key of a session's estimates in binary.
 fn binary_poses_key(prefix: &str, session: &str) -> String {
     format!("{prefix}/{session}/bin/poses")

@@ -40,6 +40,7 @@ mod fleet_proof;
 mod fleet_routes;
 mod forward;
 mod gateway;
+mod heard;
 mod inputs;
 mod robot_queries;
 mod robot_streams;

@@ -14,22 +14,27 @@
 //! so an estimate computed before a merge is not moved by the merge's transform.
 //!
 //! As on the session's keys, nothing is serialised for a key no subscriber would receive
-//! (zenoh's matching status, `forward::Heard`); a robot's publishers are declared when its
-//! first pose appears in an estimate. Unlike the session's, a robot's stream starts whole: the
-//! first publication a new subscriber receives (the first estimate event after zenoh tells
-//! the server of it) is the robot's whole trajectory, read from the session then, and the
-//! deltas follow; a robot that connects late needs no query first. The queryables (`robot/<id>/estimate`,
-//! `robot/<id>/map_from_odom`) are in `robot_queries`.
+//! (zenoh's matching status, [`Heard`]); a robot's publishers are declared when its first pose
+//! appears in an estimate. Unlike the session's, a robot's stream starts whole: when zenoh
+//! tells the server that a key has an audience again (nobody heard it before), the robot's
+//! whole trajectory is put on it at once, read from the session then, and the deltas follow;
+//! `map_from_odom` is put again too. A robot that connects late, or whose keys the server
+//! declared a moment before zenoh (through a router) matched them, needs no query first and
+//! no later solve. A second subscriber joining one that stays gets the deltas only (zenoh's
+//! status says "heard", not by whom): it queries first. The queryables
+//! (`robot/<id>/estimate`, `robot/<id>/map_from_odom`) are in `robot_queries`.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::{Arc, Weak};
 use std::time::Instant;
 
+use tokio::sync::Notify;
 use zenoh::bytes::Encoding;
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
-use super::forward::{put_event, Heard};
+use super::forward::put_event;
+use super::heard::Heard;
 use crate::api::poses_binary;
 use crate::api::robots::{robot_id, robot_key, robot_of_key, RobotFrameReport, RobotReport};
 use crate::api::wire::{Estimate, EstimateQuery, SessionEvent};
@@ -43,8 +48,11 @@ pub(super) struct RobotStreams {
     robots: BTreeMap<u8, RobotKeys>,
     /// Characters of keys seen in estimates that name no robot of the session (yet).
     not_robots: BTreeSet<u8>,
-    /// What each robot's `map_from_odom` key last carried.
-    announced: BTreeMap<u8, RobotReport>,
+    /// What each robot's `map_from_odom` key last carried, and to which audience (the key's
+    /// [`Heard::matched`] then).
+    announced: BTreeMap<u8, (RobotReport, u64)>,
+    /// Woken when one of the robots' keys becomes heard.
+    audience: Arc<Notify>,
 }
 
 /// One robot's publication keys.
@@ -59,10 +67,13 @@ struct PoseStream {
     odometry_frame: bool,
     binary: bool,
     heard: Heard,
-    /// Whether whoever hears the key now got the robot's whole trajectory already: false
-    /// while nobody hears it, so the first publication a new subscriber receives is the whole
-    /// trajectory, not only what changed since.
-    served: bool,
+    /// `heard` and its audience as one publication read them: the decision to put on the key
+    /// and what `served` records use the same reading, so an audience zenoh reports in the
+    /// middle of a publication is served whole by the next one.
+    live: Option<u64>,
+    /// The audience ([`Heard::matched`]) that got the robot's whole trajectory already, so a
+    /// new one gets the whole trajectory, not only what changed since.
+    served: Option<u64>,
 }
 
 impl RobotStreams {
@@ -76,15 +87,34 @@ impl RobotStreams {
             robots: BTreeMap::new(),
             not_robots: BTreeSet::new(),
             announced: BTreeMap::new(),
+            audience: Arc::new(Notify::new()),
         })
+    }
+
+    /// Notified when one of the robots' keys gets an audience it did not have: then
+    /// [`Self::serve_new_audiences`] has something to put.
+    pub(super) fn audience(&self) -> Arc<Notify> {
+        Arc::clone(&self.audience)
+    }
+
+    /// Puts the whole trajectory on each robot pose key whose audience has not got it, and
+    /// `map_from_odom` on each frame key whose audience has not got the current one; what an
+    /// audience that arrives while no estimate is published would otherwise wait for.
+    pub(super) fn serve_new_audiences(&mut self, zenoh: &zenoh::Session) {
+        self.read_audiences();
+        let (puts, poses) = self.put_by_robot(zenoh, BTreeMap::new());
+        self.announce_frames(zenoh);
+        tracing::debug!(
+            session = self.name,
+            puts,
+            poses,
+            "robot streams served a new audience"
+        );
     }
 
     /// Declares the keys of the robots whose poses appear in `run` for the first time, and
     /// notes the keys nobody hears any more.
     pub(super) async fn discover(&mut self, zenoh: &zenoh::Session, run: &[Arc<SessionEvent>]) {
-        for stream in self.robots.values_mut().flat_map(|r| &mut r.poses) {
-            stream.served &= stream.heard.now();
-        }
         let mut seen = BTreeSet::new();
         for event in run {
             if let SessionEvent::Estimate(estimate) = &**event {
@@ -116,7 +146,8 @@ impl RobotStreams {
                 self.not_robots.insert(robot);
                 continue;
             }
-            let keys = RobotKeys::declare(zenoh, &self.prefix, &self.name, robot).await;
+            let keys =
+                RobotKeys::declare(zenoh, &self.prefix, &self.name, robot, &self.audience).await;
             self.robots.insert(robot, keys);
         }
     }
@@ -141,7 +172,7 @@ impl RobotStreams {
         for event in run {
             match &**event {
                 SessionEvent::Estimate(estimate) => {
-                    let (p, v) = self.publish_estimate(zenoh, event, estimate);
+                    let (p, v) = self.publish_estimate(zenoh, estimate);
                     (puts, poses) = (puts + p, poses + v);
                     frames_may_have_moved = true;
                 }
@@ -181,20 +212,14 @@ impl RobotStreams {
     /// `estimate` split by robot, put on each robot's pose keys that some subscriber hears;
     /// a robot with a subscriber not served yet gets its whole trajectory instead. Returns
     /// how many puts carried how many poses in all.
-    fn publish_estimate(
-        &mut self,
-        zenoh: &zenoh::Session,
-        event: &SessionEvent,
-        estimate: &Estimate,
-    ) -> (usize, usize) {
-        let (mut puts, mut poses) = (0, 0);
-        let session = self.session.upgrade();
+    fn publish_estimate(&mut self, zenoh: &zenoh::Session, estimate: &Estimate) -> (usize, usize) {
+        self.read_audiences();
         let mut by_robot: BTreeMap<u8, Estimate> = BTreeMap::new();
         for v in &estimate.variables {
             let Some(robot) = robot_of_key(v.key).map(|c| c as u8) else {
                 continue;
             };
-            if self.robots.get(&robot).is_some_and(RobotKeys::heard) {
+            if self.robots.get(&robot).is_some_and(RobotKeys::live) {
                 by_robot
                     .entry(robot)
                     .or_insert_with(|| Estimate {
@@ -206,8 +231,34 @@ impl RobotStreams {
                     .push(v.clone());
             }
         }
+        self.put_by_robot(zenoh, by_robot)
+    }
+
+    /// Reads which pose keys are heard, and by which audience, for one publication.
+    fn read_audiences(&mut self) {
+        for stream in self.robots.values_mut().flat_map(|r| &mut r.poses) {
+            // The audience first: a change between the two reads serves the new audience
+            // twice, never not at all.
+            let audience = stream.heard.matched();
+            stream.live = stream.heard.now().then_some(audience);
+        }
+    }
+
+    /// Puts `by_robot` (each robot's share of an estimate) on the robots' heard pose keys, the
+    /// whole trajectory instead where an audience has not had it; returns how many puts
+    /// carried how many poses in all.
+    fn put_by_robot(
+        &mut self,
+        zenoh: &zenoh::Session,
+        mut by_robot: BTreeMap<u8, Estimate>,
+    ) -> (usize, usize) {
+        let (mut puts, mut poses) = (0, 0);
+        let session = self.session.upgrade();
         for (&robot, keys) in &self.robots {
-            let unserved = keys.poses.iter().any(|p| p.heard.now() && !p.served);
+            let unserved = keys
+                .poses
+                .iter()
+                .any(|p| p.live.is_some() && p.live != p.served);
             if let (true, Some(session)) = (unserved, &session) {
                 by_robot.insert(robot, whole_trajectory(session, robot));
             }
@@ -216,7 +267,10 @@ impl RobotStreams {
         let mut frames = BTreeMap::new();
         for (robot, in_map) in by_robot {
             let keys = &self.robots[&robot];
-            let needs_odometry = keys.poses.iter().any(|p| p.odometry_frame && p.heard.now());
+            let needs_odometry = keys
+                .poses
+                .iter()
+                .any(|p| p.odometry_frame && p.live.is_some());
             let in_odometry = match (needs_odometry, &session) {
                 (true, Some(session)) => {
                     let frames = frames
@@ -229,7 +283,7 @@ impl RobotStreams {
                 _ => None,
             };
             let in_map = SessionEvent::Estimate(in_map);
-            for stream in keys.poses.iter().filter(|p| p.heard.now()) {
+            for stream in keys.poses.iter().filter(|p| p.live.is_some()) {
                 let carried = match stream.odometry_frame {
                     false => &in_map,
                     true => match &in_odometry {
@@ -246,7 +300,7 @@ impl RobotStreams {
                         Encoding::APPLICATION_JSON,
                     ),
                 };
-                let put = put_event(zenoh, &stream.key, body, encoding, event);
+                let put = put_event(zenoh, &stream.key, body, encoding, carried);
                 self.report(put.wait(), &stream.key);
                 puts += 1;
                 if let SessionEvent::Estimate(e) = carried {
@@ -255,7 +309,7 @@ impl RobotStreams {
             }
         }
         for stream in self.robots.values_mut().flat_map(|r| &mut r.poses) {
-            stream.served = stream.heard.now();
+            stream.served = stream.live;
         }
         (puts, poses)
     }
@@ -276,8 +330,10 @@ impl RobotStreams {
             let Some(keys) = self.robots.get(&robot).filter(|k| k.frame.now()) else {
                 continue;
             };
-            let unchanged = self.announced.get(&robot).is_some_and(|last| {
-                last.map_from_odom == report.map_from_odom
+            let audience = keys.frame.matched();
+            let unchanged = self.announced.get(&robot).is_some_and(|(last, heard_by)| {
+                *heard_by == audience
+                    && last.map_from_odom == report.map_from_odom
                     && last.in_map == report.in_map
                     && last.component == report.component
             });
@@ -296,7 +352,7 @@ impl RobotStreams {
                 .express(true)
                 .wait();
             self.report(put, &keys.frame_key);
-            self.announced.insert(robot, report);
+            self.announced.insert(robot, (report, audience));
         }
     }
 
@@ -321,12 +377,18 @@ fn whole_trajectory(session: &Session, robot: u8) -> Estimate {
 }
 
 impl RobotKeys {
-    /// Whether some subscriber hears one of its pose keys.
-    fn heard(&self) -> bool {
-        self.poses.iter().any(|p| p.heard.now())
+    /// Whether one of its pose keys is heard, as the publication under way read it.
+    fn live(&self) -> bool {
+        self.poses.iter().any(|p| p.live.is_some())
     }
 
-    async fn declare(zenoh: &zenoh::Session, prefix: &str, session: &str, robot: u8) -> Self {
+    async fn declare(
+        zenoh: &zenoh::Session,
+        prefix: &str,
+        session: &str,
+        robot: u8,
+        audience: &Arc<Notify>,
+    ) -> Self {
         let base = robot_key_base(prefix, session, robot);
         let mut poses = Vec::with_capacity(4);
         for (suffix, odometry_frame, binary) in [
@@ -337,17 +399,18 @@ impl RobotKeys {
         ] {
             let key = format!("{base}/{suffix}");
             poses.push(PoseStream {
-                heard: Heard::declare(zenoh, key.clone()).await,
+                heard: Heard::declare(zenoh, key.clone(), Some(Arc::clone(audience))).await,
                 key,
                 odometry_frame,
                 binary,
-                served: false,
+                live: None,
+                served: None,
             });
         }
         let frame_key = format!("{base}/map_from_odom");
         Self {
             poses,
-            frame: Heard::declare(zenoh, frame_key.clone()).await,
+            frame: Heard::declare(zenoh, frame_key.clone(), Some(Arc::clone(audience))).await,
             frame_key,
         }
     }
