@@ -897,9 +897,11 @@ impl HeldJob {
 /// J13. With one worker and two long jobs, one job runs and the other waits in the queue. At
 /// SIGTERM the pool stops: queued work is dropped (its caller gets 503 shutting_down, "the job
 /// was dropped at shutdown") and the running solve stops after its current iteration and answers
-/// 200 with its best estimate (termination `interrupted`). Which of the two is running at that
-/// moment is not ours to choose, so each must be one of those two answers, and at least one must
-/// be the 503. A third job whose body arrives after the service has stopped is refused at
+/// 200 with its best estimate (termination `interrupted`); a job stopped before its first step
+/// has no estimate to give and answers 503 shutting_down, "the job was stopped at shutdown"
+/// (the jobs share the worker in time slices, so on a loaded machine the second job may have
+/// started and not finished a step). Which of these each job meets is not ours to choose, so
+/// each must be one of those answers, and at least one must be a 503. A third job whose body arrives after the service has stopped is refused at
 /// submission with 503 shutting_down, "the service is shutting down". (A job sent on a new
 /// connection after SIGTERM cannot be tested: the listener closes, so it is refused by TCP.)
 #[tokio::test(flavor = "multi_thread")]
@@ -956,21 +958,17 @@ async fn j13_jobs_at_shutdown_get_503_shutting_down() {
                 a.text
             );
         } else {
-            assert_error(
-                &what,
-                a,
-                503,
-                "shutting_down",
-                None,
-                "the job was dropped at shutdown",
-                Some(5),
-            );
+            let message = match a.text.contains("stopped") {
+                true => "the job was stopped at shutdown",
+                false => "the job was dropped at shutdown",
+            };
+            assert_error(&what, a, 503, "shutting_down", None, message, Some(5));
             dropped += 1;
         }
     }
     assert!(
         dropped >= 1,
-        "J13: the queued job was not dropped: {} / {}",
+        "J13: neither job was dropped or stopped before a step: {} / {}",
         answers[0].text,
         answers[1].text
     );
@@ -980,7 +978,7 @@ async fn j13_jobs_at_shutdown_get_503_shutting_down() {
         "the server did not exit cleanly ({exit:?}):\n{log}"
     );
     assert!(!log.contains("panicked"), "server panicked:\n{log}");
-    println!("rows checked over HTTP: [\"J13\"] ({dropped} of 2 long jobs dropped, the late one refused)");
+    println!("rows checked over HTTP: [\"J13\"] ({dropped} of 2 long jobs answered 503, the late one refused)");
 }
 
 #[tokio::test(flavor = "multi_thread")]
