@@ -4,7 +4,7 @@ over HTTP (a real `factord serve`, journal on, fsync always) against GTSAM iSAM2
 stream, interleaved in one run.
 
     ~/.cache/factord/venvs/gtsam/bin/python benches/bal/stream.py \\
-        [--rounds 3] [--json out.json] [problem-49-7776-pre.txt ...]
+        [--rounds 3] [--json out.json] [--options '{"max_iterations": 20}'] [problem-49-7776-pre.txt ...]
 
 The stream (the same for both systems): camera c arrives, every point seen by at least two of
 cameras 0..c enters when its second camera arrives, with every observation made of it so far,
@@ -286,8 +286,10 @@ def run_factord(bal, updates, args):
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.05)
-        request(conn, "POST", "/v1/sessions", {"session": SESSION, "kind": "bundle_adjustment",
-                                               "factor_types": [FOCAL_PRIOR]})
+        create = {"session": SESSION, "kind": "bundle_adjustment", "factor_types": [FOCAL_PRIOR]}
+        if args.options:
+            create["options"] = json.loads(args.options)
+        request(conn, "POST", "/v1/sessions", create)
         ncams = len(cameras)
         ms, unsolved, priors = [], 0, []
         for update in updates:
@@ -437,6 +439,8 @@ def main():
                    help="focal lengths perturbed and each camera's prior, as a fraction of f")
     p.add_argument("--seed", type=int, default=57)
     p.add_argument("--json", help="every round's reports, latencies included")
+    p.add_argument("--options", help="factord's session solver options (JSON), e.g. "
+                   "'{\"max_iterations\": 20}'")
     args = p.parse_args()
     reports = []
     for name in args.problems:

@@ -13,6 +13,7 @@ pub mod error;
 pub mod export;
 pub mod factor_schema;
 pub mod fusion;
+pub mod given_options;
 pub mod history;
 pub mod latency;
 mod limits;

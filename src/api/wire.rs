@@ -47,9 +47,11 @@ pub struct CreateSession {
     #[serde(default)]
     pub session: Option<String>,
     pub kind: String,
-    /// Solver options; the kind's defaults when absent (LM for bundle adjustment).
+    /// Solver options: the fields given, the kind's defaults for the others (LM damped from
+    /// the first step for bundle adjustment, whatever fields are given).
     #[serde(default)]
-    pub options: Option<SolverOptions>,
+    #[schema(value_type = Option<SolverOptions>)]
+    pub options: Option<super::given_options::GivenSolverOptions>,
     #[serde(default)]
     pub auto_optimize: AutoOptimize,
     /// Factor types of this session's own, each a residual written as an expression and

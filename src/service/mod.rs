@@ -319,7 +319,11 @@ impl Service {
                 format!("unknown session kind `{}` (known: {known:?})", request.kind),
             )
         })?;
-        let options = request.options.unwrap_or_else(kind.default_options);
+        let defaults = (kind.default_options)();
+        let options = match &request.options {
+            Some(given) => given.over(defaults),
+            None => defaults,
+        };
         options.validate().map_err(|(field, m)| {
             ServiceError::bad_request("invalid_value", format!("options.{field}"), m)
         })?;

@@ -30,7 +30,7 @@ impl Session {
         CreateSession {
             session: Some(self.name.clone()),
             kind: info.kind,
-            options: Some(info.options),
+            options: Some(info.options.into()),
             auto_optimize: info.auto_optimize,
             factor_types: self.factor_types().definitions(),
             ros2: info.ros2,

@@ -1,13 +1,16 @@
 //! A bundle adjustment session on more than one thread: the threads beyond its own worker are
-//! borrowed from idle workers of the server's pool (`--workers`), never more.
+//! borrowed from idle workers of the server's pool (`--workers`), never more. The sessions give
+//! `threads` alone: the other options stay the kind's (Levenberg-Marquardt damped from the
+//! first step), where they once fell back to the pose graphs' Gauss-Newton, which a free gauge
+//! makes singular.
 
 use crate::common;
 
 use common::server::{client, create, get, post, TestServer};
 use serde_json::{json, Value};
 
-/// Solves problem-49 in a session asking for `threads` on a server of `workers`; returns the
-/// summary.
+/// Solves problem-49 in a session asking for `threads` (and no other option) on a server of
+/// `workers`; returns the summary.
 async fn solve_with(text: &str, workers: &str, threads: u64) -> Value {
     let s = TestServer::start(&["--no-zenoh", "--workers", workers]);
     let c = client();
@@ -15,9 +18,15 @@ async fn solve_with(text: &str, workers: &str, threads: u64) -> Value {
         &c,
         &s,
         &json!({"session": "ba", "kind": "bundle_adjustment", "auto_optimize": {"policy": "manual"},
-                "options": {"method": "levenberg_marquardt", "threads": threads}}),
+                "options": {"threads": threads}}),
     )
     .await;
+    let (status, info) = get(&c, &s.url("/v1/sessions/ba")).await;
+    assert_eq!(status, 200, "{info}");
+    let mut kinds = serde_json::to_value(factord::solver::SolverOptions::bundle_adjustment())
+        .expect("options serialise");
+    kinds["threads"] = json!(threads);
+    assert_eq!(info["options"], kinds, "threads given, the rest the kind's");
     let (variables, factors) = common::bal_session::batches(text, 10_000);
     let url = s.url("/v1/sessions/ba/batches");
     for b in std::iter::once(&variables).chain(&factors) {
