@@ -266,6 +266,9 @@ impl Session {
         if work.outliers.as_ref().is_some_and(|o| o.consolidate) {
             return self.consolidate(work, on_iteration, budget);
         }
+        if work.solve_number > 1 && !work.tight && !work.asked && !work.restart_when_idle {
+            work.cap_streamed_bundle_update();
+        }
         let additions_only = !work.structural && work.solve_number > 1;
         if let Some(total) = work.chi2.filter(|_| additions_only) {
             let SolveWork {
