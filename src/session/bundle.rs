@@ -17,10 +17,11 @@
 //!   polish reaches the batch optimum from the estimate.)
 //!
 //! Since the rest (or the client's `optimize`) takes the estimate to convergence, a streamed
-//! update need not: it runs at most [`STREAMED_UPDATE_ITERATIONS`] iterations. An update whose
-//! new camera disagrees with the map can otherwise crawl through a hundred
-//! Levenberg-Marquardt steps of 10⁻⁴ each (problem-49 streamed camera by camera: 1.3-1.6 s per
-//! such update, against 0.1-0.4 s at the cap).
+//! update need not: it runs at most [`CAPPED_ITERATIONS`] iterations. An update whose new
+//! camera disagrees with the map can otherwise crawl through a hundred Levenberg-Marquardt
+//! steps of 10⁻⁴ each (problem-49 streamed camera by camera: 1.3-1.6 s per such update, against
+//! 0.1-0.4 s at the cap). A solve a restart follows is capped too: the restart usually ends
+//! lower than the crawl would, and only when it does not does the solve go on to convergence.
 
 use std::ops::ControlFlow;
 
@@ -32,21 +33,48 @@ use crate::problem::{Problem, Values};
 use crate::solver::{self, IterationReport, SolverError};
 use crate::variables::Variable;
 
-/// The most iterations a streamed update of a bundle adjustment runs (the session's
-/// `max_iterations` when lower): a solve after a batch (additions, removals, fixes) that the
-/// client did not ask for, neither a rest's nor a polish. The first solve, and the solves that
-/// bring the estimate to convergence, run to `max_iterations`.
-pub(super) const STREAMED_UPDATE_ITERATIONS: usize = 20;
+/// The most iterations a bundle adjustment's solve runs (the session's `max_iterations` when
+/// lower) when it need not converge: a streamed update (a solve after a batch, neither asked
+/// for nor a rest's), or the solve before a restart from the given values. The first solve
+/// runs to `max_iterations`.
+pub(super) const CAPPED_ITERATIONS: usize = 20;
 
 impl SolveWork {
-    /// Caps this solve's iterations at [`STREAMED_UPDATE_ITERATIONS`] if it solves a bundle
-    /// adjustment (the caller tells that it is a streamed update).
-    pub(super) fn cap_streamed_bundle_update(&mut self) {
-        if !self.problem.eliminate.is_empty() {
-            self.options.max_iterations =
-                self.options.max_iterations.min(STREAMED_UPDATE_ITERATIONS);
+    /// Caps this solve's iterations at [`CAPPED_ITERATIONS`] if it solves a bundle adjustment
+    /// after the first and need not converge: a streamed update, or a solve a restart from the
+    /// given values follows. [`SolveWork::uncap`] gives the session's limit back.
+    pub(super) fn cap_bundle_iterations(&mut self) {
+        let streamed = !self.tight && !self.asked && !self.restart_when_idle;
+        let restart_follows = (self.asked || self.restart_when_idle) && self.index.given.changed;
+        if self.problem.eliminate.is_empty() || self.solve_number < 2 {
+            return;
+        }
+        if streamed || restart_follows {
+            self.uncapped.get_or_insert(self.options.max_iterations);
+            self.options.max_iterations = self.options.max_iterations.min(CAPPED_ITERATIONS);
         }
     }
+
+    /// The session's `max_iterations` back; whether the solve was capped.
+    fn uncap(&mut self) -> bool {
+        match self.uncapped.take() {
+            Some(iterations) => {
+                self.options.max_iterations = iterations;
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// How a restart from the given values ended.
+enum Restart {
+    /// Lower than the estimate it started beside: it is the estimate now.
+    Kept(incremental::Resolved),
+    /// It ran its course and ended no lower: the estimate stays.
+    NotLower(incremental::Resolved),
+    /// Cut short (a batch arrived, another session's turn): the estimate stays.
+    Interrupted(incremental::Resolved),
 }
 
 /// The values a bundle adjustment's client gave: the variables' values as they arrived, and
@@ -143,6 +171,7 @@ impl Session {
         };
         let asked_or_rested = work.asked || work.restart_when_idle;
         let resolved = if asked_or_rested && work.index.given.changed {
+            let cut_short = work.uncap() && !resolved.converged;
             // Asked for, the client waits for the restart; at rest, it gives way to the stream.
             let yielding = YieldToBatches {
                 budget,
@@ -154,7 +183,25 @@ impl Session {
                 // Past `max_solve_ms`: it would be again, at every rest.
                 work.index.given.settle();
             }
-            restarted?
+            match restarted? {
+                // The solve before the restart stopped at its cap: it goes on to convergence.
+                Restart::NotLower(_) if cut_short => {
+                    let index = &mut work.index;
+                    let problem = &mut work.problem;
+                    let summary =
+                        index.solve_whole(problem, &work.options, on_iteration, restart_budget)?;
+                    let resolved = index.adopt_whole(problem, summary);
+                    match resolved.converged {
+                        true => {
+                            self.place_lost_points(work, resolved, on_iteration, restart_budget)?
+                        }
+                        false => resolved,
+                    }
+                }
+                Restart::Kept(resolved)
+                | Restart::NotLower(resolved)
+                | Restart::Interrupted(resolved) => resolved,
+            }
         } else {
             resolved
         };
@@ -196,7 +243,7 @@ impl Session {
         resolved: incremental::Resolved,
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
         budget: &dyn solver::Budget,
-    ) -> Result<incremental::Resolved, SolverError> {
+    ) -> Result<Restart, SolverError> {
         let SolveWork {
             problem,
             index,
@@ -210,8 +257,9 @@ impl Session {
             matches!(&restarted, Ok(s) if s.converged && s.final_chi2 < resolved.total_chi2);
         // A restart cut short (a batch arrived, another session's turn) runs again at the next
         // rest or ask; one that ran its course, converged or not, is not repeated.
-        index.given.changed = matches!(&restarted,
+        let interrupted = matches!(&restarted,
             Ok(s) if s.termination.reason == solver::TerminationReason::Interrupted);
+        index.given.changed = interrupted;
         tracing::info!(
             session = %self.name,
             streamed = resolved.total_chi2,
@@ -221,9 +269,12 @@ impl Session {
         );
         if !better {
             problem.values = streamed;
-            return Ok(resolved);
+            return Ok(match interrupted {
+                true => Restart::Interrupted(resolved),
+                false => Restart::NotLower(resolved),
+            });
         }
         let summary = restarted?;
-        Ok(index.adopt_whole(problem, summary))
+        Ok(Restart::Kept(index.adopt_whole(problem, summary)))
     }
 }

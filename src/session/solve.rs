@@ -35,12 +35,14 @@ pub(super) struct SolveWork {
     pub(super) debt: f64,
     gauge: Vec<Key>,
     /// A solve the client asked for, or a polish: an engine update runs to convergence.
-    tight: bool,
+    pub(super) tight: bool,
     /// The client asked for this solve (`optimize`): a bundle adjustment also restarts from
     /// its given values (`bundle`).
     pub(super) asked: bool,
     /// A bundle adjustment at rest restarts from its given values, yielding to batches.
     pub(super) restart_when_idle: bool,
+    /// The session's `max_iterations` while a bundle adjustment's solve runs capped (`bundle`).
+    pub(super) uncapped: Option<usize>,
     /// A consolidation asked for once the session rested (not a full solve): it yields to
     /// batches that arrive meanwhile.
     yields: bool,
@@ -93,6 +95,7 @@ impl Session {
             tight,
             asked: std::mem::take(&mut st.schedule.asked),
             restart_when_idle: std::mem::take(&mut st.schedule.restart_when_idle),
+            uncapped: None,
             yields: requested && !full,
             outliers,
             outcome: OutlierOutcome::default(),
@@ -266,9 +269,7 @@ impl Session {
         if work.outliers.as_ref().is_some_and(|o| o.consolidate) {
             return self.consolidate(work, on_iteration, budget);
         }
-        if work.solve_number > 1 && !work.tight && !work.asked && !work.restart_when_idle {
-            work.cap_streamed_bundle_update();
-        }
+        work.cap_bundle_iterations();
         let additions_only = !work.structural && work.solve_number > 1;
         if let Some(total) = work.chi2.filter(|_| additions_only) {
             let SolveWork {

@@ -61,7 +61,10 @@ def test_a_streamed_file_ends_at_the_batch_optimum(m3500):
         assert len(keys) == len(vertices)
     graph, initial = factord.readG2o(M3500, False)
     _, summary = factord.solve(graph, initial, method="gn", initialization="auto")
-    assert streamed == pytest.approx(summary["final_chi2"], rel=1e-6)
+    # The batch optimum within 1e-5, as the service's benchmarks hold an idle estimate to. An
+    # optimize stops when a step gains less than 1e-6 of chi2, so where the stream's solves left
+    # it decides the last digits: 1.5e-6 above once in a loaded full run.
+    assert streamed == pytest.approx(summary["final_chi2"], rel=1e-5)
 
 
 def test_refusals_carry_the_servers_error_body():
