@@ -8,7 +8,7 @@ use crate::common;
 
 use std::time::Duration;
 
-use common::server::{client, create, get, holders, ros_nodes_until, zenoh_peer, TestServer};
+use common::server::{client, create, get, holders, post, ros_nodes_until, zenoh_peer, TestServer};
 use serde_json::{json, Value};
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
@@ -131,6 +131,30 @@ async fn bound_session(
         .declare_subscriber(format!("factord/{name}/out/errors"))
         .await
         .expect("a subscriber");
+    // An event is published only on keys the server knows a subscriber of, and zenoh tells it
+    // of a new one a moment later: an error raised at once was lost (once in a loaded full
+    // run). Declared after the errors' subscriber, the acks' one is heard after it (a
+    // session's declarations travel in order): once an empty batch's ack arrives, both are.
+    let acks = z
+        .declare_subscriber(format!("factord/{name}/out/acks"))
+        .await
+        .expect("a subscriber");
+    let batches = server.url(&format!("/v1/sessions/{name}/batches"));
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let (status, v) = post(&client(), &batches, &json!({"variables": []})).await;
+        assert_eq!(status, 200, "{v}");
+        if tokio::time::timeout(Duration::from_millis(200), acks.recv_async())
+            .await
+            .is_ok()
+        {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the server never heard the subscriptions"
+        );
+    }
     (server, z, errors)
 }
 
