@@ -169,16 +169,19 @@ pub(crate) async fn connect(
     }
 }
 
+/// A client, and session `name` created on `s`: 2D poses of robots that merge on three
+/// closures.
+pub(crate) async fn robots_session(s: &TestServer, name: &str) -> reqwest::Client {
+    let c = client();
+    let session = json!({"session": name, "kind": "pose_graph_2d", "robots": {"min_closures": 3}});
+    create(&c, s, &session).await;
+    c
+}
+
 async fn each_robot_reads_its_own_view(topology: Topology) {
     let (_router, s, z) = connect(topology).await;
-    let c = client();
+    let c = robots_session(&s, SESSION).await;
     let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
-    create(
-        &c,
-        &s,
-        &json!({"session": SESSION, "kind": "pose_graph_2d", "robots": {"min_closures": 3}}),
-    )
-    .await;
     let base = |r: char| format!("factord/{SESSION}/robot/{r}/");
     let (_sub_a, rx_a) = samples(&z, &format!("{}**", base('a'))).await;
     let (_sub_b, rx_b) = samples(&z, &format!("{}**", base('b'))).await;

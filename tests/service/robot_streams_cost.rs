@@ -2,11 +2,11 @@
 //! benches/history/issue-54-robots.md: a measurement, ignored by default.
 
 use crate::common;
-use crate::robot_streams::samples;
+use crate::robot_streams::{robots_session, samples};
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, create, get, post, zenoh_peer, TestServer};
+use common::server::{get, post, zenoh_peer, TestServer};
 use common::square_walk::{closure, truth, INFO};
 use factord::api::robots::robot_key;
 use factord::geometry::Se2;
@@ -83,14 +83,8 @@ async fn measure_the_robot_streams_cost_per_solve() {
             "info,factord::transport::zenoh::robot_streams=debug",
         ]);
         let z = zenoh_peer(&s.zenoh).await;
-        let c = client();
+        let c = robots_session(&s, SESSION).await;
         let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
-        create(
-            &c,
-            &s,
-            &json!({"session": SESSION, "kind": "pose_graph_2d", "robots": {"min_closures": 3}}),
-        )
-        .await;
         let (_sub, rx) = samples(&z, subscribed).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
         let (a, b) = (truth(0, POSES), truth(13, POSES));

@@ -6,11 +6,13 @@
 //! back on its binary key alone: served whole again. Both topologies a robot can use.
 
 use crate::common;
-use crate::robot_streams::{connect, same, samples, values, Samples, Topology, View};
+use crate::robot_streams::{
+    connect, robots_session, same, samples, values, Samples, Topology, View,
+};
 
 use std::time::{Duration, Instant};
 
-use common::server::{client, create, get, post};
+use common::server::{get, post};
 use common::square_walk::{closure, robot_batch, truth};
 use serde_json::{json, Value};
 
@@ -35,14 +37,8 @@ fn wait_for(rx: &Samples, base: &str, view: &mut View, what: &str, done: impl Fn
 
 async fn a_late_robot_is_served_whole(topology: Topology) {
     let (_router, s, z) = connect(topology).await;
-    let c = client();
+    let c = robots_session(&s, SESSION).await;
     let url = |path: &str| s.url(&format!("/v1/sessions/{SESSION}{path}"));
-    create(
-        &c,
-        &s,
-        &json!({"session": SESSION, "kind": "pose_graph_2d", "robots": {"min_closures": 3}}),
-    )
-    .await;
     let (a, b) = (truth(0, 40), truth(13, 30));
     for body in [
         robot_batch('a', &a, 0..30),
