@@ -276,7 +276,9 @@ class HttpClient:
         max_update_ms: Optional[int] = None,
     ) -> wire.SessionInfo:
         """``POST /v1/sessions``. ``kind``: ``pose_graph_2d`` | ``pose_graph_3d``; ``options``:
-        solver options (``method``, ``max_iterations``, ``function_tolerance``, ...);
+        solver options (``method``, ``max_iterations``, ``function_tolerance``, ...), each
+        one given overriding the kind's default (``{"max_iterations": 20}`` on a
+        ``bundle_adjustment`` keeps its damped Levenberg-Marquardt);
         ``auto_optimize``: a policy dict such as ``{"policy": "every_n_factors", "factors": 50}``
         or just the policy name (``"every_batch"``, ``"manual"``); ``factor_types``: user-defined
         factor types (proto/v1/factor-type.schema.json), used by name in batches; ``robots``:
