@@ -48,6 +48,7 @@ pub use log::{read_log, Fsync, LogWriter};
 
 use crate::api::fusion::FusionMessage;
 use crate::api::wire::{AutoOptimize, Batch, CreateSession, FactorId, FactorSpec, VariableSpec};
+use crate::problem::Key;
 
 /// `journal` in the server configuration.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -117,6 +118,11 @@ pub struct Snapshot {
     /// Every factor type declared at `sequence` (compiled before the factors are restored).
     #[serde(default)]
     pub factor_types: Vec<crate::factors::expression::FactorTypeDefinition>,
+    /// A bundle adjustment's given values (what its client sent for each variable, and
+    /// guesses since), where its restarts start from; `variables` hold the estimate. Absent in
+    /// snapshots of other kinds, and in those written before it was kept.
+    #[serde(default)]
+    pub given: Vec<(Key, Vec<f64>)>,
 }
 
 /// A producer's progress in a session, as a snapshot keeps it (the journal's batches after the
@@ -153,6 +159,8 @@ pub struct SnapshotOut<'a> {
     pub producers: &'a [ProducerRecord],
     #[serde(skip_serializing_if = "<[_]>::is_empty")]
     pub factor_types: &'a [crate::factors::expression::FactorTypeDefinition],
+    #[serde(skip_serializing_if = "<[_]>::is_empty")]
+    pub given: &'a [(Key, &'a [f64])],
 }
 
 /// `[[id, spec], ...]` in id order, as `Vec<(FactorId, FactorSpec)>` is written.

@@ -225,7 +225,9 @@ impl Session {
             robots.place_new_values(prepared);
         }
         if let (Some(d), Some(copy)) = (durable.as_deref_mut(), wire_copy) {
-            d.track(copy.factors, &factor_ids, prepared);
+            // A bundle adjustment's restarts start from the values given (`bundle`).
+            let keeps_given = !self.kind.eliminate.is_empty();
+            d.track(copy.factors, &factor_ids, prepared, keeps_given);
         }
         let new_values = st.mirror.accept(prepared, &factor_ids, sequence);
         let mut mirrored = Mirrored {

@@ -29,7 +29,8 @@ use super::incremental;
 use super::solve::SolveWork;
 use super::solve_budget::{SolveBudget, YieldToBatches};
 use super::Session;
-use crate::problem::{Problem, Values};
+use crate::api::catalogue;
+use crate::problem::{Key, Problem, Values};
 use crate::solver::{self, IterationReport, SolverError};
 use crate::variables::Variable;
 
@@ -79,8 +80,9 @@ enum Restart {
 
 /// The values a bundle adjustment's client gave: the variables' values as they arrived, and
 /// guesses since. Indexed like the problem's values; `None` where none was recorded. Snapshots
-/// do not keep them: a variable restored from one has the snapshot's value (the estimate when
-/// it was written) as its given value, and a restart after that starts from there.
+/// keep them (`journal::Snapshot::given`, tracked on the journal's side, since the problem is
+/// out with a solve while a snapshot is written): a session restored from one restarts from
+/// what its client sent, not from the estimate the snapshot holds.
 #[derive(Debug, Default)]
 pub(crate) struct GivenValues {
     values: Vec<Option<Box<dyn Variable>>>,
@@ -88,6 +90,9 @@ pub(crate) struct GivenValues {
     changed: bool,
     /// Bytes the given values hold (see [`GivenValues::bytes`]).
     held: usize,
+    /// Restored from a snapshot: the first solve starts from the snapshot's estimate, not from
+    /// these, so it does not stand for a restart.
+    restored: bool,
 }
 
 impl GivenValues {
@@ -100,7 +105,11 @@ impl GivenValues {
         if self.values.len() < problem.values.len() {
             self.values.resize_with(problem.values.len(), || None);
         }
-        let value = problem.values.variable(index).clone_box();
+        self.replace(index, problem.values.variable(index).clone_box());
+    }
+
+    /// `value` as variable `index`'s given value (recorded before).
+    fn replace(&mut self, index: usize, value: Box<dyn Variable>) {
         self.held += value_bytes(value.as_ref());
         if let Some(old) = self.values[index].replace(value) {
             self.held -= value_bytes(old.as_ref());
@@ -142,6 +151,36 @@ fn value_bytes(value: &dyn Variable) -> usize {
 }
 
 impl Session {
+    /// A snapshot's given values in place of its estimate, which restoring its variables
+    /// recorded as given; tracked again for the next snapshot.
+    pub(super) fn restore_given(&self, given: Vec<(Key, Vec<f64>)>) -> Result<(), String> {
+        if given.is_empty() {
+            return Ok(());
+        }
+        let mut st = self.lock();
+        let mut durable = self.durable.lock().unwrap_or_else(|p| p.into_inner());
+        let model = &mut st.model;
+        let (Some(problem), Some(index)) = (model.problem.as_ref(), model.index.as_mut()) else {
+            // Recovery solves nothing before it ends, so the problem is here.
+            return Err("snapshot: the problem was out with a solve during recovery".into());
+        };
+        for (key, value) in given {
+            let at = problem.values.index_of(key).ok_or_else(|| {
+                format!("snapshot: a given value for variable {key}, which it does not hold")
+            })?;
+            let kind = problem.values.variable(at).kind();
+            let codec = catalogue::variable_codec(kind).expect("every kind has a codec");
+            let decoded = (codec.decode)(&value)
+                .map_err(|e| format!("snapshot: the given value of variable {key}: {e}"))?;
+            index.given.replace(at, decoded);
+            index.given.restored = true;
+            if let Some(d) = durable.as_mut() {
+                d.track_given(key, value);
+            }
+        }
+        Ok(())
+    }
+
     /// A bundle adjustment's steps after its solve: lost points placed again, and a restart
     /// from the given values when the client asked for the solve or the session rested. Other
     /// problems, and solves that were interrupted, pass through; a solve that ran its course
@@ -159,7 +198,7 @@ impl Session {
         if work.problem.eliminate.is_empty() || interrupted {
             return Ok(resolved);
         }
-        if work.solve_number == 1 {
+        if work.solve_number == 1 && !work.index.given.restored {
             // The first solve started from the given values: a restart would repeat it.
             work.index.given.settle();
         }

@@ -24,6 +24,7 @@ use crate::api::ServiceError;
 use crate::journal::{
     Entry, JournalConfig, JournalError, LogWriter, Recovered, SessionDir, Snapshot,
 };
+use crate::problem::Key;
 use snapshot::{Base, Capture, Change, Files};
 
 /// What makes a session durable: its directory, its open journal and the policy.
@@ -148,17 +149,21 @@ impl Durable {
     }
 
     /// Records what a snapshot must hold of an accepted batch: its variables (kind, fixed), its
-    /// fixes, its factors under their ids and its removals, in the order they are applied.
+    /// fixes, its factors under their ids and its removals, in the order they are applied; with
+    /// `keeps_given` (a bundle adjustment) also the values its client gave (the variables' and
+    /// the guesses), which its restarts start from.
     pub(super) fn track(
         &mut self,
         specs: Vec<FactorSpec>,
         ids: &[FactorId],
         prepared: &PreparedBatch,
+        keeps_given: bool,
     ) {
         let variables = prepared.variables.iter().map(|v| Change::Variable {
             key: v.key,
             kind: v.value.kind(),
             fixed: v.fixed,
+            given: keeps_given.then(|| catalogue::encode_variable(v.value.as_ref())),
         });
         let fixes = prepared
             .fix
@@ -169,10 +174,28 @@ impl Durable {
             .zip(specs)
             .map(|(&id, spec)| Change::Factor { id, spec });
         let removals = prepared.remove.iter().map(|&id| Change::Remove { id });
-        for change in variables.chain(fixes).chain(factors).chain(removals) {
-            self.changes_bytes += change.bytes();
-            self.changes.push(change);
+        let guesses = prepared
+            .guesses
+            .iter()
+            .filter(|_| keeps_given)
+            .map(|(key, value)| Change::Given {
+                key: *key,
+                value: catalogue::encode_variable(value.as_ref()),
+            });
+        let changes = variables.chain(fixes).chain(factors).chain(removals);
+        for change in changes.chain(guesses) {
+            self.push_change(change);
         }
+    }
+
+    /// Records a given value a snapshot restored (see [`Self::track`]).
+    pub(super) fn track_given(&mut self, key: Key, value: Vec<f64>) {
+        self.push_change(Change::Given { key, value });
+    }
+
+    fn push_change(&mut self, change: Change) {
+        self.changes_bytes += change.bytes();
+        self.changes.push(change);
     }
 
     /// Starts a snapshot once enough entries have accumulated and none is being written: takes
@@ -384,6 +407,7 @@ impl Session {
         };
         self.replay_batch(batch, Some(ids), true)
             .map_err(|e| format!("snapshot: {}", e.body.message))?;
+        self.restore_given(snapshot.given)?;
         let mut st = self.lock();
         st.producers = super::producers::Producers::from_records(snapshot.producers);
         st.mirror.sequence = snapshot.sequence;

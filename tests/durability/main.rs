@@ -7,6 +7,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod ba_given_snapshot;
 mod durability;
 mod durability_damage;
 mod durability_delete_create;

@@ -3,8 +3,6 @@
 //! done, or the stream's rest, ends at the batch solve of what was sent (`session::bundle`).
 //! Each streamed update after the first runs at most 20 iterations (the rest converges).
 
-use std::collections::{BTreeMap, BTreeSet, HashSet};
-
 use crate::common;
 
 use common::server::{client, create, get, post, post_raw, TestServer};
@@ -12,56 +10,6 @@ use serde_json::{json, Value};
 
 /// Cameras per batch: seven batches for problem-49's 49 cameras.
 const CAMERAS_PER_BATCH: usize = 7;
-
-/// The stream: batches of cameras in index order; a point enters (with the file's value) once
-/// two sent cameras see it, with every observation of it by sent cameras; later observations
-/// arrive with their cameras.
-fn camera_batches(text: &str) -> Vec<Value> {
-    let bal = factord::io::bal::parse(std::path::Path::new("bal"), text).unwrap();
-    let problem = &bal.problem;
-    let value = |key: u64| {
-        let v = problem.values.get(key).unwrap();
-        json!({"key": key, "kind": v.kind(), "value": factord::api::catalogue::encode_variable(v)})
-    };
-    let observations = common::bal_session::observations(problem);
-    let cameras = problem
-        .values
-        .keys()
-        .iter()
-        .filter(|&&k| problem.values.get(k).unwrap().kind() == "snavely_camera")
-        .count() as u64;
-    let mut entered = HashSet::new();
-    let mut batches = Vec::new();
-    for first in (0..cameras).step_by(CAMERAS_PER_BATCH) {
-        let sent = first + CAMERAS_PER_BATCH as u64;
-        let mut variables: Vec<Value> = (first..sent.min(cameras)).map(value).collect();
-        let mut seen_by: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
-        for &(camera, point, _) in &observations {
-            if camera < sent {
-                seen_by.entry(point).or_default().push(camera);
-            }
-        }
-        let entering: BTreeSet<u64> = seen_by
-            .iter()
-            .filter(|(point, cams)| cams.len() >= 2 && !entered.contains(*point))
-            .map(|(&point, _)| point)
-            .collect();
-        variables.extend(entering.iter().copied().map(value));
-        let factors: Vec<Value> = observations
-            .iter()
-            .filter(|(camera, point, _)| {
-                *camera < sent
-                    && (entering.contains(point) || (*camera >= first && entered.contains(point)))
-            })
-            .map(common::bal_session::factor)
-            .collect();
-        entered.extend(entering);
-        batches.push(json!({"variables": variables, "factors": factors}));
-    }
-    // Every BAL point is seen twice or more: the stream ends at the whole problem.
-    assert_eq!(entered.len() as u64, problem.values.len() as u64 - cameras);
-    batches
-}
 
 /// Streams problem-49 into a new session `name` and returns its chi2 when the stream is done.
 async fn stream(c: &reqwest::Client, s: &TestServer, name: &str, batches: &[Value]) -> f64 {
@@ -98,7 +46,7 @@ async fn a_bal_problem_streamed_by_cameras_ends_at_the_batch_optimum_asked_or_at
     assert_eq!(status, 200, "{job}");
     let batch_chi2 = job["summary"]["final_chi2"].as_f64().unwrap();
     let at_batch = |chi2: f64| (chi2 - batch_chi2).abs() <= 1e-6 * batch_chi2;
-    let batches = camera_batches(&text);
+    let batches = common::bal_session::camera_batches(&text, CAMERAS_PER_BATCH);
 
     // Asked for at once when the stream is done: the client waits for the restart.
     let streamed = stream(&c, &s, "asked", &batches).await;

@@ -40,10 +40,17 @@ pub(super) type Files = Arc<Mutex<bool>>;
 
 /// Something journalled that a snapshot must hold.
 pub(super) enum Change {
+    /// `given`: its value as the client gave it (wire encoding), kept for a bundle adjustment.
     Variable {
         key: Key,
         kind: &'static str,
         fixed: bool,
+        given: Option<Vec<f64>>,
+    },
+    /// A bundle adjustment's guess: the variable's given value from now on.
+    Given {
+        key: Key,
+        value: Vec<f64>,
     },
     Fix {
         key: Key,
@@ -63,6 +70,10 @@ impl Change {
     pub(super) fn bytes(&self) -> usize {
         match self {
             Change::Factor { spec, .. } => spec_bytes(spec),
+            Change::Variable {
+                given: Some(value), ..
+            }
+            | Change::Given { value, .. } => std::mem::size_of::<Change>() + 8 * value.len(),
             _ => std::mem::size_of::<Change>(),
         }
     }
@@ -81,13 +92,22 @@ pub(super) fn spec_bytes(f: &FactorSpec) -> usize {
 
 const VARIABLE_BYTES: usize = std::mem::size_of::<(Key, VariableMeta)>() + NODE;
 
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 struct VariableMeta {
     kind: &'static str,
     fixed: bool,
+    /// A bundle adjustment's given value (see [`Change::Variable`]).
+    given: Option<Vec<f64>>,
 }
 
-/// The journalled variables (kind, fixed) and factors (wire form, by id) as of the last capture.
+impl VariableMeta {
+    fn bytes(&self) -> usize {
+        VARIABLE_BYTES + self.given.as_ref().map_or(0, |g| 8 * g.len())
+    }
+}
+
+/// The journalled variables (kind, fixed, a bundle adjustment's given value) and factors (wire
+/// form, by id) as of the last capture.
 #[derive(Default)]
 pub(super) struct Base {
     variables: BTreeMap<Key, VariableMeta>,
@@ -105,13 +125,23 @@ impl Base {
     pub(super) fn apply(&mut self, changes: Vec<Change>) {
         for change in changes {
             match change {
-                Change::Variable { key, kind, fixed } => {
-                    if self
-                        .variables
-                        .insert(key, VariableMeta { kind, fixed })
-                        .is_none()
-                    {
-                        self.bytes += VARIABLE_BYTES;
+                Change::Variable {
+                    key,
+                    kind,
+                    fixed,
+                    given,
+                } => {
+                    let meta = VariableMeta { kind, fixed, given };
+                    self.bytes += meta.bytes();
+                    if let Some(old) = self.variables.insert(key, meta) {
+                        self.bytes -= old.bytes();
+                    }
+                }
+                Change::Given { key, value } => {
+                    if let Some(meta) = self.variables.get_mut(&key) {
+                        self.bytes -= meta.bytes();
+                        meta.given = Some(value);
+                        self.bytes += meta.bytes();
                     }
                 }
                 Change::Fix { key, fixed } => {
@@ -137,7 +167,11 @@ impl Base {
     /// The estimate from walking everything (what `bytes` keeps): for tests.
     #[cfg(test)]
     pub(super) fn walked_bytes(&self) -> usize {
-        self.variables.len() * VARIABLE_BYTES + self.factors.values().map(spec_bytes).sum::<usize>()
+        self.variables
+            .values()
+            .map(VariableMeta::bytes)
+            .sum::<usize>()
+            + self.factors.values().map(spec_bytes).sum::<usize>()
     }
 }
 
@@ -197,6 +231,11 @@ impl Session {
             .snapshot_variables(&base)
             .and_then(|(variables, longest)| {
                 chunk_locked = longest;
+                let given: Vec<(Key, &[f64])> = base
+                    .variables
+                    .iter()
+                    .filter_map(|(&key, meta)| Some((key, meta.given.as_deref()?)))
+                    .collect();
                 let bytes = serde_json::to_vec(&SnapshotOut {
                     sequence,
                     next_factor_id,
@@ -205,6 +244,7 @@ impl Session {
                     factors: &base.factors,
                     producers: &producers,
                     factor_types: &factor_types,
+                    given: &given,
                 })
                 .expect("snapshots serialise");
                 drop(variables);
