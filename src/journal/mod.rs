@@ -579,10 +579,12 @@ mod tests {
             factors: &factors,
             producers: &[],
             factor_types: &[],
+            given: &[(1, &[0.5, 0.0, 0.0])],
         })
         .unwrap();
         let read: Snapshot = serde_json::from_slice(&bytes).unwrap();
         assert_eq!((read.sequence, read.next_factor_id), (12, 8));
+        assert_eq!(read.given, [(1, vec![0.5, 0.0, 0.0])]);
         assert_eq!(read.factors.iter().map(|f| f.0).collect::<Vec<_>>(), [3, 7]);
         assert_eq!(read.variables.len(), 2);
         assert!(read.variables[0].fixed);
