@@ -45,11 +45,11 @@ impl SolveWork {
     /// after the first and need not converge: a streamed update, or a solve a restart from the
     /// given values follows. [`SolveWork::uncap`] gives the session's limit back.
     pub(super) fn cap_bundle_iterations(&mut self) {
-        let streamed = !self.tight && !self.asked && !self.restart_when_idle;
-        let restart_follows = (self.asked || self.restart_when_idle) && self.index.given.changed;
         if self.problem.eliminate.is_empty() || self.solve_number < 2 {
             return;
         }
+        let streamed = !self.tight && !self.asked && !self.restart_when_idle;
+        let restart_follows = (self.asked || self.restart_when_idle) && self.index.given.changed;
         if streamed || restart_follows {
             self.uncapped.get_or_insert(self.options.max_iterations);
             self.options.max_iterations = self.options.max_iterations.min(CAPPED_ITERATIONS);
@@ -202,12 +202,7 @@ impl Session {
             // The first solve started from the given values: a restart would repeat it.
             work.index.given.settle();
         }
-        // Mid-way (a solve stopped by its iteration cap) a point behind its cameras may be on
-        // its way back: placing it then left problem-49's stream at 18 × its cost.
-        let resolved = match resolved.converged {
-            true => self.place_lost_points(work, resolved, on_iteration, budget)?,
-            false => resolved,
-        };
+        let resolved = self.place_lost_points(work, resolved, on_iteration, budget)?;
         let asked_or_rested = work.asked || work.restart_when_idle;
         let resolved = if asked_or_rested && work.index.given.changed {
             let cut_short = work.uncap() && !resolved.converged;
@@ -230,12 +225,7 @@ impl Session {
                     let summary =
                         index.solve_whole(problem, &work.options, on_iteration, restart_budget)?;
                     let resolved = index.adopt_whole(problem, summary);
-                    match resolved.converged {
-                        true => {
-                            self.place_lost_points(work, resolved, on_iteration, restart_budget)?
-                        }
-                        false => resolved,
-                    }
+                    self.place_lost_points(work, resolved, on_iteration, restart_budget)?
                 }
                 Restart::Kept(resolved)
                 | Restart::NotLower(resolved)
@@ -251,7 +241,9 @@ impl Session {
     }
 
     /// Points a converged solve left behind every camera that sees them, triangulated again,
-    /// and the whole problem solved once more from there.
+    /// and the whole problem solved once more from there. A solve that did not converge passes
+    /// through: mid-way (stopped by its iteration cap) a point behind its cameras may be on its
+    /// way back, and placing it then left problem-49's stream at 18 × its cost.
     fn place_lost_points(
         &self,
         work: &mut SolveWork,
@@ -259,6 +251,9 @@ impl Session {
         on_iteration: &mut dyn FnMut(&IterationReport) -> ControlFlow<()>,
         budget: &dyn solver::Budget,
     ) -> Result<incremental::Resolved, SolverError> {
+        if !resolved.converged {
+            return Ok(resolved);
+        }
         let lost = solver::retriangulate::lost_points(&work.problem);
         let placed = solver::retriangulate::retriangulate(&mut work.problem, &lost);
         if placed.is_empty() {

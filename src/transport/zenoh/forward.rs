@@ -62,7 +62,13 @@ pub(super) fn forward(
                 Some(audience) => tokio::select! {
                     event = events.next() => event,
                     () = audience.notified() => {
-                        robots = match serve_new_audiences(&zenoh, robots.take()).await {
+                        let zenoh = zenoh.clone();
+                        let served = on_blocking_thread(robots.take(), move |robots| {
+                            if let Some(robots) = robots {
+                                robots.serve_new_audiences(&zenoh);
+                            }
+                        });
+                        robots = match served.await {
                             Some(back) => back,
                             None => return, // the runtime is shutting down
                         };
@@ -93,39 +99,32 @@ pub(super) fn forward(
                 run.clear();
                 continue;
             }
-            // A put is synchronous, and a blocking one waits while the network is congested:
-            // on a blocking thread, so no runtime worker waits with it. The robots' streams go
-            // there and come back.
             let (zenoh, name, listened) = (zenoh.clone(), name.clone(), Arc::clone(&listened));
             let events = std::mem::take(&mut run);
-            let mut lent = robots.take();
-            let published = tokio::task::spawn_blocking(move || {
+            let published = on_blocking_thread(robots.take(), move |robots| {
                 let events = coalesce(events);
                 publish(&zenoh, &name, &listened, &events);
-                if let Some(robots) = lent.as_mut() {
+                if let Some(robots) = robots {
                     robots.publish(&zenoh, &events);
                 }
-                lent
             });
-            match published.await {
-                Ok(back) => robots = back,
-                Err(_) => return, // the runtime is shutting down
-            }
+            robots = match published.await {
+                Some(back) => back,
+                None => return, // the runtime is shutting down
+            };
         }
     });
 }
 
-/// [`RobotStreams::serve_new_audiences`] on a blocking thread (its puts may block); `None` when
-/// the runtime is shutting down.
-async fn serve_new_audiences(
-    zenoh: &zenoh::Session,
+/// `work` on a blocking thread with the robot streams lent to it: a put is synchronous, and a
+/// blocking one waits while the network is congested, so no runtime worker waits with it.
+/// Gives the streams back; `None` when the runtime is shutting down.
+async fn on_blocking_thread(
     mut lent: Option<RobotStreams>,
+    work: impl FnOnce(Option<&mut RobotStreams>) + Send + 'static,
 ) -> Option<Option<RobotStreams>> {
-    let zenoh = zenoh.clone();
     tokio::task::spawn_blocking(move || {
-        if let Some(robots) = lent.as_mut() {
-            robots.serve_new_audiences(&zenoh);
-        }
+        work(lent.as_mut());
         lent
     })
     .await
@@ -203,8 +202,6 @@ impl Listened {
     }
 }
 
-/// Keeps `heard` equal to whether `publisher` has matching subscribers; `None` when zenoh
-/// refused the listener (`heard` then stays true).
 /// The key of a session's estimates in binary.
 fn binary_poses_key(prefix: &str, session: &str) -> String {
     format!("{prefix}/{session}/bin/poses")

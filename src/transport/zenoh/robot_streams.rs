@@ -112,8 +112,7 @@ impl RobotStreams {
         );
     }
 
-    /// Declares the keys of the robots whose poses appear in `run` for the first time, and
-    /// notes the keys nobody hears any more.
+    /// Declares the keys of the robots whose poses appear in `run` for the first time.
     pub(super) async fn discover(&mut self, zenoh: &zenoh::Session, run: &[Arc<SessionEvent>]) {
         let mut seen = BTreeSet::new();
         for event in run {
