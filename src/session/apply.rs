@@ -596,7 +596,7 @@ mod tests {
         assert!(refused.body.message.contains("read-only"), "{refused:?}");
         assert_eq!(session.lock().mirror.sequence, u64::MAX);
         assert!(
-            session.lock().mirror.entries.get(&1).is_none(),
+            !session.lock().mirror.entries.contains_key(&1),
             "nothing applied"
         );
         assert!(session.corruption().is_some());

@@ -45,7 +45,7 @@ fn malformed_files_are_reported_with_line_and_reason() {
         ),
         (
             "inf",
-            format!("VERTEX_SE2 0 inf 0 0\n"),
+            "VERTEX_SE2 0 inf 0 0\n".to_string(),
             ":1:",
             "not finite",
         ),
@@ -75,7 +75,7 @@ fn malformed_files_are_reported_with_line_and_reason() {
         ),
         (
             "negative id",
-            format!("VERTEX_SE2 -1 0 0 0\n"),
+            "VERTEX_SE2 -1 0 0 0\n".to_string(),
             ":1:",
             "not a valid id",
         ),

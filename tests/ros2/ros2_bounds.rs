@@ -27,7 +27,7 @@ impl Cdr {
     }
 
     fn pad(&mut self, align: usize) {
-        while (self.0.len() - 4) % align != 0 {
+        while !(self.0.len() - 4).is_multiple_of(align) {
             self.0.push(0);
         }
     }

@@ -314,7 +314,8 @@ mod tests {
         let whole = std::fs::read(&path).unwrap();
         let sector = (last + HEADER + 600) / SECTOR * SECTOR;
         let absurd = |b: &mut Vec<u8>| b[last..last + 4].copy_from_slice(&u32::MAX.to_le_bytes());
-        let cases: [(&str, &dyn Fn(&mut Vec<u8>)); 4] = [
+        type Damage<'a> = &'a dyn Fn(&mut Vec<u8>);
+        let cases: [(&str, Damage); 4] = [
             ("a write cut short", &|b| b[end - 100..end].fill(0)),
             ("a sector not written", &|b| {
                 b[sector..sector + SECTOR].fill(0)

@@ -296,10 +296,13 @@ pub async fn require_token(
     let asserted = request
         .extensions()
         .get::<super::fleet_caller::AssertedCaller>()
-        .map(|a| Ok(a.principal()));
-    let principal = match asserted.unwrap_or_else(|| authenticate(&tokens, &request, peer, open)) {
-        Ok(principal) => principal,
-        Err(refusal) => return refusal,
+        .map(|a| a.principal());
+    let principal = match asserted {
+        Some(principal) => principal,
+        None => match authenticate(&tokens, &request, peer, open) {
+            Ok(principal) => principal,
+            Err(refusal) => return refusal,
+        },
     };
     let caller = match principal {
         Some(label) if path == "/metrics" && !tokens.is_operator(&label) => {

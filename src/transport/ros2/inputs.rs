@@ -75,7 +75,8 @@ pub(super) enum Topic {
 /// A decoded message (its values still to check: [`Message::checked_stamp`]).
 #[derive(Clone)]
 pub(super) enum Message {
-    Odometry(Odometry),
+    /// Boxed: an odometry message (pose and twist with their covariances) is the largest.
+    Odometry(Box<Odometry>),
     Prior(PoseWithCovarianceStamped),
     Imu(Imu),
     LoopClosure(LoopClosure),
@@ -110,7 +111,9 @@ impl Topic {
     fn decode(self, payload: impl Read, len: usize) -> Result<Message, cdr_codec::CdrError> {
         use cdr_codec::decode_from;
         Ok(match self {
-            Topic::Odometry => Message::Odometry(decode_from(payload, len, ODOMETRY.name)?),
+            Topic::Odometry => {
+                Message::Odometry(Box::new(decode_from(payload, len, ODOMETRY.name)?))
+            }
             Topic::Prior => {
                 let name = POSE_WITH_COVARIANCE_STAMPED.name;
                 Message::Prior(decode_from(payload, len, name)?)
