@@ -42,6 +42,7 @@
 //! - `fusion.rs`: applying fusion messages to a window and optimising it at keyframes.
 
 mod apply;
+mod background_priority;
 pub mod batch;
 mod bundle;
 mod durable;

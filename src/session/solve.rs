@@ -7,6 +7,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
+use super::background_priority::Background;
 use super::incremental::{self, IncrementalSolver};
 use super::mirror::MovedValues;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
@@ -113,7 +114,13 @@ impl Session {
         let _span = tracing::info_span!("session", session = %self.name, solve = work.solve_number)
             .entered();
         let start = Instant::now();
-        let carried = self.lock().schedule.carried;
+        let (carried, answered_provisionally) = {
+            let st = self.lock();
+            (st.schedule.carried, st.latency.is_some())
+        };
+        // With a latency budget this solve is off the request path: it yields the cores to
+        // what is on it until it lands (see `background_priority`).
+        let background = answered_provisionally.then(Background::enter);
         let budget = SolveBudget::new(&self, start, carried);
         let (result, preempted) = self.run_solver(&mut work, &budget, start);
         let run = Run {
@@ -141,6 +148,8 @@ impl Session {
             .as_ref()
             .ok()
             .map(|r| MovedValues::encode(&work.problem, r.moved.as_deref()));
+        // The landing holds the session's lock, which the request path waits for.
+        drop(background);
         self.journal_barrier();
         let mut st = self.lock();
         let landing = Instant::now();

@@ -256,6 +256,7 @@ impl Session {
         };
         let compacted = match outcome {
             Ok(Outcome::Written { bytes, compaction }) => {
+                d.last_snapshot_bytes = bytes;
                 let locked = Instant::now();
                 let compacted = compaction.finish(&mut d.journal);
                 // `finish_locked_ms`: the journal's lock held for the records appended meanwhile
