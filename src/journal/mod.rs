@@ -61,6 +61,9 @@ pub struct JournalConfig {
     pub interval_ms: u64,
     /// Write a snapshot and start a new journal after this many entries.
     pub snapshot_every: u64,
+    /// And, once a session's snapshot exceeds 1 MiB, only when its journal has grown to this
+    /// share of the last snapshot (0: every `snapshot_every` entries, whatever their size).
+    pub snapshot_journal_share: f64,
 }
 
 impl Default for JournalConfig {
@@ -70,6 +73,7 @@ impl Default for JournalConfig {
             fsync: Fsync::Always,
             interval_ms: 100,
             snapshot_every: 2000,
+            snapshot_journal_share: 0.25,
         }
     }
 }

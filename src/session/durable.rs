@@ -62,7 +62,7 @@ pub(super) struct Durable {
     files: Files,
     entries_since_snapshot: u64,
     /// Bytes of the last snapshot written (0: none yet in this process), against which the
-    /// journal's growth is weighed ([`SNAPSHOT_TO_JOURNAL`]).
+    /// journal's growth is weighed ([`PROPORTIONAL_SNAPSHOTS_FROM`]).
     last_snapshot_bytes: usize,
     /// Time the last append spent in fsync.
     pub(super) last_fsync: Duration,
@@ -78,17 +78,16 @@ fn journal_failed(name: &str, e: impl std::fmt::Display) -> ServiceError {
     )
 }
 
-/// A snapshot of at least this many bytes is followed by the next only once the journal has
-/// grown to a [`SNAPSHOT_TO_JOURNAL`]th of it (besides `journal.snapshot_every` entries).
+/// From this size on, a session's next snapshot also waits for its journal to grow to
+/// `journal.snapshot_journal_share` of the last one (0.25 by default). With a snapshot every
+/// `snapshot_every` entries whatever its size, a 100 000-pose session wrote its 40 MB estimate
+/// every 2 000 updates (about 20 MB/s of a stream at 1 ms an update, 50 times what the journal
+/// itself wrote), and the journal's fsyncs waited behind those writes: a third to a half of
+/// the answers over 3 ms of a budgeted stream at 90 000–100 000 poses came in the 400 updates
+/// after a snapshot began (a fifth of the updates). Weighed against the journal, snapshots
+/// write at most about 1 / share times the journal's bytes, and a recovery replays about that
+/// share of the snapshot it loads at most.
 const PROPORTIONAL_SNAPSHOTS_FROM: usize = 1 << 20;
-/// With a snapshot every `snapshot_every` entries whatever its size, a 100 000-pose session
-/// wrote its 40 MB estimate every 2 000 updates (about 20 MB/s of a stream at 1 ms an update,
-/// 50 times what the journal itself wrote), and the journal's fsyncs waited behind those
-/// writes: a third to a half of the answers over 3 ms of a budgeted stream at 90 000–100 000
-/// poses came in the 400 updates after a snapshot began (a fifth of the updates). Weighed
-/// against the journal, snapshots write about this many times the journal's bytes at most, and
-/// a recovery replays about a quarter of the snapshot it loads at most.
-const SNAPSHOT_TO_JOURNAL: usize = 4;
 
 impl Durable {
     /// Journals `entry`, durable (under `fsync always`) when this returns.
@@ -263,11 +262,12 @@ impl Durable {
             .spawn_blocking(move || session.write_snapshot(capture));
     }
 
-    /// Whether the journal since the last snapshot is still small beside it: a large
-    /// session's next snapshot waits until the journal is a [`SNAPSHOT_TO_JOURNAL`]th of it.
+    /// Whether the journal since the last snapshot is still small beside it (see
+    /// [`PROPORTIONAL_SNAPSHOTS_FROM`]).
     fn journal_small_beside_snapshot(&self) -> bool {
         self.last_snapshot_bytes >= PROPORTIONAL_SNAPSHOTS_FROM
-            && self.journal.bytes() as usize * SNAPSHOT_TO_JOURNAL < self.last_snapshot_bytes
+            && (self.journal.bytes() as f64)
+                < self.config.snapshot_journal_share * self.last_snapshot_bytes as f64
     }
 
     /// The base back from a snapshot (written or not): the next one may start.

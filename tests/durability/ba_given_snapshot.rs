@@ -29,7 +29,7 @@ async fn a_recovered_bundle_adjustment_restarts_from_the_values_its_client_sent(
     // A snapshot after every batch: the last one holds the whole stream.
     std::fs::write(
         &config,
-        json!({"journal": {"snapshot_every": 1}}).to_string(),
+        json!({"journal": {"snapshot_every": 1, "snapshot_journal_share": 0.0}}).to_string(),
     )
     .unwrap();
     let config = config.display().to_string();
