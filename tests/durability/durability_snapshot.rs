@@ -13,11 +13,13 @@ use common::server::{client, create, get, post, recovered, TestServer};
 use serde_json::{json, Value};
 
 /// Beside the state directory, named after it: the tests run at once and must not share it.
+/// A snapshot every `snapshot_every` entries whatever its size (these tests want them often).
 fn config_file(state: &Path, snapshot_every: u64) -> String {
     let path = state.with_extension("json");
     std::fs::write(
         &path,
-        json!({"journal": {"snapshot_every": snapshot_every}}).to_string(),
+        json!({"journal": {"snapshot_every": snapshot_every, "snapshot_journal_share": 0.0}})
+            .to_string(),
     )
     .unwrap();
     path.display().to_string()
@@ -243,4 +245,74 @@ async fn deleting_a_session_while_its_snapshot_is_written_resurrects_nothing() {
         "no tombstone or stray directory is left"
     );
     s.assert_no_panic();
+}
+
+/// Past 1 MiB, a session's next snapshot waits until its journal has grown to
+/// `journal.snapshot_journal_share` of the last one (0.25 by default): a large map is not
+/// rewritten whole every `snapshot_every` entries. Small batches after a 20 000-pose snapshot
+/// leave it where it is; a quarter of its size in journal brings the next.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_large_session_snapshots_in_proportion_to_its_journal() {
+    let state = common::temp_dir("snapshot-share");
+    let path = state.with_extension("json");
+    std::fs::write(&path, json!({"journal": {"snapshot_every": 2}}).to_string()).unwrap();
+    let config = path.display().to_string();
+    let extra = ["--no-zenoh", "--config", config.as_str()];
+    let c = client();
+    let s = TestServer::start_at(&state, &extra, &[]);
+    create(
+        &c,
+        &s,
+        &json!({"session": "big", "kind": "pose_graph_2d", "auto_optimize": {"policy": "manual"}}),
+    )
+    .await;
+    let url = s.url("/v1/sessions/big/batches");
+    assert_eq!(post(&c, &url, &chain(20_000)).await.0, 200);
+    assert_eq!(post(&c, &url, &next_pose(20_000)).await.0, 200);
+    snapshot_reaches(&state, 2).await;
+    let bytes = std::fs::metadata(state.join("sessions/big/snapshot.json"))
+        .unwrap()
+        .len();
+    assert!(
+        bytes > 1 << 20,
+        "a snapshot of {bytes} bytes is not a large one"
+    );
+    // Twenty small batches: ten times `snapshot_every`, far from a quarter of the snapshot.
+    for k in 20_001..20_021 {
+        assert_eq!(post(&c, &url, &next_pose(k)).await.0, 200);
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        snapshot_sequence(&state, "big"),
+        Some(2),
+        "snapshotted again too soon"
+    );
+    // Over a quarter of the snapshot in journal (a batch's entry is about as large per pose as
+    // the snapshot), then one entry more: the next snapshot follows.
+    let quarter = 7_000;
+    let far: Vec<Value> = (0..quarter)
+        .map(|k| json!({"key": 100_000 + k, "kind": "se2", "value": [k as f64, 1.0, 0.0]}))
+        .collect();
+    let factors: Vec<Value> = (1..quarter)
+        .map(|k| json!({"type": "between_se2", "keys": [100_000 + k - 1, 100_000 + k], "measurement": [1.0, 0.0, 0.0], "sigmas": [0.1, 0.1, 0.05]}))
+        .chain(std::iter::once(json!({"type": "between_se2", "keys": [0, 100_000], "measurement": [0.0, 1.0, 0.0], "sigmas": [0.1, 0.1, 0.05]})))
+        .collect();
+    let (status, v) = post(&c, &url, &json!({"variables": far, "factors": factors})).await;
+    assert_eq!(status, 200, "{v}");
+    assert_eq!(post(&c, &url, &next_pose(20_021)).await.0, 200);
+    let (_, stats) = get(&c, &s.url("/v1/sessions/big")).await;
+    snapshot_reaches(&state, stats["sequence"].as_u64().unwrap() - 1).await;
+    s.assert_no_panic();
+}
+
+/// Waits until session `big`'s snapshot in `state` is of `sequence` or later.
+async fn snapshot_reaches(state: &Path, sequence: u64) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while snapshot_sequence(state, "big") < Some(sequence) {
+        assert!(
+            Instant::now() < deadline,
+            "no snapshot of sequence {sequence}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
 }
