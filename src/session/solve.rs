@@ -105,6 +105,17 @@ impl Session {
         })
     }
 
+    /// What a solve's turn starts with: the time its preempted turns took, and, in a session
+    /// with a latency budget (its solves are off the request path), the lower priority it
+    /// computes at until it lands (see `background_priority`), taken outside the lock.
+    fn solve_turn(&self) -> (std::time::Duration, Option<Background>) {
+        let (carried, answered_provisionally) = {
+            let st = self.lock();
+            (st.schedule.carried, st.latency.is_some())
+        };
+        (carried, answered_provisionally.then(Background::enter))
+    }
+
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
     /// apply what arrived meanwhile, and reschedule if that needs another solve.
     pub(super) fn solve_once(self: Arc<Self>) {
@@ -114,13 +125,7 @@ impl Session {
         let _span = tracing::info_span!("session", session = %self.name, solve = work.solve_number)
             .entered();
         let start = Instant::now();
-        let (carried, answered_provisionally) = {
-            let st = self.lock();
-            (st.schedule.carried, st.latency.is_some())
-        };
-        // With a latency budget this solve is off the request path: it yields the cores to
-        // what is on it until it lands (see `background_priority`).
-        let background = answered_provisionally.then(Background::enter);
+        let (carried, background) = self.solve_turn();
         let budget = SolveBudget::new(&self, start, carried);
         let (result, preempted) = self.run_solver(&mut work, &budget, start);
         let run = Run {
