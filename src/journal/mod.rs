@@ -186,6 +186,8 @@ pub struct Identity {
 #[derive(Debug)]
 pub struct Recovered {
     pub snapshot: Option<Snapshot>,
+    /// Bytes of the snapshot's file (0 without one).
+    pub snapshot_bytes: usize,
     pub entries: Vec<Entry>,
     /// Bytes of a torn journal tail that were cut off.
     pub truncated_bytes: u64,
@@ -460,9 +462,12 @@ impl SessionDir {
     /// journal as it is): the session's state, possibly large.
     pub fn load_state(&self) -> Result<Recovered, JournalError> {
         let snapshot_path = self.snapshot_path();
-        let snapshot = match std::fs::read(&snapshot_path) {
-            Ok(bytes) => Some(snapshot_file::decode(&snapshot_path, &bytes)?),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => None,
+        let (snapshot, snapshot_bytes) = match std::fs::read(&snapshot_path) {
+            Ok(bytes) => (
+                Some(snapshot_file::decode(&snapshot_path, &bytes)?),
+                bytes.len(),
+            ),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => (None, 0),
             Err(e) => return Err(io_at(&snapshot_path)(e)),
         };
         let journal = self.journal_path();
@@ -480,6 +485,7 @@ impl SessionDir {
         }
         Ok(Recovered {
             snapshot,
+            snapshot_bytes,
             entries,
             truncated_bytes: contents.truncated_bytes,
             corruption: contents

@@ -6,8 +6,9 @@
 //! provisional solve. A thread that wakes up from an fdatasync then waits for a core, and that
 //! wait can be as long as the scheduler's slice. A 300-byte append + fdatasync beside two busy
 //! loops here had a p99 of 1.5–7.4 ms, and 0.20 ms when the loops ran 10 nicer. On the
-//! 100 000-pose budgeted stream, the answers over 3 ms at 90 000–100 000 poses went from
-//! 602–666 to 437 with the exact solve 10 nicer.
+//! 100 000-pose budgeted stream (snapshots in proportion to the journal in both), the answers
+//! over 3 ms at 90 000–100 000 poses went from 602–666 to 437–581 with the exact solve 10
+//! nicer.
 //!
 //! Only the solve's computation is niced. The landing takes the session's lock, which the
 //! request path waits for, so the priority is restored before it: a niced thread preempted

@@ -61,7 +61,7 @@ pub(super) struct Durable {
     in_flight_bytes: usize,
     files: Files,
     entries_since_snapshot: u64,
-    /// Bytes of the last snapshot written (0: none yet in this process), against which the
+    /// Bytes of the last snapshot written or recovered from (0: none), against which the
     /// journal's growth is weighed ([`PROPORTIONAL_SNAPSHOTS_FROM`]).
     last_snapshot_bytes: usize,
     /// Time the last append spent in fsync.
@@ -374,6 +374,7 @@ impl Session {
         self.lock().auto = AutoOptimize::Manual {};
         self.attach(durability);
         let snapshot_sequence = recovered.snapshot.as_ref().map(|s| s.sequence);
+        let snapshot_bytes = recovered.snapshot_bytes;
         let corruption = recovered.corruption;
         if let Some(snapshot) = recovered.snapshot {
             auto = self.restore_snapshot(snapshot)?;
@@ -389,6 +390,8 @@ impl Session {
             .as_mut()
             .map(|d| {
                 d.entries_since_snapshot = entries as u64;
+                // The next snapshot weighs the journal against the one recovered from.
+                d.last_snapshot_bytes = snapshot_bytes;
                 d.dir.clone()
             });
         if let Some(dir) = dir {

@@ -303,6 +303,23 @@ async fn a_large_session_snapshots_in_proportion_to_its_journal() {
     let (_, stats) = get(&c, &s.url("/v1/sessions/big")).await;
     snapshot_reaches(&state, stats["sequence"].as_u64().unwrap() - 1).await;
     s.assert_no_panic();
+    // After a restart the journal is weighed against the snapshot recovered from: small
+    // batches leave it where it is again.
+    let last = snapshot_sequence(&state, "big");
+    s.kill();
+    let s = TestServer::start_at(&state, &extra, &[]);
+    recovered(&c, &s, "big", Instant::now()).await;
+    let url = s.url("/v1/sessions/big/batches");
+    for k in 20_022..20_042 {
+        assert_eq!(post(&c, &url, &next_pose(k)).await.0, 200);
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(
+        snapshot_sequence(&state, "big"),
+        last,
+        "snapshotted again too soon after the restart"
+    );
+    s.assert_no_panic();
 }
 
 /// Waits until session `big`'s snapshot in `state` is of `sequence` or later.
