@@ -89,7 +89,6 @@ pub mod range_se3_point3;
 pub mod relative_pose_nav;
 pub mod reprojection_snavely;
 pub mod robust;
-pub mod shared;
 pub mod testing;
 
 use std::any::Any;

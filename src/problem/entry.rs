@@ -1,14 +1,19 @@
 //! A factor as the problem holds it: the residual, its weight, its kernel, a label, and the dense
 //! indices of the variables it touches.
 
+use std::sync::Arc;
+
 use crate::factors::{EvaluationError, Factor, RobustKernel, SqrtInformation};
 use crate::variables::Variable;
 
 /// A factor in a problem: the residual function, its weight, its kernel, and a label naming it in
-/// errors (e.g. `EDGE_SE2 3 7 (intel-e.dat:12)`).
-#[derive(Debug)]
+/// errors (e.g. `EDGE_SE2 3 7 (intel-e.dat:12)`). A clone shares the factor.
+#[derive(Clone, Debug)]
 pub struct FactorEntry {
-    pub factor: Box<dyn Factor>,
+    /// Shared: a factor is not `Clone` (user-defined ones hold compiled tapes), and a copy of
+    /// the problem (a session's relinearisation beside its updates) or a session's window of
+    /// recent factors holds the same one.
+    pub factor: Arc<dyn Factor>,
     pub sqrt_information: SqrtInformation,
     pub robust: Option<RobustKernel>,
     pub label: String,

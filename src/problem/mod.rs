@@ -16,6 +16,8 @@ pub use values::Values;
 
 pub use crate::variables::{Key, Variable};
 
+use std::sync::Arc;
+
 use nalgebra::DMatrix;
 
 use crate::factors::{Factor, RobustKernel, SqrtInformation};
@@ -48,7 +50,8 @@ pub enum ProblemError {
     NonFiniteMeasurement { factor: String },
 }
 
-#[derive(Debug, Default)]
+/// A clone copies the values and shares the factors (see [`FactorEntry`]).
+#[derive(Clone, Debug, Default)]
 pub struct Problem {
     pub values: Values,
     factors: Vec<FactorEntry>,
@@ -151,6 +154,18 @@ impl Problem {
         robust: Option<RobustKernel>,
         label: String,
     ) -> Result<usize, ProblemError> {
+        self.push_factor(factor.into(), sqrt_information, robust, label, true)
+    }
+
+    /// As [`Problem::add_factor_sqrt`] for a factor another problem or a session's window
+    /// also holds.
+    pub fn add_shared_factor_sqrt(
+        &mut self,
+        factor: Arc<dyn Factor>,
+        sqrt_information: SqrtInformation,
+        robust: Option<RobustKernel>,
+        label: String,
+    ) -> Result<usize, ProblemError> {
         self.push_factor(factor, sqrt_information, robust, label, true)
     }
 
@@ -159,7 +174,7 @@ impl Problem {
     /// moved them somewhere the residual is not finite (that solve then fails, visibly).
     pub fn add_checked_factor_sqrt(
         &mut self,
-        factor: Box<dyn Factor>,
+        factor: Arc<dyn Factor>,
         sqrt_information: SqrtInformation,
         robust: Option<RobustKernel>,
         label: String,
@@ -171,7 +186,7 @@ impl Problem {
     /// the current values is finite; its index.
     fn push_factor(
         &mut self,
-        factor: Box<dyn Factor>,
+        factor: Arc<dyn Factor>,
         sqrt_information: SqrtInformation,
         robust: Option<RobustKernel>,
         label: String,
@@ -199,7 +214,7 @@ impl Problem {
     /// factor weighed against the problem before it may enter (a possibly wrong loop closure).
     pub fn detached_entry(
         &self,
-        factor: Box<dyn Factor>,
+        factor: Arc<dyn Factor>,
         sqrt_information: SqrtInformation,
         robust: Option<RobustKernel>,
         label: String,

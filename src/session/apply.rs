@@ -275,12 +275,12 @@ impl Session {
         self: &Arc<Self>,
         st: &mut State,
         sequence: u64,
-        mut prepared: PreparedBatch,
+        prepared: PreparedBatch,
         mirrored: &Mirrored,
         origin: Option<&Origin>,
     ) -> BatchAck {
         if let Some(latency) = st.latency.as_mut() {
-            latency.take_in(sequence, &mut prepared);
+            latency.take_in(sequence, &prepared);
         }
         let predicted = prepared.predicted.clone();
         // Only the factors that enter the problem (a session's robots hold some back).

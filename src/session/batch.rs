@@ -333,7 +333,7 @@ fn prepare_factor(
     }
     let candidate = is_candidate(view.outliers, spec.outlier, codec.name(), &spec.keys);
     Ok(PreparedFactor {
-        factor,
+        factor: factor.into(),
         sqrt_information,
         robust: spec.robust,
         candidate,

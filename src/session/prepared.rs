@@ -5,7 +5,7 @@ use crate::factors::{Factor, RobustKernel, SqrtInformation};
 use crate::problem::{Key, Variable};
 
 pub(crate) struct PreparedFactor {
-    pub factor: Box<dyn Factor>,
+    pub factor: std::sync::Arc<dyn Factor>,
     pub sqrt_information: SqrtInformation,
     pub robust: Option<RobustKernel>,
     /// A possibly wrong loop closure (`session::outliers`): held out of the problem until the

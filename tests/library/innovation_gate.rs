@@ -53,7 +53,7 @@ fn gate_and_rise(
 ) -> (f64, f64) {
     let entry = problem
         .detached_entry(
-            Box::new(BetweenSe2::new(i as u64, j as u64, z)),
+            std::sync::Arc::new(BetweenSe2::new(i as u64, j as u64, z)),
             SqrtInformation::from_information(&information()).unwrap(),
             None,
             "candidate".into(),

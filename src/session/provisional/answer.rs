@@ -18,7 +18,6 @@ use std::time::{Duration, Instant};
 use super::window::WindowFactor;
 use crate::api::catalogue;
 use crate::api::wire::{AutoOptimize, Estimate, SessionEvent};
-use crate::factors::shared::SharedFactor;
 use crate::problem::{Gauge, Key, Problem, Variable};
 use crate::session::mirror::value_of;
 use crate::session::{Session, State};
@@ -233,8 +232,8 @@ impl Work {
         }
         for f in self.factors {
             // A factor not finite at the published values gives the small solve nothing.
-            let _ = problem.add_factor_sqrt(
-                Box::new(SharedFactor(f.factor)),
+            let _ = problem.add_shared_factor_sqrt(
+                f.factor,
                 f.sqrt_information,
                 f.robust,
                 String::new(),

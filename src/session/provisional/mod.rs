@@ -136,12 +136,12 @@ impl Latency {
     /// Takes in an accepted batch: its new variables and factors join the window (its factors
     /// then reach the problem shared with it); one that changes more than it adds stops
     /// provisional answers until the exact estimate covers it.
-    pub fn take_in(&mut self, sequence: u64, prepared: &mut PreparedBatch) {
+    pub fn take_in(&mut self, sequence: u64, prepared: &PreparedBatch) {
         if prepared.changes_more_than_it_adds() {
             self.structural = self.structural.max(sequence);
         }
         let keys = prepared.variables.iter().map(|v| v.key);
-        self.window.record(sequence, keys, &mut prepared.factors);
+        self.window.record(sequence, keys, &prepared.factors);
     }
 
     pub fn report(&self, exact: u64) -> LatencyReport {

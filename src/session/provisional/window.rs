@@ -1,12 +1,11 @@
 //! The recent part of a session's map, kept beside the problem for provisional answers: the
 //! variables the newest batches created (in creation order) and the factors those batches
-//! added, shared with the problem (`factors::shared`) so that they stay readable while a worker
-//! has the problem.
+//! added, shared with the problem (a factor is held by an `Arc`) so that they stay readable while
+//! a worker has the problem.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use crate::factors::shared::SharedFactor;
 use crate::factors::{Factor, RobustKernel, SqrtInformation};
 use crate::problem::Key;
 use crate::session::prepared::PreparedFactor;
@@ -39,32 +38,23 @@ pub(crate) struct RecentWindow {
 
 impl RecentWindow {
     /// Records an accepted batch: its new variables and the factors that enter the problem
-    /// (candidates held out of it are left out here too). Each factor moves behind an `Arc`,
-    /// and the problem gets a [`SharedFactor`] of it.
+    /// (candidates held out of it are left out here too), sharing each factor with the problem.
     pub fn record(
         &mut self,
         sequence: u64,
         new_keys: impl IntoIterator<Item = Key>,
-        factors: &mut Vec<PreparedFactor>,
+        factors: &[PreparedFactor],
     ) {
         self.variables
             .extend(new_keys.into_iter().map(|key| (sequence, key)));
-        let taken = std::mem::take(factors);
-        factors.extend(taken.into_iter().map(|f| {
-            let shared: Arc<dyn Factor> = Arc::from(f.factor);
-            if !f.candidate {
-                self.factors.push_back(WindowFactor {
-                    sequence,
-                    factor: Arc::clone(&shared),
-                    sqrt_information: f.sqrt_information.clone(),
-                    robust: f.robust,
-                });
-            }
-            PreparedFactor {
-                factor: Box::new(SharedFactor(shared)),
-                ..f
-            }
-        }));
+        for f in factors.iter().filter(|f| !f.candidate) {
+            self.factors.push_back(WindowFactor {
+                sequence,
+                factor: Arc::clone(&f.factor),
+                sqrt_information: f.sqrt_information.clone(),
+                robust: f.robust,
+            });
+        }
         self.trim_to(MAX_WINDOW_VARIABLES);
     }
 
@@ -122,7 +112,7 @@ mod tests {
 
     fn odometry(from: Key) -> PreparedFactor {
         PreparedFactor {
-            factor: Box::new(BetweenSe2::new(from, from + 1, Se2::new(1.0, 0.0, 0.0))),
+            factor: Arc::new(BetweenSe2::new(from, from + 1, Se2::new(1.0, 0.0, 0.0))),
             sqrt_information: SqrtInformation::identity(3),
             robust: None,
             candidate: false,
@@ -133,10 +123,10 @@ mod tests {
     fn settling_keeps_a_margin_before_the_exact_estimate() {
         let mut window = RecentWindow::default();
         for pose in 1..=200u64 {
-            let mut factors = vec![odometry(pose - 1)];
-            window.record(pose, [pose], &mut factors);
-            // The problem's copy answers as the factor it shares.
-            assert_eq!(factors[0].factor.keys(), &[pose - 1, pose]);
+            let factors = vec![odometry(pose - 1)];
+            window.record(pose, [pose], &factors);
+            // The window shares the problem's factor.
+            assert_eq!(Arc::strong_count(&factors[0].factor), 2);
         }
         window.settle(150);
         let free = window.free(150);
@@ -156,7 +146,7 @@ mod tests {
     fn free_variables_are_bounded_when_the_exact_estimate_lags() {
         let mut window = RecentWindow::default();
         for pose in 1..=5000u64 {
-            window.record(pose, [pose], &mut vec![odometry(pose - 1)]);
+            window.record(pose, [pose], &[odometry(pose - 1)]);
         }
         let free = window.free(0);
         assert_eq!(free.len(), MAX_FREE_VARIABLES);
@@ -167,15 +157,15 @@ mod tests {
     #[test]
     fn candidates_stay_out_of_the_window() {
         let mut window = RecentWindow::default();
-        let mut factors = vec![
+        let factors = vec![
             odometry(0),
             PreparedFactor {
                 candidate: true,
                 ..odometry(5)
             },
         ];
-        window.record(1, [1], &mut factors);
-        assert_eq!(factors.len(), 2, "the problem still gets both");
+        window.record(1, [1], &factors);
         assert_eq!(window.touching(|_| true).len(), 1);
+        assert_eq!(Arc::strong_count(&factors[1].factor), 1, "not shared");
     }
 }

@@ -7,7 +7,6 @@ use std::sync::Arc;
 use nalgebra::DMatrix;
 use pyo3::prelude::*;
 
-pub use factord::factors::shared::SharedFactor;
 use factord::factors::{
     BearingRangeSe2, BearingSe2, BetweenSe2, BetweenSe3, Factor, GnssLeverArmSe3, GnssPositionSe3,
     PositionSe3Point3, PriorSe2, PriorSe3, RangeSe2, RangeSe2Point2, RangeSe3, RangeSe3Point3,
@@ -361,7 +360,7 @@ pub fn classify(py: Python<'_>, factor: &dyn Factor) -> PyResult<(FactorClass, O
 /// A factor of a file, as a graph keeps it: its noise model in GTSAM's order.
 pub fn from_library(
     py: Python<'_>,
-    factor: Box<dyn Factor>,
+    factor: Arc<dyn Factor>,
     sqrt_information: SqrtInformation,
     robust: Option<RobustKernel>,
     label: String,
@@ -374,7 +373,7 @@ pub fn from_library(
         library_information
     };
     Ok(FactorData {
-        factor: Arc::from(factor),
+        factor,
         sqrt_information,
         robust,
         noise: NoiseModel {

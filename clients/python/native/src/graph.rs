@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use factord::problem::{Gauge, Key, Problem};
 
 use crate::errors::{chi2_of, problem_error, FactordError};
-use crate::factors::{factor_object, FactorData, NonlinearFactor, SharedFactor};
+use crate::factors::{factor_object, FactorData, NonlinearFactor};
 use crate::noise::NoiseModel;
 use crate::planar::Pose2;
 use crate::spatial::Pose3;
@@ -55,8 +55,8 @@ pub fn build_problem<'a>(
 /// and evaluating every factor twice was a quarter of an in-process solve of intel.
 pub fn add_factor(problem: &mut Problem, data: &Arc<FactorData>) -> PyResult<usize> {
     let factor = match crate::custom::with_kinds(problem, data)? {
-        Some(factor) => factor,
-        None => Box::new(SharedFactor(data.factor.clone())),
+        Some(factor) => factor.into(),
+        None => Arc::clone(&data.factor),
     };
     problem
         .add_checked_factor_sqrt(
