@@ -212,6 +212,9 @@ def run_split(args, graph, robots, clean_chi2, clean_positions, optimum):
                 latencies.append(time.monotonic() - b0)
                 wrong_ids.update(i for i, w in zip(ack["factor_ids"], wrong) if w)
         total = time.monotonic() - t0
+        if args.dump_latencies:
+            Path(f"{args.dump_latencies}-{robots}.txt").write_text(
+                "".join(f"{s * 1e3:.4f}\n" for s in latencies))
         # The stream's last solves land; a consolidation waits for 0.5 s of rest, so what is
         # read here is the gate's work alone.
         time.sleep(0.2)
@@ -288,6 +291,9 @@ def main():
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--outliers", choices=["auto"], default=None,
                         help="create the session with outliers=auto (streamed rejection)")
+    parser.add_argument("--dump-latencies", metavar="PREFIX",
+                        help="write each update's latency (ms, one per line, in stream order) to "
+                             "PREFIX-<robots>.txt")
     args = parser.parse_args()
     path = args.data_dir / args.dataset
     graph = g2o.load(path)

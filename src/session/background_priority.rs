@@ -58,6 +58,16 @@ impl Drop for Background {
     }
 }
 
+/// Lowers the calling thread's priority for the rest of its life: for a thread that only
+/// computes in the background (`relinearize_beside`), so nothing needs restoring, and raising
+/// a nice value needs no privilege.
+pub(super) fn lower_for_good() {
+    #[cfg(target_os = "linux")]
+    if let Some(nice) = thread_nice() {
+        let _ = set_thread_nice(nice + NICER_BY);
+    }
+}
+
 /// Whether a thread may lower its nice value again after raising it (decided once, by a
 /// probe thread, so that no pool worker is ever left niced).
 #[cfg(target_os = "linux")]

@@ -59,6 +59,7 @@ mod prepared;
 mod producer_order;
 mod producers;
 mod provisional;
+mod relinearize_beside;
 mod robots;
 mod schedule;
 mod schedule_state;

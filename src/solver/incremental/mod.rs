@@ -158,6 +158,35 @@ impl IncrementalEngine {
         Ok((engine, report))
     }
 
+    /// As [`IncrementalEngine::new`], relinearising and solving as `params` say: a session
+    /// builds one on a copy of its problem at its estimate, beside its updates, to relinearise
+    /// the whole map off their path (`session::relinearize_beside`).
+    pub fn new_with(
+        problem: &mut Problem,
+        fixed: &[bool],
+        params: &UpdateParams,
+    ) -> Result<Self, SolverError> {
+        let mut engine = Self::default();
+        engine.advance(problem, Some(fixed), params)?;
+        Ok(engine)
+    }
+
+    /// Writes θ ⊕ Δ of every free variable this engine knows into `problem`, which holds at
+    /// least those variables in the same order: an engine built on a copy of a problem gives
+    /// the problem its estimate when it takes over (the held ones were never moved).
+    pub fn write_estimate(&self, problem: &mut Problem) {
+        for v in (0..self.theta.len()).filter(|&v| self.free[v]) {
+            self.write_variable(problem, v);
+        }
+    }
+
+    fn write_variable(&self, problem: &mut Problem, v: usize) {
+        let (o, d) = (self.offset[v], self.dims[v]);
+        let estimate = problem.values.variable_mut(v);
+        estimate.assign_from(self.theta[v].as_ref());
+        estimate.retract(&self.delta[o..o + d]);
+    }
+
     /// Memory the engine holds, from counts it keeps (O(1)): the factor's values and block
     /// indices, the linearised factors, the linearisation point and the solution vectors, and
     /// the dense fronts' buffers.
@@ -324,10 +353,7 @@ impl IncrementalEngine {
         changed.sort_unstable();
         changed.dedup();
         for &v in &changed {
-            let (o, d) = (self.offset[v], self.dims[v]);
-            let estimate = problem.values.variable_mut(v);
-            estimate.assign_from(self.theta[v].as_ref());
-            estimate.retract(&self.delta[o..o + d]);
+            self.write_variable(problem, v);
         }
         report.changed_variables = changed.len();
         self.changed = changed;

@@ -1,0 +1,213 @@
+//! A whole-map relinearisation computed beside a session's streamed updates.
+//!
+//! When a streamed update finds most of a large map past the relinearisation threshold (a loop
+//! closure that corrects the whole map), relinearising it refactors nearly every column: on
+//! M3500 7.3 ms of ordering, factorisation and solve, against ~0.5 ms for a usual update. The
+//! session defers it (`incremental::DEFER_FROM_VARIABLES`), but only for so many updates: the
+//! answers meanwhile solve the linear system at the older linearisation point and drift from
+//! the optimum. Two robots streamed into M3500 kept the map under correction so long that
+//! every 17th update relinearised it, and those were the stream's p99.
+//!
+//! So a deferring update starts the relinearisation on another thread instead (the eighth in a
+//! row, `incremental::START_BESIDE_AFTER`): it
+//! builds a new engine on a copy of the problem (values copied, factors shared) at the
+//! estimate of that moment, at a lower priority, while the session's updates go on deferring
+//! with the old engine. The first update after it is done takes the new engine over, writes its
+//! estimate of the whole map, and takes in the factors and variables that arrived meanwhile
+//! as any update does (an engine takes in what was appended to the problem since its last
+//! update). The old engine is freed on a thread of its own (on M3500 that took 0.6–1.3 ms). A
+//! batch solve, a removal, a failed update or a polish that finds it still running
+//! drops it: its thread finishes and its result is thrown away.
+
+use std::sync::mpsc::{self, Receiver, TryRecvError};
+
+use crate::problem::Problem;
+use crate::solver::incremental::{IncrementalEngine, UpdateParams};
+use crate::solver::SolverError;
+
+/// A relinearisation running beside the session's updates.
+#[derive(Debug)]
+pub(crate) struct Beside {
+    result: Receiver<Result<IncrementalEngine, SolverError>>,
+}
+
+/// How far a relinearisation beside the updates has come.
+enum Progress {
+    Running,
+    Done(IncrementalEngine),
+    /// It failed (an indeterminate system at that estimate) or its thread is gone: the
+    /// session relinearises on its own path again.
+    Failed,
+}
+
+impl Beside {
+    /// Starts building an engine at `problem`'s current estimate, with the variables marked in
+    /// `fixed` held; `None` when no thread could be started.
+    pub fn start(problem: &Problem, fixed: Vec<bool>, params: UpdateParams) -> Option<Self> {
+        let mut copy = problem.clone();
+        let (sender, result) = mpsc::sync_channel(1);
+        std::thread::Builder::new()
+            .name("factord-relinearize".into())
+            .spawn(move || {
+                super::background_priority::lower_for_good();
+                let built = IncrementalEngine::new_with(&mut copy, &fixed, &params);
+                // The session may have dropped it meanwhile; then nobody wants the result.
+                let _ = sender.send(built);
+                // The copy is freed here, off the request path too.
+            })
+            .map_err(|e| tracing::debug!("no thread to relinearise beside the updates: {e}"))
+            .ok()?;
+        Some(Self { result })
+    }
+
+    fn progress(&self) -> Progress {
+        match self.result.try_recv() {
+            Ok(Ok(engine)) => Progress::Done(engine),
+            Ok(Err(e)) => {
+                tracing::debug!("the relinearisation beside the updates failed: {e}");
+                Progress::Failed
+            }
+            Err(TryRecvError::Empty) => Progress::Running,
+            Err(TryRecvError::Disconnected) => Progress::Failed,
+        }
+    }
+}
+
+/// Takes over the engine relinearised `beside` the updates when it is done, and gives the
+/// problem its estimate; whether it did. A polish (`tight`) drops one still running: it
+/// relinearises on its own, and idle time is what it has.
+pub(crate) fn take_over(
+    beside: &mut Option<Beside>,
+    engine: &mut Option<IncrementalEngine>,
+    problem: &mut Problem,
+    tight: bool,
+) -> bool {
+    let Some(running) = beside else {
+        return false;
+    };
+    match running.progress() {
+        Progress::Done(built) => {
+            built.write_estimate(problem);
+            if let Some(old) = engine.replace(built) {
+                retire(old);
+            }
+            *beside = None;
+            true
+        }
+        Progress::Running if !tight => false,
+        Progress::Running | Progress::Failed => {
+            *beside = None;
+            false
+        }
+    }
+}
+
+/// Frees an engine that was taken over on a thread of its own: its factor and linearised
+/// factors are thousands of allocations, whose freeing took 0.6–1.3 ms of the update that took
+/// over on M3500.
+fn retire(engine: IncrementalEngine) {
+    // Where no thread can be started, the closure is dropped here, and the engine with it.
+    let _ = std::thread::Builder::new()
+        .name("factord-retire".into())
+        .spawn(move || drop(engine));
+}
+
+#[cfg(test)]
+mod tests {
+    use std::ops::ControlFlow;
+    use std::time::Duration;
+
+    use nalgebra::DMatrix;
+
+    use super::super::incremental::IncrementalSolver;
+    use crate::factors::between_se2::BetweenSe2;
+    use crate::geometry::Se2;
+    use crate::problem::Problem;
+    use crate::solver::{self, SolverOptions};
+
+    fn odometry(problem: &mut Problem, from: u64) {
+        let information = DMatrix::identity(3, 3) * 100.0;
+        let z = Se2::new(1.0, 0.0, 0.0);
+        let at = problem
+            .values
+            .variable(problem.values.index_of(from).unwrap());
+        let at = *at.as_any().downcast_ref::<Se2>().unwrap();
+        problem
+            .add_variable(from + 1, Box::new(at.compose(&z)))
+            .expect("a new pose");
+        problem
+            .add_factor(
+                Box::new(BetweenSe2::new(from, from + 1, z)),
+                &information,
+                None,
+                "odometry",
+            )
+            .expect("odometry");
+    }
+
+    /// A loop closure that bends a whole chain is relinearised beside the updates that follow,
+    /// and the first update after it is done takes the new engine over; polished, the estimate
+    /// is the batch optimum.
+    #[test]
+    fn a_whole_map_correction_is_relinearised_beside_and_taken_over() {
+        let mut problem = Problem::new();
+        problem
+            .add_variable(0, Box::new(Se2::new(0.0, 0.0, 0.0)))
+            .unwrap();
+        problem.set_fixed(0, true).unwrap();
+        for pose in 0..1499 {
+            odometry(&mut problem, pose);
+        }
+        let mut index = IncrementalSolver::default();
+        index.extend(&problem, 0);
+        index.rebuild_engine(&mut problem, &[]);
+        // The closure says the chain is 99 m shorter and bent: every pose moves.
+        let first = problem.factors().len();
+        problem
+            .add_factor(
+                Box::new(BetweenSe2::new(0, 1499, Se2::new(1400.0, 30.0, 0.05))),
+                &(DMatrix::identity(3, 3) * 100.0),
+                None,
+                "closure",
+            )
+            .unwrap();
+        index.extend(&problem, first);
+        let options = SolverOptions::default();
+        let update = |problem: &mut Problem, index: &mut IncrementalSolver, tight: bool| {
+            let total = problem.chi2();
+            index
+                .update_engine(problem, total, tight, &options, &[], &mut |_| {
+                    ControlFlow::Continue(())
+                })
+                .expect("an engine")
+                .expect("an update")
+        };
+        update(&mut problem, &mut index, false);
+        let mut taken_over_at = None;
+        for pose in 1499..1599 {
+            let first = problem.factors().len();
+            odometry(&mut problem, pose);
+            index.extend(&problem, first);
+            if update(&mut problem, &mut index, false).moved.is_none() {
+                taken_over_at = Some(pose);
+                break;
+            }
+            // Time for the thread beside, once it started (after 8 deferring updates).
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let taken_over_at = taken_over_at.expect("the engine relinearised beside was taken over");
+        assert!(
+            taken_over_at < 1499 + 64,
+            "taken over before the updates would relinearise on their own path ({taken_over_at})"
+        );
+        while !update(&mut problem, &mut index, true).converged {}
+        let polished = problem.chi2();
+        let mut batch = problem.clone();
+        solver::optimize(&mut batch, &options, &mut |_| ControlFlow::Continue(())).unwrap();
+        let optimum = batch.chi2();
+        assert!(
+            (polished - optimum).abs() <= 1e-6 * optimum,
+            "polished {polished} against the batch optimum {optimum}"
+        );
+    }
+}
