@@ -59,12 +59,20 @@ impl Drop for Background {
 }
 
 /// Lowers the calling thread's priority for the rest of its life: for a thread that only
-/// computes in the background (`relinearize_beside`), so nothing needs restoring, and raising
-/// a nice value needs no privilege.
+/// computes in the background (`relinearize_beside`), so nothing needs restoring. It runs as
+/// `SCHED_IDLE` (only on a core nothing else wants; any other thread that wakes up preempts it),
+/// which any thread may ask for itself; where that fails, [`NICER_BY`] nicer.
 pub(super) fn lower_for_good() {
     #[cfg(target_os = "linux")]
-    if let Some(nice) = thread_nice() {
-        let _ = set_thread_nice(nice + NICER_BY);
+    {
+        let param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: pid 0 is the calling thread; the parameter is a valid sched_param.
+        if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } == 0 {
+            return;
+        }
+        if let Some(nice) = thread_nice() {
+            let _ = set_thread_nice(nice + NICER_BY);
+        }
     }
 }
 

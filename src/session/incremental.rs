@@ -74,26 +74,30 @@ const DEFER_FROM_VARIABLES: usize = 1024;
 const MAX_DEFERRED_UPDATES: u32 = 16;
 /// The streamed update that defers a correction for this many updates in a row starts
 /// relinearising the whole map beside the updates (`relinearize_beside`); the first update
-/// after it is done takes it over. Two robots streamed into M3500 over HTTP (`split.py --robots
-/// 2 --wait`), against relinearising on the request path: p99 5.1–5.9 against 6.4–7.2 ms.
-/// Started at the first deferring update instead, relinearisations ran back to back through a
-/// long correction, a core's worth of work the server and its clients then lacked: p99 5.6 ms
-/// and the total 5.7 against 5.3 s. Both left the answers as close to the optimum as before
-/// (`incremental_stream --accuracy-every 25` on M3500 and manhattanOlson3500: the excess's
-/// p99 and mean within the runs' spread).
+/// after it is done takes it over. Two robots streamed into M3500 (`split.py --robots 2
+/// --wait`), against relinearising on the request path: p99 4.6–5.1 against 6.6–7.1 ms over
+/// HTTP, 4.7–5.2 against 6.1–7.2 ms over zenoh, totals within 2 %. Started at the first
+/// deferring update, relinearisations ran back to back through a long correction and were the
+/// slower to land, which left answers further from the optimum (`incremental_stream
+/// --accuracy-every 25` on M3500: the excess's mean 1.5e-3, max 0.13, against 6.3e-4 and
+/// 2.5e-2).
 const START_BESIDE_AFTER: u32 = 8;
-/// How the map is relinearised beside the updates: as a streamed update, with up to four
-/// rounds, so that the update taking it over finds few steps past the threshold left (with
-/// one round, some relinearised 600–900 variables on the request path).
+/// Streamed updates in a row that may defer while the map is relinearised beside them: past
+/// this, the relinearisation beside them is too slow to wait for (it only runs on a core
+/// nothing else wants), and the update relinearises on its own path. Answers that waited up to
+/// 32 updates were as close to the optimum as with 16 (stop 75); with 64, further.
+const MAX_DEFERRED_BESIDE: u32 = 32;
+/// How the map is relinearised beside the updates: as a streamed update, with up to two
+/// rounds. With one, the update taking it over sometimes found 600–900 variables past the
+/// threshold and relinearised them on the request path; with four, late in M3500's long
+/// corrections it did not land within [`MAX_DEFERRED_BESIDE`] updates (it gets only the CPU
+/// the server and its clients leave), and every 33rd update relinearised on its own path
+/// (8–12 ms; two robots over HTTP, p99 4.9 against 4.6 ms with two rounds).
 const BESIDE: UpdateParams = UpdateParams {
-    max_passes: 4,
+    max_passes: 2,
     defer_from: usize::MAX,
     ..STREAM
 };
-/// Streamed updates in a row that may defer while the map is relinearised beside them: past
-/// this, the relinearisation beside them is too slow to wait for (a machine without a free
-/// core), and the update relinearises on its own path.
-const MAX_DEFERRED_BESIDE: u32 = 64;
 
 /// A polish, or a solve the client asked for: steps below this are the optimum.
 const CONVERGED_STEP: f64 = 1e-4;
@@ -134,6 +138,11 @@ pub(crate) struct IncrementalSolver {
     deferred_updates: u32,
     /// The whole map relinearised beside the streamed updates, while it runs.
     beside: Option<Beside>,
+    /// The engine's updates are off the request path (a session with a latency budget): a
+    /// deferred correction is then not relinearised beside them, where the copy and the second
+    /// engine would only cost memory (the budgeted 100 000-pose stream peaked at 1.81 GB against
+    /// 1.04 GB, its p99 ratio 1.87 against 1.85).
+    pub off_request_path: bool,
     /// A bundle adjustment's values as its client gave them (see `bundle`).
     pub given: super::bundle::GivenValues,
 }
@@ -256,6 +265,7 @@ impl IncrementalSolver {
             0
         };
         if report.deferred_variables > 0
+            && !self.off_request_path
             && self.beside.is_none()
             && self.deferred_updates >= START_BESIDE_AFTER
         {

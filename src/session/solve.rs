@@ -80,7 +80,9 @@ impl Session {
             .as_ref()
             .filter(|o| o.consolidate)
             .map(|_| std::mem::take(&mut st.model.factor_ids));
-        let (problem, index) = st.model.take();
+        let (problem, mut index) = st.model.take();
+        // With a budget this solve is off the request path already (`provisional`).
+        index.off_request_path = st.latency.is_some();
         Some(SolveWork {
             problem,
             index,
