@@ -136,8 +136,10 @@ pub(crate) struct IncrementalSolver {
     polish_steps: u32,
     /// Streamed updates in a row that deferred a correction (see [`DEFER_FROM_VARIABLES`]).
     deferred_updates: u32,
-    /// The whole map relinearised beside the streamed updates, while it runs.
+    /// The whole map relinearised beside the streamed updates, while it runs, and a reference
+    /// held by each thread that does it (one at a time, see `Beside::start`).
     beside: Option<Beside>,
+    beside_threads: std::sync::Arc<()>,
     /// The engine's updates are off the request path (a session with a latency budget): a
     /// deferred correction is then not relinearised beside them, where the copy and the second
     /// engine would only cost memory (the budgeted 100 000-pose stream peaked at 1.81 GB against
@@ -269,7 +271,8 @@ impl IncrementalSolver {
             && self.beside.is_none()
             && self.deferred_updates >= START_BESIDE_AFTER
         {
-            self.beside = Beside::start(problem, held_fixed(problem, gauge), BESIDE);
+            let fixed = held_fixed(problem, gauge);
+            self.beside = Beside::start(problem, fixed, BESIDE, &self.beside_threads);
         }
         let engine = self.engine.as_mut()?;
         let converged = report.max_delta <= CONVERGED_STEP;

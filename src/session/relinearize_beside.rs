@@ -23,6 +23,7 @@
 //! thread finishes and its result is thrown away.
 
 use std::sync::mpsc::{self, Receiver, TryRecvError};
+use std::sync::Arc;
 
 use crate::problem::Problem;
 use crate::solver::incremental::{IncrementalEngine, UpdateParams};
@@ -45,13 +46,27 @@ enum Progress {
 
 impl Beside {
     /// Starts building an engine at `problem`'s current estimate, with the variables marked in
-    /// `fixed` held; `None` when no thread could be started.
-    pub fn start(problem: &Problem, fixed: Vec<bool>, params: UpdateParams) -> Option<Self> {
+    /// `fixed` held; `None` when no thread could be started, or while a thread this session
+    /// started earlier (`threads`, one reference held by each) still runs.
+    pub fn start(
+        problem: &Problem,
+        fixed: Vec<bool>,
+        params: UpdateParams,
+        threads: &Arc<()>,
+    ) -> Option<Self> {
+        // A dropped relinearisation's thread finishes on its own, at the lowest priority: on a
+        // machine without an idle core that can take long, and starting more beside it would
+        // pile up copies of the problem.
+        if Arc::strong_count(threads) > 1 {
+            return None;
+        }
         let mut copy = problem.clone();
         let (sender, result) = mpsc::sync_channel(1);
+        let running = Arc::clone(threads);
         std::thread::Builder::new()
             .name("factord-relinearize".into())
             .spawn(move || {
+                let _running = running;
                 super::background_priority::lower_for_good();
                 let built = IncrementalEngine::new_with(&mut copy, &fixed, &params);
                 // The session may have dropped it meanwhile; then nobody wants the result.
@@ -123,10 +138,13 @@ mod tests {
     use nalgebra::DMatrix;
 
     use super::super::incremental::IncrementalSolver;
+    use super::{Beside, Progress};
     use crate::factors::between_se2::BetweenSe2;
     use crate::geometry::Se2;
     use crate::problem::Problem;
+    use crate::solver::incremental::UpdateParams;
     use crate::solver::{self, SolverOptions};
+    use std::sync::Arc;
 
     fn odometry(problem: &mut Problem, from: u64) {
         let information = DMatrix::identity(3, 3) * 100.0;
@@ -212,5 +230,36 @@ mod tests {
             (polished - optimum).abs() <= 1e-6 * optimum,
             "polished {polished} against the batch optimum {optimum}"
         );
+    }
+
+    /// A session starts no second relinearisation while the thread of one it dropped still
+    /// runs; the thread's reference goes when it ends.
+    #[test]
+    fn one_thread_at_a_time() {
+        let mut problem = Problem::new();
+        problem
+            .add_variable(0, Box::new(Se2::new(0.0, 0.0, 0.0)))
+            .unwrap();
+        for pose in 0..20 {
+            odometry(&mut problem, pose);
+        }
+        let mut fixed = vec![false; problem.values.len()];
+        fixed[0] = true;
+        let params = UpdateParams::default();
+        let threads = Arc::new(());
+        let still_running = Arc::clone(&threads);
+        assert!(Beside::start(&problem, fixed.clone(), params, &threads).is_none());
+        drop(still_running);
+        let beside = Beside::start(&problem, fixed, params, &threads).expect("a thread");
+        while matches!(beside.progress(), Progress::Running) {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        for _ in 0..1000 {
+            if Arc::strong_count(&threads) == 1 {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        panic!("the thread's reference outlived it");
     }
 }
