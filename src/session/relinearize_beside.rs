@@ -38,7 +38,7 @@ pub(crate) struct Beside {
 /// How far a relinearisation beside the updates has come.
 enum Progress {
     Running,
-    Done(IncrementalEngine),
+    Done(Box<IncrementalEngine>),
     /// It failed (an indeterminate system at that estimate) or its thread is gone: the
     /// session relinearises on its own path again.
     Failed,
@@ -80,7 +80,7 @@ impl Beside {
 
     fn progress(&self) -> Progress {
         match self.result.try_recv() {
-            Ok(Ok(engine)) => Progress::Done(engine),
+            Ok(Ok(engine)) => Progress::Done(Box::new(engine)),
             Ok(Err(e)) => {
                 tracing::debug!("the relinearisation beside the updates failed: {e}");
                 Progress::Failed
@@ -106,7 +106,7 @@ pub(crate) fn take_over(
     match running.progress() {
         Progress::Done(built) => {
             built.write_estimate(problem);
-            if let Some(old) = engine.replace(built) {
+            if let Some(old) = engine.replace(*built) {
                 retire(old);
             }
             *beside = None;
@@ -166,19 +166,25 @@ mod tests {
             .expect("odometry");
     }
 
-    /// A loop closure that bends a whole chain is relinearised beside the updates that follow,
-    /// and the first update after it is done takes the new engine over; polished, the estimate
-    /// is the batch optimum.
-    #[test]
-    fn a_whole_map_correction_is_relinearised_beside_and_taken_over() {
+    /// `poses` 2D poses along x at their odometry, pose 0 held.
+    fn chain(poses: u64) -> Problem {
         let mut problem = Problem::new();
         problem
             .add_variable(0, Box::new(Se2::new(0.0, 0.0, 0.0)))
             .unwrap();
         problem.set_fixed(0, true).unwrap();
-        for pose in 0..1499 {
+        for pose in 0..poses - 1 {
             odometry(&mut problem, pose);
         }
+        problem
+    }
+
+    /// A loop closure that bends a whole chain is relinearised beside the updates that follow,
+    /// and the first update after it is done takes the new engine over; polished, the estimate
+    /// is the batch optimum.
+    #[test]
+    fn a_whole_map_correction_is_relinearised_beside_and_taken_over() {
+        let mut problem = chain(1500);
         let mut index = IncrementalSolver::default();
         index.extend(&problem, 0);
         index.rebuild_engine(&mut problem, &[]);
@@ -236,15 +242,10 @@ mod tests {
     /// runs; the thread's reference goes when it ends.
     #[test]
     fn one_thread_at_a_time() {
-        let mut problem = Problem::new();
-        problem
-            .add_variable(0, Box::new(Se2::new(0.0, 0.0, 0.0)))
-            .unwrap();
-        for pose in 0..20 {
-            odometry(&mut problem, pose);
-        }
-        let mut fixed = vec![false; problem.values.len()];
-        fixed[0] = true;
+        let problem = chain(21);
+        let fixed: Vec<bool> = (0..problem.values.len())
+            .map(|v| problem.values.is_fixed(v))
+            .collect();
         let params = UpdateParams::default();
         let threads = Arc::new(());
         let still_running = Arc::clone(&threads);
