@@ -15,7 +15,6 @@ use super::producers::{self, Admission, Origin};
 use super::robots;
 use super::{Session, State};
 use crate::api::wire::{Batch, BatchAck, Estimate, FactorId, SessionEvent, VariableValue};
-use crate::api::ErrorKind;
 use crate::api::ServiceError;
 use crate::journal::KeptAck;
 use crate::problem::Key;
@@ -335,80 +334,6 @@ impl Session {
         let will_solve =
             st.results.solved_sequence < ack.sequence && st.schedule.phase.solve_coming();
         (ack, will_solve)
-    }
-
-    pub(super) fn check_batch_size(&self, batch: &Batch) -> Result<(), ServiceError> {
-        let items = batch.variables.len()
-            + batch.factors.len()
-            + batch.remove_factors.len()
-            + batch.fix.len()
-            + batch.unfix.len()
-            + batch.guesses.len();
-        if items > self.limits.max_batch_items {
-            return Err(ServiceError::new(
-                ErrorKind::TooLarge,
-                "batch_too_large",
-                format!(
-                    "the batch has {items} items (variables, factors, removals, fixes, guesses); the limit is {} (limits.max_batch_items): split it",
-                    self.limits.max_batch_items
-                ),
-            )
-            .at("batch"));
-        }
-        Ok(())
-    }
-
-    /// A batch that adds variables or factors to a session past
-    /// `limits.max_session_memory_bytes` is refused (read before the journal's lock: the
-    /// estimate counts the journal's own memory).
-    fn check_session_memory(&self, st: &State, batch: &Batch) -> Result<(), ServiceError> {
-        let adds = !(batch.variables.is_empty() && batch.factors.is_empty());
-        let held = self.memory_bytes_locked(st) as u64;
-        if adds && held > self.limits.max_session_memory_bytes {
-            const MIB: u64 = 1 << 20;
-            return Err(ServiceError::invalid(
-                "session_full",
-                "batch",
-                format!(
-                    "session `{}` holds about {} MiB, more than limits.max_session_memory_bytes ({} MiB): it takes no more variables or factors (removals still pass); start a new session or raise the limit",
-                    self.name,
-                    held / MIB,
-                    self.limits.max_session_memory_bytes / MIB
-                ),
-            ));
-        }
-        Ok(())
-    }
-
-    pub(super) fn check_session_size(
-        &self,
-        st: &State,
-        prepared: &PreparedBatch,
-    ) -> Result<(), ServiceError> {
-        let variables = st.mirror.entries.len() + prepared.variables.len();
-        if variables > self.limits.max_variables_per_session {
-            return Err(ServiceError::invalid(
-                "session_full",
-                "variables",
-                format!(
-                    "session `{}` would hold {variables} variables; the limit is {} (limits.max_variables_per_session)",
-                    self.name, self.limits.max_variables_per_session
-                ),
-            ));
-        }
-        let factors = (st.mirror.live_factors.len() + prepared.factors.len())
-            .saturating_sub(prepared.remove.len());
-        if factors > self.limits.max_factors_per_session {
-            return Err(ServiceError::invalid(
-                "session_full",
-                "factors",
-                format!(
-                    "session `{}` would hold {factors} factors; the limit is {} (limits.max_factors_per_session)",
-                    self.name, self.limits.max_factors_per_session
-                ),
-            ));
-        }
-        Ok(())
     }
 
     /// Step 4 with the problem here: applies a validated batch to it and decides whether it

@@ -44,6 +44,7 @@
 mod apply;
 mod background_priority;
 pub mod batch;
+mod batch_limits;
 mod bundle;
 mod durable;
 mod engine;
