@@ -274,7 +274,6 @@ impl IncrementalSolver {
             let fixed = held_fixed(problem, gauge);
             self.beside = Beside::start(problem, fixed, BESIDE, &self.beside_threads);
         }
-        let engine = self.engine.as_mut()?;
         let converged = report.max_delta <= CONVERGED_STEP;
         self.polish = !converged;
         let summary = engine.summary(
