@@ -87,14 +87,16 @@ const START_BESIDE_AFTER: u32 = 8;
 /// nothing else wants), and the update relinearises on its own path. Answers that waited up to
 /// 32 updates were as close to the optimum as with 16 (stop 75); with 64, further.
 const MAX_DEFERRED_BESIDE: u32 = 32;
-/// How the map is relinearised beside the updates: as a streamed update, with up to two
-/// rounds. With one, the update taking it over sometimes found 600–900 variables past the
-/// threshold and relinearised them on the request path; with four, late in M3500's long
-/// corrections it did not land within [`MAX_DEFERRED_BESIDE`] updates (it gets only the CPU
-/// the server and its clients leave), and every 33rd update relinearised on its own path
-/// (8–12 ms; two robots over HTTP, p99 4.9 against 4.6 ms with two rounds).
+/// How the map is relinearised beside the updates: as a streamed update that defers nothing,
+/// in one round. It gets only the CPU the server and its clients leave, and the updates that
+/// arrive meanwhile are taken in after it (`relinearize_beside`), so a second round mostly
+/// delayed it: two robots streamed into M3500 over HTTP, with two rounds 12–17 of ~50 per
+/// stream did not land within [`MAX_DEFERRED_BESIDE`] updates, and each of those 33rd updates
+/// relinearised 1 500–2 900 variables on its own path (4.5–10.8 ms); with one, 1–2. Before
+/// the thread took in the arrivals, one round left the update taking it over 600–900
+/// variables to relinearise on the request path; now the catch-up does that beside it.
 const BESIDE: UpdateParams = UpdateParams {
-    max_passes: 2,
+    max_passes: 1,
     defer_from: usize::MAX,
     ..STREAM
 };
@@ -272,7 +274,9 @@ impl IncrementalSolver {
             && self.deferred_updates >= START_BESIDE_AFTER
         {
             let fixed = held_fixed(problem, gauge);
-            self.beside = Beside::start(problem, fixed, BESIDE, &self.beside_threads);
+            self.beside = Beside::start(problem, fixed, (BESIDE, STREAM), &self.beside_threads);
+        } else if let Some(beside) = self.beside.as_mut() {
+            beside.send_appended(problem);
         }
         let converged = report.max_delta <= CONVERGED_STEP;
         self.polish = !converged;
