@@ -16,8 +16,15 @@ use std::sync::{Mutex, PoisonError};
 use crate::solver::structure::BlockOrdering;
 
 /// Refactored parts of at least this many variables may be ordered by nested dissection
-/// (METIS) instead of AMD; smaller ones are cheap to refactor whatever their order.
-const NESTED_DISSECTION_FROM: usize = 128;
+/// (METIS) instead of AMD; for smaller ones METIS seldom finds an order worth its time. On
+/// the 10 000-pose city it was tried on 1 011 parts of 128–2 000 variables and kept on 95 (its
+/// flops there a median 1.2 × AMD's), against 44 kept of 44 parts above 2 000 (0.53–0.73 ×).
+/// The generated 3D garage (5 000 poses) kept it on 16 of 320 tries, all below 500 variables,
+/// while each try cost its update 2–7 ms of ordering: from 2 000 instead of 128, the
+/// two- and four-robot garage streams' waited p99 fell 15–19 % (HTTP and zenoh), sphere2500's
+/// stream took 6 % less, and the 10 000-pose city and M3500 stayed within their noise
+/// (`benches/history/issue-54-robots.md`, stop 77).
+const NESTED_DISSECTION_FROM: usize = 2000;
 
 /// Nested dissection is tried only where AMD's order needs more factorisation flops per
 /// variable than this, and kept only where it needs fewer flops than AMD's. METIS costs about
@@ -28,6 +35,8 @@ const NESTED_DISSECTION_FROM: usize = 128;
 /// Since the runs of a clique are factored as dense fronts, a flop costs less time, and the
 /// trial pays from lower down: with 128 variables and 3e4 flops per variable (was 256 and 1e5)
 /// the 10k stream's factorisation took 27–30 s instead of 41–43 s, for ~1 s more ordering.
+/// (The size has since risen to [`NESTED_DISSECTION_FROM`]: most of that gain was the large
+/// parts'.)
 const NESTED_DISSECTION_ABOVE_FLOPS_PER_VARIABLE: f64 = 3e4;
 
 /// `affected` in the order to eliminate them. `neighbours(v, out)` lists the affected
@@ -243,11 +252,26 @@ mod tests {
     }
 
     #[test]
+    fn a_part_below_the_size_keeps_amds_order() {
+        // A 40 × 40 grid of 6-dim variables (1 600, below NESTED_DISSECTION_FROM): METIS would
+        // need fewer flops (the next test's kind of grid), but is not tried.
+        let side = 40;
+        let adjacency = grid(side);
+        let n = side * side;
+        assert!(n < NESTED_DISSECTION_FROM);
+        let last: Vec<bool> = (0..n).map(|v| v >= n - side).collect();
+        let mut trials = TrialHistory::default();
+        let order = order_whole_graph(&adjacency, &last, 6, &mut trials);
+        assert_eq!(order, amd_order(&adjacency, &last));
+        assert!(!trials.expects_trial(n));
+    }
+
+    #[test]
     fn a_large_part_gets_the_order_with_fewer_flops() {
-        // A 40 × 40 grid of 6-dim variables, far above the flops-per-variable threshold,
+        // A 50 × 50 grid of 6-dim variables, far above the flops-per-variable threshold,
         // its last row constrained last. Nested dissection beats AMD on a grid this size,
         // so the kept order must need fewer flops than AMD's.
-        let side = 40;
+        let side = 50;
         let adjacency = grid(side);
         let n = side * side;
         let last: Vec<bool> = (0..n).map(|v| v >= n - side).collect();
@@ -271,7 +295,7 @@ mod tests {
         // decided on AMD's flops gives: on a grid of 6-dim variables the trial runs and wins;
         // on a larger grid of 1-dim variables it is not worth trying, and AMD's order stays
         // although METIS's needs fewer flops there.
-        for (side, dim) in [(40, 6), (60, 1)] {
+        for (side, dim) in [(50, 6), (60, 1)] {
             let adjacency = grid(side);
             let n = side * side;
             let last: Vec<bool> = (0..n).map(|v| v + side >= n).collect();
