@@ -351,12 +351,10 @@ mod tests {
             Beside::start(&problem, fixed, (params, params), &threads).expect("a thread");
         // Sent while the thread builds 3 000 poses (milliseconds, at the lowest priority).
         for pose in 2999..3009 {
-            let first = problem.factors().len();
             odometry(&mut problem, pose);
             // Off its odometry by 0.5 m: the catch-up solves it back onto the chain.
             let last = problem.values.len() - 1;
             problem.values.variable_mut(last).retract(&[0.5, 0.0, 0.0]);
-            assert_eq!(problem.factors().len(), first + 1);
         }
         beside.send_appended(&problem);
         let engine = loop {
