@@ -18,7 +18,7 @@ use crate::solver::structure::BlockOrdering;
 /// Refactored parts of at least this many variables may be ordered by nested dissection
 /// (METIS) instead of AMD; for smaller ones METIS seldom finds an order worth its time. On
 /// the 10 000-pose city it was tried on 1 011 parts of 128–2 000 variables and kept on 95 (its
-/// flops there a median 1.2 × AMD's), against 44 kept of 44 parts above 2 000 (0.53–0.73 ×).
+/// flops there a median 1.2 × AMD's), against 38 kept of 44 parts above 2 000 (median 0.53–0.73 ×).
 /// The generated 3D garage (5 000 poses) kept it on 16 of 320 tries, all below 500 variables,
 /// while each try cost its update 2–7 ms of ordering: from 2 000 instead of 128, the
 /// two- and four-robot garage streams' waited p99 fell 15–19 % (HTTP and zenoh), sphere2500's
