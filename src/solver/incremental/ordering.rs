@@ -18,12 +18,12 @@ use crate::solver::structure::BlockOrdering;
 /// Refactored parts of at least this many variables may be ordered by nested dissection
 /// (METIS) instead of AMD; for smaller ones METIS seldom finds an order worth its time. On
 /// the 10 000-pose city it was tried on 1 011 parts of 128–2 000 variables and kept on 95 (its
-/// flops there a median 1.2 × AMD's), against 38 kept of 44 parts above 2 000 (median 0.53–0.73 ×).
-/// The generated 3D garage (5 000 poses) kept it on 16 of 320 tries, all below 500 variables,
-/// while each try cost its update 2–7 ms of ordering: from 2 000 instead of 128, the
-/// two- and four-robot garage streams' waited p99 fell 15–19 % (HTTP and zenoh), sphere2500's
-/// stream took 6 % less, and the 10 000-pose city and M3500 stayed within their noise
-/// (`benches/history/issue-54-robots.md`, stop 77).
+/// flops there a median 1.2 × AMD's), against 38 kept of 44 parts above 2 000 (its flops a
+/// median 0.53–0.73 × AMD's). The generated 3D garage (5 000 poses) kept it on 16 of 320
+/// tries, all below 500 variables, while each try cost its update 2–7 ms of ordering: from
+/// 2 000 instead of 128, the two- and four-robot garage streams' waited p99 fell 15–19 % (HTTP
+/// and zenoh), sphere2500's stream took 6 % less, and the 10 000-pose city and M3500 stayed
+/// within their noise (`benches/history/issue-54-robots.md`, stop 77).
 const NESTED_DISSECTION_FROM: usize = 2000;
 
 /// Nested dissection is tried only where AMD's order needs more factorisation flops per
