@@ -63,28 +63,27 @@ impl Session {
         st: &State,
         prepared: &PreparedBatch,
     ) -> Result<(), ServiceError> {
-        let variables = st.mirror.entries.len() + prepared.variables.len();
-        if variables > self.limits.max_variables_per_session {
-            return Err(ServiceError::invalid(
+        // The setting is named after the field: limits.max_variables_per_session, ….
+        let full = |field: &'static str, count: usize, limit: usize| {
+            ServiceError::invalid(
                 "session_full",
-                "variables",
+                field,
                 format!(
-                    "session `{}` would hold {variables} variables; the limit is {} (limits.max_variables_per_session)",
-                    self.name, self.limits.max_variables_per_session
+                    "session `{}` would hold {count} {field}; the limit is {limit} (limits.max_{field}_per_session)",
+                    self.name
                 ),
-            ));
+            )
+        };
+        let variables = st.mirror.entries.len() + prepared.variables.len();
+        let limit = self.limits.max_variables_per_session;
+        if variables > limit {
+            return Err(full("variables", variables, limit));
         }
         let factors = (st.mirror.live_factors.len() + prepared.factors.len())
             .saturating_sub(prepared.remove.len());
-        if factors > self.limits.max_factors_per_session {
-            return Err(ServiceError::invalid(
-                "session_full",
-                "factors",
-                format!(
-                    "session `{}` would hold {factors} factors; the limit is {} (limits.max_factors_per_session)",
-                    self.name, self.limits.max_factors_per_session
-                ),
-            ));
+        let limit = self.limits.max_factors_per_session;
+        if factors > limit {
+            return Err(full("factors", factors, limit));
         }
         Ok(())
     }
