@@ -122,9 +122,9 @@ impl Beside {
         if n == self.sent_variables && m == self.sent_factors {
             return;
         }
+        let values = &problem.values;
         let variables = (self.sent_variables..n)
             .map(|v| {
-                let values = &problem.values;
                 (
                     values.key(v),
                     values.variable(v).clone_box(),
