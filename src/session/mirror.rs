@@ -163,23 +163,45 @@ impl MovedValues {
 
     /// Whether `key` is among them.
     pub fn contains(&self, key: Key) -> bool {
-        self.values.binary_search_by_key(&key, |(k, _)| *k).is_ok()
+        self.get(key).is_some()
+    }
+
+    /// The value of `key`, if it is among them.
+    pub fn get(&self, key: Key) -> Option<&WireValue> {
+        let at = self.values.binary_search_by_key(&key, |(k, _)| *k).ok()?;
+        Some(&self.values[at].1)
+    }
+
+    /// The values, in key order.
+    pub fn values(&self) -> &[(Key, WireValue)] {
+        &self.values
+    }
+
+    /// Whether a refresh of a mirror of `entries` walks it in key order rather than looking each
+    /// value up: when they are at least a [`WALK_FROM_ONE_IN`]th of it (decided for the whole
+    /// set, so that each slice of a landing decides alike).
+    pub fn walks(&self, entries: usize) -> bool {
+        self.values.len().saturating_mul(WALK_FROM_ONE_IN) >= entries
     }
 }
 
-/// Copies `moved` into the mirror, telling `observe` each entry it is about to change (with its
-/// old value) and the new value; returns those that changed. Runs under the session lock, over
-/// every variable a loop closure moved, so it allocates only for what it returns.
+/// Copies `values` (in key order) into the mirror, telling `observe` each entry it is about to
+/// change (with its old value) and the new value, until it has looked at `at_most` entries
+/// (walking the mirror) or values (looking them up); returns those that changed and how many of
+/// `values` it is done with. Runs under the session lock, over every variable a loop closure
+/// moved, so it allocates only for what it returns.
 ///
 /// Looked up one by one in the `BTreeMap`, each variable cost a descent of cache misses (10k
 /// stream in-process: 3–4 % of the samples in the lookup); in key order, most of a map is met
-/// in one pass over its leaves.
+/// in one pass over its leaves (`walk`). A walk looks at every entry between the first value's
+/// key and the last's, which for a correction scattered over a 100 000-pose map is most of it.
 pub(super) fn refresh_observed(
     mirror: &mut BTreeMap<Key, MirrorEntry>,
-    moved: &MovedValues,
+    values: &[(Key, WireValue)],
+    (walk, at_most): (bool, usize),
     sequence: u64,
     observe: &mut dyn FnMut(&MirrorEntry, &[f64]),
-) -> Vec<VariableValue> {
+) -> (Vec<VariableValue>, usize) {
     let mut changed = Vec::new();
     let mut refresh_entry = |key: Key, value: &WireValue, entry: &mut MirrorEntry| {
         // A batch accepted during the solve set a newer guess; it is applied next.
@@ -190,26 +212,30 @@ pub(super) fn refresh_observed(
             changed.push(value_of(key, entry));
         }
     };
-    let values = &moved.values;
-    if values.len().saturating_mul(WALK_FROM_ONE_IN) < mirror.len() {
-        for (key, value) in values {
+    if !walk {
+        let done = values.len().min(at_most);
+        for (key, value) in &values[..done] {
             if let Some(entry) = mirror.get_mut(key) {
                 refresh_entry(*key, value, entry);
             }
         }
-        return changed;
+        return (changed, done);
     }
     let (Some((first, _)), Some((last, _))) = (values.first(), values.last()) else {
-        return changed;
+        return (changed, 0);
     };
     let mut wanted = values.iter().peekable();
-    for (&key, entry) in mirror.range_mut(*first..=*last) {
+    for (looked, (&key, entry)) in mirror.range_mut(*first..=*last).enumerate() {
+        // Past the values before this entry (those the mirror lacks among them).
         while wanted.next_if(|(k, _)| *k < key).is_some() {}
+        if looked == at_most {
+            return (changed, values.len() - wanted.len());
+        }
         if let Some((_, value)) = wanted.next_if(|(k, _)| *k == key) {
             refresh_entry(key, value, entry);
         }
     }
-    changed
+    (changed, values.len())
 }
 
 impl Mirror {
@@ -307,7 +333,16 @@ mod tests {
         sequence: u64,
     ) -> Vec<VariableValue> {
         let moved = MovedValues::encode(problem, moved);
-        refresh_observed(mirror, &moved, sequence, &mut |_, _| {})
+        let walk = moved.walks(mirror.len());
+        let (changed, done) = refresh_observed(
+            mirror,
+            moved.values(),
+            (walk, usize::MAX),
+            sequence,
+            &mut |_, _| {},
+        );
+        assert_eq!(done, moved.values().len());
+        changed
     }
 
     fn refreshed(changed: &[VariableValue]) -> Vec<Key> {

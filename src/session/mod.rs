@@ -67,6 +67,7 @@ mod schedule_state;
 mod solve;
 mod solve_budget;
 mod state;
+mod state_lock;
 mod stats;
 mod stream;
 mod window_marginals;
@@ -96,7 +97,7 @@ pub struct Session {
     pub kind: &'static SessionKind,
     /// Factor types its client declared (at creation or since).
     factor_types: std::sync::RwLock<factor_types::FactorTypes>,
-    state: Mutex<State>,
+    state: state_lock::StateLock<State>,
     /// Published events in slots the session can take back; `unread` bounds what the events
     /// not yet taken by every subscriber hold (see `events`).
     events: broadcast::Sender<Arc<events::EventSlot>>,
@@ -159,7 +160,7 @@ impl Session {
             name,
             kind,
             factor_types: Default::default(),
-            state: Mutex::new(State::new(kind, options, auto)),
+            state: state_lock::StateLock::new(State::new(kind, options, auto)),
             // At least one slot: a zero capacity is no channel.
             events: broadcast::channel(limits.max_subscriber_lag.max(1)).0,
             unread: Mutex::new(events::UnreadEvents::new(limits.max_subscriber_lag_bytes)),
@@ -186,9 +187,7 @@ impl Session {
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
-        // A panic while holding the lock would be a bug; the state is still consistent at every
-        // await-free step, so keep serving.
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        self.state.lock()
     }
 
     /// Gives the session to the token labelled `owner` (once, at creation or recovery).

@@ -4,14 +4,14 @@
 
 use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, MutexGuard};
 use std::time::Instant;
 
 use super::background_priority::Background;
 use super::incremental::{self, IncrementalSolver};
 use super::mirror::MovedValues;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
-use super::provisional;
+use super::provisional::LandingRefresh;
 use super::solve_budget::{SolveBudget, YieldToBatches};
 use super::{Session, State};
 use crate::api::wire::AutoOptimize;
@@ -155,16 +155,18 @@ impl Session {
             .as_ref()
             .ok()
             .map(|r| MovedValues::encode(&work.problem, r.moved.as_deref()));
-        // The landing holds the session's lock, which the request path waits for.
+        // The landing holds the session's lock, which the request path waits for: most of what
+        // it moved goes into the mirror before, a slice per hold of the lock.
         drop(background);
         self.journal_barrier();
-        let mut st = self.lock();
+        let no_values = MovedValues::default();
+        let mut refresh = LandingRefresh::new(moved.as_ref().unwrap_or(&no_values), run.sequence);
+        let mut st = self.refresh_before_landing(&mut refresh);
         let landing = Instant::now();
         self.cancel.store(false, Ordering::SeqCst);
         let polish = match result {
             Ok(resolved) => {
-                let moved = moved.unwrap_or_default();
-                self.publish_solved(&mut st, &run, resolved, &work.problem, &moved);
+                self.publish_solved(&mut st, &run, resolved, &work.problem, refresh);
                 // An engine update that left steps above the threshold polishes once the
                 // session is idle, unless the client decides when solves run: counted from
                 // when this solve is published and handed back (below), so the time a large
@@ -344,7 +346,7 @@ impl Session {
         run: &Run,
         resolved: incremental::Resolved,
         problem: &Problem,
-        moved: &MovedValues,
+        refresh: LandingRefresh<'_>,
     ) {
         let summary = resolved.summary;
         if summary.used.region_variables.is_none() {
@@ -366,7 +368,7 @@ impl Session {
         } else {
             st.schedule.carried = std::time::Duration::ZERO;
         }
-        let changed = provisional::refresh_landing(st, problem, moved, run.sequence);
+        let changed = refresh.finish(st, problem);
         if !changed.is_empty() {
             self.emit(SessionEvent::Estimate(Estimate {
                 session: self.name.clone(),
@@ -381,6 +383,27 @@ impl Session {
             summary: Box::new(summary.clone()),
         });
         st.results.last_summary = Some(summary);
+    }
+
+    /// What a solve moved written into the mirror a slice per hold of the lock (see
+    /// [`LandingRefresh`]), each slice in its own `estimate` event, with whoever waits for the
+    /// lock let in between; returns the lock held for the landing, with the last slice left to it.
+    fn refresh_before_landing(&self, refresh: &mut LandingRefresh<'_>) -> MutexGuard<'_, State> {
+        loop {
+            let mut st = self.lock();
+            let Some(changed) = refresh.slice(&mut st) else {
+                return st;
+            };
+            if !changed.is_empty() {
+                self.emit(SessionEvent::Estimate(Estimate {
+                    session: self.name.clone(),
+                    sequence: refresh.sequence(),
+                    variables: changed,
+                }));
+            }
+            drop(st);
+            self.state.let_waiters_in();
+        }
     }
 
     /// Records a failed solve and publishes its error; the mirror keeps the last good values.

@@ -14,6 +14,7 @@ mod factor_type_memory;
 mod fusion_service;
 mod gnss_factor;
 mod incremental;
+mod landing_slices;
 mod landmarks_2d;
 mod landmarks_3d_ranges;
 mod latency;

@@ -32,7 +32,7 @@ use crate::api::ServiceError;
 use crate::api::latency::{Correction, CorrectionStats, LatencyReport, CORRECTIONS_KEPT};
 use crate::problem::Key;
 use crate::session::prepared::PreparedBatch;
-pub(super) use landing::refresh_landing;
+pub(super) use landing::LandingRefresh;
 pub(crate) use window::RecentWindow;
 
 /// A session's budget and what its provisional answers left for the exact solve to correct.
