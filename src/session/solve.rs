@@ -4,7 +4,7 @@
 
 use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, MutexGuard};
+use std::sync::Arc;
 use std::time::Instant;
 
 use super::background_priority::Background;
@@ -138,29 +138,17 @@ impl Session {
             preempted,
             timed_out: budget.timed_out(),
         };
-        match &result {
-            Ok(r) => {
-                crate::runtime::metrics::observe_solve(start.elapsed(), r.summary.iterations);
-                tracing::debug!(
-                    chi2 = r.summary.final_chi2,
-                    iterations = r.summary.iterations,
-                    seconds = start.elapsed().as_secs_f64(),
-                    "solve finished"
-                );
-            }
-            Err(e) => tracing::warn!("solve failed: {e}"),
-        }
+        report_finished(&result, start);
         // Encoded before the lock is taken: batches arriving meanwhile need it.
-        let moved = result
-            .as_ref()
-            .ok()
-            .map(|r| MovedValues::encode(&work.problem, r.moved.as_deref()));
+        let moved = match &result {
+            Ok(r) => MovedValues::encode(&work.problem, r.moved.as_deref()),
+            Err(_) => MovedValues::default(),
+        };
         // The landing holds the session's lock, which the request path waits for: most of what
         // it moved goes into the mirror before, a slice per hold of the lock.
         drop(background);
         self.journal_barrier();
-        let no_values = MovedValues::default();
-        let mut refresh = LandingRefresh::new(moved.as_ref().unwrap_or(&no_values), run.sequence);
+        let mut refresh = LandingRefresh::new(&moved, run.sequence);
         let mut st = self.refresh_before_landing(&mut refresh);
         let landing = Instant::now();
         self.cancel.store(false, Ordering::SeqCst);
@@ -385,27 +373,6 @@ impl Session {
         st.results.last_summary = Some(summary);
     }
 
-    /// What a solve moved written into the mirror a slice per hold of the lock (see
-    /// [`LandingRefresh`]), each slice in its own `estimate` event, with whoever waits for the
-    /// lock let in between; returns the lock held for the landing, with the last slice left to it.
-    fn refresh_before_landing(&self, refresh: &mut LandingRefresh<'_>) -> MutexGuard<'_, State> {
-        loop {
-            let mut st = self.lock();
-            let Some(changed) = refresh.slice(&mut st) else {
-                return st;
-            };
-            if !changed.is_empty() {
-                self.emit(SessionEvent::Estimate(Estimate {
-                    session: self.name.clone(),
-                    sequence: refresh.sequence(),
-                    variables: changed,
-                }));
-            }
-            drop(st);
-            self.state.let_waiters_in();
-        }
-    }
-
     /// Records a failed solve and publishes its error; the mirror keeps the last good values.
     fn publish_failed(&self, st: &mut State, run: &Run, e: solver::SolverError) {
         // Whatever moved, the next solve starts from a clean slate.
@@ -596,5 +563,21 @@ impl Session {
         while let Some((seq, prepared, ids)) = st.schedule.next_queued() {
             self.apply_prepared(st, seq, prepared, ids);
         }
+    }
+}
+
+/// A finished solve in the metrics and the log.
+fn report_finished(result: &Result<incremental::Resolved, solver::SolverError>, start: Instant) {
+    match result {
+        Ok(r) => {
+            crate::runtime::metrics::observe_solve(start.elapsed(), r.summary.iterations);
+            tracing::debug!(
+                chi2 = r.summary.final_chi2,
+                iterations = r.summary.iterations,
+                seconds = start.elapsed().as_secs_f64(),
+                "solve finished"
+            );
+        }
+        Err(e) => tracing::warn!("solve failed: {e}"),
     }
 }

@@ -2,11 +2,11 @@
 //! provisional values it now covers replaced by its own, and the size of that correction
 //! recorded.
 
-use std::sync::Arc;
+use std::sync::{Arc, MutexGuard};
 
 use super::Latency;
 use crate::api::latency::Correction;
-use crate::api::wire::{VariableValue, WireValue};
+use crate::api::wire::{Estimate, SessionEvent, VariableValue, WireValue};
 use crate::problem::{Key, Problem};
 use crate::session::mirror::{self, MirrorEntry, MovedValues};
 use crate::session::{Session, State};
@@ -226,6 +226,31 @@ fn position_change_squared(old: &MirrorEntry, new: &[f64]) -> f64 {
 }
 
 impl Session {
+    /// What a solve moved written into the mirror a slice per hold of the lock (see
+    /// [`LandingRefresh`]), each slice in its own `estimate` event, with whoever waits for the
+    /// lock let in between; returns the lock held for the landing, with what is left (at most a
+    /// slice) for it.
+    pub(in crate::session) fn refresh_before_landing(
+        &self,
+        refresh: &mut LandingRefresh<'_>,
+    ) -> MutexGuard<'_, State> {
+        loop {
+            let mut st = self.lock();
+            let Some(changed) = refresh.slice(&mut st) else {
+                return st;
+            };
+            if !changed.is_empty() {
+                self.emit(SessionEvent::Estimate(Estimate {
+                    session: self.name.clone(),
+                    sequence: refresh.sequence(),
+                    variables: changed,
+                }));
+            }
+            drop(st);
+            self.state.let_waiters_in();
+        }
+    }
+
     /// After an exact solve landed and the batches that waited for it were applied: the
     /// variables it does not cover yet are answered again against it.
     pub(in crate::session) fn answer_after_landing(self: &Arc<Self>, st: &State) {
