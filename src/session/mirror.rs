@@ -418,4 +418,51 @@ mod tests {
         assert_eq!(mirror[&1_000_000].value[0], 5.0);
         assert!(refresh(&mut mirror, &problem, Some(&[]), 9).is_empty());
     }
+
+    /// A landing refreshes in slices of at most `at_most` entries or values, resuming where
+    /// the last stopped: on both paths it ends where one pass does, each value changed once.
+    #[test]
+    fn a_refresh_in_slices_ends_where_one_pass_does() {
+        let keys: Vec<Key> = (0..64).map(|i| (i * 37) % 64 + 1).collect();
+        // Every third variable (looked up, a few of many) or all but a few (walked), and the
+        // mirror without one of them, so that a slice may end on a value it lacks.
+        let few: Vec<usize> = (0..64).step_by(3).take(6).collect();
+        let many: Vec<usize> = (0..60).collect();
+        for moved in [&few[..], &many[..]] {
+            let (problem, mut whole) = setup(&keys);
+            whole.remove(&keys[10]);
+            let mut sliced = whole.clone();
+            let moved = MovedValues::encode(&problem, Some(moved));
+            let walk = moved.walks(whole.len());
+            let (all, done) = refresh_observed(
+                &mut whole,
+                moved.values(),
+                (walk, usize::MAX),
+                7,
+                &mut |_, _| {},
+            );
+            assert_eq!(done, moved.values().len());
+            let (mut changed, mut done, mut slices) = (Vec::new(), 0, 0);
+            while done < moved.values().len() {
+                let (some, more) = refresh_observed(
+                    &mut sliced,
+                    &moved.values()[done..],
+                    (walk, 5),
+                    7,
+                    &mut |_, _| {},
+                );
+                assert!(more > 0, "a slice makes progress");
+                changed.extend(some);
+                done += more;
+                slices += 1;
+            }
+            assert!(slices > 1, "the case is sliced");
+            assert_eq!(refreshed(&changed), refreshed(&all), "walk: {walk}");
+            assert_eq!(changed.len(), all.len(), "each value changed once");
+            for (key, entry) in &whole {
+                assert_eq!(sliced[key].value, entry.value, "key {key}");
+                assert_eq!(sliced[key].changed, entry.changed, "key {key}");
+            }
+        }
+    }
 }
