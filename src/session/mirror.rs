@@ -177,6 +177,11 @@ impl MovedValues {
         &self.values
     }
 
+    /// The values, in key order, taken out.
+    pub fn into_values(self) -> Vec<(Key, WireValue)> {
+        self.values
+    }
+
     /// Whether a refresh of a mirror of `entries` walks it in key order rather than looking each
     /// value up: when they are at least a [`WALK_FROM_ONE_IN`]th of it (decided for the whole
     /// set, so that each slice of a landing decides alike).
@@ -198,7 +203,8 @@ impl MovedValues {
 pub(super) fn refresh_observed(
     mirror: &mut BTreeMap<Key, MirrorEntry>,
     values: &[(Key, WireValue)],
-    (walk, at_most): (bool, usize),
+    walk: bool,
+    at_most: usize,
     sequence: u64,
     observe: &mut dyn FnMut(&MirrorEntry, &[f64]),
 ) -> (Vec<VariableValue>, usize) {
@@ -337,7 +343,8 @@ mod tests {
         let (changed, done) = refresh_observed(
             mirror,
             moved.values(),
-            (walk, usize::MAX),
+            walk,
+            usize::MAX,
             sequence,
             &mut |_, _| {},
         );
@@ -437,7 +444,8 @@ mod tests {
             let (all, done) = refresh_observed(
                 &mut whole,
                 moved.values(),
-                (walk, usize::MAX),
+                walk,
+                usize::MAX,
                 7,
                 &mut |_, _| {},
             );
@@ -447,7 +455,8 @@ mod tests {
                 let (some, more) = refresh_observed(
                     &mut sliced,
                     &moved.values()[done..],
-                    (walk, 5),
+                    walk,
+                    5,
                     7,
                     &mut |_, _| {},
                 );

@@ -81,12 +81,11 @@ impl<'a> LandingRefresh<'a> {
     /// event); `None` when what is left is the landing's own (nothing, or no more than a slice).
     pub fn slice(&mut self, st: &mut State) -> Option<Vec<VariableValue>> {
         let left = self.moved.values().len() - self.done;
-        let walk = self.walks(st);
         // A walk looks at the mirror between the first and the last key left: at most all of it.
-        let work_left = if walk {
-            left.min(1) * st.mirror.entries.len()
-        } else {
-            left
+        let work_left = match (left, self.walks(st)) {
+            (0, _) => 0,
+            (_, true) => st.mirror.entries.len(),
+            (_, false) => left,
         };
         if work_left <= LANDING_SLICE {
             return None;
@@ -108,7 +107,8 @@ impl<'a> LandingRefresh<'a> {
         let (changed, done) = mirror::refresh_observed(
             &mut st.mirror.entries,
             values,
-            (walk, at_most),
+            walk,
+            at_most,
             self.sequence,
             &mut |old, new| correction.observe(old, new),
         );
@@ -120,66 +120,72 @@ impl<'a> LandingRefresh<'a> {
     /// covers; returns what changed.
     pub fn finish(mut self, st: &mut State, problem: &Problem) -> Vec<VariableValue> {
         let sequence = self.sequence;
-        if st.latency.is_none() {
-            return self.refresh(st, usize::MAX);
-        }
-        // Provisional values the exact solve covers: refreshed whether it moved them or not.
+        // Provisional values the exact solve covers (none without a budget): refreshed whether
+        // it moved them or not.
         let covered = take_covered(st, problem, sequence);
         let mut changed = self.refresh(st, usize::MAX);
-        // Those an earlier slice skipped (their answer was newer than the solve's sequence)
-        // and those the solve did not move: the latter encoded here, under the lock.
+        if !covered.is_empty() {
+            changed.extend(self.refresh_covered(st, problem, &covered));
+        }
+        let solved = st.results.solved_sequence.max(sequence);
+        if let Some(latency) = st.latency.as_mut() {
+            if !covered.is_empty() {
+                let CorrectionSum {
+                    squares,
+                    max,
+                    count,
+                } = self.correction;
+                let positioned = problem.values.len().max(1);
+                latency.record_correction(Correction {
+                    sequence,
+                    rmse: (squares / positioned as f64).sqrt(),
+                    max,
+                    moved: count,
+                });
+            }
+            latency.window.settle(solved);
+        }
+        changed
+    }
+
+    /// The covered provisional values written again: those an earlier slice skipped (their
+    /// answer was newer than the solve's sequence) from what the solve moved, the few it did not
+    /// move encoded here, under the lock. Each that changed carries the newest sequence, so that
+    /// a reader asking for what changed since its provisional answer sees the correction.
+    fn refresh_covered(
+        &mut self,
+        st: &mut State,
+        problem: &Problem,
+        covered: &[(usize, Key)],
+    ) -> Vec<VariableValue> {
         let unmoved: Vec<usize> = covered
             .iter()
             .filter(|&&(_, key)| !self.moved.contains(key))
             .map(|&(idx, _)| idx)
             .collect();
-        let unmoved = MovedValues::encode(problem, Some(&unmoved));
-        let mut covered_moved: Vec<(Key, WireValue)> = covered
+        let mut values: Vec<(Key, WireValue)> = covered
             .iter()
             .filter_map(|&(_, key)| Some((key, self.moved.get(key)?.clone())))
+            .chain(MovedValues::encode(problem, Some(&unmoved)).into_values())
             .collect();
-        covered_moved.sort_unstable_by_key(|&(key, _)| key);
-        for values in [&covered_moved[..], unmoved.values()] {
-            let correction = &mut self.correction;
-            let entries = &mut st.mirror.entries;
-            let (refreshed, _) = mirror::refresh_observed(
-                entries,
-                values,
-                (false, usize::MAX),
-                sequence,
-                &mut |old, new| correction.observe(old, new),
-            );
-            changed.extend(refreshed);
-        }
-        // A covered value that changed carries the newest sequence, so that a reader asking for
-        // what changed since its provisional answer sees the correction.
+        values.sort_unstable_by_key(|&(key, _)| key);
+        let correction = &mut self.correction;
+        let (changed, _) = mirror::refresh_observed(
+            &mut st.mirror.entries,
+            &values,
+            false,
+            usize::MAX,
+            self.sequence,
+            &mut |old, new| correction.observe(old, new),
+        );
         let newest = st.mirror.sequence;
-        for (_, key) in &covered {
+        for (_, key) in covered {
             if let Some(entry) = st.mirror.entries.get_mut(key) {
-                if entry.changed == sequence {
+                if entry.changed == self.sequence {
                     entry.changed = newest;
                 }
             }
         }
-        let solved = st.results.solved_sequence.max(sequence);
-        let positioned = problem.values.len().max(1);
-        let Some(latency) = st.latency.as_mut() else {
-            return changed;
-        };
-        if !covered.is_empty() {
-            let CorrectionSum {
-                squares,
-                max,
-                count,
-            } = self.correction;
-            latency.record_correction(Correction {
-                sequence,
-                rmse: (squares / positioned as f64).sqrt(),
-                max,
-                moved: count,
-            });
-        }
-        latency.window.settle(solved);
         changed
     }
 }
