@@ -7,7 +7,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::background_priority::Background;
+use super::background_priority::{self, Background};
 use super::incremental::{self, IncrementalSolver};
 use super::mirror::MovedValues;
 use super::outliers::{self, DecidedBy, OutlierOutcome, OutlierWork};
@@ -115,7 +115,10 @@ impl Session {
             let st = self.lock();
             (st.schedule.carried, st.latency.is_some())
         };
-        (carried, answered_provisionally.then(Background::enter))
+        (
+            carried,
+            answered_provisionally.then(|| Background::enter(&self.runtime)),
+        )
     }
 
     /// One solve on a pool worker: take the problem, optimise without the lock, hand it back,
@@ -237,12 +240,16 @@ impl Session {
         let lends = borrowed.count() > 0;
         let mut on_iteration = |report: &solver::IterationReport| {
             // Nothing is published of a batch before it is durable (see `journal_barrier`).
-            self.journal_barrier();
-            self.emit(SessionEvent::Iteration {
-                session: self.name.clone(),
-                solve: solve_number,
-                sequence,
-                report: report.clone(),
+            // Both wait for what the request path holds (and the barrier may run the fdatasync
+            // its batches wait for): at the worker's own priority, not the solve's.
+            background_priority::foreground(|| {
+                self.journal_barrier();
+                self.emit(SessionEvent::Iteration {
+                    session: self.name.clone(),
+                    solve: solve_number,
+                    sequence,
+                    report: report.clone(),
+                });
             });
             if budget.checkpoint().is_break() {
                 return ControlFlow::Break(());
