@@ -139,8 +139,7 @@ impl Entered {
     fn enter(runtime: &tokio::runtime::Handle, starved_after: Duration) -> Option<Self> {
         let nice = restorable().then(thread_nice).flatten()?;
         let mut watched = Watched {
-            // SAFETY: gettid has no preconditions.
-            tid: unsafe { libc::gettid() },
+            tid: own_tid(),
             nice,
             active: false,
             idle: true,
@@ -195,8 +194,7 @@ impl Drop for Background {
 pub(super) fn lower_for_good() {
     #[cfg(target_os = "linux")]
     {
-        // SAFETY: gettid has no preconditions.
-        let tid = unsafe { libc::gettid() };
+        let tid = own_tid();
         if !set_policy(tid, libc::SCHED_IDLE) {
             if let Some(nice) = thread_nice() {
                 let _ = set_nice(tid, nice + NICER_BY);
@@ -216,29 +214,28 @@ fn restorable() -> bool {
             let Some(nice) = thread_nice() else {
                 return false;
             };
-            // SAFETY: gettid has no preconditions.
-            let tid = unsafe { libc::gettid() };
-            set_nice(tid, nice + 1) && set_nice(tid, nice)
+            set_nice(own_tid(), nice + 1) && set_nice(own_tid(), nice)
         })
         .join()
         .unwrap_or(false)
     })
 }
 
-/// The calling thread's nice value (on Linux, `PRIO_PROCESS` with a thread id is that thread).
+/// The calling thread's id (what `PRIO_PROCESS` and `sched_setscheduler` take for a thread).
 #[cfg(target_os = "linux")]
-fn thread_nice() -> Option<i32> {
+fn own_tid() -> libc::pid_t {
     // SAFETY: gettid has no preconditions.
-    nice_of(unsafe { libc::gettid() })
+    unsafe { libc::gettid() }
 }
 
+/// The calling thread's nice value.
 #[cfg(target_os = "linux")]
-fn nice_of(tid: libc::pid_t) -> Option<i32> {
+fn thread_nice() -> Option<i32> {
     // SAFETY: getpriority reads a thread's priority. Its -1 is also a valid nice value, so
     // errno is cleared first and checked after.
     unsafe {
         *libc::__errno_location() = 0;
-        let nice = libc::getpriority(libc::PRIO_PROCESS, tid as libc::id_t);
+        let nice = libc::getpriority(libc::PRIO_PROCESS, own_tid() as libc::id_t);
         (*libc::__errno_location() == 0).then_some(nice)
     }
 }
@@ -268,16 +265,23 @@ mod tests {
         unsafe { libc::sched_getscheduler(0) }
     }
 
+    /// Runs `check` on a thread of its own (whose priority it may change), with its nice value
+    /// before and a runtime for the starvation timer.
+    fn on_a_thread(check: impl FnOnce(i32, &tokio::runtime::Handle) + Send + 'static) {
+        let runtime = tokio::runtime::Runtime::new().expect("a runtime");
+        let handle = runtime.handle().clone();
+        std::thread::spawn(move || check(thread_nice().expect("readable"), &handle))
+            .join()
+            .unwrap();
+    }
+
     /// The solve computes as `SCHED_IDLE` (where it can come back), and its thread's policy and
     /// priority are back after it.
     #[test]
     fn the_priority_comes_back_after_the_solve() {
-        let runtime = tokio::runtime::Runtime::new().expect("a runtime");
-        let handle = runtime.handle().clone();
-        std::thread::spawn(move || {
-            let before = thread_nice().expect("readable");
+        on_a_thread(|before, handle| {
             {
-                let _background = Background::enter(&handle);
+                let _background = Background::enter(handle);
                 if restorable() {
                     assert_eq!(policy(), libc::SCHED_IDLE);
                 } else {
@@ -291,41 +295,31 @@ mod tests {
             }
             assert_eq!(policy(), libc::SCHED_OTHER);
             assert_eq!(thread_nice(), Some(before));
-        })
-        .join()
-        .unwrap();
+        });
     }
 
     /// A step in the foreground runs at the thread's own priority, and the thread goes back to
     /// the background after it.
     #[test]
     fn a_step_in_the_foreground_runs_at_the_threads_own_priority() {
-        let runtime = tokio::runtime::Runtime::new().expect("a runtime");
-        let handle = runtime.handle().clone();
-        std::thread::spawn(move || {
-            let before = thread_nice().expect("readable");
+        on_a_thread(|before, handle| {
             assert_eq!(foreground(policy), libc::SCHED_OTHER, "outside: just runs");
-            let background = Background::enter(&handle);
+            let background = Background::enter(handle);
             let inside = policy();
             let (during, nice) = foreground(|| (policy(), thread_nice()));
             assert_eq!((during, nice), (libc::SCHED_OTHER, Some(before)));
             assert_eq!(policy(), inside, "back in the background");
             drop(background);
             assert_eq!((policy(), thread_nice()), (libc::SCHED_OTHER, Some(before)));
-        })
-        .join()
-        .unwrap();
+        });
     }
 
     /// A solve in the background longer than it should starve computes 10 nicer instead, and
     /// still comes back to its priority after.
     #[test]
     fn a_starved_solve_computes_nicer_instead() {
-        let runtime = tokio::runtime::Runtime::new().expect("a runtime");
-        let handle = runtime.handle().clone();
-        std::thread::spawn(move || {
-            let before = thread_nice().expect("readable");
-            let Some(entered) = Entered::enter(&handle, Duration::from_millis(20)) else {
+        on_a_thread(|before, handle| {
+            let Some(entered) = Entered::enter(handle, Duration::from_millis(20)) else {
                 assert!(!restorable(), "entered wherever it can be undone");
                 return;
             };
@@ -348,8 +342,6 @@ mod tests {
             drop(background);
             assert_eq!(policy(), libc::SCHED_OTHER);
             assert_eq!(thread_nice(), Some(before));
-        })
-        .join()
-        .unwrap();
+        });
     }
 }
