@@ -161,11 +161,6 @@ impl MovedValues {
         Self { values }
     }
 
-    /// Whether `key` is among them.
-    pub fn contains(&self, key: Key) -> bool {
-        self.get(key).is_some()
-    }
-
     /// The value of `key`, if it is among them.
     pub fn get(&self, key: Key) -> Option<&WireValue> {
         let at = self.values.binary_search_by_key(&key, |(k, _)| *k).ok()?;

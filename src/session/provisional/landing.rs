@@ -158,16 +158,15 @@ impl<'a> LandingRefresh<'a> {
         problem: &Problem,
         covered: &[(usize, Key)],
     ) -> Vec<VariableValue> {
-        let unmoved: Vec<usize> = covered
-            .iter()
-            .filter(|&&(_, key)| !self.moved.contains(key))
-            .map(|&(idx, _)| idx)
-            .collect();
-        let mut values: Vec<(Key, WireValue)> = covered
-            .iter()
-            .filter_map(|&(_, key)| Some((key, self.moved.get(key)?.clone())))
-            .chain(MovedValues::encode(problem, Some(&unmoved)).into_values())
-            .collect();
+        let mut values: Vec<(Key, WireValue)> = Vec::with_capacity(covered.len());
+        let mut unmoved = Vec::new();
+        for &(idx, key) in covered {
+            match self.moved.get(key) {
+                Some(value) => values.push((key, value.clone())),
+                None => unmoved.push(idx),
+            }
+        }
+        values.extend(MovedValues::encode(problem, Some(&unmoved)).into_values());
         values.sort_unstable_by_key(|&(key, _)| key);
         let correction = &mut self.correction;
         let (changed, _) = mirror::refresh_observed(
